@@ -1,0 +1,1 @@
+"""The pipeline: games, environments, rollout, executors, jobs and the command line."""

@@ -1,0 +1,197 @@
+"""Atari environments in the paper's setting, with object-centric dict observations.
+
+``make_env("pong")`` builds ``PongNoFrameskip-v4`` with frameskip 4 and sticky-action probability 0.0 (the
+paper's protocol; ``sticky=0.25, noop_max=30`` gives the standard stochastic Atari protocol) and wraps it:
+
+- :class:`NoopReset` takes a random number of NOOPs after reset (standard protocol only);
+- :class:`AutoFire` presses FIRE after reset and after every lost life (Breakout);
+- :class:`ObjectObservation` replaces the pixel observation by a plain dict of game objects read from RAM
+  by OCAtari's extractors.
+
+Observation conventions (the paper's): every object is ``{"x", "y", "w", "h", "dx", "dy"}`` (ints; dx/dy
+are the movement since the previous agent step, 0 when an object (re)appears). Categories with one object
+are keyed by name (``Player``, ``Ball``, ``Enemy``, ``Satellite``); categories with several are numbered
+densely in OCAtari's slot order (``Alien0``, ``Alien1``, ..., ``Shield0``, ``Bullet0``), so ``Alien{i}``
+exists for ``i < count``. Breakout's bricks are lists under ``RB OB YB GB AB BB`` (rows top to bottom),
+one 8-pixel brick per entry (OCAtari merges neighbouring bricks; we split them), always present, possibly
+empty. An object that is not on screen is an absent key, never a placeholder.
+
+We call OCAtari's RAM extractors directly instead of its ``OCAtari`` env class: the class returns
+``(obs, reward, truncated, terminated)`` in a non-Gymnasium order, keeps frame buffers we do not need, and
+does uint8 arithmetic that under numpy 2 corrupts Space Invaders objects and then overflows; passing the RAM
+as int64 gives the numpy-1 results (../shared/NOTES.md).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+import ale_py
+import gymnasium as gym
+import numpy as np
+from ocatari.ram import extract_ram_info
+from ocatari.ram import game_objects as ram_objects
+from ocatari.vision import game_objects as vision_objects
+
+from pipeline.games import GAMES, GameSpec, get_game
+
+Observation = dict[str, Any]
+
+BREAKOUT_ROWS = {57: "RB", 63: "OB", 69: "YB", 75: "GB", 81: "AB", 87: "BB"}
+"""Breakout brick rows by their y, top to bottom: Red, Orange, Yellow, Green, Aqua, Blue."""
+BRICK_WIDTH = 8
+
+ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # no banner for every environment
+gym.register_envs(ale_py)
+for _spec in GAMES.values():  # import the extractors once (worker processes fork with them loaded)
+    importlib.import_module(f"ocatari.ram.{_spec.ocatari_name.lower()}")
+
+
+class ObjectObservation(gym.Wrapper):
+    """Turn an ALE env's observations into the paper's object dicts (see the module docstring).
+
+    ``observation_space`` stays the wrapped image space: a dict whose keys come and go has no Gymnasium
+    space. ``info["ram"]`` is not added; the raw frame stays available through ``env.unwrapped.ale``.
+    """
+
+    def __init__(self, env: gym.Env, game: GameSpec):
+        super().__init__(env)
+        self.game = game
+        max_objects = extract_ram_info.get_max_objects(game.ocatari_name, False)
+        self._numbered = {category for category, count in max_objects.items() if count > 1}
+        self._objects: list = []
+        self._ale = env.unwrapped.ale
+
+    def reset(self, **kwargs):
+        _, info = self.env.reset(**kwargs)
+        self._objects = extract_ram_info.init_objects(self.game.ocatari_name, False)
+        return self._observe(), info
+
+    def step(self, action):
+        _, reward, terminated, truncated, info = self.env.step(action)
+        return self._observe(), reward, terminated, truncated, info
+
+    def _observe(self) -> Observation:
+        # int64: OCAtari's extractors do arithmetic on the RAM bytes, which wraps around under numpy 2.
+        ram = self._ale.getRAM().astype(np.int64)
+        extract_ram_info.detect_objects_ram(self._objects, ram, self.game.ocatari_name, False)
+        return objects_to_dict(self._objects, self._numbered, breakout=self.game.name == "breakout")
+
+
+_NO_OBJECT_CLASSES = (ram_objects.NoObject, vision_objects.NoObject)
+
+
+def objects_to_dict(objects: list, numbered: set[str], breakout: bool = False) -> Observation:
+    """Convert OCAtari's padded object list into the observation dict (``NoObject`` and invisible slots skipped).
+
+    This runs every step, so it reads OCAtari's fields directly instead of through its property chain
+    (``o.dx`` alone goes through three properties); the values are the same.
+    """
+    obs: Observation = {}
+    if breakout:
+        for row in BREAKOUT_ROWS.values():
+            obs[row] = []
+    counts: dict[str, int] = {}
+    for o in objects:
+        cls = o.__class__
+        if cls in _NO_OBJECT_CLASSES or not o._visible:
+            continue
+        category = cls.__name__
+        x, y = o._xy
+        w, h = o.wh
+        prev = o._prev_xy
+        x, y, w, h = int(x), int(y), int(w), int(h)
+        if breakout and category == "Block":
+            row = BREAKOUT_ROWS.get(y)
+            if row is not None:
+                bricks = obs[row]
+                for i in range(max(1, w // BRICK_WIDTH)):
+                    bricks.append({"x": x + i * BRICK_WIDTH, "y": y, "w": BRICK_WIDTH, "h": h, "dx": 0, "dy": 0})
+            continue
+        if prev is None:
+            dx = dy = 0
+        else:
+            dx, dy = x - int(prev[0]), y - int(prev[1])
+        value = {"x": x, "y": y, "w": w, "h": h, "dx": dx, "dy": dy}
+        if category in numbered:
+            n = counts.get(category, 0)
+            counts[category] = n + 1
+            obs[f"{category}{n}"] = value
+        else:
+            obs[category] = value
+    return obs
+
+
+class AutoFire(gym.Wrapper):
+    """Press FIRE after reset and after each lost life, so the ball is always launched (Breakout).
+
+    The extra FIRE step is part of the agent's step that lost the life: its reward is added and its
+    observation returned, so step counts stay the agent's own.
+    """
+
+    FIRE = 1
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self._lives = 0
+
+    def reset(self, **kwargs):
+        self.env.reset(**kwargs)
+        obs, _, terminated, truncated, info = self.env.step(self.FIRE)
+        if terminated or truncated:  # cannot happen on a fresh game; reset again rather than start dead
+            obs, info = self.env.reset(**kwargs)
+        self._lives = info.get("lives", 0)
+        return obs, info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        lives = info.get("lives", 0)
+        if lives < self._lives and not (terminated or truncated):
+            obs, extra, terminated, truncated, info = self.env.step(self.FIRE)
+            reward += extra
+            lives = info.get("lives", 0)
+        self._lives = lives
+        return obs, reward, terminated, truncated, info
+
+
+class NoopReset(gym.Wrapper):
+    """Take 1..noop_max NOOPs after reset, drawn from the env's seeded RNG (standard Atari protocol)."""
+
+    def __init__(self, env: gym.Env, noop_max: int):
+        super().__init__(env)
+        self.noop_max = noop_max
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        for _ in range(int(self.np_random.integers(1, self.noop_max + 1))):
+            obs, _, terminated, truncated, info = self.env.step(0)
+            if terminated or truncated:
+                obs, info = self.env.reset()
+        return obs, info
+
+
+def make_env(game: str | GameSpec, sticky: float = 0.0, noop_max: int = 0, render: bool = False) -> gym.Env:
+    """Build the wrapped environment for ``game``; see the module docstring for the observation format.
+
+    ``render=True`` keeps the RGB frame available through ``env.unwrapped.ale.getScreenRGB()`` (it always is;
+    the flag only asks ALE for ``rgb_array`` rendering for viewers that call ``env.render()``).
+    """
+    spec = game if isinstance(game, GameSpec) else get_game(game)
+    if not 0.0 <= sticky <= 1.0:
+        raise ValueError(f"sticky-action probability must be within [0, 1], got {sticky}")
+    if noop_max < 0:
+        raise ValueError(f"noop_max must be >= 0, got {noop_max}")
+    env = gym.make(
+        spec.env_id,
+        frameskip=4,
+        repeat_action_probability=sticky,
+        full_action_space=False,
+        render_mode="rgb_array" if render else None,
+        disable_env_checker=True,
+    )
+    if noop_max:
+        env = NoopReset(env, noop_max)
+    if spec.fire_on_life_loss:
+        env = AutoFire(env)
+    return ObjectObservation(env, spec)

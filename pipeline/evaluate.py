@@ -1,0 +1,144 @@
+"""``codearcade eval``: play a policy file for N episodes and put everything in the store.
+
+The whole job in one place: read and check the policy statically (a broken file fails here with one line;
+policy code itself only ever runs in the workers), create a run (kind ``eval``) with its policy version, play the episodes in worker processes, write
+each finished episode in its own transaction, and mark the run finished, failed or interrupted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+from pipeline.executor import run_episodes
+from pipeline.games import get_game
+from pipeline.rollout import EpisodeOutcome, EpisodeSpec
+from pipeline.runinfo import episode_id, new_run_id, package_versions
+from pipeline.versions import policy_version_row
+from store import Store
+from store.writer import finish_run, insert_policy_version, insert_run, write_episode
+from tracing.policy_file import PolicyLoadError, inspect_policy, read_policy_file
+
+
+@dataclass
+class EvalConfig:
+    """Options of an evaluation (the CLI flags of ``codearcade eval``)."""
+
+    game: str | None = None
+    """Game to play; None takes the policy file's ``GAME``. Both given and different is an error."""
+    episodes: int = 1
+    """Number of evaluation episodes."""
+    max_steps: int = 4000
+    """Steps after which an episode is cut off (reported as ``truncated``); the paper's cap is 4000."""
+    seed: int = 0
+    """Seed of the first episode; episode i uses ``seed + i``."""
+    trace: bool = False
+    """Record a node event for every call of a bundled method."""
+    sticky: float = 0.0
+    """Sticky-action probability (paper: 0.0; standard Atari protocol: 0.25)."""
+    noop_max: int = 0
+    """Up to this many random NOOPs after reset (paper: 0; standard protocol: 30)."""
+    workers: int = 1
+    """Worker processes playing episodes at once; 0 plays in this process (no isolation, for debugging)."""
+    call_time_limit_s: float = 1.0
+    """Time limit of one policy call."""
+    episode_time_limit_s: float = 900.0
+    """Wall-clock limit of one episode."""
+
+
+@dataclass
+class EvalResult:
+    run_id: str
+    game: str
+    policy_version_id: str
+    outcomes: list[EpisodeOutcome]
+
+    def summary(self) -> dict:
+        """The machine-readable summary printed by ``codearcade eval --json``."""
+        return {
+            "run_id": self.run_id,
+            "game": self.game,
+            "policy_version_id": self.policy_version_id,
+            "episodes": [
+                {
+                    "episode_id": o.episode["episode_id"],
+                    "seed": o.episode["seed"],
+                    "return": o.episode["return"],
+                    "length": o.episode["length"],
+                    "end_reason": o.end_reason,
+                    "error": o.episode["error"],
+                }
+                for o in self.outcomes
+            ],
+        }
+
+
+def resolve_game(declared: str | None, requested: str | None, source: str) -> str:
+    """The game to play, from ``--game`` and the policy's ``GAME``; errors say how to fix a mismatch."""
+    if requested is None and declared is None:
+        raise PolicyLoadError(f"{source} does not declare GAME = '...'; pass --game (pong, breakout, space_invaders)")
+    if requested is not None and declared is not None and get_game(requested) != get_game(declared):
+        raise PolicyLoadError(f"{source} declares GAME = '{declared}' but --game is '{requested}'; drop one of them")
+    return get_game(requested or declared).name
+
+
+def evaluate(
+    policy_path: str | Path,
+    config: EvalConfig,
+    store: Store,
+    progress: Callable[[int, int], None] | None = None,
+) -> EvalResult:
+    """Evaluate the policy file at ``policy_path``; see the module docstring. Raises PolicyLoadError,
+    UnknownGameError or StoreError with one-line messages for bad input, before anything is stored."""
+    if config.episodes < 1:
+        raise ValueError("--episodes must be at least 1")
+    if config.max_steps < 1:
+        raise ValueError("--max-steps must be at least 1")
+    text = read_policy_file(policy_path)
+    name = Path(policy_path).name
+    info = inspect_policy(text, name)
+    game = resolve_game(info.game, config.game, name)
+
+    run_id = new_run_id()
+    specs = [
+        EpisodeSpec(
+            episode_id=episode_id(run_id, 0, "eval", i), run_id=run_id, game=game, policy_text=text,
+            policy_version_id=info.version_id, policy_name=name, iteration=0, kind="eval", index=i,
+            seed=config.seed + i, max_steps=config.max_steps, sticky=config.sticky, noop_max=config.noop_max,
+            trace=config.trace, call_time_limit_s=config.call_time_limit_s,
+            episode_time_limit_s=config.episode_time_limit_s,
+        )
+        for i in range(config.episodes)
+    ]
+
+    def create_run() -> None:  # runs while the first episodes play
+        with store.write() as con:
+            insert_run(con, run_id, "eval", game, {**asdict(config), "game": game, "policy": str(policy_path)},
+                       text, info.version_id, package_versions(), seed=config.seed)
+            insert_policy_version(con, policy_version_row(info, run_id, 0, produced_by="file",
+                                                          validation="unvalidated"))
+
+    outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
+    done = 0
+    status, error = "failed", None
+    try:
+        for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
+            done += 1
+            with store.write() as con:
+                write_episode(con, outcome.episode, outcome.steps, outcome.nodes)
+                if done == len(specs):  # the last episode and the run's end in one transaction
+                    status = "finished"
+                    finish_run(con, run_id, status)
+            outcomes[i] = outcome
+    except KeyboardInterrupt:
+        status, error = "interrupted", "interrupted by the user"
+        raise
+    except BaseException as exc:
+        status, error = "failed", f"{type(exc).__name__}: {exc}"
+        raise
+    finally:
+        if status != "finished":
+            with store.write() as con:
+                finish_run(con, run_id, status, error)
+    return EvalResult(run_id, game, info.version_id, [o for o in outcomes if o is not None])

@@ -1,0 +1,226 @@
+"""One episode of a policy in an environment, captured step by step (and call by call when traced).
+
+:func:`run_episode` is a pure function of an :class:`EpisodeSpec` (picklable: the policy travels as text),
+returning an :class:`EpisodeOutcome` that holds the episode row and its steps and nodes as Arrow tables. The
+same function runs in-process, in a local worker process or as a Ray task; only the caller writes to the store.
+
+Whatever the policy does, the episode ends with a recorded ``end_reason``:
+``terminated`` (the game ended), ``truncated`` (``max_steps`` reached, or ALE's own limit),
+``policy_error`` (the policy raised, returned an illegal action, or could not be loaded), ``timeout`` (a
+policy call or the whole episode exceeded its time limit), or ``crashed`` (set by the executor when the worker
+process died). When the policy failed on a step, that step is stored with ``action`` NULL: its observation
+is what the policy failed on, and its nodes show where.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+import random
+import time
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
+from typing import Any, Callable
+
+import numpy as np
+import pyarrow as pa
+
+from pipeline.envs import make_env
+from pipeline.games import get_game
+from tracing.capture import NodeRecorder, failing_policy_line
+from tracing.policy_file import PolicyLoadError, load_policy
+from tracing.sandbox import CallTimer, PolicyTimeout
+from tracing.steps import StepLog
+
+PROGRESS_EVERY = 250
+"""Steps between progress callbacks."""
+
+
+@dataclass
+class EpisodeSpec:
+    """Everything needed to play one episode, in a form that can cross process boundaries."""
+
+    episode_id: str
+    run_id: str
+    game: str
+    policy_text: str
+    policy_version_id: str
+    policy_name: str = "policy.py"
+    iteration: int = 0
+    kind: str = "eval"
+    """``eval`` (evaluation episode) or ``train`` (traced training rollout of the optimizer)."""
+    index: int = 0
+    seed: int = 0
+    max_steps: int = 4000
+    sticky: float = 0.0
+    noop_max: int = 0
+    trace: bool = False
+    """Record a node for every call of a bundled method (slower; steps are always recorded)."""
+    call_time_limit_s: float = 1.0
+    """Limit for one policy call, ``policy(obs)``, including every bundled method it calls."""
+    episode_time_limit_s: float = 900.0
+    """Wall-clock limit for the whole episode."""
+    memory_limit_mb: int | None = 4096
+    """Extra address space a worker process may take beyond what it had at start (None: unlimited)."""
+
+
+@dataclass
+class EpisodeOutcome:
+    """An episode's row for the ``episodes`` table, with its step and node rows."""
+
+    episode: dict[str, Any]
+    steps: pa.Table
+    nodes: pa.Table | None = None
+
+    @property
+    def end_reason(self) -> str:
+        return self.episode["end_reason"]
+
+
+def coerce_action(action: Any, n_actions: int) -> int:
+    """The policy's return value as a legal action index, or ValueError saying why it is not one."""
+    if isinstance(action, (bool, np.bool_)):
+        raise ValueError(f"illegal action {action!r}: expected an int in 0..{n_actions - 1}, got a bool")
+    try:
+        index = operator.index(action)
+    except TypeError:
+        raise ValueError(
+            f"illegal action {action!r}: expected an int in 0..{n_actions - 1}, got {type(action).__name__}"
+        ) from None
+    if not 0 <= index < n_actions:
+        raise ValueError(f"illegal action {index}: legal actions are 0..{n_actions - 1}")
+    return index
+
+
+def _describe(exc: BaseException) -> str:
+    line, text = failing_policy_line(exc)
+    where = f" at line {line}: `{text}`" if line and text else (f" at line {line}" if line else "")
+    return f"{type(exc).__name__}: {exc}{where}"
+
+
+def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None) -> EpisodeOutcome:
+    """Play one episode as ``spec`` says and return what happened (never raises for policy misbehaviour)."""
+    game = get_game(spec.game)
+    started_at = time.time()
+    t0 = time.perf_counter()
+    steps = StepLog()
+    recorder = NodeRecorder() if spec.trace else None
+    end_reason, error = "truncated", None
+    score, lives_lost, length = 0.0, 0, 0
+    env_s = policy_s = 0.0
+
+    random.seed(spec.seed)
+    np.random.seed(spec.seed % 2**32)
+    try:
+        loaded = load_policy(spec.policy_text, spec.policy_name)
+    except PolicyLoadError as exc:
+        loaded, end_reason, error = None, "policy_error", str(exc)
+
+    if loaded is not None:
+        policy = loaded.policy
+        env = make_env(game, sticky=spec.sticky, noop_max=spec.noop_max)
+        try:
+            obs, info = env.reset(seed=spec.seed)
+            lives = info.get("lives", 0)
+            deadline = t0 + spec.episode_time_limit_s
+            with CallTimer() as timer, (recorder if recorder is not None else nullcontext()):
+                for step in range(spec.max_steps):
+                    now = time.perf_counter()
+                    if now >= deadline:
+                        end_reason = "timeout"
+                        error = f"episode exceeded its time limit of {spec.episode_time_limit_s:g} s"
+                        break
+                    steps.observe(obs)  # before the policy: a policy that mutates obs cannot alter the record
+                    if recorder is not None:
+                        recorder.begin_step(step, obs)
+                    end_reason = None
+                    try:
+                        timer.arm(min(spec.call_time_limit_s or math.inf, deadline - now))
+                        try:
+                            raw_action = policy(obs)
+                        finally:
+                            timer.disarm()
+                        action = coerce_action(raw_action, game.n_actions)
+                    except PolicyTimeout as exc:
+                        end_reason, error = "timeout", _describe(exc)
+                    except KeyboardInterrupt:
+                        raise
+                    except BaseException as exc:  # noqa: BLE001 - untrusted code: anything, SystemExit too
+                        end_reason, error = "policy_error", _describe(exc)
+                    after_policy = time.perf_counter()
+                    policy_s += after_policy - now
+                    if end_reason is not None:
+                        steps.outcome(step, None, 0.0, score, False, False, lives)
+                        break
+                    obs, reward, terminated, truncated, info = env.step(action)
+                    env_s += time.perf_counter() - after_policy
+                    score += float(reward)
+                    steps.outcome(step, action, float(reward), score, bool(terminated), bool(truncated), lives)
+                    new_lives = info.get("lives", lives)
+                    if game.lives:
+                        lives_lost += max(0, lives - new_lives)
+                    elif reward < 0:
+                        lives_lost += 1  # points conceded, for games without lives
+                    lives = new_lives
+                    length = step + 1
+                    if progress is not None and length % PROGRESS_EVERY == 0:
+                        progress(length)
+                    if terminated or truncated:
+                        end_reason = "terminated" if terminated else "truncated"
+                        break
+                else:
+                    end_reason = "truncated"
+        finally:
+            env.close()
+    if progress is not None:
+        progress(length)
+
+    episode = dict(
+        episode_id=spec.episode_id,
+        run_id=spec.run_id,
+        iteration=spec.iteration,
+        kind=spec.kind,
+        episode_index=spec.index,
+        game=game.name,
+        seed=spec.seed,
+        policy_version_id=spec.policy_version_id,
+        max_steps=spec.max_steps,
+        traced=spec.trace,
+        sticky=spec.sticky,
+        noop_max=spec.noop_max,
+        started_at=_utc(started_at),
+        duration_s=time.perf_counter() - t0,
+        env_s=env_s,
+        policy_s=policy_s,
+        length=length,
+        lives_lost=lives_lost,
+        end_reason=end_reason,
+        error=error,
+    )
+    episode["return"] = score
+    return EpisodeOutcome(episode, steps.table(), recorder.table() if recorder is not None else None)
+
+
+def crashed_outcome(spec: EpisodeSpec, error: str, duration_s: float = 0.0) -> EpisodeOutcome:
+    """The outcome recorded for an episode whose worker died or was killed before reporting."""
+    episode = dict(
+        episode_id=spec.episode_id, run_id=spec.run_id, iteration=spec.iteration, kind=spec.kind,
+        episode_index=spec.index, game=spec.game, seed=spec.seed,
+        policy_version_id=spec.policy_version_id, max_steps=spec.max_steps, traced=spec.trace,
+        sticky=spec.sticky, noop_max=spec.noop_max, started_at=None, duration_s=duration_s, env_s=None,
+        policy_s=None, length=0, lives_lost=0, end_reason="crashed", error=error,
+    )
+    episode["return"] = 0.0
+    return EpisodeOutcome(episode, StepLog().table(), None)
+
+
+def spec_dict(spec: EpisodeSpec) -> dict[str, Any]:
+    """The spec without the policy text (for configs and logs)."""
+    d = asdict(spec)
+    d.pop("policy_text")
+    return d
+
+
+def _utc(epoch: float) -> datetime:
+    return datetime.fromtimestamp(epoch, timezone.utc).replace(tzinfo=None)

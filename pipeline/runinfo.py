@@ -1,0 +1,36 @@
+"""Identity and provenance of runs: ULID run ids, episode ids, and the package versions a run used."""
+
+from __future__ import annotations
+
+import os
+import time
+from importlib import metadata
+
+_CROCKFORD = "0123456789ABCDEFGHJKMNPQRSTVWXYZ"
+
+PROVENANCE_PACKAGES = (
+    "codearcade", "gymnasium", "ale-py", "ocatari", "numpy", "duckdb", "pyarrow", "rerun-sdk", "litellm", "radon",
+)
+
+
+def new_run_id(now: float | None = None) -> str:
+    """A ULID: 48 bits of milliseconds then 80 random bits, 26 Crockford base-32 characters (sortable by time)."""
+    ms = int((time.time() if now is None else now) * 1000)
+    value = (ms << 80) | int.from_bytes(os.urandom(10), "big")
+    return "".join(_CROCKFORD[(value >> shift) & 31] for shift in range(125, -1, -5))
+
+
+def episode_id(run_id: str, iteration: int, kind: str, index: int) -> str:
+    """Deterministic episode id: ``{run_id}.{iteration}.{kind}.{index}`` (re-running an episode replaces it)."""
+    return f"{run_id}.{iteration}.{kind}.{index}"
+
+
+def package_versions() -> dict[str, str]:
+    """Installed versions of the packages that decide a run's behaviour."""
+    versions = {}
+    for name in PROVENANCE_PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions

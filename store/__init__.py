@@ -1,0 +1,9 @@
+"""The DuckDB event store: schema and migrations, short-lived connections, batched writers, slice readers.
+
+The store is codearcade's public API: everything a run does lands here, and the optimizer and viewers read
+only from here. See docs/schema.md for the tables.
+"""
+
+from store.db import DEFAULT_STORE, Store, StoreError, default_store_path
+
+__all__ = ["Store", "StoreError", "DEFAULT_STORE", "default_store_path"]

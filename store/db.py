@@ -1,0 +1,174 @@
+"""Opening the DuckDB store: short-lived connections, lock retries, migrations, clear errors.
+
+DuckDB lets one process hold a database file for writing, and while it does every other process's open
+(read-only too) fails. codearcade therefore never keeps the file open: every batch of writes and every query
+opens a connection, does its work and closes it (~15 ms), and an open that meets a lock is retried with
+backoff for up to ``lock_timeout_s``. A writer holds the file for one transaction at a time, so readers (``codearcade sql``
+during a run) get in between batches.
+
+Errors are :class:`StoreError` with a one-line message: not a DuckDB file, written by a newer codearcade,
+locked for too long, a directory that cannot be written.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import time
+from contextlib import contextmanager
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterator
+
+import duckdb
+
+from store.migrations import LATEST, MIGRATIONS
+
+DEFAULT_STORE = "codearcade.duckdb"
+
+
+class StoreError(Exception):
+    """A store that cannot be used; the message says why and what to do."""
+
+
+def default_store_path() -> str:
+    """``$CODEARCADE_STORE`` if set, else ``codearcade.duckdb`` in the current directory."""
+    return os.environ.get("CODEARCADE_STORE") or DEFAULT_STORE
+
+
+def utcnow() -> datetime:
+    """Naive UTC timestamp, as the store's TIMESTAMP columns hold."""
+    return datetime.now(timezone.utc).replace(tzinfo=None)
+
+
+def _is_lock_error(exc: Exception) -> bool:
+    text = str(exc)
+    return "Could not set lock" in text or "Conflicting lock" in text
+
+
+class Store:
+    """A codearcade store at ``path``. Cheap to create; connections are opened per use.
+
+    ``store.write()`` yields a read-write connection inside a transaction (committed on success, rolled back
+    on error); ``store.read()`` yields a read-only connection. Both retry while another process holds the file.
+    """
+
+    def __init__(self, path: str | os.PathLike | None = None, lock_timeout_s: float = 60.0):
+        self.path = Path(path if path is not None else default_store_path())
+        self.lock_timeout_s = lock_timeout_s
+        self._migrated = False
+
+    def __repr__(self) -> str:
+        return f"Store({str(self.path)!r})"
+
+    def exists(self) -> bool:
+        return self.path.exists()
+
+    def _open(self, read_only: bool) -> duckdb.DuckDBPyConnection:
+        # Writes are small batches: one thread leaves the other core to the episode workers.
+        config = {} if read_only else {"threads": 1}
+        deadline = time.monotonic() + self.lock_timeout_s
+        delay = 0.01
+        while True:
+            try:
+                return duckdb.connect(str(self.path), read_only=read_only, config=config)
+            except duckdb.IOException as exc:
+                text = str(exc)
+                if "not a valid DuckDB database file" in text:
+                    raise StoreError(f"{self.path} is not a codearcade store (not a DuckDB file); "
+                                     "give another --store path") from None
+                if _is_lock_error(exc):
+                    if time.monotonic() >= deadline:
+                        holder = text.split("Conflicting lock is held in", 1)[-1].split(". See also")[0].strip()
+                        raise StoreError(f"{self.path} stayed locked by another process for "
+                                         f"{self.lock_timeout_s:g} s (held by {holder}); wait for it or use "
+                                         "another --store") from None
+                    time.sleep(delay * (0.5 + random.random()))
+                    delay = min(delay * 2, 0.25)
+                    continue
+                if "Permission denied" in text or "Read-only file system" in text:
+                    raise StoreError(f"cannot write {self.path}: {text.split('Error: ', 1)[-1]}; "
+                                     "choose a writable --store location") from None
+                raise StoreError(f"cannot open {self.path}: {text}") from None
+            except duckdb.Error as exc:
+                if "version" in str(exc).lower() and "storage" in str(exc).lower():
+                    raise StoreError(f"{self.path} was written by an incompatible DuckDB: {exc}") from None
+                raise
+
+    def _check_version(self, con: duckdb.DuckDBPyConnection) -> int:
+        has_table = con.execute(
+            "SELECT count(*) FROM information_schema.tables WHERE table_name = 'schema_migrations'"
+        ).fetchone()[0]
+        if not has_table:
+            return 0
+        version = con.execute("SELECT coalesce(max(version), 0) FROM schema_migrations").fetchone()[0]
+        if version > LATEST:
+            raise StoreError(
+                f"{self.path} has schema version {version}, newer than this codearcade understands ({LATEST}); "
+                "upgrade codearcade to use it"
+            )
+        return version
+
+    def _migrate(self, con: duckdb.DuckDBPyConnection) -> None:
+        current = self._check_version(con)
+        if current == 0:
+            con.execute(
+                "CREATE TABLE IF NOT EXISTS schema_migrations "
+                "(version INTEGER PRIMARY KEY, name VARCHAR NOT NULL, applied_at TIMESTAMP NOT NULL)"
+            )
+        for version, name, sql in MIGRATIONS:
+            if version <= current:
+                continue
+            con.execute("BEGIN TRANSACTION")
+            try:
+                con.execute(sql)
+                con.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", [version, name, utcnow()])
+                con.execute("COMMIT")
+            except Exception:
+                con.execute("ROLLBACK")
+                raise
+        self._migrated = True
+
+    @contextmanager
+    def write(self) -> Iterator[duckdb.DuckDBPyConnection]:
+        """A read-write connection in a transaction; creates and migrates the store on first use."""
+        parent = self.path.parent
+        if not parent.exists():
+            raise StoreError(f"directory {parent} for the store does not exist; create it or choose another --store")
+        if not os.access(parent, os.W_OK) and not self.path.exists():
+            raise StoreError(f"cannot create {self.path}: directory {parent} is not writable; choose another --store")
+        con = self._open(read_only=False)
+        try:
+            if not self._migrated:
+                self._migrate(con)
+            con.execute("BEGIN TRANSACTION")
+            try:
+                yield con
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+        except duckdb.IOException as exc:
+            if "No space left" in str(exc) or "Could not write" in str(exc):
+                raise StoreError(f"cannot write {self.path}: the disk is full ({exc})") from None
+            raise
+        finally:
+            con.close()
+
+    @contextmanager
+    def read(self) -> Iterator[duckdb.DuckDBPyConnection]:
+        """A read-only connection to an existing store."""
+        if not self.path.exists():
+            raise StoreError(f"no store at {self.path}; run `codearcade eval` or `codearcade optimize` first, "
+                             "or point --store / CODEARCADE_STORE at an existing one")
+        con = self._open(read_only=True)
+        try:
+            self._check_version(con)
+            yield con
+        finally:
+            con.close()
+
+    def query(self, sql: str, params: list[Any] | None = None) -> list[tuple]:
+        """Run one read-only query and return all rows."""
+        with self.read() as con:
+            return con.execute(sql, params or []).fetchall()

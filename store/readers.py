@@ -1,0 +1,80 @@
+"""Readers that return slices of the store as plain Python values, for the optimizer and the viewers.
+
+Each takes an open connection (``with store.read() as con:``) so a caller can read several slices in one
+open. Step slices come back with the observation dict rebuilt exactly as the policy saw it.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, Iterable
+
+import duckdb
+
+from tracing.steps import objects_to_obs
+
+
+def _rows(cursor: duckdb.DuckDBPyConnection) -> list[dict[str, Any]]:
+    names = [d[0] for d in cursor.description]
+    return [dict(zip(names, row)) for row in cursor.fetchall()]
+
+
+def episode_steps(
+    con: duckdb.DuckDBPyConnection,
+    episode_id: str,
+    start: int = 0,
+    stop: int | None = None,
+    list_keys: Iterable[str] = (),
+) -> list[dict[str, Any]]:
+    """Steps ``start <= step < stop`` of an episode, in order; each with ``obs`` rebuilt (see tracing/steps.py)."""
+    rows = _rows(
+        con.execute(
+            """SELECT step, action, reward, score, terminated, truncated, lives, objects
+               FROM steps WHERE episode_id = ? AND step >= ? AND step < ? ORDER BY step""",
+            [episode_id, start, stop if stop is not None else 2**31 - 1],
+        )
+    )
+    keys = tuple(list_keys)
+    for row in rows:
+        row["obs"] = objects_to_obs(row.pop("objects"), keys)
+    return rows
+
+
+def step_nodes(
+    con: duckdb.DuckDBPyConnection, episode_id: str, start: int = 0, stop: int | None = None
+) -> list[dict[str, Any]]:
+    """Node calls of steps ``start <= step < stop``, ordered by step and call index; JSON decoded."""
+    rows = _rows(
+        con.execute(
+            """SELECT step, call_index, function, trainable, policy_version_id, inputs, output, exc_type,
+                      exc_message, exc_line, exc_source, duration_us, parents
+               FROM nodes WHERE episode_id = ? AND step >= ? AND step < ? ORDER BY step, call_index""",
+            [episode_id, start, stop if stop is not None else 2**31 - 1],
+        )
+    )
+    for row in rows:
+        row["inputs"] = json.loads(row["inputs"]) if row["inputs"] is not None else None
+        row["output"] = json.loads(row["output"]) if row["output"] is not None else None
+    return rows
+
+
+def run_episodes(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict[str, Any]]:
+    """Every episode of a run with its return, length and end reason, in (iteration, kind, index) order."""
+    return _rows(
+        con.execute(
+            """SELECT episode_id, iteration, kind, episode_index, seed, policy_version_id, return, length,
+                      lives_lost, end_reason, error, duration_s
+               FROM episodes WHERE run_id = ? ORDER BY iteration, kind, episode_index""",
+            [run_id],
+        )
+    )
+
+
+def get_run(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any] | None:
+    rows = _rows(con.execute("SELECT * FROM runs WHERE run_id = ?", [run_id]))
+    return rows[0] if rows else None
+
+
+def blob_text(con: duckdb.DuckDBPyConnection, digest: str) -> str | None:
+    row = con.execute("SELECT text FROM blobs WHERE hash = ?", [digest]).fetchone()
+    return row[0] if row else None

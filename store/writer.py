@@ -1,0 +1,116 @@
+"""Batched writes into the store: runs, content-addressed blobs, policy versions, whole episodes.
+
+Every function takes an open read-write connection (``with store.write() as con:``), so a caller groups
+what belongs together into one transaction. Step and node rows arrive as Arrow tables and go in with one
+``INSERT ... BY NAME SELECT`` each, never row by row. Re-playing an episode (resume) writes it with
+``replace=True``, which first deletes its earlier rows, so rows are never duplicated.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from datetime import datetime
+from typing import Any
+
+import duckdb
+import pyarrow as pa
+
+from store.db import utcnow
+
+
+def text_hash(text: str) -> str:
+    """Content address of a blob: SHA-256 hex."""
+    return hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()
+
+
+def put_blob(con: duckdb.DuckDBPyConnection, kind: str, text: str) -> str:
+    """Store ``text`` once under its content hash and return the hash."""
+    digest = text_hash(text)
+    con.execute(
+        "INSERT INTO blobs (hash, kind, text, chars) VALUES (?, ?, ?, ?) ON CONFLICT DO NOTHING",
+        [digest, kind, text, len(text)],
+    )
+    return digest
+
+
+def insert_run(
+    con: duckdb.DuckDBPyConnection,
+    run_id: str,
+    kind: str,
+    game: str,
+    config: dict[str, Any],
+    starter_text: str,
+    starter_version_id: str,
+    package_versions: dict[str, str],
+    model: str | None = None,
+    seed: int | None = None,
+    created_at: datetime | None = None,
+) -> None:
+    starter_hash = put_blob(con, "policy", starter_text)
+    con.execute(
+        """INSERT INTO runs (run_id, created_at, kind, game, config, model, seed, status, package_versions,
+                             starter_policy_hash, starter_version_id)
+           VALUES (?, ?, ?, ?, ?, ?, ?, 'running', ?, ?, ?)""",
+        [run_id, created_at or utcnow(), kind, game, json.dumps(config, sort_keys=True), model, seed,
+         json.dumps(package_versions, sort_keys=True), starter_hash, starter_version_id],
+    )
+
+
+def finish_run(con: duckdb.DuckDBPyConnection, run_id: str, status: str, error: str | None = None) -> None:
+    con.execute(
+        "UPDATE runs SET status = ?, finished_at = ?, error = ? WHERE run_id = ?",
+        [status, utcnow(), error, run_id],
+    )
+
+
+def insert_policy_version(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -> None:
+    """Insert one ``policy_versions`` row (``row`` holds its columns; ``source`` is stored as a blob)."""
+    row = dict(row)
+    row["source_hash"] = put_blob(con, "policy", row.pop("source"))
+    for function in row.get("functions") or []:
+        function["source_hash"] = put_blob(con, "source", function.pop("source"))
+    row.setdefault("created_at", utcnow())
+    columns = list(row)
+    con.execute(
+        f"INSERT OR REPLACE INTO policy_versions ({', '.join(columns)}) VALUES ({', '.join('?' * len(columns))})",
+        [row[c] for c in columns],
+    )
+
+
+def write_episode(
+    con: duckdb.DuckDBPyConnection,
+    episode: dict[str, Any],
+    steps: pa.Table,
+    nodes: pa.Table | None,
+    replace: bool = False,
+) -> None:
+    """Insert an episode row with its steps and nodes.
+
+    ``replace=True`` first deletes earlier rows of the same ``episode_id`` (re-playing an episode on resume);
+    it costs a scan of the steps table, so fresh episodes skip it.
+    """
+    episode_id = episode["episode_id"]
+    if replace:
+        for table in ("nodes", "steps", "episodes"):
+            con.execute(f"DELETE FROM {table} WHERE episode_id = ?", [episode_id])
+    columns = list(episode)
+    con.execute(
+        f"INSERT INTO episodes ({', '.join(columns)}) VALUES ({', '.join('?' * len(columns))})",
+        [episode[c] for c in columns],
+    )
+    if steps.num_rows:
+        con.register("incoming_steps", steps)
+        try:
+            con.execute("INSERT INTO steps BY NAME SELECT ? AS episode_id, * FROM incoming_steps", [episode_id])
+        finally:
+            con.unregister("incoming_steps")
+    if nodes is not None and nodes.num_rows:
+        con.register("incoming_nodes", nodes)
+        try:
+            con.execute(
+                "INSERT INTO nodes BY NAME SELECT ? AS episode_id, ? AS policy_version_id, * FROM incoming_nodes",
+                [episode_id, episode["policy_version_id"]],
+            )
+        finally:
+            con.unregister("incoming_nodes")

@@ -1,0 +1,1 @@
+"""codearcade test suite."""

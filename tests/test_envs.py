@@ -1,0 +1,136 @@
+"""The environments: paper settings, the observation conventions of each game, auto-fire, protocols."""
+
+from __future__ import annotations
+
+import pytest
+
+from pipeline.envs import BREAKOUT_ROWS, make_env
+from pipeline.games import GAMES, UnknownGameError, get_game
+
+FIELDS = {"x", "y", "w", "h", "dx", "dy"}
+
+
+def _play(game: str, actions, steps: int, **kwargs):
+    env = make_env(game, **kwargs)
+    obs, info = env.reset(seed=0)
+    seen = [obs]
+    infos = [info]
+    for i in range(steps):
+        obs, reward, terminated, truncated, info = env.step(actions[i % len(actions)])
+        seen.append(obs)
+        infos.append(info)
+        if terminated or truncated:
+            break
+    env.close()
+    return seen, infos
+
+
+def _objects(obs):
+    for key, value in obs.items():
+        for o in value if isinstance(value, list) else [value]:
+            yield key, o
+
+
+def test_unknown_game_lists_known_ones():
+    with pytest.raises(UnknownGameError) as err:
+        get_game("brekout")
+    message = str(err.value)
+    assert "brekout" in message and "pong, breakout, space_invaders" in message and "breakout" in message
+
+
+def test_game_name_spellings():
+    assert get_game("SpaceInvaders").name == "space_invaders"
+    assert get_game("space-invaders").name == "space_invaders"
+    assert get_game("Pong") is GAMES["pong"]
+
+
+@pytest.mark.parametrize("game", list(GAMES))
+def test_paper_settings(game):
+    env = make_env(game)
+    ale_env = env.unwrapped
+    assert env.spec is None or env.unwrapped.spec.id == get_game(game).env_id
+    assert ale_env.spec.id == get_game(game).env_id
+    assert ale_env._frameskip == 4
+    assert ale_env.ale.getFloat("repeat_action_probability") == 0.0
+    assert env.action_space.n == get_game(game).n_actions
+    env.close()
+
+
+@pytest.mark.parametrize("game", list(GAMES))
+def test_every_object_has_int_fields(game):
+    seen, _ = _play(game, [0, 2, 3, 1], 300)
+    assert any(len(list(_objects(o))) for o in seen)
+    for obs in seen:
+        for key, o in _objects(obs):
+            assert set(o) == FIELDS, key
+            assert all(type(v) is int for v in o.values()), (key, o)
+
+
+def test_pong_keys_and_absent_ball():
+    seen, _ = _play("pong", [0], 200)
+    assert all(set(obs) <= {"Player", "Ball", "Enemy"} for obs in seen)
+    assert any("Ball" not in obs for obs in seen), "the ball is off screen between points: key must be absent"
+    assert any("Ball" in obs for obs in seen)
+    assert all(obs["Player"]["x"] == 140 for obs in seen if "Player" in obs)
+
+
+def test_breakout_rows_are_lists_of_bricks():
+    seen, _ = _play("breakout", [2, 3], 50)
+    first = seen[0]
+    for row, y in zip(BREAKOUT_ROWS.values(), BREAKOUT_ROWS):
+        assert isinstance(first[row], list)
+        assert first[row], f"row {row} starts full"
+        assert all(b["y"] == y and b["w"] == 8 for b in first[row])
+    assert sum(len(first[row]) for row in BREAKOUT_ROWS.values()) == 108
+    assert "Block" not in first and "Player" in first
+
+
+def test_breakout_fires_at_start_and_after_a_lost_life():
+    seen, infos = _play("breakout", [0], 400)  # never moves: loses every ball
+    assert "Ball" in seen[1], "the ball is launched without the policy pressing FIRE"
+    lives = [info["lives"] for info in infos]
+    lost_at = [i for i in range(1, len(lives)) if lives[i] < lives[i - 1]]
+    assert len(lost_at) >= 2
+    for i in lost_at:
+        if lives[i] > 0:
+            assert any("Ball" in obs for obs in seen[i : i + 3]), "relaunched after the lost life"
+
+
+def test_space_invaders_numbering_and_bullet_direction():
+    seen, _ = _play("space_invaders", [1, 4, 5], 400)
+    first = seen[0]
+    aliens = sorted((k for k in first if k.startswith("Alien")), key=lambda k: int(k[5:]))
+    assert aliens == [f"Alien{i}" for i in range(len(aliens))] and len(aliens) == 36
+    assert {"Shield0", "Shield1", "Shield2", "Player"} <= set(first)
+    dys = {"up": 0, "down": 0}
+    for obs in seen:
+        numbered = sorted((k for k in obs if k.startswith("Alien")), key=lambda k: int(k[5:]))
+        assert numbered == [f"Alien{i}" for i in range(len(numbered))], "dense numbering"
+        for key, o in obs.items():
+            if key.startswith("Bullet") and o["dy"]:
+                dys["up" if o["dy"] < 0 else "down"] += 1
+    assert dys["up"] > 0 and dys["down"] > 0, "player bullets rise (dy<0), alien bullets fall (dy>0)"
+
+
+def test_paper_protocol_is_deterministic_and_standard_protocol_is_not():
+    a, _ = _play("pong", [2, 3, 0], 150)
+    b, _ = _play("pong", [2, 3, 0], 150)
+    assert a == b
+
+    def run(seed):
+        env = make_env("pong", sticky=0.25, noop_max=30)
+        obs, _ = env.reset(seed=seed)
+        trail = [obs]
+        for i in range(150):
+            obs, *_ = env.step([2, 3, 0][i % 3])
+            trail.append(obs)
+        return trail
+
+    assert run(1) != run(2)
+
+
+def test_bad_protocol_values():
+    with pytest.raises(ValueError):
+        make_env("pong", sticky=1.5)
+    with pytest.raises(ValueError):
+        make_env("pong", noop_max=-1)

@@ -1,0 +1,155 @@
+"""`codearcade eval` end to end: real ALE, real worker processes, a real DuckDB file."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.executor import run_episodes
+from pipeline.rollout import EpisodeSpec
+from tests.conftest import EXAMPLES, POLICIES, ROOT, pong_policy
+
+BUNDLED_CALLS_PER_STEP = {"pong": 2, "breakout": 3, "space_invaders": 3}
+
+
+def run_cli(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.mark.parametrize("game", ["pong", "breakout", "space_invaders"])
+def test_examples_evaluate_end_to_end_with_trace(game, store, capsys):
+    code, out, err = run_cli(capsys, "eval", EXAMPLES / f"{game}.py", "--trace", "--max-steps", 600,
+                             "--store", store.path, "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    episode = summary["episodes"][0]
+    assert episode["end_reason"] in ("terminated", "truncated")
+    length = episode["length"]
+    episode_id = episode["episode_id"]
+    assert store.query("SELECT count(*) FROM steps WHERE episode_id = ?", [episode_id])[0][0] == length
+    nodes = store.query("SELECT count(*) FROM nodes WHERE episode_id = ?", [episode_id])[0][0]
+    assert nodes == length * BUNDLED_CALLS_PER_STEP[game]
+    # the last bundled call of every step (select_action, combine_actions, ...) consumed earlier outputs
+    last_calls = store.query(
+        "SELECT parents FROM nodes WHERE episode_id = ? AND call_index = ?", [episode_id, BUNDLED_CALLS_PER_STEP[game] - 1]
+    )
+    assert len(last_calls) == length and all(parents for (parents,) in last_calls)
+    run = store.query("SELECT kind, game, status FROM runs WHERE run_id = ?", [summary["run_id"]])[0]
+    assert run == ("eval", game, "finished")
+    versions = store.query("SELECT produced_by, loc, complexity, len(functions) FROM policy_versions")
+    assert versions[0][0] == "file" and versions[0][1] > 40 and versions[0][3] == BUNDLED_CALLS_PER_STEP[game]
+
+
+def test_competent_pong_policy_wins_a_full_game(store):
+    from pipeline.evaluate import EvalConfig, evaluate
+
+    result = evaluate(POLICIES / "pong_competent.py", EvalConfig(max_steps=27_000), store)
+    episode = result.outcomes[0].episode
+    assert episode["end_reason"] == "terminated"
+    assert episode["return"] >= 19, episode
+
+
+def test_summary_table_and_truncation(store, capsys):
+    code, out, err = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--episodes", 2, "--max-steps", 50,
+                             "--store", store.path)
+    assert code == 0, err
+    assert "truncated" in out and "mean return" in out
+    rows = store.query("SELECT episode_index, seed, length, end_reason FROM episodes ORDER BY episode_index")
+    assert rows == [(0, 0, 50, "truncated"), (1, 1, 50, "truncated")]
+
+
+def test_standard_protocol_flags_are_recorded(store, capsys):
+    code, out, _ = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 30, "--sticky", 0.25,
+                           "--noop-max", 30, "--store", store.path, "--json")
+    assert code == 0
+    assert store.query("SELECT sticky, noop_max FROM episodes") == [(0.25, 30)]
+
+
+@pytest.mark.parametrize(
+    "argv_tail, text, fragment",
+    [
+        (["--game", "brekout"], None, "unknown game 'brekout'"),
+        ([], "import os\n" + pong_policy("return 0"), "import of 'os' is not allowed"),
+        ([], pong_policy("import subprocess\nreturn 0"), "import of 'subprocess' is not allowed"),
+        ([], pong_policy("return (0"), "syntax error"),
+        ([], "import tracing as trace\nGAME = 'pong'\n", "no class named 'Policy'"),
+        ([], pong_policy("return 0").replace('GAME = "pong"', ""), "does not declare GAME"),
+        (["--game", "breakout"], pong_policy("return 0"), "declares GAME = 'pong' but --game is 'breakout'"),
+    ],
+)
+def test_bad_input_is_one_line_and_stores_nothing(argv_tail, text, fragment, store, write_policy, capsys):
+    path = write_policy(text) if text is not None else EXAMPLES / "pong.py"
+    code, out, err = run_cli(capsys, "eval", path, *argv_tail, "--store", store.path)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and fragment in lines[0], err
+    assert not store.exists() or store.query("SELECT count(*) FROM runs")[0][0] == 0
+
+
+def test_missing_policy_file(store, capsys):
+    code, _, err = run_cli(capsys, "eval", "no/such/policy.py", "--store", store.path)
+    assert code == 2 and "does not exist" in err
+
+
+@pytest.mark.parametrize(
+    "body, end_reason, fragment",
+    [
+        ("while True:\n    pass", "timeout", "time limit"),
+        ("return 7", "policy_error", "illegal action 7"),
+        ("return 'up'", "policy_error", "illegal action 'up'"),
+        ("return None", "policy_error", "illegal action None"),
+        ("return {}['missing']", "policy_error", "KeyError"),
+        ("import random\nreturn random._os.system('true')", "policy_error", "available to policies"),
+        ("raise SystemExit(3)", "policy_error", "SystemExit"),
+        ("x = bytearray(10 * 2**30)\nreturn 0", "policy_error", "MemoryError"),
+        ("return self.select_action(predicted_ball_y, obs)", "policy_error", "RecursionError"),
+    ],
+)
+def test_misbehaving_policy_ends_its_episode_with_a_reason(body, end_reason, fragment, store, write_policy, capsys):
+    # an earlier, healthy run in the same store must survive untouched
+    assert run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 40, "--store", store.path)[0] == 0
+    before = store.query("SELECT count(*) FROM steps")[0][0]
+    path = write_policy(pong_policy(body))
+    code, out, err = run_cli(capsys, "eval", path, "--call-time-limit", 0.3, "--store", store.path, "--json")
+    assert code == 1
+    episode = json.loads(out)["episodes"][0]
+    assert episode["end_reason"] == end_reason and fragment in episode["error"], episode
+    assert "\n" not in err.strip()
+    assert store.query("SELECT count(*) FROM steps")[0][0] == before + 1, "earlier rows kept; failing step stored"
+    failing = store.query("SELECT action FROM steps WHERE episode_id = ?", [episode["episode_id"]])
+    assert failing == [(None,)]
+
+
+def test_worker_crash_is_recorded_not_raised():
+    spec = EpisodeSpec("e", "r", "pong", "", "v")
+    spec.game = "not-a-game"  # the worker raises before playing
+    [(index, outcome)] = list(run_episodes([spec], workers=1))
+    assert index == 0 and outcome.end_reason == "crashed" and "unknown game" in outcome.episode["error"]
+
+
+def test_parallel_workers_keep_every_episode(store, capsys):
+    code, out, _ = run_cli(capsys, "eval", EXAMPLES / "space_invaders.py", "--episodes", 3, "--workers", 2,
+                           "--max-steps", 80, "--store", store.path, "--json")
+    assert code == 0
+    episodes = json.loads(out)["episodes"]
+    assert [e["length"] for e in episodes] == [80, 80, 80]
+    assert store.query("SELECT count(*), count(DISTINCT episode_id) FROM steps") == [(240, 3)]
+
+
+def test_console_script(tmp_path):
+    exe = os.path.join(os.path.dirname(sys.executable), "codearcade")
+    help_text = subprocess.run([exe, "eval", "--help"], capture_output=True, text=True, check=True).stdout
+    assert "--trace" in help_text and "--store" in help_text
+    env = {**os.environ, "CODEARCADE_STORE": str(tmp_path / "env.duckdb")}
+    done = subprocess.run([exe, "eval", str(EXAMPLES / "breakout.py"), "--max-steps", "30", "--json"],
+                          capture_output=True, text=True, env=env, cwd=ROOT, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["episodes"][0]["length"] == 30
+    assert (tmp_path / "env.duckdb").exists(), "CODEARCADE_STORE chooses the store"

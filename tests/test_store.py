@@ -1,0 +1,146 @@
+"""The DuckDB store: migrations, locking, errors, batched writes and slice readers."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import duckdb
+import pytest
+
+from pipeline.rollout import EpisodeSpec, run_episode
+from store import Store, StoreError
+from store.migrations import LATEST, MIGRATIONS
+from store.readers import episode_steps, run_episodes, step_nodes
+from store.writer import put_blob, write_episode
+from tests.conftest import EXAMPLES
+from tracing.capture import NODE_SCHEMA
+from tracing.steps import STEP_SCHEMA
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_migrations_are_recorded_once(store):
+    with store.write():
+        pass
+    with store.write():
+        pass
+    rows = store.query("SELECT version, name FROM schema_migrations ORDER BY version")
+    assert [r[0] for r in rows] == [m[0] for m in MIGRATIONS] and rows[-1][0] == LATEST
+
+
+def test_arrow_schemas_match_tables(store):
+    with store.write():
+        pass
+    for table, schema, added in (("steps", STEP_SCHEMA, {"episode_id"}),
+                                 ("nodes", NODE_SCHEMA, {"episode_id", "policy_version_id"})):
+        columns = {r[0] for r in store.query(f"SELECT column_name FROM information_schema.columns WHERE table_name = '{table}'")}
+        assert columns == set(schema.names) | added
+
+
+def test_schema_doc_names_every_column(store):
+    doc = (ROOT / "docs" / "schema.md").read_text()
+    with store.write():
+        pass
+    for table, column in store.query(
+        "SELECT table_name, column_name FROM information_schema.columns WHERE table_schema = 'main'"
+    ):
+        assert re.search(rf"`{column}`", doc), f"docs/schema.md does not describe {table}.{column}"
+
+
+def test_newer_schema_is_refused(store):
+    with store.write() as con:
+        con.execute("INSERT INTO schema_migrations VALUES (?, 'from the future', now())", [LATEST + 1])
+    with pytest.raises(StoreError, match="newer than this codearcade"):
+        with store.read():
+            pass
+
+
+def test_not_a_duckdb_file(tmp_path):
+    path = tmp_path / "notes.duckdb"
+    path.write_text("these are my notes\n" * 100)
+    with pytest.raises(StoreError, match="not a codearcade store"):
+        with Store(path).write():
+            pass
+    assert path.read_text().startswith("these are my notes"), "the file is left as it was"
+
+
+def test_missing_store_for_reading(tmp_path):
+    with pytest.raises(StoreError, match="no store at"):
+        Store(tmp_path / "none.duckdb").query("SELECT 1")
+
+
+def test_missing_directory(tmp_path):
+    with pytest.raises(StoreError, match="does not exist"):
+        with Store(tmp_path / "no" / "such" / "dir.duckdb").write():
+            pass
+
+
+def test_reader_waits_for_a_writer_in_another_process(store):
+    with store.write() as con:
+        put_blob(con, "note", "hello")
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import duckdb, sys, time; c = duckdb.connect(sys.argv[1]); print('held', flush=True); time.sleep(1.5)",
+         str(store.path)],
+        stdout=subprocess.PIPE, text=True,
+    )
+    assert holder.stdout.readline().strip() == "held"
+    start = time.monotonic()
+    assert store.query("SELECT text FROM blobs")[0][0] == "hello"
+    waited = time.monotonic() - start
+    holder.wait(10)
+    assert waited > 0.5, "the read had to wait for the other process to let go"
+
+
+def test_lock_timeout_is_a_clear_error(tmp_path):
+    path = tmp_path / "locked.duckdb"
+    duckdb.connect(str(path)).close()
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import duckdb, sys, time; c = duckdb.connect(sys.argv[1]); print('held', flush=True); time.sleep(10)",
+         str(path)],
+        stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(StoreError, match="stayed locked"):
+            Store(path, lock_timeout_s=0.5).query("SELECT 1")
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_blobs_are_content_addressed(store):
+    with store.write() as con:
+        a = put_blob(con, "prompt", "same text")
+        b = put_blob(con, "prompt", "same text")
+    assert a == b
+    assert store.query("SELECT count(*) FROM blobs")[0][0] == 1
+
+
+def test_episode_roundtrip_and_slices(store):
+    text = (EXAMPLES / "breakout.py").read_text()
+    outcome = run_episode(EpisodeSpec("ep", "run", "breakout", text, "v1", max_steps=120, trace=True))
+    with store.write() as con:
+        write_episode(con, outcome.episode, outcome.steps, outcome.nodes)
+        write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)  # a re-played episode
+    assert store.query("SELECT count(*) FROM steps")[0][0] == 120
+    assert store.query("SELECT count(*) FROM nodes")[0][0] == 120 * 3
+    with store.read() as con:
+        rows = episode_steps(con, "ep", 10, 20, list_keys=("RB", "OB", "YB", "GB", "AB", "BB"))
+        nodes = step_nodes(con, "ep", 10, 12)
+        episodes = run_episodes(con, "run")
+    originals = outcome.steps.slice(10, 10).to_pylist()
+    assert [r["step"] for r in rows] == list(range(10, 20))
+    from tracing.steps import objects_to_obs
+
+    for row, original in zip(rows, originals):
+        assert row["obs"] == objects_to_obs(original["objects"], ("RB", "OB", "YB", "GB", "AB", "BB"))
+        assert len(row["obs"]["RB"]) + len(row["obs"]["BB"]) > 0
+    assert [(n["step"], n["call_index"]) for n in nodes] == [(10, 0), (10, 1), (10, 2), (11, 0), (11, 1), (11, 2)]
+    assert nodes[2]["parents"] == [1] and nodes[1]["parents"] == [0]
+    assert episodes[0]["length"] == 120 and episodes[0]["end_reason"] == "truncated"

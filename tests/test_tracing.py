@@ -1,0 +1,187 @@
+"""Trainable code parameters, node capture and policy files."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import tracing as trace
+from tests.conftest import EXAMPLES, pong_policy
+from tracing.capture import OBS_REF, NodeRecorder, to_json
+from tracing.metrics import function_metrics, max_if_depth, policy_metrics
+from tracing.policy_file import PolicyLoadError, inspect_policy, load_policy, replace_methods, version_id
+from tracing.sandbox import PolicyCodeError
+
+BALL_OBS = {"Player": {"x": 140, "y": 100, "w": 4, "h": 15, "dx": 0, "dy": 0},
+            "Ball": {"x": 100, "y": 50, "w": 2, "h": 4, "dx": 2, "dy": 1}}
+
+
+def test_paper_style_policy_runs_with_only_the_import_changed():
+    loaded = load_policy((EXAMPLES / "pong.py").read_text(), "pong.py")
+    policy = loaded.policy
+    assert isinstance(policy, trace.Module)
+    assert policy(BALL_OBS) in (2, 3)
+    names = [p.name for p in policy.parameters()]
+    assert names == ["predict_ball_trajectory", "select_action"]
+
+
+def test_parameter_source_docstring_and_replacement():
+    policy = load_policy((EXAMPLES / "pong.py").read_text(), "pong.py").policy
+    param = policy.parameter("select_action")
+    assert param.source.startswith("def select_action(self, predicted_ball_y, obs):")
+    assert "@trace.bundle" not in param.source
+    assert "Actions: 0 NOOP" in param.docstring
+    assert param.signature == "select_action(self, predicted_ball_y, obs)"
+
+    param.set_source('''
+        def select_action(self, predicted_ball_y, obs):
+            """Always stay."""
+            return 0
+    ''')
+    assert policy(BALL_OBS) == 0, "new source text in, new behaviour out"
+    assert param.docstring == "Always stay."
+    assert policy.parameter("predict_ball_trajectory").fn(policy, BALL_OBS) == 50
+
+
+def test_set_source_rejects_and_keeps_the_old_code():
+    policy = load_policy((EXAMPLES / "pong.py").read_text(), "pong.py").policy
+    param = policy.parameter("select_action")
+    before = param.source
+    for bad in ("def other(self, a, b):\n    return 0\n", "def select_action(self, a, b):\n    return (\n",
+                "def select_action(self, a, b):\n    import os\n    return 0\n", "x = 1\n"):
+        with pytest.raises(PolicyCodeError):
+            param.set_source(bad)
+        assert param.source == before
+    assert policy(BALL_OBS) in (2, 3)
+
+
+def test_model_decorator_and_forward():
+    @trace.model
+    class Plain:
+        def forward(self, obs):
+            return 1
+
+    assert issubclass(Plain, trace.Module) and Plain()({}) == 1
+
+
+def test_node_capture_records_inputs_outputs_and_parents():
+    policy = load_policy((EXAMPLES / "space_invaders.py").read_text(), "si.py").policy
+    recorder = NodeRecorder()
+    obs = {"Player": {"x": 50, "y": 185, "w": 7, "h": 10, "dx": 0, "dy": 0}}
+    with recorder:
+        for step in range(3):
+            recorder.begin_step(step, obs)
+            policy(obs)
+    rows = recorder.table().to_pylist()
+    assert len(rows) == 9
+    by_step = [r for r in rows if r["step"] == 1]
+    assert [r["function"] for r in by_step] == ["decide_shoot", "decide_movement", "combine_actions"]
+    shoot, move, combine = by_step
+    assert json.loads(shoot["inputs"]) == {"obs": OBS_REF}
+    assert combine["parents"] == [0, 1]
+    assert json.loads(combine["inputs"]) == {"shoot": json.loads(shoot["output"]), "movement": 0}
+    assert all(r["duration_us"] >= 0 and r["trainable"] for r in rows)
+
+
+def test_node_capture_records_exceptions_with_the_failing_line():
+    text = pong_policy("""
+        x = obs["Nothing"]
+        return 0
+    """)
+    policy = load_policy(text, "broken.py").policy
+    recorder = NodeRecorder()
+    with recorder:
+        recorder.begin_step(0, BALL_OBS)
+        with pytest.raises(KeyError):
+            policy(BALL_OBS)
+    rows = recorder.table().to_pylist()
+    failing = [r for r in rows if r["exc_type"]]
+    assert len(failing) == 1
+    assert failing[0]["function"] == "select_action"
+    assert failing[0]["exc_source"] == 'x = obs["Nothing"]'
+    assert text.splitlines()[failing[0]["exc_line"] - 1].strip() == 'x = obs["Nothing"]'
+
+
+def test_capture_is_off_without_a_recorder():
+    policy = load_policy((EXAMPLES / "pong.py").read_text(), "pong.py").policy
+    assert policy(BALL_OBS) in (2, 3)  # no recorder active: nothing is recorded, nothing fails
+
+
+def test_to_json_is_deterministic_and_valid():
+    class Thing:
+        pass
+
+    text = to_json({"a": float("nan"), "b": Thing(), "c": (1, 2), "d": {3}})
+    data = json.loads(text)
+    assert data["a"] == "NaN" and data["c"] == [1, 2] and data["d"] == [3]
+    assert "0x" not in data["b"]
+    assert len(to_json(list(range(100_000)))) < 3000
+
+
+def test_inspect_policy_reads_constants_and_methods_without_running():
+    info = inspect_policy((EXAMPLES / "breakout.py").read_text(), "breakout.py")
+    assert info.game == "breakout"
+    assert info.constants["ROLLOUT_STEPS"] == 300 and info.constants["FEEDBACK"]["high"] == 300
+    assert [m.name for m in info.trainable] == [
+        "predict_ball_trajectory", "generate_paddle_target", "select_paddle_action"]
+    assert info.version_id == version_id(info.text)
+
+
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("import os\nclass Policy: pass\n", "import of 'os' is not allowed"),
+        ("class Policy(:\n", "syntax error"),
+        ("x = 1\n", "no class named 'Policy'"),
+        ("from random import _os\nclass Policy: pass\n", "private name"),
+    ],
+)
+def test_inspect_policy_errors_are_one_line(text, fragment):
+    with pytest.raises(PolicyLoadError) as err:
+        inspect_policy(text, "bad.py")
+    assert fragment in str(err.value) and "\n" not in str(err.value) and "bad.py" in str(err.value)
+
+
+def test_load_policy_reports_errors_in_constructor():
+    text = pong_policy("return 0").replace("    def __call__", "    def __init__(self):\n        1 / 0\n\n    def __call__")
+    with pytest.raises(PolicyLoadError) as err:
+        load_policy(text, "p.py")
+    assert "ZeroDivisionError" in str(err.value) and "p.py:" in str(err.value)
+
+
+def test_load_policy_times_out_module_code():
+    with pytest.raises(PolicyLoadError) as err:
+        load_policy("while True:\n    pass\nclass Policy: pass\n", "loop.py", time_limit_s=0.2)
+    assert "time limit" in str(err.value)
+
+
+def test_replace_methods_keeps_everything_else():
+    text = (EXAMPLES / "pong.py").read_text()
+    new = replace_methods(text, {"select_action": "def select_action(self, predicted_ball_y, obs):\n    return 0\n"})
+    assert "        return 0\n" in new
+    assert new.count("@trace.bundle(trainable=True)") == 2
+    assert "def predict_ball_trajectory" in new and "random.choice" not in new
+    policy = load_policy(new, "new.py").policy
+    assert policy(BALL_OBS) == 0
+    with pytest.raises(PolicyCodeError):
+        replace_methods(text, {"no_such_method": "def no_such_method(self):\n    pass\n"})
+
+
+def test_metrics():
+    source = (
+        "def f(self, x):\n"
+        "    if x > 1:\n"
+        "        if x > 2:\n"
+        "            return 1\n"
+        "    elif x < 0:\n"
+        "        return 2\n"
+        "    return 3\n"
+    )
+    m = function_metrics(source)
+    assert m.complexity == 4 and m.max_if_depth == 2 and m.loc == 7
+    import ast
+
+    assert max_if_depth(ast.parse("if a:\n    pass\nelif b:\n    pass\nelif c:\n    pass\n")) == 1
+    whole = policy_metrics((EXAMPLES / "pong.py").read_text())
+    assert whole.loc > 50 and whole.complexity >= 4 and whole.max_if_depth == 1

@@ -1,0 +1,206 @@
+"""Per-call node capture: one event for every call of a bundled policy method.
+
+While a :class:`NodeRecorder` is active (``with recorder:``), each call of a bundled method records its
+inputs (by parameter name), output, exception (type, message, failing policy line), duration, and the
+earlier calls of the same step whose outputs it consumed (``parents``). Data flow is found by identity: an
+argument that *is* the object an earlier call returned (or an element of a tuple/list argument that is)
+makes that call a parent; when several earlier calls returned that same object (a method passing its input
+through), the most recent one is the direct producer and is the one named. For values Python shares
+(``None``, ``True``, small ints) this can name a call that merely returned an equal value.
+
+Inputs that are the step's observation dict itself are stored as ``{"$ref": "obs"}``: the observation is
+already in the ``steps`` table, and repeating it per call would triple the store. Values are stored as JSON
+text: numpy values as numbers/lists, non-finite floats as the strings ``"NaN"``/``"Infinity"``, anything
+else as its ``repr`` with memory addresses removed (prompts built from nodes must be deterministic).
+"""
+
+from __future__ import annotations
+
+import json
+import linecache
+import math
+import re
+import time
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+ACTIVE: "NodeRecorder | None" = None
+"""The recorder bundled methods report to; None when capture is off."""
+
+MAX_VALUE_CHARS = 20_000
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
+OBS_REF = {"$ref": "obs"}
+
+NODE_SCHEMA = pa.schema(
+    [
+        ("step", pa.int32()),
+        ("call_index", pa.int16()),
+        ("function", pa.string()),
+        ("trainable", pa.bool_()),
+        ("inputs", pa.string()),
+        ("output", pa.string()),
+        ("exc_type", pa.string()),
+        ("exc_message", pa.string()),
+        ("exc_line", pa.int32()),
+        ("exc_source", pa.string()),
+        ("duration_us", pa.int64()),
+        ("parents", pa.list_(pa.int16())),
+    ]
+)
+"""Columns a recorder produces; the store adds ``episode_id`` and ``policy_version_id``."""
+
+
+def is_policy_filename(filename: str) -> bool:
+    """Policy code is compiled under file names starting with ``<policy`` (see ``tracing/policy_file.py``)."""
+    return filename.startswith("<policy")
+
+
+def failing_policy_line(exc: BaseException) -> tuple[int | None, str | None]:
+    """The innermost line of policy code in ``exc``'s traceback: (line number, stripped text)."""
+    line_no, text = None, None
+    tb = exc.__traceback__
+    while tb is not None:
+        code = tb.tb_frame.f_code
+        if is_policy_filename(code.co_filename):
+            line_no = tb.tb_lineno
+            text = linecache.getline(code.co_filename, tb.tb_lineno).strip() or None
+        tb = tb.tb_next
+    return line_no, text
+
+
+def _jsonable(value: Any, depth: int = 0) -> Any:
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, float):
+        if math.isfinite(value):
+            return value
+        return "NaN" if math.isnan(value) else ("Infinity" if value > 0 else "-Infinity")
+    if isinstance(value, np.generic):
+        return _jsonable(value.item(), depth)
+    if depth > 20:
+        return "..."
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v, depth + 1) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v, depth + 1) for v in value]
+    if isinstance(value, (set, frozenset)):
+        return sorted((_jsonable(v, depth + 1) for v in value), key=repr)
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist(), depth + 1) if value.size <= 1000 else f"<ndarray shape={value.shape}>"
+    return _ADDRESS.sub("", repr(value))[:200]
+
+
+def to_json(value: Any) -> str:
+    """Deterministic JSON text for a node input or output (see the module docstring)."""
+    try:
+        text = json.dumps(value, allow_nan=False, separators=(",", ":"))
+    except (TypeError, ValueError, RecursionError):
+        text = json.dumps(_jsonable(value), separators=(",", ":"))
+    if len(text) > MAX_VALUE_CHARS:
+        text = json.dumps({"$truncated": len(text), "preview": text[:2000]})
+    return text
+
+
+class NodeRecorder:
+    """Collects node events for one episode, column by column; ``table()`` returns them as Arrow."""
+
+    def __init__(self) -> None:
+        self._cols: dict[str, list] = {name: [] for name in NODE_SCHEMA.names}
+        self._arg_names: dict[Any, tuple[str, ...]] = {}
+        self.step = -1
+        self.obs: Any = None
+        self._outputs: list[tuple[Any, int]] = []
+        self._next_index = 0
+
+    def __enter__(self) -> "NodeRecorder":
+        global ACTIVE
+        self._previous = ACTIVE
+        ACTIVE = self
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        global ACTIVE
+        ACTIVE = self._previous
+
+    def __len__(self) -> int:
+        return len(self._cols["step"])
+
+    def begin_step(self, step: int, obs: Any) -> None:
+        self.step = step
+        self.obs = obs
+        self._outputs.clear()
+        self._next_index = 0
+
+    def _names(self, fn: Any) -> tuple[str, ...]:
+        names = self._arg_names.get(fn)
+        if names is None:
+            code = fn.__code__
+            names = self._arg_names[fn] = code.co_varnames[1 : code.co_argcount]  # skip self
+        return names
+
+    def _encode_inputs(self, fn: Any, args: tuple, kwargs: dict) -> str:
+        names = self._names(fn)
+        obs = self.obs
+        inputs: dict[str, Any] = {}
+        for i, value in enumerate(args):
+            key = names[i] if i < len(names) else f"arg{i}"
+            inputs[key] = OBS_REF if value is obs else value
+        for key, value in kwargs.items():
+            inputs[key] = OBS_REF if value is obs else value
+        return to_json(inputs)
+
+    def _parents(self, args: tuple, kwargs: dict) -> list[int]:
+        if not self._outputs:
+            return []
+        values = list(args) + list(kwargs.values())
+        for value in list(values):
+            if isinstance(value, (tuple, list)) and len(value) <= 16:
+                values.extend(value)
+        parents = set()
+        for value in values:
+            # the most recent call that returned this very object is its direct producer
+            for output, index in reversed(self._outputs):
+                if value is output:
+                    parents.add(index)
+                    break
+        return sorted(parents)
+
+    def call(self, parameter: Any, instance: Any, args: tuple, kwargs: dict) -> Any:
+        """Run one bundled call and record it (exceptions are recorded, then re-raised)."""
+        index = self._next_index
+        self._next_index += 1
+        fn = parameter.fn
+        parents = self._parents(args, kwargs)
+        inputs = self._encode_inputs(fn, args, kwargs)
+        start = time.perf_counter_ns()
+        try:
+            output = fn(instance, *args, **kwargs)
+        except BaseException as exc:
+            duration = (time.perf_counter_ns() - start) // 1000
+            line, text = failing_policy_line(exc)
+            self._append(index, parameter, inputs, None, type(exc).__name__, str(exc)[:2000], line, text, duration, parents)
+            raise
+        duration = (time.perf_counter_ns() - start) // 1000
+        self._append(index, parameter, inputs, to_json(output), None, None, None, None, duration, parents)
+        self._outputs.append((output, index))
+        return output
+
+    def _append(self, index, parameter, inputs, output, exc_type, exc_message, exc_line, exc_source, duration, parents):
+        c = self._cols
+        c["step"].append(self.step)
+        c["call_index"].append(index)
+        c["function"].append(parameter.name)
+        c["trainable"].append(parameter.trainable)
+        c["inputs"].append(inputs)
+        c["output"].append(output)
+        c["exc_type"].append(exc_type)
+        c["exc_message"].append(exc_message)
+        c["exc_line"].append(exc_line)
+        c["exc_source"].append(exc_source)
+        c["duration_us"].append(duration)
+        c["parents"].append(parents)
+
+    def table(self) -> pa.Table:
+        return pa.table(self._cols, schema=NODE_SCHEMA)

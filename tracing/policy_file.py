@@ -1,0 +1,220 @@
+"""Policy files: load one in the sandbox, name its version, and write new method sources back into it.
+
+A policy file is a Python module that defines ``class Policy`` (a :class:`tracing.Module`, or decorated with
+``@trace.model``) and may declare its task with upper-case module constants::
+
+    GAME = "pong"                 # which game it plays (``--game`` may also say it)
+    ROLLOUT_STEPS = 400           # traced training rollout horizon for the optimizer
+    EVAL_MAX_STEPS = 4000         # evaluation cap
+    FEEDBACK = {...}              # staged-feedback bands (see pipeline/feedback.py)
+    INSTRUCTION = "..."           # task statement for the optimizer's prompt
+
+:func:`inspect_policy` reads all of that without executing anything (the parent process never runs policy
+code); :func:`load_policy` executes the file in the sandbox and returns a live instance (worker processes).
+
+A policy *version* is the whole text of the file; its id is a content hash, so the same code always has the
+same id. The optimizer changes a version by replacing the text of bundled methods (:func:`replace_methods`),
+which keeps everything else (imports, helpers, decorators, comments) as it was.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import linecache
+import textwrap
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tracing.bundle import Module
+from tracing.capture import failing_policy_line
+from tracing.sandbox import PolicyCodeError, check_source, safe_builtins, time_limit
+
+LOAD_TIME_LIMIT_S = 5.0
+"""Module-level code and ``Policy()`` together must finish within this (a file that loops is refused)."""
+
+
+class PolicyLoadError(Exception):
+    """A policy file that cannot be used; the message is one line that says why and where."""
+
+
+def version_id(text: str) -> str:
+    """Content id of a policy version: the first 16 hex digits of the SHA-256 of its text."""
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class MethodInfo:
+    """A bundled method as written in the file, found without running anything."""
+
+    name: str
+    source: str
+    trainable: bool
+    lineno: int
+
+
+@dataclass
+class PolicyInfo:
+    """What can be known of a policy file without executing it: its text, task constants, bundled methods.
+
+    Produced by :func:`inspect_policy`, which the parent process uses: untrusted code only ever executes in
+    worker processes (and in tests).
+    """
+
+    text: str
+    name: str
+    constants: dict[str, Any] = field(default_factory=dict)
+    methods: list[MethodInfo] = field(default_factory=list)
+
+    @property
+    def version_id(self) -> str:
+        return version_id(self.text)
+
+    @property
+    def game(self) -> str | None:
+        game = self.constants.get("GAME")
+        return game if isinstance(game, str) else None
+
+    @property
+    def trainable(self) -> list[MethodInfo]:
+        return [m for m in self.methods if m.trainable]
+
+
+@dataclass
+class LoadedPolicy:
+    """A policy instance built from a file's text, with the file's static description."""
+
+    policy: Module
+    info: PolicyInfo
+
+    @property
+    def text(self) -> str:
+        return self.info.text
+
+    @property
+    def version_id(self) -> str:
+        return self.info.version_id
+
+
+def read_policy_file(path: str | Path) -> str:
+    """The text of a policy file, with errors that say what to do."""
+    p = Path(path)
+    if not p.exists():
+        raise PolicyLoadError(f"policy file '{path}' does not exist")
+    if p.is_dir():
+        raise PolicyLoadError(f"'{path}' is a directory; give a Python file that defines class Policy")
+    try:
+        return p.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise PolicyLoadError(f"policy file '{path}' is not UTF-8 text") from None
+
+
+def _bundle_flags(decorators: list[ast.expr]) -> bool | None:
+    """None if no decorator is ``bundle(...)``/``trace.bundle(...)``; else whether it says trainable=True."""
+    for d in decorators:
+        call = d if isinstance(d, ast.Call) else None
+        target = call.func if call else d
+        name = target.attr if isinstance(target, ast.Attribute) else getattr(target, "id", None)
+        if name == "bundle":
+            for kw in call.keywords if call else []:
+                if kw.arg == "trainable" and isinstance(kw.value, ast.Constant):
+                    return bool(kw.value.value)
+            return False
+    return None
+
+
+def inspect_policy(text: str, name: str = "policy.py") -> PolicyInfo:
+    """Check a policy file without running it: sandbox rules, a top-level ``Policy`` class, literal task
+    constants and the bundled methods of ``Policy``. Raises :class:`PolicyLoadError` with a one-line reason."""
+    filename = f"<policy {name}>"
+    try:
+        tree = check_source(text, filename)
+    except PolicyCodeError as exc:
+        raise PolicyLoadError(str(exc).replace(filename, name)) from None
+    constants: dict[str, Any] = {}
+    policy_class = None
+    for node in tree.body:
+        if isinstance(node, ast.ClassDef) and node.name == "Policy":
+            policy_class = node
+        elif isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name):
+            key = node.targets[0].id
+            if key.isupper() and not key.startswith("_"):
+                try:
+                    constants[key] = ast.literal_eval(node.value)
+                except ValueError:
+                    pass  # computed constants are the policy's business, not the task's
+    if policy_class is None:
+        raise PolicyLoadError(f"{name}: no class named 'Policy' (define `class Policy(trace.Module)`)")
+    lines = text.splitlines(True)
+    methods = []
+    for node in policy_class.body:
+        if isinstance(node, ast.FunctionDef):
+            trainable = _bundle_flags(node.decorator_list)
+            if trainable is not None:
+                source = textwrap.dedent("".join(lines[node.lineno - 1 : node.end_lineno])).strip("\n") + "\n"
+                methods.append(MethodInfo(node.name, source, trainable, node.lineno))
+    return PolicyInfo(text, name, constants, methods)
+
+
+def load_policy(text: str, name: str = "policy.py", time_limit_s: float = LOAD_TIME_LIMIT_S) -> LoadedPolicy:
+    """Execute a policy file's text in the sandbox and instantiate its ``Policy``.
+
+    Raises :class:`PolicyLoadError` with a one-line reason: syntax error, forbidden import or construct,
+    an exception or time-out in module code or in ``Policy()``, no ``Policy`` class.
+    """
+    info = inspect_policy(text, name)
+    filename = f"<policy {name}>"
+    code = compile(text, filename, "exec")
+    linecache.cache[filename] = (len(text), None, text.splitlines(True), filename)
+    namespace: dict[str, Any] = {"__name__": "policy", "__builtins__": safe_builtins()}
+    try:
+        with time_limit(time_limit_s, "loading the policy"):
+            exec(code, namespace)
+            cls = namespace.get("Policy")
+            if not isinstance(cls, type):
+                raise PolicyLoadError(f"{name}: 'Policy' is a {type(cls).__name__}, not a class")
+            instance = cls()
+    except PolicyLoadError:
+        raise
+    except BaseException as exc:  # noqa: BLE001 - policy code may raise anything, timeouts included
+        line, source = failing_policy_line(exc)
+        where = f"{name}:{line}: " if line else f"{name}: "
+        detail = f" (in `{source}`)" if source else ""
+        raise PolicyLoadError(f"{where}{type(exc).__name__}: {exc}{detail}") from None
+    if not isinstance(instance, Module):
+        raise PolicyLoadError(f"{name}: Policy must subclass tracing.Module or be decorated with @trace.model")
+    return LoadedPolicy(instance, info)
+
+
+def _methods_by_name(tree: ast.Module) -> dict[str, ast.FunctionDef]:
+    """Methods of top-level classes, by name; ``Policy``'s win over other classes' of the same name."""
+    found: dict[str, ast.FunctionDef] = {}
+    classes = sorted((n for n in tree.body if isinstance(n, ast.ClassDef)), key=lambda c: c.name == "Policy")
+    for cls in classes:
+        for node in cls.body:
+            if isinstance(node, ast.FunctionDef):
+                found[node.name] = node
+    return found
+
+
+def replace_methods(text: str, sources: dict[str, str]) -> str:
+    """Return ``text`` with the ``def`` blocks of the named methods replaced by new sources.
+
+    Decorators and everything outside the replaced blocks are kept byte for byte; each new source is
+    re-indented to its method's column. Raises :class:`PolicyCodeError` for an unknown method name.
+    """
+    tree = ast.parse(text)
+    methods = _methods_by_name(tree)
+    lines = text.splitlines(True)
+    spans = []
+    for name, source in sources.items():
+        node = methods.get(name)
+        if node is None:
+            raise PolicyCodeError(f"the policy has no method '{name}'")
+        indent = " " * node.col_offset
+        body = textwrap.indent(textwrap.dedent(source).strip("\n") + "\n", indent, lambda line: line.strip() != "")
+        spans.append((node.lineno - 1, node.end_lineno, body))
+    for start, end, body in sorted(spans, reverse=True):
+        lines[start:end] = [body]
+    return "".join(lines)

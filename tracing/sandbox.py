@@ -1,0 +1,281 @@
+"""Guarded execution of untrusted policy code: a source check, restricted builtins, an import allow-list,
+and time limits.
+
+Policy files and LLM-generated methods are untrusted. This module is the in-process layer of defence:
+
+- :func:`check_source` rejects, before anything runs, code that reaches for interpreter internals: dunder
+  attributes (``x.__class__.__subclasses__``), frame and code attributes (``gi_frame``, ``f_globals``, ...),
+  names such as ``eval``/``exec``/``open``/``__import__``, and ``except:`` / ``except BaseException``
+  (which would swallow the time limit).
+- :func:`safe_builtins` is the builtins namespace policy code sees: no ``open``, ``eval``, ``exec``,
+  ``compile``, ``input``, ``globals``...; ``__import__`` admits only :data:`ALLOWED_MODULES` and hands out a
+  read-only view of the module without its private (``_``-prefixed) names, so ``random._os`` is out of reach;
+  ``getattr``/``setattr``/``delattr``/``hasattr`` refuse dunder names.
+- :class:`CallTimer` / :func:`time_limit` interrupt a call that runs too long with :class:`PolicyTimeout`
+  (SIGALRM; main thread).
+
+What this does not do: it is no security boundary against a determined attacker with knowledge of CPython
+internals, and it cannot interrupt a long-running C call (a huge numpy operation). The second layer is the
+episode worker process (``pipeline/executor.py``): a memory limit, an audit hook that refuses writes, process
+spawning, sockets and native code loading, and a parent that kills it after its wall-clock limit.
+"""
+
+from __future__ import annotations
+
+import ast
+import builtins
+import signal
+import types
+from contextlib import contextmanager
+from typing import Any, Iterator
+
+ALLOWED_MODULES = frozenset(
+    {
+        "math", "cmath", "random", "numpy", "collections", "itertools", "functools", "operator",
+        "statistics", "heapq", "bisect", "dataclasses", "typing", "enum", "copy", "string", "re",
+        "fractions", "decimal", "abc", "__future__", "tracing",
+    }
+)
+"""Top-level modules policy code may import (their submodules too, such as ``numpy.linalg``)."""
+
+FORBIDDEN_NAMES = frozenset(
+    {
+        "eval", "exec", "compile", "open", "input", "breakpoint", "globals", "locals", "vars", "help",
+        "exit", "quit", "memoryview", "__import__", "__builtins__", "__loader__", "__spec__",
+    }
+)
+"""Names policy code may not even mention."""
+
+FORBIDDEN_ATTRIBUTES = frozenset(
+    {
+        "gi_frame", "gi_code", "cr_frame", "cr_code", "ag_frame", "ag_code", "f_globals", "f_locals",
+        "f_builtins", "f_back", "f_code", "tb_frame", "tb_next", "co_code", "func_globals", "mro",
+    }
+)
+"""Non-dunder attributes that lead to frames, globals or code objects."""
+
+ALLOWED_DUNDERS = frozenset({"__init__", "__call__", "__name__", "__len__", "__iter__", "__next__"})
+"""Dunder attributes that are harmless and common in ordinary code (``super().__init__()``)."""
+
+# Submodules/functions of allowed modules that touch files, native code or processes.
+_DENIED_MODULE_ATTRIBUTES = frozenset(
+    {
+        "ctypeslib", "f2py", "distutils", "testing", "load", "save", "savez", "savez_compressed",
+        "savetxt", "loadtxt", "genfromtxt", "fromfile", "memmap", "DataSource", "show_config",
+        "SystemRandom",
+    }
+)
+
+
+class PolicyCodeError(Exception):
+    """Policy source that is refused before it runs (syntax error or a forbidden construct)."""
+
+    def __init__(self, message: str, filename: str = "<policy>", lineno: int | None = None):
+        self.filename = filename
+        self.lineno = lineno
+        where = f"{filename}:{lineno}: " if lineno else f"{filename}: "
+        super().__init__(where + message)
+
+
+class PolicyTimeout(BaseException):
+    """Raised inside policy code that exceeded its time limit.
+
+    A BaseException so that ``except Exception`` in policy code does not swallow it (``except:`` and
+    ``except BaseException`` are refused by :func:`check_source`).
+    """
+
+
+def _is_dunder(name: str) -> bool:
+    return name.startswith("__") and name.endswith("__")
+
+
+def check_source(source: str, filename: str = "<policy>") -> ast.Module:
+    """Parse ``source`` and refuse forbidden constructs; return the AST. Raises :class:`PolicyCodeError`."""
+    try:
+        tree = ast.parse(source, filename=filename)
+    except SyntaxError as exc:
+        raise PolicyCodeError(f"syntax error: {exc.msg}", filename, exc.lineno) from None
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute):
+            attr = node.attr
+            if (_is_dunder(attr) and attr not in ALLOWED_DUNDERS) or attr in FORBIDDEN_ATTRIBUTES:
+                raise PolicyCodeError(f"access to attribute '{attr}' is not allowed", filename, node.lineno)
+        elif isinstance(node, ast.Name):
+            if node.id in FORBIDDEN_NAMES:
+                raise PolicyCodeError(f"use of '{node.id}' is not allowed", filename, node.lineno)
+        elif isinstance(node, ast.ExceptHandler):
+            caught = node.type
+            names = []
+            if caught is None:
+                names = ["(bare except)"]
+            else:
+                for n in caught.elts if isinstance(caught, ast.Tuple) else [caught]:
+                    if isinstance(n, ast.Name) and n.id in ("BaseException", "KeyboardInterrupt", "SystemExit"):
+                        names.append(n.id)
+            if names:
+                raise PolicyCodeError(
+                    f"catching {names[0]} is not allowed (it would swallow the time limit); "
+                    "catch Exception or a specific error instead",
+                    filename,
+                    node.lineno,
+                )
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            modules = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+            for module in modules:
+                if isinstance(node, ast.ImportFrom) and node.level:
+                    raise PolicyCodeError("relative imports are not allowed", filename, node.lineno)
+                _check_module_allowed(module, filename, node.lineno)
+            for alias in node.names:
+                if alias.name.startswith("_") and isinstance(node, ast.ImportFrom) and module != "__future__":
+                    raise PolicyCodeError(f"importing private name '{alias.name}' is not allowed", filename, node.lineno)
+    return tree
+
+
+def _check_module_allowed(module: str, filename: str = "<policy>", lineno: int | None = None) -> None:
+    top = module.split(".")[0]
+    if top not in ALLOWED_MODULES:
+        raise PolicyCodeError(
+            f"import of '{module}' is not allowed; allowed modules: {', '.join(sorted(ALLOWED_MODULES - {'__future__'}))}",
+            filename,
+            lineno,
+        )
+
+
+class SafeModule(types.ModuleType):
+    """A read-only view of an allowed module without its private names or file/native-code entry points."""
+
+    def __init__(self, module: types.ModuleType):
+        super().__init__(module.__name__, getattr(module, "__doc__", None))
+        object.__setattr__(self, "_SafeModule__module", module)
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_") or name in _DENIED_MODULE_ATTRIBUTES:
+            raise AttributeError(f"module '{self.__name__}' has no attribute '{name}' available to policies")
+        value = getattr(self._SafeModule__module, name)
+        if isinstance(value, types.ModuleType):
+            return _safe_module(value)
+        return value
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError(f"module '{self.__name__}' is read-only for policies")
+
+    def __dir__(self) -> list[str]:
+        return [n for n in dir(self._SafeModule__module) if not n.startswith("_")]
+
+
+_safe_modules: dict[str, SafeModule] = {}
+
+
+def _safe_module(module: types.ModuleType) -> SafeModule:
+    view = _safe_modules.get(module.__name__)
+    if view is None:
+        view = _safe_modules[module.__name__] = SafeModule(module)
+    return view
+
+
+def _guarded_import(name, globals=None, locals=None, fromlist=(), level=0):
+    if level:
+        raise ImportError("relative imports are not allowed in policy code")
+    try:
+        _check_module_allowed(name)
+    except PolicyCodeError as exc:
+        raise ImportError(str(exc).split(": ", 1)[1]) from None
+    module = builtins.__import__(name, None, None, fromlist or (), 0)
+    if fromlist:
+        for item in fromlist:
+            if item.startswith("_") and name != "__future__":
+                raise ImportError(f"importing private name '{item}' is not allowed")
+        return _safe_module(module) if name != "__future__" else module
+    # `import a.b` binds the top-level package `a`.
+    return _safe_module(module)
+
+
+def _refuse_dunder(name: Any) -> None:
+    if isinstance(name, str) and ((_is_dunder(name) and name not in ALLOWED_DUNDERS) or name in FORBIDDEN_ATTRIBUTES):
+        raise AttributeError(f"attribute '{name}' is not accessible to policy code")
+
+
+def _safe_getattr(obj, name, *default):
+    _refuse_dunder(name)
+    return getattr(obj, name, *default)
+
+
+def _safe_hasattr(obj, name):
+    _refuse_dunder(name)
+    return hasattr(obj, name)
+
+
+def _safe_setattr(obj, name, value):
+    _refuse_dunder(name)
+    if isinstance(obj, (type, types.ModuleType)):
+        raise AttributeError("policy code may not modify classes or modules with setattr")
+    return setattr(obj, name, value)
+
+
+def _safe_delattr(obj, name):
+    _refuse_dunder(name)
+    return delattr(obj, name)
+
+
+def safe_builtins() -> dict[str, Any]:
+    """The ``__builtins__`` mapping for policy code (a fresh dict: policies cannot alter each other's)."""
+    allowed = {
+        name: value
+        for name, value in vars(builtins).items()
+        if not name.startswith("_") and name not in FORBIDDEN_NAMES
+    }
+    allowed.update(
+        __import__=_guarded_import,
+        __build_class__=builtins.__build_class__,
+        __name__="builtins",
+        getattr=_safe_getattr,
+        hasattr=_safe_hasattr,
+        setattr=_safe_setattr,
+        delattr=_safe_delattr,
+    )
+    return allowed
+
+
+class CallTimer:
+    """Interrupt policy calls that run too long, with :class:`PolicyTimeout` raised from SIGALRM.
+
+    Enter it once per episode (it installs the signal handler), then ``arm(seconds)`` before each policy call
+    and ``disarm()`` after: two cheap ``setitimer`` calls per step. Main thread only. An expired limit re-fires
+    every 50 ms until disarmed, so code that swallows one interruption still cannot continue for long.
+    """
+
+    REFIRE_S = 0.05
+
+    def __init__(self) -> None:
+        self._message = "policy call exceeded its time limit"
+        self._previous: Any = None
+
+    def __enter__(self) -> "CallTimer":
+        self._previous = signal.signal(signal.SIGALRM, self._expired)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, self._previous)
+
+    def _expired(self, signum: int, frame: Any) -> None:
+        raise PolicyTimeout(self._message)
+
+    def arm(self, seconds: float | None, what: str = "policy call") -> None:
+        if seconds and seconds > 0:
+            self._message = f"{what} exceeded its time limit of {seconds:g} s"
+            signal.setitimer(signal.ITIMER_REAL, seconds, self.REFIRE_S)
+
+    def disarm(self) -> None:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+
+
+@contextmanager
+def time_limit(seconds: float | None, what: str = "policy call") -> Iterator[None]:
+    """Run the block under a :class:`CallTimer` limit of ``seconds`` (None or <= 0: no limit)."""
+    with CallTimer() as timer:
+        timer.arm(seconds, what)
+        try:
+            yield
+        finally:
+            timer.disarm()
