@@ -42,6 +42,12 @@ BREAKOUT_ROWS = {57: "RB", 63: "OB", 69: "YB", 75: "GB", 81: "AB", 87: "BB"}
 """Breakout brick rows by their y, top to bottom: Red, Orange, Yellow, Green, Aqua, Blue."""
 BRICK_WIDTH = 8
 
+
+def list_keys(game: str | GameSpec) -> tuple[str, ...]:
+    """Observation keys whose value is always a list, even when empty (Breakout's brick rows)."""
+    spec = game if isinstance(game, GameSpec) else get_game(game)
+    return tuple(BREAKOUT_ROWS.values()) if spec.name == "breakout" else ()
+
 ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # no banner for every environment
 gym.register_envs(ale_py)
 for _spec in GAMES.values():  # import the extractors once (worker processes fork with them loaded)
@@ -66,16 +72,19 @@ class ObjectObservation(gym.Wrapper):
     def reset(self, **kwargs):
         _, info = self.env.reset(**kwargs)
         self._objects = extract_ram_info.init_objects(self.game.ocatari_name, False)
-        return self._observe(), info
+        return self._observe(first=True), info
 
     def step(self, action):
         _, reward, terminated, truncated, info = self.env.step(action)
         return self._observe(), reward, terminated, truncated, info
 
-    def _observe(self) -> Observation:
+    def _observe(self, first: bool = False) -> Observation:
         # int64: OCAtari's extractors do arithmetic on the RAM bytes, which wraps around under numpy 2.
         ram = self._ale.getRAM().astype(np.int64)
         extract_ram_info.detect_objects_ram(self._objects, ram, self.game.ocatari_name, False)
+        if first:  # fresh objects "moved" from (0, 0): nothing has moved yet on the first observation
+            for o in self._objects:
+                o._prev_xy = o._xy
         return objects_to_dict(self._objects, self._numbered, breakout=self.game.name == "breakout")
 
 

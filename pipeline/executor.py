@@ -19,17 +19,21 @@ from __future__ import annotations
 import multiprocessing
 import os
 import resource
+import signal
 import sys
 import time
 import traceback
 from collections import deque
 from multiprocessing.connection import Connection, wait
-from typing import Callable, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator, TypeVar
 
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec, crashed_outcome, run_episode
 
 KILL_GRACE_S = 30.0
 """How long past its episode time limit a worker may run before the parent kills it."""
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 ProgressCallback = Callable[[int, int], None]
 """Called with (index of the spec, steps done so far)."""
@@ -53,8 +57,19 @@ def _audit(event: str, args: tuple) -> None:
         raise PermissionError(f"codearcade sandbox: '{event}' is not allowed in a policy worker")
 
 
+def die_with_parent() -> None:
+    """Ask Linux to kill this process when its parent dies (a killed run must not leave workers playing on)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux/glibc: orphans finish their episode and exit on the broken pipe
+        pass
+
+
 def harden_worker(memory_limit_mb: int | None) -> None:
     """Limit this (worker) process before policy code runs: memory cap, no core dumps, audit hook."""
+    die_with_parent()
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
     if memory_limit_mb:
         with open("/proc/self/statm") as f:
@@ -64,11 +79,11 @@ def harden_worker(memory_limit_mb: int | None) -> None:
     sys.addaudithook(_audit)
 
 
-def _worker_main(spec: EpisodeSpec, conn: Connection) -> None:
+def _worker_main(task: Callable, item: Any, memory_limit_mb: int | None, conn: Connection) -> None:
     try:
-        harden_worker(spec.memory_limit_mb)
-        outcome = run_episode(spec, progress=lambda n: conn.send(("progress", n)))
-        conn.send(("outcome", outcome))
+        harden_worker(memory_limit_mb)
+        result = task(item, lambda n: conn.send(("progress", n)))
+        conn.send(("result", result))
     except BaseException:  # noqa: BLE001 - report anything to the parent
         try:
             conn.send(("error", traceback.format_exc(limit=8)))
@@ -88,37 +103,43 @@ def default_workers() -> int:
     return os.cpu_count() or 1
 
 
-def run_episodes(
-    specs: Iterable[EpisodeSpec],
-    workers: int = 1,
+def run_tasks(
+    task: Callable[[T, Callable[[int], None]], R],
+    items: Iterable[T],
+    workers: int,
+    failed: Callable[[T, str, bool], R],
+    time_limit_s: Callable[[T], float | None] = lambda item: None,
+    memory_limit_mb: Callable[[T], int | None] = lambda item: None,
     progress: ProgressCallback | None = None,
     started: Callable[[], None] | None = None,
-) -> Iterator[tuple[int, EpisodeOutcome]]:
-    """Play ``specs`` with at most ``workers`` processes at once; yield ``(index, outcome)`` as each ends.
+) -> Iterator[tuple[int, R]]:
+    """Run ``task(item, report_progress)`` for every item, each in a fresh hardened worker process, at most
+    ``workers`` at once; yield ``(index, result)`` as each finishes.
 
-    ``started`` is called once the first workers are playing, so the caller can do its own set-up writes
-    meanwhile. ``workers=0`` plays them one after another in this process (no isolation; for debugging).
+    A worker that dies, raises, or outlives ``time_limit_s(item)`` plus a grace period yields
+    ``failed(item, why, timed_out)`` instead. ``started`` is called once the first workers are running, so the
+    caller can do its own set-up meanwhile. ``workers=0`` runs the tasks one after another in this process
+    (no isolation; for debugging).
     """
-    specs = list(specs)
+    items = list(items)
     if workers <= 0:
         if started is not None:
             started()
-        for i, spec in enumerate(specs):
-            yield i, run_episode(spec, None if progress is None else (lambda n, i=i: progress(i, n)))
+        for i, item in enumerate(items):
+            yield i, task(item, (lambda n, i=i: progress(i, n)) if progress is not None else (lambda n: None))
         return
 
     ctx = _mp_context()
-    pending = deque(enumerate(specs))
-    running: dict[Connection, tuple[int, EpisodeSpec, multiprocessing.process.BaseProcess, float]] = {}
-
+    pending = deque(enumerate(items))
+    running: dict[Connection, tuple[int, Any, multiprocessing.process.BaseProcess, float]] = {}
     exiting: list[multiprocessing.process.BaseProcess] = []
 
-    def finish(conn: Connection, outcome: EpisodeOutcome) -> tuple[int, EpisodeOutcome]:
+    def finish(conn: Connection, result: R) -> tuple[int, R]:
         # the worker is exiting by itself; reap it later rather than wait for its teardown now
         i, _, process, _ = running.pop(conn)
         conn.close()
         exiting.append(process)
-        return i, outcome
+        return i, result
 
     def reap(timeout: float = 0.0) -> None:
         for process in list(exiting):
@@ -132,13 +153,13 @@ def run_episodes(
 
     def fill() -> None:
         while pending and len(running) < workers:
-            i, spec = pending.popleft()
+            i, item = pending.popleft()
             parent_end, child_end = ctx.Pipe(duplex=False)
-            process = ctx.Process(target=_worker_main, args=(spec, child_end), daemon=True,
-                                  name=f"codearcade-episode-{spec.episode_id}")
+            process = ctx.Process(target=_worker_main, args=(task, item, memory_limit_mb(item), child_end),
+                                  daemon=True, name=f"codearcade-worker-{i}")
             process.start()
             child_end.close()  # so that the parent sees EOF when the worker dies
-            running[parent_end] = (i, spec, process, time.monotonic())
+            running[parent_end] = (i, item, process, time.monotonic())
 
     try:
         fill()
@@ -146,34 +167,31 @@ def run_episodes(
             started()
         while pending or running:
             fill()
-            finished: list[tuple[int, EpisodeOutcome]] = []
+            finished: list[tuple[int, R]] = []
             for conn in wait(list(running), timeout=1.0):
-                i, spec, process, started = running[conn]
+                i, item, process, begun = running[conn]
                 try:
                     kind, payload = conn.recv()
                 except (EOFError, OSError):
                     process.join(5)
                     code = process.exitcode
                     how = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
-                    finished.append(finish(conn, crashed_outcome(
-                        spec, f"worker process died ({how}) before reporting", time.monotonic() - started)))
+                    finished.append(finish(conn, failed(item, f"worker process died ({how}) before reporting", False)))
                     continue
                 if kind == "progress":
                     if progress is not None:
                         progress(i, payload)
-                elif kind == "outcome":
+                elif kind == "result":
                     finished.append(finish(conn, payload))
                 else:
-                    finished.append(finish(conn, crashed_outcome(
-                        spec, f"worker failed: {payload.strip().splitlines()[-1]}", time.monotonic() - started)))
+                    finished.append(finish(conn, failed(item, f"worker failed: {payload.strip().splitlines()[-1]}", False)))
             now = time.monotonic()
-            for conn, (i, spec, process, started) in list(running.items()):
-                if now - started > spec.episode_time_limit_s + KILL_GRACE_S:
+            for conn, (i, item, process, begun) in list(running.items()):
+                limit = time_limit_s(item)
+                if limit is not None and now - begun > limit + KILL_GRACE_S:
                     process.kill()
-                    outcome = crashed_outcome(spec, f"worker killed after {now - started:.0f} s "
-                                                    f"(episode limit {spec.episode_time_limit_s:g} s)", now - started)
-                    outcome.episode["end_reason"] = "timeout"
-                    finished.append(finish(conn, outcome))
+                    finished.append(finish(conn, failed(item, f"worker killed after {now - begun:.0f} s "
+                                                              f"(time limit {limit:g} s)", True)))
             fill()  # before handing results out, so that workers play while the caller writes them
             reap()
             yield from finished
@@ -183,3 +201,26 @@ def run_episodes(
             exiting.append(process)
             conn.close()
         reap(timeout=5.0)
+
+
+def _episode_failed(spec: EpisodeSpec, error: str, timed_out: bool) -> EpisodeOutcome:
+    outcome = crashed_outcome(spec, error)
+    if timed_out:
+        outcome.episode["end_reason"] = "timeout"
+    return outcome
+
+
+def run_episodes(
+    specs: Iterable[EpisodeSpec],
+    workers: int = 1,
+    progress: ProgressCallback | None = None,
+    started: Callable[[], None] | None = None,
+) -> Iterator[tuple[int, EpisodeOutcome]]:
+    """Play ``specs`` in worker processes (see :func:`run_tasks`); a worker that dies or hangs yields an
+    episode with end reason ``crashed`` or ``timeout``."""
+    return run_tasks(
+        run_episode, specs, workers, _episode_failed,
+        time_limit_s=lambda spec: spec.episode_time_limit_s,
+        memory_limit_mb=lambda spec: spec.memory_limit_mb,
+        progress=progress, started=started,
+    )

@@ -93,7 +93,8 @@ def coerce_action(action: Any, n_actions: int) -> int:
     return index
 
 
-def _describe(exc: BaseException) -> str:
+def describe_exception(exc: BaseException) -> str:
+    """One line: the exception, and the innermost line of policy code it came from."""
     line, text = failing_policy_line(exc)
     where = f" at line {line}: `{text}`" if line and text else (f" at line {line}" if line else "")
     return f"{type(exc).__name__}: {exc}{where}"
@@ -143,11 +144,11 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
                             timer.disarm()
                         action = coerce_action(raw_action, game.n_actions)
                     except PolicyTimeout as exc:
-                        end_reason, error = "timeout", _describe(exc)
+                        end_reason, error = "timeout", describe_exception(exc)
                     except KeyboardInterrupt:
                         raise
                     except BaseException as exc:  # noqa: BLE001 - untrusted code: anything, SystemExit too
-                        end_reason, error = "policy_error", _describe(exc)
+                        end_reason, error = "policy_error", describe_exception(exc)
                     after_policy = time.perf_counter()
                     policy_s += after_policy - now
                     if end_reason is not None:

@@ -111,4 +111,75 @@ MIGRATIONS: list[tuple[int, str, str]] = [
     ),
 ]
 
+MIGRATIONS.append(
+    (
+        2,
+        "optimizer: iterations, llm_calls, feedback",
+        """
+        CREATE TABLE iterations (
+            run_id              VARCHAR NOT NULL,
+            iteration           INTEGER NOT NULL,       -- 0: the starting policy; k >= 1: after the k-th update
+            policy_version_id   VARCHAR NOT NULL,       -- version evaluated in this iteration
+            base_version_id     VARCHAR,                -- version the update started from
+            update_status       VARCHAR NOT NULL,       -- initial | accepted | rejected | unchanged | llm_error
+            rolled_back         BOOLEAN NOT NULL,       -- the next iteration starts from the best version
+            llm_call_id         VARCHAR,
+            train_episode_id    VARCHAR,
+            eval_episode_ids    VARCHAR[],
+            train_return        DOUBLE,
+            score               DOUBLE,                 -- mean return of the evaluation episodes
+            best_score          DOUBLE,                 -- best score so far in the run
+            best_version_id     VARCHAR,
+            best_iteration      INTEGER,
+            started_at          TIMESTAMP,
+            finished_at         TIMESTAMP,
+            llm_s               DOUBLE,
+            train_s             DOUBLE,
+            eval_s              DOUBLE,
+            wall_s              DOUBLE,
+            PRIMARY KEY (run_id, iteration)
+        );
+        CREATE TABLE feedback (
+            run_id      VARCHAR NOT NULL,
+            iteration   INTEGER NOT NULL,
+            mode        VARCHAR NOT NULL,               -- staged | rollout
+            stage       VARCHAR NOT NULL,               -- high | medium | low
+            score       DOUBLE,
+            text        VARCHAR NOT NULL,
+            PRIMARY KEY (run_id, iteration)
+        );
+        CREATE TABLE llm_calls (
+            call_id             VARCHAR PRIMARY KEY,    -- ULID
+            run_id              VARCHAR NOT NULL,
+            iteration           INTEGER NOT NULL,
+            purpose             VARCHAR NOT NULL,       -- update
+            created_at          TIMESTAMP NOT NULL,
+            operation_name      VARCHAR NOT NULL,       -- gen_ai.operation.name (chat)
+            provider_name       VARCHAR,                -- gen_ai.provider.name (openai, anthropic, local, replay)
+            request_model       VARCHAR NOT NULL,       -- gen_ai.request.model
+            response_model      VARCHAR,                -- gen_ai.response.model
+            request_temperature DOUBLE,                 -- gen_ai.request.temperature
+            request_max_tokens  INTEGER,                -- gen_ai.request.max_tokens
+            request_seed        BIGINT,                 -- gen_ai.request.seed
+            request_params      JSON,                   -- every parameter sent (api_base, timeout, ...)
+            prompt_hash         VARCHAR NOT NULL,       -- blobs.hash of the canonical JSON of the messages
+            reply_hash          VARCHAR,                -- blobs.hash of the reply text
+            suggestion_hash     VARCHAR,                -- blobs.hash of the parsed suggestion (JSON)
+            parse_error         VARCHAR,
+            response_id         VARCHAR,                -- gen_ai.response.id
+            finish_reasons      VARCHAR[],              -- gen_ai.response.finish_reasons
+            input_tokens        INTEGER,                -- gen_ai.usage.input_tokens
+            output_tokens       INTEGER,                -- gen_ai.usage.output_tokens
+            prompt_tokens_counted INTEGER,              -- our own count of the prompt, against the budget
+            cost_usd            DOUBLE,
+            latency_s           DOUBLE,
+            attempts            INTEGER NOT NULL,
+            error_type          VARCHAR,                -- error.type
+            error_message       VARCHAR,
+            replayed            BOOLEAN NOT NULL        -- the reply came from the store, not a model
+        );
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

@@ -78,3 +78,13 @@ def get_run(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any] | Non
 def blob_text(con: duckdb.DuckDBPyConnection, digest: str) -> str | None:
     row = con.execute("SELECT text FROM blobs WHERE hash = ?", [digest]).fetchone()
     return row[0] if row else None
+
+
+def policy_text(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) -> str:
+    """The whole policy file of a version used or considered in a run."""
+    row = con.execute(
+        "SELECT b.text FROM policy_versions v JOIN blobs b ON b.hash = v.source_hash "
+        "WHERE v.run_id = ? AND v.policy_version_id = ? LIMIT 1", [run_id, version_id]).fetchone()
+    if row is None:
+        raise KeyError(f"run {run_id} has no policy version {version_id}")
+    return row[0]

@@ -59,3 +59,58 @@ def pong_policy(select_action_body: str, prelude: str = "") -> str:
         + body
         + "\n"
     )
+
+
+# The competent Pong policy's two methods with its constants written in, as an LLM would suggest them.
+COMPETENT_PREDICT = '''def predict_ball_trajectory(self, obs):
+    """Where the ball's centre reaches x=140, bouncing off y=30 and y=190; None if unknown."""
+    ball = obs.get("Ball")
+    if ball is None or ball["dx"] <= 0:
+        return None
+    steps = (140 - ball["x"]) / ball["dx"]
+    y = ball["y"] + ball["h"] / 2 + ball["dy"] * steps
+    offset = (y - 30) % 320
+    return 30 + (offset if offset <= 160 else 320 - offset)
+'''
+COMPETENT_SELECT = '''def select_action(self, predicted_ball_y, obs):
+    """Steer the paddle (where it will be next step) to the predicted y."""
+    player = obs.get("Player")
+    if player is None:
+        return 0
+    target = predicted_ball_y
+    if target is None:
+        ball = obs.get("Ball")
+        target = ball["y"] + ball["h"] / 2 if ball else 110
+    paddle = player["y"] + 7.5 + 4 + player["dy"]
+    if paddle < target - 3:
+        return 3
+    if paddle > target + 3:
+        return 2
+    return 0
+'''
+
+
+def json_reply(suggestion: dict, reasoning: str = "scripted") -> str:
+    import json
+
+    return json.dumps({"reasoning": reasoning, "suggestion": suggestion})
+
+
+COMPETENT_REPLY = json_reply({"predict_ball_trajectory": COMPETENT_PREDICT, "select_action": COMPETENT_SELECT})
+
+
+@pytest.fixture
+def scripted(tmp_path):
+    """Start a scripted model with ``scripted([replies...])``; stopped after the test."""
+    from tests.scripted_llm import ScriptedModel
+
+    started = []
+
+    def start(script: list) -> ScriptedModel:
+        model = ScriptedModel(script, tmp_path / f"model{len(started)}")
+        started.append(model.start())
+        return started[-1]
+
+    yield start
+    for model in started:
+        model.stop()

@@ -66,6 +66,14 @@ def test_every_object_has_int_fields(game):
             assert all(type(v) is int for v in o.values()), (key, o)
 
 
+@pytest.mark.parametrize("game", list(GAMES))
+def test_nothing_moves_on_the_first_observation(game):
+    env = make_env(game)
+    obs, _ = env.reset(seed=0)
+    assert all(o["dx"] == 0 and o["dy"] == 0 for _, o in _objects(obs))
+    env.close()
+
+
 def test_pong_keys_and_absent_ball():
     seen, _ = _play("pong", [0], 200)
     assert all(set(obs) <= {"Player", "Ball", "Enemy"} for obs in seen)

@@ -1,0 +1,70 @@
+"""Feedback for the optimizer: the paper's staged messages, chosen by score band, plus what happened.
+
+``staged`` feedback (the paper's method) comes from the evaluation score: a message per band (high, medium,
+low) naming the score, how far it is from the target, and a hint. ``rollout`` feedback (the paper's
+ablation) uses only the return of the short traced training rollout. Either way, notes of what the loop did
+are appended: a candidate that was rejected and why, a rollback, a failed LLM call.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+FEEDBACK_MODES = ("staged", "rollout")
+
+
+@dataclass(frozen=True)
+class FeedbackBands:
+    """Staged feedback: ``score >= high`` is high, ``score <= low`` is low, anything between is medium."""
+
+    high: float
+    low: float
+    target: float
+    messages: dict[str, str]
+
+    def stage(self, score: float) -> str:
+        if score >= self.high:
+            return "high"
+        if score <= self.low:
+            return "low"
+        return "medium"
+
+    def message(self, score: float) -> tuple[str, str]:
+        """(stage, text) for ``score``; message templates may use ``{score}``, ``{target}`` and ``{gap}``."""
+        stage = self.stage(score)
+        template = self.messages.get(stage) or "Score {score:g} ({gap:g} from the target {target:g})."
+        return stage, template.format(score=score, target=self.target, gap=abs(self.target - score))
+
+    @classmethod
+    def from_constant(cls, value: Any, source: str) -> "FeedbackBands":
+        try:
+            return cls(float(value["high"]), float(value["low"]), float(value.get("target", value["high"])),
+                       {str(k): str(v) for k, v in dict(value.get("messages", {})).items()})
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{source}: FEEDBACK must be a dict with numeric 'high' and 'low' "
+                             f"(and optional 'target', 'messages'): {exc}") from None
+
+
+def compose_feedback(
+    mode: str,
+    bands: FeedbackBands,
+    eval_score: float,
+    train_return: float,
+    train_steps: int,
+    notes: list[str],
+) -> tuple[str, float, str]:
+    """(stage, score the stage was chosen by, text) for one iteration."""
+    if mode == "staged":
+        score = eval_score
+        stage, text = bands.message(score)
+        text = f"Evaluation (full game): {text}"
+    elif mode == "rollout":
+        score = train_return
+        stage = bands.stage(score)
+        text = f"Training rollout: the policy scored {score:g} over {train_steps} steps."
+    else:
+        raise ValueError(f"unknown feedback mode '{mode}'; use one of {', '.join(FEEDBACK_MODES)}")
+    if notes:
+        text += "\n" + "\n".join(notes)
+    return stage, score, text

@@ -1,0 +1,467 @@
+"""The optimizer's prompt, built from slices of the store under a hard token budget.
+
+The sections follow OptoPrime's (#Instruction, #Code, #Documentation, #Variables, #Constraints, #Inputs,
+#Others, #Outputs, #Feedback) plus #Memory, the last k iterations. Everything comes from the store
+(:func:`read_context`): the policy text of the version being improved, the traced training rollout (steps
+and node calls), the evaluation episodes, the feedback, and earlier iterations.
+
+Budget: the fixed sections (instruction, code, variables, constraints, feedback, summaries) must fit, or
+:class:`PromptBudgetError` says how much is needed. Memory entries are added newest first (with their code
+diff when it fits, else just score and feedback). Then steps of the training rollout are added by priority:
+the steps before each lost point or life (and a policy failure) first, round-robin from the event backwards,
+then the first steps of the episode, then the rest evenly spread. The whole request is counted at the end and
+trimmed if needed, so the prompt never exceeds the budget.
+
+The text is deterministic (no addresses, timings or counters), so its hash identifies the call: a run can be
+resumed or replayed from the store without calling the model again.
+"""
+
+from __future__ import annotations
+
+import ast
+import difflib
+import hashlib
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import duckdb
+
+from pipeline.envs import list_keys
+from pipeline.games import get_game
+from pipeline.tokens import TokenCounter
+from store.readers import episode_steps, policy_text, step_nodes
+from tracing.policy_file import PolicyInfo, inspect_policy, replace_methods
+from tracing.sandbox import ALLOWED_MODULES
+
+EVENT_WINDOW = 30
+"""Steps shown before each lost point/life (about one ball crossing in Pong)."""
+TASK_CONSTANTS = ("GAME", "ROLLOUT_STEPS", "EVAL_MAX_STEPS", "FEEDBACK", "INSTRUCTION")
+MAX_VALUE_CHARS = 300
+
+SYSTEM = """You improve a game-playing policy written in Python. The policy is a class; some of its methods are \
+trainable and you may rewrite them. The request has these sections:
+#Instruction: what to achieve.
+#Code: the policy file, with each trainable method shown as a stub (its code is in #Variables).
+#Documentation: what the game and the non-trainable parts do.
+#Variables: the current source of each trainable method; these are what you change.
+#Constraints: rules every new method must follow.
+#Inputs: observations the policy received in a traced training rollout.
+#Others: the intermediate values: each call of a method in those steps, with its inputs and output.
+#Outputs: the actions taken and rewards received, and how the evaluation games ended.
+#Feedback: how well the current policy plays, and what happened to your last suggestion.
+#Memory: earlier iterations: their score, feedback, and how their code differs from the current code.
+
+Reply with JSON only, in this form:
+{"reasoning": "<your analysis of the trace and feedback>", "suggestion": {"<method name>": "<complete new \
+source of the method: a def with the same name and parameters, docstring included>"}}
+Include only the methods you change. If you cannot reply in JSON, give each changed method as a complete def in \
+its own ```python fenced block."""
+
+
+class PromptBudgetError(ValueError):
+    """The mandatory part of the prompt does not fit the token budget."""
+
+
+@dataclass
+class MemoryEntry:
+    iteration: int
+    score: float | None
+    update_status: str
+    feedback: str
+    sources: dict[str, str]
+
+
+@dataclass
+class PromptContext:
+    """What a prompt is made of, as read from the store."""
+
+    game: str
+    instruction: str
+    info: PolicyInfo
+    train_episode: dict[str, Any]
+    train_steps: list[dict[str, Any]]
+    train_nodes: list[dict[str, Any]]
+    eval_episodes: list[dict[str, Any]]
+    feedback: str
+    memory: list[MemoryEntry] = field(default_factory=list)
+    call_time_limit_s: float = 1.0
+
+
+@dataclass
+class Prompt:
+    messages: list[dict[str, str]]
+    tokens: int
+    budget: int
+    steps_shown: list[int]
+    memory_shown: int
+    token_method: str
+
+    @property
+    def hash(self) -> str:
+        return prompt_hash(self.messages)
+
+
+def prompt_hash(messages: list[dict[str, str]]) -> str:
+    """SHA-256 of the canonical JSON of the messages (also their blob hash in the store)."""
+    return hashlib.sha256(canonical_messages(messages).encode()).hexdigest()
+
+
+def canonical_messages(messages: list[dict[str, str]]) -> str:
+    return json.dumps(messages, sort_keys=True, ensure_ascii=False, separators=(",", ":"))
+
+
+# ---------------------------------------------------------------------------------------------- reading
+
+
+def read_context(
+    con: duckdb.DuckDBPyConnection,
+    run_id: str,
+    next_iteration: int,
+    memory: int,
+    call_time_limit_s: float = 1.0,
+) -> PromptContext:
+    """The context of the update that starts iteration ``next_iteration`` of ``run_id``, from the store alone.
+
+    The update improves the version of the previous iteration, or, if that iteration rolled back, the best
+    version: its rollout, evaluation and feedback are shown, with a note on the rollback. Memory holds up to
+    ``memory`` earlier iterations, newest first.
+    """
+    previous = _iteration(con, run_id, next_iteration - 1)
+    if previous is None:
+        raise KeyError(f"run {run_id} has no iteration {next_iteration - 1}")
+    base, note = previous, ""
+    if previous["rolled_back"]:
+        base = _iteration(con, run_id, previous["best_iteration"])
+        note = (f"Iteration {previous['iteration']} scored {_num(previous['score'])}, below the best "
+                f"{_num(previous['best_score'])} of iteration {base['iteration']}, so its change was rolled back: "
+                f"you are improving iteration {base['iteration']}'s code again (see #Memory for what regressed).\n")
+    game, config = con.execute("SELECT game, config FROM runs WHERE run_id = ?", [run_id]).fetchone()
+    info = inspect_policy(policy_text(con, run_id, base["policy_version_id"]), "policy.py")
+    entries = []
+    for row in con.execute(
+        """SELECT i.iteration, i.policy_version_id, i.update_status, i.score, f.text
+           FROM iterations i LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
+           WHERE i.run_id = ? AND i.iteration < ? AND i.iteration <> ? ORDER BY i.iteration DESC LIMIT ?""",
+        [run_id, next_iteration, base["iteration"], memory],
+    ).fetchall():
+        it, vid, status, score, fb = row
+        old = inspect_policy(policy_text(con, run_id, vid), "policy.py")
+        entries.append(MemoryEntry(it, score, status, fb or "", {m.name: m.source for m in old.trainable}))
+    return PromptContext(
+        game=get_game(game).name,
+        instruction=json.loads(config).get("instruction") or "",
+        info=info,
+        train_episode=_episode(con, base["train_episode_id"]),
+        train_steps=episode_steps(con, base["train_episode_id"], list_keys=list_keys(game)),
+        train_nodes=step_nodes(con, base["train_episode_id"]),
+        eval_episodes=[_episode(con, e) for e in base["eval_episode_ids"] or []],
+        feedback=note + (base["feedback"] or ""),
+        memory=entries,
+        call_time_limit_s=call_time_limit_s,
+    )
+
+
+def _iteration(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> dict[str, Any] | None:
+    cursor = con.execute(
+        """SELECT i.*, f.text AS feedback FROM iterations i
+           LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
+           WHERE i.run_id = ? AND i.iteration = ?""", [run_id, iteration])
+    names = [d[0] for d in cursor.description]
+    row = cursor.fetchone()
+    return dict(zip(names, row)) if row else None
+
+
+def _episode(con: duckdb.DuckDBPyConnection, episode_id: str) -> dict[str, Any]:
+    cursor = con.execute(
+        "SELECT episode_id, return, length, lives_lost, end_reason, error FROM episodes WHERE episode_id = ?",
+        [episode_id],
+    )
+    names = [d[0] for d in cursor.description]
+    row = cursor.fetchone()
+    return dict(zip(names, row)) if row else {"episode_id": episode_id, "return": 0.0, "length": 0,
+                                               "lives_lost": 0, "end_reason": "missing", "error": None}
+
+
+# ---------------------------------------------------------------------------------------------- rendering
+
+
+def _num(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def _value(value: Any) -> str:
+    if value == {"$ref": "obs"}:
+        return "obs"
+    if isinstance(value, float):
+        return _num(value)
+    text = json.dumps(value, separators=(",", ":")) if not isinstance(value, str) else json.dumps(value)
+    return text if len(text) <= MAX_VALUE_CHARS else text[:MAX_VALUE_CHARS] + "…"
+
+
+def _obj(o: dict[str, int]) -> str:
+    return f"({o['x']},{o['y']},{o['w']},{o['h']},{o['dx']},{o['dy']})"
+
+
+def render_obs(obs: dict[str, Any]) -> str:
+    """Compact observation text: ``Ball(x,y,w,h,dx,dy)``; lists as ``RB[n] y=.. w=.. h=.. x=..`` when uniform."""
+    parts = []
+    for key, value in obs.items():
+        if isinstance(value, list):
+            if not value:
+                parts.append(f"{key}[0]")
+            elif len({(o["y"], o["w"], o["h"], o["dx"], o["dy"]) for o in value}) == 1:
+                first = value[0]
+                xs = ",".join(str(o["x"]) for o in value)
+                parts.append(f"{key}[{len(value)}] y={first['y']} w={first['w']} h={first['h']} x={xs}")
+            else:
+                parts.append(f"{key}[{len(value)}] " + " ".join(_obj(o) for o in value))
+        else:
+            parts.append(key + _obj(value))
+    return " ".join(parts) if parts else "(no objects)"
+
+
+def _call(node: dict[str, Any]) -> str:
+    inputs = node["inputs"] or {}
+    args = ", ".join(("obs" if k == "obs" and v == {"$ref": "obs"} else f"{k}={_value(v)}") for k, v in inputs.items())
+    head = f"{node['function']}({args})"
+    if node["exc_type"]:
+        line = f" at line {node['exc_line']}: {node['exc_source']}" if node["exc_source"] else ""
+        return f"{head} raised {node['exc_type']}: {node['exc_message']}{line}"
+    return f"{head} -> {_value(node['output'])}"
+
+
+def code_view(info: PolicyInfo) -> str:
+    """The policy file with task constants removed and each trainable method reduced to a stub."""
+    stubs = {}
+    for m in info.trainable:
+        node = ast.parse(m.source).body[0]
+        signature = f"def {m.name}({ast.unparse(node.args)}):"
+        stubs[m.name] = f"{signature}\n    ...  # trainable: its current code is in #Variables\n"
+    text = replace_methods(info.text, stubs) if stubs else info.text
+    tree = ast.parse(text)
+    drop: set[int] = set()
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id in TASK_CONSTANTS for t in node.targets):
+            drop.update(range(node.lineno - 1, node.end_lineno))
+        elif node is tree.body[0] and isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant):
+            drop.update(range(node.lineno - 1, node.end_lineno))  # the module docstring is for humans
+    lines = [line for i, line in enumerate(text.splitlines()) if i not in drop]
+    out: list[str] = []
+    for line in lines:  # collapse the blank runs left behind
+        if line.strip() or (out and out[-1].strip()):
+            out.append(line)
+    return "\n".join(out).strip() + "\n"
+
+
+def _documentation(ctx: PromptContext) -> str:
+    game = get_game(ctx.game)
+    actions = ", ".join(f"{i} {name}" for i, name in enumerate(game.actions))
+    lines = [f"Game: {game.name} ({game.env_id}, frameskip 4). Actions: {actions}."]
+    lines.append("Observations are dicts of objects; each object is written Name(x, y, w, h, dx, dy): position "
+                 "of the top-left corner, size, and movement since the previous step (y grows downward). "
+                 "An object that is not on screen is absent.")
+    tree = ast.parse(ctx.info.text)
+    for node in tree.body:
+        if isinstance(node, ast.ClassDef) and node.name == "Policy" and ast.get_docstring(node):
+            lines.append("Policy: " + ast.get_docstring(node))
+    for m in ctx.info.methods:
+        if not m.trainable:
+            doc = ast.get_docstring(ast.parse(m.source).body[0])
+            if doc:
+                lines.append(f"{m.name}: {doc}")
+    return "\n".join(lines)
+
+
+def _constraints(ctx: PromptContext) -> str:
+    game = get_game(ctx.game)
+    names = ", ".join(m.name for m in ctx.info.trainable)
+    allowed = ", ".join(sorted(ALLOWED_MODULES - {"__future__", "tracing"}))
+    return (
+        f"- Change only the trainable methods ({names}); keep each method's name and parameters exactly.\n"
+        f"- The policy must return an int action in 0..{game.n_actions - 1} for every observation, including "
+        "observations where objects are missing.\n"
+        f"- Imports allowed: {allowed}. No files, network, processes, eval/exec, dunder attributes, or "
+        "`except:`/`except BaseException`.\n"
+        f"- One call of the policy must finish within {ctx.call_time_limit_s:g} s."
+    )
+
+
+def _diff(old: dict[str, str], new: dict[str, str]) -> str:
+    lines: list[str] = []
+    for name in sorted(set(old) | set(new)):
+        a, b = old.get(name, "").splitlines(), new.get(name, "").splitlines()
+        if a != b:
+            lines.extend(difflib.unified_diff(a, b, f"iteration version: {name}", f"current version: {name}",
+                                              n=1, lineterm=""))
+    return "\n".join(lines)
+
+
+def _events(steps: list[dict[str, Any]], game_has_lives: bool) -> list[tuple[int, str]]:
+    events = []
+    for i, row in enumerate(steps):
+        if row["action"] is None:
+            events.append((row["step"], "policy failed"))
+        elif row["reward"] < 0:
+            events.append((row["step"], "point lost"))
+        elif game_has_lives and i + 1 < len(steps) and (steps[i + 1]["lives"] or 0) < (row["lives"] or 0):
+            events.append((row["step"], "life lost"))
+    return events
+
+
+def _priority(steps: list[dict[str, Any]], events: list[tuple[int, str]]) -> list[int]:
+    """Step indices in the order they are worth showing (see the module docstring)."""
+    n = len(steps)
+    index_of = {row["step"]: i for i, row in enumerate(steps)}
+    order: list[int] = []
+    seen: set[int] = set()
+
+    def add(i: int) -> None:
+        if 0 <= i < n and i not in seen:
+            seen.add(i)
+            order.append(i)
+
+    event_indices = [index_of[s] for s, _ in events if s in index_of]
+    for distance in range(EVENT_WINDOW):
+        for e in event_indices:
+            add(e - distance)
+    for i in range(min(n, EVENT_WINDOW)):
+        add(i)
+    remaining = [i for i in range(n) if i not in seen]
+    stride = 1
+    while stride * 2 <= len(remaining):
+        stride *= 2
+    while remaining:  # coarse-to-fine spread over what is left
+        for i in remaining[::stride]:
+            add(i)
+        remaining = [i for i in remaining if i not in seen]
+        stride = max(1, stride // 2)
+    return order
+
+
+# ---------------------------------------------------------------------------------------------- building
+
+
+def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prompt:
+    """Assemble the prompt for ``ctx`` within ``budget`` tokens (see the module docstring)."""
+    game = get_game(ctx.game)
+    steps, nodes = ctx.train_steps, ctx.train_nodes
+    events = _events(steps, game.lives > 0)
+    nodes_by_step: dict[int, list[dict[str, Any]]] = {}
+    for node in nodes:
+        nodes_by_step.setdefault(node["step"], []).append(node)
+
+    ep = ctx.train_episode
+    event_text = "; ".join(f"{what} at step {s}" for s, what in events) or "no point or life lost"
+    inputs_head = (f"Training rollout of the current policy: {ep['length']} steps, return {_num(ep['return'])}, "
+                   f"ended: {ep['end_reason']}. Events: {event_text}.")
+    if ep.get("error"):
+        inputs_head += f"\nThe policy failed: {ep['error']}"
+    evals = ctx.eval_episodes
+    outputs_tail = "Evaluation games: " + "; ".join(
+        f"return {_num(e['return'])} in {e['length']} steps ({e['end_reason']}"
+        + (f": {e['error']}" if e.get("error") else "") + ")" for e in evals
+    ) if evals else "Evaluation games: none."
+
+    variables = "\n\n".join(f"(code) {m.name}:\n```python\n{m.source.rstrip()}\n```" for m in ctx.info.trainable)
+    fixed = {
+        "#Instruction": ctx.instruction.strip(),
+        "#Code": f"```python\n{code_view(ctx.info).rstrip()}\n```",
+        "#Documentation": _documentation(ctx),
+        "#Variables": variables,
+        "#Constraints": _constraints(ctx),
+        "#Feedback": ctx.feedback.strip() or "(no feedback yet)",
+    }
+
+    def assemble(shown: list[int], memory: list[str]) -> list[dict[str, str]]:
+        shown = sorted(shown)
+        obs_lines, call_lines, out_lines = [], [], []
+        previous = None
+        for i in shown:
+            if previous is not None and i != previous + 1:
+                gap = f"… steps {steps[previous]['step'] + 1}-{steps[i]['step'] - 1} omitted"
+                obs_lines.append(gap)
+                call_lines.append(gap)
+                out_lines.append(gap)
+            obs_lines.append(_obs_line(steps[i]))
+            call_lines.append(_calls_line(steps[i], nodes_by_step))
+            out_lines.append(_out_line(steps[i]))
+            previous = i
+        shown_note = (f"Showing {len(shown)} of {len(steps)} steps" +
+                      (" (the steps before each lost point or life first)." if len(shown) < len(steps) else "."))
+        sections = [
+            ("#Instruction", fixed["#Instruction"]),
+            ("#Code", fixed["#Code"]),
+            ("#Documentation", fixed["#Documentation"]),
+            ("#Variables", fixed["#Variables"]),
+            ("#Constraints", fixed["#Constraints"]),
+            ("#Inputs", "\n".join([inputs_head, shown_note] + obs_lines)),
+            ("#Others", "\n".join(call_lines) if call_lines else "(no calls shown)"),
+            ("#Outputs", "\n".join(out_lines + [outputs_tail])),
+            ("#Feedback", fixed["#Feedback"]),
+            ("#Memory", "\n\n".join(memory) if memory else "(no earlier iterations)"),
+        ]
+        user = "\n\n".join(f"{title}\n{body}" for title, body in sections)
+        return [{"role": "system", "content": SYSTEM}, {"role": "user", "content": user}]
+
+    base_tokens = counter.messages(assemble([], []))
+    if base_tokens > budget:
+        raise PromptBudgetError(
+            f"the policy code, instructions and feedback alone need {base_tokens} tokens, more than the budget "
+            f"of {budget}; raise --token-budget")
+    used = base_tokens
+
+    memory_texts: list[str] = []
+    current = {m.name: m.source for m in ctx.info.trainable}
+    for entry in ctx.memory:  # newest first
+        head = (f"Iteration {entry.iteration}: score {_num(entry.score) if entry.score is not None else 'n/a'}, "
+                f"update {entry.update_status}.\nFeedback: {entry.feedback.strip()}")
+        diff = _diff(entry.sources, current)
+        full = head + ("\nCode differences from the current version:\n```diff\n" + diff + "\n```" if diff
+                       else "\nSame code as the current version.")
+        for text in (full, head):
+            cost = counter(text) + 2
+            if used + cost <= budget:
+                memory_texts.append(text)
+                used += cost
+                break
+        else:
+            break
+
+    shown: list[int] = []
+    for i in _priority(steps, events):
+        cost = counter(_obs_line(steps[i])) + counter(_calls_line(steps[i], nodes_by_step)) + \
+            counter(_out_line(steps[i])) + 3
+        if used + cost > budget:
+            continue  # a shorter step further down the list may still fit
+        shown.append(i)
+        used += cost
+
+    messages = assemble(shown, memory_texts)
+    tokens = counter.messages(messages)
+    while tokens > budget and (shown or memory_texts):  # gap markers and joins can tip it over
+        if shown:
+            shown.pop()
+        else:
+            memory_texts.pop()
+        messages = assemble(shown, memory_texts)
+        tokens = counter.messages(messages)
+    return Prompt(messages, tokens, budget, sorted(steps[i]["step"] for i in shown), len(memory_texts),
+                  counter.method)
+
+
+def _obs_line(row: dict[str, Any]) -> str:
+    return f"step {row['step']}: {render_obs(row['obs'])}"
+
+
+def _calls_line(row: dict[str, Any], nodes_by_step: dict[int, list[dict[str, Any]]]) -> str:
+    calls = nodes_by_step.get(row["step"], [])
+    return f"step {row['step']}: " + (" | ".join(_call(n) for n in calls) if calls else "(no calls recorded)")
+
+
+def _out_line(row: dict[str, Any]) -> str:
+    if row["action"] is None:
+        return f"step {row['step']}: no action (the policy failed)"
+    return f"step {row['step']}: action {row['action']}, reward {_num(row['reward'])}, score {_num(row['score'])}"

@@ -1,0 +1,65 @@
+"""Counting prompt tokens against the budget, with the model's own tokenizer where litellm knows it.
+
+litellm bundles tokenizers for some model families (Anthropic's, DeepSeek's, Cohere's) and counts those
+exactly. For every other model (OpenAI's, local servers, SmolLM2) the count is an estimate: tiktoken's
+``cl100k_base`` (bundled with litellm, no download) times a 10 % safety margin, which covered the
+SmolLM2/Llama tokenizers with room to spare when we compared them. The budget is a hard limit on *our*
+count; :class:`TokenCounter` says which of the two it used.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from functools import lru_cache
+from typing import Callable
+
+ESTIMATE_MARGIN = 1.10
+MESSAGE_OVERHEAD = 4
+"""Tokens chat templates add around each message (role markers); counted so the budget holds."""
+
+
+def import_litellm():
+    """litellm, imported once, quietly, without reaching for the network (its cost map is bundled)."""
+    os.environ.setdefault("LITELLM_LOCAL_MODEL_COST_MAP", "True")
+    os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")  # we fork workers; HF tokenizers would warn
+    import litellm
+
+    litellm.suppress_debug_info = True
+    litellm.telemetry = False
+    return litellm
+
+
+@lru_cache(maxsize=None)
+def _cl100k():
+    import_litellm()  # sets TIKTOKEN_CACHE_DIR to the tokenizer files litellm ships
+    from litellm.litellm_core_utils.default_encoding import encoding
+
+    return encoding
+
+
+class TokenCounter:
+    """``counter(text)`` -> tokens of ``text`` for ``model`` (exact or a documented estimate)."""
+
+    def __init__(self, model: str):
+        self.model = model
+        litellm = import_litellm()
+        from litellm.utils import huggingface_tokenizer_kind
+
+        kind = huggingface_tokenizer_kind(model)
+        if kind in ("anthropic", "deepseek", "cohere"):
+            self.exact = True
+            self.method = f"litellm's bundled {kind} tokenizer"
+            self._count: Callable[[str], int] = lambda text: litellm.token_counter(model=model, text=text)
+        else:
+            self.exact = False
+            self.method = f"estimate: cl100k_base tokens x {ESTIMATE_MARGIN}"
+            encoding = _cl100k()
+            self._count = lambda text: math.ceil(len(encoding.encode(text, disallowed_special=())) * ESTIMATE_MARGIN)
+
+    def __call__(self, text: str) -> int:
+        return self._count(text) if text else 0
+
+    def messages(self, messages: list[dict[str, str]]) -> int:
+        """Tokens of a chat request: every message's content plus the per-message overhead."""
+        return sum(self(m["content"]) + MESSAGE_OVERHEAD for m in messages) + MESSAGE_OVERHEAD

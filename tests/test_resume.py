@@ -1,0 +1,144 @@
+"""kill -9 at any point of `codearcade optimize`, then --resume; and `codearcade replay`."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+import pipeline.prompt
+from pipeline.replay import replay
+from tests.conftest import COMPETENT_REPLY, ROOT
+
+EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
+
+
+def _optimize(model, store, *extra):
+    return [EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+            "--iterations", "3", "--eval-max-steps", "1200", "--store", str(store.path), *extra]
+
+
+def _start(model, store):
+    return subprocess.Popen(_optimize(model, store), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+
+
+def _wait_for(predicate, timeout=120.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.05)
+    raise AssertionError("timed out waiting")
+
+
+def _count(store, sql, params=()):
+    if not store.exists():
+        return 0
+    try:
+        return store.query(sql, list(params))[0][0]
+    except Exception:  # tables not created yet
+        return 0
+
+
+def _run_id(store):
+    return store.query("SELECT run_id FROM runs")[0][0]
+
+
+def _resume(store, run_id, model):
+    done = subprocess.run([EXE, "optimize", "--resume", run_id, "--store", str(store.path), "--json"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    return done
+
+
+def _assert_complete(store, iterations=3):
+    rows = store.query("SELECT iteration, count(*) FROM iterations GROUP BY iteration ORDER BY iteration")
+    assert rows == [(i, 1) for i in range(iterations + 1)], rows
+    assert store.query("SELECT status FROM runs")[0][0] == "finished"
+    # every episode of every iteration exactly once, with all its steps
+    assert store.query("SELECT count(*), count(DISTINCT episode_id) FROM episodes")[0] == ((iterations + 1) * 2,) * 2
+    assert store.query("SELECT count(*) FROM (SELECT episode_id, step FROM steps GROUP BY ALL HAVING count(*) > 1)")[0][0] == 0
+    lengths = store.query("SELECT e.length, count(s.step) FROM episodes e JOIN steps s USING (episode_id) GROUP BY e.episode_id, e.length")
+    assert all(a == b for a, b in lengths)
+
+
+def test_kill_during_llm_call_then_resume(store, scripted):
+    model = scripted([COMPETENT_REPLY, {"sleep": 60, "content": COMPETENT_REPLY}, COMPETENT_REPLY])
+    process = _start(model, store)
+    _wait_for(lambda: len(model.requests()) == 2)  # iteration 2's call is hanging
+    process.kill()
+    process.wait()
+    run_id = _run_id(store)
+    assert _count(store, "SELECT max(iteration) FROM iterations") == 1
+    done = _resume(store, run_id, model)
+    assert done.returncode == 0, done.stderr
+    _assert_complete(store)
+    assert json.loads(done.stdout)["status"] == "finished"
+
+
+def test_kill_during_evaluation_reuses_the_stored_reply(store, scripted):
+    model = scripted([COMPETENT_REPLY])
+    process = _start(model, store)
+    _wait_for(lambda: _count(store, "SELECT count(*) FROM episodes WHERE iteration = 1 AND kind = 'train'") == 1
+              and _count(store, "SELECT count(*) FROM iterations WHERE iteration = 1") == 0)
+    process.kill()
+    process.wait()
+    requests_before = len(model.requests())
+    assert requests_before == 1
+    done = _resume(store, _run_id(store), model)
+    assert done.returncode == 0, done.stderr
+    _assert_complete(store)
+    assert len(model.requests()) == 3, "iteration 1's reply came from the store; only iterations 2 and 3 called"
+    assert _count(store, "SELECT count(*) FROM llm_calls WHERE iteration = 1") == 1
+
+
+def test_random_kills_end_like_an_uninterrupted_run(store, scripted, tmp_path):
+    from store import Store
+
+    model = scripted([COMPETENT_REPLY])
+    reference = Store(tmp_path / "reference.duckdb")
+    done = subprocess.run(_optimize(model, reference), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    expected = reference.query("SELECT iteration, policy_version_id, score FROM iterations ORDER BY iteration")
+
+    rng = random.Random(7)
+    process = _start(model, store)
+    _wait_for(lambda: _count(store, "SELECT count(*) FROM runs") == 1)
+    time.sleep(rng.uniform(0.5, 3.0))
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    run_id = _run_id(store)
+    for _ in range(2):
+        resumed = subprocess.Popen([EXE, "optimize", "--resume", run_id, "--store", str(store.path)], cwd=ROOT,
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(rng.uniform(0.5, 3.0))
+        resumed.kill()
+        resumed.wait()
+    done = _resume(store, run_id, model)
+    assert done.returncode == 0, done.stderr
+    _assert_complete(store)
+    assert store.query("SELECT iteration, policy_version_id, score FROM iterations ORDER BY iteration") == expected
+
+
+def test_replay_matches_then_reports_divergence(store, scripted, monkeypatch):
+    model = scripted([COMPETENT_REPLY, "no code here", COMPETENT_REPLY])
+    done = subprocess.run(_optimize(model, store), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    run_id = _run_id(store)
+    calls_before = len(model.requests())
+
+    report = replay(store, run_id)
+    assert report.status == "finished" and report.diverged_at is None
+    assert [r.iteration for r in report.rows] == [0, 1, 2, 3] and all(r.matches for r in report.rows)
+    assert len(model.requests()) == calls_before, "a replay never calls the model"
+
+    monkeypatch.setattr(pipeline.prompt, "SYSTEM", pipeline.prompt.SYSTEM + "\nBe brief.")  # the builder changed
+    report = replay(store, run_id)
+    assert report.status == "diverged" and report.diverged_at == 1
+    assert store.query("SELECT count(*) FROM runs WHERE kind = 'replay'")[0][0] == 2
