@@ -17,9 +17,6 @@ from pipeline.games import GAMES
 
 EXIT_OK, EXIT_EPISODE_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 FAILED_END_REASONS = ("policy_error", "timeout", "crashed")
-OFFLINE_TOKEN_BUDGET = 3_000
-OFFLINE_MAX_TOKENS = 512
-"""The offline model reads ~100-200 prompt tokens/s on two cores: small prompts keep an iteration near a minute."""
 
 
 class CliError(Exception):
@@ -33,6 +30,13 @@ def _add_store(p: argparse.ArgumentParser) -> None:
         metavar="PATH",
         help="DuckDB store file (default: $CODEARCADE_STORE or ./codearcade.duckdb)",
     )
+
+
+def _add_rerun(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rerun", default="off", metavar="DIR|spawn|off",
+                   help="live Rerun recordings: DIR writes DIR/<episode_id>.rrd per episode (and DIR/<run_id>.rrd "
+                   "for optimize), spawn streams to a Rerun viewer on 127.0.0.1 (started if none runs), "
+                   "a rerun+http://HOST:PORT/proxy url streams there; off (default) records nothing")
 
 
 def _store(args: argparse.Namespace):
@@ -98,6 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episode-time-limit", type=float, default=900.0, metavar="SECONDS",
                    help="wall-clock limit of one episode (default: 900)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    _add_rerun(p)
     _add_store(p)
     p.set_defaults(handler=cmd_eval)
 
@@ -137,8 +142,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--call-time-limit", type=float, default=1.0, metavar="SECONDS", help="per policy call (default: 1)")
     p.add_argument("--resume", metavar="RUN_ID", help="continue a run that was interrupted or killed")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    _add_rerun(p)
     _add_store(p)
     p.set_defaults(handler=cmd_optimize)
+
+    p = verbs.add_parser(
+        "batch",
+        help="run a matrix of optimizations headless (resumable)",
+        description="Run every optimization an experiment file declares, in parallel, into one store. Running "
+        "the same command again skips finished runs and resumes interrupted ones. See pipeline/batch.py and "
+        "examples/ablation.toml for the file format.",
+    )
+    p.add_argument("experiments", metavar="EXPERIMENTS.toml")
+    p.add_argument("--workers", type=_positive_int, default=None, help="runs at once (default: cores)")
+    p.add_argument("--executor", choices=["local", "ray"], default="local",
+                   help="local processes (default) or a Ray cluster")
+    p.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
+    p.add_argument("--dry-run", action="store_true", help="list what would run, and do nothing")
+    p.add_argument("--log", metavar="FILE", help="plain log file (default: <store>.<batch>.log beside the store)")
+    _add_store(p)
+    p.set_defaults(handler=cmd_batch)
+
+    p = verbs.add_parser(
+        "doctor",
+        help="check a store's integrity",
+        description="Check references, uniqueness and completeness of everything in the store (see store/doctor.py). "
+        "Exit 0 when sound (warnings allowed), 1 when damage is found.",
+    )
+    p.add_argument("--json", action="store_true", help="print the findings as JSON")
+    _add_store(p)
+    p.set_defaults(handler=cmd_doctor)
 
     p = verbs.add_parser(
         "replay",
@@ -151,6 +184,72 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     _add_store(p)
     p.set_defaults(handler=cmd_replay)
+
+    p = verbs.add_parser(
+        "sql",
+        help="run a read-only SQL query on the store",
+        description="Run one read-only SQL query (DuckDB dialect) on the store and print the result: an aligned "
+        "table, CSV or JSON. Works while a run is writing to the store (it waits between the run's writes). "
+        "Besides the tables, the views learning_curve, code_metrics, llm_usage, rejected_candidates and "
+        "run_summary are there; docs/schema.md describes them all.",
+    )
+    p.add_argument("query", metavar="SQL", help="the query; '-' reads it from stdin")
+    fmt = p.add_mutually_exclusive_group()
+    fmt.add_argument("--csv", action="store_true", help="print CSV with a header row")
+    fmt.add_argument("--json", action="store_true", help="print a JSON list of row objects")
+    p.add_argument("--max-width", type=_non_negative_int, default=40, metavar="N",
+                   help="table mode: cut cells longer than N characters (default: 40; 0: never)")
+    p.add_argument("--max-rows", type=_non_negative_int, default=1000, metavar="N",
+                   help="table mode: print at most N rows (default: 1000; 0: all)")
+    _add_store(p)
+    p.set_defaults(handler=cmd_sql)
+
+    p = verbs.add_parser(
+        "runs",
+        help="list the runs in the store",
+        description="List the runs in the store, oldest first: kind, game, model, status, iterations done of "
+        "those planned, best score (the mean return for eval runs), episodes and LLM tokens (view run_summary).",
+    )
+    p.add_argument("--json", action="store_true", help="print the run_summary rows as JSON")
+    _add_store(p)
+    p.set_defaults(handler=cmd_runs)
+
+    p = verbs.add_parser(
+        "report",
+        help="write PNG plots and a Markdown summary of a run",
+        description="Write a report of one run: score per iteration with the best so far (return per episode "
+        "for eval runs), code size and complexity per iteration, LLM tokens per iteration, as PNG files, and "
+        "README.md showing them with the run's settings and a table of its iterations.",
+    )
+    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
+    p.add_argument("--out", metavar="DIR", help="output directory (default: ./reports/RUN_ID)")
+    _add_store(p)
+    p.set_defaults(handler=cmd_report)
+
+    p = verbs.add_parser(
+        "view",
+        help="rebuild a Rerun recording of a run or an episode from the store",
+        description="Rebuild a Rerun recording from the store: with no --iteration/--episode, the run recording "
+        "of an optimization (score, code, prompts and replies per iteration) or the first episode of an eval run; "
+        "--iteration I alone shows that iteration's training rollout. Frames are regenerated by replaying the "
+        "stored actions (checked against the stored objects). Without --spawn/--serve-web/--connect the "
+        "recording is saved to a file (default ./<recording id>.rrd).",
+    )
+    p.add_argument("run_id", metavar="RUN", help="run id")
+    p.add_argument("--iteration", type=_non_negative_int, metavar="I", help="optimizer iteration (default: 0)")
+    p.add_argument("--episode", metavar="E",
+                   help="evaluation episode index within the iteration, 'train' for its training rollout, or an episode id")
+    sink = p.add_mutually_exclusive_group()
+    sink.add_argument("--save", metavar="FILE.rrd", help="write the recording to this file")
+    sink.add_argument("--serve-web", action="store_true",
+                      help="serve the web viewer on 127.0.0.1 and print its URL; Ctrl-C stops it")
+    sink.add_argument("--spawn", action="store_true", help="send it to a native Rerun viewer (started if none runs)")
+    sink.add_argument("--connect", metavar="URL", help="send it to a viewer or server at rerun+http://HOST:PORT/proxy")
+    p.add_argument("--frames-every", type=_non_negative_int, default=4, metavar="K",
+                   help="episodes: regenerate the screen every K steps by replaying the actions (default: 4; 0: none)")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    _add_store(p)
+    p.set_defaults(handler=cmd_view)
     return parser
 
 
@@ -180,7 +279,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     config = EvalConfig(
         game=args.game, episodes=args.episodes, max_steps=args.max_steps, seed=args.seed, trace=args.trace,
         sticky=args.sticky, noop_max=args.noop_max, workers=workers, call_time_limit_s=args.call_time_limit,
-        episode_time_limit_s=args.episode_time_limit,
+        episode_time_limit_s=args.episode_time_limit, rerun=_rerun_target(args.rerun),
     )
     store = _store(args)
     bar, update, _ = _progress_bar(args.episodes * args.max_steps, f"eval {os.path.basename(args.policy)}",
@@ -205,6 +304,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return EXIT_EPISODE_FAILED if failed else EXIT_OK
 
 
+def _rerun_target(value: str | None) -> str | None:
+    """``--rerun`` as a live target for the episode workers (Rerun itself is never loaded in this process)."""
+    from viewers.rerun_sinks import ViewerError, resolve_live_target
+
+    try:
+        return resolve_live_target(value)
+    except ViewerError as exc:
+        raise CliError(str(exc)) from None
+
+
 def _print_iteration(item) -> None:
     tokens = f"prompt {item.prompt_tokens} tok" if item.prompt_tokens else ""
     note = f"  ({item.detail})" if item.detail and item.update_status != "accepted" else ""
@@ -213,25 +322,8 @@ def _print_iteration(item) -> None:
           f"  update {item.update_status:<9} {tokens}{back}{note[:160]}", flush=True)
 
 
-def _client_for(model: str | None, api_base: str | None, temperature: float, max_tokens: int | None, seed: int):
-    """(client, server or None, max_tokens, context budget cap) for --model / the offline default."""
-    from pipeline.llm import LiteLLMClient
-
-    if model:
-        return LiteLLMClient(model, api_base=api_base, temperature=temperature, max_tokens=max_tokens or 4096,
-                             seed=seed), None, None
-    from pipeline.local_llm import LocalModelServer, show_offline_model_notice
-
-    show_offline_model_notice()
-    server = LocalModelServer()
-    server.start()
-    max_tokens = max_tokens or OFFLINE_MAX_TOKENS
-    client = LiteLLMClient(server.model, api_base=server.api_base, temperature=temperature, max_tokens=max_tokens,
-                           seed=seed)
-    return client, server, server.context_tokens - max_tokens
-
-
 def cmd_optimize(args: argparse.Namespace) -> int:
+    from pipeline.llm import OFFLINE_TOKEN_BUDGET, open_client
     from pipeline.optimize import OptimizeConfig, load_state, optimize
 
     store = _store(args)
@@ -242,12 +334,12 @@ def cmd_optimize(args: argparse.Namespace) -> int:
         config.model = args.model or config.model  # a resumed run may be pointed at another endpoint
         config.api_base = args.api_base or config.api_base
         offline = config.model is None
-        client, server, cap = _client_for(config.model, config.api_base, config.temperature, config.max_tokens,
+        client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
                                           config.seed)
         if args.iterations is not None:
             config.iterations = args.iterations
     else:
-        client, server, cap = _client_for(args.model, args.api_base, args.temperature, args.max_tokens, args.seed)
+        client, server, cap = open_client(args.model, args.api_base, args.temperature, args.max_tokens, args.seed)
         budget = args.token_budget or (16_000 if cap is None else OFFLINE_TOKEN_BUDGET)
         if cap is not None:
             budget = min(budget, cap)
@@ -260,14 +352,18 @@ def cmd_optimize(args: argparse.Namespace) -> int:
             eval_max_steps=args.eval_max_steps, workers=args.workers or (os.cpu_count() or 1),
             call_time_limit_s=args.call_time_limit,
         )
+    rerun = _rerun_target(args.rerun)
+    on_iteration, recordings = _run_recordings(store, rerun, None if args.json else _print_iteration)
     try:
         if not args.json:
             print(f"store {store.path}  model {client.model}{' (offline default)' if offline else ''}", flush=True)
-        result = optimize(config, store, client, resume=args.resume, on_iteration=None if args.json else _print_iteration,
-                          log=lambda line: print(line, file=sys.stderr))
+        result = optimize(config, store, client, resume=args.resume, on_iteration=on_iteration,
+                          log=lambda line: print(line, file=sys.stderr), rerun=rerun)
     finally:
         if server is not None:
             server.stop()
+        if recordings is not None:
+            recordings.close()
     if args.json:
         print(json.dumps({
             "run_id": result.run_id, "status": result.status, "error": result.error,
@@ -282,6 +378,139 @@ def cmd_optimize(args: argparse.Namespace) -> int:
               f"`codearcade optimize --resume {result.run_id}`", file=sys.stderr)
         return EXIT_EPISODE_FAILED
     return EXIT_OK
+
+
+def _batch_display():
+    """A live table on a terminal (rich), nothing otherwise (the log lines tell the story)."""
+    if not sys.stdout.isatty():
+        return (lambda progress: None), (lambda: None)
+    from rich.live import Live
+    from rich.table import Table
+
+    live = Live(refresh_per_second=2, transient=False)
+    live.start()
+
+    def show(progress) -> None:
+        table = Table(title="codearcade batch", expand=False)
+        for column in ("run", "state", "iteration", "best", "run id"):
+            table.add_column(column)
+        for p in progress:
+            it = "-" if p.iteration is None else f"{p.iteration}/{p.iterations}"
+            best = "-" if p.best is None else f"{p.best:g}"
+            table.add_row(p.label, p.state, it, best, p.run_id or "")
+        counts = {s: sum(1 for p in progress if p.state == s) for s in ("finished", "running", "failed", "skipped")}
+        table.caption = "  ".join(f"{k} {v}" for k, v in counts.items())
+        live.update(table)
+
+    return show, live.stop
+
+
+def _run_recordings(store, target: str | None, then: Callable | None):
+    """With ``--rerun``: an on_iteration callback that also has the run's Rerun recording rebuilt, in a separate
+    process, after every iteration; and the updater to close at the end (None without ``--rerun``)."""
+    if target is None:
+        return then, None
+    from viewers.rerun_sinks import RunRecordingUpdater
+
+    updater = RunRecordingUpdater(store.path, target)
+
+    def on_iteration(item) -> None:
+        if then is not None:
+            then(item)
+        updater.update(item.run_id)
+
+    return on_iteration, updater
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from viewers.rerun_sinks import ViewerError
+    from viewers.rerun_view import view
+
+    def out(line: str) -> None:
+        if not args.quiet:
+            print(line, flush=True)
+
+    try:
+        view(_store(args), args.run_id, iteration=args.iteration, episode=args.episode, save=args.save,
+             connect=args.connect, spawn=args.spawn, serve_web=args.serve_web, frames_every=args.frames_every,
+             out=out, warn=lambda line: print(line, file=sys.stderr))
+    except ViewerError as exc:
+        raise CliError(str(exc)) from None
+    return EXIT_OK
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    from datetime import datetime
+    from pathlib import Path
+
+    from pipeline.batch import load_experiments, plan, run_local, run_ray
+    from store import Store
+
+    batch = load_experiments(args.experiments)
+    if args.store:
+        store = Store(args.store)
+    elif batch.store:
+        path = Path(batch.store)
+        store = Store(path if path.is_absolute() else batch.path.parent / path)
+    else:
+        store = Store()
+    planned = plan(batch, store)
+    if args.dry_run:
+        print(f"batch {batch.name}: {len(planned)} runs into {store.path}")
+        for p in planned:
+            print(f"  {p.action:<6} {p.run.label}" + (f"  (run {p.run_id}, {p.status})" if p.run_id else ""))
+        return EXIT_OK
+    log_path = Path(args.log) if args.log else store.path.with_name(f"{store.path.name}.{batch.name}.log")
+    log_file = open(log_path, "a")
+    show, stop = _batch_display()
+    quiet = sys.stdout.isatty()
+
+    def log(line: str) -> None:
+        stamped = f"{datetime.now().isoformat(timespec='seconds')} {line}"
+        log_file.write(stamped + "\n")
+        log_file.flush()
+        if not quiet:
+            print(stamped, flush=True)
+
+    log(f"batch {batch.name}: {len(planned)} runs ({sum(p.action == 'skip' for p in planned)} finished already), "
+        f"executor {args.executor}, store {store.path}")
+    try:
+        if args.executor == "ray":
+            result = run_ray(batch, store, planned, args.address, log, show)
+        else:
+            workers = args.workers or (os.cpu_count() or 1)
+            result = run_local(batch, store, planned, workers, log, show,
+                               log_dir=log_path.with_name(log_path.name + ".runs"))
+    finally:
+        stop()
+    failed = result.failed
+    log(f"batch {batch.name} done: {sum(p.state == 'finished' for p in result.progress)} finished, "
+        f"{sum(p.state == 'skipped' for p in result.progress)} skipped, {len(failed)} failed")
+    log_file.close()
+    for p in failed:
+        print(f"codearcade: {p.label} failed: {p.note}; rerun the same command to resume it", file=sys.stderr)
+    return EXIT_EPISODE_FAILED if failed else EXIT_OK
+
+
+def cmd_doctor(args: argparse.Namespace) -> int:
+    from store.doctor import check_store
+
+    store = _store(args)
+    with store.read() as con:
+        findings = check_store(con, store.path)
+        counts = {t: con.execute(f"SELECT count(*) FROM {t}").fetchone()[0]
+                  for t in ("runs", "iterations", "episodes", "steps", "nodes", "llm_calls")}
+    errors = [f for f in findings if not f.warning]
+    if args.json:
+        print(json.dumps({"store": str(store.path), "ok": not errors, "counts": counts,
+                          "findings": [{"check": f.check, "warning": f.warning, "rows": [list(map(str, r)) for r in f.rows]}
+                                       for f in findings]}, indent=2))
+    else:
+        print(f"{store.path}: " + ", ".join(f"{n:,} {t}" for t, n in counts.items()))
+        for f in findings:
+            print(("warning: " if f.warning else "PROBLEM: ") + f.summary())
+        print("ok: no damage found" if not errors else f"{len(errors)} kind(s) of damage found")
+    return EXIT_OK if not errors else EXIT_EPISODE_FAILED
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -303,12 +532,67 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return EXIT_OK if report.diverged_at is None else EXIT_EPISODE_FAILED
 
 
+def cmd_sql(args: argparse.Namespace) -> int:
+    from store.views import run_query
+    from viewers.tables import format_table, records, write_csv
+
+    query = sys.stdin.read() if args.query == "-" else args.query
+    if not query.strip():
+        raise CliError("empty query; give a SQL statement, e.g. codearcade sql \"SELECT * FROM run_summary\"")
+    store = _store(args)
+    result = run_query(store, query)  # every row is fetched and the file let go before anything is printed
+    if args.json:
+        print(json.dumps(records(result.columns, result.types, result.rows), indent=2, ensure_ascii=False))
+    elif args.csv:
+        write_csv(sys.stdout, result.columns, result.rows)
+    elif result.columns:
+        shown = result.rows[: args.max_rows] if args.max_rows else result.rows
+        print(format_table(result.columns, shown, args.max_width))
+        more = len(result.rows) - len(shown)
+        print(f"({len(result.rows)} row{'s' * (len(result.rows) != 1)}"
+              + (f", {more} not shown: use --max-rows 0, --csv or --json)" if more else ")"))
+    return EXIT_OK
+
+
+def cmd_runs(args: argparse.Namespace) -> int:
+    from store.views import run_query
+    from viewers.tables import format_table, records
+
+    store = _store(args)
+    result = run_query(store, "SELECT * FROM run_summary ORDER BY created_at, run_id")
+    if args.json:
+        print(json.dumps(records(result.columns, result.types, result.rows), indent=2))
+        return EXIT_OK
+    if not result.rows:
+        print(f"no runs in {store.path}")
+        return EXIT_OK
+    rows = []
+    for r in (dict(zip(result.columns, row)) for row in result.rows):
+        done = "-" if r["kind"] == "eval" else f"{r['iterations_done']}/{r['iterations_planned'] or '?'}"
+        rows.append((r["run_id"], r["created_at"].strftime("%Y-%m-%d %H:%M"), r["kind"], r["game"],
+                     r["model"], r["status"], done, None if r["best_score"] is None else round(r["best_score"], 2),
+                     r["episodes"], r["total_tokens"]))
+    print(format_table(("run", "created (UTC)", "kind", "game", "model", "status", "iterations", "best", "episodes",
+                        "tokens"), rows, max_width=32, null="-"))
+    return EXIT_OK
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from viewers.report import write_report
+
+    path = write_report(_store(args), args.run_id, args.out)
+    print(path)
+    return EXIT_OK
+
+
 def _user_errors() -> tuple[type[BaseException], ...]:
     from pipeline.games import UnknownGameError
     from store import StoreError
+    from pipeline.local_llm import LocalModelError
+    from store.locks import RunBusyError
     from tracing.policy_file import PolicyLoadError
 
-    return (CliError, PolicyLoadError, UnknownGameError, StoreError, ValueError)
+    return (CliError, PolicyLoadError, UnknownGameError, StoreError, RunBusyError, LocalModelError, ValueError)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -45,6 +45,8 @@ class EvalConfig:
     """Time limit of one policy call."""
     episode_time_limit_s: float = 900.0
     """Wall-clock limit of one episode."""
+    rerun: str | None = None
+    """Live Rerun recording of each episode (``EpisodeSpec.rerun``): a directory or a gRPC url; None: off."""
 
 
 @dataclass
@@ -107,7 +109,7 @@ def evaluate(
             policy_version_id=info.version_id, policy_name=name, iteration=0, kind="eval", index=i,
             seed=config.seed + i, max_steps=config.max_steps, sticky=config.sticky, noop_max=config.noop_max,
             trace=config.trace, call_time_limit_s=config.call_time_limit_s,
-            episode_time_limit_s=config.episode_time_limit_s,
+            episode_time_limit_s=config.episode_time_limit_s, rerun=config.rerun,
         )
         for i in range(config.episodes)
     ]

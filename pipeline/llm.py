@@ -168,3 +168,27 @@ class ReplayClient:
         if digest not in self.replies:
             raise LLMError("ReplayMiss", f"no stored reply for prompt {digest[:12]}", 1, fatal=True)
         return LLMReply(text=self.replies[digest], response_model=self.model, replayed=True, latency_s=0.0)
+
+
+OFFLINE_TOKEN_BUDGET = 3_000
+OFFLINE_MAX_TOKENS = 512
+"""The offline model reads ~100-200 prompt tokens/s on two cores: small prompts keep an iteration near a minute."""
+
+
+def open_client(model: str | None, api_base: str | None, temperature: float, max_tokens: int | None, seed: int):
+    """(client, local server or None, prompt-token cap or None) for ``--model``, or the offline default.
+
+    With no model, SmolLM2 is started on 127.0.0.1 (``pipeline/local_llm.py``) and a one-time notice says it
+    only exercises the pipeline; the caller stops the server when done.
+    """
+    if model:
+        return LiteLLMClient(model, api_base=api_base, temperature=temperature, max_tokens=max_tokens or 4096,
+                             seed=seed), None, None
+    from pipeline.local_llm import LocalModelServer, show_offline_model_notice
+
+    show_offline_model_notice()
+    server = LocalModelServer().start()
+    max_tokens = max_tokens or OFFLINE_MAX_TOKENS
+    client = LiteLLMClient(server.model, api_base=server.api_base, temperature=temperature, max_tokens=max_tokens,
+                           seed=seed)
+    return client, server, server.context_tokens - max_tokens

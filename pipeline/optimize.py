@@ -43,6 +43,7 @@ from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, 
 from pipeline.versions import policy_version_row
 from store import Store
 from store.db import utcnow
+from store.locks import run_lock
 from store.readers import get_run, policy_text
 from store.writer import finish_run, insert_policy_version, insert_run, put_blob, write_episode
 from tracing.policy_file import PolicyInfo, inspect_policy, read_policy_file
@@ -96,6 +97,7 @@ class OptimizeConfig:
 
 @dataclass
 class IterationResult:
+    run_id: str
     iteration: int
     policy_version_id: str
     update_status: str
@@ -128,6 +130,8 @@ class _State:
     best_iteration: int = 0
     best_version_id: str | None = None
     llm_failures: int = 0
+    rerun: str | None = None
+    """Live Rerun recordings of this invocation's episodes (``EpisodeSpec.rerun``); an output option, not recorded."""
 
 
 def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
@@ -213,7 +217,7 @@ def _episode_specs(state: _State, iteration: int, text: str, version_id: str) ->
     c = state.config
     common = dict(run_id=state.run_id, game=state.game, policy_text=text, policy_version_id=version_id,
                   policy_name="policy.py", iteration=iteration, call_time_limit_s=c.call_time_limit_s,
-                  episode_time_limit_s=c.episode_time_limit_s)
+                  episode_time_limit_s=c.episode_time_limit_s, rerun=state.rerun)
     train = EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "train", 0), kind="train", index=0,
                         seed=c.seed, max_steps=state.settings["rollout_steps"], trace=True, **common)
     evals = [EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "eval", i), kind="eval", index=i,
@@ -398,14 +402,23 @@ def run_iteration(store: Store, state: _State, iteration: int, client: LLMClient
              eval_s, time.monotonic() - t0],
         )
     state.next_iteration = iteration + 1
-    return IterationResult(iteration, version_id, status, score, state.best_score, state.best_iteration,
+    return IterationResult(state.run_id, iteration, version_id, status, score, state.best_score, state.best_iteration,
                            rolled_back, notes[0] if notes else "", tokens)
 
 
 def run_loop(store: Store, state: _State, client: LLMClient | None, log: Callable[[str], None] = lambda s: None,
              on_iteration: Callable[[IterationResult], None] | None = None,
              progress: Callable[[int, int], None] | None = None) -> OptimizeResult:
-    """Iterations ``state.next_iteration .. config.iterations``; marks the run finished, failed or interrupted."""
+    """Iterations ``state.next_iteration .. config.iterations``; marks the run finished, failed or interrupted.
+
+    Holds the run's lock throughout (``store/locks.py``): a run another live process works on raises
+    :class:`~store.locks.RunBusyError` before anything is written.
+    """
+    with run_lock(store.path, state.run_id):
+        return _iterate(store, state, client, log, on_iteration, progress)
+
+
+def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResult:
     counter = TokenCounter(client.model) if client is not None and state.config.iterations else None
     result = OptimizeResult(state.run_id, "running")
     status, error = "failed", None
@@ -437,11 +450,14 @@ def run_loop(store: Store, state: _State, client: LLMClient | None, log: Callabl
 def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: str | None = None,
              log: Callable[[str], None] = lambda s: None,
              on_iteration: Callable[[IterationResult], None] | None = None,
-             progress: Callable[[int, int], None] | None = None) -> OptimizeResult:
-    """Start (or, with ``resume``, continue) an optimization run with ``client``."""
+             progress: Callable[[int, int], None] | None = None,
+             tags: dict[str, Any] | None = None, rerun: str | None = None) -> OptimizeResult:
+    """Start (or, with ``resume``, continue) an optimization run with ``client``; ``tags`` go into its config;
+    ``rerun``: live Rerun recordings of the episodes (a directory or a gRPC url, see ``EpisodeSpec.rerun``)."""
     _validate_config(config)
-    run_id = resume or start_run(config, store, client.model)
+    run_id = resume or start_run(config, store, client.model, extra=tags)
     state = load_state(store, run_id)
+    state.rerun = rerun
     if resume and config.iterations > state.config.iterations:
         state.config.iterations = config.iterations  # resuming may extend a run, never shrink it
         with store.write() as con:

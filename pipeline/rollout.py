@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import operator
 import random
+import sys
 import time
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass
@@ -63,6 +64,11 @@ class EpisodeSpec:
     """Wall-clock limit for the whole episode."""
     memory_limit_mb: int | None = 4096
     """Extra address space a worker process may take beyond what it had at start (None: unlimited)."""
+    rerun: str | None = None
+    """Live Rerun recording: a directory (``DIR/<episode_id>.rrd``) or a ``rerun+http://…/proxy`` URL; None: off.
+    Rerun is imported only inside the process that plays the episode (``viewers/rerun_live.py``)."""
+    rerun_frames_every: int = 4
+    """With ``rerun``: log the screen every this many steps (0: no frames)."""
 
 
 @dataclass
@@ -109,6 +115,7 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
     recorder = NodeRecorder() if spec.trace else None
     end_reason, error = "truncated", None
     score, lives_lost, length = 0.0, 0, 0
+    live = None  # live Rerun recorder (spec.rerun)
     env_s = policy_s = 0.0
 
     random.seed(spec.seed)
@@ -123,6 +130,8 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
         env = make_env(game, sticky=spec.sticky, noop_max=spec.noop_max)
         try:
             obs, info = env.reset(seed=spec.seed)
+            if spec.rerun:
+                live = _live_recorder(spec, env, steps)
             lives = info.get("lives", 0)
             deadline = t0 + spec.episode_time_limit_s
             with CallTimer() as timer, (recorder if recorder is not None else nullcontext()):
@@ -133,6 +142,8 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
                         error = f"episode exceeded its time limit of {spec.episode_time_limit_s:g} s"
                         break
                     steps.observe(obs)  # before the policy: a policy that mutates obs cannot alter the record
+                    if live is not None:
+                        live.observe(step)
                     if recorder is not None:
                         recorder.begin_step(step, obs)
                     end_reason = None
@@ -177,42 +188,52 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
     if progress is not None:
         progress(length)
 
-    episode = dict(
-        episode_id=spec.episode_id,
-        run_id=spec.run_id,
-        iteration=spec.iteration,
-        kind=spec.kind,
-        episode_index=spec.index,
-        game=game.name,
-        seed=spec.seed,
-        policy_version_id=spec.policy_version_id,
-        max_steps=spec.max_steps,
-        traced=spec.trace,
-        sticky=spec.sticky,
-        noop_max=spec.noop_max,
-        started_at=_utc(started_at),
-        duration_s=time.perf_counter() - t0,
-        env_s=env_s,
-        policy_s=policy_s,
-        length=length,
-        lives_lost=lives_lost,
-        end_reason=end_reason,
-        error=error,
+    episode = _episode_row(
+        spec, game=game.name, started_at=_utc(started_at), duration_s=time.perf_counter() - t0, env_s=env_s,
+        policy_s=policy_s, length=length, lives_lost=lives_lost, end_reason=end_reason, error=error, score=score,
     )
-    episode["return"] = score
-    return EpisodeOutcome(episode, steps.table(), recorder.table() if recorder is not None else None)
+    outcome = EpisodeOutcome(episode, steps.table(), recorder.table() if recorder is not None else None)
+    if live is not None:
+        from viewers.rerun_live import finish_recorder
+
+        finish_recorder(live, episode, outcome.nodes)
+    return outcome
+
+
+def _live_recorder(spec: EpisodeSpec, env: Any, steps: StepLog) -> Any:
+    """The live Rerun recorder of ``spec.rerun`` (``viewers/rerun_live.py``), or None if it cannot start.
+
+    Rerun is imported here, in the process that plays the episode. The policy's RNG state is kept as it
+    was, so an episode plays the same with and without a recording.
+    """
+    state, np_state = random.getstate(), np.random.get_state()
+    try:
+        from viewers.rerun_live import open_recorder
+
+        return open_recorder(spec, env, steps)
+    except Exception as exc:  # noqa: BLE001 - a viewer problem must never cost the episode
+        print(f"codearcade: no Rerun recording for {spec.episode_id}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return None
+    finally:
+        random.setstate(state)
+        np.random.set_state(np_state)
+
+
+def _episode_row(spec: EpisodeSpec, score: float, **measured: Any) -> dict[str, Any]:
+    """The ``episodes`` row: what the spec says, plus what was measured."""
+    row = dict(
+        episode_id=spec.episode_id, run_id=spec.run_id, iteration=spec.iteration, kind=spec.kind,
+        episode_index=spec.index, seed=spec.seed, policy_version_id=spec.policy_version_id,
+        max_steps=spec.max_steps, traced=spec.trace, sticky=spec.sticky, noop_max=spec.noop_max, **measured,
+    )
+    row["return"] = score  # a Python keyword, hence not a keyword argument
+    return row
 
 
 def crashed_outcome(spec: EpisodeSpec, error: str, duration_s: float = 0.0) -> EpisodeOutcome:
     """The outcome recorded for an episode whose worker died or was killed before reporting."""
-    episode = dict(
-        episode_id=spec.episode_id, run_id=spec.run_id, iteration=spec.iteration, kind=spec.kind,
-        episode_index=spec.index, game=spec.game, seed=spec.seed,
-        policy_version_id=spec.policy_version_id, max_steps=spec.max_steps, traced=spec.trace,
-        sticky=spec.sticky, noop_max=spec.noop_max, started_at=None, duration_s=duration_s, env_s=None,
-        policy_s=None, length=0, lives_lost=0, end_reason="crashed", error=error,
-    )
-    episode["return"] = 0.0
+    episode = _episode_row(spec, game=spec.game, started_at=None, duration_s=duration_s, env_s=None, policy_s=None,
+                           length=0, lives_lost=0, end_reason="crashed", error=error, score=0.0)
     return EpisodeOutcome(episode, StepLog().table(), None)
 
 

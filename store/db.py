@@ -41,6 +41,15 @@ def utcnow() -> datetime:
     return datetime.now(timezone.utc).replace(tzinfo=None)
 
 
+def _is_disk_full(exc: Exception) -> bool:
+    text = str(exc)
+    return "No space left" in text or "File too large" in text or "Disk quota" in text
+
+
+def _first_line(exc: Exception) -> str:
+    return str(exc).strip().splitlines()[0][:200]
+
+
 def _is_lock_error(exc: Exception) -> bool:
     text = str(exc)
     return "Could not set lock" in text or "Conflicting lock" in text
@@ -53,9 +62,12 @@ class Store:
     on error); ``store.read()`` yields a read-only connection. Both retry while another process holds the file.
     """
 
-    def __init__(self, path: str | os.PathLike | None = None, lock_timeout_s: float = 60.0):
+    def __init__(self, path: str | os.PathLike | None = None, lock_timeout_s: float = 60.0,
+                 write_lock_timeout_s: float = 600.0):
         self.path = Path(path if path is not None else default_store_path())
         self.lock_timeout_s = lock_timeout_s
+        # a run must not fail because someone ran a long query meanwhile: writers wait longer than readers
+        self.write_lock_timeout_s = max(write_lock_timeout_s, lock_timeout_s)
         self._migrated = False
 
     def __repr__(self) -> str:
@@ -67,7 +79,8 @@ class Store:
     def _open(self, read_only: bool) -> duckdb.DuckDBPyConnection:
         # Writes are small batches: one thread leaves the other core to the episode workers.
         config = {} if read_only else {"threads": 1}
-        deadline = time.monotonic() + self.lock_timeout_s
+        timeout = self.lock_timeout_s if read_only else self.write_lock_timeout_s
+        deadline = time.monotonic() + timeout
         delay = 0.01
         while True:
             try:
@@ -81,7 +94,7 @@ class Store:
                     if time.monotonic() >= deadline:
                         holder = text.split("Conflicting lock is held in", 1)[-1].split(". See also")[0].strip()
                         raise StoreError(f"{self.path} stayed locked by another process for "
-                                         f"{self.lock_timeout_s:g} s (held by {holder}); wait for it or use "
+                                         f"{timeout:g} s (held by {holder}); wait for it or use "
                                          "another --store") from None
                     time.sleep(delay * (0.5 + random.random()))
                     delay = min(delay * 2, 0.25)
@@ -100,6 +113,10 @@ class Store:
             "SELECT count(*) FROM information_schema.tables WHERE table_name = 'schema_migrations'"
         ).fetchone()[0]
         if not has_table:
+            others = con.execute("SELECT count(*) FROM information_schema.tables").fetchone()[0]
+            if others:  # an unrelated DuckDB database: never add our tables to it
+                raise StoreError(f"{self.path} is a DuckDB database but not a codearcade store; "
+                                 "give another --store path")
             return 0
         version = con.execute("SELECT coalesce(max(version), 0) FROM schema_migrations").fetchone()[0]
         if version > LATEST:
@@ -131,7 +148,10 @@ class Store:
 
     @contextmanager
     def write(self) -> Iterator[duckdb.DuckDBPyConnection]:
-        """A read-write connection in a transaction; creates and migrates the store on first use."""
+        """A read-write connection in a transaction; creates and migrates the store on first use.
+
+        A transaction that fails (a full disk included) is rolled back whole: what was committed before stays.
+        """
         parent = self.path.parent
         if not parent.exists():
             raise StoreError(f"directory {parent} for the store does not exist; create it or choose another --store")
@@ -146,14 +166,22 @@ class Store:
                 yield con
                 con.execute("COMMIT")
             except BaseException:
-                con.execute("ROLLBACK")
+                try:
+                    con.execute("ROLLBACK")
+                except duckdb.Error:
+                    pass  # a failed COMMIT has already ended the transaction
                 raise
-        except duckdb.IOException as exc:
-            if "No space left" in str(exc) or "Could not write" in str(exc):
-                raise StoreError(f"cannot write {self.path}: the disk is full ({exc})") from None
+        except duckdb.Error as exc:
+            if _is_disk_full(exc):
+                raise StoreError(f"cannot write {self.path}: the disk is full ({_first_line(exc)}); free space "
+                                 "and run the command again: what was stored before is intact") from None
             raise
         finally:
-            con.close()
+            try:
+                con.close()  # closing checkpoints the WAL into the file, which can fail on a full disk too
+            except duckdb.Error as exc:
+                if not _is_disk_full(exc):
+                    raise
 
     @contextmanager
     def read(self) -> Iterator[duckdb.DuckDBPyConnection]:
@@ -163,7 +191,11 @@ class Store:
                              "or point --store / CODEARCADE_STORE at an existing one")
         con = self._open(read_only=True)
         try:
-            self._check_version(con)
+            if self._check_version(con) < LATEST:  # an older store: upgrade it once, then read
+                con.close()
+                with self.write():
+                    pass
+                con = self._open(read_only=True)
             yield con
         finally:
             con.close()

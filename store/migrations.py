@@ -182,4 +182,129 @@ MIGRATIONS.append(
     )
 )
 
+# Views for people (``codearcade sql``, ``runs``, ``report``, any DuckDB client); documented in docs/schema.md.
+# A view is stored SQL: a later change is a new migration with CREATE OR REPLACE VIEW, never an edit here.
+MIGRATIONS.append(
+    (
+        3,
+        "views: learning_curve, code_metrics, llm_usage, rejected_candidates, run_summary",
+        r"""
+        CREATE VIEW learning_curve AS
+        WITH calls AS (
+            SELECT run_id, iteration, count(*) AS llm_calls,
+                   coalesce(sum(input_tokens), 0) AS input_tokens,
+                   coalesce(sum(output_tokens), 0) AS output_tokens
+            FROM llm_calls GROUP BY run_id, iteration
+        )
+        SELECT i.run_id, i.iteration, i.score, i.best_score, i.best_iteration, i.train_return, i.update_status,
+               i.rolled_back, i.policy_version_id, i.best_version_id,
+               coalesce(c.llm_calls, 0)::INTEGER AS llm_calls,
+               coalesce(c.input_tokens, 0)::BIGINT AS input_tokens,
+               coalesce(c.output_tokens, 0)::BIGINT AS output_tokens,
+               (coalesce(c.input_tokens, 0) + coalesce(c.output_tokens, 0))::BIGINT AS total_tokens,
+               sum(coalesce(c.input_tokens, 0) + coalesce(c.output_tokens, 0))
+                   OVER (PARTITION BY i.run_id ORDER BY i.iteration)::BIGINT AS cumulative_tokens,
+               i.llm_s, i.train_s, i.eval_s, i.wall_s,
+               sum(i.wall_s) OVER (PARTITION BY i.run_id ORDER BY i.iteration) AS elapsed_s,
+               i.started_at, i.finished_at
+        FROM iterations i
+        LEFT JOIN calls c ON c.run_id = i.run_id AND c.iteration = i.iteration;
+
+        CREATE VIEW code_metrics AS
+        WITH versions AS (  -- one row per (run, accepted version): a version can recur (rollback, unchanged)
+            SELECT run_id, policy_version_id, min(iteration) AS version_iteration,
+                   any_value(loc) AS loc, any_value(sloc) AS sloc, any_value(complexity) AS complexity,
+                   any_value(max_if_depth) AS max_if_depth,
+                   any_value(list_sum(list_transform(list_filter(functions, lambda f: f.trainable),
+                                                     lambda f: f.sloc))) AS trainable_sloc,
+                   any_value(list_sum(list_transform(list_filter(functions, lambda f: f.trainable),
+                                                     lambda f: f.complexity))) AS trainable_complexity
+            FROM policy_versions WHERE validation = 'accepted'
+            GROUP BY run_id, policy_version_id
+        )
+        SELECT i.run_id, i.iteration, i.policy_version_id, v.version_iteration, i.update_status, i.score,
+               v.loc, v.sloc, v.complexity, v.max_if_depth,
+               v.trainable_sloc::INTEGER AS trainable_sloc, v.trainable_complexity::INTEGER AS trainable_complexity
+        FROM iterations i
+        LEFT JOIN versions v ON v.run_id = i.run_id AND v.policy_version_id = i.policy_version_id;
+
+        CREATE VIEW llm_usage AS
+        SELECT r.run_id, r.kind, r.model,
+               count(c.call_id)::INTEGER AS calls,
+               count(c.error_type)::INTEGER AS errors,
+               count(c.parse_error)::INTEGER AS parse_errors,
+               (count(c.call_id) FILTER (WHERE c.replayed))::INTEGER AS replayed,
+               coalesce(sum(c.input_tokens), 0)::BIGINT AS input_tokens,
+               coalesce(sum(c.output_tokens), 0)::BIGINT AS output_tokens,
+               (coalesce(sum(c.input_tokens), 0) + coalesce(sum(c.output_tokens), 0))::BIGINT AS total_tokens,
+               sum(c.cost_usd) AS cost_usd,
+               coalesce(sum(c.latency_s), 0) AS latency_s,
+               avg(c.latency_s) AS mean_latency_s,
+               max(c.latency_s) AS max_latency_s,
+               coalesce(sum(c.attempts), 0)::INTEGER AS attempts,
+               (coalesce(sum(c.attempts), 0) - count(c.call_id))::INTEGER AS retries,
+               string_agg(DISTINCT c.request_model, ', ' ORDER BY c.request_model) AS request_models
+        FROM runs r
+        LEFT JOIN llm_calls c ON c.run_id = r.run_id
+        GROUP BY r.run_id, r.kind, r.model;
+
+        CREATE VIEW rejected_candidates AS
+        SELECT v.run_id, v.iteration,
+               coalesce(i.llm_call_id, (SELECT max(c.call_id) FROM llm_calls c WHERE c.run_id = v.run_id
+                                        AND c.iteration = v.iteration AND c.error_type IS NULL)) AS llm_call_id,
+               v.policy_version_id, 'runtime' AS stage, v.validation_error AS reason
+        FROM policy_versions v
+        LEFT JOIN iterations i ON i.run_id = v.run_id AND i.iteration = v.iteration
+        WHERE v.validation = 'rejected'
+        UNION ALL
+        SELECT i.run_id, i.iteration, i.llm_call_id, NULL AS policy_version_id,
+               CASE WHEN c.parse_error IS NOT NULL THEN 'parse' ELSE 'static' END AS stage,
+               coalesce(c.parse_error,
+                        nullif(regexp_extract(f.text, 'Your last suggestion was rejected: ([^\n]*)', 1), ''),
+                        f.text) AS reason
+        FROM iterations i
+        LEFT JOIN llm_calls c ON c.call_id = i.llm_call_id
+        LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
+        WHERE i.update_status = 'rejected'
+          AND NOT EXISTS (SELECT 1 FROM policy_versions v WHERE v.run_id = i.run_id AND v.iteration = i.iteration
+                          AND v.validation = 'rejected');
+
+        CREATE VIEW run_summary AS
+        WITH it AS (
+            SELECT run_id, (count(*) FILTER (WHERE iteration >= 1))::INTEGER AS iterations_done,
+                   max(best_score) AS best_score, arg_max(best_iteration, iteration) AS best_iteration,
+                   arg_max(score, iteration) AS last_score
+            FROM iterations GROUP BY run_id
+        ), ep AS (
+            SELECT run_id, count(*)::INTEGER AS episodes, sum(length)::BIGINT AS steps,
+                   avg("return") FILTER (WHERE kind = 'eval') AS mean_eval_return
+            FROM episodes GROUP BY run_id
+        ), calls AS (
+            SELECT run_id, count(*)::INTEGER AS llm_calls,
+                   coalesce(sum(input_tokens), 0)::BIGINT AS input_tokens,
+                   coalesce(sum(output_tokens), 0)::BIGINT AS output_tokens,
+                   sum(cost_usd) AS cost_usd
+            FROM llm_calls GROUP BY run_id
+        )
+        SELECT r.run_id, r.created_at, r.finished_at, r.kind, r.game, r.model, r.seed, r.status,
+               coalesce(it.iterations_done, 0) AS iterations_done,
+               TRY_CAST(json_extract(r.config, '$.iterations') AS INTEGER) AS iterations_planned,
+               CASE WHEN r.kind = 'eval' THEN ep.mean_eval_return ELSE it.best_score END AS best_score,
+               it.best_iteration, it.last_score,
+               coalesce(ep.episodes, 0) AS episodes, coalesce(ep.steps, 0) AS steps,
+               coalesce(calls.llm_calls, 0) AS llm_calls,
+               coalesce(calls.input_tokens, 0) AS input_tokens,
+               coalesce(calls.output_tokens, 0) AS output_tokens,
+               (coalesce(calls.input_tokens, 0) + coalesce(calls.output_tokens, 0))::BIGINT AS total_tokens,
+               calls.cost_usd,
+               epoch(r.finished_at - r.created_at) AS duration_s,
+               r.error
+        FROM runs r
+        LEFT JOIN it ON it.run_id = r.run_id
+        LEFT JOIN ep ON ep.run_id = r.run_id
+        LEFT JOIN calls ON calls.run_id = r.run_id;
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

@@ -144,3 +144,16 @@ def test_episode_roundtrip_and_slices(store):
     assert [(n["step"], n["call_index"]) for n in nodes] == [(10, 0), (10, 1), (10, 2), (11, 0), (11, 1), (11, 2)]
     assert nodes[2]["parents"] == [1] and nodes[1]["parents"] == [0]
     assert episodes[0]["length"] == 120 and episodes[0]["end_reason"] == "truncated"
+
+
+def test_unrelated_duckdb_database_is_refused_and_untouched(tmp_path):
+    path = tmp_path / "analytics.duckdb"
+    con = duckdb.connect(str(path))
+    con.execute("CREATE TABLE sales (amount INTEGER)")
+    con.close()
+    for use in (lambda s: s.query("SELECT 1"), lambda s: s.write().__enter__()):
+        with pytest.raises(StoreError, match="not a codearcade store"):
+            use(Store(path))
+    con = duckdb.connect(str(path), read_only=True)
+    assert [r[0] for r in con.execute("SELECT table_name FROM information_schema.tables").fetchall()] == ["sales"]
+    con.close()

@@ -1,0 +1,337 @@
+"""``codearcade batch EXPERIMENTS.toml``: a matrix of optimization runs, headless, into one store.
+
+An experiment file declares defaults, a matrix (every combination becomes a run) and/or explicit runs::
+
+    name = "ablation"                 # identifies the batch in the store
+    store = "ablation.duckdb"         # optional; --store wins
+    [defaults]
+    iterations = 20
+    model = "anthropic/claude-3-5-sonnet-20241022"
+    [matrix]
+    game = ["pong"]
+    feedback = ["staged", "rollout"]
+    seed = [0, 1, 2]
+    [[run]]                           # optional extra runs, merged over the defaults
+    game = "breakout"
+
+Keys are the fields of :class:`~pipeline.optimize.OptimizeConfig` (``game``, ``policy``, ``model``,
+``api_base``, ``iterations``, ``memory``, ``token_budget``, ``eval_episodes``, ``feedback``, ``seed``, ...).
+Each run has a stable key (a hash of the batch name and its settings) stored in its config, so running the
+same command again skips finished runs, resumes interrupted ones from the store, and starts the rest.
+
+Executors: ``local`` runs each run in its own process (``--workers`` at once; the processes die with the
+batch, so a killed batch leaves nothing running and nothing locked), all writing the one store in short
+transactions. ``ray`` sends each run to a Ray cluster as a task that works on a private store and returns the
+run's rows (``store/bundle.py``); the driver alone writes them into the store, one transaction per run.
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+import itertools
+import json
+import os
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any, Callable
+
+from pipeline.feedback import FEEDBACK_MODES
+from pipeline.games import get_game
+from pipeline.optimize import OptimizeConfig
+from store import Store
+
+TOP_LEVEL_KEYS = ("name", "store", "defaults", "matrix", "run")
+RUN_KEYS = tuple(f.name for f in fields(OptimizeConfig))
+NOT_IN_KEY = ("workers",)
+"""Settings that do not change a run's results, so they do not change its identity either."""
+
+
+class ExperimentError(ValueError):
+    """An experiment file that cannot be used; one line that says where and why."""
+
+
+@dataclass
+class BatchRun:
+    key: str
+    label: str
+    config: OptimizeConfig
+
+
+@dataclass
+class Batch:
+    name: str
+    path: Path
+    store: str | None
+    runs: list[BatchRun]
+
+
+@dataclass
+class PlannedRun:
+    run: BatchRun
+    action: str  # start | resume | skip
+    run_id: str | None = None
+    status: str | None = None
+
+
+def _suggest(key: str, known: tuple[str, ...]) -> str:
+    close = difflib.get_close_matches(key, known, n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def _check_settings(settings: dict[str, Any], where: str) -> None:
+    for key, value in settings.items():
+        if key not in RUN_KEYS:
+            raise ExperimentError(f"{where}: unknown setting '{key}'{_suggest(key, RUN_KEYS)}; "
+                                  f"known: {', '.join(RUN_KEYS)}")
+    if "game" in settings and settings["game"] is not None:
+        try:
+            get_game(str(settings["game"]))
+        except ValueError as exc:
+            raise ExperimentError(f"{where}: {exc}") from None
+    if "feedback" in settings and settings["feedback"] not in FEEDBACK_MODES:
+        raise ExperimentError(f"{where}: feedback must be one of {', '.join(FEEDBACK_MODES)}, "
+                              f"not '{settings['feedback']}'")
+
+
+def _run_key(name: str, config: OptimizeConfig) -> str:
+    identity = {k: v for k, v in asdict(config).items() if k not in NOT_IN_KEY}
+    text = json.dumps({"batch": name, "config": identity}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _label(settings: dict[str, Any], varying: list[str]) -> str:
+    parts = [str(settings.get("game") or Path(settings.get("policy") or "?").stem)]
+    parts += [f"{k}={settings[k]}" for k in varying if k != "game" and k in settings]
+    return " ".join(parts)
+
+
+def load_experiments(path: str | os.PathLike) -> Batch:
+    """Read and expand an experiment file; :class:`ExperimentError` for anything wrong with it."""
+    path = Path(path)
+    if not path.exists():
+        raise ExperimentError(f"experiment file '{path}' does not exist")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ExperimentError(f"{path.name}: not valid TOML: {exc}") from None
+    for key in data:
+        if key not in TOP_LEVEL_KEYS:
+            raise ExperimentError(f"{path.name}: unknown key '{key}'{_suggest(key, TOP_LEVEL_KEYS)}; "
+                                  f"known: {', '.join(TOP_LEVEL_KEYS)}")
+    name = str(data.get("name") or path.stem)
+    defaults = dict(data.get("defaults", {}))
+    _check_settings(defaults, f"{path.name} [defaults]")
+    matrix = {k: (v if isinstance(v, list) else [v]) for k, v in dict(data.get("matrix", {})).items()}
+    _check_settings({k: v[0] for k, v in matrix.items() if v}, f"{path.name} [matrix]")
+    for key, values in matrix.items():
+        for value in values:
+            _check_settings({key: value}, f"{path.name} [matrix] {key}")
+    explicit = data.get("run", [])
+    if not isinstance(explicit, list):
+        raise ExperimentError(f"{path.name}: 'run' must be an array of tables: [[run]]")
+
+    points: list[dict[str, Any]] = []
+    if matrix:
+        keys = list(matrix)
+        for combo in itertools.product(*(matrix[k] for k in keys)):
+            points.append({**defaults, **dict(zip(keys, combo))})
+    for i, entry in enumerate(explicit):
+        _check_settings(entry, f"{path.name} [[run]] #{i + 1}")
+        points.append({**defaults, **entry})
+    if not points:
+        raise ExperimentError(f"{path.name}: no runs: add a [matrix] or [[run]] tables")
+
+    runs, seen = [], set()
+    for settings in points:
+        if settings.get("policy"):
+            policy = Path(settings["policy"])
+            settings["policy"] = str(policy if policy.is_absolute() else (path.parent / policy).resolve())
+        if not settings.get("game") and not settings.get("policy"):
+            raise ExperimentError(f"{path.name}: every run needs a game or a policy (add game = ... to [defaults])")
+        config = OptimizeConfig(**settings)
+        key = _run_key(name, config)
+        if key in seen:
+            continue
+        seen.add(key)
+        runs.append(BatchRun(key, _label(settings, list(matrix)), config))
+    return Batch(name, path, data.get("store"), runs)
+
+
+def plan(batch: Batch, store: Store) -> list[PlannedRun]:
+    """What running the batch would do now: skip finished runs, resume started ones, start the rest."""
+    found: dict[str, tuple[str, str]] = {}
+    if store.exists():
+        rows = store.query(
+            "SELECT json_extract_string(config, '$.batch_key'), run_id, status FROM runs "
+            "WHERE json_extract_string(config, '$.batch') = ? ORDER BY created_at", [batch.name])
+        for key, run_id, status in rows:
+            found[key] = (run_id, status)  # the latest run of a key wins
+    planned = []
+    for run in batch.runs:
+        if run.key not in found:
+            planned.append(PlannedRun(run, "start"))
+        else:
+            run_id, status = found[run.key]
+            planned.append(PlannedRun(run, "skip" if status == "finished" else "resume", run_id, status))
+    return planned
+
+
+# ------------------------------------------------------------------------------------------- local executor
+
+
+def worker_command(store: Store, item: PlannedRun, batch: Batch, episode_workers: int) -> list[str]:
+    spec = {"store": str(store.path), "config": asdict(item.run.config), "resume": item.run_id,
+            "batch": batch.name, "batch_key": item.run.key, "episode_workers": episode_workers}
+    return [sys.executable, "-m", "pipeline.batch_worker", json.dumps(spec)]
+
+
+@dataclass
+class Progress:
+    """What the display shows, per run."""
+
+    label: str
+    state: str = "pending"  # pending | skipped | running | finished | failed
+    run_id: str | None = None
+    iteration: int | None = None
+    iterations: int = 0
+    best: float | None = None
+    note: str = ""
+
+
+@dataclass
+class BatchResult:
+    progress: list[Progress] = field(default_factory=list)
+
+    @property
+    def failed(self) -> list[Progress]:
+        return [p for p in self.progress if p.state == "failed"]
+
+
+def _refresh(store: Store, progress: list[Progress], batch: Batch) -> None:
+    """Read each run's latest iteration and best score from the store (read-only, between the writers)."""
+    try:
+        rows = store.query(
+            """SELECT json_extract_string(r.config, '$.batch_key'), r.run_id, max(i.iteration), max(i.best_score)
+               FROM runs r LEFT JOIN iterations i USING (run_id)
+               WHERE json_extract_string(r.config, '$.batch') = ? GROUP BY ALL""", [batch.name])
+    except Exception:  # the store may not exist yet; the next refresh will see it
+        return
+    by_key = {key: (run_id, it, best) for key, run_id, it, best in rows}
+    for p, run in zip(progress, batch.runs):
+        if run.key in by_key:
+            p.run_id, p.iteration, p.best = by_key[run.key]
+
+
+def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: int, log: Callable[[str], None],
+              display: Callable[[list[Progress]], None], log_dir: Path, poll_s: float = 1.0) -> BatchResult:
+    """Run the planned runs in at most ``workers`` processes; see the module docstring."""
+    from pipeline.executor import die_with_parent
+
+    progress = [Progress(p.run.label, iterations=p.run.config.iterations, run_id=p.run_id) for p in planned]
+    queue = []
+    for i, p in enumerate(planned):
+        if p.action == "skip":
+            progress[i].state = "skipped"
+        else:
+            queue.append(i)
+    episode_workers = max(1, (os.cpu_count() or 1) // max(1, workers))
+    running: dict[int, tuple[subprocess.Popen, Any]] = {}
+    log_dir.mkdir(parents=True, exist_ok=True)
+    last_refresh = 0.0
+    while queue or running:
+        while queue and len(running) < workers:
+            i = queue.pop(0)
+            item = planned[i]
+            out = open(log_dir / f"{item.run.key}.log", "a")
+            proc = subprocess.Popen(worker_command(store, item, batch, episode_workers), stdout=out,
+                                    stderr=subprocess.STDOUT, preexec_fn=die_with_parent)
+            running[i] = (proc, out)
+            progress[i].state = "running"
+            log(f"{item.action} {item.run.label}" + (f" (run {item.run_id})" if item.run_id else "")
+                + f" [pid {proc.pid}]")
+        for i, (proc, out) in list(running.items()):
+            code = proc.poll()
+            if code is None:
+                continue
+            out.close()
+            del running[i]
+            progress[i].state = "finished" if code == 0 else "failed"
+            if code != 0:
+                tail = (log_dir / f"{planned[i].run.key}.log").read_text(errors="replace").strip().splitlines()
+                progress[i].note = tail[-1][:200] if tail else f"exit code {code}"
+            log(f"{progress[i].state} {planned[i].run.label}" + (f": {progress[i].note}" if progress[i].note else ""))
+        now = time.monotonic()
+        if now - last_refresh >= poll_s:
+            _refresh(store, progress, batch)
+            display(progress)
+            last_refresh = now
+        time.sleep(0.2)
+    _refresh(store, progress, batch)
+    display(progress)
+    return BatchResult(progress)
+
+
+# --------------------------------------------------------------------------------------------- ray executor
+
+
+def run_ray(batch: Batch, store: Store, planned: list[PlannedRun], address: str | None,
+            log: Callable[[str], None], display: Callable[[list[Progress]], None]) -> BatchResult:
+    """Run the planned runs as Ray tasks; the driver writes each returned run in one transaction."""
+    import ray
+
+    from pipeline.batch_worker import run_remote
+    from store.bundle import export_run, import_run
+
+    progress = [Progress(p.run.label, iterations=p.run.config.iterations, run_id=p.run_id) for p in planned]
+    started_here = not ray.is_initialized()
+    if started_here:
+        ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False,
+                 runtime_env={"env_vars": {"PYTHONPATH": str(Path(__file__).resolve().parents[1])}})
+    remote = ray.remote(num_cpus=1, max_retries=1)(run_remote)
+    futures = {}
+    try:
+        for i, item in enumerate(planned):
+            if item.action == "skip":
+                progress[i].state = "skipped"
+                continue
+            previous = None
+            if item.run_id:
+                with store.read() as con:
+                    previous = export_run(con, item.run_id)
+            spec = {"config": asdict(item.run.config), "resume": item.run_id, "batch": batch.name,
+                    "batch_key": item.run.key, "episode_workers": 1}
+            futures[remote.remote(spec, previous)] = i
+            progress[i].state = "running"
+            log(f"{item.action} {item.run.label} on ray")
+        display(progress)
+        pending = list(futures)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            i = futures[done[0]]
+            try:
+                bundle, status, error = ray.get(done[0])
+            except Exception as exc:  # the task itself failed (a node died, an import error, ...)
+                progress[i].state, progress[i].note = "failed", f"{type(exc).__name__}: {str(exc)[:200]}"
+                log(f"failed {planned[i].run.label}: {progress[i].note}")
+                display(progress)
+                continue
+            with store.write() as con:
+                import_run(con, bundle)
+            iterations = bundle["iterations"]
+            progress[i].run_id = bundle["runs"].column("run_id")[0].as_py()
+            if iterations.num_rows:
+                progress[i].iteration = max(iterations.column("iteration").to_pylist())
+                progress[i].best = max(iterations.column("best_score").to_pylist())
+            progress[i].state = "finished" if status == "finished" else "failed"
+            progress[i].note = error or ""
+            log(f"{progress[i].state} {planned[i].run.label} (run {progress[i].run_id})")
+            display(progress)
+    finally:
+        if started_here:
+            ray.shutdown()
+    return BatchResult(progress)

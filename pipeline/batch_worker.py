@@ -1,0 +1,62 @@
+"""One run of a batch: ``python -m pipeline.batch_worker SPEC_JSON`` (local executor) or a Ray task.
+
+The spec carries the run's :class:`~pipeline.optimize.OptimizeConfig`, the batch name and run key (stored in
+the run's config so a later ``codearcade batch`` finds it), and the run id to resume, if any. Locally the
+process works on the shared store directly; on Ray, :func:`run_remote` works on a private store seeded with
+the run's earlier rows and returns all of them for the driver to write.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from pipeline.llm import OFFLINE_TOKEN_BUDGET, open_client
+from pipeline.optimize import OptimizeConfig, OptimizeResult, optimize
+from store import Store
+
+
+def _run(spec: dict[str, Any], store: Store) -> OptimizeResult:
+    config = OptimizeConfig(**spec["config"])
+    config.workers = spec.get("episode_workers", config.workers)
+    client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
+                                      config.seed)
+    if cap is not None:
+        config.token_budget = min(config.token_budget, cap, OFFLINE_TOKEN_BUDGET)
+    try:
+        return optimize(config, store, client, resume=spec.get("resume"),
+                        log=lambda line: print(line, flush=True),
+                        on_iteration=lambda item: print(f"iteration {item.iteration}: score {item.score:g} "
+                                                        f"best {item.best_score:g} {item.update_status}", flush=True),
+                        tags={"batch": spec["batch"], "batch_key": spec["batch_key"]})
+    finally:
+        if server is not None:
+            server.stop()
+
+
+def run_remote(spec: dict[str, Any], previous: dict | None):
+    """The Ray task: (the run's rows as a bundle, status, error)."""
+    from store.bundle import export_run, import_run
+
+    with tempfile.TemporaryDirectory(prefix="codearcade-ray-") as tmp:
+        store = Store(Path(tmp) / "run.duckdb")
+        if previous is not None:
+            with store.write() as con:
+                import_run(con, previous)
+        result = _run(spec, store)
+        with store.read() as con:
+            return export_run(con, result.run_id), result.status, result.error
+
+
+def main(argv: list[str] | None = None) -> int:
+    spec = json.loads((argv if argv is not None else sys.argv[1:])[0])
+    result = _run(spec, Store(spec["store"]))
+    print(f"run {result.run_id} {result.status}" + (f": {result.error}" if result.error else ""), flush=True)
+    return 0 if result.status == "finished" else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,112 @@
+"""``codearcade doctor``: an integrity check of a store.
+
+Each check is one SQL query that returns the offending rows (nothing, when the store is sound):
+
+- references: every row's run exists; every step and node belongs to an episode; every blob hash a row
+  refers to is in ``blobs`` (policy texts, method sources, prompts, replies, suggestions);
+- uniqueness: one row per (episode, step), per (episode, step, call), per (run, iteration);
+- completeness: each run's iterations are 0, 1, ..., n without a gap; each iteration has its feedback, its
+  evaluated policy version, its episodes and (for updates that called a model) its LLM call; each episode has
+  ``length`` step rows numbered from 0 (one more, with no action, where the policy failed);
+- runs left ``running`` by a process that no longer holds the run's lock are reported as interrupted
+  (a warning: ``--resume`` finishes them), not as damage.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import duckdb
+
+from store.locks import lock_path
+
+CHECKS: list[tuple[str, str]] = [
+    ("orphan rows: run missing", """
+        SELECT 'policy_versions' AS tbl, run_id FROM policy_versions WHERE run_id NOT IN (SELECT run_id FROM runs)
+        UNION ALL SELECT 'iterations', run_id FROM iterations WHERE run_id NOT IN (SELECT run_id FROM runs)
+        UNION ALL SELECT 'feedback', run_id FROM feedback WHERE run_id NOT IN (SELECT run_id FROM runs)
+        UNION ALL SELECT 'llm_calls', run_id FROM llm_calls WHERE run_id NOT IN (SELECT run_id FROM runs)
+        UNION ALL SELECT 'episodes', run_id FROM episodes WHERE run_id NOT IN (SELECT run_id FROM runs)"""),
+    ("orphan rows: episode missing", """
+        SELECT 'steps' AS tbl, episode_id, count(*) FROM steps WHERE episode_id NOT IN (SELECT episode_id FROM episodes) GROUP BY ALL
+        UNION ALL SELECT 'nodes', episode_id, count(*) FROM nodes WHERE episode_id NOT IN (SELECT episode_id FROM episodes) GROUP BY ALL"""),
+    ("missing blobs", """
+        WITH refs AS (
+            SELECT 'runs.starter_policy_hash' AS ref, starter_policy_hash AS hash FROM runs
+            UNION ALL SELECT 'policy_versions.source_hash', source_hash FROM policy_versions
+            UNION ALL SELECT 'policy_versions.functions', f.source_hash FROM (SELECT unnest(functions) AS f FROM policy_versions)
+            UNION ALL SELECT 'llm_calls.prompt_hash', prompt_hash FROM llm_calls
+            UNION ALL SELECT 'llm_calls.reply_hash', reply_hash FROM llm_calls
+            UNION ALL SELECT 'llm_calls.suggestion_hash', suggestion_hash FROM llm_calls)
+        SELECT ref, hash FROM refs WHERE hash IS NOT NULL AND hash NOT IN (SELECT hash FROM blobs)"""),
+    ("duplicate steps", "SELECT episode_id, step, count(*) FROM steps GROUP BY ALL HAVING count(*) > 1"),
+    ("duplicate nodes", "SELECT episode_id, step, call_index, count(*) FROM nodes GROUP BY ALL HAVING count(*) > 1"),
+    ("iteration gaps", """
+        SELECT run_id, count(*) AS iterations, max(iteration) AS last FROM iterations GROUP BY run_id
+        HAVING count(*) <> max(iteration) + 1 OR min(iteration) <> 0"""),
+    ("iterations without feedback", """
+        SELECT i.run_id, i.iteration FROM iterations i
+        LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration WHERE f.run_id IS NULL"""),
+    ("iterations whose policy version is missing", """
+        SELECT i.run_id, i.iteration, i.policy_version_id FROM iterations i
+        WHERE NOT EXISTS (SELECT 1 FROM policy_versions v WHERE v.run_id = i.run_id
+                          AND v.policy_version_id = i.policy_version_id)"""),
+    ("iterations whose episodes are missing", """
+        SELECT i.run_id, i.iteration, e.episode_id FROM iterations i,
+               unnest(list_prepend(i.train_episode_id, i.eval_episode_ids)) AS e(episode_id)
+        WHERE e.episode_id NOT IN (SELECT episode_id FROM episodes)"""),
+    ("iterations whose LLM call is missing", """
+        SELECT run_id, iteration, llm_call_id FROM iterations
+        WHERE llm_call_id IS NOT NULL AND llm_call_id NOT IN (SELECT call_id FROM llm_calls)"""),
+    ("episodes whose steps do not match their length", """
+        SELECT e.episode_id, e.length, e.end_reason, count(s.step) AS rows, min(s.step) AS first, max(s.step) AS last
+        FROM episodes e LEFT JOIN steps s USING (episode_id) GROUP BY ALL
+        HAVING NOT (
+            (count(s.step) = e.length OR (count(s.step) = e.length + 1 AND e.end_reason IN ('policy_error', 'timeout')))
+            AND coalesce(min(s.step), 0) = 0 AND coalesce(max(s.step), -1) = count(s.step) - 1)"""),
+]
+
+
+@dataclass
+class Finding:
+    check: str
+    rows: list[tuple]
+    warning: bool = False
+
+    def summary(self, limit: int = 3) -> str:
+        shown = "; ".join(", ".join(str(v) for v in row) for row in self.rows[:limit])
+        more = f" (and {len(self.rows) - limit} more)" if len(self.rows) > limit else ""
+        return f"{self.check}: {len(self.rows)} — {shown}{more}"
+
+
+def check_store(con: duckdb.DuckDBPyConnection, store_path) -> list[Finding]:
+    """Every problem found, errors first; an empty list means the store is sound."""
+    findings = []
+    for name, sql in CHECKS:
+        rows = con.execute(sql).fetchall()
+        if rows:
+            findings.append(Finding(name, rows))
+    stale = []
+    for (run_id,) in con.execute("SELECT run_id FROM runs WHERE status = 'running'").fetchall():
+        if not _lock_held(lock_path(store_path, run_id)):
+            stale.append((run_id,))
+    if stale:
+        findings.append(Finding("runs interrupted (no process is working on them; finish with --resume)", stale,
+                                warning=True))
+    return findings
+
+
+def _lock_held(path) -> bool:
+    import fcntl
+    import os
+
+    if not os.path.exists(path):
+        return False
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return False
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)

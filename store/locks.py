@@ -1,0 +1,44 @@
+"""One process per run: an advisory lock file per run, beside the store.
+
+Two processes working on the same optimization run (a batch started twice, ``--resume`` of a run that is
+still going) would both write its next iteration. :func:`run_lock` takes an exclusive ``flock`` on
+``<store>.locks/<run_id>.lock`` for as long as the run is worked on. The kernel drops the lock when the
+holder dies, ``kill -9`` included, so a killed run can be resumed at once, and a live one cannot be run twice.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+
+class RunBusyError(RuntimeError):
+    """Another live process is working on the run."""
+
+
+def lock_path(store_path: str | os.PathLike, run_id: str) -> Path:
+    store_path = Path(store_path)
+    return store_path.with_name(store_path.name + ".locks") / f"{run_id}.lock"
+
+
+@contextmanager
+def run_lock(store_path: str | os.PathLike, run_id: str) -> Iterator[None]:
+    """Hold the run's lock for the block; :class:`RunBusyError` at once if another process holds it."""
+    path = lock_path(store_path, run_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "another process"
+            raise RunBusyError(f"run {run_id} is being worked on by process {holder}; wait for it to finish "
+                               "(or stop it) before resuming") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # closing drops the lock

@@ -1,0 +1,101 @@
+"""Bad inputs at the edges: each a one-line actionable error, and nothing already stored is lost."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+from store import Store
+from store.migrations import LATEST
+from tests.conftest import EXAMPLES
+
+
+def _eval(capsys, store_path, *extra):
+    code = main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "40", "--store", str(store_path), *extra])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _one_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+@pytest.fixture
+def tmpfs(tmp_path):
+    """A small tmpfs of our own (needs mount rights: root in a container; skipped elsewhere)."""
+    mountpoint = tmp_path / "small"
+    mountpoint.mkdir()
+
+    def mount(size: str, read_only: bool = False) -> Path:
+        options = f"size={size}" + (",ro" if read_only else "")
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mountpoint)], capture_output=True)
+        if done.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+        return mountpoint
+
+    yield mount
+    subprocess.run(["umount", str(mountpoint)], capture_output=True)
+
+
+def test_store_that_is_not_duckdb(tmp_path, capsys):
+    path = tmp_path / "notes.duckdb"
+    path.write_bytes(b"\x89PNG not a database" * 100)
+    code, _, err = _eval(capsys, path)
+    assert code == 2 and "not a codearcade store" in _one_line(err)
+    assert path.read_bytes().startswith(b"\x89PNG"), "the file is untouched"
+
+
+def test_store_from_a_newer_schema(store, capsys):
+    assert _eval(capsys, store.path)[0] == 0
+    with store.write() as con:
+        con.execute("INSERT INTO schema_migrations VALUES (?, 'from the future', now())", [LATEST + 1])
+    code, _, err = _eval(capsys, store.path)
+    assert code == 2 and "upgrade codearcade" in _one_line(err)
+
+
+def test_read_only_directory(tmpfs, capsys):
+    directory = tmpfs("1m", read_only=True)
+    code, _, err = _eval(capsys, directory / "store.duckdb")
+    assert code == 2
+    line = _one_line(err)
+    assert "store.duckdb" in line and ("writable" in line or "Read-only" in line)
+
+
+def test_full_disk_keeps_what_was_stored(tmpfs, capsys):
+    directory = tmpfs("6m")
+    path = directory / "store.duckdb"
+    stored, failure = 0, None
+    for _ in range(40):
+        code = main(["eval", str(EXAMPLES / "space_invaders.py"), "--trace", "--max-steps", "600", "--store", str(path)])
+        out, err = capsys.readouterr()
+        if code != 0:
+            failure = _one_line(err)
+            break
+        stored += 1
+    assert failure is not None, "the 6 MB disk filled up"
+    assert "the disk is full" in failure and "intact" in failure
+    assert stored >= 1
+    store = Store(path)
+    complete = store.query("SELECT count(*) FROM episodes e WHERE length = (SELECT count(*) FROM steps s "
+                           "WHERE s.episode_id = e.episode_id)")[0][0]
+    assert complete >= stored, "every episode stored before the disk filled is still whole"
+
+
+def test_experiment_file_with_a_typo(tmp_path, capsys):
+    path = tmp_path / "typo.toml"
+    path.write_text("[defaults]\niterations = 2\nmodle = 'openai/gpt-4o'\n[matrix]\ngame = ['pong']\n")
+    code = main(["batch", str(path), "--dry-run", "--store", str(tmp_path / "s.duckdb")])
+    _, err = capsys.readouterr()
+    assert code == 2 and "did you mean 'model'" in _one_line(err)
+
+
+def test_resume_of_a_run_that_does_not_exist(store, capsys):
+    assert _eval(capsys, store.path)[0] == 0
+    code = main(["optimize", "--resume", "01NOSUCHRUN", "--store", str(store.path)])
+    _, err = capsys.readouterr()
+    assert code == 2 and "no run 01NOSUCHRUN" in _one_line(err)

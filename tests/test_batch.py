@@ -1,0 +1,145 @@
+"""`codearcade batch`: experiment files, local processes, kill -9 and rerun, and the Ray executor."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from pipeline.batch import ExperimentError, load_experiments
+from tests.conftest import COMPETENT_REPLY, ROOT
+
+EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
+
+
+def _experiments(tmp_path, model, name="smoke", iterations=1):
+    path = tmp_path / f"{name}.toml"
+    path.write_text(textwrap.dedent(f"""
+        name = "{name}"
+        [defaults]
+        iterations = {iterations}
+        eval_max_steps = 300
+        rollout_steps = 100
+        model = "{model.model}"
+        api_base = "{model.api_base}"
+        [matrix]
+        game = ["pong", "breakout"]
+        seed = [0, 1]
+    """))
+    return path
+
+
+def _batch(path, store, *extra, **kwargs):
+    return subprocess.run([EXE, "batch", str(path), "--store", str(store.path), *extra], cwd=ROOT,
+                          capture_output=True, text=True, timeout=900, **kwargs)
+
+
+def _rows(store):
+    return sorted(store.query(
+        """SELECT r.game, json_extract(r.config, '$.seed')::INT, i.iteration, i.policy_version_id, i.score,
+                  i.update_status
+           FROM iterations i JOIN runs r USING (run_id) WHERE r.kind = 'optimize'"""))
+
+
+def test_experiment_file_errors_are_one_line(tmp_path):
+    bad = tmp_path / "bad.toml"
+    for text, fragment in [
+        ("[defaults]\niteratoins = 3\n[matrix]\ngame = ['pong']\n", "did you mean 'iterations'"),
+        ("[matrix]\ngame = ['pongg']\n", "unknown game 'pongg'"),
+        ("[matrix]\ngame = ['pong']\nfeedback = ['loud']\n", "feedback must be one of"),
+        ("[defaults]\ngame = 'pong'\n", "no runs"),
+        ("[matrix\n", "not valid TOML"),
+        ("[matrx]\ngame = ['pong']\n", "did you mean 'matrix'"),
+    ]:
+        bad.write_text(text)
+        with pytest.raises(ExperimentError) as err:
+            load_experiments(bad)
+        assert fragment in str(err.value) and "\n" not in str(err.value)
+
+
+def test_matrix_expands_with_stable_keys(tmp_path, scripted):
+    model = scripted([COMPETENT_REPLY])
+    batch = load_experiments(_experiments(tmp_path, model))
+    assert [r.label for r in batch.runs] == ["pong seed=0", "pong seed=1", "breakout seed=0", "breakout seed=1"]
+    again = load_experiments(_experiments(tmp_path, model))
+    assert [r.key for r in batch.runs] == [r.key for r in again.runs]
+    assert len({r.key for r in batch.runs}) == 4
+
+
+def test_local_batch_then_kill_and_rerun(tmp_path, store, scripted):
+    model = scripted([COMPETENT_REPLY])
+    path = _experiments(tmp_path, model, iterations=2)
+    process = subprocess.Popen([EXE, "batch", str(path), "--store", str(store.path), "--workers", "2"], cwd=ROOT,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        try:
+            if store.query("SELECT count(*) FROM iterations")[0][0] >= 2:
+                break
+        except Exception:
+            pass
+        time.sleep(0.2)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    time.sleep(1.0)
+    leftover = subprocess.run(["pgrep", "-f", f"pipeline.batch_worker.*{store.path}"], capture_output=True, text=True)
+    assert leftover.stdout.strip() == "", "the run processes died with the batch"
+
+    dry = _batch(path, store, "--dry-run")
+    assert "resume" in dry.stdout or "start" in dry.stdout
+
+    done = _batch(path, store, "--workers", "2")
+    assert done.returncode == 0, done.stderr + done.stdout
+    runs = store.query("SELECT count(*), count(DISTINCT json_extract_string(config, '$.batch_key')) FROM runs")
+    assert runs == [(4, 4)], "killed runs were resumed, not started again"
+    per_iteration = store.query("SELECT run_id, iteration, count(*) FROM iterations GROUP BY ALL HAVING count(*) > 1")
+    assert per_iteration == []
+    assert store.query("SELECT count(*) FROM iterations")[0][0] == 4 * 3
+    assert store.query("SELECT count(*) FROM runs WHERE status = 'finished'")[0][0] == 4
+    log = store.path.with_name(f"{store.path.name}.smoke.log").read_text()
+    assert "finished pong seed=0" in log and "batch smoke done" in log
+
+    again = _batch(path, store, "--dry-run")
+    assert again.stdout.count("skip") == 4, "a finished batch has nothing left to do"
+
+
+def test_ray_executor_produces_the_same_rows(tmp_path, scripted):
+    pytest.importorskip("ray")
+    from store import Store
+
+    model = scripted([COMPETENT_REPLY])
+    path = _experiments(tmp_path, model)
+    local, remote = Store(tmp_path / "local.duckdb"), Store(tmp_path / "ray.duckdb")
+    done = _batch(path, local, "--workers", "2")
+    assert done.returncode == 0, done.stderr + done.stdout
+    done = _batch(path, remote, "--executor", "ray", env={**os.environ, "RAY_AUTH_MODE": "disabled"})
+    assert done.returncode == 0, done.stderr + done.stdout
+    assert _rows(remote) == _rows(local)
+    for table in ("steps", "nodes", "episodes", "llm_calls", "policy_versions", "feedback"):
+        assert remote.query(f"SELECT count(*) FROM {table}") == local.query(f"SELECT count(*) FROM {table}"), table
+
+
+def test_ablation_example_and_its_sql(tmp_path, store, scripted):
+    """examples/ablation.toml with the scripted model standing in, shortened; then examples/ablation.sql."""
+    import tomllib
+
+    model = scripted([COMPETENT_REPLY])
+    source = (ROOT / "examples" / "ablation.toml").read_text()
+    data = tomllib.loads(source)
+    assert data["matrix"] == {"feedback": ["rollout", "staged"], "seed": [0, 1, 2]}
+    assert len(load_experiments(ROOT / "examples" / "ablation.toml").runs) == 6
+    short = source.replace("iterations = 20", "iterations = 1\neval_max_steps = 200\nrollout_steps = 60") \
+        .replace('model = "anthropic/claude-3-5-sonnet-20241022"', f'model = "{model.model}"\napi_base = "{model.api_base}"')
+    path = tmp_path / "ablation.toml"
+    path.write_text(short)
+    done = _batch(path, store, "--workers", "2")
+    assert done.returncode == 0, done.stderr + done.stdout
+    sql = (ROOT / "examples" / "ablation.sql").read_text()
+    rows = store.query(sql)
+    assert [r[0] for r in rows] == ["rollout", "staged"]
+    assert all(r[1] == 3 and r[5] == 1 for r in rows), rows

@@ -1,0 +1,191 @@
+"""Rerun recordings: live from the episode workers, rebuilt from the store, and the optimizer's run recording.
+
+The recordings are read back with the Rerun SDK in a separate process (tests/rrd_dump.py): this process forks
+episode workers, and must not load Rerun itself (it starts Rust threads).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from tests.conftest import COMPETENT_REPLY, EXAMPLES, ROOT
+
+STEPS = 120
+
+
+def run_cli(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def run_view(*argv):
+    """``codearcade view`` in a process of its own (it loads Rerun; this one forks episode workers)."""
+    result = subprocess.run([sys.executable, "-m", "pipeline.cli", "view", *map(str, argv)], capture_output=True,
+                            text=True, timeout=300, cwd=ROOT)
+    return result.returncode, result.stdout, result.stderr
+
+
+def dump(*paths) -> dict:
+    """{path: content} of .rrd files, read back with the Rerun SDK (see tests/rrd_dump.py)."""
+    result = subprocess.run([sys.executable, str(ROOT / "tests" / "rrd_dump.py"), *map(str, paths)],
+                            capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout)
+
+
+def column(content: dict, name: str, timeline: str = "step") -> dict[int, object]:
+    return {int(k): v for k, v in content["timelines"][timeline].get(name, {}).items()}
+
+
+def stored_boxes(store, episode_id: str) -> dict[str, Counter]:
+    """Per category: number of boxes at each step, from the store."""
+    rows = store.query("SELECT s.step, o.category, count(*) FROM (SELECT step, unnest(objects) AS o FROM steps "
+                       "WHERE episode_id = ?) s GROUP BY ALL", [episode_id])
+    out: dict[str, Counter] = {}
+    for step, category, n in rows:
+        out.setdefault(category, Counter())[step] = n
+    return out
+
+
+def assert_holds_episode(content: dict, store, episode_id: str, frames_every: int) -> None:
+    """The recording holds the stored episode: one action/reward/score per step, every category's boxes."""
+    steps = store.query("SELECT step, action, reward, score FROM steps WHERE episode_id = ? ORDER BY step", [episode_id])
+    n = len(steps)
+    assert n > 0
+    for name, i in (("action", 1), ("reward", 2), ("score", 3)):
+        series = column(content, f"/series/{name}:Scalars:scalars")
+        assert len(series) == n, name
+        assert [series[s[0]][0] for s in steps] == [float(s[i]) for s in steps], name
+    boxes = stored_boxes(store, episode_id)
+    assert boxes, "the episode has objects"
+    for category, per_step in boxes.items():
+        logged = column(content, f"/game/objects/{category}:Boxes2D:centers")
+        assert {step: len(v) for step, v in logged.items() if v} == dict(per_step), category
+    frames = column(content, "/game/frame:EncodedImage:blob")
+    assert sorted(frames) == ([s for s in range(n) if s % frames_every == 0] if frames_every else [])
+    props = content["properties"]
+    assert props["episode:episode_id"] == episode_id and props["episode:length"] == n
+
+
+def test_live_and_rebuilt_recordings_hold_the_stored_episode(store, tmp_path, capsys):
+    live = tmp_path / "live"
+    code, out, err = run_cli(capsys, "eval", EXAMPLES / "breakout.py", "--trace", "--episodes", 2, "--max-steps", STEPS,
+                             "--rerun", live, "--store", store.path, "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    ids = [e["episode_id"] for e in summary["episodes"]]
+    assert sorted(p.name for p in live.iterdir()) == sorted(f"{i}.rrd" for i in ids), "one .rrd per episode"
+
+    rebuilt = tmp_path / "rebuilt.rrd"
+    code, out, err = run_view(summary["run_id"], "--episode", 0, "--save", rebuilt, "--frames-every", 4,
+                              "--store", store.path)
+    assert code == 0, err
+    assert "replayed frames match the stored objects" in out and rebuilt.exists()
+
+    contents = dump(live / f"{ids[0]}.rrd", live / f"{ids[1]}.rrd", rebuilt)
+    first, second, again = (contents[str(p)] for p in (live / f"{ids[0]}.rrd", live / f"{ids[1]}.rrd", rebuilt))
+    for content, episode_id in ((first, ids[0]), (second, ids[1]), (again, ids[0])):
+        assert_holds_episode(content, store, episode_id, frames_every=4)
+    # Breakout's brick rows are categories of their own, beside the paddle and the ball
+    assert {"RB", "OB", "YB", "GB", "AB", "BB", "Player"} <= set(stored_boxes(store, ids[0]))
+    # node outputs of the traced episode: a series per bundled method, the coordinates drawn on the frame
+    calls = store.query("SELECT count(*) FROM nodes WHERE episode_id = ? AND function = 'select_paddle_action'", [ids[0]])
+    assert len(column(again, "/policy/select_paddle_action:Scalars:scalars")) == calls[0][0] == STEPS
+    assert column(again, "/game/policy/target_x:LineStrips2D:strips")
+    # the live recording (written by the worker) and the rebuilt one hold the same data, frames included
+    assert first["timelines"] == again["timelines"]
+    assert "/code:TextDocument:text" in again["static"]
+
+
+def test_replay_that_diverges_from_the_store_is_reported(store, tmp_path, capsys):
+    code, out, err = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 80, "--store", store.path, "--json")
+    assert code == 0, err
+    episode_id = json.loads(out)["episodes"][0]["episode_id"]
+    run_id = episode_id.split(".")[0]
+    with store.write() as con:  # pretend a different action was played at step 10
+        con.execute("UPDATE steps SET action = CASE WHEN action = 2 THEN 3 ELSE 2 END WHERE episode_id = ? AND step = 10",
+                    [episode_id])
+    code, out, err = run_view(run_id, "--save", tmp_path / "e.rrd", "--store", store.path)
+    assert code == 0, err
+    assert "differ from the stored ones" in err and "first at step" in err
+
+
+def test_view_rejects_what_is_not_there(store, capsys):
+    code, out, err = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 5, "--store", store.path, "--json")
+    run_id = json.loads(out)["run_id"]
+    # selection errors come before Rerun is loaded, so these run in this process
+    code, out, err = run_cli(capsys, "view", "01NOSUCHRUN", "--store", store.path)
+    assert code == 2 and "no run 01NOSUCHRUN" in err
+    code, out, err = run_cli(capsys, "view", run_id, "--iteration", 3, "--store", store.path)
+    assert code == 2 and "no episodes in iteration 3" in err
+    code, out, err = run_cli(capsys, "view", run_id, "--episode", 7, "--store", store.path)
+    assert code == 2 and "no episode 7" in err
+    assert "rerun" not in sys.modules, "eval --rerun and view's checks never load the Rerun SDK in this process"
+
+
+def test_run_recording_has_one_score_per_iteration(store, tmp_path, scripted, capsys):
+    model = scripted([COMPETENT_REPLY, "Sorry, I cannot help with that."])
+    live = tmp_path / "live"
+    code, out, err = run_cli(capsys, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+                             "--iterations", 2, "--eval-max-steps", 60, "--rollout-steps", 40, "--workers", 2,
+                             "--rerun", live, "--store", store.path, "--json")
+    assert code == 0, err
+    result = json.loads(out)
+    run_id = result["run_id"]
+    episodes = [r[0] for r in store.query("SELECT episode_id FROM episodes WHERE run_id = ?", [run_id])]
+    assert len(episodes) == 6
+    assert sorted(p.name for p in live.iterdir()) == sorted([f"{e}.rrd" for e in episodes] + [f"{run_id}.rrd"])
+
+    rebuilt = tmp_path / "run.rrd"
+    code, out, err = run_view(run_id, "--save", rebuilt, "--store", store.path)
+    assert code == 0, err
+    contents = dump(live / f"{run_id}.rrd", rebuilt)
+    scores = [r[0] for r in store.query("SELECT score FROM iterations WHERE run_id = ? ORDER BY iteration", [run_id])]
+    for content in contents.values():
+        assert content["properties"]["run:run_id"] == run_id
+        score = column(content, "/score/score:Scalars:scalars", "iteration")
+        assert score == {i: [s] for i, s in enumerate(scores)}, "one score per iteration"
+        assert len(column(content, "/score/best:Scalars:scalars", "iteration")) == 3
+        code_docs = column(content, "/code:TextDocument:text", "iteration")
+        assert sorted(code_docs) == [0, 1, 2] and "predict_ball_trajectory" in code_docs[1][0]
+        assert sorted(column(content, "/llm/prompt:TextDocument:text", "iteration")) == [1, 2]
+        assert sorted(column(content, "/llm/reply:TextDocument:text", "iteration")) == [1, 2]
+        assert len(column(content, "/llm/tokens/input:Scalars:scalars", "iteration")) == 2
+        assert len(column(content, "/metrics/complexity:Scalars:scalars", "iteration")) == 3
+    assert contents[str(live / f"{run_id}.rrd")]["timelines"] == contents[str(rebuilt)]["timelines"]
+
+
+def test_frame_png_is_lossless_and_small():
+    from PIL import Image
+
+    from pipeline.envs import make_env
+    from viewers.frames import FrameEncoder
+
+    env = make_env("space_invaders")
+    try:
+        env.reset(seed=0)
+        encoder = FrameEncoder(env.unwrapped.ale)
+        for step in range(40):
+            env.step(step % 6)
+            png = encoder.screen_png()
+            rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+            assert np.array_equal(rgb, env.unwrapped.ale.getScreenRGB())
+            assert len(png) < 4000
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("value", ["off", "OFF", None])
+def test_rerun_off_means_no_target(value):
+    from viewers.rerun_sinks import resolve_live_target
+
+    assert resolve_live_target(value) is None

@@ -1,0 +1,248 @@
+"""`codearcade sql`, `runs` and `report`: output formats, one-line errors, reading while a run writes."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.evaluate import EvalConfig, evaluate
+from pipeline.llm import LiteLLMClient
+from pipeline.optimize import OptimizeConfig, optimize
+from store import Store
+from tests.conftest import COMPETENT_REPLY, EXAMPLES, ROOT
+
+EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
+
+
+@pytest.fixture(scope="module")
+def filled(tmp_path_factory):
+    """A store with a 2-iteration optimize run (accepted, then an unusable reply) and a 3-episode eval run."""
+    from tests.scripted_llm import ScriptedModel
+
+    tmp = tmp_path_factory.mktemp("sql")
+    store = Store(tmp / "s.duckdb", lock_timeout_s=20)
+    with ScriptedModel([COMPETENT_REPLY, "no code today"], tmp / "model") as model:
+        client = LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
+        result = optimize(OptimizeConfig(game="pong", iterations=2, rollout_steps=100, eval_max_steps=200,
+                                         workers=2, token_budget=8000), store, client)
+    assert result.status == "finished", result.error
+    ev = evaluate(EXAMPLES / "pong.py", EvalConfig(episodes=3, max_steps=150, workers=2), store)
+    return store, result.run_id, ev.run_id
+
+
+def _run(capsys, *argv) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+# ------------------------------------------------------------------------------------------------------ sql
+
+def test_sql_table_csv_and_json_agree(filled, capsys):
+    store, run_id, _ = filled
+    query = ("SELECT iteration, score, update_status, rolled_back, started_at, policy_version_id IS NULL AS n "
+             f"FROM learning_curve WHERE run_id = '{run_id}' ORDER BY iteration")
+    rows = store.query(query)
+    code, out, _ = _run(capsys, "sql", query, "--store", str(store.path))
+    lines = out.splitlines()
+    assert code == 0 and lines[0].split() == ["iteration", "score", "update_status", "rolled_back", "started_at", "n"]
+    assert set(lines[1]) == {"-", " "} and lines[-1] == "(3 rows)"
+    assert [line.split()[2] for line in lines[2:5]] == ["initial", "accepted", "rejected"]
+    assert lines[2].index("0") == lines[0].index("iteration") + len("iteration") - 1, "numbers are right-aligned"
+
+    code, out, _ = _run(capsys, "sql", query, "--csv", "--store", str(store.path))
+    parsed = list(csv.reader(io.StringIO(out)))
+    assert code == 0 and parsed[0][0] == "iteration" and len(parsed) == 4
+    assert [float(r[1]) for r in parsed[1:]] == [r[1] for r in rows] and parsed[1][3] == "false"
+
+    code, out, _ = _run(capsys, "sql", query, "--json", "--store", str(store.path))
+    records = json.loads(out)
+    assert code == 0 and [r["iteration"] for r in records] == [0, 1, 2]
+    assert [r["score"] for r in records] == [r[1] for r in rows] and records[0]["rolled_back"] is False
+    assert records[0]["started_at"] == rows[0][4].isoformat()
+
+
+def test_sql_json_embeds_json_columns_and_nulls(filled, capsys):
+    store, run_id, _ = filled
+    code, out, _ = _run(capsys, "sql", f"SELECT config, model, finished_at, NULL AS nothing, [1, 2] AS l, "
+                        f"{{'a': 1}} AS s FROM runs WHERE run_id = '{run_id}'", "--json", "--store", str(store.path))
+    (record,) = json.loads(out)
+    assert code == 0 and record["config"]["iterations"] == 2 and record["config"]["game"] == "pong"
+    assert record["nothing"] is None and record["l"] == [1, 2] and record["s"] == {"a": 1}
+    code, out, _ = _run(capsys, "sql", "SELECT NULL AS a, 'x,y' AS b, 'two\nlines' AS c", "--csv",
+                        "--store", str(store.path))
+    assert list(csv.reader(io.StringIO(out))) == [["a", "b", "c"], ["", "x,y", "two\nlines"]]
+
+
+def test_sql_truncates_wide_cells_and_long_results(filled, capsys):
+    store, _, _ = filled
+    code, out, _ = _run(capsys, "sql", "SELECT text FROM blobs WHERE kind = 'policy'", "--store", str(store.path))
+    body = out.splitlines()[2:-1]
+    assert code == 0 and body and all(len(line) <= 40 and line.endswith("…") for line in body)
+    code, out, _ = _run(capsys, "sql", "SELECT text FROM blobs WHERE kind = 'policy'", "--max-width", "0",
+                        "--store", str(store.path))
+    assert max(len(line) for line in out.splitlines()) > 200 and "\\n" in out, "newlines shown as \\n, one line a row"
+    code, out, _ = _run(capsys, "sql", "SELECT * FROM range(50)", "--max-rows", "5", "--store", str(store.path))
+    assert len(out.splitlines()) == 2 + 5 + 1 and "45 not shown" in out
+
+
+@pytest.mark.parametrize("query, message", [
+    ("SELEC 1", "Parser Error"),
+    ("SELECT * FROM no_such_table", "no_such_table does not exist"),
+    ("DELETE FROM runs", "read-only"),
+    ("  ", "empty query"),
+])
+def test_sql_errors_are_one_line_and_exit_2(filled, capsys, query, message):
+    store, _, _ = filled
+    code, out, err = _run(capsys, "sql", query, "--store", str(store.path))
+    assert code == 2 and out == "" and message in err
+    assert err.count("\n") == 1 and err.startswith("codearcade: error: ")
+    assert store.query("SELECT count(*) FROM runs")[0][0] == 2, "nothing was changed"
+
+
+def test_sql_on_a_missing_store(tmp_path, capsys):
+    code, _, err = _run(capsys, "sql", "SELECT 1", "--store", str(tmp_path / "none.duckdb"))
+    assert code == 2 and "no store at" in err and err.count("\n") == 1
+    assert not (tmp_path / "none.duckdb").exists(), "a query never creates a store"
+
+
+def test_sql_reads_the_query_from_stdin(filled, capsys, monkeypatch):
+    store, _, _ = filled
+    monkeypatch.setattr(sys, "stdin", io.StringIO("SELECT count(*) AS runs FROM runs"))
+    code, out, _ = _run(capsys, "sql", "-", "--csv", "--store", str(store.path))
+    assert code == 0 and out == "runs\n2\n"
+
+
+# ----------------------------------------------------------------------------------------------------- runs
+
+def test_runs_lists_every_run(filled, capsys):
+    store, run_id, eval_id = filled
+    code, out, _ = _run(capsys, "runs", "--store", str(store.path))
+    lines = out.splitlines()
+    assert code == 0 and lines[0].split()[:2] == ["run", "created"] and len(lines) == 4
+    opt = next(line for line in lines if line.startswith(run_id)).split()
+    assert opt[3:9] == ["optimize", "pong", "openai/scripted", "finished", "2/2", opt[8]]
+    tokens = store.query("SELECT sum(input_tokens + output_tokens) FROM llm_calls")[0][0]
+    assert int(opt[-1]) == tokens
+    ev = next(line for line in lines if line.startswith(eval_id)).split()
+    assert ev[3:8] == ["eval", "pong", "-", "finished", "-"] and ev[-2:] == ["3", "0"]
+
+    code, out, _ = _run(capsys, "runs", "--json", "--store", str(store.path))
+    records = {r["run_id"]: r for r in json.loads(out)}
+    assert records[run_id]["iterations_done"] == 2 and records[run_id]["total_tokens"] == tokens
+    returns = [r[0] for r in store.query("SELECT return FROM episodes WHERE run_id = ?", [eval_id])]
+    assert records[eval_id]["best_score"] == pytest.approx(sum(returns) / 3)
+
+
+def test_runs_on_an_empty_store(store, capsys):
+    with store.write():
+        pass
+    code, out, _ = _run(capsys, "runs", "--store", str(store.path))
+    assert code == 0 and "no runs" in out
+
+
+# --------------------------------------------------------------------------------------------------- report
+
+def test_report_of_an_optimize_run(filled, tmp_path, capsys):
+    import matplotlib.image
+
+    store, run_id, _ = filled
+    out_dir = tmp_path / "rep"
+    code, out, _ = _run(capsys, "report", run_id[:20], "--store", str(store.path), "--out", str(out_dir))
+    assert code == 0 and out.strip() == str(out_dir / "README.md")
+    readme = (out_dir / "README.md").read_text()
+    for name in ("score.png", "code.png", "tokens.png"):
+        image = matplotlib.image.imread(out_dir / name)
+        assert image.shape[0] >= 400 and image.shape[1] >= 800, name
+        assert image[..., :3].std() > 0.05, f"{name} is not blank"
+        assert f"]({name})" in readme
+    assert f"run `{run_id}`" in readme and "| 2 | rejected" in readme and "| 1 | accepted" in readme
+    assert "| 2 | parse | the reply contains neither" in readme, "the rejection reason is shown"
+    assert "`eval_max_steps` | 200" in readme and "openai/scripted" in readme
+
+
+def test_report_of_an_eval_run_defaults_to_reports_dir(filled, tmp_path, capsys, monkeypatch):
+    store, _, eval_id = filled
+    monkeypatch.chdir(tmp_path)
+    code, _, _ = _run(capsys, "report", eval_id, "--store", str(store.path))
+    out_dir = tmp_path / "reports" / eval_id
+    assert code == 0 and sorted(p.name for p in out_dir.iterdir()) == ["README.md", "score.png"]
+    readme = (out_dir / "README.md").read_text()
+    assert "## Episodes" in readme and readme.count("| truncated |") + readme.count("| terminated |") == 3
+
+
+def test_report_of_an_unknown_or_ambiguous_run(filled, capsys):
+    store, run_id, _ = filled
+    code, _, err = _run(capsys, "report", "NOPE", "--store", str(store.path))
+    assert code == 2 and "no run 'NOPE'" in err and "codearcade runs" in err
+    code, _, err = _run(capsys, "report", "", "--store", str(store.path))
+    assert code == 2
+    code, _, err = _run(capsys, "report", run_id[:2], "--store", str(store.path))  # both ULIDs share a prefix
+    assert code == 2 and "ambiguous" in err
+
+
+# ------------------------------------------------------------------------------- reading during a writing run
+
+def _poll_counts(store_path: Path, writer: subprocess.Popen, query: str, capsys) -> tuple[list, list[str]]:
+    """Run `codearcade sql` in this process until the writer exits; (counts seen, failures after the first success)."""
+    seen: list[tuple[int, ...]] = []
+    failures: list[str] = []
+    while writer.poll() is None:
+        code, out, err = _run(capsys, "sql", query, "--csv", "--store", str(store_path))
+        if code == 0:
+            seen.append(tuple(int(x) for x in out.splitlines()[1].split(",")))
+        elif seen or "no store at" not in err:  # before the writer's first commit there is no store yet
+            failures.append(err)
+    return seen, failures
+
+
+def test_queries_while_eval_writes(tmp_path, capsys):
+    """A real `codearcade eval` writes 4 episodes; `codearcade sql` in this process and in subprocesses meanwhile."""
+    path = tmp_path / "live.duckdb"
+    writer = subprocess.Popen([EXE, "eval", str(EXAMPLES / "pong.py"), "--episodes", "4", "--max-steps", "2000",
+                               "--workers", "2", "--store", str(path)], cwd=ROOT, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True)
+    query = "SELECT (SELECT count(*) FROM episodes), (SELECT count(*) FROM steps), (SELECT count(*) FROM run_summary)"
+    side = []  # a few separate `codearcade sql` processes, started while the run goes on
+    try:
+        while writer.poll() is None and not path.exists():
+            time.sleep(0.05)
+        for _ in range(2):
+            side.append(subprocess.Popen([EXE, "sql", query, "--csv", "--store", str(path)], stdout=subprocess.PIPE,
+                                         stderr=subprocess.PIPE, text=True))
+        seen, failures = _poll_counts(path, writer, query, capsys)
+    finally:
+        writer.wait(120)
+    assert writer.returncode == 0, writer.stderr.read()
+    for p in side:
+        out, err = p.communicate(60)
+        assert p.returncode == 0, err
+    assert not failures, failures[:3]
+    assert seen == sorted(seen), "counts only grow"
+    assert seen[0][0] < 4 and len(set(seen)) >= 2, f"the queries overlapped the writing: {sorted(set(seen))}"
+    final = Store(path).query("SELECT count(*), sum(length) FROM episodes")[0]
+    assert seen[-1][0] <= final[0] == 4 and seen[-1][1] <= final[1]
+
+
+def test_queries_while_a_writer_commits_back_to_back(tmp_path, capsys):
+    """A harsher writer: 30 small transactions in a row through Store.write; every query still gets in."""
+    path = tmp_path / "busy.duckdb"
+    script = ("import sys\nfrom store import Store\nfrom store.writer import put_blob\ns = Store(sys.argv[1])\n"
+              "for i in range(30):\n    with s.write() as con:\n        put_blob(con, 'note', f'note {i}')\n")
+    writer = subprocess.Popen([sys.executable, "-c", script, str(path)], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    try:
+        seen, failures = _poll_counts(path, writer, "SELECT count(*), 0 FROM blobs", capsys)
+    finally:
+        writer.wait(120)
+    assert writer.returncode == 0, writer.stderr.read()
+    assert not failures, failures[:3]
+    assert seen == sorted(seen) and len(set(seen)) >= 5

@@ -1,0 +1,342 @@
+"""``codearcade report RUN``: PNG plots and a Markdown summary of one run, from the store alone.
+
+An optimization run gets ``score.png`` (mean evaluation return per iteration, each evaluation episode, the
+best so far, rollbacks), ``code.png`` (lines of code, cyclomatic complexity and nested-if depth of the version
+each iteration evaluated: the paper's Table 3 over time) and ``tokens.png`` (LLM input/output tokens per
+iteration and cumulative); an eval run gets ``score.png`` with the return of each episode. ``README.md`` shows
+the plots with the run's settings and tables of its iterations (or episodes), rejected candidates and LLM
+usage. Everything is read in one read-only open (the views of docs/schema.md), so a report can be made while
+the run is still writing; plots are drawn with matplotlib's Agg canvas (no display needed).
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Sequence
+
+from store import Store
+from store.readers import get_run
+from store.views import resolve_run_id
+
+STATUS_STYLE = {  # update_status -> (marker, colour, label)
+    "initial": ("s", "#555555", "starting policy"),
+    "accepted": ("o", "#2ca02c", "new code accepted"),
+    "rejected": ("X", "#d62728", "candidate rejected"),
+    "unchanged": ("o", "#999999", "no change"),
+    "llm_error": ("^", "#ff7f0e", "LLM call failed"),
+}
+END_COLOURS = {"terminated": "#1f77b4", "truncated": "#7f7f7f", "policy_error": "#d62728", "timeout": "#d62728",
+               "crashed": "#d62728"}
+
+
+def collect(store: Store, run: str) -> dict[str, Any]:
+    """Everything a report shows, read in one open of the store."""
+    with store.read() as con:
+        run_id = resolve_run_id(con, run, store)
+        data: dict[str, Any] = {"run": get_run(con, run_id)}
+
+        def q(sql: str) -> list[dict[str, Any]]:
+            cursor = con.execute(sql, [run_id])
+            names = [d[0] for d in cursor.description]
+            return [dict(zip(names, row)) for row in cursor.fetchall()]
+
+        data["summary"] = q("SELECT * FROM run_summary WHERE run_id = ?")[0]
+        data["curve"] = q("SELECT * FROM learning_curve WHERE run_id = ? ORDER BY iteration")
+        data["code"] = q("SELECT * FROM code_metrics WHERE run_id = ? ORDER BY iteration")
+        data["usage"] = q("SELECT * FROM llm_usage WHERE run_id = ?")[0]
+        data["rejected"] = q("SELECT * FROM rejected_candidates WHERE run_id = ? ORDER BY iteration")
+        data["episodes"] = q("SELECT episode_id, iteration, kind, episode_index, seed, policy_version_id, return, "
+                             "length, lives_lost, end_reason, error, duration_s, max_steps FROM episodes "
+                             "WHERE run_id = ? ORDER BY iteration, kind, episode_index")
+        data["versions"] = q("SELECT policy_version_id, iteration, produced_by, validation, loc, sloc, complexity, "
+                             "max_if_depth, functions FROM policy_versions WHERE run_id = ? ORDER BY iteration")
+    data["config"] = json.loads(data["run"]["config"]) if data["run"]["config"] else {}
+    data["packages"] = json.loads(data["run"]["package_versions"] or "{}")
+    return data
+
+
+# --------------------------------------------------------------------------------------------------- plots
+
+def _figure(rows: int = 1, height: float = 4.4):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8.5, height), dpi=110, layout="constrained")
+    axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+        ax.spines[["top", "right"]].set_visible(False)
+    return fig, axes
+
+
+def _integer_x(ax, xs: Sequence[int]) -> None:
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    if xs:
+        ax.set_xlim(min(xs) - 0.5, max(xs) + 0.5)
+
+
+def _title(data: dict[str, Any], what: str) -> str:
+    run = data["run"]
+    model = f", {run['model']}" if run["model"] else ""
+    return f"{run['game']} · {what}\nrun {run['run_id']} ({run['kind']}{model})"
+
+
+def plot_scores(data: dict[str, Any], path: Path) -> bool:
+    """Score per iteration with the best so far (optimize runs); return per episode (eval runs)."""
+    if data["run"]["kind"] == "eval":
+        return _plot_episode_returns(data, path)
+    curve = data["curve"]
+    if not curve:
+        return False
+    fig, (ax,) = _figure()
+    xs = [r["iteration"] for r in curve]
+    evals = [e for e in data["episodes"] if e["kind"] == "eval"]
+    n_eval = max((sum(1 for e in evals if e["iteration"] == x) for x in xs), default=1)
+    if n_eval > 1:
+        ax.scatter([e["iteration"] for e in evals if e["iteration"] in xs],
+                   [e["return"] for e in evals if e["iteration"] in xs],
+                   s=12, color="#1f77b4", alpha=0.25, linewidths=0, label="one evaluation episode", zorder=2)
+    ax.plot(xs, [r["score"] for r in curve], "-", color="#1f77b4", linewidth=1.8, zorder=3,
+            label=f"score (mean return of {n_eval} evaluation episode{'s' * (n_eval != 1)})")
+    ax.step(xs, [r["best_score"] for r in curve], where="post", color="#ff7f0e", linestyle="--", linewidth=1.6,
+            label="best so far", zorder=3)
+    for status, (marker, colour, label) in STATUS_STYLE.items():
+        pts = [(r["iteration"], r["score"]) for r in curve if r["update_status"] == status]
+        if pts:
+            ax.scatter(*zip(*pts), marker=marker, s=46, color=colour, label=label, zorder=4,
+                       edgecolors="white", linewidths=0.6)
+    backs = [r["iteration"] for r in curve if r["rolled_back"]]
+    for i, x in enumerate(backs):
+        ax.axvline(x, color="#9467bd", linestyle=":", linewidth=1.2,
+                   label="regression: rolled back" if i == 0 else None)
+    _integer_x(ax, xs)
+    ax.set_xlabel("iteration (0 = starting policy; k = after the k-th LLM update)")
+    ax.set_ylabel("evaluation return")
+    best = max(curve, key=lambda r: (r["best_score"], -r["iteration"]))
+    ax.annotate(f"best {best['best_score']:g}\n(iteration {best['best_iteration']})",
+                (best["best_iteration"], best["best_score"]), textcoords="offset points", xytext=(0, 10),
+                ha="center", va="bottom", fontsize=8, color="#ff7f0e")
+    ax.margins(y=0.15)
+    ax.set_title(_title(data, "score per iteration"), fontsize=11)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    fig.savefig(path)
+    return True
+
+
+def _plot_episode_returns(data: dict[str, Any], path: Path) -> bool:
+    episodes = [e for e in data["episodes"] if e["kind"] == "eval"]
+    if not episodes:
+        return False
+    fig, (ax,) = _figure()
+    xs = list(range(len(episodes)))
+    colours = [END_COLOURS.get(e["end_reason"], "#1f77b4") for e in episodes]
+    bars = ax.bar(xs, [e["return"] for e in episodes], color=colours, width=0.7, zorder=2)
+    if len(xs) <= 30:
+        ax.bar_label(bars, fmt="%g", padding=2, fontsize=8)
+    mean = sum(e["return"] for e in episodes) / len(episodes)
+    ax.axhline(mean, color="#ff7f0e", linestyle="--", linewidth=1.5, label=f"mean {mean:.2f}")
+    ax.axhline(0, color="black", linewidth=0.8)
+    from matplotlib.patches import Patch
+
+    seen = dict.fromkeys(e["end_reason"] for e in episodes)
+    handles = [Patch(color=END_COLOURS.get(r, "#1f77b4"), label=f"ended: {r}") for r in seen]
+    ax.legend(handles=ax.get_legend_handles_labels()[0] + handles, fontsize=8, loc="best", framealpha=0.85)
+    ax.set_xticks(xs, [f"{e['episode_index']}\nseed {e['seed']}" for e in episodes] if len(xs) <= 12 else None)
+    _integer_x(ax, xs)
+    caps = sorted({e["max_steps"] for e in episodes if e.get("max_steps")})
+    ax.set_xlabel("evaluation episode" + (f" (cut off after {caps[0]:,} steps)" if len(caps) == 1 else ""))
+    ax.set_ylabel("return (sum of rewards)")
+    ax.set_title(_title(data, "return per episode"), fontsize=11)
+    fig.savefig(path)
+    return True
+
+
+def plot_code(data: dict[str, Any], path: Path) -> bool:
+    """Lines of code and complexity of the version each iteration evaluated."""
+    code = [r for r in data["code"] if r["loc"] is not None]
+    if not code:
+        return False
+    fig, (top, bottom) = _figure(rows=2, height=6.2)
+    xs = [r["iteration"] for r in code]
+    for key, label, style in (("loc", "all lines of the file", "o-"), ("sloc", "source lines", "s-"),
+                              ("trainable_sloc", "source lines, trainable methods", "^-")):
+        top.plot(xs, [r[key] for r in code], style, markersize=4, linewidth=1.5, label=label)
+    top.set_ylabel("lines of code")
+    top.set_title(_title(data, "code size and complexity of the evaluated version"), fontsize=11)
+    for key, label, style in (("complexity", "cyclomatic complexity, Policy class", "o-"),
+                              ("trainable_complexity", "cyclomatic complexity, trainable methods", "^-"),
+                              ("max_if_depth", "max nested-if depth", "s--")):
+        bottom.plot(xs, [r[key] for r in code], style, markersize=4, linewidth=1.5, label=label)
+    bottom.set_ylabel("complexity / depth")
+    for ax in (top, bottom):
+        ax.set_ylim(0, max(max(line.get_ydata()) for line in ax.get_lines()) * 1.3 + 1)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    bottom.set_xlabel("iteration")
+    _integer_x(bottom, xs)
+    fig.savefig(path)
+    return True
+
+
+def plot_tokens(data: dict[str, Any], path: Path) -> bool:
+    """Input and output tokens of the LLM calls of each iteration, and their running total."""
+    curve = data["curve"]
+    if not curve or not any(r["total_tokens"] for r in curve):
+        return False
+    fig, (ax,) = _figure()
+    xs = [r["iteration"] for r in curve]
+    inputs = [r["input_tokens"] for r in curve]
+    ax.bar(xs, inputs, width=0.7, color="#1f77b4", label="input (prompt) tokens", zorder=2)
+    ax.bar(xs, [r["output_tokens"] for r in curve], bottom=inputs, width=0.7, color="#ff7f0e",
+           label="output (reply) tokens", zorder=2)
+    ax.set_ylabel("tokens in the iteration")
+    ax.set_ylim(0, max(r["total_tokens"] for r in curve) * 1.3)
+    ax.set_xlabel("iteration")
+    _integer_x(ax, xs)
+    right = ax.twinx()
+    right.plot(xs, [r["cumulative_tokens"] for r in curve], "k.-", linewidth=1.2, label="cumulative (right axis)")
+    right.set_ylabel("cumulative tokens")
+    right.set_ylim(0, max(r["cumulative_tokens"] for r in curve) * 1.3)
+    right.spines[["top"]].set_visible(False)
+    handles = ax.get_legend_handles_labels()[0] + right.get_legend_handles_labels()[0]
+    ax.legend(handles=handles, fontsize=8, loc="upper left", ncol=3, framealpha=0.85)
+    ax.set_title(_title(data, "LLM tokens per iteration"), fontsize=11)
+    fig.savefig(path)
+    return True
+
+
+# ------------------------------------------------------------------------------------------------ markdown
+
+def _md(value: Any, digits: int = 2) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}".rstrip("0").rstrip(".") if abs(value) < 1e6 else f"{value:.3g}"
+    if isinstance(value, datetime):
+        return value.strftime("%Y-%m-%d %H:%M:%S UTC")
+    if isinstance(value, (dict, list)):
+        value = json.dumps(value)
+    return str(value).replace("|", "\\|").replace("\n", " ")
+
+
+def _md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+    lines += ["| " + " | ".join(_md(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def _settings(data: dict[str, Any]) -> list[tuple[str, Any]]:
+    run, summary, config = data["run"], data["summary"], data["config"]
+    rows: list[tuple[str, Any]] = [("run id", f"`{run['run_id']}`"), ("kind", run["kind"]), ("game", run["game"]),
+                                   ("model", run["model"]), ("status", run["status"]), ("seed", run["seed"]),
+                                   ("created", run["created_at"]), ("finished", run["finished_at"]),
+                                   ("duration (s)", summary["duration_s"])]
+    if run["error"]:
+        rows.append(("error", run["error"]))
+    skip = {"game", "model", "seed", "instruction", "feedback_bands"}
+    rows += [(f"`{k}`", v) for k, v in sorted(config.items()) if k not in skip]
+    bands = config.get("feedback_bands")
+    if isinstance(bands, dict):
+        rows.append(("feedback bands", f"high ≥ {bands.get('high')}, low ≤ {bands.get('low')}, "
+                                       f"target {bands.get('target')}"))
+    return rows
+
+
+def _functions_table(version: dict[str, Any]) -> str:
+    functions = version.get("functions") or []
+    return _md_table(("method", "trainable", "SLOC", "complexity", "if depth"),
+                     [(f["name"], f["trainable"], f["sloc"], f["complexity"], f["max_if_depth"]) for f in functions])
+
+
+def render_markdown(data: dict[str, Any], images: dict[str, str]) -> str:
+    """The report's README.md (``images``: file name -> caption, of the plots written)."""
+    run, summary, usage = data["run"], data["summary"], data["usage"]
+    out = [f"# {run['game']} {run['kind']} run `{run['run_id']}`", ""]
+    facts = [f"status **{run['status']}**"]
+    if run["kind"] == "eval":
+        facts.append(f"mean return **{_md(summary['best_score'])}** over {summary['episodes']} episode(s)")
+    else:
+        facts.append(f"{summary['iterations_done']} of {_md(summary['iterations_planned'])} iterations")
+        facts.append(f"best score **{_md(summary['best_score'])}** (iteration {_md(summary['best_iteration'])})")
+        facts.append(f"{summary['total_tokens']:,} LLM tokens")
+    facts.append(f"created {_md(run['created_at'])}")
+    out += [" · ".join(facts), ""]
+    for name, caption in images.items():
+        out += [f"![{caption}]({name})", ""]
+
+    if run["kind"] == "eval":
+        out += ["## Episodes", "", _md_table(
+            ("episode", "seed", "return", "length", "lives lost", "end reason", "seconds", "error"),
+            [(e["episode_index"], e["seed"], e["return"], e["length"], e["lives_lost"], e["end_reason"],
+              e["duration_s"], (e["error"] or "")[:120]) for e in data["episodes"] if e["kind"] == "eval"]), ""]
+    else:
+        code = {r["iteration"]: r for r in data["code"]}
+        rows = []
+        for r in data["curve"]:
+            c = code.get(r["iteration"], {})
+            status = r["update_status"] + (" ↺ rolled back" if r["rolled_back"] else "")
+            rows.append((r["iteration"], status, r["score"], r["best_score"], r["train_return"], c.get("loc"),
+                         c.get("sloc"), c.get("complexity"), c.get("max_if_depth"), r["input_tokens"],
+                         r["output_tokens"], r["wall_s"], f"`{r['policy_version_id']}`"))
+        out += ["## Iterations", "",
+                "Score: mean evaluation return. Train: return of the traced training rollout. Code metrics are "
+                "those of the version evaluated (`code_metrics`); tokens are those of the iteration's LLM calls.", "",
+                _md_table(("iteration", "update", "score", "best", "train", "LOC", "SLOC", "complexity", "if depth",
+                           "tokens in", "tokens out", "wall s", "version"), rows), ""]
+        if data["rejected"]:
+            out += ["## Rejected candidates", "", _md_table(
+                ("iteration", "stage", "reason"),
+                [(r["iteration"], r["stage"], (r["reason"] or "")[:300]) for r in data["rejected"]]), ""]
+        if usage["calls"]:
+            out += ["## LLM usage", "", _md_table(
+                ("calls", "errors", "unusable replies", "retries", "input tokens", "output tokens", "cost (USD)",
+                 "mean latency (s)", "max latency (s)", "models"),
+                [(usage["calls"], usage["errors"], usage["parse_errors"], usage["retries"], usage["input_tokens"],
+                  usage["output_tokens"], usage["cost_usd"], usage["mean_latency_s"], usage["max_latency_s"],
+                  usage["request_models"])]), ""]
+    best_id = None
+    if run["kind"] != "eval" and data["curve"]:
+        best_id = data["curve"][-1]["best_version_id"]
+    version = next((v for v in data["versions"] if v["policy_version_id"] == (best_id or run["starter_version_id"])
+                    and v["validation"] != "rejected"), None)
+    if version is not None:
+        which = "best version" if best_id else "policy"
+        out += [f"## Methods of the {which} (`{version['policy_version_id']}`)", "",
+                f"{version['loc']} lines, {version['sloc']} source lines, cyclomatic complexity "
+                f"{version['complexity']}, nested-if depth {version['max_if_depth']}.", "",
+                _functions_table(version), ""]
+    out += ["## Settings", "", _md_table(("setting", "value"), _settings(data)), ""]
+    if data["config"].get("instruction"):
+        out += ["Instruction given to the model:", "", "> " + data["config"]["instruction"].replace("\n", "\n> "), ""]
+    if data["packages"]:
+        out += ["Package versions: " + ", ".join(f"{k} {v}" for k, v in sorted(data["packages"].items())), ""]
+    query = ("SELECT episode_index, seed, return, length, end_reason FROM episodes WHERE run_id = '{}' "
+             "ORDER BY episode_index" if run["kind"] == "eval" else
+             "SELECT * FROM learning_curve WHERE run_id = '{}' ORDER BY iteration").format(run["run_id"])
+    out += ["## Reproduce", "", "```bash", f"codearcade report {run['run_id']}", f'codearcade sql "{query}"',
+            "```", ""]
+    return "\n".join(out)
+
+
+def write_report(store: Store, run: str, out_dir: str | Path | None = None) -> Path:
+    """Write the plots and README.md of ``run`` (an id or unique prefix) into ``out_dir``; return README's path."""
+    data = collect(store, run)
+    out = Path(out_dir) if out_dir else Path("reports") / data["run"]["run_id"]
+    out.mkdir(parents=True, exist_ok=True)
+    images: dict[str, str] = {}
+    for name, plot, caption in (
+        ("score.png", plot_scores, "Return per episode" if data["run"]["kind"] == "eval" else "Score per iteration"),
+        ("code.png", plot_code, "Code size and complexity per iteration"),
+        ("tokens.png", plot_tokens, "LLM tokens per iteration"),
+    ):
+        if data["run"]["kind"] == "eval" and name != "score.png":
+            continue
+        if plot(data, out / name):
+            images[name] = caption
+    readme = out / "README.md"
+    readme.write_text(render_markdown(data, images))
+    return readme

@@ -1,0 +1,431 @@
+"""One Rerun recording per episode: the entity layout, columnar loggers and the blueprint.
+
+The same code logs an episode live, from inside the worker process that plays it (``viewers/rerun_live.py``),
+and rebuilt from the store afterwards (``viewers/rerun_replay.py``); both feed it the same columns, so the
+two recordings hold the same data. Everything is sent with ``send_columns`` in chunks of many steps, so
+logging costs a few microseconds per step rather than one ~100 µs ``log`` call per entity per step.
+
+Recording: application id ``codearcade``, recording id = the episode id (``{run_id}.{iteration}.{kind}.{index}``),
+so a rebuilt recording replaces a live one in the viewer. Timeline ``step`` (sequence): the agent step.
+
+Entity layout::
+
+    /game                        AnnotationContext (static): one class per object category -> label, colour
+    /game/frame                  EncodedImage (PNG), every K-th step, when frames were taken (optional)
+    /game/objects/<Category>     Boxes2D, ONE entity per category (Player, Ball, Enemy, Alien, Shield, Bullet,
+                                 Satellite; Breakout brick rows RB OB YB GB AB BB), every step, labels = the
+                                 observation keys (Alien3, Ball, RB); an empty row where the category is absent
+    /game/policy/<name>          LineStrips2D / Points2D: numeric outputs of bundled methods that are screen
+                                 coordinates, named by the parameter that consumes them (predicted_ball_y is a
+                                 horizontal line on the frame, target_x a vertical one)  [traced episodes]
+    /series/action               Scalars (step-wise), one value per step the policy acted
+    /series/reward               Scalars, one value per step
+    /series/score                Scalars, cumulative reward
+    /series/lives                Scalars, lives when the observation was taken
+    /policy/<function>           Scalars when the method's outputs are numbers (bools as 0/1), else TextLog of
+                                 the JSON output, one per step  [traced episodes]
+    /policy/errors               TextLog (ERROR): exceptions of bundled calls and the episode's end error
+    /code                        TextDocument (markdown, static): the policy file played
+    properties                   ``episode``: run_id, iteration, kind, index, episode_id, game, seed,
+                                 policy_version_id, return, length, lives_lost, end_reason, error, max_steps,
+                                 sticky, noop_max, traced, frames_every
+
+Blueprint: the 2D view has origin ``/game`` so it draws the frame, the boxes and the policy overlay together
+(the default layout would draw only the frame); time-series views for score, reward/lives, action and the
+policy outputs beside it; the code as a text document.
+
+Every function takes an explicit ``recording`` (a ``rr.RecordingStream``) and falls back to the ambient one
+(``rr.init`` / ``with rec:``), as Rerun's own functions do.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zlib
+from dataclasses import dataclass
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import rerun as rr
+import rerun.blueprint as rrb
+
+APPLICATION_ID = "codearcade"
+SCREEN_W, SCREEN_H = 160, 210
+
+CATEGORY_COLORS: dict[str, tuple[int, int, int]] = {
+    "Player": (92, 220, 92), "Ball": (255, 255, 255), "Enemy": (255, 140, 40), "Alien": (255, 90, 220),
+    "Shield": (90, 200, 255), "Bullet": (255, 255, 80), "Satellite": (255, 60, 60),
+    "RB": (255, 80, 80), "OB": (255, 150, 60), "YB": (230, 220, 60), "GB": (120, 230, 90),
+    "AB": (60, 220, 220), "BB": (90, 120, 255),
+}
+"""Box colours of the known categories (others get a colour from their name)."""
+_KNOWN_CATEGORIES = tuple(CATEGORY_COLORS)
+
+STEP_SERIES = ("action", "reward", "score", "lives")
+
+
+def resolve_recording(recording: rr.RecordingStream | None) -> rr.RecordingStream:
+    """``recording``, or the ambient (thread-local or global) one; error if there is none."""
+    if recording is not None:
+        return recording
+    ambient = rr.get_data_recording()
+    if ambient is None:
+        raise RuntimeError("no Rerun recording: pass recording=... or call rr.init()/use `with rec:` first")
+    return ambient
+
+
+def new_recording(recording_id: str, name: str | None = None) -> rr.RecordingStream:
+    """A recording stream of application ``codearcade`` with a deterministic id (not made the default)."""
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+    rec.set_log_time_enabled(False)  # only our own timelines: a rebuilt recording holds the same data as a live one
+    rec.set_log_tick_enabled(False)
+    rec.send_recording_name(name or recording_id)
+    return rec
+
+
+def class_id(category: str) -> int:
+    """Stable class id of an object category (known ones first, others from a hash of the name)."""
+    if category in _KNOWN_CATEGORIES:
+        return 1 + _KNOWN_CATEGORIES.index(category)
+    return 100 + zlib.crc32(category.encode()) % 60000
+
+
+def category_color(category: str) -> tuple[int, int, int]:
+    if category in CATEGORY_COLORS:
+        return CATEGORY_COLORS[category]
+    h = zlib.crc32(category.encode())
+    return (80 + h % 176, 80 + (h >> 8) % 176, 80 + (h >> 16) % 176)
+
+
+def entity(*parts: str) -> str:
+    """An entity path from parts that may hold any characters (method names, categories)."""
+    return "/" + "/".join(rr.escape_entity_path_part(p) for p in parts)
+
+
+@dataclass
+class StepColumns:
+    """A run of consecutive steps as columns: the input of :meth:`EpisodeLogger.steps`.
+
+    ``action`` and ``lives`` hold NaN where the store has NULL (a step the policy failed on). Objects are
+    flattened: object ``j`` belongs to row ``obj_row[j]``, has observation key ``key[j]`` and category
+    ``categories[category_code[j]]``.
+    """
+
+    step: np.ndarray
+    action: np.ndarray
+    reward: np.ndarray
+    score: np.ndarray
+    lives: np.ndarray
+    obj_row: np.ndarray
+    key: pa.Array
+    category_code: np.ndarray
+    categories: list[str]
+    x: np.ndarray
+    y: np.ndarray
+    w: np.ndarray
+    h: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.step)
+
+    @classmethod
+    def from_arrays(cls, step, action, reward, score, lives, obj_row, key: pa.Array, category: pa.Array,
+                    x, y, w, h) -> "StepColumns":
+        encoded = pc.dictionary_encode(category)
+        if isinstance(encoded, pa.ChunkedArray):
+            encoded = encoded.combine_chunks()
+
+        def f64(values) -> np.ndarray:
+            if isinstance(values, (pa.Array, pa.ChunkedArray)):
+                return values.to_numpy(zero_copy_only=False).astype(np.float64)  # NULL -> NaN
+            return np.asarray(values, dtype=np.float64)
+
+        return cls(
+            step=np.asarray(step, dtype=np.int64), action=f64(action), reward=f64(reward), score=f64(score),
+            lives=f64(lives), obj_row=np.asarray(obj_row, dtype=np.int64),
+            key=key.cast(pa.utf8()) if key.type != pa.utf8() else key,
+            category_code=encoded.indices.to_numpy(zero_copy_only=False).astype(np.int32),
+            categories=encoded.dictionary.to_pylist(),
+            x=f64(x), y=f64(y), w=f64(w), h=f64(h),
+        )
+
+    @classmethod
+    def from_table(cls, table: pa.Table) -> "StepColumns":
+        """From a table with the ``steps`` columns ``step, action, reward, score, lives, objects``
+        (a store query or ``StepLog.table()``)."""
+        objects = table.column("objects").combine_chunks() if table.num_rows else pa.array(
+            [], type=table.schema.field("objects").type)
+        flat = pc.list_flatten(objects)
+        parents = pc.list_parent_indices(objects)
+
+        def field(name: str) -> pa.Array:
+            return flat.field(name) if isinstance(flat, pa.StructArray) else pc.struct_field(flat, name)
+
+        return cls.from_arrays(
+            table.column("step").to_numpy(), table.column("action"), table.column("reward"),
+            table.column("score"), table.column("lives"), parents.to_numpy(zero_copy_only=False),
+            field("key"), field("category"), field("x"), field("y"), field("w"), field("h"),
+        )
+
+
+def _numeric(value: Any) -> float | None:
+    """A node output as a number, or None when it is not one (bools are 0/1; JSON's non-finite strings too)."""
+    if isinstance(value, bool):
+        return float(value)
+    if isinstance(value, (int, float)):
+        return float(value)
+    if value in ("NaN", "Infinity", "-Infinity"):
+        return float(value.replace("Infinity", "inf"))
+    return None
+
+
+def _coordinate_axis(name: str) -> str | None:
+    """``x``/``y`` when a value named ``name`` is a screen coordinate (``predicted_ball_y``, ``target_x``)."""
+    lowered = name.lower()
+    for axis in ("x", "y"):
+        if lowered == axis or lowered.endswith("_" + axis):
+            return axis
+    return None
+
+
+class EpisodeLogger:
+    """Logs one episode into a recording, in chunks of steps (see the module docstring for the layout).
+
+    Stateful across chunks: it remembers which object categories it has drawn, so that a category that
+    vanishes gets empty rows (its boxes disappear) rather than staying on screen.
+    """
+
+    def __init__(self, recording: rr.RecordingStream | None = None, traced: bool = False):
+        self.rec = resolve_recording(recording)
+        self.traced = traced
+        self._categories: dict[str, int] = {}
+        self._overlays: dict[str, str] = {}
+        self._functions: list[str] = []
+        self._text_functions: set[str] = set()
+        self._has_errors = False
+        self._has_frames = False
+        self._static_sent = False
+
+    # -- static parts ------------------------------------------------------------------------------------
+
+    def _send_static(self) -> None:
+        if not self._static_sent:
+            self._static_sent = True
+            for name in STEP_SERIES:
+                self.rec.log(f"/series/{name}", rr.SeriesLines(names=name, interpolation_mode="StepAfter"
+                                                               if name in ("action", "lives") else None), static=True)
+
+    def _annotate(self, categories: Iterable[str]) -> None:
+        new = [c for c in categories if c not in self._categories]
+        if not new:
+            return
+        for c in new:
+            self._categories[c] = class_id(c)
+        self.rec.log("/game", rr.AnnotationContext([
+            rr.ClassDescription(info=rr.AnnotationInfo(id=cid, label=c, color=category_color(c)))
+            for c, cid in sorted(self._categories.items(), key=lambda kv: kv[1])
+        ]), static=True)
+
+    def code(self, policy_text: str) -> None:
+        """The policy file, as a markdown text document at ``/code``."""
+        self.rec.log("/code", rr.TextDocument(f"```python\n{policy_text}\n```", media_type="text/markdown"),
+                     static=True)
+
+    def properties(self, episode: Mapping[str, Any], frames_every: int = 0) -> None:
+        """The episode's row (run, iteration, version, seed, return, end reason, ...) as recording properties."""
+        keys = ("run_id", "iteration", "kind", "episode_index", "episode_id", "game", "seed", "policy_version_id",
+                "return", "length", "lives_lost", "end_reason", "error", "max_steps", "sticky", "noop_max", "traced")
+        values = {k: episode.get(k) for k in keys if episode.get(k) is not None}
+        values["frames_every"] = frames_every
+        self.rec.send_property("episode", rr.AnyValues(**{k: _property_value(v) for k, v in values.items()}))
+        if episode.get("error"):
+            self._has_errors = True
+            last = int(episode.get("length") or 0)
+            self.rec.set_time("step", sequence=last)
+            self.rec.log("/policy/errors", rr.TextLog(f"episode ended ({episode.get('end_reason')}): "
+                                                      f"{episode['error']}", level=rr.TextLogLevel.ERROR))
+            self.rec.reset_time()
+
+    # -- per-step data -----------------------------------------------------------------------------------
+
+    def steps(self, cols: StepColumns) -> None:
+        """Series and object boxes of a chunk of consecutive steps."""
+        n = len(cols)
+        if n == 0:
+            return
+        self._send_static()
+        t = rr.TimeColumn("step", sequence=cols.step)
+        send = self.rec.send_columns
+        for name in ("reward", "score"):
+            send(f"/series/{name}", indexes=[t], columns=rr.Scalars.columns(scalars=getattr(cols, name)))
+        for name in ("action", "lives"):
+            values = getattr(cols, name)
+            ok = ~np.isnan(values)
+            if ok.any():
+                send(f"/series/{name}", indexes=[rr.TimeColumn("step", sequence=cols.step[ok])],
+                     columns=rr.Scalars.columns(scalars=values[ok]))
+
+        present = cols.categories
+        self._annotate(sorted(present))
+        cx = cols.x + cols.w / 2.0
+        cy = cols.y + cols.h / 2.0
+        for category in sorted(self._categories):
+            if category in present:
+                mask = cols.category_code == present.index(category)
+                where = np.flatnonzero(mask)
+                lengths = np.bincount(cols.obj_row[where], minlength=n)
+                columns = rr.Boxes2D.columns(
+                    centers=np.column_stack((cx[where], cy[where])),
+                    half_sizes=np.column_stack((cols.w[where] / 2.0, cols.h[where] / 2.0)),
+                    labels=cols.key.take(pa.array(where)),
+                    class_ids=np.full(len(where), self._categories[category], dtype=np.uint16),
+                ).partition(lengths)
+            else:  # drawn in an earlier chunk, absent in this one: empty rows clear it
+                columns = rr.Boxes2D.columns(centers=np.zeros((0, 2)), half_sizes=np.zeros((0, 2)),
+                                             labels=pa.array([], type=pa.utf8()),
+                                             class_ids=np.zeros(0, dtype=np.uint16)
+                                             ).partition(np.zeros(n, dtype=np.int64))
+            send(entity("game", "objects", category), indexes=[t], columns=columns)
+
+    def frames(self, steps: Sequence[int], pngs: Sequence[bytes]) -> None:
+        """PNG frames taken at ``steps``."""
+        if not len(steps):
+            return
+        self._has_frames = True
+        self.rec.send_columns(
+            "/game/frame", indexes=[rr.TimeColumn("step", sequence=np.asarray(steps, dtype=np.int64))],
+            columns=rr.EncodedImage.columns(blob=list(pngs), media_type=["image/png"] * len(pngs)),
+        )
+
+    def nodes(self, table: pa.Table | Mapping[str, Sequence]) -> None:
+        """Outputs and exceptions of bundled calls (a ``nodes`` table: step, call_index, function, inputs,
+        output, exc_type, exc_message, exc_line, exc_source, parents; ``inputs``/``output`` JSON text)."""
+        data = table.to_pydict() if isinstance(table, pa.Table) else dict(table)
+        n = len(data.get("step", ()))
+        if n == 0:
+            return
+        steps, calls, functions = data["step"], data["call_index"], data["function"]
+        outputs = [json.loads(o) if o is not None else None for o in data["output"]]
+        by_step_call = {(steps[i], calls[i]): i for i in range(n)}
+        names = self._name_outputs(data, outputs, by_step_call)
+
+        per_function: dict[str, tuple[list[int], list[Any]]] = {}
+        errors: tuple[list[int], list[str]] = ([], [])
+        for i in range(n):
+            fn = functions[i]
+            if data["exc_type"][i] is not None:
+                line = f" at line {data['exc_line'][i]}: `{data['exc_source'][i]}`" if data["exc_line"][i] else ""
+                errors[0].append(steps[i])
+                errors[1].append(f"{fn}: {data['exc_type'][i]}: {data['exc_message'][i]}{line}")
+                continue
+            s, v = per_function.setdefault(fn, ([], []))
+            if s and s[-1] == steps[i]:  # called again in the same step: the last call's output wins
+                v[-1] = outputs[i]
+            else:
+                s.append(steps[i])
+                v.append(outputs[i])
+
+        for fn, (s, values) in per_function.items():
+            if fn not in self._functions:
+                self._functions.append(fn)
+            numbers = [_numeric(v) for v in values]
+            numeric = all(x is not None or v is None for x, v in zip(numbers, values))
+            path = entity("policy", fn)
+            if numeric and fn not in self._text_functions:
+                keep = [k for k, x in enumerate(numbers) if x is not None]
+                if keep:
+                    self.rec.send_columns(path, indexes=[rr.TimeColumn("step", sequence=[s[k] for k in keep])],
+                                          columns=rr.Scalars.columns(scalars=[numbers[k] for k in keep]))
+                    self._overlay(fn, names.get(fn, fn), [s[k] for k in keep], [numbers[k] for k in keep])
+            else:
+                self._text_functions.add(fn)
+                self.rec.send_columns(path, indexes=[rr.TimeColumn("step", sequence=s)],
+                                      columns=rr.TextLog.columns(text=[json.dumps(v) for v in values],
+                                                                 level=["INFO"] * len(values)))
+        if errors[0]:
+            self._has_errors = True
+            self.rec.send_columns("/policy/errors", indexes=[rr.TimeColumn("step", sequence=errors[0])],
+                                  columns=rr.TextLog.columns(text=errors[1], level=["ERROR"] * len(errors[1])))
+
+    def _name_outputs(self, data: Mapping[str, Sequence], outputs: list[Any],
+                      by_step_call: Mapping[tuple[int, int], int]) -> dict[str, str]:
+        """Per function, the parameter name its output is passed as (``predicted_ball_y``), where found."""
+        names: dict[str, str] = {}
+        for i, parents in enumerate(data["parents"]):
+            if not parents or data["inputs"][i] is None:
+                continue
+            inputs = None
+            for p in parents:
+                j = by_step_call.get((data["step"][i], p))
+                if j is None or data["function"][j] in names or outputs[j] is None:
+                    continue
+                if inputs is None:
+                    inputs = json.loads(data["inputs"][i])
+                for param, value in inputs.items():
+                    if value == outputs[j] and not isinstance(value, dict):
+                        names[data["function"][j]] = param
+                        break
+        return names
+
+    def _overlay(self, fn: str, name: str, steps: list[int], values: list[float]) -> None:
+        """Draw a coordinate-valued output on the frame: a horizontal line for y, a vertical one for x."""
+        axis = self._overlays.get(fn) or _coordinate_axis(name) or _coordinate_axis(fn)
+        if axis is None:
+            return
+        self._overlays[fn] = axis
+        finite = [k for k, v in enumerate(values) if math.isfinite(v)]
+        if not finite:
+            return
+        v = np.asarray([values[k] for k in finite], dtype=np.float32)
+        if axis == "y":
+            strips = np.stack([np.column_stack((np.zeros_like(v), v)), np.column_stack((np.full_like(v, SCREEN_W), v))], 1)
+        else:
+            strips = np.stack([np.column_stack((v, np.zeros_like(v))), np.column_stack((v, np.full_like(v, SCREEN_H)))], 1)
+        self.rec.send_columns(
+            entity("game", "policy", name), indexes=[rr.TimeColumn("step", sequence=[steps[k] for k in finite])],
+            columns=rr.LineStrips2D.columns(strips=list(strips), labels=[name] * len(finite),
+                                            colors=[(255, 255, 0)] * len(finite)),
+        )
+
+    # -- layout ------------------------------------------------------------------------------------------
+
+    def blueprint(self) -> rrb.Blueprint:
+        """The layout for what has been logged so far (call after the data)."""
+        return episode_blueprint(traced=self.traced or bool(self._functions), errors=self._has_errors)
+
+    def send_blueprint(self) -> None:
+        self.rec.send_blueprint(self.blueprint())
+
+
+def episode_blueprint(traced: bool = False, errors: bool = False) -> rrb.Blueprint:
+    """Game view (frame + boxes + policy overlay) beside score/reward/action series, policy outputs (traced
+    episodes) and the code; a log of policy outputs and errors under the game view when there can be any."""
+    left: list[Any] = [rrb.Spatial2DView(origin="/game", name="game",
+                                         visual_bounds=rrb.VisualBounds2D(x_range=[0, SCREEN_W], y_range=[0, SCREEN_H]))]
+    if traced or errors:
+        left.append(rrb.TextLogView(origin="/policy", name="policy log"))
+    series: list[Any] = [
+        rrb.TimeSeriesView(origin="/series", contents=["/series/score"], name="score"),
+        rrb.TimeSeriesView(origin="/series", contents=["/series/reward", "/series/lives"], name="reward, lives"),
+        rrb.TimeSeriesView(origin="/series", contents=["/series/action"], name="action"),
+    ]
+    if traced:
+        series.append(rrb.TimeSeriesView(origin="/policy", name="policy outputs"))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(*left, row_shares=[3, 1][: len(left)]),
+            rrb.Vertical(*series),
+            rrb.TextDocumentView(origin="/code", name="policy code"),
+            column_shares=[2, 2, 1.5],
+        ),
+        collapse_panels=True,
+    )
+
+
+def _property_value(value: Any) -> Any:
+    if isinstance(value, (bool, int, float, str)):
+        return value
+    return str(value)

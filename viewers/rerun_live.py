@@ -1,0 +1,144 @@
+"""Live Rerun recording of an episode, from inside the worker process that plays it.
+
+``run_episode`` (``pipeline/rollout.py``) creates a :class:`LiveEpisodeRecorder` when ``EpisodeSpec.rerun`` is
+set: a directory (the recording goes to ``DIR/<episode_id>.rrd``) or a ``rerun+http://…/proxy`` URL (a
+viewer started by ``--rerun spawn``, or any Rerun gRPC server). Rerun is imported here, in the worker, never
+in the main process: the SDK starts Rust threads, and the main process forks the workers.
+
+The worker's audit hook (``pipeline/executor.py``) refuses Python-level file writes and socket connects;
+Rerun opens its file and its gRPC connection in Rust, which the hook does not see, so nothing needs to be
+opened in advance and the hook stays as it is.
+
+Cost: per step only a frame every ``rerun_frames_every`` steps (an indexed PNG, ``viewers/frames.py``); the
+steps themselves are read from the episode's :class:`~tracing.steps.StepLog` (which records them anyway)
+every :data:`FLUSH_EVERY` steps and sent as columns. Node outputs go out at the end of the episode.
+``bench/rerun_logging.py`` measures it against the environment's own time.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from typing import Any, Mapping
+
+import numpy as np
+import pyarrow as pa
+
+IMPORT_S = time.perf_counter()
+import rerun as rr  # noqa: E402  (timed: the SDK import is part of the cost in a fresh worker)
+
+IMPORT_S = time.perf_counter() - IMPORT_S
+
+from tracing.steps import StepLog  # noqa: E402
+from viewers.frames import FrameEncoder  # noqa: E402
+from viewers.rerun_episode import EpisodeLogger, StepColumns, episode_blueprint, new_recording  # noqa: E402
+
+FLUSH_EVERY = 250
+"""Steps between two sends of the buffered step columns (a viewer sees the episode advance in these chunks)."""
+FLUSH_TIMEOUT_S = 10.0
+"""How long the end of an episode may wait for a viewer to take the data."""
+
+last_stats: dict[str, float] = {}
+"""Timings of the last finished recorder in this process (for bench/rerun_logging.py)."""
+
+
+def is_url(target: str) -> bool:
+    return target.startswith(("rerun://", "rerun+http://", "rerun+https://"))
+
+
+def steplog_columns(log: StepLog, start: int, stop: int) -> StepColumns:
+    """Rows ``start <= row < stop`` of a StepLog (completed steps only) as :class:`StepColumns`."""
+    s, o, offsets = log.scalars, log.objects, log.offsets
+    lo, hi = offsets[start], offsets[stop]
+    counts = np.diff(np.asarray(offsets[start:stop + 1], dtype=np.int64))
+    return StepColumns.from_arrays(
+        s["step"][start:stop],
+        pa.array(s["action"][start:stop], type=pa.float64()),
+        s["reward"][start:stop], s["score"][start:stop],
+        pa.array(s["lives"][start:stop], type=pa.float64()),
+        np.repeat(np.arange(stop - start, dtype=np.int64), counts),
+        pa.array(o["key"][lo:hi], type=pa.utf8()), pa.array(o["category"][lo:hi], type=pa.utf8()),
+        o["x"][lo:hi], o["y"][lo:hi], o["w"][lo:hi], o["h"][lo:hi],
+    )
+
+
+class LiveEpisodeRecorder:
+    """Streams one episode to a file or viewer while it is played (see the module docstring)."""
+
+    def __init__(self, spec: Any, ale: Any, steps: StepLog):
+        t0 = time.perf_counter()
+        self.spec = spec
+        self.steps = steps
+        self.frames_every = max(0, int(getattr(spec, "rerun_frames_every", 4) or 0))
+        self.encoder = FrameEncoder(ale) if self.frames_every and ale is not None else None
+        self.rec = new_recording(spec.episode_id)
+        blueprint = episode_blueprint(traced=spec.trace)
+        target = spec.rerun
+        if is_url(target):
+            self.rec.connect_grpc(target, default_blueprint=blueprint)
+        else:
+            self.rec.save(os.path.join(target, f"{spec.episode_id}.rrd"), default_blueprint=blueprint)
+        self.logger = EpisodeLogger(self.rec, traced=spec.trace)
+        self.logger.code(spec.policy_text)
+        self._flushed = 0
+        self._frame_steps: list[int] = []
+        self._pngs: list[bytes] = []
+        self._frames = 0
+        self.setup_s = time.perf_counter() - t0
+        self.cost_s = 0.0
+
+    def observe(self, step: int) -> None:
+        """Called once the observation of ``step`` is in the StepLog, before the policy sees it."""
+        t0 = time.perf_counter()
+        if self.encoder is not None and step % self.frames_every == 0:
+            self._frame_steps.append(step)
+            self._pngs.append(self.encoder.screen_png())
+        if step - self._flushed >= FLUSH_EVERY:
+            self._flush(step)
+        self.cost_s += time.perf_counter() - t0
+
+    def _flush(self, stop: int) -> None:
+        if stop > self._flushed:
+            self.logger.steps(steplog_columns(self.steps, self._flushed, stop))
+            self._flushed = stop
+        if self._pngs:
+            self.logger.frames(self._frame_steps, self._pngs)
+            self._frames += len(self._pngs)
+            self._frame_steps, self._pngs = [], []
+
+    def finish(self, episode: Mapping[str, Any], nodes: pa.Table | None) -> None:
+        """Send the rest (remaining steps, node outputs, the episode's properties) and close the sink."""
+        t0 = time.perf_counter()
+        try:
+            self._flush(len(self.steps))
+            if nodes is not None:
+                self.logger.nodes(nodes)
+            self.logger.properties(episode, self.frames_every if self.encoder is not None else 0)
+            self.logger.send_blueprint()
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+        finally:
+            self.rec.disconnect()  # writes the .rrd footer; without it the file is incomplete
+            self.cost_s += time.perf_counter() - t0
+            last_stats.clear()
+            last_stats.update(import_s=IMPORT_S, setup_s=self.setup_s, log_s=self.cost_s,
+                              steps=float(len(self.steps)), frames=float(self._frames))
+
+
+def open_recorder(spec: Any, env: Any, steps: StepLog) -> LiveEpisodeRecorder | None:
+    """A recorder for ``spec``, or None (with a warning on stderr) when Rerun cannot record: the episode
+    is played and stored either way."""
+    try:
+        return LiveEpisodeRecorder(spec, getattr(env.unwrapped, "ale", None), steps)
+    except Exception as exc:  # noqa: BLE001 - a viewer problem must never cost the episode
+        print(f"codearcade: no Rerun recording for episode {spec.episode_id}: {type(exc).__name__}: {exc}",
+              file=sys.stderr)
+        return None
+
+
+def finish_recorder(recorder: LiveEpisodeRecorder, episode: Mapping[str, Any], nodes: pa.Table | None) -> None:
+    try:
+        recorder.finish(episode, nodes)
+    except Exception as exc:  # noqa: BLE001
+        print(f"codearcade: Rerun recording of episode {episode.get('episode_id')} is incomplete: "
+              f"{type(exc).__name__}: {exc}", file=sys.stderr)

@@ -1,0 +1,140 @@
+"""Rebuild an episode's Rerun recording from the store, regenerating its frames by replaying its actions.
+
+The store holds every step's objects, action, reward and score, and (for traced episodes) every bundled
+call, but no pixels. Episodes are deterministic given the game, seed, sticky-action probability and
+``noop_max`` (they seed the environment's RNG at reset), so replaying the stored actions in a fresh
+``make_env`` reproduces the screens. The replay is checked: the objects it observes at each step are
+compared with the stored ones, and :class:`ReplayCheck` says how many steps differed (0 when the frames are
+faithful). Frames are optional (``frames_every=0``: no replay at all) and taken every K-th step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import duckdb
+import pyarrow as pa
+import rerun as rr
+
+from pipeline.envs import list_keys, make_env
+from pipeline.games import get_game
+from store import Store
+from store.readers import policy_text
+from tracing.steps import objects_to_obs
+from viewers.frames import FrameEncoder
+from viewers.rerun_episode import EpisodeLogger, StepColumns, new_recording, resolve_recording
+
+CHUNK_STEPS = 2000
+"""Steps per ``send_columns`` chunk when logging a stored episode."""
+
+
+@dataclass
+class ReplayCheck:
+    """How faithfully replaying the stored actions reproduced the stored observations."""
+
+    steps_compared: int = 0
+    mismatched_steps: int = 0
+    first_mismatch: int | None = None
+
+    @property
+    def faithful(self) -> bool:
+        return self.mismatched_steps == 0
+
+    def describe(self) -> str:
+        if self.steps_compared == 0:
+            return "no frames replayed"
+        if self.faithful:
+            return f"replayed frames match the stored objects on all {self.steps_compared} steps"
+        return (f"replayed objects differ from the stored ones on {self.mismatched_steps} of {self.steps_compared} "
+                f"steps (first at step {self.first_mismatch}): the frames after it may not show what was played")
+
+
+@dataclass
+class StoredEpisode:
+    episode: dict[str, Any]
+    steps: pa.Table
+    nodes: pa.Table
+    policy_text: str | None
+
+
+def read_episode(con: duckdb.DuckDBPyConnection, episode_id: str) -> StoredEpisode:
+    """The episode row, its steps and nodes (Arrow) and the policy file it played."""
+    cur = con.execute("SELECT * FROM episodes WHERE episode_id = ?", [episode_id])
+    names = [d[0] for d in cur.description]
+    rows = cur.fetchall()
+    if not rows:
+        raise KeyError(f"no episode {episode_id}")
+    episode = dict(zip(names, rows[0]))
+    steps = con.sql("SELECT step, action, reward, score, lives, objects FROM steps WHERE episode_id = $1 "
+                    "ORDER BY step", params=[episode_id]).to_arrow_table()
+    nodes = con.sql("SELECT step, call_index, function, inputs, output, exc_type, exc_message, exc_line, exc_source, "
+                    "parents FROM nodes WHERE episode_id = $1 ORDER BY step, call_index",
+                    params=[episode_id]).to_arrow_table()
+    try:
+        text = policy_text(con, episode["run_id"], episode["policy_version_id"])
+    except KeyError:
+        text = None
+    return StoredEpisode(episode, steps, nodes, text)
+
+
+def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int) -> tuple[list[int], list[bytes], ReplayCheck]:
+    """Replay the stored actions; PNG frames of every ``every``-th step, and the check against stored objects."""
+    check = ReplayCheck()
+    frame_steps: list[int] = []
+    pngs: list[bytes] = []
+    if every <= 0 or steps.num_rows == 0:
+        return frame_steps, pngs, check
+    game = get_game(episode["game"])
+    keys = list_keys(game)
+    env = make_env(game, sticky=float(episode.get("sticky") or 0.0), noop_max=int(episode.get("noop_max") or 0))
+    try:
+        obs, _ = env.reset(seed=int(episode["seed"]))
+        encoder = FrameEncoder(env.unwrapped.ale)
+        for step, action, objects in zip(steps.column("step").to_pylist(), steps.column("action").to_pylist(),
+                                         steps.column("objects").to_pylist()):
+            check.steps_compared += 1
+            if obs != objects_to_obs(objects, keys):
+                check.mismatched_steps += 1
+                if check.first_mismatch is None:
+                    check.first_mismatch = step
+            if step % every == 0:
+                frame_steps.append(step)
+                pngs.append(encoder.screen_png())
+            if action is None:
+                break
+            obs, _, terminated, truncated, _ = env.step(action)
+            if terminated or truncated:
+                obs = None  # no further stored step should exist; if one does, it mismatches
+    finally:
+        env.close()
+    return frame_steps, pngs, check
+
+
+def log_stored_episode(data: StoredEpisode, recording: rr.RecordingStream | None = None,
+                       frames_every: int = 0) -> ReplayCheck:
+    """Log a stored episode into ``recording`` (or the ambient one), frames regenerated every K-th step."""
+    logger = EpisodeLogger(resolve_recording(recording), traced=bool(data.episode.get("traced")))
+    frame_steps, pngs, check = replay_frames(data.episode, data.steps, frames_every)
+    if data.policy_text is not None:
+        logger.code(data.policy_text)
+    for start in range(0, data.steps.num_rows, CHUNK_STEPS):
+        logger.steps(StepColumns.from_table(data.steps.slice(start, CHUNK_STEPS)))
+    logger.frames(frame_steps, pngs)
+    logger.nodes(data.nodes)
+    logger.properties(data.episode, frames_every if frame_steps else 0)
+    logger.send_blueprint()
+    return check
+
+
+def episode_recording(store: Store, episode_id: str, frames_every: int = 0,
+                      recording: rr.RecordingStream | None = None) -> tuple[rr.RecordingStream, ReplayCheck]:
+    """Rebuild an episode's recording from ``store``; a new stream (recording id = the episode id) unless given.
+
+    The caller attaches a sink first or afterwards (``save``, ``connect_grpc``, ``spawn``): a new stream
+    buffers what is logged until then.
+    """
+    with store.read() as con:
+        data = read_episode(con, episode_id)
+    rec = recording if recording is not None else new_recording(episode_id)
+    return rec, log_stored_episode(data, rec, frames_every)

@@ -1,0 +1,166 @@
+"""One Rerun recording per optimization run, rebuilt from the store: the learning curve beside the code.
+
+Recording: application id ``codearcade``, recording id = the run id. Timeline ``iteration`` (sequence).
+
+Entity layout::
+
+    /score/score                 Scalars: mean evaluation return of the version evaluated in the iteration
+    /score/best                  Scalars: best score so far
+    /score/train_return          Scalars: return of the traced training rollout
+    /llm/tokens/input            Scalars: input tokens of the iteration's LLM call (as the provider reported)
+    /llm/tokens/output           Scalars: output tokens
+    /llm/tokens/prompt_counted   Scalars: our own count of the prompt (held against --token-budget)
+    /llm/cost_usd                Scalars: cost, where litellm knows the model's price
+    /llm/latency_s               Scalars: seconds of the call
+    /llm/prompt                  TextDocument: the messages sent, per iteration
+    /llm/reply                   TextDocument: the reply text (or the call's error), per iteration
+    /metrics/loc                 Scalars: lines of the evaluated policy file (radon)
+    /metrics/complexity          Scalars: cyclomatic complexity of its Policy class
+    /metrics/max_if_depth        Scalars: deepest nesting of ``if``
+    /code                        TextDocument (markdown): the whole policy file evaluated in the iteration
+    /feedback                    TextDocument: the feedback the next prompt shows
+    /log                         TextLog: one line per iteration (update status, score, best, rollback)
+    properties                   ``run``: run_id, kind, game, model, seed, status, iterations, created_at
+
+Blueprint: score, code metrics and token series on the left; the code (with prompt, reply and feedback in
+tabs beside it) on the right, so scrubbing the ``iteration`` timeline shows the code that scored each point.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import duckdb
+import rerun as rr
+import rerun.blueprint as rrb
+
+from store import Store
+from viewers.rerun_episode import new_recording, resolve_recording
+
+
+def _rows(con: duckdb.DuckDBPyConnection, sql: str, params: list[Any]) -> list[dict[str, Any]]:
+    cur = con.execute(sql, params)
+    names = [d[0] for d in cur.description]
+    return [dict(zip(names, row)) for row in cur.fetchall()]
+
+
+def read_run(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
+    """The run row, its iterations (joined with the evaluated version, the LLM call, the feedback) and texts."""
+    runs = _rows(con, "SELECT run_id, kind, game, model, seed, status, config, created_at, error FROM runs "
+                      "WHERE run_id = ?", [run_id])
+    if not runs:
+        raise KeyError(f"no run {run_id}")
+    iterations = _rows(con, """
+        SELECT i.iteration, i.policy_version_id, i.update_status, i.rolled_back, i.score, i.best_score,
+               i.best_iteration, i.train_return, i.wall_s,
+               v.loc, v.complexity, v.max_if_depth, code.text AS code,
+               c.input_tokens, c.output_tokens, c.prompt_tokens_counted, c.cost_usd, c.latency_s, c.error_type,
+               c.error_message, c.parse_error, p.text AS prompt, r.text AS reply, f.text AS feedback
+        FROM iterations i
+        LEFT JOIN (SELECT DISTINCT ON (policy_version_id) policy_version_id, loc, complexity, max_if_depth,
+                          source_hash FROM policy_versions WHERE run_id = $1) v
+               ON v.policy_version_id = i.policy_version_id
+        LEFT JOIN blobs code ON code.hash = v.source_hash
+        LEFT JOIN llm_calls c ON c.call_id = i.llm_call_id
+        LEFT JOIN blobs p ON p.hash = c.prompt_hash
+        LEFT JOIN blobs r ON r.hash = c.reply_hash
+        LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
+        WHERE i.run_id = $1 ORDER BY i.iteration""", [run_id])
+    return {"run": runs[0], "iterations": iterations}
+
+
+def prompt_text(stored: str | None) -> str:
+    """The stored prompt (canonical JSON of the messages) as readable text, one section per message."""
+    if stored is None:
+        return ""
+    try:
+        messages = json.loads(stored)
+        return "\n\n".join(f"===== {m.get('role', '?')} =====\n{m.get('content', '')}" for m in messages)
+    except (ValueError, AttributeError, TypeError):
+        return stored
+
+
+def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -> None:
+    """Log a run read by :func:`read_run` into ``recording`` (or the ambient one)."""
+    rec = resolve_recording(recording)
+    run = data["run"]
+    iterations = data["iterations"]
+    props = {k: run[k] for k in ("run_id", "kind", "game", "model", "seed", "status", "error") if run[k] is not None}
+    props["created_at"] = str(run["created_at"])
+    props["iterations"] = len(iterations)
+    rec.send_property("run", rr.AnyValues(**props))
+    for name in ("score", "train_return"):
+        rec.log(f"/score/{name}", rr.SeriesLines(names=name), static=True)
+    rec.log("/score/best", rr.SeriesLines(names="best", interpolation_mode="StepAfter"), static=True)
+    for name in ("loc", "complexity", "max_if_depth"):
+        rec.log(f"/metrics/{name}", rr.SeriesPoints(names=name), static=True)
+
+    for it in iterations:
+        rec.set_time("iteration", sequence=int(it["iteration"]))
+        for name, value in (("score", it["score"]), ("best", it["best_score"]), ("train_return", it["train_return"])):
+            if value is not None:
+                rec.log(f"/score/{name}", rr.Scalars(float(value)))
+        for name in ("loc", "complexity", "max_if_depth"):
+            if it[name] is not None:
+                rec.log(f"/metrics/{name}", rr.Scalars(float(it[name])))
+        for path, key in (("tokens/input", "input_tokens"), ("tokens/output", "output_tokens"),
+                          ("tokens/prompt_counted", "prompt_tokens_counted"), ("cost_usd", "cost_usd"),
+                          ("latency_s", "latency_s")):
+            if it[key] is not None:
+                rec.log(f"/llm/{path}", rr.Scalars(float(it[key])))
+        if it["code"] is not None:
+            rec.log("/code", rr.TextDocument(f"```python\n{it['code']}\n```", media_type="text/markdown"))
+        if it["prompt"] is not None:
+            rec.log("/llm/prompt", rr.TextDocument(prompt_text(it["prompt"]), media_type="text/plain"))
+        reply = it["reply"]
+        if reply is None and it["error_type"]:
+            reply = f"(the call failed: {it['error_type']}: {it['error_message']})"
+        if reply is not None:
+            if it["parse_error"]:
+                reply = f"(not usable: {it['parse_error']})\n\n{reply}"
+            rec.log("/llm/reply", rr.TextDocument(reply, media_type="text/plain"))
+        if it["feedback"] is not None:
+            rec.log("/feedback", rr.TextDocument(it["feedback"], media_type="text/plain"))
+        score = "-" if it["score"] is None else f"{it['score']:g}"
+        best = "-" if it["best_score"] is None else f"{it['best_score']:g}"
+        line = (f"iteration {it['iteration']}: update {it['update_status']}, score {score}, best {best} "
+                f"(iteration {it['best_iteration']}), version {it['policy_version_id']}"
+                + (", rolled back" if it["rolled_back"] else ""))
+        level = rr.TextLogLevel.WARN if it["update_status"] in ("rejected", "llm_error") else rr.TextLogLevel.INFO
+        rec.log("/log", rr.TextLog(line, level=level))
+    rec.reset_time()
+    rec.send_blueprint(run_blueprint())
+
+
+def run_blueprint() -> rrb.Blueprint:
+    """Score, metrics and tokens on the left; the code beside them (prompt, reply, feedback in tabs)."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="/score", name="score"),
+                rrb.TimeSeriesView(origin="/metrics", name="code metrics (loc, complexity, if depth)"),
+                rrb.TimeSeriesView(origin="/llm/tokens", name="tokens"),
+                rrb.TextLogView(origin="/log", name="iterations"),
+                row_shares=[3, 2, 2, 2],
+            ),
+            rrb.Tabs(
+                rrb.TextDocumentView(origin="/code", name="policy code"),
+                rrb.TextDocumentView(origin="/llm/prompt", name="prompt"),
+                rrb.TextDocumentView(origin="/llm/reply", name="reply"),
+                rrb.TextDocumentView(origin="/feedback", name="feedback"),
+                active_tab=0,
+            ),
+            column_shares=[1, 1],
+        ),
+        collapse_panels=True,
+    )
+
+
+def run_recording(store: Store, run_id: str, recording: rr.RecordingStream | None = None) -> rr.RecordingStream:
+    """Rebuild a run's recording from ``store`` into ``recording`` (default: a new stream, id = the run id)."""
+    with store.read() as con:
+        data = read_run(con, run_id)
+    rec = recording if recording is not None else new_recording(run_id, f"{run_id} ({data['run']['game']})")
+    log_run(data, rec)
+    return rec

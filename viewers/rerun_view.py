@@ -1,0 +1,149 @@
+"""``codearcade view``: pick a run's recording or one of its episodes, rebuild it from the store, send it out.
+
+What is shown: ``--episode E`` an episode (an index of the iteration's evaluation episodes, ``train`` for its
+training rollout, or a whole episode id); ``--iteration I`` alone that iteration's training rollout (the
+traced one; an eval run's first episode); neither: the run recording of an optimization run, or the first
+episode of an eval run. Where it goes: a file (``--save``, default ``./<recording id>.rrd``), a viewer
+(``--spawn``, ``--connect URL``) or the web viewer served on 127.0.0.1 (``--serve-web``).
+"""
+
+from __future__ import annotations
+
+import signal
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from store import Store
+from store.readers import get_run
+from viewers.rerun_sinks import spawn_viewer, start_web_viewer
+
+
+class ViewError(ValueError):
+    """Nothing to view (unknown run, iteration or episode); the message says what exists."""
+
+
+@dataclass
+class Selection:
+    run_id: str
+    run_kind: str
+    episode_id: str | None  # None: the run recording
+
+    @property
+    def recording_id(self) -> str:
+        return self.episode_id or self.run_id
+
+
+def select(store: Store, run_id: str, iteration: int | None = None, episode: str | None = None) -> Selection:
+    """What ``codearcade view RUN [--iteration I] [--episode E]`` shows (see the module docstring)."""
+    with store.read() as con:
+        run = get_run(con, run_id)
+        if run is None:
+            raise ViewError(f"no run {run_id} in {store.path}; `codearcade runs` lists the runs")
+        episodes = con.execute("SELECT episode_id, iteration, kind, episode_index FROM episodes WHERE run_id = ? "
+                               "ORDER BY iteration, kind DESC, episode_index", [run_id]).fetchall()
+    kind = run["kind"]
+    ids = [e[0] for e in episodes]
+    if episode is not None and "." in episode:
+        if episode not in ids:
+            raise ViewError(f"run {run_id} has no episode {episode}")
+        return Selection(run_id, kind, episode)
+    if episode is None and iteration is None:
+        if kind == "eval":
+            if not ids:
+                raise ViewError(f"run {run_id} has no episodes yet")
+            return Selection(run_id, kind, ids[0])
+        return Selection(run_id, kind, None)
+    it = 0 if iteration is None else iteration
+    in_iteration = [e for e in episodes if e[1] == it]
+    if not in_iteration:
+        have = sorted({e[1] for e in episodes})
+        raise ViewError(f"run {run_id} has no episodes in iteration {it} (iterations with episodes: "
+                        f"{', '.join(map(str, have)) or 'none'})")
+    if episode is None:
+        train = [e[0] for e in in_iteration if e[2] == "train"]
+        return Selection(run_id, kind, train[0] if train else in_iteration[0][0])
+    if episode == "train":
+        wanted = [e[0] for e in in_iteration if e[2] == "train"]
+    else:
+        try:
+            index = int(episode)
+        except ValueError:
+            raise ViewError(f"--episode {episode}: give an evaluation episode index, 'train' or an episode id") from None
+        wanted = [e[0] for e in in_iteration if e[2] == "eval" and e[3] == index]
+    if not wanted:
+        raise ViewError(f"run {run_id} has no episode {episode} in iteration {it}; it has "
+                        f"{', '.join(e[0] for e in in_iteration)}")
+    return Selection(run_id, kind, wanted[0])
+
+
+def view(store: Store, run_id: str, iteration: int | None = None, episode: str | None = None,
+         save: str | None = None, connect: str | None = None, spawn: bool = False, serve_web: bool = False,
+         frames_every: int = 4, out: Callable[[str], None] = print, warn: Callable[[str], None] = print,
+         wait: Callable[[], None] | None = None) -> Selection:
+    """Rebuild the selected recording and send it to one sink (see the module docstring).
+
+    With ``serve_web`` it serves until interrupted (or until ``wait`` returns, for tests), then stops the server.
+    """
+    if frames_every < 0:
+        raise ViewError("--frames-every must be 0 (no frames) or more")
+    selection = select(store, run_id, iteration, episode)
+    from viewers.rerun_episode import new_recording  # imports Rerun: only here, never in a process that forks
+
+    rec = new_recording(selection.recording_id)
+    viewer = None
+    if serve_web:
+        viewer = start_web_viewer()
+        rec.connect_grpc(viewer.grpc_url)
+    elif spawn:
+        rec.connect_grpc(spawn_viewer())
+    elif connect:
+        rec.connect_grpc(connect)
+    else:
+        save = save or f"{selection.recording_id}.rrd"
+        rec.save(save)
+    try:
+        if selection.episode_id is None:
+            from viewers.rerun_run import log_run, read_run
+
+            with store.read() as con:
+                data = read_run(con, run_id)
+            log_run(data, rec)
+            out(f"run {run_id}: {len(data['iterations'])} iteration(s)")
+        else:
+            from viewers.rerun_replay import log_stored_episode, read_episode
+
+            with store.read() as con:
+                data = read_episode(con, selection.episode_id)
+            check = log_stored_episode(data, rec, frames_every)
+            e = data.episode
+            out(f"episode {selection.episode_id}: {e['length']} steps, return {e['return']:g}, {e['end_reason']}; "
+                f"{check.describe()}")
+            if not check.faithful:
+                warn(f"codearcade: warning: episode {selection.episode_id}: {check.describe()}")
+        rec.flush(timeout_sec=30.0)
+    finally:
+        rec.disconnect()
+    if save:
+        out(f"saved {Path(save).resolve()} (recording {selection.recording_id})")
+    elif viewer is not None:
+        out(f"serving the Rerun web viewer on 127.0.0.1: open {viewer.url}")
+        out("press Ctrl-C to stop")
+        previous = signal.signal(signal.SIGTERM, _interrupt)
+        try:
+            if wait is not None:
+                wait()
+            else:
+                viewer.process.wait()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+            viewer.stop()
+    else:
+        out(f"sent recording {selection.recording_id} to the viewer")
+    return selection
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt

@@ -1,0 +1,109 @@
+"""Query results as text: an aligned table for people, CSV and JSON for programs.
+
+Shared by ``codearcade sql``, ``codearcade runs`` and the Markdown reports. Values keep their meaning across
+formats: NULL is ``NULL`` in a table, an empty field in CSV and ``null`` in JSON; DuckDB ``JSON`` columns are
+embedded as JSON (not as strings) in JSON output and as their text elsewhere; lists and structs are JSON text
+in tables and CSV; timestamps are ISO 8601; non-finite floats are ``"NaN"``, ``"Infinity"``, ``"-Infinity"``
+in JSON (as in the store's own JSON columns).
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import decimal
+import json
+import math
+import uuid
+from typing import IO, Any, Sequence
+
+DEFAULT_MAX_WIDTH = 40
+
+
+def to_json_value(value: Any, duck_type: str = "") -> Any:
+    """A query value as a JSON-ready Python value (see the module docstring)."""
+    if value is None or isinstance(value, (bool, int, str)) and duck_type != "JSON":
+        return value
+    if duck_type == "JSON" and isinstance(value, str):
+        try:
+            return json.loads(value)
+        except ValueError:
+            return value
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "NaN"
+        if math.isinf(value):
+            return "Infinity" if value > 0 else "-Infinity"
+        return value
+    if isinstance(value, decimal.Decimal):
+        return to_json_value(float(value))
+    if isinstance(value, (dt.datetime, dt.date, dt.time)):
+        return value.isoformat()
+    if isinstance(value, dt.timedelta):
+        return value.total_seconds()
+    if isinstance(value, dict):
+        return {str(k): to_json_value(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_json_value(v) for v in value]
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return bytes(value).hex()
+    if isinstance(value, uuid.UUID):
+        return str(value)
+    return str(value)
+
+
+def cell_text(value: Any, null: str = "NULL") -> str:
+    """A value as the one-line text of a table cell or CSV field."""
+    if value is None:
+        return null
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return f"{value:.6g}" if math.isfinite(value) else str(value)
+    if isinstance(value, dt.datetime):
+        return value.isoformat(sep=" ")
+    if isinstance(value, (dict, list, tuple)):
+        return json.dumps(to_json_value(value), ensure_ascii=False)
+    return str(value)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float, decimal.Decimal)) and not isinstance(value, bool)
+
+
+def _clip(text: str, width: int) -> str:
+    text = text.replace("\r", "").replace("\n", "\\n").replace("\t", " ")
+    if width and len(text) > width:
+        return text[: max(width - 1, 1)] + "…"
+    return text
+
+
+def format_table(columns: Sequence[str], rows: Sequence[Sequence[Any]], max_width: int = DEFAULT_MAX_WIDTH,
+                 null: str = "NULL") -> str:
+    """Rows as an aligned text table (numbers right-aligned); cells wider than ``max_width`` end in "…"."""
+    texts = [[_clip(cell_text(v, null), max_width) for v in row] for row in rows]
+    headers = [_clip(str(c), 0) for c in columns]  # names are never cut
+    widths = [max([len(h)] + [len(r[i]) for r in texts]) for i, h in enumerate(headers)]
+    numeric = [bool(rows) and all(_is_number(r[i]) or r[i] is None for r in rows) for i in range(len(columns))]
+
+    def line(cells: Sequence[str]) -> str:
+        parts = [c.rjust(w) if num else c.ljust(w) for c, w, num in zip(cells, widths, numeric)]
+        return "  ".join(parts).rstrip()
+
+    out = [line(headers), "  ".join("-" * w for w in widths)]
+    out += [line(r) for r in texts]
+    return "\n".join(out)
+
+
+def write_csv(stream: IO[str], columns: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
+    """RFC 4180 CSV with a header row; NULL is an empty field, newlines inside fields are kept (quoted)."""
+    writer = csv.writer(stream, lineterminator="\n")
+    writer.writerow(columns)
+    for row in rows:
+        writer.writerow(["" if v is None else cell_text(v) for v in row])
+
+
+def records(columns: Sequence[str], types: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[dict[str, Any]]:
+    """Rows as JSON-ready dicts, one per row."""
+    types = list(types) or [""] * len(columns)
+    return [{c: to_json_value(v, t) for c, t, v in zip(columns, types, row)} for row in rows]
