@@ -1,11 +1,13 @@
 """Run episodes in isolated local worker processes (or in-process with ``workers=0``, for debugging).
 
-Each episode gets a fresh process forked from this one after the environment stack has been imported here
-(``pipeline.worker_preload``), so a worker starts in milliseconds with everything loaded. We fork rather
+Worker processes are forked from this one after the environment stack has been imported here
+(``pipeline.worker_preload``), so a worker starts in milliseconds with everything loaded, and each plays
+the tasks of one call one after another (forking per episode cost about a tenth of an episode). Every
+episode still loads its policy afresh (``run_episode``), so no policy state carries over. We fork rather
 than use a forkserver or spawn: those re-import the caller's ``__main__`` in every worker (slow for scripts,
 and broken for scripts without an ``if __name__ == "__main__"`` guard). The parent keeps no threads of its
-own at fork time (tqdm's monitor thread is off; DuckDB connections are closed between writes). Inside it, before any policy code runs, :func:`harden_worker` caps the
-address space (a 10 GB allocation fails with MemoryError instead of swapping the machine) and installs an
+own at fork time (tqdm's monitor thread is off; DuckDB connections are closed between writes). Inside a
+worker, before any policy code runs, :func:`harden_worker` caps the address space (a 10 GB allocation fails with MemoryError instead of swapping the machine) and installs an
 audit hook that refuses file writes, process spawning, sockets, signals to other processes and native-code
 loading. Whatever the policy does, the parent survives: a worker that dies (``os._exit``, a segfault, the
 OOM killer) or outlives its episode limit is recorded as a ``crashed`` or ``timeout`` episode.
@@ -79,18 +81,24 @@ def harden_worker(memory_limit_mb: int | None) -> None:
     sys.addaudithook(_audit)
 
 
-def _worker_main(task: Callable, item: Any, memory_limit_mb: int | None, conn: Connection) -> None:
-    try:
-        harden_worker(memory_limit_mb)
-        result = task(item, lambda n: conn.send(("progress", n)))
-        conn.send(("result", result))
-    except BaseException:  # noqa: BLE001 - report anything to the parent
+def _worker_loop(task: Callable, memory_limit_mb: int | None, conn: Connection) -> None:
+    """A worker: harden once, then run each task the parent sends until it says stop (or goes away)."""
+    harden_worker(memory_limit_mb)
+    while True:
         try:
-            conn.send(("error", traceback.format_exc(limit=8)))
-        except Exception:
-            pass
-    finally:
-        conn.close()
+            kind, item = conn.recv()
+        except (EOFError, OSError):
+            return
+        if kind == "stop":
+            return
+        try:
+            result = task(item, lambda n: conn.send(("progress", n)))
+            conn.send(("result", result))
+        except BaseException:  # noqa: BLE001 - report anything to the parent
+            try:
+                conn.send(("error", traceback.format_exc(limit=8)))
+            except Exception:
+                return
 
 
 def _mp_context():
@@ -113,8 +121,8 @@ def run_tasks(
     progress: ProgressCallback | None = None,
     started: Callable[[], None] | None = None,
 ) -> Iterator[tuple[int, R]]:
-    """Run ``task(item, report_progress)`` for every item, each in a fresh hardened worker process, at most
-    ``workers`` at once; yield ``(index, result)`` as each finishes.
+    """Run ``task(item, report_progress)`` for every item in hardened worker processes, at most ``workers``
+    at once (each worker runs one item after another); yield ``(index, result)`` as each finishes.
 
     A worker that dies, raises, or outlives ``time_limit_s(item)`` plus a grace period yields
     ``failed(item, why, timed_out)`` instead. ``started`` is called once the first workers are running, so the
@@ -131,15 +139,23 @@ def run_tasks(
 
     ctx = _mp_context()
     pending = deque(enumerate(items))
-    running: dict[Connection, tuple[int, Any, multiprocessing.process.BaseProcess, float]] = {}
+    idle: list[tuple[multiprocessing.process.BaseProcess, Connection]] = []
+    busy: dict[Connection, tuple[multiprocessing.process.BaseProcess, int, Any, float]] = {}
     exiting: list[multiprocessing.process.BaseProcess] = []
 
-    def finish(conn: Connection, result: R) -> tuple[int, R]:
-        # the worker is exiting by itself; reap it later rather than wait for its teardown now
-        i, _, process, _ = running.pop(conn)
+    def spawn(item: Any) -> tuple[multiprocessing.process.BaseProcess, Connection]:
+        parent_end, child_end = ctx.Pipe(duplex=True)
+        process = ctx.Process(target=_worker_loop, args=(task, memory_limit_mb(item), child_end), daemon=True,
+                              name="codearcade-worker")
+        process.start()
+        child_end.close()  # so that the parent sees EOF when the worker dies
+        return process, parent_end
+
+    def retire(process: multiprocessing.process.BaseProcess, conn: Connection, kill: bool = False) -> None:
+        if kill:
+            process.kill()
         conn.close()
         exiting.append(process)
-        return i, result
 
     def reap(timeout: float = 0.0) -> None:
         for process in list(exiting):
@@ -152,54 +168,66 @@ def run_tasks(
                 exiting.remove(process)
 
     def fill() -> None:
-        while pending and len(running) < workers:
+        while pending and len(busy) < workers:
             i, item = pending.popleft()
-            parent_end, child_end = ctx.Pipe(duplex=False)
-            process = ctx.Process(target=_worker_main, args=(task, item, memory_limit_mb(item), child_end),
-                                  daemon=True, name=f"codearcade-worker-{i}")
-            process.start()
-            child_end.close()  # so that the parent sees EOF when the worker dies
-            running[parent_end] = (i, item, process, time.monotonic())
+            process, conn = idle.pop() if idle else spawn(item)
+            try:
+                conn.send(("task", item))
+            except (BrokenPipeError, OSError):  # an idle worker that died: give the task to a new one
+                retire(process, conn)
+                process, conn = spawn(item)
+                conn.send(("task", item))
+            busy[conn] = (process, i, item, time.monotonic())
 
     try:
         fill()
         if started is not None:
             started()
-        while pending or running:
+        while pending or busy:
             fill()
             finished: list[tuple[int, R]] = []
-            for conn in wait(list(running), timeout=1.0):
-                i, item, process, begun = running[conn]
+            for conn in wait(list(busy), timeout=1.0):
+                process, i, item, begun = busy[conn]
                 try:
                     kind, payload = conn.recv()
                 except (EOFError, OSError):
+                    del busy[conn]
                     process.join(5)
                     code = process.exitcode
                     how = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
-                    finished.append(finish(conn, failed(item, f"worker process died ({how}) before reporting", False)))
+                    retire(process, conn)
+                    finished.append((i, failed(item, f"worker process died ({how}) before reporting", False)))
                     continue
                 if kind == "progress":
                     if progress is not None:
                         progress(i, payload)
-                elif kind == "result":
-                    finished.append(finish(conn, payload))
+                    continue
+                del busy[conn]
+                idle.append((process, conn))
+                if kind == "result":
+                    finished.append((i, payload))
                 else:
-                    finished.append(finish(conn, failed(item, f"worker failed: {payload.strip().splitlines()[-1]}", False)))
+                    finished.append((i, failed(item, f"worker failed: {payload.strip().splitlines()[-1]}", False)))
             now = time.monotonic()
-            for conn, (i, item, process, begun) in list(running.items()):
+            for conn, (process, i, item, begun) in list(busy.items()):
                 limit = time_limit_s(item)
                 if limit is not None and now - begun > limit + KILL_GRACE_S:
-                    process.kill()
-                    finished.append(finish(conn, failed(item, f"worker killed after {now - begun:.0f} s "
-                                                              f"(time limit {limit:g} s)", True)))
+                    del busy[conn]
+                    retire(process, conn, kill=True)
+                    finished.append((i, failed(item, f"worker killed after {now - begun:.0f} s "
+                                                     f"(time limit {limit:g} s)", True)))
             fill()  # before handing results out, so that workers play while the caller writes them
             reap()
             yield from finished
     finally:
-        for conn, (_, _, process, _) in running.items():
-            process.kill()
-            exiting.append(process)
-            conn.close()
+        for process, conn in idle:
+            try:
+                conn.send(("stop", None))
+            except (BrokenPipeError, OSError):
+                pass
+            retire(process, conn)
+        for conn, (process, *_rest) in busy.items():
+            retire(process, conn, kill=True)
         reap(timeout=5.0)
 
 

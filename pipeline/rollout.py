@@ -27,7 +27,7 @@ from typing import Any, Callable
 import numpy as np
 import pyarrow as pa
 
-from pipeline.envs import make_env
+from pipeline.envs import discard_env, shared_env
 from pipeline.games import get_game
 from tracing.capture import NodeRecorder, failing_policy_line
 from tracing.policy_file import PolicyLoadError, load_policy
@@ -127,7 +127,7 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
 
     if loaded is not None:
         policy = loaded.policy
-        env = make_env(game, sticky=spec.sticky, noop_max=spec.noop_max)
+        env = shared_env(game, sticky=spec.sticky, noop_max=spec.noop_max)
         try:
             obs, info = env.reset(seed=spec.seed)
             if spec.rerun:
@@ -183,8 +183,9 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
                         break
                 else:
                     end_reason = "truncated"
-        finally:
-            env.close()
+        except BaseException:
+            discard_env(env)  # an error inside the loop leaves the environment in an unknown state
+            raise
     if progress is not None:
         progress(length)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from pipeline.envs import BREAKOUT_ROWS, make_env
@@ -142,3 +144,15 @@ def test_bad_protocol_values():
         make_env("pong", sticky=1.5)
     with pytest.raises(ValueError):
         make_env("pong", noop_max=-1)
+
+
+@pytest.mark.parametrize("protocol", [dict(), dict(sticky=0.25, noop_max=30)])
+def test_a_reused_environment_plays_episodes_like_a_fresh_one(protocol):
+    from pipeline.rollout import EpisodeSpec, run_episode
+
+    text = (Path(__file__).resolve().parents[1] / "examples" / "space_invaders.py").read_text()
+    specs = [EpisodeSpec(f"e{seed}", "r", "space_invaders", text, "v", seed=seed, max_steps=150, **protocol)
+             for seed in (3, 4, 3)]
+    first, other, again = (run_episode(s).steps for s in specs)
+    assert first.equals(again), "the same seed after another episode on the shared environment"
+    assert not first.equals(other) or not protocol

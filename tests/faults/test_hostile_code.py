@@ -116,7 +116,8 @@ def test_a_policy_that_mutates_its_observation_cannot_alter_the_record(store, wr
 def test_global_state_does_not_leak_between_episodes(store, write_policy, capsys):
     # a class attribute counter: each episode runs in a fresh process with a freshly loaded policy
     path = write_policy(pong_policy("Policy.calls = getattr(Policy, 'calls', 0) + 1\nreturn 0 if Policy.calls < 40 else 7"))
-    code = main(["eval", str(path), "--episodes", "2", "--max-steps", "30", "--store", str(store.path), "--json"])
+    code = main(["eval", str(path), "--episodes", "2", "--workers", "1", "--max-steps", "30", "--store",
+                 str(store.path), "--json"])
     out, _ = capsys.readouterr()
     assert code == 0
     assert [e["length"] for e in json.loads(out)["episodes"]] == [30, 30]
