@@ -107,10 +107,6 @@ def _mp_context():
     return multiprocessing.get_context("fork")
 
 
-def default_workers() -> int:
-    return os.cpu_count() or 1
-
-
 def run_tasks(
     task: Callable[[T, Callable[[int], None]], R],
     items: Iterable[T],

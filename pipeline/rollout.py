@@ -20,7 +20,7 @@ import random
 import sys
 import time
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any, Callable
 
@@ -236,13 +236,6 @@ def crashed_outcome(spec: EpisodeSpec, error: str, duration_s: float = 0.0) -> E
     episode = _episode_row(spec, game=spec.game, started_at=None, duration_s=duration_s, env_s=None, policy_s=None,
                            length=0, lives_lost=0, end_reason="crashed", error=error, score=0.0)
     return EpisodeOutcome(episode, StepLog().table(), None)
-
-
-def spec_dict(spec: EpisodeSpec) -> dict[str, Any]:
-    """The spec without the policy text (for configs and logs)."""
-    d = asdict(spec)
-    d.pop("policy_text")
-    return d
 
 
 def _utc(epoch: float) -> datetime:

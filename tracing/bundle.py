@@ -29,7 +29,7 @@ import ast
 import hashlib
 import linecache
 import textwrap
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 from tracing import capture
 from tracing.sandbox import PolicyCodeError, check_source
@@ -202,10 +202,6 @@ class Module:
                 return p
         known = ", ".join(p.name for p in self.parameters(trainable_only=False))
         raise KeyError(f"no bundled method '{name}' (known: {known})")
-
-    def named_sources(self) -> Iterator[tuple[str, str]]:
-        for p in self.parameters():
-            yield p.name, p.source
 
 
 def model(cls: type) -> type:
