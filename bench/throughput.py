@@ -3,7 +3,11 @@
 For each game it plays the example starter policy with ``evaluate`` (one worker process, every step written
 to a real DuckDB store), then again with ``--trace`` (a node per bundled call), and replays the very same
 action sequences in OCAtari's own env class with its lean settings (the baseline: no policy, no logging).
+Both sides build their environment once, outside the timings (codearcade keeps one per process, which the
+optimizer's iterations and the worker processes reuse): the figures are the steady state of playing.
 It prints steps/s for each and the ratios to the baseline; targets: eval >= 0.85, eval --trace >= 0.60.
+The three are measured in rotating order, several times; each one's best time counts (noise from other
+tenants of the cores only ever adds time), and the median of the per-repeat ratios is shown beside.
 
     .venv/bin/python bench/throughput.py [--games pong breakout] [--episodes 3] [--repeats 3]
 
@@ -32,31 +36,36 @@ from store import Store  # noqa: E402
 TARGETS = {"eval": 0.85, "eval --trace": 0.60}
 
 
-def bare_ocatari(game: str, action_sequences: list[list[int]], seeds: list[int]) -> float:
-    """Seconds to build OCAtari's env once, then reset and step it through the given action sequences
-    (one env for all episodes, as codearcade's workers reuse theirs)."""
-    from ocatari.core import OCAtari
-    from ocatari.ram.extract_ram_info import detect_objects_ram
+class BareOCAtari:
+    """OCAtari's own env class with its lean settings, built once (as codearcade builds its environments once
+    per process), replaying given action sequences."""
 
-    spec = get_game(game)
-    start = time.perf_counter()
-    env = OCAtari(spec.env_id, mode="ram", hud=False, obs_mode="ori", create_buffer_stacks=[],
-                  frameskip=4, repeat_action_probability=0.0)
-    ale = env._env.unwrapped.ale
-    env.detect_objects = lambda: detect_objects_ram(env.objects, ale.getRAM().astype(np.int64), env.game_name,
-                                                    env.hud)
-    for actions, seed in zip(action_sequences, seeds):
-        env.reset(seed=seed)
-        if spec.fire_on_life_loss:
-            env.step(1)
-        lives = env._env.unwrapped.ale.lives()
-        for action in actions:
-            _, _, _, _, info = env.step(action)
-            if spec.fire_on_life_loss and info["lives"] < lives:
+    def __init__(self, game: str):
+        from ocatari.core import OCAtari
+        from ocatari.ram.extract_ram_info import detect_objects_ram
+
+        self.spec = get_game(game)
+        self.env = env = OCAtari(self.spec.env_id, mode="ram", hud=False, obs_mode="ori", create_buffer_stacks=[],
+                                 frameskip=4, repeat_action_probability=0.0)
+        ale = env._env.unwrapped.ale
+        env.detect_objects = lambda: detect_objects_ram(env.objects, ale.getRAM().astype(np.int64), env.game_name,
+                                                        env.hud)
+
+    def play(self, action_sequences: list[list[int]], seeds: list[int]) -> float:
+        """Seconds to reset and step the env through the given action sequences."""
+        env, fire = self.env, self.spec.fire_on_life_loss
+        start = time.perf_counter()
+        for actions, seed in zip(action_sequences, seeds):
+            env.reset(seed=seed)
+            if fire:
                 env.step(1)
-            lives = info["lives"]
-    env.close()
-    return time.perf_counter() - start
+            lives = env._env.unwrapped.ale.lives()
+            for action in actions:
+                _, _, _, _, info = env.step(action)
+                if fire and info["lives"] < lives:
+                    env.step(1)
+                lives = info["lives"]
+        return time.perf_counter() - start
 
 
 def timed_eval(policy: Path, store: Store, episodes: int, trace: bool) -> tuple[float, str]:
@@ -70,7 +79,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--games", nargs="+", default=list(GAMES), choices=list(GAMES))
     parser.add_argument("--episodes", type=int, default=3, help="episodes per measurement (default: 3)")
-    parser.add_argument("--repeats", type=int, default=5, help="measurements per configuration (median taken)")
+    parser.add_argument("--repeats", type=int, default=7, help="measurements per configuration (best taken)")
     args = parser.parse_args()
 
     tmp = Path(tempfile.mkdtemp(prefix="codearcade-bench-"))
@@ -78,38 +87,45 @@ def main() -> int:
     evaluate(ROOT / "examples" / "pong.py", EvalConfig(episodes=1, max_steps=50), store)  # start the forkserver
 
     print(f"{'game':<15} {'steps':>6} {'bare OCAtari':>13} {'eval':>13} {'eval --trace':>13} "
-          f"{'eval/bare':>10} {'trace/bare':>11}")
+          f"{'eval/bare':>10} {'trace/bare':>11}   (median of paired ratios)")
     failures = []
     for game in args.games:
         policy = ROOT / "examples" / f"{game}.py"
-        bare, plain, traced = [], [], []
-        steps = 0
+        # The paper's protocol is deterministic: every repeat plays these very actions.
+        _, run_id = timed_eval(policy, store, args.episodes, trace=False)
+        rows = store.query(
+            "SELECT e.seed, list(s.action ORDER BY s.step) FROM episodes e JOIN steps s USING (episode_id) "
+            "WHERE e.run_id = ? AND s.action IS NOT NULL GROUP BY e.episode_id, e.seed ORDER BY e.seed",
+            [run_id],
+        )
+        seeds, actions = [r[0] for r in rows], [r[1] for r in rows]
+        steps = sum(len(a) for a in actions)
+        bare = BareOCAtari(game)
+        measure = {
+            "bare": lambda: bare.play(actions, seeds),
+            "eval": lambda: timed_eval(policy, store, args.episodes, trace=False)[0],
+            "trace": lambda: timed_eval(policy, store, args.episodes, trace=True)[0],
+        }
+        seconds: dict[str, list[float]] = {name: [] for name in measure}
+        order = list(measure)
         for _ in range(args.repeats):
-            t_eval, run_id = timed_eval(policy, store, args.episodes, trace=False)
-            t_trace, _ = timed_eval(policy, store, args.episodes, trace=True)
-            rows = store.query(
-                "SELECT e.seed, list(s.action ORDER BY s.step) FROM episodes e JOIN steps s USING (episode_id) "
-                "WHERE e.run_id = ? AND s.action IS NOT NULL GROUP BY e.episode_id, e.seed ORDER BY e.seed",
-                [run_id],
-            )
-            seeds = [r[0] for r in rows]
-            actions = [r[1] for r in rows]
-            steps = sum(len(a) for a in actions)
-            t_bare = bare_ocatari(game, actions, seeds)
-            bare.append(steps / t_bare)
-            plain.append(steps / t_eval)
-            traced.append(steps / t_trace)
-        b, p, t = (statistics.median(x) for x in (bare, plain, traced))
-        # the ratio of each repeat's own pair, then the median: robust to the machine's speed drifting
-        plain_ratio = statistics.median(x / y for x, y in zip(plain, bare))
-        traced_ratio = statistics.median(x / y for x, y in zip(traced, bare))
-        print(f"{game:<15} {steps:>6} {b:>9.0f} st/s {p:>9.0f} st/s {t:>9.0f} st/s "
-              f"{plain_ratio:>10.2f} {traced_ratio:>11.2f}")
-        for name, ratio in (("eval", plain_ratio), ("eval --trace", traced_ratio)):
-            if ratio < TARGETS[name]:
-                failures.append(f"{game}: {name} ratio {ratio:.2f} below target {TARGETS[name]}")
-    print(f"targets: eval/bare >= 0.85, trace/bare >= 0.60 (median over {args.repeats} repeats of the ratio "
-          f"within each repeat; {args.episodes} episodes per measurement)")
+            for name in order:
+                seconds[name].append(measure[name]())
+            order = order[1:] + order[:1]  # rotate, so that no configuration always runs first
+        # Noise on shared cores only ever adds time: the best of the repeats is each one's own speed (as
+        # timeit reports); the median of the per-repeat ratios is printed to show how steady the run was.
+        best = {name: min(times) for name, times in seconds.items()}
+        ratios = {name: best["bare"] / best[name] for name in ("eval", "trace")}
+        paired = {name: statistics.median(b / x for b, x in zip(seconds["bare"], seconds[name]))
+                  for name in ("eval", "trace")}
+        print(f"{game:<15} {steps:>6} {steps / best['bare']:>9.0f} st/s {steps / best['eval']:>9.0f} st/s "
+              f"{steps / best['trace']:>9.0f} st/s {ratios['eval']:>10.2f} {ratios['trace']:>11.2f}   "
+              f"({paired['eval']:.2f}, {paired['trace']:.2f})")
+        for name, label in (("eval", "eval"), ("trace", "eval --trace")):
+            if ratios[name] < TARGETS[label]:
+                failures.append(f"{game}: {label} ratio {ratios[name]:.2f} below target {TARGETS[label]}")
+    print(f"targets: eval/bare >= 0.85, trace/bare >= 0.60 (best of {args.repeats} repeats each, interleaved; "
+          f"{args.episodes} episodes per measurement)")
     for failure in failures:
         print("BELOW TARGET:", failure)
     return 0

@@ -43,10 +43,11 @@ BREAKOUT_ROWS = {57: "RB", 63: "OB", 69: "YB", 75: "GB", 81: "AB", 87: "BB"}
 BRICK_WIDTH = 8
 
 
-def list_keys(game: str | GameSpec) -> tuple[str, ...]:
-    """Observation keys whose value is always a list, even when empty (Breakout's brick rows)."""
+def list_widths(game: str | GameSpec) -> dict[str, int]:
+    """Observation keys whose value is always a list, even when empty, with the width of its items
+    (Breakout's brick rows: 8 px). The step log stores runs of adjacent items as one object (tracing/steps.py)."""
     spec = game if isinstance(game, GameSpec) else get_game(game)
-    return tuple(BREAKOUT_ROWS.values()) if spec.name == "breakout" else ()
+    return {row: BRICK_WIDTH for row in BREAKOUT_ROWS.values()} if spec.name == "breakout" else {}
 
 ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # no banner for every environment
 gym.register_envs(ale_py)
@@ -57,8 +58,10 @@ for _spec in GAMES.values():  # import the extractors once (worker processes for
 class ObjectObservation(gym.Wrapper):
     """Turn an ALE env's observations into the paper's object dicts (see the module docstring).
 
-    ``observation_space`` stays the wrapped image space: a dict whose keys come and go has no Gymnasium
-    space. ``info["ram"]`` is not added; the raw frame stays available through ``env.unwrapped.ale``.
+    The wrapped ALE env must observe its RAM (``obs_type="ram"``, as :func:`make_env` builds it): the objects
+    are read from it, and no screen is copied out every step. ``observation_space`` stays the wrapped RAM
+    space: a dict whose keys come and go has no Gymnasium space. The frame stays available through
+    ``env.unwrapped.ale.getScreenRGB()``.
     """
 
     def __init__(self, env: gym.Env, game: GameSpec):
@@ -67,40 +70,44 @@ class ObjectObservation(gym.Wrapper):
         max_objects = extract_ram_info.get_max_objects(game.ocatari_name, False)
         self._numbered = {category for category, count in max_objects.items() if count > 1}
         self._objects: list = []
-        self._ale = env.unwrapped.ale
+        self.object_rows: list[tuple] = []
+        """The last observation as step-log rows (``tracing.steps.StepLog.observe(obs, rows)``), made with it."""
 
     def reset(self, **kwargs):
-        _, info = self.env.reset(**kwargs)
+        ram, info = self.env.reset(**kwargs)
         self._objects = extract_ram_info.init_objects(self.game.ocatari_name, False)
-        return self._observe(first=True), info
+        return self._observe(ram, first=True), info
 
     def step(self, action):
-        _, reward, terminated, truncated, info = self.env.step(action)
-        return self._observe(), reward, terminated, truncated, info
+        ram, reward, terminated, truncated, info = self.env.step(action)
+        return self._observe(ram), reward, terminated, truncated, info
 
-    def _observe(self, first: bool = False) -> Observation:
+    def _observe(self, ram: np.ndarray, first: bool = False) -> Observation:
         # int64: OCAtari's extractors do arithmetic on the RAM bytes, which wraps around under numpy 2.
-        ram = self._ale.getRAM().astype(np.int64)
-        extract_ram_info.detect_objects_ram(self._objects, ram, self.game.ocatari_name, False)
+        extract_ram_info.detect_objects_ram(self._objects, ram.astype(np.int64), self.game.ocatari_name, False)
         if first:  # fresh objects "moved" from (0, 0): nothing has moved yet on the first observation
             for o in self._objects:
                 o._prev_xy = o._xy
-        return objects_to_dict(self._objects, self._numbered, breakout=self.game.name == "breakout")
+        self.object_rows = []
+        return objects_to_dict(self._objects, self._numbered, breakout=self.game.name == "breakout",
+                               rows=self.object_rows)
 
 
 _NO_OBJECT_CLASSES = (ram_objects.NoObject, vision_objects.NoObject)
 
 
-def objects_to_dict(objects: list, numbered: set[str], breakout: bool = False) -> Observation:
+def objects_to_dict(objects: list, numbered: set[str], breakout: bool = False,
+                    rows: list[tuple] | None = None) -> Observation:
     """Convert OCAtari's padded object list into the observation dict (``NoObject`` and invisible slots skipped).
+
+    With ``rows``, also append the observation's rows for the step log (``tracing.steps.OBJECT_TYPE`` order,
+    a run of bricks as one row), made from the same values in the same pass: what
+    ``StepLog.observe`` would otherwise make by walking the dict again.
 
     This runs every step, so it reads OCAtari's fields directly instead of through its property chain
     (``o.dx`` alone goes through three properties); the values are the same.
     """
-    obs: Observation = {}
-    if breakout:
-        for row in BREAKOUT_ROWS.values():
-            obs[row] = []
+    obs: Observation = {row: [] for row in BREAKOUT_ROWS.values()} if breakout else {}
     counts: dict[str, int] = {}
     for o in objects:
         cls = o.__class__
@@ -109,27 +116,43 @@ def objects_to_dict(objects: list, numbered: set[str], breakout: bool = False) -
         category = cls.__name__
         x, y = o._xy
         w, h = o.wh
-        prev = o._prev_xy
         x, y, w, h = int(x), int(y), int(w), int(h)
         if breakout and category == "Block":
-            row = BREAKOUT_ROWS.get(y)
-            if row is not None:
-                bricks = obs[row]
-                for i in range(max(1, w // BRICK_WIDTH)):
+            key = BREAKOUT_ROWS.get(y)
+            if key is not None:
+                bricks = obs[key]
+                n = max(1, w // BRICK_WIDTH)
+                if rows is not None:
+                    rows.append((key, len(bricks), key, x, y, n * BRICK_WIDTH, h, 0, 0))
+                for i in range(n):
                     bricks.append({"x": x + i * BRICK_WIDTH, "y": y, "w": BRICK_WIDTH, "h": h, "dx": 0, "dy": 0})
             continue
+        prev = o._prev_xy
         if prev is None:
             dx = dy = 0
         else:
             dx, dy = x - int(prev[0]), y - int(prev[1])
-        value = {"x": x, "y": y, "w": w, "h": h, "dx": dx, "dy": dy}
         if category in numbered:
             n = counts.get(category, 0)
             counts[category] = n + 1
-            obs[f"{category}{n}"] = value
+            key = _numbered_key(category, n)
         else:
-            obs[category] = value
+            key = category
+        obs[key] = {"x": x, "y": y, "w": w, "h": h, "dx": dx, "dy": dy}
+        if rows is not None:
+            rows.append((key, None, category, x, y, w, h, dx, dy))
     return obs
+
+
+_NUMBERED_KEYS: dict[tuple[str, int], str] = {}
+
+
+def _numbered_key(category: str, n: int) -> str:
+    """``Alien3``, built once (an f-string every object of every step adds up)."""
+    key = _NUMBERED_KEYS.get((category, n))
+    if key is None:
+        key = _NUMBERED_KEYS[(category, n)] = f"{category}{n}"
+    return key
 
 
 class AutoFire(gym.Wrapper):
@@ -193,6 +216,7 @@ def make_env(game: str | GameSpec, sticky: float = 0.0, noop_max: int = 0, rende
         raise ValueError(f"noop_max must be >= 0, got {noop_max}")
     env = gym.make(
         spec.env_id,
+        obs_type="ram",  # objects come from RAM; the screen is read only by viewers that ask for it
         frameskip=4,
         repeat_action_probability=sticky,
         full_action_space=False,

@@ -18,6 +18,7 @@ Only the parent writes to the store: workers send back :class:`~pipeline.rollout
 
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import os
 import resource
@@ -29,6 +30,7 @@ from collections import deque
 from multiprocessing.connection import Connection, wait
 from typing import Any, Callable, Iterable, Iterator, TypeVar
 
+from pipeline.envs import shared_env
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec, crashed_outcome, run_episode
 
 KILL_GRACE_S = 30.0
@@ -84,6 +86,9 @@ def harden_worker(memory_limit_mb: int | None) -> None:
 def _worker_loop(task: Callable, memory_limit_mb: int | None, conn: Connection) -> None:
     """A worker: harden once, then run each task the parent sends until it says stop (or goes away)."""
     harden_worker(memory_limit_mb)
+    # The heap inherited from the parent (every imported module) never becomes garbage: keep the cyclic
+    # collector from walking it again and again while an episode allocates (10% of Space Invaders' time).
+    gc.freeze()
     while True:
         try:
             kind, item = conn.recv()
@@ -242,6 +247,15 @@ def run_episodes(
 ) -> Iterator[tuple[int, EpisodeOutcome]]:
     """Play ``specs`` in worker processes (see :func:`run_tasks`); a worker that dies or hangs yields an
     episode with end reason ``crashed`` or ``timeout``."""
+    specs = list(specs)
+    if workers > 0:
+        # Build each environment here, once per process (~0.1-0.2 s each): forked workers inherit it ready,
+        # and the next call (the optimizer's next iteration) skips building it again.
+        for game, sticky, noop_max in {(s.game, s.sticky, s.noop_max) for s in specs}:
+            try:
+                shared_env(game, sticky=sticky, noop_max=noop_max)
+            except Exception:  # noqa: BLE001 - the worker meets the same error and records it with the episode
+                pass
     return run_tasks(
         run_episode, specs, workers, _episode_failed,
         time_limit_s=lambda spec: spec.episode_time_limit_s,

@@ -27,7 +27,7 @@ from typing import Any
 
 import duckdb
 
-from pipeline.envs import list_keys
+from pipeline.envs import list_widths
 from pipeline.games import get_game
 from pipeline.tokens import TokenCounter
 from store.readers import episode_steps, policy_text, step_nodes
@@ -153,7 +153,7 @@ def read_context(
         instruction=json.loads(config).get("instruction") or "",
         info=info,
         train_episode=_episode(con, base["train_episode_id"]),
-        train_steps=episode_steps(con, base["train_episode_id"], list_keys=list_keys(game)),
+        train_steps=episode_steps(con, base["train_episode_id"], list_widths=list_widths(game)),
         train_nodes=step_nodes(con, base["train_episode_id"]),
         eval_episodes=[_episode(con, e) for e in base["eval_episode_ids"] or []],
         feedback=note + (base["feedback"] or ""),

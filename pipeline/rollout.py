@@ -27,7 +27,7 @@ from typing import Any, Callable
 import numpy as np
 import pyarrow as pa
 
-from pipeline.envs import discard_env, shared_env
+from pipeline.envs import discard_env, list_widths, shared_env
 from pipeline.games import get_game
 from tracing.capture import NodeRecorder, failing_policy_line
 from tracing.policy_file import PolicyLoadError, load_policy
@@ -111,7 +111,7 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
     game = get_game(spec.game)
     started_at = time.time()
     t0 = time.perf_counter()
-    steps = StepLog()
+    steps = StepLog(list_widths(game))
     recorder = NodeRecorder() if spec.trace else None
     end_reason, error = "truncated", None
     score, lives_lost, length = 0.0, 0, 0
@@ -141,7 +141,8 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
                         end_reason = "timeout"
                         error = f"episode exceeded its time limit of {spec.episode_time_limit_s:g} s"
                         break
-                    steps.observe(obs)  # before the policy: a policy that mutates obs cannot alter the record
+                    # before the policy: a policy that mutates obs cannot alter the record
+                    steps.observe(obs, getattr(env, "object_rows", None))
                     if live is not None:
                         live.observe(step)
                     if recorder is not None:

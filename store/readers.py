@@ -7,7 +7,7 @@ open. Step slices come back with the observation dict rebuilt exactly as the pol
 from __future__ import annotations
 
 import json
-from typing import Any, Iterable
+from typing import Any, Mapping
 
 import duckdb
 
@@ -24,9 +24,10 @@ def episode_steps(
     episode_id: str,
     start: int = 0,
     stop: int | None = None,
-    list_keys: Iterable[str] = (),
+    list_widths: Mapping[str, int] | None = None,
 ) -> list[dict[str, Any]]:
-    """Steps ``start <= step < stop`` of an episode, in order; each with ``obs`` rebuilt (see tracing/steps.py)."""
+    """Steps ``start <= step < stop`` of an episode, in order; each with ``obs`` rebuilt (see tracing/steps.py;
+    ``list_widths`` as ``pipeline.envs.list_widths`` gives it for the episode's game)."""
     rows = _rows(
         con.execute(
             """SELECT step, action, reward, score, terminated, truncated, lives, objects
@@ -34,9 +35,8 @@ def episode_steps(
             [episode_id, start, stop if stop is not None else 2**31 - 1],
         )
     )
-    keys = tuple(list_keys)
     for row in rows:
-        row["obs"] = objects_to_obs(row.pop("objects"), keys)
+        row["obs"] = objects_to_obs(row.pop("objects"), list_widths)
     return rows
 
 

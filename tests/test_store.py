@@ -11,6 +11,7 @@ from pathlib import Path
 import duckdb
 import pytest
 
+from pipeline.envs import list_widths
 from pipeline.rollout import EpisodeSpec, run_episode
 from store import Store, StoreError
 from store.migrations import LATEST, MIGRATIONS
@@ -131,7 +132,7 @@ def test_episode_roundtrip_and_slices(store):
     assert store.query("SELECT count(*) FROM steps")[0][0] == 120
     assert store.query("SELECT count(*) FROM nodes")[0][0] == 120 * 3
     with store.read() as con:
-        rows = episode_steps(con, "ep", 10, 20, list_keys=("RB", "OB", "YB", "GB", "AB", "BB"))
+        rows = episode_steps(con, "ep", 10, 20, list_widths=list_widths("breakout"))
         nodes = step_nodes(con, "ep", 10, 12)
         episodes = run_episodes(con, "run")
     originals = outcome.steps.slice(10, 10).to_pylist()
@@ -139,7 +140,7 @@ def test_episode_roundtrip_and_slices(store):
     from tracing.steps import objects_to_obs
 
     for row, original in zip(rows, originals):
-        assert row["obs"] == objects_to_obs(original["objects"], ("RB", "OB", "YB", "GB", "AB", "BB"))
+        assert row["obs"] == objects_to_obs(original["objects"], list_widths("breakout"))
         assert len(row["obs"]["RB"]) + len(row["obs"]["BB"]) > 0
     assert [(n["step"], n["call_index"]) for n in nodes] == [(10, 0), (10, 1), (10, 2), (11, 0), (11, 1), (11, 2)]
     assert nodes[2]["parents"] == [1] and nodes[1]["parents"] == [0]

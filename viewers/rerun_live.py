@@ -49,8 +49,8 @@ def is_url(target: str) -> bool:
 
 def steplog_columns(log: StepLog, start: int, stop: int) -> StepColumns:
     """Rows ``start <= row < stop`` of a StepLog (completed steps only) as :class:`StepColumns`."""
-    s, o, offsets = log.scalars, log.objects, log.offsets
-    lo, hi = offsets[start], offsets[stop]
+    s, offsets = log.scalars, log.offsets
+    o = log.object_columns(start, stop)
     counts = np.diff(np.asarray(offsets[start:stop + 1], dtype=np.int64))
     return StepColumns.from_arrays(
         s["step"][start:stop],
@@ -58,8 +58,8 @@ def steplog_columns(log: StepLog, start: int, stop: int) -> StepColumns:
         s["reward"][start:stop], s["score"][start:stop],
         pa.array(s["lives"][start:stop], type=pa.float64()),
         np.repeat(np.arange(stop - start, dtype=np.int64), counts),
-        pa.array(o["key"][lo:hi], type=pa.utf8()), pa.array(o["category"][lo:hi], type=pa.utf8()),
-        o["x"][lo:hi], o["y"][lo:hi], o["w"][lo:hi], o["h"][lo:hi],
+        pa.array(o["key"], type=pa.utf8()), pa.array(o["category"], type=pa.utf8()),
+        o["x"], o["y"], o["w"], o["h"],
     )
 
 

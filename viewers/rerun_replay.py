@@ -17,7 +17,7 @@ import duckdb
 import pyarrow as pa
 import rerun as rr
 
-from pipeline.envs import list_keys, make_env
+from pipeline.envs import list_widths, make_env
 from pipeline.games import get_game
 from store import Store
 from store.readers import policy_text
@@ -86,7 +86,7 @@ def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int) -> tuple
     if every <= 0 or steps.num_rows == 0:
         return frame_steps, pngs, check
     game = get_game(episode["game"])
-    keys = list_keys(game)
+    widths = list_widths(game)
     env = make_env(game, sticky=float(episode.get("sticky") or 0.0), noop_max=int(episode.get("noop_max") or 0))
     try:
         obs, _ = env.reset(seed=int(episode["seed"]))
@@ -94,7 +94,7 @@ def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int) -> tuple
         for step, action, objects in zip(steps.column("step").to_pylist(), steps.column("action").to_pylist(),
                                          steps.column("objects").to_pylist()):
             check.steps_compared += 1
-            if obs != objects_to_obs(objects, keys):
+            if obs != objects_to_obs(objects, widths):
                 check.mismatched_steps += 1
                 if check.first_mismatch is None:
                     check.first_mismatch = step
