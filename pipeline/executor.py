@@ -6,7 +6,7 @@ the tasks of one call one after another (forking per episode cost about a tenth 
 episode still loads its policy afresh (``run_episode``), so no policy state carries over. We fork rather
 than use a forkserver or spawn: those re-import the caller's ``__main__`` in every worker (slow for scripts,
 and broken for scripts without an ``if __name__ == "__main__"`` guard). The parent keeps no threads of its
-own at fork time (tqdm's monitor thread is off; DuckDB connections are closed between writes). Inside a
+own at fork time (tqdm's monitor thread is off; the store's DuckDB instance closes itself before a fork). Inside a
 worker, before any policy code runs, :func:`harden_worker` caps the address space (a 10 GB allocation fails with MemoryError instead of swapping the machine) and installs an
 audit hook that refuses file writes, process spawning, sockets, signals to other processes and native-code
 loading. Whatever the policy does, the parent survives: a worker that dies (``os._exit``, a segfault, the

@@ -1,4 +1,4 @@
-"""The DuckDB event store: schema and migrations, short-lived connections, batched writers, slice readers.
+"""The DuckDB event store: schema and migrations, per-use attachments, batched writers, slice readers.
 
 The store is codearcade's public API: everything a run does lands here, and the optimizer and viewers read
 only from here. See docs/schema.md for the tables.

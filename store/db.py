@@ -1,9 +1,9 @@
-"""Opening the DuckDB store: short-lived connections, lock retries, migrations, clear errors.
+"""Opening the DuckDB store: per-use attachments, lock retries, migrations, clear errors.
 
 DuckDB lets one process hold a database file for writing, and while it does every other process's open
 (read-only too) fails. codearcade therefore never keeps the file open: every batch of writes and every query
-opens a connection, does its work and closes it (~15 ms), and an open that meets a lock is retried with
-backoff for up to ``lock_timeout_s``. A writer holds the file for one transaction at a time, so readers (``codearcade sql``
+attaches the file to the process's DuckDB instance (``store/hub.py``, ~2 ms), does its work and detaches it,
+and an attach that meets a lock is retried with backoff for up to ``lock_timeout_s``. A writer holds the file for one transaction at a time, so readers (``codearcade sql``
 during a run) get in between batches.
 
 Errors are :class:`StoreError` with a one-line message: not a DuckDB file, written by a newer codearcade,
@@ -22,6 +22,7 @@ from typing import Any, Iterator
 
 import duckdb
 
+from store.hub import HUB
 from store.migrations import LATEST, MIGRATIONS
 
 DEFAULT_STORE = "codearcade.duckdb"
@@ -77,14 +78,16 @@ class Store:
         return self.path.exists()
 
     def _open(self, read_only: bool) -> duckdb.DuckDBPyConnection:
+        """A connection to the store from the process's DuckDB instance (``store/hub.py``); give it back with
+        ``HUB.release``. Retries while another process holds the file."""
         # Writes are small batches: one thread leaves the other core to the episode workers.
-        config = {} if read_only else {"threads": 1}
+        threads = (os.cpu_count() or 1) if read_only else 1
         timeout = self.lock_timeout_s if read_only else self.write_lock_timeout_s
         deadline = time.monotonic() + timeout
         delay = 0.01
         while True:
             try:
-                return duckdb.connect(str(self.path), read_only=read_only, config=config)
+                return HUB.open(self.path, read_only=read_only, threads=threads)
             except duckdb.IOException as exc:
                 text = str(exc)
                 if "not a valid DuckDB database file" in text:
@@ -110,10 +113,13 @@ class Store:
 
     def _check_version(self, con: duckdb.DuckDBPyConnection) -> int:
         has_table = con.execute(
-            "SELECT count(*) FROM information_schema.tables WHERE table_name = 'schema_migrations'"
+            "SELECT count(*) FROM information_schema.tables "
+            "WHERE table_catalog = current_database() AND table_name = 'schema_migrations'"
         ).fetchone()[0]
         if not has_table:
-            others = con.execute("SELECT count(*) FROM information_schema.tables").fetchone()[0]
+            others = con.execute(
+                "SELECT count(*) FROM information_schema.tables WHERE table_catalog = current_database()"
+            ).fetchone()[0]
             if others:  # an unrelated DuckDB database: never add our tables to it
                 raise StoreError(f"{self.path} is a DuckDB database but not a codearcade store; "
                                  "give another --store path")
@@ -178,7 +184,7 @@ class Store:
             raise
         finally:
             try:
-                con.close()  # closing checkpoints the WAL into the file, which can fail on a full disk too
+                HUB.release(self.path, con)  # detaching checkpoints the WAL into the file: a full disk fails here too
             except duckdb.Error as exc:
                 if not _is_disk_full(exc):
                     raise
@@ -192,13 +198,15 @@ class Store:
         con = self._open(read_only=True)
         try:
             if self._check_version(con) < LATEST:  # an older store: upgrade it once, then read
-                con.close()
+                HUB.release(self.path, con)
+                con = None
                 with self.write():
                     pass
                 con = self._open(read_only=True)
             yield con
         finally:
-            con.close()
+            if con is not None:
+                HUB.release(self.path, con)
 
     def query(self, sql: str, params: list[Any] | None = None) -> list[tuple]:
         """Run one read-only query and return all rows."""

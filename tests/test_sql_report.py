@@ -233,11 +233,13 @@ def test_queries_while_eval_writes(tmp_path, capsys):
     assert seen[-1][0] <= final[0] == 4 and seen[-1][1] <= final[1]
 
 
-def test_queries_while_a_writer_commits_back_to_back(tmp_path, capsys):
-    """A harsher writer: 30 small transactions in a row through Store.write; every query still gets in."""
+def test_queries_while_a_writer_commits_many_times_a_second(tmp_path, capsys):
+    """A harsher writer: 40 small transactions through Store.write, 50 a second (an evaluation commits about
+    twice a second); every query gets in between them and sees the counts grow."""
     path = tmp_path / "busy.duckdb"
-    script = ("import sys\nfrom store import Store\nfrom store.writer import put_blob\ns = Store(sys.argv[1])\n"
-              "for i in range(30):\n    with s.write() as con:\n        put_blob(con, 'note', f'note {i}')\n")
+    script = ("import sys, time\nfrom store import Store\nfrom store.writer import put_blob\ns = Store(sys.argv[1])\n"
+              "for i in range(40):\n    with s.write() as con:\n        put_blob(con, 'note', f'note {i}')\n"
+              "    time.sleep(0.02)\n")
     writer = subprocess.Popen([sys.executable, "-c", script, str(path)], cwd=ROOT, stderr=subprocess.PIPE, text=True)
     try:
         seen, failures = _poll_counts(path, writer, "SELECT count(*), 0 FROM blobs", capsys)
