@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import difflib
 import hashlib
+import functools
 import itertools
 import json
 import os
@@ -249,7 +250,8 @@ def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: in
             item = planned[i]
             out = open(log_dir / f"{item.run.key}.log", "a")
             proc = subprocess.Popen(worker_command(store, item, batch, episode_workers), stdout=out,
-                                    stderr=subprocess.STDOUT, preexec_fn=die_with_parent)
+                                    stderr=subprocess.STDOUT,
+                                    preexec_fn=functools.partial(die_with_parent, os.getpid()))
             running[i] = (proc, out)
             progress[i].state = "running"
             log(f"{item.action} {item.run.label}" + (f" (run {item.run_id})" if item.run_id else "")

@@ -61,19 +61,23 @@ def _audit(event: str, args: tuple) -> None:
         raise PermissionError(f"codearcade sandbox: '{event}' is not allowed in a policy worker")
 
 
-def die_with_parent() -> None:
-    """Ask Linux to kill this process when its parent dies (a killed run must not leave workers playing on)."""
+def die_with_parent(parent_pid: int | None = None) -> None:
+    """Ask Linux to kill this (just forked) process when its parent dies (a killed run must not leave workers
+    playing on). ``parent_pid``, the parent's pid taken before the fork: a parent that died before the request
+    was made (a child can wait long for its first time slice on busy cores) ends this process at once."""
     try:
         import ctypes
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # not Linux/glibc: orphans finish their episode and exit on the broken pipe
         pass
+    if parent_pid is not None and os.getppid() != parent_pid:
+        os._exit(1)  # orphaned already: the death signal will never come
 
 
-def harden_worker(memory_limit_mb: int | None) -> None:
+def harden_worker(memory_limit_mb: int | None, parent_pid: int | None = None) -> None:
     """Limit this (worker) process before policy code runs: memory cap, no core dumps, audit hook."""
-    die_with_parent()
+    die_with_parent(parent_pid)
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
     if memory_limit_mb:
         with open("/proc/self/statm") as f:
@@ -83,9 +87,9 @@ def harden_worker(memory_limit_mb: int | None) -> None:
     sys.addaudithook(_audit)
 
 
-def _worker_loop(task: Callable, memory_limit_mb: int | None, conn: Connection) -> None:
+def _worker_loop(task: Callable, memory_limit_mb: int | None, conn: Connection, parent_pid: int) -> None:
     """A worker: harden once, then run each task the parent sends until it says stop (or goes away)."""
-    harden_worker(memory_limit_mb)
+    harden_worker(memory_limit_mb, parent_pid)
     # The heap inherited from the parent (every imported module) never becomes garbage: keep the cyclic
     # collector from walking it again and again while an episode allocates (10% of Space Invaders' time).
     gc.freeze()
@@ -104,6 +108,28 @@ def _worker_loop(task: Callable, memory_limit_mb: int | None, conn: Connection) 
                 conn.send(("error", traceback.format_exc(limit=8)))
             except Exception:
                 return
+
+
+STOP_GRACE_S = 5.0
+"""How long a worker told to stop may take to exit before it is killed."""
+
+_exiting: list[tuple[multiprocessing.process.BaseProcess, float]] = []
+"""Workers told to stop (or killed) and not yet collected, each with the time after which it is killed.
+A call does not wait for its workers to exit (~8 ms, a tenth of an evaluation's fixed cost); they are
+collected by the next call, and at exit by multiprocessing, which joins its children."""
+os.register_at_fork(after_in_child=_exiting.clear)  # a child must never collect, let alone kill, its siblings
+
+
+def reap_workers() -> None:
+    """Collect the workers that have exited; kill one still running past its grace period."""
+    now = time.monotonic()
+    for entry in list(_exiting):
+        process, kill_after = entry
+        if process.exitcode is None and now >= kill_after:
+            process.kill()
+            process.join(1)
+        if process.exitcode is not None:
+            _exiting.remove(entry)
 
 
 def _mp_context():
@@ -142,11 +168,10 @@ def run_tasks(
     pending = deque(enumerate(items))
     idle: list[tuple[multiprocessing.process.BaseProcess, Connection]] = []
     busy: dict[Connection, tuple[multiprocessing.process.BaseProcess, int, Any, float]] = {}
-    exiting: list[multiprocessing.process.BaseProcess] = []
 
     def spawn(item: Any) -> tuple[multiprocessing.process.BaseProcess, Connection]:
         parent_end, child_end = ctx.Pipe(duplex=True)
-        process = ctx.Process(target=_worker_loop, args=(task, memory_limit_mb(item), child_end), daemon=True,
+        process = ctx.Process(target=_worker_loop, args=(task, memory_limit_mb(item), child_end, os.getpid()), daemon=True,
                               name="codearcade-worker")
         process.start()
         child_end.close()  # so that the parent sees EOF when the worker dies
@@ -156,17 +181,7 @@ def run_tasks(
         if kill:
             process.kill()
         conn.close()
-        exiting.append(process)
-
-    def reap(timeout: float = 0.0) -> None:
-        for process in list(exiting):
-            process.join(timeout)
-            if process.exitcode is not None:
-                exiting.remove(process)
-            elif timeout:
-                process.kill()
-                process.join(1)
-                exiting.remove(process)
+        _exiting.append((process, time.monotonic() + STOP_GRACE_S))
 
     def fill() -> None:
         while pending and len(busy) < workers:
@@ -218,7 +233,7 @@ def run_tasks(
                     finished.append((i, failed(item, f"worker killed after {now - begun:.0f} s "
                                                      f"(time limit {limit:g} s)", True)))
             fill()  # before handing results out, so that workers play while the caller writes them
-            reap()
+            reap_workers()
             yield from finished
     finally:
         for process, conn in idle:
@@ -229,7 +244,7 @@ def run_tasks(
             retire(process, conn)
         for conn, (process, *_rest) in busy.items():
             retire(process, conn, kill=True)
-        reap(timeout=5.0)
+        reap_workers()  # without waiting: the workers exit by themselves within milliseconds
 
 
 def _episode_failed(spec: EpisodeSpec, error: str, timed_out: bool) -> EpisodeOutcome:

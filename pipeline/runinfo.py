@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from importlib import metadata
@@ -27,6 +28,11 @@ def episode_id(run_id: str, iteration: int, kind: str, index: int) -> str:
 
 def package_versions() -> dict[str, str]:
     """Installed versions of the packages that decide a run's behaviour."""
+    return dict(_package_versions())
+
+
+@functools.lru_cache(maxsize=1)  # ~20 ms of metadata parsing, once per process instead of once per run
+def _package_versions() -> dict[str, str]:
     versions = {}
     for name in PROVENANCE_PACKAGES:
         try:

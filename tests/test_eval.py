@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -132,6 +133,44 @@ def test_worker_crash_is_recorded_not_raised():
     spec.game = "not-a-game"  # the worker raises before playing
     [(index, outcome)] = list(run_episodes([spec], workers=1))
     assert index == 0 and outcome.end_reason == "crashed" and "unknown game" in outcome.episode["error"]
+
+
+def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():
+    from pipeline import executor
+
+    specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=5)
+             for i in range(2)]
+    results = list(run_episodes(specs, workers=2))
+    assert sorted(i for i, _ in results) == [0, 1] and all(o.end_reason == "truncated" for _, o in results)
+    workers = [process for process, _ in executor._exiting]
+    assert workers, "told to stop, not yet waited for"
+    deadline = time.monotonic() + 10
+    while executor._exiting and time.monotonic() < deadline:
+        executor.reap_workers()
+        time.sleep(0.01)
+    assert not executor._exiting
+    assert [w.exitcode for w in workers] == [0] * len(workers), "each stopped by itself, none killed"
+
+
+def test_a_worker_whose_parent_died_before_it_asked_for_the_death_signal_ends_at_once(tmp_path):
+    marker = tmp_path / "survived"
+    script = (
+        "import os, sys, time\n"
+        "from pipeline.executor import die_with_parent\n"
+        "parent = os.getpid()\n"
+        "r, w = os.pipe()\n"
+        "if os.fork() == 0:\n"
+        "    os.close(w)\n"
+        "    os.read(r, 1)  # EOF: the parent is exiting\n"
+        "    time.sleep(0.3)  # and has gone\n"
+        "    die_with_parent(parent)\n"
+        "    open(sys.argv[1], 'w').write('still running')\n"
+        "    os._exit(0)\n"
+        "os._exit(0)\n"
+    )
+    subprocess.run([sys.executable, "-c", script, str(marker)], cwd=ROOT, check=True, timeout=60)
+    time.sleep(1.5)
+    assert not marker.exists(), "an orphan would have played on"
 
 
 def test_parallel_workers_keep_every_episode(store, capsys):

@@ -58,3 +58,20 @@ def test_an_idle_instance_is_closed_before_a_fork(tmp_path):
     assert os.WEXITSTATUS(status) == 0
     assert HUB._con is None, "closed before the fork: no DuckDB thread is forked"
     assert store.query("SELECT count(*) FROM runs") == [(0,)]
+
+
+def test_appended_rows_go_into_small_row_groups(tmp_path):
+    """Small row groups keep every commit's checkpoint small (store.hub.WRITE_ROW_GROUP_SIZE)."""
+    from store.hub import WRITE_ROW_GROUP_SIZE
+
+    store = Store(tmp_path / "s.duckdb")
+    for batch in range(3):  # separate commits, as episodes are written
+        with store.write() as con:
+            con.execute("INSERT INTO steps BY NAME SELECT 'e' || ? AS episode_id, i AS step, 0.0 AS reward, "
+                        "0.0 AS score, false AS terminated, false AS truncated FROM range(?) t(i)",
+                        [batch, WRITE_ROW_GROUP_SIZE])
+    rows_per_group = store.query(
+        "SELECT max(count) FROM (SELECT row_group_id, max(count) AS count FROM pragma_storage_info('steps') "
+        "GROUP BY row_group_id)")[0][0]
+    assert store.query("SELECT count(*) FROM steps") == [(3 * WRITE_ROW_GROUP_SIZE,)]
+    assert rows_per_group <= WRITE_ROW_GROUP_SIZE
