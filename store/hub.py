@@ -31,10 +31,10 @@ class _Attachment:
 WRITE_ROW_GROUP_SIZE = 2048
 """Rows per row group of what this process appends (DuckDB's default: 122,880; 2,048 is its minimum).
 
-Every commit's checkpoint rewrites the table's last, partly filled row group. With the default size a
-Space Invaders episode (660 steps, 24,000 objects) appended to a grown store took 30 ms to checkpoint,
-and every few episodes 0.2-1 s; with 2,048-row groups never more than ~55 ms (bench/store_writes.py).
-Scans of the steps table measured the same either way, and per-episode reads skip more by zone maps."""
+Every commit's checkpoint rewrites the table's last, partly filled row group. Writing a Space Invaders
+episode (660 steps, 24,000 objects) 120 times to a growing store took ~40 ms a write either way, but with the
+default size the worst writes took 0.85-1 s, with 2,048-row groups 72-116 ms (bench/store_writes.py). Scans
+of the steps table measured the same."""
 
 
 class Hub:
