@@ -48,8 +48,8 @@ def fill(store: Store, target_steps: int) -> tuple[int, int]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--steps", type=int, default=1_000_000)
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=1_000_000, help="rows the steps table is filled to (default: 1M)")
+    parser.add_argument("--repeats", type=int, default=5, help="timings per measurement (median taken; default: 5)")
     args = parser.parse_args()
 
     store = Store(Path(tempfile.mkdtemp(prefix="codearcade-bench-")) / "prompt.duckdb")

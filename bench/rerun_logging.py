@@ -45,10 +45,12 @@ def measure(spec: EpisodeSpec) -> tuple[dict, float]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--games", nargs="+", default=["pong", "breakout", "space_invaders"])
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--max-steps", type=int, default=4000)
-    parser.add_argument("--frames-every", type=int, default=4)
+    parser.add_argument("--games", nargs="+", default=["pong", "breakout", "space_invaders"],
+                        choices=["pong", "breakout", "space_invaders"], help="games to play (default: all three)")
+    parser.add_argument("--repeats", type=int, default=3, help="episodes per configuration (default: 3)")
+    parser.add_argument("--max-steps", type=int, default=4000, help="steps per episode at most (default: 4000)")
+    parser.add_argument("--frames-every", type=int, default=4,
+                        help="log the screen every this many steps, 0 for none (default: 4)")
     args = parser.parse_args()
 
     t0 = time.perf_counter()

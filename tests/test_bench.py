@@ -1,0 +1,36 @@
+"""The benchmarks in bench/ still run: each one, at its smallest size, ends cleanly and prints its ratios.
+
+Their figures are not checked here (the shared cores are far too noisy for timed assertions); a benchmark
+that crashes or stops printing what the README quotes is.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import ROOT
+
+SMALLEST = {
+    "throughput.py": (["--games", "pong", "--episodes", "1", "--repeats", "1"], ["eval/bare", "pong", "targets:"]),
+    "parallel_eval.py": (["--episodes", "2", "--repeats", "1"], ["codearcade", "bare OCAtari", "target:"]),
+    "store_writes.py": (["--episodes", "2"], ["codearcade (2,048 rows)", "ratio (codearcade / default)"]),
+    "prompt_build.py": (["--steps", "5000", "--repeats", "1"], ["prompt 16k", "prompt 4k"]),
+    "rerun_logging.py": (["--games", "pong", "--repeats", "1", "--max-steps", "100"], ["worst log/env ratio"]),
+}
+
+
+def test_every_benchmark_is_covered():
+    assert sorted(p.name for p in (ROOT / "bench").glob("*.py")) == sorted(SMALLEST)
+
+
+@pytest.mark.parametrize("script", sorted(SMALLEST))
+def test_benchmark_runs_at_its_smallest_size(script):
+    args, expected = SMALLEST[script]
+    done = subprocess.run([sys.executable, str(ROOT / "bench" / script), *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    for text in expected:
+        assert text in done.stdout, f"{script} no longer prints {text!r}:\n{done.stdout}"
