@@ -28,7 +28,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.throughput import BareOCAtari  # noqa: E402
+from bench.throughput import BareOCAtari, played_actions  # noqa: E402
 from pipeline.evaluate import EvalConfig, evaluate  # noqa: E402
 from store import Store  # noqa: E402
 
@@ -47,12 +47,7 @@ def main() -> int:
 
     # The paper's protocol is deterministic: the bare replays play the actions of these very episodes.
     result = evaluate(policy, EvalConfig(episodes=args.episodes, workers=1, seed=0), store)
-    rows = store.query(
-        "SELECT e.seed, list(s.action ORDER BY s.step) FROM episodes e JOIN steps s USING (episode_id) "
-        "WHERE e.run_id = ? AND s.action IS NOT NULL GROUP BY e.episode_id, e.seed ORDER BY e.seed",
-        [result.run_id],
-    )
-    seeds, actions = [r[0] for r in rows], [r[1] for r in rows]
+    seeds, actions = played_actions(store, result.run_id)
     steps = sum(len(a) for a in actions)
     bare = BareOCAtari(args.game)  # built once, before the forks, as codearcade's workers inherit theirs
 

@@ -27,6 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from pipeline.games import GAMES  # noqa: E402
 from pipeline.rollout import EpisodeSpec, run_episode  # noqa: E402
 
 TARGET = 0.25
@@ -45,8 +46,8 @@ def measure(spec: EpisodeSpec) -> tuple[dict, float]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--games", nargs="+", default=["pong", "breakout", "space_invaders"],
-                        choices=["pong", "breakout", "space_invaders"], help="games to play (default: all three)")
+    parser.add_argument("--games", nargs="+", default=list(GAMES), choices=list(GAMES),
+                        help="games to play (default: all three)")
     parser.add_argument("--repeats", type=int, default=3, help="episodes per configuration (default: 3)")
     parser.add_argument("--max-steps", type=int, default=4000, help="steps per episode at most (default: 4000)")
     parser.add_argument("--frames-every", type=int, default=4,

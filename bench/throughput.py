@@ -68,6 +68,16 @@ class BareOCAtari:
         return time.perf_counter() - start
 
 
+def played_actions(store: Store, run_id: str) -> tuple[list[int], list[list[int]]]:
+    """The seeds of a run's episodes and, for each, the actions it played (what a bare replay repeats)."""
+    rows = store.query(
+        "SELECT e.seed, list(s.action ORDER BY s.step) FROM episodes e JOIN steps s USING (episode_id) "
+        "WHERE e.run_id = ? AND s.action IS NOT NULL GROUP BY e.episode_id, e.seed ORDER BY e.seed",
+        [run_id],
+    )
+    return [r[0] for r in rows], [r[1] for r in rows]
+
+
 def timed_eval(policy: Path, store: Store, episodes: int, trace: bool) -> tuple[float, str]:
     config = EvalConfig(episodes=episodes, trace=trace, workers=1, max_steps=4000)
     start = time.perf_counter()
@@ -93,12 +103,7 @@ def main() -> int:
         policy = ROOT / "examples" / f"{game}.py"
         # The paper's protocol is deterministic: every repeat plays these very actions.
         _, run_id = timed_eval(policy, store, args.episodes, trace=False)
-        rows = store.query(
-            "SELECT e.seed, list(s.action ORDER BY s.step) FROM episodes e JOIN steps s USING (episode_id) "
-            "WHERE e.run_id = ? AND s.action IS NOT NULL GROUP BY e.episode_id, e.seed ORDER BY e.seed",
-            [run_id],
-        )
-        seeds, actions = [r[0] for r in rows], [r[1] for r in rows]
+        seeds, actions = played_actions(store, run_id)
         steps = sum(len(a) for a in actions)
         bare = BareOCAtari(game)
         measure = {

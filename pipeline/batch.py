@@ -28,8 +28,8 @@ run's rows (``store/bundle.py``); the driver alone writes them into the store, o
 from __future__ import annotations
 
 import difflib
-import hashlib
 import functools
+import hashlib
 import itertools
 import json
 import os

@@ -61,7 +61,7 @@ def _audit(event: str, args: tuple) -> None:
         raise PermissionError(f"codearcade sandbox: '{event}' is not allowed in a policy worker")
 
 
-def die_with_parent(parent_pid: int | None = None) -> None:
+def die_with_parent(parent_pid: int) -> None:
     """Ask Linux to kill this (just forked) process when its parent dies (a killed run must not leave workers
     playing on). ``parent_pid``, the parent's pid taken before the fork: a parent that died before the request
     was made (a child can wait long for its first time slice on busy cores) ends this process at once."""
@@ -71,11 +71,11 @@ def die_with_parent(parent_pid: int | None = None) -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # not Linux/glibc: orphans finish their episode and exit on the broken pipe
         pass
-    if parent_pid is not None and os.getppid() != parent_pid:
+    if os.getppid() != parent_pid:
         os._exit(1)  # orphaned already: the death signal will never come
 
 
-def harden_worker(memory_limit_mb: int | None, parent_pid: int | None = None) -> None:
+def harden_worker(memory_limit_mb: int | None, parent_pid: int) -> None:
     """Limit this (worker) process before policy code runs: memory cap, no core dumps, audit hook."""
     die_with_parent(parent_pid)
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
@@ -171,8 +171,8 @@ def run_tasks(
 
     def spawn(item: Any) -> tuple[multiprocessing.process.BaseProcess, Connection]:
         parent_end, child_end = ctx.Pipe(duplex=True)
-        process = ctx.Process(target=_worker_loop, args=(task, memory_limit_mb(item), child_end, os.getpid()), daemon=True,
-                              name="codearcade-worker")
+        process = ctx.Process(target=_worker_loop, args=(task, memory_limit_mb(item), child_end, os.getpid()),
+                              daemon=True, name="codearcade-worker")
         process.start()
         child_end.close()  # so that the parent sees EOF when the worker dies
         return process, parent_end
