@@ -3,10 +3,10 @@
 An experiment file declares defaults, a matrix (every combination becomes a run) and/or explicit runs::
 
     name = "ablation"                 # identifies the batch in the store
-    store = "ablation.duckdb"         # optional; --store wins
+    store = "ablation.duckdb"         # optional, relative to the working directory; --store wins
     [defaults]
     iterations = 20
-    model = "anthropic/claude-3-5-sonnet-20241022"
+    model = "anthropic/claude-sonnet-4-5"
     [matrix]
     game = ["pong"]
     feedback = ["staged", "rollout"]
@@ -43,13 +43,18 @@ from typing import Any, Callable
 
 from pipeline.feedback import FEEDBACK_MODES
 from pipeline.games import get_game
-from pipeline.optimize import OptimizeConfig
+from pipeline.optimize import BUDGET_FIELDS, OptimizeConfig
 from store import Store
 
 TOP_LEVEL_KEYS = ("name", "store", "defaults", "matrix", "run")
 RUN_KEYS = tuple(f.name for f in fields(OptimizeConfig))
-NOT_IN_KEY = ("workers",)
-"""Settings that do not change a run's results, so they do not change its identity either."""
+NOT_IN_KEY = ("workers",) + BUDGET_FIELDS
+"""Settings that do not change a run's results (or only how far it goes), so they do not change its identity:
+rerunning a batch with a larger budget resumes its runs."""
+
+
+BUDGET_EXIT = 3
+"""Exit code of a batch run process whose run stopped at its budget (not a failure)."""
 
 
 class ExperimentError(ValueError):
@@ -196,7 +201,7 @@ class Progress:
     """What the display shows, per run."""
 
     label: str
-    state: str = "pending"  # pending | skipped | running | finished | failed
+    state: str = "pending"  # pending | skipped | running | finished | budget | failed
     run_id: str | None = None
     iteration: int | None = None
     iterations: int = 0
@@ -262,7 +267,7 @@ def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: in
                 continue
             out.close()
             del running[i]
-            progress[i].state = "finished" if code == 0 else "failed"
+            progress[i].state = {0: "finished", BUDGET_EXIT: "budget"}.get(code, "failed")
             if code != 0:
                 tail = (log_dir / f"{planned[i].run.key}.log").read_text(errors="replace").strip().splitlines()
                 progress[i].note = tail[-1][:200] if tail else f"exit code {code}"
@@ -329,7 +334,7 @@ def run_ray(batch: Batch, store: Store, planned: list[PlannedRun], address: str 
             if iterations.num_rows:
                 progress[i].iteration = max(iterations.column("iteration").to_pylist())
                 progress[i].best = max(iterations.column("best_score").to_pylist())
-            progress[i].state = "finished" if status == "finished" else "failed"
+            progress[i].state = status if status in ("finished", "budget") else "failed"
             progress[i].note = error or ""
             log(f"{progress[i].state} {planned[i].run.label} (run {progress[i].run_id})")
             display(progress)

@@ -9,14 +9,22 @@ the run's earlier rows and returns all of them for the driver to write.
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
+from pipeline.batch import BUDGET_EXIT
 from pipeline.llm import OFFLINE_TOKEN_BUDGET, open_client
 from pipeline.optimize import OptimizeConfig, OptimizeResult, optimize
 from store import Store
+
+
+@contextmanager
+def _waiting(iteration: int, model: str):
+    print(f"iteration {iteration}: waiting for {model}", flush=True)
+    yield
 
 
 def _run(spec: dict[str, Any], store: Store) -> OptimizeResult:
@@ -27,7 +35,7 @@ def _run(spec: dict[str, Any], store: Store) -> OptimizeResult:
     if cap is not None:
         config.token_budget = min(config.token_budget, cap, OFFLINE_TOKEN_BUDGET)
     try:
-        return optimize(config, store, client, resume=spec.get("resume"),
+        return optimize(config, store, client, resume=spec.get("resume"), waiting=_waiting,
                         log=lambda line: print(line, flush=True),
                         on_iteration=lambda item: print(f"iteration {item.iteration}: score {item.score:g} "
                                                         f"best {item.best_score:g} {item.update_status}", flush=True),
@@ -55,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     spec = json.loads((argv if argv is not None else sys.argv[1:])[0])
     result = _run(spec, Store(spec["store"]))
     print(f"run {result.run_id} {result.status}" + (f": {result.error}" if result.error else ""), flush=True)
-    return 0 if result.status == "finished" else 1
+    return {"finished": 0, "budget": BUDGET_EXIT}.get(result.status, 1)
 
 
 if __name__ == "__main__":

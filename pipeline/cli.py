@@ -45,6 +45,14 @@ def _store(args: argparse.Namespace):
     return Store(args.store) if args.store else Store()
 
 
+def _run_id(store, text: str) -> str:
+    """The run whose id is ``text`` or starts with it (every verb that takes a run accepts a unique prefix)."""
+    from store.views import resolve_run_id
+
+    with store.read() as con:
+        return resolve_run_id(con, text, store)
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -117,30 +125,51 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("policy", metavar="POLICY.py", nargs="?",
                    help="starting policy file (default: the game's scaffold in examples/)")
     p.add_argument("--game", help=f"game: {', '.join(GAMES)} (default: the file's GAME)")
-    p.add_argument("--model", help="litellm model, e.g. anthropic/claude-3-5-sonnet-20241022, openai/gpt-4o "
-                   "(default: the offline SmolLM2 server)")
-    p.add_argument("--api-base", metavar="URL", help="OpenAI-compatible server, with --model openai/NAME")
+    p.add_argument("--model", help="litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o "
+                   "(OPENAI_API_KEY), gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME "
+                   "or openai/NAME with --api-base (your own server) (default: the offline SmolLM2 server)")
+    p.add_argument("--api-base", metavar="URL", help="the provider's endpoint: your own OpenAI-compatible, vLLM or "
+                   "Ollama server, or a proxy")
     p.add_argument("--iterations", type=_non_negative_int, default=None,
                    help="LLM updates after evaluating the starting policy (default: 20; with --resume, a larger "
                    "number extends the run)")
-    p.add_argument("--memory", type=_non_negative_int, default=5, help="earlier iterations in the prompt (default: 5)")
+    p.add_argument("--memory", type=_non_negative_int, help="earlier iterations in the prompt (default: 5)")
     p.add_argument("--token-budget", type=_positive_int, default=None,
                    help="hard limit on prompt tokens (default: 16000; 3000 with the offline model)")
-    p.add_argument("--eval-episodes", type=_positive_int, default=1,
-                   help="evaluation episodes per iteration, in parallel (default: 1)")
-    p.add_argument("--feedback", choices=["staged", "rollout"], default="staged",
-                   help="staged: from the evaluation score (paper); rollout: rollout reward only (ablation)")
-    p.add_argument("--no-rollback", action="store_true", help="never go back to the best version after a regression")
-    p.add_argument("--rollback-fraction", type=_probability, default=0.5,
+    p.add_argument("--eval-episodes", type=_positive_int, help="evaluation episodes per iteration, in parallel "
+                   "(default: 1)")
+    p.add_argument("--feedback", choices=["staged", "rollout"],
+                   help="staged: from the evaluation score (paper, default); rollout: rollout reward only (ablation)")
+    p.add_argument("--no-rollback", action="store_const", const=False, dest="rollback",
+                   help="never go back to the best version after a regression")
+    p.add_argument("--rollback-fraction", type=_probability,
                    help="roll back below best - (1-F)*max(|best|,1) (default: 0.5)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default: 0)")
-    p.add_argument("--temperature", type=float, default=0.0, help="LLM temperature (default: 0)")
-    p.add_argument("--max-tokens", type=_positive_int, default=None, help="longest reply (default: 4096; 512 with the offline model)")
+    p.add_argument("--seed", type=int, help="seed (default: 0)")
+    p.add_argument("--temperature", type=float, help="LLM temperature (default: 0; not sent to models that "
+                   "take none)")
+    p.add_argument("--max-tokens", type=_positive_int, default=None,
+                   help="longest reply (default: 4096; 512 with the offline model)")
     p.add_argument("--rollout-steps", type=_positive_int, help="training rollout horizon (default: the task's)")
     p.add_argument("--eval-max-steps", type=_positive_int, help="evaluation cap (default: the task's, 4000)")
     p.add_argument("--workers", type=_positive_int, default=None, help="episode worker processes (default: cores)")
-    p.add_argument("--call-time-limit", type=float, default=1.0, metavar="SECONDS", help="per policy call (default: 1)")
-    p.add_argument("--resume", metavar="RUN_ID", help="continue a run that was interrupted or killed")
+    p.add_argument("--call-time-limit", type=float, dest="call_time_limit_s", metavar="SECONDS",
+                   help="per policy call (default: 1)")
+    budgets = p.add_argument_group("budgets", "the run stops with status 'budget' before it would exceed one; "
+                                   "--resume with a larger budget continues it")
+    budgets.add_argument("--max-cost", type=float, dest="max_cost_usd", metavar="USD",
+                         help="LLM cost, at litellm's price for the model (each call counted at its worst case: "
+                         "the prompt plus a reply of --max-tokens)")
+    budgets.add_argument("--max-total-tokens", type=_positive_int, dest="max_total_tokens", metavar="N",
+                         help="LLM input + output tokens")
+    budgets.add_argument("--max-wall", type=float, dest="max_wall_minutes", metavar="MINUTES",
+                         help="wall-clock time of the run's iterations")
+    p.add_argument("--resume", metavar="RUN_ID", help="continue a run that was interrupted, failed or stopped by a "
+                   "budget (an id or a unique prefix); budgets, limits, --model/--api-base and a larger "
+                   "--iterations may be given again")
+    p.add_argument("--dry-run", action="store_true",
+                   help="evaluate the starting policy into a temporary store, build the first prompt, and print its "
+                   "tokens and the estimated cost of one update and of the whole run; calls no model")
+    p.add_argument("--show-prompt", action="store_true", help="with --dry-run: print the prompt too")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     _add_rerun(p)
     _add_store(p)
@@ -180,7 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
         "reply stored for the same prompt. Reports per iteration whether prompts and scores match the original, "
         "and stops where they diverge.",
     )
-    p.add_argument("run_id", metavar="RUN_ID")
+    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     _add_store(p)
     p.set_defaults(handler=cmd_replay)
@@ -235,7 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
         "stored actions (checked against the stored objects). Without --spawn/--serve-web/--connect the "
         "recording is saved to a file (default ./<recording id>.rrd).",
     )
-    p.add_argument("run_id", metavar="RUN", help="run id")
+    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
     p.add_argument("--iteration", type=_non_negative_int, metavar="I", help="optimizer iteration (default: 0)")
     p.add_argument("--episode", metavar="E",
                    help="evaluation episode index within the iteration, 'train' for its training rollout, or an episode id")
@@ -253,23 +282,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _progress_bar(total: int, description: str, per_episode: int):
-    """A tqdm bar over all episodes' steps, and the callback the executor reports to."""
+def _progress_bar(episodes: int, description: str):
+    """A tqdm bar that counts finished episodes and shows the steps played so far (episodes end at unknown
+    lengths, so a bar over ``episodes x max_steps`` would jump); the executor's progress callback and the
+    per-episode callback that feed it."""
     from tqdm import tqdm
 
     tqdm.monitor_interval = 0  # no monitor thread: episode workers are forked from this process
-    bar = tqdm(total=total, desc=description, unit="step", disable=None, dynamic_ncols=True, leave=False)
-    seen: dict[int, int] = {}
+    bar = tqdm(total=episodes, desc=description, unit="episode", disable=None, dynamic_ncols=True, leave=False)
+    steps: dict[int, int] = {}
 
-    def update(index: int, steps: int) -> None:
-        bar.update(steps - seen.get(index, 0))
-        seen[index] = steps
+    def show_steps() -> None:
+        bar.set_postfix_str(f"{sum(steps.values()):,} steps", refresh=True)
 
-    def finish(index: int) -> None:
-        bar.update(per_episode - seen.get(index, 0))
-        seen[index] = per_episode
+    def update(index: int, played: int) -> None:
+        steps[index] = played
+        show_steps()
 
-    return bar, update, finish
+    def finished(index: int, length: int) -> None:
+        steps[index] = length
+        bar.update(1)
+        show_steps()
+
+    return bar, update, finished
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -282,10 +317,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         episode_time_limit_s=args.episode_time_limit, rerun=_rerun_target(args.rerun),
     )
     store = _store(args)
-    bar, update, _ = _progress_bar(args.episodes * args.max_steps, f"eval {os.path.basename(args.policy)}",
-                                   args.max_steps)
+    bar, update, finished = _progress_bar(args.episodes, f"eval {os.path.basename(args.policy)}")
     try:
-        result = evaluate(args.policy, config, store, progress=update)
+        result = evaluate(args.policy, config, store, progress=update, on_episode=finished)
     finally:
         bar.close()
     summary = result.summary()
@@ -322,43 +356,96 @@ def _print_iteration(item) -> None:
           f"  update {item.update_status:<9} {tokens}{back}{note[:160]}", flush=True)
 
 
+OPTIMIZE_OPTIONS = ("game", "policy", "model", "api_base", "iterations", "memory", "token_budget", "eval_episodes",
+                    "feedback", "rollback", "rollback_fraction", "seed", "temperature", "max_tokens", "rollout_steps",
+                    "eval_max_steps", "workers", "call_time_limit_s", "max_cost_usd", "max_total_tokens",
+                    "max_wall_minutes")
+"""The ``optimize`` flags that are :class:`~pipeline.optimize.OptimizeConfig` fields (defaults live there)."""
+
+
+def _llm_waiting(stream=None):
+    """The optimizer's ``waiting`` hook: while an LLM call is in flight, a terminal shows for how long it has
+    waited (one line, redrawn each second); a log gets one line per call."""
+    import threading
+    import time
+    from contextlib import contextmanager
+
+    stream = stream or sys.stderr
+
+    @contextmanager
+    def waiting(iteration: int, label: str):
+        started = time.monotonic()
+        if not stream.isatty():
+            print(f"iteration {iteration}: waiting for {label}", file=stream, flush=True)
+            yield
+            return
+        stop = threading.Event()
+
+        def tick() -> None:
+            while not stop.wait(1.0):
+                stream.write(f"\riteration {iteration}: waiting for {label} ... {time.monotonic() - started:.0f} s")
+                stream.flush()
+
+        ticker = threading.Thread(target=tick, name="codearcade-llm-wait", daemon=True)
+        ticker.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            ticker.join()
+            stream.write("\r\033[K")
+            stream.flush()
+
+    return waiting
+
+
 def cmd_optimize(args: argparse.Namespace) -> int:
-    from pipeline.llm import OFFLINE_TOKEN_BUDGET, open_client
-    from pipeline.optimize import OptimizeConfig, load_state, optimize
+    given = {k: getattr(args, k) for k in OPTIMIZE_OPTIONS if getattr(args, k) is not None}
+    if args.model and not args.dry_run:
+        from pipeline.providers import check_credentials  # no litellm import: a missing key is reported at once
+
+        check_credentials(args.model, args.api_base)
+    if args.show_prompt and not args.dry_run:
+        raise CliError("--show-prompt goes with --dry-run")
+    from pipeline.llm import OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET, open_client
+    from pipeline.optimize import OptimizeConfig, optimize, plan_resume
 
     store = _store(args)
-    offline = args.model is None
     if args.resume:
-        state = load_state(store, args.resume)
-        config = state.config
-        config.model = args.model or config.model  # a resumed run may be pointed at another endpoint
-        config.api_base = args.api_base or config.api_base
-        offline = config.model is None
-        client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
-                                          config.seed)
-        if args.iterations is not None:
-            config.iterations = args.iterations
+        if args.dry_run:
+            raise CliError("--dry-run starts a new run; it cannot go with --resume")
+        plan = plan_resume(store, args.resume, given)
+        if plan.nothing_to_do:
+            print(json.dumps({"run_id": plan.run_id, "status": plan.status, "error": None, "iterations": [],
+                              "note": plan.nothing_to_do}, indent=2) if args.json else plan.nothing_to_do)
+            return EXIT_OK
+        config, run_id = plan.config, plan.run_id
+        if config.model and "model" not in given:
+            from pipeline.providers import check_credentials
+
+            check_credentials(config.model, config.api_base)
     else:
-        client, server, cap = open_client(args.model, args.api_base, args.temperature, args.max_tokens, args.seed)
-        budget = args.token_budget or (16_000 if cap is None else OFFLINE_TOKEN_BUDGET)
-        if cap is not None:
-            budget = min(budget, cap)
-        config = OptimizeConfig(
-            game=args.game, policy=args.policy, model=args.model, api_base=args.api_base,
-            iterations=20 if args.iterations is None else args.iterations,
-            memory=args.memory, token_budget=budget, eval_episodes=args.eval_episodes, feedback=args.feedback,
-            rollback=not args.no_rollback, rollback_fraction=args.rollback_fraction, seed=args.seed,
-            temperature=args.temperature, max_tokens=client.max_tokens, rollout_steps=args.rollout_steps,
-            eval_max_steps=args.eval_max_steps, workers=args.workers or (os.cpu_count() or 1),
-            call_time_limit_s=args.call_time_limit,
-        )
+        given.setdefault("workers", os.cpu_count() or 1)
+        if args.model is None:
+            given.setdefault("max_tokens", OFFLINE_MAX_TOKENS)
+            given.setdefault("token_budget", OFFLINE_TOKEN_BUDGET)
+        config, run_id = OptimizeConfig(**given), None
+    if args.dry_run:
+        return _dry_run(config, args)
+    offline = config.model is None
+    client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
+                                      config.seed)
+    if cap is not None and config.token_budget > cap:
+        config.token_budget = cap
+    for name in getattr(client, "dropped", ()):
+        print(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
     rerun = _rerun_target(args.rerun)
     on_iteration, recordings = _run_recordings(store, rerun, None if args.json else _print_iteration)
     try:
         if not args.json:
-            print(f"store {store.path}  model {client.model}{' (offline default)' if offline else ''}", flush=True)
-        result = optimize(config, store, client, resume=args.resume, on_iteration=on_iteration,
-                          log=lambda line: print(line, file=sys.stderr), rerun=rerun)
+            print(f"store {store.path}  model {client.label}{' (offline default)' if offline else ''}", flush=True)
+        result = optimize(config, store, client, resume=run_id, on_iteration=on_iteration,
+                          log=lambda line: print(line, file=sys.stderr), rerun=rerun, waiting=_llm_waiting())
     finally:
         if server is not None:
             server.stop()
@@ -373,10 +460,31 @@ def cmd_optimize(args: argparse.Namespace) -> int:
         }, indent=2))
     else:
         print(f"run {result.run_id} {result.status}" + (f": {result.error}" if result.error else ""))
+    if result.status == "budget":
+        print(f"codearcade: run {result.run_id} stopped by its budget; continue it with a larger one: "
+              f"`codearcade optimize --resume {result.run_id} --max-...`", file=sys.stderr)
+        return EXIT_OK
     if result.status != "finished":
-        print(f"codearcade: run {result.run_id} {result.status}: {result.error}; continue it with "
-              f"`codearcade optimize --resume {result.run_id}`", file=sys.stderr)
+        print(f"codearcade: run {result.run_id} {result.status}: {result.error}; fix the cause, then continue it "
+              f"with `codearcade optimize --resume {result.run_id}`", file=sys.stderr)
         return EXIT_EPISODE_FAILED
+    return EXIT_OK
+
+
+def _dry_run(config, args: argparse.Namespace) -> int:
+    from pipeline.estimate import estimate_run
+
+    report = estimate_run(config, progress_log=lambda line: print(line, file=sys.stderr))
+    if args.json:
+        print(json.dumps(report.as_dict(include_prompt=args.show_prompt), indent=2))
+        return EXIT_OK
+    if args.show_prompt:
+        for message in report.prompt.messages:
+            print(f"----- {message['role']} -----")
+            print(message["content"])
+        print("-----")
+    for line in report.lines():
+        print(line)
     return EXIT_OK
 
 
@@ -398,7 +506,8 @@ def _batch_display():
             it = "-" if p.iteration is None else f"{p.iteration}/{p.iterations}"
             best = "-" if p.best is None else f"{p.best:g}"
             table.add_row(p.label, p.state, it, best, p.run_id or "")
-        counts = {s: sum(1 for p in progress if p.state == s) for s in ("finished", "running", "failed", "skipped")}
+        counts = {s: sum(1 for p in progress if p.state == s)
+                  for s in ("finished", "budget", "running", "failed", "skipped")}
         table.caption = "  ".join(f"{k} {v}" for k, v in counts.items())
         live.update(table)
 
@@ -430,8 +539,9 @@ def cmd_view(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(line, flush=True)
 
+    store = _store(args)
     try:
-        view(_store(args), args.run_id, iteration=args.iteration, episode=args.episode, save=args.save,
+        view(store, _run_id(store, args.run_id), iteration=args.iteration, episode=args.episode, save=args.save,
              connect=args.connect, spawn=args.spawn, serve_web=args.serve_web, frames_every=args.frames_every,
              out=out, warn=lambda line: print(line, file=sys.stderr))
     except ViewerError as exc:
@@ -450,11 +560,16 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if args.store:
         store = Store(args.store)
     elif batch.store:
-        path = Path(batch.store)
-        store = Store(path if path.is_absolute() else batch.path.parent / path)
+        store = Store(Path(batch.store))  # relative to where the user runs it, like --store
     else:
         store = Store()
     planned = plan(batch, store)
+    if not args.dry_run:  # a missing key stops the batch before any run starts
+        from pipeline.providers import check_credentials
+
+        for item in planned:
+            if item.action != "skip" and item.run.config.model:
+                check_credentials(item.run.config.model, item.run.config.api_base)
     if args.dry_run:
         print(f"batch {batch.name}: {len(planned)} runs into {store.path}")
         for p in planned:
@@ -516,7 +631,8 @@ def cmd_doctor(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     from pipeline.replay import replay
 
-    report = replay(_store(args), args.run_id, log=lambda line: print(line, file=sys.stderr))
+    store = _store(args)
+    report = replay(store, _run_id(store, args.run_id), log=lambda line: print(line, file=sys.stderr))
     if args.json:
         print(json.dumps(report.as_dict(), indent=2))
     else:
@@ -555,21 +671,27 @@ def cmd_sql(args: argparse.Namespace) -> int:
 
 
 def cmd_runs(args: argparse.Namespace) -> int:
+    from store.locks import run_is_live
     from store.views import run_query
     from viewers.tables import format_table, records
 
     store = _store(args)
     result = run_query(store, "SELECT * FROM run_summary ORDER BY created_at, run_id")
+    runs = records(result.columns, result.types, result.rows)
+    for r, row in zip(runs, result.rows):
+        r["_created"] = row[result.columns.index("created_at")]
+        if r["status"] == "running" and not run_is_live(store.path, r["run_id"]):
+            r["status"] = "interrupted"  # killed: no process holds its lock (`doctor` says the same)
     if args.json:
-        print(json.dumps(records(result.columns, result.types, result.rows), indent=2))
+        print(json.dumps([{k: v for k, v in r.items() if k != "_created"} for r in runs], indent=2))
         return EXIT_OK
-    if not result.rows:
+    if not runs:
         print(f"no runs in {store.path}")
         return EXIT_OK
     rows = []
-    for r in (dict(zip(result.columns, row)) for row in result.rows):
+    for r in runs:
         done = "-" if r["kind"] == "eval" else f"{r['iterations_done']}/{r['iterations_planned'] or '?'}"
-        rows.append((r["run_id"], r["created_at"].strftime("%Y-%m-%d %H:%M"), r["kind"], r["game"],
+        rows.append((r["run_id"], r["_created"].strftime("%Y-%m-%d %H:%M"), r["kind"], r["game"],
                      r["model"], r["status"], done, None if r["best_score"] is None else round(r["best_score"], 2),
                      r["episodes"], r["total_tokens"]))
     print(format_table(("run", "created (UTC)", "kind", "game", "model", "status", "iterations", "best", "episodes",

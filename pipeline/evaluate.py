@@ -7,6 +7,7 @@ each finished episode in its own transaction, and mark the run finished, failed 
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -17,6 +18,7 @@ from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id, new_run_id, package_versions
 from pipeline.versions import policy_version_row
 from store import Store
+from store.locks import run_lock
 from store.writer import finish_run, insert_policy_version, insert_run, write_episode
 from tracing.policy_file import PolicyLoadError, inspect_policy, read_policy_file
 
@@ -90,6 +92,7 @@ def evaluate(
     config: EvalConfig,
     store: Store,
     progress: Callable[[int, int], None] | None = None,
+    on_episode: Callable[[int, int], None] | None = None,
 ) -> EvalResult:
     """Evaluate the policy file at ``policy_path``; see the module docstring. Raises PolicyLoadError,
     UnknownGameError or StoreError with one-line messages for bad input, before anything is stored."""
@@ -124,23 +127,30 @@ def evaluate(
     outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
     done = 0
     status, error = "failed", None
-    try:
-        for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
-            done += 1
-            with store.write() as con:
-                write_episode(con, outcome.episode, outcome.steps, outcome.nodes)
-                if done == len(specs):  # the last episode and the run's end in one transaction
-                    status = "finished"
-                    finish_run(con, run_id, status)
-            outcomes[i] = outcome
-    except KeyboardInterrupt:
-        status, error = "interrupted", "interrupted by the user"
-        raise
-    except BaseException as exc:
-        status, error = "failed", f"{type(exc).__name__}: {exc}"
-        raise
-    finally:
-        if status != "finished":
-            with store.write() as con:
-                finish_run(con, run_id, status, error)
+    with ExitStack() as held:
+        try:  # held while the run is "running", so `runs` and `doctor` tell a live eval from a killed one
+            held.enter_context(run_lock(store.path, run_id))
+        except OSError:  # a read-only or full directory: the store's own one-line error says so below
+            pass
+        try:
+            for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
+                done += 1
+                with store.write() as con:
+                    write_episode(con, outcome.episode, outcome.steps, outcome.nodes)
+                    if done == len(specs):  # the last episode and the run's end in one transaction
+                        status = "finished"
+                        finish_run(con, run_id, status)
+                outcomes[i] = outcome
+                if on_episode is not None:
+                    on_episode(i, outcome.episode["length"])
+        except KeyboardInterrupt:
+            status, error = "interrupted", "interrupted by the user"
+            raise
+        except BaseException as exc:
+            status, error = "failed", f"{type(exc).__name__}: {exc}"
+            raise
+        finally:
+            if status != "finished":
+                with store.write() as con:
+                    finish_run(con, run_id, status, error)
     return EvalResult(run_id, game, info.version_id, [o for o in outcomes if o is not None])

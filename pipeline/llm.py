@@ -10,11 +10,15 @@ prompt hash: resuming and ``codearcade replay`` never pay for a call twice.
 
 from __future__ import annotations
 
+import os
+import re
 import time
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from pipeline.prompt import prompt_hash
+from pipeline.providers import LOCAL_SERVER_PROVIDERS, with_cache_breakpoint
+from pipeline.providers import request_params as provider_request_params
 from pipeline.tokens import import_litellm
 
 RETRYABLE = ("RateLimitError", "Timeout", "APIConnectionError", "ServiceUnavailableError", "InternalServerError",
@@ -22,6 +26,15 @@ RETRYABLE = ("RateLimitError", "Timeout", "APIConnectionError", "ServiceUnavaila
 FATAL = ("AuthenticationError", "PermissionDeniedError", "NotFoundError", "BadRequestError",
          "ContextWindowExceededError", "ContentPolicyViolationError", "UnsupportedParamsError",
          "PaymentRequiredError", "BudgetExceededError")
+"""litellm's exception classes by what retrying can do: the first list is retried, the second is fatal.
+An error of neither kind is retried (an unknown failure is more likely transient than a bad key)."""
+
+DEFAULT_BACKOFF_S = 2.0
+"""First wait before retrying a transient error; it doubles each retry (``CODEARCADE_LLM_BACKOFF_S`` changes it,
+which the tests use to keep retries quick)."""
+
+ERROR_MESSAGE_LIMIT = 1_000
+"""Characters of a provider's error message kept in ``llm_calls.error_message`` and shown to the user."""
 
 
 @dataclass
@@ -32,6 +45,10 @@ class LLMReply:
     finish_reasons: list[str] = field(default_factory=list)
     input_tokens: int | None = None
     output_tokens: int | None = None
+    cached_input_tokens: int | None = None
+    """Input tokens read from the provider's prompt cache (billed at the cache price)."""
+    cache_creation_input_tokens: int | None = None
+    """Input tokens written to the provider's prompt cache (Anthropic)."""
     cost_usd: float | None = None
     latency_s: float = 0.0
     attempts: int = 1
@@ -66,13 +83,37 @@ def _error_name(exc: BaseException) -> str:
     return type(exc).__name__
 
 
-def _first_line(text: str, limit: int = 500) -> str:
-    line = " ".join(str(text).split())
-    return line if len(line) <= limit else line[:limit] + "…"
+def describe_error(exc: BaseException, limit: int = ERROR_MESSAGE_LIMIT) -> str:
+    """The useful part of a provider error, on one line: litellm's own prefixes (``litellm.AuthenticationError:
+    AnthropicException - ``) and JSON wrapping are taken off, so what is kept (and cut at ``limit``) is what the
+    provider said."""
+    text = " ".join(str(getattr(exc, "message", None) or exc).split())
+    text = re.sub(r"^(litellm\.)?\w+(Error|Exception): ", "", text)
+    text = re.sub(r"^(litellm\.)?\w+(Error|Exception): ", "", text)
+    text = re.sub(r"^\w+Exception - ", "", text)
+    match = re.search(r'"(?:message|error)"\s*:\s*"((?:[^"\\]|\\.)*)"', text)
+    if match:
+        text = match.group(1)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _usage_number(usage: Any, *path: str) -> int | None:
+    value = usage
+    for name in path:
+        value = value.get(name) if isinstance(value, dict) else getattr(value, name, None)
+        if value is None:
+            return None
+    return int(value) if isinstance(value, (int, float)) else None
 
 
 class LiteLLMClient:
-    """A model reached through litellm. ``complete`` retries transient errors, then raises :class:`LLMError`."""
+    """A model reached through litellm. ``complete`` retries transient errors, then raises :class:`LLMError`.
+
+    Only the parameters the provider accepts are sent (``pipeline/providers.py``); ``request_params()`` is
+    exactly what goes to litellm besides the messages, and ``dropped`` names what the provider would refuse.
+    ``label`` is the model as the user asked for it (``offline:...`` for the built-in model), ``model`` the
+    name litellm is given.
+    """
 
     def __init__(
         self,
@@ -84,15 +125,15 @@ class LiteLLMClient:
         seed: int | None = None,
         timeout_s: float = 300.0,
         retries: int = 3,
-        backoff_s: float = 2.0,
+        backoff_s: float = DEFAULT_BACKOFF_S,
+        label: str | None = None,
     ):
         self.litellm = import_litellm()
         self.model = model
+        self.label = label or model
         self.api_base = api_base
         self.api_key = api_key
-        self.temperature = temperature
         self.max_tokens = max_tokens
-        self.seed = seed
         self.timeout_s = timeout_s
         self.retries = retries
         self.backoff_s = backoff_s
@@ -100,31 +141,32 @@ class LiteLLMClient:
             self.provider = self.litellm.get_llm_provider(model, api_base=api_base)[1]
         except Exception as exc:  # litellm raises BadRequestError for a model string it cannot place
             raise ValueError(f"unknown model '{model}': give it as provider/model (for example "
-                             f"anthropic/claude-3-5-sonnet-20241022 or openai/gpt-4o), or use --api-base for an "
-                             f"OpenAI-compatible server ({_first_line(exc, 120)})") from None
+                             f"anthropic/claude-sonnet-4-5 or openai/gpt-4o), or use --api-base for an "
+                             f"OpenAI-compatible server ({describe_error(exc, 120)})") from None
+        params = provider_request_params(self.litellm, model, self.provider, temperature=temperature,
+                                         max_tokens=max_tokens, seed=seed, timeout_s=timeout_s)
+        self._params = params.sent
+        self.dropped = params.dropped
+        if api_base:
+            self._params["api_base"] = api_base
 
     def request_params(self) -> dict[str, Any]:
-        params: dict[str, Any] = {"model": self.model, "max_tokens": self.max_tokens, "timeout": self.timeout_s}
-        if self.temperature is not None:
-            params["temperature"] = self.temperature
-        if self.seed is not None:
-            params["seed"] = self.seed
-        if self.api_base:
-            params["api_base"] = self.api_base
-        return params
+        return dict(self._params)
 
     def complete(self, messages: list[dict[str, str]]) -> LLMReply:
         params = self.request_params()
-        extra = {"api_key": self.api_key} if self.api_key else ({"api_key": "none"} if self.api_base else {})
+        extra = {"api_key": self.api_key} if self.api_key else ({"api_key": "none"} if self.api_base and
+                                                               self.provider in LOCAL_SERVER_PROVIDERS else {})
+        sent = with_cache_breakpoint(self.provider, messages)
         start = time.monotonic()
         for attempt in range(1, self.retries + 2):
             try:
-                response = self.litellm.completion(messages=messages, num_retries=0, **params, **extra)
+                response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
                 name = _error_name(exc)
                 fatal = name in FATAL
                 if fatal or attempt > self.retries:
-                    raise LLMError(name, _first_line(exc), attempt, fatal, time.monotonic() - start) from None
+                    raise LLMError(name, describe_error(exc), attempt, fatal, time.monotonic() - start) from None
                 time.sleep(self.backoff_s * 2 ** (attempt - 1))
                 continue
             return self._reply(response, attempt, time.monotonic() - start)
@@ -143,8 +185,10 @@ class LiteLLMClient:
             response_model=getattr(response, "model", None),
             response_id=getattr(response, "id", None),
             finish_reasons=[c.finish_reason for c in response.choices if getattr(c, "finish_reason", None)],
-            input_tokens=getattr(usage, "prompt_tokens", None),
-            output_tokens=getattr(usage, "completion_tokens", None),
+            input_tokens=_usage_number(usage, "prompt_tokens"),
+            output_tokens=_usage_number(usage, "completion_tokens"),
+            cached_input_tokens=_usage_number(usage, "prompt_tokens_details", "cached_tokens"),
+            cache_creation_input_tokens=_usage_number(usage, "cache_creation_input_tokens"),
             cost_usd=cost or None,
             latency_s=latency_s,
             attempts=attempts,
@@ -159,6 +203,7 @@ class ReplayClient:
     def __init__(self, replies: dict[str, str], model: str):
         self.replies = replies
         self.model = model
+        self.label = model
 
     def request_params(self) -> dict[str, Any]:
         return {"model": self.model, "replay": True}
@@ -169,6 +214,10 @@ class ReplayClient:
             raise LLMError("ReplayMiss", f"no stored reply for prompt {digest[:12]}", 1, fatal=True)
         return LLMReply(text=self.replies[digest], response_model=self.model, replayed=True, latency_s=0.0)
 
+
+OFFLINE_MODEL_LABEL = "offline:smollm2-135m-instruct"
+"""What ``runs.model`` says of a run made with the built-in offline model (its config says ``model: null``, so
+``--resume`` starts the local server again rather than calling the server's internal name as a hosted model)."""
 
 OFFLINE_TOKEN_BUDGET = 3_000
 OFFLINE_MAX_TOKENS = 512
@@ -181,14 +230,15 @@ def open_client(model: str | None, api_base: str | None, temperature: float, max
     With no model, SmolLM2 is started on 127.0.0.1 (``pipeline/local_llm.py``) and a one-time notice says it
     only exercises the pipeline; the caller stops the server when done.
     """
+    backoff_s = float(os.environ.get("CODEARCADE_LLM_BACKOFF_S", DEFAULT_BACKOFF_S))
     if model:
         return LiteLLMClient(model, api_base=api_base, temperature=temperature, max_tokens=max_tokens or 4096,
-                             seed=seed), None, None
+                             seed=seed, backoff_s=backoff_s), None, None
     from pipeline.local_llm import LocalModelServer, show_offline_model_notice
 
     show_offline_model_notice()
     server = LocalModelServer().start()
     max_tokens = max_tokens or OFFLINE_MAX_TOKENS
     client = LiteLLMClient(server.model, api_base=server.api_base, temperature=temperature, max_tokens=max_tokens,
-                           seed=seed)
+                           seed=seed, label=OFFLINE_MODEL_LABEL, backoff_s=backoff_s)
     return client, server, server.context_tokens - max_tokens

@@ -25,14 +25,16 @@ from __future__ import annotations
 import json
 import statistics
 import time
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, ContextManager
 
 from pipeline.executor import run_episodes
 from pipeline.feedback import FEEDBACK_MODES, compose_feedback
 from pipeline.games import get_game
 from pipeline.llm import LLMClient, LLMError, LLMReply
+from pipeline.providers import price
 from pipeline.prompt import Prompt, PromptBudgetError, build_prompt, canonical_messages, read_context
 from pipeline.reply import ReplyParseError, clean_text, parse_reply
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec
@@ -44,8 +46,9 @@ from pipeline.versions import policy_version_row
 from store import Store
 from store.db import utcnow
 from store.locks import run_lock
-from store.readers import get_run, policy_text
-from store.writer import finish_run, insert_policy_version, insert_run, put_blob, write_episode
+from store.readers import get_run, policy_text, run_spending, stored_reply
+from store.writer import (finish_run, insert_llm_call, insert_policy_version, insert_run, set_llm_call_outcome,
+                          write_episode)
 from tracing.policy_file import PolicyInfo, inspect_policy, read_policy_file
 
 MAX_CONSECUTIVE_LLM_FAILURES = 3
@@ -93,6 +96,26 @@ class OptimizeConfig:
     """Time limit of one policy call."""
     episode_time_limit_s: float = 900.0
     """Wall-clock limit of one episode."""
+    max_cost_usd: float | None = None
+    """Stop (status ``budget``) before an LLM call that could take the run's cost past this many USD, counting
+    the prompt and a reply of ``max_tokens`` at litellm's price; None: no limit. Needs a model litellm prices."""
+    max_total_tokens: int | None = None
+    """Stop (status ``budget``) before an LLM call that could take the run's input + output tokens past this."""
+    max_wall_minutes: float | None = None
+    """Stop (status ``budget``) before an iteration that, lasting as long as the last one, would take the run's
+    wall time (the sum of its iterations) past this many minutes."""
+
+
+BUDGET_FIELDS = ("max_cost_usd", "max_total_tokens", "max_wall_minutes")
+"""Limits of how far a run goes, not of what it does: ``--resume`` may change them, batch keys ignore them."""
+
+RESUME_OVERRIDES = BUDGET_FIELDS + ("model", "api_base", "iterations", "token_budget", "workers",
+                                    "call_time_limit_s", "episode_time_limit_s")
+"""Settings that ``--resume`` takes from the command line; every other setting is the run's own."""
+
+
+class BudgetExhausted(Exception):
+    """The next step would exceed one of the run's budgets; the run stops with status ``budget``."""
 
 
 @dataclass
@@ -132,6 +155,8 @@ class _State:
     llm_failures: int = 0
     rerun: str | None = None
     """Live Rerun recordings of this invocation's episodes (``EpisodeSpec.rerun``); an output option, not recorded."""
+    waiting: Callable[[int, str], ContextManager[None]] = lambda iteration, model: nullcontext()
+    """Wrapped around each LLM call (iteration, model label): the CLI shows how long it has been waiting."""
 
 
 def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
@@ -164,6 +189,11 @@ def _validate_config(config: OptimizeConfig) -> None:
         raise ValueError(f"--feedback must be one of {', '.join(FEEDBACK_MODES)}")
     if not 0.0 <= config.rollback_fraction <= 1.0:
         raise ValueError("--rollback-fraction must be within [0, 1]")
+    for name, flag in (("max_cost_usd", "--max-cost"), ("max_total_tokens", "--max-total-tokens"),
+                       ("max_wall_minutes", "--max-wall")):
+        value = getattr(config, name)
+        if value is not None and value <= 0:
+            raise ValueError(f"{flag} must be above 0, got {value:g}")
 
 
 def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str = "optimize",
@@ -179,7 +209,7 @@ def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str =
         info, game = starter, get_game(config.game or starter.game).name
     settings = task_settings(info, game)
     run_id = new_run_id()
-    record = {**asdict(config), "game": game, "model": model_name,
+    record = {**asdict(config), "game": game,
               "rollout_steps": config.rollout_steps or settings.rollout_steps,
               "eval_max_steps": config.eval_max_steps or settings.eval_max_steps,
               "instruction": settings.instruction, "feedback_bands": asdict(settings.feedback), **(extra or {})}
@@ -231,46 +261,78 @@ def _version_text(store: Store, run_id: str, version_id: str) -> str:
         return policy_text(con, run_id, version_id)
 
 
-def _stored_reply(store: Store, run_id: str, iteration: int, digest: str) -> tuple[str, str] | None:
-    rows = store.query(
-        "SELECT c.call_id, b.text FROM llm_calls c JOIN blobs b ON b.hash = c.reply_hash "
-        "WHERE c.run_id = ? AND c.iteration = ? AND c.prompt_hash = ? AND c.error_type IS NULL "
-        "ORDER BY c.created_at LIMIT 1", [run_id, iteration, digest])
-    return (rows[0][0], rows[0][1]) if rows else None
-
-
 def _record_call(store: Store, state: _State, iteration: int, client: LLMClient, prompt: Prompt,
                  reply: LLMReply | None, error: LLMError | None) -> str:
+    """Write the ``llm_calls`` row of one call (or failed call); return its id."""
     call_id = new_run_id()
+    params = client.request_params()
+    row = {
+        "call_id": call_id, "run_id": state.run_id, "iteration": iteration, "purpose": "update",
+        "operation_name": "chat", "provider_name": client.provider, "request_model": client.model,
+        "request_temperature": params.get("temperature"),
+        "request_max_tokens": params.get("max_tokens", params.get("max_completion_tokens")),
+        "request_seed": params.get("seed"), "request_params": json.dumps(params, sort_keys=True),
+        "prompt_tokens_counted": prompt.tokens,
+        "latency_s": reply.latency_s if reply else (error.latency_s if error else None),
+        "attempts": reply.attempts if reply else (error.attempts if error else 1),
+        "replayed": bool(reply.replayed) if reply else False,
+    }
+    if reply is not None:
+        row.update(response_model=reply.response_model, response_id=reply.response_id,
+                   finish_reasons=reply.finish_reasons, input_tokens=reply.input_tokens,
+                   output_tokens=reply.output_tokens, cached_input_tokens=reply.cached_input_tokens,
+                   cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd)
+    if error is not None:
+        row.update(error_type=error.error_type, error_message=error.message)
     with store.write() as con:
-        prompt_digest = put_blob(con, "prompt", canonical_messages(prompt.messages))
-        reply_digest = put_blob(con, "reply", clean_text(reply.text)) if reply is not None else None
-        params = client.request_params()
-        con.execute(
-            """INSERT INTO llm_calls (call_id, run_id, iteration, purpose, created_at, operation_name,
-                   provider_name, request_model, response_model, request_temperature, request_max_tokens,
-                   request_seed, request_params, prompt_hash, reply_hash, response_id, finish_reasons,
-                   input_tokens, output_tokens, prompt_tokens_counted, cost_usd, latency_s, attempts,
-                   error_type, error_message, replayed)
-               VALUES (?, ?, ?, 'update', ?, 'chat', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
-            [call_id, state.run_id, iteration, utcnow(), client.provider, client.model,
-             reply.response_model if reply else None, params.get("temperature"), params.get("max_tokens"),
-             params.get("seed"), json.dumps(params, sort_keys=True), prompt_digest, reply_digest,
-             reply.response_id if reply else None, reply.finish_reasons if reply else None,
-             reply.input_tokens if reply else None, reply.output_tokens if reply else None, prompt.tokens,
-             reply.cost_usd if reply else None, reply.latency_s if reply else (error.latency_s if error else None),
-             reply.attempts if reply else (error.attempts if error else 1),
-             error.error_type if error else None, error.message if error else None,
-             bool(reply.replayed) if reply else False],
-        )
+        insert_llm_call(con, row, canonical_messages(prompt.messages),
+                        clean_text(reply.text) if reply is not None else None)
     return call_id
 
 
 def _set_call_outcome(store: Store, call_id: str, suggestion: dict[str, str] | None, parse_error: str | None) -> None:
     with store.write() as con:
-        digest = put_blob(con, "suggestion", json.dumps(suggestion, sort_keys=True)) if suggestion is not None else None
-        con.execute("UPDATE llm_calls SET suggestion_hash = ?, parse_error = ? WHERE call_id = ?",
-                    [digest, parse_error, call_id])
+        set_llm_call_outcome(con, call_id, json.dumps(suggestion, sort_keys=True) if suggestion is not None else None,
+                             parse_error)
+
+
+def _check_budgets(store: Store, state: _State, client: LLMClient, prompt: Prompt) -> None:
+    """Raise :class:`BudgetExhausted` if the call about to be made could take the run past a budget: its
+    prompt plus a reply of the longest length asked for, priced at litellm's rates."""
+    c = state.config
+    if c.max_cost_usd is None and c.max_total_tokens is None:
+        return
+    with store.read() as con:
+        spent = run_spending(con, state.run_id)
+    worst_tokens = prompt.tokens + c.max_tokens
+    if c.max_total_tokens is not None and spent["tokens"] + worst_tokens > c.max_total_tokens:
+        raise BudgetExhausted(
+            f"token budget: {spent['tokens']:,} tokens used, the next call may use up to {worst_tokens:,} "
+            f"(prompt {prompt.tokens:,} + reply up to {c.max_tokens:,}), over --max-total-tokens "
+            f"{c.max_total_tokens:,}")
+    if c.max_cost_usd is not None:
+        rates = price(client.model)
+        if rates is None:
+            raise BudgetExhausted(f"--max-cost needs a price for {client.label}, and litellm has none: use "
+                                  "--max-total-tokens instead")
+        worst = rates.cost(prompt.tokens, c.max_tokens)
+        if spent["cost_usd"] + worst > c.max_cost_usd:
+            raise BudgetExhausted(
+                f"cost budget: ${spent['cost_usd']:.4f} spent, the next call may cost up to ${worst:.4f}, over "
+                f"--max-cost ${c.max_cost_usd:g}")
+
+
+def _check_wall(store: Store, state: _State) -> None:
+    """Raise :class:`BudgetExhausted` if another iteration as long as the last would pass ``max_wall_minutes``."""
+    limit = state.config.max_wall_minutes
+    if limit is None:
+        return
+    with store.read() as con:
+        spent = run_spending(con, state.run_id)
+    if spent["wall_s"] + spent["last_wall_s"] > limit * 60:
+        raise BudgetExhausted(
+            f"time budget: the run has taken {spent['wall_s'] / 60:.1f} min and its last iteration "
+            f"{spent['last_wall_s'] / 60:.1f} min, over --max-wall {limit:g} min")
 
 
 def _update(store: Store, state: _State, iteration: int, client: LLMClient, counter: TokenCounter,
@@ -286,13 +348,16 @@ def _update(store: Store, state: _State, iteration: int, client: LLMClient, coun
     except PromptBudgetError as exc:
         raise ValueError(str(exc)) from None
 
-    stored = _stored_reply(store, state.run_id, iteration, prompt.hash)
+    with store.read() as con:
+        stored = stored_reply(con, state.run_id, iteration, prompt.hash)
     if stored is not None:
         call_id, text = stored
         log(f"iteration {iteration}: reusing the reply stored for this prompt")
     else:
+        _check_budgets(store, state, client, prompt)
         try:
-            reply = client.complete(prompt.messages)
+            with state.waiting(iteration, client.label):
+                reply = client.complete(prompt.messages)
         except LLMError as exc:
             call_id = _record_call(store, state, iteration, client, prompt, None, exc)
             state.llm_failures += 1
@@ -427,14 +492,20 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
             con.execute("UPDATE runs SET status = 'running', finished_at = NULL, error = NULL WHERE run_id = ?",
                         [state.run_id])
         for iteration in range(state.next_iteration, state.config.iterations + 1):
+            if iteration > 0:
+                _check_wall(store, state)
             item = run_iteration(store, state, iteration, client, counter, log, progress)
             result.iterations.append(item)
             if on_iteration is not None:
                 on_iteration(item)
-        status = "finished"
+        status, error = "finished", _all_updates_failed(store, state.run_id)
+        if error is not None:
+            status = "failed"
     except KeyboardInterrupt:
         status, error = "interrupted", "interrupted by the user; continue with --resume"
         raise
+    except BudgetExhausted as exc:
+        status, error = "budget", f"{exc}; continue with a larger budget and --resume"
     except LLMError as exc:
         status, error = "failed", f"the LLM call failed: {exc}"
     except Exception as exc:
@@ -447,20 +518,93 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
     return result
 
 
+def _all_updates_failed(store: Store, run_id: str) -> str | None:
+    """Why a run whose every update ended in an LLM error is not a success, or None."""
+    with store.read() as con:
+        updates, failed, last_error = con.execute(
+            "SELECT count(*), count(*) FILTER (WHERE i.update_status = 'llm_error'), "
+            "(SELECT arg_max(error_type || ': ' || error_message, created_at) FROM llm_calls "
+            " WHERE run_id = ? AND error_type IS NOT NULL) "
+            "FROM iterations i WHERE i.run_id = ? AND i.iteration > 0", [run_id, run_id]).fetchone()
+    if updates and failed == updates:
+        return f"every LLM call failed ({failed} of {updates} updates; last: {last_error})"
+    return None
+
+
+@dataclass
+class ResumePlan:
+    """What ``--resume`` will do: continue ``config`` (the run's own settings, with the command line's
+    budgets, limits and endpoint), or nothing, with a message saying why."""
+
+    run_id: str
+    config: OptimizeConfig
+    status: str
+    nothing_to_do: str | None = None
+
+
+def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
+    """How to resume ``run`` (an id or a unique prefix of one) with the options ``given`` on the command line.
+
+    Only :data:`RESUME_OVERRIDES` may be given; ``iterations`` may extend a run, never shrink it. A finished run
+    is left as it is unless more iterations are asked for; an eval or replay run cannot be resumed.
+    """
+    from pipeline.llm import OFFLINE_MODEL_LABEL
+    from pipeline.local_llm import MODEL_ALIAS
+    from store.views import resolve_run_id
+
+    with store.read() as con:
+        run_id = resolve_run_id(con, run, store)
+        row = get_run(con, run_id)
+        done = con.execute("SELECT count(*) FROM iterations WHERE run_id = ?", [run_id]).fetchone()[0]
+    if row["kind"] != "optimize":
+        raise ValueError(f"run {run_id} is an {row['kind']} run: only optimization runs can be resumed "
+                         f"({'evaluate the policy again with codearcade eval' if row['kind'] == 'eval' else 'replay the original run again'})")
+    fixed = sorted(k for k in given if k not in RESUME_OVERRIDES)
+    if fixed:
+        flags = ", ".join("--" + k.replace("_s", "").replace("_", "-") for k in fixed)
+        raise ValueError(f"{flags} cannot change when resuming run {run_id}: they are part of its settings "
+                         "(start a new run instead)")
+    recorded = json.loads(row["config"])
+    config = OptimizeConfig(**{k: recorded[k] for k in OptimizeConfig.__dataclass_fields__ if k in recorded})
+    if config.model == f"openai/{MODEL_ALIAS}" and not config.api_base or row["model"] == OFFLINE_MODEL_LABEL:
+        config.model = None  # the offline model (runs made before its name was recorded as asked for)
+    if given.get("iterations") is not None and given["iterations"] < config.iterations:
+        raise ValueError(f"run {run_id} has {config.iterations} iterations planned; --iterations can only extend "
+                         f"it, not shrink it")
+    for key, value in given.items():
+        setattr(config, key, value)
+    _validate_config(config)
+    if row["status"] == "finished" and done >= config.iterations + 1:
+        return ResumePlan(run_id, config, row["status"], nothing_to_do=(
+            f"run {run_id} is finished ({done - 1} of {config.iterations} iterations); nothing to do. "
+            f"Give --iterations N (more than {config.iterations}) to extend it"))
+    return ResumePlan(run_id, config, row["status"])
+
+
 def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: str | None = None,
              log: Callable[[str], None] = lambda s: None,
              on_iteration: Callable[[IterationResult], None] | None = None,
              progress: Callable[[int, int], None] | None = None,
-             tags: dict[str, Any] | None = None, rerun: str | None = None) -> OptimizeResult:
+             tags: dict[str, Any] | None = None, rerun: str | None = None,
+             waiting: Callable[[int, str], ContextManager[None]] | None = None) -> OptimizeResult:
     """Start (or, with ``resume``, continue) an optimization run with ``client``; ``tags`` go into its config;
-    ``rerun``: live Rerun recordings of the episodes (a directory or a gRPC url, see ``EpisodeSpec.rerun``)."""
+    ``rerun``: live Rerun recordings of the episodes (a directory or a gRPC url, see ``EpisodeSpec.rerun``).
+
+    With ``resume``, ``config`` is the one :func:`plan_resume` made: its budgets, limits and endpoint replace
+    the stored ones (and are recorded), the rest is the run's own.
+    """
     _validate_config(config)
-    run_id = resume or start_run(config, store, client.model, extra=tags)
+    run_id = resume or start_run(config, store, client.label, extra=tags)
     state = load_state(store, run_id)
     state.rerun = rerun
-    if resume and config.iterations > state.config.iterations:
-        state.config.iterations = config.iterations  # resuming may extend a run, never shrink it
-        with store.write() as con:
-            con.execute("UPDATE runs SET config = json_merge_patch(config, ?) WHERE run_id = ?",
-                        [json.dumps({"iterations": config.iterations}), run_id])
+    if waiting is not None:
+        state.waiting = waiting
+    if resume:
+        changed = {k: getattr(config, k) for k in RESUME_OVERRIDES if getattr(config, k) != getattr(state.config, k)}
+        if changed:
+            for key, value in changed.items():
+                setattr(state.config, key, value)
+            with store.write() as con:
+                con.execute("UPDATE runs SET config = json_merge_patch(config, ?) WHERE run_id = ?",
+                            [json.dumps(changed), run_id])
     return run_loop(store, state, client, log, on_iteration, progress)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import duckdb
 
-from store.locks import lock_path
+from store.locks import run_is_live
 
 CHECKS: list[tuple[str, str]] = [
     ("orphan rows: run missing", """
@@ -88,25 +88,9 @@ def check_store(con: duckdb.DuckDBPyConnection, store_path) -> list[Finding]:
             findings.append(Finding(name, rows))
     stale = []
     for (run_id,) in con.execute("SELECT run_id FROM runs WHERE status = 'running'").fetchall():
-        if not _lock_held(lock_path(store_path, run_id)):
+        if not run_is_live(store_path, run_id):
             stale.append((run_id,))
     if stale:
         findings.append(Finding("runs interrupted (no process is working on them; finish with --resume)", stale,
                                 warning=True))
     return findings
-
-
-def _lock_held(path) -> bool:
-    import fcntl
-    import os
-
-    if not os.path.exists(path):
-        return False
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        return False
-    except BlockingIOError:
-        return True
-    finally:
-        os.close(fd)

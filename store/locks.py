@@ -42,3 +42,19 @@ def run_lock(store_path: str | os.PathLike, run_id: str) -> Iterator[None]:
         yield
     finally:
         os.close(fd)  # closing drops the lock
+
+
+def run_is_live(store_path: str | os.PathLike, run_id: str) -> bool:
+    """Whether some live process holds the run's lock (a run left ``running`` without one was killed)."""
+    path = lock_path(store_path, run_id)
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return False
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)

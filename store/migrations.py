@@ -307,4 +307,36 @@ MIGRATIONS.append(
     )
 )
 
+MIGRATIONS.append(
+    (
+        5,
+        "prompt caching in llm_calls; llm_usage counts cached tokens and the runs stopped by a budget",
+        r"""
+        ALTER TABLE llm_calls ADD COLUMN cached_input_tokens INTEGER;   -- gen_ai.usage.cache_read.input_tokens
+        ALTER TABLE llm_calls ADD COLUMN cache_creation_input_tokens INTEGER;  -- gen_ai.usage.cache_creation.input_tokens
+        CREATE OR REPLACE VIEW llm_usage AS
+        SELECT r.run_id, r.kind, r.model,
+               count(c.call_id)::INTEGER AS calls,
+               count(c.error_type)::INTEGER AS errors,
+               count(c.parse_error)::INTEGER AS parse_errors,
+               (count(c.call_id) FILTER (WHERE c.replayed))::INTEGER AS replayed,
+               coalesce(sum(c.input_tokens), 0)::BIGINT AS input_tokens,
+               coalesce(sum(c.output_tokens), 0)::BIGINT AS output_tokens,
+               (coalesce(sum(c.input_tokens), 0) + coalesce(sum(c.output_tokens), 0))::BIGINT AS total_tokens,
+               coalesce(sum(c.cached_input_tokens), 0)::BIGINT AS cached_input_tokens,
+               coalesce(sum(c.cache_creation_input_tokens), 0)::BIGINT AS cache_creation_input_tokens,
+               sum(c.cost_usd) AS cost_usd,
+               coalesce(sum(c.latency_s), 0) AS latency_s,
+               avg(c.latency_s) AS mean_latency_s,
+               max(c.latency_s) AS max_latency_s,
+               coalesce(sum(c.attempts), 0)::INTEGER AS attempts,
+               (coalesce(sum(c.attempts), 0) - count(c.call_id))::INTEGER AS retries,
+               string_agg(DISTINCT c.request_model, ', ' ORDER BY c.request_model) AS request_models
+        FROM runs r
+        LEFT JOIN llm_calls c ON c.run_id = r.run_id
+        GROUP BY r.run_id, r.kind, r.model;
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

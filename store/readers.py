@@ -88,3 +88,23 @@ def policy_text(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) ->
     if row is None:
         raise KeyError(f"run {run_id} has no policy version {version_id}")
     return row[0]
+
+
+def run_spending(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, float]:
+    """What a run has used so far: LLM cost (USD, calls with a known price), tokens, and iteration wall time."""
+    cost, tokens = con.execute(
+        "SELECT coalesce(sum(cost_usd), 0), coalesce(sum(coalesce(input_tokens, 0) + coalesce(output_tokens, 0)), 0) "
+        "FROM llm_calls WHERE run_id = ? AND NOT replayed", [run_id]).fetchone()
+    wall, last_wall = con.execute(
+        "SELECT coalesce(sum(wall_s), 0), coalesce(arg_max(wall_s, iteration), 0) FROM iterations WHERE run_id = ?",
+        [run_id]).fetchone()
+    return {"cost_usd": float(cost), "tokens": int(tokens), "wall_s": float(wall), "last_wall_s": float(last_wall)}
+
+
+def stored_reply(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int, prompt_hash: str) -> tuple[str, str] | None:
+    """(call id, reply text) of a successful call already made for this prompt in this iteration, if any."""
+    row = con.execute(
+        "SELECT c.call_id, b.text FROM llm_calls c JOIN blobs b ON b.hash = c.reply_hash "
+        "WHERE c.run_id = ? AND c.iteration = ? AND c.prompt_hash = ? AND c.error_type IS NULL "
+        "ORDER BY c.created_at LIMIT 1", [run_id, iteration, prompt_hash]).fetchone()
+    return (row[0], row[1]) if row else None

@@ -60,7 +60,7 @@ def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Store | Non
         "SELECT run_id FROM runs WHERE starts_with(run_id, ?) ORDER BY run_id LIMIT 6", [text.strip()]).fetchall()]
     where = f" in {store.path}" if store is not None else ""
     if not matches or not text.strip():
-        raise ValueError(f"no run {text!r}{where}; `codearcade runs` lists the runs")
+        raise ValueError(f"no run {text.strip() or repr(text)}{where}; `codearcade runs` lists the runs")
     if text.strip() in matches:
         return text.strip()
     if len(matches) > 1:

@@ -64,6 +64,27 @@ def finish_run(con: duckdb.DuckDBPyConnection, run_id: str, status: str, error: 
     )
 
 
+def insert_llm_call(con: duckdb.DuckDBPyConnection, row: dict[str, Any], prompt_text: str,
+                    reply_text: str | None) -> None:
+    """Insert one ``llm_calls`` row (``row`` holds its columns by name); the prompt and reply are stored as
+    blobs and referenced by hash."""
+    row = dict(row)
+    row["prompt_hash"] = put_blob(con, "prompt", prompt_text)
+    row["reply_hash"] = put_blob(con, "reply", reply_text) if reply_text is not None else None
+    row.setdefault("created_at", utcnow())
+    columns = list(row)
+    con.execute(f"INSERT INTO llm_calls ({', '.join(columns)}) VALUES ({', '.join('?' * len(columns))})",
+                [row[c] for c in columns])
+
+
+def set_llm_call_outcome(con: duckdb.DuckDBPyConnection, call_id: str, suggestion_json: str | None,
+                         parse_error: str | None) -> None:
+    """Record what the reply of ``call_id`` parsed into (a suggestion, stored as a blob) or why it did not."""
+    digest = put_blob(con, "suggestion", suggestion_json) if suggestion_json is not None else None
+    con.execute("UPDATE llm_calls SET suggestion_hash = ?, parse_error = ? WHERE call_id = ?",
+                [digest, parse_error, call_id])
+
+
 def insert_policy_version(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -> None:
     """Insert one ``policy_versions`` row (``row`` holds its columns; ``source`` is stored as a blob)."""
     row = dict(row)

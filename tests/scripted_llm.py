@@ -1,22 +1,35 @@
-"""A scripted model behind a real OpenAI-compatible HTTP endpoint on 127.0.0.1, for deterministic tests.
+"""A scripted model behind a real HTTP endpoint on 127.0.0.1 that speaks each provider's own wire protocol.
 
 No hosted LLM is reachable here, so the tests talk to this server through litellm exactly as codearcade
-talks to a provider: real HTTP, the chat-completions JSON shape, usage counts. It runs in its own process
-(codearcade forks episode workers; a server thread in the test process would be forked along).
+talks to a provider: real HTTP, and litellm's own adapter for the provider builds the request and parses the
+reply. One server answers every protocol, chosen by the request's path:
 
-The script is a JSON list consumed one entry per request (the last entry repeats):
-- ``"text"`` or ``{"content": "text"}``: a normal reply;
-- ``{"status": 503}``: an HTTP error (``"times": n`` repeats it n times before moving on);
+- ``POST …/chat/completions``: OpenAI chat completions (``openai/NAME``, ``hosted_vllm/NAME``, ``mistral/NAME``);
+- ``POST …/v1/messages``: Anthropic Messages (``anthropic/NAME``), with prompt caching: blocks marked
+  ``cache_control`` are reported as ``cache_creation_input_tokens`` the first time and as
+  ``cache_read_input_tokens`` after;
+- ``POST …/api/chat``: Ollama's chat API (``ollama_chat/NAME``; ``/api/show``, its model metadata, is answered
+  and not logged);
+- ``POST …/models/NAME:generateContent``: Gemini's generateContent (``gemini/NAME``).
+
+It runs in its own process (codearcade forks episode workers; a server thread in the test process would be
+forked along). The script is a JSON list consumed one entry per request (the last entry repeats):
+- ``"text"`` or ``{"content": "text"}``: a normal reply (``"usage": {"input": n, "output": m}`` overrides the
+  token counts, which are otherwise the words of the prompt and of the reply);
+- ``{"status": 503}``: an HTTP error in the protocol's own error shape (``"times": n`` repeats it n times
+  before moving on; 401 is an authentication error, 400 a bad request, 429 a rate limit);
 - ``{"sleep": seconds, "content": ...}``: reply late (to exercise time-outs);
 - ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash.
-Every request's messages are appended to a JSONL log, so tests can read the prompts the loop sent.
+Every request is appended to a JSONL log (protocol, path, the auth headers, the body, and the messages in
+one normalized form), so tests can read what the loop sent.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import re
 import socket
 import subprocess
 import sys
@@ -25,9 +38,14 @@ import urllib.request
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+LOGGED_HEADERS = ("authorization", "x-api-key", "x-goog-api-key", "anthropic-version", "anthropic-beta")
+
 
 class ScriptedModel:
-    """Start with ``with ScriptedModel(script, tmp_path) as model:``; use ``model.model`` and ``model.api_base``."""
+    """Start with ``with ScriptedModel(script, tmp_path) as model:``; use ``model.model`` and ``model.api_base``.
+
+    ``model``/``api_base`` give the OpenAI route; :meth:`route` gives (model, api_base) for another protocol.
+    """
 
     model = "openai/scripted"
 
@@ -43,6 +61,13 @@ class ScriptedModel:
     @property
     def api_base(self) -> str:
         return f"http://127.0.0.1:{self.port}/v1"
+
+    def route(self, provider: str, name: str = "scripted") -> tuple[str, str]:
+        """(``--model``, ``--api-base``) that reach this server through litellm's adapter for ``provider``."""
+        root = f"http://127.0.0.1:{self.port}"
+        bases = {"openai": root + "/v1", "hosted_vllm": root + "/v1", "mistral": root + "/v1",
+                 "anthropic": root, "ollama_chat": root, "gemini": root + "/v1beta"}
+        return f"{provider}/{name}", bases[provider]
 
     def start(self) -> "ScriptedModel":
         with socket.socket() as s:
@@ -72,15 +97,124 @@ class ScriptedModel:
     def __exit__(self, *exc) -> None:
         self.stop()
 
-    def requests(self) -> list[list[dict]]:
+    def raw_requests(self) -> list[dict]:
+        """Every request as logged: protocol, path, headers, body, messages."""
         if not self.log_path.exists():
             return []
         return [json.loads(line) for line in self.log_path.read_text().splitlines() if line.strip()]
+
+    def requests(self) -> list[list[dict]]:
+        """The messages of every request, normalized to ``[{"role", "content"}]`` with text content."""
+        return [r["messages"] for r in self.raw_requests()]
+
+
+def _text(content) -> str:
+    """The text of a message content in any protocol's shape (a string, or a list of blocks or parts)."""
+    if isinstance(content, str):
+        return content
+    if isinstance(content, list):
+        return "".join(b.get("text", "") if isinstance(b, dict) else str(b) for b in content)
+    return ""
+
+
+def _normalize(protocol: str, body: dict) -> list[dict]:
+    if protocol == "anthropic":
+        out = []
+        if body.get("system"):
+            out.append({"role": "system", "content": _text(body["system"])})
+        return out + [{"role": m["role"], "content": _text(m.get("content"))} for m in body.get("messages", [])]
+    if protocol == "gemini":
+        out = []
+        system = body.get("system_instruction") or body.get("systemInstruction")
+        if system:
+            out.append({"role": "system", "content": _text(system.get("parts"))})
+        return out + [{"role": "user" if c.get("role") == "user" else "assistant", "content": _text(c.get("parts"))}
+                      for c in body.get("contents", [])]
+    return [{"role": m["role"], "content": _text(m.get("content"))} for m in body.get("messages", [])]
+
+
+def _cached_prefix(protocol: str, body: dict) -> str:
+    """The text of the blocks an Anthropic request marks for caching (and everything before them)."""
+    if protocol != "anthropic":
+        return ""
+    blocks = []
+    system = body.get("system")
+    blocks += system if isinstance(system, list) else ([{"text": system}] if system else [])
+    for m in body.get("messages", []):
+        content = m.get("content")
+        blocks += content if isinstance(content, list) else [{"text": content or ""}]
+    last = max((i for i, b in enumerate(blocks) if isinstance(b, dict) and b.get("cache_control")), default=-1)
+    return "".join(b.get("text", "") for b in blocks[: last + 1])
+
+
+ERRORS = {
+    400: ("invalid_request_error", "bad request"), 401: ("authentication_error", "invalid api key"),
+    403: ("permission_error", "forbidden"), 404: ("not_found_error", "model not found"),
+    429: ("rate_limit_error", "rate limited"), 500: ("api_error", "internal error"),
+    503: ("overloaded_error", "overloaded"), 529: ("overloaded_error", "overloaded"),
+}
+
+
+def _error_body(protocol: str, status: int) -> dict:
+    kind, text = ERRORS.get(status, ("api_error", "error"))
+    message = f"scripted error {status}: {text}"
+    if protocol == "anthropic":
+        return {"type": "error", "error": {"type": kind, "message": message}}
+    if protocol == "ollama":
+        return {"error": message}
+    if protocol == "gemini":
+        return {"error": {"code": status, "message": message, "status": kind.upper()}}
+    return {"error": {"message": message, "type": kind, "code": kind}}
+
+
+def _reply_body(protocol: str, body: dict, content: str, count: int, input_tokens: int, output_tokens: int,
+                cache: dict) -> dict:
+    name = body.get("model", "scripted")
+    if protocol == "anthropic":
+        prefix = _cached_prefix(protocol, body)
+        created = read = 0
+        if prefix:
+            tokens = len(prefix.split())
+            if hashlib.sha256(prefix.encode()).hexdigest() in cache:
+                read = tokens
+            else:
+                created = tokens
+                cache[hashlib.sha256(prefix.encode()).hexdigest()] = True
+        return {"id": f"msg_scripted_{count}", "type": "message", "role": "assistant", "model": name,
+                "content": [{"type": "text", "text": content}], "stop_reason": "end_turn", "stop_sequence": None,
+                "usage": {"input_tokens": input_tokens - created - read, "output_tokens": output_tokens,
+                          "cache_creation_input_tokens": created, "cache_read_input_tokens": read}}
+    if protocol == "ollama":
+        return {"model": name, "created_at": "2026-12-01T00:00:00Z",
+                "message": {"role": "assistant", "content": content}, "done": True, "done_reason": "stop",
+                "total_duration": 1000, "prompt_eval_count": input_tokens, "eval_count": output_tokens}
+    if protocol == "gemini":
+        return {"candidates": [{"content": {"parts": [{"text": content}], "role": "model"},
+                                "finishReason": "STOP", "index": 0}],
+                "usageMetadata": {"promptTokenCount": input_tokens, "candidatesTokenCount": output_tokens,
+                                  "totalTokenCount": input_tokens + output_tokens},
+                "modelVersion": name}
+    return {"id": f"chatcmpl-scripted-{count}", "object": "chat.completion", "created": 0, "model": name,
+            "choices": [{"index": 0, "message": {"role": "assistant", "content": content}, "finish_reason": "stop"}],
+            "usage": {"prompt_tokens": input_tokens, "completion_tokens": output_tokens,
+                      "total_tokens": input_tokens + output_tokens}}
+
+
+def _protocol(path: str) -> str:
+    path = path.split("?", 1)[0]
+    if path.endswith("/messages"):
+        return "anthropic"
+    if path.endswith("/api/chat"):
+        return "ollama"
+    if re.search(r":(stream)?[gG]enerateContent$", path):
+        return "gemini"
+    return "openai"
 
 
 def _serve(script_path: str, log_path: str, port: int) -> None:
     script = json.loads(Path(script_path).read_text())
     state = {"index": 0, "repeats": 0, "count": 0}
+    cache: dict = {}
 
     def next_entry():
         entry = script[min(state["index"], len(script) - 1)]
@@ -99,18 +233,21 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
 
         def do_GET(self):
             body = json.dumps({"status": "ok", "data": [{"id": "scripted", "object": "model"}]}).encode()
-            self.send_response(200)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
+            self._send(200, body)
 
         def do_POST(self):
             length = int(self.headers.get("Content-Length", 0))
             request = json.loads(self.rfile.read(length) or b"{}")
-            messages = request.get("messages", [])
+            if self.path.endswith("/api/show"):  # Ollama's model metadata, which litellm asks for after a reply
+                self._send(200, json.dumps({"template": "", "parameters": "", "details": {"family": "qwen2"},
+                                            "model_info": {"qwen2.context_length": 32768}}).encode())
+                return
+            protocol = _protocol(self.path)
+            messages = _normalize(protocol, request)
+            headers = {k: self.headers[k] for k in LOGGED_HEADERS if self.headers.get(k) is not None}
             with open(log_path, "a") as log:
-                log.write(json.dumps(messages) + "\n")
+                log.write(json.dumps({"protocol": protocol, "path": self.path, "headers": headers, "body": request,
+                                      "messages": messages}) + "\n")
             entry = next_entry()
             state["count"] += 1
             if isinstance(entry, str):
@@ -118,8 +255,7 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             if "sleep" in entry:
                 time.sleep(entry["sleep"])
             if "status" in entry:
-                body = json.dumps({"error": {"message": f"scripted error {entry['status']}", "type": "server_error"}})
-                self._send(entry["status"], body.encode())
+                self._send(entry["status"], json.dumps(_error_body(protocol, entry["status"])).encode())
                 return
             if "raw" in entry:
                 self._send(200, entry["raw"].encode("latin-1"))
@@ -128,16 +264,11 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             if entry.get("echo_prompt"):
                 digest = hashlib.sha256(json.dumps(messages, sort_keys=True).encode()).hexdigest()
                 content = f"prompt {digest}"
-            prompt_tokens = sum(len(m.get("content", "").split()) for m in messages)
-            body = {
-                "id": f"chatcmpl-scripted-{state['count']}", "object": "chat.completion", "created": 0,
-                "model": "scripted",
-                "choices": [{"index": 0, "message": {"role": "assistant", "content": content},
-                             "finish_reason": "stop"}],
-                "usage": {"prompt_tokens": prompt_tokens, "completion_tokens": len(content.split()),
-                          "total_tokens": prompt_tokens + len(content.split())},
-            }
-            self._send(200, json.dumps(body).encode())
+            usage = entry.get("usage", {})
+            input_tokens = usage.get("input", sum(len(m["content"].split()) for m in messages))
+            output_tokens = usage.get("output", len(content.split()))
+            self._send(200, json.dumps(_reply_body(protocol, request, content, state["count"], input_tokens,
+                                                   output_tokens, cache)).encode())
 
         def _send(self, status: int, body: bytes):
             self.send_response(status)

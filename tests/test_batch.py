@@ -134,7 +134,7 @@ def test_ablation_example_and_its_sql(tmp_path, store, scripted):
     assert data["matrix"] == {"feedback": ["rollout", "staged"], "seed": [0, 1, 2]}
     assert len(load_experiments(ROOT / "examples" / "ablation.toml").runs) == 6
     short = source.replace("iterations = 20", "iterations = 1\neval_max_steps = 200\nrollout_steps = 60") \
-        .replace('model = "anthropic/claude-3-5-sonnet-20241022"', f'model = "{model.model}"\napi_base = "{model.api_base}"')
+        .replace('model = "anthropic/claude-sonnet-4-5"  # the paper used Claude 3.5 Sonnet (Oct 2024), since retired', f'model = "{model.model}"\napi_base = "{model.api_base}"')
     path = tmp_path / "ablation.toml"
     path.write_text(short)
     done = _batch(path, store, "--workers", "2")
@@ -143,3 +143,45 @@ def test_ablation_example_and_its_sql(tmp_path, store, scripted):
     rows = store.query(sql)
     assert [r[0] for r in rows] == ["rollout", "staged"]
     assert all(r[1] == 3 and r[5] == 1 for r in rows), rows
+
+
+def test_anthropic_batch_with_a_token_budget_stops_then_resumes_with_a_larger_one(tmp_path, store, scripted):
+    """An Anthropic model in a batch (no seed sent), a missing key refused before any run starts, and a
+    per-run budget: status `budget`, then the same batch with a larger budget resumes the same runs."""
+    model = scripted([{"content": "No change.", "usage": {"input": 3000, "output": 100}}])
+    route, base = model.route("anthropic", "claude-sonnet-4-5")
+
+    def write(budget):
+        path = tmp_path / "anthropic.toml"
+        path.write_text(textwrap.dedent(f"""
+            name = "anthropic"
+            [defaults]
+            game = "pong"
+            iterations = 3
+            eval_max_steps = 200
+            rollout_steps = 50
+            token_budget = 2500
+            max_tokens = 200
+            max_total_tokens = {budget}
+            model = "{route}"
+            api_base = "{base}"
+            [matrix]
+            seed = [0, 1]
+        """))
+        return path
+
+    env = {k: v for k, v in os.environ.items() if k != "ANTHROPIC_API_KEY"}
+    refused = _batch(write(7000), store, env=env)
+    assert refused.returncode == 2 and "ANTHROPIC_API_KEY" in refused.stderr and not store.exists()
+    env["ANTHROPIC_API_KEY"] = "sk-ant-scripted"
+    done = _batch(write(7000), store, "--workers", "2", env=env)
+    assert done.returncode == 0, done.stdout + done.stderr
+    # each call uses 3,100 tokens and may use up to 2,700: two fit in 7,000 (0 + 2,700, 3,100 + 2,700), a third not
+    assert store.query("SELECT status, count(*) FROM runs GROUP BY status") == [("budget", 2)]
+    assert store.query("SELECT max(iteration) FROM iterations GROUP BY run_id") == [(2,), (2,)]
+    assert all("seed" not in r["body"] for r in model.raw_requests())
+    done = _batch(write(100_000), store, "--workers", "2", env=env)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert store.query("SELECT status, count(*) FROM runs GROUP BY status") == [("finished", 2)]
+    rows = store.query("SELECT run_id, iteration, count(*) FROM iterations GROUP BY ALL HAVING count(*) > 1")
+    assert rows == [] and store.query("SELECT count(*) FROM iterations")[0][0] == 8

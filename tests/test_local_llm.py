@@ -170,3 +170,39 @@ def test_offline_notice_is_shown_once(monkeypatch):
     assert local_llm.show_offline_model_notice(out) and not local_llm.show_offline_model_notice(out)
     assert out.getvalue() == local_llm.OFFLINE_MODEL_NOTICE + "\n"
     assert "--model" in out.getvalue() and "--api-base" in out.getvalue()
+
+
+def test_offline_run_killed_in_iteration_1_resumes_with_the_server_started_again(tmp_path):
+    """kill -9 of an offline run while iteration 1 asks the model; --resume starts the local server again."""
+    import signal
+
+    from store import Store
+    from pipeline.llm import OFFLINE_MODEL_LABEL
+
+    exe = os.path.join(os.path.dirname(sys.executable), "codearcade")
+    path = tmp_path / "s.duckdb"
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "LITELLM_LOCAL_MODEL_COST_MAP": "True"}
+    proc = subprocess.Popen([exe, "optimize", "--game", "pong", "--iterations", "1", "--rollout-steps", "20",
+                             "--eval-max-steps", "100", "--token-budget", "2500", "--max-tokens", "48",
+                             "--store", str(path)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=env, start_new_session=True)
+    try:
+        for line in proc.stdout:
+            if line.startswith("iteration   0"):
+                break
+        time.sleep(1.0)  # iteration 1 is building its prompt or waiting for the model
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    store = Store(path)
+    (run_id, status, model, config), = store.query("SELECT run_id, status, model, config FROM runs")
+    assert status == "running" and model == OFFLINE_MODEL_LABEL and json.loads(config)["model"] is None
+    assert store.query("SELECT max(iteration) FROM iterations")[0][0] == 0
+    done = subprocess.run([exe, "optimize", "--resume", run_id, "--store", str(path)], capture_output=True,
+                          text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "offline default" in done.stdout
+    assert store.query("SELECT iteration FROM iterations ORDER BY 1") == [(0,), (1,)]
+    assert store.query("SELECT status FROM runs")[0][0] == "finished"
+    calls = store.query("SELECT request_model, error_type FROM llm_calls WHERE iteration = 1 AND error_type IS NULL")
+    assert calls and calls[0][0] == f"openai/{local_llm.MODEL_ALIAS}", "the local server answered"

@@ -183,7 +183,7 @@ def test_report_of_an_eval_run_defaults_to_reports_dir(filled, tmp_path, capsys,
 def test_report_of_an_unknown_or_ambiguous_run(filled, capsys):
     store, run_id, _ = filled
     code, _, err = _run(capsys, "report", "NOPE", "--store", str(store.path))
-    assert code == 2 and "no run 'NOPE'" in err and "codearcade runs" in err
+    assert code == 2 and "no run NOPE" in err and "codearcade runs" in err
     code, _, err = _run(capsys, "report", "", "--store", str(store.path))
     assert code == 2
     code, _, err = _run(capsys, "report", run_id[:2], "--store", str(store.path))  # both ULIDs share a prefix

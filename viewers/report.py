@@ -12,6 +12,7 @@ the run is still writing; plots are drawn with matplotlib's Agg canvas (no displ
 from __future__ import annotations
 
 import json
+import textwrap
 from datetime import datetime
 from pathlib import Path
 from typing import Any, Sequence
@@ -81,7 +82,9 @@ def _integer_x(ax, xs: Sequence[int]) -> None:
 def _title(data: dict[str, Any], what: str) -> str:
     run = data["run"]
     model = f", {run['model']}" if run["model"] else ""
-    return f"{run['game']} · {what}\nrun {run['run_id']} ({run['kind']}{model})"
+    # wrapped, so a long model name never runs past the image's edge
+    return "\n".join(textwrap.wrap(f"{run['game']} · {what}", 90) +
+                     textwrap.wrap(f"run {run['run_id']} ({run['kind']}{model})", 90))
 
 
 def plot_scores(data: dict[str, Any], path: Path) -> bool:
@@ -293,11 +296,14 @@ def render_markdown(data: dict[str, Any], images: dict[str, str]) -> str:
                 [(r["iteration"], r["stage"], (r["reason"] or "")[:300]) for r in data["rejected"]]), ""]
         if usage["calls"]:
             out += ["## LLM usage", "", _md_table(
-                ("calls", "errors", "unusable replies", "retries", "input tokens", "output tokens", "cost (USD)",
-                 "mean latency (s)", "max latency (s)", "models"),
+                ("calls", "errors", "unusable replies", "retries", "input tokens", "cached input tokens",
+                 "output tokens", "cost (USD)", "mean latency (s)", "max latency (s)", "models"),
                 [(usage["calls"], usage["errors"], usage["parse_errors"], usage["retries"], usage["input_tokens"],
-                  usage["output_tokens"], usage["cost_usd"], usage["mean_latency_s"], usage["max_latency_s"],
-                  usage["request_models"])]), ""]
+                  usage.get("cached_input_tokens"), usage["output_tokens"], usage["cost_usd"],
+                  usage["mean_latency_s"], usage["max_latency_s"], usage["request_models"])]), ""]
+            saving = _cache_saving(run, usage)
+            if saving:
+                out += [saving, ""]
     best_id = None
     if run["kind"] != "eval" and data["curve"]:
         best_id = data["curve"][-1]["best_version_id"]
@@ -317,9 +323,63 @@ def render_markdown(data: dict[str, Any], images: dict[str, str]) -> str:
     query = ("SELECT episode_index, seed, return, length, end_reason FROM episodes WHERE run_id = '{}' "
              "ORDER BY episode_index" if run["kind"] == "eval" else
              "SELECT * FROM learning_curve WHERE run_id = '{}' ORDER BY iteration").format(run["run_id"])
-    out += ["## Reproduce", "", "```bash", f"codearcade report {run['run_id']}", f'codearcade sql "{query}"',
-            "```", ""]
+    out += ["## Reproduce", "", "The command that made this run (a new run with the same settings; with a "
+            "deterministic policy and model it plays the same episodes), and the queries behind this report:", "",
+            "```bash", reproduce_command(run, data["config"]), f"codearcade report {run['run_id']}",
+            f'codearcade sql "{query}"', "```", ""]
     return "\n".join(out)
+
+
+def _cache_saving(run: dict[str, Any], usage: dict[str, Any]) -> str | None:
+    """A sentence on what prompt caching saved, at litellm's prices for the model, or None."""
+    cached = usage.get("cached_input_tokens") or 0
+    if not cached or not run.get("model"):
+        return None
+    from pipeline.providers import price
+
+    rates = price(run["model"])
+    share = cached / max(usage["input_tokens"] or 1, 1)
+    if rates is None or rates.cached_input is None:
+        return f"Prompt caching: {cached:,} input tokens ({share:.0%}) were read from the provider's cache."
+    saved = cached * (rates.input - rates.cached_input)
+    return (f"Prompt caching: {cached:,} input tokens ({share:.0%}) were read from the provider's cache, "
+            f"saving about ${saved:.4f} at {run['model']}'s prices.")
+
+
+# Flags of `codearcade optimize` whose name is not the config field's with dashes.
+_FLAG_NAMES = {"call_time_limit_s": "--call-time-limit", "max_cost_usd": "--max-cost",
+               "max_wall_minutes": "--max-wall", "episode_time_limit_s": None, "workers": None, "policy": None,
+               "game": "--game", "rollback": None}
+
+
+def reproduce_command(run: dict[str, Any], config: dict[str, Any]) -> str:
+    """The ``codearcade`` command line that starts a run with ``run``'s settings (defaults left out)."""
+    import shlex
+
+    if run["kind"] == "eval":
+        parts = ["codearcade", "eval", config.get("policy") or "POLICY.py", "--game", run["game"]]
+        for key, flag, default in (("episodes", "--episodes", 1), ("max_steps", "--max-steps", 4000),
+                                   ("seed", "--seed", 0), ("sticky", "--sticky", 0.0),
+                                   ("noop_max", "--noop-max", 0)):
+            if config.get(key) not in (None, default):
+                parts += [flag, str(config[key])]
+        if config.get("trace"):
+            parts.append("--trace")
+        return shlex.join(parts)
+    from pipeline.optimize import OptimizeConfig
+
+    defaults = OptimizeConfig()
+    parts = ["codearcade", "optimize"] + ([config["policy"]] if config.get("policy") else [])
+    parts += ["--game", run["game"]]
+    for key in OptimizeConfig.__dataclass_fields__:
+        flag = _FLAG_NAMES.get(key, "--" + key.replace("_", "-"))
+        value = config.get(key)
+        if flag is None or key == "game" or value is None or value == getattr(defaults, key):
+            continue
+        parts += [flag, f"{value:g}" if isinstance(value, float) else str(value)]
+    if config.get("rollback") is False:
+        parts.append("--no-rollback")
+    return shlex.join(parts)
 
 
 def write_report(store: Store, run: str, out_dir: str | Path | None = None) -> Path:

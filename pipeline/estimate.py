@@ -1,0 +1,98 @@
+"""``codearcade optimize --dry-run``: what one update and a whole run would cost, without calling a model.
+
+The estimate is built from a real iteration 0: the starting policy is evaluated (a traced training rollout
+and the evaluation episodes, exactly as a run does) into a temporary store that is thrown away afterwards,
+and the prompt of the first update is built from it under the run's token budget and counted with the
+model's tokenizer (``pipeline/tokens.py``). Costs use litellm's price table (``pipeline/providers.py``):
+
+- one update: that prompt, plus a reply as long as ``--max-tokens`` (the most it can cost), and plus a
+  typical reply of :data:`TYPICAL_REPLY_TOKENS`;
+- the whole run: every update's prompt is at most the token budget (memory and trace grow until it is
+  full), so ``iterations x (budget + max_tokens)`` bounds it, and ``iterations x`` the first update is the
+  low end.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from pipeline.optimize import OptimizeConfig, load_state, run_iteration, start_run
+from pipeline.prompt import Prompt, build_prompt, read_context
+from pipeline.providers import Price, price
+from pipeline.tokens import TokenCounter
+from store import Store
+
+TYPICAL_REPLY_TOKENS = 1_500
+"""A reply that rewrites two or three methods with a short reasoning: the middle of the estimate."""
+
+
+@dataclass
+class Estimate:
+    model: str
+    iterations: int
+    token_budget: int
+    max_tokens: int
+    prompt: Prompt
+    price: Price | None
+    starter_score: float
+
+    def update_cost(self, reply_tokens: int) -> float | None:
+        return None if self.price is None else self.price.cost(self.prompt.tokens, reply_tokens)
+
+    def run_cost_range(self) -> tuple[float, float] | None:
+        if self.price is None:
+            return None
+        return (self.iterations * self.price.cost(self.prompt.tokens, TYPICAL_REPLY_TOKENS),
+                self.iterations * self.price.cost(self.token_budget, self.max_tokens))
+
+    def as_dict(self, include_prompt: bool = False) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "model": self.model, "iterations": self.iterations, "token_budget": self.token_budget,
+            "max_tokens": self.max_tokens, "starter_score": self.starter_score,
+            "prompt_tokens": self.prompt.tokens, "token_count_method": self.prompt.token_method,
+            "steps_shown": len(self.prompt.steps_shown), "priced": self.price is not None,
+            "update_cost_usd": None if self.price is None else {
+                "typical": self.update_cost(TYPICAL_REPLY_TOKENS), "at_most": self.update_cost(self.max_tokens)},
+            "run_cost_usd": None if self.price is None else dict(zip(("typical", "at_most"), self.run_cost_range())),
+        }
+        if include_prompt:
+            out["prompt"] = self.prompt.messages
+        return out
+
+    def lines(self) -> list[str]:
+        out = [f"dry run for {self.model}: starting policy scored {self.starter_score:g}",
+               f"first prompt: {self.prompt.tokens:,} tokens of a {self.token_budget:,}-token budget "
+               f"({len(self.prompt.steps_shown)} rollout steps shown; {self.prompt.token_method})"]
+        if self.price is None:
+            out.append(f"cost: litellm has no price for {self.model} (a local or unknown model); tokens per update "
+                       f"up to {self.token_budget + self.max_tokens:,}, for the run up to "
+                       f"{self.iterations * (self.token_budget + self.max_tokens):,}")
+            return out
+        low, high = self.run_cost_range()
+        out.append(f"one update: ${self.update_cost(TYPICAL_REPLY_TOKENS):.4f} with a typical "
+                   f"{TYPICAL_REPLY_TOKENS:,}-token reply, at most ${self.update_cost(self.max_tokens):.4f} "
+                   f"(a {self.max_tokens:,}-token reply)")
+        out.append(f"whole run ({self.iterations} updates): about ${low:.2f}, at most ${high:.2f} (every prompt "
+                   f"filling the budget); cap it with --max-cost USD")
+        return out
+
+
+def estimate_run(config: OptimizeConfig, progress_log: Callable[[str], None] = lambda s: None) -> Estimate:
+    """Evaluate the starting policy into a temporary store and price the first update (module docstring)."""
+    from pipeline.llm import OFFLINE_MODEL_LABEL
+
+    model = config.model or OFFLINE_MODEL_LABEL
+    with tempfile.TemporaryDirectory(prefix="codearcade-dry-run-") as tmp:
+        store = Store(Path(tmp) / "dry-run.duckdb")
+        run_id = start_run(config, store, model)
+        state = load_state(store, run_id)
+        progress_log("dry run: evaluating the starting policy (iteration 0)...")
+        first = run_iteration(store, state, 0, None, None, progress_log)
+        with store.read() as con:
+            ctx = read_context(con, run_id, 1, config.memory, config.call_time_limit_s)
+        prompt = build_prompt(ctx, config.token_budget, TokenCounter(config.model or "offline"))
+    return Estimate(model, config.iterations, config.token_budget, config.max_tokens, prompt,
+                    price(config.model) if config.model else None, first.score)

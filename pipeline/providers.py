@@ -1,0 +1,186 @@
+"""What each LLM provider needs and accepts: credentials, request parameters, prompt caching, prices.
+
+litellm knows all of this, but importing it takes 2-5 s on these machines, and a user who forgot a key
+should hear so at once. So the credential check first looks the provider up in :data:`PROVIDER_KEYS`, a
+table of the environment variables litellm itself asks for (``tests/test_providers.py`` checks the table
+against ``litellm.validate_environment`` so it cannot drift), and imports litellm only for a provider the
+table does not list. Everything else asks litellm:
+
+- :func:`request_params` keeps only the parameters the provider accepts (``get_supported_openai_params``):
+  Anthropic takes no ``seed``; reasoning models (OpenAI's o-series) take no ``temperature`` and get
+  ``max_completion_tokens``. What is dropped is reported once, and what is kept is what gets sent and
+  recorded in ``llm_calls.request_params``.
+- :func:`with_cache_breakpoint` marks the stable prefix of a prompt for providers with explicit prompt
+  caching (Anthropic's ``cache_control``); OpenAI and others cache prefixes by themselves.
+- :func:`price` gives litellm's price per input and output token, or None for a model it cannot price.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+PROVIDER_KEYS: dict[str, tuple[str, ...]] = {
+    "anthropic": ("ANTHROPIC_API_KEY",),
+    "openai": ("OPENAI_API_KEY",),
+    "gemini": ("GEMINI_API_KEY", "GOOGLE_API_KEY"),
+    "mistral": ("MISTRAL_API_KEY",),
+    "deepseek": ("DEEPSEEK_API_KEY",),
+    "groq": ("GROQ_API_KEY",),
+    "openrouter": ("OPENROUTER_API_KEY",),
+    "xai": ("XAI_API_KEY",),
+    "codestral": ("CODESTRAL_API_KEY",),
+}
+"""Provider prefix of ``--model`` -> environment variables of which one must be set (litellm's names)."""
+
+NO_KEY_PROVIDERS = frozenset({"ollama", "ollama_chat", "hosted_vllm", "lm_studio", "llamafile"})
+"""Providers that run on the user's own machine and need no key."""
+
+LOCAL_SERVER_PROVIDERS = frozenset({"openai", "hosted_vllm", "ollama", "ollama_chat", "lm_studio", "llamafile"})
+"""Providers whose ``--api-base`` usually points at the user's own server: no key is required there."""
+
+CACHE_CONTROL_PROVIDERS = frozenset({"anthropic"})
+"""Providers that cache a prompt prefix only where the request marks it (Anthropic's ``cache_control``)."""
+
+CACHE_BREAKPOINT = "\n\n#Variables\n"
+"""Where the stable part of an optimizer prompt ends: instruction, code stubs and documentation come first."""
+
+
+OPENAI_REASONING_PROVIDERS = frozenset({"openai", "azure"})
+"""Providers whose reasoning models take ``max_completion_tokens`` and no ``temperature`` (but 1)."""
+
+
+class MissingCredentialsError(ValueError):
+    """The provider's key is not in the environment; the message names the variable."""
+
+
+def provider_of(model: str) -> str:
+    """The litellm provider prefix of ``model`` (``anthropic/claude-...`` -> ``anthropic``), '' if it has none."""
+    return model.split("/", 1)[0] if "/" in model else ""
+
+
+def check_credentials(model: str, api_base: str | None = None, environ: dict[str, str] | None = None) -> None:
+    """Raise :class:`MissingCredentialsError` naming the variable when ``model``'s key is not set.
+
+    Answers from :data:`PROVIDER_KEYS` without importing litellm for the providers it lists (so a missing
+    key is reported within a second); asks ``litellm.validate_environment`` for any other provider.
+    """
+    environ = os.environ if environ is None else environ
+    provider = provider_of(model)
+    if provider in NO_KEY_PROVIDERS or (api_base and provider in LOCAL_SERVER_PROVIDERS):
+        return
+    if provider in PROVIDER_KEYS:
+        names = PROVIDER_KEYS[provider]
+        if any(environ.get(name) for name in names):
+            return
+        missing = list(names)
+    else:
+        from pipeline.tokens import import_litellm
+
+        if api_base:  # a proxy or self-hosted endpoint of an unlisted provider: let the server decide
+            return
+        result = import_litellm().validate_environment(model)
+        if result.get("keys_in_environment", True):
+            return
+        missing = list(result.get("missing_keys") or [])
+    either = " or ".join(missing)
+    raise MissingCredentialsError(
+        f"{model} needs an API key: set {either} in the environment (e.g. `export {missing[0]}=...`), or use "
+        "--api-base URL for your own server, or leave out --model to use the offline model")
+
+
+@dataclass(frozen=True)
+class RequestParams:
+    """The parameters sent with every request of a run, and those the provider does not accept."""
+
+    sent: dict[str, Any]
+    dropped: tuple[str, ...]
+
+
+def request_params(litellm, model: str, provider: str, *, temperature: float | None, max_tokens: int,
+                   seed: int | None, timeout_s: float) -> RequestParams:
+    """The sampling parameters for ``model`` that its provider accepts (see the module docstring)."""
+    bare = model.split("/", 1)[1] if "/" in model else model
+    try:
+        supported = set(litellm.get_supported_openai_params(model=bare, custom_llm_provider=provider) or ())
+    except Exception:  # noqa: BLE001 - an unknown provider config: send the common core only
+        supported = {"temperature", "max_tokens"}
+    wanted: dict[str, Any] = {}
+    if temperature is not None:
+        wanted["temperature"] = temperature
+    if seed is not None:
+        wanted["seed"] = seed
+    # OpenAI's reasoning models (o-series, gpt-5) list temperature yet refuse any value but 1, and count the
+    # reply's limit as max_completion_tokens (reasoning tokens included).
+    openai_reasoning = provider in OPENAI_REASONING_PROVIDERS and _is_reasoning(litellm, model)
+    if openai_reasoning and wanted.get("temperature") not in (None, 1):
+        supported.discard("temperature")
+    sent: dict[str, Any] = {"model": model, "timeout": timeout_s}
+    dropped = []
+    for name, value in wanted.items():
+        if name in supported:
+            sent[name] = value
+        else:
+            dropped.append(name)
+    if openai_reasoning or ("max_tokens" not in supported and "max_completion_tokens" in supported):
+        sent["max_completion_tokens"] = max_tokens
+    else:
+        sent["max_tokens"] = max_tokens
+    return RequestParams(sent, tuple(dropped))
+
+
+def _is_reasoning(litellm, model: str) -> bool:
+    try:
+        return bool(litellm.supports_reasoning(model=model))
+    except Exception:  # noqa: BLE001 - unknown models are not reasoning models as far as we know
+        return False
+
+
+def with_cache_breakpoint(provider: str, messages: list[dict[str, str]]) -> list[dict[str, Any]]:
+    """``messages`` as sent to ``provider``: for Anthropic, the system text and the user text up to
+    :data:`CACHE_BREAKPOINT` become cached content blocks. The text itself is unchanged (the prompt hash is
+    taken of the plain messages), so caching never changes what the model reads."""
+    if provider not in CACHE_CONTROL_PROVIDERS:
+        return messages
+    out: list[dict[str, Any]] = []
+    for message in messages:
+        content = message["content"]
+        if message["role"] == "system":
+            out.append({"role": "system", "content": [
+                {"type": "text", "text": content, "cache_control": {"type": "ephemeral"}}]})
+        elif message["role"] == "user" and CACHE_BREAKPOINT in content:
+            cut = content.index(CACHE_BREAKPOINT) + 2  # the blank line stays with the cached head
+            out.append({"role": "user", "content": [
+                {"type": "text", "text": content[:cut], "cache_control": {"type": "ephemeral"}},
+                {"type": "text", "text": content[cut:]}]})
+        else:
+            out.append(message)
+    return out
+
+
+@dataclass(frozen=True)
+class Price:
+    """USD per token, from litellm's price table."""
+
+    input: float
+    output: float
+    cached_input: float | None = None
+
+    def cost(self, input_tokens: int, output_tokens: int) -> float:
+        return input_tokens * self.input + output_tokens * self.output
+
+
+def price(model: str) -> Price | None:
+    """litellm's price of ``model``, or None when it has none (local and unknown models)."""
+    from pipeline.tokens import import_litellm
+
+    litellm = import_litellm()
+    try:
+        info = litellm.get_model_info(model=model)
+    except Exception:  # noqa: BLE001 - litellm raises for models it cannot map
+        return None
+    if not info.get("input_cost_per_token") and not info.get("output_cost_per_token"):
+        return None
+    return Price(info.get("input_cost_per_token") or 0.0, info.get("output_cost_per_token") or 0.0,
+                 info.get("cache_read_input_token_cost"))

@@ -1,0 +1,265 @@
+"""Real models, end to end: `codearcade optimize` through litellm's own adapter for each provider's wire
+protocol (tests/scripted_llm.py speaks Anthropic Messages, OpenAI chat, Ollama and Gemini), honest failures,
+credentials, budgets, resume semantics and the dry run."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from pipeline.providers import PROVIDER_KEYS, check_credentials, MissingCredentialsError, with_cache_breakpoint
+from tests.conftest import COMPETENT_REPLY, ROOT, pong_policy
+
+EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
+KEYS = {"ANTHROPIC_API_KEY": "sk-ant-scripted", "GEMINI_API_KEY": "gm-scripted", "MISTRAL_API_KEY": "ms-scripted"}
+FAST = ("--rollout-steps", "60", "--workers", "2")
+
+
+def _env(**extra):
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_API_KEY")}
+    env.update(KEYS, CODEARCADE_LLM_BACKOFF_S="0.05", LITELLM_LOCAL_MODEL_COST_MAP="True", **extra)
+    return env
+
+
+def _cli(*argv, env=None, timeout=600):
+    return subprocess.run([EXE, *argv], cwd=ROOT, capture_output=True, text=True, timeout=timeout,
+                          env=env or _env())
+
+
+def _optimize(store, model, provider, name, *extra, env=None):
+    route, base = model.route(provider, name)
+    return _cli("optimize", "--game", "pong", "--model", route, "--api-base", base, "--store", str(store.path),
+                *extra, env=env)
+
+
+def _runs(store):
+    return store.query("SELECT run_id, status, error FROM runs ORDER BY created_at")
+
+
+PROVIDERS = [
+    # (provider, model name, priced by litellm)
+    ("anthropic", "claude-sonnet-4-5", True),
+    ("openai", "gpt-4o", True),
+    ("ollama_chat", "qwen2.5-coder", False),
+    ("hosted_vllm", "Qwen2.5-Coder-7B-Instruct", False),
+    ("gemini", "gemini-2.5-pro", True),
+]
+
+
+@pytest.mark.parametrize("provider,name,priced", PROVIDERS, ids=[p[0] for p in PROVIDERS])
+def test_each_provider_protocol_wins_pong_in_one_iteration(store, scripted, provider, name, priced):
+    model = scripted([COMPETENT_REPLY])
+    done = _optimize(store, model, provider, name, "--iterations", "1", *FAST)
+    assert done.returncode == 0, done.stderr
+    scores = store.query("SELECT iteration, score, update_status FROM iterations ORDER BY iteration")
+    assert scores[0][1] < 0 and scores[1][1] >= 15 and scores[1][2] == "accepted", scores
+    (request,) = model.raw_requests()
+    assert request["protocol"] == {"anthropic": "anthropic", "ollama_chat": "ollama", "gemini": "gemini"}.get(
+        provider, "openai")
+    call = store.query("SELECT provider_name, request_model, request_params, input_tokens, output_tokens, cost_usd, "
+                       "finish_reasons, error_type FROM llm_calls")
+    assert len(call) == 1
+    provider_name, request_model, params, input_tokens, output_tokens, cost, finish, error = call[0]
+    assert provider_name == provider and request_model == f"{provider}/{name}" and error is None
+    assert input_tokens > 1000 and output_tokens > 50
+    assert finish == ["stop"]
+    assert (cost is not None and cost > 0) == priced
+    params = json.loads(params)
+    body = request["body"]
+    if provider == "anthropic":
+        # Anthropic takes no seed: it is neither sent nor recorded as sent; the key travels in x-api-key
+        assert "seed" not in body and "seed" not in params
+        assert request["headers"]["x-api-key"] == KEYS["ANTHROPIC_API_KEY"]
+        assert body["max_tokens"] == params["max_tokens"] == 4096
+        assert body["system"][0]["cache_control"] == {"type": "ephemeral"}
+        assert "no 'seed' parameter" in done.stderr
+    elif provider == "ollama_chat":
+        assert body["options"]["seed"] == params["seed"] == 0 and body["stream"] is False
+    elif provider == "gemini":
+        assert request["headers"]["x-goog-api-key"] == KEYS["GEMINI_API_KEY"]
+        assert body["generationConfig"]["seed"] == 0
+    else:
+        assert body["seed"] == params["seed"] == 0 and body["max_tokens"] == params["max_tokens"]
+
+
+def test_reasoning_model_gets_max_completion_tokens_and_no_temperature(store, scripted):
+    model = scripted(["Nothing to change."])
+    done = _optimize(store, model, "openai", "o3-mini", "--iterations", "1", "--eval-max-steps", "200", *FAST)
+    assert done.returncode == 0, done.stderr
+    body = model.raw_requests()[0]["body"]
+    assert body["max_completion_tokens"] == 4096 and "max_tokens" not in body and "temperature" not in body
+    params = json.loads(store.query("SELECT request_params FROM llm_calls")[0][0])
+    assert "temperature" not in params and params["max_completion_tokens"] == 4096
+
+
+def test_anthropic_prompt_caching_is_recorded(store, scripted):
+    model = scripted(["No change this time."])
+    done = _optimize(store, model, "anthropic", "claude-sonnet-4-5", "--iterations", "2", "--eval-max-steps", "200",
+                     *FAST)
+    assert done.returncode == 0, done.stderr
+    calls = store.query("SELECT iteration, cached_input_tokens, cache_creation_input_tokens FROM llm_calls "
+                        "ORDER BY iteration")
+    assert calls[0][2] > 500 and calls[0][1] == 0, "the first call writes the stable prefix to the cache"
+    assert calls[1][1] == calls[0][2], "the second call reads the same prefix back"
+    usage = store.query("SELECT cached_input_tokens FROM llm_usage")[0][0]
+    assert usage == calls[1][1]
+
+
+def test_cache_breakpoint_keeps_the_text():
+    messages = [{"role": "system", "content": "S"}, {"role": "user", "content": "#Instruction\nI\n\n#Variables\nV"}]
+    sent = with_cache_breakpoint("anthropic", messages)
+    assert "".join(b["text"] for b in sent[1]["content"]) == messages[1]["content"]
+    assert sent[1]["content"][0]["cache_control"] and "cache_control" not in sent[1]["content"][1]
+    assert with_cache_breakpoint("openai", messages) is messages
+
+
+def test_credential_table_agrees_with_litellm(monkeypatch):
+    from pipeline.tokens import import_litellm
+
+    litellm = import_litellm()
+    for name in [k for k in os.environ if k.endswith(("_API_KEY", "_API_BASE"))]:
+        monkeypatch.delenv(name)
+    for provider, names in PROVIDER_KEYS.items():
+        missing = litellm.validate_environment(f"{provider}/some-model")["missing_keys"]
+        assert set(missing) == set(names), provider
+        with pytest.raises(MissingCredentialsError, match=names[0]):
+            check_credentials(f"{provider}/some-model", environ={})
+        check_credentials(f"{provider}/some-model", environ={names[-1]: "x"})
+    check_credentials("openai/local", api_base="http://127.0.0.1:1/v1", environ={})  # own server: no key
+    check_credentials("ollama_chat/qwen", environ={})
+
+
+def test_no_key_fails_at_once_naming_the_variable(tmp_path):
+    store = tmp_path / "s.duckdb"
+    env = {k: v for k, v in _env().items() if k != "ANTHROPIC_API_KEY"}
+    started = time.monotonic()
+    done = _cli("optimize", "--game", "pong", "--model", "anthropic/claude-sonnet-4-5", "--store", str(store), env=env)
+    elapsed = time.monotonic() - started
+    assert done.returncode != 0 and "ANTHROPIC_API_KEY" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert elapsed < 2.0, f"took {elapsed:.1f} s"
+    assert not store.exists(), "nothing is evaluated or stored before the key is there"
+
+
+def test_fatal_error_mid_run_fails_then_resume_finishes_each_iteration_once(store, scripted):
+    model = scripted([COMPETENT_REPLY, {"status": 401}, "No change."])
+    done = _optimize(store, model, "anthropic", "claude-sonnet-4-5", "--iterations", "2", "--eval-max-steps", "300",
+                     *FAST)
+    assert done.returncode == 1, done.stderr
+    (run_id, status, error), = _runs(store)
+    assert status == "failed" and "AuthenticationError" in error and "invalid api key" in error
+    assert "--resume" in done.stderr
+    errors = store.query("SELECT error_type, attempts FROM llm_calls WHERE error_type IS NOT NULL")
+    assert errors == [("AuthenticationError", 1)], "a fatal error is not retried"
+    # the user fixes the cause (here the server answers again) and resumes by a short prefix of the id
+    again = _cli("optimize", "--resume", run_id[:10], "--store", str(store.path))
+    assert again.returncode == 0, again.stderr
+    rows = store.query("SELECT iteration, count(*) FROM iterations GROUP BY iteration ORDER BY iteration")
+    assert rows == [(0, 1), (1, 1), (2, 1)]
+    assert _runs(store)[0][1] == "finished"
+
+
+def test_a_run_whose_every_update_failed_is_not_a_success(store, scripted):
+    model = scripted([{"status": 503}])
+    done = _optimize(store, model, "openai", "gpt-4o", "--iterations", "1", "--eval-max-steps", "200", *FAST,
+                     env=_env(OPENAI_API_KEY="sk-scripted"))
+    assert done.returncode == 1, done.stderr
+    (run_id, status, error), = _runs(store)
+    assert status == "failed" and "every LLM call failed" in error and "scripted error 503" in error
+    attempts = store.query("SELECT attempts, error_type FROM llm_calls")
+    assert attempts == [(4, "ServiceUnavailableError")], "transient errors are retried (3 retries) and recorded"
+
+
+def test_cost_budget_stops_at_the_right_iteration_and_resumes(store, scripted):
+    # every reply costs 5000 input + 500 output tokens at claude-sonnet-4-5's $3/$15 per M: $0.0225; before a
+    # call its worst case (a prompt of at most 4000 tokens and a 1000-token reply) is at most $0.027. With
+    # $0.06: call 1 (0 + 0.027) and call 2 (0.0225 + 0.027) fit, call 3 (0.045 + >= 0.025) does not.
+    model = scripted([{"content": "No change.", "usage": {"input": 5000, "output": 500}}])
+    args = ("--iterations", "4", "--eval-max-steps", "200", "--token-budget", "4000", "--max-tokens", "1000", *FAST)
+    done = _optimize(store, model, "anthropic", "claude-sonnet-4-5", *args, "--max-cost", "0.06")
+    assert done.returncode == 0, done.stderr
+    (run_id, status, error), = _runs(store)
+    assert status == "budget" and "--max-cost" in error, error
+    assert [r[0] for r in store.query("SELECT iteration FROM iterations ORDER BY 1")] == [0, 1, 2]
+    spent = store.query("SELECT sum(cost_usd) FROM llm_calls")[0][0]
+    assert 0.04 < spent <= 2 * 0.0225, "two calls, the second partly at the cheaper cache-read price"
+    assert len(model.requests()) == 2, "the third call was never made"
+    again = _cli("optimize", "--resume", run_id, "--max-cost", "1", "--store", str(store.path))
+    assert again.returncode == 0, again.stderr
+    assert [r[0] for r in store.query("SELECT iteration FROM iterations ORDER BY 1")] == [0, 1, 2, 3, 4]
+    assert _runs(store)[0][1] == "finished"
+    assert json.loads(store.query("SELECT config FROM runs")[0][0])["max_cost_usd"] == 1
+
+
+def test_token_budget_needs_no_price(store, scripted):
+    model = scripted([{"content": "No change.", "usage": {"input": 100, "output": 10}}])
+    done = _optimize(store, model, "ollama_chat", "qwen2.5-coder", "--iterations", "3", "--eval-max-steps", "200",
+                     "--token-budget", "3000", "--max-tokens", "500", "--max-total-tokens", "3000", *FAST)
+    assert done.returncode == 0, done.stderr
+    assert _runs(store)[0][1] == "budget"
+    assert store.query("SELECT count(*) FROM llm_calls")[0][0] == 0, "a 3000-token prompt + 500 never fits 3000"
+
+
+def test_dry_run_prices_the_first_update_without_calling_the_model(tmp_path, scripted):
+    model = scripted(["never sent"])
+    store = tmp_path / "s.duckdb"
+    route, base = model.route("anthropic", "claude-sonnet-4-5")
+    done = _cli("optimize", "--game", "pong", "--model", route, "--api-base", base, "--dry-run", "--show-prompt",
+                "--eval-max-steps", "200", "--rollout-steps", "50", "--iterations", "10", "--json",
+                "--store", str(store))
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report["prompt_tokens"] > 1000 and report["priced"]
+    typical, most = report["update_cost_usd"]["typical"], report["update_cost_usd"]["at_most"]
+    assert 0 < typical < most
+    assert report["run_cost_usd"]["at_most"] == pytest.approx(10 * (16000 * 3e-6 + 4096 * 15e-6))
+    assert "#Instruction" in report["prompt"][1]["content"]
+    assert model.raw_requests() == [] and not store.exists()
+
+
+def test_resume_of_a_finished_run_changes_nothing(store, scripted):
+    model = scripted(["No change."])
+    assert _optimize(store, model, "openai", "scripted", "--iterations", "1", "--eval-max-steps", "200",
+                     *FAST).returncode == 0
+    before = store.query("SELECT * FROM runs")
+    done = _cli("optimize", "--resume", before[0][0], "--store", str(store.path))
+    assert done.returncode == 0 and "nothing to do" in done.stdout, done.stdout + done.stderr
+    assert store.query("SELECT * FROM runs") == before
+    assert len(model.requests()) == 1
+
+
+def test_eval_runs_cannot_be_resumed_and_a_killed_one_shows_interrupted(tmp_path):
+    store_path = tmp_path / "s.duckdb"
+    slow = tmp_path / "slow.py"  # ~10 ms a step: the episode outlasts the checks below
+    slow.write_text(pong_policy("    return 2 if sum(range(600000)) % 2 else 3\n"))
+    proc = subprocess.Popen([EXE, "eval", str(slow), "--episodes", "1", "--max-steps", "100000",
+                             "--store", str(store_path)], cwd=ROOT, env=_env(), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while True:  # the run row exists once the first episode plays
+            listed = _cli("runs", "--json", "--store", str(store_path))
+            if listed.returncode == 0 and json.loads(listed.stdout or "[]"):
+                break
+            assert time.monotonic() < deadline, listed.stderr
+            time.sleep(0.3)
+        run = json.loads(listed.stdout)[0]
+        assert run["status"] == "running"
+        doctor = _cli("doctor", "--json", "--store", str(store_path))
+        assert "interrupted" not in doctor.stdout, "a live eval run is not called interrupted"
+        refused = _cli("optimize", "--resume", run["run_id"][:8], "--store", str(store_path))
+        assert refused.returncode == 2 and "eval run" in refused.stderr
+        assert len(refused.stderr.strip().splitlines()) == 1
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    listed = json.loads(_cli("runs", "--json", "--store", str(store_path)).stdout)
+    assert listed[0]["status"] == "interrupted"
+    doctor = _cli("doctor", "--json", "--store", str(store_path))
+    assert any("interrupted" in f["check"] for f in json.loads(doctor.stdout)["findings"])
