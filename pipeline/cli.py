@@ -170,6 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluate the starting policy into a temporary store, build the first prompt, and print its "
                    "tokens and the estimated cost of one update and of the whole run; calls no model")
     p.add_argument("--show-prompt", action="store_true", help="with --dry-run: print the prompt too")
+    p.add_argument("--stream", action="store_true",
+                   help="stream each reply, showing the tokens as they arrive (the result is the same)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     _add_rerun(p)
     _add_store(p)
@@ -365,7 +367,8 @@ OPTIMIZE_OPTIONS = ("game", "policy", "model", "api_base", "iterations", "memory
 
 def _llm_waiting(stream=None):
     """The optimizer's ``waiting`` hook: while an LLM call is in flight, a terminal shows for how long it has
-    waited (one line, redrawn each second); a log gets one line per call."""
+    waited and, when the reply is streamed, how much of it has arrived (one line, redrawn each second); a log
+    gets one line per call. It yields the callback the client feeds streamed text to."""
     import threading
     import time
     from contextlib import contextmanager
@@ -375,21 +378,33 @@ def _llm_waiting(stream=None):
     @contextmanager
     def waiting(iteration: int, label: str):
         started = time.monotonic()
+        received = {"pieces": 0, "chars": 0}
+
+        def on_text(piece: str) -> None:
+            received["pieces"] += 1
+            received["chars"] += len(piece)
+
         if not stream.isatty():
             print(f"iteration {iteration}: waiting for {label}", file=stream, flush=True)
-            yield
+            yield on_text
             return
         stop = threading.Event()
 
+        def line() -> str:
+            text = f"iteration {iteration}: waiting for {label} ... {time.monotonic() - started:.0f} s"
+            if received["pieces"]:
+                text += f", receiving: {received['pieces']:,} tokens ({received['chars']:,} characters)"
+            return text
+
         def tick() -> None:
-            while not stop.wait(1.0):
-                stream.write(f"\riteration {iteration}: waiting for {label} ... {time.monotonic() - started:.0f} s")
+            while not stop.wait(0.5):
+                stream.write("\r\033[K" + line())
                 stream.flush()
 
         ticker = threading.Thread(target=tick, name="codearcade-llm-wait", daemon=True)
         ticker.start()
         try:
-            yield
+            yield on_text
         finally:
             stop.set()
             ticker.join()
@@ -434,7 +449,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
         return _dry_run(config, args)
     offline = config.model is None
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
-                                      config.seed)
+                                      config.seed, stream=args.stream)
     if cap is not None and config.token_budget > cap:
         config.token_budget = cap
     for name in getattr(client, "dropped", ()):

@@ -14,7 +14,7 @@ import os
 import re
 import time
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 from pipeline.prompt import prompt_hash
 from pipeline.providers import LOCAL_SERVER_PROVIDERS, with_cache_breakpoint
@@ -73,7 +73,8 @@ class LLMClient(Protocol):
 
     def request_params(self) -> dict[str, Any]: ...
 
-    def complete(self, messages: list[dict[str, str]]) -> LLMReply: ...
+    def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None) -> LLMReply:
+        ...
 
 
 def _error_name(exc: BaseException) -> str:
@@ -127,6 +128,7 @@ class LiteLLMClient:
         retries: int = 3,
         backoff_s: float = DEFAULT_BACKOFF_S,
         label: str | None = None,
+        stream: bool = False,
     ):
         self.litellm = import_litellm()
         self.model = model
@@ -149,11 +151,17 @@ class LiteLLMClient:
         self.dropped = params.dropped
         if api_base:
             self._params["api_base"] = api_base
+        if stream:
+            self._params["stream"] = True
+            if "stream_options" in params.supported:  # else the provider sends usage in its stream by itself
+                self._params["stream_options"] = {"include_usage": True}
 
     def request_params(self) -> dict[str, Any]:
         return dict(self._params)
 
-    def complete(self, messages: list[dict[str, str]]) -> LLMReply:
+    def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None) -> LLMReply:
+        """One reply, retried as the class docstring says; with streaming on, ``on_text`` gets each piece of
+        text as it arrives (a retry starts the text again)."""
         params = self.request_params()
         extra = {"api_key": self.api_key} if self.api_key else ({"api_key": "none"} if self.api_base and
                                                                self.provider in LOCAL_SERVER_PROVIDERS else {})
@@ -162,6 +170,8 @@ class LiteLLMClient:
         for attempt in range(1, self.retries + 2):
             try:
                 response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
+                if params.get("stream"):
+                    response = self._collect(response, sent, on_text)
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
                 name = _error_name(exc)
                 fatal = name in FATAL
@@ -171,6 +181,20 @@ class LiteLLMClient:
                 continue
             return self._reply(response, attempt, time.monotonic() - start)
         raise AssertionError("unreachable")
+
+    def _collect(self, chunks: Any, sent: list[dict[str, Any]], on_text: Callable[[str], None] | None) -> Any:
+        """A streamed reply, read to its end (pieces of text to ``on_text``) and built into one response."""
+        received = []
+        for chunk in chunks:
+            received.append(chunk)
+            for choice in getattr(chunk, "choices", None) or []:
+                piece = getattr(getattr(choice, "delta", None), "content", None)
+                if piece and on_text is not None:
+                    on_text(piece)
+        response = self.litellm.stream_chunk_builder(received, messages=sent)
+        if response is None:
+            raise self.litellm.APIError(500, "the stream ended without a reply", self.provider, self.model)
+        return response
 
     def _reply(self, response: Any, attempts: int, latency_s: float) -> LLMReply:
         choice = response.choices[0] if response.choices else None
@@ -208,7 +232,7 @@ class ReplayClient:
     def request_params(self) -> dict[str, Any]:
         return {"model": self.model, "replay": True}
 
-    def complete(self, messages: list[dict[str, str]]) -> LLMReply:
+    def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None) -> LLMReply:
         digest = prompt_hash(messages)
         if digest not in self.replies:
             raise LLMError("ReplayMiss", f"no stored reply for prompt {digest[:12]}", 1, fatal=True)
@@ -224,7 +248,8 @@ OFFLINE_MAX_TOKENS = 512
 """The offline model reads ~100-200 prompt tokens/s on two cores: small prompts keep an iteration near a minute."""
 
 
-def open_client(model: str | None, api_base: str | None, temperature: float, max_tokens: int | None, seed: int):
+def open_client(model: str | None, api_base: str | None, temperature: float, max_tokens: int | None, seed: int,
+                stream: bool = False):
     """(client, local server or None, prompt-token cap or None) for ``--model``, or the offline default.
 
     With no model, SmolLM2 is started on 127.0.0.1 (``pipeline/local_llm.py``) and a one-time notice says it
@@ -233,12 +258,12 @@ def open_client(model: str | None, api_base: str | None, temperature: float, max
     backoff_s = float(os.environ.get("CODEARCADE_LLM_BACKOFF_S", DEFAULT_BACKOFF_S))
     if model:
         return LiteLLMClient(model, api_base=api_base, temperature=temperature, max_tokens=max_tokens or 4096,
-                             seed=seed, backoff_s=backoff_s), None, None
+                             seed=seed, backoff_s=backoff_s, stream=stream), None, None
     from pipeline.local_llm import LocalModelServer, show_offline_model_notice
 
     show_offline_model_notice()
     server = LocalModelServer().start()
     max_tokens = max_tokens or OFFLINE_MAX_TOKENS
     client = LiteLLMClient(server.model, api_base=server.api_base, temperature=temperature, max_tokens=max_tokens,
-                           seed=seed, label=OFFLINE_MODEL_LABEL, backoff_s=backoff_s)
+                           seed=seed, label=OFFLINE_MODEL_LABEL, backoff_s=backoff_s, stream=stream)
     return client, server, server.context_tokens - max_tokens

@@ -155,8 +155,9 @@ class _State:
     llm_failures: int = 0
     rerun: str | None = None
     """Live Rerun recordings of this invocation's episodes (``EpisodeSpec.rerun``); an output option, not recorded."""
-    waiting: Callable[[int, str], ContextManager[None]] = lambda iteration, model: nullcontext()
-    """Wrapped around each LLM call (iteration, model label): the CLI shows how long it has been waiting."""
+    waiting: Callable[[int, str], ContextManager[Callable[[str], None] | None]] = lambda it, model: nullcontext()
+    """Wrapped around each LLM call (iteration, model label); what it yields gets the streamed text, if any. The
+    CLI shows how long it has been waiting and how much text has arrived."""
 
 
 def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
@@ -356,8 +357,8 @@ def _update(store: Store, state: _State, iteration: int, client: LLMClient, coun
     else:
         _check_budgets(store, state, client, prompt)
         try:
-            with state.waiting(iteration, client.label):
-                reply = client.complete(prompt.messages)
+            with state.waiting(iteration, client.label) as on_text:
+                reply = client.complete(prompt.messages, on_text=on_text)
         except LLMError as exc:
             call_id = _record_call(store, state, iteration, client, prompt, None, exc)
             state.llm_failures += 1
@@ -586,7 +587,8 @@ def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: st
              on_iteration: Callable[[IterationResult], None] | None = None,
              progress: Callable[[int, int], None] | None = None,
              tags: dict[str, Any] | None = None, rerun: str | None = None,
-             waiting: Callable[[int, str], ContextManager[None]] | None = None) -> OptimizeResult:
+             waiting: Callable[[int, str], ContextManager[Callable[[str], None] | None]] | None = None,
+             ) -> OptimizeResult:
     """Start (or, with ``resume``, continue) an optimization run with ``client``; ``tags`` go into its config;
     ``rerun``: live Rerun recordings of the episodes (a directory or a gRPC url, see ``EpisodeSpec.rerun``).
 

@@ -96,6 +96,7 @@ class RequestParams:
 
     sent: dict[str, Any]
     dropped: tuple[str, ...]
+    supported: frozenset[str] = frozenset()
 
 
 def request_params(litellm, model: str, provider: str, *, temperature: float | None, max_tokens: int,
@@ -127,7 +128,7 @@ def request_params(litellm, model: str, provider: str, *, temperature: float | N
         sent["max_completion_tokens"] = max_tokens
     else:
         sent["max_tokens"] = max_tokens
-    return RequestParams(sent, tuple(dropped))
+    return RequestParams(sent, tuple(dropped), frozenset(supported))
 
 
 def _is_reasoning(litellm, model: str) -> bool:

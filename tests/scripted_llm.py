@@ -21,7 +21,8 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``{"sleep": seconds, "content": ...}``: reply late (to exercise time-outs);
 - ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash.
-Every request is appended to a JSONL log (protocol, path, the auth headers, the body, and the messages in
+A request with ``"stream": true`` gets the reply as server-sent events (OpenAI chat chunks, with a usage chunk
+when ``stream_options.include_usage`` asks for it; Anthropic's message events). Every request is appended to a JSONL log (protocol, path, the auth headers, the body, and the messages in
 one normalized form), so tests can read what the loop sent.
 """
 
@@ -200,6 +201,39 @@ def _reply_body(protocol: str, body: dict, content: str, count: int, input_token
                       "total_tokens": input_tokens + output_tokens}}
 
 
+def _pieces(text: str) -> list[str]:
+    """The reply cut into word-sized pieces, as a model streams tokens."""
+    return re.findall(r"\S+\s*|\s+", text) or [""]
+
+
+def _sse_events(protocol: str, body: dict, request: dict) -> list[tuple[str | None, str]]:
+    """A finished reply as the server-sent events of a streamed one (OpenAI chat chunks or Anthropic events)."""
+    if protocol == "anthropic":
+        text = body["content"][0]["text"]
+        start = {**body, "content": [], "stop_reason": None,
+                 "usage": {**body["usage"], "output_tokens": 1}}
+        events = [("message_start", {"type": "message_start", "message": start}),
+                  ("content_block_start", {"type": "content_block_start", "index": 0,
+                                           "content_block": {"type": "text", "text": ""}})]
+        events += [("content_block_delta", {"type": "content_block_delta", "index": 0,
+                                            "delta": {"type": "text_delta", "text": p}}) for p in _pieces(text)]
+        events += [("content_block_stop", {"type": "content_block_stop", "index": 0}),
+                   ("message_delta", {"type": "message_delta", "delta": {"stop_reason": "end_turn"},
+                                      "usage": {"output_tokens": body["usage"]["output_tokens"]}}),
+                   ("message_stop", {"type": "message_stop"})]
+        return [(name, json.dumps(data)) for name, data in events]
+    if protocol != "openai":
+        raise ValueError(f"the scripted server streams only OpenAI and Anthropic replies, not {protocol}")
+    text = body["choices"][0]["message"]["content"]
+    head = {k: body[k] for k in ("id", "created", "model")} | {"object": "chat.completion.chunk"}
+    chunks = [{**head, "choices": [{"index": 0, "delta": {"role": "assistant", "content": p}, "finish_reason": None}]}
+              for p in _pieces(text)]
+    chunks.append({**head, "choices": [{"index": 0, "delta": {}, "finish_reason": "stop"}]})
+    if (request.get("stream_options") or {}).get("include_usage"):
+        chunks.append({**head, "choices": [], "usage": body["usage"]})
+    return [(None, json.dumps(c)) for c in chunks] + [(None, "[DONE]")]
+
+
 def _protocol(path: str) -> str:
     path = path.split("?", 1)[0]
     if path.endswith("/messages"):
@@ -267,8 +301,21 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             usage = entry.get("usage", {})
             input_tokens = usage.get("input", sum(len(m["content"].split()) for m in messages))
             output_tokens = usage.get("output", len(content.split()))
-            self._send(200, json.dumps(_reply_body(protocol, request, content, state["count"], input_tokens,
-                                                   output_tokens, cache)).encode())
+            body = _reply_body(protocol, request, content, state["count"], input_tokens, output_tokens, cache)
+            if request.get("stream"):
+                self._stream(_sse_events(protocol, body, request))
+                return
+            self._send(200, json.dumps(body).encode())
+
+        def _stream(self, events: list[tuple[str | None, str]]):
+            self.send_response(200)
+            self.send_header("Content-Type", "text/event-stream")
+            self.send_header("Connection", "close")
+            self.end_headers()
+            for event, data in events:
+                self.wfile.write(((f"event: {event}\n" if event else "") + f"data: {data}\n\n").encode())
+                self.wfile.flush()
+            self.close_connection = True
 
         def _send(self, status: int, body: bytes):
             self.send_response(status)

@@ -263,3 +263,36 @@ def test_eval_runs_cannot_be_resumed_and_a_killed_one_shows_interrupted(tmp_path
     assert listed[0]["status"] == "interrupted"
     doctor = _cli("doctor", "--json", "--store", str(store_path))
     assert any("interrupted" in f["check"] for f in json.loads(doctor.stdout)["findings"])
+
+
+@pytest.mark.parametrize("provider,name", [("anthropic", "claude-sonnet-4-5"), ("openai", "gpt-4o")])
+def test_streamed_replies_land_like_whole_ones(store, scripted, provider, name):
+    model = scripted([COMPETENT_REPLY])
+    done = _optimize(store, model, provider, name, "--iterations", "1", "--stream", *FAST,
+                     env=_env(OPENAI_API_KEY="sk-scripted"))
+    assert done.returncode == 0, done.stderr
+    assert model.raw_requests()[0]["body"]["stream"] is True
+    assert store.query("SELECT update_status, score >= 15 FROM iterations WHERE iteration = 1") == [("accepted", True)]
+    params, input_tokens, output_tokens, finish = store.query(
+        "SELECT request_params, input_tokens, output_tokens, finish_reasons FROM llm_calls")[0]
+    assert json.loads(params)["stream"] is True and input_tokens > 1000 and output_tokens > 50 and finish == ["stop"]
+
+
+def test_waiting_line_shows_time_and_streamed_tokens():
+    import io
+
+    from pipeline.cli import _llm_waiting
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    screen = Terminal()
+    with _llm_waiting(screen)(3, "anthropic/claude-sonnet-4-5") as on_text:
+        for piece in ("def ", "select_action", "(self):"):
+            on_text(piece)
+        time.sleep(1.2)
+    shown = screen.getvalue()
+    assert "iteration 3: waiting for anthropic/claude-sonnet-4-5 ... 1 s" in shown
+    assert "receiving: 3 tokens (24 characters)" in shown
+    assert shown.endswith("\r\033[K"), "the line is cleared when the reply is in"
