@@ -16,7 +16,7 @@ from typing import Callable, Sequence
 from pipeline.games import GAMES
 
 EXIT_OK, EXIT_EPISODE_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
-FAILED_END_REASONS = ("policy_error", "timeout", "crashed")
+FAILED_END_REASONS = ("policy_error", "timeout", "crashed", "tampered")
 
 
 class CliError(Exception):

@@ -15,6 +15,7 @@ from pipeline.executor import run_episodes
 from pipeline.games import get_game
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id, new_run_id, package_versions
+from pipeline.verify import verify_outcome
 from pipeline.versions import policy_version_row
 from store import Store
 from store.writer import finish_run, insert_policy_version, insert_run, write_episode
@@ -126,6 +127,7 @@ def evaluate(
     status, error = "failed", None
     try:
         for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
+            outcome = verify_outcome(specs[i], outcome)
             done += 1
             with store.write() as con:
                 write_episode(con, outcome.episode, outcome.steps, outcome.nodes)

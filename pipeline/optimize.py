@@ -40,6 +40,7 @@ from pipeline.runinfo import episode_id, new_run_id, package_versions
 from pipeline.task import example_path, task_settings
 from pipeline.tokens import TokenCounter
 from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, spread
+from pipeline.verify import tampering, verify_outcome
 from pipeline.versions import policy_version_row
 from store import Store
 from store.db import utcnow
@@ -340,6 +341,7 @@ def _play(store: Store, state: _State, iteration: int, version_id: str,
     started = time.monotonic()
     train_done = None
     for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress):
+        outcome = verify_outcome(specs[i], outcome)
         with store.write() as con:
             write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)
         outcomes[i] = outcome
@@ -375,7 +377,15 @@ def run_iteration(store: Store, state: _State, iteration: int, client: LLMClient
     score = statistics.fmean(o.episode["return"] for o in evals)
     previous_best = state.best_score
     rolled_back = False
-    if previous_best is None or score > previous_best:
+    tampered = tampering([train] + evals) if status == "accepted" else None
+    if tampered:  # pipeline/verify.py: the candidate is rejected, never the best; the next update starts from the best
+        status = "rejected"
+        notes.insert(0, f"Your last suggestion was rejected: {tampered}")
+        rolled_back = state.best_version_id is not None and version_id != state.best_version_id
+        with store.write() as con:
+            con.execute("UPDATE policy_versions SET validation = 'rejected', validation_error = ? WHERE run_id = ? "
+                        "AND iteration = ? AND policy_version_id = ?", [tampered, state.run_id, iteration, version_id])
+    elif previous_best is None or score > previous_best:
         state.best_score, state.best_iteration, state.best_version_id = score, iteration, version_id
     elif c.rollback and iteration > 0:
         threshold = previous_best - (1 - c.rollback_fraction) * max(abs(previous_best), 1.0)
