@@ -104,6 +104,11 @@ class _Replay:
         return math.fsum(self.rewards)
 
 
+def replay_actions(spec: EpisodeSpec, actions: list[int]) -> _Replay:
+    """Replay ``actions`` from ``spec``'s reset in this process's replay environment (no policy code)."""
+    return _Replay(spec, actions)
+
+
 def _float(value: Any, default: float | None = None) -> float | None:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return default
@@ -217,7 +222,7 @@ def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome) -> EpisodeOutcome
             why = "an action outside the game's action set was recorded"
     if why is not None:
         actions = []
-    replay = _Replay(spec, actions)
+    replay = replay_actions(spec, actions)
     if why is None:
         why = _compare(row, steps, replay, len(actions))
     if why is None and row["end_reason"] != TAMPERED:
