@@ -139,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rollout-steps", type=_positive_int, help="training rollout horizon (default: the task's)")
     p.add_argument("--eval-max-steps", type=_positive_int, help="evaluation cap (default: the task's, 4000)")
     p.add_argument("--workers", type=_positive_int, default=None, help="episode worker processes (default: cores)")
-    p.add_argument("--call-time-limit", type=float, default=1.0, metavar="SECONDS", help="per policy call (default: 1)")
+    p.add_argument("--call-time-limit", type=float, default=None, metavar="SECONDS", help="per policy call (default: 1)")
     p.add_argument("--resume", metavar="RUN_ID", help="continue a run that was interrupted or killed")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     _add_rerun(p)
@@ -334,10 +334,16 @@ def cmd_optimize(args: argparse.Namespace) -> int:
         config.model = args.model or config.model  # a resumed run may be pointed at another endpoint
         config.api_base = args.api_base or config.api_base
         offline = config.model is None
+        config.max_tokens = args.max_tokens or config.max_tokens  # limits given now apply to the rest of the run
         client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
                                           config.seed)
         if args.iterations is not None:
             config.iterations = args.iterations
+        if args.token_budget is not None:
+            config.token_budget = args.token_budget if cap is None else min(args.token_budget, cap)
+        config.workers = args.workers or config.workers
+        if args.call_time_limit is not None:
+            config.call_time_limit_s = args.call_time_limit
     else:
         client, server, cap = open_client(args.model, args.api_base, args.temperature, args.max_tokens, args.seed)
         budget = args.token_budget or (16_000 if cap is None else OFFLINE_TOKEN_BUDGET)
@@ -350,7 +356,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
             rollback=not args.no_rollback, rollback_fraction=args.rollback_fraction, seed=args.seed,
             temperature=args.temperature, max_tokens=client.max_tokens, rollout_steps=args.rollout_steps,
             eval_max_steps=args.eval_max_steps, workers=args.workers or (os.cpu_count() or 1),
-            call_time_limit_s=args.call_time_limit,
+            call_time_limit_s=1.0 if args.call_time_limit is None else args.call_time_limit,
         )
     rerun = _rerun_target(args.rerun)
     on_iteration, recordings = _run_recordings(store, rerun, None if args.json else _print_iteration)

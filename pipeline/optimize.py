@@ -50,6 +50,8 @@ from store.writer import finish_run, insert_policy_version, insert_run, put_blob
 from tracing.policy_file import PolicyInfo, inspect_policy, read_policy_file
 
 MAX_CONSECUTIVE_LLM_FAILURES = 3
+RESUME_LIMITS = ("token_budget", "max_tokens", "call_time_limit_s", "workers")
+"""Limits a resumed run takes from the config it is resumed with (the command line), not from its record."""
 
 
 @dataclass
@@ -468,9 +470,14 @@ def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: st
     run_id = resume or start_run(config, store, client.model, extra=tags)
     state = load_state(store, run_id)
     state.rerun = rerun
-    if resume and config.iterations > state.config.iterations:
-        state.config.iterations = config.iterations  # resuming may extend a run, never shrink it
-        with store.write() as con:
-            con.execute("UPDATE runs SET config = json_merge_patch(config, ?) WHERE run_id = ?",
-                        [json.dumps({"iterations": config.iterations}), run_id])
+    if resume:  # resuming may extend a run, never shrink it; the limits given now apply (and are recorded)
+        patch = {k: getattr(config, k) for k in RESUME_LIMITS if getattr(config, k) != getattr(state.config, k)}
+        if config.iterations > state.config.iterations:
+            patch["iterations"] = config.iterations
+        if patch:
+            for name, value in patch.items():
+                setattr(state.config, name, value)
+            with store.write() as con:
+                con.execute("UPDATE runs SET config = json_merge_patch(config, ?) WHERE run_id = ?",
+                            [json.dumps(patch), run_id])
     return run_loop(store, state, client, log, on_iteration, progress)

@@ -15,7 +15,8 @@ output), whatever a candidate's validation reports, and every note composed into
   ``*_KEY`` set to ``1`` must not redact every digit).
 
 :func:`clean_json_text` does the same for a JSON text (a node's inputs and output) and keeps it valid JSON;
-:func:`clean_nodes` applies both to the string columns of a node table as it arrives from a worker.
+:func:`clean_nodes` applies both to the string columns of a node table as it arrives from a worker, and
+:func:`clean_step_objects` to the object names inside a step table.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import re
 from functools import lru_cache
 
 import pyarrow as pa
+import pyarrow.compute as pc
 
 MESSAGE_LIMIT = 2_000
 """Characters kept of one message (an error, an exception message, a validation reason, a feedback note)."""
@@ -146,6 +148,29 @@ def clean_nodes(nodes: pa.Table | None) -> pa.Table | None:
         if name in nodes.column_names:
             nodes = _clean_column(nodes, name, clean_json_text)
     return nodes
+
+
+def clean_step_objects(steps: pa.Table) -> pa.Table:
+    """A step table (``tracing.steps.STEP_SCHEMA``) from a worker with the strings inside its ``objects``
+    (``key``, ``category``: a handful of distinct names) cleaned; unchanged when they are clean (the usual case)."""
+    if steps.num_rows == 0:
+        return steps
+    objects = steps.column("objects").combine_chunks()
+    values = objects.values
+    fields = {}
+    for name in ("key", "category"):
+        column = values.field(name)
+        distinct = [v for v in pc.unique(column).to_pylist() if v is not None]
+        mapping = {v: clean_untrusted_text(v, 100) for v in distinct}
+        if any(mapping[v] != v for v in distinct):
+            fields[name] = pa.array([None if v is None else mapping[v] for v in column.to_pylist()], type=pa.string())
+    if not fields:
+        return steps
+    children = [fields.get(f.name, values.field(f.name)) for f in values.type]
+    struct = pa.StructArray.from_arrays(children, fields=list(values.type))
+    rebuilt = pa.ListArray.from_arrays(objects.offsets, struct, mask=objects.is_null() if objects.null_count else None)
+    index = steps.column_names.index("objects")
+    return steps.set_column(index, steps.schema.field(index), rebuilt.cast(steps.schema.field(index).type))
 
 
 def _clean_column(table: pa.Table, name: str, clean) -> pa.Table:

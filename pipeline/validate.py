@@ -6,7 +6,7 @@ spliced into the policy file, the whole file still checks. Then a runtime check 
 the candidate policy is loaded and called on observations recorded in the store (the training rollout's),
 each call within the time limit and returning a legal action. The first failure rejects the candidate with a
 reason that names the method, the error and, for runtime failures, the step whose observation broke it; the
-reason becomes part of the next feedback.
+reason (capped and scrubbed of secrets, ``pipeline/untrusted.py``) becomes part of the next feedback.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from typing import Any
 from pipeline.executor import run_tasks
 from pipeline.games import get_game
 from pipeline.rollout import coerce_action, describe_exception
+from pipeline.untrusted import clean_untrusted_text
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods
 from tracing.sandbox import CallTimer, PolicyCodeError, PolicyTimeout, check_source
 
@@ -27,7 +28,11 @@ MAX_VALIDATION_STEPS = 200
 
 
 class CandidateRejected(Exception):
-    """A candidate that must not become a policy version; ``str()`` is the reason."""
+    """A candidate that must not become a policy version; ``str()`` is the reason, cleaned as untrusted text
+    (``pipeline/untrusted.py``: capped, secrets redacted): it quotes the candidate's own exceptions and names."""
+
+    def __init__(self, reason: object):
+        super().__init__(clean_untrusted_text(reason))
 
 
 @dataclass

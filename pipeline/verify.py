@@ -9,7 +9,7 @@ nothing of a worker's episode on trust. :func:`verify_outcome`, called on every 
 1. rebuilds the episode row: the fields the parent decided (ids, seed, game, caps, protocol) come from the
    :class:`~pipeline.rollout.EpisodeSpec`, the measured ones are type-checked, unknown keys are dropped, and
    text (the error message) is cleaned (``pipeline/untrusted.py``: capped, secrets redacted);
-2. cleans the node table's text columns the same way;
+2. cleans the node table's text columns, and the object names in the step table, the same way;
 3. replays the recorded actions (the ``steps`` table's ``action`` column, up to the step where the policy
    failed, whose action is NULL) in a fresh environment of this process with the same game, seed, sticky
    probability and no-op setting (episodes are deterministic given those and the actions, under both
@@ -42,7 +42,7 @@ import pyarrow.compute as pc
 from pipeline.envs import make_env
 from pipeline.games import get_game
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec
-from pipeline.untrusted import MESSAGE_LIMIT, clean_nodes, clean_untrusted_text
+from pipeline.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
 from tracing.capture import NODE_SCHEMA
 from tracing.steps import STEP_SCHEMA, StepLog
 
@@ -147,7 +147,7 @@ def _tables(outcome: EpisodeOutcome) -> tuple[pa.Table | None, pa.Table | None, 
     try:
         if not isinstance(steps, pa.Table):
             raise TypeError(f"a {type(steps).__name__}")
-        steps = steps.select(STEP_SCHEMA.names).cast(STEP_SCHEMA)
+        steps = clean_step_objects(steps.select(STEP_SCHEMA.names).cast(STEP_SCHEMA))
     except Exception as exc:  # noqa: BLE001 - anything a worker sent
         return None, None, f"the step table is malformed ({clean_untrusted_text(exc, 200)})"
     try:
