@@ -189,7 +189,9 @@ def build_parser() -> argparse.ArgumentParser:
         "sql",
         help="run a read-only SQL query on the store",
         description="Run one read-only SQL query (DuckDB dialect) on the store and print the result: an aligned "
-        "table, CSV or JSON. Works while a run is writing to the store (it waits between the run's writes). "
+        "table, CSV or JSON. One statement per call: SELECT (WITH, FROM, VALUES, SHOW, DESCRIBE, SUMMARIZE), "
+        "EXPLAIN, PRAGMA or CALL; the store is opened read-only with DuckDB's external access off (no ATTACH, "
+        "COPY, EXPORT, INSTALL, nor reading other files). Works while a run is writing to the store (it waits between the run's writes). "
         "Besides the tables, the views learning_curve, code_metrics, llm_usage, rejected_candidates and "
         "run_summary are there; docs/schema.md describes them all.",
     )
@@ -539,14 +541,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_sql(args: argparse.Namespace) -> int:
-    from store.views import run_query
+    from store.views import run_user_query
     from viewers.tables import format_table, records, write_csv
 
     query = sys.stdin.read() if args.query == "-" else args.query
     if not query.strip():
         raise CliError("empty query; give a SQL statement, e.g. codearcade sql \"SELECT * FROM run_summary\"")
     store = _store(args)
-    result = run_query(store, query)  # every row is fetched and the file let go before anything is printed
+    result = run_user_query(store, query)  # read-only for real; every row is fetched and the file let go first
     if args.json:
         print(json.dumps(records(result.columns, result.types, result.rows), indent=2, ensure_ascii=False))
     elif args.csv:
