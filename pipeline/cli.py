@@ -503,18 +503,24 @@ def cmd_batch(args: argparse.Namespace) -> int:
 def cmd_doctor(args: argparse.Namespace) -> int:
     from store.doctor import check_store
 
+    import duckdb
+
     store = _store(args)
-    with store.read() as con:
+    with store.read(check=False) as con:  # a damaged store is the doctor's business: findings, not an error
         findings = check_store(con, store.path)
-        counts = {t: con.execute(f"SELECT count(*) FROM {t}").fetchone()[0]
-                  for t in ("runs", "iterations", "episodes", "steps", "nodes", "llm_calls")}
+        counts = {}
+        for t in ("runs", "iterations", "episodes", "steps", "nodes", "llm_calls"):
+            try:
+                counts[t] = con.execute(f"SELECT count(*) FROM {t}").fetchone()[0]
+            except duckdb.Error:
+                counts[t] = None
     errors = [f for f in findings if not f.warning]
     if args.json:
         print(json.dumps({"store": str(store.path), "ok": not errors, "counts": counts,
                           "findings": [{"check": f.check, "warning": f.warning, "rows": [list(map(str, r)) for r in f.rows]}
                                        for f in findings]}, indent=2))
     else:
-        print(f"{store.path}: " + ", ".join(f"{n:,} {t}" for t, n in counts.items()))
+        print(f"{store.path}: " + ", ".join(f"{'?' if n is None else format(n, ',')} {t}" for t, n in counts.items()))
         for f in findings:
             print(("warning: " if f.warning else "PROBLEM: ") + f.summary())
         print("ok: no damage found" if not errors else f"{len(errors)} kind(s) of damage found")
@@ -615,6 +621,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     except _user_errors() as exc:
         print(f"codearcade: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except _store_damage_errors() as exc:  # a store damaged beyond what the checks on opening see
+        from store.views import one_line
+
+        print(f"codearcade: error: cannot use the store ({one_line(exc)[:300]}); it may be damaged: "
+              "`codearcade doctor` reports what is left", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+def _store_damage_errors() -> tuple[type[BaseException], ...]:
+    import duckdb
+
+    return (duckdb.IOException, duckdb.SerializationException, duckdb.InternalException)
 
 
 if __name__ == "__main__":

@@ -103,6 +103,8 @@ def evaluate(
     info = inspect_policy(text, name)
     game = resolve_game(info.game, config.game, name)
 
+    with store.write():  # creates or upgrades the store, and refuses a damaged one, before anything plays
+        pass
     run_id = new_run_id()
     specs = [
         EpisodeSpec(
