@@ -39,7 +39,8 @@ from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id, new_run_id, package_versions
 from pipeline.task import example_path, task_settings
 from pipeline.tokens import TokenCounter
-from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, spread
+from pipeline.validate import (CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, check_fits,
+                               spread)
 from pipeline.verify import tampering, verify_outcome
 from pipeline.versions import policy_version_row
 from store import Store
@@ -316,6 +317,8 @@ def _update(store: Store, state: _State, iteration: int, client: LLMClient, coun
 
     try:
         candidate = build_candidate(ctx.info, suggestion)
+        if candidate is not None:
+            check_fits(candidate, c.token_budget, counter)
     except CandidateRejected as exc:  # nothing runnable to store: the reason is the record
         return base_version, "rejected", call_id, f"Your last suggestion was rejected: {exc}", prompt.tokens
     if candidate is None:

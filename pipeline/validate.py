@@ -2,7 +2,8 @@
 
 Static checks, in the parent (no candidate code runs there): every suggested method exists and is trainable;
 its source is one ``def`` of the same name with the same parameters; it passes the sandbox's source check;
-spliced into the policy file, the whole file still checks. Then a runtime check in a hardened worker process:
+spliced into the policy file, the whole file still checks, and fits half of the prompt's token budget
+(:func:`check_fits`). Then a runtime check in a hardened worker process:
 the candidate policy is loaded and called on observations recorded in the store (the training rollout's),
 each call within the time limit and returning a legal action. The first failure rejects the candidate with a
 reason that names the method, the error and, for runtime failures, the step whose observation broke it; the
@@ -92,6 +93,24 @@ def build_candidate(info: PolicyInfo, suggestion: dict[str, str]) -> Candidate |
     except PolicyLoadError as exc:
         raise CandidateRejected(f"the policy with the new code does not check: {exc}") from None
     return Candidate(text, changed, new_info)
+
+
+CODE_BUDGET_SHARE = 0.5
+"""Most of the prompt's token budget a candidate policy's text may take (the next prompt shows it whole)."""
+
+
+def check_fits(candidate: Candidate, token_budget: int, count) -> None:
+    """:class:`CandidateRejected` if the candidate's policy text would take more than :data:`CODE_BUDGET_SHARE`
+    of the next prompt's token budget (``count``: text -> tokens). Without this, one long reply that validates
+    (a method with a megabyte docstring) would make every later prompt impossible to build."""
+    limit = int(token_budget * CODE_BUDGET_SHARE)
+    if len(candidate.text) > 8 * limit:  # too long whatever the tokenizer: do not even count it
+        raise CandidateRejected(f"the new code is {len(candidate.text):,} characters long, far more than the "
+                                f"{limit:,} tokens of the prompt it may take; keep the methods short")
+    tokens = count(candidate.text)
+    if tokens > limit:
+        raise CandidateRejected(f"the new code is {tokens:,} tokens long, more than the {limit:,} tokens of the "
+                                f"prompt it may take ({CODE_BUDGET_SHARE:.0%} of the budget); keep the methods short")
 
 
 @dataclass

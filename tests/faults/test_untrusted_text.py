@@ -170,3 +170,19 @@ def test_resume_honours_the_token_budget_given(store, scripted, tmp_path, capfd)
     assert (config["token_budget"], config["call_time_limit_s"], config["iterations"]) == (2500, 0.5, 2)
     counted = dict(store.query("SELECT iteration, prompt_tokens_counted FROM llm_calls"))
     assert counted[1] > 2500 >= counted[2], counted
+
+
+def test_a_huge_candidate_that_validates_does_not_end_the_run(store, scripted, capfd):
+    # 400 KB of docstring: a valid method, under the reply limit, that no later prompt could show
+    huge = ('def select_action(self, predicted_ball_y, obs):\n    """' + "word " * 80_000 + '"""\n'
+            '    return 0\n')
+    model = scripted([json_reply({"select_action": huge})])
+    code = main(["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+                 "--iterations", "2", "--eval-max-steps", "60", "--rollout-steps", "40", "--token-budget", "8000",
+                 "--workers", "1", "--store", str(store.path)])
+    out, err = capfd.readouterr()
+    assert code == 0, err[-2000:]
+    rows = store.query("SELECT update_status FROM iterations WHERE iteration > 0 ORDER BY iteration")
+    assert rows == [("rejected",), ("rejected",)]
+    assert "keep the methods short" in store.query("SELECT text FROM feedback WHERE iteration = 1")[0][0]
+    assert all(t <= 8000 for (t,) in store.query("SELECT prompt_tokens_counted FROM llm_calls"))
