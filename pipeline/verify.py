@@ -143,7 +143,7 @@ def _episode_row(spec: EpisodeSpec, reported: dict[str, Any]) -> dict[str, Any]:
 
 def _tables(outcome: EpisodeOutcome) -> tuple[pa.Table | None, pa.Table | None, str | None]:
     """The steps and nodes tables in their schemas, or (None, ..., why) for a steps table that is not one."""
-    steps, nodes = outcome.steps, outcome.nodes
+    steps, nodes = getattr(outcome, "steps", None), getattr(outcome, "nodes", None)
     try:
         if not isinstance(steps, pa.Table):
             raise TypeError(f"a {type(steps).__name__}")
@@ -201,7 +201,8 @@ def _compare(row: dict[str, Any], steps: pa.Table, replay: _Replay, actions_end:
 def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome) -> EpisodeOutcome:
     """The outcome of ``spec`` as the parent stores it: row rebuilt, text cleaned, score verified by replay
     (see the module docstring). Never raises for anything the worker sent."""
-    reported = outcome.episode if isinstance(outcome.episode, dict) else {}
+    reported = getattr(outcome, "episode", None)
+    reported = reported if isinstance(reported, dict) else {}
     row = _episode_row(spec, reported)
     steps, nodes, why = _tables(outcome)
     actions: list[int] = []

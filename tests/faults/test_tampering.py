@@ -18,7 +18,7 @@ from pipeline.cli import main
 from pipeline.executor import run_episodes
 from pipeline.llm import LiteLLMClient
 from pipeline.optimize import OptimizeConfig, optimize
-from pipeline.rollout import EpisodeSpec, run_episode
+from pipeline.rollout import EpisodeOutcome, EpisodeSpec, run_episode
 from pipeline.verify import verify_outcome
 from tests.conftest import json_reply, pong_policy
 
@@ -141,3 +141,11 @@ def test_a_malformed_step_table_is_marked_not_stored():
     verified = verify_outcome(spec, outcome)
     assert verified.episode["end_reason"] == "tampered" and verified.steps.num_rows == 0
     assert "malformed" in verified.episode["verify_error"]
+
+
+def test_anything_a_worker_sends_is_turned_into_a_marked_episode():
+    spec = _spec(HONEST_POLICY, max_steps=50)
+    for sent in (None, "an outcome", EpisodeOutcome(episode="row", steps=None, nodes=42)):
+        verified = verify_outcome(spec, sent)
+        assert verified.episode["episode_id"] == spec.episode_id and verified.episode["end_reason"] == "tampered"
+        assert verified.episode["return"] == 0.0 and verified.steps.num_rows == 0
