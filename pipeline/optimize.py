@@ -39,6 +39,7 @@ from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id, new_run_id, package_versions
 from pipeline.task import example_path, task_settings
 from pipeline.tokens import TokenCounter
+from pipeline.untrusted import clean_untrusted_text
 from pipeline.validate import (CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, check_fits,
                                spread)
 from pipeline.verify import tampering, verify_outcome
@@ -264,7 +265,7 @@ def _record_call(store: Store, state: _State, iteration: int, client: LLMClient,
              reply.input_tokens if reply else None, reply.output_tokens if reply else None, prompt.tokens,
              reply.cost_usd if reply else None, reply.latency_s if reply else (error.latency_s if error else None),
              reply.attempts if reply else (error.attempts if error else 1),
-             error.error_type if error else None, error.message if error else None,
+             error.error_type if error else None, clean_untrusted_text(error.message) if error else None,
              bool(reply.replayed) if reply else False],
         )
     return call_id
