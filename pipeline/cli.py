@@ -1,8 +1,8 @@
 """The ``codearcade`` command line: one verb per job, each with ``--store`` and ``--help``.
 
-Exit codes: 0 success; 1 the job ran but an episode ended in a policy error, time-out or crash; 2 bad input
-(unknown game, missing or broken policy file, unusable store), with a one-line message on stderr; 130
-interrupted.
+Exit codes: 0 success; 1 the job ran but an episode ended in a policy error, time-out, crash or score
+tampering; 2 bad input (unknown game, missing or broken policy file, unusable or damaged store), with a
+one-line message on stderr; 130 interrupted.
 """
 
 from __future__ import annotations

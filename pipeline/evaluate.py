@@ -1,8 +1,11 @@
 """``codearcade eval``: play a policy file for N episodes and put everything in the store.
 
 The whole job in one place: read and check the policy statically (a broken file fails here with one line;
-policy code itself only ever runs in the workers), create a run (kind ``eval``) with its policy version, play the episodes in worker processes, write
-each finished episode in its own transaction, and mark the run finished, failed or interrupted.
+policy code itself only ever runs in the workers), check the store (a damaged one is refused before anything
+plays), create a run (kind ``eval``) with its policy version, play the episodes in worker processes, verify each
+finished episode's score by replaying its actions here (``pipeline/verify.py``; a disagreement ends it
+``tampered``, with the replay's score), write it in its own transaction, and mark the run finished, failed or
+interrupted.
 """
 
 from __future__ import annotations

@@ -8,7 +8,8 @@ Iteration 0 evaluates the starting policy. Each iteration k >= 1 then:
 3. parses and validates the suggestion (``pipeline/reply.py``, ``pipeline/validate.py``): an accepted one
    becomes a new policy version, a rejected one is stored with its reason, which goes into the feedback;
 4. plays a traced training rollout (the game's horizon: 400/300/15 steps) and the evaluation episodes in
-   parallel worker processes; the score is the mean evaluation return;
+   parallel worker processes; the score is the mean evaluation return, as verified by replaying each episode's
+   actions in this process (``pipeline/verify.py``): a candidate caught tampering with its score is rejected;
 5. writes the feedback (staged from the evaluation score, or rollout-only for the paper's ablation) and the
    ``iterations`` row in one transaction, and decides on a rollback: a score below
    ``best - (1 - rollback_fraction) * max(|best|, 1)`` (for a positive best: below ``rollback_fraction * best``)
