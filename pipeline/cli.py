@@ -139,7 +139,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rollout-steps", type=_positive_int, help="training rollout horizon (default: the task's)")
     p.add_argument("--eval-max-steps", type=_positive_int, help="evaluation cap (default: the task's, 4000)")
     p.add_argument("--workers", type=_positive_int, default=None, help="episode worker processes (default: cores)")
-    p.add_argument("--call-time-limit", type=float, default=None, metavar="SECONDS", help="per policy call (default: 1)")
+    p.add_argument("--call-time-limit", type=float, default=None, metavar="SECONDS",
+                   help="per policy call (default: 1)")
     p.add_argument("--resume", metavar="RUN_ID", help="continue a run that was interrupted or killed")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     _add_rerun(p)
@@ -191,7 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run one read-only SQL query (DuckDB dialect) on the store and print the result: an aligned "
         "table, CSV or JSON. One statement per call: SELECT (WITH, FROM, VALUES, SHOW, DESCRIBE, SUMMARIZE), "
         "EXPLAIN, PRAGMA or CALL; the store is opened read-only with DuckDB's external access off (no ATTACH, "
-        "COPY, EXPORT, INSTALL, nor reading other files). Works while a run is writing to the store (it waits between the run's writes). "
+        "COPY, EXPORT, INSTALL, nor reading other files). Works while a run is writing to the store (it waits "
+        "between the run's writes). "
         "Besides the tables, the views learning_curve, code_metrics, llm_usage, rejected_candidates and "
         "run_summary are there; docs/schema.md describes them all.",
     )
@@ -501,9 +503,9 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
-    from store.doctor import check_store
-
     import duckdb
+
+    from store.doctor import check_store
 
     store = _store(args)
     with store.read(check=False) as con:  # a damaged store is the doctor's business: findings, not an error
@@ -520,7 +522,8 @@ def cmd_doctor(args: argparse.Namespace) -> int:
                           "findings": [{"check": f.check, "warning": f.warning, "rows": [list(map(str, r)) for r in f.rows]}
                                        for f in findings]}, indent=2))
     else:
-        print(f"{store.path}: " + ", ".join(f"{'?' if n is None else format(n, ',')} {t}" for t, n in counts.items()))
+        shown = (f"{'?' if n is None else format(n, ',')} {t}" for t, n in counts.items())
+        print(f"{store.path}: " + ", ".join(shown))
         for f in findings:
             print(("warning: " if f.warning else "PROBLEM: ") + f.summary())
         print("ok: no damage found" if not errors else f"{len(errors)} kind(s) of damage found")
