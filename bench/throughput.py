@@ -6,6 +6,10 @@ action sequences in OCAtari's own env class with its lean settings (the baseline
 Both sides build their environment once, outside the timings (codearcade keeps one per process, which the
 optimizer's iterations and the worker processes reuse): the figures are the steady state of playing.
 It prints steps/s for each and the ratios to the baseline; targets: eval >= 0.85, eval --trace >= 0.60.
+(``eval`` includes the parent's score verification, as every evaluation does.) A separate table gives the cost
+of that verification alone (``pipeline/verify.py``: the parent replays the episodes' actions in raw ALE): its
+steps/s, and its time as a share of the eval time (the parent replays while the worker plays the next episode,
+so only the last episode's replay adds to an evaluation's wall time).
 The three are measured in rotating order, several times; each one's best time counts (noise from other
 tenants of the cores only ever adds time), and the median of the per-repeat ratios is shown beside.
 
@@ -31,6 +35,8 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.evaluate import EvalConfig, evaluate  # noqa: E402
 from pipeline.games import GAMES, get_game  # noqa: E402
+from pipeline.rollout import EpisodeSpec  # noqa: E402
+from pipeline.verify import replay_actions  # noqa: E402
 from store import Store  # noqa: E402
 
 TARGETS = {"eval": 0.85, "eval --trace": 0.60}
@@ -78,6 +84,15 @@ def played_actions(store: Store, run_id: str) -> tuple[list[int], list[list[int]
     return [r[0] for r in rows], [r[1] for r in rows]
 
 
+def timed_replay(game: str, action_sequences: list[list[int]], seeds: list[int]) -> float:
+    """Seconds the parent's verification spends replaying the given action sequences (pipeline/verify.py)."""
+    start = time.perf_counter()
+    for actions, seed in zip(action_sequences, seeds):
+        replay_actions(EpisodeSpec(episode_id="bench", run_id="bench", game=game, policy_text="", policy_version_id="",
+                                   seed=seed), actions)
+    return time.perf_counter() - start
+
+
 def timed_eval(policy: Path, store: Store, episodes: int, trace: bool) -> tuple[float, str]:
     config = EvalConfig(episodes=episodes, trace=trace, workers=1, max_steps=4000)
     start = time.perf_counter()
@@ -99,6 +114,7 @@ def main() -> int:
     print(f"{'game':<15} {'steps':>6} {'bare OCAtari':>13} {'eval':>13} {'eval --trace':>13} "
           f"{'eval/bare':>10} {'trace/bare':>11}   (median of paired ratios)")
     failures = []
+    verification = []
     for game in args.games:
         policy = ROOT / "examples" / f"{game}.py"
         # The paper's protocol is deterministic: every repeat plays these very actions.
@@ -110,6 +126,7 @@ def main() -> int:
             "bare": lambda: bare.play(actions, seeds),
             "eval": lambda: timed_eval(policy, store, args.episodes, trace=False)[0],
             "trace": lambda: timed_eval(policy, store, args.episodes, trace=True)[0],
+            "verify": lambda: timed_replay(game, actions, seeds),
         }
         seconds: dict[str, list[float]] = {name: [] for name in measure}
         order = list(measure)
@@ -126,11 +143,16 @@ def main() -> int:
         print(f"{game:<15} {steps:>6} {steps / best['bare']:>9.0f} st/s {steps / best['eval']:>9.0f} st/s "
               f"{steps / best['trace']:>9.0f} st/s {ratios['eval']:>10.2f} {ratios['trace']:>11.2f}   "
               f"({paired['eval']:.2f}, {paired['trace']:.2f})")
+        verification.append((game, steps, steps / best["verify"], best["verify"] / best["eval"]))
         for name, label in (("eval", "eval"), ("trace", "eval --trace")):
             if ratios[name] < TARGETS[label]:
                 failures.append(f"{game}: {label} ratio {ratios[name]:.2f} below target {TARGETS[label]}")
     print(f"targets: eval/bare >= 0.85, trace/bare >= 0.60 (best of {args.repeats} repeats each, interleaved; "
           f"{args.episodes} episodes per measurement)")
+    print(f"\n{'game':<15} {'steps':>6} {'verify replay':>14} {'verify/eval time':>17}   (score verification, "
+          "pipeline/verify.py)")
+    for game, steps, rate, share in verification:
+        print(f"{game:<15} {steps:>6} {rate:>9.0f} st/s {share:>17.2f}")
     for failure in failures:
         print("BELOW TARGET:", failure)
     return 0

@@ -1,8 +1,8 @@
 """The ``codearcade`` command line: one verb per job, each with ``--store`` and ``--help``.
 
-Exit codes: 0 success; 1 the job ran but an episode ended in a policy error, time-out or crash; 2 bad input
-(unknown game, missing or broken policy file, unusable store), with a one-line message on stderr; 130
-interrupted.
+Exit codes: 0 success; 1 the job ran but an episode ended in a policy error, time-out, crash or score
+tampering; 2 bad input (unknown game, missing or broken policy file, unusable or damaged store), with a
+one-line message on stderr; 130 interrupted.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Callable, Sequence
 from pipeline.games import GAMES
 
 EXIT_OK, EXIT_EPISODE_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
-FAILED_END_REASONS = ("policy_error", "timeout", "crashed")
+FAILED_END_REASONS = ("policy_error", "timeout", "crashed", "tampered")
 
 
 class CliError(Exception):
@@ -220,7 +220,10 @@ def build_parser() -> argparse.ArgumentParser:
         "sql",
         help="run a read-only SQL query on the store",
         description="Run one read-only SQL query (DuckDB dialect) on the store and print the result: an aligned "
-        "table, CSV or JSON. Works while a run is writing to the store (it waits between the run's writes). "
+        "table, CSV or JSON. One statement per call: SELECT (WITH, FROM, VALUES, SHOW, DESCRIBE, SUMMARIZE), "
+        "EXPLAIN, PRAGMA or CALL; the store is opened read-only with DuckDB's external access off (no ATTACH, "
+        "COPY, EXPORT, INSTALL, nor reading other files). Works while a run is writing to the store (it waits "
+        "between the run's writes). "
         "Besides the tables, the views learning_curve, code_metrics, llm_usage, rejected_candidates and "
         "run_summary are there; docs/schema.md describes them all.",
     )
@@ -623,20 +626,27 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
+    import duckdb
+
     from store.doctor import check_store
 
     store = _store(args)
-    with store.read() as con:
+    with store.read(check=False) as con:  # a damaged store is the doctor's business: findings, not an error
         findings = check_store(con, store.path)
-        counts = {t: con.execute(f"SELECT count(*) FROM {t}").fetchone()[0]
-                  for t in ("runs", "iterations", "episodes", "steps", "nodes", "llm_calls")}
+        counts = {}
+        for t in ("runs", "iterations", "episodes", "steps", "nodes", "llm_calls"):
+            try:
+                counts[t] = con.execute(f"SELECT count(*) FROM {t}").fetchone()[0]
+            except duckdb.Error:
+                counts[t] = None
     errors = [f for f in findings if not f.warning]
     if args.json:
         print(json.dumps({"store": str(store.path), "ok": not errors, "counts": counts,
                           "findings": [{"check": f.check, "warning": f.warning, "rows": [list(map(str, r)) for r in f.rows]}
                                        for f in findings]}, indent=2))
     else:
-        print(f"{store.path}: " + ", ".join(f"{n:,} {t}" for t, n in counts.items()))
+        shown = (f"{'?' if n is None else format(n, ',')} {t}" for t, n in counts.items())
+        print(f"{store.path}: " + ", ".join(shown))
         for f in findings:
             print(("warning: " if f.warning else "PROBLEM: ") + f.summary())
         print("ok: no damage found" if not errors else f"{len(errors)} kind(s) of damage found")
@@ -664,14 +674,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_sql(args: argparse.Namespace) -> int:
-    from store.views import run_query
+    from store.views import run_user_query
     from viewers.tables import format_table, records, write_csv
 
     query = sys.stdin.read() if args.query == "-" else args.query
     if not query.strip():
         raise CliError("empty query; give a SQL statement, e.g. codearcade sql \"SELECT * FROM run_summary\"")
     store = _store(args)
-    result = run_query(store, query)  # every row is fetched and the file let go before anything is printed
+    result = run_user_query(store, query)  # read-only for real; every row is fetched and the file let go first
     if args.json:
         print(json.dumps(records(result.columns, result.types, result.rows), indent=2, ensure_ascii=False))
     elif args.csv:
@@ -744,6 +754,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     except _user_errors() as exc:
         print(f"codearcade: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except _store_damage_errors() as exc:  # a store damaged beyond what the checks on opening see
+        from store.views import one_line
+
+        print(f"codearcade: error: cannot use the store ({one_line(exc)[:300]}); it may be damaged: "
+              "`codearcade doctor` reports what is left", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+def _store_damage_errors() -> tuple[type[BaseException], ...]:
+    import duckdb
+
+    return (duckdb.IOException, duckdb.SerializationException, duckdb.InternalException)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,11 @@
 """``codearcade eval``: play a policy file for N episodes and put everything in the store.
 
 The whole job in one place: read and check the policy statically (a broken file fails here with one line;
-policy code itself only ever runs in the workers), create a run (kind ``eval``) with its policy version, play the episodes in worker processes, write
-each finished episode in its own transaction, and mark the run finished, failed or interrupted.
+policy code itself only ever runs in the workers), check the store (a damaged one is refused before anything
+plays), create a run (kind ``eval``) with its policy version, play the episodes in worker processes, verify each
+finished episode's score by replaying its actions here (``pipeline/verify.py``; a disagreement ends it
+``tampered``, with the replay's score), write it in its own transaction, and mark the run finished, failed or
+interrupted.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from pipeline.executor import run_episodes
 from pipeline.games import get_game
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id, new_run_id, package_versions
+from pipeline.verify import verify_outcome
 from pipeline.versions import policy_version_row
 from store import Store
 from store.locks import run_lock
@@ -105,6 +109,8 @@ def evaluate(
     info = inspect_policy(text, name)
     game = resolve_game(info.game, config.game, name)
 
+    with store.write():  # creates or upgrades the store, and refuses a damaged one, before anything plays
+        pass
     run_id = new_run_id()
     specs = [
         EpisodeSpec(
@@ -134,6 +140,7 @@ def evaluate(
             pass
         try:
             for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
+                outcome = verify_outcome(specs[i], outcome)
                 done += 1
                 with store.write() as con:
                     write_episode(con, outcome.episode, outcome.steps, outcome.nodes)

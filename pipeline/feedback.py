@@ -3,13 +3,16 @@
 ``staged`` feedback (the paper's method) comes from the evaluation score: a message per band (high, medium,
 low) naming the score, how far it is from the target, and a hint. ``rollout`` feedback (the paper's
 ablation) uses only the return of the short traced training rollout. Either way, notes of what the loop did
-are appended: a candidate that was rejected and why, a rollback, a failed LLM call.
+are appended: a candidate that was rejected and why, a rollback, a failed LLM call; each note is untrusted text,
+capped at 2,000 characters and scrubbed of secrets (``pipeline/untrusted.py``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any
+
+from pipeline.untrusted import clean_untrusted_text
 
 FEEDBACK_MODES = ("staged", "rollout")
 
@@ -65,6 +68,6 @@ def compose_feedback(
         text = f"Training rollout: the policy scored {score:g} over {train_steps} steps."
     else:
         raise ValueError(f"unknown feedback mode '{mode}'; use one of {', '.join(FEEDBACK_MODES)}")
-    if notes:
-        text += "\n" + "\n".join(notes)
+    if notes:  # notes quote rejected code's errors and LLM errors: untrusted text, capped and scrubbed
+        text += "\n" + "\n".join(clean_untrusted_text(note) for note in notes)
     return stage, score, text

@@ -8,7 +8,8 @@ Iteration 0 evaluates the starting policy. Each iteration k >= 1 then:
 3. parses and validates the suggestion (``pipeline/reply.py``, ``pipeline/validate.py``): an accepted one
    becomes a new policy version, a rejected one is stored with its reason, which goes into the feedback;
 4. plays a traced training rollout (the game's horizon: 400/300/15 steps) and the evaluation episodes in
-   parallel worker processes; the score is the mean evaluation return;
+   parallel worker processes; the score is the mean evaluation return, as verified by replaying each episode's
+   actions in this process (``pipeline/verify.py``): a candidate caught tampering with its score is rejected;
 5. writes the feedback (staged from the evaluation score, or rollout-only for the paper's ablation) and the
    ``iterations`` row in one transaction, and decides on a rollback: a score below
    ``best - (1 - rollback_fraction) * max(|best|, 1)`` (for a positive best: below ``rollback_fraction * best``)
@@ -41,7 +42,10 @@ from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id, new_run_id, package_versions
 from pipeline.task import example_path, task_settings
 from pipeline.tokens import TokenCounter
-from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, spread
+from pipeline.untrusted import clean_untrusted_text
+from pipeline.validate import (CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, check_fits,
+                               spread)
+from pipeline.verify import tampering, verify_outcome
 from pipeline.versions import policy_version_row
 from store import Store
 from store.db import utcnow
@@ -109,7 +113,7 @@ class OptimizeConfig:
 BUDGET_FIELDS = ("max_cost_usd", "max_total_tokens", "max_wall_minutes")
 """Limits of how far a run goes, not of what it does: ``--resume`` may change them, batch keys ignore them."""
 
-RESUME_OVERRIDES = BUDGET_FIELDS + ("model", "api_base", "iterations", "token_budget", "workers",
+RESUME_OVERRIDES = BUDGET_FIELDS + ("model", "api_base", "iterations", "token_budget", "max_tokens", "workers",
                                     "call_time_limit_s", "episode_time_limit_s")
 """Settings that ``--resume`` takes from the command line; every other setting is the run's own."""
 
@@ -284,7 +288,7 @@ def _record_call(store: Store, state: _State, iteration: int, client: LLMClient,
                    output_tokens=reply.output_tokens, cached_input_tokens=reply.cached_input_tokens,
                    cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd)
     if error is not None:
-        row.update(error_type=error.error_type, error_message=error.message)
+        row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
     with store.write() as con:
         insert_llm_call(con, row, canonical_messages(prompt.messages),
                         clean_text(reply.text) if reply is not None else None)
@@ -379,6 +383,8 @@ def _update(store: Store, state: _State, iteration: int, client: LLMClient, coun
 
     try:
         candidate = build_candidate(ctx.info, suggestion)
+        if candidate is not None:
+            check_fits(candidate, c.token_budget, counter)
     except CandidateRejected as exc:  # nothing runnable to store: the reason is the record
         return base_version, "rejected", call_id, f"Your last suggestion was rejected: {exc}", prompt.tokens
     if candidate is None:
@@ -406,6 +412,7 @@ def _play(store: Store, state: _State, iteration: int, version_id: str,
     started = time.monotonic()
     train_done = None
     for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress):
+        outcome = verify_outcome(specs[i], outcome)
         with store.write() as con:
             write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)
         outcomes[i] = outcome
@@ -441,7 +448,15 @@ def run_iteration(store: Store, state: _State, iteration: int, client: LLMClient
     score = statistics.fmean(o.episode["return"] for o in evals)
     previous_best = state.best_score
     rolled_back = False
-    if previous_best is None or score > previous_best:
+    tampered = tampering([train] + evals) if status == "accepted" else None
+    if tampered:  # pipeline/verify.py: the candidate is rejected, never the best; the next update starts from the best
+        status = "rejected"
+        notes.insert(0, f"Your last suggestion was rejected: {tampered}")
+        rolled_back = state.best_version_id is not None and version_id != state.best_version_id
+        with store.write() as con:
+            con.execute("UPDATE policy_versions SET validation = 'rejected', validation_error = ? WHERE run_id = ? "
+                        "AND iteration = ? AND policy_version_id = ?", [tampered, state.run_id, iteration, version_id])
+    elif previous_best is None or score > previous_best:
         state.best_score, state.best_iteration, state.best_version_id = score, iteration, version_id
     elif c.rollback and iteration > 0:
         threshold = previous_best - (1 - c.rollback_fraction) * max(abs(previous_best), 1.0)

@@ -2,11 +2,12 @@
 
 Static checks, in the parent (no candidate code runs there): every suggested method exists and is trainable;
 its source is one ``def`` of the same name with the same parameters; it passes the sandbox's source check;
-spliced into the policy file, the whole file still checks. Then a runtime check in a hardened worker process:
+spliced into the policy file, the whole file still checks, and fits half of the prompt's token budget
+(:func:`check_fits`). Then a runtime check in a hardened worker process:
 the candidate policy is loaded and called on observations recorded in the store (the training rollout's),
 each call within the time limit and returning a legal action. The first failure rejects the candidate with a
 reason that names the method, the error and, for runtime failures, the step whose observation broke it; the
-reason becomes part of the next feedback.
+reason (capped and scrubbed of secrets, ``pipeline/untrusted.py``) becomes part of the next feedback.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from typing import Any
 from pipeline.executor import run_tasks
 from pipeline.games import get_game
 from pipeline.rollout import coerce_action, describe_exception
+from pipeline.untrusted import clean_untrusted_text
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods
 from tracing.sandbox import CallTimer, PolicyCodeError, PolicyTimeout, check_source
 
@@ -27,7 +29,11 @@ MAX_VALIDATION_STEPS = 200
 
 
 class CandidateRejected(Exception):
-    """A candidate that must not become a policy version; ``str()`` is the reason."""
+    """A candidate that must not become a policy version; ``str()`` is the reason, cleaned as untrusted text
+    (``pipeline/untrusted.py``: capped, secrets redacted): it quotes the candidate's own exceptions and names."""
+
+    def __init__(self, reason: object):
+        super().__init__(clean_untrusted_text(reason))
 
 
 @dataclass
@@ -87,6 +93,24 @@ def build_candidate(info: PolicyInfo, suggestion: dict[str, str]) -> Candidate |
     except PolicyLoadError as exc:
         raise CandidateRejected(f"the policy with the new code does not check: {exc}") from None
     return Candidate(text, changed, new_info)
+
+
+CODE_BUDGET_SHARE = 0.5
+"""Most of the prompt's token budget a candidate policy's text may take (the next prompt shows it whole)."""
+
+
+def check_fits(candidate: Candidate, token_budget: int, count) -> None:
+    """:class:`CandidateRejected` if the candidate's policy text would take more than :data:`CODE_BUDGET_SHARE`
+    of the next prompt's token budget (``count``: text -> tokens). Without this, one long reply that validates
+    (a method with a megabyte docstring) would make every later prompt impossible to build."""
+    limit = int(token_budget * CODE_BUDGET_SHARE)
+    if len(candidate.text) > 8 * limit:  # too long whatever the tokenizer: do not even count it
+        raise CandidateRejected(f"the new code is {len(candidate.text):,} characters long, far more than the "
+                                f"{limit:,} tokens of the prompt it may take; keep the methods short")
+    tokens = count(candidate.text)
+    if tokens > limit:
+        raise CandidateRejected(f"the new code is {tokens:,} tokens long, more than the {limit:,} tokens of the "
+                                f"prompt it may take ({CODE_BUDGET_SHARE:.0%} of the budget); keep the methods short")
 
 
 @dataclass

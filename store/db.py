@@ -7,13 +7,16 @@ and an attach that meets a lock is retried with backoff for up to ``lock_timeout
 during a run) get in between batches.
 
 Errors are :class:`StoreError` with a one-line message: not a DuckDB file, written by a newer codearcade,
-locked for too long, a directory that cannot be written.
+locked for too long, a directory that cannot be written, damaged (:func:`store_damage`: a table or view
+missing, a truncated file; checked once per :class:`Store` before its first read or write, so nothing is
+ever appended to a damaged store).
 """
 
 from __future__ import annotations
 
 import os
 import random
+import re
 import time
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -56,6 +59,50 @@ def _is_lock_error(exc: Exception) -> bool:
     return "Could not set lock" in text or "Conflicting lock" in text
 
 
+HEADER_BYTES = 3 * 4096
+"""A DuckDB file's main header and its two database headers, before the first block."""
+
+
+def required_objects(version: int) -> dict[str, str]:
+    """The tables and views migrations 1..``version`` create (and do not drop), by name: ``TABLE`` or ``VIEW``."""
+    objects: dict[str, str] = {"schema_migrations": "TABLE"} if version else {}
+    pattern = re.compile(r"\b(CREATE(?:\s+OR\s+REPLACE)?|DROP)\s+(TABLE|VIEW)\s+(?:IF\s+(?:NOT\s+)?EXISTS\s+)?(\w+)",
+                         re.IGNORECASE)
+    for number, _, sql in MIGRATIONS:
+        if number > version:
+            break
+        for verb, kind, name in pattern.findall(sql):
+            if verb.upper() == "DROP":
+                objects.pop(name.lower(), None)
+            else:
+                objects[name.lower()] = kind.upper()
+    return objects
+
+
+def store_damage(con: duckdb.DuckDBPyConnection, path: str | os.PathLike, version: int) -> list[str]:
+    """Cheap structural checks of an open store at schema ``version`` (one catalog query, one size query): the
+    tables and views its migrations made are there, and the file is long enough for the blocks DuckDB's header
+    counts as used (a truncated copy is not). Each problem as a short sentence; an empty list when none is found. Deeper
+    damage is ``codearcade doctor``'s (``store/doctor.py``)."""
+    problems = []
+    present = {name.lower(): kind for name, kind in con.execute(
+        "SELECT table_name, CASE WHEN table_type = 'VIEW' THEN 'VIEW' ELSE 'TABLE' END "
+        "FROM information_schema.tables WHERE table_catalog = current_database()").fetchall()}
+    missing = [f"{kind.lower()} {name}" for name, kind in required_objects(version).items() if present.get(name) != kind]
+    if missing:
+        problems.append(f"{', '.join(missing)} missing")
+    wal = Path(f"{path}.wal")
+    if not wal.exists():  # a WAL not yet checkpointed may hold blocks the file does not have yet
+        row = con.execute("SELECT block_size, used_blocks FROM pragma_database_size() "
+                          "WHERE database_name = current_database()").fetchone()
+        if row is not None:  # used blocks (free ones at the end may have been cut off by DuckDB itself)
+            needed = HEADER_BYTES + int(row[0]) * int(row[1])
+            size = os.path.getsize(path)
+            if size < needed:
+                problems.append(f"the file is truncated ({size:,} bytes, its used blocks need at least {needed:,})")
+    return problems
+
+
 class Store:
     """A codearcade store at ``path``. Cheap to create; connections are opened per use.
 
@@ -70,6 +117,7 @@ class Store:
         # a run must not fail because someone ran a long query meanwhile: writers wait longer than readers
         self.write_lock_timeout_s = max(write_lock_timeout_s, lock_timeout_s)
         self._migrated = False
+        self._checked = False
 
     def __repr__(self) -> str:
         return f"Store({str(self.path)!r})"
@@ -132,8 +180,19 @@ class Store:
             )
         return version
 
+    def _refuse_damage(self, con: duckdb.DuckDBPyConnection, version: int) -> None:
+        """StoreError if :func:`store_damage` finds a problem (checked once per Store object)."""
+        if self._checked or version == 0:
+            return
+        problems = store_damage(con, self.path, version)
+        if problems:
+            raise StoreError(f"{self.path} is damaged: {'; '.join(problems)}; nothing was written to it "
+                             f"(`codearcade doctor --store {self.path}` reports what is left)")
+        self._checked = True
+
     def _migrate(self, con: duckdb.DuckDBPyConnection) -> None:
         current = self._check_version(con)
+        self._refuse_damage(con, current)  # never append to, nor migrate, a damaged store
         if current == 0:
             con.execute(
                 "CREATE TABLE IF NOT EXISTS schema_migrations "
@@ -190,14 +249,17 @@ class Store:
                     raise
 
     @contextmanager
-    def read(self) -> Iterator[duckdb.DuckDBPyConnection]:
-        """A read-only connection to an existing store."""
+    def read(self, check: bool = True) -> Iterator[duckdb.DuckDBPyConnection]:
+        """A read-only connection to an existing store; ``check=False`` skips the damage check (the doctor)."""
         if not self.path.exists():
             raise StoreError(f"no store at {self.path}; run `codearcade eval` or `codearcade optimize` first, "
                              "or point --store / CODEARCADE_STORE at an existing one")
         con = self._open(read_only=True)
         try:
-            if self._check_version(con) < LATEST:  # an older store: upgrade it once, then read
+            version = self._check_version(con)
+            if check:
+                self._refuse_damage(con, version)
+            if version < LATEST and check:  # an older store: upgrade it once, then read
                 HUB.release(self.path, con)
                 con = None
                 with self.write():

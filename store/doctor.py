@@ -8,6 +8,9 @@ Each check is one SQL query that returns the offending rows (nothing, when the s
 - completeness: each run's iterations are 0, 1, ..., n without a gap; each iteration has its feedback, its
   evaluated policy version, its episodes and (for updates that called a model) its LLM call; each episode has
   ``length`` step rows numbered from 0 (one more, with no action, where the policy failed);
+- damage to the file itself (``store.db.store_damage``: a table or view missing, a truncated file) and any
+  check that cannot run (a block that cannot be read) are findings too, so a damaged store gets a report, not
+  a traceback;
 - runs left ``running`` by a process that no longer holds the run's lock are reported as interrupted
   (a warning: ``--resume`` finishes them), not as damage.
 """
@@ -80,14 +83,30 @@ class Finding:
 
 
 def check_store(con: duckdb.DuckDBPyConnection, store_path) -> list[Finding]:
-    """Every problem found, errors first; an empty list means the store is sound."""
+    """Every problem found, errors first; an empty list means the store is sound. A damaged file (a table
+    missing, truncated, unreadable blocks) gives findings too, never an exception."""
+    from store.db import store_damage
+    from store.views import one_line
+
     findings = []
+    version = con.execute("SELECT coalesce(max(version), 0) FROM schema_migrations").fetchone()[0]
+    damage = store_damage(con, store_path, version)
+    if damage:
+        findings.append(Finding("damaged file", [(problem,) for problem in damage]))
     for name, sql in CHECKS:
-        rows = con.execute(sql).fetchall()
+        try:
+            rows = con.execute(sql).fetchall()
+        except duckdb.Error as exc:  # a missing table, a block that cannot be read
+            findings.append(Finding(f"{name}: the check could not run", [(one_line(exc)[:300],)]))
+            continue
         if rows:
             findings.append(Finding(name, rows))
     stale = []
-    for (run_id,) in con.execute("SELECT run_id FROM runs WHERE status = 'running'").fetchall():
+    try:
+        running = con.execute("SELECT run_id FROM runs WHERE status = 'running'").fetchall()
+    except duckdb.Error:
+        running = []
+    for (run_id,) in running:
         if not run_is_live(store_path, run_id):
             stale.append((run_id,))
     if stale:

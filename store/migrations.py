@@ -307,6 +307,19 @@ MIGRATIONS.append(
     )
 )
 
+# The untrusted-code boundary (issue 13): each episode's score is checked by replaying its actions in the parent
+# (pipeline/verify.py). Rows written before this migration keep verified NULL (never checked).
+MIGRATIONS.append(
+    (
+        4,
+        "episodes: verified, verify_error (score verification by replay)",
+        """
+        ALTER TABLE episodes ADD COLUMN verified BOOLEAN;
+        ALTER TABLE episodes ADD COLUMN verify_error VARCHAR;
+        """,
+    )
+)
+
 MIGRATIONS.append(
     (
         5,

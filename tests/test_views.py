@@ -62,7 +62,7 @@ def _view_columns(store: Store) -> dict[str, list[str]]:
 def test_migrations_create_exactly_the_documented_views(store):
     with store.write():
         pass
-    assert LATEST == MIGRATIONS[-1][0]
+    assert LATEST == MIGRATIONS[-1][0] >= 3
     assert set(_view_columns(store)) == set(VIEWS)
 
 

@@ -1,0 +1,182 @@
+"""Text that came out of policy code (or an LLM's reply) is never trusted as it is.
+
+Whatever a worker process sends back (an episode's error message, a node's exception message, inputs and
+output), whatever a candidate's validation reports, and every note composed into feedback passes through
+:func:`clean_untrusted_text` before it reaches the store, a prompt or the terminal:
+
+- **size-capped**: at most ``limit`` characters (default :data:`MESSAGE_LIMIT`, 2,000), the rest replaced by a
+  marker saying how much was cut (``… [cut 8,388,608 characters]``), so an 8 MB exception message cannot fill
+  the store, a terminal or the next prompt;
+- **scrubbed of secrets**: the values of this process's environment variables whose names look secret
+  (:func:`secret_env_names`: ``*_API_KEY``, ``*KEY``, ``*TOKEN``, ``*SECRET*``, ``*PASSWORD*``, ``*PASSWD*``,
+  ``*CREDENTIAL*``, and litellm's provider variables listed in :data:`KNOWN_SECRET_VARIABLES`) and anything shaped
+  like a common API key (``sk-...``, ``sk-ant-...``, ``AKIA...``, ``ghp_...``, ``xox?-...``, ``AIza...``,
+  ``hf_...``) become ``[redacted]``. Values shorter than :data:`MIN_SECRET_CHARS` are left alone (a
+  ``*_KEY`` set to ``1`` must not redact every digit).
+
+:func:`clean_json_text` does the same for a JSON text (a node's inputs and output) and keeps it valid JSON;
+:func:`clean_nodes` applies both to the string columns of a node table as it arrives from a worker, and
+:func:`clean_step_objects` to the object names inside a step table.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from functools import lru_cache
+
+import pyarrow as pa
+import pyarrow.compute as pc
+
+MESSAGE_LIMIT = 2_000
+"""Characters kept of one message (an error, an exception message, a validation reason, a feedback note)."""
+JSON_LIMIT = 16_000
+"""Characters kept of one JSON value (a node's inputs or output: Breakout's observations run to a few KB)."""
+MIN_SECRET_CHARS = 8
+"""Environment values shorter than this are not treated as secrets."""
+REDACTED = "[redacted]"
+
+KNOWN_SECRET_VARIABLES = frozenset({
+    "OPENAI_API_KEY", "ANTHROPIC_API_KEY", "AZURE_API_KEY", "AZURE_AD_TOKEN", "AZURE_OPENAI_API_KEY",
+    "AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN", "AWS_BEARER_TOKEN_BEDROCK",
+    "GEMINI_API_KEY", "GOOGLE_API_KEY", "VERTEXAI_CREDENTIALS", "MISTRAL_API_KEY", "COHERE_API_KEY",
+    "CO_API_KEY", "GROQ_API_KEY", "TOGETHERAI_API_KEY", "TOGETHER_API_KEY", "REPLICATE_API_KEY",
+    "REPLICATE_API_TOKEN", "HUGGINGFACE_API_KEY", "HF_TOKEN", "HUGGING_FACE_HUB_TOKEN", "OPENROUTER_API_KEY",
+    "OR_API_KEY", "DEEPSEEK_API_KEY", "XAI_API_KEY", "PERPLEXITYAI_API_KEY", "PERPLEXITY_API_KEY",
+    "FIREWORKS_AI_API_KEY", "FIREWORKS_API_KEY", "DATABRICKS_TOKEN", "DATABRICKS_API_KEY", "WATSONX_APIKEY",
+    "WATSONX_TOKEN", "WATSONX_API_KEY", "CLOUDFLARE_API_KEY", "VOYAGE_API_KEY", "NVIDIA_NIM_API_KEY",
+    "CEREBRAS_API_KEY", "SAMBANOVA_API_KEY", "AI21_API_KEY", "NLP_CLOUD_API_KEY", "ALEPH_ALPHA_API_KEY",
+    "ANYSCALE_API_KEY", "DEEPINFRA_API_KEY", "PREDIBASE_API_KEY", "FRIENDLIAI_API_KEY", "GITHUB_API_KEY",
+    "GITHUB_TOKEN", "LITELLM_MASTER_KEY", "LITELLM_API_KEY", "LANGFUSE_SECRET_KEY", "LANGFUSE_PUBLIC_KEY",
+    "DATABASE_URL",
+})
+"""litellm's provider credentials (and a few neighbours) that do not all follow the name patterns."""
+
+_SECRET_NAME = re.compile(r"(KEY|TOKEN|SECRET|PASSWORD|PASSWD|CREDENTIAL|APIKEY)", re.IGNORECASE)
+_KEY_SHAPES = re.compile(
+    r"sk-ant-[A-Za-z0-9_\-]{8,}"          # Anthropic
+    r"|sk-[A-Za-z0-9_\-]{16,}"            # OpenAI and compatible (sk-proj-..., sk-...)
+    r"|A(?:KIA|SIA)[0-9A-Z]{16}"          # AWS access key ids
+    r"|gh[pousr]_[A-Za-z0-9]{30,}"        # GitHub tokens
+    r"|xox[abposr]-[A-Za-z0-9\-]{10,}"    # Slack tokens
+    r"|AIza[0-9A-Za-z_\-]{30,}"           # Google API keys
+    r"|hf_[A-Za-z0-9]{30,}"               # Hugging Face tokens
+)
+
+
+def secret_env_names(environ: dict[str, str] | None = None) -> list[str]:
+    """Names of the environment variables whose values are treated as secrets."""
+    environ = os.environ if environ is None else environ
+    return sorted(n for n in environ if n in KNOWN_SECRET_VARIABLES or _SECRET_NAME.search(n))
+
+
+@lru_cache(maxsize=8)
+def _secret_pattern(values: tuple[str, ...]) -> re.Pattern | None:
+    if not values:
+        return None
+    return re.compile("|".join(re.escape(v) for v in values))
+
+
+def _secrets_now() -> re.Pattern | None:
+    values = {os.environ[n].strip() for n in secret_env_names()}
+    return _secret_pattern(tuple(sorted((v for v in values if len(v) >= MIN_SECRET_CHARS), key=lambda v: (-len(v), v))))
+
+
+def scrub_secrets(text: str) -> str:
+    """``text`` with secret environment values and key-shaped strings replaced by ``[redacted]``."""
+    pattern = _secrets_now()
+    if pattern is not None:
+        text = pattern.sub(REDACTED, text)
+    return _KEY_SHAPES.sub(REDACTED, text)
+
+
+def cap(text: str, limit: int = MESSAGE_LIMIT) -> str:
+    """At most ``limit`` characters, the cut marked with how many characters went."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}… [cut {len(text) - limit:,} characters]"
+
+
+def clean_untrusted_text(text: object, limit: int = MESSAGE_LIMIT) -> str | None:
+    """Untrusted text as it may be stored, prompted or printed: scrubbed of secrets, then capped; None stays None.
+
+    Scrubbing comes first, on (a generous prefix of) the whole text, so that a secret straddling the cut is
+    not left half visible; non-strings are turned into text first; lone surrogates are replaced."""
+    if text is None:
+        return None
+    if not isinstance(text, str):
+        text = str(text)
+    text = text.encode("utf-8", "replace").decode("utf-8", "replace")
+    if len(text) <= limit:
+        return cap(scrub_secrets(text), limit)
+    head = scrub_secrets(text[: limit + 4096])
+    return f"{head[:limit]}… [cut {len(text) - limit:,} characters]"
+
+
+def clean_json_text(text: str | None, limit: int = JSON_LIMIT) -> str | None:
+    """A JSON text from a worker, scrubbed and capped, and still valid JSON (a cut value becomes a JSON string)."""
+    if text is None:
+        return None
+    if not isinstance(text, str):
+        text = str(text)
+    cleaned = scrub_secrets(text) if len(text) <= limit else None
+    if cleaned is not None:
+        if cleaned == text:
+            return text
+        try:
+            json.loads(cleaned)
+            return cleaned
+        except ValueError:
+            pass
+    return json.dumps(clean_untrusted_text(text, limit), ensure_ascii=False)
+
+
+_NODE_TEXT = {"function": 200, "exc_type": 200, "exc_message": MESSAGE_LIMIT, "exc_source": MESSAGE_LIMIT}
+_NODE_JSON = ("inputs", "output")
+
+
+def clean_nodes(nodes: pa.Table | None) -> pa.Table | None:
+    """A node table from a worker with its string columns cleaned (:func:`clean_untrusted_text`,
+    :func:`clean_json_text`); only columns whose text needs it are rebuilt."""
+    if nodes is None or nodes.num_rows == 0:
+        return nodes
+    for name, limit in _NODE_TEXT.items():
+        if name in nodes.column_names:
+            nodes = _clean_column(nodes, name, lambda v, limit=limit: clean_untrusted_text(v, limit))
+    for name in _NODE_JSON:
+        if name in nodes.column_names:
+            nodes = _clean_column(nodes, name, clean_json_text)
+    return nodes
+
+
+def clean_step_objects(steps: pa.Table) -> pa.Table:
+    """A step table (``tracing.steps.STEP_SCHEMA``) from a worker with the strings inside its ``objects``
+    (``key``, ``category``: a handful of distinct names) cleaned; unchanged when they are clean (the usual case)."""
+    if steps.num_rows == 0:
+        return steps
+    objects = steps.column("objects").combine_chunks()
+    values = objects.values
+    fields = {}
+    for name in ("key", "category"):
+        column = values.field(name)
+        distinct = [v for v in pc.unique(column).to_pylist() if v is not None]
+        mapping = {v: clean_untrusted_text(v, 100) for v in distinct}
+        if any(mapping[v] != v for v in distinct):
+            fields[name] = pa.array([None if v is None else mapping[v] for v in column.to_pylist()], type=pa.string())
+    if not fields:
+        return steps
+    children = [fields.get(f.name, values.field(f.name)) for f in values.type]
+    struct = pa.StructArray.from_arrays(children, fields=list(values.type))
+    rebuilt = pa.ListArray.from_arrays(objects.offsets, struct, mask=objects.is_null() if objects.null_count else None)
+    index = steps.column_names.index("objects")
+    return steps.set_column(index, steps.schema.field(index), rebuilt.cast(steps.schema.field(index).type))
+
+
+def _clean_column(table: pa.Table, name: str, clean) -> pa.Table:
+    values = table.column(name).to_pylist()
+    cleaned = [clean(v) for v in values]
+    if cleaned == values:
+        return table
+    index = table.column_names.index(name)
+    return table.set_column(index, table.schema.field(index), pa.array(cleaned, type=pa.string()))

@@ -1,0 +1,271 @@
+"""The score that counts is computed where no policy code ever ran.
+
+A worker process plays an episode with untrusted policy code in it, and that code can reach the objects
+around it (a module that re-exports ``sys``, ``sys.modules['pipeline.envs']``, frames) and, for example,
+wrap the environment's ``step`` to add reward, or rewrite the episode row it sends back. So the parent takes
+nothing of a worker's episode on trust. :func:`verify_outcome`, called on every outcome as it arrives
+(``pipeline/evaluate.py``, ``pipeline/optimize.py``), before it is stored:
+
+1. rebuilds the episode row: the fields the parent decided (ids, seed, game, caps, protocol) come from the
+   :class:`~pipeline.rollout.EpisodeSpec`, the measured ones are type-checked, unknown keys are dropped, and
+   text (the error message) is cleaned (``pipeline/untrusted.py``: capped, secrets redacted);
+2. cleans the node table's text columns, and the object names in the step table, the same way;
+3. replays the recorded actions (the ``steps`` table's ``action`` column, up to the step where the policy
+   failed, whose action is NULL) in a fresh environment of this process with the same game, seed, sticky
+   probability and no-op setting (episodes are deterministic given those and the actions, under both
+   protocols: the sticky and no-op draws come from the environment's RNG seeded by ``reset(seed=...)``),
+   built from raw ALE without the object extraction, and compares per step the reward, the cumulative score,
+   the terminated/truncated flags and the lives, then the return, the length and the lives lost.
+
+An episode whose replay agrees gets ``verified = true``. One that disagrees (or whose tables are malformed)
+gets ``verified = false``, ``verify_error`` (the first disagreement), end reason ``tampered``, the replay's
+return, length and lives lost, and step rows whose reward, score, flags and lives are the replay's; its
+``error`` says "score tampering detected: ...". ``codearcade eval`` reports such an episode on stderr and exits
+1; ``codearcade optimize`` rejects the candidate (update status ``rejected``) and never takes it as the best.
+
+The parent is clean only when policy code runs in workers: with ``workers=0`` (debugging, no isolation) the
+policy runs in this very process and nothing here can be trusted.
+
+Cost: the replay steps raw ALE (no object extraction, no policy), measured by ``bench/throughput.py``
+("verification replay").
+"""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from pipeline.envs import make_env
+from pipeline.games import get_game
+from pipeline.rollout import EpisodeOutcome, EpisodeSpec
+from pipeline.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
+from tracing.capture import NODE_SCHEMA
+from tracing.steps import STEP_SCHEMA, StepLog
+
+END_REASONS = ("terminated", "truncated", "policy_error", "timeout", "crashed")
+"""End reasons a worker may report; ``tampered`` is set only here."""
+FAILURE_END_REASONS = ("policy_error", "timeout", "crashed")
+TAMPERED = "tampered"
+
+_replay_envs: dict[tuple[str, float, int], Any] = {}
+
+
+def replay_env(game: str, sticky: float, noop_max: int):
+    """A raw-ALE environment (no object extraction) for replays, built once per setting in this process and
+    never handed to policy code: ``make_env``'s wrappers minus ``ObjectObservation``."""
+    key = (get_game(game).name, float(sticky), int(noop_max))
+    env = _replay_envs.get(key)
+    if env is None:
+        env = _replay_envs[key] = make_env(key[0], sticky=key[1], noop_max=key[2]).env
+    return env
+
+
+class _Replay:
+    """What replaying a list of actions gave: per step reward, flags and lives (before the step)."""
+
+    def __init__(self, spec: EpisodeSpec, actions: list[int]):
+        env = replay_env(spec.game, spec.sticky, spec.noop_max)
+        game = get_game(spec.game)
+        _, info = env.reset(seed=spec.seed)
+        lives = int(info.get("lives", 0))
+        self.rewards: list[float] = []
+        self.terminated: list[bool] = []
+        self.truncated: list[bool] = []
+        self.lives: list[int] = []
+        self.lives_lost = 0
+        self.ended_early: int | None = None  # the step after which the game ended while actions went on
+        for step, action in enumerate(actions):
+            self.lives.append(lives)
+            _, reward, terminated, truncated, info = env.step(action)
+            self.rewards.append(float(reward))
+            self.terminated.append(bool(terminated))
+            self.truncated.append(bool(truncated))
+            new_lives = int(info.get("lives", lives))
+            if game.lives:
+                self.lives_lost += max(0, lives - new_lives)
+            elif reward < 0:
+                self.lives_lost += 1
+            lives = new_lives
+            if (terminated or truncated) and step + 1 < len(actions):
+                self.ended_early = step
+                break
+        self.final_lives = lives
+
+    @property
+    def length(self) -> int:
+        return len(self.rewards)
+
+    @property
+    def score(self) -> float:
+        return math.fsum(self.rewards)
+
+
+def replay_actions(spec: EpisodeSpec, actions: list[int]) -> _Replay:
+    """Replay ``actions`` from ``spec``'s reset in this process's replay environment (no policy code)."""
+    return _Replay(spec, actions)
+
+
+def _float(value: Any, default: float | None = None) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return default
+    value = float(value)
+    return value if math.isfinite(value) else default
+
+
+def _int(value: Any, default: int = 0) -> int:
+    return value if isinstance(value, int) and not isinstance(value, bool) and -2**31 < value < 2**31 else default
+
+
+def _episode_row(spec: EpisodeSpec, reported: dict[str, Any]) -> dict[str, Any]:
+    """The row the parent stores: the spec's fields, the worker's measurements type-checked and cleaned."""
+    end_reason = reported.get("end_reason")
+    started_at = reported.get("started_at")
+    row = dict(
+        episode_id=spec.episode_id, run_id=spec.run_id, iteration=spec.iteration, kind=spec.kind,
+        episode_index=spec.index, game=get_game(spec.game).name, seed=spec.seed,
+        policy_version_id=spec.policy_version_id, max_steps=spec.max_steps, traced=spec.trace,
+        sticky=spec.sticky, noop_max=spec.noop_max,
+        started_at=started_at if isinstance(started_at, datetime) else None,
+        duration_s=_float(reported.get("duration_s"), 0.0), env_s=_float(reported.get("env_s")),
+        policy_s=_float(reported.get("policy_s")),
+        length=_int(reported.get("length")), lives_lost=_int(reported.get("lives_lost")),
+        end_reason=end_reason if end_reason in END_REASONS else TAMPERED,
+        error=clean_untrusted_text(reported.get("error"), MESSAGE_LIMIT),
+        verified=True, verify_error=None,
+    )
+    row["return"] = _float(reported.get("return"), math.nan)
+    return row
+
+
+def _tables(outcome: EpisodeOutcome) -> tuple[pa.Table | None, pa.Table | None, str | None]:
+    """The steps and nodes tables in their schemas, or (None, ..., why) for a steps table that is not one."""
+    steps, nodes = getattr(outcome, "steps", None), getattr(outcome, "nodes", None)
+    try:
+        if not isinstance(steps, pa.Table):
+            raise TypeError(f"a {type(steps).__name__}")
+        steps = clean_step_objects(steps.select(STEP_SCHEMA.names).cast(STEP_SCHEMA))
+    except Exception as exc:  # noqa: BLE001 - anything a worker sent
+        return None, None, f"the step table is malformed ({clean_untrusted_text(exc, 200)})"
+    try:
+        if nodes is not None:
+            nodes = clean_nodes(nodes.select(NODE_SCHEMA.names).cast(NODE_SCHEMA))
+    except Exception:  # noqa: BLE001 - node capture is evidence, not a score: drop a malformed table
+        nodes = None
+    return steps, nodes, None
+
+
+def _compare(row: dict[str, Any], steps: pa.Table, replay: _Replay, actions_end: int) -> str | None:
+    """The first disagreement between the recorded episode and the replay, or None."""
+    if replay.ended_early is not None:
+        return (f"the game ended at step {replay.ended_early} but {actions_end} actions were recorded")
+    n = replay.length
+    columns = {c: steps.column(c).to_pylist() for c in ("reward", "score", "terminated", "truncated", "lives")}
+    total = 0.0
+    for t in range(n):
+        total += replay.rewards[t]
+        if columns["reward"][t] != replay.rewards[t]:
+            return f"step {t}: recorded reward {columns['reward'][t]}, replay gives {replay.rewards[t]:g}"
+        if columns["score"][t] is None or not math.isclose(columns["score"][t], total, abs_tol=1e-9):
+            return f"step {t}: recorded score {columns['score'][t]}, replay gives {total:g}"
+        if (columns["terminated"][t], columns["truncated"][t]) != (replay.terminated[t], replay.truncated[t]):
+            return (f"step {t}: recorded terminated/truncated {columns['terminated'][t]}/{columns['truncated'][t]}, "
+                    f"replay gives {replay.terminated[t]}/{replay.truncated[t]}")
+        if columns["lives"][t] != replay.lives[t]:
+            return f"step {t}: recorded lives {columns['lives'][t]}, replay gives {replay.lives[t]}"
+    if steps.num_rows > n:  # the failing step: no action, nothing happened
+        t = n
+        if (columns["reward"][t], columns["terminated"][t], columns["truncated"][t]) != (0.0, False, False) or (
+                columns["score"][t] is None or not math.isclose(columns["score"][t], total, abs_tol=1e-9)):
+            return f"step {t} (the failing step, no action) records reward or score"
+    if not math.isclose(row["return"], replay.score, abs_tol=1e-9):
+        return f"recorded return {row['return']:g}, replay gives {replay.score:g}"
+    if row["length"] != n:
+        return f"recorded length {row['length']}, replay gives {n}"
+    if row["lives_lost"] != replay.lives_lost:
+        return f"recorded lives lost {row['lives_lost']}, replay gives {replay.lives_lost}"
+    ended = bool(n and (replay.terminated[-1] or replay.truncated[-1]))
+    reason = row["end_reason"]
+    if ended and reason != ("terminated" if replay.terminated[-1] else "truncated"):
+        return f"the game ended at step {n - 1} but the episode reports {reason}"
+    if not ended and reason == "terminated":
+        return "the episode reports terminated but the game did not end"
+    if not ended and reason == "truncated" and n != row["max_steps"]:
+        return f"the episode reports truncated after {n} of {row['max_steps']} steps"
+    return None
+
+
+def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome) -> EpisodeOutcome:
+    """The outcome of ``spec`` as the parent stores it: row rebuilt, text cleaned, score verified by replay
+    (see the module docstring). Never raises for anything the worker sent."""
+    reported = getattr(outcome, "episode", None)
+    reported = reported if isinstance(reported, dict) else {}
+    row = _episode_row(spec, reported)
+    steps, nodes, why = _tables(outcome)
+    actions: list[int] = []
+    if why is None:
+        raw = steps.column("action").to_pylist()
+        first_null = raw.index(None) if None in raw else len(raw)
+        actions = raw[:first_null]
+        n_actions = get_game(spec.game).n_actions
+        if steps.column("step").to_pylist() != list(range(steps.num_rows)):
+            why = "the step rows are not numbered 0, 1, 2, ..."
+        elif len(raw) > first_null + 1:
+            why = f"actions recorded after the failing step {first_null}"
+        elif len(raw) > first_null and row["end_reason"] not in FAILURE_END_REASONS:
+            why = f"step {first_null} has no action but the episode reports {row['end_reason']}"
+        elif len(actions) > spec.max_steps:
+            why = f"{len(actions)} actions recorded, over the cap of {spec.max_steps}"
+        elif any(not 0 <= a < n_actions for a in actions):
+            why = "an action outside the game's action set was recorded"
+    if why is not None:
+        actions = []
+    replay = replay_actions(spec, actions)
+    if why is None:
+        why = _compare(row, steps, replay, len(actions))
+    if why is None and row["end_reason"] != TAMPERED:
+        return EpisodeOutcome(row, steps, nodes)
+    if why is None:
+        why = f"unknown end reason {clean_untrusted_text(reported.get('end_reason'), 100)!r}"
+    return _tampered(row, steps, nodes, replay, why)
+
+
+def _tampered(row: dict[str, Any], steps: pa.Table | None, nodes: pa.Table | None, replay: _Replay,
+              why: str) -> EpisodeOutcome:
+    """The episode as the replay says it went, marked."""
+    claimed = row["return"]
+    n = replay.length
+    if steps is not None and steps.num_rows >= n:
+        kept = steps.slice(0, n)
+        score, scores = 0.0, []
+        for r in replay.rewards:
+            score += r
+            scores.append(score)
+        for name, values in (("reward", replay.rewards), ("score", scores), ("terminated", replay.terminated),
+                             ("truncated", replay.truncated), ("lives", replay.lives)):
+            i = STEP_SCHEMA.get_field_index(name)
+            kept = kept.set_column(i, STEP_SCHEMA.field(i), pa.array(values, type=STEP_SCHEMA.field(i).type))
+    else:
+        kept = StepLog().table()
+    if nodes is not None:
+        nodes = nodes.filter(pc.less(nodes.column("step"), n)) if n else None
+    claimed_text = "not a number" if claimed is None or math.isnan(claimed) else f"{claimed:g}"
+    row.update(
+        verified=False, verify_error=clean_untrusted_text(why, MESSAGE_LIMIT), end_reason=TAMPERED,
+        length=n, lives_lost=replay.lives_lost,
+        error=clean_untrusted_text(f"score tampering detected: {why}; the recorded return {claimed_text} is "
+                                   f"replaced by the replay's {replay.score:g}", MESSAGE_LIMIT),
+    )
+    row["return"] = replay.score
+    return EpisodeOutcome(row, kept, nodes)
+
+
+def tampering(outcomes: list[EpisodeOutcome]) -> str | None:
+    """The first tampering error among ``outcomes`` (verified ones), or None."""
+    for o in outcomes:
+        if o.episode.get("end_reason") == TAMPERED:
+            return o.episode.get("error") or "score tampering detected"
+    return None

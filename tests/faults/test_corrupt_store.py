@@ -1,0 +1,93 @@
+"""Corrupt stores: a one-line error (exit 2) from every command, a report from the doctor, no appends.
+
+Damage tried: random bytes, a real store cut to half its length, a real store with a table dropped, and one
+with a view dropped. Every command refuses with one line on stderr; ``codearcade doctor`` reports the damage of
+a file it can open as findings (exit 1), with no traceback; ``codearcade eval`` never writes to the file.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import duckdb
+import pytest
+
+from pipeline.cli import main
+from tests.conftest import EXAMPLES
+
+
+@pytest.fixture(scope="module")
+def sound(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sound") / "sound.duckdb"
+    assert main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "60", "--store", str(path)]) == 0
+    run_id = duckdb.connect(str(path), read_only=True).execute("SELECT run_id FROM runs").fetchone()[0]
+    return path, run_id
+
+
+def _damage(kind: str, sound_path, target) -> None:
+    if kind == "random bytes":
+        target.write_bytes(os.urandom(300_000))
+    elif kind == "truncated":
+        data = sound_path.read_bytes()
+        target.write_bytes(data[: len(data) // 2])
+    else:
+        shutil.copy(sound_path, target)
+        with duckdb.connect(str(target)) as con:
+            con.execute("DROP TABLE steps" if kind == "table dropped" else "DROP VIEW run_summary")
+
+
+DAMAGE = ["random bytes", "truncated", "table dropped", "view dropped"]
+OPENABLE = {"truncated", "table dropped", "view dropped"}
+
+
+def _commands(path, run_id) -> list[list[str]]:
+    store = ["--store", str(path)]
+    return [
+        ["eval", str(EXAMPLES / "pong.py"), "--max-steps", "20", *store],
+        ["sql", "SELECT count(*) FROM runs", *store],
+        ["runs", *store],
+        ["report", run_id, "--out", str(path.parent / "report"), *store],
+        ["replay", run_id, *store],
+        ["optimize", "--resume", run_id, *store],
+    ]
+
+
+@pytest.mark.parametrize("kind", DAMAGE)
+def test_every_command_refuses_a_damaged_store_in_one_line(kind, sound, tmp_path, capsys):
+    sound_path, run_id = sound
+    path = tmp_path / "damaged.duckdb"
+    _damage(kind, sound_path, path)
+    before = path.read_bytes()
+    for argv in _commands(path, run_id):
+        code = main(argv)
+        out, err = capsys.readouterr()
+        assert code == 2, (kind, argv[0], out, err)
+        assert len(err.strip().splitlines()) == 1 and err.startswith("codearcade: error: "), (kind, argv[0], err)
+        assert path.read_bytes() == before, f"{argv[0]} wrote to the damaged store"
+    assert not (tmp_path / "report").exists()
+
+
+@pytest.mark.parametrize("kind", DAMAGE)
+def test_the_doctor_reports_damage_as_findings(kind, sound, tmp_path, capsys):
+    sound_path, _ = sound
+    path = tmp_path / "damaged.duckdb"
+    _damage(kind, sound_path, path)
+    code = main(["doctor", "--store", str(path)])
+    out, err = capsys.readouterr()
+    if kind in OPENABLE:
+        assert code == 1, (out, err)
+        assert "PROBLEM: damaged file" in out and "Traceback" not in out + err
+        expected = {"truncated": "truncated", "table dropped": "table steps", "view dropped": "view run_summary"}
+        assert expected[kind] in out
+    else:
+        assert code == 2 and len(err.strip().splitlines()) == 1
+
+
+def test_a_sound_store_passes_the_checks_after_many_writes(sound, tmp_path, capsys):
+    path = tmp_path / "copy.duckdb"
+    shutil.copy(sound[0], path)
+    for _ in range(3):
+        assert main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "30", "--store", str(path)]) == 0
+    assert main(["doctor", "--store", str(path)]) == 0
+    assert "ok: no damage found" in capsys.readouterr().out

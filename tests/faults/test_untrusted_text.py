@@ -1,0 +1,188 @@
+"""Nothing from policy code is trusted text (pipeline/untrusted.py): capped and scrubbed of secrets.
+
+The worst case is modelled: a policy that got hold of a key. The test puts canary secrets in this process's
+environment (``CODEARCADE_CANARY_TOKEN``, ``OPENAI_API_KEY``), which the worker processes inherit; the policy
+reads them (through a module that re-exports ``sys``, or, where a sandboxed worker's environment no longer has
+them, rebuilds them from a reversed copy in its source) and puts them everywhere it can: a bundled method's
+return value, an exception message, a rejected candidate's validation error. Afterwards neither canary is on
+stdout or stderr, in any text of the store, or in any request the scripted model received. The second half:
+8 MB exception messages do not make the next prompt exceed its token budget; ``--resume`` honours
+``--token-budget``.
+"""
+
+from __future__ import annotations
+
+import json
+import textwrap
+import uuid
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.untrusted import clean_json_text, clean_untrusted_text, secret_env_names
+from tests.conftest import json_reply
+
+HEX = uuid.uuid4().hex
+CANARY_TOKEN = f"tok{HEX}"
+CANARY_KEY = f"sk-canary{HEX[::-1]}"
+
+LEAKY_POLICY = textwrap.dedent(f'''
+    import typing
+    import tracing as trace
+
+    GAME = "pong"
+    HIDDEN = ({CANARY_TOKEN[::-1]!r}, {CANARY_KEY[::-1]!r})
+
+    @trace.model
+    class Policy(trace.Module):
+        def __call__(self, obs):
+            leaked = self.predict_ball_trajectory(obs)
+            return self.select_action(leaked, obs)
+
+        @trace.bundle(trainable=True)
+        def predict_ball_trajectory(self, obs):
+            """Returns the leaked secrets (a string), to show up as this node's output."""
+            env = typing.sys.modules["os"].environ
+            token = env.get("CODEARCADE_CANARY_TOKEN") or HIDDEN[0][::-1]
+            key = env.get("OPENAI_API_KEY") or HIDDEN[1][::-1]
+            return token + " " + key
+
+        @trace.bundle(trainable=True)
+        def select_action(self, predicted_ball_y, obs):
+            """Plays NOOP for 20 steps, then raises with the secrets in the message."""
+            self.calls = getattr(self, "calls", 0) + 1
+            if self.calls > 20:
+                raise ValueError("leaking " + predicted_ball_y)
+            return 0
+    ''')
+
+LEAKY_SELECT = textwrap.dedent(f'''\
+    def select_action(self, predicted_ball_y, obs):
+        """Raises with the secrets at once: rejected at validation, with the message as the reason."""
+        raise RuntimeError("candidate leaks " + {CANARY_TOKEN[::-1]!r}[::-1] + " " + {CANARY_KEY[::-1]!r}[::-1])
+    ''')
+
+
+@pytest.fixture
+def canaries(monkeypatch):
+    monkeypatch.setenv("CODEARCADE_CANARY_TOKEN", CANARY_TOKEN)
+    monkeypatch.setenv("OPENAI_API_KEY", CANARY_KEY)
+    return (CANARY_TOKEN, CANARY_KEY)
+
+
+def _store_texts(store) -> str:
+    """Every value of every table of the store, as text (VARCHAR, JSON, lists, structs; blobs included)."""
+    with store.read() as con:
+        tables = [r[0] for r in con.execute(
+            "SELECT table_name FROM information_schema.tables WHERE table_catalog = current_database() "
+            "AND table_type = 'BASE TABLE'").fetchall()]
+        return "\n".join(repr(con.execute(f'SELECT * FROM "{t}"').fetchall()) for t in tables)
+
+
+def _assert_clean(text: str, where: str) -> None:
+    assert CANARY_TOKEN not in text and CANARY_KEY not in text, f"a canary secret reached {where}"
+
+
+def test_secret_values_and_key_shapes_are_redacted(monkeypatch):
+    monkeypatch.setenv("SOME_SERVICE_PASSWORD", "hunter2-long-enough")
+    monkeypatch.setenv("SHORT_KEY", "1")
+    assert "SOME_SERVICE_PASSWORD" in secret_env_names()
+    text = clean_untrusted_text("pw hunter2-long-enough, aws AKIAABCDEFGHIJKLMNOP, ant sk-ant-api03-abcdefghij, 1")
+    assert text == "pw [redacted], aws [redacted], ant [redacted], 1"
+    long = clean_untrusted_text("x" * 8_000_000)
+    assert len(long) < 2100 and long.endswith("[cut 7,998,000 characters]")
+    assert json.loads(clean_json_text('{"k": "hunter2-long-enough"}')) == {"k": "[redacted]"}
+    assert json.loads(clean_json_text(json.dumps("y" * 100_000))).endswith("[cut 84,002 characters]")
+
+
+def test_a_leaking_policy_file_leaks_nothing_through_eval(canaries, store, tmp_path, capfd):
+    path = tmp_path / "leaky.py"
+    path.write_text(LEAKY_POLICY)
+    code = main(["eval", str(path), "--trace", "--max-steps", "60", "--store", str(store.path), "--json"])
+    out, err = capfd.readouterr()
+    assert code == 1
+    episode = json.loads(out)["episodes"][0]
+    assert episode["end_reason"] == "policy_error" and "leaking [redacted] [redacted]" in episode["error"]
+    _assert_clean(out + err, "the terminal")
+    texts = _store_texts(store)
+    assert "[redacted]" in texts
+    _assert_clean(texts, "the store")
+    outputs = store.query("SELECT DISTINCT output FROM nodes WHERE function = 'predict_ball_trajectory'")
+    assert outputs == [('"[redacted] [redacted]"',)]
+
+
+def test_a_leaking_policy_leaks_nothing_through_optimize(canaries, store, scripted, tmp_path, capfd):
+    path = tmp_path / "leaky.py"
+    path.write_text(LEAKY_POLICY)
+    model = scripted([json_reply({"select_action": LEAKY_SELECT})])
+    code = main(["optimize", str(path), "--model", model.model, "--api-base", model.api_base, "--iterations", "2",
+                 "--eval-max-steps", "60", "--rollout-steps", "40", "--token-budget", "8000", "--workers", "2",
+                 "--store", str(store.path)])
+    out, err = capfd.readouterr()
+    assert code == 0, err
+    requests = model.log_path.read_text()
+    assert len(model.requests()) == 2 and "[redacted]" in requests
+    _assert_clean(requests, "a request the model received")
+    _assert_clean(out + err, "the terminal")
+    texts = _store_texts(store)
+    _assert_clean(texts, "the store")
+    reasons = store.query("SELECT reason FROM rejected_candidates")
+    assert reasons and all("candidate leaks [redacted] [redacted]" in r[0] for r in reasons)
+
+
+HUGE_POLICY = LEAKY_POLICY.replace('raise ValueError("leaking " + predicted_ball_y)',
+                                   'raise ValueError("x" * 8_000_000)')
+HUGE_SELECT = ('def select_action(self, predicted_ball_y, obs):\n'
+               '    """Raises an 8 MB message."""\n    raise RuntimeError("y" * 8_000_000)\n')
+
+
+def test_megabyte_messages_do_not_break_the_next_prompt(store, scripted, tmp_path, capfd):
+    path = tmp_path / "huge.py"
+    path.write_text(HUGE_POLICY)
+    model = scripted([json_reply({"select_action": HUGE_SELECT}), "z" * 8_000_000])
+    budget = 4000
+    code = main(["optimize", str(path), "--model", model.model, "--api-base", model.api_base, "--iterations", "3",
+                 "--eval-max-steps", "60", "--rollout-steps", "40", "--token-budget", str(budget), "--workers", "2",
+                 "--store", str(store.path)])
+    out, err = capfd.readouterr()
+    assert code == 0, err[-3000:]
+    assert len(out) + len(err) < 20_000
+    counted = store.query("SELECT iteration, prompt_tokens_counted FROM llm_calls ORDER BY iteration")
+    assert len(counted) == 3 and all(tokens <= budget for _, tokens in counted), counted
+    assert max(len(r) for r in model.log_path.read_text().splitlines()) < budget * 8
+    longest = store.query("SELECT max(length(error)) FROM episodes")[0][0]
+    assert 2000 <= longest < 2100
+    assert store.query("SELECT max(length(exc_message)) FROM nodes")[0][0] < 2100
+    assert store.query("SELECT max(length(text)) FROM feedback")[0][0] < 5000
+
+
+def test_resume_honours_the_token_budget_given(store, scripted, tmp_path, capfd):
+    model = scripted(["no suggestion here"])
+    common = ["--model", model.model, "--api-base", model.api_base, "--store", str(store.path)]
+    assert main(["optimize", "--game", "pong", "--iterations", "1", "--eval-max-steps", "60", "--rollout-steps", "40",
+                 "--token-budget", "8000", "--workers", "1", *common]) == 0
+    run_id = store.query("SELECT run_id FROM runs")[0][0]
+    capfd.readouterr()
+    assert main(["optimize", "--resume", run_id, "--iterations", "2", "--token-budget", "2500",
+                 "--call-time-limit", "0.5", *common]) == 0
+    capfd.readouterr()
+    config = json.loads(store.query("SELECT config FROM runs")[0][0])
+    assert (config["token_budget"], config["call_time_limit_s"], config["iterations"]) == (2500, 0.5, 2)
+    counted = dict(store.query("SELECT iteration, prompt_tokens_counted FROM llm_calls"))
+    assert counted[1] > 2500 >= counted[2], counted
+
+
+def test_a_huge_candidate_that_validates_does_not_end_the_run(store, scripted, capfd):
+    # 400 KB of docstring: a valid method, under the reply limit, that no later prompt could show
+    huge = ('def select_action(self, predicted_ball_y, obs):\n    """' + "word " * 80_000 + '"""\n'
+            '    return 0\n')
+    model = scripted([json_reply({"select_action": huge})])
+    code = main(["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+                 "--iterations", "2", "--eval-max-steps", "60", "--rollout-steps", "40", "--token-budget", "8000",
+                 "--workers", "1", "--store", str(store.path)])
+    out, err = capfd.readouterr()
+    assert code == 0, err[-2000:]
+    rows = store.query("SELECT update_status FROM iterations WHERE iteration > 0 ORDER BY iteration")
+    assert rows == [("rejected",), ("rejected",)]
+    assert "keep the methods short" in store.query("SELECT text FROM feedback WHERE iteration = 1")[0][0]
+    assert all(t <= 8000 for (t,) in store.query("SELECT prompt_tokens_counted FROM llm_calls"))
