@@ -13,7 +13,7 @@ import os
 import sys
 from typing import Callable, Sequence
 
-from pipeline.games import GAMES
+from games import GAMES
 
 EXIT_OK, EXIT_EPISODE_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 FAILED_END_REASONS = ("policy_error", "timeout", "crashed")
@@ -91,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
         "every step and, with --trace, every call of its bundled methods to the store.",
     )
     p.add_argument("policy", metavar="POLICY.py", help="policy file; may declare GAME = 'pong'")
-    p.add_argument("--game", help=f"game to play: {', '.join(GAMES)} (default: the file's GAME)")
+    p.add_argument("--game", help=f"game to play: {', '.join(GAMES)}, or any game OCAtari reads (`codearcade "
+                   "games` lists them) (default: the file's GAME)")
     p.add_argument("--episodes", type=_positive_int, default=1, help="evaluation episodes (default: 1)")
     p.add_argument("--max-steps", type=_positive_int, default=4000,
                    help="cut an episode off after this many steps, reported as truncated (default: 4000, the paper's)")
@@ -123,8 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
         "cannot really improve code.",
     )
     p.add_argument("policy", metavar="POLICY.py", nargs="?",
-                   help="starting policy file (default: the game's scaffold in examples/)")
-    p.add_argument("--game", help=f"game: {', '.join(GAMES)} (default: the file's GAME)")
+                   help="starting policy file (default: the game's scaffold in games/scaffolds/)")
+    p.add_argument("--game", help=f"game: {', '.join(GAMES)}, or any game OCAtari reads (default: the file's GAME)")
     p.add_argument("--model", help="litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o "
                    "(OPENAI_API_KEY), gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME "
                    "or openai/NAME with --api-base (your own server) (default: the offline SmolLM2 server)")
@@ -723,7 +724,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
-    from pipeline.games import UnknownGameError
+    from games import UnknownGameError
     from store import StoreError
     from pipeline.local_llm import LocalModelError
     from store.locks import RunBusyError

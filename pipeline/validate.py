@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pipeline.executor import run_tasks
-from pipeline.games import get_game
+from games import get_game
 from pipeline.rollout import coerce_action, describe_exception
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods
 from tracing.sandbox import CallTimer, PolicyCodeError, PolicyTimeout, check_source
