@@ -42,7 +42,7 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=7, help="measurements per configuration (best taken)")
     args = parser.parse_args()
     store = Store(Path(tempfile.mkdtemp(prefix="codearcade-bench-")) / "parallel.duckdb")
-    policy = ROOT / "examples" / f"{args.game}.py"
+    policy = ROOT / "games" / "scaffolds" / f"{args.game}.py"
     evaluate(policy, EvalConfig(episodes=1, max_steps=50), store)  # warm caches and the store
 
     # The paper's protocol is deterministic: the bare replays play the actions of these very episodes.

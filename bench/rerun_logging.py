@@ -27,7 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.games import GAMES  # noqa: E402
+from games import GAMES  # noqa: E402
 from pipeline.rollout import EpisodeSpec, run_episode  # noqa: E402
 
 TARGET = 0.25
@@ -35,7 +35,7 @@ POLICIES = {"pong": ROOT / "tests" / "policies" / "pong_competent.py"}
 
 
 def policy_path(game: str) -> Path:
-    return POLICIES.get(game, ROOT / "examples" / f"{game}.py")
+    return POLICIES.get(game, ROOT / "games" / "scaffolds" / f"{game}.py")
 
 
 def measure(spec: EpisodeSpec) -> tuple[dict, float]:

@@ -53,7 +53,7 @@ def main() -> int:
     parser.add_argument("--episodes", type=int, default=120, help="episodes appended to each store (default: 120)")
     args = parser.parse_args()
 
-    policy = (ROOT / "examples" / "space_invaders.py").read_text()
+    policy = (ROOT / "games" / "scaffolds" / "space_invaders.py").read_text()
     outcome = run_episode(EpisodeSpec(episode_id="bench.0.eval.0", run_id="bench", game="space_invaders",
                                       policy_text=policy, policy_version_id="bench", memory_limit_mb=None))
     objects = sum(len(v) for v in outcome.steps.column("objects").to_pylist())

@@ -33,8 +33,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from games import GAMES, get_game  # noqa: E402
 from pipeline.evaluate import EvalConfig, evaluate  # noqa: E402
-from pipeline.games import GAMES, get_game  # noqa: E402
 from pipeline.rollout import EpisodeSpec  # noqa: E402
 from pipeline.verify import replay_actions  # noqa: E402
 from store import Store  # noqa: E402
@@ -109,14 +109,14 @@ def main() -> int:
 
     tmp = Path(tempfile.mkdtemp(prefix="codearcade-bench-"))
     store = Store(tmp / "bench.duckdb")
-    evaluate(ROOT / "examples" / "pong.py", EvalConfig(episodes=1, max_steps=50), store)  # start the forkserver
+    evaluate(ROOT / "games" / "scaffolds" / "pong.py", EvalConfig(episodes=1, max_steps=50), store)  # start the forkserver
 
     print(f"{'game':<15} {'steps':>6} {'bare OCAtari':>13} {'eval':>13} {'eval --trace':>13} "
           f"{'eval/bare':>10} {'trace/bare':>11}   (median of paired ratios)")
     failures = []
     verification = []
     for game in args.games:
-        policy = ROOT / "examples" / f"{game}.py"
+        policy = ROOT / "games" / "scaffolds" / f"{game}.py"
         # The paper's protocol is deterministic: every repeat plays these very actions.
         _, run_id = timed_eval(policy, store, args.episodes, trace=False)
         seeds, actions = played_actions(store, run_id)

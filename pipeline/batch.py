@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from pipeline.feedback import FEEDBACK_MODES
-from pipeline.games import get_game
+from games import get_game
 from pipeline.optimize import BUDGET_FIELDS, OptimizeConfig
 from store import Store
 

@@ -13,7 +13,7 @@ import os
 import sys
 from typing import Callable, Sequence
 
-from pipeline.games import GAMES
+from games import GAMES
 
 EXIT_OK, EXIT_EPISODE_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 FAILED_END_REASONS = ("policy_error", "timeout", "crashed", "tampered")
@@ -91,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
         "every step and, with --trace, every call of its bundled methods to the store.",
     )
     p.add_argument("policy", metavar="POLICY.py", help="policy file; may declare GAME = 'pong'")
-    p.add_argument("--game", help=f"game to play: {', '.join(GAMES)} (default: the file's GAME)")
+    p.add_argument("--game", help=f"game to play: {', '.join(GAMES)}, or any game OCAtari reads (`codearcade "
+                   "games` lists them) (default: the file's GAME)")
     p.add_argument("--episodes", type=_positive_int, default=1, help="evaluation episodes (default: 1)")
     p.add_argument("--max-steps", type=_positive_int, default=4000,
                    help="cut an episode off after this many steps, reported as truncated (default: 4000, the paper's)")
@@ -123,8 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
         "cannot really improve code.",
     )
     p.add_argument("policy", metavar="POLICY.py", nargs="?",
-                   help="starting policy file (default: the game's scaffold in examples/)")
-    p.add_argument("--game", help=f"game: {', '.join(GAMES)} (default: the file's GAME)")
+                   help="starting policy file (default: the game's scaffold in games/scaffolds/)")
+    p.add_argument("--game", help=f"game: {', '.join(GAMES)}, or any game OCAtari reads (default: the file's GAME)")
     p.add_argument("--model", help="litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o "
                    "(OPENAI_API_KEY), gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME "
                    "or openai/NAME with --api-base (your own server) (default: the offline SmolLM2 server)")
@@ -259,6 +260,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", help="output directory (default: ./reports/RUN_ID)")
     _add_store(p)
     p.set_defaults(handler=cmd_report)
+
+    p = verbs.add_parser(
+        "games",
+        help="list the games: curated ones and every game OCAtari reads",
+        description="List the games codearcade plays: the curated ones (a module in games/ with the authors' "
+        "observation conventions, task and scaffold) and every other game OCAtari reads from RAM, played "
+        "generically (objects by category, ALE's actions; `codearcade new` writes a scaffold).",
+    )
+    p.add_argument("--curated", action="store_true", help="only the curated games")
+    p.add_argument("--json", action="store_true", help="print the games and their settings as JSON")
+    p.set_defaults(handler=cmd_games)
+
+    p = verbs.add_parser(
+        "new",
+        help="write a policy scaffold for a game",
+        description="Write a policy file to start from: a curated game's scaffold, or, for any other game, one "
+        "written from the object categories seen in a few hundred random steps and ALE's action meanings, with "
+        "one trainable method.",
+    )
+    p.add_argument("policy", metavar="POLICY.py", help="file to write")
+    p.add_argument("--game", required=True, help="the game (`codearcade games` lists them)")
+    p.add_argument("--force", action="store_true", help="overwrite POLICY.py if it exists")
+    p.set_defaults(handler=cmd_new)
 
     p = verbs.add_parser(
         "view",
@@ -549,6 +573,48 @@ def _run_recordings(store, target: str | None, then: Callable | None):
     return on_iteration, updater
 
 
+def cmd_games(args: argparse.Namespace) -> int:
+    from games import GAMES, get_game
+    from games.generic import generic_names
+    from viewers.tables import format_table
+
+    names = list(GAMES) + ([] if args.curated else [n for n in generic_names() if n not in GAMES])
+    rows = []
+    for name in names:
+        game = get_game(name)
+        task = game.task
+        rows.append({"game": game.name, "status": game.status, "env_id": game.env_id, "actions": game.n_actions,
+                     "lives": game.lives, "rollout_steps": task.rollout_steps, "eval_max_steps": task.eval_max_steps,
+                     "feedback_high": task.feedback["high"] if game.status == "curated" else None,
+                     "feedback_low": task.feedback["low"] if game.status == "curated" else None,
+                     "scaffold": str(game.scaffold.relative_to(game.scaffold.parents[2])) if game.scaffold else None})
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return EXIT_OK
+    print(format_table(tuple(rows[0]), [tuple(r.values()) for r in rows], max_width=40, null="-"))
+    print(f"({sum(r['status'] == 'curated' for r in rows)} curated, {sum(r['status'] == 'generic' for r in rows)} "
+          "generic; `codearcade new POLICY.py --game G` writes a scaffold for any of them)")
+    return EXIT_OK
+
+
+def cmd_new(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from games import get_game
+    from games.scaffolding import SURVEY_STEPS, scaffold_text
+
+    path = Path(args.policy)
+    if path.exists() and not args.force:
+        raise CliError(f"{path} exists; pass --force to overwrite it")
+    game = get_game(args.game)
+    if game.scaffold is None:
+        print(f"surveying {game.name}: {SURVEY_STEPS} random steps...", file=sys.stderr, flush=True)
+    path.write_text(scaffold_text(game))
+    print(f"wrote {path} ({game.status} game {game.name}); evaluate it with `codearcade eval {path}`, improve it "
+          f"with `codearcade optimize {path}`")
+    return EXIT_OK
+
+
 def cmd_view(args: argparse.Namespace) -> int:
     from viewers.rerun_sinks import ViewerError
     from viewers.rerun_view import view
@@ -733,7 +799,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
-    from pipeline.games import UnknownGameError
+    from games import UnknownGameError
     from store import StoreError
     from pipeline.local_llm import LocalModelError
     from store.locks import RunBusyError

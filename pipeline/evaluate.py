@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Callable
 
 from pipeline.executor import run_episodes
-from pipeline.games import get_game
+from games import get_game
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id, new_run_id, package_versions
 from pipeline.verify import verify_outcome
@@ -85,7 +85,7 @@ class EvalResult:
 def resolve_game(declared: str | None, requested: str | None, source: str) -> str:
     """The game to play, from ``--game`` and the policy's ``GAME``; errors say how to fix a mismatch."""
     if requested is None and declared is None:
-        raise PolicyLoadError(f"{source} does not declare GAME = '...'; pass --game (pong, breakout, space_invaders)")
+        raise PolicyLoadError(f"{source} does not declare GAME = '...'; pass --game (`codearcade games` lists them)")
     if requested is not None and declared is not None and get_game(requested) != get_game(declared):
         raise PolicyLoadError(f"{source} declares GAME = '{declared}' but --game is '{requested}'; drop one of them")
     return get_game(requested or declared).name

@@ -30,7 +30,7 @@ from collections import deque
 from multiprocessing.connection import Connection, wait
 from typing import Any, Callable, Iterable, Iterator, TypeVar
 
-from pipeline.envs import shared_env
+from games.envs import shared_env
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec, crashed_outcome, run_episode
 
 KILL_GRACE_S = 30.0

@@ -33,7 +33,7 @@ from typing import Any, Callable, ContextManager
 
 from pipeline.executor import run_episodes
 from pipeline.feedback import FEEDBACK_MODES, compose_feedback
-from pipeline.games import get_game
+from games import get_game
 from pipeline.llm import LLMClient, LLMError, LLMReply
 from pipeline.providers import price
 from pipeline.prompt import Prompt, PromptBudgetError, build_prompt, canonical_messages, read_context
@@ -65,7 +65,7 @@ class OptimizeConfig:
     game: str | None = None
     """Game; None takes the policy file's ``GAME``."""
     policy: str | None = None
-    """Starting policy file; None starts from the game's scaffold in ``examples/``."""
+    """Starting policy file; None starts from the game's scaffold in ``games/scaffolds/``."""
     model: str | None = None
     """litellm model string (``anthropic/...``, ``openai/...``); None: the offline SmolLM2 server."""
     api_base: str | None = None
@@ -170,7 +170,7 @@ def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
 
     if config.policy is None:
         if config.game is None:
-            raise ValueError("give a policy file or --game (pong, breakout, space_invaders)")
+            raise ValueError("give a policy file or --game (`codearcade games` lists them)")
         path = example_path(config.game)
     else:
         path = Path(config.policy)

@@ -27,8 +27,8 @@ from typing import Any
 
 import duckdb
 
-from pipeline.envs import list_widths
-from pipeline.games import get_game
+from games import list_widths
+from games import get_game
 from pipeline.tokens import TokenCounter
 from store.readers import episode_steps, policy_text, step_nodes
 from tracing.policy_file import PolicyInfo, inspect_policy, replace_methods

@@ -27,8 +27,9 @@ from typing import Any, Callable
 import numpy as np
 import pyarrow as pa
 
-from pipeline.envs import discard_env, list_widths, shared_env
-from pipeline.games import get_game
+from games import list_widths
+from games import get_game
+from games.envs import discard_env, shared_env
 from tracing.capture import NodeRecorder, failing_policy_line
 from tracing.policy_file import PolicyLoadError, load_policy
 from tracing.sandbox import CallTimer, PolicyTimeout

@@ -1,24 +1,27 @@
 """Task settings of an optimization: rollout horizon, evaluation cap, feedback bands and instruction.
 
-A policy file may declare them as upper-case literals (``ROLLOUT_STEPS``, ``EVAL_MAX_STEPS``, ``FEEDBACK``,
-``INSTRUCTION``); whatever it leaves out comes from the game's scaffold in ``examples/``, which is the one
-place the paper's settings are written down (400/300/15 steps, 4000-step evaluations, staged bands).
+The game's module holds them (``games/<game>.py``: the paper's 400/300/15 steps, 4000-step evaluations,
+staged bands); a policy file may override any of them with an upper-case literal (``ROLLOUT_STEPS``,
+``EVAL_MAX_STEPS``, ``FEEDBACK``, ``INSTRUCTION``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from pipeline.feedback import FeedbackBands
-from pipeline.games import get_game
-from tracing.policy_file import PolicyInfo, inspect_policy
 
-EXAMPLES_DIR = Path(__file__).resolve().parents[1] / "examples"
+from games import get_game
+from pipeline.feedback import FeedbackBands
+from tracing.policy_file import PolicyInfo
 
 
 def example_path(game: str) -> Path:
-    """The scaffold policy file of ``game`` (``examples/pong.py``)."""
-    return EXAMPLES_DIR / f"{get_game(game).name}.py"
+    """The scaffold policy file of ``game`` (``games/scaffolds/pong.py``); ValueError for a generic game."""
+    spec = get_game(game)
+    if spec.scaffold is None:
+        raise ValueError(f"{spec.name} is played generically and has no scaffold: write one with "
+                         f"`codearcade new my_policy.py --game {spec.name}` and start from it")
+    return spec.scaffold
 
 
 @dataclass(frozen=True)
@@ -31,11 +34,13 @@ class TaskSettings:
 
 
 def task_settings(info: PolicyInfo, game: str) -> TaskSettings:
-    """The settings for optimizing ``info`` on ``game``: the file's constants over the scaffold's."""
-    defaults = inspect_policy(example_path(game).read_text(), example_path(game).name).constants
-    merged = {**defaults, **info.constants}
+    """The settings for optimizing ``info`` on ``game``: the file's constants over the game's task."""
+    spec = get_game(game)
+    task = spec.task
+    merged = {"ROLLOUT_STEPS": task.rollout_steps, "EVAL_MAX_STEPS": task.eval_max_steps,
+              "FEEDBACK": dict(task.feedback), "INSTRUCTION": task.instruction, **info.constants}
     return TaskSettings(
-        game=get_game(game).name,
+        game=spec.name,
         rollout_steps=int(merged["ROLLOUT_STEPS"]),
         eval_max_steps=int(merged["EVAL_MAX_STEPS"]),
         feedback=FeedbackBands.from_constant(merged["FEEDBACK"], info.name),

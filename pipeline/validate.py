@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pipeline.executor import run_tasks
-from pipeline.games import get_game
+from games import get_game
 from pipeline.rollout import coerce_action, describe_exception
 from pipeline.untrusted import clean_untrusted_text
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods

@@ -1,7 +1,7 @@
 """The score that counts is computed where no policy code ever ran.
 
 A worker process plays an episode with untrusted policy code in it, and that code can reach the objects
-around it (a module that re-exports ``sys``, ``sys.modules['pipeline.envs']``, frames) and, for example,
+around it (a module that re-exports ``sys``, ``sys.modules["games.envs"]``, frames) and, for example,
 wrap the environment's ``step`` to add reward, or rewrite the episode row it sends back. So the parent takes
 nothing of a worker's episode on trust. :func:`verify_outcome`, called on every outcome as it arrives
 (``pipeline/evaluate.py``, ``pipeline/optimize.py``), before it is stored:
@@ -39,8 +39,8 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from pipeline.envs import make_env
-from pipeline.games import get_game
+from games import get_game
+from games.envs import make_env
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
 from tracing.capture import NODE_SCHEMA

@@ -27,7 +27,7 @@ def episode_steps(
     list_widths: Mapping[str, int] | None = None,
 ) -> list[dict[str, Any]]:
     """Steps ``start <= step < stop`` of an episode, in order; each with ``obs`` rebuilt (see tracing/steps.py;
-    ``list_widths`` as ``pipeline.envs.list_widths`` gives it for the episode's game)."""
+    ``list_widths`` as ``games.list_widths`` gives it for the episode's game)."""
     rows = _rows(
         con.execute(
             """SELECT step, action, reward, score, terminated, truncated, lives, objects

@@ -10,7 +10,7 @@ import pytest
 from store import Store
 
 ROOT = Path(__file__).resolve().parents[1]
-EXAMPLES = ROOT / "examples"
+EXAMPLES = ROOT / "games" / "scaffolds"
 POLICIES = Path(__file__).resolve().parent / "policies"
 
 

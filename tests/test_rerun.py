@@ -167,7 +167,7 @@ def test_run_recording_has_one_score_per_iteration(store, tmp_path, scripted, ca
 def test_frame_png_is_lossless_and_small():
     from PIL import Image
 
-    from pipeline.envs import make_env
+    from games.envs import make_env
     from viewers.frames import FrameEncoder
 
     env = make_env("space_invaders")

@@ -7,7 +7,8 @@ import random
 
 import pytest
 
-from pipeline.envs import list_widths, make_env
+from games import list_widths
+from games.envs import make_env
 from tracing.steps import StepLog, merge_runs, objects_to_obs
 
 

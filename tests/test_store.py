@@ -11,7 +11,7 @@ from pathlib import Path
 import duckdb
 import pytest
 
-from pipeline.envs import list_widths
+from games import list_widths
 from pipeline.rollout import EpisodeSpec, run_episode
 from store import Store, StoreError
 from store.migrations import LATEST, MIGRATIONS

@@ -120,12 +120,24 @@ def test_to_json_is_deterministic_and_valid():
 
 
 def test_inspect_policy_reads_constants_and_methods_without_running():
-    info = inspect_policy((EXAMPLES / "breakout.py").read_text(), "breakout.py")
+    text = (EXAMPLES / "breakout.py").read_text().replace('GAME = "breakout"', 'GAME = "breakout"\nROLLOUT_STEPS = 120\nFEEDBACK = {"high": 50, "low": 0}')
+    info = inspect_policy(text, "breakout.py")
     assert info.game == "breakout"
-    assert info.constants["ROLLOUT_STEPS"] == 300 and info.constants["FEEDBACK"]["high"] == 300
+    assert info.constants["ROLLOUT_STEPS"] == 120 and info.constants["FEEDBACK"]["high"] == 50
     assert [m.name for m in info.trainable] == [
         "predict_ball_trajectory", "generate_paddle_target", "select_paddle_action"]
     assert info.version_id == version_id(info.text)
+
+
+def test_task_settings_come_from_the_game_module_unless_the_file_overrides_them():
+    from pipeline.task import task_settings
+
+    scaffold = inspect_policy((EXAMPLES / "breakout.py").read_text(), "breakout.py")
+    assert "ROLLOUT_STEPS" not in scaffold.constants, "the task lives in games/breakout.py, not the scaffold"
+    settings = task_settings(scaffold, "breakout")
+    assert settings.rollout_steps == 300 and settings.eval_max_steps == 4000 and settings.feedback.high == 300
+    own = inspect_policy(scaffold.text.replace('GAME = "breakout"', 'GAME = "breakout"\nROLLOUT_STEPS = 120'), "b.py")
+    assert task_settings(own, "breakout").rollout_steps == 120 and task_settings(own, "breakout").feedback.high == 300
 
 
 @pytest.mark.parametrize(

@@ -84,7 +84,7 @@ class StepLog:
     def observe(self, obs: Mapping[str, Any], rows: Iterable[tuple] | None = None) -> None:
         """Flatten the observation of the next step into object rows.
 
-        ``rows``, when the environment made them along with ``obs`` (``pipeline.envs.ObjectObservation``),
+        ``rows``, when the environment made them along with ``obs`` (``games.envs.ObjectObservation``),
         are taken as they are instead of walking the dict again (a tenth of the time of a Space Invaders
         step): ``OBJECT_TYPE`` tuples that :func:`objects_to_obs` turns back into ``obs``.
         """

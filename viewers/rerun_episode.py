@@ -52,16 +52,22 @@ import pyarrow.compute as pc
 import rerun as rr
 import rerun.blueprint as rrb
 
+from games import GAMES
+
 APPLICATION_ID = "codearcade"
 SCREEN_W, SCREEN_H = 160, 210
 
-CATEGORY_COLORS: dict[str, tuple[int, int, int]] = {
-    "Player": (92, 220, 92), "Ball": (255, 255, 255), "Enemy": (255, 140, 40), "Alien": (255, 90, 220),
-    "Shield": (90, 200, 255), "Bullet": (255, 255, 80), "Satellite": (255, 60, 60),
-    "RB": (255, 80, 80), "OB": (255, 150, 60), "YB": (230, 220, 60), "GB": (120, 230, 90),
-    "AB": (60, 220, 220), "BB": (90, 120, 255),
-}
-"""Box colours of the known categories (others get a colour from their name)."""
+
+def _game_colours() -> dict[str, tuple[int, int, int]]:
+    colours: dict[str, tuple[int, int, int]] = {}
+    for game in GAMES.values():  # each game module names its categories' colours
+        for category, colour in game.colours.items():
+            colours.setdefault(category, tuple(colour))
+    return colours
+
+
+CATEGORY_COLORS: dict[str, tuple[int, int, int]] = _game_colours()
+"""Box colours of the curated games' categories (``Game.colours``; others get a colour from their name)."""
 _KNOWN_CATEGORIES = tuple(CATEGORY_COLORS)
 
 STEP_SERIES = ("action", "reward", "score", "lives")

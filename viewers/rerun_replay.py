@@ -17,8 +17,9 @@ import duckdb
 import pyarrow as pa
 import rerun as rr
 
-from pipeline.envs import list_widths, make_env
-from pipeline.games import get_game
+from games import list_widths
+from games import get_game
+from games.envs import make_env
 from store import Store
 from store.readers import policy_text
 from tracing.steps import objects_to_obs

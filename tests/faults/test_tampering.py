@@ -23,7 +23,7 @@ from pipeline.verify import verify_outcome
 from tests.conftest import json_reply, pong_policy
 
 TAMPER_BODY = """
-envs = typing.sys.modules["pipeline.envs"]
+envs = typing.sys.modules["games.envs"]
 for env in envs._shared.values():
     if not getattr(env, "tampered", False):
         orig = env.step

@@ -25,7 +25,7 @@ as int64 gives the numpy-1 results (../shared/NOTES.md).
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import Any, Callable, Mapping
 
 import ale_py
 import gymnasium as gym
@@ -34,25 +34,15 @@ from ocatari.ram import extract_ram_info
 from ocatari.ram import game_objects as ram_objects
 from ocatari.vision import game_objects as vision_objects
 
-from pipeline.games import GAMES, GameSpec, get_game
+from games import GAMES, Game, get_game
 
 Observation = dict[str, Any]
 
-BREAKOUT_ROWS = {57: "RB", 63: "OB", 69: "YB", 75: "GB", 81: "AB", 87: "BB"}
-"""Breakout brick rows by their y, top to bottom: Red, Orange, Yellow, Green, Aqua, Blue."""
-BRICK_WIDTH = 8
-
-
-def list_widths(game: str | GameSpec) -> dict[str, int]:
-    """Observation keys whose value is always a list, even when empty, with the width of its items
-    (Breakout's brick rows: 8 px). The step log stores runs of adjacent items as one object (tracing/steps.py)."""
-    spec = game if isinstance(game, GameSpec) else get_game(game)
-    return {row: BRICK_WIDTH for row in BREAKOUT_ROWS.values()} if spec.name == "breakout" else {}
 
 ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # no banner for every environment
 gym.register_envs(ale_py)
-for _spec in GAMES.values():  # import the extractors once (worker processes fork with them loaded)
-    importlib.import_module(f"ocatari.ram.{_spec.ocatari_name.lower()}")
+for _game in GAMES.values():  # import the extractors once (worker processes fork with them loaded)
+    importlib.import_module(f"ocatari.ram.{_game.ocatari_name.lower()}")
 
 
 class ObjectObservation(gym.Wrapper):
@@ -64,9 +54,10 @@ class ObjectObservation(gym.Wrapper):
     ``env.unwrapped.ale.getScreenRGB()``.
     """
 
-    def __init__(self, env: gym.Env, game: GameSpec):
+    def __init__(self, env: gym.Env, game: Game):
         super().__init__(env)
         self.game = game
+        importlib.import_module(f"ocatari.ram.{game.ocatari_name.lower()}")  # generic games: on first use
         max_objects = extract_ram_info.get_max_objects(game.ocatari_name, False)
         self._numbered = {category for category, count in max_objects.items() if count > 1}
         self._objects: list = []
@@ -87,46 +78,45 @@ class ObjectObservation(gym.Wrapper):
         extract_ram_info.detect_objects_ram(self._objects, ram.astype(np.int64), self.game.ocatari_name, False)
         if first:  # fresh objects "moved" from (0, 0): nothing has moved yet on the first observation
             for o in self._objects:
-                o._prev_xy = o._xy
+                if o is not None:
+                    o._prev_xy = o._xy
         self.object_rows = []
-        return objects_to_dict(self._objects, self._numbered, breakout=self.game.name == "breakout",
-                               rows=self.object_rows)
+        obs = objects_to_dict(self._objects, self._numbered, self.game.list_widths, self.game.object_hooks,
+                              rows=self.object_rows)
+        if self.game.derive is not None:
+            self.game.derive(obs, self.env.unwrapped.ale.lives())
+        return obs
 
 
 _NO_OBJECT_CLASSES = (ram_objects.NoObject, vision_objects.NoObject)
 
 
-def objects_to_dict(objects: list, numbered: set[str], breakout: bool = False,
-                    rows: list[tuple] | None = None) -> Observation:
+def objects_to_dict(objects: list, numbered: set[str], lists: Mapping[str, int] | None = None,
+                    hooks: Mapping[str, Callable] | None = None, rows: list[tuple] | None = None) -> Observation:
     """Convert OCAtari's padded object list into the observation dict (``NoObject`` and invisible slots skipped).
 
-    With ``rows``, also append the observation's rows for the step log (``tracing.steps.OBJECT_TYPE`` order,
-    a run of bricks as one row), made from the same values in the same pass: what
-    ``StepLog.observe`` would otherwise make by walking the dict again.
+    ``lists`` are the keys that are always present as lists (``Game.list_widths``); ``hooks`` put the objects
+    of their category into the dict themselves (``Game.object_hooks``: Breakout splits its brick runs). With
+    ``rows``, also append the observation's rows for the step log (``tracing.steps.OBJECT_TYPE`` order),
+    made from the same values in the same pass: what ``StepLog.observe`` would otherwise make by walking the
+    dict again.
 
     This runs every step, so it reads OCAtari's fields directly instead of through its property chain
     (``o.dx`` alone goes through three properties); the values are the same.
     """
-    obs: Observation = {row: [] for row in BREAKOUT_ROWS.values()} if breakout else {}
+    obs: Observation = {key: [] for key in lists} if lists else {}
     counts: dict[str, int] = {}
     for o in objects:
         cls = o.__class__
-        if cls in _NO_OBJECT_CLASSES or not o._visible:
+        if cls in _NO_OBJECT_CLASSES or o is None or not o._visible:  # some extractors leave empty slots None
             continue
         category = cls.__name__
+        if hooks and category in hooks:
+            hooks[category](o, obs, rows)
+            continue
         x, y = o._xy
         w, h = o.wh
         x, y, w, h = int(x), int(y), int(w), int(h)
-        if breakout and category == "Block":
-            key = BREAKOUT_ROWS.get(y)
-            if key is not None:
-                bricks = obs[key]
-                n = max(1, w // BRICK_WIDTH)
-                if rows is not None:
-                    rows.append((key, len(bricks), key, x, y, n * BRICK_WIDTH, h, 0, 0))
-                for i in range(n):
-                    bricks.append({"x": x + i * BRICK_WIDTH, "y": y, "w": BRICK_WIDTH, "h": h, "dx": 0, "dy": 0})
-            continue
         prev = o._prev_xy
         if prev is None:
             dx = dy = 0
@@ -203,13 +193,13 @@ class NoopReset(gym.Wrapper):
         return obs, info
 
 
-def make_env(game: str | GameSpec, sticky: float = 0.0, noop_max: int = 0, render: bool = False) -> gym.Env:
+def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: bool = False) -> gym.Env:
     """Build the wrapped environment for ``game``; see the module docstring for the observation format.
 
     ``render=True`` keeps the RGB frame available through ``env.unwrapped.ale.getScreenRGB()`` (it always is;
     the flag only asks ALE for ``rgb_array`` rendering for viewers that call ``env.render()``).
     """
-    spec = game if isinstance(game, GameSpec) else get_game(game)
+    spec = get_game(game)
     if not 0.0 <= sticky <= 1.0:
         raise ValueError(f"sticky-action probability must be within [0, 1], got {sticky}")
     if noop_max < 0:
@@ -233,13 +223,13 @@ def make_env(game: str | GameSpec, sticky: float = 0.0, noop_max: int = 0, rende
 _shared: dict[tuple[str, float, int], gym.Env] = {}
 
 
-def shared_env(game: str | GameSpec, sticky: float = 0.0, noop_max: int = 0) -> gym.Env:
+def shared_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0) -> gym.Env:
     """An environment for one episode after another in this process (``make_env`` is ~0.1 s a call).
 
     Reuse is safe because every episode starts with ``reset(seed=...)``, which reloads the game and reseeds
     every random source, so an episode plays the same on a fresh or a reused environment (tested).
     """
-    spec = game if isinstance(game, GameSpec) else get_game(game)
+    spec = get_game(game)
     key = (spec.name, float(sticky), int(noop_max))
     env = _shared.get(key)
     if env is None:

@@ -2,35 +2,14 @@
 
 The interfaces and docstrings carry the game facts and action meanings; the starter code is deliberately
 weak (it moves the paddle at random), as in the paper. Evaluate it with
-``codearcade eval examples/pong.py`` or improve it with ``codearcade optimize examples/pong.py``.
+``codearcade eval games/scaffolds/pong.py`` or improve it with ``codearcade optimize games/scaffolds/pong.py``.
 """
 
 import random
 
 import tracing as trace
 
-GAME = "pong"
-ROLLOUT_STEPS = 400      # traced training rollout shown to the optimizer (paper: 400 for Pong)
-EVAL_MAX_STEPS = 4000    # evaluation cap (paper: ~4000)
-FEEDBACK = {
-    # staged feedback from the evaluation score: high >= 19, medium 0 < score < 19, low <= 0 (paper)
-    "high": 19,
-    "low": 0,
-    "target": 21,
-    "messages": {
-        "high": "Score {score:g}: you are winning almost every point ({gap:g} from a perfect 21). "
-                "Keep the paddle positioning that works and make returns harder for the opponent.",
-        "medium": "Score {score:g}: you win more points than you lose but are {gap:g} from a perfect 21. "
-                  "Position the paddle where the ball will arrive so the opponent cannot score.",
-        "low": "Score {score:g}: the opponent scores at least as often as you ({gap:g} from a perfect 21). "
-               "Work on paddle positioning: predict where the ball crosses x=140 and be there early, "
-               "so the opponent cannot score.",
-    },
-}
-INSTRUCTION = (
-    "You control the right paddle in Atari Pong. Improve the trainable methods so the policy returns every "
-    "ball and wins the game 21 to 0."
-)
+GAME = "pong"  # its task (horizon, evaluation cap, feedback bands, instruction): games/pong.py
 
 
 @trace.model

@@ -7,26 +7,7 @@ import random
 
 import tracing as trace
 
-GAME = "space_invaders"
-ROLLOUT_STEPS = 15       # traced training rollout shown to the optimizer (paper: 15; observations are large)
-EVAL_MAX_STEPS = 4000
-FEEDBACK = {
-    # staged feedback: high >= 1000, medium 500 < score < 1000, low <= 500 (paper)
-    "high": 1000,
-    "low": 500,
-    "target": 1000,
-    "messages": {
-        "high": "Score {score:g}: excellent. Keep shooting efficiently and dodging alien bullets to survive longer.",
-        "medium": "Score {score:g}: {gap:g} below 1000. Time your shots (only one of your bullets can be on "
-                  "screen) at aliens above you, and dodge incoming projectiles.",
-        "low": "Score {score:g}: {gap:g} below 1000. Shoot when an alien is above you and your previous bullet "
-               "is gone, and move out from under alien bullets (positive dy) to keep your three lives.",
-    },
-}
-INSTRUCTION = (
-    "You control the cannon in Atari Space Invaders. Improve the trainable methods to shoot down as many "
-    "aliens as possible while dodging their bullets."
-)
+GAME = "space_invaders"  # its task (horizon, evaluation cap, feedback bands, instruction): games/space_invaders.py
 
 
 @trace.model

@@ -7,27 +7,7 @@ The environment presses FIRE by itself at the start and after every lost life.
 
 import tracing as trace
 
-GAME = "breakout"
-ROLLOUT_STEPS = 300      # traced training rollout shown to the optimizer (paper: 300 for Breakout)
-EVAL_MAX_STEPS = 4000
-FEEDBACK = {
-    # staged feedback: high >= 300, medium 0 < score < 300, low <= 0 (paper)
-    "high": 300,
-    "low": 0,
-    "target": 864,
-    "messages": {
-        "high": "Score {score:g}: strong play ({gap:g} short of a perfect 864). Keep returning the ball and "
-                "aim it at the high-value rows through gaps in the wall.",
-        "medium": "Score {score:g}: {gap:g} short of a perfect 864. Return the ball every time and avoid "
-                  "losing lives; aim for tunnels toward the red and orange rows (7 points each).",
-        "low": "Score {score:g}: the ball is not being returned. Predict where the ball reaches the paddle "
-               "plane (y=189), including wall bounces, and move the paddle under it to stop losing lives.",
-    },
-}
-INSTRUCTION = (
-    "You control the paddle in Atari Breakout. Improve the trainable methods so the policy never misses the "
-    "ball and clears the bricks, highest-value rows first."
-)
+GAME = "breakout"  # its task (horizon, evaluation cap, feedback bands, instruction): games/breakout.py
 
 
 @trace.model

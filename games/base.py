@@ -1,0 +1,80 @@
+"""What a game is to codearcade: :class:`Game` (environment, observation hooks, actions, colours) and its
+:class:`Task` (what the optimizer is told and how long it plays).
+
+A game module (``games/pong.py``) defines one ``GAME = Game(...)``; everything codearcade knows about that
+game is there, and every other package reads it from the registry (``games.get_game``). This module imports
+nothing heavier than the standard library, so the registry loads in milliseconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+SCAFFOLDS = Path(__file__).resolve().parent / "scaffolds"
+"""The curated games' policy scaffolds: ``scaffolds/<game>.py`` beside the game modules."""
+
+
+@dataclass(frozen=True)
+class Task:
+    """The optimization task of a game, as the paper and the authors' follow-up set it. A policy file may
+    override each with an upper-case constant (``ROLLOUT_STEPS``, ``EVAL_MAX_STEPS``, ``FEEDBACK``,
+    ``INSTRUCTION``)."""
+
+    instruction: str
+    """What the optimizer is asked to achieve."""
+    rollout_steps: int
+    """Horizon of the traced training rollout shown in the prompt (paper: Pong 400, Breakout 300, SI 15)."""
+    eval_max_steps: int
+    """Cap of an evaluation episode (paper: 4000)."""
+    feedback: Mapping[str, Any]
+    """Staged feedback bands: ``{"high": h, "low": l, "target": t, "messages": {"high"|"medium"|"low": text}}``;
+    a score >= high is high, <= low is low; texts may use ``{score}``, ``{gap}`` and ``{target}``."""
+    eval_episodes: int = 1
+    """Evaluation episodes the authors average over (informational; ``--eval-episodes`` sets it for a run)."""
+
+
+ObjectHook = Callable[[Any, dict, "list | None"], None]
+"""``hook(ocatari_object, obs, rows)``: put one object of its category into the observation (and its step-log
+rows into ``rows`` when given) instead of the generic ``{x, y, w, h, dx, dy}`` entry."""
+
+
+@dataclass(frozen=True)
+class Game:
+    """One Atari game as codearcade plays it."""
+
+    name: str
+    """Short name on the command line and in the store (``pong``, ``space_invaders``)."""
+    env_id: str
+    """Gymnasium id in the paper's setting (``PongNoFrameskip-v4``); frameskip 4 and sticky actions are set
+    explicitly when the environment is made."""
+    ocatari_name: str
+    """The game's name for OCAtari's RAM extractors (``Pong``, ``SpaceInvaders``)."""
+    actions: tuple[str, ...]
+    """ALE action meanings (the minimal action set); an action is legal when it indexes this tuple."""
+    lives: int
+    """Lives at the start of a game (0 when the game has none, as Pong)."""
+    task: Task
+    """The optimization task: instruction, horizons, feedback bands."""
+    fire_on_life_loss: bool = False
+    """Press FIRE after reset and after each lost life (Breakout does not relaunch the ball by itself)."""
+    colours: Mapping[str, tuple[int, int, int]] = field(default_factory=dict)
+    """RGB of each object category's boxes in Rerun recordings (others get a colour from their name)."""
+    list_widths: Mapping[str, int] = field(default_factory=dict)
+    """Observation keys that are always present as lists of equal-width items, with that width (Breakout's
+    brick rows); the step log stores runs of adjacent items as one object."""
+    object_hooks: Mapping[str, ObjectHook] = field(default_factory=dict)
+    """Per OCAtari category, how its objects enter the observation (Breakout splits merged brick runs)."""
+    derive: Callable[[dict, int], None] | None = None
+    """``derive(obs, lives)`` adds fields computed from the objects (lanes, nearest enemies, ``lives``) to the
+    observation, in place. The store keeps the objects and lives; the same call rebuilds the derived fields
+    when a prompt or a viewer reads a step back, so they are never stored twice."""
+    status: str = "curated"
+    """``curated`` (a module with the authors' conventions and a scaffold) or ``generic`` (any OCAtari game)."""
+    scaffold: Path | None = None
+    """The policy scaffold the optimizer starts from; None for generic games (``codearcade new`` writes one)."""
+
+    @property
+    def n_actions(self) -> int:
+        return len(self.actions)

@@ -1,0 +1,65 @@
+"""Breakout: a paddle returns the ball into six rows of bricks; five lives.
+
+Everything codearcade knows about the game: environment, actions, the paper's task (training horizon,
+evaluation cap, staged feedback bands, instruction), observation hooks and Rerun colours. The policy
+scaffold is ``games/scaffolds/breakout.py``.
+"""
+
+from games.base import SCAFFOLDS, Game, Task
+
+ROLLOUT_STEPS = 300      # traced training rollout shown to the optimizer (paper: 300 for Breakout)
+EVAL_MAX_STEPS = 4000
+FEEDBACK = {
+    # staged feedback: high >= 300, medium 0 < score < 300, low <= 0 (paper)
+    "high": 300,
+    "low": 0,
+    "target": 864,
+    "messages": {
+        "high": "Score {score:g}: strong play ({gap:g} short of a perfect 864). Keep returning the ball and "
+                "aim it at the high-value rows through gaps in the wall.",
+        "medium": "Score {score:g}: {gap:g} short of a perfect 864. Return the ball every time and avoid "
+                  "losing lives; aim for tunnels toward the red and orange rows (7 points each).",
+        "low": "Score {score:g}: the ball is not being returned. Predict where the ball reaches the paddle "
+               "plane (y=189), including wall bounces, and move the paddle under it to stop losing lives.",
+    },
+}
+INSTRUCTION = (
+    "You control the paddle in Atari Breakout. Improve the trainable methods so the policy never misses the "
+    "ball and clears the bricks, highest-value rows first."
+)
+
+ROWS = {57: "RB", 63: "OB", 69: "YB", 75: "GB", 81: "AB", 87: "BB"}
+"""Brick rows by their y, top to bottom: Red, Orange, Yellow, Green, Aqua, Blue."""
+BRICK_WIDTH = 8
+
+
+def split_bricks(block, obs: dict, rows: list | None) -> None:
+    """OCAtari reports each run of adjacent bricks in a row as one ``Block`` of width 8*n: the paper's policies
+    read one 8-pixel brick per entry of the row's list, so the run is split (and stored as one step-log row)."""
+    x, y = (int(v) for v in block._xy)
+    key = ROWS.get(y)
+    if key is None:
+        return
+    w, h = (int(v) for v in block.wh)
+    bricks = obs[key]
+    n = max(1, w // BRICK_WIDTH)
+    if rows is not None:
+        rows.append((key, len(bricks), key, x, y, n * BRICK_WIDTH, h, 0, 0))
+    for i in range(n):
+        bricks.append({"x": x + i * BRICK_WIDTH, "y": y, "w": BRICK_WIDTH, "h": h, "dx": 0, "dy": 0})
+
+
+GAME = Game(
+    name="breakout",
+    env_id="BreakoutNoFrameskip-v4",
+    ocatari_name="Breakout",
+    actions=("NOOP", "FIRE", "RIGHT", "LEFT"),
+    lives=5,
+    task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK),
+    colours={"Player": (92, 220, 92), "Ball": (255, 255, 255), "RB": (255, 80, 80), "OB": (255, 150, 60),
+             "YB": (230, 220, 60), "GB": (120, 230, 90), "AB": (60, 220, 220), "BB": (90, 120, 255)},
+    fire_on_life_loss=True,
+    list_widths={key: BRICK_WIDTH for key in ROWS.values()},
+    object_hooks={"Block": split_bricks},
+    scaffold=SCAFFOLDS / "breakout.py",
+)
