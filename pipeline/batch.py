@@ -41,8 +41,8 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable
 
-from pipeline.feedback import FEEDBACK_MODES
 from games import get_game
+from pipeline.feedback import FEEDBACK_MODES
 from pipeline.optimize import BUDGET_FIELDS, OptimizeConfig
 from store import Store
 

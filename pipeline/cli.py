@@ -800,8 +800,8 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     from games import UnknownGameError
-    from store import StoreError
     from pipeline.local_llm import LocalModelError
+    from store import StoreError
     from store.locks import RunBusyError
     from tracing.policy_file import PolicyLoadError
 

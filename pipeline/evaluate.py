@@ -15,8 +15,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
-from pipeline.executor import run_episodes
 from games import get_game
+from pipeline.executor import run_episodes
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id, new_run_id, package_versions
 from pipeline.verify import verify_outcome

@@ -31,28 +31,33 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ContextManager
 
+from games import get_game
 from pipeline.executor import run_episodes
 from pipeline.feedback import FEEDBACK_MODES, compose_feedback
-from games import get_game
 from pipeline.llm import LLMClient, LLMError, LLMReply
-from pipeline.providers import price
 from pipeline.prompt import Prompt, PromptBudgetError, build_prompt, canonical_messages, read_context
+from pipeline.providers import price
 from pipeline.reply import ReplyParseError, clean_text, parse_reply
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id, new_run_id, package_versions
 from pipeline.task import example_path, task_settings
 from pipeline.tokens import TokenCounter
 from pipeline.untrusted import clean_untrusted_text
-from pipeline.validate import (CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, check_fits,
-                               spread)
+from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, check_fits, spread
 from pipeline.verify import tampering, verify_outcome
 from pipeline.versions import policy_version_row
 from store import Store
 from store.db import utcnow
 from store.locks import run_lock
 from store.readers import get_run, policy_text, run_spending, stored_reply
-from store.writer import (finish_run, insert_llm_call, insert_policy_version, insert_run, set_llm_call_outcome,
-                          write_episode)
+from store.writer import (
+    finish_run,
+    insert_llm_call,
+    insert_policy_version,
+    insert_run,
+    set_llm_call_outcome,
+    write_episode,
+)
 from tracing.policy_file import PolicyInfo, inspect_policy, read_policy_file
 
 MAX_CONSECUTIVE_LLM_FAILURES = 3

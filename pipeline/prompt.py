@@ -27,8 +27,7 @@ from typing import Any
 
 import duckdb
 
-from games import list_widths
-from games import get_game
+from games import get_game, list_widths
 from pipeline.tokens import TokenCounter
 from store.readers import episode_steps, policy_text, step_nodes
 from tracing.policy_file import PolicyInfo, inspect_policy, replace_methods
@@ -153,7 +152,8 @@ def read_context(
         instruction=json.loads(config).get("instruction") or "",
         info=info,
         train_episode=_episode(con, base["train_episode_id"]),
-        train_steps=episode_steps(con, base["train_episode_id"], list_widths=list_widths(game)),
+        train_steps=episode_steps(con, base["train_episode_id"], list_widths=list_widths(game),
+                                  derive=get_game(game).derive),
         train_nodes=step_nodes(con, base["train_episode_id"]),
         eval_episodes=[_episode(con, e) for e in base["eval_episode_ids"] or []],
         feedback=note + (base["feedback"] or ""),

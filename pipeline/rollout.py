@@ -27,8 +27,7 @@ from typing import Any, Callable
 import numpy as np
 import pyarrow as pa
 
-from games import list_widths
-from games import get_game
+from games import get_game, list_widths
 from games.envs import discard_env, shared_env
 from tracing.capture import NodeRecorder, failing_policy_line
 from tracing.policy_file import PolicyLoadError, load_policy

@@ -17,8 +17,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from pipeline.executor import run_tasks
 from games import get_game
+from pipeline.executor import run_tasks
 from pipeline.rollout import coerce_action, describe_exception
 from pipeline.untrusted import clean_untrusted_text
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods

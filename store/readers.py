@@ -7,7 +7,7 @@ open. Step slices come back with the observation dict rebuilt exactly as the pol
 from __future__ import annotations
 
 import json
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import duckdb
 
@@ -25,9 +25,11 @@ def episode_steps(
     start: int = 0,
     stop: int | None = None,
     list_widths: Mapping[str, int] | None = None,
+    derive: Callable[[dict, int], None] | None = None,
 ) -> list[dict[str, Any]]:
-    """Steps ``start <= step < stop`` of an episode, in order; each with ``obs`` rebuilt (see tracing/steps.py;
-    ``list_widths`` as ``games.list_widths`` gives it for the episode's game)."""
+    """Steps ``start <= step < stop`` of an episode, in order; each with ``obs`` rebuilt as the policy saw it
+    (see tracing/steps.py): ``list_widths`` and ``derive`` are the game's (``games.Game``), which adds the
+    fields it computes from the objects and the step's lives."""
     rows = _rows(
         con.execute(
             """SELECT step, action, reward, score, terminated, truncated, lives, objects
@@ -37,6 +39,8 @@ def episode_steps(
     )
     for row in rows:
         row["obs"] = objects_to_obs(row.pop("objects"), list_widths)
+        if derive is not None:
+            derive(row["obs"], row["lives"])
     return rows
 
 

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from pipeline.providers import PROVIDER_KEYS, check_credentials, MissingCredentialsError, with_cache_breakpoint
+from pipeline.providers import PROVIDER_KEYS, MissingCredentialsError, check_credentials, with_cache_breakpoint
 from tests.conftest import COMPETENT_REPLY, ROOT, pong_policy
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")

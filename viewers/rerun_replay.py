@@ -17,8 +17,7 @@ import duckdb
 import pyarrow as pa
 import rerun as rr
 
-from games import list_widths
-from games import get_game
+from games import get_game, list_widths
 from games.envs import make_env
 from store import Store
 from store.readers import policy_text
