@@ -45,16 +45,18 @@ def one_line(exc: BaseException) -> str:
     return " ".join(kept) or type(exc).__name__
 
 
+def _result(cursor: duckdb.DuckDBPyConnection) -> Result:
+    """Every row of an executed statement, with its column names and types (none for SET, a silent PRAGMA)."""
+    if cursor.description is None:
+        return Result([], [], [])
+    return Result([d[0] for d in cursor.description], [str(d[1]) for d in cursor.description], cursor.fetchall())
+
+
 def run_query(store: Store, sql: str, params: list[Any] | None = None) -> Result:
     """Run ``sql`` on a read-only connection; :class:`QueryError` if DuckDB refuses it."""
     with store.read() as con:
         try:
-            cursor = con.execute(sql, params or [])
-            if cursor.description is None:  # SET, PRAGMA without output, ...
-                return Result([], [], [])
-            columns = [d[0] for d in cursor.description]
-            types = [str(d[1]) for d in cursor.description]
-            return Result(columns, types, cursor.fetchall())
+            return _result(con.execute(sql, params or []))
         except duckdb.Error as exc:
             raise QueryError(one_line(exc)) from None
 
@@ -106,12 +108,7 @@ def run_user_query(store: Store, sql: str) -> Result:
         pass
     con = _user_connection(store)
     try:
-        cursor = con.execute(sql)
-        if cursor.description is None:
-            return Result([], [], [])
-        columns = [d[0] for d in cursor.description]
-        types = [str(d[1]) for d in cursor.description]
-        return Result(columns, types, cursor.fetchall())
+        return _result(con.execute(sql))
     except duckdb.Error as exc:
         raise QueryError(one_line(exc)) from None
     finally:
