@@ -74,8 +74,10 @@ class ObjectObservation(gym.Wrapper):
         return self._observe(ram), reward, terminated, truncated, info
 
     def _observe(self, ram: np.ndarray, first: bool = False) -> Observation:
-        # int64: OCAtari's extractors do arithmetic on the RAM bytes, which wraps around under numpy 2.
-        extract_ram_info.detect_objects_ram(self._objects, ram.astype(np.int64), self.game.ocatari_name, False)
+        if self.game.detect is not None:
+            self.game.detect(self._objects, ram)
+        else:  # int64: OCAtari's extractors do arithmetic on the RAM bytes, which wraps around under numpy 2
+            extract_ram_info.detect_objects_ram(self._objects, ram.astype(np.int64), self.game.ocatari_name, False)
         if first:  # fresh objects "moved" from (0, 0): nothing has moved yet on the first observation
             for o in self._objects:
                 if o is not None:
