@@ -51,49 +51,66 @@ END_REASONS = ("terminated", "truncated", "policy_error", "timeout", "crashed")
 FAILURE_END_REASONS = ("policy_error", "timeout", "crashed")
 TAMPERED = "tampered"
 
-_replay_envs: dict[tuple[str, float, int], Any] = {}
+_replay_envs: dict[tuple[str, float, int], list[Any]] = {}
 
 
-def replay_env(game: str, sticky: float, noop_max: int):
-    """A raw-ALE environment (no object extraction) for replays, built once per setting in this process and
-    never handed to policy code: ``make_env``'s wrappers minus ``ObjectObservation``."""
+def _acquire_env(game: str, sticky: float, noop_max: int):
+    """A raw-ALE environment (no object extraction) for one replay, from a pool per setting in this process
+    (replays of episodes that play at the same time each need their own) and never handed to policy code:
+    ``make_env``'s wrappers minus ``ObjectObservation``."""
     key = (get_game(game).name, float(sticky), int(noop_max))
-    env = _replay_envs.get(key)
-    if env is None:
-        env = _replay_envs[key] = make_env(key[0], sticky=key[1], noop_max=key[2]).env
-    return env
+    free = _replay_envs.setdefault(key, [])
+    return key, (free.pop() if free else make_env(key[0], sticky=key[1], noop_max=key[2]).env)
 
 
-class _Replay:
-    """What replaying a list of actions gave: per step reward, flags and lives (before the step)."""
+class Replay:
+    """Replaying an episode's actions from its reset, step by step: per step reward, flags and lives (before
+    the step). Actions can be fed as they are played (:meth:`feed`, from a worker's progress reports), so that
+    by the time the episode ends only its last few hundred steps are left to replay."""
 
-    def __init__(self, spec: EpisodeSpec, actions: list[int]):
-        env = replay_env(spec.game, spec.sticky, spec.noop_max)
-        game = get_game(spec.game)
-        _, info = env.reset(seed=spec.seed)
-        lives = int(info.get("lives", 0))
+    def __init__(self, spec: EpisodeSpec):
+        self._key, self._env = _acquire_env(spec.game, spec.sticky, spec.noop_max)
+        self._has_lives = bool(get_game(spec.game).lives)
+        _, info = self._env.reset(seed=spec.seed)
+        self._lives = int(info.get("lives", 0))
+        self.actions: list[int] = []
         self.rewards: list[float] = []
         self.terminated: list[bool] = []
         self.truncated: list[bool] = []
         self.lives: list[int] = []
         self.lives_lost = 0
         self.ended_early: int | None = None  # the step after which the game ended while actions went on
-        for step, action in enumerate(actions):
-            self.lives.append(lives)
-            _, reward, terminated, truncated, info = env.step(action)
+
+    def feed(self, actions: list[int]) -> None:
+        """Play ``actions`` after those fed before (ignored once the game has ended with actions left over)."""
+        for action in actions:
+            if self.ended_early is not None:
+                return
+            if self.rewards and (self.terminated[-1] or self.truncated[-1]):
+                self.ended_early = len(self.rewards) - 1
+                return
+            self.actions.append(action)
+            self.lives.append(self._lives)
+            _, reward, terminated, truncated, info = self._env.step(action)
             self.rewards.append(float(reward))
             self.terminated.append(bool(terminated))
             self.truncated.append(bool(truncated))
-            new_lives = int(info.get("lives", lives))
-            if game.lives:
-                self.lives_lost += max(0, lives - new_lives)
-            elif reward < 0:
+            new_lives = int(info.get("lives", self._lives))
+            if self._has_lives:
+                self.lives_lost += max(0, self._lives - new_lives)
+            elif reward < 0:  # a point conceded counts as a life lost where the game has none (Pong)
                 self.lives_lost += 1
-            lives = new_lives
-            if (terminated or truncated) and step + 1 < len(actions):
-                self.ended_early = step
-                break
-        self.final_lives = lives
+            self._lives = new_lives
+
+    def release(self) -> None:
+        """Give the environment back to the pool (every replay resets it before use)."""
+        if self._env is not None:
+            _replay_envs[self._key].append(self._env)
+            self._env = None
+
+    @property
+    def final_lives(self) -> int:
+        return self._lives
 
     @property
     def length(self) -> int:
@@ -104,9 +121,17 @@ class _Replay:
         return math.fsum(self.rewards)
 
 
-def replay_actions(spec: EpisodeSpec, actions: list[int]) -> _Replay:
-    """Replay ``actions`` from ``spec``'s reset in this process's replay environment (no policy code)."""
-    return _Replay(spec, actions)
+def replay_actions(spec: EpisodeSpec, actions: list[int], replay: Replay | None = None) -> Replay:
+    """Replay ``actions`` from ``spec``'s reset in this process (no policy code): continuing ``replay`` when its
+    actions so far are a prefix of ``actions`` (fed while the episode played), else from the start."""
+    if replay is not None and replay.actions != actions[:len(replay.actions)]:
+        replay.release()  # what was reported while playing is not what the episode recorded: start again
+        replay = None
+    if replay is None:
+        replay = Replay(spec)
+    replay.feed(actions[len(replay.actions):])
+    replay.release()
+    return replay
 
 
 def _float(value: Any, default: float | None = None) -> float | None:
@@ -158,7 +183,7 @@ def _tables(outcome: EpisodeOutcome) -> tuple[pa.Table | None, pa.Table | None, 
     return steps, nodes, None
 
 
-def _compare(row: dict[str, Any], steps: pa.Table, replay: _Replay, actions_end: int) -> str | None:
+def _compare(row: dict[str, Any], steps: pa.Table, replay: Replay, actions_end: int) -> str | None:
     """The first disagreement between the recorded episode and the replay, or None."""
     if replay.ended_early is not None:
         return (f"the game ended at step {replay.ended_early} but {actions_end} actions were recorded")
@@ -198,9 +223,10 @@ def _compare(row: dict[str, Any], steps: pa.Table, replay: _Replay, actions_end:
     return None
 
 
-def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome) -> EpisodeOutcome:
+def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome, replay: Replay | None = None) -> EpisodeOutcome:
     """The outcome of ``spec`` as the parent stores it: row rebuilt, text cleaned, score verified by replay
-    (see the module docstring). Never raises for anything the worker sent."""
+    (see the module docstring), continuing ``replay`` if actions were fed to it while the episode played. Never
+    raises for anything the worker sent."""
     reported = getattr(outcome, "episode", None)
     reported = reported if isinstance(reported, dict) else {}
     row = _episode_row(spec, reported)
@@ -223,7 +249,7 @@ def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome) -> EpisodeOutcome
             why = "an action outside the game's action set was recorded"
     if why is not None:
         actions = []
-    replay = replay_actions(spec, actions)
+    replay = replay_actions(spec, actions, replay)
     if why is None:
         why = _compare(row, steps, replay, len(actions))
     if why is None and row["end_reason"] != TAMPERED:
@@ -233,7 +259,7 @@ def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome) -> EpisodeOutcome
     return _tampered(row, steps, nodes, replay, why)
 
 
-def _tampered(row: dict[str, Any], steps: pa.Table | None, nodes: pa.Table | None, replay: _Replay,
+def _tampered(row: dict[str, Any], steps: pa.Table | None, nodes: pa.Table | None, replay: Replay,
               why: str) -> EpisodeOutcome:
     """The episode as the replay says it went, marked."""
     claimed = row["return"]
