@@ -142,14 +142,11 @@ def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():
              for i in range(2)]
     results = list(run_episodes(specs, workers=2))
     assert sorted(i for i, _ in results) == [0, 1] and all(o.end_reason == "truncated" for _, o in results)
-    workers = [process for process, _ in executor._exiting]
-    assert workers, "told to stop, not yet waited for"
+    zygote = executor.zygote()
     deadline = time.monotonic() + 10
-    while executor._exiting and time.monotonic() < deadline:
-        executor.reap_workers()
+    while zygote.children() and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert not executor._exiting
-    assert [w.exitcode for w in workers] == [0] * len(workers), "each stopped by itself, none killed"
+    assert not zygote.children(), "every worker exited by itself"
 
 
 def test_a_worker_whose_parent_died_before_it_asked_for_the_death_signal_ends_at_once(tmp_path):
