@@ -15,7 +15,9 @@ policy code is loaded, and make the operating system the boundary:
   ``process_vm_*``, ``mknod``, ``mount``/``unshare``/``setns`` and friends, ``io_uring``, ``bpf``, uid
   changes, and ``kill``/``tgkill`` to any process but itself are refused with EPERM;
 - rlimits: address space (a cap above what the worker had), no core files, a file-size cap, few open files,
-  and CPU seconds as a backstop for a worker that ignores its timers.
+  and CPU seconds as a backstop for a worker that ignores its timers;
+- every capability dropped (bounding, ambient, effective, permitted, inheritable): a worker running as root
+  cannot raise its rlimits back, set the clock, or use any other privilege of root.
 
 :func:`probe` says which of these the machine lacks. Nothing degrades silently: the executor refuses to run
 policy code when a feature is missing unless ``CODEARCADE_ALLOW_WEAK_SANDBOX=1`` is set, and then it warns on
@@ -49,7 +51,8 @@ _libc = ctypes.CDLL(None, use_errno=True)
 _libc.syscall.restype = ctypes.c_long
 _libc.prctl.restype = ctypes.c_int
 
-PR_SET_PDEATHSIG, PR_SET_NO_NEW_PRIVS = 1, 38
+PR_SET_PDEATHSIG, PR_SET_NO_NEW_PRIVS, PR_CAPBSET_DROP, PR_CAP_AMBIENT, PR_CAP_AMBIENT_CLEAR_ALL = 1, 38, 24, 47, 4
+SYS_CAPSET, LINUX_CAPABILITY_VERSION_3 = 126, 0x20080522
 CLONE_NEWNET, CLONE_THREAD = 0x40000000, 0x00010000
 
 # ------------------------------------------------------------------------------------------------ landlock
@@ -146,6 +149,8 @@ DENIED_SYSCALLS = {
     "iopl": 172, "ioperm": 173, "swapon": 167, "swapoff": 168, "reboot": 169, "personality": 135,
     "setuid": 105, "setgid": 106, "setreuid": 113, "setregid": 114, "setresuid": 117, "setresgid": 119,
     "setgroups": 116, "setfsuid": 122, "setfsgid": 123, "acct": 163, "quotactl": 179, "syslog": 103,
+    "settimeofday": 164, "clock_settime": 227, "adjtimex": 159, "clock_adjtime": 305, "sethostname": 170,
+    "setdomainname": 171, "vhangup": 153,
 }
 SYS_CLONE, SYS_CLONE3, SYS_KILL, SYS_TGKILL = 56, 435, 62, 234
 
@@ -278,6 +283,22 @@ def confine(limits: Limits, strict: bool = True) -> list[str]:
                        ctypes.c_ulong(0)) != 0:
             raise OSError(ctypes.get_errno(), "prctl(PR_SET_NO_NEW_PRIVS) failed")
 
+    def capabilities() -> None:
+        # root in the worker would otherwise keep CAP_SYS_RESOURCE (raise its rlimits back), CAP_SYS_TIME, ...
+        prctl = _libc.prctl
+        prctl(ctypes.c_int(PR_CAP_AMBIENT), ctypes.c_ulong(PR_CAP_AMBIENT_CLEAR_ALL), ctypes.c_ulong(0),
+              ctypes.c_ulong(0), ctypes.c_ulong(0))
+        for cap in range(64):
+            if prctl(ctypes.c_int(PR_CAPBSET_DROP), ctypes.c_ulong(cap), ctypes.c_ulong(0), ctypes.c_ulong(0),
+                     ctypes.c_ulong(0)) != 0 and ctypes.get_errno() == 22:  # EINVAL: past the last capability
+                break
+        header = struct.pack("=Ii", LINUX_CAPABILITY_VERSION_3, 0)
+        data = bytes(24)  # effective, permitted, inheritable: all empty (two 32-bit words each)
+        if _libc.syscall(ctypes.c_long(SYS_CAPSET), ctypes.create_string_buffer(header, 8),
+                         ctypes.create_string_buffer(data, 24)) != 0:
+            err = ctypes.get_errno()
+            raise OSError(err, f"capset: {os.strerror(err)}")
+
     def landlock() -> None:
         abi = landlock_abi()
         if abi < 1:
@@ -291,6 +312,7 @@ def confine(limits: Limits, strict: bool = True) -> list[str]:
         _seccomp(seccomp_program(os.getpid()))
 
     step("rlimits", rlimits)
+    step("capabilities", capabilities)
     step("no_new_privs", no_new_privs)
     step("landlock", landlock)
     step("seccomp", seccomp)

@@ -143,8 +143,7 @@ def _probe(scratch_base: str) -> list[str]:
 def main(argv: list[str]) -> int:
     ctl = socket.socket(fileno=int(argv[0]))
     scratch_base = os.getcwd()
-    parent_pid = os.getppid()
-    confine.die_with_parent(parent_pid)
+    # no PDEATHSIG here: it follows the parent's *thread* that started us; EOF on the socket is the signal
     import pipeline.worker_preload  # noqa: F401  (the environment stack, imported once for every worker)
 
     missing = []

@@ -272,3 +272,39 @@ def test_code_that_breaks_the_parser_is_refused_in_one_line(body, store, write_p
     with pytest.raises(CandidateRejected) as rejected:
         build_candidate(info, {"select_action": source})
     assert str(rejected.value)
+
+
+@pytest.fixture
+def kernel_lacks_landlock(monkeypatch):
+    """The zygote's hello says Landlock is missing (as on a kernel without it); a fresh zygote is started."""
+    from pipeline import executor
+
+    original = executor.Zygote._recv
+
+    def recv(self, timeout):
+        msg = original(self, timeout)
+        if msg is not None and msg.get("kind") == "hello":
+            msg["missing"] = ["landlock (Landlock is not enabled in this kernel)"]
+        return msg
+
+    monkeypatch.setattr(executor.Zygote, "_recv", recv)
+    monkeypatch.setattr(executor, "_zygote", None)
+    yield
+    executor.stop_zygote()
+
+
+def test_a_missing_kernel_feature_is_refused_loudly(kernel_lacks_landlock, store, capsys, monkeypatch):
+    monkeypatch.delenv("CODEARCADE_ALLOW_WEAK_SANDBOX", raising=False)
+    code = main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "5", "--store", str(store.path)])
+    out, err = capsys.readouterr()
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "landlock" in err and "CODEARCADE_ALLOW_WEAK_SANDBOX=1" in err
+    assert not store.exists() or store.query("SELECT count(*) FROM episodes") == [(0,)], "nothing ran"
+
+
+def test_the_weak_sandbox_is_an_explicit_choice_warned_about(kernel_lacks_landlock, store, capsys, monkeypatch):
+    monkeypatch.setenv("CODEARCADE_ALLOW_WEAK_SANDBOX", "1")
+    code = main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "5", "--store", str(store.path)])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "WARNING: weak sandbox" in err and "landlock" in err
