@@ -137,14 +137,17 @@ class Zygote:
     def send(self, msg: dict[str, Any], fds: list[int] = ()) -> None:
         socket.send_fds(self.ctl, [json.dumps(msg).encode()], list(fds))
 
-    def start(self, task: str, item: dict[str, Any], limits: dict[str, Any]) -> tuple[int, socket.socket]:
-        """Fork a worker for ``task`` and send it ``item``; the task id and the socket its answer comes on."""
+    def start(self, task: str, item: dict[str, Any], limits: dict[str, Any],
+              staged: bool = False) -> tuple[int, socket.socket]:
+        """Fork a worker for ``task`` and send it ``item``; the task id and the socket its answer comes on.
+        A ``staged`` worker sets itself up, then waits for :meth:`go`."""
         self.next_id += 1
         task_id = self.next_id
         self.events[task_id] = {}
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
-            self.send({"op": "run", "id": task_id, "task": task, "limits": limits}, [theirs.fileno()])
+            self.send({"op": "run", "id": task_id, "task": task, "limits": limits, "staged": staged},
+                      [theirs.fileno()])
         finally:
             theirs.close()
         ours.settimeout(60)
@@ -154,6 +157,14 @@ class Zygote:
             pass  # the worker died before reading: its EOF is reported as a crash
         ours.setblocking(False)
         return task_id, ours
+
+    @staticmethod
+    def go(conn: socket.socket) -> None:
+        """Let a staged worker run its task (a worker that died meanwhile is seen at its EOF)."""
+        try:
+            conn.send(b"G")
+        except OSError:
+            pass
 
     def kill(self, task_id: int) -> None:
         try:
@@ -279,16 +290,30 @@ def run_tasks(
         prepare(zyg)
     pending = deque(enumerate(items))
     busy: dict[int, _Running] = {}  # by fd
+    staged: deque[_Running] = deque()
+    """The next worker, forked and confined while the others play (the fork of the zygote, ~5-20 ms, would
+    otherwise come between one episode and the next)."""
+
+    def start(staged_: bool) -> _Running:
+        i, item = pending.popleft()
+        limits = task.limits(item)
+        limit = time_limit_s(item)
+        if limit is not None and "cpu_s" not in limits:
+            limits["cpu_s"] = int(math.ceil(limit + KILL_GRACE_S + 10))
+        task_id, conn = zyg.start(task.name, task.encode(item), limits, staged=staged_)
+        return _Running(i, item, task_id, conn, time.monotonic())
 
     def fill() -> None:
-        while pending and len(busy) < workers:
-            i, item = pending.popleft()
-            limits = task.limits(item)
-            limit = time_limit_s(item)
-            if limit is not None and "cpu_s" not in limits:
-                limits["cpu_s"] = int(math.ceil(limit + KILL_GRACE_S + 10))
-            task_id, conn = zyg.start(task.name, task.encode(item), limits)
-            busy[conn.fileno()] = _Running(i, item, task_id, conn, time.monotonic())
+        while (staged or pending) and len(busy) < workers:
+            if staged:
+                run = staged.popleft()
+                zyg.go(run.conn)
+                run.begun = time.monotonic()
+            else:
+                run = start(False)
+            busy[run.conn.fileno()] = run
+        if pending and not staged:
+            staged.append(start(True))
 
     def end(run: _Running, kill: bool = False) -> None:
         del busy[run.conn.fileno()]
@@ -340,7 +365,7 @@ def run_tasks(
         fill()
         if started is not None:
             started()
-        while pending or busy:
+        while pending or staged or busy:
             fill()
             finished: list[tuple[int, R]] = []
             ready, _, _ = select.select(list(busy) + [zyg.ctl.fileno()], [], [], 0.5)
@@ -391,6 +416,9 @@ def run_tasks(
     finally:
         for run in list(busy.values()):
             end(run, kill=True)
+            zyg.forget(run.task_id)
+        for run in staged:
+            run.conn.close()  # EOF instead of G: the worker exits without running anything
             zyg.forget(run.task_id)
 
 

@@ -8,10 +8,11 @@ allow-list (no API keys, no store path), its scratch directory as HOME and cwd, 
 
 - ``{"op": "prepare", "envs": [[game, sticky, noop_max], ...]}``: build those environments once (workers
   inherit them built);
-- ``{"op": "run", "id", "task", "limits"}`` with a socket passed alongside (SCM_RIGHTS): fork a worker that
-  reads its task as a JSON frame from that socket, confines itself (scratch directory, stdout/stderr to
-  /dev/null, :func:`pipeline.confine.confine`), runs the task and writes its answer as frames
-  (``pipeline/wire.py``); answered with ``{"kind": "started", "id", "pid"}``;
+- ``{"op": "run", "id", "task", "limits", "staged"}`` with a socket passed alongside (SCM_RIGHTS): fork a
+  worker that reads its task as a JSON frame from that socket, confines itself (scratch directory,
+  stdout/stderr to /dev/null, :func:`pipeline.confine.confine`), waits for a ``G`` byte if ``staged`` (the
+  executor sets up the next worker while the current one plays), runs the task and writes its answer as
+  frames (``pipeline/wire.py``); answered with ``{"kind": "started", "id", "pid"}``;
 - ``{"op": "kill", "id"}``: SIGKILL that worker.
 
 Every worker that ends is reported as ``{"kind": "exited", "id", "code"}`` (negative: killed by that signal)
@@ -99,6 +100,8 @@ def _worker(fd: int, msg: dict[str, Any], zygote_pid: int, scratch_base: str, st
             os.makedirs(path, exist_ok=True)
         limits.write_paths = [scratch, *limits.write_paths]
         confine.confine(limits, strict=strict)
+        if msg.get("staged") and os.read(fd, 1) != b"G":
+            return  # staged ahead of time (set up and confined while another task ran), then not needed
         TASKS[msg["task"]](item, fd)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent as plain text
         code = 1
