@@ -466,10 +466,11 @@ def run_episodes(
     """Play ``specs`` in confined workers (see :func:`run_tasks`); a worker that dies, misbehaves or hangs
     yields an episode with end reason ``crashed`` or ``timeout``."""
     specs = list(specs)
-    for spec in specs:
-        if spec.rerun and _rerun_dir(spec) is None and workers > 0:
-            print(f"codearcade: no live Rerun stream for {spec.episode_id}: policy workers have no network; "
-                  "give --rerun a directory", file=sys.stderr)
+    streamed = [s for s in specs if s.rerun and _rerun_dir(s) is None] if workers > 0 else []
+    if streamed:
+        print(f"codearcade: no live Rerun stream of {len(streamed)} episode(s): policy workers have no network; "
+              "give --rerun a directory (or view the stored run with `codearcade view`)", file=sys.stderr)
+        for spec in streamed:
             spec.rerun = None
 
     def prepare(zyg: Zygote) -> None:
