@@ -148,6 +148,8 @@ class Zygote:
         try:
             self.send({"op": "run", "id": task_id, "task": task, "limits": limits, "staged": staged},
                       [theirs.fileno()])
+        except OSError:
+            pass  # the zygote died: the worker's socket reads EOF, and the task is recorded as crashed
         finally:
             theirs.close()
         ours.settimeout(60)

@@ -189,3 +189,24 @@ def test_console_script(tmp_path):
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["episodes"][0]["length"] == 30
     assert (tmp_path / "env.duckdb").exists(), "CODEARCADE_STORE chooses the store"
+
+
+def test_a_dead_zygote_costs_only_its_episodes_and_the_next_call_starts_another():
+    import signal as signals
+
+    from pipeline import executor
+
+    specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=2000)
+             for i in range(2)]
+    pid = executor.zygote().proc.pid
+    killed = []
+
+    def progress(i, n):
+        if not killed:
+            os.kill(pid, signals.SIGKILL)
+            killed.append(i)
+
+    results = dict(run_episodes(specs, workers=1, progress=progress))
+    assert killed and [results[i].end_reason for i in (0, 1)] == ["crashed", "crashed"], results
+    [(_, again)] = list(run_episodes(specs[:1], workers=1))
+    assert again.end_reason in ("terminated", "truncated") and executor.zygote().proc.pid != pid

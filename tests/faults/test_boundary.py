@@ -22,7 +22,7 @@ from pipeline.cli import main
 from pipeline.validate import CandidateRejected, build_candidate
 from store import Store
 from tests.conftest import EXAMPLES, ROOT, pong_policy
-from tracing.policy_file import inspect_policy
+from tracing.policy_file import PolicyLoadError, inspect_policy
 
 CANARY = f"sk-canary-{uuid.uuid4().hex}"
 
@@ -272,6 +272,8 @@ def test_code_that_breaks_the_parser_is_refused_in_one_line(body, store, write_p
     with pytest.raises(CandidateRejected) as rejected:
         build_candidate(info, {"select_action": source})
     assert str(rejected.value)
+    with pytest.raises(PolicyLoadError):  # and a parse in this process, where one happens, says why
+        inspect_policy(pong_policy(body), "deep.py")
 
 
 @pytest.fixture
