@@ -228,8 +228,11 @@ def main(argv: list[str]) -> int:
         for pid in children:
             try:
                 os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
+                os.waitpid(pid, 0)
+            except (ProcessLookupError, ChildProcessError):
                 pass
+        if os.path.basename(scratch_base).startswith("codearcade-sandbox-"):
+            shutil.rmtree(scratch_base, ignore_errors=True)  # a parent killed with SIGKILL cannot do it
 
 
 if __name__ == "__main__":
