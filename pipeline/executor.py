@@ -478,7 +478,10 @@ def run_episodes(
     def prepare(zyg: Zygote) -> None:
         # each environment is built once in the zygote (~0.1-0.2 s each): forked workers inherit it ready
         envs = sorted({(s.game, s.sticky, s.noop_max) for s in specs})
-        zyg.send({"op": "prepare", "envs": [list(e) for e in envs]})
+        try:
+            zyg.send({"op": "prepare", "envs": [list(e) for e in envs]})
+        except OSError:
+            pass  # the zygote died: every episode is recorded as crashed
 
     return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
                      progress=progress, started=started, prepare=prepare)

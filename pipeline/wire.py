@@ -195,7 +195,8 @@ def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
         length=length, lives_lost=_int(row, "lives_lost", 0, 2**31 - 1), end_reason=end_reason,
         error=error[:MAX_TEXT] if error else error,
     )
-    if steps.num_rows not in (length, length + 1) or steps.num_rows > spec.max_steps:
+    failed_step = end_reason in ("policy_error", "timeout")  # the step the policy failed on is stored too
+    if steps.num_rows not in ((length, length + 1) if failed_step else (length,)) or steps.num_rows > spec.max_steps:
         raise BadMessage(f"{steps.num_rows} step rows for an episode of length {length}")
     if steps.num_rows and steps.column("step").to_pylist() != list(range(steps.num_rows)):
         raise BadMessage("the step rows are not numbered 0, 1, 2, ...")
