@@ -310,3 +310,47 @@ def test_the_weak_sandbox_is_an_explicit_choice_warned_about(kernel_lacks_landlo
     out, err = capsys.readouterr()
     assert code == 0, err
     assert "WARNING: weak sandbox" in err and "landlock" in err
+
+
+def test_the_store_cannot_be_read_or_truncated(store, write_policy, capsys):
+    assert main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "30", "--store", str(store.path)]) == 0
+    capsys.readouterr()
+    path = write_policy(pong_policy(ESCAPE + f"""
+import dataclasses
+seen = []
+try:
+    seen.append(repr(dataclasses.builtins.open('{store.path}', 'rb').read(64)))
+except Exception as exc:
+    seen.append(repr(exc))
+try:
+    os.truncate('{store.path}', 0)
+except Exception as exc:
+    seen.append(repr(exc))
+raise ValueError(' '.join(seen))
+"""))
+    code, out, err = _eval(capsys, path, store)
+    assert code == 1, err
+    error = json.loads(out)["episodes"][0]["error"]
+    assert "DUCK" not in error and error.count("PermissionError") == 2, error
+    assert store.query("SELECT count(*) FROM steps")[0][0] == 30 + 1, "earlier rows intact, the failing step added"
+
+
+def test_no_signal_reaches_the_parent(store, write_policy, capsys):
+    import signal as signals
+
+    received = []
+    previous = signals.signal(signals.SIGUSR1, lambda *a: received.append(a))
+    path = write_policy(pong_policy(ESCAPE + f"""
+for target in ({os.getpid()}, os.getppid()):
+    try:
+        os.kill(target, mods['signal'].SIGUSR1)
+    except Exception:
+        pass
+return 0
+"""))
+    try:
+        code, out, err = _eval(capsys, path, store)
+    finally:
+        signals.signal(signals.SIGUSR1, previous)
+    assert code in (0, 1), err
+    assert received == [], "the policy signalled this process"
