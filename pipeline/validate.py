@@ -16,6 +16,8 @@ reason becomes part of the next feedback.
 from __future__ import annotations
 
 import ast
+import hashlib
+import json
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -82,11 +84,20 @@ def vet_here(item: dict[str, Any]) -> str | None:
     return None
 
 
+_passed: set[str] = set()
+"""Digests of items that passed vetting (with this process's recursion limit): no worker for them again."""
+
+
 def _vet(item: dict[str, Any], workers: int = 1) -> str | None:
     item = {**item, "recursion_limit": sys.getrecursionlimit()}
+    digest = hashlib.sha256(json.dumps(item, sort_keys=True).encode()).hexdigest()
+    if digest in _passed:
+        return None
     answered, reason = run_json_task("vet", item, vet_here, VET_TIME_LIMIT_S, memory_mb=2048, workers=workers)
     if not answered:
         return f"the static check of the code crashed ({reason})"
+    if reason is None:
+        _passed.add(digest)
     return reason
 
 
