@@ -201,11 +201,18 @@ def _seccomp(program: bytes) -> None:
 # ------------------------------------------------------------------------------------------ the whole thing
 
 
+CLONE_NEWUSER = 0x10000000
+
+
 def enter_network_namespace() -> None:
-    """Move this process into a new, empty network namespace (needs root or a user namespace)."""
-    if _libc.unshare(ctypes.c_int(CLONE_NEWNET)) != 0:
-        err = ctypes.get_errno()
-        raise OSError(err, f"unshare(CLONE_NEWNET): {os.strerror(err)}")
+    """Move this process into a new, empty network namespace: directly as root, else inside a new user
+    namespace (unprivileged users, where the distribution allows it)."""
+    if _libc.unshare(ctypes.c_int(CLONE_NEWNET)) == 0:
+        return
+    err = ctypes.get_errno()
+    if _libc.unshare(ctypes.c_int(CLONE_NEWUSER | CLONE_NEWNET)) != 0:
+        err2 = ctypes.get_errno()
+        raise OSError(err, f"unshare(CLONE_NEWNET): {os.strerror(err)}; with a user namespace: {os.strerror(err2)}")
 
 
 def die_with_parent(parent_pid: int) -> None:

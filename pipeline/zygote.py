@@ -84,7 +84,7 @@ def _worker(fd: int, msg: dict[str, Any], zygote_pid: int, scratch_base: str, st
             signal.signal(sig, signal.SIG_DFL)
         confine.die_with_parent(zygote_pid)
         os.closerange(3, fd)
-        os.closerange(fd + 1, 1 << 16)
+        os.closerange(fd + 1, 1 << 30)  # close_range(2): cheap whatever the bound
         scratch = os.path.join(scratch_base, f"w{int(msg['id'])}")
         os.makedirs(scratch, exist_ok=True)
         os.chdir(scratch)
