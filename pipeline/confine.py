@@ -6,6 +6,8 @@ policy code is loaded, and make the operating system the boundary:
 - ``PR_SET_NO_NEW_PRIVS``: nothing it executes could gain privileges (and it may not execute anything);
 - a network namespace of its own with no interface up (:func:`enter_network_namespace`, done once by the
   zygote; every worker inherits it): no network at all, not even 127.0.0.1 or abstract Unix sockets;
+- scratch directories on a small tmpfs in the zygote's own mount namespace (:func:`scratch_tmpfs`): what
+  workers can write is bounded in all, and invisible to (and gone for) the rest of the machine;
 - Landlock (ABI probed with ``landlock_create_ruleset(NULL, 0, VERSION)``): reads only below the Python
   installation, site-packages (ROMs included), system libraries and the project's own packages; writes only
   in the episode's scratch directory (and a requested Rerun recording directory); from ABI 4 no TCP bind or
@@ -201,7 +203,28 @@ def _seccomp(program: bytes) -> None:
 # ------------------------------------------------------------------------------------------ the whole thing
 
 
-CLONE_NEWUSER = 0x10000000
+CLONE_NEWUSER, CLONE_NEWNS = 0x10000000, 0x00020000
+MS_NOSUID, MS_NODEV, MS_NOEXEC, MS_REC, MS_PRIVATE = 2, 4, 8, 16384, 1 << 18
+SCRATCH_MB = 64
+"""Size of the tmpfs that holds every worker's scratch directory (all workers of a zygote together)."""
+
+
+def scratch_tmpfs(path: str, size_mb: int = SCRATCH_MB) -> None:
+    """Mount a tmpfs of ``size_mb`` over ``path`` in a mount namespace of this process's own (after
+    :func:`enter_network_namespace`, which provides the user namespace when not root): what workers write is
+    bounded in all, and gone when this process ends. ``path`` is this process's working directory again."""
+    if _libc.unshare(ctypes.c_int(CLONE_NEWNS)) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, f"unshare(CLONE_NEWNS): {os.strerror(err)}")
+    if _libc.mount(b"none", b"/", None, ctypes.c_ulong(MS_REC | MS_PRIVATE), None) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, f"mount(/, MS_PRIVATE): {os.strerror(err)}")
+    options = f"size={size_mb}m,mode=0700".encode()
+    if _libc.mount(b"tmpfs", os.fsencode(path), b"tmpfs", ctypes.c_ulong(MS_NOSUID | MS_NODEV | MS_NOEXEC),
+                   options) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, f"mount tmpfs on {path}: {os.strerror(err)}")
+    os.chdir(path)
 
 
 def enter_network_namespace() -> None:

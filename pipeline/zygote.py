@@ -3,7 +3,8 @@
 The executor (``pipeline/executor.py``) starts it with a fresh interpreter, an environment reduced to an
 allow-list (no API keys, no store path), its scratch directory as HOME and cwd, and one end of a Unix
 ``SOCK_SEQPACKET`` socket pair as its only inherited descriptor. It imports the environment stack once
-(``pipeline.worker_preload``), moves itself into an empty network namespace, probes the kernel features of
+(``pipeline.worker_preload``), moves itself into an empty network namespace, mounts a small tmpfs over its
+scratch directory in a mount namespace of its own (the workers' scratch directories), probes the features of
 ``pipeline/confine.py`` in a throwaway child, and says hello with what is missing. Then it serves:
 
 - ``{"op": "prepare", "envs": [[game, sticky, noop_max], ...]}``: build those environments once (workers
@@ -154,6 +155,10 @@ def main(argv: list[str]) -> int:
         confine.enter_network_namespace()
     except OSError as exc:
         missing.append(f"network namespace ({exc})")
+    try:
+        confine.scratch_tmpfs(scratch_base)
+    except OSError as exc:
+        missing.append(f"scratch tmpfs ({exc})")
     missing += _probe(scratch_base)
     strict = not missing
     _send(ctl, {"kind": "hello", "pid": os.getpid(), "missing": missing})
