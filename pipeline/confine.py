@@ -233,9 +233,16 @@ def enter_network_namespace() -> None:
     if _libc.unshare(ctypes.c_int(CLONE_NEWNET)) == 0:
         return
     err = ctypes.get_errno()
+    uid, gid = os.geteuid(), os.getegid()
     if _libc.unshare(ctypes.c_int(CLONE_NEWUSER | CLONE_NEWNET)) != 0:
         err2 = ctypes.get_errno()
         raise OSError(err, f"unshare(CLONE_NEWNET): {os.strerror(err)}; with a user namespace: {os.strerror(err2)}")
+    try:
+        for name, line in (("setgroups", "deny"), ("uid_map", f"{uid} {uid} 1"), ("gid_map", f"{gid} {gid} 1")):
+            with open(f"/proc/self/{name}", "w") as f:  # the same ids inside, so that files keep their owners
+                f.write(line)
+    except OSError:
+        pass  # (mapping root needs CAP_SETFCAP) unmapped ids still reach their files; the netns is what counts
 
 
 def die_with_parent(parent_pid: int) -> None:
