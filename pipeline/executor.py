@@ -5,7 +5,8 @@ Policy code never runs in this process, nor in any process that holds this one's
 (API keys, the store path). A :class:`Zygote` is started once per process with ``subprocess``: a fresh
 interpreter with an allow-listed environment (:func:`worker_environment`) that imports the environment stack
 and forks one worker per task (``pipeline/zygote.py``), so every episode starts from the same clean state
-(nothing a policy changes, module attributes included, survives into the next) in a few milliseconds. Each
+(nothing a policy changes, module attributes included, survives into the next). The next worker is forked and
+confined while the current one plays (``staged``), so the fork (~5-20 ms) does not sit between episodes. Each
 worker is confined by the kernel before it loads policy code (``pipeline/confine.py``: no exec, no fork, no
 network, no writes outside its scratch directory, no reads outside Python's and the project's files, rlimits),
 and its stdout/stderr go to /dev/null. A missing kernel feature stops the run with a one-line error unless
