@@ -227,6 +227,11 @@ def scratch_tmpfs(path: str, size_mb: int = SCRATCH_MB) -> None:
     os.chdir(path)
 
 
+def unmount(path: str) -> None:
+    """Detach the tmpfs of :func:`scratch_tmpfs` (so that the directory beneath can be removed)."""
+    _libc.umount2(os.fsencode(path), ctypes.c_int(2))  # MNT_DETACH
+
+
 def enter_network_namespace() -> None:
     """Move this process into a new, empty network namespace: directly as root, else inside a new user
     namespace (unprivileged users, where the distribution allows it)."""

@@ -237,6 +237,8 @@ def main(argv: list[str]) -> int:
             except (ProcessLookupError, ChildProcessError):
                 pass
         if os.path.basename(scratch_base).startswith("codearcade-sandbox-"):
+            os.chdir("/")
+            confine.unmount(scratch_base)
             shutil.rmtree(scratch_base, ignore_errors=True)  # a parent killed with SIGKILL cannot do it
 
 
