@@ -161,7 +161,11 @@ def main(argv: list[str]) -> int:
         missing.append(f"scratch tmpfs ({exc})")
     missing += _probe(scratch_base)
     strict = not missing
-    _send(ctl, {"kind": "hello", "pid": os.getpid(), "missing": missing})
+    try:
+        _send(ctl, {"kind": "hello", "pid": os.getpid(), "missing": missing})
+    except OSError:  # the parent went away while we started
+        _remove_scratch(scratch_base)
+        return 0
 
     wake_r, wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
     signal.set_wakeup_fd(wake_w)
@@ -236,10 +240,15 @@ def main(argv: list[str]) -> int:
                 os.waitpid(pid, 0)
             except (ProcessLookupError, ChildProcessError):
                 pass
-        if os.path.basename(scratch_base).startswith("codearcade-sandbox-"):
-            os.chdir("/")
-            confine.unmount(scratch_base)
-            shutil.rmtree(scratch_base, ignore_errors=True)  # a parent killed with SIGKILL cannot do it
+        _remove_scratch(scratch_base)
+
+
+def _remove_scratch(scratch_base: str) -> None:
+    """Remove the scratch directory (a parent killed with SIGKILL cannot), tmpfs detached first."""
+    if os.path.basename(scratch_base).startswith("codearcade-sandbox-"):
+        os.chdir("/")
+        confine.unmount(scratch_base)
+        shutil.rmtree(scratch_base, ignore_errors=True)
 
 
 if __name__ == "__main__":
