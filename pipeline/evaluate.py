@@ -24,7 +24,8 @@ from pipeline.versions import policy_version_row
 from store import Store
 from store.locks import run_lock
 from store.writer import finish_run, insert_policy_version, insert_run, write_episode
-from tracing.policy_file import PolicyLoadError, inspect_policy, read_policy_file
+from pipeline.validate import checked_inspect
+from tracing.policy_file import PolicyLoadError, read_policy_file
 
 
 @dataclass
@@ -106,7 +107,7 @@ def evaluate(
         raise ValueError("--max-steps must be at least 1")
     text = read_policy_file(policy_path)
     name = Path(policy_path).name
-    info = inspect_policy(text, name)
+    info = checked_inspect(text, name, workers=config.workers)  # parsed in a confined worker first
     game = resolve_game(info.game, config.game, name)
 
     with store.write():  # creates or upgrades the store, and refuses a damaged one, before anything plays

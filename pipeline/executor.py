@@ -1,250 +1,432 @@
-"""Run episodes in isolated local worker processes (or in-process with ``workers=0``, for debugging).
+"""Run episodes (and candidate checks) behind the operating-system boundary, or in-process with ``workers=0``
+(for debugging; no isolation at all).
 
-Worker processes are forked from this one after the environment stack has been imported here
-(``pipeline.worker_preload``), so a worker starts in milliseconds with everything loaded, and each plays
-the tasks of one call one after another (forking per episode cost about a tenth of an episode). Every
-episode still loads its policy afresh (``run_episode``), so no policy state carries over. We fork rather
-than use a forkserver or spawn: those re-import the caller's ``__main__`` in every worker (slow for scripts,
-and broken for scripts without an ``if __name__ == "__main__"`` guard). The parent keeps no threads of its
-own at fork time (tqdm's monitor thread is off; the store's DuckDB instance closes itself before a fork). Inside a
-worker, before any policy code runs, :func:`harden_worker` caps the address space (a 10 GB allocation fails with MemoryError instead of swapping the machine) and installs an
-audit hook that refuses file writes, process spawning, sockets, signals to other processes and native-code
-loading. Whatever the policy does, the parent survives: a worker that dies (``os._exit``, a segfault, the
-OOM killer) or outlives its episode limit is recorded as a ``crashed`` or ``timeout`` episode.
+Policy code never runs in this process, nor in any process that holds this one's memory or environment
+(API keys, the store path). A :class:`Zygote` is started once per process with ``subprocess``: a fresh
+interpreter with an allow-listed environment (:func:`worker_environment`) that imports the environment stack
+and forks one worker per task (``pipeline/zygote.py``), so every episode starts from the same clean state
+(nothing a policy changes, module attributes included, survives into the next). The next worker is forked and
+confined while the current one plays (``staged``), so the fork (~5-20 ms) does not sit between episodes. Each
+worker is confined by the kernel before it loads policy code (``pipeline/confine.py``: no exec, no fork, no
+network, no writes outside its scratch directory, no reads outside Python's and the project's files, rlimits),
+and its stdout/stderr go to /dev/null. A missing kernel feature stops the run with a one-line error unless
+``CODEARCADE_ALLOW_WEAK_SANDBOX=1`` (then a warning is printed on every run).
 
-Only the parent writes to the store: workers send back :class:`~pipeline.rollout.EpisodeOutcome` objects
-(Arrow tables pickle compactly) and progress counts over a pipe.
+Only plain data crosses: the task goes out as one JSON frame, the answer comes back as JSON frames and Arrow
+IPC streams (``pipeline/wire.py``), every value checked here; nothing is unpickled. Whatever a worker does,
+this process survives: a worker that dies (``os._exit``, a segfault, the OOM killer, SIGXCPU), sends anything
+malformed, or outlives its time limit by :data:`KILL_GRACE_S` is killed and recorded as a ``crashed`` or
+``timeout`` episode. Only this process writes to the store.
 """
 
 from __future__ import annotations
 
-import gc
-import multiprocessing
+import atexit
+import json
+import math
 import os
-import resource
+import re
+import select
+import shutil
 import signal
+import socket
+import subprocess
 import sys
+import tempfile
+import threading
 import time
-import traceback
 from collections import deque
-from multiprocessing.connection import Connection, wait
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, TypeVar
 
 from games.envs import shared_env
+from pipeline import wire
+from pipeline.confine import SandboxUnavailable, WEAK_ENV, die_with_parent, weak_sandbox_allowed  # noqa: F401
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec, crashed_outcome, run_episode
 
 KILL_GRACE_S = 30.0
-"""How long past its episode time limit a worker may run before the parent kills it."""
+"""How long past its time limit a worker may run before the parent kills it."""
+START_TIMEOUT_S = 180.0
+"""How long the zygote may take to import the environment stack and say hello."""
 
 T = TypeVar("T")
 R = TypeVar("R")
 
 ProgressCallback = Callable[[int, int], None]
-"""Called with (index of the spec, steps done so far)."""
+"""Called with (index of the item, steps done so far)."""
 
-_DENIED_EVENTS = (
-    "os.system", "os.exec", "os.posix_spawn", "os.spawn", "os.fork", "os.forkpty", "subprocess.Popen",
-    "pty.spawn", "socket.connect", "socket.bind", "socket.sendto", "socket.sendmsg", "ctypes.dlopen",
-    "ctypes.dlsym", "ctypes.cdata", "os.remove", "os.unlink", "os.rename", "os.replace", "os.rmdir",
-    "os.mkdir", "os.chmod", "os.chown", "os.truncate", "os.link", "os.symlink", "os.kill", "os.killpg",
-    "shutil.rmtree", "shutil.copyfile", "shutil.move",
-)
-_WRITE_FLAGS = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_APPEND | os.O_TRUNC
+ROOT = Path(__file__).resolve().parents[1]
+_ALLOWED_ENV = re.compile(r"^(PATH|LANG|LANGUAGE|LC_[A-Z]+|TZ|TERM|OMP_[A-Z_]+|OPENBLAS_[A-Z_]+|MKL_[A-Z_]+|"
+                          r"SDL_[A-Z_]+|ALE_[A-Z_]+|PYTHONHASHSEED|PYTHONDONTWRITEBYTECODE|CODEARCADE_GAME_MODULES)$")
+_SECRET_ENV = re.compile(r"(KEY|TOKEN|SECRET|PASSWORD|PASSWD|CREDENTIAL|AUTH|COOKIE|SESSION)", re.IGNORECASE)
 
 
-def _audit(event: str, args: tuple) -> None:
-    if event == "open":
-        mode, flags = args[1], args[2]
-        if (isinstance(mode, str) and any(c in mode for c in "wax+")) or (isinstance(flags, int) and flags & _WRITE_FLAGS):
-            raise PermissionError(f"codearcade sandbox: writing files is not allowed ({args[0]!r})")
-    elif event.startswith(_DENIED_EVENTS):
-        raise PermissionError(f"codearcade sandbox: '{event}' is not allowed in a policy worker")
+def worker_environment(home: str) -> dict[str, str]:
+    """The zygote's whole environment: an allow-list of harmless variables, never a secret."""
+    env = {k: v for k, v in os.environ.items() if _ALLOWED_ENV.match(k) and not _SECRET_ENV.search(k)}
+    paths = [str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    env.update(HOME=home, TMPDIR=home, PYTHONPATH=os.pathsep.join(dict.fromkeys(paths)),
+               PYTHONDONTWRITEBYTECODE="1")
+    if weak_sandbox_allowed():
+        env[WEAK_ENV] = "1"
+    return env
 
 
-def die_with_parent(parent_pid: int) -> None:
-    """Ask Linux to kill this (just forked) process when its parent dies (a killed run must not leave workers
-    playing on). ``parent_pid``, the parent's pid taken before the fork: a parent that died before the request
-    was made (a child can wait long for its first time slice on busy cores) ends this process at once."""
-    try:
-        import ctypes
+class Zygote:
+    """The process that forks confined workers (``pipeline/zygote.py``), seen from the parent."""
 
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # not Linux/glibc: orphans finish their episode and exit on the broken pipe
-        pass
-    if os.getppid() != parent_pid:
-        os._exit(1)  # orphaned already: the death signal will never come
+    def __init__(self) -> None:
+        self.scratch = tempfile.mkdtemp(prefix="codearcade-sandbox-")
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self.ctl = ours
+        self.log_path = os.path.join(self.scratch, "zygote.log")
+        with open(self.log_path, "wb") as log:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "pipeline.zygote", str(theirs.fileno())], env=worker_environment(self.scratch),
+                cwd=self.scratch, pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+        theirs.close()
+        self.events: dict[int, dict[str, Any]] = {}
+        self.next_id = 0
+        hello = self._recv(START_TIMEOUT_S)
+        if hello is None or hello.get("kind") != "hello":
+            tail = Path(self.log_path).read_text(errors="replace").strip().splitlines()[-1:] or ["no output"]
+            self.close()
+            raise SandboxUnavailable(f"the policy worker process did not start: {tail[0][:300]}")
+        self.missing: list[str] = list(hello.get("missing", []))
+        if self.missing:
+            if not weak_sandbox_allowed():
+                self.close()
+                raise SandboxUnavailable(
+                    f"the policy sandbox needs kernel features this machine lacks: {'; '.join(self.missing)}. "
+                    f"Run on Linux >= 5.13 with Landlock and seccomp, as root or with user namespaces (see "
+                    f"docs/sandbox.md), or set {WEAK_ENV}=1 to run untrusted policies without them")
+        self.warn()
 
+    def warn(self) -> None:
+        if self.missing:
+            print(f"codearcade: WARNING: weak sandbox ({WEAK_ENV}=1): policy workers run without "
+                  f"{'; '.join(self.missing)}", file=sys.stderr)
 
-def harden_worker(memory_limit_mb: int | None, parent_pid: int) -> None:
-    """Limit this (worker) process before policy code runs: memory cap, no core dumps, audit hook."""
-    die_with_parent(parent_pid)
-    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
-    if memory_limit_mb:
-        with open("/proc/self/statm") as f:
-            current = int(f.read().split()[0]) * resource.getpagesize()
-        limit = current + memory_limit_mb * 2**20
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    sys.addaudithook(_audit)
+    def alive(self) -> bool:
+        return self.proc.poll() is None and self.ctl.fileno() >= 0
 
-
-def _worker_loop(task: Callable, memory_limit_mb: int | None, conn: Connection, parent_pid: int) -> None:
-    """A worker: harden once, then run each task the parent sends until it says stop (or goes away)."""
-    harden_worker(memory_limit_mb, parent_pid)
-    # The heap inherited from the parent (every imported module) never becomes garbage: keep the cyclic
-    # collector from walking it again and again while an episode allocates (10% of Space Invaders' time).
-    gc.freeze()
-    while True:
+    def _recv(self, timeout: float | None) -> dict[str, Any] | None:
+        ready, _, _ = select.select([self.ctl], [], [], timeout)
+        if not ready:
+            return None
         try:
-            kind, item = conn.recv()
-        except (EOFError, OSError):
-            return
-        if kind == "stop":
-            return
-        try:
-            result = task(item, lambda n: conn.send(("progress", n)))
-            conn.send(("result", result))
-        except BaseException:  # noqa: BLE001 - report anything to the parent
+            data = self.ctl.recv(65536)
+        except OSError:
+            return None
+        if not data:
+            return None
+        return json.loads(data)
+
+    def pump(self, timeout: float = 0.0) -> None:
+        """Read the zygote's reports (``started``, ``exited``) waiting at most ``timeout`` for the first."""
+        while True:
             try:
-                conn.send(("error", traceback.format_exc(limit=8)))
-            except Exception:
+                msg = self._recv(timeout)
+            except ValueError:
                 return
+            if msg is None:
+                return
+            timeout = 0.0
+            if msg.get("id") in self.events:  # reports on tasks already settled are dropped
+                self.events[msg["id"]].update(msg)
+
+    def send(self, msg: dict[str, Any], fds: list[int] = ()) -> None:
+        socket.send_fds(self.ctl, [json.dumps(msg).encode()], list(fds))
+
+    def start(self, task: str, item: dict[str, Any], limits: dict[str, Any],
+              staged: bool = False) -> tuple[int, socket.socket]:
+        """Fork a worker for ``task`` and send it ``item``; the task id and the socket its answer comes on.
+        A ``staged`` worker sets itself up, then waits for :meth:`go`."""
+        self.next_id += 1
+        task_id = self.next_id
+        self.events[task_id] = {}
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            self.send({"op": "run", "id": task_id, "task": task, "limits": limits, "staged": staged},
+                      [theirs.fileno()])
+        except OSError:
+            pass  # the zygote died: the worker's socket reads EOF, and the task is recorded as crashed
+        finally:
+            theirs.close()
+        ours.settimeout(60)
+        try:
+            ours.sendall(wire.json_frame(item))
+        except OSError:
+            pass  # the worker died before reading: its EOF is reported as a crash
+        ours.setblocking(False)
+        return task_id, ours
+
+    @staticmethod
+    def go(conn: socket.socket) -> None:
+        """Let a staged worker run its task (a worker that died meanwhile is seen at its EOF)."""
+        try:
+            conn.send(b"G")
+        except OSError:
+            pass
+
+    def kill(self, task_id: int) -> None:
+        try:
+            self.send({"op": "kill", "id": task_id})
+        except OSError:
+            pass
+
+    def exit_code(self, task_id: int, wait_s: float = 2.0) -> int | None:
+        deadline = time.monotonic() + wait_s
+        while "code" not in self.events.get(task_id, {}) and time.monotonic() < deadline and self.alive():
+            self.pump(deadline - time.monotonic())
+        code = self.events.get(task_id, {}).get("code")
+        return code if isinstance(code, int) else None
+
+    def forget(self, task_id: int) -> None:
+        self.events.pop(task_id, None)
+
+    def children(self) -> list[int]:
+        """The pids of the workers alive now."""
+        try:
+            with open(f"/proc/{self.proc.pid}/task/{self.proc.pid}/children") as f:
+                return [int(p) for p in f.read().split()]
+        except OSError:
+            return []
+
+    def close(self) -> None:
+        try:
+            self.ctl.close()
+        except OSError:
+            pass
+        if self.proc.poll() is None:
+            try:
+                self.proc.wait(2)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        shutil.rmtree(self.scratch, ignore_errors=True)
 
 
-STOP_GRACE_S = 5.0
-"""How long a worker told to stop may take to exit before it is killed."""
-
-_exiting: list[tuple[multiprocessing.process.BaseProcess, float]] = []
-"""Workers told to stop (or killed) and not yet collected, each with the time after which it is killed.
-A call does not wait for its workers to exit (~8 ms, a tenth of an evaluation's fixed cost); they are
-collected by the next call, and at exit by multiprocessing, which joins its children."""
-os.register_at_fork(after_in_child=_exiting.clear)  # a child must never collect, let alone kill, its siblings
+_zygote: Zygote | None = None
+_zygote_pid: int | None = None
+_lock = threading.RLock()
 
 
-def reap_workers() -> None:
-    """Collect the workers that have exited; kill one still running past its grace period."""
-    now = time.monotonic()
-    for entry in list(_exiting):
-        process, kill_after = entry
-        if process.exitcode is None and now >= kill_after:
-            process.kill()
-            process.join(1)
-        if process.exitcode is not None:
-            _exiting.remove(entry)
+def zygote() -> Zygote:
+    """This process's zygote, started on first use (and again if it died). Raises SandboxUnavailable."""
+    global _zygote, _zygote_pid
+    with _lock:
+        if _zygote is not None and (_zygote_pid != os.getpid() or not _zygote.alive()):
+            if _zygote_pid == os.getpid():
+                _zygote.close()
+            _zygote = None  # a forked copy of this process must not share its parent's zygote
+        if _zygote is None:
+            _zygote, _zygote_pid = Zygote(), os.getpid()
+        return _zygote
 
 
-def _mp_context():
-    import pipeline.worker_preload  # noqa: F401  (imported once here, inherited by every fork)
+@atexit.register
+def stop_zygote() -> None:
+    global _zygote
+    if _zygote is not None and _zygote_pid == os.getpid():
+        _zygote.close()
+    _zygote = None
 
-    return multiprocessing.get_context("fork")
+
+@dataclass(frozen=True)
+class Task:
+    """A kind of work for a worker: how its item goes out and its answer comes back."""
+
+    name: str
+    """The zygote's name for it (``pipeline/zygote.py`` TASKS)."""
+    local: Callable[[Any, Callable[[int], None]], Any]
+    """Runs it in this process (``workers=0``)."""
+    encode: Callable[[Any], dict[str, Any]]
+    decode: Callable[[Any, dict[str, Any], list[bytes]], Any]
+    """(item, the result message, the Arrow payloads that followed it) -> result; raises wire.BadMessage."""
+    tables: Callable[[dict[str, Any]], int] = lambda msg: 0
+    """How many Arrow frames follow a result message."""
+    limits: Callable[[Any], dict[str, Any]] = lambda item: {}
+    """The worker's :class:`pipeline.confine.Limits` for an item, as keyword arguments."""
+
+
+@dataclass
+class _Running:
+    index: int
+    item: Any
+    task_id: int
+    conn: socket.socket
+    begun: float
+    reader: wire.FrameReader = field(default_factory=wire.FrameReader)
+    result: dict[str, Any] | None = None
+    tables: list[bytes] = field(default_factory=list)
 
 
 def run_tasks(
-    task: Callable[[T, Callable[[int], None]], R],
+    task: Task,
     items: Iterable[T],
     workers: int,
     failed: Callable[[T, str, bool], R],
     time_limit_s: Callable[[T], float | None] = lambda item: None,
-    memory_limit_mb: Callable[[T], int | None] = lambda item: None,
     progress: ProgressCallback | None = None,
     started: Callable[[], None] | None = None,
+    prepare: Callable[[Zygote], None] | None = None,
 ) -> Iterator[tuple[int, R]]:
-    """Run ``task(item, report_progress)`` for every item in hardened worker processes, at most ``workers``
-    at once (each worker runs one item after another); yield ``(index, result)`` as each finishes.
+    """Run ``task`` on every item in a confined worker of its own, at most ``workers`` at once; yield
+    ``(index, result)`` as each finishes.
 
-    A worker that dies, raises, or outlives ``time_limit_s(item)`` plus a grace period yields
-    ``failed(item, why, timed_out)`` instead. ``started`` is called once the first workers are running, so the
-    caller can do its own set-up meanwhile. ``workers=0`` runs the tasks one after another in this process
-    (no isolation; for debugging).
+    A worker that dies, raises, sends a malformed answer, or outlives ``time_limit_s(item)`` plus a grace period
+    yields ``failed(item, why, timed_out)`` instead. ``started`` is called once the first workers are running,
+    so the caller can do its own set-up meanwhile. ``workers=0`` runs the tasks one after another in this
+    process (no isolation; for debugging).
     """
     items = list(items)
     if workers <= 0:
         if started is not None:
             started()
         for i, item in enumerate(items):
-            yield i, task(item, (lambda n, i=i: progress(i, n)) if progress is not None else (lambda n: None))
+            yield i, task.local(item, (lambda n, i=i: progress(i, n)) if progress is not None else (lambda n: None))
         return
 
-    ctx = _mp_context()
+    zyg = zygote()
+    if prepare is not None:
+        prepare(zyg)
     pending = deque(enumerate(items))
-    idle: list[tuple[multiprocessing.process.BaseProcess, Connection]] = []
-    busy: dict[Connection, tuple[multiprocessing.process.BaseProcess, int, Any, float]] = {}
+    busy: dict[int, _Running] = {}  # by fd
+    staged: deque[_Running] = deque()
+    """The next worker, forked and confined while the others play (the fork of the zygote, ~5-20 ms, would
+    otherwise come between one episode and the next)."""
 
-    def spawn(item: Any) -> tuple[multiprocessing.process.BaseProcess, Connection]:
-        parent_end, child_end = ctx.Pipe(duplex=True)
-        process = ctx.Process(target=_worker_loop, args=(task, memory_limit_mb(item), child_end, os.getpid()),
-                              daemon=True, name="codearcade-worker")
-        process.start()
-        child_end.close()  # so that the parent sees EOF when the worker dies
-        return process, parent_end
-
-    def retire(process: multiprocessing.process.BaseProcess, conn: Connection, kill: bool = False) -> None:
-        if kill:
-            process.kill()
-        conn.close()
-        _exiting.append((process, time.monotonic() + STOP_GRACE_S))
+    def start(staged_: bool) -> _Running:
+        i, item = pending.popleft()
+        limits = task.limits(item)
+        limit = time_limit_s(item)
+        if limit is not None and "cpu_s" not in limits:
+            limits["cpu_s"] = int(math.ceil(limit + KILL_GRACE_S + 10))
+        task_id, conn = zyg.start(task.name, task.encode(item), limits, staged=staged_)
+        return _Running(i, item, task_id, conn, time.monotonic())
 
     def fill() -> None:
-        while pending and len(busy) < workers:
-            i, item = pending.popleft()
-            process, conn = idle.pop() if idle else spawn(item)
-            try:
-                conn.send(("task", item))
-            except (BrokenPipeError, OSError):  # an idle worker that died: give the task to a new one
-                retire(process, conn)
-                process, conn = spawn(item)
-                conn.send(("task", item))
-            busy[conn] = (process, i, item, time.monotonic())
+        while (staged or pending) and len(busy) < workers:
+            if staged:
+                run = staged.popleft()
+                zyg.go(run.conn)
+                run.begun = time.monotonic()
+            else:
+                run = start(False)
+            busy[run.conn.fileno()] = run
+        if pending and not staged:
+            staged.append(start(True))
+
+    def end(run: _Running, kill: bool = False) -> None:
+        del busy[run.conn.fileno()]
+        run.conn.close()
+        if kill:
+            zyg.kill(run.task_id)
+
+    def died(run: _Running) -> R:
+        code = zyg.exit_code(run.task_id)
+        zyg.forget(run.task_id)
+        if code == -signal.SIGXCPU:
+            return failed(run.item, "worker exceeded its CPU-time limit", True)
+        how = "unknown exit status" if code is None else (f"signal {-code}" if code < 0 else f"exit code {code}")
+        return failed(run.item, f"worker process died ({how}) before reporting", False)
+
+    def handle(run: _Running, frames: list[tuple[bytes, bytes]]) -> R | None:
+        for kind, payload in frames:
+            if run.result is not None:
+                if kind != b"A":
+                    raise wire.BadMessage("a JSON message where an Arrow table was expected")
+                run.tables.append(payload)
+            else:
+                if kind != b"J":
+                    raise wire.BadMessage("an Arrow table before the result")
+                msg = wire.parse_json(payload)
+                if msg["kind"] == "progress":
+                    n = msg.get("n")
+                    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+                        raise wire.BadMessage("a progress count that is not a non-negative int")
+                    if progress is not None:
+                        progress(run.index, n)
+                    continue
+                if msg["kind"] == "error":
+                    error = msg.get("error")
+                    error = error if isinstance(error, str) else "(no reason given)"
+                    return failed(run.item, f"worker failed: {error.strip()[:20000]}", False)
+                if msg["kind"] != "result":
+                    raise wire.BadMessage(f"unexpected message kind {msg['kind'][:30]!r}")
+                run.result = msg
+            if run.result is not None:
+                wanted = task.tables(run.result)
+                if len(run.tables) > wanted:
+                    raise wire.BadMessage("more Arrow tables than announced")
+                if len(run.tables) == wanted:
+                    return task.decode(run.item, run.result, run.tables)
+        return None
 
     try:
         fill()
         if started is not None:
             started()
-        while pending or busy:
+        while pending or staged or busy:
             fill()
             finished: list[tuple[int, R]] = []
-            for conn in wait(list(busy), timeout=1.0):
-                process, i, item, begun = busy[conn]
+            ready, _, _ = select.select(list(busy) + [zyg.ctl.fileno()], [], [], 0.5)
+            if zyg.ctl.fileno() in ready:
+                zyg.pump()
+            for fd in ready:
+                run = busy.get(fd)
+                if run is None:
+                    continue
                 try:
-                    kind, payload = conn.recv()
-                except (EOFError, OSError):
-                    del busy[conn]
-                    process.join(5)
-                    code = process.exitcode
-                    how = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
-                    retire(process, conn)
-                    finished.append((i, failed(item, f"worker process died ({how}) before reporting", False)))
+                    data = run.conn.recv(1 << 20)
+                except BlockingIOError:
                     continue
-                if kind == "progress":
-                    if progress is not None:
-                        progress(i, payload)
+                except OSError:
+                    data = b""
+                if not data:
+                    end(run)
+                    finished.append((run.index, died(run)))
                     continue
-                del busy[conn]
-                idle.append((process, conn))
-                if kind == "result":
-                    finished.append((i, payload))
-                else:
-                    finished.append((i, failed(item, f"worker failed: {payload.strip().splitlines()[-1]}", False)))
+                try:
+                    result = handle(run, run.reader.feed(data))
+                except Exception as exc:  # noqa: BLE001 - whatever a worker sends, this process goes on
+                    if not isinstance(exc, wire.BadMessage):
+                        exc = f"{type(exc).__name__}: {str(exc)[:300]}"
+                    end(run, kill=True)
+                    zyg.forget(run.task_id)
+                    finished.append((run.index, failed(run.item, f"the worker sent a malformed message: {exc}",
+                                                       False)))
+                    continue
+                if result is not None:
+                    end(run)
+                    zyg.forget(run.task_id)
+                    finished.append((run.index, result))
             now = time.monotonic()
-            for conn, (process, i, item, begun) in list(busy.items()):
-                limit = time_limit_s(item)
-                if limit is not None and now - begun > limit + KILL_GRACE_S:
-                    del busy[conn]
-                    retire(process, conn, kill=True)
-                    finished.append((i, failed(item, f"worker killed after {now - begun:.0f} s "
-                                                     f"(time limit {limit:g} s)", True)))
+            for run in list(busy.values()):
+                limit = time_limit_s(run.item)
+                if limit is not None and now - run.begun > limit + KILL_GRACE_S:
+                    end(run, kill=True)
+                    zyg.forget(run.task_id)
+                    finished.append((run.index, failed(run.item, f"worker killed after {now - run.begun:.0f} s "
+                                                                 f"(time limit {limit:g} s)", True)))
+            if not zyg.alive():
+                for run in list(busy.values()):
+                    end(run)
+                    finished.append((run.index, failed(run.item, "the worker's zygote process died", False)))
             fill()  # before handing results out, so that workers play while the caller writes them
-            reap_workers()
             yield from finished
     finally:
-        for process, conn in idle:
-            try:
-                conn.send(("stop", None))
-            except (BrokenPipeError, OSError):
-                pass
-            retire(process, conn)
-        for conn, (process, *_rest) in busy.items():
-            retire(process, conn, kill=True)
-        reap_workers()  # without waiting: the workers exit by themselves within milliseconds
+        for run in list(busy.values()):
+            end(run, kill=True)
+            zyg.forget(run.task_id)
+        for run in staged:
+            run.conn.close()  # EOF instead of G: the worker exits without running anything
+            zyg.forget(run.task_id)
+
+
+# ------------------------------------------------------------------------------------------------ episodes
 
 
 def _episode_failed(spec: EpisodeSpec, error: str, timed_out: bool) -> EpisodeOutcome:
@@ -254,26 +436,71 @@ def _episode_failed(spec: EpisodeSpec, error: str, timed_out: bool) -> EpisodeOu
     return outcome
 
 
+def _decode_episode(spec: EpisodeSpec, msg: dict[str, Any], tables: list[bytes]) -> EpisodeOutcome:
+    from tracing.capture import NODE_SCHEMA
+    from tracing.steps import STEP_SCHEMA
+
+    steps = wire.parse_arrow(tables[0], STEP_SCHEMA)
+    nodes = wire.parse_arrow(tables[1], NODE_SCHEMA) if len(tables) > 1 else None
+    return wire.episode_from_worker(spec, msg.get("episode"), steps, nodes)
+
+
+def _rerun_dir(spec: EpisodeSpec) -> str | None:
+    if spec.rerun and "://" not in spec.rerun:
+        return os.path.abspath(spec.rerun)
+    return None
+
+
+def _episode_limits(spec: EpisodeSpec) -> dict[str, Any]:
+    rerun = _rerun_dir(spec)
+    return dict(memory_mb=spec.memory_limit_mb, write_paths=[rerun] if rerun else [],
+                file_size_mb=8192 if rerun else 64)
+
+
+EPISODE = Task("episode", run_episode, wire.spec_to_json, _decode_episode,
+               tables=lambda msg: 2 if msg.get("nodes") is True else 1, limits=_episode_limits)
+
+
 def run_episodes(
     specs: Iterable[EpisodeSpec],
     workers: int = 1,
     progress: ProgressCallback | None = None,
     started: Callable[[], None] | None = None,
 ) -> Iterator[tuple[int, EpisodeOutcome]]:
-    """Play ``specs`` in worker processes (see :func:`run_tasks`); a worker that dies or hangs yields an
-    episode with end reason ``crashed`` or ``timeout``."""
+    """Play ``specs`` in confined workers (see :func:`run_tasks`); a worker that dies, misbehaves or hangs
+    yields an episode with end reason ``crashed`` or ``timeout``."""
     specs = list(specs)
-    if workers > 0:
-        # Build each environment here, once per process (~0.1-0.2 s each): forked workers inherit it ready,
-        # and the next call (the optimizer's next iteration) skips building it again.
-        for game, sticky, noop_max in {(s.game, s.sticky, s.noop_max) for s in specs}:
-            try:
-                shared_env(game, sticky=sticky, noop_max=noop_max)
-            except Exception:  # noqa: BLE001 - the worker meets the same error and records it with the episode
-                pass
-    return run_tasks(
-        run_episode, specs, workers, _episode_failed,
-        time_limit_s=lambda spec: spec.episode_time_limit_s,
-        memory_limit_mb=lambda spec: spec.memory_limit_mb,
-        progress=progress, started=started,
-    )
+    streamed = [s for s in specs if s.rerun and _rerun_dir(s) is None] if workers > 0 else []
+    if streamed:
+        print(f"codearcade: no live Rerun stream of {len(streamed)} episode(s): policy workers have no network; "
+              "give --rerun a directory (or view the stored run with `codearcade view`)", file=sys.stderr)
+        for spec in streamed:
+            spec.rerun = None
+
+    def prepare(zyg: Zygote) -> None:
+        # each environment is built once in the zygote (~0.1-0.2 s each): forked workers inherit it ready
+        envs = sorted({(s.game, s.sticky, s.noop_max) for s in specs})
+        try:
+            zyg.send({"op": "prepare", "envs": [list(e) for e in envs]})
+        except OSError:
+            pass  # the zygote died: every episode is recorded as crashed
+
+    return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
+                     progress=progress, started=started, prepare=prepare)
+
+
+def run_json_task(name: str, item: dict[str, Any], local: Callable[[dict[str, Any]], Any], time_limit_s: float,
+                  memory_mb: int | None = 4096, workers: int = 1) -> tuple[bool, Any]:
+    """Run a task whose answer is ``{"kind": "result", "reason": str | None}`` in a confined worker: (True,
+    reason) when it answered, (False, why not) when it crashed, misbehaved or timed out."""
+    def decode(_item: Any, msg: dict[str, Any], _tables: list[bytes]) -> tuple[bool, Any]:
+        reason = msg.get("reason")
+        if reason is not None and not isinstance(reason, str):
+            raise wire.BadMessage("the reason is not text")
+        return True, reason if reason is None else reason[:wire.MAX_TEXT]
+
+    task = Task(name, lambda it, _p: (True, local(it)), lambda it: it, decode,
+                limits=lambda it: dict(memory_mb=memory_mb, cpu_s=int(math.ceil(time_limit_s)) + 5))
+    [(_, result)] = list(run_tasks(task, [item], workers, lambda it, why, timed_out: (False, why),
+                                   time_limit_s=lambda it: time_limit_s))
+    return result

@@ -1,14 +1,15 @@
 """One episode of a policy in an environment, captured step by step (and call by call when traced).
 
-:func:`run_episode` is a pure function of an :class:`EpisodeSpec` (picklable: the policy travels as text),
-returning an :class:`EpisodeOutcome` that holds the episode row and its steps and nodes as Arrow tables. The
-same function runs in-process, in a local worker process or as a Ray task; only the caller writes to the store.
+:func:`run_episode` is a pure function of an :class:`EpisodeSpec` (primitives only, sent to a worker as JSON: the
+policy travels as text), returning an :class:`EpisodeOutcome` that holds the episode row and its steps and nodes
+as Arrow tables. It runs in a confined worker process (``pipeline/executor.py``, which sends the outcome back as
+JSON and Arrow IPC) or, for debugging, in-process; only the caller writes to the store.
 
 Whatever the policy does, the episode ends with a recorded ``end_reason``:
 ``terminated`` (the game ended), ``truncated`` (``max_steps`` reached, or ALE's own limit),
 ``policy_error`` (the policy raised, returned an illegal action, or could not be loaded), ``timeout`` (a
 policy call or the whole episode exceeded its time limit), or ``crashed`` (set by the executor when the worker
-process died). When the policy failed on a step, that step is stored with ``action`` NULL: its observation
+process died or sent a malformed answer). When the policy failed on a step, that step is stored with ``action`` NULL: its observation
 is what the policy failed on, and its nodes show where.
 """
 
@@ -40,7 +41,7 @@ PROGRESS_EVERY = 250
 
 @dataclass
 class EpisodeSpec:
-    """Everything needed to play one episode, in a form that can cross process boundaries."""
+    """Everything needed to play one episode; every field a primitive, so that it crosses to a worker as JSON."""
 
     episode_id: str
     run_id: str

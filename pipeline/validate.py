@@ -1,9 +1,12 @@
 """Validation of a candidate policy proposed by the LLM, before it becomes a policy version.
 
-Static checks, in the parent (no candidate code runs there): every suggested method exists and is trainable;
-its source is one ``def`` of the same name with the same parameters; it passes the sandbox's source check;
-spliced into the policy file, the whole file still checks, and fits half of the prompt's token budget
-(:func:`check_fits`). Then a runtime check in a hardened worker process:
+Static checks: every suggested method exists and is trainable; its source is one ``def`` of the same name with
+the same parameters; it passes the sandbox's source check; spliced into the policy file, the whole file still
+checks, and fits half of the prompt's token budget (:func:`check_fits`). Even parsing untrusted text can crash a process (a 200 KB ``1 + 1 + ...`` expression exhausts the
+recursion limit, deep nesting the C stack), so the checks run first in a confined worker (:func:`vet_here`,
+with a lower recursion limit than this process has) and only text that passed there is parsed here; a worker
+that dies or hangs rejects the candidate (:func:`checked_inspect` does the same for a policy file given to
+``codearcade eval``). Then a runtime check in a confined worker process (``pipeline/executor.py``):
 the candidate policy is loaded and called on observations recorded in the store (the training rollout's),
 each call within the time limit and returning a legal action. The first failure rejects the candidate with a
 reason that names the method, the error and, for runtime failures, the step whose observation broke it; the
@@ -13,12 +16,15 @@ reason (capped and scrubbed of secrets, ``pipeline/untrusted.py``) becomes part 
 from __future__ import annotations
 
 import ast
+import hashlib
+import json
+import sys
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 from games import get_game
-from pipeline.executor import run_tasks
+from pipeline.executor import run_json_task
 from pipeline.rollout import coerce_action, describe_exception
 from pipeline.untrusted import clean_untrusted_text
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods
@@ -56,8 +62,77 @@ def _arguments(source: str) -> str:
     return ast.unparse(args)
 
 
+VET_TIME_LIMIT_S = 20.0
+"""How long the static checks of one text may take in their worker."""
+RECURSION_MARGIN = 300
+"""Frames fewer the vetting worker may use than this process: text it parses, this process parses too."""
+_PARSE_ERRORS = (RecursionError, MemoryError, ValueError, OverflowError)
+
+
+def vet_here(item: dict[str, Any]) -> str | None:
+    """In a worker: the static checks of ``item`` (``op`` ``inspect``: a policy file; ``candidate``: a
+    suggestion for a policy); None if they pass, else the reason."""
+    sys.setrecursionlimit(max(100, int(item.get("recursion_limit", 1000)) - RECURSION_MARGIN))
+    try:
+        if item["op"] == "inspect":
+            try:
+                inspect_policy(item["text"], item["name"])
+            except PolicyLoadError as exc:
+                return str(exc)
+        else:
+            try:
+                _build_candidate(inspect_policy(item["text"], item["name"]), item["suggestion"])
+            except CandidateRejected as exc:
+                return str(exc)
+    except _PARSE_ERRORS as exc:
+        return f"the code cannot be checked ({type(exc).__name__}: too large or too deeply nested)"
+    return None
+
+
+_passed: set[str] = set()
+"""Digests of items that passed vetting (with this process's recursion limit): no worker for them again."""
+
+
+def _vet(item: dict[str, Any], workers: int = 1) -> str | None:
+    item = {**item, "recursion_limit": sys.getrecursionlimit()}
+    digest = hashlib.sha256(json.dumps(item, sort_keys=True).encode()).hexdigest()
+    if digest in _passed:
+        return None
+    answered, reason = run_json_task("vet", item, vet_here, VET_TIME_LIMIT_S, memory_mb=2048, workers=workers)
+    if not answered:
+        return f"the static check of the code crashed ({reason})"
+    if reason is None:
+        _passed.add(digest)
+    return reason
+
+
+def checked_inspect(text: str, name: str, workers: int = 1) -> PolicyInfo:
+    """:func:`inspect_policy` of untrusted text, vetted in a confined worker first (``workers=0``: here)."""
+    if workers > 0:
+        reason = _vet({"op": "inspect", "text": text, "name": name})
+        if reason is not None:
+            raise PolicyLoadError(reason if reason.startswith(name) else f"{name}: {reason}")
+    try:
+        return inspect_policy(text, name)
+    except _PARSE_ERRORS as exc:
+        raise PolicyLoadError(f"{name}: the code cannot be checked ({type(exc).__name__})") from None
+
+
 def build_candidate(info: PolicyInfo, suggestion: dict[str, str]) -> Candidate | None:
-    """The candidate policy text for ``suggestion`` (static checks), or None if it changes nothing."""
+    """The candidate policy text for ``suggestion`` (static checks, vetted in a confined worker first), or
+    None if it changes nothing."""
+    if not all(isinstance(k, str) and isinstance(v, str) for k, v in suggestion.items()):
+        raise CandidateRejected("the suggestion must map method names to source text")
+    reason = _vet({"op": "candidate", "text": info.text, "name": info.name, "suggestion": dict(suggestion)})
+    if reason is not None:
+        raise CandidateRejected(reason)
+    try:
+        return _build_candidate(info, suggestion)
+    except _PARSE_ERRORS as exc:
+        raise CandidateRejected(f"the code cannot be checked ({type(exc).__name__})") from None
+
+
+def _build_candidate(info: PolicyInfo, suggestion: dict[str, str]) -> Candidate | None:
     methods = {m.name: m for m in info.methods}
     trainable = [m.name for m in info.trainable]
     changed: dict[str, str] = {}
@@ -115,7 +190,7 @@ def check_fits(candidate: Candidate, token_budget: int, count) -> None:
 
 @dataclass
 class RuntimeCheck:
-    """A candidate to run on recorded observations in a worker (picklable)."""
+    """A candidate to run on recorded observations in a worker (sent as JSON)."""
 
     text: str
     game: str
@@ -154,13 +229,11 @@ def run_check(check: RuntimeCheck, progress=None) -> str | None:
 
 
 def check_at_runtime(check: RuntimeCheck) -> None:
-    """Run :func:`run_check` in a hardened worker; raise :class:`CandidateRejected` with the reason."""
-    [(_, reason)] = list(run_tasks(
-        run_check, [check], workers=1,
-        failed=lambda item, why, timed_out: f"the candidate's check crashed: {why}",
-        time_limit_s=lambda item: item.total_time_limit_s,
-        memory_limit_mb=lambda item: item.memory_limit_mb,
-    ))
+    """Run :func:`run_check` in a confined worker; raise :class:`CandidateRejected` with the reason."""
+    answered, reason = run_json_task("check", asdict(check), lambda item: run_check(RuntimeCheck(**item)),
+                                     check.total_time_limit_s, memory_mb=check.memory_limit_mb)
+    if not answered:
+        reason = f"the candidate's check crashed: {reason}"
     if reason is not None:
         raise CandidateRejected(reason)
 

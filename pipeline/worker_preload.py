@@ -1,11 +1,17 @@
-"""Imported once by the process that forks episode workers, so each worker starts warm.
+"""Imported once by the zygote (``pipeline/zygote.py``), the process that forks policy workers, so each worker
+starts warm.
 
 Importing the rollout stack (gymnasium, ALE, OCAtari's extractors) takes about 1.5 s and pyarrow's first
-array about 0.25 s; paying both here instead of in every worker process is what makes per-episode
-processes cheap.
+array about 0.25 s; paying both once in the zygote instead of in every worker is what makes a fresh worker
+per episode cheap. The validation code (``pipeline/validate.py``) and the Arrow IPC writer are loaded here too.
 """
 
+import pyarrow as pa
+
+from pipeline import validate  # noqa: F401
 from pipeline.rollout import run_episode  # noqa: F401  (the import is the point)
+from pipeline.wire import arrow_frame
 from tracing.steps import StepLog
 
-StepLog().table()  # pyarrow initialises its kernels lazily on first use
+arrow_frame(StepLog().table())  # pyarrow initialises its kernels (and the IPC writer) lazily on first use
+pa.ipc  # noqa: B018

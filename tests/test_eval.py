@@ -142,14 +142,11 @@ def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():
              for i in range(2)]
     results = list(run_episodes(specs, workers=2))
     assert sorted(i for i, _ in results) == [0, 1] and all(o.end_reason == "truncated" for _, o in results)
-    workers = [process for process, _ in executor._exiting]
-    assert workers, "told to stop, not yet waited for"
+    zygote = executor.zygote()
     deadline = time.monotonic() + 10
-    while executor._exiting and time.monotonic() < deadline:
-        executor.reap_workers()
+    while zygote.children() and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert not executor._exiting
-    assert [w.exitcode for w in workers] == [0] * len(workers), "each stopped by itself, none killed"
+    assert not zygote.children(), "every worker exited by itself"
 
 
 def test_a_worker_whose_parent_died_before_it_asked_for_the_death_signal_ends_at_once(tmp_path):
@@ -192,3 +189,24 @@ def test_console_script(tmp_path):
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["episodes"][0]["length"] == 30
     assert (tmp_path / "env.duckdb").exists(), "CODEARCADE_STORE chooses the store"
+
+
+def test_a_dead_zygote_costs_only_its_episodes_and_the_next_call_starts_another():
+    import signal as signals
+
+    from pipeline import executor
+
+    specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=2000)
+             for i in range(2)]
+    pid = executor.zygote().proc.pid
+    killed = []
+
+    def progress(i, n):
+        if not killed:
+            os.kill(pid, signals.SIGKILL)
+            killed.append(i)
+
+    results = dict(run_episodes(specs, workers=1, progress=progress))
+    assert killed and [results[i].end_reason for i in (0, 1)] == ["crashed", "crashed"], results
+    [(_, again)] = list(run_episodes(specs[:1], workers=1))
+    assert again.end_reason in ("terminated", "truncated") and executor.zygote().proc.pid != pid

@@ -132,6 +132,9 @@ def inspect_policy(text: str, name: str = "policy.py") -> PolicyInfo:
         tree = check_source(text, filename)
     except PolicyCodeError as exc:
         raise PolicyLoadError(str(exc).replace(filename, name)) from None
+    except (RecursionError, MemoryError, ValueError) as exc:  # 200 KB of `1 + 1 + ...`, NUL bytes
+        raise PolicyLoadError(f"{name}: the code cannot be checked ({type(exc).__name__}: too large, too deeply "
+                              "nested or not text)") from None
     constants: dict[str, Any] = {}
     policy_class = None
     for node in tree.body:

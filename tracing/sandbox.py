@@ -14,10 +14,10 @@ Policy files and LLM-generated methods are untrusted. This module is the in-proc
 - :class:`CallTimer` / :func:`time_limit` interrupt a call that runs too long with :class:`PolicyTimeout`
   (SIGALRM; main thread).
 
-What this does not do: it is no security boundary against a determined attacker with knowledge of CPython
-internals, and it cannot interrupt a long-running C call (a huge numpy operation). The second layer is the
-episode worker process (``pipeline/executor.py``): a memory limit, an audit hook that refuses writes, process
-spawning, sockets and native code loading, and a parent that kills it after its wall-clock limit.
+What this does not do: it is no security boundary (any allowed module that re-exports ``sys`` or
+``builtins`` leaks, and it cannot interrupt a long-running C call). The boundary is the operating system:
+policy code runs only in a worker process with no secrets, confined by the kernel (``pipeline/executor.py``,
+``pipeline/zygote.py``, ``pipeline/confine.py``; see docs/sandbox.md).
 """
 
 from __future__ import annotations

@@ -1,0 +1,96 @@
+"""The parent's checks of what a worker sends (pipeline/wire.py): anything off is a BadMessage, never accepted."""
+
+from __future__ import annotations
+
+import pyarrow as pa
+import pytest
+
+from pipeline import wire
+from pipeline.rollout import EpisodeSpec, run_episode
+from tests.conftest import pong_policy
+from tracing.capture import NODE_SCHEMA
+from tracing.steps import STEP_SCHEMA
+
+
+@pytest.fixture(scope="module")
+def played():
+    spec = EpisodeSpec("run.0.eval.0", "run", "pong", pong_policy("return 0"), "v", max_steps=5)
+    outcome = run_episode(spec)
+    return spec, wire.episode_to_json(outcome.episode), outcome.steps
+
+
+def _decode(spec, row, steps, nodes=None):
+    return wire.episode_from_worker(spec, row, steps, nodes)
+
+
+def test_a_genuine_answer_round_trips(played):
+    spec, row, steps = played
+    frames = wire.FrameReader().feed(wire.json_frame({"kind": "result", "episode": row}) + wire.arrow_frame(steps))
+    assert [k for k, _ in frames] == [b"J", b"A"]
+    msg = wire.parse_json(frames[0][1])
+    table = wire.parse_arrow(frames[1][1], STEP_SCHEMA)
+    outcome = _decode(spec, msg["episode"], table)
+    assert outcome.episode["episode_id"] == spec.episode_id and outcome.episode["length"] == 5
+    assert outcome.steps.equals(steps)
+
+
+@pytest.mark.parametrize("change, fragment", [
+    ({"episode_id": "other"}, "answered for episode"),
+    ({"game": "breakout"}, "game"),
+    ({"end_reason": "crashed"}, "end reason"),
+    ({"end_reason": "won"}, "end reason"),
+    ({"length": True}, "length"),
+    ({"length": 5.0}, "length"),
+    ({"length": 10**9}, "length"),
+    ({"length": 4}, "step rows"),
+    ({"length": 3, "end_reason": "policy_error"}, "step rows"),
+    ({"lives_lost": -1}, "lives_lost"),
+    ({"return": "1e9"}, "return"),
+    ({"return": None}, "return"),
+    ({"duration_s": [1]}, "duration_s"),
+    ({"error": {"x": 1}}, "error"),
+    ({"started_at": "yesterday"}, "started_at"),
+], ids=lambda v: str(v))
+def test_a_field_out_of_place_is_refused(played, change, fragment):
+    spec, row, steps = played
+    with pytest.raises(wire.BadMessage, match=fragment):
+        _decode(spec, {**row, **change}, steps)
+
+
+def test_what_the_worker_cannot_decide_comes_from_the_spec(played):
+    spec, row, steps = played
+    outcome = _decode(spec, {**row, "seed": 99, "run_id": "forged", "policy_version_id": "forged"}, steps)
+    assert (outcome.episode["seed"], outcome.episode["run_id"], outcome.episode["policy_version_id"]) == (0, "run", "v")
+
+
+def test_tables_of_another_schema_or_broken_streams_are_refused(played):
+    spec, row, steps = played
+    with pytest.raises(wire.BadMessage, match="schema"):
+        wire.parse_arrow(wire.arrow_frame(pa.table({"step": [0, 1]}))[wire.HEADER.size:], STEP_SCHEMA)
+    with pytest.raises(wire.BadMessage, match="schema"):
+        wire.parse_arrow(wire.arrow_frame(steps)[wire.HEADER.size:], NODE_SCHEMA)
+    payload = wire.arrow_frame(steps)[wire.HEADER.size:]
+    with pytest.raises(wire.BadMessage, match="malformed Arrow"):
+        wire.parse_arrow(payload[: len(payload) // 2], STEP_SCHEMA)
+    with pytest.raises(wire.BadMessage, match="malformed Arrow"):
+        wire.parse_arrow(b"\x80\x03cposix\nsystem\n", STEP_SCHEMA)  # a pickle is not an Arrow stream
+    renumbered = steps.set_column(0, "step", pa.array([3, 1, 2, 0, 4], pa.int32()))
+    with pytest.raises(wire.BadMessage, match="numbered"):
+        _decode(spec, row, renumbered)
+    with pytest.raises(wire.BadMessage, match="untraced"):
+        _decode(spec, row, steps, NODE_SCHEMA.empty_table())
+
+
+def test_frames_are_capped_and_kinds_checked():
+    with pytest.raises(wire.BadMessage, match="over the limit"):
+        wire.FrameReader().feed(wire.HEADER.pack(b"J", wire.MAX_JSON + 1))
+    with pytest.raises(wire.BadMessage, match="over the limit"):
+        wire.FrameReader().feed(wire.HEADER.pack(b"A", wire.MAX_ARROW + 1))
+    with pytest.raises(wire.BadMessage, match="unknown frame kind"):
+        wire.FrameReader().feed(b"\x80\x04\x95\x00\x00\x00\x00")  # the start of a pickle
+    for payload in (b"[1, 2]", b'{"no": "kind"}', b"{" * 100_000, b'{"kind": "result", "x": NaN}', b"\xff"):
+        with pytest.raises(wire.BadMessage):
+            wire.parse_json(payload)
+    reader = wire.FrameReader()
+    frame = wire.json_frame({"kind": "progress", "n": 3})
+    assert reader.feed(frame[:3]) == [] and reader.feed(frame[3:]) == [(b"J", frame[wire.HEADER.size:])]
