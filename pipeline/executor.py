@@ -36,11 +36,10 @@ import tempfile
 import threading
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, TypeVar
 
-from games.envs import shared_env
 from pipeline import wire
 from pipeline.confine import SandboxUnavailable, WEAK_ENV, die_with_parent, weak_sandbox_allowed  # noqa: F401
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec, crashed_outcome, run_episode
