@@ -129,3 +129,16 @@ def test_a_rerun_recording_holds_a_seaquest_episode(store, tmp_path, capsys):
     content = dump(recording)[str(recording)]
     assert_holds_episode(content, store, episode_id, frames_every=4)
     assert {"Player", "OxygenBar"} <= set(stored_boxes(store, episode_id))
+
+
+def test_benchmark_experiment_runs_every_curated_game_with_the_authors_settings():
+    from games import GAMES
+    from pipeline.batch import load_experiments
+    from tests.conftest import ROOT
+
+    runs = {r.config.game: r.config for r in load_experiments(ROOT / "examples" / "benchmarks.toml").runs}
+    assert set(runs) == set(GAMES)
+    assert all(c.iterations == 30 and c.memory == 5 for c in runs.values())
+    assert (runs["asterix"].eval_episodes, runs["asterix"].eval_max_steps) == (3, 20000)
+    assert (runs["freeway"].eval_episodes, runs["freeway"].eval_max_steps) == (3, 2500)
+    assert (runs["enduro"].eval_episodes, runs["enduro"].eval_max_steps) == (1, 5000)
