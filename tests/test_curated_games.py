@@ -117,17 +117,26 @@ def test_observations_in_the_authors_conventions():
             assert max(obs["oxygen"] for obs in seen) >= 60
 
 
-def test_a_rerun_recording_holds_a_seaquest_episode(store, tmp_path, capsys):
-    from tests.test_rerun import assert_holds_episode, dump, stored_boxes
+def test_rerun_recordings_live_and_rebuilt_hold_a_seaquest_episode(store, tmp_path, capsys):
+    """Live from the worker and rebuilt from the store (``view``: its replay of the actions matches the stored
+    objects only when the replayed observation is compared with the stored objects plus ``derive``)."""
+    from tests.test_rerun import assert_holds_episode, dump, run_view, stored_boxes
 
     live = tmp_path / "live"
     code, out, err = run_cli(capsys, "eval", POLICIES / "seaquest_competent.py", "--trace", "--max-steps", 200,
                              "--rerun", live, "--store", store.path, "--json")
     assert code == 0, err
-    episode_id = json.loads(out)["episodes"][0]["episode_id"]
+    summary = json.loads(out)
+    episode_id = summary["episodes"][0]["episode_id"]
     recording = live / f"{episode_id}.rrd"
-    content = dump(recording)[str(recording)]
-    assert_holds_episode(content, store, episode_id, frames_every=4)
+    rebuilt = tmp_path / "rebuilt.rrd"
+    code, out, err = run_view(summary["run_id"], "--episode", 0, "--save", rebuilt, "--frames-every", 4,
+                              "--store", store.path)
+    assert code == 0, err
+    assert "replayed frames match the stored objects on all 200 steps" in out, out
+    contents = dump(recording, rebuilt)
+    for path in (recording, rebuilt):
+        assert_holds_episode(contents[str(path)], store, episode_id, frames_every=4)
     assert {"Player", "OxygenBar"} <= set(stored_boxes(store, episode_id))
 
 
@@ -142,3 +151,22 @@ def test_benchmark_experiment_runs_every_curated_game_with_the_authors_settings(
     assert (runs["asterix"].eval_episodes, runs["asterix"].eval_max_steps) == (3, 20000)
     assert (runs["freeway"].eval_episodes, runs["freeway"].eval_max_steps) == (3, 2500)
     assert (runs["enduro"].eval_episodes, runs["enduro"].eval_max_steps) == (1, 5000)
+
+
+def test_the_optimizer_prompt_shows_the_derived_observation(store, scripted):
+    """One iteration on Seaquest: the rollout in the prompt is read back from the store, derive included."""
+    from pipeline.llm import LiteLLMClient
+    from pipeline.optimize import OptimizeConfig, optimize
+    from tests.conftest import json_reply
+
+    model = scripted([json_reply({})])
+    config = OptimizeConfig(game="seaquest", iterations=1, rollout_steps=40, eval_max_steps=300, workers=1,
+                            token_budget=8000)
+    result = optimize(config, store, LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05))
+    assert result.status == "finished"
+    _, user = model.requests()[0]
+    prompt = user["content"]
+    assert "In Seaquest, you pilot a submarine" in prompt, "the game's instruction"
+    for derived in ("oxygen", "divers_collected", "lives"):
+        assert derived in prompt, derived
+    assert "OxygenBar" not in prompt and "CollectedDiver0" not in prompt, "numbered objects are grouped"
