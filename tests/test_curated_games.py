@@ -78,7 +78,8 @@ def test_starter_and_competent_play_traced_and_read_back_as_seen(game, store, ca
 def test_observations_in_the_authors_conventions():
     """Grouped lists (nearest first), derived fields, no numbered keys left, nothing off screen."""
     checks = {
-        "asterix": ({"Player", "enemy_lanes", "safe_collectible_lanes", "lives"}, ("Enemies", "Consumables", "Rewards")),
+        "asterix": ({"Player", "enemy_lanes", "safe_collectible_lanes", "lives"},
+                    ("Enemies", "Consumables", "Rewards")),
         "enduro": ({"Player"}, ("EnemyCars",)),
         "freeway": ({"Chicken", "Cars"}, ()),
         "qbert": ({"lives"}, ("Enemies", "Friendlies", "Disks")),
