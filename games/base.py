@@ -81,3 +81,16 @@ class Game:
     @property
     def n_actions(self) -> int:
         return len(self.actions)
+
+
+def pop_numbered(obs: dict, category: str) -> list[dict]:
+    """Remove ``category0, category1, ...`` (a multi-slot category's objects, numbered densely in OCAtari's slot
+    order by the generic observation) from ``obs`` and return them in that order; a helper for ``derive``."""
+    items = []
+    i = 0
+    while True:
+        item = obs.pop(f"{category}{i}", None)
+        if item is None:
+            return items
+        items.append(item)
+        i += 1

@@ -201,25 +201,43 @@ def _value(value: Any) -> str:
     return text if len(text) <= MAX_VALUE_CHARS else text[:MAX_VALUE_CHARS] + "…"
 
 
-def _obj(o: dict[str, int]) -> str:
-    return f"({o['x']},{o['y']},{o['w']},{o['h']},{o['dx']},{o['dy']})"
+_BOX = ("x", "y", "w", "h", "dx", "dy")
+
+
+def _is_object(value: Any) -> bool:
+    return isinstance(value, dict) and all(f in value for f in _BOX)
+
+
+def _extra(value: Any) -> str:
+    return value if isinstance(value, str) else _value(value)
+
+
+def _obj(o: dict[str, Any]) -> str:
+    """``(x,y,w,h,dx,dy)``, then the fields a game's ``derive`` added: ``(26,42,8,11,0,0,type=Enemy,lane=1)``."""
+    box = f"{o['x']},{o['y']},{o['w']},{o['h']},{o['dx']},{o['dy']}"
+    extra = ",".join(f"{k}={_extra(v)}" for k, v in o.items() if k not in _BOX)
+    return f"({box},{extra})" if extra else f"({box})"
 
 
 def render_obs(obs: dict[str, Any]) -> str:
-    """Compact observation text: ``Ball(x,y,w,h,dx,dy)``; lists as ``RB[n] y=.. w=.. h=.. x=..`` when uniform."""
+    """Compact observation text: ``Ball(x,y,w,h,dx,dy)``; lists as ``RB[n] y=.. w=.. h=.. x=..`` when uniform;
+    derived values that are not objects (``lives``, ``enemy_lanes``) as ``key=value``."""
     parts = []
     for key, value in obs.items():
-        if isinstance(value, list):
+        if isinstance(value, list) and all(_is_object(o) for o in value):
             if not value:
                 parts.append(f"{key}[0]")
-            elif len({(o["y"], o["w"], o["h"], o["dx"], o["dy"]) for o in value}) == 1:
+            elif all(len(o) == len(_BOX) for o in value) and \
+                    len({(o["y"], o["w"], o["h"], o["dx"], o["dy"]) for o in value}) == 1:
                 first = value[0]
                 xs = ",".join(str(o["x"]) for o in value)
                 parts.append(f"{key}[{len(value)}] y={first['y']} w={first['w']} h={first['h']} x={xs}")
             else:
                 parts.append(f"{key}[{len(value)}] " + " ".join(_obj(o) for o in value))
-        else:
+        elif _is_object(value):
             parts.append(key + _obj(value))
+        else:
+            parts.append(f"{key}={_extra(value)}")
     return " ".join(parts) if parts else "(no objects)"
 
 

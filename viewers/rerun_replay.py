@@ -91,10 +91,13 @@ def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int) -> tuple
     try:
         obs, _ = env.reset(seed=int(episode["seed"]))
         encoder = FrameEncoder(env.unwrapped.ale)
-        for step, action, objects in zip(steps.column("step").to_pylist(), steps.column("action").to_pylist(),
-                                         steps.column("objects").to_pylist()):
+        for step, action, lives, objects in zip(steps.column("step").to_pylist(), steps.column("action").to_pylist(),
+                                                steps.column("lives").to_pylist(), steps.column("objects").to_pylist()):
             check.steps_compared += 1
-            if obs != objects_to_obs(objects, widths):
+            stored = objects_to_obs(objects, widths)
+            if game.derive is not None:  # the environment's observation has the game's derived fields
+                game.derive(stored, lives)
+            if obs != stored:
                 check.mismatched_steps += 1
                 if check.first_mismatch is None:
                     check.first_mismatch = step

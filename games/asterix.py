@@ -1,0 +1,104 @@
+"""Asterix: collect the items that cross eight lanes and dodge the lyres; three lives.
+
+Everything codearcade knows about the game: environment, actions, the authors' task (instruction, training
+horizon, evaluation cap and episodes, staged feedback bands; ``asterix_training.py`` of
+ameliakuang/LLM-Game-Playing-Agents), the observation and Rerun colours. The policy scaffold is
+``games/scaffolds/asterix.py``.
+
+Observation (the authors' ``trace_envs/asterix.py``, with full boxes and the fields their instruction promises
+but their environment never computes): :func:`derive` turns the generic ``Enemy0``, ``Consumable0``,
+``Reward0``, ... into the lists ``Enemies``, ``Consumables``, ``Rewards`` (nearest first) and adds ``lane``,
+``dist``, ``type``, ``enemy_lanes``, ``safe_collectible_lanes`` and ``lives``. OCAtari's RAM extractor is right
+with int64 RAM (no ``detect``).
+"""
+
+from games.base import SCAFFOLDS, Game, Task, pop_numbered
+
+INSTRUCTION = (
+    "In Asterix, you control a player across 8 horizontal lanes (lane 0-7) to collect items and avoid enemies. "
+    "Actions: 0=NOOP, 1=UP, 2=RIGHT, 3=LEFT, 4=DOWN, 5=UPRIGHT, 6=UPLEFT, 7=DOWNRIGHT, 8=DOWNLEFT. "
+    "Lane y-positions (top to bottom): 26, 42, 58, 74, 90, 106, 122, 138 (16px apart). Screen x: 0-152. "
+    "Each lane has at most one object: Consumable (collect for 50-500pts), Reward (collect for bonus pts), "
+    "or Enemy/lyre (touching costs a life). "
+    "The observation provides 'lane' (0-7) and 'dist' (Manhattan distance) for each object, "
+    "'safe_collectible_lanes' (lanes with items but no enemy), and 'enemy_lanes'. "
+    "Object lists are sorted by distance (nearest first). "
+    "Score by collecting items. Enemies only matter if you're close to their x-position in the same lane. "
+    "Diagonal actions (5-8) move in two directions at once."
+)
+FEEDBACK = {
+    # authors: >= 5000 stops training; >= 2000 "Good"; 0 < r < 2000 medium; <= 0 low
+    "high": 2000,
+    "low": 0,
+    "target": 5000,
+    "messages": {
+        "high": "Good: scoring {score:g} pts on average ({gap:g} below 5000). Consider whether you can collect "
+                "items more efficiently or take advantage of lanes you might be avoiding unnecessarily.",
+        "medium": "Scoring {score:g} pts on average ({gap:g} below 5000). Points come from collecting "
+                  "Consumables and Rewards. Touching an Enemy costs a life. Items in the observation lists "
+                  "are sorted by distance (nearest first).",
+        "low": "Scoring {score:g} pts on average ({gap:g} below 5000). Points are only earned by collecting "
+               "Consumable and Reward items. Move toward items to collect them - compare player x/y with "
+               "item x/y to pick the right direction.",
+    },
+}
+ROLLOUT_STEPS = 100      # authors: --horizon 100 (also run with 1)
+EVAL_MAX_STEPS = 20000   # authors: 3 episodes x 20,000 steps (each ends at a lost life: see README)
+EVAL_EPISODES = 3
+
+
+LANE_Y = (26, 42, 58, 74, 90, 106, 122, 138)
+"""y of the 8 lanes, top (lane 0) to bottom (Player, Enemy, Reward; a Consumable sits 1 px lower)."""
+PLAYER_HOME = (76, 74)
+"""Where distances are measured from while the player is not on screen."""
+GROUPS = (("Enemy", "Enemies"), ("Consumable", "Consumables"), ("Reward", "Rewards"))
+
+
+def _lane(y: int) -> int:
+    lane = (y - 18) // 16
+    return 0 if lane < 0 else 7 if lane > 7 else lane
+
+
+def derive(obs: dict, lives: int) -> None:
+    """The authors' observation, in place: ``Player`` gains ``lane``; ``Enemies``, ``Consumables``, ``Rewards``
+    are lists of {x, y, w, h, dx, dy, type, lane, dist} sorted by Manhattan distance to the player (nearest first,
+    ties in OCAtari's slot order), each absent when empty; ``enemy_lanes`` and ``safe_collectible_lanes`` (lanes
+    with an item and no enemy) are sorted lane lists, always present; ``lives``."""
+    player = obs.get("Player")
+    if player is not None:
+        player["lane"] = _lane(player["y"])
+        px, py = player["x"], player["y"]
+    else:
+        px, py = PLAYER_HOME
+    enemy_lanes: set[int] = set()
+    item_lanes: set[int] = set()
+    for category, key in GROUPS:
+        items = pop_numbered(obs, category)
+        if not items:
+            continue
+        lanes = enemy_lanes if category == "Enemy" else item_lanes
+        for item in items:
+            item["type"] = category
+            item["lane"] = _lane(item["y"])
+            item["dist"] = abs(item["x"] - px) + abs(item["y"] - py)
+            lanes.add(item["lane"])
+        items.sort(key=lambda item: item["dist"])  # stable: ties keep the slot order
+        obs[key] = items
+    obs["enemy_lanes"] = sorted(enemy_lanes)
+    obs["safe_collectible_lanes"] = sorted(item_lanes - enemy_lanes)
+    obs["lives"] = int(lives)
+
+
+GAME = Game(
+    name="asterix",
+    env_id="AsterixNoFrameskip-v4",
+    ocatari_name="Asterix",
+    actions=("NOOP", "UP", "RIGHT", "LEFT", "DOWN", "UPRIGHT", "UPLEFT", "DOWNRIGHT", "DOWNLEFT"),
+    lives=3,
+    task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
+              eval_episodes=EVAL_EPISODES),
+    colours={"Player": (187, 187, 53), "Enemy": (228, 111, 111), "Consumable": (84, 160, 197),
+             "Reward": (252, 188, 116)},
+    derive=derive,
+    scaffold=SCAFFOLDS / "asterix.py",
+)

@@ -1,0 +1,106 @@
+"""Freeway: guide the chicken across ten lanes of traffic, as often as the 2:16 timer allows; no lives.
+
+Everything codearcade knows about the game: environment, actions, the authors' task (``freeway_training.py`` of
+ameliakuang/LLM-Game-Playing-Agents), the observation hooks and Rerun colours. The policy scaffold is
+``games/scaffolds/freeway.py``.
+
+Observation (the authors' ``trace_envs/freeway.py``): OCAtari reports two chickens; only the left one (player
+1, x=44) is ours and enters the observation, as ``Chicken`` (:func:`chicken`). A car's dx is its speed: the
+jump of about +-159 px on the step it wraps around the screen edge is folded back into [-80, 80) before it is
+stored (:func:`car`). :func:`derive` groups ``Car0 .. Car9`` into ``Cars`` (lane 1 at the top to lane 10).
+OCAtari's RAM extractor is right with int64 RAM (a car at RAM x 0 is at x=-3; numpy 1 wrapped it to 253).
+A game lasts 2,048 agent steps under any policy.
+"""
+
+from games.base import SCAFFOLDS, Game, Task, pop_numbered
+
+INSTRUCTION = (
+    "In Freeway, you guide a chicken from the bottom of the screen (y~187) to the top (y~0), crossing 10 lanes of traffic. "
+    "You score 1 point each time the chicken reaches the top and it resets to the bottom to cross again. "
+    "Actions: 0=NOOP (wait), 1=UP (move toward goal), 2=DOWN (move away from goal). "
+    "There are 10 lanes of cars at fixed y-positions (top to bottom): y=27, 43, 59, 75, 91, 107, 123, 139, 155, 171. "
+    "Top lanes (y=27-91) have cars moving right-to-left (negative dx). Bottom lanes (y=107-171) have cars moving left-to-right (positive dx). "
+    "The chicken is at x~44. Cars have width 8, the chicken has width 6. "
+    "If hit by a car, the chicken is pushed back one lane (novice difficulty). "
+    "The game runs on a ~2 minute timer. Maximize the number of crossings within the time limit. "
+    "Key strategy: always be moving UP unless a car is about to collide. Waiting too long wastes time. "
+    "Analyze the trace to figure out when the chicken gets hit and optimize gap detection to avoid cars while maintaining forward progress."
+)
+FEEDBACK = {
+    # authors: >= 50 stops training; >= 25 "Great progress"; 0 < r < 25 medium; <= 0 low
+    "high": 25,
+    "low": 0,
+    "target": 50,
+    "messages": {
+        "high": "Great progress! You're scoring {score:g} crossings on average ({gap:g} below 50). "
+                "Keep optimizing gap detection to push higher.",
+        "medium": "You're scoring {score:g} crossings on average ({gap:g} below 50). Try to improve gap "
+                  "detection and timing to cross more lanes safely. Remember: always be moving UP unless a car "
+                  "is directly in the way.",
+        "low": "Your score is {score:g} crossings on average. The chicken needs to move UP (action 1) to cross "
+               "lanes. Wait with NOOP (action 0) only when a car is about to hit you, otherwise keep moving UP.",
+    },
+}
+ROLLOUT_STEPS = 100      # authors: --horizon 100 (the script's __main__ hard-codes 150)
+EVAL_MAX_STEPS = 2500    # authors: 3 episodes x 2,500 steps (a game ends by itself at 2,048)
+EVAL_EPISODES = 3
+
+
+LANE_Y = (27, 43, 59, 75, 91, 107, 123, 139, 155, 171)
+"""Car y per lane, lane 1 (top) to lane 10 (bottom). Lanes 1-5 drive left (dx < 0), 6-10 right (dx > 0)."""
+PLAYER_ONE_MAX_X = 80
+"""The left chicken (player 1, ours) is at x=44; the idle second player's at x=108."""
+
+
+def _box(o) -> tuple[int, int, int, int, int, int]:
+    x, y = (int(v) for v in o._xy)
+    w, h = (int(v) for v in o.wh)
+    prev = o._prev_xy
+    dx, dy = (0, 0) if prev is None else (x - int(prev[0]), y - int(prev[1]))
+    return x, y, w, h, dx, dy
+
+
+def chicken(o, obs: dict, rows: list | None) -> None:
+    """Only player 1's chicken (the left one) enters the observation, as ``Chicken``."""
+    x, y, w, h, dx, dy = _box(o)
+    if x >= PLAYER_ONE_MAX_X:
+        return
+    obs["Chicken"] = {"x": x, "y": y, "w": w, "h": h, "dx": dx, "dy": dy}
+    if rows is not None:
+        rows.append(("Chicken", None, "Chicken", x, y, w, h, dx, dy))
+
+
+def car(o, obs: dict, rows: list | None) -> None:
+    """A car as ``Car<n>`` (n = its slot, lane n+1), with the screen wrap folded out of its dx."""
+    x, y, w, h, dx, dy = _box(o)
+    dx = ((dx + 80) % 160) - 80
+    n = sum(1 for key in obs if key.startswith("Car"))
+    key = f"Car{n}"
+    obs[key] = {"x": x, "y": y, "w": w, "h": h, "dx": dx, "dy": dy}
+    if rows is not None:
+        rows.append((key, None, "Car", x, y, w, h, dx, dy))
+
+
+def derive(obs: dict, lives: int) -> None:
+    """The authors' observation, in place: ``Cars``, the cars sorted by y (lane 1, top, first), each
+    {x, y, w, h, dx, dy, lane} with lane 1-10, always present. No ``lives``: Freeway has none."""
+    cars = pop_numbered(obs, "Car")
+    cars.sort(key=lambda c: c["y"])  # stable
+    for c in cars:
+        c["lane"] = min(range(len(LANE_Y)), key=lambda i: abs(LANE_Y[i] - c["y"])) + 1
+    obs["Cars"] = cars
+
+
+GAME = Game(
+    name="freeway",
+    env_id="FreewayNoFrameskip-v4",
+    ocatari_name="Freeway",
+    actions=("NOOP", "UP", "DOWN"),
+    lives=0,
+    task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
+              eval_episodes=EVAL_EPISODES),
+    colours={"Chicken": (252, 252, 84), "Car": (167, 26, 26)},
+    object_hooks={"Chicken": chicken, "Car": car},
+    derive=derive,
+    scaffold=SCAFFOLDS / "freeway.py",
+)

@@ -1,0 +1,120 @@
+"""Q*bert: hop on the pyramid's 21 cubes to change their colour, avoiding Coily and the balls; four lives.
+
+Everything codearcade knows about the game: environment, actions, the authors' task (``qbert_training.py`` of
+ameliakuang/LLM-Game-Playing-Agents), the observation and Rerun colours. The policy scaffold is
+``games/scaffolds/qbert.py``.
+
+Observation (the authors' ``trace_envs/qbert.py`` with full boxes): cubes are left out, as the authors do (the
+``Cube`` hook drops them before they are stored: OCAtari gives their fixed corners, not their colours; see
+:data:`CUBES`). :func:`derive` groups the rest into ``Enemies`` (Coily, PurpleBall, RedBall), ``Friendlies``
+(Sam, GreenBall) and ``Disks`` and drops OCAtari's off-screen garbage: while Q*bert falls or is between lives the
+extractor reports y = RAM[33] - 52 (-52..-35), and a GreenBall can come with x up to 319 (stale RAM).
+OCAtari 2.2.1 declares ``RedBall`` but never creates one: red balls are not reported. Its extractor keeps state
+in module globals (one Q*bert object list per process; ``init_objects`` resets it) and leaves absent objects
+``None``; with int64 RAM its objects are right (no ``detect``).
+"""
+
+from games.base import SCAFFOLDS, Game, Task
+
+INSTRUCTION = (
+    "In Q*bert, you control Q*bert hopping on an isometric pyramid of cubes. "
+    "Actions: 0=NOOP, 1=FIRE (use flying disk), 2=UP (upper-right), 3=RIGHT (lower-right), 4=LEFT (upper-left), 5=DOWN (lower-left). "
+    "All movement is diagonal on the pyramid. "
+    "The goal is to change every cube to the destination color by hopping on it (25 pts per cube). "
+    "Completing a round (all cubes correct color) earns a 3100-point bonus. "
+    "Enemies: Red/Purple Balls bounce down the pyramid - avoid them. "
+    "Coily (snake) chases Q*bert - lure him off the edge via flying disks for 500 pts. "
+    "Sam reverts cube colors - catch him for 300 pts. Green Ball freezes enemies - touch for 100 pts. "
+    "CRITICAL: jumping off the pyramid edge without a flying disk kills Q*bert. "
+    "You start with 4 lives. Bonus lives at certain score thresholds. "
+    # authors: "...on left edge avoid UP/DOWN; on right edge avoid UP/RIGHT." - wrong for the left edge (measured)
+    "Edge awareness: at the top only RIGHT and DOWN are safe; on the left edge LEFT leads off the pyramid, on the "
+    "right edge UP does, and from the bottom row RIGHT and DOWN do. "
+    "Strategy: systematically hop on cubes to change colors, avoid enemies, use flying disks to escape Coily. "
+    "Analyze the trace to understand when Q*bert dies and optimize movement to color more cubes safely."
+)
+FEEDBACK = {
+    # authors: >= 10000 stops training; >= 5000 "Great progress"; 0 < r < 5000 medium; <= 0 low
+    "high": 5000,
+    "low": 0,
+    "target": 10000,
+    "messages": {
+        "high": "Great progress! You're scoring {score:g} points ({gap:g} below 10000). Keep changing cubes "
+                "to the destination color while avoiding enemies.",
+        "medium": "You're scoring {score:g} points ({gap:g} below 10000). Hop on cubes to change them to the "
+                  "destination color (25 pts each). Avoid enemies - Coily chases you, red/purple balls bounce "
+                  "down. Catch Sam (300 pts) and green balls (100 pts) when safe. Do NOT jump off the pyramid "
+                  "edge - it costs a life.",
+        "low": "Your score is {score:g} points. You must hop on cubes to change their color and score points. "
+               "Avoid jumping off the pyramid edges and avoid enemies.",
+    },
+}
+ROLLOUT_STEPS = 100      # authors: --horizon 100 (also run with 1)
+EVAL_MAX_STEPS = 4000    # authors: 1 episode x 4,000 steps (ending at the first lost life: see README)
+EVAL_EPISODES = 1
+
+
+CUBES = ((68, 34), (56, 62), (84, 62), (44, 91), (68, 91), (96, 91), (32, 120), (56, 120), (84, 120), (108, 120),
+         (20, 149), (44, 149), (68, 149), (96, 149), (120, 149), (8, 178), (32, 178), (56, 178), (84, 178),
+         (108, 178), (132, 178))
+"""Top-left corners of the 21 cubes, row by row (rows of 1..6). Q*bert standing on a cube is at about
+(cube_x + 6, cube_y - 17)."""
+ENEMY_TYPES = ("Coily", "PurpleBall", "RedBall")
+FRIENDLY_TYPES = ("Sam", "GreenBall")
+SCREEN_W, SCREEN_H = 160, 210
+
+
+def drop(o, obs: dict, rows: list | None) -> None:
+    """Cubes do not enter the observation (the authors skip them)."""
+
+
+def _on_screen(box: dict) -> bool:
+    return 0 <= box["x"] < SCREEN_W and 0 <= box["y"] < SCREEN_H
+
+
+def _numbered(obs: dict, category: str) -> list[dict]:
+    """``category`` (one slot) or ``category0, category1, ...``, popped from ``obs``."""
+    single = obs.pop(category, None)
+    items = [] if single is None else [single]
+    i = 0
+    while f"{category}{i}" in obs:
+        items.append(obs.pop(f"{category}{i}"))
+        i += 1
+    return items
+
+
+def derive(obs: dict, lives: int) -> None:
+    """The authors' observation, in place: ``Player`` (absent while falling or between lives); ``Enemies``:
+    {x, y, w, h, dx, dy, type}, type Coily, PurpleBall or RedBall (in that order); ``Friendlies``: the same for
+    Sam and GreenBall; ``Disks``: the flying disks still available; each list absent when empty; objects off the
+    160x210 screen dropped; ``lives``."""
+    player = obs.get("Player")
+    if player is not None and not _on_screen(player):
+        del obs["Player"]
+    for key, types in (("Enemies", ENEMY_TYPES), ("Friendlies", FRIENDLY_TYPES), ("Disks", ("Disk",))):
+        items = []
+        for category in types:
+            for item in _numbered(obs, category):
+                if _on_screen(item):
+                    if key != "Disks":
+                        item["type"] = category
+                    items.append(item)
+        if items:
+            obs[key] = items
+    obs["lives"] = int(lives)
+
+
+GAME = Game(
+    name="qbert",
+    env_id="QbertNoFrameskip-v4",
+    ocatari_name="Qbert",
+    actions=("NOOP", "FIRE", "UP", "RIGHT", "LEFT", "DOWN"),
+    lives=4,
+    task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
+              eval_episodes=EVAL_EPISODES),
+    colours={"Player": (181, 83, 40), "Coily": (146, 70, 192), "PurpleBall": (200, 72, 200),
+             "RedBall": (228, 60, 60), "GreenBall": (50, 200, 50), "Sam": (100, 230, 100), "Disk": (84, 138, 210)},
+    object_hooks={"Cube": drop},
+    derive=derive,
+    scaffold=SCAFFOLDS / "qbert.py",
+)

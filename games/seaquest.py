@@ -1,0 +1,108 @@
+"""Seaquest: shoot sharks and submarines, rescue divers and surface for air; four lives.
+
+Everything codearcade knows about the game: environment, actions, the authors' task (``seaquest_training.py``
+of ameliakuang/LLM-Game-Playing-Agents), the observation and Rerun colours. The policy scaffold is
+``games/scaffolds/seaquest.py``.
+
+Observation (the authors' ``trace_envs/seaquest.py`` with full boxes, plus two fields of ours): :func:`derive`
+groups the enemies (Shark, Submarine, SurfaceSubmarine, EnemyMissile) into ``Enemies`` and the divers into
+``Divers``; the player's torpedo, the oxygen bar and the collected-diver icons leave the policy's observation (the
+authors skip them; they stay in the stored steps) but give ``oxygen`` (the bar's width, OCAtari's
+``min(RAM[102], 63)``; 0 when the bar is gone) and ``divers_collected`` (the icons, 0-6). The authors'
+observation has neither, though their instruction asks the policy to surface before the oxygen runs out.
+OCAtari 2.2.1 names the surface patrol ``SurfaceSubmarine`` (the authors' fork lists no such class, so their
+filter drops it; ours counts it as an enemy). The direction the sub faces (RAM[86]) is not an object and is not
+in the observation. With int64 RAM the extractor is right (uint8 under numpy 2 raises OverflowError).
+"""
+
+from games.base import SCAFFOLDS, Game, Task, pop_numbered
+
+INSTRUCTION = (
+    "In Seaquest, you pilot a submarine rescuing divers and fighting enemies underwater. "
+    "Actions: 0=NOOP, 1=FIRE, 2=UP, 3=RIGHT, 4=LEFT, 5=DOWN, "
+    "6=UPRIGHT, 7=UPLEFT, 8=DOWNRIGHT, 9=DOWNLEFT, "
+    "10=UPFIRE, 11=RIGHTFIRE, 12=LEFTFIRE, 13=DOWNFIRE, "
+    "14=UPRIGHTFIRE, 15=UPLEFTFIRE, 16=DOWNRIGHTFIRE, 17=DOWNLEFTFIRE. "
+    "Rescue divers by swimming into them (50+ pts each, increases per surface). "
+    "Shoot enemies - sharks and enemy subs (20+ pts each, increases per surface). "
+    "CRITICAL: oxygen depletes constantly. You MUST surface (move to top of screen) before it runs out or you lose a life. "
+    "Collect 6 divers then surface for maximum bonus points (gold ingots). "
+    "Colliding with enemies destroys your sub - shoot them from a distance. "
+    "You start with 4 submarines. Extra sub every 10,000 pts (max 6 reserves). "
+    "Use FIRE combinations (actions 10-17) to shoot while moving - more efficient than stopping to fire. "
+    "Strategy: patrol mid-depth to find divers, shoot approaching enemies, surface when oxygen is low or when 6 divers collected. "
+    "Analyze the trace to understand when you lose lives (oxygen depletion or enemy collision) and optimize to rescue more divers."
+)
+FEEDBACK = {
+    # authors: >= 5000 stops training; >= 2000 "Great progress"; 0 < r < 2000 medium; <= 0 low
+    "high": 2000,
+    "low": 0,
+    "target": 5000,
+    "messages": {
+        "high": "Great progress! You're scoring {score:g} points ({gap:g} below 5000). Keep rescuing divers and "
+                "shooting enemies. Surface with 6 divers for maximum bonus.",
+        "medium": "You're scoring {score:g} points ({gap:g} below 5000). Rescue divers by swimming into them "
+                  "(50+ pts each). Shoot enemies with FIRE combinations to clear the path (20+ pts each). "
+                  "Surface (move to top) before oxygen runs out - running out of oxygen kills you. Collect 6 "
+                  "divers before surfacing for maximum bonus points.",
+        "low": "Your score is {score:g} points. You must rescue divers and shoot enemies to score. CRITICAL: "
+               "surface before oxygen depletes or you lose a life. Avoid colliding with enemies - shoot them "
+               "from a distance.",
+    },
+}
+ROLLOUT_STEPS = 100      # authors: --horizon 100 (also run with 1)
+EVAL_MAX_STEPS = 4000    # authors: 1 episode x 4,000 steps (ending at the first lost life: see README)
+EVAL_EPISODES = 1
+
+
+SURFACE_Y = 46
+"""Player y at the surface; 46..108 in the water."""
+ENEMY_LANE_Y = (69, 93, 117, 141)
+"""Submarine / Diver y per lane, top to bottom; sharks bob around these."""
+ENEMY_TYPES = ("Shark", "Submarine", "SurfaceSubmarine", "EnemyMissile")
+MULTI_SLOT = frozenset({"Shark", "Submarine", "Diver", "EnemyMissile", "CollectedDiver"})
+
+
+def _take(obs: dict, category: str) -> list[dict]:
+    if category in MULTI_SLOT:
+        return pop_numbered(obs, category)
+    item = obs.pop(category, None)
+    return [] if item is None else [item]
+
+
+def derive(obs: dict, lives: int) -> None:
+    """The authors' observation, in place: ``Enemies``: {x, y, w, h, dx, dy, type}, type Shark, Submarine,
+    SurfaceSubmarine or EnemyMissile (in that order); ``Divers``: {x, y, w, h, dx, dy}; each list absent when
+    empty; ``lives``; ours: ``oxygen`` (0-63, 63 full) and ``divers_collected`` (0-6)."""
+    enemies = []
+    for category in ENEMY_TYPES:
+        for item in _take(obs, category):
+            item["type"] = category
+            enemies.append(item)
+    if enemies:
+        obs["Enemies"] = enemies
+    divers = _take(obs, "Diver")
+    if divers:
+        obs["Divers"] = divers
+    _take(obs, "PlayerMissile")
+    bar = _take(obs, "OxygenBar")
+    obs["lives"] = int(lives)
+    obs["oxygen"] = bar[0]["w"] if bar else 0
+    obs["divers_collected"] = len(_take(obs, "CollectedDiver"))
+
+
+GAME = Game(
+    name="seaquest",
+    env_id="SeaquestNoFrameskip-v4",
+    ocatari_name="Seaquest",
+    actions=("NOOP", "FIRE", "UP", "RIGHT", "LEFT", "DOWN", "UPRIGHT", "UPLEFT", "DOWNRIGHT", "DOWNLEFT", "UPFIRE",
+             "RIGHTFIRE", "LEFTFIRE", "DOWNFIRE", "UPRIGHTFIRE", "UPLEFTFIRE", "DOWNRIGHTFIRE", "DOWNLEFTFIRE"),
+    lives=4,
+    task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
+              eval_episodes=EVAL_EPISODES),
+    colours={"Player": (187, 187, 53), "Shark": (92, 186, 92), "Submarine": (170, 170, 170),
+             "SurfaceSubmarine": (214, 214, 214), "EnemyMissile": (228, 111, 111), "Diver": (66, 72, 200),
+             "PlayerMissile": (187, 187, 53), "OxygenBar": (214, 214, 214), "CollectedDiver": (24, 26, 167)},
+    derive=derive,
+    scaffold=SCAFFOLDS / "seaquest.py",
+)
