@@ -19,7 +19,7 @@ from games import get_game
 from pipeline.executor import run_episodes
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id, new_run_id, package_versions
-from pipeline.verify import verify_outcome
+from pipeline.verify import StreamingVerification
 from pipeline.versions import policy_version_row
 from store import Store
 from store.locks import run_lock
@@ -54,6 +54,10 @@ class EvalConfig:
     """Wall-clock limit of one episode."""
     rerun: str | None = None
     """Live Rerun recording of each episode (``EpisodeSpec.rerun``): a directory or a gRPC url; None: off."""
+    verify_scores: bool = True
+    """Check each episode's score against a replay of its actions in this process (``pipeline/verify.py``).
+    Only a measurement turns it off (``bench/throughput.py`` prices it): the command line has no such flag, and
+    an unverified episode is stored with ``verified`` NULL."""
 
 
 @dataclass
@@ -139,9 +143,11 @@ def evaluate(
             held.enter_context(run_lock(store.path, run_id))
         except OSError:  # a read-only or full directory: the store's own one-line error says so below
             pass
+        verification = StreamingVerification(specs, check_scores=config.verify_scores)
         try:
-            for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
-                outcome = verify_outcome(specs[i], outcome)
+            for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run,
+                                           on_actions=verification.feed if config.verify_scores else None):
+                outcome = verification.verify(i, outcome)
                 done += 1
                 with store.write() as con:
                     write_episode(con, outcome.episode, outcome.steps, outcome.nodes)

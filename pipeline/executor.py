@@ -44,6 +44,9 @@ from pipeline import wire
 from pipeline.confine import SandboxUnavailable, WEAK_ENV, die_with_parent, weak_sandbox_allowed  # noqa: F401
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec, crashed_outcome, run_episode
 
+MAX_REPORTED_ACTIONS = 10_000
+"""Most actions one report of a playing episode may carry (it reports every few hundred steps)."""
+
 KILL_GRACE_S = 30.0
 """How long past its time limit a worker may run before the parent kills it."""
 START_TIMEOUT_S = 180.0
@@ -271,9 +274,11 @@ def run_tasks(
     progress: ProgressCallback | None = None,
     started: Callable[[], None] | None = None,
     prepare: Callable[[Zygote], None] | None = None,
+    on_actions: Callable[[int, list[int]], None] | None = None,
 ) -> Iterator[tuple[int, R]]:
     """Run ``task`` on every item in a confined worker of its own, at most ``workers`` at once; yield
-    ``(index, result)`` as each finishes.
+    ``(index, result)`` as each finishes. ``on_actions(index, actions)`` gets the actions an episode reports
+    while it plays (checked: a list of small ints), so the caller can verify its score as it goes.
 
     A worker that dies, raises, sends a malformed answer, or outlives ``time_limit_s(item)`` plus a grace period
     yields ``failed(item, why, timed_out)`` instead. ``started`` is called once the first workers are running,
@@ -342,6 +347,14 @@ def run_tasks(
                 if kind != b"J":
                     raise wire.BadMessage("an Arrow table before the result")
                 msg = wire.parse_json(payload)
+                if msg["kind"] == "actions":
+                    actions = msg.get("actions")
+                    if not isinstance(actions, list) or len(actions) > MAX_REPORTED_ACTIONS or any(
+                            isinstance(a, bool) or not isinstance(a, int) or not 0 <= a < 256 for a in actions):
+                        raise wire.BadMessage("reported actions that are not a short list of small ints")
+                    if on_actions is not None:
+                        on_actions(run.index, actions)
+                    continue
                 if msg["kind"] == "progress":
                     n = msg.get("n")
                     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
@@ -465,9 +478,10 @@ def run_episodes(
     workers: int = 1,
     progress: ProgressCallback | None = None,
     started: Callable[[], None] | None = None,
+    on_actions: Callable[[int, list[int]], None] | None = None,
 ) -> Iterator[tuple[int, EpisodeOutcome]]:
     """Play ``specs`` in confined workers (see :func:`run_tasks`); a worker that dies, misbehaves or hangs
-    yields an episode with end reason ``crashed`` or ``timeout``."""
+    yields an episode with end reason ``crashed`` or ``timeout``. ``on_actions``: see :func:`run_tasks`."""
     specs = list(specs)
     streamed = [s for s in specs if s.rerun and _rerun_dir(s) is None] if workers > 0 else []
     if streamed:
@@ -485,7 +499,7 @@ def run_episodes(
             pass  # the zygote died: every episode is recorded as crashed
 
     return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
-                     progress=progress, started=started, prepare=prepare)
+                     progress=progress, started=started, prepare=prepare, on_actions=on_actions)
 
 
 def run_json_task(name: str, item: dict[str, Any], local: Callable[[dict[str, Any]], Any], time_limit_s: float,

@@ -44,7 +44,7 @@ from pipeline.task import example_path, task_settings
 from pipeline.tokens import TokenCounter
 from pipeline.untrusted import clean_untrusted_text
 from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, check_fits, spread
-from pipeline.verify import tampering, verify_outcome
+from pipeline.verify import StreamingVerification, tampering
 from pipeline.versions import policy_version_row
 from store import Store
 from store.db import utcnow
@@ -416,8 +416,10 @@ def _play(store: Store, state: _State, iteration: int, version_id: str,
     outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
     started = time.monotonic()
     train_done = None
-    for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress):
-        outcome = verify_outcome(specs[i], outcome)
+    verification = StreamingVerification(specs)
+    for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress,
+                                   on_actions=verification.feed):
+        outcome = verification.verify(i, outcome)
         with store.write() as con:
             write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)
         outcomes[i] = outcome

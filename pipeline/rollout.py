@@ -107,8 +107,23 @@ def describe_exception(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}{where}"
 
 
-def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None) -> EpisodeOutcome:
-    """Play one episode as ``spec`` says and return what happened (never raises for policy misbehaviour)."""
+def _report(steps: StepLog, reported: int, length: int, progress: Callable[[int], None] | None,
+            on_actions: Callable[[list[int]], None] | None) -> int:
+    """Tell the caller how far the episode is (and which actions it played since last time); the new mark."""
+    if on_actions is not None and length > reported:
+        on_actions([a for a in steps.scalars["action"][reported:length] if a is not None])
+    if progress is not None:
+        progress(length)
+    return length
+
+
+def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None,
+                on_actions: Callable[[list[int]], None] | None = None) -> EpisodeOutcome:
+    """Play one episode as ``spec`` says and return what happened (never raises for policy misbehaviour).
+
+    ``progress(steps)`` is called every :data:`PROGRESS_EVERY` steps and at the end; ``on_actions(actions)``
+    just before it with the actions played since its last call (the parent verifies the score while the
+    episode plays: ``pipeline/verify.py``)."""
     game = get_game(spec.game)
     started_at = time.time()
     t0 = time.perf_counter()
@@ -116,6 +131,7 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
     recorder = NodeRecorder() if spec.trace else None
     end_reason, error = "truncated", None
     score, lives_lost, length = 0.0, 0, 0
+    reported = 0  # steps whose actions went to on_actions
     live = None  # live Rerun recorder (spec.rerun)
     env_s = policy_s = 0.0
 
@@ -178,8 +194,8 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
                         lives_lost += 1  # points conceded, for games without lives
                     lives = new_lives
                     length = step + 1
-                    if progress is not None and length % PROGRESS_EVERY == 0:
-                        progress(length)
+                    if length % PROGRESS_EVERY == 0:
+                        reported = _report(steps, reported, length, progress, on_actions)
                     if terminated or truncated:
                         end_reason = "terminated" if terminated else "truncated"
                         break
@@ -188,8 +204,7 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
         except BaseException:
             discard_env(env)  # an error inside the loop leaves the environment in an unknown state
             raise
-    if progress is not None:
-        progress(length)
+    _report(steps, reported, length, progress, on_actions)
 
     episode = _episode_row(
         spec, game=game.name, started_at=_utc(started_at), duration_s=time.perf_counter() - t0, env_s=env_s,

@@ -26,8 +26,11 @@ return, length and lives lost, and step rows whose reward, score, flags and live
 The parent is clean only when policy code runs in workers: with ``workers=0`` (debugging, no isolation) the
 policy runs in this very process and nothing here can be trusted.
 
-Cost: the replay steps raw ALE (no object extraction, no policy), measured by ``bench/throughput.py``
-("verification replay").
+The replay is fed while the episode plays (:class:`StreamingVerification`): each worker reports the actions it
+played every few hundred steps, and the parent replays them at once (raw ALE, no object extraction, no
+policy: several times faster than playing), so when the episode ends only its last few hundred steps are
+left. A report that does not match the actions the episode finally records is not trusted: the replay starts
+over from the recorded ones. ``bench/throughput.py`` measures the replay ("verification replay").
 """
 
 from __future__ import annotations
@@ -134,6 +137,26 @@ def replay_actions(spec: EpisodeSpec, actions: list[int], replay: Replay | None 
     return replay
 
 
+class StreamingVerification:
+    """Verification of a batch of episodes fed as they play: ``run_episodes(..., on_actions=v.feed)``, then
+    ``v.verify(i, outcome)`` for each outcome. The replay keeps pace with the workers in this process (it needs
+    no policy and no object extraction), so an episode's score is checked almost as soon as it ends."""
+
+    def __init__(self, specs: list[EpisodeSpec], check_scores: bool = True):
+        self.specs = specs
+        self.check_scores = check_scores
+        self._replays: dict[int, Replay] = {}
+
+    def feed(self, index: int, actions: list[int]) -> None:
+        replay = self._replays.get(index)
+        if replay is None:
+            replay = self._replays[index] = Replay(self.specs[index])
+        replay.feed(actions)
+
+    def verify(self, index: int, outcome: EpisodeOutcome) -> EpisodeOutcome:
+        return verify_outcome(self.specs[index], outcome, self._replays.pop(index, None), self.check_scores)
+
+
 def _float(value: Any, default: float | None = None) -> float | None:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return default
@@ -223,10 +246,12 @@ def _compare(row: dict[str, Any], steps: pa.Table, replay: Replay, actions_end: 
     return None
 
 
-def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome, replay: Replay | None = None) -> EpisodeOutcome:
+def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome, replay: Replay | None = None,
+                   check_score: bool = True) -> EpisodeOutcome:
     """The outcome of ``spec`` as the parent stores it: row rebuilt, text cleaned, score verified by replay
     (see the module docstring), continuing ``replay`` if actions were fed to it while the episode played. Never
-    raises for anything the worker sent."""
+    raises for anything the worker sent. ``check_score=False`` (only to measure what the replay costs) skips the
+    replay of a well-formed episode and stores it with ``verified`` NULL."""
     reported = getattr(outcome, "episode", None)
     reported = reported if isinstance(reported, dict) else {}
     row = _episode_row(spec, reported)
@@ -249,6 +274,9 @@ def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome, replay: Replay | 
             why = "an action outside the game's action set was recorded"
     if why is not None:
         actions = []
+    elif not check_score:
+        row.update(verified=None)
+        return EpisodeOutcome(row, steps, nodes)
     replay = replay_actions(spec, actions, replay)
     if why is None:
         why = _compare(row, steps, replay, len(actions))

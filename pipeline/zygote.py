@@ -51,7 +51,8 @@ def _episode(item: dict[str, Any], fd: int) -> None:
     from pipeline.rollout import run_episode
 
     spec = wire.spec_from_json(item)
-    outcome = run_episode(spec, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})))
+    outcome = run_episode(spec, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})),
+                          lambda a: wire.write_all(fd, wire.json_frame({"kind": "actions", "actions": a})))
     frames = [wire.json_frame({"kind": "result", "episode": wire.episode_to_json(outcome.episode),
                                "nodes": outcome.nodes is not None}), wire.arrow_frame(outcome.steps)]
     if outcome.nodes is not None:
