@@ -73,6 +73,9 @@ class Game:
     """``derive(obs, lives)`` adds fields computed from the objects (lanes, nearest enemies, ``lives``) to the
     observation, in place. The store keeps the objects and lives; the same call rebuilds the derived fields
     when a prompt or a viewer reads a step back, so they are never stored twice."""
+    hot_keys: tuple[str, str | None] = ("Player", "Ball")
+    """The observation keys of the player and of the ball (or what stands for it) whose x/y fill the ``steps``
+    table's hot columns ``player_x/y`` and ``ball_x/y`` (Freeway's player is its ``Chicken``)."""
     status: str = "curated"
     """``curated`` (a module with the authors' conventions and a scaffold) or ``generic`` (any OCAtari game)."""
     scaffold: Path | None = None

@@ -93,6 +93,7 @@ def derive(obs: dict, lives: int) -> None:
 
 GAME = Game(
     name="freeway",
+    hot_keys=("Chicken", None),  # the steps table's player_x/y follow the chicken; there is no ball
     env_id="FreewayNoFrameskip-v4",
     ocatari_name="Freeway",
     actions=("NOOP", "UP", "DOWN"),

@@ -139,3 +139,14 @@ def test_a_game_added_from_outside_the_package_plays_through_eval(tmp_path):
     assert s.query("SELECT count(*) FROM steps")[0][0] == 200
     outputs = s.query("SELECT count(*) FROM nodes WHERE output IN ('2', '3')")[0][0]
     assert outputs > 50, "the derived field reached the policy: it moved the paddle"
+
+
+def test_hot_columns_follow_each_games_player():
+    from pipeline.rollout import EpisodeSpec, run_episode
+
+    policy = (ROOT / "tests" / "policies" / "freeway_competent.py").read_text()
+    outcome = run_episode(EpisodeSpec(episode_id="e", run_id="r", game="freeway", policy_text=policy,
+                                      policy_version_id="v", max_steps=60))
+    assert get_game("freeway").hot_keys[0] == "Chicken"
+    assert outcome.steps.column("player_y").null_count == 0, "Freeway's player is its chicken"
+    assert outcome.steps.column("ball_x").null_count == 60

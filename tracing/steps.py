@@ -4,12 +4,13 @@
 (``STEP_SCHEMA``) at the end of the episode, so the store receives one batched insert, never row by row.
 
 A step is logged before the policy sees its observation (:meth:`StepLog.observe`) and completed after
-(:meth:`StepLog.outcome`). The observation is stored twice over: typed hot columns (``player_x/y``, ``ball_x/y``; NULL when absent) for
-quick SQL, and ``objects``, a list of ``{key, idx, category, x, y, w, h, dx, dy}`` structs that holds the
-whole dict: ``key`` is the observation key (``Ball``, ``Alien3``, ``RB``), ``idx`` the position inside a list
-value (Breakout's brick rows) or NULL, ``category`` the key without its trailing number. A run of adjacent
-bricks is one row (``idx`` its first brick, ``w`` 8 times its bricks): Breakout's 108 bricks take 6 rows,
-not 108. :func:`objects_to_obs` rebuilds the exact dict the policy saw.
+(:meth:`StepLog.outcome`). The observation is stored twice over: typed hot columns (``player_x/y``,
+``ball_x/y``: the objects each game names in ``Game.hot_keys``; NULL when absent) for quick SQL, and
+``objects``, a list of ``{key, idx, category, x, y, w, h, dx, dy}`` structs that holds the whole dict: ``key``
+is the observation key (``Ball``, ``Alien3``, ``RB``), ``idx`` the position inside a list value (Breakout's
+brick rows) or NULL, ``category`` the key without its trailing number. A run of adjacent bricks is one row
+(``idx`` its first brick, ``w`` 8 times its bricks): Breakout's 108 bricks take 6 rows, not 108.
+:func:`objects_to_obs` rebuilds the exact dict the policy saw.
 """
 
 from __future__ import annotations
@@ -68,7 +69,8 @@ class StepLog:
     rows) with that width: adjacent items of such a list are stored as one run (see :func:`merge_runs`).
     """
 
-    def __init__(self, list_widths: Mapping[str, int] | None = None) -> None:
+    def __init__(self, list_widths: Mapping[str, int] | None = None, player_key: str = "Player",
+                 ball_key: str | None = "Ball") -> None:
         self.scalars: dict[str, list] = {name: [] for name in STEP_SCHEMA.names if name != "objects"}
         self.offsets: list[int] = [0]
         """Objects stored before each step (and in all, last)."""
@@ -77,6 +79,8 @@ class StepLog:
         strings, not a tuple per object: tuples kept alive for the whole episode made the cyclic garbage
         collector run ever more often and walk them all (12% of a Space Invaders episode)."""
         self.list_widths = dict(list_widths or {})
+        self.player_key, self.ball_key = player_key, ball_key
+        """The observation keys whose positions fill the hot columns ``player_x/y`` and ``ball_x/y``."""
 
     def __len__(self) -> int:
         return len(self.scalars["step"])
@@ -89,7 +93,7 @@ class StepLog:
         step): ``OBJECT_TYPE`` tuples that :func:`objects_to_obs` turns back into ``obs``.
         """
         s = self.scalars
-        player, ball = obs.get("Player"), obs.get("Ball")
+        player, ball = obs.get(self.player_key), obs.get(self.ball_key)
         s["player_x"].append(player["x"] if player else None)
         s["player_y"].append(player["y"] if player else None)
         s["ball_x"].append(ball["x"] if ball else None)
