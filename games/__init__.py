@@ -20,7 +20,7 @@ import os
 import pkgutil
 from functools import lru_cache
 
-from games.base import Game, Task
+from games.base import Game, Task, normalize_name
 
 __all__ = ["Game", "Task", "GAMES", "UnknownGameError", "get_game", "curated_games", "list_widths", "normalize_name"]
 
@@ -32,11 +32,6 @@ GAME_MODULES_VARIABLE = "CODEARCADE_GAME_MODULES"
 
 class UnknownGameError(ValueError):
     """A game name that codearcade does not know (or cannot play); the message lists the known ones."""
-
-
-def normalize_name(name: str) -> str:
-    """``Space-Invaders``, ``SpaceInvaders`` and ``space_invaders`` all name ``spaceinvaders``."""
-    return name.strip().lower().replace("-", "").replace("_", "").replace(" ", "")
 
 
 def _module_names() -> list[str]:

@@ -16,6 +16,12 @@ SCAFFOLDS = Path(__file__).resolve().parent / "scaffolds"
 """The curated games' policy scaffolds: ``scaffolds/<game>.py`` beside the game modules."""
 
 
+def normalize_name(name: str) -> str:
+    """``Space-Invaders``, ``SpaceInvaders`` and ``space_invaders`` all name ``spaceinvaders``: the one spelling
+    rule of the registry (curated games) and of the generic games (ALE's ROM ids)."""
+    return name.strip().lower().replace("-", "").replace("_", "").replace(" ", "")
+
+
 @dataclass(frozen=True)
 class Task:
     """The optimization task of a game, as the paper and the authors' follow-up set it. A policy file may

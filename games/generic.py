@@ -16,7 +16,7 @@ import importlib.util
 from functools import lru_cache
 from pathlib import Path
 
-from games.base import Game, Task
+from games.base import Game, Task, normalize_name
 
 GENERIC_ROLLOUT_STEPS = 100
 """The authors' default training horizon for the games they added."""
@@ -48,10 +48,6 @@ class BrokenGameError(ValueError):
     """A game OCAtari lists but cannot read; the message says why."""
 
 
-def _normal(name: str) -> str:
-    return name.strip().lower().replace("-", "").replace("_", "").replace(" ", "")
-
-
 @lru_cache(maxsize=1)
 def _ocatari_games() -> frozenset[str]:
     """OCAtari's RAM extractor modules (found on disk: importing ocatari here would cost a second)."""
@@ -66,7 +62,7 @@ def _rom_ids() -> dict[str, str]:
     """ALE's ROM ids by their normalized name."""
     from ale_py import roms
 
-    return {_normal(rom): rom for rom in roms.get_all_rom_ids()}
+    return {normalize_name(rom): rom for rom in roms.get_all_rom_ids()}
 
 
 def generic_names() -> list[str]:
@@ -77,7 +73,7 @@ def generic_names() -> list[str]:
 @lru_cache(maxsize=None)
 def generic_game(name: str) -> Game | None:
     """The generic :class:`Game` for ``name``, or None when ALE or OCAtari does not know it."""
-    key = _normal(name)
+    key = normalize_name(name)
     rom = _rom_ids().get(key)
     if rom is None or key not in _ocatari_games():
         return None

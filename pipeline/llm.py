@@ -89,8 +89,7 @@ def describe_error(exc: BaseException, limit: int = ERROR_MESSAGE_LIMIT) -> str:
     AnthropicException - ``) and JSON wrapping are taken off, so what is kept (and cut at ``limit``) is what the
     provider said."""
     text = " ".join(str(getattr(exc, "message", None) or exc).split())
-    text = re.sub(r"^(litellm\.)?\w+(Error|Exception): ", "", text)
-    text = re.sub(r"^(litellm\.)?\w+(Error|Exception): ", "", text)
+    text = re.sub(r"^((litellm\.)?\w+(Error|Exception): )+", "", text)  # "litellm.X: YException: ..."
     text = re.sub(r"^\w+Exception - ", "", text)
     match = re.search(r'"(?:message|error)"\s*:\s*"((?:[^"\\]|\\.)*)"', text)
     if match:
