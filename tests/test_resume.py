@@ -23,8 +23,8 @@ def _optimize(model, store, *extra):
             "--iterations", "3", "--eval-max-steps", "1200", "--store", str(store.path), *extra]
 
 
-def _start(model, store):
-    return subprocess.Popen(_optimize(model, store), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+def _start(model, store, *extra):
+    return subprocess.Popen(_optimize(model, store, *extra), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
 
 
@@ -83,7 +83,9 @@ def test_kill_during_llm_call_then_resume(store, scripted):
 
 def test_kill_during_evaluation_reuses_the_stored_reply(store, scripted):
     model = scripted([COMPETENT_REPLY])
-    process = _start(model, store)
+    # One worker and whole games: the evaluation starts after the training rollout is written and plays for
+    # seconds, a window the poll below cannot miss (with two workers it was a few hundred milliseconds).
+    process = _start(model, store, "--workers", "1", "--eval-max-steps", "4000")
     _wait_for(lambda: _count(store, "SELECT count(*) FROM episodes WHERE iteration = 1 AND kind = 'train'") == 1
               and _count(store, "SELECT count(*) FROM iterations WHERE iteration = 1") == 0)
     process.kill()
