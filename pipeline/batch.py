@@ -43,14 +43,18 @@ from typing import Any, Callable
 
 from games import get_game
 from pipeline.feedback import FEEDBACK_MODES
+from pipeline.strategies import STRATEGIES
 from pipeline.optimize import BUDGET_FIELDS, OptimizeConfig
 from store import Store
 
 TOP_LEVEL_KEYS = ("name", "store", "defaults", "matrix", "run")
 RUN_KEYS = tuple(f.name for f in fields(OptimizeConfig))
-NOT_IN_KEY = ("workers",) + BUDGET_FIELDS
+NOT_IN_KEY = ("workers", "max_concurrent_calls") + BUDGET_FIELDS
 """Settings that do not change a run's results (or only how far it goes), so they do not change its identity:
 rerunning a batch with a larger budget resumes its runs."""
+KEYED_WHEN_SET = ("strategy", "candidates", "beam_width", "eval_cache")
+"""Settings added after run keys were introduced: they count in a key only away from their default, so the
+runs of an existing experiment file keep their keys (and are skipped or resumed, not run again)."""
 
 
 BUDGET_EXIT = 3
@@ -99,13 +103,18 @@ def _check_settings(settings: dict[str, Any], where: str) -> None:
             get_game(str(settings["game"]))
         except ValueError as exc:
             raise ExperimentError(f"{where}: {exc}") from None
+    if "strategy" in settings and settings["strategy"] not in STRATEGIES:
+        raise ExperimentError(f"{where}: strategy must be one of {', '.join(STRATEGIES)}, "
+                              f"not '{settings['strategy']}'")
     if "feedback" in settings and settings["feedback"] not in FEEDBACK_MODES:
         raise ExperimentError(f"{where}: feedback must be one of {', '.join(FEEDBACK_MODES)}, "
                               f"not '{settings['feedback']}'")
 
 
 def _run_key(name: str, config: OptimizeConfig) -> str:
-    identity = {k: v for k, v in asdict(config).items() if k not in NOT_IN_KEY}
+    defaults = OptimizeConfig()
+    identity = {k: v for k, v in asdict(config).items()
+                if k not in NOT_IN_KEY and not (k in KEYED_WHEN_SET and v == getattr(defaults, k))}
     text = json.dumps({"batch": name, "config": identity}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 

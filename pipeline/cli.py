@@ -14,6 +14,7 @@ import sys
 from typing import Callable, Sequence
 
 from games import GAMES
+from pipeline.strategies import STRATEGIES
 
 EXIT_OK, EXIT_EPISODE_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 FAILED_END_REASONS = ("policy_error", "timeout", "crashed", "tampered")
@@ -155,6 +156,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=_positive_int, default=None, help="episode worker processes (default: cores)")
     p.add_argument("--call-time-limit", type=float, dest="call_time_limit_s", metavar="SECONDS",
                    help="per policy call (default: 1)")
+    search = p.add_argument_group("search", "how versions are chosen for improvement (pipeline/strategies.py)")
+    search.add_argument("--strategy", choices=STRATEGIES,
+                        help="greedy: the paper's loop, one proposal from the last version, rollback after a "
+                        "regression (default); best-of-n: N proposals from the best version, keep the best; beam: "
+                        "expand the --beam-width best versions")
+    search.add_argument("--candidates", type=_positive_int, metavar="N",
+                        help="proposals per parent and iteration (best-of-n: default 4; beam: default 1)")
+    search.add_argument("--beam-width", type=_positive_int, metavar="K", help="beam: versions kept (default: 3)")
+    search.add_argument("--max-concurrent-calls", type=_positive_int, metavar="N",
+                        help="LLM calls in flight at once (default: 4)")
+    search.add_argument("--no-eval-cache", action="store_const", const=False, dest="eval_cache",
+                        help="play every version's episodes again instead of reusing those of an earlier assessment")
     budgets = p.add_argument_group("budgets", "the run stops with status 'budget' before it would exceed one; "
                                    "--resume with a larger budget continues it")
     budgets.add_argument("--max-cost", type=float, dest="max_cost_usd", metavar="USD",
@@ -162,6 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "the prompt plus a reply of --max-tokens)")
     budgets.add_argument("--max-total-tokens", type=_positive_int, dest="max_total_tokens", metavar="N",
                          help="LLM input + output tokens")
+    budgets.add_argument("--max-llm-calls", type=_positive_int, dest="max_llm_calls", metavar="N",
+                         help="LLM calls (an equal budget for comparing strategies)")
     budgets.add_argument("--max-wall", type=float, dest="max_wall_minutes", metavar="MINUTES",
                          help="wall-clock time of the run's iterations")
     p.add_argument("--resume", metavar="RUN_ID", help="continue a run that was interrupted, failed or stopped by a "
@@ -381,6 +396,8 @@ def _print_iteration(item) -> None:
     tokens = f"prompt {item.prompt_tokens} tok" if item.prompt_tokens else ""
     note = f"  ({item.detail})" if item.detail and item.update_status != "accepted" else ""
     back = "  rolled back" if item.rolled_back else ""
+    if item.candidates > 1:
+        tokens = f"best of {item.candidates} candidates  " + tokens
     print(f"iteration {item.iteration:>3}  score {item.score:>8.1f}  best {item.best_score:>8.1f} (it {item.best_iteration})"
           f"  update {item.update_status:<9} {tokens}{back}{note[:160]}", flush=True)
 
@@ -388,7 +405,7 @@ def _print_iteration(item) -> None:
 OPTIMIZE_OPTIONS = ("game", "policy", "model", "api_base", "iterations", "memory", "token_budget", "eval_episodes",
                     "feedback", "rollback", "rollback_fraction", "seed", "temperature", "max_tokens", "rollout_steps",
                     "eval_max_steps", "workers", "call_time_limit_s", "max_cost_usd", "max_total_tokens",
-                    "max_wall_minutes")
+                    "max_llm_calls", "max_wall_minutes", "strategy", "candidates", "beam_width", "max_concurrent_calls", "eval_cache")
 """The ``optimize`` flags that are :class:`~pipeline.optimize.OptimizeConfig` fields (defaults live there)."""
 
 

@@ -73,8 +73,10 @@ class LLMClient(Protocol):
 
     def request_params(self) -> dict[str, Any]: ...
 
-    def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None) -> LLMReply:
-        ...
+    def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
+                 candidate: int = 0) -> LLMReply:
+        """The reply to ``messages``; ``on_text`` gets streamed text; ``candidate``: which of an iteration's
+        proposals this is (a replay answers with that candidate's stored reply)."""
 
 
 def _error_name(exc: BaseException) -> str:
@@ -158,7 +160,8 @@ class LiteLLMClient:
     def request_params(self) -> dict[str, Any]:
         return dict(self._params)
 
-    def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None) -> LLMReply:
+    def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
+                 candidate: int = 0) -> LLMReply:
         """One reply, retried as the class docstring says; with streaming on, ``on_text`` gets each piece of
         text as it arrives (a retry starts the text again)."""
         params = self.request_params()
@@ -219,11 +222,12 @@ class LiteLLMClient:
 
 
 class ReplayClient:
-    """Answers with replies stored for a run, by prompt hash; a prompt never seen raises a fatal LLMError."""
+    """Answers with replies stored for a run, by (prompt hash, candidate); a prompt never seen raises a fatal
+    LLMError."""
 
     provider = "replay"
 
-    def __init__(self, replies: dict[str, str], model: str):
+    def __init__(self, replies: dict[tuple[str, int], str], model: str):
         self.replies = replies
         self.model = model
         self.label = model
@@ -231,11 +235,13 @@ class ReplayClient:
     def request_params(self) -> dict[str, Any]:
         return {"model": self.model, "replay": True}
 
-    def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None) -> LLMReply:
-        digest = prompt_hash(messages)
-        if digest not in self.replies:
-            raise LLMError("ReplayMiss", f"no stored reply for prompt {digest[:12]}", 1, fatal=True)
-        return LLMReply(text=self.replies[digest], response_model=self.model, replayed=True, latency_s=0.0)
+    def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
+                 candidate: int = 0) -> LLMReply:
+        key = (prompt_hash(messages), candidate)
+        if key not in self.replies:
+            raise LLMError("ReplayMiss", f"no stored reply for prompt {key[0][:12]} (candidate {candidate})", 1,
+                           fatal=True)
+        return LLMReply(text=self.replies[key], response_model=self.model, replayed=True, latency_s=0.0)
 
 
 OFFLINE_MODEL_LABEL = "offline:smollm2-135m-instruct"

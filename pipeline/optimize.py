@@ -1,30 +1,27 @@
-"""``codearcade optimize``: the paper's optimization loop, with every step of it in the store.
+"""``codearcade optimize``: the optimization loop — a strategy, proposals and assessments, all in the store.
 
-Iteration 0 evaluates the starting policy. Each iteration k >= 1 then:
+The loop is three parts with one job each, driven from here:
 
-1. builds the prompt from the store (``pipeline/prompt.py``): the version to improve (the previous one, or the
-   best one after a rollback), its traced training rollout, its evaluation, its feedback, and memory;
-2. gets a reply: one stored for this very prompt (a resumed run) or one LLM call through litellm;
-3. parses and validates the suggestion (``pipeline/reply.py``, ``pipeline/validate.py``): an accepted one
-   becomes a new policy version, a rejected one is stored with its reason, which goes into the feedback;
-4. plays a traced training rollout (the game's horizon: 400/300/15 steps) and the evaluation episodes in
-   parallel worker processes; the score is the mean evaluation return, as verified by replaying each episode's
-   actions in this process (``pipeline/verify.py``): a candidate caught tampering with its score is rejected;
-5. writes the feedback (staged from the evaluation score, or rollout-only for the paper's ablation) and the
-   ``iterations`` row in one transaction, and decides on a rollback: a score below
-   ``best - (1 - rollback_fraction) * max(|best|, 1)`` (for a positive best: below ``rollback_fraction * best``)
-   sends the next update back to the best version.
+- *strategy* (``pipeline/strategies.py``): from the run's history in the store, which candidates to improve this
+  iteration and with what memory; afterwards, which candidate stands for the iteration, whether it is the new
+  best, and a decision on each. ``greedy`` is the paper's loop (improve the last version, roll back to the best
+  after a regression); ``best-of-n`` and ``beam`` search wider.
+- *propose* (``pipeline/propose.py``): prompt from the store → LLM (concurrent calls) → parsed, validated version.
+- *assess* (``pipeline/assess.py``): the traced training rollout and the evaluation episodes of every candidate,
+  played concurrently in confined workers, each score verified by replay; versions already assessed in the run
+  reuse their episodes (the evaluation cache).
 
-An iteration exists once its ``iterations`` row is committed. ``--resume RUN`` continues a killed run from
-the store alone: it redoes the first iteration without a row, reusing a reply already stored for the same
-prompt (prompts are deterministic), replacing any episodes the killed attempt left, and never duplicating an
-iteration. ``codearcade replay RUN`` re-runs a finished run with the stored replies instead of the model.
+Iteration 0 assesses the starting policy. Each iteration then writes its candidates (parents, LLM call, score,
+decision, feedback), the feedback of the chosen one and the ``iterations`` row in one transaction. An iteration
+exists once that transaction commits. ``--resume RUN`` continues a killed run from the store alone: it redoes
+the first iteration without a row, reusing each candidate's reply already stored for the same prompt (prompts
+are deterministic), replacing any episodes the killed attempt left, and never duplicating an iteration or a
+candidate. ``codearcade replay RUN`` re-runs a run with the stored replies instead of the model.
 """
 
 from __future__ import annotations
 
 import json
-import statistics
 import time
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
@@ -32,35 +29,44 @@ from pathlib import Path
 from typing import Any, Callable, ContextManager
 
 from games import get_game
-from pipeline.executor import run_episodes
-from pipeline.feedback import FEEDBACK_MODES, compose_feedback
-from pipeline.llm import LLMClient, LLMError, LLMReply
-from pipeline.prompt import Prompt, PromptBudgetError, build_prompt, canonical_messages, read_context
-from pipeline.providers import price
-from pipeline.reply import ReplyParseError, clean_text, parse_reply
-from pipeline.rollout import EpisodeOutcome, EpisodeSpec
-from pipeline.runinfo import episode_id, new_run_id, package_versions
+from pipeline.assess import assess
+from pipeline.feedback import FEEDBACK_MODES, FeedbackBands, compose_feedback
+from pipeline.llm import LLMClient, LLMError
+from pipeline.propose import BudgetExhausted, Proposal, propose
+from pipeline.runinfo import new_run_id, package_versions
+from pipeline.strategies import STRATEGIES, Assessed, History, Strategy, decide_starter, make_strategy
 from pipeline.task import example_path, task_settings
 from pipeline.tokens import TokenCounter
-from pipeline.untrusted import clean_untrusted_text
-from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, check_fits, spread
-from pipeline.verify import StreamingVerification, tampering
 from pipeline.versions import policy_version_row
 from store import Store
 from store.db import utcnow
 from store.locks import run_lock
-from store.readers import get_run, policy_text, run_spending, stored_reply
+from store.readers import (
+    candidates,
+    get_run,
+    iteration_count,
+    iterations,
+    last_iteration,
+    policy_text,
+    run_spending,
+    starter_version_id,
+    update_failures,
+)
 from store.writer import (
     finish_run,
-    insert_llm_call,
+    insert_candidate,
+    insert_feedback,
+    insert_iteration,
     insert_policy_version,
     insert_run,
-    set_llm_call_outcome,
-    write_episode,
+    mark_run_running,
+    merge_run_config,
+    reject_policy_version,
 )
 from tracing.policy_file import PolicyInfo, inspect_policy, read_policy_file
 
-MAX_CONSECUTIVE_LLM_FAILURES = 3
+__all__ = ["BudgetExhausted", "OptimizeConfig", "optimize", "plan_resume", "run_loop", "start_run", "load_state"]
+
 
 
 @dataclass
@@ -110,21 +116,32 @@ class OptimizeConfig:
     the prompt and a reply of ``max_tokens`` at litellm's price; None: no limit. Needs a model litellm prices."""
     max_total_tokens: int | None = None
     """Stop (status ``budget``) before an LLM call that could take the run's input + output tokens past this."""
+    max_llm_calls: int | None = None
+    """Stop (status ``budget``) before LLM calls that would take the run's count of calls past this (an equal
+    budget for comparing strategies: greedy makes one call per iteration, best-of-n N)."""
     max_wall_minutes: float | None = None
     """Stop (status ``budget``) before an iteration that, lasting as long as the last one, would take the run's
     wall time (the sum of its iterations) past this many minutes."""
+    strategy: str = "greedy"
+    """Search strategy (``pipeline/strategies.py``): ``greedy`` (the paper's loop), ``best-of-n``, ``beam``."""
+    candidates: int | None = None
+    """Proposals per parent and iteration: best-of-n's N (default 4), beam's proposals per beam member (default
+    1); greedy makes one."""
+    beam_width: int = 3
+    """``beam``: how many of the best versions are kept and expanded."""
+    max_concurrent_calls: int = 4
+    """At most this many LLM calls in flight at once (an iteration's proposals are requested concurrently)."""
+    eval_cache: bool = True
+    """Reuse the stored episodes of a version already assessed in the run instead of playing them again (episodes
+    are deterministic given the code and the run's settings)."""
 
 
-BUDGET_FIELDS = ("max_cost_usd", "max_total_tokens", "max_wall_minutes")
+BUDGET_FIELDS = ("max_cost_usd", "max_total_tokens", "max_llm_calls", "max_wall_minutes")
 """Limits of how far a run goes, not of what it does: ``--resume`` may change them, batch keys ignore them."""
 
 RESUME_OVERRIDES = BUDGET_FIELDS + ("model", "api_base", "iterations", "token_budget", "max_tokens", "workers",
-                                    "call_time_limit_s", "episode_time_limit_s")
+                                    "call_time_limit_s", "episode_time_limit_s", "max_concurrent_calls")
 """Settings that ``--resume`` takes from the command line; every other setting is the run's own."""
-
-
-class BudgetExhausted(Exception):
-    """The next step would exceed one of the run's budgets; the run stops with status ``budget``."""
 
 
 @dataclass
@@ -139,6 +156,8 @@ class IterationResult:
     rolled_back: bool
     detail: str = ""
     prompt_tokens: int | None = None
+    candidates: int = 1
+    """How many candidates the iteration assessed."""
 
 
 @dataclass
@@ -150,7 +169,7 @@ class OptimizeResult:
 
 
 @dataclass
-class _State:
+class RunState:
     """What the loop carries from one iteration to the next (all of it derivable from the store)."""
 
     run_id: str
@@ -165,8 +184,13 @@ class _State:
     rerun: str | None = None
     """Live Rerun recordings of this invocation's episodes (``EpisodeSpec.rerun``); an output option, not recorded."""
     waiting: Callable[[int, str], ContextManager[Callable[[str], None] | None]] = lambda it, model: nullcontext()
-    """Wrapped around each LLM call (iteration, model label); what it yields gets the streamed text, if any. The
-    CLI shows how long it has been waiting and how much text has arrived."""
+    """Wrapped around each iteration's LLM calls (iteration, model label); what it yields gets the streamed text,
+    if any. The CLI shows how long it has been waiting and how much text has arrived."""
+
+    @property
+    def strategy(self) -> Strategy:
+        c = self.config
+        return make_strategy(c.strategy, c.memory, c.candidates, c.beam_width, c.rollback, c.rollback_fraction)
 
 
 def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
@@ -200,10 +224,19 @@ def _validate_config(config: OptimizeConfig) -> None:
     if not 0.0 <= config.rollback_fraction <= 1.0:
         raise ValueError("--rollback-fraction must be within [0, 1]")
     for name, flag in (("max_cost_usd", "--max-cost"), ("max_total_tokens", "--max-total-tokens"),
-                       ("max_wall_minutes", "--max-wall")):
+                       ("max_llm_calls", "--max-llm-calls"), ("max_wall_minutes", "--max-wall")):
         value = getattr(config, name)
         if value is not None and value <= 0:
             raise ValueError(f"{flag} must be above 0, got {value:g}")
+    if config.strategy not in STRATEGIES:
+        raise ValueError(f"--strategy must be one of {', '.join(STRATEGIES)}, not {config.strategy!r}")
+    for name, flag in (("candidates", "--candidates"), ("beam_width", "--beam-width"),
+                       ("max_concurrent_calls", "--max-concurrent-calls")):
+        value = getattr(config, name)
+        if value is not None and value < 1:
+            raise ValueError(f"{flag} must be at least 1, got {value}")
+    make_strategy(config.strategy, config.memory, config.candidates, config.beam_width, config.rollback,
+                  config.rollback_fraction)
 
 
 def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str = "optimize",
@@ -230,109 +263,27 @@ def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str =
     return run_id
 
 
-def load_state(store: Store, run_id: str) -> _State:
+def load_state(store: Store, run_id: str) -> RunState:
     """The loop's state for ``run_id``, read back from the store (the whole of ``--resume``)."""
-    from pipeline.feedback import FeedbackBands
-
     with store.read() as con:
         run = get_run(con, run_id)
         if run is None:
             raise ValueError(f"no run {run_id} in {store.path}; `codearcade runs` lists the runs")
-        last = con.execute(
-            "SELECT iteration, best_score, best_iteration, best_version_id FROM iterations WHERE run_id = ? "
-            "ORDER BY iteration DESC LIMIT 1", [run_id]).fetchone()
+        last = last_iteration(con, run_id)
     recorded = json.loads(run["config"])
     fields = {k: recorded[k] for k in OptimizeConfig.__dataclass_fields__ if k in recorded}
     config = OptimizeConfig(**fields)
     settings = {k: recorded[k] for k in ("rollout_steps", "eval_max_steps", "instruction", "feedback_bands")}
     settings["bands"] = FeedbackBands(**recorded["feedback_bands"])
-    state = _State(run_id, run["game"], config, settings)
+    state = RunState(run_id, run["game"], config, settings)
     if last is not None:
-        state.next_iteration = last[0] + 1
-        state.best_score, state.best_iteration, state.best_version_id = last[1], last[2], last[3]
+        state.next_iteration = last["iteration"] + 1
+        state.best_score, state.best_iteration = last["best_score"], last["best_iteration"]
+        state.best_version_id = last["best_version_id"]
     return state
 
 
-def _episode_specs(state: _State, iteration: int, text: str, version_id: str) -> list[EpisodeSpec]:
-    c = state.config
-    common = dict(run_id=state.run_id, game=state.game, policy_text=text, policy_version_id=version_id,
-                  policy_name="policy.py", iteration=iteration, call_time_limit_s=c.call_time_limit_s,
-                  episode_time_limit_s=c.episode_time_limit_s, rerun=state.rerun)
-    train = EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "train", 0), kind="train", index=0,
-                        seed=c.seed, max_steps=state.settings["rollout_steps"], trace=True, **common)
-    evals = [EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "eval", i), kind="eval", index=i,
-                         seed=c.seed + i, max_steps=state.settings["eval_max_steps"], **common)
-             for i in range(c.eval_episodes)]
-    return [train] + evals
-
-
-def _version_text(store: Store, run_id: str, version_id: str) -> str:
-    with store.read() as con:
-        return policy_text(con, run_id, version_id)
-
-
-def _record_call(store: Store, state: _State, iteration: int, client: LLMClient, prompt: Prompt,
-                 reply: LLMReply | None, error: LLMError | None) -> str:
-    """Write the ``llm_calls`` row of one call (or failed call); return its id."""
-    call_id = new_run_id()
-    params = client.request_params()
-    row = {
-        "call_id": call_id, "run_id": state.run_id, "iteration": iteration, "purpose": "update",
-        "operation_name": "chat", "provider_name": client.provider, "request_model": client.model,
-        "request_temperature": params.get("temperature"),
-        "request_max_tokens": params.get("max_tokens", params.get("max_completion_tokens")),
-        "request_seed": params.get("seed"), "request_params": json.dumps(params, sort_keys=True),
-        "prompt_tokens_counted": prompt.tokens,
-        "latency_s": reply.latency_s if reply else (error.latency_s if error else None),
-        "attempts": reply.attempts if reply else (error.attempts if error else 1),
-        "replayed": bool(reply.replayed) if reply else False,
-    }
-    if reply is not None:
-        row.update(response_model=reply.response_model, response_id=reply.response_id,
-                   finish_reasons=reply.finish_reasons, input_tokens=reply.input_tokens,
-                   output_tokens=reply.output_tokens, cached_input_tokens=reply.cached_input_tokens,
-                   cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd)
-    if error is not None:
-        row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
-    with store.write() as con:
-        insert_llm_call(con, row, canonical_messages(prompt.messages),
-                        clean_text(reply.text) if reply is not None else None)
-    return call_id
-
-
-def _set_call_outcome(store: Store, call_id: str, suggestion: dict[str, str] | None, parse_error: str | None) -> None:
-    with store.write() as con:
-        set_llm_call_outcome(con, call_id, json.dumps(suggestion, sort_keys=True) if suggestion is not None else None,
-                             parse_error)
-
-
-def _check_budgets(store: Store, state: _State, client: LLMClient, prompt: Prompt) -> None:
-    """Raise :class:`BudgetExhausted` if the call about to be made could take the run past a budget: its
-    prompt plus a reply of the longest length asked for, priced at litellm's rates."""
-    c = state.config
-    if c.max_cost_usd is None and c.max_total_tokens is None:
-        return
-    with store.read() as con:
-        spent = run_spending(con, state.run_id)
-    worst_tokens = prompt.tokens + c.max_tokens
-    if c.max_total_tokens is not None and spent["tokens"] + worst_tokens > c.max_total_tokens:
-        raise BudgetExhausted(
-            f"token budget: {spent['tokens']:,} tokens used, the next call may use up to {worst_tokens:,} "
-            f"(prompt {prompt.tokens:,} + reply up to {c.max_tokens:,}), over --max-total-tokens "
-            f"{c.max_total_tokens:,}")
-    if c.max_cost_usd is not None:
-        rates = price(client.model)
-        if rates is None:
-            raise BudgetExhausted(f"--max-cost needs a price for {client.label}, and litellm has none: use "
-                                  "--max-total-tokens instead")
-        worst = rates.cost(prompt.tokens, c.max_tokens)
-        if spent["cost_usd"] + worst > c.max_cost_usd:
-            raise BudgetExhausted(
-                f"cost budget: ${spent['cost_usd']:.4f} spent, the next call may cost up to ${worst:.4f}, over "
-                f"--max-cost ${c.max_cost_usd:g}")
-
-
-def _check_wall(store: Store, state: _State) -> None:
+def _check_wall(store: Store, state: RunState) -> None:
     """Raise :class:`BudgetExhausted` if another iteration as long as the last would pass ``max_wall_minutes``."""
     limit = state.config.max_wall_minutes
     if limit is None:
@@ -345,156 +296,87 @@ def _check_wall(store: Store, state: _State) -> None:
             f"{spent['last_wall_s'] / 60:.1f} min, over --max-wall {limit:g} min")
 
 
-def _update(store: Store, state: _State, iteration: int, client: LLMClient, counter: TokenCounter,
-            log: Callable[[str], None]) -> tuple[str, str, str | None, str, int | None]:
-    """Step 1-3 of an iteration: (version to evaluate, update status, llm call id, note for feedback, tokens)."""
-    c = state.config
-    with store.read() as con:
-        ctx = read_context(con, state.run_id, iteration, c.memory, c.call_time_limit_s)
-    observations = [(r["step"], r["obs"]) for r in ctx.train_steps]
-    base_version = ctx.info.version_id
-    try:
-        prompt = build_prompt(ctx, c.token_budget, counter)
-    except PromptBudgetError as exc:
-        raise ValueError(str(exc)) from None
-
-    with store.read() as con:
-        stored = stored_reply(con, state.run_id, iteration, prompt.hash)
-    if stored is not None:
-        call_id, text = stored
-        log(f"iteration {iteration}: reusing the reply stored for this prompt")
-    else:
-        _check_budgets(store, state, client, prompt)
-        try:
-            with state.waiting(iteration, client.label) as on_text:
-                reply = client.complete(prompt.messages, on_text=on_text)
-        except LLMError as exc:
-            call_id = _record_call(store, state, iteration, client, prompt, None, exc)
-            state.llm_failures += 1
-            if exc.fatal or state.llm_failures >= MAX_CONSECUTIVE_LLM_FAILURES:
-                raise
-            return base_version, "llm_error", call_id, f"The LLM call failed ({exc}); the code is unchanged.", prompt.tokens
-        call_id = _record_call(store, state, iteration, client, prompt, reply, None)
-        text = reply.text
-    state.llm_failures = 0
-
-    try:
-        suggestion = parse_reply(text)
-    except ReplyParseError as exc:
-        _set_call_outcome(store, call_id, None, str(exc))
-        return base_version, "rejected", call_id, (f"Your last reply was not usable: {exc}. Reply with the JSON "
-                                                  "format asked for."), prompt.tokens
-    _set_call_outcome(store, call_id, suggestion, None)
-
-    try:
-        candidate = build_candidate(ctx.info, suggestion)
-        if candidate is not None:
-            check_fits(candidate, c.token_budget, counter)
-    except CandidateRejected as exc:  # nothing runnable to store: the reason is the record
-        return base_version, "rejected", call_id, f"Your last suggestion was rejected: {exc}", prompt.tokens
-    if candidate is None:
-        return base_version, "unchanged", call_id, "Your last suggestion did not change the code.", prompt.tokens
-    try:
-        check_at_runtime(RuntimeCheck(candidate.text, state.game, spread(observations),
-                                      call_time_limit_s=c.call_time_limit_s))
-        verdict, reason = "accepted", None
-    except CandidateRejected as exc:
-        verdict, reason = "rejected", str(exc)
-    with store.write() as con:
-        insert_policy_version(con, policy_version_row(candidate.info, state.run_id, iteration, "llm", verdict,
-                                                      reason, parent_id=base_version))
-    if reason is not None:
-        return base_version, "rejected", call_id, f"Your last suggestion was rejected: {reason}", prompt.tokens
-    return candidate.version_id, "accepted", call_id, "", prompt.tokens
-
-
-def _play(store: Store, state: _State, iteration: int, version_id: str,
-          progress: Callable[[int, int], None] | None) -> tuple[EpisodeOutcome, list[EpisodeOutcome], float, float]:
-    """Step 4: the traced training rollout and the evaluation episodes, written as they finish."""
-    text = _version_text(store, state.run_id, version_id)
-    specs = _episode_specs(state, iteration, text, version_id)
-    outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
-    started = time.monotonic()
-    train_done = None
-    verification = StreamingVerification(specs)
-    for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress,
-                                   on_actions=verification.feed):
-        outcome = verification.verify(i, outcome)
-        with store.write() as con:
-            write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)
-        outcomes[i] = outcome
-        if i == 0:
-            train_done = time.monotonic()
-    eval_s = time.monotonic() - started
-    train_s = (train_done or time.monotonic()) - started
-    return outcomes[0], outcomes[1:], train_s, eval_s
-
-
-def run_iteration(store: Store, state: _State, iteration: int, client: LLMClient | None,
+def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClient | None,
                   counter: TokenCounter | None, log: Callable[[str], None],
                   progress: Callable[[int, int], None] | None = None) -> IterationResult:
-    """One whole iteration (see the module docstring); commits its ``iterations`` row last."""
+    """One whole iteration (see the module docstring): plan, propose, assess, decide; commits its rows last."""
     started_at, t0 = utcnow(), time.monotonic()
-    c = state.config
-    notes: list[str] = []
+    with store.read() as con:
+        history = History(iterations(con, state.run_id, iteration), candidates(con, state.run_id, iteration))
+        starter = starter_version_id(con, state.run_id) if iteration == 0 else None
     if iteration == 0:
-        with store.read() as con:
-            version_id = con.execute("SELECT starter_version_id FROM runs WHERE run_id = ?", [state.run_id]).fetchone()[0]
-        base_version, status, call_id, tokens = None, "initial", None, None
+        proposals = [Proposal(0, None, None, "initial", starter, starter, None, "", None)]
     else:
-        with store.read() as con:
-            base_version = con.execute(
-                "SELECT CASE WHEN rolled_back THEN best_version_id ELSE policy_version_id END FROM iterations "
-                "WHERE run_id = ? AND iteration = ?", [state.run_id, iteration - 1]).fetchone()[0]
-        version_id, status, call_id, note, tokens = _update(store, state, iteration, client, counter, log)
-        if note:
-            notes.append(note)
+        requests = state.strategy.plan(history, iteration)
+        proposals = propose(store, state, history, iteration, requests, client, counter, log)
     llm_s = time.monotonic() - t0
 
-    train, evals, train_s, eval_s = _play(store, state, iteration, version_id, progress)
-    score = statistics.fmean(o.episode["return"] for o in evals)
-    previous_best = state.best_score
-    rolled_back = False
-    tampered = tampering([train] + evals) if status == "accepted" else None
-    if tampered:  # pipeline/verify.py: the candidate is rejected, never the best; the next update starts from the best
-        status = "rejected"
-        notes.insert(0, f"Your last suggestion was rejected: {tampered}")
-        rolled_back = state.best_version_id is not None and version_id != state.best_version_id
-        with store.write() as con:
-            con.execute("UPDATE policy_versions SET validation = 'rejected', validation_error = ? WHERE run_id = ? "
-                        "AND iteration = ? AND policy_version_id = ?", [tampered, state.run_id, iteration, version_id])
-    elif previous_best is None or score > previous_best:
-        state.best_score, state.best_iteration, state.best_version_id = score, iteration, version_id
-    elif c.rollback and iteration > 0:
-        threshold = previous_best - (1 - c.rollback_fraction) * max(abs(previous_best), 1.0)
-        if score < threshold and version_id != state.best_version_id:
-            rolled_back = True
-            notes.append(f"This version scored {score:g}, below the best {previous_best:g} (iteration "
-                         f"{state.best_iteration}): its change is rolled back, and the next update starts again from "
-                         f"iteration {state.best_iteration}'s code.")
-    stage, stage_score, text = compose_feedback(c.feedback, state.settings["bands"], score,
-                                                train.episode["return"], train.episode["length"], notes)
-    with store.write() as con:
-        if rolled_back:
-            best_text = policy_text(con, state.run_id, state.best_version_id)
-            info = inspect_policy(best_text, "policy.py")
-            insert_policy_version(con, policy_version_row(info, state.run_id, iteration, "rollback", "accepted",
-                                                          parent_id=version_id))
-        con.execute("INSERT INTO feedback VALUES (?, ?, ?, ?, ?, ?)",
-                    [state.run_id, iteration, c.feedback, stage, stage_score, text])
-        con.execute(
-            """INSERT INTO iterations VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
-            [state.run_id, iteration, version_id, base_version, status, rolled_back, call_id,
-             train.episode["episode_id"], [o.episode["episode_id"] for o in evals], train.episode["return"], score,
-             state.best_score, state.best_version_id, state.best_iteration, started_at, utcnow(), llm_s, train_s,
-             eval_s, time.monotonic() - t0],
-        )
+    assessments, times = assess(store, state, iteration, {p.candidate: p.version_id for p in proposals}, progress)
+    assessed = []
+    for p in proposals:
+        a = assessments[p.candidate]
+        tampered = a.tampered if p.status == "accepted" else None  # pipeline/verify.py: caught, never the best
+        assessed.append(Assessed(p.candidate, p.parent, p.version_id, "rejected" if tampered else p.status,
+                                 a.score, tampered, [p.note] if p.note else []))
+    decision = decide_starter(assessed) if iteration == 0 else state.strategy.decide(history, iteration, assessed)
+    if decision.new_best is not None:
+        best = assessed[decision.new_best]
+        state.best_score, state.best_iteration, state.best_version_id = best.score, iteration, best.version_id
+    _commit(store, state, iteration, proposals, assessments, assessed, decision,
+            timing=dict(started_at=started_at, llm_s=llm_s, train_s=times.train_s, eval_s=times.eval_s, t0=t0))
     state.next_iteration = iteration + 1
-    return IterationResult(state.run_id, iteration, version_id, status, score, state.best_score, state.best_iteration,
-                           rolled_back, notes[0] if notes else "", tokens)
+    chosen, notes = assessed[decision.chosen], decision.notes[decision.chosen]
+    return IterationResult(state.run_id, iteration, chosen.version_id, chosen.status, chosen.score, state.best_score,
+                           state.best_iteration, decision.rolled_back, notes[0] if notes else "",
+                           proposals[decision.chosen].prompt_tokens, candidates=len(proposals))
 
 
-def run_loop(store: Store, state: _State, client: LLMClient | None, log: Callable[[str], None] = lambda s: None,
+def _commit(store: Store, state: RunState, iteration: int, proposals: list[Proposal], assessments, assessed,
+            decision, timing: dict[str, Any]) -> None:
+    """Write the iteration in one transaction: the rollback version (greedy), the versions caught tampering,
+    every candidate with its feedback, the chosen candidate's feedback and the ``iterations`` row."""
+    c = state.config
+    texts = {}
+    for p, a in zip(proposals, assessed):
+        played = assessments[p.candidate]
+        texts[p.candidate] = compose_feedback(c.feedback, state.settings["bands"], a.score, played.train_return,
+                                              played.train_length, decision.notes[p.candidate])
+    chosen = proposals[decision.chosen]
+    chosen_play = assessments[chosen.candidate]
+    with store.write() as con:
+        if decision.rolled_back:
+            best_text = policy_text(con, state.run_id, state.best_version_id)
+            insert_policy_version(con, policy_version_row(inspect_policy(best_text, "policy.py"), state.run_id,
+                                                          iteration, "rollback", "accepted",
+                                                          parent_id=assessed[decision.chosen].version_id))
+        for p, a in zip(proposals, assessed):
+            played = assessments[p.candidate]
+            if a.tampered:
+                reject_policy_version(con, state.run_id, iteration, a.version_id, a.tampered)
+            insert_candidate(con, dict(
+                run_id=state.run_id, iteration=iteration, candidate=p.candidate, strategy=c.strategy,
+                parent_iteration=p.parent.iteration if p.parent else None,
+                parent_candidate=p.parent.candidate if p.parent else None, parent_version_id=p.parent_version_id,
+                proposed_version_id=p.proposed_version_id, policy_version_id=a.version_id, llm_call_id=p.call_id,
+                update_status=a.status, evaluation=played.evaluation, train_episode_id=played.train_episode_id,
+                eval_episode_ids=played.eval_episode_ids, train_return=played.train_return, score=a.score,
+                decision=decision.decisions[p.candidate], feedback=texts[p.candidate][2]))
+        stage, stage_score, text = texts[chosen.candidate]
+        insert_feedback(con, dict(run_id=state.run_id, iteration=iteration, mode=c.feedback, stage=stage,
+                                  score=stage_score, text=text))
+        insert_iteration(con, dict(
+            run_id=state.run_id, iteration=iteration, candidate=chosen.candidate,
+            policy_version_id=assessed[decision.chosen].version_id, base_version_id=chosen.parent_version_id,
+            update_status=assessed[decision.chosen].status, rolled_back=decision.rolled_back,
+            llm_call_id=chosen.call_id, train_episode_id=chosen_play.train_episode_id,
+            eval_episode_ids=chosen_play.eval_episode_ids, train_return=chosen_play.train_return,
+            score=assessed[decision.chosen].score, best_score=state.best_score,
+            best_version_id=state.best_version_id, best_iteration=state.best_iteration,
+            started_at=timing["started_at"], finished_at=utcnow(), llm_s=timing["llm_s"],
+            train_s=timing["train_s"], eval_s=timing["eval_s"], wall_s=time.monotonic() - timing["t0"]))
+
+
+def run_loop(store: Store, state: RunState, client: LLMClient | None, log: Callable[[str], None] = lambda s: None,
              on_iteration: Callable[[IterationResult], None] | None = None,
              progress: Callable[[int, int], None] | None = None) -> OptimizeResult:
     """Iterations ``state.next_iteration .. config.iterations``; marks the run finished, failed or interrupted.
@@ -512,8 +394,7 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
     status, error = "failed", None
     try:
         with store.write() as con:
-            con.execute("UPDATE runs SET status = 'running', finished_at = NULL, error = NULL WHERE run_id = ?",
-                        [state.run_id])
+            mark_run_running(con, state.run_id)
         for iteration in range(state.next_iteration, state.config.iterations + 1):
             if iteration > 0:
                 _check_wall(store, state)
@@ -544,11 +425,7 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
 def _all_updates_failed(store: Store, run_id: str) -> str | None:
     """Why a run whose every update ended in an LLM error is not a success, or None."""
     with store.read() as con:
-        updates, failed, last_error = con.execute(
-            "SELECT count(*), count(*) FILTER (WHERE i.update_status = 'llm_error'), "
-            "(SELECT arg_max(error_type || ': ' || error_message, created_at) FROM llm_calls "
-            " WHERE run_id = ? AND error_type IS NOT NULL) "
-            "FROM iterations i WHERE i.run_id = ? AND i.iteration > 0", [run_id, run_id]).fetchone()
+        updates, failed, last_error = update_failures(con, run_id)
     if updates and failed == updates:
         return f"every LLM call failed ({failed} of {updates} updates; last: {last_error})"
     return None
@@ -578,7 +455,7 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
     with store.read() as con:
         run_id = resolve_run_id(con, run, store)
         row = get_run(con, run_id)
-        done = con.execute("SELECT count(*) FROM iterations WHERE run_id = ?", [run_id]).fetchone()[0]
+        done = iteration_count(con, run_id)
     if row["kind"] != "optimize":
         raise ValueError(f"run {run_id} is an {row['kind']} run: only optimization runs can be resumed "
                          f"({'evaluate the policy again with codearcade eval' if row['kind'] == 'eval' else 'replay the original run again'})")
@@ -629,6 +506,5 @@ def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: st
             for key, value in changed.items():
                 setattr(state.config, key, value)
             with store.write() as con:
-                con.execute("UPDATE runs SET config = json_merge_patch(config, ?) WHERE run_id = ?",
-                            [json.dumps(changed), run_id])
+                merge_run_config(con, run_id, changed)
     return run_loop(store, state, client, log, on_iteration, progress)

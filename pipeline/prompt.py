@@ -28,8 +28,9 @@ from typing import Any
 import duckdb
 
 from games import get_game, list_widths
+from pipeline.strategies import Greedy, History, Ref, format_number
 from pipeline.tokens import TokenCounter
-from store.readers import episode_steps, policy_text, step_nodes
+from store.readers import candidates, episode_steps, episode_summary, get_run, iterations, policy_text, step_nodes
 from tracing.policy_file import PolicyInfo, inspect_policy, replace_methods
 from tracing.sandbox import ALLOWED_MODULES
 
@@ -120,83 +121,64 @@ def read_context(
     memory: int,
     call_time_limit_s: float = 1.0,
 ) -> PromptContext:
-    """The context of the update that starts iteration ``next_iteration`` of ``run_id``, from the store alone.
+    """The context of the paper's (``greedy``) update that starts iteration ``next_iteration`` of ``run_id``.
 
     The update improves the version of the previous iteration, or, if that iteration rolled back, the best
     version: its rollout, evaluation and feedback are shown, with a note on the rollback. Memory holds up to
     ``memory`` earlier iterations, newest first.
     """
-    previous = _iteration(con, run_id, next_iteration - 1)
-    if previous is None:
+    history = History(iterations(con, run_id, before_iteration=next_iteration),
+                      candidates(con, run_id, before_iteration=next_iteration))
+    if len(history.iterations) < next_iteration:
         raise KeyError(f"run {run_id} has no iteration {next_iteration - 1}")
-    base, note = previous, ""
-    if previous["rolled_back"]:
-        base = _iteration(con, run_id, previous["best_iteration"])
-        note = (f"Iteration {previous['iteration']} scored {_num(previous['score'])}, below the best "
-                f"{_num(previous['best_score'])} of iteration {base['iteration']}, so its change was rolled back: "
-                f"you are improving iteration {base['iteration']}'s code again (see #Memory for what regressed).\n")
-    game, config = con.execute("SELECT game, config FROM runs WHERE run_id = ?", [run_id]).fetchone()
+    (request,) = Greedy(memory=memory).plan(history, next_iteration)
+    return context_for(con, run_id, history, request.parent, request.memory, request.note, call_time_limit_s)
+
+
+def context_for(
+    con: duckdb.DuckDBPyConnection,
+    run_id: str,
+    history: History,
+    parent: Ref,
+    memory: list[Ref],
+    note: str = "",
+    call_time_limit_s: float = 1.0,
+) -> PromptContext:
+    """The context of an update that improves the candidate ``parent``, from the store alone: its code, its
+    traced training rollout, its evaluation and feedback (after ``note``), and the candidates in ``memory``."""
+    base = history.candidate(parent)
+    run = get_run(con, run_id)
+    game = get_game(run["game"])
     info = inspect_policy(policy_text(con, run_id, base["policy_version_id"]), "policy.py")
     entries = []
-    for row in con.execute(
-        """SELECT i.iteration, i.policy_version_id, i.update_status, i.score, f.text
-           FROM iterations i LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
-           WHERE i.run_id = ? AND i.iteration < ? AND i.iteration <> ? ORDER BY i.iteration DESC LIMIT ?""",
-        [run_id, next_iteration, base["iteration"], memory],
-    ).fetchall():
-        it, vid, status, score, fb = row
-        old = inspect_policy(policy_text(con, run_id, vid), "policy.py")
-        entries.append(MemoryEntry(it, score, status, fb or "", {m.name: m.source for m in old.trainable}))
+    for ref in memory:
+        row = history.candidate(ref)
+        old = inspect_policy(policy_text(con, run_id, row["policy_version_id"]), "policy.py")
+        entries.append(MemoryEntry(row["iteration"], row["score"], row["update_status"], row["feedback"] or "",
+                                   {m.name: m.source for m in old.trainable}))
     return PromptContext(
-        game=get_game(game).name,
-        instruction=json.loads(config).get("instruction") or "",
+        game=game.name,
+        instruction=json.loads(run["config"]).get("instruction") or "",
         info=info,
-        train_episode=_episode(con, base["train_episode_id"]),
-        train_steps=episode_steps(con, base["train_episode_id"], list_widths=list_widths(game),
-                                  derive=get_game(game).derive),
+        train_episode=episode_summary(con, base["train_episode_id"]),
+        train_steps=episode_steps(con, base["train_episode_id"], list_widths=list_widths(game.name),
+                                  derive=game.derive),
         train_nodes=step_nodes(con, base["train_episode_id"]),
-        eval_episodes=[_episode(con, e) for e in base["eval_episode_ids"] or []],
+        eval_episodes=[episode_summary(con, e) for e in base["eval_episode_ids"] or []],
         feedback=note + (base["feedback"] or ""),
         memory=entries,
         call_time_limit_s=call_time_limit_s,
     )
 
 
-def _iteration(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> dict[str, Any] | None:
-    cursor = con.execute(
-        """SELECT i.*, f.text AS feedback FROM iterations i
-           LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
-           WHERE i.run_id = ? AND i.iteration = ?""", [run_id, iteration])
-    names = [d[0] for d in cursor.description]
-    row = cursor.fetchone()
-    return dict(zip(names, row)) if row else None
-
-
-def _episode(con: duckdb.DuckDBPyConnection, episode_id: str) -> dict[str, Any]:
-    cursor = con.execute(
-        "SELECT episode_id, return, length, lives_lost, end_reason, error FROM episodes WHERE episode_id = ?",
-        [episode_id],
-    )
-    names = [d[0] for d in cursor.description]
-    row = cursor.fetchone()
-    return dict(zip(names, row)) if row else {"episode_id": episode_id, "return": 0.0, "length": 0,
-                                               "lives_lost": 0, "end_reason": "missing", "error": None}
-
-
 # ---------------------------------------------------------------------------------------------- rendering
-
-
-def _num(value: Any) -> str:
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    return str(value)
 
 
 def _value(value: Any) -> str:
     if value == {"$ref": "obs"}:
         return "obs"
     if isinstance(value, float):
-        return _num(value)
+        return format_number(value)
     text = json.dumps(value, separators=(",", ":")) if not isinstance(value, str) else json.dumps(value)
     return text if len(text) <= MAX_VALUE_CHARS else text[:MAX_VALUE_CHARS] + "…"
 
@@ -373,13 +355,13 @@ def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prom
 
     ep = ctx.train_episode
     event_text = "; ".join(f"{what} at step {s}" for s, what in events) or "no point or life lost"
-    inputs_head = (f"Training rollout of the current policy: {ep['length']} steps, return {_num(ep['return'])}, "
+    inputs_head = (f"Training rollout of the current policy: {ep['length']} steps, return {format_number(ep['return'])}, "
                    f"ended: {ep['end_reason']}. Events: {event_text}.")
     if ep.get("error"):
         inputs_head += f"\nThe policy failed: {ep['error']}"
     evals = ctx.eval_episodes
     outputs_tail = "Evaluation games: " + "; ".join(
-        f"return {_num(e['return'])} in {e['length']} steps ({e['end_reason']}"
+        f"return {format_number(e['return'])} in {e['length']} steps ({e['end_reason']}"
         + (f": {e['error']}" if e.get("error") else "") + ")" for e in evals
     ) if evals else "Evaluation games: none."
 
@@ -434,7 +416,7 @@ def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prom
     memory_texts: list[str] = []
     current = {m.name: m.source for m in ctx.info.trainable}
     for entry in ctx.memory:  # newest first
-        head = (f"Iteration {entry.iteration}: score {_num(entry.score) if entry.score is not None else 'n/a'}, "
+        head = (f"Iteration {entry.iteration}: score {format_number(entry.score) if entry.score is not None else 'n/a'}, "
                 f"update {entry.update_status}.\nFeedback: {entry.feedback.strip()}")
         diff = _diff(entry.sources, current)
         full = head + ("\nCode differences from the current version:\n```diff\n" + diff + "\n```" if diff
@@ -482,4 +464,4 @@ def _calls_line(row: dict[str, Any], nodes_by_step: dict[int, list[dict[str, Any
 def _out_line(row: dict[str, Any]) -> str:
     if row["action"] is None:
         return f"step {row['step']}: no action (the policy failed)"
-    return f"step {row['step']}: action {row['action']}, reward {_num(row['reward'])}, score {_num(row['score'])}"
+    return f"step {row['step']}: action {row['action']}, reward {format_number(row['reward'])}, score {format_number(row['score'])}"

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 from pipeline.llm import ReplayClient
 from pipeline.optimize import OptimizeConfig, load_state, run_loop, start_run
 from store import Store
-from store.readers import blob_text, get_run
+from store.readers import blob_text, get_run, iteration_prompts, stored_replies
+from store.writer import finish_run
 from tracing.policy_file import inspect_policy
 
 
@@ -50,19 +51,6 @@ class ReplayReport:
         }
 
 
-def _per_iteration(store: Store, run_id: str) -> dict[int, tuple[str | None, float | None]]:
-    rows = store.query(
-        """SELECT i.iteration, max(c.prompt_hash), any_value(i.score)
-           FROM iterations i LEFT JOIN llm_calls c ON c.run_id = i.run_id AND c.iteration = i.iteration
-           WHERE i.run_id = ? GROUP BY i.iteration""", [run_id])
-    calls = store.query("SELECT iteration, max(prompt_hash) FROM llm_calls WHERE run_id = ? GROUP BY iteration",
-                        [run_id])
-    found = {it: (h, score) for it, h, score in rows}
-    for it, h in calls:  # a call whose iteration never completed (the divergence) still has a prompt
-        found.setdefault(it, (h, None))
-    return found
-
-
 def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
     with store.read() as con:
         run = get_run(con, run_id)
@@ -71,16 +59,15 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
         if run["kind"] not in ("optimize", "replay"):
             raise ValueError(f"run {run_id} is an {run['kind']} run; only optimize runs can be replayed")
         starter = inspect_policy(blob_text(con, run["starter_policy_hash"]), "policy.py")
-        replies = dict(con.execute(
-            "SELECT c.prompt_hash, b.text FROM llm_calls c JOIN blobs b ON b.hash = c.reply_hash "
-            "WHERE c.run_id = ? AND c.error_type IS NULL", [run_id]).fetchall())
+        replies = stored_replies(con, run_id)
     recorded = json.loads(run["config"])
     config = OptimizeConfig(**{k: recorded[k] for k in OptimizeConfig.__dataclass_fields__ if k in recorded})
     client = ReplayClient(replies, model=run["model"] or "replay")
     new_run = start_run(config, store, client.model, kind="replay", extra={"replay_of": run_id}, starter=starter)
     result = run_loop(store, load_state(store, new_run), client, log)
 
-    original, again = _per_iteration(store, run_id), _per_iteration(store, new_run)
+    with store.read() as con:
+        original, again = iteration_prompts(con, run_id), iteration_prompts(con, new_run)
     report = ReplayReport(run_id, new_run, result.status)
     for it in sorted(set(original) | set(again)):
         o_hash, o_score = original.get(it, (None, None))
@@ -92,5 +79,5 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
     if result.error and "ReplayMiss" in result.error:
         report.status = "diverged"
         with store.write() as con:
-            con.execute("UPDATE runs SET status = 'diverged' WHERE run_id = ?", [new_run])
+            finish_run(con, new_run, "diverged", result.error)
     return report

@@ -21,8 +21,11 @@ def new_run_id(now: float | None = None) -> str:
     return "".join(_CROCKFORD[(value >> shift) & 31] for shift in range(125, -1, -5))
 
 
-def episode_id(run_id: str, iteration: int, kind: str, index: int) -> str:
-    """Deterministic episode id: ``{run_id}.{iteration}.{kind}.{index}`` (re-running an episode replaces it)."""
+def episode_id(run_id: str, iteration: int, kind: str, index: int, candidate: int = 0) -> str:
+    """Deterministic episode id: ``{run_id}.{iteration}.{kind}.{index}``, or ``{run_id}.{iteration}.c{candidate}.
+    {kind}.{index}`` for an iteration's later candidates (re-running an episode replaces it)."""
+    if candidate:
+        return f"{run_id}.{iteration}.c{candidate}.{kind}.{index}"
     return f"{run_id}.{iteration}.{kind}.{index}"
 
 

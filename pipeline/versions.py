@@ -16,6 +16,7 @@ def policy_version_row(
     validation: str = "accepted",
     validation_error: str | None = None,
     parent_id: str | None = None,
+    llm_call_id: str | None = None,
 ) -> dict[str, Any]:
     """The row for ``store.writer.insert_policy_version`` (sources go to blobs there)."""
     functions = []
@@ -28,6 +29,7 @@ def policy_version_row(
         run_id=run_id,
         iteration=iteration,
         parent_id=parent_id,
+        llm_call_id=llm_call_id,
         source=info.text,
         produced_by=produced_by,
         validation=validation,

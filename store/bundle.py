@@ -1,7 +1,7 @@
 """A run's rows as Arrow tables: to ship a run to another machine and back (the Ray executor).
 
 :func:`export_run` collects every row that belongs to one run, in the store's own format: its ``runs`` row,
-policy versions, iterations, feedback, LLM calls, episodes with their steps and nodes, and the blobs they
+policy versions, iterations and their candidates, feedback, LLM calls, episodes with their steps and nodes, and the blobs they
 reference. :func:`import_run` writes such a bundle into a store in one transaction, replacing any earlier rows
 of the same run, so a run finished elsewhere lands whole or not at all, and never twice.
 """
@@ -13,7 +13,7 @@ import pyarrow as pa
 
 Bundle = dict[str, pa.Table]
 
-RUN_TABLES = ("runs", "policy_versions", "iterations", "feedback", "llm_calls", "episodes")
+RUN_TABLES = ("runs", "policy_versions", "iterations", "candidates", "feedback", "llm_calls", "episodes")
 EPISODE_TABLES = ("steps", "nodes")
 
 _BLOB_HASHES = """
@@ -23,6 +23,7 @@ _BLOB_HASHES = """
     UNION SELECT prompt_hash FROM llm_calls WHERE run_id = $run
     UNION SELECT reply_hash FROM llm_calls WHERE run_id = $run
     UNION SELECT suggestion_hash FROM llm_calls WHERE run_id = $run
+    UNION SELECT feedback_hash FROM candidates WHERE run_id = $run
 """
 
 

@@ -3,10 +3,11 @@
 Each check is one SQL query that returns the offending rows (nothing, when the store is sound):
 
 - references: every row's run exists; every step and node belongs to an episode; every blob hash a row
-  refers to is in ``blobs`` (policy texts, method sources, prompts, replies, suggestions);
+  refers to is in ``blobs`` (policy texts, method sources, prompts, replies, suggestions, feedback);
 - uniqueness: one row per (episode, step), per (episode, step, call), per (run, iteration);
 - completeness: each run's iterations are 0, 1, ..., n without a gap; each iteration has its feedback, its
-  evaluated policy version, its episodes and (for updates that called a model) its LLM call; each episode has
+  evaluated policy version, its chosen candidate, its episodes and (for updates that called a model) its LLM
+  call; every candidate's episodes exist (a cached one's are an earlier candidate's); each episode has
   ``length`` step rows numbered from 0 (one more, with no action, where the policy failed);
 - damage to the file itself (``store.db.store_damage``: a table or view missing, a truncated file) and any
   check that cannot run (a block that cannot be read) are findings too, so a damaged store gets a report, not
@@ -27,6 +28,7 @@ CHECKS: list[tuple[str, str]] = [
     ("orphan rows: run missing", """
         SELECT 'policy_versions' AS tbl, run_id FROM policy_versions WHERE run_id NOT IN (SELECT run_id FROM runs)
         UNION ALL SELECT 'iterations', run_id FROM iterations WHERE run_id NOT IN (SELECT run_id FROM runs)
+        UNION ALL SELECT 'candidates', run_id FROM candidates WHERE run_id NOT IN (SELECT run_id FROM runs)
         UNION ALL SELECT 'feedback', run_id FROM feedback WHERE run_id NOT IN (SELECT run_id FROM runs)
         UNION ALL SELECT 'llm_calls', run_id FROM llm_calls WHERE run_id NOT IN (SELECT run_id FROM runs)
         UNION ALL SELECT 'episodes', run_id FROM episodes WHERE run_id NOT IN (SELECT run_id FROM runs)"""),
@@ -40,7 +42,8 @@ CHECKS: list[tuple[str, str]] = [
             UNION ALL SELECT 'policy_versions.functions', f.source_hash FROM (SELECT unnest(functions) AS f FROM policy_versions)
             UNION ALL SELECT 'llm_calls.prompt_hash', prompt_hash FROM llm_calls
             UNION ALL SELECT 'llm_calls.reply_hash', reply_hash FROM llm_calls
-            UNION ALL SELECT 'llm_calls.suggestion_hash', suggestion_hash FROM llm_calls)
+            UNION ALL SELECT 'llm_calls.suggestion_hash', suggestion_hash FROM llm_calls
+            UNION ALL SELECT 'candidates.feedback_hash', feedback_hash FROM candidates)
         SELECT ref, hash FROM refs WHERE hash IS NOT NULL AND hash NOT IN (SELECT hash FROM blobs)"""),
     ("duplicate steps", "SELECT episode_id, step, count(*) FROM steps GROUP BY ALL HAVING count(*) > 1"),
     ("duplicate nodes", "SELECT episode_id, step, call_index, count(*) FROM nodes GROUP BY ALL HAVING count(*) > 1"),
@@ -57,6 +60,14 @@ CHECKS: list[tuple[str, str]] = [
     ("iterations whose episodes are missing", """
         SELECT i.run_id, i.iteration, e.episode_id FROM iterations i,
                unnest(list_prepend(i.train_episode_id, i.eval_episode_ids)) AS e(episode_id)
+        WHERE e.episode_id NOT IN (SELECT episode_id FROM episodes)"""),
+    ("iterations without their candidates", """
+        SELECT i.run_id, i.iteration, i.candidate FROM iterations i
+        WHERE NOT EXISTS (SELECT 1 FROM candidates c WHERE c.run_id = i.run_id AND c.iteration = i.iteration
+                          AND c.candidate = coalesce(i.candidate, 0))"""),
+    ("candidates whose episodes are missing", """
+        SELECT c.run_id, c.iteration, c.candidate, e.episode_id FROM candidates c,
+               unnest(list_prepend(c.train_episode_id, c.eval_episode_ids)) AS e(episode_id)
         WHERE e.episode_id NOT IN (SELECT episode_id FROM episodes)"""),
     ("iterations whose LLM call is missing", """
         SELECT run_id, iteration, llm_call_id FROM iterations

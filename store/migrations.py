@@ -352,4 +352,92 @@ MIGRATIONS.append(
     )
 )
 
+# Search strategies (issue 15): an iteration may assess several candidates. Each is a ``candidates`` row: the
+# version it improved (its parent), the LLM call that made it, the version it proposed and the one assessed for it
+# (its parent again when the proposal was rejected or unchanged), where its episodes came from (played, or
+# reused from an earlier assessment of the same version: the evaluation cache), its score, and the strategy's
+# decision. ``iterations`` keeps one row per iteration: the candidate the strategy chose. Runs made before this
+# migration had one candidate per iteration: they are copied in as candidate 0, so every run has its lineage.
+MIGRATIONS.append(
+    (
+        6,
+        "candidates (several per iteration, with parents and the strategy's decision); lineage and frontier views",
+        r"""
+        ALTER TABLE llm_calls ADD COLUMN candidate INTEGER DEFAULT 0;  -- which of an iteration's proposals
+        ALTER TABLE iterations ADD COLUMN candidate INTEGER DEFAULT 0; -- the candidate the strategy chose
+        ALTER TABLE policy_versions ADD COLUMN llm_call_id VARCHAR;     -- the call whose reply it is (produced_by llm)
+        UPDATE policy_versions v SET llm_call_id = i.llm_call_id
+        FROM iterations i
+        WHERE v.produced_by = 'llm' AND i.run_id = v.run_id AND i.iteration = v.iteration;
+        CREATE TABLE candidates (
+            run_id              VARCHAR NOT NULL,
+            iteration           INTEGER NOT NULL,
+            candidate           INTEGER NOT NULL,       -- 0, 1, ... within the iteration
+            strategy            VARCHAR NOT NULL,       -- greedy | best-of-n | beam
+            parent_iteration    INTEGER,                -- the candidate it improved: (parent_iteration, parent_candidate)
+            parent_candidate    INTEGER,
+            parent_version_id   VARCHAR,
+            proposed_version_id VARCHAR,                -- the code the reply proposed (NULL: no usable code)
+            policy_version_id   VARCHAR NOT NULL,       -- the version assessed for it
+            llm_call_id         VARCHAR,
+            update_status       VARCHAR NOT NULL,       -- initial | accepted | rejected | unchanged | llm_error
+            evaluation          VARCHAR NOT NULL,       -- played | cached (episodes reused from an earlier assessment)
+            train_episode_id    VARCHAR,
+            eval_episode_ids    VARCHAR[],
+            train_return        DOUBLE,
+            score               DOUBLE,                 -- mean return of the evaluation episodes
+            decision            VARCHAR NOT NULL,       -- best | kept | discarded | rolled_back | rejected
+            feedback_hash       VARCHAR,                -- blobs.hash of the feedback text shown when it is improved
+            created_at          TIMESTAMP NOT NULL,
+            PRIMARY KEY (run_id, iteration, candidate)
+        );
+        INSERT INTO blobs (hash, kind, text, chars)
+        SELECT DISTINCT sha256(text), 'feedback', text, length(text) FROM feedback
+        ON CONFLICT DO NOTHING;
+        INSERT INTO candidates BY NAME
+        SELECT i.run_id, i.iteration, 0 AS candidate, 'greedy' AS strategy,
+               p.iteration AS parent_iteration, CASE WHEN p.iteration IS NULL THEN NULL ELSE 0 END AS parent_candidate,
+               i.base_version_id AS parent_version_id,
+               CASE WHEN i.update_status IN ('accepted', 'initial') THEN i.policy_version_id END AS proposed_version_id,
+               i.policy_version_id, i.llm_call_id, i.update_status, 'played' AS evaluation,
+               i.train_episode_id, i.eval_episode_ids, i.train_return, i.score,
+               CASE WHEN i.update_status = 'rejected' THEN 'rejected'
+                    WHEN i.rolled_back THEN 'rolled_back'
+                    WHEN i.best_iteration = i.iteration THEN 'best' ELSE 'kept' END AS decision,
+               sha256(f.text) AS feedback_hash, coalesce(i.finished_at, now()) AS created_at
+        FROM iterations i
+        LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
+        LEFT JOIN iterations prev ON prev.run_id = i.run_id AND prev.iteration = i.iteration - 1
+        LEFT JOIN iterations p ON p.run_id = i.run_id
+             AND p.iteration = CASE WHEN prev.rolled_back THEN prev.best_iteration ELSE prev.iteration END;
+
+        CREATE OR REPLACE VIEW lineage AS  -- one row per candidate: an edge to the candidate it improved
+        SELECT c.run_id, c.iteration, c.candidate, c.strategy, c.policy_version_id, c.proposed_version_id,
+               c.parent_iteration, c.parent_candidate, c.parent_version_id, c.update_status, c.evaluation,
+               c.score, p.score AS parent_score, c.score - p.score AS gain, c.decision, c.llm_call_id,
+               v.loc, v.complexity
+        FROM candidates c
+        LEFT JOIN candidates p ON p.run_id = c.run_id AND p.iteration = c.parent_iteration
+             AND p.candidate = c.parent_candidate
+        LEFT JOIN policy_versions v ON v.run_id = c.run_id AND v.iteration = c.iteration
+             AND v.policy_version_id = c.policy_version_id;
+
+        CREATE OR REPLACE VIEW frontier AS  -- each distinct assessed version once, with its score and rank in the run
+        WITH versions AS (
+            SELECT run_id, policy_version_id, max(score) AS score, min(iteration) AS first_iteration,
+                   count(*) AS assessments, count(*) FILTER (WHERE evaluation = 'cached') AS cached
+            FROM candidates  -- not a version caught tampering (assessed, then rejected)
+            WHERE NOT (decision = 'rejected' AND policy_version_id IS NOT DISTINCT FROM proposed_version_id)
+            GROUP BY run_id, policy_version_id
+        )
+        SELECT v.*, rank() OVER (PARTITION BY v.run_id ORDER BY v.score DESC NULLS LAST) AS rank,
+               m.loc, m.complexity
+        FROM versions v
+        LEFT JOIN (SELECT run_id, policy_version_id, any_value(loc) AS loc, any_value(complexity) AS complexity
+                   FROM policy_versions GROUP BY ALL) m
+               ON m.run_id = v.run_id AND m.policy_version_id = v.policy_version_id;
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

@@ -95,20 +95,139 @@ def policy_text(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) ->
 
 
 def run_spending(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, float]:
-    """What a run has used so far: LLM cost (USD, calls with a known price), tokens, and iteration wall time."""
-    cost, tokens = con.execute(
-        "SELECT coalesce(sum(cost_usd), 0), coalesce(sum(coalesce(input_tokens, 0) + coalesce(output_tokens, 0)), 0) "
-        "FROM llm_calls WHERE run_id = ? AND NOT replayed", [run_id]).fetchone()
+    """What a run has used so far: LLM cost (USD, calls with a known price), tokens, calls, and iteration wall
+    time."""
+    cost, tokens, calls = con.execute(
+        "SELECT coalesce(sum(cost_usd), 0), coalesce(sum(coalesce(input_tokens, 0) + coalesce(output_tokens, 0)), 0), "
+        "count(*) FROM llm_calls WHERE run_id = ? AND NOT replayed", [run_id]).fetchone()
     wall, last_wall = con.execute(
         "SELECT coalesce(sum(wall_s), 0), coalesce(arg_max(wall_s, iteration), 0) FROM iterations WHERE run_id = ?",
         [run_id]).fetchone()
-    return {"cost_usd": float(cost), "tokens": int(tokens), "wall_s": float(wall), "last_wall_s": float(last_wall)}
+    return {"cost_usd": float(cost), "tokens": int(tokens), "calls": int(calls), "wall_s": float(wall),
+            "last_wall_s": float(last_wall)}
 
 
-def stored_reply(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int, prompt_hash: str) -> tuple[str, str] | None:
-    """(call id, reply text) of a successful call already made for this prompt in this iteration, if any."""
+def stored_reply(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int, prompt_hash: str,
+                 candidate: int = 0) -> tuple[str, str] | None:
+    """(call id, reply text) of a successful call already made for this prompt by this candidate of this
+    iteration, if any (an iteration's proposals can share one prompt: each keeps its own reply)."""
     row = con.execute(
         "SELECT c.call_id, b.text FROM llm_calls c JOIN blobs b ON b.hash = c.reply_hash "
-        "WHERE c.run_id = ? AND c.iteration = ? AND c.prompt_hash = ? AND c.error_type IS NULL "
-        "ORDER BY c.created_at LIMIT 1", [run_id, iteration, prompt_hash]).fetchone()
+        "WHERE c.run_id = ? AND c.iteration = ? AND coalesce(c.candidate, 0) = ? AND c.prompt_hash = ? "
+        "AND c.error_type IS NULL ORDER BY c.created_at LIMIT 1", [run_id, iteration, candidate, prompt_hash]).fetchone()
     return (row[0], row[1]) if row else None
+
+
+# ---------------------------------------------------------------------------------------------- the optimizer
+
+
+def stored_replies(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[str, int], str]:
+    """Every successful reply of a run by (prompt hash, candidate): what ``codearcade replay`` answers with."""
+    rows = con.execute(
+        "SELECT c.prompt_hash, coalesce(c.candidate, 0), b.text FROM llm_calls c JOIN blobs b ON b.hash = c.reply_hash "
+        "WHERE c.run_id = ? AND c.error_type IS NULL ORDER BY c.created_at", [run_id]).fetchall()
+    replies: dict[tuple[str, int], str] = {}
+    for digest, candidate, text in rows:
+        replies.setdefault((digest, candidate), text)
+    return replies
+
+
+def starter_version_id(con: duckdb.DuckDBPyConnection, run_id: str) -> str:
+    return con.execute("SELECT starter_version_id FROM runs WHERE run_id = ?", [run_id]).fetchone()[0]
+
+
+def last_iteration(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any] | None:
+    """The newest ``iterations`` row of a run (where a resumed run continues), or None."""
+    rows = _rows(con.execute(
+        "SELECT iteration, best_score, best_iteration, best_version_id FROM iterations WHERE run_id = ? "
+        "ORDER BY iteration DESC LIMIT 1", [run_id]))
+    return rows[0] if rows else None
+
+
+def iteration_count(con: duckdb.DuckDBPyConnection, run_id: str) -> int:
+    return con.execute("SELECT count(*) FROM iterations WHERE run_id = ?", [run_id]).fetchone()[0]
+
+
+def iteration_row(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> dict[str, Any] | None:
+    """One ``iterations`` row with its feedback text (``feedback``)."""
+    rows = _rows(con.execute(
+        """SELECT i.*, f.text AS feedback FROM iterations i
+           LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
+           WHERE i.run_id = ? AND i.iteration = ?""", [run_id, iteration]))
+    return rows[0] if rows else None
+
+
+def iterations(con: duckdb.DuckDBPyConnection, run_id: str, before_iteration: int | None = None) -> list[dict[str, Any]]:
+    """A run's ``iterations`` rows (before ``before_iteration`` if given), in order: score, best so far, the
+    chosen candidate and whether it rolled back."""
+    return _rows(con.execute(
+        """SELECT iteration, coalesce(candidate, 0) AS candidate, policy_version_id, update_status, score,
+                  rolled_back, best_score, best_iteration, best_version_id
+           FROM iterations WHERE run_id = ? AND iteration < ? ORDER BY iteration""",
+        [run_id, before_iteration if before_iteration is not None else 2**31 - 1]))
+
+
+CANDIDATE_COLUMNS = """c.run_id, c.iteration, c.candidate, c.strategy, c.parent_iteration, c.parent_candidate,
+    c.parent_version_id, c.proposed_version_id, c.policy_version_id, c.llm_call_id, c.update_status, c.evaluation,
+    c.train_episode_id, c.eval_episode_ids, c.train_return, c.score, c.decision, b.text AS feedback"""
+
+
+def candidates(con: duckdb.DuckDBPyConnection, run_id: str, before_iteration: int | None = None) -> list[dict[str, Any]]:
+    """The candidates of a run's completed iterations (optionally those before ``before_iteration``), in
+    (iteration, candidate) order, with their feedback text: the whole history a strategy decides from."""
+    return _rows(con.execute(
+        f"""SELECT {CANDIDATE_COLUMNS} FROM candidates c LEFT JOIN blobs b ON b.hash = c.feedback_hash
+            JOIN iterations i ON i.run_id = c.run_id AND i.iteration = c.iteration
+            WHERE c.run_id = ? AND c.iteration < ? ORDER BY c.iteration, c.candidate""",
+        [run_id, before_iteration if before_iteration is not None else 2**31 - 1]))
+
+
+def episode_summary(con: duckdb.DuckDBPyConnection, episode_id: str) -> dict[str, Any]:
+    """Return, length, lives lost and end of one episode (a placeholder saying ``missing`` if it is gone)."""
+    rows = _rows(con.execute(
+        "SELECT episode_id, return, length, lives_lost, end_reason, error FROM episodes WHERE episode_id = ?",
+        [episode_id]))
+    return rows[0] if rows else {"episode_id": episode_id, "return": 0.0, "length": 0, "lives_lost": 0,
+                                 "end_reason": "missing", "error": None}
+
+
+def reusable_assessment(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) -> dict[str, Any] | None:
+    """The first assessment of ``version_id`` in this run whose episodes can stand for a new one (the
+    evaluation cache): played, not caught tampering, every episode stored, verified and ended by the game or
+    the step cap, never by a time limit (which depends on the machine's load, not on the code)."""
+    rows = _rows(con.execute(
+        """SELECT c.iteration, c.candidate, c.train_episode_id, c.eval_episode_ids, c.train_return, c.score
+           FROM candidates c
+           WHERE c.run_id = ? AND c.policy_version_id = ? AND c.evaluation = 'played'
+             AND NOT (c.decision = 'rejected' AND c.policy_version_id IS NOT DISTINCT FROM c.proposed_version_id)
+             AND (SELECT count(*) FROM episodes e
+                  WHERE (e.episode_id = c.train_episode_id OR list_contains(c.eval_episode_ids, e.episode_id))
+                    AND e.verified AND e.end_reason IN ('terminated', 'truncated'))
+                 = 1 + len(c.eval_episode_ids)
+           ORDER BY c.iteration, c.candidate LIMIT 1""", [run_id, version_id]))
+    return rows[0] if rows else None
+
+
+def update_failures(con: duckdb.DuckDBPyConnection, run_id: str) -> tuple[int, int, str | None]:
+    """(updates, updates that ended in an LLM error, the last LLM error) of a run."""
+    return con.execute(
+        "SELECT count(*), count(*) FILTER (WHERE i.update_status = 'llm_error'), "
+        "(SELECT arg_max(error_type || ': ' || error_message, created_at) FROM llm_calls "
+        " WHERE run_id = ? AND error_type IS NOT NULL) "
+        "FROM iterations i WHERE i.run_id = ? AND i.iteration > 0", [run_id, run_id]).fetchone()
+
+
+def iteration_prompts(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[int, tuple[str | None, float | None]]:
+    """Per iteration of a run: (a digest of its prompts, its score) — what ``codearcade replay`` compares. The
+    digest is the prompt hash when the iteration sent one prompt, else the hash of its distinct prompt hashes; an
+    iteration that never completed (where a replay diverged) still has its prompts, with no score."""
+    rows = con.execute(
+        """WITH prompts AS (
+               SELECT iteration, CASE WHEN count(DISTINCT prompt_hash) = 1 THEN any_value(prompt_hash)
+                                      ELSE sha256(string_agg(DISTINCT prompt_hash, ',' ORDER BY prompt_hash))
+                                 END AS digest
+               FROM llm_calls WHERE run_id = ? GROUP BY iteration)
+           SELECT coalesce(i.iteration, p.iteration), p.digest, i.score
+           FROM (SELECT iteration, score FROM iterations WHERE run_id = ?) i
+           FULL JOIN prompts p ON p.iteration = i.iteration""", [run_id, run_id]).fetchall()
+    return {it: (digest, score) for it, digest, score in rows}

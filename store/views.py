@@ -21,7 +21,7 @@ import duckdb
 
 from store.db import Store, StoreError
 
-VIEWS = ("learning_curve", "code_metrics", "llm_usage", "rejected_candidates", "run_summary")
+VIEWS = ("learning_curve", "code_metrics", "llm_usage", "rejected_candidates", "run_summary", "lineage", "frontier")
 """The views over the store, in the order docs/schema.md documents them."""
 
 

@@ -24,6 +24,13 @@ def text_hash(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()
 
 
+def _insert(con: duckdb.DuckDBPyConnection, table: str, row: dict[str, Any]) -> None:
+    """Insert one row given by column name (never by position)."""
+    columns = list(row)
+    con.execute(f"INSERT INTO {table} ({', '.join(columns)}) VALUES ({', '.join('?' * len(columns))})",
+                [row[c] for c in columns])
+
+
 def put_blob(con: duckdb.DuckDBPyConnection, kind: str, text: str) -> str:
     """Store ``text`` once under its content hash and return the hash."""
     digest = text_hash(text)
@@ -72,9 +79,7 @@ def insert_llm_call(con: duckdb.DuckDBPyConnection, row: dict[str, Any], prompt_
     row["prompt_hash"] = put_blob(con, "prompt", prompt_text)
     row["reply_hash"] = put_blob(con, "reply", reply_text) if reply_text is not None else None
     row.setdefault("created_at", utcnow())
-    columns = list(row)
-    con.execute(f"INSERT INTO llm_calls ({', '.join(columns)}) VALUES ({', '.join('?' * len(columns))})",
-                [row[c] for c in columns])
+    _insert(con, "llm_calls", row)
 
 
 def set_llm_call_outcome(con: duckdb.DuckDBPyConnection, call_id: str, suggestion_json: str | None,
@@ -115,11 +120,7 @@ def write_episode(
     if replace:
         for table in ("nodes", "steps", "episodes"):
             con.execute(f"DELETE FROM {table} WHERE episode_id = ?", [episode_id])
-    columns = list(episode)
-    con.execute(
-        f"INSERT INTO episodes ({', '.join(columns)}) VALUES ({', '.join('?' * len(columns))})",
-        [episode[c] for c in columns],
-    )
+    _insert(con, "episodes", episode)
     if steps.num_rows:
         con.register("incoming_steps", steps)
         try:
@@ -135,3 +136,39 @@ def write_episode(
             )
         finally:
             con.unregister("incoming_nodes")
+
+
+def insert_candidate(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -> None:
+    """Insert one ``candidates`` row; its ``feedback`` text is stored as a blob and referenced by hash."""
+    row = dict(row)
+    feedback = row.pop("feedback", None)
+    row["feedback_hash"] = put_blob(con, "feedback", feedback) if feedback is not None else None
+    row.setdefault("created_at", utcnow())
+    _insert(con, "candidates", row)
+
+
+def insert_iteration(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -> None:
+    """Insert the ``iterations`` row that completes an iteration (the candidate its strategy chose)."""
+    _insert(con, "iterations", row)
+
+
+def insert_feedback(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -> None:
+    """Insert the ``feedback`` row of an iteration (the feedback of its chosen candidate)."""
+    _insert(con, "feedback", row)
+
+
+def reject_policy_version(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int, version_id: str,
+                          reason: str) -> None:
+    """Mark a version rejected after it was played (caught tampering with its score)."""
+    con.execute("UPDATE policy_versions SET validation = 'rejected', validation_error = ? WHERE run_id = ? "
+                "AND iteration = ? AND policy_version_id = ?", [reason, run_id, iteration, version_id])
+
+
+def mark_run_running(con: duckdb.DuckDBPyConnection, run_id: str) -> None:
+    con.execute("UPDATE runs SET status = 'running', finished_at = NULL, error = NULL WHERE run_id = ?", [run_id])
+
+
+def merge_run_config(con: duckdb.DuckDBPyConnection, run_id: str, changed: dict[str, Any]) -> None:
+    """Record settings changed on ``--resume`` (budgets, limits, endpoint) in the run's config."""
+    con.execute("UPDATE runs SET config = json_merge_patch(config, ?) WHERE run_id = ?",
+                [json.dumps(changed), run_id])

@@ -20,7 +20,9 @@ forked along). The script is a JSON list consumed one entry per request (the las
   before moving on; 401 is an authentication error, 400 a bad request, 429 a rate limit);
 - ``{"sleep": seconds, "content": ...}``: reply late (to exercise time-outs);
 - ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
-- ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash.
+- ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
+- ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
+  candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call).
 A request with ``"stream": true`` gets the reply as server-sent events (OpenAI chat chunks, with a usage chunk
 when ``stream_options.include_usage`` asks for it; Anthropic's message events). Every request is appended to a JSONL log (protocol, path, the auth headers, the body, and the messages in
 one normalized form), so tests can read what the loop sent.
@@ -30,10 +32,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import random
 import re
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -248,6 +252,7 @@ def _protocol(path: str) -> str:
 def _serve(script_path: str, log_path: str, port: int) -> None:
     script = json.loads(Path(script_path).read_text())
     state = {"index": 0, "repeats": 0, "count": 0}
+    lock = threading.Lock()
     cache: dict = {}
 
     def next_entry():
@@ -281,11 +286,15 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             headers = {k: self.headers[k] for k in LOGGED_HEADERS if self.headers.get(k) is not None}
             with open(log_path, "a") as log:
                 log.write(json.dumps({"protocol": protocol, "path": self.path, "headers": headers, "body": request,
-                                      "messages": messages}) + "\n")
-            entry = next_entry()
-            state["count"] += 1
+                                      "messages": messages, "received_at": time.time()}) + "\n")
+            with lock:  # requests are served concurrently (an iteration's proposals are requested at once)
+                entry = next_entry()
+                state["count"] += 1
+                count = state["count"]
             if isinstance(entry, str):
                 entry = {"content": entry}
+            if "pool" in entry:
+                entry = {**entry, "content": random.Random(entry.get("seed", 0) * 100_003 + count).choice(entry["pool"])}
             if "sleep" in entry:
                 time.sleep(entry["sleep"])
             if "status" in entry:
@@ -301,7 +310,7 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             usage = entry.get("usage", {})
             input_tokens = usage.get("input", sum(len(m["content"].split()) for m in messages))
             output_tokens = usage.get("output", len(content.split()))
-            body = _reply_body(protocol, request, content, state["count"], input_tokens, output_tokens, cache)
+            body = _reply_body(protocol, request, content, count, input_tokens, output_tokens, cache)
             if request.get("stream"):
                 self._stream(_sse_events(protocol, body, request))
                 return

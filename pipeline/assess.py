@@ -1,0 +1,129 @@
+"""*assess*: versions → a traced training rollout and the evaluation episodes → a verified score.
+
+Every version of an iteration is assessed at once: the episodes of all of them go to one pool of confined
+workers (``pipeline/executor.py``), so candidates are played concurrently. Each episode's score is verified by
+replaying its actions in this process as it plays (``pipeline/verify.py``); an episode whose replay disagrees is
+marked ``tampered``. Episodes are written to the store as they finish.
+
+The **evaluation cache**: episodes are deterministic given the policy's code and the run's settings (seeds,
+caps, protocol; fixed for a run), so a version already assessed in this run reuses that assessment's stored
+episodes instead of playing them again — a rejected or unchanged proposal, which falls back to its parent's
+code, costs no environment step. Only assessments whose every episode was verified and ended by the game or
+the step cap are reused (a time limit depends on the machine's load, not on the code). A version appearing
+twice in one iteration is played once.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+from pipeline.executor import run_episodes
+from pipeline.rollout import EpisodeOutcome, EpisodeSpec
+from pipeline.runinfo import episode_id
+from pipeline.verify import StreamingVerification, tampering
+from store import Store
+from store.readers import episode_summary, policy_text, reusable_assessment
+from store.writer import write_episode
+
+if TYPE_CHECKING:
+    from pipeline.optimize import RunState
+
+
+@dataclass
+class Assessment:
+    version_id: str
+    train_episode_id: str
+    eval_episode_ids: list[str]
+    train_return: float
+    train_length: int
+    score: float
+    """Mean (verified) return of the evaluation episodes."""
+    evaluation: str
+    """``played``, or ``cached``: the episodes of an earlier assessment of the same version."""
+    tampered: str | None = None
+
+
+@dataclass
+class AssessTimes:
+    train_s: float = 0.0
+    """Until the first training rollout finished."""
+    eval_s: float = 0.0
+    """Until every episode finished."""
+
+
+def episode_specs(state: "RunState", iteration: int, candidate: int, text: str, version_id: str) -> list[EpisodeSpec]:
+    """The traced training rollout and the evaluation episodes of one version, as the run's settings say."""
+    c = state.config
+    common = dict(run_id=state.run_id, game=state.game, policy_text=text, policy_version_id=version_id,
+                  policy_name="policy.py", iteration=iteration, call_time_limit_s=c.call_time_limit_s,
+                  episode_time_limit_s=c.episode_time_limit_s, rerun=state.rerun)
+    train = EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "train", 0, candidate), kind="train",
+                        index=0, seed=c.seed, max_steps=state.settings["rollout_steps"], trace=True, **common)
+    evals = [EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "eval", i, candidate), kind="eval", index=i,
+                         seed=c.seed + i, max_steps=state.settings["eval_max_steps"], **common)
+             for i in range(c.eval_episodes)]
+    return [train] + evals
+
+
+def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, str],
+           progress: Callable[[int, int], None] | None = None) -> tuple[dict[int, Assessment], AssessTimes]:
+    """Assess ``versions`` (candidate → version id) of iteration ``iteration``: an :class:`Assessment` per
+    candidate, and how long the playing took."""
+    owner: dict[str, int] = {}  # version -> the candidate whose episodes stand for it in this iteration
+    for candidate, version in sorted(versions.items()):
+        owner.setdefault(version, candidate)
+    found: dict[str, Assessment] = {}
+    if state.config.eval_cache:
+        with store.read() as con:
+            for version in owner:
+                row = reusable_assessment(con, state.run_id, version)
+                if row is not None:
+                    found[version] = _cached(con, version, row)
+    to_play = [(candidate, version) for version, candidate in owner.items() if version not in found]
+    times = AssessTimes()
+    if to_play:
+        found.update(_play(store, state, iteration, to_play, progress, times))
+    return {candidate: found[version] for candidate, version in versions.items()}, times
+
+
+def _cached(con, version: str, row: dict) -> Assessment:
+    train = episode_summary(con, row["train_episode_id"])
+    return Assessment(version, row["train_episode_id"], list(row["eval_episode_ids"]), row["train_return"],
+                      train["length"], row["score"], "cached")
+
+
+def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[int, str]],
+          progress: Callable[[int, int], None] | None, times: AssessTimes) -> dict[str, Assessment]:
+    specs: list[EpisodeSpec] = []
+    groups: list[tuple[str, list[int]]] = []  # version -> indices of its specs (train first)
+    with store.read() as con:
+        texts = {version: policy_text(con, state.run_id, version) for _, version in to_play}
+    for candidate, version in to_play:
+        own = episode_specs(state, iteration, candidate, texts[version], version)
+        groups.append((version, list(range(len(specs), len(specs) + len(own)))))
+        specs.extend(own)
+    outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
+    started = time.monotonic()
+    trains = {indices[0] for _, indices in groups}
+    verification = StreamingVerification(specs)
+    for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress,
+                                   on_actions=verification.feed):
+        outcome = verification.verify(i, outcome)
+        with store.write() as con:
+            write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)
+        outcomes[i] = outcome
+        trains.discard(i)
+        if not trains and not times.train_s:
+            times.train_s = time.monotonic() - started
+    times.eval_s = time.monotonic() - started
+    found = {}
+    for version, indices in groups:
+        train, evals = outcomes[indices[0]], [outcomes[i] for i in indices[1:]]
+        found[version] = Assessment(
+            version, train.episode["episode_id"], [o.episode["episode_id"] for o in evals], train.episode["return"],
+            train.episode["length"], statistics.fmean(o.episode["return"] for o in evals), "played",
+            tampering([train] + evals))
+    return found

@@ -1,0 +1,252 @@
+"""*propose*: from a strategy's requests to candidates — store slices → prompt → LLM → parsed, validated version.
+
+For each :class:`~pipeline.strategies.ProposalRequest` of an iteration:
+
+1. the prompt is built from the store (``pipeline/prompt.py``) for the parent candidate, under the token budget;
+2. a reply already stored for this prompt, iteration and candidate is reused (a resumed run); the others are
+   requested from the model **concurrently** (at most ``max_concurrent_calls`` at a time), after checking that
+   all of them together stay within the run's cost and token budgets;
+3. each call is written to ``llm_calls`` (in candidate order, so the store does not depend on which reply came
+   first), its reply parsed (``pipeline/reply.py``) and the suggestion validated (``pipeline/validate.py``): an
+   accepted one becomes a ``policy_versions`` row; a rejected one is stored with its reason, which goes into the
+   feedback, and the candidate falls back to its parent's code.
+
+LLM errors: fatal ones (authentication, unknown model, ...) stop the run after every call of the iteration is
+recorded; an iteration whose every call failed counts towards :data:`MAX_CONSECUTIVE_LLM_FAILURES`.
+"""
+
+from __future__ import annotations
+
+import json
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+from pipeline.llm import LLMClient, LLMError, LLMReply
+from pipeline.prompt import Prompt, PromptBudgetError, build_prompt, canonical_messages, context_for
+from pipeline.providers import price
+from pipeline.reply import ReplyParseError, clean_text, parse_reply
+from pipeline.runinfo import new_run_id
+from pipeline.strategies import History, ProposalRequest, Ref
+from pipeline.tokens import TokenCounter
+from pipeline.untrusted import clean_untrusted_text
+from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, check_fits, spread
+from pipeline.versions import policy_version_row
+from store import Store
+from store.readers import run_spending, stored_reply
+from store.writer import insert_llm_call, insert_policy_version, set_llm_call_outcome
+
+if TYPE_CHECKING:
+    from pipeline.optimize import RunState
+
+MAX_CONSECUTIVE_LLM_FAILURES = 3
+
+
+class BudgetExhausted(Exception):
+    """The next step would exceed one of the run's budgets; the run stops with status ``budget``."""
+
+
+@dataclass
+class Proposal:
+    """What one request became: the version to assess for it, and how it got there."""
+
+    candidate: int
+    parent: Ref
+    parent_version_id: str
+    status: str
+    """``accepted``, ``unchanged``, ``rejected`` or ``llm_error``."""
+    version_id: str
+    """The version to assess: the new one if accepted, else the parent's."""
+    proposed_version_id: str | None
+    """The version the reply proposed, accepted or not (None: no runnable code)."""
+    call_id: str | None
+    note: str
+    prompt_tokens: int
+
+
+@dataclass
+class _Pending:
+    request: ProposalRequest
+    prompt: Prompt
+    context_version: str
+    observations: list
+    info: object
+    call_id: str | None = None
+    text: str | None = None
+    reply: LLMReply | None = None
+    error: LLMError | None = None
+
+
+def propose(store: Store, state: "RunState", history: History, iteration: int, requests: list[ProposalRequest],
+            client: LLMClient, counter: TokenCounter, log: Callable[[str], None]) -> list[Proposal]:
+    """The candidates of iteration ``iteration`` for ``requests`` (see the module docstring)."""
+    c = state.config
+    pending = []
+    with store.read() as con:
+        for request in requests:
+            ctx = context_for(con, state.run_id, history, request.parent, request.memory, request.note,
+                              c.call_time_limit_s)
+            try:
+                prompt = build_prompt(ctx, c.token_budget, counter)
+            except PromptBudgetError as exc:
+                raise ValueError(str(exc)) from None
+            item = _Pending(request, prompt, ctx.info.version_id, [(r["step"], r["obs"]) for r in ctx.train_steps],
+                            ctx.info)
+            stored = stored_reply(con, state.run_id, iteration, prompt.hash, request.candidate)
+            if stored is not None:
+                item.call_id, item.text = stored
+            pending.append(item)
+    reused = [p for p in pending if p.text is not None]
+    if reused:
+        log(f"iteration {iteration}: reusing {_replies(len(reused))} stored for {'this prompt' if len(pending) == 1 else 'these prompts'}")
+    to_call = [p for p in pending if p.text is None]
+    if to_call:
+        check_budgets(store, state, client, [p.prompt for p in to_call])
+        _complete_all(state, iteration, client, to_call)
+        for item in to_call:  # recorded in candidate order: the store does not depend on which reply came first
+            item.call_id = record_call(store, state.run_id, iteration, item.request.candidate, client, item.prompt,
+                                       item.reply, item.error)
+            if item.reply is not None:
+                item.text = item.reply.text
+        failed = [p for p in to_call if p.error is not None]
+        fatal = next((p.error for p in failed if p.error.fatal), None)
+        if len(failed) == len(pending):
+            state.llm_failures += 1
+        else:
+            state.llm_failures = 0
+        if fatal is not None:
+            raise fatal
+        if failed and state.llm_failures >= MAX_CONSECUTIVE_LLM_FAILURES:
+            raise failed[-1].error
+    else:
+        state.llm_failures = 0
+    return [_validate(store, state, iteration, item, counter) for item in pending]
+
+
+def _replies(n: int) -> str:
+    return "the reply" if n == 1 else f"{n} replies"
+
+
+def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: list[_Pending]) -> None:
+    """Request every reply, at most ``max_concurrent_calls`` at a time; each item gets its reply or error."""
+
+    def complete(item: _Pending, on_text) -> None:
+        try:
+            item.reply = client.complete(item.prompt.messages, on_text=on_text, candidate=item.request.candidate)
+        except LLMError as exc:
+            item.error = exc
+
+    with state.waiting(iteration, client.label) as on_text:
+        if len(items) == 1:
+            complete(items[0], on_text)
+            return
+        with ThreadPoolExecutor(max_workers=max(1, min(len(items), state.config.max_concurrent_calls)),
+                                thread_name_prefix="llm") as pool:
+            list(pool.map(lambda item: complete(item, None), items))
+
+
+def _validate(store: Store, state: "RunState", iteration: int, item: _Pending, counter: TokenCounter) -> Proposal:
+    """Parse and check one reply; write the candidate's policy version (accepted or rejected)."""
+    c = state.config
+    request, prompt = item.request, item.prompt
+    base = item.context_version
+
+    def outcome(status: str, note: str, version: str | None = None, proposed: str | None = None) -> Proposal:
+        return Proposal(request.candidate, request.parent, base, status, version or base, proposed, item.call_id,
+                        note, prompt.tokens)
+
+    if item.error is not None:
+        return outcome("llm_error", f"The LLM call failed ({item.error}); the code is unchanged.")
+    try:
+        suggestion = parse_reply(item.text)
+    except ReplyParseError as exc:
+        _set_call_outcome(store, item.call_id, None, str(exc))
+        return outcome("rejected", f"Your last reply was not usable: {exc}. Reply with the JSON format asked for.")
+    _set_call_outcome(store, item.call_id, suggestion, None)
+    try:
+        candidate = build_candidate(item.info, suggestion)
+        if candidate is not None:
+            check_fits(candidate, c.token_budget, counter)
+    except CandidateRejected as exc:  # nothing runnable to store: the reason is the record
+        return outcome("rejected", f"Your last suggestion was rejected: {exc}")
+    if candidate is None:
+        return outcome("unchanged", "Your last suggestion did not change the code.")
+    try:
+        check_at_runtime(RuntimeCheck(candidate.text, state.game, spread(item.observations),
+                                      call_time_limit_s=c.call_time_limit_s))
+        verdict, reason = "accepted", None
+    except CandidateRejected as exc:
+        verdict, reason = "rejected", str(exc)
+    with store.write() as con:
+        insert_policy_version(con, policy_version_row(candidate.info, state.run_id, iteration, "llm", verdict,
+                                                      reason, parent_id=base, llm_call_id=item.call_id))
+    if reason is not None:
+        return outcome("rejected", f"Your last suggestion was rejected: {reason}", proposed=candidate.version_id)
+    return outcome("accepted", "", version=candidate.version_id, proposed=candidate.version_id)
+
+
+def record_call(store: Store, run_id: str, iteration: int, candidate: int, client: LLMClient, prompt: Prompt,
+                reply: LLMReply | None, error: LLMError | None) -> str:
+    """Write the ``llm_calls`` row of one call (or failed call); return its id."""
+    call_id = new_run_id()
+    params = client.request_params()
+    row = {
+        "call_id": call_id, "run_id": run_id, "iteration": iteration, "candidate": candidate, "purpose": "update",
+        "operation_name": "chat", "provider_name": client.provider, "request_model": client.model,
+        "request_temperature": params.get("temperature"),
+        "request_max_tokens": params.get("max_tokens", params.get("max_completion_tokens")),
+        "request_seed": params.get("seed"), "request_params": json.dumps(params, sort_keys=True),
+        "prompt_tokens_counted": prompt.tokens,
+        "latency_s": reply.latency_s if reply else (error.latency_s if error else None),
+        "attempts": reply.attempts if reply else (error.attempts if error else 1),
+        "replayed": bool(reply.replayed) if reply else False,
+    }
+    if reply is not None:
+        row.update(response_model=reply.response_model, response_id=reply.response_id,
+                   finish_reasons=reply.finish_reasons, input_tokens=reply.input_tokens,
+                   output_tokens=reply.output_tokens, cached_input_tokens=reply.cached_input_tokens,
+                   cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd)
+    if error is not None:
+        row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
+    with store.write() as con:
+        insert_llm_call(con, row, canonical_messages(prompt.messages),
+                        clean_text(reply.text) if reply is not None else None)
+    return call_id
+
+
+def _set_call_outcome(store: Store, call_id: str, suggestion: dict[str, str] | None, parse_error: str | None) -> None:
+    with store.write() as con:
+        set_llm_call_outcome(con, call_id, json.dumps(suggestion, sort_keys=True) if suggestion is not None else None,
+                             parse_error)
+
+
+def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: list[Prompt]) -> None:
+    """Raise :class:`BudgetExhausted` if the calls about to be made could take the run past a budget: their
+    number, and each counted at its prompt plus a reply of the longest length asked for, priced at litellm's
+    rates."""
+    c = state.config
+    if c.max_cost_usd is None and c.max_total_tokens is None and c.max_llm_calls is None:
+        return
+    with store.read() as con:
+        spent = run_spending(con, state.run_id)
+    if c.max_llm_calls is not None and spent["calls"] + len(prompts) > c.max_llm_calls:
+        raise BudgetExhausted(f"call budget: {spent['calls']} LLM calls made, the next iteration makes "
+                              f"{len(prompts)}, over --max-llm-calls {c.max_llm_calls}")
+    prompt_tokens = sum(p.tokens for p in prompts)
+    worst_tokens = prompt_tokens + c.max_tokens * len(prompts)
+    calls = "the next call" if len(prompts) == 1 else f"the next {len(prompts)} calls"
+    if c.max_total_tokens is not None and spent["tokens"] + worst_tokens > c.max_total_tokens:
+        raise BudgetExhausted(
+            f"token budget: {spent['tokens']:,} tokens used, {calls} may use up to {worst_tokens:,} "
+            f"(prompt {prompt_tokens:,} + reply up to {c.max_tokens * len(prompts):,}), over --max-total-tokens "
+            f"{c.max_total_tokens:,}")
+    if c.max_cost_usd is not None:
+        rates = price(client.model)
+        if rates is None:
+            raise BudgetExhausted(f"--max-cost needs a price for {client.label}, and litellm has none: use "
+                                  "--max-total-tokens instead")
+        worst = sum(rates.cost(p.tokens, c.max_tokens) for p in prompts)
+        if spent["cost_usd"] + worst > c.max_cost_usd:
+            raise BudgetExhausted(
+                f"cost budget: ${spent['cost_usd']:.4f} spent, {calls} may cost up to ${worst:.4f}, over "
+                f"--max-cost ${c.max_cost_usd:g}")

@@ -1,0 +1,302 @@
+"""Search strategies: which versions the optimizer improves next, and what it makes of the candidates.
+
+A strategy is the third part of the optimizer (``pipeline/optimize.py`` drives; ``pipeline/propose.py`` turns a
+request into a candidate; ``pipeline/assess.py`` scores it). Each iteration it
+
+1. **plans**: a list of :class:`ProposalRequest` — the candidate to improve (its *parent*, a :class:`Ref` to a
+   stored candidate), the earlier candidates the prompt's #Memory shows, and a note for #Feedback;
+2. **decides**, once the candidates are assessed: which one stands for the iteration (its ``iterations`` row),
+   whether it is the run's new best, and a decision per candidate (``best``, ``kept``, ``discarded``,
+   ``rolled_back``, ``rejected``) with the notes that go into its feedback.
+
+Strategies read only :class:`History` — the run's ``iterations`` and ``candidates`` rows, loaded from the store
+before each iteration — so a resumed or replayed run makes the same plans. Nothing here speaks SQL or calls a
+model.
+
+- ``greedy``: the paper's loop. Improve the previous iteration's version; after a regression below
+  ``best - (1 - rollback_fraction) * max(|best|, 1)`` roll back to the best. Memory: the last iterations.
+- ``best-of-n``: N proposals from the best version each iteration; the best of them stands for the iteration.
+- ``beam``: keep the ``beam_width`` best versions and expand each with N proposals per iteration.
+
+For ``best-of-n`` and ``beam`` the memory follows the lineage of the parent: the latest attempts to improve it
+(what was tried from here and how it scored) and then its ancestors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+STRATEGIES = ("greedy", "best-of-n", "beam")
+
+
+@dataclass(frozen=True, order=True)
+class Ref:
+    """A candidate in the store: (iteration, candidate index)."""
+
+    iteration: int
+    candidate: int = 0
+
+
+@dataclass
+class ProposalRequest:
+    """One proposal to make: improve ``parent``, showing ``memory`` (newest first) and ``note`` in the prompt."""
+
+    candidate: int
+    parent: Ref
+    memory: list[Ref] = field(default_factory=list)
+    note: str = ""
+
+
+@dataclass
+class Assessed:
+    """A candidate of this iteration, proposed and assessed: what a strategy decides on."""
+
+    candidate: int
+    parent: Ref | None
+    version_id: str
+    """The version that was played for it (the parent's when the proposal was rejected or unchanged)."""
+    status: str
+    """``initial``, ``accepted``, ``unchanged``, ``rejected`` (also: caught tampering) or ``llm_error``."""
+    score: float
+    tampered: str | None = None
+    notes: list[str] = field(default_factory=list)
+    """What the proposal step has to say in the candidate's feedback (a rejection reason, an LLM error)."""
+
+
+@dataclass
+class Decision:
+    chosen: int
+    """The candidate whose version, episodes and score make the iteration's row."""
+    decisions: dict[int, str]
+    notes: dict[int, list[str]]
+    """Each candidate's feedback notes, final."""
+    new_best: int | None = None
+    """The candidate that becomes the run's best, if any."""
+    rolled_back: bool = False
+    """``greedy`` only: the next iteration starts again from the best version."""
+
+
+@dataclass
+class History:
+    """A run's completed iterations and their candidates, as stored (``store.readers.candidates``)."""
+
+    iterations: list[dict[str, Any]]
+    candidates: list[dict[str, Any]]
+
+    def __post_init__(self) -> None:
+        self._by_ref = {Ref(c["iteration"], c["candidate"]): c for c in self.candidates}
+
+    def candidate(self, ref: Ref) -> dict[str, Any]:
+        return self._by_ref[ref]
+
+    def chosen(self, iteration: int) -> Ref:
+        row = self.iterations[iteration]
+        return Ref(row["iteration"], row.get("candidate") or 0)
+
+    @property
+    def best(self) -> Ref | None:
+        """The candidate that holds the run's best score (the iteration the last row names, its chosen one)."""
+        if not self.iterations:
+            return None
+        return self.chosen(self.iterations[-1]["best_iteration"])
+
+    @property
+    def best_score(self) -> float | None:
+        return self.iterations[-1]["best_score"] if self.iterations else None
+
+    def parent(self, ref: Ref) -> Ref | None:
+        row = self.candidate(ref)
+        if row["parent_iteration"] is None:
+            return None
+        return Ref(row["parent_iteration"], row["parent_candidate"] or 0)
+
+    def ancestors(self, ref: Ref) -> list[Ref]:
+        """The candidates ``ref`` descends from, nearest first."""
+        found, seen = [], {ref}
+        parent = self.parent(ref)
+        while parent is not None and parent not in seen and parent in self._by_ref:
+            found.append(parent)
+            seen.add(parent)
+            parent = self.parent(parent)
+        return found
+
+    def lineage_memory(self, ref: Ref, size: int) -> list[Ref]:
+        """Memory along the lineage of ``ref``: the latest attempts to improve it, then its ancestors."""
+        attempts = [Ref(c["iteration"], c["candidate"]) for c in reversed(self.candidates)
+                    if c["parent_iteration"] == ref.iteration and (c["parent_candidate"] or 0) == ref.candidate]
+        return (attempts + self.ancestors(ref))[:size]
+
+    def assessed_versions(self) -> list[tuple[float, Ref]]:
+        """Each distinct version that was played and not caught tampering, by its first candidate: (score, ref),
+        best first (earlier first among equals)."""
+        first: dict[str, tuple[float, Ref]] = {}
+        for c in self.candidates:
+            tampered = c["decision"] == "rejected" and c["policy_version_id"] == c["proposed_version_id"]
+            if tampered or c["score"] is None or c["policy_version_id"] in first:
+                continue
+            first[c["policy_version_id"]] = (c["score"], Ref(c["iteration"], c["candidate"]))
+        return sorted(first.values(), key=lambda item: (-item[0], item[1]))
+
+
+def format_number(value: Any) -> str:
+    return f"{value:.6g}" if isinstance(value, float) else str(value)
+
+
+class Strategy(Protocol):
+    name: str
+
+    def plan(self, history: History, iteration: int) -> list[ProposalRequest]:
+        """The proposals of iteration ``iteration`` (>= 1)."""
+
+    def decide(self, history: History, iteration: int, assessed: list[Assessed]) -> Decision:
+        """What the assessed candidates of iteration ``iteration`` mean for the run."""
+
+
+def _rank(assessed: list[Assessed]) -> list[Assessed]:
+    """Candidates best first (lowest index among equal scores); tampered ones last."""
+    return sorted(assessed, key=lambda a: (a.tampered is not None, -a.score, a.candidate))
+
+
+def _with_tampering(a: Assessed) -> list[str]:
+    notes = list(a.notes)
+    if a.tampered:
+        notes.insert(0, f"Your last suggestion was rejected: {a.tampered}")
+    return notes
+
+
+def decide_starter(assessed: list[Assessed]) -> Decision:
+    """Iteration 0, whatever the strategy: the starting policy is the best so far."""
+    (a,) = assessed
+    return Decision(chosen=a.candidate, decisions={a.candidate: "best"}, notes={a.candidate: list(a.notes)},
+                    new_best=a.candidate)
+
+
+@dataclass
+class Greedy:
+    """The paper's loop: one proposal per iteration from the previous version, rollback after a regression."""
+
+    memory: int = 5
+    rollback: bool = True
+    rollback_fraction: float = 0.5
+    name: str = "greedy"
+
+    def plan(self, history: History, iteration: int) -> list[ProposalRequest]:
+        previous = history.iterations[iteration - 1]
+        parent, note = history.chosen(iteration - 1), ""
+        if previous["rolled_back"]:
+            parent = history.chosen(previous["best_iteration"])
+            note = (f"Iteration {previous['iteration']} scored {format_number(previous['score'])}, below the best "
+                    f"{format_number(previous['best_score'])} of iteration {parent.iteration}, so its change was "
+                    f"rolled back: you are improving iteration {parent.iteration}'s code again (see #Memory for what "
+                    "regressed).\n")
+        memory = [history.chosen(row["iteration"]) for row in reversed(history.iterations[:iteration])
+                  if row["iteration"] != parent.iteration][:self.memory]
+        return [ProposalRequest(0, parent, memory, note)]
+
+    def decide(self, history: History, iteration: int, assessed: list[Assessed]) -> Decision:
+        (a,) = assessed
+        best_score, best = history.best_score, history.best
+        best_version = history.candidate(best)["policy_version_id"] if best is not None else None
+        notes = _with_tampering(a)
+        decision = Decision(chosen=a.candidate, decisions={a.candidate: "kept"}, notes={a.candidate: notes})
+        if a.tampered:  # never the best; the next update starts from the best
+            decision.decisions[a.candidate] = "rejected"
+            decision.rolled_back = best_version is not None and a.version_id != best_version
+        elif best_score is None or a.score > best_score:
+            decision.new_best = a.candidate
+            decision.decisions[a.candidate] = "best"
+        else:
+            threshold = best_score - (1 - self.rollback_fraction) * max(abs(best_score), 1.0)
+            if self.rollback and a.score < threshold and a.version_id != best_version:
+                decision.rolled_back = True
+                decision.decisions[a.candidate] = "rolled_back"
+                notes.append(f"This version scored {a.score:g}, below the best {best_score:g} (iteration "
+                             f"{best.iteration}): its change is rolled back, and the next update starts again from "
+                             f"iteration {best.iteration}'s code.")
+            if a.status == "rejected":
+                decision.decisions[a.candidate] = "rejected"
+        return decision
+
+
+def _decide_by_rank(history: History, assessed: list[Assessed], kept: set[str]) -> Decision:
+    """Shared by the population-style strategies: the iteration's best candidate stands for it and becomes the
+    run's best if it beats it; candidates whose version is in ``kept`` are ``kept``, the others ``discarded``."""
+    ranked = _rank(assessed)
+    top = ranked[0]
+    decision = Decision(chosen=top.candidate, decisions={}, notes={})
+    if top.tampered is None and (history.best_score is None or top.score > history.best_score):
+        decision.new_best = top.candidate
+    for a in assessed:
+        notes = _with_tampering(a)
+        if a.tampered or a.status == "rejected":
+            verdict = "rejected"
+        elif a.candidate == decision.new_best:
+            verdict = "best"
+        else:
+            verdict = "kept" if a.version_id in kept else "discarded"
+        decision.decisions[a.candidate] = verdict
+        decision.notes[a.candidate] = notes
+    return decision
+
+
+@dataclass
+class BestOfN:
+    """N proposals from the run's best version each iteration; the best of them stands for the iteration."""
+
+    candidates: int = 4
+    memory: int = 5
+    name: str = "best-of-n"
+
+    def plan(self, history: History, iteration: int) -> list[ProposalRequest]:
+        parent = history.best
+        memory = history.lineage_memory(parent, self.memory)
+        return [ProposalRequest(i, parent, memory) for i in range(self.candidates)]
+
+    def decide(self, history: History, iteration: int, assessed: list[Assessed]) -> Decision:
+        return _decide_by_rank(history, assessed, kept=set())
+
+
+@dataclass
+class Beam:
+    """Keep the ``width`` best versions; expand each with ``candidates`` proposals per iteration."""
+
+    width: int = 3
+    candidates: int = 1
+    memory: int = 5
+    name: str = "beam"
+
+    def beam(self, history: History) -> list[Ref]:
+        return [ref for _, ref in history.assessed_versions()[:self.width]]
+
+    def plan(self, history: History, iteration: int) -> list[ProposalRequest]:
+        requests = []
+        for parent in self.beam(history):
+            memory = history.lineage_memory(parent, self.memory)
+            for _ in range(self.candidates):
+                requests.append(ProposalRequest(len(requests), parent, memory))
+        return requests
+
+    def decide(self, history: History, iteration: int, assessed: list[Assessed]) -> Decision:
+        scored = [(c["score"], c["policy_version_id"]) for c in (history.candidate(r) for r in self.beam(history))]
+        scored += [(a.score, a.version_id) for a in assessed if not a.tampered and a.status != "rejected"]
+        kept, seen = set(), set()
+        for score, version in sorted(scored, key=lambda item: -item[0]):
+            if version not in seen and len(seen) < self.width:
+                kept.add(version)
+            seen.add(version)
+        return _decide_by_rank(history, assessed, kept)
+
+
+def make_strategy(name: str, memory: int, candidates: int | None, beam_width: int, rollback: bool,
+                  rollback_fraction: float) -> Strategy:
+    """The strategy called ``name``; ``candidates`` None takes its default (best-of-n 4, beam 1)."""
+    if name == "greedy":
+        if candidates not in (None, 1):
+            raise ValueError("--candidates is for best-of-n and beam: greedy makes one proposal per iteration")
+        return Greedy(memory, rollback, rollback_fraction)
+    if name == "best-of-n":
+        return BestOfN(candidates or 4, memory)
+    if name == "beam":
+        return Beam(beam_width, candidates or 1, memory)
+    raise ValueError(f"--strategy must be one of {', '.join(STRATEGIES)}, not {name!r}")

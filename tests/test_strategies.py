@@ -1,0 +1,208 @@
+"""Search strategies (pipeline/strategies.py): greedy replays the paper's loop as it was, best-of-n asks for its
+proposals at once, beam keeps its best versions, lineage is data, and the evaluation cache saves steps, not scores."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.llm import LiteLLMClient
+from pipeline.optimize import OptimizeConfig, optimize
+from pipeline.replay import replay
+from store import Store
+from tests.conftest import COMPETENT_PREDICT, COMPETENT_REPLY, COMPETENT_SELECT, ROOT, json_reply
+
+FIXTURE = Path(__file__).parent / "fixtures" / "greedy_run.duckdb.gz"
+ALWAYS_UP = json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    return 2\n"})
+RAISES = json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    return obs['Nope']\n"})
+HALF = json_reply({"predict_ball_trajectory": COMPETENT_PREDICT,
+                   "select_action": COMPETENT_SELECT.replace("target - 3", "target - 30")})
+POOL = [COMPETENT_REPLY, ALWAYS_UP, RAISES, HALF, "no code today"]
+"""Candidate policies of mixed quality, as a model sampling at a high temperature might write them."""
+
+
+def _client(model):
+    return LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
+
+
+def _steps(store: Store, run_id: str) -> int:
+    return store.query("SELECT count(*) FROM steps s JOIN episodes e USING (episode_id) WHERE e.run_id = ?",
+                       [run_id])[0][0]
+
+
+def test_greedy_replays_a_run_made_before_strategies_existed(tmp_path):
+    """The fixture was written by the loop before it was split into strategy, propose and assess
+    (tests/fixtures/make_greedy_run.py): replaying it sends the same prompts and gets the same scores."""
+    path = tmp_path / "old.duckdb"
+    path.write_bytes(gzip.decompress(FIXTURE.read_bytes()))
+    store = Store(path)
+    (run_id,) = store.query("SELECT run_id FROM runs")[0]
+    report = replay(store, run_id)
+    assert report.status == "finished" and report.diverged_at is None, report.as_dict()
+    assert [r.iteration for r in report.rows] == [0, 1, 2, 3, 4, 5] and all(r.matches for r in report.rows)
+    assert sum(r.original_prompt is not None for r in report.rows) == 5
+    # the old run's lineage was filled in by migration 6, as the greedy strategy writes it today
+    old = store.query("SELECT iteration, parent_iteration, update_status, decision FROM candidates "
+                      "WHERE run_id = ? ORDER BY iteration", [run_id])
+    new = store.query("SELECT iteration, parent_iteration, update_status, decision FROM candidates "
+                      "WHERE run_id = ? ORDER BY iteration", [report.replay_run_id])
+    assert old == new, (old, new)
+    assert [r[1] for r in old] == [None, 0, 1, 1, 3, 4], "iteration 3 starts from 1 after 2 was rolled back"
+    # the unchanged and rejected iterations re-assessed a version already played: their episodes were reused
+    cached = store.query("SELECT iteration FROM candidates WHERE run_id = ? AND evaluation = 'cached' ORDER BY 1",
+                         [report.replay_run_id])
+    assert [r[0] for r in cached] == [3, 4, 5]
+    assert _steps(store, report.replay_run_id) < _steps(store, run_id) * 0.6
+
+
+def test_evaluation_cache_saves_steps_not_scores(store, scripted):
+    replies = ["not code", json_reply({}), COMPETENT_REPLY, ALWAYS_UP, "still not code"]
+    config = dict(game="pong", iterations=5, eval_max_steps=900, rollout_steps=50, workers=2, token_budget=6000)
+    cached = optimize(OptimizeConfig(**config), store, _client(scripted(replies)))
+    played = optimize(OptimizeConfig(**config, eval_cache=False), store, _client(scripted(replies)))
+    assert [i.score for i in cached.iterations] == [i.score for i in played.iterations]
+    assert [i.update_status for i in cached.iterations] == ["initial", "rejected", "unchanged", "accepted",
+                                                             "accepted", "rejected"]
+    evaluation = store.query("SELECT iteration, evaluation FROM candidates WHERE run_id = ? ORDER BY iteration",
+                             [cached.run_id])
+    assert [e for _, e in evaluation] == ["played", "cached", "cached", "played", "played", "cached"]
+    assert store.query("SELECT count(*) FROM candidates WHERE run_id = ? AND evaluation = 'cached'",
+                       [played.run_id])[0][0] == 0
+    ratio = _steps(store, cached.run_id) / _steps(store, played.run_id)
+    assert ratio < 0.6, ratio
+    # iteration 5 fell back to the rolled-back-to best (iteration 3): its row points at iteration 3's episodes
+    five, three = (store.query("SELECT train_episode_id, eval_episode_ids FROM iterations WHERE run_id = ? AND "
+                               "iteration = ?", [cached.run_id, i])[0] for i in (5, 3))
+    assert five == three
+
+
+def test_best_of_n_asks_for_its_proposals_at_once_and_keeps_the_best(store, scripted):
+    delay = 2.0
+    model = scripted([{"pool": POOL, "seed": 3, "sleep": delay}])
+    config = OptimizeConfig(game="pong", strategy="best-of-n", candidates=4, iterations=2, eval_max_steps=900,
+                            rollout_steps=50, workers=2, token_budget=6000, temperature=1.0)
+    result = optimize(config, store, _client(model))
+    assert result.status == "finished", result.error
+    arrivals = sorted(r["received_at"] for r in model.raw_requests())
+    assert len(arrivals) == 8
+    for first in (0, 4):  # each iteration's 4 requests were all in flight before the first reply came back
+        assert arrivals[first + 3] - arrivals[first] < delay, arrivals
+    rows = store.query("SELECT iteration, candidate, parent_iteration, parent_candidate, score, decision, "
+                       "llm_call_id IS NOT NULL FROM candidates WHERE run_id = ? AND iteration > 0 "
+                       "ORDER BY iteration, candidate", [result.run_id])
+    assert len(rows) == 8 and all(r[6] for r in rows), "every candidate has the call that made it"
+    for it in (1, 2):
+        mine = [r for r in rows if r[0] == it]
+        (best_iteration,) = store.query("SELECT best_iteration FROM iterations WHERE run_id = ? AND iteration = ?",
+                                        [result.run_id, it - 1])[0]
+        (best_candidate,) = store.query("SELECT candidate FROM iterations WHERE run_id = ? AND iteration = ?",
+                                        [result.run_id, best_iteration])[0]
+        assert {(r[2], r[3]) for r in mine} == {(best_iteration, best_candidate)}, "all improve the best version"
+        chosen = store.query("SELECT candidate, score FROM iterations WHERE run_id = ? AND iteration = ?",
+                             [result.run_id, it])[0]
+        assert chosen[1] == max(r[4] for r in mine), "the iteration's row is its best candidate"
+    assert store.query("SELECT count(*) FROM llm_calls WHERE run_id = ?", [result.run_id])[0][0] == 8
+    # the lineage view: each candidate with its parent's score
+    lineage = store.query("SELECT count(*), count(parent_score) FROM lineage WHERE run_id = ? AND iteration > 0",
+                          [result.run_id])[0]
+    assert lineage == (8, 8)
+
+
+def test_beam_expands_its_best_versions(store, scripted):
+    model = scripted([{"pool": POOL, "seed": 11}])
+    config = OptimizeConfig(game="pong", strategy="beam", beam_width=2, candidates=2, iterations=3,
+                            eval_max_steps=700, rollout_steps=40, workers=2, token_budget=6000)
+    result = optimize(config, store, _client(model))
+    assert result.status == "finished", result.error
+    frontier = store.query("SELECT policy_version_id, score FROM frontier WHERE run_id = ? ORDER BY rank, "
+                           "first_iteration", [result.run_id])
+    candidates = store.query("SELECT iteration, parent_version_id, policy_version_id, score FROM candidates "
+                             "WHERE run_id = ? ORDER BY iteration, candidate", [result.run_id])
+    for it in (2, 3):
+        before = {}
+        for c in candidates:
+            if c[0] < it:
+                before.setdefault(c[2], c[3])
+        beam = sorted(before.items(), key=lambda kv: -kv[1])[:2]
+        parents = sorted({c[1] for c in candidates if c[0] == it})
+        assert len([c for c in candidates if c[0] == it]) == 2 * len(beam)
+        assert parents == sorted(v for v, _ in beam), (it, parents, beam)
+    assert frontier[0][1] == max(c[3] for c in candidates)
+
+
+def test_kill_during_a_concurrent_iteration_then_resume(store, scripted):
+    exe = os.path.join(os.path.dirname(os.sys.executable), "codearcade")
+    model = scripted([{"pool": POOL, "seed": 5}])
+    process = subprocess.Popen(
+        [exe, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--strategy",
+         "best-of-n", "--candidates", "3", "--iterations", "2", "--eval-max-steps", "3000", "--rollout-steps", "40",
+         "--workers", "1", "--store", str(store.path)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline:  # iteration 1's three replies are stored; its candidates are being played
+        try:
+            if store.query("SELECT count(*) FROM llm_calls WHERE iteration = 1")[0][0] == 3:
+                break
+        except Exception:
+            pass
+        time.sleep(0.05)
+    else:
+        raise AssertionError("iteration 1's calls never arrived")
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert store.query("SELECT count(*) FROM iterations WHERE iteration = 1")[0][0] == 0
+    calls_before = len(model.requests())
+    run_id = store.query("SELECT run_id FROM runs")[0][0]
+    done = subprocess.run([exe, "optimize", "--resume", run_id, "--store", str(store.path), "--json"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["status"] == "finished"
+    assert len(model.requests()) == calls_before + 3, "iteration 1's replies came from the store"
+    per_iteration = store.query("SELECT iteration, count(*), count(DISTINCT candidate) FROM candidates "
+                                "GROUP BY iteration ORDER BY iteration")
+    assert per_iteration == [(0, 1, 1), (1, 3, 3), (2, 3, 3)]
+    assert store.query("SELECT count(*) FROM llm_calls WHERE iteration = 1")[0][0] == 3
+    assert store.query("SELECT count(*), count(DISTINCT episode_id) FROM episodes")[0] == \
+        store.query("SELECT count(*), count(*) FROM episodes")[0]
+
+
+def test_strategy_options_are_checked():
+    with pytest.raises(ValueError, match="--strategy must be one of greedy, best-of-n, beam"):
+        optimize(OptimizeConfig(game="pong", strategy="annealing"), Store("/nonexistent/x.duckdb"), None)
+    with pytest.raises(ValueError, match="greedy makes one proposal"):
+        optimize(OptimizeConfig(game="pong", candidates=3), Store("/nonexistent/x.duckdb"), None)
+
+
+def test_strategies_example_and_its_sql(tmp_path, store, scripted):
+    """examples/strategies.toml, shortened to a budget of 4 calls with the scripted model standing in; then
+    examples/strategies.sql tabulates the strategies at that equal budget."""
+    from pipeline.batch import load_experiments
+
+    assert len(load_experiments(ROOT / "examples" / "strategies.toml").runs) == 10
+    model = scripted([{"pool": POOL, "seed": 2}])
+    source = (ROOT / "examples" / "strategies.toml").read_text()
+    short = (source.replace("max_llm_calls = 20", "max_llm_calls = 4\neval_max_steps = 300\nrollout_steps = 40")
+             .replace('model = "anthropic/claude-sonnet-4-5"', f'model = "{model.model}"\napi_base = "{model.api_base}"')
+             .replace("seed = [0, 1, 2]", "seed = [0]"))
+    path = tmp_path / "strategies.toml"
+    path.write_text(short)
+    done = subprocess.run([os.path.join(os.path.dirname(os.sys.executable), "codearcade"), "batch", str(path),
+                           "--store", str(store.path), "--workers", "2"], cwd=ROOT, capture_output=True, text=True,
+                          timeout=900)
+    assert done.returncode == 0, done.stderr + done.stdout
+    calls = store.query("SELECT json_extract_string(r.config, '$.strategy'), r.status, u.calls FROM runs r "
+                        "JOIN llm_usage u USING (run_id) ORDER BY ALL")
+    assert all(status == "budget" and 0 < n <= 4 for _, status, n in calls), calls
+    assert dict((s, n) for s, _, n in calls if s != "beam") == {"best-of-n": 4, "greedy": 4}
+    rows = store.query((ROOT / "examples" / "strategies.sql").read_text())
+    assert sorted(r[0] for r in rows) == ["beam", "best-of-n", "greedy"]
+    by_strategy = {r[0]: r for r in rows}
+    assert by_strategy["beam"][1] == 2 and by_strategy["greedy"][1] == 1
+    assert all(r[2] <= r[3] <= r[4] for r in rows), "the best so far never falls as calls are spent"
