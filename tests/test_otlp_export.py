@@ -187,6 +187,7 @@ def test_a_run_sent_to_phoenix_reads_back_with_its_tree_times_and_tokens(run_and
     # the tree: the run at the root, iterations under it, each iteration's LLM call and episodes under that
     root = next(s for s in spans if s["parent_id"] is None)
     assert root["name"] == "optimize pong" and root["attributes"]["codearcade.run.id"] == run_id
+    assert root["attributes"]["codearcade.best_score"] == max(i[3] for i in iterations)
     assert root["context"]["span_id"] == f"{span_id_for(run_id, 'run'):016x}"
     iteration_spans = {s["attributes"]["codearcade.iteration"]: s for s in spans
                        if s["parent_id"] == root["context"]["span_id"]}
@@ -298,3 +299,21 @@ def test_a_receiver_that_refuses_is_one_line(run_and_phoenix, phoenix, capsys):
     code, _, err = _export(capsys, run_id, "--otlp", phoenix.http_url + "/not/otlp", "--store", str(store.path))
     assert code == 2 and err.count("\n") == 1, err
     assert f"{phoenix.http_url}/not/otlp/v1/traces refused the spans" in err and "--protocol grpc" in err
+
+
+def test_an_eval_run_has_its_episodes_under_the_run(tmp_path):
+    store = Store(tmp_path / "eval.duckdb")
+    done = subprocess.run([EXE, "eval", str(ROOT / "tests" / "policies" / "pong_competent.py"), "--episodes", "2",
+                           "--max-steps", "150", "--store", str(store.path), "--json"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    spans = build_spans(_rows(store, summary["run_id"]))
+    root = next(s for s in spans if s.parent is None)
+    episodes = sorted((s for s in spans if s is not root), key=lambda s: s.attributes["codearcade.episode.index"])
+    assert root.name == "eval pong" and [s.name for s in episodes] == ["eval episode 0", "eval episode 1"]
+    assert all(s.parent.span_id == root.context.span_id for s in episodes)
+    returns = [e["return"] for e in summary["episodes"]]
+    assert [s.attributes["codearcade.episode.return"] for s in episodes] == returns
+    assert root.attributes["codearcade.run.mean_return"] == sum(returns) / 2
+    assert root.start_time <= min(s.start_time for s in episodes) and root.end_time >= max(s.end_time for s in episodes)

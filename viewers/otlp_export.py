@@ -4,7 +4,7 @@ One trace per run, read from the store (``store/run_trace.py``) and sent with th
 and OTLP exporters, so the run opens in Arize Phoenix, Langfuse, Jaeger, Grafana Tempo or any OTLP receiver
 beside a team's other LLM traces. The span tree::
 
-    optimize pong                         the run (root): game, kind, model, seed, status, error
+    optimize pong                         the run (root): game, kind, model, seed, status, error, best score
     ├── iteration 0                       score, best score, update status, policy version, rolled back
     │   ├── train rollout                 return, length, lives lost, end reason (the traced rollout)
     │   └── eval episode 0                the same, per evaluation episode
@@ -32,9 +32,9 @@ run killed mid-way, an iteration whose row was never written) ends at its last c
 Ids are derived from the store, not drawn at random: the trace id from the run id, each span id from the run
 id and what the span stands for (``iteration:3``, ``llm:<call id>``, ``episode:<episode id>``). Exporting a
 run again therefore sends the very same spans; what a receiver does with them is its own policy: Phoenix keeps
-the first copy of a span id and drops repeats (checked in tests/test_otlp_export.py), Jaeger and Tempo store
-both copies under the one trace (the UI warns of duplicate span ids). A run that grew since (a resumed run)
-re-sends its old spans unchanged beside the new ones.
+the first copy of a span id and drops repeats (checked in tests/test_otlp_export.py); a receiver that does not
+deduplicate span ids (not tested here) stores the repeats under the same trace. A run that grew since (a
+resumed run) re-sends its old spans unchanged beside the new ones.
 """
 
 from __future__ import annotations
@@ -349,6 +349,14 @@ def plan_spans(rows: dict[str, Any], text_limit: int = DEFAULT_TEXT_LIMIT) -> _P
         error=(f"{run['status']}: {run['error'] or ''}".strip()[:2000]
                if run["status"] in FAILED_RUN_STATUSES else None),
     )
+    if rows["iterations"]:  # the run's outcome, as run_summary gives it
+        last = rows["iterations"][-1]
+        root.attributes.update(_attrs(codearcade__best_score=last["best_score"],
+                                      codearcade__best_iteration=last["best_iteration"],
+                                      codearcade__best_version_id=last["best_version_id"]))
+    elif rows["episodes"]:
+        returns = [e["return"] for e in rows["episodes"] if e["return"] is not None]
+        root.attributes.update(_attrs(codearcade__run__mean_return=sum(returns) / len(returns) if returns else None))
     by_iteration = {row["iteration"]: row for row in rows["iterations"]}
     wanted = set(by_iteration) | {c["iteration"] for c in rows["llm_calls"]}
     if run["kind"] != "eval":
