@@ -407,8 +407,11 @@ def build_spans(rows: dict[str, Any], service_name: str = "codearcade", text_lim
     provider.add_span_processor(SimpleSpanProcessor(collected))
     tracer = provider.get_tracer("codearcade.export", run["codearcade_version"])
 
+    started: dict[int, int] = {}  # span id -> place in the tree walk (parents before their children)
+
     def emit(planned: _Planned, parent_context) -> None:
         ids.next_span_id = span_id_for(run_id, planned.key)
+        started[ids.next_span_id] = len(started)
         span = tracer.start_span(planned.name, context=parent_context, kind=getattr(SpanKind, planned.span_kind),
                                  attributes=planned.attributes, start_time=planned.start)
         for name, attributes, timestamp in planned.events:
@@ -422,9 +425,9 @@ def build_spans(rows: dict[str, Any], service_name: str = "codearcade", text_lim
 
     emit(plan_spans(rows, text_limit), None)
     provider.shutdown()
-    finished = list(collected.get_finished_spans())  # children end first: put parents first for readers
-    order = {span_id_for(run_id, "run"): 0}
-    finished.sort(key=lambda s: (order.get(s.context.span_id, 1), s.start_time))
+    finished = sorted(collected.get_finished_spans(), key=lambda s: started[s.context.span_id])
+    if not finished:
+        raise ExportError("the OpenTelemetry SDK made no spans (OTEL_SDK_DISABLED is set?); unset it for this command")
     return finished
 
 
