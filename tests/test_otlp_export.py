@@ -4,7 +4,8 @@ The receiver is Arize Phoenix (`phoenix serve`, from .venv-phoenix: scripts/setu
 127.0.0.1 with a throwaway working directory; the spans are read back through its REST API and compared with
 the store: the span tree, names, times and token counts. The run is a 2-iteration optimization against the
 scripted model (an accepted update, then a rejected one), short rollouts. Without Phoenix the receiver tests
-skip; the error tests need no receiver.
+skip; the error tests need no receiver. (Phoenix binds its gRPC port on every interface, hard-coded in
+phoenix/server/grpc_server.py; everything these tests send goes to 127.0.0.1.)
 """
 
 from __future__ import annotations
