@@ -33,6 +33,7 @@ TYPICAL_REPLY_TOKENS = 1_500
 class Estimate:
     model: str
     iterations: int
+    """LLM calls of the run: its iterations times the calls its strategy makes per iteration (at most)."""
     token_budget: int
     max_tokens: int
     prompt: Prompt
@@ -75,7 +76,7 @@ class Estimate:
         out.append(f"one update: ${self.update_cost(TYPICAL_REPLY_TOKENS):.4f} with a typical "
                    f"{TYPICAL_REPLY_TOKENS:,}-token reply, at most ${self.update_cost(self.max_tokens):.4f} "
                    f"(a {self.max_tokens:,}-token reply)")
-        out.append(f"whole run ({self.iterations} updates): about ${low:.2f}, at most ${high:.2f} (every prompt "
+        out.append(f"whole run ({self.iterations} LLM calls): about ${low:.2f}, at most ${high:.2f} (every prompt "
                    f"filling the budget); cap it with --max-cost USD")
         return out
 
@@ -92,7 +93,10 @@ def estimate_run(config: OptimizeConfig, progress_log: Callable[[str], None] = l
         progress_log("dry run: evaluating the starting policy (iteration 0)...")
         first = run_iteration(store, state, 0, None, None, progress_log)
         with store.read() as con:
-            ctx = read_context(con, run_id, 1, config.memory, config.call_time_limit_s)
+            ctx = read_context(con, run_id, 1, config.memory, config.call_time_limit_s, config.collapse_repeats)
         prompt = build_prompt(ctx, config.token_budget, TokenCounter(config.model or "offline"))
-    return Estimate(model, config.iterations, config.token_budget, config.max_tokens, prompt,
+    calls = config.iterations * state.strategy.max_proposals
+    if config.max_llm_calls is not None:
+        calls = min(calls, config.max_llm_calls)
+    return Estimate(model, calls, config.token_budget, config.max_tokens, prompt,
                     price(config.model) if config.model else None, first.score)

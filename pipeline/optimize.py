@@ -131,10 +131,25 @@ class OptimizeConfig:
     """``beam``: how many of the best versions are kept and expanded."""
     max_concurrent_calls: int = 4
     """At most this many LLM calls in flight at once (an iteration's proposals are requested concurrently)."""
+    collapse_repeats: bool = True
+    """In the prompt's trace, show a run of consecutive steps whose calls, outputs and actions repeat as one line
+    with its step range (more of the steps that matter fit the token budget)."""
     eval_cache: bool = True
     """Reuse the stored episodes of a version already assessed in the run instead of playing them again (episodes
     are deterministic given the code and the run's settings)."""
 
+
+    @classmethod
+    def from_record(cls, recorded: dict[str, Any]) -> "OptimizeConfig":
+        """The config a run recorded (``runs.config``). A setting added after the run was made takes the value
+        that reproduces what the run did (:data:`BEFORE_RECORDED`), not today's default."""
+        values = {**BEFORE_RECORDED, **{k: recorded[k] for k in cls.__dataclass_fields__ if k in recorded}}
+        return cls(**values)
+
+
+BEFORE_RECORDED: dict[str, Any] = {"collapse_repeats": False}
+"""Settings that change prompts, as runs behaved before the setting existed: an old run replays prompt for
+prompt."""
 
 BUDGET_FIELDS = ("max_cost_usd", "max_total_tokens", "max_llm_calls", "max_wall_minutes")
 """Limits of how far a run goes, not of what it does: ``--resume`` may change them, batch keys ignore them."""
@@ -271,8 +286,7 @@ def load_state(store: Store, run_id: str) -> RunState:
             raise ValueError(f"no run {run_id} in {store.path}; `codearcade runs` lists the runs")
         last = last_iteration(con, run_id)
     recorded = json.loads(run["config"])
-    fields = {k: recorded[k] for k in OptimizeConfig.__dataclass_fields__ if k in recorded}
-    config = OptimizeConfig(**fields)
+    config = OptimizeConfig.from_record(recorded)
     settings = {k: recorded[k] for k in ("rollout_steps", "eval_max_steps", "instruction", "feedback_bands")}
     settings["bands"] = FeedbackBands(**recorded["feedback_bands"])
     state = RunState(run_id, run["game"], config, settings)
@@ -465,7 +479,7 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
         raise ValueError(f"{flags} cannot change when resuming run {run_id}: they are part of its settings "
                          "(start a new run instead)")
     recorded = json.loads(row["config"])
-    config = OptimizeConfig(**{k: recorded[k] for k in OptimizeConfig.__dataclass_fields__ if k in recorded})
+    config = OptimizeConfig.from_record(recorded)
     if config.model == f"openai/{MODEL_ALIAS}" and not config.api_base or row["model"] == OFFLINE_MODEL_LABEL:
         config.model = None  # the offline model (runs made before its name was recorded as asked for)
     if given.get("iterations") is not None and given["iterations"] < config.iterations:

@@ -86,6 +86,8 @@ class PromptContext:
     feedback: str
     memory: list[MemoryEntry] = field(default_factory=list)
     call_time_limit_s: float = 1.0
+    collapse_repeats: bool = False
+    """Show runs of steps whose calls, outputs and actions repeat as one line each (``OptimizeConfig``)."""
 
 
 @dataclass
@@ -120,6 +122,7 @@ def read_context(
     next_iteration: int,
     memory: int,
     call_time_limit_s: float = 1.0,
+    collapse_repeats: bool = False,
 ) -> PromptContext:
     """The context of the paper's (``greedy``) update that starts iteration ``next_iteration`` of ``run_id``.
 
@@ -132,7 +135,8 @@ def read_context(
     if len(history.iterations) < next_iteration:
         raise KeyError(f"run {run_id} has no iteration {next_iteration - 1}")
     (request,) = Greedy(memory=memory).plan(history, next_iteration)
-    return context_for(con, run_id, history, request.parent, request.memory, request.note, call_time_limit_s)
+    return context_for(con, run_id, history, request.parent, request.memory, request.note, call_time_limit_s,
+                       collapse_repeats)
 
 
 def context_for(
@@ -143,6 +147,7 @@ def context_for(
     memory: list[Ref],
     note: str = "",
     call_time_limit_s: float = 1.0,
+    collapse_repeats: bool = False,
 ) -> PromptContext:
     """The context of an update that improves the candidate ``parent``, from the store alone: its code, its
     traced training rollout, its evaluation and feedback (after ``note``), and the candidates in ``memory``."""
@@ -168,6 +173,7 @@ def context_for(
         feedback=note + (base["feedback"] or ""),
         memory=entries,
         call_time_limit_s=call_time_limit_s,
+        collapse_repeats=collapse_repeats,
     )
 
 
@@ -341,6 +347,41 @@ def _priority(steps: list[dict[str, Any]], events: list[tuple[int, str]]) -> lis
     return order
 
 
+def _segments(steps: list[dict[str, Any]], nodes_by_step: dict[int, list[dict[str, Any]]],
+              collapse: bool) -> list[list[int]]:
+    """Step indices in display units: each step alone, or with ``collapse`` a run of consecutive steps whose
+    calls (inputs and outputs), action and reward are the same as one unit (only the observation moves)."""
+    if not collapse:
+        return [[i] for i in range(len(steps))]
+    units: list[list[int]] = []
+    previous = None
+    for i, row in enumerate(steps):
+        calls = nodes_by_step.get(row["step"], [])
+        signature = (tuple(_call(n) for n in calls), row["action"], row["reward"]) if calls else None
+        if signature is not None and signature == previous and row["action"] is not None:
+            units[-1].append(i)
+        else:
+            units.append([i])
+        previous = signature
+    return units
+
+
+def _unit_lines(unit: list[int], steps: list[dict[str, Any]],
+                nodes_by_step: dict[int, list[dict[str, Any]]]) -> tuple[str, str, str]:
+    """The #Inputs, #Others and #Outputs lines of a display unit."""
+    first = steps[unit[0]]
+    if len(unit) == 1:
+        return _obs_line(first), _calls_line(first, nodes_by_step), _out_line(first)
+    last = steps[unit[-1]]
+    span = f"steps {first['step']}-{last['step']}"
+    calls = " | ".join(_call(n) for n in nodes_by_step.get(first["step"], []))
+    return (f"{span} ({len(unit)} steps with the same calls and action; step {first['step']} shown): "
+            f"{render_obs(first['obs'])}",
+            f"{span}: {calls} (each step)",
+            f"{span}: action {first['action']}, reward {format_number(first['reward'])} each, score "
+            f"{format_number(last['score'])}")
+
+
 # ---------------------------------------------------------------------------------------------- building
 
 
@@ -375,22 +416,34 @@ def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prom
         "#Feedback": ctx.feedback.strip() or "(no feedback yet)",
     }
 
+    units = _segments(steps, nodes_by_step, ctx.collapse_repeats)
+    unit_of = {i: u for u, members in enumerate(units) for i in members}
+    lines = {}
+
+    def unit_lines(u: int) -> tuple[str, str, str]:
+        if u not in lines:
+            lines[u] = _unit_lines(units[u], steps, nodes_by_step)
+        return lines[u]
+
     def assemble(shown: list[int], memory: list[str]) -> list[dict[str, str]]:
         shown = sorted(shown)
         obs_lines, call_lines, out_lines = [], [], []
         previous = None
-        for i in shown:
-            if previous is not None and i != previous + 1:
-                gap = f"… steps {steps[previous]['step'] + 1}-{steps[i]['step'] - 1} omitted"
+        for u in shown:
+            first = units[u][0]
+            if previous is not None and first != units[previous][-1] + 1:
+                gap = f"… steps {steps[units[previous][-1]]['step'] + 1}-{steps[first]['step'] - 1} omitted"
                 obs_lines.append(gap)
                 call_lines.append(gap)
                 out_lines.append(gap)
-            obs_lines.append(_obs_line(steps[i]))
-            call_lines.append(_calls_line(steps[i], nodes_by_step))
-            out_lines.append(_out_line(steps[i]))
-            previous = i
-        shown_note = (f"Showing {len(shown)} of {len(steps)} steps" +
-                      (" (the steps before each lost point or life first)." if len(shown) < len(steps) else "."))
+            obs_line, calls_line, out_line = unit_lines(u)
+            obs_lines.append(obs_line)
+            call_lines.append(calls_line)
+            out_lines.append(out_line)
+            previous = u
+        covered = sum(len(units[u]) for u in shown)
+        shown_note = (f"Showing {covered} of {len(steps)} steps" +
+                      (" (the steps before each lost point or life first)." if covered < len(steps) else "."))
         sections = [
             ("#Instruction", fixed["#Instruction"]),
             ("#Code", fixed["#Code"]),
@@ -430,13 +483,17 @@ def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prom
         else:
             break
 
-    shown: list[int] = []
+    shown: list[int] = []  # display units
+    considered: set[int] = set()
     for i in _priority(steps, events):
-        cost = counter(_obs_line(steps[i])) + counter(_calls_line(steps[i], nodes_by_step)) + \
-            counter(_out_line(steps[i])) + 3
+        u = unit_of[i]
+        if u in considered:
+            continue
+        considered.add(u)
+        cost = sum(counter(line) for line in unit_lines(u)) + 3
         if used + cost > budget:
             continue  # a shorter step further down the list may still fit
-        shown.append(i)
+        shown.append(u)
         used += cost
 
     messages = assemble(shown, memory_texts)
@@ -448,8 +505,8 @@ def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prom
             memory_texts.pop()
         messages = assemble(shown, memory_texts)
         tokens = counter.messages(messages)
-    return Prompt(messages, tokens, budget, sorted(steps[i]["step"] for i in shown), len(memory_texts),
-                  counter.method)
+    return Prompt(messages, tokens, budget, sorted(steps[i]["step"] for u in shown for i in units[u]),
+                  len(memory_texts), counter.method)
 
 
 def _obs_line(row: dict[str, Any]) -> str:

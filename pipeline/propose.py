@@ -85,7 +85,7 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     with store.read() as con:
         for request in requests:
             ctx = context_for(con, state.run_id, history, request.parent, request.memory, request.note,
-                              c.call_time_limit_s)
+                              c.call_time_limit_s, c.collapse_repeats)
             try:
                 prompt = build_prompt(ctx, c.token_budget, counter)
             except PromptBudgetError as exc:

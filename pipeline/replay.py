@@ -61,7 +61,7 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
         starter = inspect_policy(blob_text(con, run["starter_policy_hash"]), "policy.py")
         replies = stored_replies(con, run_id)
     recorded = json.loads(run["config"])
-    config = OptimizeConfig(**{k: recorded[k] for k in OptimizeConfig.__dataclass_fields__ if k in recorded})
+    config = OptimizeConfig.from_record(recorded)
     client = ReplayClient(replies, model=run["model"] or "replay")
     new_run = start_run(config, store, client.model, kind="replay", extra={"replay_of": run_id}, starter=starter)
     result = run_loop(store, load_state(store, new_run), client, log)

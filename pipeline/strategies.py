@@ -145,6 +145,8 @@ def format_number(value: Any) -> str:
 
 class Strategy(Protocol):
     name: str
+    max_proposals: int
+    """The most proposals (LLM calls) it makes in one iteration."""
 
     def plan(self, history: History, iteration: int) -> list[ProposalRequest]:
         """The proposals of iteration ``iteration`` (>= 1)."""
@@ -180,6 +182,7 @@ class Greedy:
     rollback: bool = True
     rollback_fraction: float = 0.5
     name: str = "greedy"
+    max_proposals = 1
 
     def plan(self, history: History, iteration: int) -> list[ProposalRequest]:
         previous = history.iterations[iteration - 1]
@@ -248,6 +251,10 @@ class BestOfN:
     memory: int = 5
     name: str = "best-of-n"
 
+    @property
+    def max_proposals(self) -> int:
+        return self.candidates
+
     def plan(self, history: History, iteration: int) -> list[ProposalRequest]:
         parent = history.best
         memory = history.lineage_memory(parent, self.memory)
@@ -265,6 +272,10 @@ class Beam:
     candidates: int = 1
     memory: int = 5
     name: str = "beam"
+
+    @property
+    def max_proposals(self) -> int:
+        return self.width * self.candidates
 
     def beam(self, history: History) -> list[Ref]:
         return [ref for _, ref in history.assessed_versions()[:self.width]]

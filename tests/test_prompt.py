@@ -86,3 +86,34 @@ def test_render_obs_is_compact_for_brick_rows():
     obs = {"RB": [{"x": x, "y": 57, "w": 8, "h": 6, "dx": 0, "dy": 0} for x in (8, 16, 24)], "OB": [],
            "Ball": {"x": 1, "y": 2, "w": 2, "h": 4, "dx": -1, "dy": 3}}
     assert render_obs(obs) == "RB[3] y=57 w=8 h=6 x=8,16,24 OB[0] Ball(1,2,2,4,-1,3)"
+
+
+def test_repeated_steps_collapse_into_one_line_and_more_steps_fit(tmp_path, counter):
+    """Between points the competent Pong policy's steps repeat (no ball: the same calls, action 0); collapsed,
+    each run of them is one line, and the same budget covers more of the rollout."""
+    from tests.conftest import POLICIES
+
+    store = Store(tmp_path / "collapse.duckdb")
+    run_id = start_run(OptimizeConfig(game="pong", policy=str(POLICIES / "pong_competent.py"), iterations=0,
+                                      eval_max_steps=300, rollout_steps=400), store, "openai/gpt-4o")
+    run_loop(store, load_state(store, run_id), None)
+    with store.read() as con:
+        plain = read_context(con, run_id, 1, memory=5)
+        collapsed = read_context(con, run_id, 1, memory=5, collapse_repeats=True)
+    for budget in (3_000, 6_000):
+        before, after = build_prompt(plain, budget, counter), build_prompt(collapsed, budget, counter)
+        assert before.tokens <= budget and after.tokens <= budget
+        per_k_before = len(before.steps_shown) / before.tokens * 1000
+        per_k_after = len(after.steps_shown) / after.tokens * 1000
+        assert per_k_after > per_k_before * 1.2, (budget, per_k_before, per_k_after)
+    text = after.messages[1]["content"]
+    others = text.split("#Others")[1].split("#Outputs")[0]
+    assert "(each step)" in others and "steps with the same calls and action" in text
+    # nothing is lost: every step of a collapsed line repeats the first one's calls, action and reward
+    for line in others.splitlines():
+        if line.endswith("(each step)"):
+            first, last = (int(x) for x in line.split(":")[0].removeprefix("steps ").split("-"))
+            rows = [r for r in collapsed.train_steps if first <= r["step"] <= last]
+            assert len({(r["action"], r["reward"]) for r in rows}) == 1 and len(rows) == last - first + 1
+    # without collapsing, the prompt is what it always was (old runs replay): no collapsed line at all
+    assert "(each step)" not in before.messages[1]["content"]
