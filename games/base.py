@@ -12,6 +12,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+STANDARD_STICKY = 0.25
+STANDARD_NOOP_MAX = 30
+"""The standard stochastic Atari protocol (Machado et al. 2018): sticky actions with probability 0.25 and up to
+30 no-op starts. The paper's protocol is sticky 0, no no-op starts."""
+
 SCAFFOLDS = Path(__file__).resolve().parent / "scaffolds"
 """The curated games' policy scaffolds: ``scaffolds/<game>.py`` beside the game modules."""
 

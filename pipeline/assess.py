@@ -5,6 +5,14 @@ workers (``pipeline/executor.py``), so candidates are played concurrently. Each 
 replaying its actions in this process as it plays (``pipeline/verify.py``); an episode whose replay disagrees is
 marked ``tampered``. Episodes are written to the store as they finish.
 
+**Cascade evaluation** (``screen_steps``): a new version first plays the first evaluation game for that many
+steps (kind ``screen``); one that trails its parent's score at the same step of the same game (deterministic:
+the same seed) by more than ``screen_margin`` is screened out before its full assessment (:func:`screen`).
+
+With ``robust_episodes``, each version also plays that many evaluation episodes under the standard protocol
+(sticky actions, no-op starts; kind ``robust``, seeded like the others): both scores are recorded, and
+``optimize_protocol`` says which one the strategy optimizes.
+
 The **evaluation cache**: episodes are deterministic given the policy's code and the run's settings (seeds,
 caps, protocol; fixed for a run), so a version already assessed in this run reuses that assessment's stored
 episodes instead of playing them again — a rejected or unchanged proposal, which falls back to its parent's
@@ -17,15 +25,16 @@ from __future__ import annotations
 
 import statistics
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable
 
+from games.base import STANDARD_NOOP_MAX, STANDARD_STICKY
 from pipeline.executor import run_episodes
 from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id
-from pipeline.verify import StreamingVerification, tampering
+from pipeline.verify import TAMPERED, StreamingVerification, tampering
 from store import Store
-from store.readers import episode_summary, policy_text, reusable_assessment
+from store.readers import earlier_screen, episode_summary, policy_text, reusable_assessment, score_at_step
 from store.writer import write_episode
 
 if TYPE_CHECKING:
@@ -40,10 +49,21 @@ class Assessment:
     train_return: float
     train_length: int
     score: float
-    """Mean (verified) return of the evaluation episodes."""
+    """The score the run optimizes: ``deterministic_score`` or ``standard_score`` (``optimize_protocol``)."""
     evaluation: str
     """``played``, or ``cached``: the episodes of an earlier assessment of the same version."""
+    deterministic_score: float
+    """Mean (verified) return of the evaluation episodes under the paper's protocol."""
+    standard_score: float | None = None
+    """Mean (verified) return of the ``robust`` episodes under the standard protocol (None: none played)."""
+    robust_episode_ids: list[str] = field(default_factory=list)
     tampered: str | None = None
+    eval_length: float = 0.0
+    """Mean length of the evaluation games (a behaviour descriptor for ``map-elites``)."""
+
+
+PROTOCOLS = ("deterministic", "standard")
+"""What a score can be measured under: the paper's protocol, or the standard one (``games.base``)."""
 
 
 @dataclass
@@ -65,7 +85,11 @@ def episode_specs(state: "RunState", iteration: int, candidate: int, text: str, 
     evals = [EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "eval", i, candidate), kind="eval", index=i,
                          seed=c.seed + i, max_steps=state.settings["eval_max_steps"], **common)
              for i in range(c.eval_episodes)]
-    return [train] + evals
+    robust = [EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "robust", i, candidate), kind="robust",
+                          index=i, seed=c.seed + i, max_steps=state.settings["eval_max_steps"], sticky=STANDARD_STICKY,
+                          noop_max=STANDARD_NOOP_MAX, **common)
+              for i in range(c.robust_episodes)]
+    return [train] + evals + robust
 
 
 def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, str],
@@ -89,10 +113,68 @@ def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, 
     return {candidate: found[version] for candidate, version in versions.items()}, times
 
 
+@dataclass
+class Screen:
+    """Cascade evaluation: how a new version did in the first ``steps`` steps of the first evaluation game."""
+
+    episode_id: str
+    steps: int
+    score: float
+    """Its (verified) return in those steps."""
+    bar: float
+    """Its parent's score at the same step of the same game, less ``screen_margin``: what it had to reach."""
+    tampered: bool = False
+
+    @property
+    def passed(self) -> bool:
+        return not self.tampered and self.score >= self.bar
+
+
+def screen(store: Store, state: "RunState", iteration: int, history, proposals: list,
+           progress: Callable[[int, int], None] | None = None) -> dict[int, Screen]:
+    """Play the screening game of each new version in ``proposals``, all at once; a :class:`Screen` per
+    candidate screened. With the evaluation cache, a version already assessed needs no screen, and one already
+    screened in the run reuses that game."""
+    c = state.config
+    specs, owners = [], []
+    found: dict[int, Screen] = {}
+    with store.read() as con:
+        for p in proposals:
+            if c.eval_cache and reusable_assessment(con, state.run_id, p.version_id) is not None:
+                continue
+            parent = history.candidate(p.parent)
+            bar = score_at_step(con, parent["eval_episode_ids"][0], c.screen_steps - 1) - c.screen_margin
+            earlier = earlier_screen(con, state.run_id, p.version_id) if c.eval_cache else None
+            if earlier is not None:  # screened before in this run: the same game, the same score
+                found[p.candidate] = Screen(earlier["episode_id"], c.screen_steps, earlier["score"], bar,
+                                            tampered=earlier["end_reason"] == TAMPERED)
+                continue
+            text = policy_text(con, state.run_id, p.version_id)
+            specs.append(EpisodeSpec(
+                episode_id=episode_id(state.run_id, iteration, "screen", 0, p.candidate), run_id=state.run_id,
+                game=state.game, policy_text=text, policy_version_id=p.version_id, iteration=iteration, kind="screen",
+                index=0, seed=c.seed, max_steps=c.screen_steps, call_time_limit_s=c.call_time_limit_s,
+                episode_time_limit_s=c.episode_time_limit_s))
+            owners.append((p.candidate, bar))
+    if not specs:
+        return found
+    verification = StreamingVerification(specs)
+    for i, outcome in run_episodes(specs, workers=max(1, c.workers), progress=progress, on_actions=verification.feed):
+        outcome = verification.verify(i, outcome)
+        with store.write() as con:
+            write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)
+        candidate, bar = owners[i]
+        found[candidate] = Screen(outcome.episode["episode_id"], c.screen_steps, outcome.episode["return"], bar,
+                                  tampered=outcome.episode["end_reason"] == TAMPERED)
+    return found
+
+
 def _cached(con, version: str, row: dict) -> Assessment:
     train = episode_summary(con, row["train_episode_id"])
     return Assessment(version, row["train_episode_id"], list(row["eval_episode_ids"]), row["train_return"],
-                      train["length"], row["score"], "cached")
+                      train["length"], row["score"], "cached", row["deterministic_score"], row["standard_score"],
+                      list(row["robust_episode_ids"] or []),
+                      eval_length=statistics.fmean(episode_summary(con, e)["length"] for e in row["eval_episode_ids"]))
 
 
 def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[int, str]],
@@ -121,9 +203,14 @@ def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[i
     times.eval_s = time.monotonic() - started
     found = {}
     for version, indices in groups:
-        train, evals = outcomes[indices[0]], [outcomes[i] for i in indices[1:]]
+        train = outcomes[indices[0]]
+        evals = [outcomes[i] for i in indices[1:] if specs[i].kind == "eval"]
+        robust = [outcomes[i] for i in indices[1:] if specs[i].kind == "robust"]
+        deterministic = statistics.fmean(o.episode["return"] for o in evals)
+        standard = statistics.fmean(o.episode["return"] for o in robust) if robust else None
         found[version] = Assessment(
             version, train.episode["episode_id"], [o.episode["episode_id"] for o in evals], train.episode["return"],
-            train.episode["length"], statistics.fmean(o.episode["return"] for o in evals), "played",
-            tampering([train] + evals))
+            train.episode["length"], standard if state.config.optimize_protocol == "standard" else deterministic,
+            "played", deterministic, standard, [o.episode["episode_id"] for o in robust],
+            tampering([train] + evals + robust), statistics.fmean(o.episode["length"] for o in evals))
     return found

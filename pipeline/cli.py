@@ -160,12 +160,25 @@ def build_parser() -> argparse.ArgumentParser:
     search.add_argument("--strategy", choices=STRATEGIES,
                         help="greedy: the paper's loop, one proposal from the last version, rollback after a "
                         "regression (default); best-of-n: N proposals from the best version, keep the best; beam: "
-                        "expand the --beam-width best versions")
+                        "expand the --beam-width best versions; map-elites: improve random elites of an archive "
+                        "over code complexity x game length, with other elites as inspirations")
     search.add_argument("--candidates", type=_positive_int, metavar="N",
-                        help="proposals per parent and iteration (best-of-n: default 4; beam: default 1)")
+                        help="proposals per iteration (best-of-n, map-elites: default 4) or per beam member (beam: "
+                        "default 1)")
     search.add_argument("--beam-width", type=_positive_int, metavar="K", help="beam: versions kept (default: 3)")
     search.add_argument("--max-concurrent-calls", type=_positive_int, metavar="N",
                         help="LLM calls in flight at once (default: 4)")
+    search.add_argument("--robust-episodes", type=_non_negative_int, metavar="N",
+                        help="also evaluate every version in N games under the standard protocol (sticky actions "
+                        "0.25, up to 30 no-op starts; seeded), beside the paper's deterministic one (default: 0)")
+    search.add_argument("--optimize-for", choices=("deterministic", "standard"), dest="optimize_protocol",
+                        help="the score the strategy optimizes: deterministic (the paper's protocol, default) or "
+                        "standard (needs --robust-episodes)")
+    search.add_argument("--screen-steps", type=_positive_int, metavar="N",
+                        help="cascade evaluation: a new version first plays N steps of the first evaluation game, "
+                        "and is assessed fully only if it keeps up with its parent there (default: off)")
+    search.add_argument("--screen-margin", type=float, metavar="POINTS",
+                        help="how far behind its parent a screened version may be (default: 0)")
     search.add_argument("--no-eval-cache", action="store_const", const=False, dest="eval_cache",
                         help="play every version's episodes again instead of reusing those of an earlier assessment")
     budgets = p.add_argument_group("budgets", "the run stops with status 'budget' before it would exceed one; "
@@ -436,7 +449,8 @@ def _print_iteration(item) -> None:
 OPTIMIZE_OPTIONS = ("game", "policy", "model", "api_base", "iterations", "memory", "token_budget", "eval_episodes",
                     "feedback", "rollback", "rollback_fraction", "seed", "temperature", "max_tokens", "rollout_steps",
                     "eval_max_steps", "workers", "call_time_limit_s", "max_cost_usd", "max_total_tokens",
-                    "max_llm_calls", "max_wall_minutes", "strategy", "candidates", "beam_width", "max_concurrent_calls", "eval_cache")
+                    "max_llm_calls", "max_wall_minutes", "strategy", "candidates", "beam_width", "max_concurrent_calls", "eval_cache",
+                    "robust_episodes", "optimize_protocol", "screen_steps", "screen_margin")
 """The ``optimize`` flags that are :class:`~pipeline.optimize.OptimizeConfig` fields (defaults live there)."""
 
 

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Callable, ContextManager
 
 from games import get_game
-from pipeline.assess import assess
+from pipeline.assess import PROTOCOLS, assess, screen
 from pipeline.feedback import FEEDBACK_MODES, FeedbackBands, compose_feedback
 from pipeline.llm import LLMClient, LLMError
 from pipeline.propose import BudgetExhausted, Proposal, propose
@@ -51,6 +51,7 @@ from store.readers import (
     run_spending,
     starter_version_id,
     update_failures,
+    version_complexity,
 )
 from store.writer import (
     finish_run,
@@ -131,6 +132,18 @@ class OptimizeConfig:
     """``beam``: how many of the best versions are kept and expanded."""
     max_concurrent_calls: int = 4
     """At most this many LLM calls in flight at once (an iteration's proposals are requested concurrently)."""
+    robust_episodes: int = 0
+    """Evaluation episodes under the standard protocol (sticky actions 0.25, up to 30 no-op starts; seeded, so
+    reproducible) added to every assessment, beside the ``eval_episodes`` under the paper's; 0: none."""
+    optimize_protocol: str = "deterministic"
+    """The score the strategy optimizes: ``deterministic`` (the paper's protocol) or ``standard`` (needs
+    ``robust_episodes``): policies good under sticky actions, not only on one replayed trajectory."""
+    screen_steps: int | None = None
+    """Cascade evaluation: before its full assessment, a new version plays the first evaluation game for this many
+    steps; if it then trails its parent's score at the same step by more than ``screen_margin``, it is screened
+    out (rejected, with both scores in its feedback) and never fully played. None: off."""
+    screen_margin: float = 0.0
+    """How far behind its parent a screened version may be and still be assessed fully."""
     collapse_repeats: bool = True
     """In the prompt's trace, show a run of consecutive steps whose calls, outputs and actions repeat as one line
     with its step range (more of the steps that matter fit the token budget)."""
@@ -205,7 +218,7 @@ class RunState:
     @property
     def strategy(self) -> Strategy:
         c = self.config
-        return make_strategy(c.strategy, c.memory, c.candidates, c.beam_width, c.rollback, c.rollback_fraction)
+        return make_strategy(c, self.settings.get("eval_max_steps"))
 
 
 def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
@@ -243,6 +256,17 @@ def _validate_config(config: OptimizeConfig) -> None:
         value = getattr(config, name)
         if value is not None and value <= 0:
             raise ValueError(f"{flag} must be above 0, got {value:g}")
+    if config.robust_episodes < 0:
+        raise ValueError("--robust-episodes must be 0 or more")
+    if config.optimize_protocol not in PROTOCOLS:
+        raise ValueError(f"--optimize-for must be one of {', '.join(PROTOCOLS)}, not {config.optimize_protocol!r}")
+    if config.optimize_protocol == "standard" and config.robust_episodes < 1:
+        raise ValueError("--optimize-for standard needs --robust-episodes N (N >= 1): the episodes its score is "
+                         "the mean of")
+    if config.screen_steps is not None and config.screen_steps < 1:
+        raise ValueError("--screen-steps must be at least 1")
+    if config.screen_margin < 0:
+        raise ValueError("--screen-margin must be 0 or more")
     if config.strategy not in STRATEGIES:
         raise ValueError(f"--strategy must be one of {', '.join(STRATEGIES)}, not {config.strategy!r}")
     for name, flag in (("candidates", "--candidates"), ("beam_width", "--beam-width"),
@@ -250,8 +274,7 @@ def _validate_config(config: OptimizeConfig) -> None:
         value = getattr(config, name)
         if value is not None and value < 1:
             raise ValueError(f"{flag} must be at least 1, got {value}")
-    make_strategy(config.strategy, config.memory, config.candidates, config.beam_width, config.rollback,
-                  config.rollback_fraction)
+    make_strategy(config)
 
 
 def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str = "optimize",
@@ -318,25 +341,42 @@ def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClie
     with store.read() as con:
         history = History(iterations(con, state.run_id, iteration), candidates(con, state.run_id, iteration))
         starter = starter_version_id(con, state.run_id) if iteration == 0 else None
+    strategy = state.strategy
     if iteration == 0:
         proposals = [Proposal(0, None, None, "initial", starter, starter, None, "", None)]
     else:
-        requests = state.strategy.plan(history, iteration)
+        requests = strategy.plan(history, iteration)
         proposals = propose(store, state, history, iteration, requests, client, counter, log)
     llm_s = time.monotonic() - t0
 
+    screens = {}
+    if iteration > 0 and state.config.screen_steps:
+        screens = screen(store, state, iteration, history, [p for p in proposals if p.status == "accepted"], progress)
+        for p in proposals:
+            if p.candidate in screens and not screens[p.candidate].passed:
+                s = screens[p.candidate]
+                p.status, p.version_id = "rejected", p.parent_version_id
+                p.note = (f"Your last suggestion was screened out: in the first {s.steps} steps of the evaluation "
+                          f"game it scored {s.score:g}, where the code it was meant to improve scores {s.bar:g}. The "
+                          "code is unchanged.")
     assessments, times = assess(store, state, iteration, {p.candidate: p.version_id for p in proposals}, progress)
+    with store.read() as con:
+        complexity = version_complexity(con, state.run_id, [p.version_id for p in proposals])
     assessed = []
     for p in proposals:
         a = assessments[p.candidate]
         tampered = a.tampered if p.status == "accepted" else None  # pipeline/verify.py: caught, never the best
+        notes = [p.note] if p.note else []
+        if a.standard_score is not None:
+            notes.append(_protocols_note(state.config, a))
         assessed.append(Assessed(p.candidate, p.parent, p.version_id, "rejected" if tampered else p.status,
-                                 a.score, tampered, [p.note] if p.note else []))
-    decision = decide_starter(assessed) if iteration == 0 else state.strategy.decide(history, iteration, assessed)
+                                 a.score, tampered, notes,
+                                 {"complexity": complexity.get(p.version_id), "eval_length": a.eval_length}))
+    decision = decide_starter(assessed) if iteration == 0 else strategy.decide(history, iteration, assessed)
     if decision.new_best is not None:
         best = assessed[decision.new_best]
         state.best_score, state.best_iteration, state.best_version_id = best.score, iteration, best.version_id
-    _commit(store, state, iteration, proposals, assessments, assessed, decision,
+    _commit(store, state, iteration, proposals, assessments, assessed, decision, screens,
             timing=dict(started_at=started_at, llm_s=llm_s, train_s=times.train_s, eval_s=times.eval_s, t0=t0))
     state.next_iteration = iteration + 1
     chosen, notes = assessed[decision.chosen], decision.notes[decision.chosen]
@@ -345,8 +385,17 @@ def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClie
                            proposals[decision.chosen].prompt_tokens, candidates=len(proposals))
 
 
+def _protocols_note(config: OptimizeConfig, a) -> str:
+    """Both scores, for the feedback: the model sees how the code fares under sticky actions too."""
+    optimized = "the score being optimized" if config.optimize_protocol == "standard" else "not the score optimized"
+    return (f"Under the paper's deterministic protocol it scored {a.deterministic_score:g} (mean of "
+            f"{len(a.eval_episode_ids)}); under the standard protocol (sticky actions 0.25, up to 30 no-op starts: "
+            f"the game does not always do what the policy asks) {a.standard_score:g} (mean of "
+            f"{len(a.robust_episode_ids)}; {optimized}).")
+
+
 def _commit(store: Store, state: RunState, iteration: int, proposals: list[Proposal], assessments, assessed,
-            decision, timing: dict[str, Any]) -> None:
+            decision, screens, timing: dict[str, Any]) -> None:
     """Write the iteration in one transaction: the rollback version (greedy), the versions caught tampering,
     every candidate with its feedback, the chosen candidate's feedback and the ``iterations`` row."""
     c = state.config
@@ -372,8 +421,15 @@ def _commit(store: Store, state: RunState, iteration: int, proposals: list[Propo
                 parent_iteration=p.parent.iteration if p.parent else None,
                 parent_candidate=p.parent.candidate if p.parent else None, parent_version_id=p.parent_version_id,
                 proposed_version_id=p.proposed_version_id, policy_version_id=a.version_id, llm_call_id=p.call_id,
-                update_status=a.status, evaluation=played.evaluation, train_episode_id=played.train_episode_id,
-                eval_episode_ids=played.eval_episode_ids, train_return=played.train_return, score=a.score,
+                update_status=a.status,
+                evaluation="screened" if p.candidate in screens and not screens[p.candidate].passed
+                else played.evaluation, train_episode_id=played.train_episode_id,
+                eval_episode_ids=played.eval_episode_ids, robust_episode_ids=played.robust_episode_ids or None,
+                train_return=played.train_return, score=a.score, deterministic_score=played.deterministic_score,
+                standard_score=played.standard_score,
+                screen_episode_id=screens[p.candidate].episode_id if p.candidate in screens else None,
+                screen_score=screens[p.candidate].score if p.candidate in screens else None,
+                screen_bar=screens[p.candidate].bar if p.candidate in screens else None,
                 decision=decision.decisions[p.candidate], feedback=texts[p.candidate][2]))
         stage, stage_score, text = texts[chosen.candidate]
         insert_feedback(con, dict(run_id=state.run_id, iteration=iteration, mode=c.feedback, stage=stage,

@@ -17,8 +17,10 @@ model.
   ``best - (1 - rollback_fraction) * max(|best|, 1)`` roll back to the best. Memory: the last iterations.
 - ``best-of-n``: N proposals from the best version each iteration; the best of them stands for the iteration.
 - ``beam``: keep the ``beam_width`` best versions and expand each with N proposals per iteration.
+- ``map-elites``: an archive of the best version per behaviour cell (code complexity × game length); each
+  proposal improves a random elite, shown other elites as inspirations.
 
-For ``best-of-n`` and ``beam`` the memory follows the lineage of the parent: the latest attempts to improve it
+For ``best-of-n``, ``beam`` and ``map-elites`` the memory follows the lineage of the parent: the latest attempts to improve it
 (what was tried from here and how it scored) and then its ancestors.
 """
 
@@ -27,7 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-STRATEGIES = ("greedy", "best-of-n", "beam")
+STRATEGIES = ("greedy", "best-of-n", "beam", "map-elites")
 
 
 @dataclass(frozen=True, order=True)
@@ -62,6 +64,9 @@ class Assessed:
     tampered: str | None = None
     notes: list[str] = field(default_factory=list)
     """What the proposal step has to say in the candidate's feedback (a rejection reason, an LLM error)."""
+    behaviour: dict[str, Any] = field(default_factory=dict)
+    """Behaviour descriptors from the store: ``complexity`` (of its code), ``eval_length`` (mean length of its
+    evaluation games)."""
 
 
 @dataclass
@@ -299,15 +304,80 @@ class Beam:
         return _decide_by_rank(history, assessed, kept)
 
 
-def make_strategy(name: str, memory: int, candidates: int | None, beam_width: int, rollback: bool,
-                  rollback_fraction: float) -> Strategy:
-    """The strategy called ``name``; ``candidates`` None takes its default (best-of-n 4, beam 1)."""
+@dataclass
+class MapElites:
+    """A MAP-Elites archive over behaviour the store already has: the code's cyclomatic complexity (bins of
+    ``COMPLEXITY_BIN``) × how long its evaluation games last (quarters of the evaluation cap). Each cell keeps
+    its best version (its elite). Each iteration makes ``candidates`` proposals, each from an elite drawn at
+    random (seeded by the run's seed and the iteration, so a resumed or replayed run draws the same), with other
+    elites as inspirations in the prompt's #Memory: diverse strategies survive beside the best one."""
+
+    candidates: int = 4
+    memory: int = 5
+    seed: int = 0
+    eval_max_steps: int = 4000
+    name: str = "map-elites"
+
+    COMPLEXITY_BIN = 4
+
+    @property
+    def max_proposals(self) -> int:
+        return self.candidates
+
+    def cell(self, row: dict[str, Any]) -> tuple[int, int]:
+        complexity = row.get("complexity") or 0
+        length = row.get("eval_length") or 0
+        return (int(complexity) // self.COMPLEXITY_BIN, min(3, int(4 * length / max(1, self.eval_max_steps))))
+
+    def archive(self, history: History) -> dict[tuple[int, int], Ref]:
+        """Cell -> its elite (the first candidate reaching the cell's best score)."""
+        elites: dict[tuple[int, int], tuple[float, Ref]] = {}
+        for score, ref in history.assessed_versions():
+            cell = self.cell(history.candidate(ref))
+            if cell not in elites or score > elites[cell][0]:
+                elites[cell] = (score, ref)
+        return {cell: ref for cell, (_, ref) in elites.items()}
+
+    def plan(self, history: History, iteration: int) -> list[ProposalRequest]:
+        import random
+
+        elites = sorted(self.archive(history).values())
+        rng = random.Random(self.seed * 1_000_003 + iteration)
+        ranked = [ref for _, ref in history.assessed_versions() if ref in elites]
+        requests = []
+        for i in range(self.candidates):
+            parent = rng.choice(elites)
+            inspirations = [ref for ref in ranked if ref != parent][:max(1, self.memory // 2)]
+            memory = (inspirations + history.lineage_memory(parent, self.memory))[:self.memory]
+            requests.append(ProposalRequest(i, parent, list(dict.fromkeys(memory))))
+        return requests
+
+    def decide(self, history: History, iteration: int, assessed: list[Assessed]) -> Decision:
+        archive = {cell: history.candidate(ref) for cell, ref in self.archive(history).items()}
+        kept = set()
+        for a in _rank(assessed):
+            if a.tampered or a.status == "rejected":
+                continue
+            cell = self.cell(a.behaviour)
+            if cell not in archive or a.score > archive[cell]["score"]:
+                archive[cell] = {"score": a.score, "policy_version_id": a.version_id}
+                kept.add(a.version_id)
+        return _decide_by_rank(history, assessed, kept)
+
+
+def make_strategy(config: Any, eval_max_steps: int | None = None) -> Strategy:
+    """The strategy ``config.strategy`` names (``config``: an ``OptimizeConfig``; ``eval_max_steps``: the run's
+    evaluation cap); ``candidates`` None takes the strategy's default (best-of-n and map-elites 4, beam 1)."""
+    name, candidates = config.strategy, config.candidates
     if name == "greedy":
         if candidates not in (None, 1):
-            raise ValueError("--candidates is for best-of-n and beam: greedy makes one proposal per iteration")
-        return Greedy(memory, rollback, rollback_fraction)
+            raise ValueError("--candidates is for best-of-n, beam and map-elites: greedy makes one proposal per "
+                             "iteration")
+        return Greedy(config.memory, config.rollback, config.rollback_fraction)
     if name == "best-of-n":
-        return BestOfN(candidates or 4, memory)
+        return BestOfN(candidates or 4, config.memory)
     if name == "beam":
-        return Beam(beam_width, candidates or 1, memory)
+        return Beam(config.beam_width, candidates or 1, config.memory)
+    if name == "map-elites":
+        return MapElites(candidates or 4, config.memory, config.seed, eval_max_steps or config.eval_max_steps or 4000)
     raise ValueError(f"--strategy must be one of {', '.join(STRATEGIES)}, not {name!r}")

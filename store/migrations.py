@@ -381,11 +381,17 @@ MIGRATIONS.append(
             policy_version_id   VARCHAR NOT NULL,       -- the version assessed for it
             llm_call_id         VARCHAR,
             update_status       VARCHAR NOT NULL,       -- initial | accepted | rejected | unchanged | llm_error
-            evaluation          VARCHAR NOT NULL,       -- played | cached (episodes reused from an earlier assessment)
+            evaluation          VARCHAR NOT NULL,       -- played | cached (an earlier assessment's episodes) | screened
             train_episode_id    VARCHAR,
             eval_episode_ids    VARCHAR[],
             train_return        DOUBLE,
-            score               DOUBLE,                 -- mean return of the evaluation episodes
+            score               DOUBLE,                 -- the score the run optimizes (one of the two below)
+            deterministic_score DOUBLE,                 -- mean return under the paper's protocol (sticky 0)
+            standard_score      DOUBLE,                 -- mean return under the standard one (sticky 0.25, no-op starts)
+            robust_episode_ids  VARCHAR[],              -- the standard-protocol evaluation episodes (kind robust)
+            screen_episode_id   VARCHAR,                -- cascade: its short screening game (kind screen)
+            screen_score        DOUBLE,                 -- its return in that game
+            screen_bar          DOUBLE,                 -- what it had to reach: the parent's score at that step
             decision            VARCHAR NOT NULL,       -- best | kept | discarded | rolled_back | rejected
             feedback_hash       VARCHAR,                -- blobs.hash of the feedback text shown when it is improved
             created_at          TIMESTAMP NOT NULL,
@@ -400,7 +406,7 @@ MIGRATIONS.append(
                i.base_version_id AS parent_version_id,
                CASE WHEN i.update_status IN ('accepted', 'initial') THEN i.policy_version_id END AS proposed_version_id,
                i.policy_version_id, i.llm_call_id, i.update_status, 'played' AS evaluation,
-               i.train_episode_id, i.eval_episode_ids, i.train_return, i.score,
+               i.train_episode_id, i.eval_episode_ids, i.train_return, i.score, i.score AS deterministic_score,
                CASE WHEN i.update_status = 'rejected' THEN 'rejected'
                     WHEN i.rolled_back THEN 'rolled_back'
                     WHEN i.best_iteration = i.iteration THEN 'best' ELSE 'kept' END AS decision,
@@ -414,7 +420,7 @@ MIGRATIONS.append(
         CREATE OR REPLACE VIEW lineage AS  -- one row per candidate: an edge to the candidate it improved
         SELECT c.run_id, c.iteration, c.candidate, c.strategy, c.policy_version_id, c.proposed_version_id,
                c.parent_iteration, c.parent_candidate, c.parent_version_id, c.update_status, c.evaluation,
-               c.score, p.score AS parent_score, c.score - p.score AS gain, c.decision, c.llm_call_id,
+               c.score, c.deterministic_score, c.standard_score, p.score AS parent_score, c.score - p.score AS gain, c.decision, c.llm_call_id,
                v.loc, v.complexity
         FROM candidates c
         LEFT JOIN candidates p ON p.run_id = c.run_id AND p.iteration = c.parent_iteration
@@ -424,7 +430,8 @@ MIGRATIONS.append(
 
         CREATE OR REPLACE VIEW frontier AS  -- each distinct assessed version once, with its score and rank in the run
         WITH versions AS (
-            SELECT run_id, policy_version_id, max(score) AS score, min(iteration) AS first_iteration,
+            SELECT run_id, policy_version_id, max(score) AS score, max(deterministic_score) AS deterministic_score,
+                   max(standard_score) AS standard_score, min(iteration) AS first_iteration,
                    count(*) AS assessments, count(*) FILTER (WHERE evaluation = 'cached') AS cached
             FROM candidates  -- not a version caught tampering (assessed, then rejected)
             WHERE NOT (decision = 'rejected' AND policy_version_id IS NOT DISTINCT FROM proposed_version_id)

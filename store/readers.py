@@ -169,7 +169,11 @@ def iterations(con: duckdb.DuckDBPyConnection, run_id: str, before_iteration: in
 
 CANDIDATE_COLUMNS = """c.run_id, c.iteration, c.candidate, c.strategy, c.parent_iteration, c.parent_candidate,
     c.parent_version_id, c.proposed_version_id, c.policy_version_id, c.llm_call_id, c.update_status, c.evaluation,
-    c.train_episode_id, c.eval_episode_ids, c.train_return, c.score, c.decision, b.text AS feedback"""
+    c.train_episode_id, c.eval_episode_ids, c.robust_episode_ids, c.train_return, c.score, c.deterministic_score,
+    c.standard_score, c.decision, b.text AS feedback,
+    (SELECT any_value(v.complexity) FROM policy_versions v
+     WHERE v.run_id = c.run_id AND v.policy_version_id = c.policy_version_id) AS complexity,
+    (SELECT avg(e.length) FROM episodes e WHERE list_contains(c.eval_episode_ids, e.episode_id)) AS eval_length"""
 
 
 def candidates(con: duckdb.DuckDBPyConnection, run_id: str, before_iteration: int | None = None) -> list[dict[str, Any]]:
@@ -180,6 +184,31 @@ def candidates(con: duckdb.DuckDBPyConnection, run_id: str, before_iteration: in
             JOIN iterations i ON i.run_id = c.run_id AND i.iteration = c.iteration
             WHERE c.run_id = ? AND c.iteration < ? ORDER BY c.iteration, c.candidate""",
         [run_id, before_iteration if before_iteration is not None else 2**31 - 1]))
+
+
+def earlier_screen(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) -> dict[str, Any] | None:
+    """The first screening game (cascade evaluation) a version played in this run: its episode id, verified
+    return and end."""
+    rows = _rows(con.execute(
+        """SELECT e.episode_id, e.return AS score, e.end_reason FROM candidates c
+           JOIN episodes e ON e.episode_id = c.screen_episode_id
+           WHERE c.run_id = ? AND c.proposed_version_id = ? AND e.verified AND e.end_reason <> 'timeout'
+           ORDER BY c.iteration, c.candidate LIMIT 1""", [run_id, version_id]))
+    return rows[0] if rows else None
+
+
+def score_at_step(con: duckdb.DuckDBPyConnection, episode_id: str, step: int) -> float:
+    """The cumulative score of an episode after ``step`` (its final score if it ended before)."""
+    row = con.execute("SELECT arg_max(score, step) FROM steps WHERE episode_id = ? AND step <= ? AND score IS NOT NULL",
+                      [episode_id, step]).fetchone()
+    return float(row[0]) if row and row[0] is not None else 0.0
+
+
+def version_complexity(con: duckdb.DuckDBPyConnection, run_id: str, version_ids: list[str]) -> dict[str, int]:
+    """Cyclomatic complexity of each of ``version_ids`` (as stored with the version)."""
+    return dict(con.execute(
+        "SELECT policy_version_id, any_value(complexity) FROM policy_versions WHERE run_id = ? "
+        "AND list_contains(?, policy_version_id) GROUP BY policy_version_id", [run_id, version_ids]).fetchall())
 
 
 def episode_summary(con: duckdb.DuckDBPyConnection, episode_id: str) -> dict[str, Any]:
@@ -196,14 +225,16 @@ def reusable_assessment(con: duckdb.DuckDBPyConnection, run_id: str, version_id:
     evaluation cache): played, not caught tampering, every episode stored, verified and ended by the game or
     the step cap, never by a time limit (which depends on the machine's load, not on the code)."""
     rows = _rows(con.execute(
-        """SELECT c.iteration, c.candidate, c.train_episode_id, c.eval_episode_ids, c.train_return, c.score
+        """SELECT c.iteration, c.candidate, c.train_episode_id, c.eval_episode_ids, c.robust_episode_ids,
+                  c.train_return, c.score, c.deterministic_score, c.standard_score
            FROM candidates c
            WHERE c.run_id = ? AND c.policy_version_id = ? AND c.evaluation = 'played'
              AND NOT (c.decision = 'rejected' AND c.policy_version_id IS NOT DISTINCT FROM c.proposed_version_id)
              AND (SELECT count(*) FROM episodes e
-                  WHERE (e.episode_id = c.train_episode_id OR list_contains(c.eval_episode_ids, e.episode_id))
+                  WHERE (e.episode_id = c.train_episode_id OR list_contains(c.eval_episode_ids, e.episode_id)
+                         OR list_contains(coalesce(c.robust_episode_ids, []), e.episode_id))
                     AND e.verified AND e.end_reason IN ('terminated', 'truncated'))
-                 = 1 + len(c.eval_episode_ids)
+                 = 1 + len(c.eval_episode_ids) + len(coalesce(c.robust_episode_ids, []))
            ORDER BY c.iteration, c.candidate LIMIT 1""", [run_id, version_id]))
     return rows[0] if rows else None
 

@@ -142,7 +142,7 @@ def test_run_recording_has_one_score_per_iteration(store, tmp_path, scripted, ca
     result = json.loads(out)
     run_id = result["run_id"]
     episodes = [r[0] for r in store.query("SELECT episode_id FROM episodes WHERE run_id = ?", [run_id])]
-    assert len(episodes) == 6
+    assert len(episodes) == 4, "iteration 2's reply was unusable: it reused iteration 1's episodes (the cache)"
     assert sorted(p.name for p in live.iterdir()) == sorted([f"{e}.rrd" for e in episodes] + [f"{run_id}.rrd"])
 
     rebuilt = tmp_path / "run.rrd"
@@ -161,6 +161,9 @@ def test_run_recording_has_one_score_per_iteration(store, tmp_path, scripted, ca
         assert sorted(column(content, "/llm/reply:TextDocument:text", "iteration")) == [1, 2]
         assert len(column(content, "/llm/tokens/input:Scalars:scalars", "iteration")) == 2
         assert len(column(content, "/metrics/complexity:Scalars:scalars", "iteration")) == 3
+        lineage = column(content, "/lineage:GraphNodes:node_ids", "iteration")
+        flat = [ids[0] if ids and isinstance(ids[0], list) else ids for ids in (lineage[i] for i in range(3))]
+        assert flat == [["0.0"], ["0.0", "1.0"], ["0.0", "1.0", "2.0"]], "the candidates so far, per iteration"
     assert contents[str(live / f"{run_id}.rrd")]["timelines"] == contents[str(rebuilt)]["timelines"]
 
 

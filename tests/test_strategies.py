@@ -206,3 +206,69 @@ def test_strategies_example_and_its_sql(tmp_path, store, scripted):
     by_strategy = {r[0]: r for r in rows}
     assert by_strategy["beam"][1] == 2 and by_strategy["greedy"][1] == 1
     assert all(r[2] <= r[3] <= r[4] for r in rows), "the best so far never falls as calls are spent"
+
+
+def test_both_protocols_are_scored_and_the_chosen_one_is_optimized(store, scripted):
+    model = scripted([COMPETENT_REPLY])
+    config = OptimizeConfig(game="pong", iterations=1, eval_max_steps=800, rollout_steps=40, workers=2,
+                            token_budget=6000, robust_episodes=2, optimize_protocol="standard")
+    result = optimize(config, store, _client(model))
+    assert result.status == "finished", result.error
+    rows = store.query("SELECT iteration, score, deterministic_score, standard_score, eval_episode_ids, "
+                       "robust_episode_ids FROM candidates ORDER BY iteration")
+    assert len(rows) == 2
+    for iteration, score, deterministic, standard, evals, robust in rows:
+        assert score == standard and len(robust) == 2 and len(evals) == 1
+        returns = dict(store.query("SELECT episode_id, return FROM episodes"))
+        assert standard == sum(returns[e] for e in robust) / 2 and deterministic == returns[evals[0]]
+    protocol = store.query("SELECT DISTINCT kind, sticky, noop_max, verified FROM episodes WHERE kind = 'robust'")
+    assert protocol == [("robust", 0.25, 30, True)]
+    assert [r[0] for r in store.query("SELECT score FROM iterations ORDER BY iteration")] == [r[1] for r in rows]
+    prompt = model.requests()[0][1]["content"]
+    assert "under the standard protocol (sticky actions 0.25" in prompt and "the score being optimized" in prompt
+    with pytest.raises(ValueError, match="needs --robust-episodes"):
+        optimize(OptimizeConfig(game="pong", optimize_protocol="standard"), store, None)
+
+
+def test_map_elites_draws_parents_from_its_archive_and_replays(store, scripted):
+    model = scripted([{"pool": POOL, "seed": 17}])
+    config = OptimizeConfig(game="pong", strategy="map-elites", candidates=3, iterations=3, eval_max_steps=600,
+                            rollout_steps=40, workers=2, token_budget=6000, temperature=1.0)
+    result = optimize(config, store, _client(model))
+    assert result.status == "finished", result.error
+    rows = store.query("SELECT iteration, candidate, parent_iteration, parent_candidate, decision FROM candidates "
+                       "WHERE run_id = ? ORDER BY iteration, candidate", [result.run_id])
+    assert [r[0] for r in rows] == [0, 1, 1, 1, 2, 2, 2, 3, 3, 3]
+    refs = {(r[0], r[1]) for r in rows}
+    for it, _, parent_it, parent_c, _ in rows[1:]:
+        assert parent_it < it and (parent_it, parent_c) in refs, "every parent is an earlier assessed candidate"
+    assert {r[4] for r in rows} <= {"best", "kept", "discarded", "rejected"}
+    # the draws are seeded: replaying the run sends the same prompts to the same candidates
+    report = replay(store, result.run_id)
+    assert report.diverged_at is None and all(r.matches for r in report.rows), report.as_dict()
+    replayed = store.query("SELECT iteration, candidate, parent_iteration, parent_candidate FROM candidates "
+                           "WHERE run_id = ? ORDER BY iteration, candidate", [report.replay_run_id])
+    assert replayed == [r[:4] for r in rows]
+
+
+def test_cascade_and_cache_cut_the_steps_not_the_best_scores(store, scripted):
+    """A candidate that falls behind its parent in the first steps of the evaluation game is screened out before
+    its full assessment; with the evaluation cache this plays far fewer steps for the same best-so-far curve."""
+    replies = [COMPETENT_REPLY, ALWAYS_UP, "no code", COMPETENT_REPLY, ALWAYS_UP]
+    config = dict(game="pong", iterations=5, eval_max_steps=1500, rollout_steps=60, workers=2, token_budget=6000)
+    plain = optimize(OptimizeConfig(**config, eval_cache=False), store, _client(scripted(replies)))
+    cheap = optimize(OptimizeConfig(**config, screen_steps=300), store, _client(scripted(replies)))
+    assert [i.best_score for i in cheap.iterations] == [i.best_score for i in plain.iterations]
+    rows = store.query("SELECT iteration, update_status, evaluation, screen_score, screen_bar FROM candidates "
+                       "WHERE run_id = ? ORDER BY iteration", [cheap.run_id])
+    assert rows[1][2] == "played" and rows[1][3] >= rows[1][4], "the competent version kept up: fully assessed"
+    assert rows[2][1:3] == ("rejected", "screened") and rows[2][3] < rows[2][4], "always-up fell behind: screened out"
+    assert rows[5][1:] == rows[2][1:], "the same always-up code again: screened out by the same game"
+    screens = store.query("SELECT count(*), max(length) FROM episodes WHERE run_id = ? AND kind = 'screen'",
+                          [cheap.run_id])[0]
+    assert screens == (2, 300), "competent and always-up screened once each; the repeat reused its game"
+    feedback = store.query("SELECT text FROM feedback WHERE run_id = ? AND iteration = 2", [cheap.run_id])[0][0]
+    assert "screened out" in feedback and "first 300 steps" in feedback
+    ratio = _steps(store, cheap.run_id) / _steps(store, plain.run_id)
+    print(f"environment steps with cascade + cache / without: {ratio:.2f}")
+    assert ratio < 0.7, ratio

@@ -102,8 +102,10 @@ def test_learning_curve(runs):
                                                    "rejected"]
     assert [r["rolled_back"] for r in curve] == [False, False, True, False, False, False], \
         "always-up regressed below the competent version's score"
-    evals = dict(store.query("SELECT iteration, avg(return) FROM episodes WHERE run_id = ? AND kind = 'eval' "
-                             "GROUP BY iteration", [run_id]))
+    # an iteration's evaluation: its own episodes, or an earlier assessment's (the evaluation cache)
+    evals = dict(store.query("SELECT i.iteration, avg(e.return) FROM iterations i JOIN episodes e "
+                             "ON list_contains(i.eval_episode_ids, e.episode_id) WHERE i.run_id = ? "
+                             "GROUP BY i.iteration", [run_id]))
     calls = {i: (a, b) for i, a, b in store.query(
         "SELECT iteration, input_tokens, output_tokens FROM llm_calls WHERE run_id = ?", [run_id])}
     total = 0
@@ -163,7 +165,9 @@ def test_llm_usage_and_run_summary(runs):
     assert (s["kind"], s["game"], s["model"], s["status"]) == ("optimize", "pong", "openai/scripted", "finished")
     assert (s["iterations_done"], s["iterations_planned"], s["best_iteration"]) == (5, 5, 1)
     assert s["best_score"] == max(r[0] for r in store.query("SELECT score FROM iterations"))
-    assert s["episodes"] == 6 * 3 and s["total_tokens"] == sum(tokens) and s["duration_s"] > 0
+    played = store.query("SELECT count(*) FROM episodes WHERE run_id = ?", [run_id])[0][0]
+    assert played == 3 * 3, "iterations 0-2 played; 3-5 fell back to the best version and reused its episodes"
+    assert s["episodes"] == played and s["total_tokens"] == sum(tokens) and s["duration_s"] > 0
     returns = [r[0] for r in store.query("SELECT return FROM episodes WHERE run_id = ?", [eval_id])]
     assert (e["kind"], e["model"], e["iterations_done"], e["iterations_planned"]) == ("eval", None, 0, None)
     assert e["best_score"] == pytest.approx(sum(returns) / 3) and e["steps"] == 3 * 200 and e["total_tokens"] == 0

@@ -3,7 +3,8 @@
 An optimization run gets ``score.png`` (mean evaluation return per iteration, each evaluation episode, the
 best so far, rollbacks), ``code.png`` (lines of code, cyclomatic complexity and nested-if depth of the version
 each iteration evaluated: the paper's Table 3 over time) and ``tokens.png`` (LLM input/output tokens per
-iteration and cumulative); an eval run gets ``score.png`` with the return of each episode. ``README.md`` shows
+iteration and cumulative) and ``lineage.png`` (every candidate at its score, with an edge to the candidate it
+improved, and its standard-protocol score when measured); an eval run gets ``score.png`` with the return of each episode. ``README.md`` shows
 the plots with the run's settings and tables of its iterations (or episodes), rejected candidates and LLM
 usage. Everything is read in one read-only open (the views of docs/schema.md), so a report can be made while
 the run is still writing; plots are drawn with matplotlib's Agg canvas (no display needed).
@@ -48,6 +49,7 @@ def collect(store: Store, run: str) -> dict[str, Any]:
         data["code"] = q("SELECT * FROM code_metrics WHERE run_id = ? ORDER BY iteration")
         data["usage"] = q("SELECT * FROM llm_usage WHERE run_id = ?")[0]
         data["rejected"] = q("SELECT * FROM rejected_candidates WHERE run_id = ? ORDER BY iteration")
+        data["lineage"] = q("SELECT * FROM lineage WHERE run_id = ? ORDER BY iteration, candidate")
         data["episodes"] = q("SELECT episode_id, iteration, kind, episode_index, seed, policy_version_id, return, "
                              "length, lives_lost, end_reason, error, duration_s, max_steps FROM episodes "
                              "WHERE run_id = ? ORDER BY iteration, kind, episode_index")
@@ -124,6 +126,48 @@ def plot_scores(data: dict[str, Any], path: Path) -> bool:
                 ha="center", va="bottom", fontsize=8, color="#ff7f0e")
     ax.margins(y=0.15)
     ax.set_title(_title(data, "score per iteration"), fontsize=11)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    fig.savefig(path)
+    return True
+
+
+DECISION_STYLE = {  # candidates.decision -> (marker, colour, label)
+    "best": ("*", "#ff7f0e", "new best"),
+    "kept": ("o", "#1f77b4", "kept"),
+    "discarded": ("o", "#aaaaaa", "discarded"),
+    "rolled_back": ("v", "#9467bd", "regressed: rolled back"),
+    "rejected": ("X", "#d62728", "rejected"),
+}
+
+
+def plot_lineage(data: dict[str, Any], path: Path) -> bool:
+    """Every candidate at (iteration, score), an edge to the candidate it improved; the standard-protocol score
+    beside each one when the run measured it."""
+    nodes = [n for n in data.get("lineage") or [] if n["score"] is not None]
+    if data["run"]["kind"] == "eval" or len(nodes) < 2:
+        return False
+    fig, (ax,) = _figure(height=4.8)
+    at = {(n["iteration"], n["candidate"]): n for n in nodes}
+    for n in nodes:
+        parent = at.get((n["parent_iteration"], n["parent_candidate"]))
+        if parent is not None:
+            ax.plot([parent["iteration"], n["iteration"]], [parent["score"], n["score"]], "-", color="#bbbbbb",
+                    linewidth=0.9, zorder=1)
+    for decision, (marker, colour, label) in DECISION_STYLE.items():
+        pts = [(n["iteration"], n["score"]) for n in nodes if n["decision"] == decision]
+        if pts:
+            ax.scatter(*zip(*pts), marker=marker, s=70 if marker == "*" else 36, color=colour, label=label,
+                       zorder=3, edgecolors="white", linewidths=0.5)
+    robust = [(n["iteration"], n["standard_score"]) for n in nodes if n.get("standard_score") is not None]
+    if robust:
+        ax.scatter(*zip(*robust), marker="_", s=60, color="#2ca02c", zorder=2,
+                   label="score under the standard protocol (sticky actions)")
+    _integer_x(ax, [n["iteration"] for n in nodes])
+    strategy = nodes[-1]["strategy"]
+    ax.set_xlabel("iteration (each dot one candidate; lines to the candidate it improved)")
+    ax.set_ylabel("evaluation return")
+    ax.margins(y=0.12)
+    ax.set_title(_title(data, f"lineage ({strategy}: {len(nodes)} candidates)"), fontsize=11)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     fig.savefig(path)
     return True
@@ -392,6 +436,7 @@ def write_report(store: Store, run: str, out_dir: str | Path | None = None) -> P
         ("score.png", plot_scores, "Return per episode" if data["run"]["kind"] == "eval" else "Score per iteration"),
         ("code.png", plot_code, "Code size and complexity per iteration"),
         ("tokens.png", plot_tokens, "LLM tokens per iteration"),
+        ("lineage.png", plot_lineage, "Every candidate and the version it improved"),
     ):
         if data["run"]["kind"] == "eval" and name != "score.png":
             continue

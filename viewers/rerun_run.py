@@ -20,10 +20,12 @@ Entity layout::
     /code                        TextDocument (markdown): the whole policy file evaluated in the iteration
     /feedback                    TextDocument: the feedback the next prompt shows
     /log                         TextLog: one line per iteration (update status, score, best, rollback)
+    /lineage                     GraphNodes + GraphEdges: every candidate so far (x: iteration, y: score, colour:
+                                 the strategy's decision) with an edge from the candidate it improved
     properties                   ``run``: run_id, kind, game, model, seed, status, iterations, created_at
 
-Blueprint: score, code metrics and token series on the left; the code (with prompt, reply and feedback in
-tabs beside it) on the right, so scrubbing the ``iteration`` timeline shows the code that scored each point.
+Blueprint: score, code metrics and token series on the left; the code (with prompt, reply, feedback and the
+lineage graph in tabs beside it) on the right, so scrubbing the ``iteration`` timeline shows the code that scored each point.
 """
 
 from __future__ import annotations
@@ -67,7 +69,9 @@ def read_run(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
         LEFT JOIN blobs r ON r.hash = c.reply_hash
         LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
         WHERE i.run_id = $1 ORDER BY i.iteration""", [run_id])
-    return {"run": runs[0], "iterations": iterations}
+    lineage = _rows(con, "SELECT iteration, candidate, parent_iteration, parent_candidate, score, decision, "
+                         "update_status FROM lineage WHERE run_id = ? ORDER BY iteration, candidate", [run_id])
+    return {"run": runs[0], "iterations": iterations, "lineage": lineage}
 
 
 def prompt_text(stored: str | None) -> str:
@@ -129,8 +133,35 @@ def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -
                 + (", rolled back" if it["rolled_back"] else ""))
         level = rr.TextLogLevel.WARN if it["update_status"] in ("rejected", "llm_error") else rr.TextLogLevel.INFO
         rec.log("/log", rr.TextLog(line, level=level))
+        _log_lineage(rec, data.get("lineage") or [], int(it["iteration"]))
     rec.reset_time()
     rec.send_blueprint(run_blueprint())
+
+
+LINEAGE_COLOURS = {"best": (255, 127, 14), "kept": (31, 119, 180), "discarded": (170, 170, 170),
+                   "rolled_back": (148, 103, 189), "rejected": (214, 39, 40)}
+
+
+def _log_lineage(rec: rr.RecordingStream, lineage: list[dict[str, Any]], iteration: int) -> None:
+    """The candidates up to ``iteration`` as a directed graph (parent -> candidate): x is the iteration, y the
+    score (higher is better), colour the strategy's decision."""
+    nodes = [n for n in lineage if n["iteration"] <= iteration]
+    if not nodes:
+        return
+    scores = [n["score"] for n in lineage if n["score"] is not None] or [0.0]
+    low, span = min(scores), (max(scores) - min(scores)) or 1.0
+    ids = {(n["iteration"], n["candidate"]): f"{n['iteration']}.{n['candidate']}" for n in nodes}
+    rec.log("/lineage", rr.GraphNodes(
+        node_ids=[ids[(n["iteration"], n["candidate"])] for n in nodes],
+        positions=[(n["iteration"] * 120.0, -400.0 * ((n["score"] if n["score"] is not None else low) - low) / span)
+                   for n in nodes],
+        labels=[f"{n['iteration']}.{n['candidate']}: {'-' if n['score'] is None else format(n['score'], 'g')}"
+                for n in nodes],
+        colors=[LINEAGE_COLOURS.get(n["decision"], (120, 120, 120)) for n in nodes]),
+        rr.GraphEdges(edges=[(ids[(n["parent_iteration"], n["parent_candidate"] or 0)],
+                              ids[(n["iteration"], n["candidate"])]) for n in nodes
+                             if (n["parent_iteration"], n["parent_candidate"] or 0) in ids],
+                      graph_type="directed"))
 
 
 def run_blueprint() -> rrb.Blueprint:
@@ -149,6 +180,7 @@ def run_blueprint() -> rrb.Blueprint:
                 rrb.TextDocumentView(origin="/llm/prompt", name="prompt"),
                 rrb.TextDocumentView(origin="/llm/reply", name="reply"),
                 rrb.TextDocumentView(origin="/feedback", name="feedback"),
+                rrb.GraphView(origin="/lineage", name="lineage"),
                 active_tab=0,
             ),
             column_shares=[1, 1],
