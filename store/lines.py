@@ -100,7 +100,7 @@ def version_blame(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) 
         """SELECT b.function, b.line_no, b.text, b.executable, b.origin_version_id, b.origin_iteration,
                   b.origin_produced_by, b.origin_call_id
            FROM line_blame b
-           LEFT JOIN (SELECT list_transform(any_value(functions), f -> f.name) AS names FROM policy_versions
+           LEFT JOIN (SELECT list_transform(any_value(functions), lambda f: f.name) AS names FROM policy_versions
                       WHERE run_id = ? AND policy_version_id = ?) v ON true
            WHERE b.run_id = ? AND b.policy_version_id = ?
            ORDER BY list_position(v.names, b.function), b.line_no""", [run_id, version_id, run_id, version_id])
