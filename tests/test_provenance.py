@@ -239,3 +239,26 @@ def test_blame_function_carries_matched_lines():
     ''').lstrip(), None, "c")
     assert [(line.line_no, line.origin, line.executable) for line in fresh] == [
         (1, "c", False), (2, "c", False), (3, "c", False), (4, "c", True)]
+
+
+def test_rerun_recording_shows_the_lines_that_ran_at_every_step(tmp_path, capsys):
+    """The live recording of a traced episode holds, per method, its source with ▶ on the lines that ran; at every
+    step the latest document (what the viewer shows there) marks exactly that step's ``lines_run``."""
+    from tests.test_rerun import dump
+
+    store = Store(tmp_path / "store.duckdb")
+    live = tmp_path / "live"
+    assert main(["eval", "tests/policies/pong_competent.py", "--trace", "--max-steps", "120", "--rerun", str(live),
+                 "--store", str(store.path), "--json"]) == 0
+    [episode] = json.loads(capsys.readouterr().out)["episodes"]
+    content = dump(live / f"{episode['episode_id']}.rrd")[str(live / f"{episode['episode_id']}.rrd")]
+    for function in ("predict_ball_trajectory", "select_action"):
+        docs = {int(k): v[0] if isinstance(v, list) else v
+                for k, v in content["timelines"]["step"][f"/lines/{function}:TextDocument:text"].items()}
+        assert 0 in docs and len(docs) < 120, "a document where the lines change, not one per step"
+        nodes = dict(store.query("SELECT step, lines_run FROM nodes WHERE episode_id = ? AND function = ?",
+                                 [episode["episode_id"], function]))
+        for step, lines in nodes.items():
+            shown = docs[max(k for k in docs if k <= step)]
+            marked = [int(row.split()[1]) for row in shown.split("```python\n")[1].splitlines() if row.startswith("▶")]
+            assert marked == lines, (function, step)
