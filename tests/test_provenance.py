@@ -262,3 +262,17 @@ def test_rerun_recording_shows_the_lines_that_ran_at_every_step(tmp_path, capsys
             shown = docs[max(k for k in docs if k <= step)]
             marked = [int(row.split()[1]) for row in shown.split("```python\n")[1].splitlines() if row.startswith("▶")]
             assert marked == lines, (function, step)
+
+
+def test_a_run_shipped_as_a_bundle_keeps_its_blame(run, tmp_path):
+    """The Ray executor ships runs as bundles (store/bundle.py): the lines travel with the versions."""
+    from store.bundle import export_run, import_run
+
+    store, run_id = run
+    with store.read() as con:
+        bundle = export_run(con, run_id)
+    other = Store(tmp_path / "driver.duckdb")
+    with other.write() as con:
+        import_run(con, bundle)
+    query = "SELECT * FROM line_blame WHERE run_id = ? ORDER BY ALL"
+    assert other.query(query, [run_id]) == store.query(query, [run_id]) != []

@@ -453,7 +453,7 @@ class EpisodeLogger:
 def episode_blueprint(traced: bool = False, errors: bool = False, line_functions: Sequence[str] = ()) -> rrb.Blueprint:
     """Game view (frame + boxes + policy overlay) beside score/reward/action series, policy outputs (traced
     episodes) and the code; a log of policy outputs and errors under the game view when there can be any; the
-    lines that ran of each method in ``line_functions`` as tabs beside the code."""
+    lines that ran of each method in ``line_functions`` above the code."""
     left: list[Any] = [rrb.Spatial2DView(origin="/game", name="game",
                                          visual_bounds=rrb.VisualBounds2D(x_range=[0, SCREEN_W], y_range=[0, SCREEN_H]))]
     if traced or errors:
@@ -469,9 +469,10 @@ def episode_blueprint(traced: bool = False, errors: bool = False, line_functions
         rrb.Horizontal(
             rrb.Vertical(*left, row_shares=[3, 1][: len(left)]),
             rrb.Vertical(*series),
-            rrb.Tabs(rrb.TextDocumentView(origin="/code", name="policy code"),
-                     *[rrb.TextDocumentView(origin=entity("lines", fn), name=f"lines run: {fn}") for fn in line_functions],
-                     active_tab=1 if line_functions else 0)
+            rrb.Vertical(*[rrb.TextDocumentView(origin=entity("lines", fn), name=f"lines run: {fn}")
+                           for fn in line_functions],
+                         rrb.TextDocumentView(origin="/code", name="policy code"),
+                         row_shares=[2] * len(line_functions) + [1])
             if line_functions else rrb.TextDocumentView(origin="/code", name="policy code"),
             column_shares=[2, 2, 1.5],
         ),
