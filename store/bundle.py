@@ -2,8 +2,9 @@
 
 :func:`export_run` collects every row that belongs to one run, in the store's own format: its ``runs`` row,
 policy versions with their lines (blame), iterations, feedback, LLM calls, episodes with their steps and nodes,
-and the blobs they reference. :func:`import_run` writes such a bundle into a store in one transaction, replacing any earlier rows
-of the same run, so a run finished elsewhere lands whole or not at all, and never twice.
+and the blobs they reference. :func:`import_run` writes such a bundle into a store in one transaction,
+replacing any earlier rows of the same run, so a run finished elsewhere lands whole or not at all, and never
+twice.
 """
 
 from __future__ import annotations

@@ -156,7 +156,8 @@ def test_unrun_lines_of_the_best_version(run):
     expected = []
     for method in inspect_policy(text).trainable:
         lines = method.source.splitlines()
-        expected += [(method.name, k, lines[k - 1]) for k in executable_lines(method.source) if k not in ran[method.name]]
+        expected += [(method.name, k, lines[k - 1]) for k in executable_lines(method.source)
+                     if k not in ran[method.name]]
     assert rows == sorted(expected)
     assert ("select_action", DEAD_LINE, "        return 1") in rows, "the branch no observation takes"
     assert ("select_action", 3) not in [(function, line) for function, line, _ in rows], "checked every step: it ran"
@@ -260,7 +261,8 @@ def test_rerun_recording_shows_the_lines_that_ran_at_every_step(tmp_path, capsys
                                  [episode["episode_id"], function]))
         for step, lines in nodes.items():
             shown = docs[max(k for k in docs if k <= step)]
-            marked = [int(row.split()[1]) for row in shown.split("```python\n")[1].splitlines() if row.startswith("▶")]
+            listing = shown.split("```python\n")[1].splitlines()
+            marked = [int(row.split()[1]) for row in listing if row.startswith("▶")]
             assert marked == lines, (function, step)
 
 
