@@ -474,7 +474,7 @@ def episode_blueprint(traced: bool = False, errors: bool = False, line_functions
                          rrb.TextDocumentView(origin="/code", name="policy code"),
                          row_shares=[2] * len(line_functions) + [1])
             if line_functions else rrb.TextDocumentView(origin="/code", name="policy code"),
-            column_shares=[2, 2, 1.5],
+            column_shares=[2, 1.6, 2.4] if line_functions else [2, 2, 1.5],  # room for the marked sources
         ),
         collapse_panels=True,
     )
