@@ -278,3 +278,28 @@ def test_a_run_shipped_as_a_bundle_keeps_its_blame(run, tmp_path):
         import_run(con, bundle)
     query = "SELECT * FROM line_blame WHERE run_id = ? ORDER BY ALL"
     assert other.query(query, [run_id]) == store.query(query, [run_id]) != []
+
+
+def test_a_rollback_version_carries_its_targets_origins(tmp_path):
+    """Versions written as the optimizer writes them (pipeline/versions.py rows, store/writer.py): a rollback to
+    the starting code keeps iteration 0's origins, and the next change is diffed against the rolled-back code."""
+    from pipeline.versions import policy_version_row
+    from store.lines import version_blame
+    from store.writer import insert_policy_version, insert_run
+
+    store = Store(tmp_path / "store.duckdb")
+    v0 = inspect_policy(pong_policy(V0))
+    v1 = inspect_policy(pong_policy(V1.split("\n", 1)[1]))
+    v2 = inspect_policy(pong_policy(V3.split("\n", 1)[1]))
+    with store.write() as con:
+        insert_run(con, "run", "optimize", "pong", {}, v0.text, v0.version_id, {})
+        insert_policy_version(con, policy_version_row(v0, "run", 0, "initial"))
+        insert_policy_version(con, policy_version_row(v1, "run", 1, "llm", parent_id=v0.version_id))
+        insert_policy_version(con, policy_version_row(v0, "run", 1, "rollback", parent_id=v1.version_id))
+        insert_policy_version(con, policy_version_row(v2, "run", 2, "llm", parent_id=v0.version_id))
+        origins = {version: [(r["line_no"], r["origin_iteration"]) for r in version_blame(con, "run", version)
+                             if r["function"] == "select_action"]
+                   for version in (v0.version_id, v2.version_id)}
+    assert origins[v0.version_id] == [(k, 0) for k in range(1, 10)], "the rollback kept the starting code's origins"
+    assert [i for _, i in origins[v2.version_id]] == [0, 0, 0, 0, 0, 0, 2, 0, 2, 2, 2], \
+        "diffed against the rolled-back code, not iteration 1's: the lines iteration 1 added count as new in 2"
