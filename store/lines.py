@@ -95,15 +95,20 @@ def backfill_lines(con: duckdb.DuckDBPyConnection, run_id: str) -> int:
 
 
 def version_blame(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) -> list[dict[str, Any]]:
-    """The ``line_blame`` rows of a version, methods in the order the policy defines them, lines in order."""
+    """The ``line_blame`` rows of a version, methods in the order the policy defines them, lines in order, each
+    with ``times_ran``: the calls that ran it in the version's traced episodes of the run (NULL if none was
+    traced with lines)."""
     cursor = con.execute(
         """SELECT b.function, b.line_no, b.text, b.executable, b.origin_version_id, b.origin_iteration,
-                  b.origin_produced_by, b.origin_call_id
+                  b.origin_produced_by, b.origin_call_id, c.times_ran
            FROM line_blame b
            LEFT JOIN (SELECT list_transform(any_value(functions), lambda f: f.name) AS names FROM policy_versions
                       WHERE run_id = ? AND policy_version_id = ?) v ON true
+           LEFT JOIN (SELECT function, line_no, sum(times_ran)::BIGINT AS times_ran FROM line_coverage
+                      WHERE run_id = ? AND policy_version_id = ? GROUP BY function, line_no) c
+                  ON c.function = b.function AND c.line_no = b.line_no
            WHERE b.run_id = ? AND b.policy_version_id = ?
-           ORDER BY list_position(v.names, b.function), b.line_no""", [run_id, version_id, run_id, version_id])
+           ORDER BY list_position(v.names, b.function), b.line_no""", [run_id, version_id] * 3)
     names = [d[0] for d in cursor.description]
     return [dict(zip(names, row)) for row in cursor.fetchall()]
 

@@ -104,6 +104,10 @@ def test_blame_attributes_every_line_of_the_final_version_to_its_iteration(run):
         assert line["origin_call_id"] == expected, line
         assert line["origin_produced_by"] == ("initial" if line["origin_iteration"] == 0 else "llm")
     assert {line["origin_iteration"] for line in functions["predict_ball_trajectory"]} == {0}, "never changed"
+    [(calls_traced,)] = store.query("SELECT count(*) FROM nodes WHERE policy_version_id = ? AND function = "
+                                    "'select_action'", [report["policy_version_id"]])
+    ran = {line["line_no"]: line["times_ran"] for line in select}
+    assert ran[2] == calls_traced > 0 and ran[DEAD_LINE] == 0 and ran[8] + ran[10] + ran[11] + ran[4] == calls_traced
     # the rejected candidate of iteration 2 has its own lines, attributed to itself, and left no trace in V3
     rejected = store.query("SELECT DISTINCT origin_iteration FROM line_blame l JOIN policy_versions v USING "
                            "(run_id, policy_version_id) WHERE v.run_id = ? AND v.validation = 'rejected' AND "

@@ -1,7 +1,8 @@
 """``codearcade blame``: a policy version's trainable methods, each line annotated with where it came from.
 
 Each line shows the iteration that introduced it, that version's short id and the LLM call that wrote it
-(``-`` for lines of the starting policy), read from the ``line_blame`` view (``store/lines.py`` explains how
+(``-`` for lines of the starting policy), and, where the version was played traced, in how many calls the line
+ran (0: never; blank for lines without code), read from the ``line_blame`` and ``line_coverage`` views (``store/lines.py`` explains how
 the origins are carried). The version is the run's best unless one is named, by id (or a unique prefix of
 one) or by the iteration that evaluated it. Runs stored before migration 7 get their lines computed the first
 time they are blamed.
@@ -72,16 +73,18 @@ def blame(store: Store, run: str, version: str | None = None, iteration: int | N
 
 
 def format_blame(report: dict[str, Any]) -> str:
-    """The report as text: a header per method, then ``iteration version call | line_no text`` per line."""
+    """The report as text: a header per method, then ``iteration version call ran line_no text`` per line."""
     out = [f"run {report['run_id']} ({report['game']}), policy version {report['policy_version_id']} "
            f"(iteration {report['iteration']}{', the best' if report['best'] else ''})"]
     for function in report["functions"]:
         out.append("")
-        out.append(f"{'iter':>4}  {'version':<{SHORT_VERSION}}  {'llm call':<{SHORT_CALL}}  {function['name']}")
+        out.append(f"{'iter':>4}  {'version':<{SHORT_VERSION}}  {'llm call':<{SHORT_CALL}}  {'ran':>6}  "
+                   f"{function['name']}")
         for line in function["lines"]:
             call = (line["origin_call_id"] or "-")[:SHORT_CALL]
+            ran = "" if line["times_ran"] is None or not line["executable"] else line["times_ran"]
             out.append(f"{line['origin_iteration']:>4}  {line['origin_version_id'][:SHORT_VERSION]:<{SHORT_VERSION}}  "
-                       f"{call:<{SHORT_CALL}} {line['line_no']:>4}  {line['text']}")
+                       f"{call:<{SHORT_CALL}}  {ran:>6} {line['line_no']:>4}  {line['text']}")
     if not report["functions"]:
         out.append("(the version has no trainable methods)")
     return "\n".join(out)
