@@ -290,6 +290,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_report)
 
     p = verbs.add_parser(
+        "blame",
+        help="show a policy version's code with the iteration and LLM call that wrote each line",
+        description="Print the trainable methods of a policy version of a run, each line annotated with the "
+        "iteration that introduced it, that version's short id and the LLM call that wrote it, carried across "
+        "versions like `git blame` (table policy_lines, view line_blame). The version is the run's best unless "
+        "--version or --iteration names another.",
+    )
+    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--version", metavar="V", help="policy version id, or a unique prefix of one (default: the best)")
+    which.add_argument("--iteration", type=_non_negative_int, metavar="I", help="the version evaluated in iteration I")
+    p.add_argument("--json", action="store_true", help="print the annotated lines as JSON")
+    _add_store(p)
+    p.set_defaults(handler=cmd_blame)
+
+    p = verbs.add_parser(
         "games",
         help="list the games: curated ones and every game OCAtari reads",
         description="List the games codearcade plays: the curated ones (a module in games/ with the authors' "
@@ -881,6 +897,14 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     path = write_report(_store(args), args.run_id, args.out)
     print(path)
+    return EXIT_OK
+
+
+def cmd_blame(args: argparse.Namespace) -> int:
+    from viewers.blame import blame, format_blame
+
+    report = blame(_store(args), args.run_id, args.version, args.iteration)
+    print(json.dumps(report, indent=2, default=str) if args.json else format_blame(report))
     return EXIT_OK
 
 

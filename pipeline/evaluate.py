@@ -42,6 +42,9 @@ class EvalConfig:
     """Seed of the first episode; episode i uses ``seed + i``."""
     trace: bool = False
     """Record a node event for every call of a bundled method."""
+    trace_lines: bool = True
+    """With ``trace``: record in each node the lines of the method that ran (``nodes.lines_run``). Only a
+    measurement turns it off (``bench/lines.py`` prices it): it costs little, so ``--trace`` always records them."""
     sticky: float = 0.0
     """Sticky-action probability (paper: 0.0; standard Atari protocol: 0.25)."""
     noop_max: int = 0
@@ -122,7 +125,7 @@ def evaluate(
             episode_id=episode_id(run_id, 0, "eval", i), run_id=run_id, game=game, policy_text=text,
             policy_version_id=info.version_id, policy_name=name, iteration=0, kind="eval", index=i,
             seed=config.seed + i, max_steps=config.max_steps, sticky=config.sticky, noop_max=config.noop_max,
-            trace=config.trace, call_time_limit_s=config.call_time_limit_s,
+            trace=config.trace, trace_lines=config.trace_lines, call_time_limit_s=config.call_time_limit_s,
             episode_time_limit_s=config.episode_time_limit_s, rerun=config.rerun,
         )
         for i in range(config.episodes)

@@ -59,6 +59,8 @@ class EpisodeSpec:
     noop_max: int = 0
     trace: bool = False
     """Record a node for every call of a bundled method (slower; steps are always recorded)."""
+    trace_lines: bool = True
+    """With ``trace``: record in each node the lines of the method that ran (``nodes.lines_run``)."""
     call_time_limit_s: float = 1.0
     """Limit for one policy call, ``policy(obs)``, including every bundled method it calls."""
     episode_time_limit_s: float = 900.0
@@ -128,7 +130,7 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
     started_at = time.time()
     t0 = time.perf_counter()
     steps = StepLog(list_widths(game), *game.hot_keys)
-    recorder = NodeRecorder() if spec.trace else None
+    recorder = NodeRecorder(lines=spec.trace_lines) if spec.trace else None
     end_reason, error = "truncated", None
     score, lives_lost, length = 0.0, 0, 0
     reported = 0  # steps whose actions went to on_actions

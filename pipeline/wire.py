@@ -164,6 +164,38 @@ def _int(row: dict, key: str, low: int, high: int) -> int:
     return value
 
 
+def check_lines_run(spec: Any, nodes: Any) -> None:
+    """BadMessage unless every ``lines_run`` of ``nodes`` is NULL (lines not recorded) or strictly increasing
+    line numbers inside the source of the node's method in ``spec.policy_text`` (what an honest worker sends)."""
+    import numpy as np
+    import pyarrow.compute as pc
+
+    lines = nodes.column("lines_run").combine_chunks()
+    if lines.null_count == len(lines):
+        return
+    if not spec.trace_lines:
+        raise BadMessage("lines_run for an episode played without line recording")
+    from tracing.policy_file import PolicyLoadError, inspect_policy
+
+    try:
+        methods = {m.name: m.source.count("\n") for m in inspect_policy(spec.policy_text, spec.policy_name).methods}
+    except PolicyLoadError:
+        raise BadMessage("lines_run for a policy that does not load") from None
+    functions = nodes.column("function").combine_chunks()
+    for name in pc.unique(pc.filter(functions, pc.is_valid(lines))).to_pylist():
+        if name not in methods:
+            raise BadMessage(f"lines_run for {str(name)[:60]!r}, which is not a bundled method of the policy")
+        chosen = pc.filter(lines, pc.equal(functions, name))
+        values = np.asarray(pc.list_flatten(chosen), dtype=np.int64)
+        if values.size and (values.min() < 1 or values.max() > methods[name]):
+            raise BadMessage(f"lines_run of {name} outside its {methods[name]} lines")
+        starts = np.asarray(pc.list_value_length(chosen).fill_null(0), dtype=np.int64).cumsum()[:-1]
+        rising = np.diff(values) > 0
+        rising[starts[(starts > 0) & (starts < values.size)] - 1] = True  # a new call may start lower
+        if not rising.all():
+            raise BadMessage(f"lines_run of {name} not strictly increasing")
+
+
 def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
     """The :class:`EpisodeOutcome` of ``spec`` from what its worker sent, every value checked; BadMessage if
     anything is off. Fields the parent knows (ids, seed, settings) come from ``spec``, never from the worker."""
@@ -202,5 +234,7 @@ def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
         raise BadMessage("the step rows are not numbered 0, 1, 2, ...")
     if nodes is not None and not spec.trace:
         raise BadMessage("nodes for an untraced episode")
+    if nodes is not None:
+        check_lines_run(spec, nodes)
     episode = _episode_row(spec, score=_number(row, "return"), **measured)
     return EpisodeOutcome(episode, steps, nodes)

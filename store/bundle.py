@@ -1,9 +1,10 @@
 """A run's rows as Arrow tables: to ship a run to another machine and back (the Ray executor).
 
 :func:`export_run` collects every row that belongs to one run, in the store's own format: its ``runs`` row,
-policy versions, iterations and their candidates, feedback, LLM calls, episodes with their steps and nodes, and the blobs they
-reference. :func:`import_run` writes such a bundle into a store in one transaction, replacing any earlier rows
-of the same run, so a run finished elsewhere lands whole or not at all, and never twice.
+policy versions with their lines (blame), iterations and their candidates, feedback, LLM calls, episodes with
+their steps and nodes, and the blobs they reference. :func:`import_run` writes such a bundle into a store in one
+transaction, replacing any earlier rows of the same run, so a run finished elsewhere lands whole or not at all,
+and never twice.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ import pyarrow as pa
 
 Bundle = dict[str, pa.Table]
 
-RUN_TABLES = ("runs", "policy_versions", "iterations", "candidates", "feedback", "llm_calls", "episodes")
+RUN_TABLES = ("runs", "policy_versions", "policy_lines", "iterations", "candidates", "feedback", "llm_calls",
+              "episodes")
 EPISODE_TABLES = ("steps", "nodes")
 
 _BLOB_HASHES = """

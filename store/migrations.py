@@ -447,4 +447,74 @@ MIGRATIONS.append(
     )
 )
 
+# Line provenance (issue 16, items 1-2): blame per line of every version's trainable methods, and the lines each
+# traced call ran.
+MIGRATIONS.append(
+    (
+        7,
+        "line provenance: policy_lines (blame), nodes.lines_run; views line_blame, node_lines, line_coverage, "
+        "unrun_lines",
+        r"""
+        ALTER TABLE nodes ADD COLUMN lines_run SMALLINT[];  -- lines of the method's source that ran in the call
+        CREATE TABLE policy_lines (
+            run_id              VARCHAR NOT NULL,
+            policy_version_id   VARCHAR NOT NULL,
+            function            VARCHAR NOT NULL,       -- a trainable method of the version
+            line_no             INTEGER NOT NULL,       -- 1-based within the method's source (its def line is 1)
+            text                VARCHAR NOT NULL,
+            executable          BOOLEAN NOT NULL,       -- holds code (not blank, comment, docstring, the def line)
+            origin_version_id   VARCHAR NOT NULL,       -- the version that introduced the line
+            origin_iteration    INTEGER NOT NULL,       -- the iteration that first stored that version
+            origin_produced_by  VARCHAR NOT NULL,       -- how that version was made: file | initial | llm | rollback
+            PRIMARY KEY (run_id, policy_version_id, function, line_no)
+        );
+
+        CREATE VIEW line_blame AS
+        WITH calls AS (  -- the call whose reply a version is (policy_versions.llm_call_id, migration 6)
+            SELECT run_id, iteration, policy_version_id, any_value(llm_call_id) AS call_id FROM policy_versions
+            WHERE produced_by = 'llm' GROUP BY ALL
+        )
+        SELECT l.run_id, l.policy_version_id, l.function, l.line_no, l.text, l.executable,
+               l.origin_version_id, l.origin_iteration, l.origin_produced_by,
+               CASE WHEN l.origin_produced_by = 'llm' THEN c.call_id END AS origin_call_id
+        FROM policy_lines l
+        LEFT JOIN calls c ON c.run_id = l.run_id AND c.iteration = l.origin_iteration
+                          AND c.policy_version_id = l.origin_version_id;
+
+        CREATE VIEW node_lines AS
+        SELECT e.run_id, e.iteration, e.kind, n.episode_id, n.step, n.call_index, n.function, n.policy_version_id,
+               r.line_no::INTEGER AS line_no, l.text
+        FROM nodes n
+        JOIN episodes e ON e.episode_id = n.episode_id
+        CROSS JOIN unnest(n.lines_run) AS r(line_no)
+        LEFT JOIN policy_lines l ON l.run_id = e.run_id AND l.policy_version_id = n.policy_version_id
+                                 AND l.function = n.function AND l.line_no = r.line_no;
+
+        CREATE VIEW line_coverage AS
+        WITH traced AS (
+            SELECT episode_id, function, count(*)::INTEGER AS calls FROM nodes
+            WHERE lines_run IS NOT NULL GROUP BY episode_id, function
+        ), ran AS (
+            SELECT episode_id, function, line_no::INTEGER AS line_no, count(*)::INTEGER AS times_ran
+            FROM (SELECT episode_id, function, unnest(lines_run) AS line_no FROM nodes WHERE lines_run IS NOT NULL)
+            GROUP BY episode_id, function, line_no
+        )
+        SELECT e.run_id, e.iteration, e.kind, e.episode_id, e.policy_version_id, l.function, l.line_no, l.text,
+               l.executable, t.calls, coalesce(r.times_ran, 0) AS times_ran
+        FROM episodes e
+        JOIN traced t ON t.episode_id = e.episode_id
+        JOIN policy_lines l ON l.run_id = e.run_id AND l.policy_version_id = e.policy_version_id
+                            AND l.function = t.function
+        LEFT JOIN ran r ON r.episode_id = e.episode_id AND r.function = l.function AND r.line_no = l.line_no;
+
+        CREATE VIEW unrun_lines AS
+        SELECT run_id, policy_version_id, function, line_no, any_value(text) AS text,
+               count(DISTINCT episode_id)::INTEGER AS episodes, sum(calls)::BIGINT AS calls
+        FROM line_coverage WHERE executable
+        GROUP BY run_id, policy_version_id, function, line_no
+        HAVING sum(times_ran) = 0;
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

@@ -21,7 +21,8 @@ import duckdb
 
 from store.db import Store, StoreError
 
-VIEWS = ("learning_curve", "code_metrics", "llm_usage", "rejected_candidates", "run_summary", "lineage", "frontier")
+VIEWS = ("learning_curve", "code_metrics", "llm_usage", "rejected_candidates", "run_summary", "lineage", "frontier",
+         "line_blame", "node_lines", "line_coverage", "unrun_lines")
 """The views over the store, in the order docs/schema.md documents them."""
 
 

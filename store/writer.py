@@ -17,6 +17,7 @@ import duckdb
 import pyarrow as pa
 
 from store.db import utcnow
+from store.lines import write_version_lines
 
 
 def text_hash(text: str) -> str:
@@ -91,10 +92,13 @@ def set_llm_call_outcome(con: duckdb.DuckDBPyConnection, call_id: str, suggestio
 
 
 def insert_policy_version(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -> None:
-    """Insert one ``policy_versions`` row (``row`` holds its columns; ``source`` is stored as a blob)."""
+    """Insert one ``policy_versions`` row (``row`` holds its columns; ``source`` is stored as a blob) and the
+    ``policy_lines`` of its trainable methods, their origins carried from the parent's (``store/lines.py``)."""
     row = dict(row)
     row["source_hash"] = put_blob(con, "policy", row.pop("source"))
-    for function in row.get("functions") or []:
+    row["functions"] = [dict(function) for function in row.get("functions") or []]
+    trainable = {f["name"]: f["source"] for f in row["functions"] if f.get("trainable")}
+    for function in row["functions"]:
         function["source_hash"] = put_blob(con, "source", function.pop("source"))
     row.setdefault("created_at", utcnow())
     columns = list(row)
@@ -102,6 +106,8 @@ def insert_policy_version(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -
         f"INSERT OR REPLACE INTO policy_versions ({', '.join(columns)}) VALUES ({', '.join('?' * len(columns))})",
         [row[c] for c in columns],
     )
+    write_version_lines(con, row["run_id"], row["policy_version_id"], row["iteration"], row["produced_by"],
+                        row.get("parent_id"), trainable)
 
 
 def write_episode(

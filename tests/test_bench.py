@@ -18,6 +18,8 @@ SMALLEST = {
     "parallel_eval.py": (["--episodes", "2", "--repeats", "1"], ["codearcade", "bare OCAtari", "target:"]),
     "store_writes.py": (["--episodes", "2"], ["codearcade (2,048 rows)", "ratio (codearcade / default)"]),
     "prompt_build.py": (["--steps", "5000", "--repeats", "1"], ["prompt 16k", "prompt 4k"]),
+    "lines.py": (["--policies", "tests/policies/pong_competent.py", "--repeats", "1", "--max-steps", "300"],
+                 ["+ lines", "pong_competent.py", "time ratio traced+lines / traced"]),
     "rerun_logging.py": (["--games", "pong", "--repeats", "1", "--max-steps", "100"], ["worst log/env ratio"]),
 }
 

@@ -38,12 +38,15 @@ from tracing.sandbox import PolicyCodeError, check_source
 class TrainableCode:
     """The source of one bundled method: a parameter that can be read and replaced at run time."""
 
-    def __init__(self, name: str, fn: Callable, source: str, trainable: bool, owner_name: str):
+    def __init__(self, name: str, fn: Callable, source: str, trainable: bool, owner_name: str, first_line: int = 1):
         self.name = name
         self.trainable = trainable
         self.owner_name = owner_name
         self.fn = fn
         self.source = source
+        self.first_line = first_line
+        """Line of ``fn``'s code file where ``source`` begins: line ``k`` of ``source`` is line
+        ``first_line + k - 1`` there (node capture maps the lines that ran back to ``source``'s numbering)."""
 
     @property
     def docstring(self) -> str | None:
@@ -65,6 +68,7 @@ class TrainableCode:
         source = _normalize(source)
         self.fn = compile_method(source, self.name, self.fn.__globals__, f"{self.owner_name}.{self.name}")
         self.source = source
+        self.first_line = 1  # compile_method compiles exactly ``source``
 
     def __repr__(self) -> str:
         return f"TrainableCode({self.owner_name}.{self.name}, trainable={self.trainable}, {len(self.source)} chars)"
@@ -113,6 +117,11 @@ def compile_method(source: str, name: str, namespace: dict[str, Any], qualname: 
 
 def method_source(fn: Callable) -> str:
     """The ``def`` block of ``fn`` (without decorators), dedented, read from the file it was compiled from."""
+    return method_block(fn)[0]
+
+
+def method_block(fn: Callable) -> tuple[str, int]:
+    """:func:`method_source` and the line of the file where that block (its ``def`` line) begins."""
     code = fn.__code__
     lines = linecache.getlines(code.co_filename)
     if not lines:
@@ -122,7 +131,7 @@ def method_source(fn: Callable) -> str:
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name == fn.__name__:
             first = node.decorator_list[0].lineno if node.decorator_list else node.lineno
             if first == code.co_firstlineno or node.lineno == code.co_firstlineno:
-                return _normalize("".join(lines[node.lineno - 1 : node.end_lineno]))
+                return _normalize("".join(lines[node.lineno - 1 : node.end_lineno])), node.lineno
     raise PolicyCodeError(f"cannot find the source of {fn.__qualname__}", code.co_filename)
 
 
@@ -137,7 +146,8 @@ class BundledMethod:
         self.__name__ = fn.__name__
 
     def __set_name__(self, owner: type, name: str) -> None:
-        self.parameter = TrainableCode(name, self._fn, method_source(self._fn), self.trainable, owner.__name__)
+        source, first_line = method_block(self._fn)
+        self.parameter = TrainableCode(name, self._fn, source, self.trainable, owner.__name__, first_line)
 
     def __get__(self, instance: Any, owner: type | None = None) -> Any:
         if instance is None:

@@ -8,6 +8,9 @@ makes that call a parent; when several earlier calls returned that same object (
 through), the most recent one is the direct producer and is the one named. For values Python shares
 (``None``, ``True``, small ints) this can name a call that merely returned an equal value.
 
+With ``lines=True`` each call also records ``lines_run``: the lines of the method's source (1-based, the
+``def`` line being 1) that ran during the call, sorted (``tracing/lines.py``); NULL when lines are not recorded.
+
 Inputs that are the step's observation dict itself are stored as ``{"$ref": "obs"}``: the observation is
 already in the ``steps`` table, and repeating it per call would triple the store. Values are stored as JSON
 text: numpy values as numbers/lists, non-finite floats as the strings ``"NaN"``/``"Infinity"``, anything
@@ -25,6 +28,8 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
+
+from tracing.lines import LineCall
 
 ACTIVE: "NodeRecorder | None" = None
 """The recorder bundled methods report to; None when capture is off."""
@@ -47,6 +52,7 @@ NODE_SCHEMA = pa.schema(
         ("exc_source", pa.string()),
         ("duration_us", pa.int64()),
         ("parents", pa.list_(pa.int16())),
+        ("lines_run", pa.list_(pa.int16())),
     ]
 )
 """Columns a recorder produces; the store adds ``episode_id`` and ``policy_version_id``."""
@@ -106,7 +112,10 @@ def to_json(value: Any) -> str:
 class NodeRecorder:
     """Collects node events for one episode, column by column; ``table()`` returns them as Arrow."""
 
-    def __init__(self) -> None:
+    def __init__(self, lines: bool = False) -> None:
+        self.lines = lines
+        """Record the lines each call ran (``lines_run``); costs a trace function call per line executed."""
+        self._line_counts: dict[Any, int] = {}
         self._cols: dict[str, list] = {name: [] for name in NODE_SCHEMA.names}
         self._arg_names: dict[Any, tuple[str, ...]] = {}
         self.step = -1
@@ -174,20 +183,31 @@ class NodeRecorder:
         fn = parameter.fn
         parents = self._parents(args, kwargs)
         inputs = self._encode_inputs(fn, args, kwargs)
+        run = LineCall(fn, parameter.first_line, self._line_count(parameter)) if self.lines else fn
         start = time.perf_counter_ns()
         try:
-            output = fn(instance, *args, **kwargs)
+            output = run(instance, *args, **kwargs)
         except BaseException as exc:
             duration = (time.perf_counter_ns() - start) // 1000
             line, text = failing_policy_line(exc)
-            self._append(index, parameter, inputs, None, type(exc).__name__, str(exc)[:2000], line, text, duration, parents)
+            self._append(index, parameter, inputs, None, type(exc).__name__, str(exc)[:2000], line, text, duration, parents,
+                         run.lines() if self.lines else None)
             raise
         duration = (time.perf_counter_ns() - start) // 1000
-        self._append(index, parameter, inputs, to_json(output), None, None, None, None, duration, parents)
+        self._append(index, parameter, inputs, to_json(output), None, None, None, None, duration, parents,
+                     run.lines() if self.lines else None)
         self._outputs.append((output, index))
         return output
 
-    def _append(self, index, parameter, inputs, output, exc_type, exc_message, exc_line, exc_source, duration, parents):
+    def _line_count(self, parameter: Any) -> int:
+        source = parameter.source
+        count = self._line_counts.get(source)
+        if count is None:
+            count = self._line_counts[source] = source.count("\n")
+        return count
+
+    def _append(self, index, parameter, inputs, output, exc_type, exc_message, exc_line, exc_source, duration, parents,
+                lines_run):
         c = self._cols
         c["step"].append(self.step)
         c["call_index"].append(index)
@@ -201,6 +221,7 @@ class NodeRecorder:
         c["exc_source"].append(exc_source)
         c["duration_us"].append(duration)
         c["parents"].append(parents)
+        c["lines_run"].append(lines_run)
 
     def table(self) -> pa.Table:
         return pa.table(self._cols, schema=NODE_SCHEMA)

@@ -26,6 +26,10 @@ Entity layout::
                                  the JSON output, one per step  [traced episodes]
     /policy/errors               TextLog (ERROR): exceptions of bundled calls and the episode's end error
     /code                        TextDocument (markdown, static): the policy file played
+    /lines/<function>            TextDocument (markdown): the method's source with ▶ on the lines that ran at the
+                                 step (``nodes.lines_run``), logged at each step where they change (latest-at
+                                 shows the right one at every step), its header naming the steps it covers
+                                 [traced episodes]
     properties                   ``episode``: run_id, iteration, kind, index, episode_id, game, seed,
                                  policy_version_id, return, length, lives_lost, end_reason, error, max_steps,
                                  sticky, noop_max, traced, frames_every
@@ -214,6 +218,8 @@ class EpisodeLogger:
         self._has_errors = False
         self._has_frames = False
         self._static_sent = False
+        self._policy_text: str | None = None
+        self._line_functions: list[str] = []
 
     # -- static parts ------------------------------------------------------------------------------------
 
@@ -237,6 +243,7 @@ class EpisodeLogger:
 
     def code(self, policy_text: str) -> None:
         """The policy file, as a markdown text document at ``/code``."""
+        self._policy_text = policy_text
         self.rec.log("/code", rr.TextDocument(f"```python\n{policy_text}\n```", media_type="text/markdown"),
                      static=True)
 
@@ -351,10 +358,46 @@ class EpisodeLogger:
                 self.rec.send_columns(path, indexes=[rr.TimeColumn("step", sequence=s)],
                                       columns=rr.TextLog.columns(text=[json.dumps(v) for v in values],
                                                                  level=["INFO"] * len(values)))
+        self._lines(data)
         if errors[0]:
             self._has_errors = True
             self.rec.send_columns("/policy/errors", indexes=[rr.TimeColumn("step", sequence=errors[0])],
                                   columns=rr.TextLog.columns(text=errors[1], level=["ERROR"] * len(errors[1])))
+
+    def _lines(self, data: Mapping[str, Sequence]) -> None:
+        """``/lines/<function>``: the method's source marked with the lines that ran, one document per run of
+        consecutive steps with the same lines (needs :meth:`code` first, for the sources)."""
+        if self._policy_text is None or not any(x is not None for x in data.get("lines_run") or ()):
+            return
+        from tracing.policy_file import PolicyLoadError, inspect_policy
+
+        try:
+            sources = {m.name: m.source.splitlines() for m in inspect_policy(self._policy_text).methods}
+        except PolicyLoadError:
+            return
+        per_function: dict[str, list[tuple[int, tuple[int, ...]]]] = {}
+        for step, fn, lines in zip(data["step"], data["function"], data["lines_run"]):
+            if lines is not None and fn in sources:
+                calls = per_function.setdefault(fn, [])
+                if calls and calls[-1][0] == step:  # called twice in a step: both calls' lines
+                    calls[-1] = (step, tuple(sorted(set(calls[-1][1]) | set(lines))))
+                else:
+                    calls.append((step, tuple(lines)))
+        for fn, calls in per_function.items():
+            starts = [k for k in range(len(calls)) if k == 0 or calls[k][1] != calls[k - 1][1]]
+            docs = []
+            for j, k in enumerate(starts):
+                last = calls[(starts[j + 1] if j + 1 < len(starts) else len(calls)) - 1][0]
+                first, ran = calls[k][0], set(calls[k][1])
+                span = f"step {first}" if first == last else f"steps {first}-{last}"
+                body = "\n".join(f"{'▶' if i in ran else ' '} {i:>3}  {text}"
+                                  for i, text in enumerate(sources[fn], start=1))
+                docs.append(f"**{fn}**: ▶ the lines that ran at {span}\n\n```python\n{body}\n```")
+            if fn not in self._line_functions:
+                self._line_functions.append(fn)
+            self.rec.send_columns(entity("lines", fn), indexes=[rr.TimeColumn("step", sequence=[calls[k][0]
+                                                                                               for k in starts])],
+                                  columns=rr.TextDocument.columns(text=docs, media_type=["text/markdown"] * len(docs)))
 
     def _name_outputs(self, data: Mapping[str, Sequence], outputs: list[Any],
                       by_step_call: Mapping[tuple[int, int], int]) -> dict[str, str]:
@@ -400,15 +443,17 @@ class EpisodeLogger:
 
     def blueprint(self) -> rrb.Blueprint:
         """The layout for what has been logged so far (call after the data)."""
-        return episode_blueprint(traced=self.traced or bool(self._functions), errors=self._has_errors)
+        return episode_blueprint(traced=self.traced or bool(self._functions), errors=self._has_errors,
+                                 line_functions=self._line_functions)
 
     def send_blueprint(self) -> None:
         self.rec.send_blueprint(self.blueprint())
 
 
-def episode_blueprint(traced: bool = False, errors: bool = False) -> rrb.Blueprint:
+def episode_blueprint(traced: bool = False, errors: bool = False, line_functions: Sequence[str] = ()) -> rrb.Blueprint:
     """Game view (frame + boxes + policy overlay) beside score/reward/action series, policy outputs (traced
-    episodes) and the code; a log of policy outputs and errors under the game view when there can be any."""
+    episodes) and the code; a log of policy outputs and errors under the game view when there can be any; the
+    lines that ran of each method in ``line_functions`` above the code."""
     left: list[Any] = [rrb.Spatial2DView(origin="/game", name="game",
                                          visual_bounds=rrb.VisualBounds2D(x_range=[0, SCREEN_W], y_range=[0, SCREEN_H]))]
     if traced or errors:
@@ -424,8 +469,12 @@ def episode_blueprint(traced: bool = False, errors: bool = False) -> rrb.Bluepri
         rrb.Horizontal(
             rrb.Vertical(*left, row_shares=[3, 1][: len(left)]),
             rrb.Vertical(*series),
-            rrb.TextDocumentView(origin="/code", name="policy code"),
-            column_shares=[2, 2, 1.5],
+            rrb.Vertical(*[rrb.TextDocumentView(origin=entity("lines", fn), name=f"lines run: {fn}")
+                           for fn in line_functions],
+                         rrb.TextDocumentView(origin="/code", name="policy code"),
+                         row_shares=[2] * len(line_functions) + [1])
+            if line_functions else rrb.TextDocumentView(origin="/code", name="policy code"),
+            column_shares=[2, 1.6, 2.4] if line_functions else [2, 2, 1.5],  # room for the marked sources
         ),
         collapse_panels=True,
     )

@@ -69,7 +69,7 @@ def read_episode(con: duckdb.DuckDBPyConnection, episode_id: str) -> StoredEpiso
     steps = con.sql("SELECT step, action, reward, score, lives, objects FROM steps WHERE episode_id = $1 "
                     "ORDER BY step", params=[episode_id]).to_arrow_table()
     nodes = con.sql("SELECT step, call_index, function, inputs, output, exc_type, exc_message, exc_line, exc_source, "
-                    "parents FROM nodes WHERE episode_id = $1 ORDER BY step, call_index",
+                    "parents, lines_run FROM nodes WHERE episode_id = $1 ORDER BY step, call_index",
                     params=[episode_id]).to_arrow_table()
     try:
         text = policy_text(con, episode["run_id"], episode["policy_version_id"])

@@ -1,0 +1,90 @@
+"""``codearcade blame``: a policy version's trainable methods, each line annotated with where it came from.
+
+Each line shows the iteration that introduced it, that version's short id and the LLM call that wrote it
+(``-`` for lines of the starting policy), and, where the version was played traced, in how many calls the line
+ran (0: never; blank for lines without code), read from the ``line_blame`` and ``line_coverage`` views (``store/lines.py`` explains how
+the origins are carried). The version is the run's best unless one is named, by id (or a unique prefix of
+one) or by the iteration that evaluated it. Runs stored before migration 7 get their lines computed the first
+time they are blamed.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from store import Store
+from store.lines import backfill_lines, best_version, has_lines, version_blame
+from store.views import resolve_run_id
+
+SHORT_VERSION = 8
+SHORT_CALL = 12
+"""Leading characters of a call id shown: a ULID's 10 time characters and 2 more, unique within a run."""
+
+
+def _resolve_version(con: Any, run_id: str, version: str | None, iteration: int | None) -> tuple[str, int]:
+    """(version id, the first iteration that stored it) of what was asked; ValueError saying what exists."""
+    if iteration is not None:
+        rows = con.execute("SELECT policy_version_id FROM iterations WHERE run_id = ? AND iteration = ?",
+                           [run_id, iteration]).fetchall()
+        if not rows:
+            rows = con.execute("SELECT policy_version_id FROM policy_versions WHERE run_id = ? AND iteration = ? "
+                               "AND validation = 'accepted'", [run_id, iteration]).fetchall()
+        if not rows:
+            [(last,)] = con.execute("SELECT max(iteration) FROM policy_versions WHERE run_id = ?", [run_id]).fetchall()
+            raise ValueError(f"run {run_id} has no iteration {iteration} (iterations 0..{last}); give --iteration "
+                             "within them")
+        version = rows[0][0]
+    elif version is None:
+        version = best_version(con, run_id)
+    matches = [r[0] for r in con.execute(
+        "SELECT DISTINCT policy_version_id FROM policy_versions WHERE run_id = ? AND starts_with(policy_version_id, ?) "
+        "ORDER BY 1 LIMIT 6", [run_id, (version or "").strip()]).fetchall()]
+    if not matches or not (version or "").strip():
+        raise ValueError(f"run {run_id} has no policy version {version!r}; list them with `codearcade sql \"SELECT "
+                         f"iteration, policy_version_id, produced_by FROM policy_versions WHERE run_id = '{run_id}'\"`")
+    if len(matches) > 1 and version not in matches:
+        raise ValueError(f"version {version!r} is ambiguous in run {run_id}: {', '.join(matches[:5])}; give more of it")
+    chosen = version if version in matches else matches[0]
+    [(first,)] = con.execute("SELECT min(iteration) FROM policy_versions WHERE run_id = ? AND policy_version_id = ?",
+                             [run_id, chosen]).fetchall()
+    return chosen, first
+
+
+def blame(store: Store, run: str, version: str | None = None, iteration: int | None = None) -> dict[str, Any]:
+    """The blame of one version of a run as plain data: run, version, and per method its annotated lines."""
+    with store.read() as con:
+        run_id = resolve_run_id(con, run, store)
+        version_id, first = _resolve_version(con, run_id, version, iteration)
+        missing = not has_lines(con, run_id, version_id)
+    if missing:  # a run stored before migration 7: compute its versions' lines once
+        with store.write() as con:
+            backfill_lines(con, run_id)
+    with store.read() as con:
+        [(game, best)] = con.execute("SELECT game, ? FROM runs WHERE run_id = ?",
+                                     [best_version(con, run_id), run_id]).fetchall()
+        rows = version_blame(con, run_id, version_id)
+    functions: list[dict[str, Any]] = []
+    for row in rows:
+        if not functions or functions[-1]["name"] != row["function"]:
+            functions.append({"name": row["function"], "lines": []})
+        functions[-1]["lines"].append({k: v for k, v in row.items() if k != "function"})
+    return {"run_id": run_id, "game": game, "policy_version_id": version_id, "iteration": first,
+            "best": version_id == best, "functions": functions}
+
+
+def format_blame(report: dict[str, Any]) -> str:
+    """The report as text: a header per method, then ``iteration version call ran line_no text`` per line."""
+    out = [f"run {report['run_id']} ({report['game']}), policy version {report['policy_version_id']} "
+           f"(iteration {report['iteration']}{', the best' if report['best'] else ''})"]
+    for function in report["functions"]:
+        out.append("")
+        out.append(f"{'iter':>4}  {'version':<{SHORT_VERSION}}  {'llm call':<{SHORT_CALL}}  {'ran':>6}  "
+                   f"{function['name']}")
+        for line in function["lines"]:
+            call = (line["origin_call_id"] or "-")[:SHORT_CALL]
+            ran = "" if line["times_ran"] is None or not line["executable"] else line["times_ran"]
+            out.append(f"{line['origin_iteration']:>4}  {line['origin_version_id'][:SHORT_VERSION]:<{SHORT_VERSION}}  "
+                       f"{call:<{SHORT_CALL}}  {ran:>6} {line['line_no']:>4}  {line['text']}")
+    if not report["functions"]:
+        out.append("(the version has no trainable methods)")
+    return "\n".join(out)
