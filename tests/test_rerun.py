@@ -109,7 +109,9 @@ def test_live_and_rebuilt_recordings_hold_the_stored_episode(store, tmp_path, ca
     # node outputs of the traced episode: a series per bundled method, the coordinates drawn on the frame
     calls = store.query("SELECT count(*) FROM nodes WHERE episode_id = ? AND function = 'select_paddle_action'", [ids[0]])
     assert len(column(again, "/policy/select_paddle_action:Scalars:scalars")) == calls[0][0] == STEPS
-    assert column(again, "/game/policy/target_x:LineStrips2D:strips")
+    overlay = column(again, "/game/policy/target_x:LineStrips2D:strips")
+    assert overlay and sorted(overlay) == sorted(column(again, "/game/frame:EncodedImage:blob")), \
+        "drawn on the frame, so logged on the frame's steps only"
     # the live recording (written by the worker) and the rebuilt one hold the same data, frames included
     assert first["timelines"] == again["timelines"]
     assert "/code:TextDocument:text" in again["static"]

@@ -388,7 +388,7 @@ class EpisodeLogger:
                 if keep:
                     self.rec.send_columns(path, indexes=[rr.TimeColumn("step", sequence=[s[k] for k in keep])],
                                           columns=rr.Scalars.columns(scalars=[numbers[k] for k in keep]))
-                    self._overlay(fn, names.get(fn, fn), [s[k] for k in keep], [numbers[k] for k in keep])
+                self._overlay(fn, names.get(fn, fn), s, numbers)
             else:
                 self._text_functions.add(fn)
                 self.rec.send_columns(path, indexes=[rr.TimeColumn("step", sequence=s)],
@@ -419,25 +419,28 @@ class EpisodeLogger:
                         break
         return names
 
-    def _overlay(self, fn: str, name: str, steps: list[int], values: list[float]) -> None:
-        """Draw a coordinate-valued output on the frame: a horizontal line for y, a vertical one for x."""
+    def _overlay(self, fn: str, name: str, steps: list[int], values: list[float | None]) -> None:
+        """Draw a coordinate-valued output on the frame: a horizontal line for y, a vertical one for x; on the
+        frame's steps only, and nothing on a step whose value is None or not finite (not the last line drawn)."""
         axis = self._overlays.get(fn) or _coordinate_axis(name) or _coordinate_axis(fn)
-        if axis is None:
+        if axis is None or not any(x is not None for x in values):
             return
         self._overlays[fn] = axis
-        framed = self._on_frame_steps(np.asarray(steps, dtype=np.int64))  # drawn on the frame: its steps only
-        finite = [k for k, v in enumerate(values) if math.isfinite(v) and framed[k]]
-        if not finite:
+        framed = np.flatnonzero(self._on_frame_steps(np.asarray(steps, dtype=np.int64)))
+        if not len(framed):
             return
-        v = np.asarray([values[k] for k in finite], dtype=np.float32)
+        drawn = [k for k in framed if values[k] is not None and math.isfinite(values[k])]
+        lengths = np.asarray([values[k] is not None and math.isfinite(values[k]) for k in framed], dtype=np.int64)
+        steps = [steps[k] for k in framed]
+        v = np.asarray([values[k] for k in drawn], dtype=np.float32)
         if axis == "y":
             strips = np.stack([np.column_stack((np.zeros_like(v), v)), np.column_stack((np.full_like(v, SCREEN_W), v))], 1)
         else:
             strips = np.stack([np.column_stack((v, np.zeros_like(v))), np.column_stack((v, np.full_like(v, SCREEN_H)))], 1)
         self.rec.send_columns(
-            entity("game", "policy", name), indexes=[rr.TimeColumn("step", sequence=[steps[k] for k in finite])],
-            columns=rr.LineStrips2D.columns(strips=list(strips), labels=[name] * len(finite),
-                                            colors=[(255, 255, 0)] * len(finite)),
+            entity("game", "policy", name), indexes=[rr.TimeColumn("step", sequence=steps)],
+            columns=rr.LineStrips2D.columns(strips=list(strips), labels=[name] * len(drawn),
+                                            colors=[(255, 255, 0)] * len(drawn)).partition(lengths),
         )
 
     # -- layout ------------------------------------------------------------------------------------------
