@@ -346,7 +346,7 @@ class EpisodeLogger:
         # the picture's own step, written on it: scrubbing between frames shows the last frame, and says so
         self.rec.send_columns("/game/frame_step", indexes=[t], columns=rr.Points2D.columns(
             positions=np.tile(FRAME_LABEL_AT, (len(at), 1)), labels=[f"frame of step {s}" for s in at.tolist()],
-            radii=np.full(len(at), 0.5, dtype=np.float32), colors=np.tile((255, 255, 255), (len(at), 1)),
+            radii=np.full(len(at), 0.5, dtype=np.float32), colors=np.tile((0, 0, 0), (len(at), 1)),
             show_labels=np.ones(len(at), dtype=bool)))
 
     def nodes(self, table: pa.Table | Mapping[str, Sequence]) -> None:
