@@ -173,17 +173,19 @@ def best_within(curve: list[dict[str, Any]], key: str, budget: float) -> float |
 
 def budget_table(curves: dict[str, list[dict[str, Any]]], points: int = 4) -> list[dict[str, Any]]:
     """Rows ``{unit, budget, A, B}``: per budget axis, the best score of each run within the same spending, at
-    ``points`` evenly spaced budgets up to what both runs spent (every call count when there are few), then a
-    row ``all`` with each run's own total and final best."""
+    ``points`` evenly spaced budgets from the first at which both runs have a score (their starting policies'
+    evaluations) up to what both runs spent (every call count when there are few), then a row ``all`` with each
+    run's own total and final best."""
     rows: list[dict[str, Any]] = []
     for unit, key, scale in BUDGET_UNITS:
         common = min(curve[-1][key] for curve in curves.values())
-        if common <= 0:
-            budgets = [0.0]
-        elif key == "llm_calls" and common <= 12:
-            budgets = [float(c) for c in range(0, int(common) + 1)]
+        first = min(max(curve[0][key] for curve in curves.values()), common)
+        if common <= first:
+            budgets = [common]
+        elif key == "llm_calls" and common - first <= 12:
+            budgets = [float(c) for c in range(int(first), int(common) + 1)]
         else:
-            budgets = [common * (i + 1) / points for i in range(points)]
+            budgets = [first + (common - first) * i / (points - 1) for i in range(points)]
         for budget in budgets:
             rows.append({"unit": unit, "budget": round(budget / scale, 3),
                          **{label: best_within(curve, key, budget) for label, curve in curves.items()}})

@@ -52,12 +52,19 @@ def _score(value: Any) -> str:
     return "-" if value is None else f"{value:g}"
 
 
+def _amount(value: float) -> str:
+    """A budget for people: whole numbers as such, others to one decimal."""
+    return f"{value:g}" if float(value).is_integer() else f"{value:.1f}"
+
+
 def _budget_rows(data: dict[str, Any]) -> list[tuple]:
     rows = []
     for r in data["budgets"]:
         budget = r["budget"]
         if budget == "all":
-            budget = f"all (A {r['spent']['A']:g}, B {r['spent']['B']:g})"
+            budget = f"all (A {_amount(r['spent']['A'])}, B {_amount(r['spent']['B'])})"
+        else:
+            budget = _amount(budget)
         rows.append((r["unit"], budget, _score(r["A"]), _score(r["B"])))
     return rows
 
