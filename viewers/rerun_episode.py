@@ -69,8 +69,9 @@ from games import GAMES
 
 APPLICATION_ID = "codearcade"
 SCREEN_W, SCREEN_H = 160, 210
-FRAME_LABEL_AT = (4.0, 4.0)
-"""Where the "frame of step N" label is pinned on the screen (its text is drawn beside this point)."""
+FRAME_LABEL_AT = (80.0, 4.0)
+"""Where the "frame of step N" label is pinned: its text is centred on this point, so the top middle of the
+screen keeps it whole in a narrow view (and clear of Pong's score digits)."""
 
 
 def _game_colours() -> dict[str, tuple[int, int, int]]:
