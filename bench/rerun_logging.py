@@ -2,7 +2,8 @@
 
 For each game it plays one evaluation episode (``run_episode``, in this process) twice, with the same seed: once
 plain and once with a live recording to a .rrd file (``EpisodeSpec.rerun``: boxes and series of every step,
-a PNG frame every 4th step, the file written and closed). Reported, per game (median of ``--repeats``):
+a PNG frame every 4th step with the boxes drawn on it logged again on that step and a label naming the step,
+the file written and closed). Reported, per game (median of ``--repeats``):
 
 - ``log/env``: seconds spent in the recorder (per-step frame capture, chunked sends, the final flush that waits
   until the file is written) over the seconds inside ``env.step`` of the same episode. Target: <= 0.25.

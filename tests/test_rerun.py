@@ -67,11 +67,20 @@ def assert_holds_episode(content: dict, store, episode_id: str, frames_every: in
         assert [series[s[0]][0] for s in steps] == [float(s[i]) for s in steps], name
     boxes = stored_boxes(store, episode_id)
     assert boxes, "the episode has objects"
+    frame_steps = [s for s in range(n) if s % frames_every == 0] if frames_every else list(range(n))
     for category, per_step in boxes.items():
-        logged = column(content, f"/game/objects/{category}:Boxes2D:centers")
-        assert {step: len(v) for step, v in logged.items() if v} == dict(per_step), category
+        every_step = column(content, f"/objects/{category}:Boxes2D:centers")
+        assert {step: len(v) for step, v in every_step.items() if v} == dict(per_step), category
+        # the boxes drawn over the frame are logged on the frame's steps only, with that step's objects, so a
+        # scrubbed view never shows the frame of one step under the boxes of another
+        over_frame = column(content, f"/game/objects/{category}:Boxes2D:centers")
+        assert sorted(over_frame) == frame_steps, category
+        assert {step: v for step, v in over_frame.items() if v} == {
+            step: every_step[step] for step in frame_steps if every_step.get(step)}, category
     frames = column(content, "/game/frame:EncodedImage:blob")
-    assert sorted(frames) == ([s for s in range(n) if s % frames_every == 0] if frames_every else [])
+    assert sorted(frames) == (frame_steps if frames_every else [])
+    labels = column(content, "/game/frame_step:Points2D:labels")
+    assert labels == {s: [f"frame of step {s}"] for s in frames}, "each frame says which step it is from"
     props = content["properties"]
     assert props["episode:episode_id"] == episode_id and props["episode:length"] == n
 
@@ -100,7 +109,9 @@ def test_live_and_rebuilt_recordings_hold_the_stored_episode(store, tmp_path, ca
     # node outputs of the traced episode: a series per bundled method, the coordinates drawn on the frame
     calls = store.query("SELECT count(*) FROM nodes WHERE episode_id = ? AND function = 'select_paddle_action'", [ids[0]])
     assert len(column(again, "/policy/select_paddle_action:Scalars:scalars")) == calls[0][0] == STEPS
-    assert column(again, "/game/policy/target_x:LineStrips2D:strips")
+    overlay = column(again, "/game/policy/target_x:LineStrips2D:strips")
+    assert overlay and sorted(overlay) == sorted(column(again, "/game/frame:EncodedImage:blob")), \
+        "drawn on the frame, so logged on the frame's steps only"
     # the live recording (written by the worker) and the rebuilt one hold the same data, frames included
     assert first["timelines"] == again["timelines"]
     assert "/code:TextDocument:text" in again["static"]

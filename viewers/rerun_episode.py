@@ -12,12 +12,19 @@ Entity layout::
 
     /game                        AnnotationContext (static): one class per object category -> label, colour
     /game/frame                  EncodedImage (PNG), every K-th step, when frames were taken (optional)
+    /game/frame_step             Points2D with a label, on the frame's steps: "frame of step N", so a scrubbed
+                                 view says which step the picture (and everything drawn on it) is from
     /game/objects/<Category>     Boxes2D, ONE entity per category (Player, Ball, Enemy, Alien, Shield, Bullet,
-                                 Satellite; Breakout brick rows RB OB YB GB AB BB), every step, labels = the
-                                 observation keys (Alien3, Ball, RB); an empty row where the category is absent
+                                 Satellite; Breakout brick rows RB OB YB GB AB BB), labels = the observation
+                                 keys (Alien3, Ball, RB); an empty row where the category is absent. Drawn over
+                                 the frame, so logged on the frame's steps only (every step when there are no
+                                 frames): boxes and picture shown together are always of the same step
     /game/policy/<name>          LineStrips2D / Points2D: numeric outputs of bundled methods that are screen
                                  coordinates, named by the parameter that consumes them (predicted_ball_y is a
-                                 horizontal line on the frame, target_x a vertical one)  [traced episodes]
+                                 horizontal line on the frame, target_x a vertical one); on the frame's steps
+                                 only, like the boxes  [traced episodes]
+    /objects                     AnnotationContext (static), as /game
+    /objects/<Category>          Boxes2D of every step (the same boxes, no frame under them)
     /series/action               Scalars (step-wise), one value per step the policy acted
     /series/reward               Scalars, one value per step
     /series/score                Scalars, cumulative reward
@@ -34,9 +41,15 @@ Entity layout::
                                  policy_version_id, return, length, lives_lost, end_reason, error, max_steps,
                                  sticky, noop_max, traced, frames_every
 
+Frames are taken on the steps that are multiples of K (``frames_every``), by the live recorder and the rebuilt
+one alike; the logger draws the boxes and overlays of ``/game`` on those steps only. Rerun shows the latest value
+at or before the time cursor, so had the boxes been logged every step, a scrubbed view would show the frame of
+step 4 under the boxes of step 7 (a fast paddle well off its box).
+
 Blueprint: the 2D view has origin ``/game`` so it draws the frame, the boxes and the policy overlay together
-(the default layout would draw only the frame); time-series views for score, reward/lives, action and the
-policy outputs beside it; the code as a text document.
+(the default layout would draw only the frame), with a second tab showing the boxes of every step
+(``/objects``); time-series views for score, reward/lives, action and the policy outputs beside it; the code
+as a text document.
 
 Every function takes an explicit ``recording`` (a ``rr.RecordingStream``) and falls back to the ambient one
 (``rr.init`` / ``with rec:``), as Rerun's own functions do.
@@ -60,6 +73,9 @@ from games import GAMES
 
 APPLICATION_ID = "codearcade"
 SCREEN_W, SCREEN_H = 160, 210
+FRAME_LABEL_AT = (80.0, 4.0)
+"""Where the "frame of step N" label is pinned: its text is centred on this point, so the top middle of the
+screen keeps it whole in a narrow view (and clear of Pong's score digits)."""
 
 
 def _game_colours() -> dict[str, tuple[int, int, int]]:
@@ -208,9 +224,11 @@ class EpisodeLogger:
     vanishes gets empty rows (its boxes disappear) rather than staying on screen.
     """
 
-    def __init__(self, recording: rr.RecordingStream | None = None, traced: bool = False):
+    def __init__(self, recording: rr.RecordingStream | None = None, traced: bool = False, frames_every: int = 0):
         self.rec = resolve_recording(recording)
         self.traced = traced
+        self.frames_every = max(0, int(frames_every or 0))
+        """K: frames are taken on the multiples of K (0: no frames), and ``/game`` is drawn on those steps only."""
         self._categories: dict[str, int] = {}
         self._overlays: dict[str, str] = {}
         self._functions: list[str] = []
@@ -236,10 +254,18 @@ class EpisodeLogger:
             return
         for c in new:
             self._categories[c] = class_id(c)
-        self.rec.log("/game", rr.AnnotationContext([
+        context = rr.AnnotationContext([
             rr.ClassDescription(info=rr.AnnotationInfo(id=cid, label=c, color=category_color(c)))
             for c, cid in sorted(self._categories.items(), key=lambda kv: kv[1])
-        ]), static=True)
+        ])
+        for root in ("/game", "/objects"):
+            self.rec.log(root, context, static=True)
+
+    def _on_frame_steps(self, steps: np.ndarray) -> np.ndarray:
+        """Mask of ``steps`` that have a frame (all of them when there are no frames)."""
+        if not self.frames_every:
+            return np.ones(len(steps), dtype=bool)
+        return np.asarray(steps) % self.frames_every == 0
 
     def code(self, policy_text: str) -> None:
         """The policy file, as a markdown text document at ``/code``."""
@@ -283,35 +309,55 @@ class EpisodeLogger:
 
         present = cols.categories
         self._annotate(sorted(present))
+        framed = self._on_frame_steps(cols.step)  # rows whose boxes are also drawn over their frame
+        all_framed = bool(framed.all())
+        framed_t = t if all_framed else rr.TimeColumn("step", sequence=cols.step[framed])
+        row_to_framed = np.cumsum(framed) - 1  # a framed row's position among the framed rows
         cx = cols.x + cols.w / 2.0
         cy = cols.y + cols.h / 2.0
         for category in sorted(self._categories):
             if category in present:
-                mask = cols.category_code == present.index(category)
-                where = np.flatnonzero(mask)
-                lengths = np.bincount(cols.obj_row[where], minlength=n)
-                columns = rr.Boxes2D.columns(
-                    centers=np.column_stack((cx[where], cy[where])),
-                    half_sizes=np.column_stack((cols.w[where] / 2.0, cols.h[where] / 2.0)),
-                    labels=cols.key.take(pa.array(where)),
-                    class_ids=np.full(len(where), self._categories[category], dtype=np.uint16),
-                ).partition(lengths)
+                where = np.flatnonzero(cols.category_code == present.index(category))
+                boxes = self._boxes(cols, where, cx, cy, category)
+                columns = boxes.partition(np.bincount(cols.obj_row[where], minlength=n))
+                if all_framed:
+                    over_frame = columns
+                else:  # the same boxes, those of the framed rows (taken from the built arrays: half the cost)
+                    on_frame = np.flatnonzero(framed[cols.obj_row[where]])
+                    lengths = np.bincount(row_to_framed[cols.obj_row[where[on_frame]]], minlength=int(framed.sum()))
+                    over_frame = rr.ComponentColumnList([
+                        rr.ComponentColumn(c.descriptor, _Rows(c.component_batch, on_frame), lengths=lengths)
+                        for c in boxes])
             else:  # drawn in an earlier chunk, absent in this one: empty rows clear it
-                columns = rr.Boxes2D.columns(centers=np.zeros((0, 2)), half_sizes=np.zeros((0, 2)),
-                                             labels=pa.array([], type=pa.utf8()),
-                                             class_ids=np.zeros(0, dtype=np.uint16)
-                                             ).partition(np.zeros(n, dtype=np.int64))
-            send(entity("game", "objects", category), indexes=[t], columns=columns)
+                columns = _no_boxes(n)
+                over_frame = columns if all_framed else _no_boxes(int(framed.sum()))
+            send(entity("objects", category), indexes=[t], columns=columns)
+            if framed.any():
+                send(entity("game", "objects", category), indexes=[framed_t], columns=over_frame)
+
+    def _boxes(self, cols: StepColumns, where: np.ndarray, cx: np.ndarray, cy: np.ndarray, category: str):
+        """Box columns of the objects ``where`` (not yet partitioned into steps)."""
+        return rr.Boxes2D.columns(
+            centers=np.column_stack((cx[where], cy[where])),
+            half_sizes=np.column_stack((cols.w[where] / 2.0, cols.h[where] / 2.0)),
+            labels=cols.key.take(pa.array(where, type=pa.int64())),
+            class_ids=np.full(len(where), self._categories[category], dtype=np.uint16),
+        )
 
     def frames(self, steps: Sequence[int], pngs: Sequence[bytes]) -> None:
         """PNG frames taken at ``steps``."""
         if not len(steps):
             return
         self._has_frames = True
-        self.rec.send_columns(
-            "/game/frame", indexes=[rr.TimeColumn("step", sequence=np.asarray(steps, dtype=np.int64))],
-            columns=rr.EncodedImage.columns(blob=list(pngs), media_type=["image/png"] * len(pngs)),
-        )
+        at = np.asarray(steps, dtype=np.int64)
+        t = rr.TimeColumn("step", sequence=at)
+        self.rec.send_columns("/game/frame", indexes=[t],
+                              columns=rr.EncodedImage.columns(blob=list(pngs), media_type=["image/png"] * len(pngs)))
+        # the picture's own step, written on it: scrubbing between frames shows the last frame, and says so
+        self.rec.send_columns("/game/frame_step", indexes=[t], columns=rr.Points2D.columns(
+            positions=np.tile(FRAME_LABEL_AT, (len(at), 1)), labels=[f"frame of step {s}" for s in at.tolist()],
+            radii=np.full(len(at), 0.5, dtype=np.float32), colors=np.tile((0, 0, 0), (len(at), 1)),
+            show_labels=np.ones(len(at), dtype=bool)))
 
     def nodes(self, table: pa.Table | Mapping[str, Sequence]) -> None:
         """Outputs and exceptions of bundled calls (a ``nodes`` table: step, call_index, function, inputs,
@@ -352,7 +398,7 @@ class EpisodeLogger:
                 if keep:
                     self.rec.send_columns(path, indexes=[rr.TimeColumn("step", sequence=[s[k] for k in keep])],
                                           columns=rr.Scalars.columns(scalars=[numbers[k] for k in keep]))
-                    self._overlay(fn, names.get(fn, fn), [s[k] for k in keep], [numbers[k] for k in keep])
+                self._overlay(fn, names.get(fn, fn), s, numbers)
             else:
                 self._text_functions.add(fn)
                 self.rec.send_columns(path, indexes=[rr.TimeColumn("step", sequence=s)],
@@ -419,24 +465,28 @@ class EpisodeLogger:
                         break
         return names
 
-    def _overlay(self, fn: str, name: str, steps: list[int], values: list[float]) -> None:
-        """Draw a coordinate-valued output on the frame: a horizontal line for y, a vertical one for x."""
+    def _overlay(self, fn: str, name: str, steps: list[int], values: list[float | None]) -> None:
+        """Draw a coordinate-valued output on the frame: a horizontal line for y, a vertical one for x; on the
+        frame's steps only, and nothing on a step whose value is None or not finite (not the last line drawn)."""
         axis = self._overlays.get(fn) or _coordinate_axis(name) or _coordinate_axis(fn)
-        if axis is None:
+        if axis is None or not any(x is not None for x in values):
             return
         self._overlays[fn] = axis
-        finite = [k for k, v in enumerate(values) if math.isfinite(v)]
-        if not finite:
+        framed = np.flatnonzero(self._on_frame_steps(np.asarray(steps, dtype=np.int64)))
+        if not len(framed):
             return
-        v = np.asarray([values[k] for k in finite], dtype=np.float32)
+        drawn = [k for k in framed if values[k] is not None and math.isfinite(values[k])]
+        lengths = np.asarray([values[k] is not None and math.isfinite(values[k]) for k in framed], dtype=np.int64)
+        steps = [steps[k] for k in framed]
+        v = np.asarray([values[k] for k in drawn], dtype=np.float32)
         if axis == "y":
             strips = np.stack([np.column_stack((np.zeros_like(v), v)), np.column_stack((np.full_like(v, SCREEN_W), v))], 1)
         else:
             strips = np.stack([np.column_stack((v, np.zeros_like(v))), np.column_stack((v, np.full_like(v, SCREEN_H)))], 1)
         self.rec.send_columns(
-            entity("game", "policy", name), indexes=[rr.TimeColumn("step", sequence=[steps[k] for k in finite])],
-            columns=rr.LineStrips2D.columns(strips=list(strips), labels=[name] * len(finite),
-                                            colors=[(255, 255, 0)] * len(finite)),
+            entity("game", "policy", name), indexes=[rr.TimeColumn("step", sequence=steps)],
+            columns=rr.LineStrips2D.columns(strips=list(strips), labels=[name] * len(drawn),
+                                            colors=[(255, 255, 0)] * len(drawn)).partition(lengths),
         )
 
     # -- layout ------------------------------------------------------------------------------------------
@@ -454,8 +504,7 @@ def episode_blueprint(traced: bool = False, errors: bool = False, line_functions
     """Game view (frame + boxes + policy overlay) beside score/reward/action series, policy outputs (traced
     episodes) and the code; a log of policy outputs and errors under the game view when there can be any; the
     lines that ran of each method in ``line_functions`` above the code."""
-    left: list[Any] = [rrb.Spatial2DView(origin="/game", name="game",
-                                         visual_bounds=rrb.VisualBounds2D(x_range=[0, SCREEN_W], y_range=[0, SCREEN_H]))]
+    left: list[Any] = [rrb.Tabs(game_view("/game", "game"), objects_view("/objects"))]
     if traced or errors:
         left.append(rrb.TextLogView(origin="/policy", name="policy log"))
     series: list[Any] = [
@@ -478,6 +527,35 @@ def episode_blueprint(traced: bool = False, errors: bool = False, line_functions
         ),
         collapse_panels=True,
     )
+
+
+def game_view(origin: str, name: str) -> rrb.Spatial2DView:
+    """The 2D view of a frame with the boxes and overlays drawn on it (all of the step the label names)."""
+    return rrb.Spatial2DView(origin=origin, name=name,
+                             visual_bounds=rrb.VisualBounds2D(x_range=[0, SCREEN_W], y_range=[0, SCREEN_H]))
+
+
+def objects_view(origin: str) -> rrb.Spatial2DView:
+    """The boxes of every step, without a frame under them."""
+    return rrb.Spatial2DView(origin=origin, name="objects, every step",
+                             visual_bounds=rrb.VisualBounds2D(x_range=[0, SCREEN_W], y_range=[0, SCREEN_H]))
+
+
+class _Rows:
+    """Some rows of a built component batch (Rerun's ``ComponentBatchLike``: it only needs the Arrow array)."""
+
+    def __init__(self, batch: Any, rows: np.ndarray):
+        self._array = batch.as_arrow_array().take(pa.array(rows, type=pa.int64()))
+
+    def as_arrow_array(self) -> pa.Array:
+        return self._array
+
+
+def _no_boxes(rows: int):
+    """``rows`` empty rows of boxes (a category absent on those steps)."""
+    return rr.Boxes2D.columns(centers=np.zeros((0, 2)), half_sizes=np.zeros((0, 2)),
+                              labels=pa.array([], type=pa.utf8()), class_ids=np.zeros(0, dtype=np.uint16)
+                              ).partition(np.zeros(rows, dtype=np.int64))
 
 
 def _property_value(value: Any) -> Any:

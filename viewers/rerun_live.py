@@ -79,7 +79,8 @@ class LiveEpisodeRecorder:
             self.rec.connect_grpc(target, default_blueprint=blueprint)
         else:
             self.rec.save(os.path.join(target, f"{spec.episode_id}.rrd"), default_blueprint=blueprint)
-        self.logger = EpisodeLogger(self.rec, traced=spec.trace)
+        self.logger = EpisodeLogger(self.rec, traced=spec.trace,
+                                    frames_every=self.frames_every if self.encoder is not None else 0)
         self.logger.code(spec.policy_text)
         self._flushed = 0
         self._frame_steps: list[int] = []

@@ -117,8 +117,9 @@ def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int) -> tuple
 def log_stored_episode(data: StoredEpisode, recording: rr.RecordingStream | None = None,
                        frames_every: int = 0) -> ReplayCheck:
     """Log a stored episode into ``recording`` (or the ambient one), frames regenerated every K-th step."""
-    logger = EpisodeLogger(resolve_recording(recording), traced=bool(data.episode.get("traced")))
     frame_steps, pngs, check = replay_frames(data.episode, data.steps, frames_every)
+    logger = EpisodeLogger(resolve_recording(recording), traced=bool(data.episode.get("traced")),
+                           frames_every=frames_every if frame_steps else 0)
     if data.policy_text is not None:
         logger.code(data.policy_text)
     for start in range(0, data.steps.num_rows, CHUNK_STEPS):

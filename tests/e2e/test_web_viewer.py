@@ -95,3 +95,33 @@ def test_served_web_viewer_shows_the_episode(store, tmp_path, capsys):
         except subprocess.TimeoutExpired:
             server.kill()
     assert server.returncode in (0, 130), server.stderr.read()
+
+
+def test_compare_side_by_side_blueprint_shows_both_episodes(store, tmp_path, capsys):
+    """``compare A B --rerun URL`` into a served web viewer: the blueprint opens with the two game views side by
+    side, each showing its episode's frame."""
+    playwright = pytest.importorskip("playwright.sync_api", reason="needs the playwright package")
+    from viewers.rerun_sinks import start_web_viewer
+
+    competent = ROOT / "tests" / "policies" / "pong_competent.py"
+    variant = tmp_path / "pong_dead_zone_4.py"
+    variant.write_text(competent.read_text().replace("DEAD_ZONE = 3\n", "DEAD_ZONE = 4\n"))
+    with start_web_viewer() as viewer:
+        code = main(["compare", str(competent), str(variant), "--max-steps", "200", "--rerun", viewer.grpc_url,
+                     "--store", str(store.path), "--json"])
+        out, err = capsys.readouterr()
+        assert code == 0, err
+        assert json.loads(out)["episodes"][0]["first_divergent_step"] is not None
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_FLAGS)
+            try:
+                page = browser.new_page(viewport={"width": 1280, "height": 800})
+                page.goto(viewer.url, timeout=120_000)
+                shot = _settled_screenshot(page, tmp_path / "compare.png")
+            finally:
+                browser.close()
+    top = shot[: shot.shape[0] * 2 // 3]  # the two game views fill the upper part of the layout
+    left, right = top[:, : top.shape[1] // 2], top[:, top.shape[1] // 2:]
+    for name, half in (("left (A)", left), ("right (B)", right)):
+        playfield = _fraction_of(half, PONG_PLAYFIELD)
+        assert playfield > 0.05, f"no game frame in the {name} half ({playfield:.1%}; {tmp_path}/compare.png)"

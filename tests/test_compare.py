@@ -1,0 +1,160 @@
+"""``codearcade compare``: two policy versions played on the same seeds, and two optimization runs.
+
+Real components: episodes played by the worker processes into a real DuckDB file, optimization runs against
+the scripted model over real HTTP, the side-by-side recording written by Rerun and read back with its SDK in
+a separate process (tests/rrd_dump.py; this process forks episode workers and never loads Rerun).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from pipeline.cli import main
+from tests.conftest import COMPETENT_REPLY, EXAMPLES, POLICIES
+from tests.test_rerun import column, dump
+
+COMPETENT = POLICIES / "pong_competent.py"
+STEPS = 300
+
+
+def run_cli(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture
+def wider_dead_zone(tmp_path):
+    """The competent Pong policy with one constant changed (DEAD_ZONE 3 -> 4)."""
+    text = COMPETENT.read_text()
+    assert text.count("DEAD_ZONE = 3\n") == 1
+    path = tmp_path / "pong_dead_zone_4.py"
+    path.write_text(text.replace("DEAD_ZONE = 3\n", "DEAD_ZONE = 4\n"))
+    return path
+
+
+def stored_actions(store, run_id: str) -> list:
+    rows = store.query("SELECT s.action FROM steps s JOIN episodes e USING (episode_id) WHERE e.run_id = ? "
+                       "AND e.kind = 'eval' ORDER BY s.step", [run_id])
+    return [r[0] for r in rows]
+
+
+def test_two_versions_report_the_first_divergent_step(store, tmp_path, capsys, wider_dead_zone):
+    rrd = tmp_path / "side_by_side.rrd"
+    code, out, err = run_cli(capsys, "compare", COMPETENT, wider_dead_zone, "--max-steps", STEPS, "--rerun", rrd,
+                             "--store", store.path, "--json")
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["mode"] == "versions" and report["game"] == "pong"
+    runs = [v["eval_run"] for v in report["versions"]]
+    # independently: the first step where the two stored action sequences differ
+    a, b = stored_actions(store, runs[0]), stored_actions(store, runs[1])
+    assert len(a) == len(b) == STEPS
+    expected = next(i for i, (x, y) in enumerate(zip(a, b)) if x != y)
+    (episode,) = report["episodes"]
+    assert episode["first_divergent_step"] == expected
+    assert episode["actions"] == {"A": a[expected], "B": b[expected]}
+    # the steps around it, each side with its observation and what its bundled methods returned
+    around = {e["step"]: e for e in episode["around"]}
+    assert sorted(around) == list(range(max(0, expected - 3), expected + 4))
+    for step, entry in around.items():
+        for label, actions in (("A", a), ("B", b)):
+            side = entry[label]
+            assert side["action"] == actions[step]
+            assert side["nodes"]["select_action"] == actions[step], "the node output is the action played"
+            assert "predict_ball_trajectory" in side["nodes"] and "Player" in side["obs"]
+    assert around[expected - 1]["A"]["obs"] == around[expected - 1]["B"]["obs"], "the same game until they part"
+    assert "-DEAD_ZONE = 3" in report["diff"] and "+DEAD_ZONE = 4" in report["diff"]
+    assert report["diff"].count("\n-") == 1, "one line differs"
+
+    # the side-by-side recording: both episodes on one step timeline, the divergence at its step
+    content = dump(rrd)[str(rrd)]
+    for side, run_id in zip("AB", runs):
+        actions = column(content, f"/{side}/series/action:Scalars:scalars")
+        assert [actions[s][0] for s in range(STEPS)] == [float(x) for x in stored_actions(store, run_id)]
+        assert sorted(column(content, f"/{side}/game/frame:EncodedImage:blob")) == list(range(0, STEPS, 4))
+        assert content["properties"][f"{side}_episode:run_id"] == run_id
+    divergence = column(content, "/compare/divergence:TextLog:text")
+    assert list(divergence) == [expected] and f"first divergent step {expected}" in divergence[expected][0]
+    assert "+DEAD_ZONE = 4" in content["static"]["/compare/diff:TextDocument:text"][0]
+
+    # the same versions, read back from the store as RUN:VERSION (a prefix, and 'best'), part at the same step
+    version_b = report["versions"][1]["policy_version_id"]
+    code, out, err = run_cli(capsys, "compare", f"{runs[0][:20]}:best", f"{runs[1]}:{version_b[:6]}", "--max-steps",
+                             STEPS, "--store", store.path, "--out", tmp_path / "report")
+    assert code == 0, err
+    assert f"first divergent step: {expected} " in out
+    readme = (tmp_path / "report" / "README.md").read_text()
+    assert f"first divergent step: {expected} " in readme and "+DEAD_ZONE = 4" in readme
+
+
+def test_identical_versions_never_diverge(store, capsys):
+    code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--max-steps", 50, "--store", store.path)
+    assert code == 0, err
+    assert "the two versions chose the same action at every step" in out and "(the same code)" in out
+
+
+def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted):
+    ids = []
+    for replies in ([COMPETENT_REPLY, "Sorry, I cannot help with that."], ["Sorry.", "Still no."]):
+        model = scripted(replies)
+        code, out, err = run_cli(capsys, "optimize", "--game", "pong", "--model", model.model, "--api-base",
+                                 model.api_base, "--iterations", 2, "--eval-max-steps", 800, "--rollout-steps", 40,
+                                 "--workers", 2, "--store", store.path, "--json")
+        assert code == 0, err
+        ids.append(json.loads(out)["run_id"])
+    code, out, err = run_cli(capsys, "compare", ids[0][:22], ids[1], "--out", tmp_path / "cmp", "--store",
+                             store.path, "--json")
+    assert code == 0, err
+    report = json.loads(out)
+    assert [r["run_id"] for r in report["runs"]] == ids
+
+    def best_within_calls(run_id: str, calls: int) -> float:
+        """Straight from the tables: the best score among iterations reached with at most ``calls`` LLM calls."""
+        return store.query(
+            "SELECT max(score) FROM (SELECT i.iteration, i.score, (SELECT count(*) FROM llm_calls c WHERE "
+            "c.run_id = i.run_id AND c.iteration <= i.iteration) AS calls FROM iterations i WHERE i.run_id = ?) "
+            "WHERE calls <= ?", [run_id, calls])[0][0]
+
+    by_calls = {r["budget"]: r for r in report["budgets"] if r["unit"] == "LLM calls"}
+    assert sorted(k for k in by_calls if k != "all") == [0, 1, 2]
+    for calls in (0, 1, 2):
+        assert by_calls[calls]["A"] == best_within_calls(ids[0], calls)
+        assert by_calls[calls]["B"] == best_within_calls(ids[1], calls)
+    assert by_calls[1]["A"] > by_calls[1]["B"], "A's first reply was the competent policy, B's was useless"
+    assert {r["unit"] for r in report["budgets"]} == {"LLM calls", "1k tokens", "wall seconds"}
+    tokens = [r for r in report["budgets"] if r["unit"] == "1k tokens" and r["budget"] != "all"]
+    spent = [store.query("SELECT sum(input_tokens + output_tokens) FROM llm_calls WHERE run_id = ?", [i])[0][0]
+             for i in ids]
+    assert tokens[-1]["budget"] == pytest.approx(min(spent) / 1000, abs=1e-3), "matched up to what both spent"
+    # the learning curves are the stored iterations; the diff is starter (B's best) against the competent code
+    for label, run_id in zip("AB", ids):
+        scores = [r[0] for r in store.query("SELECT score FROM iterations WHERE run_id = ? ORDER BY iteration",
+                                            [run_id])]
+        assert [p["score"] for p in report["curves"][label]] == scores
+    assert report["runs"][0]["best_iteration"] == 1 and report["runs"][1]["best_iteration"] == 0
+    assert re.search(r"^-.*offset = \(y - 30\) % 320", report["diff"], re.M), "A's best has the competent code"
+    png = (tmp_path / "cmp" / "curves.png").read_bytes()
+    assert png.startswith(b"\x89PNG") and len(png) > 20_000
+    assert "![learning curves" in (tmp_path / "cmp" / "README.md").read_text()
+
+
+def test_what_cannot_be_compared_is_said_in_one_line(store, capsys, tmp_path):
+    code, out, err = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 5, "--store", store.path, "--json")
+    run_id = json.loads(out)["run_id"]
+    cases = [
+        (("compare", run_id, COMPETENT), "is a policy version but"),
+        (("compare", COMPETENT, tmp_path / "missing.py"), "does not exist"),
+        (("compare", f"{run_id}:ffff", COMPETENT), "has no policy version 'ffff'"),
+        (("compare", run_id, run_id), "is an eval run without iterations"),
+        (("compare", COMPETENT, EXAMPLES / "breakout.py"), "plays pong but"),
+        (("compare", "01NOSUCHRUN", run_id), "no run 01NOSUCHRUN"),
+        (("compare", COMPETENT, COMPETENT, "--rerun", "side.mp4"), "give a FILE.rrd"),
+    ]
+    for argv, message in cases:
+        code, out, err = run_cli(capsys, *argv, "--store", store.path)
+        assert code == 2 and message in err, (argv, err)
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err

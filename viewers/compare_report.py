@@ -1,0 +1,174 @@
+"""What ``codearcade compare`` shows: the learning-curves plot, the terminal text and the Markdown report.
+
+Input is the plain data of :mod:`pipeline.compare` (``RunComparison.as_dict()`` / ``VersionComparison.as_dict()``).
+The plot draws both runs' score and best-so-far against the three budgets a run spends (LLM calls, tokens,
+wall seconds), one panel each, with matplotlib's Agg canvas (no display needed).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from viewers.report import _md_table
+from viewers.tables import format_table
+
+COLOURS = {"A": "#1f77b4", "B": "#d62728"}
+PANELS = (("llm_calls", "LLM calls", 1.0), ("tokens", "tokens (thousands)", 1000.0), ("elapsed_s", "wall seconds", 1.0))
+
+
+def plot_curves(data: dict[str, Any], path: Path) -> None:
+    """Both runs' learning curves on one PNG: score (dots) and best so far (steps) per LLM call, per thousand
+    tokens and per wall second."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(13, 4.2), dpi=110, layout="constrained")
+    axes = fig.subplots(1, len(PANELS), sharey=True)
+    for ax, (key, xlabel, scale) in zip(axes, PANELS):
+        ax.grid(True, alpha=0.3)
+        ax.spines[["top", "right"]].set_visible(False)
+        for run in data["runs"]:
+            curve = data["curves"][run["label"]]
+            xs = [p[key] / scale for p in curve]
+            colour = COLOURS[run["label"]]
+            ax.step(xs, [p["best_score"] for p in curve], where="post", color=colour, linewidth=1.8,
+                    label=f"{run['label']} {run['run_id'][:10]}… best so far")
+            ax.scatter(xs, [p["score"] for p in curve], color=colour, s=18, alpha=0.6, linewidths=0,
+                       label=f"{run['label']} score of an iteration")
+        ax.set_xlabel(xlabel)
+    from matplotlib.ticker import MaxNLocator
+
+    axes[0].xaxis.set_major_locator(MaxNLocator(integer=True))  # whole LLM calls
+    axes[0].set_ylabel("evaluation score")
+    axes[-1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    runs = data["runs"]
+    fig.suptitle(f"{data['game']}: A {runs[0]['run_id']} ({runs[0]['model']}) vs B {runs[1]['run_id']} "
+                 f"({runs[1]['model']})", fontsize=10)
+    fig.savefig(path)
+
+
+def _score(value: Any) -> str:
+    return "-" if value is None else f"{value:g}"
+
+
+def _amount(value: float) -> str:
+    """A budget for people: whole numbers as such, others to one decimal."""
+    return f"{value:g}" if float(value).is_integer() else f"{value:.1f}"
+
+
+def _budget_rows(data: dict[str, Any]) -> list[tuple]:
+    rows = []
+    for r in data["budgets"]:
+        budget = r["budget"]
+        if budget == "all":
+            budget = f"all (A {_amount(r['spent']['A'])}, B {_amount(r['spent']['B'])})"
+        else:
+            budget = _amount(budget)
+        rows.append((r["unit"], budget, _score(r["A"]), _score(r["B"])))
+    return rows
+
+
+def _obs_text(obs: dict[str, Any], limit: int = 6) -> str:
+    """Objects of an observation as ``Ball(80,120 d+2,-1)``; the first ``limit`` of them."""
+    parts = []
+    for key, value in obs.items():
+        if isinstance(value, dict) and "x" in value:
+            parts.append(f"{key}({value['x']},{value['y']} d{value.get('dx', 0):+},{value.get('dy', 0):+})")
+        elif not isinstance(value, (list, dict)):
+            parts.append(f"{key}={value}")
+    more = len(parts) - limit
+    return " ".join(parts[:limit]) + (f" …{more} more" if more > 0 else "")
+
+
+def _nodes_text(nodes: dict[str, Any]) -> str:
+    return " ".join(f"{fn}={json.dumps(v)}" for fn, v in nodes.items()) or "-"
+
+
+def _around_rows(episode: dict[str, Any]) -> list[tuple]:
+    rows = []
+    for entry in episode["around"]:
+        for label in ("A", "B"):
+            side = entry[label]
+            mark = ">" if entry["step"] == episode["first_divergent_step"] else ""
+            if side is None:
+                rows.append((f"{mark}{entry['step']}", label, "(episode over)", "", ""))
+                continue
+            action = "-" if side["action"] is None else f"{side['action']} {side['action_name']}"
+            rows.append((f"{mark}{entry['step']}", label, action, _nodes_text(side["nodes"]), _obs_text(side["obs"])))
+    return rows
+
+
+def _episode_headline(e: dict[str, Any]) -> list[str]:
+    lines = [f"seed {e['seed']}: A return {e['A']['return']:g} in {e['A']['length']} steps ({e['A']['end_reason']}), "
+             f"B return {e['B']['return']:g} in {e['B']['length']} steps ({e['B']['end_reason']})"]
+    step = e["first_divergent_step"]
+    if step is None:
+        lines.append("  the two versions chose the same action at every step")
+    else:
+        lines.append(f"  first divergent step: {step} (A chose {_action(e, 'A')}, B chose {_action(e, 'B')})")
+    return lines
+
+
+def _action(e: dict[str, Any], label: str) -> str:
+    at = next(x for x in e["around"] if x["step"] == e["first_divergent_step"])[label]
+    if at is None:
+        return "nothing: its episode had ended"
+    return "no action (its policy failed)" if at["action"] is None else f"{at['action']} {at['action_name']}"
+
+
+def text_lines(data: dict[str, Any]) -> list[str]:
+    """What ``codearcade compare`` prints on a terminal."""
+    if data["mode"] == "runs":
+        runs = data["runs"]
+        lines = [format_table(("", "run", "model", "status", "iterations", "best", "at iteration", "LLM calls",
+                               "tokens", "seconds"),
+                              [(r["label"], r["run_id"], r["model"], r["status"], r["iterations"], _score(r["best_score"]),
+                                r["best_iteration"], r["llm_calls"], r["total_tokens"], round(r["elapsed_s"], 1))
+                               for r in runs], max_width=32, null="-"),
+                 "", "best score reached within the same budget:",
+                 format_table(("budget in", "up to", "A best", "B best"), _budget_rows(data), max_width=40, null="-"),
+                 "", "diff of the best versions (A -> B):", data["diff"] or "(the best versions are the same code)"]
+        return lines
+    versions = data["versions"]
+    lines = [f"A {versions[0]['ref']} ({versions[0]['policy_version_id']}), eval run {versions[0]['eval_run']}",
+             f"B {versions[1]['ref']} ({versions[1]['policy_version_id']}), eval run {versions[1]['eval_run']}"]
+    for e in data["episodes"]:
+        lines += [""] + _episode_headline(e)
+        if e["around"]:
+            lines.append(format_table(("step", "", "action", "node outputs", "objects"), _around_rows(e),
+                                      max_width=70, null="-"))
+    lines += ["", "diff (A -> B):", data["diff"] or "(the same code)"]
+    return lines
+
+
+def write_report(data: dict[str, Any], out: Path) -> Path:
+    """README.md (and ``curves.png`` for two runs) in ``out``; the README's path."""
+    out.mkdir(parents=True, exist_ok=True)
+    md: list[str] = []
+    if data["mode"] == "runs":
+        plot_curves(data, out / "curves.png")
+        runs = data["runs"]
+        md += [f"# {data['game']}: run `{runs[0]['run_id']}` (A) vs run `{runs[1]['run_id']}` (B)", "",
+               "![learning curves against LLM calls, tokens and wall seconds](curves.png)", "",
+               _md_table(("", "run", "model", "status", "iterations", "best", "at iteration", "LLM calls", "tokens",
+                          "seconds"),
+                         [(r["label"], f"`{r['run_id']}`", r["model"], r["status"], r["iterations"], r["best_score"],
+                           r["best_iteration"], r["llm_calls"], r["total_tokens"], r["elapsed_s"]) for r in runs]),
+               "", "## Best score within the same budget", "",
+               "Only budgets both runs spent are matched; `all` is each run's whole spending.", "",
+               _md_table(("budget in", "up to", "A best", "B best"), _budget_rows(data)), "",
+               "## Diff of the best versions", "", "```diff", data["diff"] or "(the same code)", "```", ""]
+    else:
+        versions = data["versions"]
+        md += [f"# {data['game']}: {versions[0]['ref']} (A) vs {versions[1]['ref']} (B)", ""]
+        md += [f"- {v['label']}: `{v['ref']}`, version `{v['policy_version_id']}`, eval run `{v['eval_run']}`"
+               for v in versions]
+        for e in data["episodes"]:
+            md += ["", f"## Seed {e['seed']}", ""] + [line.strip() for line in _episode_headline(e)]
+            if e["around"]:
+                md += ["", _md_table(("step", "", "action", "node outputs", "objects"), _around_rows(e))]
+        md += ["", "## Diff", "", "```diff", data["diff"] or "(the same code)", "```", ""]
+    readme = out / "README.md"
+    readme.write_text("\n".join(md))
+    return readme
