@@ -26,6 +26,7 @@ For ``best-of-n``, ``beam`` and ``map-elites`` the memory follows the lineage of
 
 from __future__ import annotations
 
+import random
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -339,8 +340,6 @@ class MapElites:
         return {cell: ref for cell, (_, ref) in elites.items()}
 
     def plan(self, history: History, iteration: int) -> list[ProposalRequest]:
-        import random
-
         elites = sorted(self.archive(history).values())
         rng = random.Random(self.seed * 1_000_003 + iteration)
         ranked = [ref for _, ref in history.assessed_versions() if ref in elites]

@@ -32,7 +32,12 @@ def run_trace_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any
                   i.train_episode_id, i.train_return, i.score, i.best_score, i.best_version_id, i.best_iteration,
                   i.started_at, i.finished_at, i.llm_s, i.train_s, i.eval_s, i.wall_s,
                   (SELECT any_value(r.reason) FROM rejected_candidates r
-                   WHERE r.run_id = i.run_id AND r.iteration = i.iteration) AS rejection
+                   WHERE r.run_id = i.run_id AND r.iteration = i.iteration) AS rejection,
+                  (SELECT count(*) FROM candidates c WHERE c.run_id = i.run_id AND c.iteration = i.iteration)
+                      AS candidates,
+                  (SELECT any_value(c.evaluation) FROM candidates c WHERE c.run_id = i.run_id
+                   AND c.iteration = i.iteration AND c.candidate = coalesce(i.candidate, 0)) AS evaluation,
+                  (SELECT e.iteration FROM episodes e WHERE e.episode_id = i.train_episode_id) AS episodes_iteration
            FROM iterations i WHERE i.run_id = ? ORDER BY i.iteration""", [run_id]))
     llm_calls = _rows(con.execute(
         """SELECT c.call_id, c.iteration, c.purpose, c.created_at, c.latency_s, c.operation_name, c.provider_name,

@@ -21,6 +21,11 @@ SMALLEST = {
     "lines.py": (["--policies", "tests/policies/pong_competent.py", "--repeats", "1", "--max-steps", "300"],
                  ["+ lines", "pong_competent.py", "time ratio traced+lines / traced"]),
     "rerun_logging.py": (["--games", "pong", "--repeats", "1", "--max-steps", "100"], ["worst log/env ratio"]),
+    "prompt_density.py": (["--budgets", "3000"], ["steps/1k before", "competent"]),
+    "optimizer_overhead.py": (["--iterations", "2", "--delay", "0.5", "--eval-max-steps", "200"],
+                              ["overhead / wall =", "LLM calls", "environment"]),
+    "cascade_steps.py": (["--iterations", "3", "--eval-max-steps", "400", "--screen-steps", "100"],
+                         ["steps cheap / baseline =", "same best-so-far curve"]),
 }
 
 

@@ -327,6 +327,10 @@ def _iteration_span(iteration: int, row: dict[str, Any] | None) -> _Planned:
         codearcade__train_s=row["train_s"],
         codearcade__eval_s=row["eval_s"],
         codearcade__wall_s=row["wall_s"],
+        codearcade__candidates=row.get("candidates"),
+        # the evaluation cache: a version assessed before reuses its episodes; they are spans of that iteration
+        codearcade__evaluation=row.get("evaluation"),
+        codearcade__episodes_iteration=row.get("episodes_iteration"),
     )
     return _Planned(key=f"iteration:{iteration}", name=f"iteration {iteration}", kind="iteration",
                     start=_ns(row["started_at"]), end=_ns(row["finished_at"]), attributes=attributes)
