@@ -44,6 +44,7 @@ from typing import Any, Callable
 from games import get_game
 from pipeline.feedback import FEEDBACK_MODES
 from pipeline.strategies import STRATEGIES
+from store.readers import batch_progress, batch_runs
 from pipeline.optimize import BUDGET_FIELDS, OptimizeConfig
 from store import Store
 
@@ -182,9 +183,8 @@ def plan(batch: Batch, store: Store) -> list[PlannedRun]:
     """What running the batch would do now: skip finished runs, resume started ones, start the rest."""
     found: dict[str, tuple[str, str]] = {}
     if store.exists():
-        rows = store.query(
-            "SELECT json_extract_string(config, '$.batch_key'), run_id, status FROM runs "
-            "WHERE json_extract_string(config, '$.batch') = ? ORDER BY created_at", [batch.name])
+        with store.read() as con:
+            rows = batch_runs(con, batch.name)
         for key, run_id, status in rows:
             found[key] = (run_id, status)  # the latest run of a key wins
     planned = []
@@ -231,10 +231,8 @@ class BatchResult:
 def _refresh(store: Store, progress: list[Progress], batch: Batch) -> None:
     """Read each run's latest iteration and best score from the store (read-only, between the writers)."""
     try:
-        rows = store.query(
-            """SELECT json_extract_string(r.config, '$.batch_key'), r.run_id, max(i.iteration), max(i.best_score)
-               FROM runs r LEFT JOIN iterations i USING (run_id)
-               WHERE json_extract_string(r.config, '$.batch') = ? GROUP BY ALL""", [batch.name])
+        with store.read() as con:
+            rows = batch_progress(con, batch.name)
     except Exception:  # the store may not exist yet; the next refresh will see it
         return
     by_key = {key: (run_id, it, best) for key, run_id, it, best in rows}

@@ -888,19 +888,12 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
-    import duckdb
-
-    from store.doctor import check_store
+    from store.doctor import check_store, table_counts
 
     store = _store(args)
     with store.read(check=False) as con:  # a damaged store is the doctor's business: findings, not an error
         findings = check_store(con, store.path)
-        counts = {}
-        for t in ("runs", "iterations", "episodes", "steps", "nodes", "llm_calls"):
-            try:
-                counts[t] = con.execute(f"SELECT count(*) FROM {t}").fetchone()[0]
-            except duckdb.Error:
-                counts[t] = None
+        counts = table_counts(con)
     errors = [f for f in findings if not f.warning]
     if args.json:
         print(json.dumps({"store": str(store.path), "ok": not errors, "counts": counts,

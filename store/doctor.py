@@ -124,3 +124,17 @@ def check_store(con: duckdb.DuckDBPyConnection, store_path) -> list[Finding]:
         findings.append(Finding("runs interrupted (no process is working on them; finish with --resume)", stale,
                                 warning=True))
     return findings
+
+
+COUNTED_TABLES = ("runs", "iterations", "episodes", "steps", "nodes", "llm_calls")
+
+
+def table_counts(con: duckdb.DuckDBPyConnection) -> dict[str, int | None]:
+    """Rows in each main table (None where a table cannot be read: the findings say why)."""
+    counts: dict[str, int | None] = {}
+    for table in COUNTED_TABLES:
+        try:
+            counts[table] = con.execute(f"SELECT count(*) FROM {table}").fetchone()[0]
+        except duckdb.Error:
+            counts[table] = None
+    return counts

@@ -262,3 +262,21 @@ def iteration_prompts(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[int, 
            FROM (SELECT iteration, score FROM iterations WHERE run_id = ?) i
            FULL JOIN prompts p ON p.iteration = i.iteration""", [run_id, run_id]).fetchall()
     return {it: (digest, score) for it, digest, score in rows}
+
+
+# ---------------------------------------------------------------------------------------------- batches
+
+
+def batch_runs(con: duckdb.DuckDBPyConnection, batch: str) -> list[tuple[str, str, str]]:
+    """(batch key, run id, status) of every run of the batch ``batch``, oldest first."""
+    return con.execute(
+        "SELECT json_extract_string(config, '$.batch_key'), run_id, status FROM runs "
+        "WHERE json_extract_string(config, '$.batch') = ? ORDER BY created_at", [batch]).fetchall()
+
+
+def batch_progress(con: duckdb.DuckDBPyConnection, batch: str) -> list[tuple[str, str, int | None, float | None]]:
+    """(batch key, run id, latest iteration, best score) of every run of the batch ``batch``."""
+    return con.execute(
+        """SELECT json_extract_string(r.config, '$.batch_key'), r.run_id, max(i.iteration), max(i.best_score)
+           FROM runs r LEFT JOIN iterations i USING (run_id)
+           WHERE json_extract_string(r.config, '$.batch') = ? GROUP BY ALL""", [batch]).fetchall()
