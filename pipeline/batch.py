@@ -42,10 +42,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from games import get_game
-from pipeline.feedback import FEEDBACK_MODES
-from pipeline.strategies import STRATEGIES
 from store.readers import batch_progress, batch_runs
-from pipeline.optimize import BUDGET_FIELDS, OptimizeConfig
+from pipeline.optimize import BUDGET_FIELDS, OptimizeConfig, validate_config
 from store import Store
 
 TOP_LEVEL_KEYS = ("name", "store", "defaults", "matrix", "run")
@@ -105,12 +103,6 @@ def _check_settings(settings: dict[str, Any], where: str) -> None:
             get_game(str(settings["game"]))
         except ValueError as exc:
             raise ExperimentError(f"{where}: {exc}") from None
-    if "strategy" in settings and settings["strategy"] not in STRATEGIES:
-        raise ExperimentError(f"{where}: strategy must be one of {', '.join(STRATEGIES)}, "
-                              f"not '{settings['strategy']}'")
-    if "feedback" in settings and settings["feedback"] not in FEEDBACK_MODES:
-        raise ExperimentError(f"{where}: feedback must be one of {', '.join(FEEDBACK_MODES)}, "
-                              f"not '{settings['feedback']}'")
 
 
 def _run_key(name: str, config: OptimizeConfig) -> str:
@@ -171,6 +163,10 @@ def load_experiments(path: str | os.PathLike) -> Batch:
         if not settings.get("game") and not settings.get("policy"):
             raise ExperimentError(f"{path.name}: every run needs a game or a policy (add game = ... to [defaults])")
         config = OptimizeConfig(**settings)
+        try:
+            validate_config(config)
+        except ValueError as exc:
+            raise ExperimentError(f"{path.name}: {_label(settings, list(matrix))}: {exc}") from None
         key = _run_key(name, config)
         if key in seen:
             continue

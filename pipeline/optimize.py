@@ -238,7 +238,9 @@ def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
     return info, game
 
 
-def _validate_config(config: OptimizeConfig) -> None:
+def validate_config(config: OptimizeConfig) -> None:
+    """ValueError (one line naming the flag) for a setting out of range: the one check the CLI, batch files and
+    ``--resume`` share."""
     if config.iterations < 0:
         raise ValueError("--iterations must be 0 or more")
     if config.memory < 0:
@@ -283,7 +285,7 @@ def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str =
 
     The starting policy is ``starter`` if given (a replay), else the file of ``config.policy`` or the scaffold.
     """
-    _validate_config(config)
+    validate_config(config)
     if starter is None:
         info, game = resolve_start(config)
     else:
@@ -543,7 +545,7 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
                          f"it, not shrink it")
     for key, value in given.items():
         setattr(config, key, value)
-    _validate_config(config)
+    validate_config(config)
     if row["status"] == "finished" and done >= config.iterations + 1:
         return ResumePlan(run_id, config, row["status"], nothing_to_do=(
             f"run {run_id} is finished ({done - 1} of {config.iterations} iterations); nothing to do. "
@@ -564,7 +566,7 @@ def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: st
     With ``resume``, ``config`` is the one :func:`plan_resume` made: its budgets, limits and endpoint replace
     the stored ones (and are recorded), the rest is the run's own.
     """
-    _validate_config(config)
+    validate_config(config)
     run_id = resume or start_run(config, store, client.label, extra=tags)
     state = load_state(store, run_id)
     state.rerun = rerun
