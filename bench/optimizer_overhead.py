@@ -73,6 +73,10 @@ def main() -> int:
     for name, seconds in (("LLM calls", llm), ("environment", env), ("overhead", overhead)):
         print(f"{name:<12} {seconds:>8.1f} {seconds / wall:>7.1%}")
     print(f"{'iterations':<12} {wall:>8.1f} {1:>7.0%}")
+    calls = store.query("SELECT count(*) FROM llm_calls WHERE run_id = ? AND iteration > 0", [result.run_id])[0][0]
+    phase = store.query("SELECT avg(llm_s) FROM iterations WHERE run_id = ? AND iteration > 0", [result.run_id])[0][0]
+    print(f"{calls / len(rows):.1f} proposals per iteration, requested at once: the proposal phase (prompts, calls, "
+          f"validation) took {phase:.2f} s per iteration = {phase / args.delay:.2f} x one call's {args.delay:g} s")
     share = overhead / wall
     print(f"overhead per iteration: {overhead / len(rows) * 1000:.0f} ms; overhead / wall = {share:.3f} "
           f"(target < {TARGET}) -> {'OK' if share < TARGET else 'ABOVE TARGET'}")

@@ -93,9 +93,11 @@ def episode_specs(state: "RunState", iteration: int, candidate: int, text: str, 
 
 
 def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, str],
-           progress: Callable[[int, int], None] | None = None) -> tuple[dict[int, Assessment], AssessTimes]:
+           progress: Callable[[int, int], None] | None = None,
+           texts: dict[str, str] | None = None) -> tuple[dict[int, Assessment], AssessTimes]:
     """Assess ``versions`` (candidate → version id) of iteration ``iteration``: an :class:`Assessment` per
-    candidate, and how long the playing took."""
+    candidate, and how long the playing took. ``texts``: the policy files of versions not stored yet (this
+    iteration's new ones); the others are read from the store."""
     owner: dict[str, int] = {}  # version -> the candidate whose episodes stand for it in this iteration
     for candidate, version in sorted(versions.items()):
         owner.setdefault(version, candidate)
@@ -109,7 +111,7 @@ def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, 
     to_play = [(candidate, version) for version, candidate in owner.items() if version not in found]
     times = AssessTimes()
     if to_play:
-        found.update(_play(store, state, iteration, to_play, progress, times))
+        found.update(_play(store, state, iteration, to_play, progress, times, texts or {}))
     return {candidate: found[version] for candidate, version in versions.items()}, times
 
 
@@ -132,6 +134,7 @@ class Screen:
 
 def screen(store: Store, state: "RunState", iteration: int, history, proposals: list,
            progress: Callable[[int, int], None] | None = None) -> dict[int, Screen]:
+    """(``proposals``: this iteration's accepted ones, each with the ``text`` of its new version.)"""
     """Play the screening game of each new version in ``proposals``, all at once; a :class:`Screen` per
     candidate screened. With the evaluation cache, a version already assessed needs no screen, and one already
     screened in the run reuses that game."""
@@ -149,7 +152,7 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
                 found[p.candidate] = Screen(earlier["episode_id"], c.screen_steps, earlier["score"], bar,
                                             tampered=earlier["end_reason"] == TAMPERED)
                 continue
-            text = policy_text(con, state.run_id, p.version_id)
+            text = p.text if p.text is not None else policy_text(con, state.run_id, p.version_id)
             specs.append(EpisodeSpec(
                 episode_id=episode_id(state.run_id, iteration, "screen", 0, p.candidate), run_id=state.run_id,
                 game=state.game, policy_text=text, policy_version_id=p.version_id, iteration=iteration, kind="screen",
@@ -178,11 +181,14 @@ def _cached(con, version: str, row: dict) -> Assessment:
 
 
 def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[int, str]],
-          progress: Callable[[int, int], None] | None, times: AssessTimes) -> dict[str, Assessment]:
+          progress: Callable[[int, int], None] | None, times: AssessTimes,
+          texts: dict[str, str]) -> dict[str, Assessment]:
     specs: list[EpisodeSpec] = []
     groups: list[tuple[str, list[int]]] = []  # version -> indices of its specs (train first)
-    with store.read() as con:
-        texts = {version: policy_text(con, state.run_id, version) for _, version in to_play}
+    missing = {version for _, version in to_play if version not in texts}
+    if missing:
+        with store.read() as con:
+            texts = {**texts, **{version: policy_text(con, state.run_id, version) for version in missing}}
     for candidate, version in to_play:
         own = episode_specs(state, iteration, candidate, texts[version], version)
         groups.append((version, list(range(len(specs), len(specs) + len(own)))))

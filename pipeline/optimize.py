@@ -361,7 +361,8 @@ def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClie
                 p.note = (f"Your last suggestion was screened out: in the first {s.steps} steps of the evaluation "
                           f"game it scored {s.score:g}, where the code it was meant to improve scores {s.bar:g}. The "
                           "code is unchanged.")
-    assessments, times = assess(store, state, iteration, {p.candidate: p.version_id for p in proposals}, progress)
+    assessments, times = assess(store, state, iteration, {p.candidate: p.version_id for p in proposals}, progress,
+                                texts={p.version_id: p.text for p in proposals if p.text is not None})
     with store.read() as con:
         complexity = version_complexity(con, state.run_id, [p.version_id for p in proposals])
     assessed = []
@@ -398,8 +399,9 @@ def _protocols_note(config: OptimizeConfig, a) -> str:
 
 def _commit(store: Store, state: RunState, iteration: int, proposals: list[Proposal], assessments, assessed,
             decision, screens, timing: dict[str, Any]) -> None:
-    """Write the iteration in one transaction: the rollback version (greedy), the versions caught tampering,
-    every candidate with its feedback, the chosen candidate's feedback and the ``iterations`` row."""
+    """Write the iteration in one transaction: the proposed versions, the rollback version (greedy), the versions
+    caught tampering, every candidate with its feedback, the chosen candidate's feedback and the ``iterations``
+    row."""
     c = state.config
     texts = {}
     for p, a in zip(proposals, assessed):
@@ -409,6 +411,9 @@ def _commit(store: Store, state: RunState, iteration: int, proposals: list[Propo
     chosen = proposals[decision.chosen]
     chosen_play = assessments[chosen.candidate]
     with store.write() as con:
+        for p in proposals:
+            if p.version_row is not None:
+                insert_policy_version(con, p.version_row)
         if decision.rolled_back:
             best_text = policy_text(con, state.run_id, state.best_version_id)
             insert_policy_version(con, policy_version_row(inspect_policy(best_text, "policy.py"), state.run_id,

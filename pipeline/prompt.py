@@ -166,15 +166,30 @@ def context_for(
         instruction=json.loads(run["config"]).get("instruction") or "",
         info=info,
         train_episode=episode_summary(con, base["train_episode_id"]),
-        train_steps=episode_steps(con, base["train_episode_id"], list_widths=list_widths(game.name),
-                                  derive=game.derive),
-        train_nodes=step_nodes(con, base["train_episode_id"]),
+        train_steps=_rollout(con, base["train_episode_id"], game)[0],
+        train_nodes=_rollout(con, base["train_episode_id"], game)[1],
         eval_episodes=[episode_summary(con, e) for e in base["eval_episode_ids"] or []],
         feedback=note + (base["feedback"] or ""),
         memory=entries,
         call_time_limit_s=call_time_limit_s,
         collapse_repeats=collapse_repeats,
     )
+
+
+_ROLLOUTS: dict[str, tuple[list[dict[str, Any]], list[dict[str, Any]]]] = {}
+ROLLOUTS_KEPT = 8
+
+
+def _rollout(con: duckdb.DuckDBPyConnection, episode_id: str, game) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The steps and node calls of a training rollout. A stored episode never changes and its id is unique (a
+    ULID run id in it), and the same parent's rollout is shown to each of its children, iteration after
+    iteration: the last few are kept in memory."""
+    if episode_id not in _ROLLOUTS:
+        while len(_ROLLOUTS) >= ROLLOUTS_KEPT:
+            _ROLLOUTS.pop(next(iter(_ROLLOUTS)))
+        _ROLLOUTS[episode_id] = (episode_steps(con, episode_id, list_widths=list_widths(game.name), derive=game.derive),
+                                 step_nodes(con, episode_id))
+    return _ROLLOUTS[episode_id]
 
 
 # ---------------------------------------------------------------------------------------------- rendering

@@ -6,8 +6,9 @@ For each :class:`~pipeline.strategies.ProposalRequest` of an iteration:
 2. a reply already stored for this prompt, iteration and candidate is reused (a resumed run); the others are
    requested from the model **concurrently** (at most ``max_concurrent_calls`` at a time), after checking that
    all of them together stay within the run's cost and token budgets;
-3. each call is written to ``llm_calls`` (in candidate order, so the store does not depend on which reply came
-   first), its reply parsed (``pipeline/reply.py``) and the suggestion validated (``pipeline/validate.py``): an
+3. each reply is parsed (``pipeline/reply.py``) and the calls are written to ``llm_calls`` with what their
+   replies parsed into (one transaction, in candidate order, so the store does not depend on which reply came
+   first); then each suggestion is validated (``pipeline/validate.py``): an
    accepted one becomes a ``policy_versions`` row; a rejected one is stored with its reason, which goes into the
    feedback, and the candidate falls back to its parent's code.
 
@@ -34,7 +35,7 @@ from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, 
 from pipeline.versions import policy_version_row
 from store import Store
 from store.readers import run_spending, stored_reply
-from store.writer import insert_llm_call, insert_policy_version, set_llm_call_outcome
+from store.writer import insert_llm_call, set_llm_call_outcome
 
 if TYPE_CHECKING:
     from pipeline.optimize import RunState
@@ -62,6 +63,11 @@ class Proposal:
     call_id: str | None
     note: str
     prompt_tokens: int
+    version_row: dict | None = None
+    """The ``policy_versions`` row of the proposed code (accepted or rejected at run time), written with the
+    iteration's other rows (``pipeline/optimize.py``)."""
+    text: str | None = None
+    """The proposed policy file, when accepted (what its episodes play)."""
 
 
 @dataclass
@@ -75,6 +81,14 @@ class _Pending:
     text: str | None = None
     reply: LLMReply | None = None
     error: LLMError | None = None
+    suggestion: dict[str, str] | None = None
+    parse_error: str | None = None
+
+    def parse(self) -> None:
+        try:
+            self.suggestion, self.parse_error = parse_reply(self.text), None
+        except ReplyParseError as exc:
+            self.suggestion, self.parse_error = None, str(exc)
 
 
 def propose(store: Store, state: "RunState", history: History, iteration: int, requests: list[ProposalRequest],
@@ -95,6 +109,7 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
             stored = stored_reply(con, state.run_id, iteration, prompt.hash, request.candidate)
             if stored is not None:
                 item.call_id, item.text = stored
+                item.parse()
             pending.append(item)
     reused = [p for p in pending if p.text is not None]
     if reused:
@@ -103,11 +118,11 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     if to_call:
         check_budgets(store, state, client, [p.prompt for p in to_call])
         _complete_all(state, iteration, client, to_call)
-        for item in to_call:  # recorded in candidate order: the store does not depend on which reply came first
-            item.call_id = record_call(store, state.run_id, iteration, item.request.candidate, client, item.prompt,
-                                       item.reply, item.error)
+        for item in to_call:
             if item.reply is not None:
                 item.text = item.reply.text
+                item.parse()
+        record_calls(store, state.run_id, iteration, client, to_call)
         failed = [p for p in to_call if p.error is not None]
         fatal = next((p.error for p in failed if p.error.fatal), None)
         if len(failed) == len(pending):
@@ -151,20 +166,18 @@ def _validate(store: Store, state: "RunState", iteration: int, item: _Pending, c
     request, prompt = item.request, item.prompt
     base = item.context_version
 
-    def outcome(status: str, note: str, version: str | None = None, proposed: str | None = None) -> Proposal:
+    def outcome(status: str, note: str, version: str | None = None, proposed: str | None = None,
+                row: dict | None = None, text: str | None = None) -> Proposal:
         return Proposal(request.candidate, request.parent, base, status, version or base, proposed, item.call_id,
-                        note, prompt.tokens)
+                        note, prompt.tokens, row, text)
 
     if item.error is not None:
         return outcome("llm_error", f"The LLM call failed ({item.error}); the code is unchanged.")
+    if item.parse_error is not None:
+        return outcome("rejected", f"Your last reply was not usable: {item.parse_error}. Reply with the JSON format "
+                                   "asked for.")
     try:
-        suggestion = parse_reply(item.text)
-    except ReplyParseError as exc:
-        _set_call_outcome(store, item.call_id, None, str(exc))
-        return outcome("rejected", f"Your last reply was not usable: {exc}. Reply with the JSON format asked for.")
-    _set_call_outcome(store, item.call_id, suggestion, None)
-    try:
-        candidate = build_candidate(item.info, suggestion)
+        candidate = build_candidate(item.info, item.suggestion)
         if candidate is not None:
             check_fits(candidate, c.token_budget, counter)
     except CandidateRejected as exc:  # nothing runnable to store: the reason is the record
@@ -177,47 +190,48 @@ def _validate(store: Store, state: "RunState", iteration: int, item: _Pending, c
         verdict, reason = "accepted", None
     except CandidateRejected as exc:
         verdict, reason = "rejected", str(exc)
-    with store.write() as con:
-        insert_policy_version(con, policy_version_row(candidate.info, state.run_id, iteration, "llm", verdict,
-                                                      reason, parent_id=base, llm_call_id=item.call_id))
+    row = policy_version_row(candidate.info, state.run_id, iteration, "llm", verdict, reason, parent_id=base,
+                             llm_call_id=item.call_id)
     if reason is not None:
-        return outcome("rejected", f"Your last suggestion was rejected: {reason}", proposed=candidate.version_id)
-    return outcome("accepted", "", version=candidate.version_id, proposed=candidate.version_id)
+        return outcome("rejected", f"Your last suggestion was rejected: {reason}", proposed=candidate.version_id,
+                       row=row)
+    return outcome("accepted", "", version=candidate.version_id, proposed=candidate.version_id, row=row,
+                   text=candidate.text)
 
 
-def record_call(store: Store, run_id: str, iteration: int, candidate: int, client: LLMClient, prompt: Prompt,
-                reply: LLMReply | None, error: LLMError | None) -> str:
-    """Write the ``llm_calls`` row of one call (or failed call); return its id."""
-    call_id = new_run_id()
+def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, items: list[_Pending]) -> None:
+    """Write the ``llm_calls`` rows of an iteration's calls (failed ones too) with what each reply parsed into,
+    in one transaction and in candidate order (the store does not depend on which reply came first); each item
+    gets its call id."""
     params = client.request_params()
-    row = {
-        "call_id": call_id, "run_id": run_id, "iteration": iteration, "candidate": candidate, "purpose": "update",
-        "operation_name": "chat", "provider_name": client.provider, "request_model": client.model,
-        "request_temperature": params.get("temperature"),
-        "request_max_tokens": params.get("max_tokens", params.get("max_completion_tokens")),
-        "request_seed": params.get("seed"), "request_params": json.dumps(params, sort_keys=True),
-        "prompt_tokens_counted": prompt.tokens,
-        "latency_s": reply.latency_s if reply else (error.latency_s if error else None),
-        "attempts": reply.attempts if reply else (error.attempts if error else 1),
-        "replayed": bool(reply.replayed) if reply else False,
-    }
-    if reply is not None:
-        row.update(response_model=reply.response_model, response_id=reply.response_id,
-                   finish_reasons=reply.finish_reasons, input_tokens=reply.input_tokens,
-                   output_tokens=reply.output_tokens, cached_input_tokens=reply.cached_input_tokens,
-                   cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd)
-    if error is not None:
-        row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
     with store.write() as con:
-        insert_llm_call(con, row, canonical_messages(prompt.messages),
-                        clean_text(reply.text) if reply is not None else None)
-    return call_id
-
-
-def _set_call_outcome(store: Store, call_id: str, suggestion: dict[str, str] | None, parse_error: str | None) -> None:
-    with store.write() as con:
-        set_llm_call_outcome(con, call_id, json.dumps(suggestion, sort_keys=True) if suggestion is not None else None,
-                             parse_error)
+        for item in items:
+            item.call_id = new_run_id()
+            reply, error = item.reply, item.error
+            row = {
+                "call_id": item.call_id, "run_id": run_id, "iteration": iteration,
+                "candidate": item.request.candidate, "purpose": "update", "operation_name": "chat",
+                "provider_name": client.provider, "request_model": client.model,
+                "request_temperature": params.get("temperature"),
+                "request_max_tokens": params.get("max_tokens", params.get("max_completion_tokens")),
+                "request_seed": params.get("seed"), "request_params": json.dumps(params, sort_keys=True),
+                "prompt_tokens_counted": item.prompt.tokens,
+                "latency_s": reply.latency_s if reply else (error.latency_s if error else None),
+                "attempts": reply.attempts if reply else (error.attempts if error else 1),
+                "replayed": bool(reply.replayed) if reply else False,
+            }
+            if reply is not None:
+                row.update(response_model=reply.response_model, response_id=reply.response_id,
+                           finish_reasons=reply.finish_reasons, input_tokens=reply.input_tokens,
+                           output_tokens=reply.output_tokens, cached_input_tokens=reply.cached_input_tokens,
+                           cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd)
+            if error is not None:
+                row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
+            insert_llm_call(con, row, canonical_messages(item.prompt.messages),
+                            clean_text(reply.text) if reply is not None else None)
+            if reply is not None:
+                set_llm_call_outcome(con, item.call_id, json.dumps(item.suggestion, sort_keys=True)
+                                     if item.suggestion is not None else None, item.parse_error)
 
 
 def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: list[Prompt]) -> None:

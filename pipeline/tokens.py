@@ -57,8 +57,12 @@ class TokenCounter:
             encoding = _cl100k()
             self._count = lambda text: math.ceil(len(encoding.encode(text, disallowed_special=())) * ESTIMATE_MARGIN)
 
+        # the same lines come back in prompt after prompt (a parent's rollout is shown to each of its children,
+        # and an unchanged version's rollout is reused): count each text once
+        self._cached = lru_cache(maxsize=65_536)(self._count)
+
     def __call__(self, text: str) -> int:
-        return self._count(text) if text else 0
+        return self._cached(text) if text else 0
 
     def messages(self, messages: list[dict[str, str]]) -> int:
         """Tokens of a chat request: every message's content plus the per-message overhead."""

@@ -111,13 +111,3 @@ def version_blame(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) 
            ORDER BY list_position(v.names, b.function), b.line_no""", [run_id, version_id] * 3)
     names = [d[0] for d in cursor.description]
     return [dict(zip(names, row)) for row in cursor.fetchall()]
-
-
-def best_version(con: duckdb.DuckDBPyConnection, run_id: str) -> str | None:
-    """The run's best version so far (its latest iteration's ``best_version_id``); an eval run's own version."""
-    [(best,)] = con.execute("SELECT arg_max(best_version_id, iteration) FROM iterations WHERE run_id = ?",
-                            [run_id]).fetchall()
-    if best:
-        return best
-    rows = con.execute("SELECT starter_version_id FROM runs WHERE run_id = ?", [run_id]).fetchall()
-    return rows[0][0] if rows else None

@@ -170,20 +170,25 @@ def iterations(con: duckdb.DuckDBPyConnection, run_id: str, before_iteration: in
 CANDIDATE_COLUMNS = """c.run_id, c.iteration, c.candidate, c.strategy, c.parent_iteration, c.parent_candidate,
     c.parent_version_id, c.proposed_version_id, c.policy_version_id, c.llm_call_id, c.update_status, c.evaluation,
     c.train_episode_id, c.eval_episode_ids, c.robust_episode_ids, c.train_return, c.score, c.deterministic_score,
-    c.standard_score, c.decision, b.text AS feedback,
-    (SELECT any_value(v.complexity) FROM policy_versions v
-     WHERE v.run_id = c.run_id AND v.policy_version_id = c.policy_version_id) AS complexity,
-    (SELECT avg(e.length) FROM episodes e WHERE list_contains(c.eval_episode_ids, e.episode_id)) AS eval_length"""
+    c.standard_score, c.decision, b.text AS feedback, v.complexity, e.eval_length"""
 
 
 def candidates(con: duckdb.DuckDBPyConnection, run_id: str, before_iteration: int | None = None) -> list[dict[str, Any]]:
     """The candidates of a run's completed iterations (optionally those before ``before_iteration``), in
     (iteration, candidate) order, with their feedback text: the whole history a strategy decides from."""
     return _rows(con.execute(
-        f"""SELECT {CANDIDATE_COLUMNS} FROM candidates c LEFT JOIN blobs b ON b.hash = c.feedback_hash
+        f"""WITH mine AS (SELECT * FROM candidates WHERE run_id = $run AND iteration < $before),
+                 v AS (SELECT policy_version_id, any_value(complexity) AS complexity FROM policy_versions
+                       WHERE run_id = $run GROUP BY policy_version_id),
+                 e AS (SELECT m.iteration, m.candidate, avg(ep.length) AS eval_length
+                       FROM mine m, unnest(m.eval_episode_ids) AS u(episode_id)
+                       JOIN episodes ep ON ep.episode_id = u.episode_id GROUP BY ALL)
+            SELECT {CANDIDATE_COLUMNS} FROM mine c LEFT JOIN blobs b ON b.hash = c.feedback_hash
             JOIN iterations i ON i.run_id = c.run_id AND i.iteration = c.iteration
-            WHERE c.run_id = ? AND c.iteration < ? ORDER BY c.iteration, c.candidate""",
-        [run_id, before_iteration if before_iteration is not None else 2**31 - 1]))
+            LEFT JOIN v ON v.policy_version_id = c.policy_version_id
+            LEFT JOIN e ON e.iteration = c.iteration AND e.candidate = c.candidate
+            ORDER BY c.iteration, c.candidate""",
+        {"run": run_id, "before": before_iteration if before_iteration is not None else 2**31 - 1}))
 
 
 def earlier_screen(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) -> dict[str, Any] | None:
@@ -228,14 +233,15 @@ def reusable_assessment(con: duckdb.DuckDBPyConnection, run_id: str, version_id:
         """SELECT c.iteration, c.candidate, c.train_episode_id, c.eval_episode_ids, c.robust_episode_ids,
                   c.train_return, c.score, c.deterministic_score, c.standard_score
            FROM candidates c
-           WHERE c.run_id = ? AND c.policy_version_id = ? AND c.evaluation = 'played'
+           WHERE c.run_id = $run AND c.policy_version_id = $version AND c.evaluation = 'played'
              AND NOT (c.decision = 'rejected' AND c.policy_version_id IS NOT DISTINCT FROM c.proposed_version_id)
              AND (SELECT count(*) FROM episodes e
-                  WHERE (e.episode_id = c.train_episode_id OR list_contains(c.eval_episode_ids, e.episode_id)
+                  WHERE e.run_id = $run AND e.policy_version_id = $version
+                    AND (e.episode_id = c.train_episode_id OR list_contains(c.eval_episode_ids, e.episode_id)
                          OR list_contains(coalesce(c.robust_episode_ids, []), e.episode_id))
                     AND e.verified AND e.end_reason IN ('terminated', 'truncated'))
                  = 1 + len(c.eval_episode_ids) + len(coalesce(c.robust_episode_ids, []))
-           ORDER BY c.iteration, c.candidate LIMIT 1""", [run_id, version_id]))
+           ORDER BY c.iteration, c.candidate LIMIT 1""", {"run": run_id, "version": version_id}))
     return rows[0] if rows else None
 
 
@@ -280,3 +286,27 @@ def batch_progress(con: duckdb.DuckDBPyConnection, batch: str) -> list[tuple[str
         """SELECT json_extract_string(r.config, '$.batch_key'), r.run_id, max(i.iteration), max(i.best_score)
            FROM runs r LEFT JOIN iterations i USING (run_id)
            WHERE json_extract_string(r.config, '$.batch') = ? GROUP BY ALL""", [batch]).fetchall()
+
+
+# ---------------------------------------------------------------------------------------------- versions
+
+
+def version_of_iteration(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> str:
+    """The version iteration ``iteration`` of a run evaluated (or, for one without a row, the version it
+    stored); ValueError naming the iterations there are."""
+    rows = con.execute("SELECT policy_version_id FROM iterations WHERE run_id = ? AND iteration = ?",
+                       [run_id, iteration]).fetchall()
+    if not rows:
+        rows = con.execute("SELECT policy_version_id FROM policy_versions WHERE run_id = ? AND iteration = ? "
+                           "AND validation = 'accepted'", [run_id, iteration]).fetchall()
+    if not rows:
+        (last,) = con.execute("SELECT max(iteration) FROM policy_versions WHERE run_id = ?", [run_id]).fetchone()
+        raise ValueError(f"run {run_id} has no iteration {iteration} (iterations 0..{last}); give --iteration "
+                         "within them")
+    return rows[0][0]
+
+
+def first_iteration_of(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) -> int | None:
+    """The first iteration of a run that stored ``version_id``."""
+    return con.execute("SELECT min(iteration) FROM policy_versions WHERE run_id = ? AND policy_version_id = ?",
+                       [run_id, version_id]).fetchone()[0]

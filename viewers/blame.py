@@ -13,7 +13,9 @@ from __future__ import annotations
 from typing import Any
 
 from store import Store
-from store.lines import backfill_lines, best_version, has_lines, version_blame
+from store.comparisons import resolve_version
+from store.lines import backfill_lines, has_lines, version_blame
+from store.readers import first_iteration_of, get_run, version_of_iteration
 from store.views import resolve_run_id
 
 SHORT_VERSION = 8
@@ -24,30 +26,9 @@ SHORT_CALL = 12
 def _resolve_version(con: Any, run_id: str, version: str | None, iteration: int | None) -> tuple[str, int]:
     """(version id, the first iteration that stored it) of what was asked; ValueError saying what exists."""
     if iteration is not None:
-        rows = con.execute("SELECT policy_version_id FROM iterations WHERE run_id = ? AND iteration = ?",
-                           [run_id, iteration]).fetchall()
-        if not rows:
-            rows = con.execute("SELECT policy_version_id FROM policy_versions WHERE run_id = ? AND iteration = ? "
-                               "AND validation = 'accepted'", [run_id, iteration]).fetchall()
-        if not rows:
-            [(last,)] = con.execute("SELECT max(iteration) FROM policy_versions WHERE run_id = ?", [run_id]).fetchall()
-            raise ValueError(f"run {run_id} has no iteration {iteration} (iterations 0..{last}); give --iteration "
-                             "within them")
-        version = rows[0][0]
-    elif version is None:
-        version = best_version(con, run_id)
-    matches = [r[0] for r in con.execute(
-        "SELECT DISTINCT policy_version_id FROM policy_versions WHERE run_id = ? AND starts_with(policy_version_id, ?) "
-        "ORDER BY 1 LIMIT 6", [run_id, (version or "").strip()]).fetchall()]
-    if not matches or not (version or "").strip():
-        raise ValueError(f"run {run_id} has no policy version {version!r}; list them with `codearcade sql \"SELECT "
-                         f"iteration, policy_version_id, produced_by FROM policy_versions WHERE run_id = '{run_id}'\"`")
-    if len(matches) > 1 and version not in matches:
-        raise ValueError(f"version {version!r} is ambiguous in run {run_id}: {', '.join(matches[:5])}; give more of it")
-    chosen = version if version in matches else matches[0]
-    [(first,)] = con.execute("SELECT min(iteration) FROM policy_versions WHERE run_id = ? AND policy_version_id = ?",
-                             [run_id, chosen]).fetchall()
-    return chosen, first
+        version = version_of_iteration(con, run_id, iteration)
+    chosen = resolve_version(con, run_id, version if version is not None else "best")
+    return chosen, first_iteration_of(con, run_id, chosen)
 
 
 def blame(store: Store, run: str, version: str | None = None, iteration: int | None = None) -> dict[str, Any]:
@@ -60,8 +41,8 @@ def blame(store: Store, run: str, version: str | None = None, iteration: int | N
         with store.write() as con:
             backfill_lines(con, run_id)
     with store.read() as con:
-        [(game, best)] = con.execute("SELECT game, ? FROM runs WHERE run_id = ?",
-                                     [best_version(con, run_id), run_id]).fetchall()
+        game = get_run(con, run_id)["game"]
+        best = resolve_version(con, run_id, "best")
         rows = version_blame(con, run_id, version_id)
     functions: list[dict[str, Any]] = []
     for row in rows:
