@@ -84,6 +84,50 @@ def test_starter_and_competent_play_traced_and_read_back_as_seen(game, store, ca
         assert any(isinstance(v, list) and v for obs in seen for v in obs.values()), "grouped lists were compared"
 
 
+ONE_LIFE_GAMES = [g for g in CURATED if get_game(g).task.one_life_episodes]
+
+
+def test_the_authors_end_an_episode_at_a_lost_life_in_four_games():
+    assert ONE_LIFE_GAMES == ["breakout", "asterix", "qbert", "seaquest"]
+
+
+@pytest.mark.parametrize("game", ONE_LIFE_GAMES)
+def test_one_life_episode_ends_at_the_first_lost_life_with_the_return_so_far(game, store, capsys):
+    """``eval --one-life`` (the authors' evaluation): the episode ends, terminated, on the step whose lives
+    fell, and its return is the whole game's score at that step (the same actions, step for step)."""
+    def play(*extra):
+        code, out, err = run_cli(capsys, "eval", EXAMPLES / f"{game}.py", "--max-steps", CAP, "--store", store.path,
+                                 "--json", *extra)
+        assert code == 0, err
+        episode_id = json.loads(out)["episodes"][0]["episode_id"]
+        steps = store.query("SELECT action, reward, score, terminated, lives FROM steps WHERE episode_id = ? "
+                            "ORDER BY step", [episode_id])
+        row = store.query('SELECT "return", length, lives_lost, end_reason, verified FROM episodes '
+                          "WHERE episode_id = ?", [episode_id])[0]
+        return steps, row
+
+    life, (life_return, life_length, life_lost, life_end, life_verified) = play("--one-life")
+    game_steps, (_, game_length, game_lost, _, _) = play()
+    assert (life_end, life_lost, life_verified) == ("terminated", 1, True)
+    assert life_length == len(life) < game_length and game_lost > 1
+    assert [s[:2] for s in life] == [s[:2] for s in game_steps[:life_length]], "the same game up to the lost life"
+    assert life_return == game_steps[life_length - 1][2] == life[-1][2]
+    assert life[-1][3] and not any(s[3] for s in life[:-1]) and not game_steps[life_length - 1][3]
+    lives_after = game_steps[life_length][4]
+    assert all(s[4] == life[0][4] for s in life) and lives_after == life[0][4] - 1, "ends on the losing step"
+
+
+def test_one_life_changes_nothing_in_a_game_without_lives(store, capsys):
+    returns = []
+    for extra in ((), ("--one-life",)):
+        code, out, err = run_cli(capsys, "eval", POLICIES / "pong_competent.py", "--max-steps", 300,
+                                 "--store", store.path, "--json", *extra)
+        assert code == 0, err
+        episode = json.loads(out)["episodes"][0]
+        returns.append((episode["return"], episode["length"], episode["end_reason"]))
+    assert returns[0] == returns[1] and returns[0][1] == 300
+
+
 def test_observations_in_the_authors_conventions():
     """Grouped lists (nearest first), derived fields, no numbered keys left, nothing off screen."""
     checks = {
