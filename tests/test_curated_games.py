@@ -166,6 +166,9 @@ def test_observations_in_the_authors_conventions():
                 assert [c["y"] for c in cars] == sorted((c["y"] for c in cars), reverse=True)
                 if cars:
                     assert obs["nearest_enemy_rel_y"] == cars[0]["y"] - obs["Player"]["y"]
+                    # as the authors': offsets straight from the RAM boxes, no screen correction of x
+                    assert all((c["rel_x"], c["rel_y"]) == (c["x"] - obs["Player"]["x"], c["y"] - obs["Player"]["y"])
+                               for c in cars)
         if game == "seaquest":
             assert all(0 <= obs["oxygen"] <= 63 and 0 <= obs["divers_collected"] <= 6 for obs in seen)
             assert max(obs["oxygen"] for obs in seen) >= 60
