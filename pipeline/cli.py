@@ -699,6 +699,7 @@ def cmd_games(args: argparse.Namespace) -> int:
         task = game.task
         rows.append({"game": game.name, "status": game.status, "env_id": game.env_id, "actions": game.n_actions,
                      "lives": game.lives, "rollout_steps": task.rollout_steps, "eval_max_steps": task.eval_max_steps,
+                     "one_life": task.one_life_episodes if game.status == "curated" else None,
                      "feedback_high": task.feedback["high"] if game.status == "curated" else None,
                      "feedback_low": task.feedback["low"] if game.status == "curated" else None,
                      "scaffold": str(game.scaffold.relative_to(game.scaffold.parents[2])) if game.scaffold else None})
