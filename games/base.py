@@ -44,6 +44,10 @@ class Task:
     a score >= high is high, <= low is low; texts may use ``{score}``, ``{gap}`` and ``{target}``."""
     eval_episodes: int = 1
     """Evaluation episodes the authors average over (informational; ``--eval-episodes`` sets it for a run)."""
+    one_life_episodes: bool = False
+    """The authors' follow-up ends an episode at every lost life (their ``trace_envs/<game>.py`` implement
+    baselines' ``EpisodicLifeEnv``): a "1 x 4,000" evaluation is the first life of a game. codearcade plays
+    whole games unless ``codearcade eval --one-life`` asks for theirs (``games.envs.OneLife``)."""
 
 
 ObjectHook = Callable[[Any, dict, "list | None"], None]

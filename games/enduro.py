@@ -10,8 +10,9 @@ byte): under numpy 2, uint8 RAM raises OverflowError at the first curve and int6
 -49 and car x up to 362. :func:`detect` re-implements that extractor with the numpy-1 results (the signed
 bytes done explicitly), OCAtari's own ``Car`` class and its Hungarian matching: it reproduces the authors'
 starter score (49) exactly. It reads the RAM only: the released extractor's car x is off by 5-35 px for far
-cars and in curves (y is right), and the draft's correction from the screen (OCAtari's colour detector) is not
-applied, so the boxes are those of the authors' (RAM) observation.
+cars and in curves (y is right). The authors apply no correction to it (checked: their
+``trace_envs/enduro.py`` copies OCAtari's x, y, w, h and computes ``rel_x``/``rel_y`` from them, nothing else),
+so none is applied here either: the boxes are those of the authors' (RAM) observation, not the screen's.
 
 Observation (the authors' ``trace_envs/enduro.py`` with full boxes): :func:`derive` turns ``Car0, Car1, ...``
 into ``EnemyCars`` (closest first) with ``rel_x``/``rel_y`` and adds ``nearest_enemy_rel_x/y``. Day 1 ends

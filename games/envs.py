@@ -5,6 +5,8 @@ paper's protocol; ``sticky=0.25, noop_max=30`` gives the standard stochastic Ata
 
 - :class:`NoopReset` takes a random number of NOOPs after reset (standard protocol only);
 - :class:`AutoFire` presses FIRE after reset and after every lost life (Breakout);
+- :class:`OneLife` ends the episode at the first lost life (``one_life=True``: the authors' follow-up
+  evaluation, see its docstring);
 - :class:`ObjectObservation` replaces the pixel observation by a plain dict of game objects read from RAM
   by OCAtari's extractors.
 
@@ -179,6 +181,36 @@ class AutoFire(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
+class OneLife(gym.Wrapper):
+    """End the episode (``terminated``) at the first lost life: the authors' follow-up evaluation.
+
+    Their environments (``trace_envs/{asterix,breakout,qbert,seaquest}.py`` of ameliakuang/LLM-Game-Playing-Agents,
+    baselines' ``EpisodicLifeEnv``) report ``terminated`` on the step whose ``lives`` fell below the previous
+    step's while still above 0 (the last life ends the game anyway), and their evaluation sums the rewards up
+    to that step: one life is one episode. Their *next* episode goes on with the same game (one NOOP, whose
+    reward is dropped, then for Breakout a FIRE); here every episode is the first life of a game reset from its
+    seed, so that an episode stays reproducible on its own (the same for one evaluation episode; for their
+    3 x 20,000 Asterix evaluation, lives 1-3 of one game, ours are the first life of three).
+    """
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self._lives = 0
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self._lives = info.get("lives", 0)
+        return obs, info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        lives = info.get("lives", 0)
+        if 0 < lives < self._lives:
+            terminated = True
+        self._lives = lives
+        return obs, reward, terminated, truncated, info
+
+
 class NoopReset(gym.Wrapper):
     """Take 1..noop_max NOOPs after reset, drawn from the env's seeded RNG (standard Atari protocol)."""
 
@@ -195,8 +227,12 @@ class NoopReset(gym.Wrapper):
         return obs, info
 
 
-def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: bool = False) -> gym.Env:
+def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: bool = False,
+             one_life: bool = False) -> gym.Env:
     """Build the wrapped environment for ``game``; see the module docstring for the observation format.
+
+    ``one_life=True`` ends each episode at the first lost life (:class:`OneLife`, the authors' follow-up
+    evaluation); a game without lives plays as before.
 
     ``render=True`` keeps the RGB frame available through ``env.unwrapped.ale.getScreenRGB()`` (it always is;
     the flag only asks ALE for ``rgb_array`` rendering for viewers that call ``env.render()``).
@@ -219,23 +255,25 @@ def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: b
         env = NoopReset(env, noop_max)
     if spec.fire_on_life_loss:
         env = AutoFire(env)
+    if one_life:
+        env = OneLife(env)
     return ObjectObservation(env, spec)
 
 
-_shared: dict[tuple[str, float, int], gym.Env] = {}
+_shared: dict[tuple[str, float, int, bool], gym.Env] = {}
 
 
-def shared_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0) -> gym.Env:
+def shared_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, one_life: bool = False) -> gym.Env:
     """An environment for one episode after another in this process (``make_env`` is ~0.1 s a call).
 
     Reuse is safe because every episode starts with ``reset(seed=...)``, which reloads the game and reseeds
     every random source, so an episode plays the same on a fresh or a reused environment (tested).
     """
     spec = get_game(game)
-    key = (spec.name, float(sticky), int(noop_max))
+    key = (spec.name, float(sticky), int(noop_max), bool(one_life))
     env = _shared.get(key)
     if env is None:
-        env = _shared[key] = make_env(spec, sticky=sticky, noop_max=noop_max)
+        env = _shared[key] = make_env(spec, sticky=sticky, noop_max=noop_max, one_life=one_life)
     return env
 
 

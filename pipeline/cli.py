@@ -104,6 +104,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "standard stochastic protocol)")
     p.add_argument("--noop-max", type=_non_negative_int, default=0,
                    help="up to this many random NOOPs after reset (default: 0)")
+    p.add_argument("--one-life", action="store_true",
+                   help="end each episode at the first lost life, as the authors' follow-up evaluates Asterix, "
+                   "Breakout, Q*bert and Seaquest (default: whole games, the paper's)")
     p.add_argument("--workers", type=_non_negative_int, default=None,
                    help="episodes played at once in worker processes (default: min(episodes, cores)); "
                    "0 plays in this process without isolation, for debugging")
@@ -449,8 +452,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     workers = args.workers if args.workers is not None else min(args.episodes, os.cpu_count() or 1)
     config = EvalConfig(
         game=args.game, episodes=args.episodes, max_steps=args.max_steps, seed=args.seed, trace=args.trace,
-        sticky=args.sticky, noop_max=args.noop_max, workers=workers, call_time_limit_s=args.call_time_limit,
-        episode_time_limit_s=args.episode_time_limit, rerun=_rerun_target(args.rerun),
+        sticky=args.sticky, noop_max=args.noop_max, one_life=args.one_life, workers=workers,
+        call_time_limit_s=args.call_time_limit, episode_time_limit_s=args.episode_time_limit,
+        rerun=_rerun_target(args.rerun),
     )
     store = _store(args)
     bar, update, finished = _progress_bar(args.episodes, f"eval {os.path.basename(args.policy)}")
@@ -695,6 +699,7 @@ def cmd_games(args: argparse.Namespace) -> int:
         task = game.task
         rows.append({"game": game.name, "status": game.status, "env_id": game.env_id, "actions": game.n_actions,
                      "lives": game.lives, "rollout_steps": task.rollout_steps, "eval_max_steps": task.eval_max_steps,
+                     "one_life": task.one_life_episodes if game.status == "curated" else None,
                      "feedback_high": task.feedback["high"] if game.status == "curated" else None,
                      "feedback_low": task.feedback["low"] if game.status == "curated" else None,
                      "scaffold": str(game.scaffold.relative_to(game.scaffold.parents[2])) if game.scaffold else None})

@@ -49,6 +49,9 @@ class EvalConfig:
     """Sticky-action probability (paper: 0.0; standard Atari protocol: 0.25)."""
     noop_max: int = 0
     """Up to this many random NOOPs after reset (paper: 0; standard protocol: 30)."""
+    one_life: bool = False
+    """End each episode at the first lost life, as the authors' follow-up evaluates Asterix, Breakout, Q*bert
+    and Seaquest (``Task.one_life_episodes``; ``games.envs.OneLife``). Off: whole games (the paper's)."""
     workers: int = 1
     """Worker processes playing episodes at once; 0 plays in this process (no isolation, for debugging)."""
     call_time_limit_s: float = 1.0
@@ -125,8 +128,9 @@ def evaluate(
             episode_id=episode_id(run_id, 0, "eval", i), run_id=run_id, game=game, policy_text=text,
             policy_version_id=info.version_id, policy_name=name, iteration=0, kind="eval", index=i,
             seed=config.seed + i, max_steps=config.max_steps, sticky=config.sticky, noop_max=config.noop_max,
-            trace=config.trace, trace_lines=config.trace_lines, call_time_limit_s=config.call_time_limit_s,
-            episode_time_limit_s=config.episode_time_limit_s, rerun=config.rerun,
+            one_life=config.one_life, trace=config.trace, trace_lines=config.trace_lines,
+            call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s,
+            rerun=config.rerun,
         )
         for i in range(config.episodes)
     ]

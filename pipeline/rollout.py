@@ -57,6 +57,8 @@ class EpisodeSpec:
     max_steps: int = 4000
     sticky: float = 0.0
     noop_max: int = 0
+    one_life: bool = False
+    """End the episode at the first lost life (the authors' follow-up evaluation: ``games.envs.OneLife``)."""
     trace: bool = False
     """Record a node for every call of a bundled method (slower; steps are always recorded)."""
     trace_lines: bool = True
@@ -146,7 +148,7 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
 
     if loaded is not None:
         policy = loaded.policy
-        env = shared_env(game, sticky=spec.sticky, noop_max=spec.noop_max)
+        env = shared_env(game, sticky=spec.sticky, noop_max=spec.noop_max, one_life=spec.one_life)
         try:
             obs, info = env.reset(seed=spec.seed)
             if spec.rerun:

@@ -12,7 +12,7 @@ nothing of a worker's episode on trust. :func:`verify_outcome`, called on every 
 2. cleans the node table's text columns, and the object names in the step table, the same way;
 3. replays the recorded actions (the ``steps`` table's ``action`` column, up to the step where the policy
    failed, whose action is NULL) in a fresh environment of this process with the same game, seed, sticky
-   probability and no-op setting (episodes are deterministic given those and the actions, under both
+   probability, no-op and one-life setting (episodes are deterministic given those and the actions, under both
    protocols: the sticky and no-op draws come from the environment's RNG seeded by ``reset(seed=...)``),
    built from raw ALE without the object extraction, and compares per step the reward, the cumulative score,
    the terminated/truncated flags and the lives, then the return, the length and the lives lost.
@@ -54,16 +54,16 @@ END_REASONS = ("terminated", "truncated", "policy_error", "timeout", "crashed")
 FAILURE_END_REASONS = ("policy_error", "timeout", "crashed")
 TAMPERED = "tampered"
 
-_replay_envs: dict[tuple[str, float, int], list[Any]] = {}
+_replay_envs: dict[tuple[str, float, int, bool], list[Any]] = {}
 
 
-def _acquire_env(game: str, sticky: float, noop_max: int):
+def _acquire_env(game: str, sticky: float, noop_max: int, one_life: bool = False):
     """A raw-ALE environment (no object extraction) for one replay, from a pool per setting in this process
     (replays of episodes that play at the same time each need their own) and never handed to policy code:
     ``make_env``'s wrappers minus ``ObjectObservation``."""
-    key = (get_game(game).name, float(sticky), int(noop_max))
+    key = (get_game(game).name, float(sticky), int(noop_max), bool(one_life))
     free = _replay_envs.setdefault(key, [])
-    return key, (free.pop() if free else make_env(key[0], sticky=key[1], noop_max=key[2]).env)
+    return key, (free.pop() if free else make_env(key[0], sticky=key[1], noop_max=key[2], one_life=key[3]).env)
 
 
 class Replay:
@@ -72,7 +72,7 @@ class Replay:
     by the time the episode ends only its last few hundred steps are left to replay."""
 
     def __init__(self, spec: EpisodeSpec):
-        self._key, self._env = _acquire_env(spec.game, spec.sticky, spec.noop_max)
+        self._key, self._env = _acquire_env(spec.game, spec.sticky, spec.noop_max, spec.one_life)
         self._has_lives = bool(get_game(spec.game).lives)
         _, info = self._env.reset(seed=spec.seed)
         self._lives = int(info.get("lives", 0))

@@ -83,6 +83,8 @@ def test_games_lists_curated_and_generic():
     assert all(by_name[name]["status"] == "curated" for name in GAMES)
     assert by_name["riverraid"]["status"] == "generic" and "time_pilot" not in by_name
     assert by_name["pong"]["rollout_steps"] == 400 and by_name["pong"]["scaffold"] == "games/scaffolds/pong.py"
+    assert [g for g in GAMES if by_name[g]["one_life"]] == ["asterix", "breakout", "qbert", "seaquest"]
+    assert by_name["riverraid"]["one_life"] is None, "the authors' protocol is known for their games only"
 
 
 def test_a_game_added_from_outside_the_package_plays_through_eval(tmp_path):
