@@ -182,6 +182,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "and is assessed fully only if it keeps up with its parent there (default: off)")
     search.add_argument("--screen-margin", type=float, metavar="POINTS",
                         help="how far behind its parent a screened version may be (default: 0)")
+    search.add_argument("--one-life", action="store_const", const=True, dest="one_life",
+                        help="the authors' protocol for Asterix, Breakout, Q*bert and Seaquest: every episode, "
+                        "training rollouts included, ends at the first lost life (default: whole games)")
     search.add_argument("--no-eval-cache", action="store_const", const=False, dest="eval_cache",
                         help="play every version's episodes again instead of reusing those of an earlier assessment")
     budgets = p.add_argument_group("budgets", "the run stops with status 'budget' before it would exceed one; "
@@ -502,7 +505,7 @@ OPTIMIZE_OPTIONS = ("game", "policy", "model", "api_base", "iterations", "memory
                     "feedback", "rollback", "rollback_fraction", "seed", "temperature", "max_tokens", "rollout_steps",
                     "eval_max_steps", "workers", "call_time_limit_s", "max_cost_usd", "max_total_tokens",
                     "max_llm_calls", "max_wall_minutes", "strategy", "candidates", "beam_width", "max_concurrent_calls", "eval_cache",
-                    "robust_episodes", "optimize_protocol", "screen_steps", "screen_margin")
+                    "robust_episodes", "optimize_protocol", "screen_steps", "screen_margin", "one_life")
 """The ``optimize`` flags that are :class:`~pipeline.optimize.OptimizeConfig` fields (defaults live there)."""
 
 

@@ -144,6 +144,9 @@ class OptimizeConfig:
     out (rejected, with both scores in its feedback) and never fully played. None: off."""
     screen_margin: float = 0.0
     """How far behind its parent a screened version may be and still be assessed fully."""
+    one_life: bool = False
+    """The authors' protocol for Asterix, Breakout, Q*bert and Seaquest (``Task.one_life_episodes``): every
+    episode, training rollouts included, ends at the first lost life. Off: whole games (the paper's)."""
     collapse_repeats: bool = True
     """In the prompt's trace, show a run of consecutive steps whose calls, outputs and actions repeat as one line
     with its step range (more of the steps that matter fit the token budget)."""
