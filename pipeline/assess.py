@@ -94,10 +94,12 @@ def episode_specs(state: "RunState", iteration: int, candidate: int, text: str, 
 
 def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, str],
            progress: Callable[[int, int], None] | None = None,
-           texts: dict[str, str] | None = None) -> tuple[dict[int, Assessment], AssessTimes]:
+           texts: dict[str, str] | None = None,
+           before_play: Callable[[], None] = lambda: None) -> tuple[dict[int, Assessment], AssessTimes]:
     """Assess ``versions`` (candidate → version id) of iteration ``iteration``: an :class:`Assessment` per
     candidate, and how long the playing took. ``texts``: the policy files of versions not stored yet (this
-    iteration's new ones); the others are read from the store."""
+    iteration's new ones); the others are read from the store. ``before_play`` is called before any episode
+    is played (the optimizer lets go of its hold on the store: playing takes a while)."""
     owner: dict[str, int] = {}  # version -> the candidate whose episodes stand for it in this iteration
     for candidate, version in sorted(versions.items()):
         owner.setdefault(version, candidate)
@@ -111,6 +113,7 @@ def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, 
     to_play = [(candidate, version) for version, candidate in owner.items() if version not in found]
     times = AssessTimes()
     if to_play:
+        before_play()
         found.update(_play(store, state, iteration, to_play, progress, times, texts or {}))
     return {candidate: found[version] for candidate, version in versions.items()}, times
 
@@ -133,7 +136,8 @@ class Screen:
 
 
 def screen(store: Store, state: "RunState", iteration: int, history, proposals: list,
-           progress: Callable[[int, int], None] | None = None) -> dict[int, Screen]:
+           progress: Callable[[int, int], None] | None = None,
+           before_play: Callable[[], None] = lambda: None) -> dict[int, Screen]:
     """(``proposals``: this iteration's accepted ones, each with the ``text`` of its new version.)"""
     """Play the screening game of each new version in ``proposals``, all at once; a :class:`Screen` per
     candidate screened. With the evaluation cache, a version already assessed needs no screen, and one already
@@ -161,6 +165,7 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
             owners.append((p.candidate, bar))
     if not specs:
         return found
+    before_play()
     verification = StreamingVerification(specs)
     for i, outcome in run_episodes(specs, workers=max(1, c.workers), progress=progress, on_actions=verification.feed):
         outcome = verification.verify(i, outcome)

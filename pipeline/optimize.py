@@ -343,6 +343,14 @@ def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClie
                   progress: Callable[[int, int], None] | None = None) -> IterationResult:
     """One whole iteration (see the module docstring): plan, propose, assess, decide; commits its rows last."""
     started_at, t0 = utcnow(), time.monotonic()
+    hold = store.hold()  # from the LLM's answers to the commit, unless episodes are played (store/db.py Hold)
+    try:
+        return _run_iteration(store, state, iteration, client, counter, log, progress, hold, started_at, t0)
+    finally:
+        hold.release()
+
+
+def _run_iteration(store, state, iteration, client, counter, log, progress, hold, started_at, t0) -> IterationResult:
     with store.read() as con:
         history = History(iterations(con, state.run_id, iteration), candidates(con, state.run_id, iteration))
         starter = starter_version_id(con, state.run_id) if iteration == 0 else None
@@ -351,12 +359,13 @@ def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClie
         proposals = [Proposal(0, None, None, "initial", starter, starter, None, "", None)]
     else:
         requests = strategy.plan(history, iteration)
-        proposals = propose(store, state, history, iteration, requests, client, counter, log)
+        proposals = propose(store, state, history, iteration, requests, client, counter, log, hold)
     llm_s = time.monotonic() - t0
 
     screens = {}
     if iteration > 0 and state.config.screen_steps:
-        screens = screen(store, state, iteration, history, [p for p in proposals if p.status == "accepted"], progress)
+        screens = screen(store, state, iteration, history, [p for p in proposals if p.status == "accepted"], progress,
+                         before_play=hold.release)
         for p in proposals:
             if p.candidate in screens and not screens[p.candidate].passed:
                 s = screens[p.candidate]
@@ -365,7 +374,9 @@ def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClie
                           f"game it scored {s.score:g}, where the code it was meant to improve scores {s.bar:g}. The "
                           "code is unchanged.")
     assessments, times = assess(store, state, iteration, {p.candidate: p.version_id for p in proposals}, progress,
-                                texts={p.version_id: p.text for p in proposals if p.text is not None})
+                                texts={p.version_id: p.text for p in proposals if p.text is not None},
+                                before_play=hold.release)
+    hold.take()
     with store.read() as con:
         complexity = version_complexity(con, state.run_id, [p.version_id for p in proposals])
     assessed = []

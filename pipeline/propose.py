@@ -34,6 +34,7 @@ from pipeline.untrusted import clean_untrusted_text
 from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, check_fits, spread
 from pipeline.versions import policy_version_row
 from store import Store
+from store.db import Hold
 from store.readers import run_spending, stored_reply
 from store.writer import insert_llm_call, set_llm_call_outcome
 
@@ -92,8 +93,10 @@ class _Pending:
 
 
 def propose(store: Store, state: "RunState", history: History, iteration: int, requests: list[ProposalRequest],
-            client: LLMClient, counter: TokenCounter, log: Callable[[str], None]) -> list[Proposal]:
-    """The candidates of iteration ``iteration`` for ``requests`` (see the module docstring)."""
+            client: LLMClient, counter: TokenCounter, log: Callable[[str], None],
+            hold: Hold | None = None) -> list[Proposal]:
+    """The candidates of iteration ``iteration`` for ``requests`` (see the module docstring). ``hold`` is taken
+    once the model has answered (what follows is short: store the calls, validate, and the caller's commit)."""
     c = state.config
     pending = []
     with store.read() as con:
@@ -118,6 +121,9 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     if to_call:
         check_budgets(store, state, client, [p.prompt for p in to_call])
         _complete_all(state, iteration, client, to_call)
+    if hold is not None:
+        hold.take()
+    if to_call:
         for item in to_call:
             if item.reply is not None:
                 item.text = item.reply.text

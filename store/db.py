@@ -211,6 +211,10 @@ class Store:
                 raise
         self._migrated = True
 
+    def hold(self) -> "Hold":
+        """A :class:`Hold` on this store (not yet taken): see there."""
+        return Hold(self)
+
     @contextmanager
     def write(self) -> Iterator[duckdb.DuckDBPyConnection]:
         """A read-write connection in a transaction; creates and migrates the store on first use.
@@ -274,3 +278,42 @@ class Store:
         """Run one read-only query and return all rows."""
         with self.read() as con:
             return con.execute(sql, params or []).fetchall()
+
+
+class Hold:
+    """Keeps a store's file attached across several short reads and writes of one process, so that they share
+    one attachment and the file is checkpointed once, when the hold is let go, instead of after every write
+    (each costs ~20 ms here whatever it writes). Commits still go to the write-ahead log as they happen: a
+    process killed while holding loses nothing committed.
+
+    While it is held no other process can open the file, so hold it only across work that takes milliseconds
+    (the optimizer: from storing an iteration's LLM calls to committing its result, let go before episodes are
+    played) — never across an LLM call or an episode. ``take()`` and ``release()`` may be called repeatedly.
+    """
+
+    def __init__(self, store: Store):
+        self.store = store
+        self._cursor: duckdb.DuckDBPyConnection | None = None
+
+    def take(self) -> None:
+        if self._cursor is None:
+            if not self.store._migrated:
+                with self.store.write():  # creates and migrates the store on first use
+                    pass
+            self._cursor = self.store._open(read_only=False)
+
+    def release(self) -> None:
+        cursor, self._cursor = self._cursor, None
+        if cursor is not None:
+            try:
+                HUB.release(self.store.path, cursor)  # the checkpoint: a full disk fails here
+            except duckdb.Error as exc:
+                if not _is_disk_full(exc):
+                    raise
+
+    def __enter__(self) -> "Hold":
+        self.take()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
