@@ -377,8 +377,12 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
                                 texts={p.version_id: p.text for p in proposals if p.text is not None},
                                 before_play=hold.release)
     hold.take()
-    with store.read() as con:
-        complexity = version_complexity(con, state.run_id, [p.version_id for p in proposals])
+    complexity = {p.version_id: p.version_row["complexity"] for p in proposals if p.version_row is not None}
+    complexity.update({c["policy_version_id"]: c["complexity"] for c in history.candidates})
+    unknown = [p.version_id for p in proposals if p.version_id not in complexity]
+    if unknown:  # the starting policy
+        with store.read() as con:
+            complexity.update(version_complexity(con, state.run_id, unknown))
     assessed = []
     for p in proposals:
         a = assessments[p.candidate]

@@ -23,6 +23,7 @@ import difflib
 import hashlib
 import json
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import duckdb
@@ -158,9 +159,9 @@ def context_for(
     entries = []
     for ref in memory:
         row = history.candidate(ref)
-        old = inspect_policy(policy_text(con, run_id, row["policy_version_id"]), "policy.py")
+        sources = dict(_trainable_sources(policy_text(con, run_id, row["policy_version_id"])))
         entries.append(MemoryEntry(row["iteration"], row["score"], row["update_status"], row["feedback"] or "",
-                                   {m.name: m.source for m in old.trainable}))
+                                   sources))
     return PromptContext(
         game=game.name,
         instruction=json.loads(run["config"]).get("instruction") or "",
@@ -174,6 +175,13 @@ def context_for(
         call_time_limit_s=call_time_limit_s,
         collapse_repeats=collapse_repeats,
     )
+
+
+@lru_cache(maxsize=256)
+def _trainable_sources(text: str) -> tuple[tuple[str, str], ...]:
+    """(name, source) of the trainable methods of a stored policy file (memory shows earlier versions again
+    and again: each is parsed once)."""
+    return tuple((m.name, m.source) for m in inspect_policy(text, "policy.py").trainable)
 
 
 _ROLLOUTS: dict[str, tuple[list[dict[str, Any]], list[dict[str, Any]]]] = {}
