@@ -20,6 +20,7 @@ from typing import Any, Sequence
 
 from store import Store
 from store.readers import get_run
+from store.showing import report_rows
 from store.views import resolve_run_id
 
 STATUS_STYLE = {  # update_status -> (marker, colour, label)
@@ -39,22 +40,7 @@ def collect(store: Store, run: str) -> dict[str, Any]:
         run_id = resolve_run_id(con, run, store)
         data: dict[str, Any] = {"run": get_run(con, run_id)}
 
-        def q(sql: str) -> list[dict[str, Any]]:
-            cursor = con.execute(sql, [run_id])
-            names = [d[0] for d in cursor.description]
-            return [dict(zip(names, row)) for row in cursor.fetchall()]
-
-        data["summary"] = q("SELECT * FROM run_summary WHERE run_id = ?")[0]
-        data["curve"] = q("SELECT * FROM learning_curve WHERE run_id = ? ORDER BY iteration")
-        data["code"] = q("SELECT * FROM code_metrics WHERE run_id = ? ORDER BY iteration")
-        data["usage"] = q("SELECT * FROM llm_usage WHERE run_id = ?")[0]
-        data["rejected"] = q("SELECT * FROM rejected_candidates WHERE run_id = ? ORDER BY iteration")
-        data["lineage"] = q("SELECT * FROM lineage WHERE run_id = ? ORDER BY iteration, candidate")
-        data["episodes"] = q("SELECT episode_id, iteration, kind, episode_index, seed, policy_version_id, return, "
-                             "length, lives_lost, end_reason, error, duration_s, max_steps FROM episodes "
-                             "WHERE run_id = ? ORDER BY iteration, kind, episode_index")
-        data["versions"] = q("SELECT policy_version_id, iteration, produced_by, validation, loc, sloc, complexity, "
-                             "max_if_depth, functions FROM policy_versions WHERE run_id = ? ORDER BY iteration")
+        data.update(report_rows(con, run_id))
     data["config"] = json.loads(data["run"]["config"]) if data["run"]["config"] else {}
     data["packages"] = json.loads(data["run"]["package_versions"] or "{}")
     return data

@@ -21,6 +21,7 @@ from games import get_game, list_widths
 from games.envs import make_env
 from store import Store
 from store.readers import policy_text
+from store.showing import episode_tables
 from tracing.steps import objects_to_obs
 from viewers.frames import FrameEncoder
 from viewers.rerun_episode import EpisodeLogger, StepColumns, new_recording, resolve_recording
@@ -60,17 +61,7 @@ class StoredEpisode:
 
 def read_episode(con: duckdb.DuckDBPyConnection, episode_id: str) -> StoredEpisode:
     """The episode row, its steps and nodes (Arrow) and the policy file it played."""
-    cur = con.execute("SELECT * FROM episodes WHERE episode_id = ?", [episode_id])
-    names = [d[0] for d in cur.description]
-    rows = cur.fetchall()
-    if not rows:
-        raise KeyError(f"no episode {episode_id}")
-    episode = dict(zip(names, rows[0]))
-    steps = con.sql("SELECT step, action, reward, score, lives, objects FROM steps WHERE episode_id = $1 "
-                    "ORDER BY step", params=[episode_id]).to_arrow_table()
-    nodes = con.sql("SELECT step, call_index, function, inputs, output, exc_type, exc_message, exc_line, exc_source, "
-                    "parents, lines_run FROM nodes WHERE episode_id = $1 ORDER BY step, call_index",
-                    params=[episode_id]).to_arrow_table()
+    episode, steps, nodes = episode_tables(con, episode_id)
     try:
         text = policy_text(con, episode["run_id"], episode["policy_version_id"])
     except KeyError:

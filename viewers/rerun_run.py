@@ -38,40 +38,13 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from store import Store
+from store.showing import run_timeline
 from viewers.rerun_episode import new_recording, resolve_recording
-
-
-def _rows(con: duckdb.DuckDBPyConnection, sql: str, params: list[Any]) -> list[dict[str, Any]]:
-    cur = con.execute(sql, params)
-    names = [d[0] for d in cur.description]
-    return [dict(zip(names, row)) for row in cur.fetchall()]
 
 
 def read_run(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
     """The run row, its iterations (joined with the evaluated version, the LLM call, the feedback) and texts."""
-    runs = _rows(con, "SELECT run_id, kind, game, model, seed, status, config, created_at, error FROM runs "
-                      "WHERE run_id = ?", [run_id])
-    if not runs:
-        raise KeyError(f"no run {run_id}")
-    iterations = _rows(con, """
-        SELECT i.iteration, i.policy_version_id, i.update_status, i.rolled_back, i.score, i.best_score,
-               i.best_iteration, i.train_return, i.wall_s,
-               v.loc, v.complexity, v.max_if_depth, code.text AS code,
-               c.input_tokens, c.output_tokens, c.prompt_tokens_counted, c.cost_usd, c.latency_s, c.error_type,
-               c.error_message, c.parse_error, p.text AS prompt, r.text AS reply, f.text AS feedback
-        FROM iterations i
-        LEFT JOIN (SELECT DISTINCT ON (policy_version_id) policy_version_id, loc, complexity, max_if_depth,
-                          source_hash FROM policy_versions WHERE run_id = $1) v
-               ON v.policy_version_id = i.policy_version_id
-        LEFT JOIN blobs code ON code.hash = v.source_hash
-        LEFT JOIN llm_calls c ON c.call_id = i.llm_call_id
-        LEFT JOIN blobs p ON p.hash = c.prompt_hash
-        LEFT JOIN blobs r ON r.hash = c.reply_hash
-        LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
-        WHERE i.run_id = $1 ORDER BY i.iteration""", [run_id])
-    lineage = _rows(con, "SELECT iteration, candidate, parent_iteration, parent_candidate, score, decision, "
-                         "update_status FROM lineage WHERE run_id = ? ORDER BY iteration, candidate", [run_id])
-    return {"run": runs[0], "iterations": iterations, "lineage": lineage}
+    return run_timeline(con, run_id)
 
 
 def prompt_text(stored: str | None) -> str:

@@ -16,6 +16,7 @@ from typing import Callable
 
 from store import Store
 from store.readers import get_run
+from store.showing import episode_list
 from viewers.rerun_sinks import spawn_viewer, start_web_viewer
 
 
@@ -40,8 +41,7 @@ def select(store: Store, run_id: str, iteration: int | None = None, episode: str
         run = get_run(con, run_id)
         if run is None:
             raise ViewError(f"no run {run_id} in {store.path}; `codearcade runs` lists the runs")
-        episodes = con.execute("SELECT episode_id, iteration, kind, episode_index FROM episodes WHERE run_id = ? "
-                               "ORDER BY iteration, kind DESC, episode_index", [run_id]).fetchall()
+        episodes = episode_list(con, run_id)
     kind = run["kind"]
     ids = [e[0] for e in episodes]
     if episode is not None and "." in episode:

@@ -1,0 +1,86 @@
+"""Readers for the viewers: the slices of the store that a report, a run recording or an episode recording shows.
+
+Each takes an open connection (``with store.read() as con:``) and returns plain values (rows as dicts) or Arrow
+tables; the viewers only draw them. SQL lives here, as everywhere, in ``store/``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import duckdb
+import pyarrow as pa
+
+
+def _rows(con: duckdb.DuckDBPyConnection, sql: str, params: list[Any] | None = None) -> list[dict[str, Any]]:
+    cursor = con.execute(sql, params or [])
+    names = [d[0] for d in cursor.description]
+    return [dict(zip(names, row)) for row in cursor.fetchall()]
+
+
+def report_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
+    """What ``codearcade report`` shows of a run: its summary, learning curve, code metrics, LLM usage, rejected
+    candidates, lineage, episodes and versions (the views of docs/schema.md)."""
+    def q(sql: str) -> list[dict[str, Any]]:
+        return _rows(con, sql, [run_id])
+
+    return {
+        "summary": q("SELECT * FROM run_summary WHERE run_id = ?")[0],
+        "curve": q("SELECT * FROM learning_curve WHERE run_id = ? ORDER BY iteration"),
+        "code": q("SELECT * FROM code_metrics WHERE run_id = ? ORDER BY iteration"),
+        "usage": q("SELECT * FROM llm_usage WHERE run_id = ?")[0],
+        "rejected": q("SELECT * FROM rejected_candidates WHERE run_id = ? ORDER BY iteration"),
+        "lineage": q("SELECT * FROM lineage WHERE run_id = ? ORDER BY iteration, candidate"),
+        "episodes": q("SELECT episode_id, iteration, kind, episode_index, seed, policy_version_id, return, length, "
+                      "lives_lost, end_reason, error, duration_s, max_steps FROM episodes WHERE run_id = ? "
+                      "ORDER BY iteration, kind, episode_index"),
+        "versions": q("SELECT policy_version_id, iteration, produced_by, validation, loc, sloc, complexity, "
+                      "max_if_depth, functions FROM policy_versions WHERE run_id = ? ORDER BY iteration"),
+    }
+
+
+def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
+    """A run recording's data: the run row, its iterations (joined with the evaluated version and its code, the
+    LLM call with its prompt and reply, the feedback) and its lineage."""
+    runs = _rows(con, "SELECT run_id, kind, game, model, seed, status, config, created_at, error FROM runs "
+                      "WHERE run_id = ?", [run_id])
+    if not runs:
+        raise KeyError(f"no run {run_id}")
+    iterations = _rows(con, """
+        SELECT i.iteration, i.policy_version_id, i.update_status, i.rolled_back, i.score, i.best_score,
+               i.best_iteration, i.train_return, i.wall_s,
+               v.loc, v.complexity, v.max_if_depth, code.text AS code,
+               c.input_tokens, c.output_tokens, c.prompt_tokens_counted, c.cost_usd, c.latency_s, c.error_type,
+               c.error_message, c.parse_error, p.text AS prompt, r.text AS reply, f.text AS feedback
+        FROM iterations i
+        LEFT JOIN (SELECT DISTINCT ON (policy_version_id) policy_version_id, loc, complexity, max_if_depth,
+                          source_hash FROM policy_versions WHERE run_id = $1) v
+               ON v.policy_version_id = i.policy_version_id
+        LEFT JOIN blobs code ON code.hash = v.source_hash
+        LEFT JOIN llm_calls c ON c.call_id = i.llm_call_id
+        LEFT JOIN blobs p ON p.hash = c.prompt_hash
+        LEFT JOIN blobs r ON r.hash = c.reply_hash
+        LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
+        WHERE i.run_id = $1 ORDER BY i.iteration""", [run_id])
+    lineage = _rows(con, "SELECT iteration, candidate, parent_iteration, parent_candidate, score, decision, "
+                         "update_status FROM lineage WHERE run_id = ? ORDER BY iteration, candidate", [run_id])
+    return {"run": runs[0], "iterations": iterations, "lineage": lineage}
+
+
+def episode_list(con: duckdb.DuckDBPyConnection, run_id: str) -> list[tuple[str, int, str, int]]:
+    """(episode id, iteration, kind, index) of a run's episodes: iterations in order, training rollouts first."""
+    return con.execute("SELECT episode_id, iteration, kind, episode_index FROM episodes WHERE run_id = ? "
+                       "ORDER BY iteration, kind DESC, episode_index", [run_id]).fetchall()
+
+
+def episode_tables(con: duckdb.DuckDBPyConnection, episode_id: str) -> tuple[dict[str, Any], pa.Table, pa.Table]:
+    """An episode's row, and its steps and node calls as Arrow tables in order; KeyError if there is none."""
+    rows = _rows(con, "SELECT * FROM episodes WHERE episode_id = ?", [episode_id])
+    if not rows:
+        raise KeyError(f"no episode {episode_id}")
+    steps = con.sql("SELECT step, action, reward, score, lives, objects FROM steps WHERE episode_id = $1 "
+                    "ORDER BY step", params=[episode_id]).to_arrow_table()
+    nodes = con.sql("SELECT step, call_index, function, inputs, output, exc_type, exc_message, exc_line, exc_source, "
+                    "parents, lines_run FROM nodes WHERE episode_id = $1 ORDER BY step, call_index",
+                    params=[episode_id]).to_arrow_table()
+    return rows[0], steps, nodes
