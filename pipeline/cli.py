@@ -497,6 +497,8 @@ def _print_iteration(item) -> None:
     back = "  rolled back" if item.rolled_back else ""
     if item.candidates > 1:
         tokens = f"best of {item.candidates} candidates  " + tokens
+    if item.standard_score is not None:
+        tokens = f"standard protocol {item.standard_score:g}  " + tokens
     print(f"iteration {item.iteration:>3}  score {item.score:>8.1f}  best {item.best_score:>8.1f} (it {item.best_iteration})"
           f"  update {item.update_status:<9} {tokens}{back}{note[:160]}", flush=True)
 

@@ -189,6 +189,8 @@ class IterationResult:
     prompt_tokens: int | None = None
     candidates: int = 1
     """How many candidates the iteration assessed."""
+    standard_score: float | None = None
+    """The chosen candidate's score under the standard protocol, when the run measures it."""
 
 
 @dataclass
@@ -388,8 +390,6 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
         a = assessments[p.candidate]
         tampered = a.tampered if p.status == "accepted" else None  # pipeline/verify.py: caught, never the best
         notes = [p.note] if p.note else []
-        if a.standard_score is not None:
-            notes.append(_protocols_note(state.config, a))
         assessed.append(Assessed(p.candidate, p.parent, p.version_id, "rejected" if tampered else p.status,
                                  a.score, tampered, notes,
                                  {"complexity": complexity.get(p.version_id), "eval_length": a.eval_length}))
@@ -403,7 +403,8 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
     chosen, notes = assessed[decision.chosen], decision.notes[decision.chosen]
     return IterationResult(state.run_id, iteration, chosen.version_id, chosen.status, chosen.score, state.best_score,
                            state.best_iteration, decision.rolled_back, notes[0] if notes else "",
-                           proposals[decision.chosen].prompt_tokens, candidates=len(proposals))
+                           proposals[decision.chosen].prompt_tokens, candidates=len(proposals),
+                           standard_score=assessments[decision.chosen].standard_score)
 
 
 def _protocols_note(config: OptimizeConfig, a) -> str:
@@ -424,8 +425,10 @@ def _commit(store: Store, state: RunState, iteration: int, proposals: list[Propo
     texts = {}
     for p, a in zip(proposals, assessed):
         played = assessments[p.candidate]
+        notes = decision.notes[p.candidate] + ([_protocols_note(c, played)] if played.standard_score is not None
+                                               else [])
         texts[p.candidate] = compose_feedback(c.feedback, state.settings["bands"], a.score, played.train_return,
-                                              played.train_length, decision.notes[p.candidate])
+                                              played.train_length, notes)
     chosen = proposals[decision.chosen]
     chosen_play = assessments[chosen.candidate]
     with store.write() as con:

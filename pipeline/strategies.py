@@ -162,8 +162,10 @@ class Strategy(Protocol):
 
 
 def _rank(assessed: list[Assessed]) -> list[Assessed]:
-    """Candidates best first (lowest index among equal scores); tampered ones last."""
-    return sorted(assessed, key=lambda a: (a.tampered is not None, -a.score, a.candidate))
+    """Candidates best first; among equal scores, new code before a rejected proposal (which only re-played its
+    parent), then the lowest index; tampered ones last."""
+    return sorted(assessed, key=lambda a: (a.tampered is not None, -a.score, a.status in ("rejected", "llm_error"),
+                                           a.candidate))
 
 
 def _with_tampering(a: Assessed) -> list[str]:
