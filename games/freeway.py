@@ -53,8 +53,9 @@ PLAYER_ONE_MAX_X = 80
 
 
 def _box(o) -> tuple[int, int, int, int, int, int]:
-    x, y = (int(v) for v in o._xy)
-    w, h = (int(v) for v in o.wh)
+    x, y = o._xy
+    w, h = o.wh
+    x, y, w, h = int(x), int(y), int(w), int(h)
     prev = o._prev_xy
     dx, dy = (0, 0) if prev is None else (x - int(prev[0]), y - int(prev[1]))
     return x, y, w, h, dx, dy
@@ -70,12 +71,21 @@ def chicken(o, obs: dict, rows: list | None) -> None:
         rows.append(("Chicken", None, "Chicken", x, y, w, h, dx, dy))
 
 
+_CAR_KEYS = tuple(f"Car{n}" for n in range(16))
+
+
+def _car_key(n: int) -> str:
+    return _CAR_KEYS[n] if n < len(_CAR_KEYS) else f"Car{n}"
+
+
 def car(o, obs: dict, rows: list | None) -> None:
     """A car as ``Car<n>`` (n = its slot, lane n+1), with the screen wrap folded out of its dx."""
     x, y, w, h, dx, dy = _box(o)
     dx = ((dx + 80) % 160) - 80
-    n = sum(1 for key in obs if key.startswith("Car"))
-    key = f"Car{n}"
+    n = 0
+    while _car_key(n) in obs:  # the next free number (every step, for every car: no scan of all keys)
+        n += 1
+    key = _car_key(n)
     obs[key] = {"x": x, "y": y, "w": w, "h": h, "dx": dx, "dy": dy}
     if rows is not None:
         rows.append((key, None, "Car", x, y, w, h, dx, dy))
@@ -87,8 +97,21 @@ def derive(obs: dict, lives: int) -> None:
     cars = pop_numbered(obs, "Car")
     cars.sort(key=lambda c: c["y"])  # stable
     for c in cars:
-        c["lane"] = min(range(len(LANE_Y)), key=lambda i: abs(LANE_Y[i] - c["y"])) + 1
+        c["lane"] = _lane(c["y"])
     obs["Cars"] = cars
+
+
+def _nearest_lane(y: int) -> int:
+    """The lane (1-10) whose y is nearest ``y``; the upper one on a tie."""
+    return min(range(len(LANE_Y)), key=lambda i: abs(LANE_Y[i] - y)) + 1
+
+
+_LANE_OF_Y = tuple(_nearest_lane(y) for y in range(256))
+""":func:`_nearest_lane` of every y a car can have, looked up every step instead of computed."""
+
+
+def _lane(y: int) -> int:
+    return _LANE_OF_Y[y] if 0 <= y < 256 else _nearest_lane(y)
 
 
 GAME = Game(

@@ -6,7 +6,8 @@ Policy code never runs in this process, nor in any process that holds this one's
 interpreter with an allow-listed environment (:func:`worker_environment`) that imports the environment stack
 and forks one worker per task (``pipeline/zygote.py``), so every episode starts from the same clean state
 (nothing a policy changes, module attributes included, survives into the next). The next worker is forked and
-confined while the current one plays (``staged``), so the fork (~5-20 ms) does not sit between episodes. Each
+confined while the current one plays (``staged``), and loads its policy and resets its environment (ALE's
+seeded reset reloads the ROM, ~0.1 s), so neither the fork (~5-20 ms) nor the reset sits between episodes. Each
 worker is confined by the kernel before it loads policy code (``pipeline/confine.py``: no exec, no fork, no
 network, no writes outside its scratch directory, no reads outside Python's and the project's files, rlimits),
 and its stdout/stderr go to /dev/null. A missing kernel feature stops the run with a one-line error unless
@@ -299,8 +300,9 @@ def run_tasks(
     pending = deque(enumerate(items))
     busy: dict[int, _Running] = {}  # by fd
     staged: deque[_Running] = deque()
-    """The next worker, forked and confined while the others play (the fork of the zygote, ~5-20 ms, would
-    otherwise come between one episode and the next)."""
+    """The next worker, forked, confined and prepared (policy loaded, environment reset) while the others play:
+    the fork of the zygote (~5-20 ms) and ALE's seeded reset (~0.1 s) would otherwise come between one episode
+    and the next."""
 
     def start(staged_: bool) -> _Running:
         i, item = pending.popleft()

@@ -229,6 +229,7 @@ class RunState:
 def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
     """The starting policy and the game, with one-line errors for bad input."""
     from pipeline.evaluate import resolve_game
+    from pipeline.validate import checked_inspect
 
     if config.policy is None:
         if config.game is None:
@@ -236,7 +237,7 @@ def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
         path = example_path(config.game)
     else:
         path = Path(config.policy)
-    info = inspect_policy(read_policy_file(path), path.name)
+    info = checked_inspect(read_policy_file(path), path.name, workers=config.workers)  # parsed confined first
     game = resolve_game(info.game, config.game, path.name)
     if not info.trainable:
         raise ValueError(f"{path.name}: Policy has no trainable methods; mark some with @trace.bundle(trainable=True)")

@@ -28,7 +28,7 @@ from typing import Any, Callable
 import numpy as np
 import pyarrow as pa
 
-from games import get_game, list_widths
+from games import Game, get_game, list_widths
 from games.envs import discard_env, shared_env
 from tracing.capture import NodeRecorder, failing_policy_line
 from tracing.policy_file import PolicyLoadError, load_policy
@@ -121,6 +121,44 @@ def _report(steps: StepLog, reported: int, length: int, progress: Callable[[int]
     return length
 
 
+@dataclass
+class PreparedEpisode:
+    """An episode ready for its first step (:func:`prepare_episode`): RNGs seeded, policy loaded (or the reason it
+    did not load), environment reset."""
+
+    spec: EpisodeSpec
+    game: Game
+    policy: Any | None
+    env: Any | None
+    obs: Any
+    info: dict[str, Any]
+    end_reason: str | None
+    error: str | None
+    prepare_s: float
+    """Seconds the preparation took; they count in the episode's duration and against its time limit."""
+
+
+def prepare_episode(spec: EpisodeSpec) -> PreparedEpisode:
+    """Everything before the first step: seed the RNGs, load the policy, reset the environment (ALE's seeded
+    reset reloads the ROM: ~0.1 s, as long as a few hundred steps). A staged worker (``pipeline/zygote.py``) does
+    this, confined, while the previous episode still plays; it then waits for its go-ahead."""
+    game = get_game(spec.game)
+    t0 = time.perf_counter()
+    random.seed(spec.seed)
+    np.random.seed(spec.seed % 2**32)
+    try:
+        policy = load_policy(spec.policy_text, spec.policy_name).policy
+    except PolicyLoadError as exc:
+        return PreparedEpisode(spec, game, None, None, None, {}, "policy_error", str(exc), time.perf_counter() - t0)
+    env = shared_env(game, sticky=spec.sticky, noop_max=spec.noop_max, one_life=spec.one_life)
+    try:
+        obs, info = env.reset(seed=spec.seed)
+    except BaseException:
+        discard_env(env)  # a failed reset leaves the environment in an unknown state
+        raise
+    return PreparedEpisode(spec, game, policy, env, obs, info, None, None, time.perf_counter() - t0)
+
+
 def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None,
                 on_actions: Callable[[list[int]], None] | None = None) -> EpisodeOutcome:
     """Play one episode as ``spec`` says and return what happened (never raises for policy misbehaviour).
@@ -128,29 +166,26 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
     ``progress(steps)`` is called every :data:`PROGRESS_EVERY` steps and at the end; ``on_actions(actions)``
     just before it with the actions played since its last call (the parent verifies the score while the
     episode plays: ``pipeline/verify.py``)."""
-    game = get_game(spec.game)
-    started_at = time.time()
-    t0 = time.perf_counter()
+    return play_episode(prepare_episode(spec), progress, on_actions)
+
+
+def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | None = None,
+                 on_actions: Callable[[list[int]], None] | None = None) -> EpisodeOutcome:
+    """Play a :func:`prepare_episode`'d episode to its end (see :func:`run_episode`)."""
+    spec, game = prepared.spec, prepared.game
+    started_at = time.time() - prepared.prepare_s
+    t0 = time.perf_counter() - prepared.prepare_s  # the preparation counts, a staged worker's wait does not
     steps = StepLog(list_widths(game), *game.hot_keys)
     recorder = NodeRecorder(lines=spec.trace_lines) if spec.trace else None
-    end_reason, error = "truncated", None
+    end_reason, error = prepared.end_reason or "truncated", prepared.error
     score, lives_lost, length = 0.0, 0, 0
     reported = 0  # steps whose actions went to on_actions
     live = None  # live Rerun recorder (spec.rerun)
     env_s = policy_s = 0.0
 
-    random.seed(spec.seed)
-    np.random.seed(spec.seed % 2**32)
-    try:
-        loaded = load_policy(spec.policy_text, spec.policy_name)
-    except PolicyLoadError as exc:
-        loaded, end_reason, error = None, "policy_error", str(exc)
-
-    if loaded is not None:
-        policy = loaded.policy
-        env = shared_env(game, sticky=spec.sticky, noop_max=spec.noop_max, one_life=spec.one_life)
+    if prepared.policy is not None:
+        policy, env, obs, info = prepared.policy, prepared.env, prepared.obs, prepared.info
         try:
-            obs, info = env.reset(seed=spec.seed)
             if spec.rerun:
                 live = _live_recorder(spec, env, steps)
             lives = info.get("lives", 0)

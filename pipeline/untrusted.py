@@ -165,10 +165,15 @@ def clean_step_objects(steps: pa.Table) -> pa.Table:
     fields = {}
     for name in ("key", "category"):
         column = values.field(name)
-        distinct = [v for v in pc.unique(column).to_pylist() if v is not None]
-        mapping = {v: clean_untrusted_text(v, 100) for v in distinct}
-        if any(mapping[v] != v for v in distinct):
-            fields[name] = pa.array([None if v is None else mapping[v] for v in column.to_pylist()], type=pa.string())
+        distinct = pc.unique(column)
+        # the distinct names checked at once (reading the environment's secrets once, not once per name)
+        suspects = _suspects(pa.chunked_array([distinct]), 100)
+        if not suspects:
+            continue
+        names = distinct.to_pylist()
+        mapping = {names[i]: clean_untrusted_text(names[i], 100) for i in suspects}
+        if any(cleaned != v for v, cleaned in mapping.items()):
+            fields[name] = pa.array([mapping.get(v, v) for v in column.to_pylist()], type=pa.string())
     if not fields:
         return steps
     children = [fields.get(f.name, values.field(f.name)) for f in values.type]

@@ -2,11 +2,13 @@
 
 Static checks: every suggested method exists and is trainable; its source is one ``def`` of the same name with
 the same parameters; it passes the sandbox's source check; spliced into the policy file, the whole file still
-checks, and fits half of the prompt's token budget (:func:`check_fits`). Even parsing untrusted text can crash a process (a 200 KB ``1 + 1 + ...`` expression exhausts the
-recursion limit, deep nesting the C stack), so the checks run first in a confined worker (:func:`vet_here`,
-with a lower recursion limit than this process has) and only text that passed there is parsed here; a worker
-that dies or hangs rejects the candidate (:func:`checked_inspect` does the same for a policy file given to
-``codearcade eval``). Then a runtime check in a confined worker process (``pipeline/executor.py``):
+checks, and fits half of the prompt's token budget (:func:`check_fits`). Even parsing untrusted text can crash a
+process (a 200 KB ``1 + 1 + ...`` expression exhausts the recursion limit, 100,000 unary minuses take
+gigabytes, and 400 of them parse but then exhaust the recursion limit in radon's metrics), so the checks and the
+code metrics run first in a confined worker (:func:`vet_here`, with a lower recursion limit than this process
+has and its memory capped) and only text that passed there is parsed and measured here; a worker that dies or
+hangs rejects the candidate (:func:`checked_inspect` does the same for a policy file given to ``codearcade
+eval`` or ``optimize``). Then a runtime check in a confined worker process (``pipeline/executor.py``):
 the candidate policy is loaded and called on observations recorded in the store (the training rollout's),
 each call within the time limit and returning a legal action. The first failure rejects the candidate with a
 reason that names the method, the error and, for runtime failures, the step whose observation broke it; the
@@ -27,6 +29,7 @@ from games import get_game
 from pipeline.executor import run_json_task
 from pipeline.rollout import coerce_action, describe_exception
 from pipeline.untrusted import clean_untrusted_text
+from tracing.metrics import function_metrics, policy_metrics
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods
 from tracing.sandbox import CallTimer, PolicyCodeError, PolicyTimeout, check_source
 
@@ -76,14 +79,16 @@ def vet_here(item: dict[str, Any]) -> str | None:
     try:
         if item["op"] == "inspect":
             try:
-                inspect_policy(item["text"], item["name"])
+                measure(inspect_policy(item["text"], item["name"]))
             except PolicyLoadError as exc:
                 return str(exc)
         else:
             try:
-                _build_candidate(inspect_policy(item["text"], item["name"]), item["suggestion"])
+                candidate = _build_candidate(inspect_policy(item["text"], item["name"]), item["suggestion"])
             except CandidateRejected as exc:
                 return str(exc)
+            if candidate is not None:
+                measure(candidate.info)
     except _PARSE_ERRORS as exc:
         return f"the code cannot be checked ({type(exc).__name__}: too large or too deeply nested)"
     return None
@@ -106,14 +111,28 @@ def _vet(item: dict[str, Any], workers: int = 1) -> str | None:
     return reason
 
 
+def measure(info: PolicyInfo) -> None:
+    """Compute the code metrics that this process stores with a policy version (``pipeline/versions.py``; they
+    are cached). radon's visitors recurse deeper than the parse does: 400 nested unary minuses parse, then
+    exhaust the recursion limit in radon, so vetting computes them too."""
+    for method in info.methods:
+        function_metrics(method.source)
+    policy_metrics(info.text)
+
+
 def checked_inspect(text: str, name: str, workers: int = 1) -> PolicyInfo:
-    """:func:`inspect_policy` of untrusted text, vetted in a confined worker first (``workers=0``: here)."""
+    """:func:`inspect_policy` of untrusted text (a policy file given to ``eval`` or ``optimize``), parsed and
+    measured (:func:`measure`) in a confined worker first (``workers=0``: only here). Raises
+    :class:`PolicyLoadError` with one line for text that cannot be checked: too large or too deeply nested
+    for a parser or radon (the worker's recursion limit is lower than this process's, its memory capped)."""
     if workers > 0:
         reason = _vet({"op": "inspect", "text": text, "name": name})
         if reason is not None:
             raise PolicyLoadError(reason if reason.startswith(name) else f"{name}: {reason}")
     try:
-        return inspect_policy(text, name)
+        info = inspect_policy(text, name)
+        measure(info)
+        return info
     except _PARSE_ERRORS as exc:
         raise PolicyLoadError(f"{name}: the code cannot be checked ({type(exc).__name__})") from None
 
@@ -127,7 +146,10 @@ def build_candidate(info: PolicyInfo, suggestion: dict[str, str]) -> Candidate |
     if reason is not None:
         raise CandidateRejected(reason)
     try:
-        return _build_candidate(info, suggestion)
+        candidate = _build_candidate(info, suggestion)
+        if candidate is not None:
+            measure(candidate.info)
+        return candidate
     except _PARSE_ERRORS as exc:
         raise CandidateRejected(f"the code cannot be checked ({type(exc).__name__})") from None
 

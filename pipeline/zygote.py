@@ -11,9 +11,10 @@ scratch directory in a mount namespace of its own (the workers' scratch director
   inherit them built);
 - ``{"op": "run", "id", "task", "limits", "staged"}`` with a socket passed alongside (SCM_RIGHTS): fork a
   worker that reads its task as a JSON frame from that socket, confines itself (scratch directory,
-  stdout/stderr to /dev/null, :func:`pipeline.confine.confine`), waits for a ``G`` byte if ``staged`` (the
-  executor sets up the next worker while the current one plays), runs the task and writes its answer as
-  frames (``pipeline/wire.py``); answered with ``{"kind": "started", "id", "pid"}``;
+  stdout/stderr to /dev/null, :func:`pipeline.confine.confine`), prepares it (an episode: policy loaded,
+  environment reset), waits for a ``G`` byte if ``staged`` (the executor sets up the next worker while the
+  current one plays), runs the task and writes its answer as frames (``pipeline/wire.py``); answered with
+  ``{"kind": "started", "id", "pid"}``;
 - ``{"op": "kill", "id"}``: SIGKILL that worker.
 
 Every worker that ends is reported as ``{"kind": "exited", "id", "code"}`` (negative: killed by that signal)
@@ -47,34 +48,50 @@ def _send(ctl: socket.socket, obj: dict[str, Any]) -> None:
 # ------------------------------------------------------------------------------------------ worker tasks
 
 
-def _episode(item: dict[str, Any], fd: int) -> None:
-    from pipeline.rollout import run_episode
+def _episode(item: dict[str, Any], fd: int) -> Callable[[], None]:
+    from pipeline.rollout import play_episode, prepare_episode
 
-    spec = wire.spec_from_json(item)
-    outcome = run_episode(spec, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})),
-                          lambda a: wire.write_all(fd, wire.json_frame({"kind": "actions", "actions": a})))
-    frames = [wire.json_frame({"kind": "result", "episode": wire.episode_to_json(outcome.episode),
-                               "nodes": outcome.nodes is not None}), wire.arrow_frame(outcome.steps)]
-    if outcome.nodes is not None:
-        frames.append(wire.arrow_frame(outcome.nodes))
-    wire.write_all(fd, b"".join(frames))
+    # before the go-ahead: a staged worker loads the policy and resets its environment (ALE reloads the ROM,
+    # ~0.1 s) while the previous episode still plays
+    prepared = prepare_episode(wire.spec_from_json(item))
 
+    def play() -> None:
+        outcome = play_episode(prepared,
+                               lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})),
+                               lambda a: wire.write_all(fd, wire.json_frame({"kind": "actions", "actions": a})))
+        frames = [wire.json_frame({"kind": "result", "episode": wire.episode_to_json(outcome.episode),
+                                   "nodes": outcome.nodes is not None}), wire.arrow_frame(outcome.steps)]
+        if outcome.nodes is not None:
+            frames.append(wire.arrow_frame(outcome.nodes))
+        wire.write_all(fd, b"".join(frames))
 
-def _check(item: dict[str, Any], fd: int) -> None:
-    from pipeline.validate import RuntimeCheck, run_check
-
-    item["observations"] = [(int(step), obs) for step, obs in item["observations"]]
-    reason = run_check(RuntimeCheck(**item))
-    wire.write_all(fd, wire.json_frame({"kind": "result", "reason": reason}))
-
-
-def _vet(item: dict[str, Any], fd: int) -> None:
-    from pipeline.validate import vet_here
-
-    wire.write_all(fd, wire.json_frame({"kind": "result", "reason": vet_here(item)}))
+    return play
 
 
-TASKS: dict[str, Callable[[dict[str, Any], int], None]] = {"episode": _episode, "check": _check, "vet": _vet}
+def _check(item: dict[str, Any], fd: int) -> Callable[[], None]:
+    def check() -> None:
+        from pipeline.validate import RuntimeCheck, run_check
+
+        item["observations"] = [(int(step), obs) for step, obs in item["observations"]]
+        reason = run_check(RuntimeCheck(**item))
+        wire.write_all(fd, wire.json_frame({"kind": "result", "reason": reason}))
+
+    return check
+
+
+def _vet(item: dict[str, Any], fd: int) -> Callable[[], None]:
+    def vet() -> None:
+        from pipeline.validate import vet_here
+
+        wire.write_all(fd, wire.json_frame({"kind": "result", "reason": vet_here(item)}))
+
+    return vet
+
+
+TASKS: dict[str, Callable[[dict[str, Any], int], Callable[[], None]]] = {"episode": _episode, "check": _check,
+                                                                        "vet": _vet}
+"""Per task: ``task(item, fd)`` prepares in the confined worker (before a staged worker's go-ahead) and returns
+what runs the task and writes its answer on ``fd``."""
 
 
 def _worker(fd: int, msg: dict[str, Any], zygote_pid: int, scratch_base: str, strict: bool) -> None:
@@ -102,9 +119,10 @@ def _worker(fd: int, msg: dict[str, Any], zygote_pid: int, scratch_base: str, st
             os.makedirs(path, exist_ok=True)
         limits.write_paths = [scratch, *limits.write_paths]
         confine.confine(limits, strict=strict)
+        run = TASKS[msg["task"]](item, fd)  # confined already: preparing an episode loads policy code
         if msg.get("staged") and os.read(fd, 1) != b"G":
-            return  # staged ahead of time (set up and confined while another task ran), then not needed
-        TASKS[msg["task"]](item, fd)
+            return  # staged ahead of time (set up, confined, prepared while another task ran), then not needed
+        run()
     except BaseException as exc:  # noqa: BLE001 - reported to the parent as plain text
         code = 1
         try:

@@ -210,3 +210,20 @@ def test_a_dead_zygote_costs_only_its_episodes_and_the_next_call_starts_another(
     assert killed and [results[i].end_reason for i in (0, 1)] == ["crashed", "crashed"], results
     [(_, again)] = list(run_episodes(specs[:1], workers=1))
     assert again.end_reason in ("terminated", "truncated") and executor.zygote().proc.pid != pid
+
+
+def test_a_staged_worker_plays_its_episode_as_a_fresh_one_and_its_wait_is_not_its_time():
+    """The next episode's worker loads its policy and resets its environment while the current one plays
+    (``pipeline/zygote.py``): what it then plays is what an episode started alone plays (the seeded random
+    draws survive the wait), and its duration counts its preparation, not its wait."""
+    random_policy = pong_policy("return random.randrange(6)", prelude="import random\n")
+    long_first = EpisodeSpec("e0", "r", "pong", random_policy, "v", index=0, seed=3, max_steps=1500)
+    staged = EpisodeSpec("e1", "r", "pong", random_policy, "v", index=1, seed=7, max_steps=40)
+    results = dict(run_episodes([long_first, staged], workers=1))
+    [(_, alone)] = list(run_episodes([staged], workers=1))
+    first, second = results[0], results[1]
+    assert second.end_reason == alone.end_reason == "truncated"
+    assert second.steps.equals(alone.steps), "the staged episode plays as it does alone"
+    assert len(set(second.steps.column("action").to_pylist())) > 1, "the policy's draws vary"
+    # the staged worker waited for the whole first episode; its own duration is its reset and 40 steps
+    assert second.episode["duration_s"] < first.episode["duration_s"] / 2, (second.episode, first.episode)

@@ -276,6 +276,36 @@ def test_code_that_breaks_the_parser_is_refused_in_one_line(body, store, write_p
         inspect_policy(pong_policy(body), "deep.py")
 
 
+DEEP_METRICS = "return " + "-" * 400 + "1"  # parses, then exhausts the recursion limit in radon's metrics
+PARSER_MEMORY = "return " + "-" * 100_000 + "1"  # 100 KB that CPython's parser turns into gigabytes (OOM-killed)
+SAFETY_NET_AS = 8 * 2**30
+"""Address space the CLI under test may take: should a regression parse untrusted text in the parent again,
+the test fails with a MemoryError there instead of the machine's OOM killer ending whatever runs beside it."""
+
+
+def _cli_limited(verb: str, path: Path, store: Store, *extra: str) -> subprocess.CompletedProcess:
+    import resource
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (SAFETY_NET_AS, resource.getrlimit(resource.RLIMIT_AS)[1]))
+
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", verb, str(path), "--store", str(store.path), *extra],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300, preexec_fn=limit)
+
+
+@pytest.mark.parametrize("verb, body", [
+    ("eval", DEEP_METRICS), ("eval", PARSER_MEMORY), ("optimize", DEEP_METRICS), ("optimize", PARSER_MEMORY),
+], ids=["eval: deep for radon", "eval: parser memory", "optimize: deep for radon", "optimize: parser memory"])
+def test_a_policy_file_too_deep_for_the_checks_is_refused_in_one_line(verb, body, store, write_policy):
+    path = write_policy(pong_policy(body), "deep.py")
+    extra = ("--max-steps", "5") if verb == "eval" else ("--dry-run", "--iterations", "1", "--workers", "1")
+    done = _cli_limited(verb, path, store, *extra)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert len(done.stderr.strip().splitlines()) == 1 and "deep.py: the code cannot be checked" in done.stderr, \
+        done.stderr[-2000:]
+    assert not store.exists() or store.query("SELECT count(*) FROM runs") == [(0,)], "nothing was stored"
+
+
 @pytest.fixture
 def kernel_lacks_landlock(monkeypatch):
     """The zygote's hello says Landlock is missing (as on a kernel without it); a fresh zygote is started."""

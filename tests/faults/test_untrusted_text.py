@@ -19,8 +19,9 @@ import uuid
 import pytest
 
 from pipeline.cli import main
-from pipeline.untrusted import clean_json_text, clean_untrusted_text, secret_env_names
+from pipeline.untrusted import clean_json_text, clean_step_objects, clean_untrusted_text, secret_env_names
 from tests.conftest import json_reply
+from tracing.steps import StepLog
 
 HEX = uuid.uuid4().hex
 CANARY_TOKEN = f"tok{HEX}"
@@ -93,6 +94,26 @@ def test_secret_values_and_key_shapes_are_redacted(monkeypatch):
     assert len(long) < 2100 and long.endswith("[cut 7,998,000 characters]")
     assert json.loads(clean_json_text('{"k": "hunter2-long-enough"}')) == {"k": "[redacted]"}
     assert json.loads(clean_json_text(json.dumps("y" * 100_000))).endswith("[cut 84,002 characters]")
+
+
+def test_object_names_in_step_rows_are_cleaned_and_clean_ones_kept(monkeypatch):
+    monkeypatch.setenv("SOME_SERVICE_PASSWORD", "hunter2-long-enough")
+    box = {"x": 1, "y": 2, "w": 3, "h": 4, "dx": 0, "dy": 0}
+    log = StepLog()
+    for step in range(3):  # a forging worker's names beside honest ones, repeated over steps
+        log.append(step, {"Ball": box, "Alien0": box, "hunter2-long-enough": box, "AKIAABCDEFGHIJKLMNOP": box,
+                          "N" * 300: box}, 0, 0.0, 0.0, False, False, 3)
+    steps = log.table()
+    cleaned = clean_step_objects(steps)
+    keys = [o["key"] for o in cleaned.column("objects")[0].as_py()]
+    categories = [o["category"] for o in cleaned.column("objects")[2].as_py()]
+    assert keys[:4] == ["Ball", "Alien0", "[redacted]", "[redacted]"] and keys[4].endswith("[cut 200 characters]")
+    assert categories[:2] == ["Ball", "Alien"] and "hunter2" not in repr(categories)
+    assert cleaned.column("step").to_pylist() == [0, 1, 2]
+    honest = StepLog()
+    honest.append(0, {"Ball": box, "Alien0": box}, 0, 0.0, 0.0, False, False, 3)
+    table = honest.table()
+    assert clean_step_objects(table) is table  # the usual case: nothing rebuilt
 
 
 def test_a_leaking_policy_file_leaks_nothing_through_eval(canaries, store, tmp_path, capfd):
