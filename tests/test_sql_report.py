@@ -248,3 +248,15 @@ def test_queries_while_a_writer_commits_many_times_a_second(tmp_path, capsys):
     assert writer.returncode == 0, writer.stderr.read()
     assert not failures, failures[:3]
     assert seen == sorted(seen) and len(set(seen)) >= 5
+
+
+def test_output_piped_into_head_ends_quietly(tmp_path):
+    """`codearcade sql ... | head -1`: the reader closes the pipe early; the command exits 0 without a traceback."""
+    store = tmp_path / "empty.duckdb"
+    with Store(store).write():  # an empty store
+        pass
+    exe = os.path.join(os.path.dirname(sys.executable), "codearcade")
+    done = subprocess.run(f"'{exe}' sql 'SELECT * FROM range(200000)' --csv --store '{store}' | head -1; "
+                          "exit ${PIPESTATUS[0]}", shell=True, executable="/bin/bash", cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert done.stdout == "range\n" and done.stderr == "" and done.returncode == 0, done.stderr[-500:]
