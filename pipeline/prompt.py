@@ -253,6 +253,15 @@ def render_obs(obs: dict[str, Any]) -> str:
 
 
 def _call(node: dict[str, Any]) -> str:
+    """``name(args) -> output`` (or the exception) of one node call; rendered once per node row (rows of a
+    rollout are kept across prompts, see :func:`_rollout`)."""
+    text = node.get("_rendered")
+    if text is None:
+        text = node["_rendered"] = _render_call(node)
+    return text
+
+
+def _render_call(node: dict[str, Any]) -> str:
     inputs = node["inputs"] or {}
     args = ", ".join(("obs" if k == "obs" and v == {"$ref": "obs"} else f"{k}={_value(v)}") for k, v in inputs.items())
     head = f"{node['function']}({args})"
@@ -533,7 +542,10 @@ def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prom
 
 
 def _obs_line(row: dict[str, Any]) -> str:
-    return f"step {row['step']}: {render_obs(row['obs'])}"
+    text = row.get("_rendered")
+    if text is None:  # once per step row (rows of a rollout are kept across prompts, see _rollout)
+        text = row["_rendered"] = f"step {row['step']}: {render_obs(row['obs'])}"
+    return text
 
 
 def _calls_line(row: dict[str, Any], nodes_by_step: dict[int, list[dict[str, Any]]]) -> str:
