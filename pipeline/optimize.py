@@ -346,7 +346,7 @@ def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClie
                   progress: Callable[[int, int], None] | None = None) -> IterationResult:
     """One whole iteration (see the module docstring): plan, propose, assess, decide; commits its rows last."""
     started_at, t0 = utcnow(), time.monotonic()
-    hold = store.hold()  # from the LLM's answers to the commit, unless episodes are played (store/db.py Hold)
+    hold = store.hold()  # all but the LLM calls and the episodes: short reads and writes (store/db.py Hold)
     try:
         return _run_iteration(store, state, iteration, client, counter, log, progress, hold, started_at, t0)
     finally:
@@ -354,6 +354,7 @@ def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClie
 
 
 def _run_iteration(store, state, iteration, client, counter, log, progress, hold, started_at, t0) -> IterationResult:
+    hold.take()  # propose lets go while the model is asked
     with store.read() as con:
         history = History(iterations(con, state.run_id, iteration), candidates(con, state.run_id, iteration))
         starter = starter_version_id(con, state.run_id) if iteration == 0 else None

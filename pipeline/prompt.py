@@ -528,13 +528,39 @@ def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prom
         shown.append(u)
         used += cost
 
+    # Gap markers and joins can tip it over: keep the longest prefix of the chosen units that fits (the first
+    # that fits, counting down from all of them). Counting a whole prompt is the expensive part, so the search
+    # steps down 1, 2, 4, ... units, then scans down the last step, which finds the same prefix as going one
+    # unit at a time.
+    def fits(k: int) -> tuple[list[dict[str, str]], int] | None:
+        candidate = assemble(shown[:k], memory_texts)
+        count = counter.messages(candidate)
+        return (candidate, count) if count <= budget else None
+
     messages = assemble(shown, memory_texts)
     tokens = counter.messages(messages)
-    while tokens > budget and (shown or memory_texts):  # gap markers and joins can tip it over
-        if shown:
-            shown.pop()
+    if tokens > budget and shown:
+        n, step, failed, found = len(shown), 1, len(shown), None
+        while found is None and failed > 0:
+            k = max(0, n - step)
+            found = fits(k)
+            if found is None:
+                failed, step = k, step * 2
+            elif k + 1 < failed:  # something between k and the last failure may fit: scan it downwards
+                for j in range(failed - 1, k, -1):
+                    better = fits(j)
+                    if better is not None:
+                        found, k = better, j
+                        break
+        if found is not None:
+            shown = shown[:k]
+            messages, tokens = found
         else:
-            memory_texts.pop()
+            shown = []
+            messages = assemble(shown, memory_texts)
+            tokens = counter.messages(messages)
+    while tokens > budget and memory_texts:
+        memory_texts.pop()
         messages = assemble(shown, memory_texts)
         tokens = counter.messages(messages)
     return Prompt(messages, tokens, budget, sorted(steps[i]["step"] for u in shown for i in units[u]),

@@ -95,8 +95,9 @@ class _Pending:
 def propose(store: Store, state: "RunState", history: History, iteration: int, requests: list[ProposalRequest],
             client: LLMClient, counter: TokenCounter, log: Callable[[str], None],
             hold: Hold | None = None) -> list[Proposal]:
-    """The candidates of iteration ``iteration`` for ``requests`` (see the module docstring). ``hold`` is taken
-    once the model has answered (what follows is short: store the calls, validate, and the caller's commit)."""
+    """The candidates of iteration ``iteration`` for ``requests`` (see the module docstring). ``hold`` (the
+    caller's hold on the store) is let go while the model is asked and taken again once it has answered (what
+    follows is short: store the calls, validate, and the caller's commit)."""
     c = state.config
     pending = []
     with store.read() as con:
@@ -120,6 +121,8 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     to_call = [p for p in pending if p.text is None]
     if to_call:
         check_budgets(store, state, client, [p.prompt for p in to_call])
+        if hold is not None:
+            hold.release()  # other processes may read the store while the model thinks
         _complete_all(state, iteration, client, to_call)
     if hold is not None:
         hold.take()

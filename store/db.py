@@ -118,6 +118,8 @@ class Store:
         self.write_lock_timeout_s = max(write_lock_timeout_s, lock_timeout_s)
         self._migrated = False
         self._checked = False
+        self._held = False
+        """A :class:`Hold` of this object has the file attached: it was checked when it was taken."""
 
     def __repr__(self) -> str:
         return f"Store({str(self.path)!r})"
@@ -258,6 +260,13 @@ class Store:
         if not self.path.exists():
             raise StoreError(f"no store at {self.path}; run `codearcade eval` or `codearcade optimize` first, "
                              "or point --store / CODEARCADE_STORE at an existing one")
+        if self._held:  # attached by this process's hold, checked and migrated: nothing to look at again
+            con = self._open(read_only=True)
+            try:
+                yield con
+            finally:
+                HUB.release(self.path, con)
+            return
         con = self._open(read_only=True)
         try:
             version = self._check_version(con)
@@ -301,10 +310,12 @@ class Hold:
                 with self.store.write():  # creates and migrates the store on first use
                     pass
             self._cursor = self.store._open(read_only=False)
+            self.store._held = True
 
     def release(self) -> None:
         cursor, self._cursor = self._cursor, None
         if cursor is not None:
+            self.store._held = False
             try:
                 HUB.release(self.store.path, cursor)  # the checkpoint: a full disk fails here
             except duckdb.Error as exc:
