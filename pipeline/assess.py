@@ -34,7 +34,7 @@ from pipeline.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.runinfo import episode_id
 from pipeline.verify import TAMPERED, StreamingVerification, tampering
 from store import Store
-from store.readers import earlier_screen, episode_summary, policy_text, reusable_assessment, score_at_step
+from store.readers import earlier_screen, policy_text, reusable_assessment, score_at_step
 from store.writer import write_episode
 
 if TYPE_CHECKING:
@@ -109,7 +109,7 @@ def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, 
             for version in owner:
                 row = reusable_assessment(con, state.run_id, version)
                 if row is not None:
-                    found[version] = _cached(con, version, row)
+                    found[version] = _cached(version, row)
     to_play = [(candidate, version) for version, candidate in owner.items() if version not in found]
     times = AssessTimes()
     if to_play:
@@ -177,12 +177,10 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
     return found
 
 
-def _cached(con, version: str, row: dict) -> Assessment:
-    train = episode_summary(con, row["train_episode_id"])
+def _cached(version: str, row: dict) -> Assessment:
     return Assessment(version, row["train_episode_id"], list(row["eval_episode_ids"]), row["train_return"],
-                      train["length"], row["score"], "cached", row["deterministic_score"], row["standard_score"],
-                      list(row["robust_episode_ids"] or []),
-                      eval_length=statistics.fmean(episode_summary(con, e)["length"] for e in row["eval_episode_ids"]))
+                      row["train_length"], row["score"], "cached", row["deterministic_score"], row["standard_score"],
+                      list(row["robust_episode_ids"] or []), eval_length=float(row["eval_length"]))
 
 
 def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[int, str]],

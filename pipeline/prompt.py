@@ -156,6 +156,7 @@ def context_for(
     run = get_run(con, run_id)
     game = get_game(run["game"])
     info = inspect_policy(policy_text(con, run_id, base["policy_version_id"]), "policy.py")
+    train_steps, train_nodes = _rollout(con, base["train_episode_id"], game)
     entries = []
     for ref in memory:
         row = history.candidate(ref)
@@ -167,8 +168,8 @@ def context_for(
         instruction=json.loads(run["config"]).get("instruction") or "",
         info=info,
         train_episode=episode_summary(con, base["train_episode_id"]),
-        train_steps=_rollout(con, base["train_episode_id"], game)[0],
-        train_nodes=_rollout(con, base["train_episode_id"], game)[1],
+        train_steps=train_steps,
+        train_nodes=train_nodes,
         eval_episodes=[episode_summary(con, e) for e in base["eval_episode_ids"] or []],
         feedback=note + (base["feedback"] or ""),
         memory=entries,

@@ -23,6 +23,7 @@ from typing import Any, Mapping
 import duckdb
 import pyarrow as pa
 
+from store.readers import _rows
 from tracing.blame import blame_version
 
 Origin = tuple[str, int, str]
@@ -109,5 +110,4 @@ def version_blame(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) 
                   ON c.function = b.function AND c.line_no = b.line_no
            WHERE b.run_id = ? AND b.policy_version_id = ?
            ORDER BY list_position(v.names, b.function), b.line_no""", [run_id, version_id] * 3)
-    names = [d[0] for d in cursor.description]
-    return [dict(zip(names, row)) for row in cursor.fetchall()]
+    return _rows(cursor)

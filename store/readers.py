@@ -148,15 +148,6 @@ def iteration_count(con: duckdb.DuckDBPyConnection, run_id: str) -> int:
     return con.execute("SELECT count(*) FROM iterations WHERE run_id = ?", [run_id]).fetchone()[0]
 
 
-def iteration_row(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> dict[str, Any] | None:
-    """One ``iterations`` row with its feedback text (``feedback``)."""
-    rows = _rows(con.execute(
-        """SELECT i.*, f.text AS feedback FROM iterations i
-           LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
-           WHERE i.run_id = ? AND i.iteration = ?""", [run_id, iteration]))
-    return rows[0] if rows else None
-
-
 def iterations(con: duckdb.DuckDBPyConnection, run_id: str, before_iteration: int | None = None) -> list[dict[str, Any]]:
     """A run's ``iterations`` rows (before ``before_iteration`` if given), in order: score, best so far, the
     chosen candidate and whether it rolled back."""
@@ -231,7 +222,10 @@ def reusable_assessment(con: duckdb.DuckDBPyConnection, run_id: str, version_id:
     the step cap, never by a time limit (which depends on the machine's load, not on the code)."""
     rows = _rows(con.execute(
         """SELECT c.iteration, c.candidate, c.train_episode_id, c.eval_episode_ids, c.robust_episode_ids,
-                  c.train_return, c.score, c.deterministic_score, c.standard_score
+                  c.train_return, c.score, c.deterministic_score, c.standard_score,
+                  (SELECT e.length FROM episodes e WHERE e.episode_id = c.train_episode_id) AS train_length,
+                  (SELECT avg(e.length) FROM episodes e
+                   WHERE e.run_id = $run AND list_contains(c.eval_episode_ids, e.episode_id)) AS eval_length
            FROM candidates c
            WHERE c.run_id = $run AND c.policy_version_id = $version AND c.evaluation = 'played'
              AND NOT (c.decision = 'rejected' AND c.policy_version_id IS NOT DISTINCT FROM c.proposed_version_id)

@@ -11,18 +11,18 @@ from typing import Any
 import duckdb
 import pyarrow as pa
 
+from store.readers import _rows
 
-def _rows(con: duckdb.DuckDBPyConnection, sql: str, params: list[Any] | None = None) -> list[dict[str, Any]]:
-    cursor = con.execute(sql, params or [])
-    names = [d[0] for d in cursor.description]
-    return [dict(zip(names, row)) for row in cursor.fetchall()]
+
+def _query(con: duckdb.DuckDBPyConnection, sql: str, params: list[Any] | None = None) -> list[dict[str, Any]]:
+    return _rows(con.execute(sql, params or []))
 
 
 def report_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
     """What ``codearcade report`` shows of a run: its summary, learning curve, code metrics, LLM usage, rejected
     candidates, lineage, episodes and versions (the views of docs/schema.md)."""
     def q(sql: str) -> list[dict[str, Any]]:
-        return _rows(con, sql, [run_id])
+        return _query(con, sql, [run_id])
 
     return {
         "summary": q("SELECT * FROM run_summary WHERE run_id = ?")[0],
@@ -42,11 +42,11 @@ def report_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
 def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
     """A run recording's data: the run row, its iterations (joined with the evaluated version and its code, the
     LLM call with its prompt and reply, the feedback) and its lineage."""
-    runs = _rows(con, "SELECT run_id, kind, game, model, seed, status, config, created_at, error FROM runs "
+    runs = _query(con, "SELECT run_id, kind, game, model, seed, status, config, created_at, error FROM runs "
                       "WHERE run_id = ?", [run_id])
     if not runs:
         raise KeyError(f"no run {run_id}")
-    iterations = _rows(con, """
+    iterations = _query(con, """
         SELECT i.iteration, i.policy_version_id, i.update_status, i.rolled_back, i.score, i.best_score,
                i.best_iteration, i.train_return, i.wall_s,
                v.loc, v.complexity, v.max_if_depth, code.text AS code,
@@ -62,7 +62,7 @@ def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
         LEFT JOIN blobs r ON r.hash = c.reply_hash
         LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
         WHERE i.run_id = $1 ORDER BY i.iteration""", [run_id])
-    lineage = _rows(con, "SELECT iteration, candidate, parent_iteration, parent_candidate, score, decision, "
+    lineage = _query(con, "SELECT iteration, candidate, parent_iteration, parent_candidate, score, decision, "
                          "update_status FROM lineage WHERE run_id = ? ORDER BY iteration, candidate", [run_id])
     return {"run": runs[0], "iterations": iterations, "lineage": lineage}
 
@@ -75,7 +75,7 @@ def episode_list(con: duckdb.DuckDBPyConnection, run_id: str) -> list[tuple[str,
 
 def episode_tables(con: duckdb.DuckDBPyConnection, episode_id: str) -> tuple[dict[str, Any], pa.Table, pa.Table]:
     """An episode's row, and its steps and node calls as Arrow tables in order; KeyError if there is none."""
-    rows = _rows(con, "SELECT * FROM episodes WHERE episode_id = ?", [episode_id])
+    rows = _query(con, "SELECT * FROM episodes WHERE episode_id = ?", [episode_id])
     if not rows:
         raise KeyError(f"no episode {episode_id}")
     steps = con.sql("SELECT step, action, reward, score, lives, objects FROM steps WHERE episode_id = $1 "
