@@ -504,18 +504,32 @@ def run_episodes(
                      progress=progress, started=started, prepare=prepare, on_actions=on_actions)
 
 
-def run_json_task(name: str, item: dict[str, Any], local: Callable[[dict[str, Any]], Any], time_limit_s: float,
-                  memory_mb: int | None = 4096, workers: int = 1) -> tuple[bool, Any]:
-    """Run a task whose answer is ``{"kind": "result", "reason": str | None}`` in a confined worker: (True,
-    reason) when it answered, (False, why not) when it crashed, misbehaved or timed out."""
-    def decode(_item: Any, msg: dict[str, Any], _tables: list[bytes]) -> tuple[bool, Any]:
-        reason = msg.get("reason")
-        if reason is not None and not isinstance(reason, str):
-            raise wire.BadMessage("the reason is not text")
-        return True, reason if reason is None else reason[:wire.MAX_TEXT]
-
-    task = Task(name, lambda it, _p: (True, local(it)), lambda it: it, decode,
-                limits=lambda it: dict(memory_mb=memory_mb, cpu_s=int(math.ceil(time_limit_s)) + 5))
-    [(_, result)] = list(run_tasks(task, [item], workers, lambda it, why, timed_out: (False, why),
-                                   time_limit_s=lambda it: time_limit_s))
+def run_json_task(name: str, item: dict[str, Any], local: Callable[[dict[str, Any]], dict[str, str | None]],
+                  time_limit_s: float, memory_mb: int | None = 4096, workers: int = 1) -> tuple[bool, Any]:
+    """Run a task whose answer is ``{"kind": "result", FIELD: str | None, ...}`` (``local`` returns the fields)
+    in a confined worker: (True, the fields) when it answered, (False, why not) when it crashed, misbehaved or
+    timed out."""
+    (result,) = run_json_tasks(name, [item], local, lambda it: time_limit_s, lambda it: memory_mb, workers)
     return result
+
+
+def run_json_tasks(name: str, items: list[dict[str, Any]], local: Callable[[dict[str, Any]], dict[str, str | None]],
+                   time_limit_s: Callable[[dict[str, Any]], float],
+                   memory_mb: Callable[[dict[str, Any]], int | None] = lambda item: 4096,
+                   workers: int = 1) -> list[tuple[bool, Any]]:
+    """:func:`run_json_task` of each item (limits per item), up to ``workers`` at once; results in item order."""
+    def decode(_item: Any, msg: dict[str, Any], _tables: list[bytes]) -> tuple[bool, Any]:
+        fields = {k: v for k, v in msg.items() if k != "kind"}
+        if any(v is not None and not isinstance(v, str) for v in fields.values()):
+            raise wire.BadMessage("an answer is not text")
+        return True, {k: v if v is None else v[:wire.MAX_TEXT] for k, v in fields.items()}
+
+    if not items:
+        return []
+    task = Task(name, lambda it, _p: (True, local(it)), lambda it: it, decode,
+                limits=lambda it: dict(memory_mb=memory_mb(it), cpu_s=int(math.ceil(time_limit_s(it))) + 5))
+    results: list[Any] = [None] * len(items)
+    for i, result in run_tasks(task, items, workers, lambda it, why, timed_out: (False, why),
+                               time_limit_s=time_limit_s):
+        results[i] = result
+    return results

@@ -39,9 +39,11 @@ from pipeline.task import example_path, task_settings
 from pipeline.tokens import TokenCounter
 from pipeline.versions import policy_version_row
 from store import Store
-from store.db import utcnow
+from store.db import Hold, utcnow
 from store.locks import run_lock
 from store.readers import (
+    HISTORY_CANDIDATE_COLUMNS,
+    HISTORY_ITERATION_COLUMNS,
     candidates,
     get_run,
     iteration_count,
@@ -214,6 +216,9 @@ class RunState:
     best_iteration: int = 0
     best_version_id: str | None = None
     llm_failures: int = 0
+    history: History | None = None
+    """The run's completed iterations as stored: read from the store once, then extended by each commit with
+    the rows it wrote (``test_strategies.py`` checks it against the store)."""
     rerun: str | None = None
     """Live Rerun recordings of this invocation's episodes (``EpisodeSpec.rerun``); an output option, not recorded."""
     waiting: Callable[[int, str], ContextManager[Callable[[str], None] | None]] = lambda it, model: nullcontext()
@@ -343,21 +348,31 @@ def _check_wall(store: Store, state: RunState) -> None:
 
 def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClient | None,
                   counter: TokenCounter | None, log: Callable[[str], None],
-                  progress: Callable[[int, int], None] | None = None) -> IterationResult:
-    """One whole iteration (see the module docstring): plan, propose, assess, decide; commits its rows last."""
+                  progress: Callable[[int, int], None] | None = None, hold: Hold | None = None) -> IterationResult:
+    """One whole iteration (see the module docstring): plan, propose, assess, decide; commits its rows last.
+
+    ``hold``: the loop's hold on the store, kept from this iteration's commit to the next one's LLM calls (the
+    file is let go and checkpointed once per iteration, before the model is asked); without one, the iteration
+    holds the store itself and lets go when it is done."""
     started_at, t0 = utcnow(), time.monotonic()
-    hold = store.hold()  # all but the LLM calls and the episodes: short reads and writes (store/db.py Hold)
+    own = hold is None
+    hold = store.hold() if own else hold  # all but the LLM calls and the episodes: short reads and writes
     try:
         return _run_iteration(store, state, iteration, client, counter, log, progress, hold, started_at, t0)
     finally:
-        hold.release()
+        if own:
+            hold.release()
 
 
 def _run_iteration(store, state, iteration, client, counter, log, progress, hold, started_at, t0) -> IterationResult:
     hold.take()  # propose lets go while the model is asked
-    with store.read() as con:
-        history = History(iterations(con, state.run_id, iteration), candidates(con, state.run_id, iteration))
-        starter = starter_version_id(con, state.run_id) if iteration == 0 else None
+    history = state.history
+    if history is None or len(history.iterations) != iteration:
+        with store.read() as con:
+            history = History(iterations(con, state.run_id, iteration), candidates(con, state.run_id, iteration))
+    if iteration == 0:
+        with store.read() as con:
+            starter = starter_version_id(con, state.run_id)
     strategy = state.strategy
     if iteration == 0:
         proposals = [Proposal(0, None, None, "initial", starter, starter, None, "", None)]
@@ -399,7 +414,7 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
     if decision.new_best is not None:
         best = assessed[decision.new_best]
         state.best_score, state.best_iteration, state.best_version_id = best.score, iteration, best.version_id
-    _commit(store, state, iteration, proposals, assessments, assessed, decision, screens,
+    _commit(store, state, iteration, history, proposals, assessments, assessed, decision, screens,
             timing=dict(started_at=started_at, llm_s=llm_s, train_s=times.train_s, eval_s=times.eval_s, t0=t0))
     state.next_iteration = iteration + 1
     chosen, notes = assessed[decision.chosen], decision.notes[decision.chosen]
@@ -418,11 +433,11 @@ def _protocols_note(config: OptimizeConfig, a) -> str:
             f"{len(a.robust_episode_ids)}; {optimized}).")
 
 
-def _commit(store: Store, state: RunState, iteration: int, proposals: list[Proposal], assessments, assessed,
-            decision, screens, timing: dict[str, Any]) -> None:
+def _commit(store: Store, state: RunState, iteration: int, history: History, proposals: list[Proposal],
+            assessments, assessed, decision, screens, timing: dict[str, Any]) -> None:
     """Write the iteration in one transaction: the proposed versions, the rollback version (greedy), the versions
     caught tampering, every candidate with its feedback, the chosen candidate's feedback and the ``iterations``
-    row."""
+    row; then ``state.history`` is ``history`` with the rows written (as ``store.readers`` reads them back)."""
     c = state.config
     texts = {}
     for p, a in zip(proposals, assessed):
@@ -442,11 +457,12 @@ def _commit(store: Store, state: RunState, iteration: int, proposals: list[Propo
             insert_policy_version(con, policy_version_row(inspect_policy(best_text, "policy.py"), state.run_id,
                                                           iteration, "rollback", "accepted",
                                                           parent_id=assessed[decision.chosen].version_id))
+        written = []
         for p, a in zip(proposals, assessed):
             played = assessments[p.candidate]
             if a.tampered:
                 reject_policy_version(con, state.run_id, iteration, a.version_id, a.tampered)
-            insert_candidate(con, dict(
+            written.append(dict(
                 run_id=state.run_id, iteration=iteration, candidate=p.candidate, strategy=c.strategy,
                 parent_iteration=p.parent.iteration if p.parent else None,
                 parent_candidate=p.parent.candidate if p.parent else None, parent_version_id=p.parent_version_id,
@@ -461,10 +477,11 @@ def _commit(store: Store, state: RunState, iteration: int, proposals: list[Propo
                 screen_score=screens[p.candidate].score if p.candidate in screens else None,
                 screen_bar=screens[p.candidate].bar if p.candidate in screens else None,
                 decision=decision.decisions[p.candidate], feedback=texts[p.candidate][2]))
+            insert_candidate(con, written[-1])
         stage, stage_score, text = texts[chosen.candidate]
         insert_feedback(con, dict(run_id=state.run_id, iteration=iteration, mode=c.feedback, stage=stage,
                                   score=stage_score, text=text))
-        insert_iteration(con, dict(
+        insert_iteration(con, iteration_row := dict(
             run_id=state.run_id, iteration=iteration, candidate=chosen.candidate,
             policy_version_id=assessed[decision.chosen].version_id, base_version_id=chosen.parent_version_id,
             update_status=assessed[decision.chosen].status, rolled_back=decision.rolled_back,
@@ -474,6 +491,9 @@ def _commit(store: Store, state: RunState, iteration: int, proposals: list[Propo
             best_version_id=state.best_version_id, best_iteration=state.best_iteration,
             started_at=timing["started_at"], finished_at=utcnow(), llm_s=timing["llm_s"],
             train_s=timing["train_s"], eval_s=timing["eval_s"], wall_s=time.monotonic() - timing["t0"]))
+    known = [{**row, **a.behaviour} for row, a in zip(written, assessed)]  # + complexity, eval_length
+    state.history = History(history.iterations + [{k: iteration_row[k] for k in HISTORY_ITERATION_COLUMNS}],
+                            history.candidates + [{k: row[k] for k in HISTORY_CANDIDATE_COLUMNS} for row in known])
 
 
 def run_loop(store: Store, state: RunState, client: LLMClient | None, log: Callable[[str], None] = lambda s: None,
@@ -492,13 +512,14 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
     counter = TokenCounter(client.model) if client is not None and state.config.iterations else None
     result = OptimizeResult(state.run_id, "running")
     status, error = "failed", None
+    hold = store.hold()
     try:
         with store.write() as con:
             mark_run_running(con, state.run_id)
         for iteration in range(state.next_iteration, state.config.iterations + 1):
             if iteration > 0:
                 _check_wall(store, state)
-            item = run_iteration(store, state, iteration, client, counter, log, progress)
+            item = run_iteration(store, state, iteration, client, counter, log, progress, hold)
             result.iterations.append(item)
             if on_iteration is not None:
                 on_iteration(item)
@@ -517,8 +538,11 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
         raise
     finally:
         result.status, result.error = status, error
-        with store.write() as con:
-            finish_run(con, state.run_id, status, error)
+        try:
+            with store.write() as con:
+                finish_run(con, state.run_id, status, error)
+        finally:
+            hold.release()
     return result
 
 

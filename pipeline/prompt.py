@@ -31,7 +31,7 @@ import duckdb
 from games import get_game, list_widths
 from pipeline.strategies import Greedy, History, Ref, format_number
 from pipeline.tokens import TokenCounter
-from store.readers import candidates, episode_steps, episode_summary, get_run, iterations, policy_text, step_nodes
+from store.readers import candidates, episode_steps, episode_summaries, get_run, iterations, policy_texts, step_nodes
 from tracing.policy_file import PolicyInfo, inspect_policy, replace_methods
 from tracing.sandbox import ALLOWED_MODULES
 
@@ -155,22 +155,21 @@ def context_for(
     base = history.candidate(parent)
     run = get_run(con, run_id)
     game = get_game(run["game"])
-    info = inspect_policy(policy_text(con, run_id, base["policy_version_id"]), "policy.py")
+    rows = [history.candidate(ref) for ref in memory]
+    texts = policy_texts(con, run_id, [base["policy_version_id"]] + [row["policy_version_id"] for row in rows])
+    info = inspect_policy(texts[base["policy_version_id"]], "policy.py")
     train_steps, train_nodes = _rollout(con, base["train_episode_id"], game)
-    entries = []
-    for ref in memory:
-        row = history.candidate(ref)
-        sources = dict(_trainable_sources(policy_text(con, run_id, row["policy_version_id"])))
-        entries.append(MemoryEntry(row["iteration"], row["score"], row["update_status"], row["feedback"] or "",
-                                   sources))
+    entries = [MemoryEntry(row["iteration"], row["score"], row["update_status"], row["feedback"] or "",
+                           dict(_trainable_sources(texts[row["policy_version_id"]]))) for row in rows]
+    train_episode, *eval_episodes = episode_summaries(con, [base["train_episode_id"], *(base["eval_episode_ids"] or [])])
     return PromptContext(
         game=game.name,
         instruction=json.loads(run["config"]).get("instruction") or "",
         info=info,
-        train_episode=episode_summary(con, base["train_episode_id"]),
+        train_episode=train_episode,
         train_steps=train_steps,
         train_nodes=train_nodes,
-        eval_episodes=[episode_summary(con, e) for e in base["eval_episode_ids"] or []],
+        eval_episodes=eval_episodes,
         feedback=note + (base["feedback"] or ""),
         memory=entries,
         call_time_limit_s=call_time_limit_s,

@@ -19,6 +19,7 @@ recorded; an iteration whose every call failed counts towards :data:`MAX_CONSECU
 from __future__ import annotations
 
 import json
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
@@ -31,12 +32,12 @@ from pipeline.runinfo import new_run_id
 from pipeline.strategies import History, ProposalRequest, Ref
 from pipeline.tokens import TokenCounter
 from pipeline.untrusted import clean_untrusted_text
-from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, check_fits, spread
+from pipeline.validate import CandidateRejected, RuntimeCheck, check_fits, spread, validate_candidates
 from pipeline.versions import policy_version_row
 from store import Store
 from store.db import Hold
-from store.readers import run_spending, stored_reply
-from store.writer import insert_llm_call, set_llm_call_outcome
+from store.readers import run_spending, stored_replies_of
+from store.writer import insert_llm_calls
 
 if TYPE_CHECKING:
     from pipeline.optimize import RunState
@@ -100,19 +101,23 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     follows is short: store the calls, validate, and the caller's commit)."""
     c = state.config
     pending = []
+    built: dict[tuple, tuple] = {}  # best-of-n asks N times with the same context: build its prompt once
     with store.read() as con:
+        stored = stored_replies_of(con, state.run_id, iteration)  # a resumed iteration's, for the same prompts
         for request in requests:
-            ctx = context_for(con, state.run_id, history, request.parent, request.memory, request.note,
-                              c.call_time_limit_s, c.collapse_repeats)
-            try:
-                prompt = build_prompt(ctx, c.token_budget, counter)
-            except PromptBudgetError as exc:
-                raise ValueError(str(exc)) from None
+            key = (request.parent, tuple(request.memory), request.note)
+            if key not in built:
+                ctx = context_for(con, state.run_id, history, request.parent, request.memory, request.note,
+                                  c.call_time_limit_s, c.collapse_repeats)
+                try:
+                    built[key] = (ctx, build_prompt(ctx, c.token_budget, counter))
+                except PromptBudgetError as exc:
+                    raise ValueError(str(exc)) from None
+            ctx, prompt = built[key]
             item = _Pending(request, prompt, ctx.info.version_id, [(r["step"], r["obs"]) for r in ctx.train_steps],
                             ctx.info)
-            stored = stored_reply(con, state.run_id, iteration, prompt.hash, request.candidate)
-            if stored is not None:
-                item.call_id, item.text = stored
+            if (prompt.hash, request.candidate) in stored:
+                item.call_id, item.text = stored[prompt.hash, request.candidate]
                 item.parse()
             pending.append(item)
     reused = [p for p in pending if p.text is not None]
@@ -121,9 +126,9 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     to_call = [p for p in pending if p.text is None]
     if to_call:
         check_budgets(store, state, client, [p.prompt for p in to_call])
-        if hold is not None:
-            hold.release()  # other processes may read the store while the model thinks
-        _complete_all(state, iteration, client, to_call)
+        # other processes may read the store while the model thinks: let go of it (checkpointing what this
+        # process wrote) once the requests are on their way
+        _complete_all(state, iteration, client, to_call, meanwhile=hold.release if hold is not None else None)
     if hold is not None:
         hold.take()
     if to_call:
@@ -144,15 +149,17 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
             raise failed[-1].error
     else:
         state.llm_failures = 0
-    return [_validate(store, state, iteration, item, counter) for item in pending]
+    return _validate_all(state, iteration, pending, counter)
 
 
 def _replies(n: int) -> str:
     return "the reply" if n == 1 else f"{n} replies"
 
 
-def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: list[_Pending]) -> None:
-    """Request every reply, at most ``max_concurrent_calls`` at a time; each item gets its reply or error."""
+def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: list[_Pending],
+                  meanwhile: Callable[[], None] | None = None) -> None:
+    """Request every reply, at most ``max_concurrent_calls`` at a time; each item gets its reply or error.
+    ``meanwhile`` runs in a thread of its own while the model is asked (its error is raised after the replies)."""
 
     def complete(item: _Pending, on_text) -> None:
         try:
@@ -160,52 +167,79 @@ def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: l
         except LLMError as exc:
             item.error = exc
 
-    with state.waiting(iteration, client.label) as on_text:
-        if len(items) == 1:
-            complete(items[0], on_text)
-            return
-        with ThreadPoolExecutor(max_workers=max(1, min(len(items), state.config.max_concurrent_calls)),
-                                thread_name_prefix="llm") as pool:
-            list(pool.map(lambda item: complete(item, None), items))
+    failed: list[BaseException] = []
+
+    def run_meanwhile() -> None:
+        try:
+            meanwhile()
+        except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread below
+            failed.append(exc)
+
+    helper = threading.Thread(target=run_meanwhile, name="meanwhile") if meanwhile is not None else None
+    if helper is not None:
+        helper.start()
+    try:
+        with state.waiting(iteration, client.label) as on_text:
+            if len(items) == 1:  # in this thread: Ctrl-C stops it at once
+                complete(items[0], on_text)
+                return
+            with ThreadPoolExecutor(max_workers=max(1, min(len(items), state.config.max_concurrent_calls)),
+                                    thread_name_prefix="llm") as pool:
+                list(pool.map(lambda item: complete(item, None), items))
+    finally:
+        if helper is not None:
+            helper.join()
+            if failed:
+                raise failed[0]
 
 
-def _validate(store: Store, state: "RunState", iteration: int, item: _Pending, counter: TokenCounter) -> Proposal:
-    """Parse and check one reply; write the candidate's policy version (accepted or rejected)."""
+def _validate_all(state: "RunState", iteration: int, items: list[_Pending], counter: TokenCounter) -> list[Proposal]:
+    """Parse and check every reply (the worker round trips of several at once); a :class:`Proposal` each, with
+    the row of its candidate's policy version (accepted or rejected) to write with the iteration."""
     c = state.config
-    request, prompt = item.request, item.prompt
-    base = item.context_version
+    workers = max(1, c.workers)  # candidates are always checked in confined workers, even with --workers 0
 
-    def outcome(status: str, note: str, version: str | None = None, proposed: str | None = None,
+    def outcome(item: _Pending, status: str, note: str, version: str | None = None, proposed: str | None = None,
                 row: dict | None = None, text: str | None = None) -> Proposal:
-        return Proposal(request.candidate, request.parent, base, status, version or base, proposed, item.call_id,
-                        note, prompt.tokens, row, text)
+        base = item.context_version
+        return Proposal(item.request.candidate, item.request.parent, base, status, version or base, proposed,
+                        item.call_id, note, item.prompt.tokens, row, text)
 
-    if item.error is not None:
-        return outcome("llm_error", f"The LLM call failed ({item.error}); the code is unchanged.")
-    if item.parse_error is not None:
-        return outcome("rejected", f"Your last reply was not usable: {item.parse_error}. Reply with the JSON format "
-                                   "asked for.")
-    try:
-        candidate = build_candidate(item.info, item.suggestion)
-        if candidate is not None:
-            check_fits(candidate, c.token_budget, counter)
-    except CandidateRejected as exc:  # nothing runnable to store: the reason is the record
-        return outcome("rejected", f"Your last suggestion was rejected: {exc}")
-    if candidate is None:
-        return outcome("unchanged", "Your last suggestion did not change the code.")
-    try:
-        check_at_runtime(RuntimeCheck(candidate.text, state.game, spread(item.observations),
-                                      call_time_limit_s=c.call_time_limit_s))
-        verdict, reason = "accepted", None
-    except CandidateRejected as exc:
-        verdict, reason = "rejected", str(exc)
-    row = policy_version_row(candidate.info, state.run_id, iteration, "llm", verdict, reason, parent_id=base,
-                             llm_call_id=item.call_id)
-    if reason is not None:
-        return outcome("rejected", f"Your last suggestion was rejected: {reason}", proposed=candidate.version_id,
-                       row=row)
-    return outcome("accepted", "", version=candidate.version_id, proposed=candidate.version_id, row=row,
-                   text=candidate.text)
+    def proposed(item: _Pending):
+        observations = spread(item.observations)
+        return (item.info, item.suggestion,
+                lambda text: RuntimeCheck(text, state.game, observations, call_time_limit_s=c.call_time_limit_s),
+                lambda candidate: check_fits(candidate, c.token_budget, counter))
+
+    checked = [item for item in items if item.error is None and item.parse_error is None]
+    results = dict(zip(map(id, checked), validate_candidates([proposed(item) for item in checked], workers)))
+    proposals = []
+    for item in items:
+        if item.error is not None:
+            proposals.append(outcome(item, "llm_error", f"The LLM call failed ({item.error}); the code is unchanged."))
+            continue
+        if item.parse_error is not None:
+            proposals.append(outcome(item, "rejected", f"Your last reply was not usable: {item.parse_error}. Reply "
+                                                       "with the JSON format asked for."))
+            continue
+        result = results[id(item)]
+        if isinstance(result, CandidateRejected):  # nothing runnable to store: the reason is the record
+            proposals.append(outcome(item, "rejected", f"Your last suggestion was rejected: {result}"))
+            continue
+        candidate, reason = result
+        if candidate is None:
+            proposals.append(outcome(item, "unchanged", "Your last suggestion did not change the code."))
+            continue
+        row = policy_version_row(candidate.info, state.run_id, iteration, "llm",
+                                 "accepted" if reason is None else "rejected", reason, parent_id=item.context_version,
+                                 llm_call_id=item.call_id)
+        if reason is not None:
+            proposals.append(outcome(item, "rejected", f"Your last suggestion was rejected: {reason}",
+                                     proposed=candidate.version_id, row=row))
+        else:
+            proposals.append(outcome(item, "accepted", "", version=candidate.version_id,
+                                     proposed=candidate.version_id, row=row, text=candidate.text))
+    return proposals
 
 
 def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, items: list[_Pending]) -> None:
@@ -213,34 +247,38 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
     in one transaction and in candidate order (the store does not depend on which reply came first); each item
     gets its call id."""
     params = client.request_params()
+    calls = []
+    canonical: dict[int, str] = {}  # best-of-n: N calls share one prompt
+    for item in items:
+        item.call_id = new_run_id()
+        reply, error = item.reply, item.error
+        row = {
+            "call_id": item.call_id, "run_id": run_id, "iteration": iteration,
+            "candidate": item.request.candidate, "purpose": "update", "operation_name": "chat",
+            "provider_name": client.provider, "request_model": client.model,
+            "request_temperature": params.get("temperature"),
+            "request_max_tokens": params.get("max_tokens", params.get("max_completion_tokens")),
+            "request_seed": params.get("seed"), "request_params": json.dumps(params, sort_keys=True),
+            "prompt_tokens_counted": item.prompt.tokens,
+            "latency_s": reply.latency_s if reply else (error.latency_s if error else None),
+            "attempts": reply.attempts if reply else (error.attempts if error else 1),
+            "replayed": bool(reply.replayed) if reply else False,
+        }
+        if reply is not None:
+            row.update(response_model=reply.response_model, response_id=reply.response_id,
+                       finish_reasons=reply.finish_reasons, input_tokens=reply.input_tokens,
+                       output_tokens=reply.output_tokens, cached_input_tokens=reply.cached_input_tokens,
+                       cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd)
+        if error is not None:
+            row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
+        if reply is not None:
+            row.update(parse_error=item.parse_error)
+        if id(item.prompt) not in canonical:
+            canonical[id(item.prompt)] = canonical_messages(item.prompt.messages)
+        calls.append((row, canonical[id(item.prompt)], clean_text(reply.text) if reply is not None else None,
+                      json.dumps(item.suggestion, sort_keys=True) if item.suggestion is not None else None))
     with store.write() as con:
-        for item in items:
-            item.call_id = new_run_id()
-            reply, error = item.reply, item.error
-            row = {
-                "call_id": item.call_id, "run_id": run_id, "iteration": iteration,
-                "candidate": item.request.candidate, "purpose": "update", "operation_name": "chat",
-                "provider_name": client.provider, "request_model": client.model,
-                "request_temperature": params.get("temperature"),
-                "request_max_tokens": params.get("max_tokens", params.get("max_completion_tokens")),
-                "request_seed": params.get("seed"), "request_params": json.dumps(params, sort_keys=True),
-                "prompt_tokens_counted": item.prompt.tokens,
-                "latency_s": reply.latency_s if reply else (error.latency_s if error else None),
-                "attempts": reply.attempts if reply else (error.attempts if error else 1),
-                "replayed": bool(reply.replayed) if reply else False,
-            }
-            if reply is not None:
-                row.update(response_model=reply.response_model, response_id=reply.response_id,
-                           finish_reasons=reply.finish_reasons, input_tokens=reply.input_tokens,
-                           output_tokens=reply.output_tokens, cached_input_tokens=reply.cached_input_tokens,
-                           cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd)
-            if error is not None:
-                row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
-            insert_llm_call(con, row, canonical_messages(item.prompt.messages),
-                            clean_text(reply.text) if reply is not None else None)
-            if reply is not None:
-                set_llm_call_outcome(con, item.call_id, json.dumps(item.suggestion, sort_keys=True)
-                                     if item.suggestion is not None else None, item.parse_error)
+        insert_llm_calls(con, calls)
 
 
 def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: list[Prompt]) -> None:

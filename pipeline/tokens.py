@@ -5,16 +5,31 @@ exactly. For every other model (OpenAI's, local servers, SmolLM2) the count is a
 ``cl100k_base`` (bundled with litellm, no download) times a 10 % safety margin, which covered the
 SmolLM2/Llama tokenizers with room to spare when we compared them. The budget is a hard limit on *our*
 count; :class:`TokenCounter` says which of the two it used.
+
+A prompt is counted many times while it is fitted to the budget, each time a little different. For the
+estimate the whole text is not encoded again: tiktoken first splits a text with its pattern, then encodes each
+piece on its own, and no piece of ``cl100k_base`` runs from a newline into a following non-space character, so
+the text's count is the sum of its lines' counts (each line counted once and kept). ``test_prompt.py`` checks
+the sum against the whole encoding.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import re
 from functools import lru_cache
 from typing import Callable
 
 ESTIMATE_MARGIN = 1.10
+_LINE_ENDS = re.compile(r"\n(?=\S)")
+"""Where tiktoken's cl100k_base pattern always ends a piece: a newline before a non-space character."""
+
+
+def _lines(text: str) -> list[str]:
+    """``text`` cut after each newline that a non-space character follows (a lookbehind split is 6x slower)."""
+    parts = _LINE_ENDS.split(text)
+    return [part + "\n" for part in parts[:-1]] + [parts[-1]]
 MESSAGE_OVERHEAD = 4
 """Tokens chat templates add around each message (role markers); counted so the budget holds."""
 
@@ -55,11 +70,13 @@ class TokenCounter:
             self.exact = False
             self.method = f"estimate: cl100k_base tokens x {ESTIMATE_MARGIN}"
             encoding = _cl100k()
-            self._count = lambda text: math.ceil(len(encoding.encode(text, disallowed_special=())) * ESTIMATE_MARGIN)
-
-        # the same lines come back in prompt after prompt (a parent's rollout is shown to each of its children,
-        # and an unchanged version's rollout is reused): count each text once
-        self._cached = lru_cache(maxsize=65_536)(self._count)
+            # the same lines come back in prompt after prompt (a parent's rollout is shown to each of its
+            # children, and an unchanged version's rollout is reused): encode each line once
+            pieces = lru_cache(maxsize=65_536)(lambda chunk: len(encoding.encode(chunk, disallowed_special=())))
+            self._count = lambda text: math.ceil(sum(map(pieces, _lines(text))) * ESTIMATE_MARGIN)
+            self._cached = self._count  # the lines are kept, not the whole prompts they make
+            return
+        self._cached = lru_cache(maxsize=4_096)(self._count)  # count each text once
 
     def __call__(self, text: str) -> int:
         return self._cached(text) if text else 0

@@ -22,11 +22,11 @@ import hashlib
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Callable
 
 from games import get_game
-from pipeline.executor import run_json_task
+from pipeline.executor import run_json_tasks
 from pipeline.rollout import coerce_action, describe_exception
 from pipeline.untrusted import clean_untrusted_text
 from tracing.metrics import function_metrics, policy_metrics
@@ -74,7 +74,8 @@ _PARSE_ERRORS = (RecursionError, MemoryError, ValueError, OverflowError)
 
 def vet_here(item: dict[str, Any]) -> str | None:
     """In a worker: the static checks of ``item`` (``op`` ``inspect``: a policy file; ``candidate``: a
-    suggestion for a policy); None if they pass, else the reason."""
+    suggestion for a policy); None if they pass, else the reason. They run with a lower recursion limit."""
+    before = sys.getrecursionlimit()
     sys.setrecursionlimit(max(100, int(item.get("recursion_limit", 1000)) - RECURSION_MARGIN))
     try:
         if item["op"] == "inspect":
@@ -91,24 +92,78 @@ def vet_here(item: dict[str, Any]) -> str | None:
                 measure(candidate.info)
     except _PARSE_ERRORS as exc:
         return f"the code cannot be checked ({type(exc).__name__}: too large or too deeply nested)"
+    finally:
+        sys.setrecursionlimit(before)  # with workers=0 this is the optimizer's own process
     return None
+
+
+def vet_and_check_here(item: dict[str, Any]) -> dict[str, str | None]:
+    """In a worker: :func:`vet_here`; if it passes and ``item`` carries a ``check``, :func:`check_here` on it too.
+    ``reason``: the static checks' verdict; ``runtime``: the runtime check's, when it ran."""
+    reason = vet_here(item)
+    if reason is not None or item.get("check") is None:
+        return {"reason": reason}
+    return {"reason": None, "runtime": check_here(item["check"])["reason"]}
 
 
 _passed: set[str] = set()
 """Digests of items that passed vetting (with this process's recursion limit): no worker for them again."""
+NOT_RUN = object()
+"""What :func:`_vet_all` says of a runtime check it did not run."""
+_ran_clean: set[str] = set()
+"""Digests of runtime checks that passed (the same code on the same observations with the same limits): best-of-n
+often gets the same code twice from one prompt. Failures are not kept: a time limit depends on the load."""
 
 
-def _vet(item: dict[str, Any], workers: int = 1) -> str | None:
-    item = {**item, "recursion_limit": sys.getrecursionlimit()}
-    digest = hashlib.sha256(json.dumps(item, sort_keys=True).encode()).hexdigest()
-    if digest in _passed:
-        return None
-    answered, reason = run_json_task("vet", item, vet_here, VET_TIME_LIMIT_S, memory_mb=2048, workers=workers)
-    if not answered:
-        return f"the static check of the code crashed ({reason})"
-    if reason is None:
-        _passed.add(digest)
-    return reason
+def _check_digest(check: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(check, sort_keys=True).encode()).hexdigest()
+
+
+def _vet(item: dict[str, Any], workers: int = 1, check: "RuntimeCheck | None" = None) -> tuple[str | None, Any]:
+    """(why the static checks of ``item`` fail, or None; and the reason of ``check``, run in the same worker
+    after them, or None if it passed — :data:`NOT_RUN` when the worker did not run it)."""
+    return _vet_all([(item, check)], workers)[0]
+
+
+def _vet_all(requests: list[tuple[dict[str, Any], "RuntimeCheck | None"]], workers: int) -> list[tuple[str | None, Any]]:
+    """:func:`_vet` of each ``(item, check)``, in up to ``workers`` workers at once."""
+    results: list[Any] = [None] * len(requests)
+    to_run = []
+    for i, (item, check) in enumerate(requests):
+        vetted = {**item, "recursion_limit": sys.getrecursionlimit()}
+        digest = hashlib.sha256(json.dumps(vetted, sort_keys=True).encode()).hexdigest()
+        if digest in _passed:
+            results[i] = (None, NOT_RUN)
+            continue
+        if check is not None:
+            vetted["check"] = vars(check).copy()  # not asdict(): it deep-copies the observations only to send them
+        to_run.append((i, digest, vetted))
+
+    def limits(vetted: dict[str, Any]) -> tuple[float, int | None]:
+        check = vetted.get("check")
+        if check is None:
+            return VET_TIME_LIMIT_S, 2048
+        memory_mb = None if check["memory_limit_mb"] is None else max(2048, check["memory_limit_mb"])
+        return VET_TIME_LIMIT_S + check["total_time_limit_s"], memory_mb
+
+    answers = run_json_tasks("vet", [vetted for _, _, vetted in to_run], vet_and_check_here,
+                             time_limit_s=lambda vetted: limits(vetted)[0], memory_mb=lambda vetted: limits(vetted)[1],
+                             workers=workers)
+    for (i, digest, vetted), (answered, answer) in zip(to_run, answers):
+        item, check = requests[i]
+        if not answered and check is not None:  # the static checks or the candidate's run? vet alone to tell
+            reason, _ = _vet(item, workers)
+            results[i] = (reason, NOT_RUN) if reason is not None else (None, f"the candidate's check crashed: {answer}")
+        elif not answered:
+            results[i] = (f"the static check of the code crashed ({answer})", NOT_RUN)
+        elif answer.get("reason") is not None:
+            results[i] = (answer["reason"], NOT_RUN)
+        else:
+            _passed.add(digest)
+            results[i] = (None, answer["runtime"] if "runtime" in answer else NOT_RUN)
+            if "runtime" in answer and answer["runtime"] is None:
+                _ran_clean.add(_check_digest(vetted["check"]))
+    return results
 
 
 def measure(info: PolicyInfo) -> None:
@@ -126,7 +181,7 @@ def checked_inspect(text: str, name: str, workers: int = 1) -> PolicyInfo:
     :class:`PolicyLoadError` with one line for text that cannot be checked: too large or too deeply nested
     for a parser or radon (the worker's recursion limit is lower than this process's, its memory capped)."""
     if workers > 0:
-        reason = _vet({"op": "inspect", "text": text, "name": name})
+        reason, _ = _vet({"op": "inspect", "text": text, "name": name})
         if reason is not None:
             raise PolicyLoadError(reason if reason.startswith(name) else f"{name}: {reason}")
     try:
@@ -140,9 +195,81 @@ def checked_inspect(text: str, name: str, workers: int = 1) -> PolicyInfo:
 def build_candidate(info: PolicyInfo, suggestion: dict[str, str]) -> Candidate | None:
     """The candidate policy text for ``suggestion`` (static checks, vetted in a confined worker first), or
     None if it changes nothing."""
+    _check_types(suggestion)
+    (reason, _), = _vet_all([(_vet_item(info, suggestion), None)], workers=1)
+    return _vetted_candidate(info, suggestion, reason)
+
+
+Proposed = tuple[PolicyInfo, dict[str, str], Callable[[str], "RuntimeCheck"], Callable[[Candidate], None]]
+"""A suggestion to validate: the policy it changes, the suggestion, its runtime check (the candidate's text ->
+its :class:`RuntimeCheck`) and the check that it fits (raises :class:`CandidateRejected`)."""
+
+
+def validate_candidate(info: PolicyInfo, suggestion: dict[str, str], check: Callable[[str], "RuntimeCheck"],
+                       fits: Callable[[Candidate], None] = lambda candidate: None) -> tuple[Candidate | None, str | None]:
+    """Every check of a suggestion, in order: the static checks (:func:`build_candidate`), ``fits`` (raises
+    :class:`CandidateRejected` too), then the runtime check (``check``: the candidate's text -> its
+    :class:`RuntimeCheck`). Returns (None, None) if the suggestion changes nothing, else the candidate and the
+    runtime check's reason to reject it (None: it passed; cleaned as untrusted text).
+
+    One worker round trip instead of two: the candidate's text is spliced into the (trusted) policy without
+    parsing the suggestion here, and the vetting worker runs the runtime check on it right after the static
+    checks. This process still parses nothing the worker has not vetted; if what it then builds differs from
+    the spliced text (it cannot, short of a bug), the runtime check runs again on what was built."""
+    (result,) = validate_candidates([(info, suggestion, check, fits)], workers=1)
+    if isinstance(result, CandidateRejected):
+        raise result
+    return result
+
+
+def validate_candidates(proposed: list[Proposed], workers: int = 1) -> list[tuple[Candidate | None, str | None] | CandidateRejected]:
+    """:func:`validate_candidate` of each, with up to ``workers`` worker round trips at once (an iteration of
+    best-of-n validates N); each result is what it returns or the :class:`CandidateRejected` it raises."""
+    results: list[Any] = [None] * len(proposed)
+    requests, asked = [], []
+    for i, (info, suggestion, check, _) in enumerate(proposed):
+        try:
+            _check_types(suggestion)
+        except CandidateRejected as exc:
+            results[i] = exc
+            continue
+        spliced = _spliced(info, suggestion)
+        requests.append((_vet_item(info, suggestion), check(spliced) if spliced is not None else None))
+        asked.append((i, spliced))
+    rerun = []
+    for (i, spliced), (reason, runtime) in zip(asked, _vet_all(requests, workers)):
+        info, suggestion, check, fits = proposed[i]
+        try:
+            candidate = _vetted_candidate(info, suggestion, reason)
+            if candidate is not None:
+                fits(candidate)
+        except CandidateRejected as exc:
+            results[i] = exc
+            continue
+        results[i] = (candidate, runtime)
+        if candidate is not None and (runtime is NOT_RUN or candidate.text != spliced):
+            rerun.append(i)
+    checks = [proposed[i][2](results[i][0].text) for i in rerun]
+    for i, runtime in zip(rerun, _runtime_reasons(checks, workers)):
+        results[i] = (results[i][0], runtime)
+    for i, result in enumerate(results):
+        if isinstance(result, tuple) and result[1] is not None:  # cleaned as a CandidateRejected's reason is
+            results[i] = (result[0], clean_untrusted_text(result[1]))
+    return results
+
+
+def _check_types(suggestion: dict[str, str]) -> None:
     if not all(isinstance(k, str) and isinstance(v, str) for k, v in suggestion.items()):
         raise CandidateRejected("the suggestion must map method names to source text")
-    reason = _vet({"op": "candidate", "text": info.text, "name": info.name, "suggestion": dict(suggestion)})
+
+
+def _vet_item(info: PolicyInfo, suggestion: dict[str, str]) -> dict[str, Any]:
+    return {"op": "candidate", "text": info.text, "name": info.name, "suggestion": dict(suggestion)}
+
+
+def _vetted_candidate(info: PolicyInfo, suggestion: dict[str, str], reason: str | None) -> Candidate | None:
+    """Once vetting said ``reason`` (None: passed): the candidate built and measured here, or None if it changes
+    nothing."""
     if reason is not None:
         raise CandidateRejected(reason)
     try:
@@ -152,6 +279,18 @@ def build_candidate(info: PolicyInfo, suggestion: dict[str, str]) -> Candidate |
         return candidate
     except _PARSE_ERRORS as exc:
         raise CandidateRejected(f"the code cannot be checked ({type(exc).__name__})") from None
+
+
+def _spliced(info: PolicyInfo, suggestion: dict[str, str]) -> str | None:
+    """The text :func:`_build_candidate` makes of ``suggestion`` when its static checks pass, made without
+    parsing the suggestion; None when it changes nothing or names a method that may not change."""
+    if not all(isinstance(k, str) and isinstance(v, str) for k, v in suggestion.items()):
+        return None
+    methods = {m.name: m for m in info.methods}
+    if not all(name in methods and methods[name].trainable for name in suggestion):
+        return None
+    changed = {name: source for name, source in suggestion.items() if source.strip() != methods[name].source.strip()}
+    return replace_methods(info.text, changed) if changed else None
 
 
 def _build_candidate(info: PolicyInfo, suggestion: dict[str, str]) -> Candidate | None:
@@ -250,14 +389,33 @@ def run_check(check: RuntimeCheck, progress=None) -> str | None:
     return None
 
 
+def check_here(item: dict[str, Any]) -> dict[str, str | None]:
+    """In a worker: :func:`run_check` of a :class:`RuntimeCheck` sent as JSON."""
+    item = {**item, "observations": [(int(step), obs) for step, obs in item["observations"]]}
+    return {"reason": run_check(RuntimeCheck(**item))}
+
+
 def check_at_runtime(check: RuntimeCheck) -> None:
     """Run :func:`run_check` in a confined worker; raise :class:`CandidateRejected` with the reason."""
-    answered, reason = run_json_task("check", asdict(check), lambda item: run_check(RuntimeCheck(**item)),
-                                     check.total_time_limit_s, memory_mb=check.memory_limit_mb)
-    if not answered:
-        reason = f"the candidate's check crashed: {reason}"
+    (reason,) = _runtime_reasons([check], workers=1)
     if reason is not None:
         raise CandidateRejected(reason)
+
+
+def _runtime_reasons(checks: list[RuntimeCheck], workers: int) -> list[str | None]:
+    """The reason each check fails (None: passed), in up to ``workers`` workers at once."""
+    items = [vars(c).copy() for c in checks]  # not asdict(): see _vet_all
+    digests = [_check_digest(item) for item in items]
+    to_run = [i for i, digest in enumerate(digests) if digest not in _ran_clean]
+    answers = run_json_tasks("check", [items[i] for i in to_run], check_here,
+                             time_limit_s=lambda item: item["total_time_limit_s"],
+                             memory_mb=lambda item: item["memory_limit_mb"], workers=workers)
+    reasons: list[str | None] = [None] * len(checks)
+    for i, (answered, answer) in zip(to_run, answers):
+        reasons[i] = answer["reason"] if answered else f"the candidate's check crashed: {answer}"
+        if reasons[i] is None:
+            _ran_clean.add(digests[i])
+    return reasons
 
 
 def spread(observations: list[tuple[int, dict[str, Any]]], limit: int = MAX_VALIDATION_STEPS):

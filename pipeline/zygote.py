@@ -70,20 +70,18 @@ def _episode(item: dict[str, Any], fd: int) -> Callable[[], None]:
 
 def _check(item: dict[str, Any], fd: int) -> Callable[[], None]:
     def check() -> None:
-        from pipeline.validate import RuntimeCheck, run_check
+        from pipeline.validate import check_here
 
-        item["observations"] = [(int(step), obs) for step, obs in item["observations"]]
-        reason = run_check(RuntimeCheck(**item))
-        wire.write_all(fd, wire.json_frame({"kind": "result", "reason": reason}))
+        wire.write_all(fd, wire.json_frame({"kind": "result", **check_here(item)}))
 
     return check
 
 
 def _vet(item: dict[str, Any], fd: int) -> Callable[[], None]:
     def vet() -> None:
-        from pipeline.validate import vet_here
+        from pipeline.validate import vet_and_check_here
 
-        wire.write_all(fd, wire.json_frame({"kind": "result", "reason": vet_here(item)}))
+        wire.write_all(fd, wire.json_frame({"kind": "result", **vet_and_check_here(item)}))
 
     return vet
 

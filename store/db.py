@@ -296,8 +296,10 @@ class Hold:
     process killed while holding loses nothing committed.
 
     While it is held no other process can open the file, so hold it only across work that takes milliseconds
-    (the optimizer: from storing an iteration's LLM calls to committing its result, let go before episodes are
-    played) — never across an LLM call or an episode. ``take()`` and ``release()`` may be called repeatedly.
+    (the optimizer: from storing an iteration's LLM answers through its commit and the next iteration's prompt;
+    let go while the model is asked and before episodes are played) — never across an LLM call or an episode.
+    ``take()`` and ``release()`` may be called repeatedly, ``release()`` from another thread (the optimizer lets
+    go, checkpointing, while its request is on its way).
     """
 
     def __init__(self, store: Store):

@@ -7,6 +7,7 @@ open. Step slices come back with the observation dict rebuilt exactly as the pol
 from __future__ import annotations
 
 import json
+import statistics
 from typing import Any, Callable, Mapping
 
 import duckdb
@@ -94,6 +95,18 @@ def policy_text(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) ->
     return row[0]
 
 
+def policy_texts(con: duckdb.DuckDBPyConnection, run_id: str, version_ids: list[str]) -> dict[str, str]:
+    """:func:`policy_text` of several versions in one query (KeyError naming one the run does not have)."""
+    found = dict(con.execute(
+        "SELECT v.policy_version_id, any_value(b.text) FROM policy_versions v JOIN blobs b ON b.hash = v.source_hash "
+        "WHERE v.run_id = ? AND list_contains(?, v.policy_version_id) GROUP BY v.policy_version_id",
+        [run_id, sorted(set(version_ids))]).fetchall())
+    for version_id in version_ids:
+        if version_id not in found:
+            raise KeyError(f"run {run_id} has no policy version {version_id}")
+    return found
+
+
 def run_spending(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, float]:
     """What a run has used so far: LLM cost (USD, calls with a known price), tokens, calls, and iteration wall
     time."""
@@ -107,15 +120,17 @@ def run_spending(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, float
             "last_wall_s": float(last_wall)}
 
 
-def stored_reply(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int, prompt_hash: str,
-                 candidate: int = 0) -> tuple[str, str] | None:
-    """(call id, reply text) of a successful call already made for this prompt by this candidate of this
-    iteration, if any (an iteration's proposals can share one prompt: each keeps its own reply)."""
-    row = con.execute(
-        "SELECT c.call_id, b.text FROM llm_calls c JOIN blobs b ON b.hash = c.reply_hash "
-        "WHERE c.run_id = ? AND c.iteration = ? AND coalesce(c.candidate, 0) = ? AND c.prompt_hash = ? "
-        "AND c.error_type IS NULL ORDER BY c.created_at LIMIT 1", [run_id, iteration, candidate, prompt_hash]).fetchone()
-    return (row[0], row[1]) if row else None
+def stored_replies_of(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> dict[tuple[str, int], tuple[str, str]]:
+    """(call id, reply text) of the first successful call of iteration ``iteration`` for each (prompt hash,
+    candidate): what a resumed iteration reuses (its proposals can share one prompt: each keeps its own reply)."""
+    rows = con.execute(
+        "SELECT c.prompt_hash, coalesce(c.candidate, 0), c.call_id, b.text FROM llm_calls c "
+        "JOIN blobs b ON b.hash = c.reply_hash WHERE c.run_id = ? AND c.iteration = ? AND c.error_type IS NULL "
+        "ORDER BY c.created_at", [run_id, iteration]).fetchall()
+    replies: dict[tuple[str, int], tuple[str, str]] = {}
+    for digest, candidate, call_id, text in rows:
+        replies.setdefault((digest, candidate), (call_id, text))
+    return replies
 
 
 # ---------------------------------------------------------------------------------------------- the optimizer
@@ -148,20 +163,30 @@ def iteration_count(con: duckdb.DuckDBPyConnection, run_id: str) -> int:
     return con.execute("SELECT count(*) FROM iterations WHERE run_id = ?", [run_id]).fetchone()[0]
 
 
+HISTORY_ITERATION_COLUMNS = ("iteration", "candidate", "policy_version_id", "update_status", "score", "rolled_back",
+                             "best_score", "best_iteration", "best_version_id")
+"""The fields of an ``iterations`` row in a run's history (:func:`iterations`)."""
+
+
 def iterations(con: duckdb.DuckDBPyConnection, run_id: str, before_iteration: int | None = None) -> list[dict[str, Any]]:
     """A run's ``iterations`` rows (before ``before_iteration`` if given), in order: score, best so far, the
     chosen candidate and whether it rolled back."""
+    columns = ", ".join("coalesce(candidate, 0) AS candidate" if c == "candidate" else c
+                        for c in HISTORY_ITERATION_COLUMNS)
     return _rows(con.execute(
-        """SELECT iteration, coalesce(candidate, 0) AS candidate, policy_version_id, update_status, score,
-                  rolled_back, best_score, best_iteration, best_version_id
-           FROM iterations WHERE run_id = ? AND iteration < ? ORDER BY iteration""",
+        f"SELECT {columns} FROM iterations WHERE run_id = ? AND iteration < ? ORDER BY iteration",
         [run_id, before_iteration if before_iteration is not None else 2**31 - 1]))
 
 
-CANDIDATE_COLUMNS = """c.run_id, c.iteration, c.candidate, c.strategy, c.parent_iteration, c.parent_candidate,
-    c.parent_version_id, c.proposed_version_id, c.policy_version_id, c.llm_call_id, c.update_status, c.evaluation,
-    c.train_episode_id, c.eval_episode_ids, c.robust_episode_ids, c.train_return, c.score, c.deterministic_score,
-    c.standard_score, c.decision, b.text AS feedback, v.complexity, e.eval_length"""
+HISTORY_CANDIDATE_COLUMNS = (
+    "run_id", "iteration", "candidate", "strategy", "parent_iteration", "parent_candidate", "parent_version_id",
+    "proposed_version_id", "policy_version_id", "llm_call_id", "update_status", "evaluation", "train_episode_id",
+    "eval_episode_ids", "robust_episode_ids", "train_return", "score", "deterministic_score", "standard_score",
+    "decision", "feedback", "complexity", "eval_length")
+"""The fields of a candidate in a run's history (:func:`candidates`): its ``candidates`` row, its feedback text,
+its version's complexity and the mean length of its evaluation games."""
+_CANDIDATE_FROM = {"feedback": "b.text", "complexity": "v.complexity", "eval_length": "e.eval_length"}
+CANDIDATE_COLUMNS = ", ".join(f"{_CANDIDATE_FROM.get(name, 'c.' + name)} AS {name}" for name in HISTORY_CANDIDATE_COLUMNS)
 
 
 def candidates(con: duckdb.DuckDBPyConnection, run_id: str, before_iteration: int | None = None) -> list[dict[str, Any]]:
@@ -209,34 +234,43 @@ def version_complexity(con: duckdb.DuckDBPyConnection, run_id: str, version_ids:
 
 def episode_summary(con: duckdb.DuckDBPyConnection, episode_id: str) -> dict[str, Any]:
     """Return, length, lives lost and end of one episode (a placeholder saying ``missing`` if it is gone)."""
-    rows = _rows(con.execute(
-        "SELECT episode_id, return, length, lives_lost, end_reason, error FROM episodes WHERE episode_id = ?",
-        [episode_id]))
-    return rows[0] if rows else {"episode_id": episode_id, "return": 0.0, "length": 0, "lives_lost": 0,
-                                 "end_reason": "missing", "error": None}
+    return episode_summaries(con, [episode_id])[0]
+
+
+def episode_summaries(con: duckdb.DuckDBPyConnection, episode_ids: list[str]) -> list[dict[str, Any]]:
+    """:func:`episode_summary` of each of ``episode_ids``, in their order, in one query."""
+    found = {row["episode_id"]: row for row in _rows(con.execute(
+        "SELECT episode_id, return, length, lives_lost, end_reason, error FROM episodes "
+        "WHERE list_contains(?, episode_id)", [list(episode_ids)]))}
+    return [found.get(e) or {"episode_id": e, "return": 0.0, "length": 0, "lives_lost": 0, "end_reason": "missing",
+                             "error": None} for e in episode_ids]
 
 
 def reusable_assessment(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) -> dict[str, Any] | None:
     """The first assessment of ``version_id`` in this run whose episodes can stand for a new one (the
     evaluation cache): played, not caught tampering, every episode stored, verified and ended by the game or
-    the step cap, never by a time limit (which depends on the machine's load, not on the code)."""
-    rows = _rows(con.execute(
-        """SELECT c.iteration, c.candidate, c.train_episode_id, c.eval_episode_ids, c.robust_episode_ids,
-                  c.train_return, c.score, c.deterministic_score, c.standard_score,
-                  (SELECT e.length FROM episodes e WHERE e.episode_id = c.train_episode_id) AS train_length,
-                  (SELECT avg(e.length) FROM episodes e
-                   WHERE e.run_id = $run AND list_contains(c.eval_episode_ids, e.episode_id)) AS eval_length
-           FROM candidates c
-           WHERE c.run_id = $run AND c.policy_version_id = $version AND c.evaluation = 'played'
-             AND NOT (c.decision = 'rejected' AND c.policy_version_id IS NOT DISTINCT FROM c.proposed_version_id)
-             AND (SELECT count(*) FROM episodes e
-                  WHERE e.run_id = $run AND e.policy_version_id = $version
-                    AND (e.episode_id = c.train_episode_id OR list_contains(c.eval_episode_ids, e.episode_id)
-                         OR list_contains(coalesce(c.robust_episode_ids, []), e.episode_id))
-                    AND e.verified AND e.end_reason IN ('terminated', 'truncated'))
-                 = 1 + len(c.eval_episode_ids) + len(coalesce(c.robust_episode_ids, []))
-           ORDER BY c.iteration, c.candidate LIMIT 1""", {"run": run_id, "version": version_id}))
-    return rows[0] if rows else None
+    the step cap, never by a time limit (which depends on the machine's load, not on the code).
+
+    Two plain queries and a loop here: one query joining the episodes to each assessment took ~4 times as long,
+    and the optimizer asks this for every candidate."""
+    assessments = _rows(con.execute(
+        """SELECT iteration, candidate, train_episode_id, eval_episode_ids, robust_episode_ids, train_return, score,
+                  deterministic_score, standard_score
+           FROM candidates
+           WHERE run_id = ? AND policy_version_id = ? AND evaluation = 'played'
+             AND NOT (decision = 'rejected' AND policy_version_id IS NOT DISTINCT FROM proposed_version_id)
+           ORDER BY iteration, candidate""", [run_id, version_id]))
+    if not assessments:
+        return None
+    usable = dict(con.execute(
+        "SELECT episode_id, length FROM episodes WHERE run_id = ? AND policy_version_id = ? AND verified "
+        "AND end_reason IN ('terminated', 'truncated')", [run_id, version_id]).fetchall())
+    for row in assessments:
+        episodes = [row["train_episode_id"], *row["eval_episode_ids"], *(row["robust_episode_ids"] or [])]
+        if all(e in usable for e in episodes):
+            return {**row, "train_length": usable[row["train_episode_id"]],
+                    "eval_length": statistics.fmean([usable[e] for e in row["eval_episode_ids"]] or [0])}
+    return None
 
 
 def update_failures(con: duckdb.DuckDBPyConnection, run_id: str) -> tuple[int, int, str | None]:

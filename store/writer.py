@@ -34,12 +34,19 @@ def _insert(con: duckdb.DuckDBPyConnection, table: str, row: dict[str, Any]) -> 
 
 def put_blob(con: duckdb.DuckDBPyConnection, kind: str, text: str) -> str:
     """Store ``text`` once under its content hash and return the hash."""
-    digest = text_hash(text)
-    con.execute(
-        "INSERT INTO blobs (hash, kind, text, chars) VALUES (?, ?, ?, ?) ON CONFLICT DO NOTHING",
-        [digest, kind, text, len(text)],
-    )
-    return digest
+    return put_blobs(con, [(kind, text)])[0]
+
+
+def put_blobs(con: duckdb.DuckDBPyConnection, blobs: list[tuple[str, str]]) -> list[str]:
+    """Store each ``(kind, text)`` once under its content hash, in one statement; their hashes, in order."""
+    digests = [text_hash(text) for _, text in blobs]
+    new = {digest: (kind, text) for digest, (kind, text) in zip(digests, blobs)}  # once per statement
+    if new:
+        con.execute(
+            "INSERT INTO blobs (hash, kind, text, chars) VALUES " + ", ".join(["(?, ?, ?, ?)"] * len(new))
+            + " ON CONFLICT DO NOTHING",
+            [value for digest, (kind, text) in new.items() for value in (digest, kind, text, len(text))])
+    return digests
 
 
 def insert_run(
@@ -72,34 +79,33 @@ def finish_run(con: duckdb.DuckDBPyConnection, run_id: str, status: str, error: 
     )
 
 
-def insert_llm_call(con: duckdb.DuckDBPyConnection, row: dict[str, Any], prompt_text: str,
-                    reply_text: str | None) -> None:
-    """Insert one ``llm_calls`` row (``row`` holds its columns by name); the prompt and reply are stored as
-    blobs and referenced by hash."""
-    row = dict(row)
-    row["prompt_hash"] = put_blob(con, "prompt", prompt_text)
-    row["reply_hash"] = put_blob(con, "reply", reply_text) if reply_text is not None else None
-    row.setdefault("created_at", utcnow())
-    _insert(con, "llm_calls", row)
-
-
-def set_llm_call_outcome(con: duckdb.DuckDBPyConnection, call_id: str, suggestion_json: str | None,
-                         parse_error: str | None) -> None:
-    """Record what the reply of ``call_id`` parsed into (a suggestion, stored as a blob) or why it did not."""
-    digest = put_blob(con, "suggestion", suggestion_json) if suggestion_json is not None else None
-    con.execute("UPDATE llm_calls SET suggestion_hash = ?, parse_error = ? WHERE call_id = ?",
-                [digest, parse_error, call_id])
+def insert_llm_calls(con: duckdb.DuckDBPyConnection,
+                     calls: list[tuple[dict[str, Any], str, str | None, str | None]]) -> None:
+    """Insert ``llm_calls`` rows, each given as ``(row, prompt, reply, suggestion)``: ``row`` holds its columns
+    by name (``parse_error`` among them); the prompt, the reply and what the reply parsed into (a suggestion,
+    JSON) are stored as blobs — in one statement for all, a prompt shared by several calls once — and referenced
+    by hash."""
+    kinds = ("prompt", "reply", "suggestion")
+    texts = [(kind, text) for _, *call_texts in calls for kind, text in zip(kinds, call_texts) if text is not None]
+    digests = iter(put_blobs(con, texts))
+    for row, *call_texts in calls:
+        row = dict(row)
+        for kind, text in zip(kinds, call_texts):
+            row[f"{kind}_hash"] = next(digests) if text is not None else None
+        row.setdefault("created_at", utcnow())
+        _insert(con, "llm_calls", row)
 
 
 def insert_policy_version(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -> None:
     """Insert one ``policy_versions`` row (``row`` holds its columns; ``source`` is stored as a blob) and the
     ``policy_lines`` of its trainable methods, their origins carried from the parent's (``store/lines.py``)."""
     row = dict(row)
-    row["source_hash"] = put_blob(con, "policy", row.pop("source"))
     row["functions"] = [dict(function) for function in row.get("functions") or []]
     trainable = {f["name"]: f["source"] for f in row["functions"] if f.get("trainable")}
-    for function in row["functions"]:
-        function["source_hash"] = put_blob(con, "source", function.pop("source"))
+    digests = put_blobs(con, [("policy", row.pop("source"))] + [("source", f.pop("source")) for f in row["functions"]])
+    row["source_hash"] = digests[0]
+    for function, digest in zip(row["functions"], digests[1:]):
+        function["source_hash"] = digest
     row.setdefault("created_at", utcnow())
     columns = list(row)
     con.execute(

@@ -117,3 +117,33 @@ def test_repeated_steps_collapse_into_one_line_and_more_steps_fit(tmp_path, coun
             assert len({(r["action"], r["reward"]) for r in rows}) == 1 and len(rows) == last - first + 1
     # without collapsing, the prompt is what it always was (old runs replay): no collapsed line at all
     assert "(each step)" not in before.messages[1]["content"]
+
+
+def _whole(text: str) -> int:
+    """The estimate from one encoding of the whole text, as the counter did before it summed lines."""
+    import math
+
+    from pipeline.tokens import ESTIMATE_MARGIN, _cl100k
+
+    return math.ceil(len(_cl100k().encode(text, disallowed_special=())) * ESTIMATE_MARGIN)
+
+
+def test_summed_lines_count_what_the_whole_text_counts(runs, counter):
+    """The estimate sums the counts of a text's lines (pipeline/tokens.py); that must be the whole text's count,
+    for real prompts and for random text made of the characters where tiktoken's pieces could cross a line."""
+    import random
+
+    store, run_ids = runs
+    texts = []
+    for game, run_id in run_ids.items():
+        with store.read() as con:
+            ctx = read_context(con, run_id, 1, memory=5)
+        for budget in (4_000, 64_000):
+            texts += [m["content"] for m in build_prompt(ctx, budget, counter).messages]
+    rng = random.Random(0)
+    alphabet = ["\n", "\n", "\n\n", " ", "  ", "\t", "\r\n", "\r", "'s", "'", "s", "step", "12", "1234", "é", ")",
+                "…", "中", "```", "-", "#", "\u00a0", "\u2028", "\x85", "\x1c", "\u3000", "\f", "x "]
+    texts += ["".join(rng.choice(alphabet) for _ in range(rng.randint(1, 40))) for _ in range(3_000)]
+    wrong = [t for t in texts if counter(t) != _whole(t)]
+    assert not wrong, f"{len(wrong)} texts counted differently, e.g. {wrong[0]!r}"
+    assert len(texts) > 3_000 and max(map(len, texts)) > 20_000  # long prompts were among them

@@ -28,6 +28,28 @@ POOL = [COMPETENT_REPLY, ALWAYS_UP, RAISES, HALF, "no code today"]
 """Candidate policies of mixed quality, as a model sampling at a high temperature might write them."""
 
 
+@pytest.fixture(autouse=True)
+def history_is_what_the_store_reads_back(monkeypatch):
+    """The loop keeps its history in memory (``RunState.history``), extended by each commit with the rows it
+    wrote: after every commit of every run here, it must equal what the store reads back."""
+    from pipeline import optimize as loop
+    from pipeline.strategies import History
+    from store.readers import candidates, iterations
+
+    commit, checked = loop._commit, []
+
+    def commit_and_compare(store, state, iteration, *args, **kwargs):
+        commit(store, state, iteration, *args, **kwargs)
+        with store.read() as con:
+            stored = History(iterations(con, state.run_id, iteration + 1), candidates(con, state.run_id, iteration + 1))
+        assert state.history.iterations == stored.iterations
+        assert state.history.candidates == stored.candidates
+        checked.append(iteration)
+
+    monkeypatch.setattr(loop, "_commit", commit_and_compare)
+    return checked
+
+
 def _client(model):
     return LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
 

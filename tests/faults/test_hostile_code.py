@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime
+from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, validate_candidate
 from tests.conftest import EXAMPLES, pong_policy
 from tracing.policy_file import inspect_policy
 
@@ -90,19 +90,49 @@ def test_hostile_policy_file(name, body, expected, healthy_store, tmp_path, caps
     assert after == before == 60, "earlier rows are intact"
 
 
+OBS = {"Player": {"x": 140, "y": 100, "w": 4, "h": 15, "dx": 0, "dy": 0},
+       "Ball": {"x": 100, "y": 50, "w": 2, "h": 4, "dx": 2, "dy": 1}}
+
+
+def _candidate_source(body: str) -> str:
+    return "def select_action(self, predicted_ball_y, obs):\n" + "".join(
+        f"    {line}\n" for line in _body(body).splitlines())
+
+
 @pytest.mark.parametrize("name, body, expected", HOSTILE, ids=[h[0] for h in HOSTILE])
 def test_hostile_candidate_is_rejected(name, body, expected):
+    """Both ways a candidate is checked: static checks and runtime check in one worker (what the optimizer
+    does), and each in a worker of its own (where the static checks of the same text passed before)."""
     info = inspect_policy((EXAMPLES / "pong.py").read_text(), "pong.py")
-    source = "def select_action(self, predicted_ball_y, obs):\n" + "".join(
-        f"    {line}\n" for line in _body(body).splitlines())
-    obs = {"Player": {"x": 140, "y": 100, "w": 4, "h": 15, "dx": 0, "dy": 0},
-           "Ball": {"x": 100, "y": 50, "w": 2, "h": 4, "dx": 2, "dy": 1}}
+    source = _candidate_source(body)
+    check = lambda text: RuntimeCheck(text, "pong", [(0, OBS), (1, OBS)], call_time_limit_s=0.3)  # noqa: E731
+    if expected == "refused":
+        with pytest.raises(CandidateRejected) as err:
+            validate_candidate(info, {"select_action": source}, check)
+        assert str(err.value)
+    else:
+        candidate, reason = validate_candidate(info, {"select_action": source}, check)
+        assert candidate is not None and reason, "runs, and its runtime check rejects it"
     with pytest.raises(CandidateRejected) as err:
         candidate = build_candidate(info, {"select_action": source})
         assert candidate is not None
-        check_at_runtime(RuntimeCheck(candidate.text, "pong", [(0, obs), (1, obs)], call_time_limit_s=0.3))
+        check_at_runtime(check(candidate.text))
     assert str(err.value)
     assert not SENTINEL.exists()
+
+
+def test_a_candidate_that_kills_its_check_worker_is_not_blamed_on_the_static_checks(monkeypatch):
+    """Static and runtime checks share a worker; when it dies (here a C loop the call timer cannot stop, killed
+    at the worker's time limit), the static checks run alone to tell which part failed."""
+    from pipeline import validate
+
+    monkeypatch.setattr(validate, "VET_TIME_LIMIT_S", 2.0)
+    info = inspect_policy((EXAMPLES / "pong.py").read_text(), "pong.py")
+    source = _candidate_source(f"n = sum(range(10 ** 12))  # {uuid.uuid4().hex}\nreturn 0")
+    check = lambda text: RuntimeCheck(text, "pong", [(0, OBS)], call_time_limit_s=0.3,  # noqa: E731
+                                      total_time_limit_s=1.0)
+    candidate, reason = validate_candidate(info, {"select_action": source}, check)
+    assert candidate is not None and reason.startswith("the candidate's check crashed"), reason
 
 
 def test_a_policy_that_mutates_its_observation_cannot_alter_the_record(store, write_policy, capsys):
