@@ -36,7 +36,7 @@ from pipeline.validate import CandidateRejected, RuntimeCheck, check_fits, sprea
 from pipeline.versions import policy_version_row
 from store import Store
 from store.db import Hold
-from store.readers import run_spending, stored_replies_of
+from store.readers import run_spending, stored_replies
 from store.writer import insert_llm_calls
 
 if TYPE_CHECKING:
@@ -103,7 +103,7 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     pending = []
     built: dict[tuple, tuple] = {}  # best-of-n asks N times with the same context: build its prompt once
     with store.read() as con:
-        stored = stored_replies_of(con, state.run_id, iteration)  # a resumed iteration's, for the same prompts
+        stored = stored_replies(con, state.run_id, iteration)  # a resumed iteration's, for the same prompts
         for request in requests:
             key = (request.parent, tuple(request.memory), request.note)
             if key not in built:

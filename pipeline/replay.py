@@ -59,7 +59,7 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
         if run["kind"] not in ("optimize", "replay"):
             raise ValueError(f"run {run_id} is an {run['kind']} run; only optimize runs can be replayed")
         starter = inspect_policy(blob_text(con, run["starter_policy_hash"]), "policy.py")
-        replies = stored_replies(con, run_id)
+        replies = {key: text for key, (_, text) in stored_replies(con, run_id).items()}
     recorded = json.loads(run["config"])
     config = OptimizeConfig.from_record(recorded)
     client = ReplayClient(replies, model=run["model"] or "replay")

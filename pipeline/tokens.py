@@ -22,6 +22,9 @@ from functools import lru_cache
 from typing import Callable
 
 ESTIMATE_MARGIN = 1.10
+MESSAGE_OVERHEAD = 4
+"""Tokens chat templates add around each message (role markers); counted so the budget holds."""
+
 _LINE_ENDS = re.compile(r"\n(?=\S)")
 """Where tiktoken's cl100k_base pattern always ends a piece: a newline before a non-space character."""
 
@@ -30,8 +33,6 @@ def _lines(text: str) -> list[str]:
     """``text`` cut after each newline that a non-space character follows (a lookbehind split is 6x slower)."""
     parts = _LINE_ENDS.split(text)
     return [part + "\n" for part in parts[:-1]] + [parts[-1]]
-MESSAGE_OVERHEAD = 4
-"""Tokens chat templates add around each message (role markers); counted so the budget holds."""
 
 
 def import_litellm():

@@ -283,20 +283,23 @@ def _vetted_candidate(info: PolicyInfo, suggestion: dict[str, str], reason: str 
 
 def _spliced(info: PolicyInfo, suggestion: dict[str, str]) -> str | None:
     """The text :func:`_build_candidate` makes of ``suggestion`` when its static checks pass, made without
-    parsing the suggestion; None when it changes nothing or names a method that may not change."""
-    if not all(isinstance(k, str) and isinstance(v, str) for k, v in suggestion.items()):
-        return None
+    parsing the suggestion (whose types :func:`_check_types` checked); None when it changes nothing or names a
+    method that may not change."""
     methods = {m.name: m for m in info.methods}
     if not all(name in methods and methods[name].trainable for name in suggestion):
         return None
-    changed = {name: source for name, source in suggestion.items() if source.strip() != methods[name].source.strip()}
+    changed = _changed_sources(methods, suggestion)
     return replace_methods(info.text, changed) if changed else None
+
+
+def _changed_sources(methods: dict[str, Any], suggestion: dict[str, str]) -> dict[str, str]:
+    """The suggested sources that differ from the methods' (both the spliced and the built text use these)."""
+    return {name: source for name, source in suggestion.items() if source.strip() != methods[name].source.strip()}
 
 
 def _build_candidate(info: PolicyInfo, suggestion: dict[str, str]) -> Candidate | None:
     methods = {m.name: m for m in info.methods}
     trainable = [m.name for m in info.trainable]
-    changed: dict[str, str] = {}
     for name, source in suggestion.items():
         if name not in methods:
             raise CandidateRejected(f"the suggestion is for '{name}', which the policy does not have; "
@@ -319,8 +322,7 @@ def _build_candidate(info: PolicyInfo, suggestion: dict[str, str]) -> Candidate 
             check_source(source, name)
         except PolicyCodeError as exc:
             raise CandidateRejected(f"the new {name} is refused: {str(exc).split(': ', 1)[-1]}") from None
-        if source.strip() != methods[name].source.strip():
-            changed[name] = source
+    changed = _changed_sources(methods, suggestion)
     if not changed:
         return None
     text = replace_methods(info.text, changed)

@@ -68,26 +68,21 @@ def _episode(item: dict[str, Any], fd: int) -> Callable[[], None]:
     return play
 
 
-def _check(item: dict[str, Any], fd: int) -> Callable[[], None]:
-    def check() -> None:
-        from pipeline.validate import check_here
+def _answer(name: str) -> Callable[[dict[str, Any], int], Callable[[], None]]:
+    """A task answered by ``pipeline.validate.<name>(item)``: text fields of one result message."""
+    def task(item: dict[str, Any], fd: int) -> Callable[[], None]:
+        def run() -> None:
+            from pipeline import validate
 
-        wire.write_all(fd, wire.json_frame({"kind": "result", **check_here(item)}))
+            wire.write_all(fd, wire.json_frame({"kind": "result", **getattr(validate, name)(item)}))
 
-    return check
+        return run
 
-
-def _vet(item: dict[str, Any], fd: int) -> Callable[[], None]:
-    def vet() -> None:
-        from pipeline.validate import vet_and_check_here
-
-        wire.write_all(fd, wire.json_frame({"kind": "result", **vet_and_check_here(item)}))
-
-    return vet
+    return task
 
 
-TASKS: dict[str, Callable[[dict[str, Any], int], Callable[[], None]]] = {"episode": _episode, "check": _check,
-                                                                        "vet": _vet}
+TASKS: dict[str, Callable[[dict[str, Any], int], Callable[[], None]]] = {
+    "episode": _episode, "check": _answer("check_here"), "vet": _answer("vet_and_check_here")}
 """Per task: ``task(item, fd)`` prepares in the confined worker (before a staged worker's go-ahead) and returns
 what runs the task and writes its answer on ``fd``."""
 

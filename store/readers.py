@@ -120,30 +120,21 @@ def run_spending(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, float
             "last_wall_s": float(last_wall)}
 
 
-def stored_replies_of(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> dict[tuple[str, int], tuple[str, str]]:
-    """(call id, reply text) of the first successful call of iteration ``iteration`` for each (prompt hash,
-    candidate): what a resumed iteration reuses (its proposals can share one prompt: each keeps its own reply)."""
-    rows = con.execute(
-        "SELECT c.prompt_hash, coalesce(c.candidate, 0), c.call_id, b.text FROM llm_calls c "
-        "JOIN blobs b ON b.hash = c.reply_hash WHERE c.run_id = ? AND c.iteration = ? AND c.error_type IS NULL "
-        "ORDER BY c.created_at", [run_id, iteration]).fetchall()
-    replies: dict[tuple[str, int], tuple[str, str]] = {}
-    for digest, candidate, call_id, text in rows:
-        replies.setdefault((digest, candidate), (call_id, text))
-    return replies
-
-
 # ---------------------------------------------------------------------------------------------- the optimizer
 
 
-def stored_replies(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[str, int], str]:
-    """Every successful reply of a run by (prompt hash, candidate): what ``codearcade replay`` answers with."""
+def stored_replies(con: duckdb.DuckDBPyConnection, run_id: str,
+                   iteration: int | None = None) -> dict[tuple[str, int], tuple[str, str]]:
+    """(call id, reply text) of the first successful call for each (prompt hash, candidate) of a run, or of one of
+    its iterations: what ``codearcade replay`` answers with, and what a resumed iteration reuses (its proposals
+    can share one prompt: each keeps its own reply)."""
     rows = con.execute(
-        "SELECT c.prompt_hash, coalesce(c.candidate, 0), b.text FROM llm_calls c JOIN blobs b ON b.hash = c.reply_hash "
-        "WHERE c.run_id = ? AND c.error_type IS NULL ORDER BY c.created_at", [run_id]).fetchall()
-    replies: dict[tuple[str, int], str] = {}
-    for digest, candidate, text in rows:
-        replies.setdefault((digest, candidate), text)
+        "SELECT c.prompt_hash, coalesce(c.candidate, 0), c.call_id, b.text FROM llm_calls c "
+        "JOIN blobs b ON b.hash = c.reply_hash WHERE c.run_id = ? AND (? IS NULL OR c.iteration = ?) "
+        "AND c.error_type IS NULL ORDER BY c.created_at", [run_id, iteration, iteration]).fetchall()
+    replies: dict[tuple[str, int], tuple[str, str]] = {}
+    for digest, candidate, call_id, text in rows:
+        replies.setdefault((digest, candidate), (call_id, text))
     return replies
 
 
@@ -232,13 +223,9 @@ def version_complexity(con: duckdb.DuckDBPyConnection, run_id: str, version_ids:
         "AND list_contains(?, policy_version_id) GROUP BY policy_version_id", [run_id, version_ids]).fetchall())
 
 
-def episode_summary(con: duckdb.DuckDBPyConnection, episode_id: str) -> dict[str, Any]:
-    """Return, length, lives lost and end of one episode (a placeholder saying ``missing`` if it is gone)."""
-    return episode_summaries(con, [episode_id])[0]
-
-
 def episode_summaries(con: duckdb.DuckDBPyConnection, episode_ids: list[str]) -> list[dict[str, Any]]:
-    """:func:`episode_summary` of each of ``episode_ids``, in their order, in one query."""
+    """Return, length, lives lost and end of each of ``episode_ids``, in their order, in one query (a
+    placeholder saying ``missing`` for one that is gone)."""
     found = {row["episode_id"]: row for row in _rows(con.execute(
         "SELECT episode_id, return, length, lives_lost, end_reason, error FROM episodes "
         "WHERE list_contains(?, episode_id)", [list(episode_ids)]))}
