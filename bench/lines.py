@@ -20,7 +20,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.evaluate import EvalConfig, evaluate  # noqa: E402
+from pipeline.play.evaluate import EvalConfig, evaluate  # noqa: E402
 from store import Store  # noqa: E402
 
 DEFAULT_POLICIES = ["tests/policies/pong_competent.py", "games/scaffolds/breakout.py",

@@ -29,8 +29,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("LITELLM_LOCAL_MODEL_COST_MAP", "True")
 
-from pipeline.llm import LiteLLMClient  # noqa: E402
-from pipeline.optimize import OptimizeConfig, optimize  # noqa: E402
+from pipeline.llm.client import LiteLLMClient  # noqa: E402
+from pipeline.optimizer.loop import OptimizeConfig, optimize  # noqa: E402
 from store import Store  # noqa: E402
 from tests.scripted_llm import ScriptedModel  # noqa: E402
 from tests.test_strategies import POOL  # noqa: E402

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.throughput import BareOCAtari, played_actions  # noqa: E402
-from pipeline.evaluate import EvalConfig, evaluate  # noqa: E402
+from pipeline.play.evaluate import EvalConfig, evaluate  # noqa: E402
 from store import Store  # noqa: E402
 
 TARGET = 1.7

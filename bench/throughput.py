@@ -8,7 +8,7 @@ for the workers it forks): the figures are the steady state of playing. It print
 ratios to the baseline; targets: eval >= 0.85, eval --trace >= 0.60. Those two measure playing behind the
 untrusted-code boundary (confined workers, checked answers); they run with the parent's score verification off
 (``EvalConfig.verify_scores``), which a second table prices: ``eval`` as users run it (verified: the parent
-replays every episode's actions in raw ALE while the worker plays, ``pipeline/verify.py``), its ratio to the
+replays every episode's actions in raw ALE while the worker plays, ``pipeline/play/verify.py``), its ratio to the
 baseline, and the replay's own speed. On two cores the replay runs beside the worker, so its cost is the
 worker's share of a core it no longer has to itself.
 The configurations are measured in rotating order, several times; each one's best time counts (noise from
@@ -35,9 +35,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from games import GAMES, get_game  # noqa: E402
-from pipeline.evaluate import EvalConfig, evaluate  # noqa: E402
-from pipeline.rollout import EpisodeSpec  # noqa: E402
-from pipeline.verify import replay_actions  # noqa: E402
+from pipeline.play.evaluate import EvalConfig, evaluate  # noqa: E402
+from pipeline.play.rollout import EpisodeSpec  # noqa: E402
+from pipeline.play.verify import replay_actions  # noqa: E402
 from store import Store  # noqa: E402
 
 TARGETS = {"eval": 0.85, "eval --trace": 0.60}
@@ -86,7 +86,7 @@ def played_actions(store: Store, run_id: str) -> tuple[list[int], list[list[int]
 
 
 def timed_replay(game: str, action_sequences: list[list[int]], seeds: list[int]) -> float:
-    """Seconds the parent's verification spends replaying the given action sequences (pipeline/verify.py)."""
+    """Seconds the parent's verification spends replaying the given action sequences (pipeline/play/verify.py)."""
     start = time.perf_counter()
     for actions, seed in zip(action_sequences, seeds):
         replay_actions(EpisodeSpec(episode_id="bench", run_id="bench", game=game, policy_text="", policy_version_id="",
@@ -153,7 +153,7 @@ def main() -> int:
     print(f"targets: eval/bare >= 0.85, trace/bare >= 0.60 (best of {args.repeats} repeats each, interleaved; "
           f"{args.episodes} episodes per measurement)")
     print(f"\n{'game':<15} {'steps':>6} {'eval verified':>14} {'verified/bare':>14} {'verified/eval':>14} "
-          f"{'replay alone':>13}   (score verification, pipeline/verify.py)")
+          f"{'replay alone':>13}   (score verification, pipeline/play/verify.py)")
     for game, steps, rate, ratio, share, replay in verification:
         print(f"{game:<15} {steps:>6} {rate:>9.0f} st/s {ratio:>14.2f} {share:>14.2f} {replay:>8.0f} st/s")
     for failure in failures:

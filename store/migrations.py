@@ -308,7 +308,7 @@ MIGRATIONS.append(
 )
 
 # The untrusted-code boundary (issue 13): each episode's score is checked by replaying its actions in the parent
-# (pipeline/verify.py). Rows written before this migration keep verified NULL (never checked).
+# (pipeline/play/verify.py). Rows written before this migration keep verified NULL (never checked).
 MIGRATIONS.append(
     (
         4,

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from pipeline.batch import ExperimentError, load_experiments
+from pipeline.jobs.batch import ExperimentError, load_experiments
 from tests.conftest import COMPETENT_REPLY, ROOT
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -87,7 +87,7 @@ def test_local_batch_then_kill_and_rerun(tmp_path, store, scripted):
     process.send_signal(signal.SIGKILL)
     process.wait()
     time.sleep(1.0)
-    leftover = subprocess.run(["pgrep", "-f", f"pipeline.batch_worker.*{store.path}"], capture_output=True, text=True)
+    leftover = subprocess.run(["pgrep", "-f", f"pipeline.jobs.worker.*{store.path}"], capture_output=True, text=True)
     assert leftover.stdout.strip() == "", "the run processes died with the batch"
 
     dry = _batch(path, store, "--dry-run")

@@ -215,7 +215,7 @@ def test_rerun_recordings_live_and_rebuilt_hold_a_seaquest_episode(store, tmp_pa
 
 def test_benchmark_experiment_runs_every_curated_game_with_the_authors_settings():
     from games import GAMES
-    from pipeline.batch import load_experiments
+    from pipeline.jobs.batch import load_experiments
     from tests.conftest import ROOT
 
     runs = {r.config.game: r.config for r in load_experiments(ROOT / "examples" / "benchmarks.toml").runs}
@@ -228,8 +228,8 @@ def test_benchmark_experiment_runs_every_curated_game_with_the_authors_settings(
 
 def test_the_optimizer_prompt_shows_the_derived_observation(store, scripted):
     """One iteration on Seaquest: the rollout in the prompt is read back from the store, derive included."""
-    from pipeline.llm import LiteLLMClient
-    from pipeline.optimize import OptimizeConfig, optimize
+    from pipeline.llm.client import LiteLLMClient
+    from pipeline.optimizer.loop import OptimizeConfig, optimize
     from tests.conftest import json_reply
 
     model = scripted([json_reply({})])

@@ -11,8 +11,8 @@ import time
 import pytest
 
 from pipeline.cli import main
-from pipeline.executor import run_episodes
-from pipeline.rollout import EpisodeSpec
+from pipeline.boundary.workers import run_episodes
+from pipeline.play.rollout import EpisodeSpec
 from tests.conftest import EXAMPLES, POLICIES, ROOT, pong_policy
 
 BUNDLED_CALLS_PER_STEP = {"pong": 2, "breakout": 3, "space_invaders": 3}
@@ -49,7 +49,7 @@ def test_examples_evaluate_end_to_end_with_trace(game, store, capsys):
 
 
 def test_competent_pong_policy_wins_a_full_game(store):
-    from pipeline.evaluate import EvalConfig, evaluate
+    from pipeline.play.evaluate import EvalConfig, evaluate
 
     result = evaluate(POLICIES / "pong_competent.py", EvalConfig(max_steps=27_000), store)
     episode = result.outcomes[0].episode
@@ -136,7 +136,7 @@ def test_worker_crash_is_recorded_not_raised():
 
 
 def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():
-    from pipeline import executor
+    from pipeline.boundary import workers as executor
 
     specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=5)
              for i in range(2)]
@@ -153,7 +153,7 @@ def test_a_worker_whose_parent_died_before_it_asked_for_the_death_signal_ends_at
     marker = tmp_path / "survived"
     script = (
         "import os, sys, time\n"
-        "from pipeline.executor import die_with_parent\n"
+        "from pipeline.boundary.workers import die_with_parent\n"
         "parent = os.getpid()\n"
         "r, w = os.pipe()\n"
         "if os.fork() == 0:\n"
@@ -194,7 +194,7 @@ def test_console_script(tmp_path):
 def test_a_dead_zygote_costs_only_its_episodes_and_the_next_call_starts_another():
     import signal as signals
 
-    from pipeline import executor
+    from pipeline.boundary import workers as executor
 
     specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=2000)
              for i in range(2)]
@@ -214,7 +214,7 @@ def test_a_dead_zygote_costs_only_its_episodes_and_the_next_call_starts_another(
 
 def test_a_staged_worker_plays_its_episode_as_a_fresh_one_and_its_wait_is_not_its_time():
     """The next episode's worker loads its policy and resets its environment while the current one plays
-    (``pipeline/zygote.py``): what it then plays is what an episode started alone plays (the seeded random
+    (``pipeline/boundary/zygote.py``): what it then plays is what an episode started alone plays (the seeded random
     draws survive the wait), and its duration counts its preparation, not its wait."""
     random_policy = pong_policy("return random.randrange(6)", prelude="import random\n")
     long_first = EpisodeSpec("e0", "r", "pong", random_policy, "v", index=0, seed=3, max_steps=1500)

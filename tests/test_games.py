@@ -144,7 +144,7 @@ def test_a_game_added_from_outside_the_package_plays_through_eval(tmp_path):
 
 
 def test_hot_columns_follow_each_games_player():
-    from pipeline.rollout import EpisodeSpec, run_episode
+    from pipeline.play.rollout import EpisodeSpec, run_episode
 
     policy = (ROOT / "tests" / "policies" / "freeway_competent.py").read_text()
     outcome = run_episode(EpisodeSpec(episode_id="e", run_id="r", game="freeway", policy_text=policy,

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-import pipeline.local_llm as local_llm
-from pipeline.local_llm import LocalModelError, LocalModelServer, smollm2_gguf_path
+import pipeline.llm.local as local_llm
+from pipeline.llm.local import LocalModelError, LocalModelServer, smollm2_gguf_path
 
 
 def _alive(pid: int) -> bool:
@@ -149,7 +149,7 @@ def test_no_orphan_server_when_the_parent_ends(ending):
     script = textwrap.dedent(
         f"""
         import os
-        from pipeline.local_llm import LocalModelServer
+        from pipeline.llm.local import LocalModelServer
         server = LocalModelServer().start()
         print(server.pid, flush=True)
         if {ending == "os._exit"!r}:
@@ -177,7 +177,7 @@ def test_offline_run_killed_in_iteration_1_resumes_with_the_server_started_again
     import signal
 
     from store import Store
-    from pipeline.llm import OFFLINE_MODEL_LABEL
+    from pipeline.llm.client import OFFLINE_MODEL_LABEL
 
     exe = os.path.join(os.path.dirname(sys.executable), "codearcade")
     path = tmp_path / "s.duckdb"

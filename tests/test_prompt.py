@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.optimize import OptimizeConfig, load_state, run_loop, start_run
-from pipeline.prompt import PromptBudgetError, build_prompt, read_context, render_obs
-from pipeline.tokens import TokenCounter
+from pipeline.optimizer.loop import OptimizeConfig, load_state, run_loop, start_run
+from pipeline.optimizer.prompt import PromptBudgetError, build_prompt, read_context, render_obs
+from pipeline.llm.tokens import TokenCounter
 from store import Store
 
 BUDGETS = [2_000, 4_000, 16_000, 64_000, 200_000]
@@ -123,13 +123,13 @@ def _whole(text: str) -> int:
     """The estimate from one encoding of the whole text, as the counter did before it summed lines."""
     import math
 
-    from pipeline.tokens import ESTIMATE_MARGIN, _cl100k
+    from pipeline.llm.tokens import ESTIMATE_MARGIN, _cl100k
 
     return math.ceil(len(_cl100k().encode(text, disallowed_special=())) * ESTIMATE_MARGIN)
 
 
 def test_summed_lines_count_what_the_whole_text_counts(runs, counter):
-    """The estimate sums the counts of a text's lines (pipeline/tokens.py); that must be the whole text's count,
+    """The estimate sums the counts of a text's lines (pipeline/llm/tokens.py); that must be the whole text's count,
     for real prompts and for random text made of the characters where tiktoken's pieces could cross a line."""
     import random
 

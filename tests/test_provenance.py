@@ -14,10 +14,10 @@ import pyarrow as pa
 import pytest
 
 from pipeline.cli import main
-from pipeline.llm import LiteLLMClient
-from pipeline.optimize import OptimizeConfig, optimize
-from pipeline.rollout import EpisodeSpec, run_episode
-from pipeline.wire import BadMessage, check_lines_run
+from pipeline.llm.client import LiteLLMClient
+from pipeline.optimizer.loop import OptimizeConfig, optimize
+from pipeline.play.rollout import EpisodeSpec, run_episode
+from pipeline.boundary.wire import BadMessage, check_lines_run
 from store import Store
 from tests.conftest import json_reply, pong_policy
 from tracing.blame import blame_function
@@ -285,9 +285,9 @@ def test_a_run_shipped_as_a_bundle_keeps_its_blame(run, tmp_path):
 
 
 def test_a_rollback_version_carries_its_targets_origins(tmp_path):
-    """Versions written as the optimizer writes them (pipeline/versions.py rows, store/writer.py): a rollback to
+    """Versions written as the optimizer writes them (pipeline/play/versions.py rows, store/writer.py): a rollback to
     the starting code keeps iteration 0's origins, and the next change is diffed against the rolled-back code."""
-    from pipeline.versions import policy_version_row
+    from pipeline.play.versions import policy_version_row
     from store.lines import version_blame
     from store.writer import insert_policy_version, insert_run
 

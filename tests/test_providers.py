@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from pipeline.providers import PROVIDER_KEYS, MissingCredentialsError, check_credentials, with_cache_breakpoint
+from pipeline.llm.providers import PROVIDER_KEYS, MissingCredentialsError, check_credentials, with_cache_breakpoint
 from tests.conftest import COMPETENT_REPLY, ROOT, pong_policy
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -120,7 +120,7 @@ def test_cache_breakpoint_keeps_the_text():
 
 
 def test_credential_table_agrees_with_litellm(monkeypatch):
-    from pipeline.tokens import import_litellm
+    from pipeline.llm.tokens import import_litellm
 
     litellm = import_litellm()
     for name in [k for k in os.environ if k.endswith(("_API_KEY", "_API_BASE"))]:

@@ -11,8 +11,8 @@ import sys
 import time
 
 
-import pipeline.prompt
-from pipeline.replay import replay
+import pipeline.optimizer.prompt
+from pipeline.optimizer.replay import replay
 from tests.conftest import COMPETENT_REPLY, ROOT
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -143,7 +143,7 @@ def test_replay_matches_then_reports_divergence(store, scripted, monkeypatch):
     assert [r.iteration for r in report.rows] == [0, 1, 2, 3] and all(r.matches for r in report.rows)
     assert len(model.requests()) == calls_before, "a replay never calls the model"
 
-    monkeypatch.setattr(pipeline.prompt, "SYSTEM", pipeline.prompt.SYSTEM + "\nBe brief.")  # the builder changed
+    monkeypatch.setattr(pipeline.optimizer.prompt, "SYSTEM", pipeline.optimizer.prompt.SYSTEM + "\nBe brief.")  # the builder changed
     report = replay(store, run_id)
     assert report.status == "diverged" and report.diverged_at == 1
     assert store.query("SELECT count(*) FROM runs WHERE kind = 'replay'")[0][0] == 2

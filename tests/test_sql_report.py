@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.evaluate import EvalConfig, evaluate
-from pipeline.llm import LiteLLMClient
-from pipeline.optimize import OptimizeConfig, optimize
+from pipeline.play.evaluate import EvalConfig, evaluate
+from pipeline.llm.client import LiteLLMClient
+from pipeline.optimizer.loop import OptimizeConfig, optimize
 from store import Store
 from tests.conftest import COMPETENT_REPLY, EXAMPLES, ROOT
 

@@ -12,7 +12,7 @@ import duckdb
 import pytest
 
 from games import list_widths
-from pipeline.rollout import EpisodeSpec, run_episode
+from pipeline.play.rollout import EpisodeSpec, run_episode
 from store import Store, StoreError
 from store.migrations import LATEST, MIGRATIONS
 from store.readers import episode_steps, run_episodes, step_nodes

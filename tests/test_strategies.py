@@ -1,4 +1,4 @@
-"""Search strategies (pipeline/strategies.py): greedy replays the paper's loop as it was, best-of-n asks for its
+"""Search strategies (pipeline/optimizer/strategies.py): greedy replays the paper's loop as it was, best-of-n asks for its
 proposals at once, beam keeps its best versions, lineage is data, and the evaluation cache saves steps, not scores."""
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.llm import LiteLLMClient
-from pipeline.optimize import OptimizeConfig, optimize
-from pipeline.replay import replay
+from pipeline.llm.client import LiteLLMClient
+from pipeline.optimizer.loop import OptimizeConfig, optimize
+from pipeline.optimizer.replay import replay
 from store import Store
 from tests.conftest import COMPETENT_PREDICT, COMPETENT_REPLY, COMPETENT_SELECT, ROOT, json_reply
 
@@ -32,8 +32,8 @@ POOL = [COMPETENT_REPLY, ALWAYS_UP, RAISES, HALF, "no code today"]
 def history_is_what_the_store_reads_back(monkeypatch):
     """The loop keeps its history in memory (``RunState.history``), extended by each commit with the rows it
     wrote: after every commit of every run here, it must equal what the store reads back."""
-    from pipeline import optimize as loop
-    from pipeline.strategies import History
+    from pipeline.optimizer import loop
+    from pipeline.optimizer.strategies import History
     from store.readers import candidates, iterations
 
     commit, checked = loop._commit, []
@@ -205,7 +205,7 @@ def test_strategy_options_are_checked():
 def test_strategies_example_and_its_sql(tmp_path, store, scripted):
     """examples/strategies.toml, shortened to a budget of 4 calls with the scripted model standing in; then
     examples/strategies.sql tabulates the strategies at that equal budget."""
-    from pipeline.batch import load_experiments
+    from pipeline.jobs.batch import load_experiments
 
     assert len(load_experiments(ROOT / "examples" / "strategies.toml").runs) == 10
     model = scripted([{"pool": POOL, "seed": 2}])

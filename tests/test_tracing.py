@@ -130,7 +130,7 @@ def test_inspect_policy_reads_constants_and_methods_without_running():
 
 
 def test_task_settings_come_from_the_game_module_unless_the_file_overrides_them():
-    from pipeline.task import task_settings
+    from pipeline.optimizer.task import task_settings
 
     scaffold = inspect_policy((EXAMPLES / "breakout.py").read_text(), "breakout.py")
     assert "ROLLOUT_STEPS" not in scaffold.constants, "the task lives in games/breakout.py, not the scaffold"

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import random
 
-from pipeline.rollout import EpisodeSpec
-from pipeline.verify import Replay, replay_actions
+from pipeline.play.rollout import EpisodeSpec
+from pipeline.play.verify import Replay, replay_actions
 
 
 def _spec(game="breakout", seed=3):

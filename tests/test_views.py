@@ -9,9 +9,9 @@ from pathlib import Path
 import duckdb
 import pytest
 
-from pipeline.evaluate import EvalConfig, evaluate
-from pipeline.llm import LiteLLMClient
-from pipeline.optimize import OptimizeConfig, optimize
+from pipeline.play.evaluate import EvalConfig, evaluate
+from pipeline.llm.client import LiteLLMClient
+from pipeline.optimizer.loop import OptimizeConfig, optimize
 from store import Store
 from store.migrations import LATEST, MIGRATIONS
 from store.views import VIEWS, run_query

@@ -1,12 +1,12 @@
-"""The parent's checks of what a worker sends (pipeline/wire.py): anything off is a BadMessage, never accepted."""
+"""The parent's checks of what a worker sends (pipeline/boundary/wire.py): anything off is a BadMessage, never accepted."""
 
 from __future__ import annotations
 
 import pyarrow as pa
 import pytest
 
-from pipeline import wire
-from pipeline.rollout import EpisodeSpec, run_episode
+from pipeline.boundary import wire
+from pipeline.play.rollout import EpisodeSpec, run_episode
 from tests.conftest import pong_policy
 from tracing.capture import NODE_SCHEMA
 from tracing.steps import STEP_SCHEMA

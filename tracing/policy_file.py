@@ -6,7 +6,7 @@ A policy file is a Python module that defines ``class Policy`` (a :class:`tracin
     GAME = "pong"                 # which game it plays (``--game`` may also say it)
     ROLLOUT_STEPS = 400           # traced training rollout horizon for the optimizer
     EVAL_MAX_STEPS = 4000         # evaluation cap
-    FEEDBACK = {...}              # staged-feedback bands (see pipeline/feedback.py)
+    FEEDBACK = {...}              # staged-feedback bands (see pipeline/optimizer/feedback.py)
     INSTRUCTION = "..."           # task statement for the optimizer's prompt
 
 :func:`inspect_policy` reads all of that without executing anything (the parent process never runs policy

@@ -1,6 +1,6 @@
 """What ``codearcade compare`` shows: the learning-curves plot, the terminal text and the Markdown report.
 
-Input is the plain data of :mod:`pipeline.compare` (``RunComparison.as_dict()`` / ``VersionComparison.as_dict()``).
+Input is the plain data of :mod:`pipeline.play.versus` (``RunComparison.as_dict()`` / ``VersionComparison.as_dict()``).
 The plot draws both runs' score and best-so-far against the three budgets a run spends (LLM calls, tokens,
 wall seconds), one panel each, with matplotlib's Agg canvas (no display needed).
 """

@@ -365,7 +365,7 @@ def _cache_saving(run: dict[str, Any], usage: dict[str, Any]) -> str | None:
     cached = usage.get("cached_input_tokens") or 0
     if not cached or not run.get("model"):
         return None
-    from pipeline.providers import price
+    from pipeline.llm.providers import price
 
     rates = price(run["model"])
     share = cached / max(usage["input_tokens"] or 1, 1)
@@ -396,7 +396,7 @@ def reproduce_command(run: dict[str, Any], config: dict[str, Any]) -> str:
         if config.get("trace"):
             parts.append("--trace")
         return shlex.join(parts)
-    from pipeline.optimize import OptimizeConfig
+    from pipeline.optimizer.loop import OptimizeConfig
 
     defaults = OptimizeConfig()
     parts = ["codearcade", "optimize"] + ([config["policy"]] if config.get("policy") else [])

@@ -1,11 +1,11 @@
 """Live Rerun recording of an episode, from inside the worker process that plays it.
 
-``run_episode`` (``pipeline/rollout.py``) creates a :class:`LiveEpisodeRecorder` when ``EpisodeSpec.rerun`` is
+``run_episode`` (``pipeline/play/rollout.py``) creates a :class:`LiveEpisodeRecorder` when ``EpisodeSpec.rerun`` is
 set: a directory (the recording goes to ``DIR/<episode_id>.rrd``) or a ``rerun+http://…/proxy`` URL (a
 viewer started by ``--rerun spawn``, or any Rerun gRPC server). Rerun is imported here, in the worker, never
 in the main process: the SDK starts Rust threads, and the main process forks the workers.
 
-The worker's audit hook (``pipeline/executor.py``) refuses Python-level file writes and socket connects;
+The worker's audit hook (``pipeline/boundary/workers.py``) refuses Python-level file writes and socket connects;
 Rerun opens its file and its gRPC connection in Rust, which the hook does not see, so nothing needs to be
 opened in advance and the hook stays as it is.
 

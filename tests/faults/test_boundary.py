@@ -19,19 +19,19 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.validate import CandidateRejected, build_candidate
+from pipeline.play.validate import CandidateRejected, build_candidate
 from store import Store
 from tests.conftest import EXAMPLES, ROOT, pong_policy
 from tracing.policy_file import PolicyLoadError, inspect_policy
 
 CANARY = f"sk-canary-{uuid.uuid4().hex}"
 
-# Turns off the audit hook of the previous design (module globals of pipeline.executor, reachable through
+# Turns off the audit hook of the previous design (module globals of pipeline.boundary.workers, reachable through
 # typing.sys.modules); harmless now.
 ESCAPE = """
 import typing
 mods = typing.sys.modules
-ex = mods.get('pipeline.executor')
+ex = mods.get('pipeline.boundary.workers')
 if ex is not None:
     ex._DENIED_EVENTS = ('no-such-event',)
     ex._WRITE_FLAGS = 0
@@ -229,7 +229,7 @@ f = mods['sys']._getframe(0)
 while f is not None:
     fd = operator.attrgetter('f_locals')(f).get('fd')
     if type(fd) is int:
-        steps = mods['pipeline.wire'].arrow_frame(mods['tracing.steps'].StepLog().table())
+        steps = mods['pipeline.boundary.wire'].arrow_frame(mods['tracing.steps'].StepLog().table())
         os.write(fd, b'J' + len(data).to_bytes(4, 'big') + data + steps)
         os._exit(0)
     f = operator.attrgetter('f_back')(f)
@@ -248,7 +248,7 @@ return 0
 ], ids=["SIGALRM ignored", "__str__ loops"])
 def test_a_policy_that_defeats_its_timer_is_killed_and_the_run_goes_on(body, store, write_policy, capsys,
                                                                       monkeypatch):
-    from pipeline import executor
+    from pipeline.boundary import workers as executor
 
     monkeypatch.setattr(executor, "KILL_GRACE_S", 1.0)
     path = write_policy(pong_policy(body))
@@ -309,7 +309,7 @@ def test_a_policy_file_too_deep_for_the_checks_is_refused_in_one_line(verb, body
 @pytest.fixture
 def kernel_lacks_landlock(monkeypatch):
     """The zygote's hello says Landlock is missing (as on a kernel without it); a fresh zygote is started."""
-    from pipeline import executor
+    from pipeline.boundary import workers as executor
 
     original = executor.Zygote._recv
 

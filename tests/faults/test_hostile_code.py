@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, validate_candidate
+from pipeline.play.validate import CandidateRejected, RuntimeCheck, build_candidate, check_at_runtime, validate_candidate
 from tests.conftest import EXAMPLES, pong_policy
 from tracing.policy_file import inspect_policy
 
@@ -124,7 +124,7 @@ def test_hostile_candidate_is_rejected(name, body, expected):
 def test_a_candidate_that_kills_its_check_worker_is_not_blamed_on_the_static_checks(monkeypatch):
     """Static and runtime checks share a worker; when it dies (here a C loop the call timer cannot stop, killed
     at the worker's time limit), the static checks run alone to tell which part failed."""
-    from pipeline import validate
+    from pipeline.play import validate
 
     monkeypatch.setattr(validate, "VET_TIME_LIMIT_S", 2.0)
     info = inspect_policy((EXAMPLES / "pong.py").read_text(), "pong.py")

@@ -11,9 +11,9 @@ import json
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.llm import LiteLLMClient
-from pipeline.optimize import OptimizeConfig, optimize
-from pipeline.reply import ReplyParseError, parse_reply
+from pipeline.llm.client import LiteLLMClient
+from pipeline.optimizer.loop import OptimizeConfig, optimize
+from pipeline.optimizer.reply import ReplyParseError, parse_reply
 from tests.conftest import COMPETENT_SELECT, json_reply
 
 HUGE = "x" * (10 * 2**20)

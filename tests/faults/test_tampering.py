@@ -1,4 +1,4 @@
-"""Scores a policy cannot touch (pipeline/verify.py): the parent replays every episode's actions.
+"""Scores a policy cannot touch (pipeline/play/verify.py): the parent replays every episode's actions.
 
 The tampering policy below really inflates its score without verification: it reaches the worker's
 environment through a module that re-exports ``sys`` and wraps ``step`` to add one point per step (a
@@ -15,11 +15,11 @@ import textwrap
 import pytest
 
 from pipeline.cli import main
-from pipeline.executor import run_episodes
-from pipeline.llm import LiteLLMClient
-from pipeline.optimize import OptimizeConfig, optimize
-from pipeline.rollout import EpisodeOutcome, EpisodeSpec, run_episode
-from pipeline.verify import verify_outcome
+from pipeline.boundary.workers import run_episodes
+from pipeline.llm.client import LiteLLMClient
+from pipeline.optimizer.loop import OptimizeConfig, optimize
+from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec, run_episode
+from pipeline.play.verify import verify_outcome
 from tests.conftest import json_reply, pong_policy
 
 TAMPER_BODY = """

@@ -1,4 +1,4 @@
-"""Nothing from policy code is trusted text (pipeline/untrusted.py): capped and scrubbed of secrets.
+"""Nothing from policy code is trusted text (pipeline/boundary/untrusted.py): capped and scrubbed of secrets.
 
 The worst case is modelled: a policy that got hold of a key. The test puts canary secrets in this process's
 environment (``CODEARCADE_CANARY_TOKEN``, ``OPENAI_API_KEY``), which the worker processes inherit; the policy
@@ -19,7 +19,7 @@ import uuid
 import pytest
 
 from pipeline.cli import main
-from pipeline.untrusted import clean_json_text, clean_step_objects, clean_untrusted_text, secret_env_names
+from pipeline.boundary.untrusted import clean_json_text, clean_step_objects, clean_untrusted_text, secret_env_names
 from tests.conftest import json_reply
 from tracing.steps import StepLog
 

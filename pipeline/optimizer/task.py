@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from games import get_game
-from pipeline.feedback import FeedbackBands
+from pipeline.optimizer.feedback import FeedbackBands
 from tracing.policy_file import PolicyInfo
 
 

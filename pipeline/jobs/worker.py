@@ -1,6 +1,6 @@
-"""One run of a batch: ``python -m pipeline.batch_worker SPEC_JSON`` (local executor) or a Ray task.
+"""One run of a batch: ``python -m pipeline.jobs.worker SPEC_JSON`` (local executor) or a Ray task.
 
-The spec carries the run's :class:`~pipeline.optimize.OptimizeConfig`, the batch name and run key (stored in
+The spec carries the run's :class:`~pipeline.optimizer.loop.OptimizeConfig`, the batch name and run key (stored in
 the run's config so a later ``codearcade batch`` finds it), and the run id to resume, if any. Locally the
 process works on the shared store directly; on Ray, :func:`run_remote` works on a private store seeded with
 the run's earlier rows and returns all of them for the driver to write.
@@ -15,9 +15,9 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pipeline.batch import BUDGET_EXIT
-from pipeline.llm import OFFLINE_TOKEN_BUDGET, open_client
-from pipeline.optimize import OptimizeConfig, OptimizeResult, optimize
+from pipeline.jobs.batch import BUDGET_EXIT
+from pipeline.llm.client import OFFLINE_TOKEN_BUDGET, open_client
+from pipeline.optimizer.loop import OptimizeConfig, OptimizeResult, optimize
 from store import Store
 
 

@@ -76,7 +76,7 @@ def check_credentials(model: str, api_base: str | None = None, environ: dict[str
             return
         missing = list(names)
     else:
-        from pipeline.tokens import import_litellm
+        from pipeline.llm.tokens import import_litellm
 
         if api_base:  # a proxy or self-hosted endpoint of an unlisted provider: let the server decide
             return
@@ -174,7 +174,7 @@ class Price:
 
 def price(model: str) -> Price | None:
     """litellm's price of ``model``, or None when it has none (local and unknown models)."""
-    from pipeline.tokens import import_litellm
+    from pipeline.llm.tokens import import_litellm
 
     litellm = import_litellm()
     try:

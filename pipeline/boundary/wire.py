@@ -6,7 +6,7 @@ object of primitives); the worker answers ``J`` frames (``{"kind": "progress", "
 ``{"kind": "result", ...}`` or ``{"kind": "error", ...}``) and, after an episode's result, its steps (and nodes)
 as Arrow streams. Nothing is ever unpickled, imported or executed by the receiver. :class:`FrameReader` caps
 frame sizes; :func:`episode_from_worker` checks every field of an episode against what the parent asked for
-and the Arrow schemas that ``pipeline/rollout.py`` produces, and raises :class:`BadMessage` otherwise (the
+and the Arrow schemas that ``pipeline/play/rollout.py`` produces, and raises :class:`BadMessage` otherwise (the
 executor then records the episode as ``crashed`` with that reason).
 """
 
@@ -129,7 +129,7 @@ def spec_to_json(spec: Any) -> dict[str, Any]:
 
 
 def spec_from_json(data: dict[str, Any]) -> Any:
-    from pipeline.rollout import EpisodeSpec
+    from pipeline.play.rollout import EpisodeSpec
 
     names = {f.name for f in fields(EpisodeSpec)}
     return EpisodeSpec(**{k: v for k, v in data.items() if k in names})
@@ -200,7 +200,7 @@ def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
     """The :class:`EpisodeOutcome` of ``spec`` from what its worker sent, every value checked; BadMessage if
     anything is off. Fields the parent knows (ids, seed, settings) come from ``spec``, never from the worker."""
     from games import get_game
-    from pipeline.rollout import EpisodeOutcome, _episode_row
+    from pipeline.play.rollout import EpisodeOutcome, _episode_row
 
     if not isinstance(row, dict):
         raise BadMessage("the episode row is not an object")

@@ -5,7 +5,7 @@ reached within the same number of LLM calls, thousand tokens and wall seconds; o
 are matched, so neither is credited with spending it never made) and the unified diff of their best versions.
 
 Two versions of one game, each a policy file or ``RUN:VERSION`` (a version stored in a run: an id, a unique
-prefix of one, or ``best``): both are evaluated with node capture (``pipeline/evaluate.py``, the same path as
+prefix of one, or ``best``): both are evaluated with node capture (``pipeline/play/evaluate.py``, the same path as
 ``codearcade eval --trace``, so each is an eval run in the store) on the same seeds, and for each seed the
 report names the first step where their actions differ, with both sides' actions, observations and node
 outputs on the steps around it. Episodes are deterministic under the default protocol (sticky 0, no no-op
@@ -25,8 +25,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from games import get_game, list_widths
-from pipeline.evaluate import EvalConfig, evaluate
-from pipeline.validate import checked_inspect
+from pipeline.play.evaluate import EvalConfig, evaluate
+from pipeline.play.validate import checked_inspect
 from store import Store
 from store.comparisons import best_version, episode_rows, first_divergent_step, learning_curve, resolve_version
 from store.readers import episode_steps, get_run, policy_text, run_episodes, step_nodes

@@ -3,7 +3,7 @@
 The estimate is built from a real iteration 0: the starting policy is evaluated (a traced training rollout
 and the evaluation episodes, exactly as a run does) into a temporary store that is thrown away afterwards,
 and the prompt of the first update is built from it under the run's token budget and counted with the
-model's tokenizer (``pipeline/tokens.py``). Costs use litellm's price table (``pipeline/providers.py``):
+model's tokenizer (``pipeline/llm/tokens.py``). Costs use litellm's price table (``pipeline/llm/providers.py``):
 
 - one update: that prompt, plus a reply as long as ``--max-tokens`` (the most it can cost), and plus a
   typical reply of :data:`TYPICAL_REPLY_TOKENS`;
@@ -19,10 +19,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from pipeline.optimize import OptimizeConfig, load_state, run_iteration, start_run
-from pipeline.prompt import Prompt, build_prompt, read_context
-from pipeline.providers import Price, price
-from pipeline.tokens import TokenCounter
+from pipeline.optimizer.loop import OptimizeConfig, load_state, run_iteration, start_run
+from pipeline.optimizer.prompt import Prompt, build_prompt, read_context
+from pipeline.llm.providers import Price, price
+from pipeline.llm.tokens import TokenCounter
 from store import Store
 
 TYPICAL_REPLY_TOKENS = 1_500
@@ -83,7 +83,7 @@ class Estimate:
 
 def estimate_run(config: OptimizeConfig, progress_log: Callable[[str], None] = lambda s: None) -> Estimate:
     """Evaluate the starting policy into a temporary store and price the first update (module docstring)."""
-    from pipeline.llm import OFFLINE_MODEL_LABEL
+    from pipeline.llm.client import OFFLINE_MODEL_LABEL
 
     model = config.model or OFFLINE_MODEL_LABEL
     with tempfile.TemporaryDirectory(prefix="codearcade-dry-run-") as tmp:

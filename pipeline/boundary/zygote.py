@@ -1,19 +1,19 @@
-"""The zygote: a clean process that forks one confined worker per task (``python -m pipeline.zygote FD``).
+"""The zygote: a clean process that forks one confined worker per task (``python -m pipeline.boundary.zygote FD``).
 
-The executor (``pipeline/executor.py``) starts it with a fresh interpreter, an environment reduced to an
+The executor (``pipeline/boundary/workers.py``) starts it with a fresh interpreter, an environment reduced to an
 allow-list (no API keys, no store path), its scratch directory as HOME and cwd, and one end of a Unix
 ``SOCK_SEQPACKET`` socket pair as its only inherited descriptor. It imports the environment stack once
-(``pipeline.worker_preload``), moves itself into an empty network namespace, mounts a small tmpfs over its
+(``pipeline.boundary.preload``), moves itself into an empty network namespace, mounts a small tmpfs over its
 scratch directory in a mount namespace of its own (the workers' scratch directories), probes the features of
-``pipeline/confine.py`` in a throwaway child, and says hello with what is missing. Then it serves:
+``pipeline/boundary/confine.py`` in a throwaway child, and says hello with what is missing. Then it serves:
 
 - ``{"op": "prepare", "envs": [[game, sticky, noop_max], ...]}``: build those environments once (workers
   inherit them built);
 - ``{"op": "run", "id", "task", "limits", "staged"}`` with a socket passed alongside (SCM_RIGHTS): fork a
   worker that reads its task as a JSON frame from that socket, confines itself (scratch directory,
-  stdout/stderr to /dev/null, :func:`pipeline.confine.confine`), prepares it (an episode: policy loaded,
+  stdout/stderr to /dev/null, :func:`pipeline.boundary.confine.confine`), prepares it (an episode: policy loaded,
   environment reset), waits for a ``G`` byte if ``staged`` (the executor sets up the next worker while the
-  current one plays), runs the task and writes its answer as frames (``pipeline/wire.py``); answered with
+  current one plays), runs the task and writes its answer as frames (``pipeline/boundary/wire.py``); answered with
   ``{"kind": "started", "id", "pid"}``;
 - ``{"op": "kill", "id"}``: SIGKILL that worker.
 
@@ -36,7 +36,7 @@ import sys
 import traceback
 from typing import Any, Callable
 
-from pipeline import confine, wire
+from pipeline.boundary import confine, wire
 
 MAX_CONTROL = 64 * 1024
 
@@ -49,7 +49,7 @@ def _send(ctl: socket.socket, obj: dict[str, Any]) -> None:
 
 
 def _episode(item: dict[str, Any], fd: int) -> Callable[[], None]:
-    from pipeline.rollout import play_episode, prepare_episode
+    from pipeline.play.rollout import play_episode, prepare_episode
 
     # before the go-ahead: a staged worker loads the policy and resets its environment (ALE reloads the ROM,
     # ~0.1 s) while the previous episode still plays
@@ -69,10 +69,10 @@ def _episode(item: dict[str, Any], fd: int) -> Callable[[], None]:
 
 
 def _answer(name: str) -> Callable[[dict[str, Any], int], Callable[[], None]]:
-    """A task answered by ``pipeline.validate.<name>(item)``: text fields of one result message."""
+    """A task answered by ``pipeline.play.validate.<name>(item)``: text fields of one result message."""
     def task(item: dict[str, Any], fd: int) -> Callable[[], None]:
         def run() -> None:
-            from pipeline import validate
+            from pipeline.play import validate
 
             wire.write_all(fd, wire.json_frame({"kind": "result", **getattr(validate, name)(item)}))
 
@@ -160,7 +160,7 @@ def main(argv: list[str]) -> int:
     ctl = socket.socket(fileno=int(argv[0]))
     scratch_base = os.getcwd()
     # no PDEATHSIG here: it follows the parent's *thread* that started us; EOF on the socket is the signal
-    import pipeline.worker_preload  # noqa: F401  (the environment stack, imported once for every worker)
+    import pipeline.boundary.preload  # noqa: F401  (the environment stack, imported once for every worker)
 
     missing = []
     try:

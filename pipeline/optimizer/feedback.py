@@ -4,7 +4,7 @@
 low) naming the score, how far it is from the target, and a hint. ``rollout`` feedback (the paper's
 ablation) uses only the return of the short traced training rollout. Either way, notes of what the loop did
 are appended: a candidate that was rejected and why, a rollback, a failed LLM call; each note is untrusted text,
-capped at 2,000 characters and scrubbed of secrets (``pipeline/untrusted.py``).
+capped at 2,000 characters and scrubbed of secrets (``pipeline/boundary/untrusted.py``).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from pipeline.untrusted import clean_untrusted_text
+from pipeline.boundary.untrusted import clean_untrusted_text
 
 FEEDBACK_MODES = ("staged", "rollout")
 

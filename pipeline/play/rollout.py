@@ -2,7 +2,7 @@
 
 :func:`run_episode` is a pure function of an :class:`EpisodeSpec` (primitives only, sent to a worker as JSON: the
 policy travels as text), returning an :class:`EpisodeOutcome` that holds the episode row and its steps and nodes
-as Arrow tables. It runs in a confined worker process (``pipeline/executor.py``, which sends the outcome back as
+as Arrow tables. It runs in a confined worker process (``pipeline/boundary/workers.py``, which sends the outcome back as
 JSON and Arrow IPC) or, for debugging, in-process; only the caller writes to the store.
 
 Whatever the policy does, the episode ends with a recorded ``end_reason``:
@@ -140,7 +140,7 @@ class PreparedEpisode:
 
 def prepare_episode(spec: EpisodeSpec) -> PreparedEpisode:
     """Everything before the first step: seed the RNGs, load the policy, reset the environment (ALE's seeded
-    reset reloads the ROM: ~0.1 s, as long as a few hundred steps). A staged worker (``pipeline/zygote.py``) does
+    reset reloads the ROM: ~0.1 s, as long as a few hundred steps). A staged worker (``pipeline/boundary/zygote.py``) does
     this, confined, while the previous episode still plays; it then waits for its go-ahead."""
     game = get_game(spec.game)
     t0 = time.perf_counter()
@@ -165,7 +165,7 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
 
     ``progress(steps)`` is called every :data:`PROGRESS_EVERY` steps and at the end; ``on_actions(actions)``
     just before it with the actions played since its last call (the parent verifies the score while the
-    episode plays: ``pipeline/verify.py``)."""
+    episode plays: ``pipeline/play/verify.py``)."""
     return play_episode(prepare_episode(spec), progress, on_actions)
 
 

@@ -1,6 +1,6 @@
 """Kernel confinement of the process that runs untrusted policy code (Linux; ctypes only, no dependency).
 
-One job: take a freshly forked worker (``pipeline/zygote.py``), after its environment is built and before any
+One job: take a freshly forked worker (``pipeline/boundary/zygote.py``), after its environment is built and before any
 policy code is loaded, and make the operating system the boundary:
 
 - ``PR_SET_NO_NEW_PRIVS``: nothing it executes could gain privileges (and it may not execute anything);
@@ -285,7 +285,7 @@ def read_paths() -> tuple[list[str], list[str]]:
         read.update(site.getsitepackages())
     except AttributeError:
         pass
-    project = Path(__file__).resolve().parents[1]
+    project = Path(__file__).resolve().parents[2]
     list_only = {str(project)}
     for sub in project.iterdir():
         if (sub / "__init__.py").exists():

@@ -8,11 +8,11 @@ gigabytes, and 400 of them parse but then exhaust the recursion limit in radon's
 code metrics run first in a confined worker (:func:`vet_here`, with a lower recursion limit than this process
 has and its memory capped) and only text that passed there is parsed and measured here; a worker that dies or
 hangs rejects the candidate (:func:`checked_inspect` does the same for a policy file given to ``codearcade
-eval`` or ``optimize``). Then a runtime check in a confined worker process (``pipeline/executor.py``):
+eval`` or ``optimize``). Then a runtime check in a confined worker process (``pipeline/boundary/workers.py``):
 the candidate policy is loaded and called on observations recorded in the store (the training rollout's),
 each call within the time limit and returning a legal action. The first failure rejects the candidate with a
 reason that names the method, the error and, for runtime failures, the step whose observation broke it; the
-reason (capped and scrubbed of secrets, ``pipeline/untrusted.py``) becomes part of the next feedback.
+reason (capped and scrubbed of secrets, ``pipeline/boundary/untrusted.py``) becomes part of the next feedback.
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from games import get_game
-from pipeline.executor import run_json_tasks
-from pipeline.rollout import coerce_action, describe_exception
-from pipeline.untrusted import clean_untrusted_text
+from pipeline.boundary.workers import run_json_tasks
+from pipeline.play.rollout import coerce_action, describe_exception
+from pipeline.boundary.untrusted import clean_untrusted_text
 from tracing.metrics import function_metrics, policy_metrics
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods
 from tracing.sandbox import CallTimer, PolicyCodeError, PolicyTimeout, check_source
@@ -39,7 +39,7 @@ MAX_VALIDATION_STEPS = 200
 
 class CandidateRejected(Exception):
     """A candidate that must not become a policy version; ``str()`` is the reason, cleaned as untrusted text
-    (``pipeline/untrusted.py``: capped, secrets redacted): it quotes the candidate's own exceptions and names."""
+    (``pipeline/boundary/untrusted.py``: capped, secrets redacted): it quotes the candidate's own exceptions and names."""
 
     def __init__(self, reason: object):
         super().__init__(clean_untrusted_text(reason))
@@ -167,7 +167,7 @@ def _vet_all(requests: list[tuple[dict[str, Any], "RuntimeCheck | None"]], worke
 
 
 def measure(info: PolicyInfo) -> None:
-    """Compute the code metrics that this process stores with a policy version (``pipeline/versions.py``; they
+    """Compute the code metrics that this process stores with a policy version (``pipeline/play/versions.py``; they
     are cached). radon's visitors recurse deeper than the parse does: 400 nested unary minuses parse, then
     exhaust the recursion limit in radon, so vetting computes them too."""
     for method in info.methods:

@@ -16,10 +16,10 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
-from pipeline.prompt import prompt_hash
-from pipeline.providers import LOCAL_SERVER_PROVIDERS, with_cache_breakpoint
-from pipeline.providers import request_params as provider_request_params
-from pipeline.tokens import import_litellm
+from pipeline.optimizer.prompt import prompt_hash
+from pipeline.llm.providers import LOCAL_SERVER_PROVIDERS, with_cache_breakpoint
+from pipeline.llm.providers import request_params as provider_request_params
+from pipeline.llm.tokens import import_litellm
 
 RETRYABLE = ("RateLimitError", "Timeout", "APIConnectionError", "ServiceUnavailableError", "InternalServerError",
              "BadGatewayError", "APIError")
@@ -111,7 +111,7 @@ def _usage_number(usage: Any, *path: str) -> int | None:
 class LiteLLMClient:
     """A model reached through litellm. ``complete`` retries transient errors, then raises :class:`LLMError`.
 
-    Only the parameters the provider accepts are sent (``pipeline/providers.py``); ``request_params()`` is
+    Only the parameters the provider accepts are sent (``pipeline/llm/providers.py``); ``request_params()`` is
     exactly what goes to litellm besides the messages, and ``dropped`` names what the provider would refuse.
     ``label`` is the model as the user asked for it (``offline:...`` for the built-in model), ``model`` the
     name litellm is given.
@@ -257,14 +257,14 @@ def open_client(model: str | None, api_base: str | None, temperature: float, max
                 stream: bool = False):
     """(client, local server or None, prompt-token cap or None) for ``--model``, or the offline default.
 
-    With no model, SmolLM2 is started on 127.0.0.1 (``pipeline/local_llm.py``) and a one-time notice says it
+    With no model, SmolLM2 is started on 127.0.0.1 (``pipeline/llm/local.py``) and a one-time notice says it
     only exercises the pipeline; the caller stops the server when done.
     """
     backoff_s = float(os.environ.get("CODEARCADE_LLM_BACKOFF_S", DEFAULT_BACKOFF_S))
     if model:
         return LiteLLMClient(model, api_base=api_base, temperature=temperature, max_tokens=max_tokens or 4096,
                              seed=seed, backoff_s=backoff_s, stream=stream), None, None
-    from pipeline.local_llm import LocalModelServer, show_offline_model_notice
+    from pipeline.llm.local import LocalModelServer, show_offline_model_notice
 
     show_offline_model_notice()
     server = LocalModelServer().start()

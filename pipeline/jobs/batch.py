@@ -14,7 +14,7 @@ An experiment file declares defaults, a matrix (every combination becomes a run)
     [[run]]                           # optional extra runs, merged over the defaults
     game = "breakout"
 
-Keys are the fields of :class:`~pipeline.optimize.OptimizeConfig` (``game``, ``policy``, ``model``,
+Keys are the fields of :class:`~pipeline.optimizer.loop.OptimizeConfig` (``game``, ``policy``, ``model``,
 ``api_base``, ``iterations``, ``memory``, ``token_budget``, ``eval_episodes``, ``feedback``, ``seed``, ...).
 Each run has a stable key (a hash of the batch name and its settings) stored in its config, so running the
 same command again skips finished runs, resumes interrupted ones from the store, and starts the rest.
@@ -43,7 +43,7 @@ from typing import Any, Callable
 
 from games import get_game
 from store.readers import batch_progress, batch_runs
-from pipeline.optimize import BUDGET_FIELDS, OptimizeConfig, validate_config
+from pipeline.optimizer.loop import BUDGET_FIELDS, OptimizeConfig, validate_config
 from store import Store
 
 TOP_LEVEL_KEYS = ("name", "store", "defaults", "matrix", "run")
@@ -199,7 +199,7 @@ def plan(batch: Batch, store: Store) -> list[PlannedRun]:
 def worker_command(store: Store, item: PlannedRun, batch: Batch, episode_workers: int) -> list[str]:
     spec = {"store": str(store.path), "config": asdict(item.run.config), "resume": item.run_id,
             "batch": batch.name, "batch_key": item.run.key, "episode_workers": episode_workers}
-    return [sys.executable, "-m", "pipeline.batch_worker", json.dumps(spec)]
+    return [sys.executable, "-m", "pipeline.jobs.worker", json.dumps(spec)]
 
 
 @dataclass
@@ -240,7 +240,7 @@ def _refresh(store: Store, progress: list[Progress], batch: Batch) -> None:
 def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: int, log: Callable[[str], None],
               display: Callable[[list[Progress]], None], log_dir: Path, poll_s: float = 1.0) -> BatchResult:
     """Run the planned runs in at most ``workers`` processes; see the module docstring."""
-    from pipeline.executor import die_with_parent
+    from pipeline.boundary.workers import die_with_parent
 
     progress = [Progress(p.run.label, iterations=p.run.config.iterations, run_id=p.run_id) for p in planned]
     queue = []
@@ -295,14 +295,14 @@ def run_ray(batch: Batch, store: Store, planned: list[PlannedRun], address: str 
     """Run the planned runs as Ray tasks; the driver writes each returned run in one transaction."""
     import ray
 
-    from pipeline.batch_worker import run_remote
+    from pipeline.jobs.worker import run_remote
     from store.bundle import export_run, import_run
 
     progress = [Progress(p.run.label, iterations=p.run.config.iterations, run_id=p.run_id) for p in planned]
     started_here = not ray.is_initialized()
     if started_here:
         ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False,
-                 runtime_env={"env_vars": {"PYTHONPATH": str(Path(__file__).resolve().parents[1])}})
+                 runtime_env={"env_vars": {"PYTHONPATH": str(Path(__file__).resolve().parents[2])}})
     remote = ray.remote(num_cpus=1, max_retries=1)(run_remote)
     futures = {}
     try:

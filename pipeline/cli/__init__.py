@@ -14,7 +14,7 @@ import sys
 from typing import Callable, Sequence
 
 from games import GAMES
-from pipeline.strategies import STRATEGIES
+from pipeline.optimizer.strategies import STRATEGIES
 
 EXIT_OK, EXIT_EPISODE_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 FAILED_END_REASONS = ("policy_error", "timeout", "crashed", "tampered")
@@ -159,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=_positive_int, default=None, help="episode worker processes (default: cores)")
     p.add_argument("--call-time-limit", type=float, dest="call_time_limit_s", metavar="SECONDS",
                    help="per policy call (default: 1)")
-    search = p.add_argument_group("search", "how versions are chosen for improvement (pipeline/strategies.py)")
+    search = p.add_argument_group("search", "how versions are chosen for improvement (pipeline/optimizer/strategies.py)")
     search.add_argument("--strategy", choices=STRATEGIES,
                         help="greedy: the paper's loop, one proposal from the last version, rollback after a "
                         "regression (default); best-of-n: N proposals from the best version, keep the best; beam: "
@@ -216,7 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
         "batch",
         help="run a matrix of optimizations headless (resumable)",
         description="Run every optimization an experiment file declares, in parallel, into one store. Running "
-        "the same command again skips finished runs and resumes interrupted ones. See pipeline/batch.py and "
+        "the same command again skips finished runs and resumes interrupted ones. See pipeline/jobs/batch.py and "
         "examples/ablation.toml for the file format.",
     )
     p.add_argument("experiments", metavar="EXPERIMENTS.toml")
@@ -450,7 +450,7 @@ def _progress_bar(episodes: int, description: str):
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from pipeline.evaluate import EvalConfig, evaluate
+    from pipeline.play.evaluate import EvalConfig, evaluate
 
     workers = args.workers if args.workers is not None else min(args.episodes, os.cpu_count() or 1)
     config = EvalConfig(
@@ -508,7 +508,7 @@ OPTIMIZE_OPTIONS = ("game", "policy", "model", "api_base", "iterations", "memory
                     "eval_max_steps", "workers", "call_time_limit_s", "max_cost_usd", "max_total_tokens",
                     "max_llm_calls", "max_wall_minutes", "strategy", "candidates", "beam_width", "max_concurrent_calls", "eval_cache",
                     "robust_episodes", "optimize_protocol", "screen_steps", "screen_margin", "one_life")
-"""The ``optimize`` flags that are :class:`~pipeline.optimize.OptimizeConfig` fields (defaults live there)."""
+"""The ``optimize`` flags that are :class:`~pipeline.optimizer.loop.OptimizeConfig` fields (defaults live there)."""
 
 
 def _llm_waiting(stream=None):
@@ -563,13 +563,13 @@ def _llm_waiting(stream=None):
 def cmd_optimize(args: argparse.Namespace) -> int:
     given = {k: getattr(args, k) for k in OPTIMIZE_OPTIONS if getattr(args, k) is not None}
     if args.model and not args.dry_run:
-        from pipeline.providers import check_credentials  # no litellm import: a missing key is reported at once
+        from pipeline.llm.providers import check_credentials  # no litellm import: a missing key is reported at once
 
         check_credentials(args.model, args.api_base)
     if args.show_prompt and not args.dry_run:
         raise CliError("--show-prompt goes with --dry-run")
-    from pipeline.llm import OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET, open_client
-    from pipeline.optimize import OptimizeConfig, optimize, plan_resume
+    from pipeline.llm.client import OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET, open_client
+    from pipeline.optimizer.loop import OptimizeConfig, optimize, plan_resume
 
     store = _store(args)
     if args.resume:
@@ -582,7 +582,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
             return EXIT_OK
         config, run_id = plan.config, plan.run_id
         if config.model and "model" not in given:
-            from pipeline.providers import check_credentials
+            from pipeline.llm.providers import check_credentials
 
             check_credentials(config.model, config.api_base)
     else:
@@ -633,7 +633,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
 
 
 def _dry_run(config, args: argparse.Namespace) -> int:
-    from pipeline.estimate import estimate_run
+    from pipeline.optimizer.estimate import estimate_run
 
     report = estimate_run(config, progress_log=lambda line: print(line, file=sys.stderr))
     if args.json:
@@ -780,7 +780,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_compare(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from pipeline.compare import CompareConfig, compare
+    from pipeline.play.versus import CompareConfig, compare
     from viewers.compare_report import text_lines, write_report
 
     if args.rerun and not args.rerun.endswith(".rrd") and not args.rerun.startswith(("rerun://", "rerun+http")):
@@ -820,7 +820,7 @@ def _compare_recording(store, data: dict, target: str) -> str:
     from pathlib import Path
 
     episode = next((e for e in data["episodes"] if e["first_divergent_step"] is not None), data["episodes"][0])
-    root = str(Path(__file__).resolve().parents[1])
+    root = str(Path(__file__).resolve().parents[2])
     env = dict(os.environ)
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     to = target if target.startswith(("rerun://", "rerun+http")) else str(Path(target).resolve())
@@ -843,7 +843,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     from datetime import datetime
     from pathlib import Path
 
-    from pipeline.batch import load_experiments, plan, run_local, run_ray
+    from pipeline.jobs.batch import load_experiments, plan, run_local, run_ray
     from store import Store
 
     batch = load_experiments(args.experiments)
@@ -855,7 +855,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         store = Store()
     planned = plan(batch, store)
     if not args.dry_run:  # a missing key stops the batch before any run starts
-        from pipeline.providers import check_credentials
+        from pipeline.llm.providers import check_credentials
 
         for item in planned:
             if item.action != "skip" and item.run.config.model:
@@ -919,7 +919,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from pipeline.replay import replay
+    from pipeline.optimizer.replay import replay
 
     store = _store(args)
     report = replay(store, _run_id(store, args.run_id), log=lambda line: print(line, file=sys.stderr))
@@ -1007,7 +1007,7 @@ def cmd_blame(args: argparse.Namespace) -> int:
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     from games import UnknownGameError
-    from pipeline.local_llm import LocalModelError
+    from pipeline.llm.local import LocalModelError
     from store import StoreError
     from store.locks import RunBusyError
     from tracing.policy_file import PolicyLoadError
@@ -1044,6 +1044,3 @@ def _store_damage_errors() -> tuple[type[BaseException], ...]:
 
     return (duckdb.IOException, duckdb.SerializationException, duckdb.InternalException)
 
-
-if __name__ == "__main__":
-    sys.exit(main())

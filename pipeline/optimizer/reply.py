@@ -27,10 +27,10 @@ _KEY_PREFIXES = ("__code:", "code:", "__code_", "__")
 
 class ReplyParseError(ValueError):
     """The reply holds no usable suggestion; the message says why (it becomes feedback), cleaned as untrusted
-    text (``pipeline/untrusted.py``): it may quote the reply."""
+    text (``pipeline/boundary/untrusted.py``): it may quote the reply."""
 
     def __init__(self, reason: object):
-        from pipeline.untrusted import clean_untrusted_text
+        from pipeline.boundary.untrusted import clean_untrusted_text
 
         super().__init__(clean_untrusted_text(reason))
 

@@ -7,7 +7,7 @@ HTTP server (through the ``xllamacpp`` wheel) on 127.0.0.1 with the SmolLM2-135M
     with LocalModelServer() as server:
         litellm.completion(model=server.model, api_base=server.api_base, api_key="none", messages=...)
 
-The server runs in a separate child process (``python -m pipeline.local_llm``), never in the caller:
+The server runs in a separate child process (``python -m pipeline.llm.local``), never in the caller:
 codearcade forks its episode workers from the main process, and llama.cpp's thread pools and HTTP threads must
 not be live in a process that forks. The child asks llama.cpp for a free port itself (port 0) and reports the
 address on its stdout, so there is no window in which another program could take a port chosen by the parent.
@@ -141,7 +141,7 @@ class LocalModelServer:
         if not path.is_file():
             raise LocalModelError(f"model file not found: {path}")
         cmd = [
-            sys.executable, "-m", "pipeline.local_llm", "--model", str(path), "--port", str(self.port),
+            sys.executable, "-m", "pipeline.llm.local", "--model", str(path), "--port", str(self.port),
             "--threads", str(self.threads), "--ctx", str(self.context_tokens), "--alias", self.alias,
             "--parent-pid", str(os.getpid()),
         ]
@@ -284,7 +284,7 @@ def _exit_on_signal(signum, frame) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m pipeline.local_llm",
+        prog="python -m pipeline.llm.local",
         description="Serve a GGUF model on 127.0.0.1 (OpenAI-compatible) until killed.",
     )
     parser.add_argument("--model", default=None, help="GGUF file (default: SmolLM2-135M-Instruct)")

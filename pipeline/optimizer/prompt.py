@@ -29,8 +29,8 @@ from typing import Any
 import duckdb
 
 from games import get_game, list_widths
-from pipeline.strategies import Greedy, History, Ref, format_number
-from pipeline.tokens import TokenCounter
+from pipeline.optimizer.strategies import Greedy, History, Ref, format_number
+from pipeline.llm.tokens import TokenCounter
 from store.readers import candidates, episode_steps, episode_summaries, get_run, iterations, policy_texts, step_nodes
 from tracing.policy_file import PolicyInfo, inspect_policy, replace_methods
 from tracing.sandbox import ALLOWED_MODULES

@@ -3,7 +3,7 @@
 The whole job in one place: read and check the policy statically (a broken file fails here with one line;
 policy code itself only ever runs in the workers), check the store (a damaged one is refused before anything
 plays), create a run (kind ``eval``) with its policy version, play the episodes in worker processes, verify each
-finished episode's score by replaying its actions here (``pipeline/verify.py``; a disagreement ends it
+finished episode's score by replaying its actions here (``pipeline/play/verify.py``; a disagreement ends it
 ``tampered``, with the replay's score), write it in its own transaction, and mark the run finished, failed or
 interrupted.
 """
@@ -16,15 +16,15 @@ from pathlib import Path
 from typing import Callable
 
 from games import get_game
-from pipeline.executor import run_episodes
-from pipeline.rollout import EpisodeOutcome, EpisodeSpec
-from pipeline.runinfo import episode_id, new_run_id, package_versions
-from pipeline.verify import StreamingVerification
-from pipeline.versions import policy_version_row
+from pipeline.boundary.workers import run_episodes
+from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
+from pipeline.play.runinfo import episode_id, new_run_id, package_versions
+from pipeline.play.verify import StreamingVerification
+from pipeline.play.versions import policy_version_row
 from store import Store
 from store.locks import run_lock
 from store.writer import finish_run, insert_policy_version, insert_run, write_episode
-from pipeline.validate import checked_inspect
+from pipeline.play.validate import checked_inspect
 from tracing.policy_file import PolicyLoadError, read_policy_file
 
 
@@ -61,7 +61,7 @@ class EvalConfig:
     rerun: str | None = None
     """Live Rerun recording of each episode (``EpisodeSpec.rerun``): a directory or a gRPC url; None: off."""
     verify_scores: bool = True
-    """Check each episode's score against a replay of its actions in this process (``pipeline/verify.py``).
+    """Check each episode's score against a replay of its actions in this process (``pipeline/play/verify.py``).
     Only a measurement turns it off (``bench/throughput.py`` prices it): the command line has no such flag, and
     an unverified episode is stored with ``verified`` NULL."""
 

@@ -1,14 +1,14 @@
 """*propose*: from a strategy's requests to candidates — store slices → prompt → LLM → parsed, validated version.
 
-For each :class:`~pipeline.strategies.ProposalRequest` of an iteration:
+For each :class:`~pipeline.optimizer.strategies.ProposalRequest` of an iteration:
 
-1. the prompt is built from the store (``pipeline/prompt.py``) for the parent candidate, under the token budget;
+1. the prompt is built from the store (``pipeline/optimizer/prompt.py``) for the parent candidate, under the token budget;
 2. a reply already stored for this prompt, iteration and candidate is reused (a resumed run); the others are
    requested from the model **concurrently** (at most ``max_concurrent_calls`` at a time), after checking that
    all of them together stay within the run's cost and token budgets;
-3. each reply is parsed (``pipeline/reply.py``) and the calls are written to ``llm_calls`` with what their
+3. each reply is parsed (``pipeline/optimizer/reply.py``) and the calls are written to ``llm_calls`` with what their
    replies parsed into (one transaction, in candidate order, so the store does not depend on which reply came
-   first); then each suggestion is validated (``pipeline/validate.py``): an
+   first); then each suggestion is validated (``pipeline/play/validate.py``): an
    accepted one becomes a ``policy_versions`` row; a rejected one is stored with its reason, which goes into the
    feedback, and the candidate falls back to its parent's code.
 
@@ -24,23 +24,23 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
-from pipeline.llm import LLMClient, LLMError, LLMReply
-from pipeline.prompt import Prompt, PromptBudgetError, build_prompt, canonical_messages, context_for
-from pipeline.providers import price
-from pipeline.reply import ReplyParseError, clean_text, parse_reply
-from pipeline.runinfo import new_run_id
-from pipeline.strategies import History, ProposalRequest, Ref
-from pipeline.tokens import TokenCounter
-from pipeline.untrusted import clean_untrusted_text
-from pipeline.validate import CandidateRejected, RuntimeCheck, check_fits, spread, validate_candidates
-from pipeline.versions import policy_version_row
+from pipeline.llm.client import LLMClient, LLMError, LLMReply
+from pipeline.optimizer.prompt import Prompt, PromptBudgetError, build_prompt, canonical_messages, context_for
+from pipeline.llm.providers import price
+from pipeline.optimizer.reply import ReplyParseError, clean_text, parse_reply
+from pipeline.play.runinfo import new_run_id
+from pipeline.optimizer.strategies import History, ProposalRequest, Ref
+from pipeline.llm.tokens import TokenCounter
+from pipeline.boundary.untrusted import clean_untrusted_text
+from pipeline.play.validate import CandidateRejected, RuntimeCheck, check_fits, spread, validate_candidates
+from pipeline.play.versions import policy_version_row
 from store import Store
 from store.db import Hold
 from store.readers import run_spending, stored_replies
 from store.writer import insert_llm_calls
 
 if TYPE_CHECKING:
-    from pipeline.optimize import RunState
+    from pipeline.optimizer.loop import RunState
 
 MAX_CONSECUTIVE_LLM_FAILURES = 3
 
@@ -67,7 +67,7 @@ class Proposal:
     prompt_tokens: int
     version_row: dict | None = None
     """The ``policy_versions`` row of the proposed code (accepted or rejected at run time), written with the
-    iteration's other rows (``pipeline/optimize.py``)."""
+    iteration's other rows (``pipeline/optimizer/loop.py``)."""
     text: str | None = None
     """The proposed policy file, when accepted (what its episodes play)."""
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 
-from pipeline.llm import ReplayClient
-from pipeline.optimize import OptimizeConfig, load_state, run_loop, start_run
+from pipeline.llm.client import ReplayClient
+from pipeline.optimizer.loop import OptimizeConfig, load_state, run_loop, start_run
 from store import Store
 from store.readers import blob_text, get_run, iteration_prompts, stored_replies
 from store.writer import finish_run

@@ -1,8 +1,8 @@
 """*assess*: versions → a traced training rollout and the evaluation episodes → a verified score.
 
 Every version of an iteration is assessed at once: the episodes of all of them go to one pool of confined
-workers (``pipeline/executor.py``), so candidates are played concurrently. Each episode's score is verified by
-replaying its actions in this process as it plays (``pipeline/verify.py``); an episode whose replay disagrees is
+workers (``pipeline/boundary/workers.py``), so candidates are played concurrently. Each episode's score is verified by
+replaying its actions in this process as it plays (``pipeline/play/verify.py``); an episode whose replay disagrees is
 marked ``tampered``. Episodes are written to the store as they finish.
 
 **Cascade evaluation** (``screen_steps``): a new version first plays the first evaluation game for that many
@@ -29,16 +29,16 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable
 
 from games.base import STANDARD_NOOP_MAX, STANDARD_STICKY
-from pipeline.executor import run_episodes
-from pipeline.rollout import EpisodeOutcome, EpisodeSpec
-from pipeline.runinfo import episode_id
-from pipeline.verify import TAMPERED, StreamingVerification, tampering
+from pipeline.boundary.workers import run_episodes
+from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
+from pipeline.play.runinfo import episode_id
+from pipeline.play.verify import TAMPERED, StreamingVerification, tampering
 from store import Store
 from store.readers import earlier_screen, policy_text, reusable_assessment, score_at_step
 from store.writer import write_episode
 
 if TYPE_CHECKING:
-    from pipeline.optimize import RunState
+    from pipeline.optimizer.loop import RunState
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """Search strategies: which versions the optimizer improves next, and what it makes of the candidates.
 
-A strategy is the third part of the optimizer (``pipeline/optimize.py`` drives; ``pipeline/propose.py`` turns a
-request into a candidate; ``pipeline/assess.py`` scores it). Each iteration it
+A strategy is the third part of the optimizer (``pipeline/optimizer/loop.py`` drives; ``pipeline/optimizer/propose.py`` turns a
+request into a candidate; ``pipeline/optimizer/assess.py`` scores it). Each iteration it
 
 1. **plans**: a list of :class:`ProposalRequest` — the candidate to improve (its *parent*, a :class:`Ref` to a
    stored candidate), the earlier candidates the prompt's #Memory shows, and a note for #Feedback;

@@ -4,11 +4,11 @@ A worker process plays an episode with untrusted policy code in it, and that cod
 around it (a module that re-exports ``sys``, ``sys.modules["games.envs"]``, frames) and, for example,
 wrap the environment's ``step`` to add reward, or rewrite the episode row it sends back. So the parent takes
 nothing of a worker's episode on trust. :func:`verify_outcome`, called on every outcome as it arrives
-(``pipeline/evaluate.py``, ``pipeline/optimize.py``), before it is stored:
+(``pipeline/play/evaluate.py``, ``pipeline/optimizer/loop.py``), before it is stored:
 
 1. rebuilds the episode row: the fields the parent decided (ids, seed, game, caps, protocol) come from the
-   :class:`~pipeline.rollout.EpisodeSpec`, the measured ones are type-checked, unknown keys are dropped, and
-   text (the error message) is cleaned (``pipeline/untrusted.py``: capped, secrets redacted);
+   :class:`~pipeline.play.rollout.EpisodeSpec`, the measured ones are type-checked, unknown keys are dropped, and
+   text (the error message) is cleaned (``pipeline/boundary/untrusted.py``: capped, secrets redacted);
 2. cleans the node table's text columns, and the object names in the step table, the same way;
 3. replays the recorded actions (the ``steps`` table's ``action`` column, up to the step where the policy
    failed, whose action is NULL) in a fresh environment of this process with the same game, seed, sticky
@@ -44,8 +44,8 @@ import pyarrow.compute as pc
 
 from games import get_game
 from games.envs import make_env
-from pipeline.rollout import EpisodeOutcome, EpisodeSpec
-from pipeline.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
+from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
+from pipeline.boundary.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
 from tracing.capture import NODE_SCHEMA
 from tracing.steps import STEP_SCHEMA, StepLog
 

@@ -2,12 +2,12 @@
 
 The loop is three parts with one job each, driven from here:
 
-- *strategy* (``pipeline/strategies.py``): from the run's history in the store, which candidates to improve this
+- *strategy* (``pipeline/optimizer/strategies.py``): from the run's history in the store, which candidates to improve this
   iteration and with what memory; afterwards, which candidate stands for the iteration, whether it is the new
   best, and a decision on each. ``greedy`` is the paper's loop (improve the last version, roll back to the best
   after a regression); ``best-of-n`` and ``beam`` search wider.
-- *propose* (``pipeline/propose.py``): prompt from the store → LLM (concurrent calls) → parsed, validated version.
-- *assess* (``pipeline/assess.py``): the traced training rollout and the evaluation episodes of every candidate,
+- *propose* (``pipeline/optimizer/propose.py``): prompt from the store → LLM (concurrent calls) → parsed, validated version.
+- *assess* (``pipeline/optimizer/assess.py``): the traced training rollout and the evaluation episodes of every candidate,
   played concurrently in confined workers, each score verified by replay; versions already assessed in the run
   reuse their episodes (the evaluation cache).
 
@@ -29,15 +29,15 @@ from pathlib import Path
 from typing import Any, Callable, ContextManager
 
 from games import get_game
-from pipeline.assess import PROTOCOLS, assess, screen
-from pipeline.feedback import FEEDBACK_MODES, FeedbackBands, compose_feedback
-from pipeline.llm import LLMClient, LLMError
-from pipeline.propose import BudgetExhausted, Proposal, propose
-from pipeline.runinfo import new_run_id, package_versions
-from pipeline.strategies import STRATEGIES, Assessed, History, Strategy, decide_starter, make_strategy
-from pipeline.task import example_path, task_settings
-from pipeline.tokens import TokenCounter
-from pipeline.versions import policy_version_row
+from pipeline.optimizer.assess import PROTOCOLS, assess, screen
+from pipeline.optimizer.feedback import FEEDBACK_MODES, FeedbackBands, compose_feedback
+from pipeline.llm.client import LLMClient, LLMError
+from pipeline.optimizer.propose import BudgetExhausted, Proposal, propose
+from pipeline.play.runinfo import new_run_id, package_versions
+from pipeline.optimizer.strategies import STRATEGIES, Assessed, History, Strategy, decide_starter, make_strategy
+from pipeline.optimizer.task import example_path, task_settings
+from pipeline.llm.tokens import TokenCounter
+from pipeline.play.versions import policy_version_row
 from store import Store
 from store.db import Hold, utcnow
 from store.locks import run_lock
@@ -126,7 +126,7 @@ class OptimizeConfig:
     """Stop (status ``budget``) before an iteration that, lasting as long as the last one, would take the run's
     wall time (the sum of its iterations) past this many minutes."""
     strategy: str = "greedy"
-    """Search strategy (``pipeline/strategies.py``): ``greedy`` (the paper's loop), ``best-of-n``, ``beam``."""
+    """Search strategy (``pipeline/optimizer/strategies.py``): ``greedy`` (the paper's loop), ``best-of-n``, ``beam``."""
     candidates: int | None = None
     """Proposals per parent and iteration: best-of-n's N (default 4), beam's proposals per beam member (default
     1); greedy makes one."""
@@ -233,8 +233,8 @@ class RunState:
 
 def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
     """The starting policy and the game, with one-line errors for bad input."""
-    from pipeline.evaluate import resolve_game
-    from pipeline.validate import checked_inspect
+    from pipeline.play.evaluate import resolve_game
+    from pipeline.play.validate import checked_inspect
 
     if config.policy is None:
         if config.game is None:
@@ -405,7 +405,7 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
     assessed = []
     for p in proposals:
         a = assessments[p.candidate]
-        tampered = a.tampered if p.status == "accepted" else None  # pipeline/verify.py: caught, never the best
+        tampered = a.tampered if p.status == "accepted" else None  # pipeline/play/verify.py: caught, never the best
         notes = [p.note] if p.note else []
         assessed.append(Assessed(p.candidate, p.parent, p.version_id, "rejected" if tampered else p.status,
                                  a.score, tampered, notes,
@@ -572,8 +572,8 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
     Only :data:`RESUME_OVERRIDES` may be given; ``iterations`` may extend a run, never shrink it. A finished run
     is left as it is unless more iterations are asked for; an eval or replay run cannot be resumed.
     """
-    from pipeline.llm import OFFLINE_MODEL_LABEL
-    from pipeline.local_llm import MODEL_ALIAS
+    from pipeline.llm.client import OFFLINE_MODEL_LABEL
+    from pipeline.llm.local import MODEL_ALIAS
     from store.views import resolve_run_id
 
     with store.read() as con:

@@ -4,17 +4,17 @@
 Policy code never runs in this process, nor in any process that holds this one's memory or environment
 (API keys, the store path). A :class:`Zygote` is started once per process with ``subprocess``: a fresh
 interpreter with an allow-listed environment (:func:`worker_environment`) that imports the environment stack
-and forks one worker per task (``pipeline/zygote.py``), so every episode starts from the same clean state
+and forks one worker per task (``pipeline/boundary/zygote.py``), so every episode starts from the same clean state
 (nothing a policy changes, module attributes included, survives into the next). The next worker is forked and
 confined while the current one plays (``staged``), and loads its policy and resets its environment (ALE's
 seeded reset reloads the ROM, ~0.1 s), so neither the fork (~5-20 ms) nor the reset sits between episodes. Each
-worker is confined by the kernel before it loads policy code (``pipeline/confine.py``: no exec, no fork, no
+worker is confined by the kernel before it loads policy code (``pipeline/boundary/confine.py``: no exec, no fork, no
 network, no writes outside its scratch directory, no reads outside Python's and the project's files, rlimits),
 and its stdout/stderr go to /dev/null. A missing kernel feature stops the run with a one-line error unless
 ``CODEARCADE_ALLOW_WEAK_SANDBOX=1`` (then a warning is printed on every run).
 
 Only plain data crosses: the task goes out as one JSON frame, the answer comes back as JSON frames and Arrow
-IPC streams (``pipeline/wire.py``), every value checked here; nothing is unpickled. Whatever a worker does,
+IPC streams (``pipeline/boundary/wire.py``), every value checked here; nothing is unpickled. Whatever a worker does,
 this process survives: a worker that dies (``os._exit``, a segfault, the OOM killer, SIGXCPU), sends anything
 malformed, or outlives its time limit by :data:`KILL_GRACE_S` is killed and recorded as a ``crashed`` or
 ``timeout`` episode. Only this process writes to the store.
@@ -41,9 +41,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, TypeVar
 
-from pipeline import wire
-from pipeline.confine import SandboxUnavailable, WEAK_ENV, die_with_parent, weak_sandbox_allowed  # noqa: F401
-from pipeline.rollout import EpisodeOutcome, EpisodeSpec, crashed_outcome, run_episode
+from pipeline.boundary import wire
+from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, die_with_parent, weak_sandbox_allowed  # noqa: F401
+from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec, crashed_outcome, run_episode
 
 MAX_REPORTED_ACTIONS = 10_000
 """Most actions one report of a playing episode may carry (it reports every few hundred steps)."""
@@ -59,7 +59,7 @@ R = TypeVar("R")
 ProgressCallback = Callable[[int, int], None]
 """Called with (index of the item, steps done so far)."""
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 _ALLOWED_ENV = re.compile(r"^(PATH|LANG|LANGUAGE|LC_[A-Z]+|TZ|TERM|OMP_[A-Z_]+|OPENBLAS_[A-Z_]+|MKL_[A-Z_]+|"
                           r"SDL_[A-Z_]+|ALE_[A-Z_]+|PYTHONHASHSEED|PYTHONDONTWRITEBYTECODE|CODEARCADE_GAME_MODULES)$")
 _SECRET_ENV = re.compile(r"(KEY|TOKEN|SECRET|PASSWORD|PASSWD|CREDENTIAL|AUTH|COOKIE|SESSION)", re.IGNORECASE)
@@ -77,7 +77,7 @@ def worker_environment(home: str) -> dict[str, str]:
 
 
 class Zygote:
-    """The process that forks confined workers (``pipeline/zygote.py``), seen from the parent."""
+    """The process that forks confined workers (``pipeline/boundary/zygote.py``), seen from the parent."""
 
     def __init__(self) -> None:
         self.scratch = tempfile.mkdtemp(prefix="codearcade-sandbox-")
@@ -86,7 +86,7 @@ class Zygote:
         self.log_path = os.path.join(self.scratch, "zygote.log")
         with open(self.log_path, "wb") as log:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "pipeline.zygote", str(theirs.fileno())], env=worker_environment(self.scratch),
+                [sys.executable, "-m", "pipeline.boundary.zygote", str(theirs.fileno())], env=worker_environment(self.scratch),
                 cwd=self.scratch, pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL, stdout=log, stderr=log)
         theirs.close()
         self.events: dict[int, dict[str, Any]] = {}
@@ -242,7 +242,7 @@ class Task:
     """A kind of work for a worker: how its item goes out and its answer comes back."""
 
     name: str
-    """The zygote's name for it (``pipeline/zygote.py`` TASKS)."""
+    """The zygote's name for it (``pipeline/boundary/zygote.py`` TASKS)."""
     local: Callable[[Any, Callable[[int], None]], Any]
     """Runs it in this process (``workers=0``)."""
     encode: Callable[[Any], dict[str, Any]]
@@ -251,7 +251,7 @@ class Task:
     tables: Callable[[dict[str, Any]], int] = lambda msg: 0
     """How many Arrow frames follow a result message."""
     limits: Callable[[Any], dict[str, Any]] = lambda item: {}
-    """The worker's :class:`pipeline.confine.Limits` for an item, as keyword arguments."""
+    """The worker's :class:`pipeline.boundary.confine.Limits` for an item, as keyword arguments."""
 
 
 @dataclass
