@@ -26,7 +26,8 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("LITELLM_LOCAL_MODEL_COST_MAP", "True")
 
 from pipeline.llm.client import LiteLLMClient  # noqa: E402
-from pipeline.optimizer.loop import OptimizeConfig, optimize  # noqa: E402
+from pipeline.optimizer.config import OptimizeConfig  # noqa: E402
+from pipeline.optimizer.loop import optimize  # noqa: E402
 from store import Store  # noqa: E402
 from tests.scripted_llm import ScriptedModel  # noqa: E402
 from tests.test_strategies import POOL  # noqa: E402

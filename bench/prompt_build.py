@@ -24,8 +24,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.optimizer.loop import OptimizeConfig, load_state, run_loop, start_run  # noqa: E402
-from pipeline.optimizer.prompt import build_prompt, read_context  # noqa: E402
+from pipeline.optimizer.config import OptimizeConfig  # noqa: E402
+
+from pipeline.optimizer.loop import load_state, run_loop, start_run  # noqa: E402
+from pipeline.optimizer.context import read_context  # noqa: E402
+from pipeline.optimizer.prompt import build_prompt  # noqa: E402
 from pipeline.llm.tokens import TokenCounter  # noqa: E402
 from store import Store  # noqa: E402
 

@@ -229,7 +229,8 @@ def test_benchmark_experiment_runs_every_curated_game_with_the_authors_settings(
 def test_the_optimizer_prompt_shows_the_derived_observation(store, scripted):
     """One iteration on Seaquest: the rollout in the prompt is read back from the store, derive included."""
     from pipeline.llm.client import LiteLLMClient
-    from pipeline.optimizer.loop import OptimizeConfig, optimize
+    from pipeline.optimizer.config import OptimizeConfig
+    from pipeline.optimizer.loop import optimize
     from tests.conftest import json_reply
 
     model = scripted([json_reply({})])

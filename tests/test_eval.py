@@ -11,7 +11,7 @@ import time
 import pytest
 
 from pipeline.cli import main
-from pipeline.boundary.workers import run_episodes
+from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeSpec
 from tests.conftest import EXAMPLES, POLICIES, ROOT, pong_policy
 
@@ -136,13 +136,13 @@ def test_worker_crash_is_recorded_not_raised():
 
 
 def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():
-    from pipeline.boundary import workers as executor
+    from pipeline.boundary import workers
 
     specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=5)
              for i in range(2)]
     results = list(run_episodes(specs, workers=2))
     assert sorted(i for i, _ in results) == [0, 1] and all(o.end_reason == "truncated" for _, o in results)
-    zygote = executor.zygote()
+    zygote = workers.zygote()
     deadline = time.monotonic() + 10
     while zygote.children() and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -153,7 +153,7 @@ def test_a_worker_whose_parent_died_before_it_asked_for_the_death_signal_ends_at
     marker = tmp_path / "survived"
     script = (
         "import os, sys, time\n"
-        "from pipeline.boundary.workers import die_with_parent\n"
+        "from pipeline.boundary.confine import die_with_parent\n"
         "parent = os.getpid()\n"
         "r, w = os.pipe()\n"
         "if os.fork() == 0:\n"
@@ -194,11 +194,11 @@ def test_console_script(tmp_path):
 def test_a_dead_zygote_costs_only_its_episodes_and_the_next_call_starts_another():
     import signal as signals
 
-    from pipeline.boundary import workers as executor
+    from pipeline.boundary import workers
 
     specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=2000)
              for i in range(2)]
-    pid = executor.zygote().proc.pid
+    pid = workers.zygote().proc.pid
     killed = []
 
     def progress(i, n):
@@ -209,7 +209,7 @@ def test_a_dead_zygote_costs_only_its_episodes_and_the_next_call_starts_another(
     results = dict(run_episodes(specs, workers=1, progress=progress))
     assert killed and [results[i].end_reason for i in (0, 1)] == ["crashed", "crashed"], results
     [(_, again)] = list(run_episodes(specs[:1], workers=1))
-    assert again.end_reason in ("terminated", "truncated") and executor.zygote().proc.pid != pid
+    assert again.end_reason in ("terminated", "truncated") and workers.zygote().proc.pid != pid
 
 
 def test_a_staged_worker_plays_its_episode_as_a_fresh_one_and_its_wait_is_not_its_time():

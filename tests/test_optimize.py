@@ -7,7 +7,8 @@ import json
 import pytest
 
 from pipeline.llm.client import LiteLLMClient
-from pipeline.optimizer.loop import OptimizeConfig, optimize
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.loop import optimize
 from tests.conftest import COMPETENT_PREDICT, COMPETENT_REPLY, COMPETENT_SELECT, json_reply
 
 TABLES = ("runs", "iterations", "policy_versions", "episodes", "steps", "nodes", "llm_calls", "feedback")

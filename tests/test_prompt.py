@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.optimizer.loop import OptimizeConfig, load_state, run_loop, start_run
-from pipeline.optimizer.prompt import PromptBudgetError, build_prompt, read_context, render_obs
+from pipeline.optimizer.config import OptimizeConfig
+
+from pipeline.optimizer.loop import load_state, run_loop, start_run
+from pipeline.optimizer.context import read_context
+from pipeline.optimizer.prompt import PromptBudgetError, build_prompt, render_obs
 from pipeline.llm.tokens import TokenCounter
 from store import Store
 

@@ -15,9 +15,11 @@ import pytest
 
 from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
-from pipeline.optimizer.loop import OptimizeConfig, optimize
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.loop import optimize
 from pipeline.play.rollout import EpisodeSpec, run_episode
-from pipeline.boundary.wire import BadMessage, check_lines_run
+from pipeline.boundary.wire import BadMessage
+from pipeline.play.episodes import check_lines_run
 from store import Store
 from tests.conftest import json_reply, pong_policy
 from tracing.blame import blame_function

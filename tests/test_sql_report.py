@@ -16,7 +16,8 @@ import pytest
 from pipeline.cli import main
 from pipeline.play.evaluate import EvalConfig, evaluate
 from pipeline.llm.client import LiteLLMClient
-from pipeline.optimizer.loop import OptimizeConfig, optimize
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.loop import optimize
 from store import Store
 from tests.conftest import COMPETENT_REPLY, EXAMPLES, ROOT
 

@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 from pipeline.llm.client import LiteLLMClient
-from pipeline.optimizer.loop import OptimizeConfig, optimize
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.loop import optimize
 from pipeline.optimizer.replay import replay
 from store import Store
 from tests.conftest import COMPETENT_PREDICT, COMPETENT_REPLY, COMPETENT_SELECT, ROOT, json_reply

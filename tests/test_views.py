@@ -11,7 +11,8 @@ import pytest
 
 from pipeline.play.evaluate import EvalConfig, evaluate
 from pipeline.llm.client import LiteLLMClient
-from pipeline.optimizer.loop import OptimizeConfig, optimize
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.loop import optimize
 from store import Store
 from store.migrations import LATEST, MIGRATIONS
 from store.views import VIEWS, run_query

@@ -1,4 +1,5 @@
-"""The parent's checks of what a worker sends (pipeline/boundary/wire.py): anything off is a BadMessage, never accepted."""
+"""The parent's checks of what a worker sends (pipeline/boundary/wire.py, and an episode's fields in
+pipeline/play/episodes.py): anything off is a BadMessage, never accepted."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import pyarrow as pa
 import pytest
 
 from pipeline.boundary import wire
+from pipeline.play import episodes
 from pipeline.play.rollout import EpisodeSpec, run_episode
 from tests.conftest import pong_policy
 from tracing.capture import NODE_SCHEMA
@@ -16,11 +18,11 @@ from tracing.steps import STEP_SCHEMA
 def played():
     spec = EpisodeSpec("run.0.eval.0", "run", "pong", pong_policy("return 0"), "v", max_steps=5)
     outcome = run_episode(spec)
-    return spec, wire.episode_to_json(outcome.episode), outcome.steps
+    return spec, episodes.episode_to_json(outcome.episode), outcome.steps
 
 
 def _decode(spec, row, steps, nodes=None):
-    return wire.episode_from_worker(spec, row, steps, nodes)
+    return episodes.episode_from_worker(spec, row, steps, nodes)
 
 
 def test_a_genuine_answer_round_trips(played):
@@ -94,3 +96,32 @@ def test_frames_are_capped_and_kinds_checked():
     reader = wire.FrameReader()
     frame = wire.json_frame({"kind": "progress", "n": 3})
     assert reader.feed(frame[:3]) == [] and reader.feed(frame[3:]) == [(b"J", frame[wire.HEADER.size:])]
+
+
+@pytest.mark.parametrize("message, fragment", [
+    ({"kind": "actions", "actions": [0, 256]}, "small ints"),
+    ({"kind": "actions", "actions": [True]}, "small ints"),
+    ({"kind": "actions", "actions": "0,1"}, "small ints"),
+    ({"kind": "actions", "actions": [0] * (wire.MAX_REPORTED_ACTIONS + 1)}, "small ints"),
+    ({"kind": "progress", "n": -1}, "non-negative"),
+    ({"kind": "progress", "n": 2.5}, "non-negative"),
+    ({"kind": "progress"}, "non-negative"),
+    ({"kind": "exec", "code": "import os"}, "unexpected message kind"),
+], ids=lambda v: str(v)[:60])
+def test_each_message_kind_has_its_fields_checked(message, fragment):
+    with pytest.raises(wire.BadMessage, match=fragment):
+        wire.parse_message(wire.json_frame(message)[wire.HEADER.size:])
+
+
+def test_well_formed_messages_pass_and_error_text_is_made_text():
+    def parse(message):
+        return wire.parse_message(wire.json_frame(message)[wire.HEADER.size:])
+
+    assert parse({"kind": "actions", "actions": [0, 3, 255]})["actions"] == [0, 3, 255]
+    assert parse({"kind": "progress", "n": 250})["n"] == 250
+    assert parse({"kind": "error", "error": {"not": "text"}})["error"] == "(no reason given)"
+    assert parse({"kind": "error", "error": "  x" * 10_000})["error"] == ("x" + "  x" * 9_999)[:wire.MAX_TEXT]
+    assert wire.text_answer({"kind": "result", "reason": "y" * (wire.MAX_TEXT + 5), "other": None}) == \
+        {"reason": "y" * wire.MAX_TEXT, "other": None}
+    with pytest.raises(wire.BadMessage, match="not text"):
+        wire.text_answer({"kind": "result", "reason": 3})

@@ -16,7 +16,7 @@ import json
 import textwrap
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from store import Store
 from store.readers import get_run
@@ -285,8 +285,11 @@ def _functions_table(version: dict[str, Any]) -> str:
                      [(f["name"], f["trainable"], f["sloc"], f["complexity"], f["max_if_depth"]) for f in functions])
 
 
-def render_markdown(data: dict[str, Any], images: dict[str, str]) -> str:
-    """The report's README.md (``images``: file name -> caption, of the plots written)."""
+def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Callable[..., str] | None = None,
+                    price: Callable[[str], Any] | None = None) -> str:
+    """The report's README.md (``images``: file name -> caption, of the plots written). ``reproduce(run, config)``
+    is the command line that starts a run with the same settings, ``price(model)`` the model's rates per token
+    (see :func:`write_report`)."""
     run, summary, usage = data["run"], data["summary"], data["usage"]
     out = [f"# {run['game']} {run['kind']} run `{run['run_id']}`", ""]
     facts = [f"status **{run['status']}**"]
@@ -331,7 +334,7 @@ def render_markdown(data: dict[str, Any], images: dict[str, str]) -> str:
                 [(usage["calls"], usage["errors"], usage["parse_errors"], usage["retries"], usage["input_tokens"],
                   usage.get("cached_input_tokens"), usage["output_tokens"], usage["cost_usd"],
                   usage["mean_latency_s"], usage["max_latency_s"], usage["request_models"])]), ""]
-            saving = _cache_saving(run, usage)
+            saving = _cache_saving(run, usage, price)
             if saving:
                 out += [saving, ""]
     best_id = None
@@ -355,19 +358,18 @@ def render_markdown(data: dict[str, Any], images: dict[str, str]) -> str:
              "SELECT * FROM learning_curve WHERE run_id = '{}' ORDER BY iteration").format(run["run_id"])
     out += ["## Reproduce", "", "The command that made this run (a new run with the same settings; with a "
             "deterministic policy and model it plays the same episodes), and the queries behind this report:", "",
-            "```bash", reproduce_command(run, data["config"]), f"codearcade report {run['run_id']}",
-            f'codearcade sql "{query}"', "```", ""]
+            "```bash", *([reproduce(run, data["config"])] if reproduce is not None else []),
+            f"codearcade report {run['run_id']}", f'codearcade sql "{query}"', "```", ""]
     return "\n".join(out)
 
 
-def _cache_saving(run: dict[str, Any], usage: dict[str, Any]) -> str | None:
-    """A sentence on what prompt caching saved, at litellm's prices for the model, or None."""
+def _cache_saving(run: dict[str, Any], usage: dict[str, Any], price: Callable[[str], Any] | None) -> str | None:
+    """A sentence on what prompt caching saved, at the model's prices (``price(model)``: rates per token with
+    ``input`` and ``cached_input``, or None), or None."""
     cached = usage.get("cached_input_tokens") or 0
     if not cached or not run.get("model"):
         return None
-    from pipeline.llm.providers import price
-
-    rates = price(run["model"])
+    rates = price(run["model"]) if price is not None else None
     share = cached / max(usage["input_tokens"] or 1, 1)
     if rates is None or rates.cached_input is None:
         return f"Prompt caching: {cached:,} input tokens ({share:.0%}) were read from the provider's cache."
@@ -376,44 +378,15 @@ def _cache_saving(run: dict[str, Any], usage: dict[str, Any]) -> str | None:
             f"saving about ${saved:.4f} at {run['model']}'s prices.")
 
 
-# Flags of `codearcade optimize` whose name is not the config field's with dashes.
-_FLAG_NAMES = {"call_time_limit_s": "--call-time-limit", "max_cost_usd": "--max-cost",
-               "max_wall_minutes": "--max-wall", "episode_time_limit_s": None, "workers": None, "policy": None,
-               "game": "--game", "rollback": None}
+def write_report(store: Store, run: str, out_dir: str | Path | None = None, *,
+                 reproduce: Callable[[dict[str, Any], dict[str, Any]], str] | None = None,
+                 price: Callable[[str], Any] | None = None) -> Path:
+    """Write the plots and README.md of ``run`` (an id or unique prefix) into ``out_dir``; return README's path.
 
-
-def reproduce_command(run: dict[str, Any], config: dict[str, Any]) -> str:
-    """The ``codearcade`` command line that starts a run with ``run``'s settings (defaults left out)."""
-    import shlex
-
-    if run["kind"] == "eval":
-        parts = ["codearcade", "eval", config.get("policy") or "POLICY.py", "--game", run["game"]]
-        for key, flag, default in (("episodes", "--episodes", 1), ("max_steps", "--max-steps", 4000),
-                                   ("seed", "--seed", 0), ("sticky", "--sticky", 0.0),
-                                   ("noop_max", "--noop-max", 0)):
-            if config.get(key) not in (None, default):
-                parts += [flag, str(config[key])]
-        if config.get("trace"):
-            parts.append("--trace")
-        return shlex.join(parts)
-    from pipeline.optimizer.loop import OptimizeConfig
-
-    defaults = OptimizeConfig()
-    parts = ["codearcade", "optimize"] + ([config["policy"]] if config.get("policy") else [])
-    parts += ["--game", run["game"]]
-    for key in OptimizeConfig.__dataclass_fields__:
-        flag = _FLAG_NAMES.get(key, "--" + key.replace("_", "-"))
-        value = config.get(key)
-        if flag is None or key == "game" or value is None or value == getattr(defaults, key):
-            continue
-        parts += [flag, f"{value:g}" if isinstance(value, float) else str(value)]
-    if config.get("rollback") is False:
-        parts.append("--no-rollback")
-    return shlex.join(parts)
-
-
-def write_report(store: Store, run: str, out_dir: str | Path | None = None) -> Path:
-    """Write the plots and README.md of ``run`` (an id or unique prefix) into ``out_dir``; return README's path."""
+    What the report cannot know without the pipeline comes in from its caller (viewers never import it):
+    ``reproduce(run row, config)``, the command line that starts a run with the same settings, and
+    ``price(model)``, the model's rates per token (``input``, ``cached_input``) or None, for what prompt caching
+    saved. Without them, the Reproduce section shows only the queries and the caching line only the tokens."""
     data = collect(store, run)
     out = Path(out_dir) if out_dir else Path("reports") / data["run"]["run_id"]
     out.mkdir(parents=True, exist_ok=True)
@@ -429,5 +402,5 @@ def write_report(store: Store, run: str, out_dir: str | Path | None = None) -> P
         if plot(data, out / name):
             images[name] = caption
     readme = out / "README.md"
-    readme.write_text(render_markdown(data, images))
+    readme.write_text(render_markdown(data, images, reproduce, price))
     return readme

@@ -1,23 +1,23 @@
 """What crosses the boundary between a policy worker and the parent: plain data only, checked on arrival.
 
 A message is a frame: one kind byte (``J`` JSON, ``A`` an Arrow IPC stream) and a 4-byte big-endian length,
-then that many bytes. The parent sends one ``J`` frame (the task, e.g. an :class:`EpisodeSpec` as a JSON
-object of primitives); the worker answers ``J`` frames (``{"kind": "progress", "n": ...}``, then
-``{"kind": "result", ...}`` or ``{"kind": "error", ...}``) and, after an episode's result, its steps (and nodes)
-as Arrow streams. Nothing is ever unpickled, imported or executed by the receiver. :class:`FrameReader` caps
-frame sizes; :func:`episode_from_worker` checks every field of an episode against what the parent asked for
-and the Arrow schemas that ``pipeline/play/rollout.py`` produces, and raises :class:`BadMessage` otherwise (the
-executor then records the episode as ``crashed`` with that reason).
+then that many bytes. The parent sends one ``J`` frame (the task, e.g. an episode's spec as a JSON object of
+primitives); the worker answers ``J`` frames (``{"kind": "progress", ...}`` and ``{"kind": "actions", ...}``
+while it works, then ``{"kind": "result", ...}`` or ``{"kind": "error", ...}``) and, after an episode's result,
+its steps (and nodes) as Arrow streams. Nothing is ever unpickled, imported or executed by the receiver.
+
+This module owns the checks of every message: :class:`FrameReader` caps frame sizes, :func:`parse_message`
+checks a message's kind and the fields of each kind (progress counts, reported actions, error text),
+:func:`parse_arrow` a table's schema, :func:`text_answer` the fields of a JSON task's result; anything else
+raises :class:`BadMessage` (the parent then records the task as failed with that reason). The fields of a
+task's own result are checked by the task: an episode's by ``pipeline/play/episodes.py``.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import os
 import struct
-from dataclasses import asdict, fields
-from datetime import datetime
 from typing import Any
 
 HEADER = struct.Struct(">cI")
@@ -25,8 +25,8 @@ MAX_JSON = 4 * 2**20
 MAX_ARROW = 512 * 2**20
 MAX_TEXT = 20_000
 """Longest error text kept from a worker."""
-END_REASONS = frozenset({"terminated", "truncated", "policy_error", "timeout"})
-
+MAX_REPORTED_ACTIONS = 10_000
+"""Most actions one report of a playing episode may carry (it reports every few hundred steps)."""
 
 class BadMessage(Exception):
     """A worker sent something other than what the protocol allows; ``str()`` says what."""
@@ -117,124 +117,34 @@ def parse_arrow(payload: bytes, schema: Any) -> Any:
     return table
 
 
-# ------------------------------------------------------------------------------------------------ episodes
+def parse_message(payload: bytes) -> dict[str, Any]:
+    """A worker's JSON message, checked for its kind and that kind's fields: ``progress`` (``n``: an int >= 0),
+    ``actions`` (a list of at most :data:`MAX_REPORTED_ACTIONS` ints in 0..255), ``error`` (``error`` made text:
+    stripped, capped, "(no reason given)" when it is none) or ``result`` (its fields are the task's to check);
+    BadMessage for anything else."""
+    msg = parse_json(payload)
+    kind = msg["kind"]
+    if kind == "actions":
+        actions = msg.get("actions")
+        if not isinstance(actions, list) or len(actions) > MAX_REPORTED_ACTIONS or any(
+                isinstance(a, bool) or not isinstance(a, int) or not 0 <= a < 256 for a in actions):
+            raise BadMessage("reported actions that are not a short list of small ints")
+    elif kind == "progress":
+        n = msg.get("n")
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise BadMessage("a progress count that is not a non-negative int")
+    elif kind == "error":
+        error = msg.get("error")
+        msg["error"] = (error if isinstance(error, str) else "(no reason given)").strip()[:MAX_TEXT]
+    elif kind != "result":
+        raise BadMessage(f"unexpected message kind {kind[:30]!r}")
+    return msg
 
 
-def spec_to_json(spec: Any) -> dict[str, Any]:
-    data = asdict(spec)
-    for key, value in data.items():
-        if not (value is None or isinstance(value, (str, int, float, bool))):
-            raise TypeError(f"EpisodeSpec.{key} is not a primitive")
-    return data
-
-
-def spec_from_json(data: dict[str, Any]) -> Any:
-    from pipeline.play.rollout import EpisodeSpec
-
-    names = {f.name for f in fields(EpisodeSpec)}
-    return EpisodeSpec(**{k: v for k, v in data.items() if k in names})
-
-
-MEASURED = ("game", "started_at", "duration_s", "env_s", "policy_s", "length", "lives_lost", "end_reason", "error",
-            "return")
-
-
-def episode_to_json(episode: dict[str, Any]) -> dict[str, Any]:
-    row = {k: episode[k] for k in MEASURED + ("episode_id",)}
-    if isinstance(row["started_at"], datetime):
-        row["started_at"] = row["started_at"].isoformat()
-    if isinstance(row["error"], str):
-        row["error"] = row["error"][:MAX_TEXT]
-    return row
-
-
-def _number(row: dict, key: str, nullable: bool = False) -> float | None:
-    value = row.get(key)
-    if value is None and nullable:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise BadMessage(f"episode field {key} is not a finite number: {str(value)[:50]}")
-    return float(value)
-
-
-def _int(row: dict, key: str, low: int, high: int) -> int:
-    value = row.get(key)
-    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-        raise BadMessage(f"episode field {key} is not an int in {low}..{high}: {str(value)[:50]}")
-    return value
-
-
-def check_lines_run(spec: Any, nodes: Any) -> None:
-    """BadMessage unless every ``lines_run`` of ``nodes`` is NULL (lines not recorded) or strictly increasing
-    line numbers inside the source of the node's method in ``spec.policy_text`` (what an honest worker sends)."""
-    import numpy as np
-    import pyarrow.compute as pc
-
-    lines = nodes.column("lines_run").combine_chunks()
-    if lines.null_count == len(lines):
-        return
-    if not spec.trace_lines:
-        raise BadMessage("lines_run for an episode played without line recording")
-    from tracing.policy_file import PolicyLoadError, inspect_policy
-
-    try:
-        methods = {m.name: m.source.count("\n") for m in inspect_policy(spec.policy_text, spec.policy_name).methods}
-    except PolicyLoadError:
-        raise BadMessage("lines_run for a policy that does not load") from None
-    functions = nodes.column("function").combine_chunks()
-    for name in pc.unique(pc.filter(functions, pc.is_valid(lines))).to_pylist():
-        if name not in methods:
-            raise BadMessage(f"lines_run for {str(name)[:60]!r}, which is not a bundled method of the policy")
-        chosen = pc.filter(lines, pc.equal(functions, name))
-        values = np.asarray(pc.list_flatten(chosen), dtype=np.int64)
-        if values.size and (values.min() < 1 or values.max() > methods[name]):
-            raise BadMessage(f"lines_run of {name} outside its {methods[name]} lines")
-        starts = np.asarray(pc.list_value_length(chosen).fill_null(0), dtype=np.int64).cumsum()[:-1]
-        rising = np.diff(values) > 0
-        rising[starts[(starts > 0) & (starts < values.size)] - 1] = True  # a new call may start lower
-        if not rising.all():
-            raise BadMessage(f"lines_run of {name} not strictly increasing")
-
-
-def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
-    """The :class:`EpisodeOutcome` of ``spec`` from what its worker sent, every value checked; BadMessage if
-    anything is off. Fields the parent knows (ids, seed, settings) come from ``spec``, never from the worker."""
-    from games import get_game
-    from pipeline.play.rollout import EpisodeOutcome, _episode_row
-
-    if not isinstance(row, dict):
-        raise BadMessage("the episode row is not an object")
-    if row.get("episode_id") != spec.episode_id:
-        raise BadMessage(f"the worker answered for episode {str(row.get('episode_id'))[:60]!r}, "
-                         f"not {spec.episode_id!r}")
-    game = get_game(spec.game).name
-    if row.get("game") != game:
-        raise BadMessage(f"the episode's game is {str(row.get('game'))[:30]!r}, not {game!r}")
-    end_reason = row.get("end_reason")
-    if end_reason not in END_REASONS:
-        raise BadMessage(f"unknown end reason {str(end_reason)[:30]!r}")
-    error = row.get("error")
-    if error is not None and not isinstance(error, str):
-        raise BadMessage("the episode's error is not text")
-    try:
-        started_at = datetime.fromisoformat(row["started_at"]) if row.get("started_at") is not None else None
-    except (TypeError, ValueError):
-        raise BadMessage("started_at is not an ISO timestamp") from None
-    length = _int(row, "length", 0, spec.max_steps)
-    measured = dict(
-        game=game, started_at=started_at, duration_s=_number(row, "duration_s"),
-        env_s=_number(row, "env_s", nullable=True), policy_s=_number(row, "policy_s", nullable=True),
-        length=length, lives_lost=_int(row, "lives_lost", 0, 2**31 - 1), end_reason=end_reason,
-        error=error[:MAX_TEXT] if error else error,
-    )
-    failed_step = end_reason in ("policy_error", "timeout")  # the step the policy failed on is stored too
-    if steps.num_rows not in ((length, length + 1) if failed_step else (length,)) or steps.num_rows > spec.max_steps:
-        raise BadMessage(f"{steps.num_rows} step rows for an episode of length {length}")
-    if steps.num_rows and steps.column("step").to_pylist() != list(range(steps.num_rows)):
-        raise BadMessage("the step rows are not numbered 0, 1, 2, ...")
-    if nodes is not None and not spec.trace:
-        raise BadMessage("nodes for an untraced episode")
-    if nodes is not None:
-        check_lines_run(spec, nodes)
-    episode = _episode_row(spec, score=_number(row, "return"), **measured)
-    return EpisodeOutcome(episode, steps, nodes)
+def text_answer(msg: dict[str, Any]) -> dict[str, str | None]:
+    """The fields of a JSON task's result message (all but ``kind``), each text (capped) or None; BadMessage if
+    one is anything else."""
+    fields = {k: v for k, v in msg.items() if k != "kind"}
+    if any(v is not None and not isinstance(v, str) for v in fields.values()):
+        raise BadMessage("an answer is not text")
+    return {k: v if v is None else v[:MAX_TEXT] for k, v in fields.items()}

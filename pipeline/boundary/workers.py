@@ -1,5 +1,6 @@
-"""Run episodes (and candidate checks) behind the operating-system boundary, or in-process with ``workers=0``
-(for debugging; no isolation at all).
+"""Run tasks in confined worker processes, behind the operating-system boundary, or in-process with
+``workers=0`` (for debugging; no isolation at all). The tasks themselves (an episode, a candidate's checks) are
+``pipeline/play``'s: :class:`Task` says how one goes out and comes back, :func:`run_tasks` runs many.
 
 Policy code never runs in this process, nor in any process that holds this one's memory or environment
 (API keys, the store path). A :class:`Zygote` is started once per process with ``subprocess``: a fresh
@@ -42,11 +43,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, TypeVar
 
 from pipeline.boundary import wire
-from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, die_with_parent, weak_sandbox_allowed  # noqa: F401
-from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec, crashed_outcome, run_episode
-
-MAX_REPORTED_ACTIONS = 10_000
-"""Most actions one report of a playing episode may carry (it reports every few hundred steps)."""
+from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, weak_sandbox_allowed
 
 KILL_GRACE_S = 30.0
 """How long past its time limit a worker may run before the parent kills it."""
@@ -348,28 +345,17 @@ def run_tasks(
             else:
                 if kind != b"J":
                     raise wire.BadMessage("an Arrow table before the result")
-                msg = wire.parse_json(payload)
+                msg = wire.parse_message(payload)  # kind and fields checked
                 if msg["kind"] == "actions":
-                    actions = msg.get("actions")
-                    if not isinstance(actions, list) or len(actions) > MAX_REPORTED_ACTIONS or any(
-                            isinstance(a, bool) or not isinstance(a, int) or not 0 <= a < 256 for a in actions):
-                        raise wire.BadMessage("reported actions that are not a short list of small ints")
                     if on_actions is not None:
-                        on_actions(run.index, actions)
+                        on_actions(run.index, msg["actions"])
                     continue
                 if msg["kind"] == "progress":
-                    n = msg.get("n")
-                    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-                        raise wire.BadMessage("a progress count that is not a non-negative int")
                     if progress is not None:
-                        progress(run.index, n)
+                        progress(run.index, msg["n"])
                     continue
                 if msg["kind"] == "error":
-                    error = msg.get("error")
-                    error = error if isinstance(error, str) else "(no reason given)"
-                    return failed(run.item, f"worker failed: {error.strip()[:20000]}", False)
-                if msg["kind"] != "result":
-                    raise wire.BadMessage(f"unexpected message kind {msg['kind'][:30]!r}")
+                    return failed(run.item, f"worker failed: {msg['error']}", False)
                 run.result = msg
             if run.result is not None:
                 wanted = task.tables(run.result)
@@ -440,70 +426,6 @@ def run_tasks(
             zyg.forget(run.task_id)
 
 
-# ------------------------------------------------------------------------------------------------ episodes
-
-
-def _episode_failed(spec: EpisodeSpec, error: str, timed_out: bool) -> EpisodeOutcome:
-    outcome = crashed_outcome(spec, error)
-    if timed_out:
-        outcome.episode["end_reason"] = "timeout"
-    return outcome
-
-
-def _decode_episode(spec: EpisodeSpec, msg: dict[str, Any], tables: list[bytes]) -> EpisodeOutcome:
-    from tracing.capture import NODE_SCHEMA
-    from tracing.steps import STEP_SCHEMA
-
-    steps = wire.parse_arrow(tables[0], STEP_SCHEMA)
-    nodes = wire.parse_arrow(tables[1], NODE_SCHEMA) if len(tables) > 1 else None
-    return wire.episode_from_worker(spec, msg.get("episode"), steps, nodes)
-
-
-def _rerun_dir(spec: EpisodeSpec) -> str | None:
-    if spec.rerun and "://" not in spec.rerun:
-        return os.path.abspath(spec.rerun)
-    return None
-
-
-def _episode_limits(spec: EpisodeSpec) -> dict[str, Any]:
-    rerun = _rerun_dir(spec)
-    return dict(memory_mb=spec.memory_limit_mb, write_paths=[rerun] if rerun else [],
-                file_size_mb=8192 if rerun else 64)
-
-
-EPISODE = Task("episode", run_episode, wire.spec_to_json, _decode_episode,
-               tables=lambda msg: 2 if msg.get("nodes") is True else 1, limits=_episode_limits)
-
-
-def run_episodes(
-    specs: Iterable[EpisodeSpec],
-    workers: int = 1,
-    progress: ProgressCallback | None = None,
-    started: Callable[[], None] | None = None,
-    on_actions: Callable[[int, list[int]], None] | None = None,
-) -> Iterator[tuple[int, EpisodeOutcome]]:
-    """Play ``specs`` in confined workers (see :func:`run_tasks`); a worker that dies, misbehaves or hangs
-    yields an episode with end reason ``crashed`` or ``timeout``. ``on_actions``: see :func:`run_tasks`."""
-    specs = list(specs)
-    streamed = [s for s in specs if s.rerun and _rerun_dir(s) is None] if workers > 0 else []
-    if streamed:
-        print(f"codearcade: no live Rerun stream of {len(streamed)} episode(s): policy workers have no network; "
-              "give --rerun a directory (or view the stored run with `codearcade view`)", file=sys.stderr)
-        for spec in streamed:
-            spec.rerun = None
-
-    def prepare(zyg: Zygote) -> None:
-        # each environment is built once in the zygote (~0.1-0.2 s each): forked workers inherit it ready
-        envs = sorted({(s.game, s.sticky, s.noop_max) for s in specs})
-        try:
-            zyg.send({"op": "prepare", "envs": [list(e) for e in envs]})
-        except OSError:
-            pass  # the zygote died: every episode is recorded as crashed
-
-    return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
-                     progress=progress, started=started, prepare=prepare, on_actions=on_actions)
-
-
 def run_json_task(name: str, item: dict[str, Any], local: Callable[[dict[str, Any]], dict[str, str | None]],
                   time_limit_s: float, memory_mb: int | None = 4096, workers: int = 1) -> tuple[bool, Any]:
     """Run a task whose answer is ``{"kind": "result", FIELD: str | None, ...}`` (``local`` returns the fields)
@@ -519,10 +441,7 @@ def run_json_tasks(name: str, items: list[dict[str, Any]], local: Callable[[dict
                    workers: int = 1) -> list[tuple[bool, Any]]:
     """:func:`run_json_task` of each item (limits per item), up to ``workers`` at once; results in item order."""
     def decode(_item: Any, msg: dict[str, Any], _tables: list[bytes]) -> tuple[bool, Any]:
-        fields = {k: v for k, v in msg.items() if k != "kind"}
-        if any(v is not None and not isinstance(v, str) for v in fields.values()):
-            raise wire.BadMessage("an answer is not text")
-        return True, {k: v if v is None else v[:wire.MAX_TEXT] for k, v in fields.items()}
+        return True, wire.text_answer(msg)
 
     if not items:
         return []

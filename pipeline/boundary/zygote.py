@@ -26,6 +26,7 @@ survives from one task to the next.
 from __future__ import annotations
 
 import gc
+import importlib
 import json
 import os
 import selectors
@@ -48,43 +49,26 @@ def _send(ctl: socket.socket, obj: dict[str, Any]) -> None:
 # ------------------------------------------------------------------------------------------ worker tasks
 
 
-def _episode(item: dict[str, Any], fd: int) -> Callable[[], None]:
-    from pipeline.play.rollout import play_episode, prepare_episode
-
-    # before the go-ahead: a staged worker loads the policy and resets its environment (ALE reloads the ROM,
-    # ~0.1 s) while the previous episode still plays
-    prepared = prepare_episode(wire.spec_from_json(item))
-
-    def play() -> None:
-        outcome = play_episode(prepared,
-                               lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})),
-                               lambda a: wire.write_all(fd, wire.json_frame({"kind": "actions", "actions": a})))
-        frames = [wire.json_frame({"kind": "result", "episode": wire.episode_to_json(outcome.episode),
-                                   "nodes": outcome.nodes is not None}), wire.arrow_frame(outcome.steps)]
-        if outcome.nodes is not None:
-            frames.append(wire.arrow_frame(outcome.nodes))
-        wire.write_all(fd, b"".join(frames))
-
-    return play
+TASKS: dict[str, tuple[str, bool]] = {
+    "episode": ("pipeline.play.episodes:episode_task", True),
+    "check": ("pipeline.play.validate:check_here", False),
+    "vet": ("pipeline.play.validate:vet_and_check_here", False),
+}
+"""Per task name: the function that does it, by module path (the tasks live in ``pipeline/play``, above this
+package: the boundary runs them without importing them), and whether it prepares itself: ``fn(item, fd)``
+prepares in the confined worker (before a staged worker's go-ahead: an episode loads its policy and resets its
+environment) and returns what runs the task and writes its answer on ``fd``; otherwise ``fn(item)`` returns the
+text fields of one result message. Their modules are imported once, in the zygote (``preload``)."""
 
 
-def _answer(name: str) -> Callable[[dict[str, Any], int], Callable[[], None]]:
-    """A task answered by ``pipeline.play.validate.<name>(item)``: text fields of one result message."""
-    def task(item: dict[str, Any], fd: int) -> Callable[[], None]:
-        def run() -> None:
-            from pipeline.play import validate
-
-            wire.write_all(fd, wire.json_frame({"kind": "result", **getattr(validate, name)(item)}))
-
-        return run
-
-    return task
-
-
-TASKS: dict[str, Callable[[dict[str, Any], int], Callable[[], None]]] = {
-    "episode": _episode, "check": _answer("check_here"), "vet": _answer("vet_and_check_here")}
-"""Per task: ``task(item, fd)`` prepares in the confined worker (before a staged worker's go-ahead) and returns
-what runs the task and writes its answer on ``fd``."""
+def _task(name: str, item: dict[str, Any], fd: int) -> Callable[[], None]:
+    """What runs task ``name`` on ``item`` and writes its answer on ``fd`` (prepared already, if it prepares)."""
+    path, prepares = TASKS[name]
+    module, _, attr = path.partition(":")
+    function = getattr(importlib.import_module(module), attr)  # preloaded: no file is read here
+    if prepares:
+        return function(item, fd)
+    return lambda: wire.write_all(fd, wire.json_frame({"kind": "result", **function(item)}))
 
 
 def _worker(fd: int, msg: dict[str, Any], zygote_pid: int, scratch_base: str, strict: bool) -> None:
@@ -112,7 +96,7 @@ def _worker(fd: int, msg: dict[str, Any], zygote_pid: int, scratch_base: str, st
             os.makedirs(path, exist_ok=True)
         limits.write_paths = [scratch, *limits.write_paths]
         confine.confine(limits, strict=strict)
-        run = TASKS[msg["task"]](item, fd)  # confined already: preparing an episode loads policy code
+        run = _task(msg["task"], item, fd)  # confined already: preparing an episode loads policy code
         if msg.get("staged") and os.read(fd, 1) != b"G":
             return  # staged ahead of time (set up, confined, prepared while another task ran), then not needed
         run()
@@ -160,7 +144,9 @@ def main(argv: list[str]) -> int:
     ctl = socket.socket(fileno=int(argv[0]))
     scratch_base = os.getcwd()
     # no PDEATHSIG here: it follows the parent's *thread* that started us; EOF on the socket is the signal
-    import pipeline.boundary.preload  # noqa: F401  (the environment stack, imported once for every worker)
+    from pipeline.boundary import preload
+
+    preload.warm(sorted({path.partition(":")[0] for path, _ in TASKS.values()}))  # once, for every worker
 
     missing = []
     try:

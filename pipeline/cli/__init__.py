@@ -11,7 +11,7 @@ import argparse
 import json
 import os
 import sys
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 from games import GAMES
 from pipeline.optimizer.strategies import STRATEGIES
@@ -508,7 +508,7 @@ OPTIMIZE_OPTIONS = ("game", "policy", "model", "api_base", "iterations", "memory
                     "eval_max_steps", "workers", "call_time_limit_s", "max_cost_usd", "max_total_tokens",
                     "max_llm_calls", "max_wall_minutes", "strategy", "candidates", "beam_width", "max_concurrent_calls", "eval_cache",
                     "robust_episodes", "optimize_protocol", "screen_steps", "screen_margin", "one_life")
-"""The ``optimize`` flags that are :class:`~pipeline.optimizer.loop.OptimizeConfig` fields (defaults live there)."""
+"""The ``optimize`` flags that are :class:`~pipeline.optimizer.config.OptimizeConfig` fields (defaults live there)."""
 
 
 def _llm_waiting(stream=None):
@@ -569,7 +569,8 @@ def cmd_optimize(args: argparse.Namespace) -> int:
     if args.show_prompt and not args.dry_run:
         raise CliError("--show-prompt goes with --dry-run")
     from pipeline.llm.client import OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET, open_client
-    from pipeline.optimizer.loop import OptimizeConfig, optimize, plan_resume
+    from pipeline.optimizer.config import OptimizeConfig
+    from pipeline.optimizer.loop import optimize, plan_resume
 
     store = _store(args)
     if args.resume:
@@ -780,7 +781,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_compare(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from pipeline.play.versus import CompareConfig, compare
+    from pipeline.play.versus import CompareConfig
     from viewers.compare_report import text_lines, write_report
 
     if args.rerun and not args.rerun.endswith(".rrd") and not args.rerun.startswith(("rerun://", "rerun+http")):
@@ -810,6 +811,36 @@ def cmd_compare(args: argparse.Namespace) -> int:
     if data.get("report"):
         print(f"report: {data['report']}")
     return EXIT_OK
+
+
+def is_version_ref(text: str) -> bool:
+    """A policy file that exists, or ``RUN:VERSION``; anything else is taken for a run id."""
+    from pathlib import Path
+
+    return Path(text).is_file() or ":" in text
+
+
+def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] | None = None):
+    """Compare ``a`` and ``b``: two runs (``pipeline/optimizer/runs.py``), or two versions
+    (``pipeline/play/versus.py``)."""
+    from pathlib import Path
+
+    from pipeline.optimizer.runs import compare_runs
+    from pipeline.play.versus import CompareConfig, compare_versions
+    from tracing.policy_file import PolicyLoadError
+
+    config = config or CompareConfig()
+    for ref in (a, b):
+        if ref.endswith(".py") and not Path(ref).is_file():
+            raise PolicyLoadError(f"policy file '{ref}' does not exist")
+    kinds = [is_version_ref(x) for x in (a, b)]
+    if all(kinds):
+        return compare_versions(store, a, b, config, progress)
+    if not any(kinds):
+        return compare_runs(store, a, b)
+    run, other = (a, b) if not kinds[0] else (b, a)
+    raise ValueError(f"{other!r} is a policy version but {run!r} is not (no such file): compare two runs "
+                     f"(two run ids) or two versions (policy files or RUN:VERSION, e.g. {run}:best)")
 
 
 def _compare_recording(store, data: dict, target: str) -> str:
@@ -989,10 +1020,47 @@ def cmd_runs(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# Flags of `codearcade optimize` whose name is not the config field's with dashes.
+_FLAG_NAMES = {"call_time_limit_s": "--call-time-limit", "max_cost_usd": "--max-cost",
+               "max_wall_minutes": "--max-wall", "episode_time_limit_s": None, "workers": None, "policy": None,
+               "game": "--game", "rollback": None}
+
+
+def reproduce_command(run: dict[str, Any], config: dict[str, Any]) -> str:
+    """The ``codearcade`` command line that starts a run with ``run``'s settings (defaults left out)."""
+    import shlex
+
+    if run["kind"] == "eval":
+        parts = ["codearcade", "eval", config.get("policy") or "POLICY.py", "--game", run["game"]]
+        for key, flag, default in (("episodes", "--episodes", 1), ("max_steps", "--max-steps", 4000),
+                                   ("seed", "--seed", 0), ("sticky", "--sticky", 0.0),
+                                   ("noop_max", "--noop-max", 0)):
+            if config.get(key) not in (None, default):
+                parts += [flag, str(config[key])]
+        if config.get("trace"):
+            parts.append("--trace")
+        return shlex.join(parts)
+    from pipeline.optimizer.config import OptimizeConfig
+
+    defaults = OptimizeConfig()
+    parts = ["codearcade", "optimize"] + ([config["policy"]] if config.get("policy") else [])
+    parts += ["--game", run["game"]]
+    for key in OptimizeConfig.__dataclass_fields__:
+        flag = _FLAG_NAMES.get(key, "--" + key.replace("_", "-"))
+        value = config.get(key)
+        if flag is None or key == "game" or value is None or value == getattr(defaults, key):
+            continue
+        parts += [flag, f"{value:g}" if isinstance(value, float) else str(value)]
+    if config.get("rollback") is False:
+        parts.append("--no-rollback")
+    return shlex.join(parts)
+
+
 def cmd_report(args: argparse.Namespace) -> int:
+    from pipeline.llm.providers import price
     from viewers.report import write_report
 
-    path = write_report(_store(args), args.run_id, args.out)
+    path = write_report(_store(args), args.run_id, args.out, reproduce=reproduce_command, price=price)
     print(path)
     return EXIT_OK
 

@@ -14,7 +14,7 @@ An experiment file declares defaults, a matrix (every combination becomes a run)
     [[run]]                           # optional extra runs, merged over the defaults
     game = "breakout"
 
-Keys are the fields of :class:`~pipeline.optimizer.loop.OptimizeConfig` (``game``, ``policy``, ``model``,
+Keys are the fields of :class:`~pipeline.optimizer.config.OptimizeConfig` (``game``, ``policy``, ``model``,
 ``api_base``, ``iterations``, ``memory``, ``token_budget``, ``eval_episodes``, ``feedback``, ``seed``, ...).
 Each run has a stable key (a hash of the batch name and its settings) stored in its config, so running the
 same command again skips finished runs, resumes interrupted ones from the store, and starts the rest.
@@ -43,7 +43,8 @@ from typing import Any, Callable
 
 from games import get_game
 from store.readers import batch_progress, batch_runs
-from pipeline.optimizer.loop import BUDGET_FIELDS, OptimizeConfig, validate_config
+from pipeline.jobs.worker import BUDGET_EXIT, run_remote
+from pipeline.optimizer.config import BUDGET_FIELDS, OptimizeConfig, validate_config
 from store import Store
 
 TOP_LEVEL_KEYS = ("name", "store", "defaults", "matrix", "run")
@@ -55,10 +56,6 @@ KEYED_WHEN_SET = ("strategy", "candidates", "beam_width", "eval_cache", "collaps
                   "optimize_protocol", "screen_steps", "screen_margin", "one_life")
 """Settings added after run keys were introduced: they count in a key only away from their default, so the
 runs of an existing experiment file keep their keys (and are skipped or resumed, not run again)."""
-
-
-BUDGET_EXIT = 3
-"""Exit code of a batch run process whose run stopped at its budget (not a failure)."""
 
 
 class ExperimentError(ValueError):
@@ -240,7 +237,7 @@ def _refresh(store: Store, progress: list[Progress], batch: Batch) -> None:
 def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: int, log: Callable[[str], None],
               display: Callable[[list[Progress]], None], log_dir: Path, poll_s: float = 1.0) -> BatchResult:
     """Run the planned runs in at most ``workers`` processes; see the module docstring."""
-    from pipeline.boundary.workers import die_with_parent
+    from pipeline.boundary.confine import die_with_parent
 
     progress = [Progress(p.run.label, iterations=p.run.config.iterations, run_id=p.run_id) for p in planned]
     queue = []
@@ -295,7 +292,6 @@ def run_ray(batch: Batch, store: Store, planned: list[PlannedRun], address: str 
     """Run the planned runs as Ray tasks; the driver writes each returned run in one transaction."""
     import ray
 
-    from pipeline.jobs.worker import run_remote
     from store.bundle import export_run, import_run
 
     progress = [Progress(p.run.label, iterations=p.run.config.iterations, run_id=p.run_id) for p in planned]

@@ -1,6 +1,6 @@
 """One run of a batch: ``python -m pipeline.jobs.worker SPEC_JSON`` (local executor) or a Ray task.
 
-The spec carries the run's :class:`~pipeline.optimizer.loop.OptimizeConfig`, the batch name and run key (stored in
+The spec carries the run's :class:`~pipeline.optimizer.config.OptimizeConfig`, the batch name and run key (stored in
 the run's config so a later ``codearcade batch`` finds it), and the run id to resume, if any. Locally the
 process works on the shared store directly; on Ray, :func:`run_remote` works on a private store seeded with
 the run's earlier rows and returns all of them for the driver to write.
@@ -15,10 +15,13 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pipeline.jobs.batch import BUDGET_EXIT
 from pipeline.llm.client import OFFLINE_TOKEN_BUDGET, open_client
-from pipeline.optimizer.loop import OptimizeConfig, OptimizeResult, optimize
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.loop import OptimizeResult, optimize
 from store import Store
+
+BUDGET_EXIT = 3
+"""Exit code of a batch run process whose run stopped at its budget (not a failure)."""
 
 
 @contextmanager

@@ -10,13 +10,14 @@ prompt hash: resuming and ``codearcade replay`` never pay for a call twice.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import re
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
-from pipeline.optimizer.prompt import prompt_hash
 from pipeline.llm.providers import LOCAL_SERVER_PROVIDERS, with_cache_breakpoint
 from pipeline.llm.providers import request_params as provider_request_params
 from pipeline.llm.tokens import import_litellm
@@ -35,6 +36,16 @@ which the tests use to keep retries quick)."""
 
 ERROR_MESSAGE_LIMIT = 1_000
 """Characters of a provider's error message kept in ``llm_calls.error_message`` and shown to the user."""
+
+
+def prompt_hash(messages: list[dict[str, str]]) -> str:
+    """SHA-256 of the canonical JSON of the messages (also their blob hash in the store)."""
+    return hashlib.sha256(canonical_messages(messages).encode()).hexdigest()
+
+
+def canonical_messages(messages: list[dict[str, str]]) -> str:
+    """The messages as canonical JSON: what a prompt hash is the hash of, and what is stored."""
+    return json.dumps(messages, sort_keys=True, ensure_ascii=False, separators=(",", ":"))
 
 
 @dataclass

@@ -26,19 +26,17 @@ from __future__ import annotations
 import statistics
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 from games.base import STANDARD_NOOP_MAX, STANDARD_STICKY
-from pipeline.boundary.workers import run_episodes
+from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.play.runinfo import episode_id
 from pipeline.play.verify import TAMPERED, StreamingVerification, tampering
+from pipeline.optimizer.state import RunState
 from store import Store
 from store.readers import earlier_screen, policy_text, reusable_assessment, score_at_step
 from store.writer import write_episode
-
-if TYPE_CHECKING:
-    from pipeline.optimizer.loop import RunState
 
 
 @dataclass
@@ -60,10 +58,6 @@ class Assessment:
     tampered: str | None = None
     eval_length: float = 0.0
     """Mean length of the evaluation games (a behaviour descriptor for ``map-elites``)."""
-
-
-PROTOCOLS = ("deterministic", "standard")
-"""What a score can be measured under: the paper's protocol, or the standard one (``games.base``)."""
 
 
 @dataclass

@@ -19,8 +19,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from pipeline.optimizer.loop import OptimizeConfig, load_state, run_iteration, start_run
-from pipeline.optimizer.prompt import Prompt, build_prompt, read_context
+from pipeline.optimizer.config import OptimizeConfig
+
+from pipeline.optimizer.loop import load_state, run_iteration, start_run
+from pipeline.optimizer.context import read_context
+from pipeline.optimizer.prompt import Prompt, build_prompt
 from pipeline.llm.providers import Price, price
 from pipeline.llm.tokens import TokenCounter
 from store import Store

@@ -22,10 +22,11 @@ import json
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
-from pipeline.llm.client import LLMClient, LLMError, LLMReply
-from pipeline.optimizer.prompt import Prompt, PromptBudgetError, build_prompt, canonical_messages, context_for
+from pipeline.llm.client import LLMClient, LLMError, LLMReply, canonical_messages
+from pipeline.optimizer.context import context_for
+from pipeline.optimizer.prompt import Prompt, PromptBudgetError, build_prompt
 from pipeline.llm.providers import price
 from pipeline.optimizer.reply import ReplyParseError, clean_text, parse_reply
 from pipeline.play.runinfo import new_run_id
@@ -37,10 +38,8 @@ from pipeline.play.versions import policy_version_row
 from store import Store
 from store.db import Hold
 from store.readers import run_spending, stored_replies
+from pipeline.optimizer.state import RunState
 from store.writer import insert_llm_calls
-
-if TYPE_CHECKING:
-    from pipeline.optimizer.loop import RunState
 
 MAX_CONSECUTIVE_LLM_FAILURES = 3
 

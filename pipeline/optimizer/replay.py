@@ -13,7 +13,8 @@ import json
 from dataclasses import dataclass, field
 
 from pipeline.llm.client import ReplayClient
-from pipeline.optimizer.loop import OptimizeConfig, load_state, run_loop, start_run
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.loop import load_state, run_loop, start_run
 from store import Store
 from store.readers import blob_text, get_run, iteration_prompts, stored_replies
 from store.writer import finish_run

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Callable
 
 from games import get_game
-from pipeline.boundary.workers import run_episodes
+from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.play.runinfo import episode_id, new_run_id, package_versions
 from pipeline.play.verify import StreamingVerification

@@ -1,8 +1,4 @@
-"""``codearcade compare A B``: two optimization runs side by side, or two policy versions played on the same seeds.
-
-Two runs (ids or unique prefixes): their learning curves, a budget-matched table (the best score each run had
-reached within the same number of LLM calls, thousand tokens and wall seconds; only budgets both runs spent
-are matched, so neither is credited with spending it never made) and the unified diff of their best versions.
+"""``codearcade compare A B`` of two policy versions: both played on the same seeds, and where they part.
 
 Two versions of one game, each a policy file or ``RUN:VERSION`` (a version stored in a run: an id, a unique
 prefix of one, or ``best``): both are evaluated with node capture (``pipeline/play/evaluate.py``, the same path as
@@ -12,7 +8,8 @@ outputs on the steps around it. Episodes are deterministic under the default pro
 starts), so that step is where their behaviour really parts, not noise.
 
 Everything shown is read back from the store (``store/comparisons.py``); this module only decides what to
-compare and assembles the report as plain data (``viewers/compare_report.py`` renders it).
+play and assembles the report as plain data (``viewers/compare_report.py`` renders it). Two optimization runs
+are compared by ``pipeline/optimizer/runs.py``.
 """
 
 from __future__ import annotations
@@ -28,7 +25,7 @@ from games import get_game, list_widths
 from pipeline.play.evaluate import EvalConfig, evaluate
 from pipeline.play.validate import checked_inspect
 from store import Store
-from store.comparisons import best_version, episode_rows, first_divergent_step, learning_curve, resolve_version
+from store.comparisons import episode_rows, first_divergent_step, resolve_version
 from store.readers import episode_steps, get_run, policy_text, run_episodes, step_nodes
 from store.views import resolve_run_id
 from tracing.policy_file import PolicyLoadError, read_policy_file
@@ -79,120 +76,6 @@ class VersionComparison:
         return {"mode": "versions", "game": self.game, "diff": self.diff, "episodes": self.episodes,
                 "versions": [{"label": v.label, "ref": v.ref, "policy_version_id": v.policy_version_id,
                               "source_run": v.source_run, "eval_run": v.eval_run} for v in self.versions]}
-
-
-@dataclass
-class RunComparison:
-    game: str
-    runs: list[dict[str, Any]]
-    curves: dict[str, list[dict[str, Any]]]
-    budgets: list[dict[str, Any]]
-    diff: str
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"mode": "runs", "game": self.game, "runs": self.runs, "curves": self.curves,
-                "budgets": self.budgets, "diff": self.diff}
-
-
-def is_version_ref(text: str) -> bool:
-    """A policy file that exists, or ``RUN:VERSION``; anything else is taken for a run id."""
-    return Path(text).is_file() or ":" in text
-
-
-def compare(store: Store, a: str, b: str, config: CompareConfig | None = None,
-            progress: Callable[[str], None] | None = None) -> RunComparison | VersionComparison:
-    """Compare ``a`` and ``b``: two runs, or two versions (see the module docstring)."""
-    config = config or CompareConfig()
-    for ref in (a, b):
-        if ref.endswith(".py") and not Path(ref).is_file():
-            raise PolicyLoadError(f"policy file '{ref}' does not exist")
-    kinds = [is_version_ref(x) for x in (a, b)]
-    if all(kinds):
-        return compare_versions(store, a, b, config, progress)
-    if not any(kinds):
-        return compare_runs(store, a, b)
-    run, other = (a, b) if not kinds[0] else (b, a)
-    raise ValueError(f"{other!r} is a policy version but {run!r} is not (no such file): compare two runs "
-                     f"(two run ids) or two versions (policy files or RUN:VERSION, e.g. {run}:best)")
-
-
-# ------------------------------------------------------------------------------------------------- two runs
-
-def compare_runs(store: Store, a: str, b: str) -> RunComparison:
-    """Learning curves, budget-matched table and best-version diff of two optimization runs."""
-    with store.read() as con:
-        ids = [resolve_run_id(con, x, store) for x in (a, b)]
-        runs, curves, texts = [], {}, []
-        for label, run_id in zip(LABELS, ids):
-            run = get_run(con, run_id)
-            curve = learning_curve(con, run_id)
-            best = best_version(con, run_id)
-            if not curve or best is None:
-                raise ValueError(f"run {run_id} is an {run['kind']} run without iterations: compare optimization "
-                                 f"runs, or play its policy against another version with {run_id}:best")
-            texts.append(policy_text(con, run_id, best["policy_version_id"]))
-            curves[label] = [_curve_point(row) for row in _cumulative_calls(curve)]
-            last = curves[label][-1]
-            runs.append({"label": label, "run_id": run_id, "kind": run["kind"], "game": run["game"],
-                         "model": run["model"], "status": run["status"], "iterations": len(curve) - 1,
-                         "llm_calls": last["llm_calls"], "total_tokens": last["tokens"], "elapsed_s": last["elapsed_s"],
-                         "best_score": best["score"], "best_iteration": best["iteration"],
-                         "best_version_id": best["policy_version_id"]})
-    games = {r["game"] for r in runs}
-    if len(games) > 1:
-        raise ValueError(f"runs {ids[0]} ({runs[0]['game']}) and {ids[1]} ({runs[1]['game']}) play different games; "
-                         "scores of different games do not compare")
-    names = [f"{r['run_id']}:{r['best_version_id']} (best, iteration {r['best_iteration']}, score {r['best_score']:g})"
-             for r in runs]
-    return RunComparison(games.pop(), runs, curves, budget_table(curves), unified_diff(texts[0], texts[1], *names))
-
-
-def _cumulative_calls(curve: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    total = 0
-    for row in curve:
-        total += row["llm_calls"] or 0
-        row["cumulative_calls"] = total
-    return curve
-
-
-def _curve_point(row: dict[str, Any]) -> dict[str, Any]:
-    return {"iteration": row["iteration"], "score": row["score"], "best_score": row["best_score"],
-            "update_status": row["update_status"], "llm_calls": row["cumulative_calls"],
-            "tokens": int(row["cumulative_tokens"] or 0), "elapsed_s": float(row["elapsed_s"] or 0.0)}
-
-
-BUDGET_UNITS = (("LLM calls", "llm_calls", 1.0), ("1k tokens", "tokens", 1000.0), ("wall seconds", "elapsed_s", 1.0))
-"""Budget axes of the matched table: label, cumulative column of a curve point, the unit it is counted in."""
-
-
-def best_within(curve: list[dict[str, Any]], key: str, budget: float) -> float | None:
-    """The best score a run had reached once it had spent at most ``budget`` (in ``key``'s raw unit)."""
-    scores = [p["score"] for p in curve if p[key] <= budget + 1e-9 and p["score"] is not None]
-    return max(scores) if scores else None
-
-
-def budget_table(curves: dict[str, list[dict[str, Any]]], points: int = 4) -> list[dict[str, Any]]:
-    """Rows ``{unit, budget, A, B}``: per budget axis, the best score of each run within the same spending, at
-    ``points`` evenly spaced budgets from the first at which both runs have a score (their starting policies'
-    evaluations) up to what both runs spent (every call count when there are few), then a row ``all`` with each
-    run's own total and final best."""
-    rows: list[dict[str, Any]] = []
-    for unit, key, scale in BUDGET_UNITS:
-        common = min(curve[-1][key] for curve in curves.values())
-        first = min(max(curve[0][key] for curve in curves.values()), common)
-        if common <= first:
-            budgets = [common]
-        elif key == "llm_calls" and common - first <= 12:
-            budgets = [float(c) for c in range(int(first), int(common) + 1)]
-        else:
-            budgets = [first + (common - first) * i / (points - 1) for i in range(points)]
-        for budget in budgets:
-            rows.append({"unit": unit, "budget": round(budget / scale, 3),
-                         **{label: best_within(curve, key, budget) for label, curve in curves.items()}})
-        rows.append({"unit": unit, "budget": "all", "spent": {label: round(curve[-1][key] / scale, 3)
-                                                            for label, curve in curves.items()},
-                     **{label: best_within(curve, key, float("inf")) for label, curve in curves.items()}})
-    return rows
 
 
 def unified_diff(text_a: str, text_b: str, name_a: str, name_b: str) -> str:

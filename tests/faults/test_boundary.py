@@ -248,9 +248,9 @@ return 0
 ], ids=["SIGALRM ignored", "__str__ loops"])
 def test_a_policy_that_defeats_its_timer_is_killed_and_the_run_goes_on(body, store, write_policy, capsys,
                                                                       monkeypatch):
-    from pipeline.boundary import workers as executor
+    from pipeline.boundary import workers
 
-    monkeypatch.setattr(executor, "KILL_GRACE_S", 1.0)
+    monkeypatch.setattr(workers, "KILL_GRACE_S", 1.0)
     path = write_policy(pong_policy(body))
     code, out, err = _eval(capsys, path, store, "--episodes", 2, "--episode-time-limit", 2, "--call-time-limit", 0.3)
     assert code == 1, (out, err)
@@ -309,9 +309,9 @@ def test_a_policy_file_too_deep_for_the_checks_is_refused_in_one_line(verb, body
 @pytest.fixture
 def kernel_lacks_landlock(monkeypatch):
     """The zygote's hello says Landlock is missing (as on a kernel without it); a fresh zygote is started."""
-    from pipeline.boundary import workers as executor
+    from pipeline.boundary import workers
 
-    original = executor.Zygote._recv
+    original = workers.Zygote._recv
 
     def recv(self, timeout):
         msg = original(self, timeout)
@@ -319,10 +319,10 @@ def kernel_lacks_landlock(monkeypatch):
             msg["missing"] = ["landlock (Landlock is not enabled in this kernel)"]
         return msg
 
-    monkeypatch.setattr(executor.Zygote, "_recv", recv)
-    monkeypatch.setattr(executor, "_zygote", None)
+    monkeypatch.setattr(workers.Zygote, "_recv", recv)
+    monkeypatch.setattr(workers, "_zygote", None)
     yield
-    executor.stop_zygote()
+    workers.stop_zygote()
 
 
 def test_a_missing_kernel_feature_is_refused_loudly(kernel_lacks_landlock, store, capsys, monkeypatch):

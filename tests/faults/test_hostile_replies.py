@@ -12,7 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.llm.client import LiteLLMClient
-from pipeline.optimizer.loop import OptimizeConfig, optimize
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.loop import optimize
 from pipeline.optimizer.reply import ReplyParseError, parse_reply
 from tests.conftest import COMPETENT_SELECT, json_reply
 

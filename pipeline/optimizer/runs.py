@@ -1,0 +1,110 @@
+"""``codearcade compare A B`` of two optimization runs: their learning curves side by side, a budget-matched table
+(the best score each run had reached within the same number of LLM calls, thousand tokens and wall seconds;
+only budgets both runs spent are matched, so neither is credited with spending it never made) and the unified
+diff of their best versions.
+
+Everything is read back from the store (``store/comparisons.py``) and returned as plain data
+(``viewers/compare_report.py`` renders it). It lives beside the optimizer because what it weighs is the
+optimizer's spending; two policy versions are played against each other by ``pipeline/play/versus.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from pipeline.play.versus import LABELS, unified_diff
+from store import Store
+from store.comparisons import best_version, learning_curve
+from store.readers import get_run, policy_text
+from store.views import resolve_run_id
+
+
+@dataclass
+class RunComparison:
+    game: str
+    runs: list[dict[str, Any]]
+    curves: dict[str, list[dict[str, Any]]]
+    budgets: list[dict[str, Any]]
+    diff: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"mode": "runs", "game": self.game, "runs": self.runs, "curves": self.curves,
+                "budgets": self.budgets, "diff": self.diff}
+
+
+def compare_runs(store: Store, a: str, b: str) -> RunComparison:
+    """Learning curves, budget-matched table and best-version diff of two optimization runs."""
+    with store.read() as con:
+        ids = [resolve_run_id(con, x, store) for x in (a, b)]
+        runs, curves, texts = [], {}, []
+        for label, run_id in zip(LABELS, ids):
+            run = get_run(con, run_id)
+            curve = learning_curve(con, run_id)
+            best = best_version(con, run_id)
+            if not curve or best is None:
+                raise ValueError(f"run {run_id} is an {run['kind']} run without iterations: compare optimization "
+                                 f"runs, or play its policy against another version with {run_id}:best")
+            texts.append(policy_text(con, run_id, best["policy_version_id"]))
+            curves[label] = [_curve_point(row) for row in _cumulative_calls(curve)]
+            last = curves[label][-1]
+            runs.append({"label": label, "run_id": run_id, "kind": run["kind"], "game": run["game"],
+                         "model": run["model"], "status": run["status"], "iterations": len(curve) - 1,
+                         "llm_calls": last["llm_calls"], "total_tokens": last["tokens"], "elapsed_s": last["elapsed_s"],
+                         "best_score": best["score"], "best_iteration": best["iteration"],
+                         "best_version_id": best["policy_version_id"]})
+    games = {r["game"] for r in runs}
+    if len(games) > 1:
+        raise ValueError(f"runs {ids[0]} ({runs[0]['game']}) and {ids[1]} ({runs[1]['game']}) play different games; "
+                         "scores of different games do not compare")
+    names = [f"{r['run_id']}:{r['best_version_id']} (best, iteration {r['best_iteration']}, score {r['best_score']:g})"
+             for r in runs]
+    return RunComparison(games.pop(), runs, curves, budget_table(curves), unified_diff(texts[0], texts[1], *names))
+
+
+def _cumulative_calls(curve: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    total = 0
+    for row in curve:
+        total += row["llm_calls"] or 0
+        row["cumulative_calls"] = total
+    return curve
+
+
+def _curve_point(row: dict[str, Any]) -> dict[str, Any]:
+    return {"iteration": row["iteration"], "score": row["score"], "best_score": row["best_score"],
+            "update_status": row["update_status"], "llm_calls": row["cumulative_calls"],
+            "tokens": int(row["cumulative_tokens"] or 0), "elapsed_s": float(row["elapsed_s"] or 0.0)}
+
+
+BUDGET_UNITS = (("LLM calls", "llm_calls", 1.0), ("1k tokens", "tokens", 1000.0), ("wall seconds", "elapsed_s", 1.0))
+"""Budget axes of the matched table: label, cumulative column of a curve point, the unit it is counted in."""
+
+
+def best_within(curve: list[dict[str, Any]], key: str, budget: float) -> float | None:
+    """The best score a run had reached once it had spent at most ``budget`` (in ``key``'s raw unit)."""
+    scores = [p["score"] for p in curve if p[key] <= budget + 1e-9 and p["score"] is not None]
+    return max(scores) if scores else None
+
+
+def budget_table(curves: dict[str, list[dict[str, Any]]], points: int = 4) -> list[dict[str, Any]]:
+    """Rows ``{unit, budget, A, B}``: per budget axis, the best score of each run within the same spending, at
+    ``points`` evenly spaced budgets from the first at which both runs have a score (their starting policies'
+    evaluations) up to what both runs spent (every call count when there are few), then a row ``all`` with each
+    run's own total and final best."""
+    rows: list[dict[str, Any]] = []
+    for unit, key, scale in BUDGET_UNITS:
+        common = min(curve[-1][key] for curve in curves.values())
+        first = min(max(curve[0][key] for curve in curves.values()), common)
+        if common <= first:
+            budgets = [common]
+        elif key == "llm_calls" and common - first <= 12:
+            budgets = [float(c) for c in range(int(first), int(common) + 1)]
+        else:
+            budgets = [first + (common - first) * i / (points - 1) for i in range(points)]
+        for budget in budgets:
+            rows.append({"unit": unit, "budget": round(budget / scale, 3),
+                         **{label: best_within(curve, key, budget) for label, curve in curves.items()}})
+        rows.append({"unit": unit, "budget": "all", "spent": {label: round(curve[-1][key] / scale, 3)
+                                                            for label, curve in curves.items()},
+                     **{label: best_within(curve, key, float("inf")) for label, curve in curves.items()}})
+    return rows

@@ -1,0 +1,39 @@
+"""What the optimization loop carries from one iteration to the next (:class:`RunState`), apart from the loop
+itself, so that *propose* and *assess* can read it without importing the loop that imports them."""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+from dataclasses import dataclass
+from typing import Any, Callable, ContextManager
+
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.strategies import History, Strategy, make_strategy
+
+
+@dataclass
+class RunState:
+    """What the loop carries from one iteration to the next (all of it derivable from the store)."""
+
+    run_id: str
+    game: str
+    config: OptimizeConfig
+    settings: dict[str, Any]
+    next_iteration: int = 0
+    best_score: float | None = None
+    best_iteration: int = 0
+    best_version_id: str | None = None
+    llm_failures: int = 0
+    history: History | None = None
+    """The run's completed iterations as stored: read from the store once, then extended by each commit with
+    the rows it wrote (``test_strategies.py`` checks it against the store)."""
+    rerun: str | None = None
+    """Live Rerun recordings of this invocation's episodes (``EpisodeSpec.rerun``); an output option, not recorded."""
+    waiting: Callable[[int, str], ContextManager[Callable[[str], None] | None]] = lambda it, model: nullcontext()
+    """Wrapped around each iteration's LLM calls (iteration, model label); what it yields gets the streamed text,
+    if any. The CLI shows how long it has been waiting and how much text has arrived."""
+
+    @property
+    def strategy(self) -> Strategy:
+        c = self.config
+        return make_strategy(c, self.settings.get("eval_max_steps"))

@@ -1,0 +1,237 @@
+"""The episode task, on both sides of the boundary: one episode played in a confined worker, and many at once.
+
+In the worker, :func:`episode_task` prepares the episode (policy loaded, environment reset: a staged worker does
+this before its go-ahead), plays it (``pipeline/play/rollout.py``) and writes its progress, the actions it
+played and its outcome as frames (``pipeline/boundary/wire.py``). In the parent, :func:`run_episodes` plays
+many through :func:`~pipeline.boundary.workers.run_tasks`, and :func:`episode_from_worker` checks every field
+of what a worker sent against what the parent asked for and the Arrow schemas ``rollout`` produces, raising
+:class:`~pipeline.boundary.wire.BadMessage` otherwise (the episode is then recorded as ``crashed`` with that
+reason). Fields the parent knows (ids, seed, settings) are taken from the :class:`EpisodeSpec`, never from the
+worker.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from dataclasses import asdict, fields
+from datetime import datetime
+from typing import Any, Callable, Iterable, Iterator
+
+from games import get_game
+from pipeline.boundary import wire
+from pipeline.boundary.wire import MAX_TEXT, BadMessage
+from pipeline.boundary.workers import ProgressCallback, Task, Zygote, run_tasks
+from pipeline.play.rollout import (EpisodeOutcome, EpisodeSpec, _episode_row, crashed_outcome, play_episode,
+                                   prepare_episode, run_episode)
+
+WORKER_END_REASONS = frozenset({"terminated", "truncated", "policy_error", "timeout"})
+"""End reasons a worker may report (``crashed`` is the parent's, ``tampered`` the verification's)."""
+
+
+# ---------------------------------------------------------------------------------------------- the worker
+
+
+def episode_task(item: dict[str, Any], fd: int) -> Callable[[], None]:
+    """In a confined worker (the zygote's ``episode`` task, ``pipeline/boundary/zygote.py``): prepare the episode
+    ``item`` (an :class:`EpisodeSpec` as JSON) and return what plays it, writing its progress, the actions it
+    played and its outcome on ``fd``."""
+    # before the go-ahead: a staged worker loads the policy and resets its environment (ALE reloads the ROM,
+    # ~0.1 s) while the previous episode still plays
+    prepared = prepare_episode(spec_from_json(item))
+
+    def play() -> None:
+        outcome = play_episode(prepared,
+                               lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})),
+                               lambda a: wire.write_all(fd, wire.json_frame({"kind": "actions", "actions": a})))
+        frames = [wire.json_frame({"kind": "result", "episode": episode_to_json(outcome.episode),
+                                   "nodes": outcome.nodes is not None}), wire.arrow_frame(outcome.steps)]
+        if outcome.nodes is not None:
+            frames.append(wire.arrow_frame(outcome.nodes))
+        wire.write_all(fd, b"".join(frames))
+
+    return play
+
+
+# ------------------------------------------------------------------------------------------------- the wire
+
+
+def spec_to_json(spec: Any) -> dict[str, Any]:
+    data = asdict(spec)
+    for key, value in data.items():
+        if not (value is None or isinstance(value, (str, int, float, bool))):
+            raise TypeError(f"EpisodeSpec.{key} is not a primitive")
+    return data
+
+
+def spec_from_json(data: dict[str, Any]) -> Any:
+    names = {f.name for f in fields(EpisodeSpec)}
+    return EpisodeSpec(**{k: v for k, v in data.items() if k in names})
+
+
+MEASURED = ("game", "started_at", "duration_s", "env_s", "policy_s", "length", "lives_lost", "end_reason", "error",
+            "return")
+
+
+def episode_to_json(episode: dict[str, Any]) -> dict[str, Any]:
+    row = {k: episode[k] for k in MEASURED + ("episode_id",)}
+    if isinstance(row["started_at"], datetime):
+        row["started_at"] = row["started_at"].isoformat()
+    if isinstance(row["error"], str):
+        row["error"] = row["error"][:MAX_TEXT]
+    return row
+
+
+def _number(row: dict, key: str, nullable: bool = False) -> float | None:
+    value = row.get(key)
+    if value is None and nullable:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise BadMessage(f"episode field {key} is not a finite number: {str(value)[:50]}")
+    return float(value)
+
+
+def _int(row: dict, key: str, low: int, high: int) -> int:
+    value = row.get(key)
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise BadMessage(f"episode field {key} is not an int in {low}..{high}: {str(value)[:50]}")
+    return value
+
+
+def check_lines_run(spec: Any, nodes: Any) -> None:
+    """BadMessage unless every ``lines_run`` of ``nodes`` is NULL (lines not recorded) or strictly increasing
+    line numbers inside the source of the node's method in ``spec.policy_text`` (what an honest worker sends)."""
+    import numpy as np
+    import pyarrow.compute as pc
+
+    lines = nodes.column("lines_run").combine_chunks()
+    if lines.null_count == len(lines):
+        return
+    if not spec.trace_lines:
+        raise BadMessage("lines_run for an episode played without line recording")
+    from tracing.policy_file import PolicyLoadError, inspect_policy
+
+    try:
+        methods = {m.name: m.source.count("\n") for m in inspect_policy(spec.policy_text, spec.policy_name).methods}
+    except PolicyLoadError:
+        raise BadMessage("lines_run for a policy that does not load") from None
+    functions = nodes.column("function").combine_chunks()
+    for name in pc.unique(pc.filter(functions, pc.is_valid(lines))).to_pylist():
+        if name not in methods:
+            raise BadMessage(f"lines_run for {str(name)[:60]!r}, which is not a bundled method of the policy")
+        chosen = pc.filter(lines, pc.equal(functions, name))
+        values = np.asarray(pc.list_flatten(chosen), dtype=np.int64)
+        if values.size and (values.min() < 1 or values.max() > methods[name]):
+            raise BadMessage(f"lines_run of {name} outside its {methods[name]} lines")
+        starts = np.asarray(pc.list_value_length(chosen).fill_null(0), dtype=np.int64).cumsum()[:-1]
+        rising = np.diff(values) > 0
+        rising[starts[(starts > 0) & (starts < values.size)] - 1] = True  # a new call may start lower
+        if not rising.all():
+            raise BadMessage(f"lines_run of {name} not strictly increasing")
+
+
+def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
+    """The :class:`EpisodeOutcome` of ``spec`` from what its worker sent, every value checked; BadMessage if
+    anything is off. Fields the parent knows (ids, seed, settings) come from ``spec``, never from the worker."""
+    if not isinstance(row, dict):
+        raise BadMessage("the episode row is not an object")
+    if row.get("episode_id") != spec.episode_id:
+        raise BadMessage(f"the worker answered for episode {str(row.get('episode_id'))[:60]!r}, "
+                         f"not {spec.episode_id!r}")
+    game = get_game(spec.game).name
+    if row.get("game") != game:
+        raise BadMessage(f"the episode's game is {str(row.get('game'))[:30]!r}, not {game!r}")
+    end_reason = row.get("end_reason")
+    if end_reason not in WORKER_END_REASONS:
+        raise BadMessage(f"unknown end reason {str(end_reason)[:30]!r}")
+    error = row.get("error")
+    if error is not None and not isinstance(error, str):
+        raise BadMessage("the episode's error is not text")
+    try:
+        started_at = datetime.fromisoformat(row["started_at"]) if row.get("started_at") is not None else None
+    except (TypeError, ValueError):
+        raise BadMessage("started_at is not an ISO timestamp") from None
+    length = _int(row, "length", 0, spec.max_steps)
+    measured = dict(
+        game=game, started_at=started_at, duration_s=_number(row, "duration_s"),
+        env_s=_number(row, "env_s", nullable=True), policy_s=_number(row, "policy_s", nullable=True),
+        length=length, lives_lost=_int(row, "lives_lost", 0, 2**31 - 1), end_reason=end_reason,
+        error=error[:MAX_TEXT] if error else error,
+    )
+    failed_step = end_reason in ("policy_error", "timeout")  # the step the policy failed on is stored too
+    if steps.num_rows not in ((length, length + 1) if failed_step else (length,)) or steps.num_rows > spec.max_steps:
+        raise BadMessage(f"{steps.num_rows} step rows for an episode of length {length}")
+    if steps.num_rows and steps.column("step").to_pylist() != list(range(steps.num_rows)):
+        raise BadMessage("the step rows are not numbered 0, 1, 2, ...")
+    if nodes is not None and not spec.trace:
+        raise BadMessage("nodes for an untraced episode")
+    if nodes is not None:
+        check_lines_run(spec, nodes)
+    episode = _episode_row(spec, score=_number(row, "return"), **measured)
+    return EpisodeOutcome(episode, steps, nodes)
+
+
+# ----------------------------------------------------------------------------------------------- the parent
+
+
+
+def _episode_failed(spec: EpisodeSpec, error: str, timed_out: bool) -> EpisodeOutcome:
+    outcome = crashed_outcome(spec, error)
+    if timed_out:
+        outcome.episode["end_reason"] = "timeout"
+    return outcome
+
+
+def _decode_episode(spec: EpisodeSpec, msg: dict[str, Any], tables: list[bytes]) -> EpisodeOutcome:
+    from tracing.capture import NODE_SCHEMA
+    from tracing.steps import STEP_SCHEMA
+
+    steps = wire.parse_arrow(tables[0], STEP_SCHEMA)
+    nodes = wire.parse_arrow(tables[1], NODE_SCHEMA) if len(tables) > 1 else None
+    return episode_from_worker(spec, msg.get("episode"), steps, nodes)
+
+
+def _rerun_dir(spec: EpisodeSpec) -> str | None:
+    if spec.rerun and "://" not in spec.rerun:
+        return os.path.abspath(spec.rerun)
+    return None
+
+
+def _episode_limits(spec: EpisodeSpec) -> dict[str, Any]:
+    rerun = _rerun_dir(spec)
+    return dict(memory_mb=spec.memory_limit_mb, write_paths=[rerun] if rerun else [],
+                file_size_mb=8192 if rerun else 64)
+
+
+EPISODE = Task("episode", run_episode, spec_to_json, _decode_episode,
+               tables=lambda msg: 2 if msg.get("nodes") is True else 1, limits=_episode_limits)
+
+
+def run_episodes(
+    specs: Iterable[EpisodeSpec],
+    workers: int = 1,
+    progress: ProgressCallback | None = None,
+    started: Callable[[], None] | None = None,
+    on_actions: Callable[[int, list[int]], None] | None = None,
+) -> Iterator[tuple[int, EpisodeOutcome]]:
+    """Play ``specs`` in confined workers (see :func:`~pipeline.boundary.workers.run_tasks`); a worker that dies, misbehaves or hangs
+    yields an episode with end reason ``crashed`` or ``timeout``. ``on_actions``: see ``run_tasks``."""
+    specs = list(specs)
+    streamed = [s for s in specs if s.rerun and _rerun_dir(s) is None] if workers > 0 else []
+    if streamed:
+        print(f"codearcade: no live Rerun stream of {len(streamed)} episode(s): policy workers have no network; "
+              "give --rerun a directory (or view the stored run with `codearcade view`)", file=sys.stderr)
+        for spec in streamed:
+            spec.rerun = None
+
+    def prepare(zyg: Zygote) -> None:
+        # each environment is built once in the zygote (~0.1-0.2 s each): forked workers inherit it ready
+        envs = sorted({(s.game, s.sticky, s.noop_max) for s in specs})
+        try:
+            zyg.send({"op": "prepare", "envs": [list(e) for e in envs]})
+        except OSError:
+            pass  # the zygote died: every episode is recorded as crashed
+
+    return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
+                     progress=progress, started=started, prepare=prepare, on_actions=on_actions)
