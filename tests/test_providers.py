@@ -281,7 +281,7 @@ def test_streamed_replies_land_like_whole_ones(store, scripted, provider, name):
 def test_waiting_line_shows_time_and_streamed_tokens():
     import io
 
-    from pipeline.cli import _llm_waiting
+    from pipeline.cli.optimize import _llm_waiting
 
     class Terminal(io.StringIO):
         def isatty(self):

@@ -1,0 +1,35 @@
+"""``codearcade blame RUN``: a version's code with the iteration and LLM call that wrote each line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from pipeline.cli.common import EXIT_OK, add_store, non_negative_int, open_store
+
+
+def add_parser(verbs) -> None:
+    """Add ``blame`` and its arguments to the verbs of the top-level parser."""
+    p = verbs.add_parser(
+        "blame",
+        help="show a policy version's code with the iteration and LLM call that wrote each line",
+        description="Print the trainable methods of a policy version of a run, each line annotated with the "
+        "iteration that introduced it, that version's short id and the LLM call that wrote it, carried across "
+        "versions like `git blame` (table policy_lines, view line_blame). The version is the run's best unless "
+        "--version or --iteration names another.",
+    )
+    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--version", metavar="V", help="policy version id, or a unique prefix of one (default: the best)")
+    which.add_argument("--iteration", type=non_negative_int, metavar="I", help="the version evaluated in iteration I")
+    p.add_argument("--json", action="store_true", help="print the annotated lines as JSON")
+    add_store(p)
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from viewers.blame import blame, format_blame
+
+    report = blame(open_store(args), args.run_id, args.version, args.iteration)
+    print(json.dumps(report, indent=2, default=str) if args.json else format_blame(report))
+    return EXIT_OK

@@ -1,0 +1,140 @@
+"""``codearcade compare A B``: two runs (``pipeline/optimizer/runs.py``) or two versions played on the same seeds
+(``pipeline/play/versus.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import Callable
+
+from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, positive_int
+
+
+def add_parser(verbs) -> None:
+    """Add ``compare`` and its arguments to the verbs of the top-level parser."""
+    p = verbs.add_parser(
+        "compare",
+        help="compare two runs, or play two policy versions on the same seeds and find where they part",
+        description="Two runs (ids or unique prefixes): their learning curves on one plot, the best score each "
+        "reached within the same LLM calls, tokens and wall seconds, and the diff of their best versions. Two "
+        "versions of one game (policy files, or RUN:VERSION for a version stored in a run: an id, a unique "
+        "prefix of one, or 'best'): both play the same seeds, traced, into the store (two eval runs), and the "
+        "report names the first step where their actions differ, with both sides' observations and node "
+        "outputs around it.",
+        epilog="examples: codearcade compare 01JDA 01JDB --out cmp/   |   codearcade compare pong_a.py pong_b.py "
+        "--max-steps 600 --rerun side_by_side.rrd   |   codearcade compare 01JDA:best 01JDB:best",
+    )
+    p.add_argument("a", metavar="A", help="a run id, a policy file or RUN:VERSION")
+    p.add_argument("b", metavar="B", help="the same kind as A")
+    p.add_argument("--out", metavar="DIR", help="write README.md there (and curves.png for two runs); default for "
+                   "two runs: ./reports/compare-A-B; two versions: no files")
+    p.add_argument("--game", help="versions: the game both play (default: their runs' or files' GAME)")
+    p.add_argument("--episodes", type=positive_int, default=1,
+                   help="versions: seeds to play, from --seed on (default: 1)")
+    p.add_argument("--seed", type=int, default=0, help="versions: the first seed (default: 0)")
+    p.add_argument("--max-steps", type=positive_int, default=4000, help="versions: step cap (default: 4000)")
+    p.add_argument("--context", type=non_negative_int, default=3,
+                   help="versions: steps shown before and after the first divergent step (default: 3)")
+    p.add_argument("--workers", type=non_negative_int, default=None,
+                   help="versions: episode worker processes (default: min(episodes, cores))")
+    p.add_argument("--rerun", metavar="FILE.rrd|URL",
+                   help="versions: write a side-by-side Rerun recording of the two episodes of the first seed "
+                   "where they part (a .rrd file, or a rerun+http://HOST:PORT/proxy viewer)")
+    p.add_argument("--json", action="store_true", help="print the comparison as JSON")
+    add_store(p)
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from pipeline.play.versus import CompareConfig
+    from viewers.compare_report import text_lines, write_report
+
+    if args.rerun and not args.rerun.endswith(".rrd") and not args.rerun.startswith(("rerun://", "rerun+http")):
+        raise CliError(f"--rerun {args.rerun}: give a FILE.rrd or a rerun+http://HOST:PORT/proxy url")
+    store = open_store(args)
+    workers = args.workers if args.workers is not None else min(args.episodes, os.cpu_count() or 1)
+    config = CompareConfig(game=args.game, episodes=args.episodes, seed=args.seed, max_steps=args.max_steps,
+                           context=args.context, workers=workers)
+    result = compare(store, args.a, args.b, config, progress=lambda line: print(line, file=sys.stderr, flush=True))
+    data = result.as_dict()
+    if args.rerun:
+        if data["mode"] != "versions":
+            raise CliError("--rerun shows two played episodes: it goes with two versions (files or RUN:VERSION)")
+        data["rerun"] = _compare_recording(store, data, args.rerun)
+    out = Path(args.out) if args.out else (
+        Path("reports") / f"compare-{data['runs'][0]['run_id']}-{data['runs'][1]['run_id']}"
+        if data["mode"] == "runs" else None)
+    if out is not None:
+        data["report"] = str(write_report(data, out))
+    if args.json:
+        print(json.dumps(data, indent=2, default=str))
+        return EXIT_OK
+    for line in text_lines(data):
+        print(line)
+    if data.get("rerun"):
+        print(f"side-by-side recording: {data['rerun']}")
+    if data.get("report"):
+        print(f"report: {data['report']}")
+    return EXIT_OK
+
+
+def is_version_ref(text: str) -> bool:
+    """A policy file that exists, or ``RUN:VERSION``; anything else is taken for a run id."""
+    from pathlib import Path
+
+    return Path(text).is_file() or ":" in text
+
+
+def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] | None = None):
+    """Compare ``a`` and ``b``: two runs (``pipeline/optimizer/runs.py``), or two versions
+    (``pipeline/play/versus.py``)."""
+    from pathlib import Path
+
+    from pipeline.optimizer.runs import compare_runs
+    from pipeline.play.versus import CompareConfig, compare_versions
+    from tracing.policy_file import PolicyLoadError
+
+    config = config or CompareConfig()
+    for ref in (a, b):
+        if ref.endswith(".py") and not Path(ref).is_file():
+            raise PolicyLoadError(f"policy file '{ref}' does not exist")
+    kinds = [is_version_ref(x) for x in (a, b)]
+    if all(kinds):
+        return compare_versions(store, a, b, config, progress)
+    if not any(kinds):
+        return compare_runs(store, a, b)
+    run, other = (a, b) if not kinds[0] else (b, a)
+    raise ValueError(f"{other!r} is a policy version but {run!r} is not (no such file): compare two runs "
+                     f"(two run ids) or two versions (policy files or RUN:VERSION, e.g. {run}:best)")
+
+
+def _compare_recording(store, data: dict, target: str) -> str:
+    """Write the side-by-side recording of the first seed whose episodes part (else the first seed), in a
+    separate process (this one forks episode workers: Rerun is never loaded here)."""
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    episode = next((e for e in data["episodes"] if e["first_divergent_step"] is not None), data["episodes"][0])
+    root = str(Path(__file__).resolve().parents[2])
+    env = dict(os.environ)
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    to = target if target.startswith(("rerun://", "rerun+http")) else str(Path(target).resolve())
+    with tempfile.NamedTemporaryFile("w", suffix=".diff") as diff:
+        diff.write(data["diff"])
+        diff.flush()
+        command = [sys.executable, "-m", "viewers.rerun_compare", "--store", str(store.path.resolve()),
+                   "--a", episode["A"]["episode_id"], "--b", episode["B"]["episode_id"], "--to", to,
+                   "--diff", diff.name]
+        if episode["first_divergent_step"] is not None:
+            command += ["--divergent-step", str(episode["first_divergent_step"])]
+        done = subprocess.run(command, capture_output=True, text=True, env=env, stdin=subprocess.DEVNULL)
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
+        raise CliError(f"the side-by-side recording could not be written to {target}: {last}")
+    return to

@@ -1,0 +1,106 @@
+"""``codearcade eval POLICY.py``: play a policy file and store every step (and, traced, every call)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+from games import GAMES
+from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, FAILED_END_REASONS, add_rerun, add_store,
+                                 non_negative_int, open_store, positive_int, probability, rerun_target)
+
+
+def add_parser(verbs) -> None:
+    """Add ``eval`` and its arguments to the verbs of the top-level parser."""
+    p = verbs.add_parser(
+        "eval",
+        help="evaluate a policy file and store every step",
+        description="Play a policy file (a Python file defining class Policy) and write the run, its episodes, "
+        "every step and, with --trace, every call of its bundled methods to the store.",
+    )
+    p.add_argument("policy", metavar="POLICY.py", help="policy file; may declare GAME = 'pong'")
+    p.add_argument("--game", help=f"game to play: {', '.join(GAMES)}, or any game OCAtari reads (`codearcade "
+                   "games` lists them) (default: the file's GAME)")
+    p.add_argument("--episodes", type=positive_int, default=1, help="evaluation episodes (default: 1)")
+    p.add_argument("--max-steps", type=positive_int, default=4000,
+                   help="cut an episode off after this many steps, reported as truncated (default: 4000, the paper's)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first episode; episode i uses seed+i (default: 0)")
+    p.add_argument("--trace", action="store_true", help="record a node for every call of a bundled method")
+    p.add_argument("--sticky", type=probability, default=0.0,
+                   help="sticky-action probability (default: 0.0, the paper's; 0.25 with --noop-max 30 is the "
+                   "standard stochastic protocol)")
+    p.add_argument("--noop-max", type=non_negative_int, default=0,
+                   help="up to this many random NOOPs after reset (default: 0)")
+    p.add_argument("--one-life", action="store_true",
+                   help="end each episode at the first lost life, as the authors' follow-up evaluates Asterix, "
+                   "Breakout, Q*bert and Seaquest (default: whole games, the paper's)")
+    p.add_argument("--workers", type=non_negative_int, default=None,
+                   help="episodes played at once in worker processes (default: min(episodes, cores)); "
+                   "0 plays in this process without isolation, for debugging")
+    p.add_argument("--call-time-limit", type=float, default=1.0, metavar="SECONDS",
+                   help="time limit of one policy call (default: 1.0)")
+    p.add_argument("--episode-time-limit", type=float, default=900.0, metavar="SECONDS",
+                   help="wall-clock limit of one episode (default: 900)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    add_rerun(p)
+    add_store(p)
+    p.set_defaults(handler=run)
+
+
+def _progress_bar(episodes: int, description: str):
+    """A tqdm bar that counts finished episodes and shows the steps played so far (episodes end at unknown
+    lengths, so a bar over ``episodes x max_steps`` would jump); the executor's progress callback and the
+    per-episode callback that feed it."""
+    from tqdm import tqdm
+
+    tqdm.monitor_interval = 0  # no monitor thread: episode workers are forked from this process
+    bar = tqdm(total=episodes, desc=description, unit="episode", disable=None, dynamic_ncols=True, leave=False)
+    steps: dict[int, int] = {}
+
+    def show_steps() -> None:
+        bar.set_postfix_str(f"{sum(steps.values()):,} steps", refresh=True)
+
+    def update(index: int, played: int) -> None:
+        steps[index] = played
+        show_steps()
+
+    def finished(index: int, length: int) -> None:
+        steps[index] = length
+        bar.update(1)
+        show_steps()
+
+    return bar, update, finished
+
+
+def run(args: argparse.Namespace) -> int:
+    from pipeline.play.evaluate import EvalConfig, evaluate
+
+    workers = args.workers if args.workers is not None else min(args.episodes, os.cpu_count() or 1)
+    config = EvalConfig(
+        game=args.game, episodes=args.episodes, max_steps=args.max_steps, seed=args.seed, trace=args.trace,
+        sticky=args.sticky, noop_max=args.noop_max, one_life=args.one_life, workers=workers,
+        call_time_limit_s=args.call_time_limit, episode_time_limit_s=args.episode_time_limit,
+        rerun=rerun_target(args.rerun),
+    )
+    store = open_store(args)
+    bar, update, finished = _progress_bar(args.episodes, f"eval {os.path.basename(args.policy)}")
+    try:
+        result = evaluate(args.policy, config, store, progress=update, on_episode=finished)
+    finally:
+        bar.close()
+    summary = result.summary()
+    failed = [e for e in summary["episodes"] if e["end_reason"] in FAILED_END_REASONS]
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"run {result.run_id}  game {result.game}  policy {result.policy_version_id}  store {store.path}")
+        print(f"{'episode':>7}  {'seed':>5}  {'return':>8}  {'length':>6}  end reason")
+        for i, e in enumerate(summary["episodes"]):
+            print(f"{i:>7}  {e['seed']:>5}  {e['return']:>8.1f}  {e['length']:>6}  {e['end_reason']}")
+        returns = [e["return"] for e in summary["episodes"]]
+        print(f"mean return {sum(returns) / len(returns):.2f} over {len(returns)} episode(s)")
+    for e in failed:
+        print(f"codearcade: episode {e['episode_id']} ended with {e['end_reason']}: {e['error']}", file=sys.stderr)
+    return EXIT_EPISODE_FAILED if failed else EXIT_OK

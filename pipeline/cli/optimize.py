@@ -1,0 +1,286 @@
+"""``codearcade optimize``: the optimization loop from the command line, a dry run that prices it, and ``--resume``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import Callable
+
+from games import GAMES
+from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_rerun, add_store, non_negative_int,
+                                 open_store, positive_int, probability, rerun_target)
+from pipeline.optimizer.strategies import STRATEGIES
+
+
+def add_parser(verbs) -> None:
+    """Add ``optimize`` and its arguments to the verbs of the top-level parser."""
+    p = verbs.add_parser(
+        "optimize",
+        help="improve a policy with an LLM (the paper's loop), every step stored",
+        description="Run the optimization loop: iteration 0 evaluates the starting policy; each further iteration "
+        "builds a prompt from the store, asks the LLM for new code, validates it, and evaluates the result. "
+        "Without --model a small local model (SmolLM2-135M) is started: it exercises the pipeline offline but "
+        "cannot really improve code.",
+    )
+    p.add_argument("policy", metavar="POLICY.py", nargs="?",
+                   help="starting policy file (default: the game's scaffold in games/scaffolds/)")
+    p.add_argument("--game", help=f"game: {', '.join(GAMES)}, or any game OCAtari reads (default: the file's GAME)")
+    p.add_argument("--model", help="litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o "
+                   "(OPENAI_API_KEY), gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME "
+                   "or openai/NAME with --api-base (your own server) (default: the offline SmolLM2 server)")
+    p.add_argument("--api-base", metavar="URL", help="the provider's endpoint: your own OpenAI-compatible, vLLM or "
+                   "Ollama server, or a proxy")
+    p.add_argument("--iterations", type=non_negative_int, default=None,
+                   help="LLM updates after evaluating the starting policy (default: 20; with --resume, a larger "
+                   "number extends the run)")
+    p.add_argument("--memory", type=non_negative_int, help="earlier iterations in the prompt (default: 5)")
+    p.add_argument("--token-budget", type=positive_int, default=None,
+                   help="hard limit on prompt tokens (default: 16000; 3000 with the offline model)")
+    p.add_argument("--eval-episodes", type=positive_int, help="evaluation episodes per iteration, in parallel "
+                   "(default: 1)")
+    p.add_argument("--feedback", choices=["staged", "rollout"],
+                   help="staged: from the evaluation score (paper, default); rollout: rollout reward only (ablation)")
+    p.add_argument("--no-rollback", action="store_const", const=False, dest="rollback",
+                   help="never go back to the best version after a regression")
+    p.add_argument("--rollback-fraction", type=probability,
+                   help="roll back below best - (1-F)*max(|best|,1) (default: 0.5)")
+    p.add_argument("--seed", type=int, help="seed (default: 0)")
+    p.add_argument("--temperature", type=float, help="LLM temperature (default: 0; not sent to models that "
+                   "take none)")
+    p.add_argument("--max-tokens", type=positive_int, default=None,
+                   help="longest reply (default: 4096; 512 with the offline model)")
+    p.add_argument("--rollout-steps", type=positive_int, help="training rollout horizon (default: the task's)")
+    p.add_argument("--eval-max-steps", type=positive_int, help="evaluation cap (default: the task's, 4000)")
+    p.add_argument("--workers", type=positive_int, default=None, help="episode worker processes (default: cores)")
+    p.add_argument("--call-time-limit", type=float, dest="call_time_limit_s", metavar="SECONDS",
+                   help="per policy call (default: 1)")
+    search = p.add_argument_group("search", "how versions are chosen for improvement (pipeline/optimizer/strategies.py)")
+    search.add_argument("--strategy", choices=STRATEGIES,
+                        help="greedy: the paper's loop, one proposal from the last version, rollback after a "
+                        "regression (default); best-of-n: N proposals from the best version, keep the best; beam: "
+                        "expand the --beam-width best versions; map-elites: improve random elites of an archive "
+                        "over code complexity x game length, with other elites as inspirations")
+    search.add_argument("--candidates", type=positive_int, metavar="N",
+                        help="proposals per iteration (best-of-n, map-elites: default 4) or per beam member (beam: "
+                        "default 1)")
+    search.add_argument("--beam-width", type=positive_int, metavar="K", help="beam: versions kept (default: 3)")
+    search.add_argument("--max-concurrent-calls", type=positive_int, metavar="N",
+                        help="LLM calls in flight at once (default: 4)")
+    search.add_argument("--robust-episodes", type=non_negative_int, metavar="N",
+                        help="also evaluate every version in N games under the standard protocol (sticky actions "
+                        "0.25, up to 30 no-op starts; seeded), beside the paper's deterministic one (default: 0)")
+    search.add_argument("--optimize-for", choices=("deterministic", "standard"), dest="optimize_protocol",
+                        help="the score the strategy optimizes: deterministic (the paper's protocol, default) or "
+                        "standard (needs --robust-episodes)")
+    search.add_argument("--screen-steps", type=positive_int, metavar="N",
+                        help="cascade evaluation: a new version first plays N steps of the first evaluation game, "
+                        "and is assessed fully only if it keeps up with its parent there (default: off)")
+    search.add_argument("--screen-margin", type=float, metavar="POINTS",
+                        help="how far behind its parent a screened version may be (default: 0)")
+    search.add_argument("--one-life", action="store_const", const=True, dest="one_life",
+                        help="the authors' protocol for Asterix, Breakout, Q*bert and Seaquest: every episode, "
+                        "training rollouts included, ends at the first lost life (default: whole games)")
+    search.add_argument("--no-eval-cache", action="store_const", const=False, dest="eval_cache",
+                        help="play every version's episodes again instead of reusing those of an earlier assessment")
+    budgets = p.add_argument_group("budgets", "the run stops with status 'budget' before it would exceed one; "
+                                   "--resume with a larger budget continues it")
+    budgets.add_argument("--max-cost", type=float, dest="max_cost_usd", metavar="USD",
+                         help="LLM cost, at litellm's price for the model (each call counted at its worst case: "
+                         "the prompt plus a reply of --max-tokens)")
+    budgets.add_argument("--max-total-tokens", type=positive_int, dest="max_total_tokens", metavar="N",
+                         help="LLM input + output tokens")
+    budgets.add_argument("--max-llm-calls", type=positive_int, dest="max_llm_calls", metavar="N",
+                         help="LLM calls (an equal budget for comparing strategies)")
+    budgets.add_argument("--max-wall", type=float, dest="max_wall_minutes", metavar="MINUTES",
+                         help="wall-clock time of the run's iterations")
+    p.add_argument("--resume", metavar="RUN_ID", help="continue a run that was interrupted, failed or stopped by a "
+                   "budget (an id or a unique prefix); budgets, limits, --model/--api-base and a larger "
+                   "--iterations may be given again")
+    p.add_argument("--dry-run", action="store_true",
+                   help="evaluate the starting policy into a temporary store, build the first prompt, and print its "
+                   "tokens and the estimated cost of one update and of the whole run; calls no model")
+    p.add_argument("--show-prompt", action="store_true", help="with --dry-run: print the prompt too")
+    p.add_argument("--stream", action="store_true",
+                   help="stream each reply, showing the tokens as they arrive (the result is the same)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    add_rerun(p)
+    add_store(p)
+    p.set_defaults(handler=run)
+
+
+def _print_iteration(item) -> None:
+    tokens = f"prompt {item.prompt_tokens} tok" if item.prompt_tokens else ""
+    note = f"  ({item.detail})" if item.detail and item.update_status != "accepted" else ""
+    back = "  rolled back" if item.rolled_back else ""
+    if item.candidates > 1:
+        tokens = f"best of {item.candidates} candidates  " + tokens
+    if item.standard_score is not None:
+        tokens = f"standard protocol {item.standard_score:g}  " + tokens
+    print(f"iteration {item.iteration:>3}  score {item.score:>8.1f}  best {item.best_score:>8.1f} (it {item.best_iteration})"
+          f"  update {item.update_status:<9} {tokens}{back}{note[:160]}", flush=True)
+
+
+OPTIMIZE_OPTIONS = ("game", "policy", "model", "api_base", "iterations", "memory", "token_budget", "eval_episodes",
+                    "feedback", "rollback", "rollback_fraction", "seed", "temperature", "max_tokens", "rollout_steps",
+                    "eval_max_steps", "workers", "call_time_limit_s", "max_cost_usd", "max_total_tokens",
+                    "max_llm_calls", "max_wall_minutes", "strategy", "candidates", "beam_width", "max_concurrent_calls", "eval_cache",
+                    "robust_episodes", "optimize_protocol", "screen_steps", "screen_margin", "one_life")
+"""The ``optimize`` flags that are :class:`~pipeline.optimizer.config.OptimizeConfig` fields (defaults live there)."""
+
+
+def _llm_waiting(stream=None):
+    """The optimizer's ``waiting`` hook: while an LLM call is in flight, a terminal shows for how long it has
+    waited and, when the reply is streamed, how much of it has arrived (one line, redrawn each second); a log
+    gets one line per call. It yields the callback the client feeds streamed text to."""
+    import threading
+    import time
+    from contextlib import contextmanager
+
+    stream = stream or sys.stderr
+
+    @contextmanager
+    def waiting(iteration: int, label: str):
+        started = time.monotonic()
+        received = {"pieces": 0, "chars": 0}
+
+        def on_text(piece: str) -> None:
+            received["pieces"] += 1
+            received["chars"] += len(piece)
+
+        if not stream.isatty():
+            print(f"iteration {iteration}: waiting for {label}", file=stream, flush=True)
+            yield on_text
+            return
+        stop = threading.Event()
+
+        def line() -> str:
+            text = f"iteration {iteration}: waiting for {label} ... {time.monotonic() - started:.0f} s"
+            if received["pieces"]:
+                text += f", receiving: {received['pieces']:,} tokens ({received['chars']:,} characters)"
+            return text
+
+        def tick() -> None:
+            while not stop.wait(0.5):
+                stream.write("\r\033[K" + line())
+                stream.flush()
+
+        ticker = threading.Thread(target=tick, name="codearcade-llm-wait", daemon=True)
+        ticker.start()
+        try:
+            yield on_text
+        finally:
+            stop.set()
+            ticker.join()
+            stream.write("\r\033[K")
+            stream.flush()
+
+    return waiting
+
+
+def run(args: argparse.Namespace) -> int:
+    given = {k: getattr(args, k) for k in OPTIMIZE_OPTIONS if getattr(args, k) is not None}
+    if args.model and not args.dry_run:
+        from pipeline.llm.providers import check_credentials  # no litellm import: a missing key is reported at once
+
+        check_credentials(args.model, args.api_base)
+    if args.show_prompt and not args.dry_run:
+        raise CliError("--show-prompt goes with --dry-run")
+    from pipeline.llm.client import OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET, open_client
+    from pipeline.optimizer.config import OptimizeConfig
+    from pipeline.optimizer.loop import optimize, plan_resume
+
+    store = open_store(args)
+    if args.resume:
+        if args.dry_run:
+            raise CliError("--dry-run starts a new run; it cannot go with --resume")
+        plan = plan_resume(store, args.resume, given)
+        if plan.nothing_to_do:
+            print(json.dumps({"run_id": plan.run_id, "status": plan.status, "error": None, "iterations": [],
+                              "note": plan.nothing_to_do}, indent=2) if args.json else plan.nothing_to_do)
+            return EXIT_OK
+        config, run_id = plan.config, plan.run_id
+        if config.model and "model" not in given:
+            from pipeline.llm.providers import check_credentials
+
+            check_credentials(config.model, config.api_base)
+    else:
+        given.setdefault("workers", os.cpu_count() or 1)
+        if args.model is None:
+            given.setdefault("max_tokens", OFFLINE_MAX_TOKENS)
+            given.setdefault("token_budget", OFFLINE_TOKEN_BUDGET)
+        config, run_id = OptimizeConfig(**given), None
+    if args.dry_run:
+        return _dry_run(config, args)
+    offline = config.model is None
+    client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
+                                      config.seed, stream=args.stream)
+    if cap is not None and config.token_budget > cap:
+        config.token_budget = cap
+    for name in getattr(client, "dropped", ()):
+        print(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
+    rerun = rerun_target(args.rerun)
+    on_iteration, recordings = _run_recordings(store, rerun, None if args.json else _print_iteration)
+    try:
+        if not args.json:
+            print(f"store {store.path}  model {client.label}{' (offline default)' if offline else ''}", flush=True)
+        result = optimize(config, store, client, resume=run_id, on_iteration=on_iteration,
+                          log=lambda line: print(line, file=sys.stderr), rerun=rerun, waiting=_llm_waiting())
+    finally:
+        if server is not None:
+            server.stop()
+        if recordings is not None:
+            recordings.close()
+    if args.json:
+        print(json.dumps({
+            "run_id": result.run_id, "status": result.status, "error": result.error,
+            "iterations": [dict(iteration=i.iteration, policy_version_id=i.policy_version_id, score=i.score,
+                                best_score=i.best_score, update_status=i.update_status, rolled_back=i.rolled_back)
+                           for i in result.iterations],
+        }, indent=2))
+    else:
+        print(f"run {result.run_id} {result.status}" + (f": {result.error}" if result.error else ""))
+    if result.status == "budget":
+        print(f"codearcade: run {result.run_id} stopped by its budget; continue it with a larger one: "
+              f"`codearcade optimize --resume {result.run_id} --max-...`", file=sys.stderr)
+        return EXIT_OK
+    if result.status != "finished":
+        print(f"codearcade: run {result.run_id} {result.status}: {result.error}; fix the cause, then continue it "
+              f"with `codearcade optimize --resume {result.run_id}`", file=sys.stderr)
+        return EXIT_EPISODE_FAILED
+    return EXIT_OK
+
+
+def _dry_run(config, args: argparse.Namespace) -> int:
+    from pipeline.optimizer.estimate import estimate_run
+
+    report = estimate_run(config, progress_log=lambda line: print(line, file=sys.stderr))
+    if args.json:
+        print(json.dumps(report.as_dict(include_prompt=args.show_prompt), indent=2))
+        return EXIT_OK
+    if args.show_prompt:
+        for message in report.prompt.messages:
+            print(f"----- {message['role']} -----")
+            print(message["content"])
+        print("-----")
+    for line in report.lines():
+        print(line)
+    return EXIT_OK
+
+
+def _run_recordings(store, target: str | None, then: Callable | None):
+    """With ``--rerun``: an on_iteration callback that also has the run's Rerun recording rebuilt, in a separate
+    process, after every iteration; and the updater to close at the end (None without ``--rerun``)."""
+    if target is None:
+        return then, None
+    from viewers.rerun_sinks import RunRecordingUpdater
+
+    updater = RunRecordingUpdater(store.path, target)
+
+    def on_iteration(item) -> None:
+        if then is not None:
+            then(item)
+        updater.update(item.run_id)
+
+    return on_iteration, updater

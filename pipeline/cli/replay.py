@@ -1,0 +1,44 @@
+"""``codearcade replay RUN``: re-run an optimization from its stored replies and report where it diverges."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store, resolve_run
+
+
+def add_parser(verbs) -> None:
+    """Add ``replay`` and its arguments to the verbs of the top-level parser."""
+    p = verbs.add_parser(
+        "replay",
+        help="re-run an optimization from its stored LLM replies and report divergence",
+        description="Re-run an optimization run as a new run (kind replay), answering each LLM call with the "
+        "reply stored for the same prompt. Reports per iteration whether prompts and scores match the original, "
+        "and stops where they diverge.",
+    )
+    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_store(p)
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pipeline.optimizer.replay import replay
+
+    store = open_store(args)
+    report = replay(store, resolve_run(store, args.run_id), log=lambda line: print(line, file=sys.stderr))
+    if args.json:
+        print(json.dumps(report.as_dict(), indent=2))
+    else:
+        print(f"replay of {report.original_run_id} as {report.replay_run_id}: {report.status}")
+        print(f"{'iteration':>9}  {'prompt':<14} {'original':>9} {'replay':>9}")
+        for r in report.rows:
+            same = "same" if r.original_prompt == r.replay_prompt else "DIFFERENT"
+            o = "-" if r.original_score is None else f"{r.original_score:.1f}"
+            n = "-" if r.replay_score is None else f"{r.replay_score:.1f}"
+            print(f"{r.iteration:>9}  {same:<14} {o:>9} {n:>9}")
+        if report.diverged_at is not None:
+            print(f"first divergence at iteration {report.diverged_at}")
+    return EXIT_OK if report.diverged_at is None else EXIT_EPISODE_FAILED
