@@ -26,10 +26,10 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.optimizer.config import OptimizeConfig  # noqa: E402
 
-from pipeline.optimizer.loop import load_state, run_loop, start_run  # noqa: E402
-from pipeline.optimizer.context import read_context  # noqa: E402
-from pipeline.optimizer.prompt import build_prompt  # noqa: E402
 from pipeline.llm.tokens import TokenCounter  # noqa: E402
+from pipeline.optimizer.context import read_context  # noqa: E402
+from pipeline.optimizer.loop import load_state, run_loop, start_run  # noqa: E402
+from pipeline.optimizer.prompt import build_prompt  # noqa: E402
 from store import Store  # noqa: E402
 
 TARGET_S = 0.2

@@ -6,10 +6,10 @@ import pytest
 
 from pipeline.optimizer.config import OptimizeConfig
 
-from pipeline.optimizer.loop import load_state, run_loop, start_run
-from pipeline.optimizer.context import read_context
-from pipeline.optimizer.prompt import PromptBudgetError, build_prompt, render_obs
 from pipeline.llm.tokens import TokenCounter
+from pipeline.optimizer.context import read_context
+from pipeline.optimizer.loop import load_state, run_loop, start_run
+from pipeline.optimizer.prompt import PromptBudgetError, build_prompt, render_obs
 from store import Store
 
 BUDGETS = [2_000, 4_000, 16_000, 64_000, 200_000]

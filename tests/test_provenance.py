@@ -13,13 +13,13 @@ import textwrap
 import pyarrow as pa
 import pytest
 
+from pipeline.boundary.wire import BadMessage
 from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
-from pipeline.play.rollout import EpisodeSpec, run_episode
-from pipeline.boundary.wire import BadMessage
 from pipeline.play.episodes import check_lines_run
+from pipeline.play.rollout import EpisodeSpec, run_episode
 from store import Store
 from tests.conftest import json_reply, pong_policy
 from tracing.blame import blame_function

@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.play.evaluate import EvalConfig, evaluate
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
+from pipeline.play.evaluate import EvalConfig, evaluate
 from store import Store
 from tests.conftest import COMPETENT_REPLY, EXAMPLES, ROOT
 

@@ -9,10 +9,10 @@ from pathlib import Path
 import duckdb
 import pytest
 
-from pipeline.play.evaluate import EvalConfig, evaluate
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
+from pipeline.play.evaluate import EvalConfig, evaluate
 from store import Store
 from store.migrations import LATEST, MIGRATIONS
 from store.views import VIEWS, run_query

@@ -42,10 +42,10 @@ from pathlib import Path
 from typing import Any, Callable
 
 from games import get_game
-from store.readers import batch_progress, batch_runs
 from pipeline.jobs.worker import BUDGET_EXIT, run_remote
 from pipeline.optimizer.config import BUDGET_FIELDS, OptimizeConfig, validate_config
 from store import Store
+from store.readers import batch_progress, batch_runs
 
 TOP_LEVEL_KEYS = ("name", "store", "defaults", "matrix", "run")
 RUN_KEYS = tuple(f.name for f in fields(OptimizeConfig))

@@ -29,11 +29,11 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from games.base import STANDARD_NOOP_MAX, STANDARD_STICKY
+from pipeline.optimizer.state import RunState
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.play.runinfo import episode_id
 from pipeline.play.verify import TAMPERED, StreamingVerification, tampering
-from pipeline.optimizer.state import RunState
 from store import Store
 from store.readers import earlier_screen, policy_text, reusable_assessment, score_at_step
 from store.writer import write_episode

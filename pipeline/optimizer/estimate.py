@@ -21,11 +21,11 @@ from typing import Any, Callable
 
 from pipeline.optimizer.config import OptimizeConfig
 
-from pipeline.optimizer.loop import load_state, run_iteration, start_run
-from pipeline.optimizer.context import read_context
-from pipeline.optimizer.prompt import Prompt, build_prompt
 from pipeline.llm.providers import Price, price
 from pipeline.llm.tokens import TokenCounter
+from pipeline.optimizer.context import read_context
+from pipeline.optimizer.loop import load_state, run_iteration, start_run
+from pipeline.optimizer.prompt import Prompt, build_prompt
 from store import Store
 
 TYPICAL_REPLY_TOKENS = 1_500

@@ -31,16 +31,16 @@ from pathlib import Path
 from typing import Any, Callable, ContextManager
 
 from games import get_game
+from pipeline.llm.client import LLMClient, LLMError
+from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.assess import assess, screen
 from pipeline.optimizer.config import RESUME_OVERRIDES, OptimizeConfig, validate_config
 from pipeline.optimizer.feedback import FeedbackBands, compose_feedback
-from pipeline.llm.client import LLMClient, LLMError
 from pipeline.optimizer.propose import BudgetExhausted, Proposal, propose
-from pipeline.play.runinfo import new_run_id, package_versions
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import Assessed, History, decide_starter
 from pipeline.optimizer.task import example_path, task_settings
-from pipeline.llm.tokens import TokenCounter
+from pipeline.play.runinfo import new_run_id, package_versions
 from pipeline.play.versions import policy_version_row
 from store import Store
 from store.db import Hold, utcnow

@@ -24,21 +24,21 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
+from pipeline.boundary.untrusted import clean_untrusted_text
 from pipeline.llm.client import LLMClient, LLMError, LLMReply, canonical_messages
+from pipeline.llm.providers import price
+from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.context import context_for
 from pipeline.optimizer.prompt import Prompt, PromptBudgetError, build_prompt
-from pipeline.llm.providers import price
 from pipeline.optimizer.reply import ReplyParseError, clean_text, parse_reply
-from pipeline.play.runinfo import new_run_id
+from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History, ProposalRequest, Ref
-from pipeline.llm.tokens import TokenCounter
-from pipeline.boundary.untrusted import clean_untrusted_text
+from pipeline.play.runinfo import new_run_id
 from pipeline.play.validate import CandidateRejected, RuntimeCheck, check_fits, spread, validate_candidates
 from pipeline.play.versions import policy_version_row
 from store import Store
 from store.db import Hold
 from store.readers import run_spending, stored_replies
-from pipeline.optimizer.state import RunState
 from store.writer import insert_llm_calls
 
 MAX_CONSECUTIVE_LLM_FAILURES = 3

@@ -19,12 +19,12 @@ from games import get_game
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.play.runinfo import episode_id, new_run_id, package_versions
+from pipeline.play.validate import checked_inspect
 from pipeline.play.verify import StreamingVerification
 from pipeline.play.versions import policy_version_row
 from store import Store
 from store.locks import run_lock
 from store.writer import finish_run, insert_policy_version, insert_run, write_episode
-from pipeline.play.validate import checked_inspect
 from tracing.policy_file import PolicyLoadError, read_policy_file
 
 

@@ -26,9 +26,9 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from games import get_game
+from pipeline.boundary.untrusted import clean_untrusted_text
 from pipeline.boundary.workers import run_json_tasks
 from pipeline.play.rollout import coerce_action, describe_exception
-from pipeline.boundary.untrusted import clean_untrusted_text
 from tracing.metrics import function_metrics, policy_metrics
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods
 from tracing.sandbox import CallTimer, PolicyCodeError, PolicyTimeout, check_source

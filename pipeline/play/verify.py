@@ -44,8 +44,8 @@ import pyarrow.compute as pc
 
 from games import get_game
 from games.envs import make_env
-from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.boundary.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
+from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from tracing.capture import NODE_SCHEMA
 from tracing.steps import STEP_SCHEMA, StepLog
 

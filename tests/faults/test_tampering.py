@@ -15,10 +15,10 @@ import textwrap
 import pytest
 
 from pipeline.cli import main
-from pipeline.play.episodes import run_episodes
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
+from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec, run_episode
 from pipeline.play.verify import verify_outcome
 from tests.conftest import json_reply, pong_policy

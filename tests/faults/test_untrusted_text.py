@@ -18,8 +18,8 @@ import uuid
 
 import pytest
 
-from pipeline.cli import main
 from pipeline.boundary.untrusted import clean_json_text, clean_step_objects, clean_untrusted_text, secret_env_names
+from pipeline.cli import main
 from tests.conftest import json_reply
 from tracing.steps import StepLog
 
