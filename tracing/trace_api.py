@@ -39,6 +39,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
+from tracing import capture
 from tracing.bundle import BundledMethod, Module, model
 from tracing.sandbox import TRACE_API
 
@@ -61,20 +62,24 @@ class TraceBundledMethod(BundledMethod):
         self.catch_execution_error = catch_execution_error
 
     def __get__(self, instance: Any, owner: type | None = None) -> Any:
-        call = super().__get__(instance, owner)
         if instance is None or not self.catch_execution_error:
-            return call
+            return super().__get__(instance, owner)
+        parameter = self.parameter
 
-        def call_as_trace(*args: Any, **kwargs: Any) -> Any:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            # BundledMethod's call, inlined: wrapping it in a second closure made a policy call ~1.4x slower
             try:
-                return call(*args, **kwargs)
+                recorder = capture.ACTIVE
+                if recorder is None:
+                    return parameter.fn(instance, *args, **kwargs)
+                return recorder.call(parameter, instance, args, kwargs)
             except ExecutionError:
                 raise  # from a bundled method this one called
             except Exception as exc:  # noqa: BLE001 - Trace reports any error of a bundled call this way
                 # the original traceback goes along, so the failing policy line is still the one reported
                 raise ExecutionError(exc).with_traceback(exc.__traceback__) from exc
 
-        return call_as_trace
+        return call
 
 
 def bundle(description: str | None = None, traceable_code: bool = False, _process_inputs: bool = True,
