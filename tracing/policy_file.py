@@ -1,7 +1,9 @@
 """Policy files: load one in the sandbox, name its version, and write new method sources back into it.
 
 A policy file is a Python module that defines ``class Policy`` (a :class:`tracing.Module`, or decorated with
-``@trace.model``) and may declare its task with upper-case module constants::
+``@trace.model``), written with ``import tracing as trace`` or, unchanged from Microsoft's Trace, with
+``import opto.trace as trace`` / ``from opto.trace import bundle, Module, ...`` (``tracing/trace_api.py``),
+and may declare its task with upper-case module constants::
 
     GAME = "pong"                 # which game it plays (``--game`` may also say it)
     ROLLOUT_STEPS = 400           # traced training rollout horizon for the optimizer
@@ -27,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import tracing.trace_api  # noqa: F401  (answers policy code's `opto.trace` imports; loaded before a worker is confined)
 from tracing.bundle import Module
 from tracing.capture import failing_policy_line
 from tracing.sandbox import PolicyCodeError, check_source, safe_builtins, time_limit

@@ -11,6 +11,11 @@ Policy files and LLM-generated methods are untrusted. This module is the in-proc
   ``compile``, ``input``, ``globals``...; ``__import__`` admits only :data:`ALLOWED_MODULES` and hands out a
   read-only view of the module without its private (``_``-prefixed) names, so ``random._os`` is out of reach;
   ``getattr``/``setattr``/``delattr``/``hasattr`` refuse dunder names.
+- Microsoft Trace's policy API: ``import opto.trace as trace``, ``from opto.trace import bundle, Module, ...``
+  and ``from opto import trace`` are admitted for the modules and names of :data:`TRACE_API`, and answered
+  with read-only views of codearcade's own implementation (``tracing/trace_api.py``). Nothing named ``opto``
+  is installed or imported: a real Trace beside codearcade is neither shadowed nor used, and the rest of
+  Trace (``opto.optimizers``, ``opto.utils``, ...) is refused like any other module.
 - :class:`CallTimer` / :func:`time_limit` interrupt a call that runs too long with :class:`PolicyTimeout`
   (SIGALRM; main thread).
 
@@ -24,6 +29,7 @@ from __future__ import annotations
 
 import ast
 import builtins
+import importlib
 import signal
 import types
 from contextlib import contextmanager
@@ -37,6 +43,17 @@ ALLOWED_MODULES = frozenset(
     }
 )
 """Top-level modules policy code may import (their submodules too, such as ``numpy.linalg``)."""
+
+TRACE_PACKAGE = "opto"
+TRACE_API: dict[str, tuple[str, ...]] = {
+    "opto.trace": ("ExecutionError", "GRAPH", "Module", "Node", "bundle", "model", "node", "stop_tracing"),
+    "opto.trace.bundle": ("bundle",),
+    "opto.trace.errors": ("ExecutionError",),
+    "opto.trace.modules": ("Module", "model"),
+    "opto.trace.nodes": ("GRAPH", "Node", "node"),
+}
+"""Trace's policy API as policy code may import it: each ``opto.trace`` module and the names it offers (where
+Trace defines them), all implemented by ``tracing/trace_api.py``. ``from opto import trace`` is admitted too."""
 
 FORBIDDEN_NAMES = frozenset(
     {
@@ -120,25 +137,61 @@ def check_source(source: str, filename: str = "<policy>") -> ast.Module:
                     node.lineno,
                 )
         elif isinstance(node, (ast.Import, ast.ImportFrom)):
-            modules = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
-            for module in modules:
-                if isinstance(node, ast.ImportFrom) and node.level:
-                    raise PolicyCodeError("relative imports are not allowed", filename, node.lineno)
-                _check_module_allowed(module, filename, node.lineno)
+            if isinstance(node, ast.ImportFrom) and node.level:
+                raise PolicyCodeError("relative imports are not allowed", filename, node.lineno)
+            if isinstance(node, ast.Import):
+                for alias in node.names:
+                    _check_module_allowed(alias.name, None, filename, node.lineno)
+            else:
+                module = node.module or ""
+                _check_module_allowed(module, [a.name for a in node.names], filename, node.lineno)
             for alias in node.names:
                 if alias.name.startswith("_") and isinstance(node, ast.ImportFrom) and module != "__future__":
                     raise PolicyCodeError(f"importing private name '{alias.name}' is not allowed", filename, node.lineno)
     return tree
 
 
-def _check_module_allowed(module: str, filename: str = "<policy>", lineno: int | None = None) -> None:
+def _check_module_allowed(module: str, names: list[str] | None = None, filename: str = "<policy>",
+                          lineno: int | None = None) -> None:
+    """Refuse an import of ``module`` (``names``: what ``from module import ...`` takes; None for ``import``)."""
     top = module.split(".")[0]
-    if top not in ALLOWED_MODULES:
+    if top == TRACE_PACKAGE:
+        _check_trace_import(module, names, filename, lineno)
+    elif top not in ALLOWED_MODULES:
         raise PolicyCodeError(
             f"import of '{module}' is not allowed; allowed modules: {', '.join(sorted(ALLOWED_MODULES - {'__future__'}))}",
             filename,
             lineno,
         )
+
+
+def _trace_children(module: str) -> list[str]:
+    """The short names of :data:`TRACE_API`'s modules directly below ``module`` (``opto``: ``trace``)."""
+    prefix = module + "."
+    return [m[len(prefix):] for m in TRACE_API if m.startswith(prefix) and "." not in m[len(prefix):]]
+
+
+def _check_trace_import(module: str, names: list[str] | None, filename: str, lineno: int | None) -> None:
+    offered = ", ".join(TRACE_API["opto.trace"])
+    if module not in TRACE_API and module != TRACE_PACKAGE:
+        raise PolicyCodeError(
+            f"import of '{module}' is not allowed; of Trace, policy code may import only its policy API, "
+            f"opto.trace ({offered}), which codearcade provides",
+            filename,
+            lineno,
+        )
+    if module == TRACE_PACKAGE and names is None:
+        raise PolicyCodeError("write `import opto.trace as trace` or `from opto import trace`: of Trace, policy "
+                              "code may import only opto.trace", filename, lineno)
+    available = set(TRACE_API.get(module, ())) | set(_trace_children(module))
+    for name in names or ():
+        if name != "*" and name not in available:
+            raise PolicyCodeError(
+                f"'{name}' is not part of Trace's policy API as codearcade provides it; {module} offers "
+                f"{', '.join(sorted(available))}",
+                filename,
+                lineno,
+            )
 
 
 class SafeModule(types.ModuleType):
@@ -152,7 +205,7 @@ class SafeModule(types.ModuleType):
         if name.startswith("_") or name in _DENIED_MODULE_ATTRIBUTES:
             raise AttributeError(f"module '{self.__name__}' has no attribute '{name}' available to policies")
         value = getattr(self._SafeModule__module, name)
-        if isinstance(value, types.ModuleType):
+        if isinstance(value, types.ModuleType) and not isinstance(value, SafeModule):
             return _safe_module(value)
         return value
 
@@ -173,13 +226,32 @@ def _safe_module(module: types.ModuleType) -> SafeModule:
     return view
 
 
+def _trace_view(module: str) -> SafeModule:
+    """The read-only view policy code gets for ``opto`` or a module of :data:`TRACE_API`: exactly the names that
+    module offers, taken from ``tracing/trace_api.py``, and the views of the modules below it."""
+    view = _safe_modules.get(module)  # policy code can import no real module named opto*, so no clash
+    if view is None:
+        api = importlib.import_module("tracing.trace_api")
+        stub = types.ModuleType(module, api.__doc__)
+        for child in _trace_children(module):
+            setattr(stub, child, _trace_view(f"{module}.{child}"))
+        for name in TRACE_API.get(module, ()):
+            setattr(stub, name, getattr(api, name))  # a name wins over a module of the same name, as in Trace
+        view = _safe_modules[module] = SafeModule(stub)
+        object.__setattr__(view, "__all__", list(TRACE_API.get(module, _trace_children(module))))
+    return view
+
+
 def _guarded_import(name, globals=None, locals=None, fromlist=(), level=0):
     if level:
         raise ImportError("relative imports are not allowed in policy code")
     try:
-        _check_module_allowed(name)
+        _check_module_allowed(name, list(fromlist) if fromlist else None)
     except PolicyCodeError as exc:
         raise ImportError(str(exc).split(": ", 1)[1]) from None
+    if name.split(".")[0] == TRACE_PACKAGE:
+        # `from opto.trace import x` takes x from opto.trace's view; `import opto.trace [as t]` binds opto.
+        return _trace_view(name if fromlist else TRACE_PACKAGE)
     module = builtins.__import__(name, None, None, fromlist or (), 0)
     if fromlist:
         for item in fromlist:
