@@ -1,4 +1,4 @@
-"""Gymnasium observation spaces for the object observations (:mod:`games.envs`), exact enough for ``check_env``.
+"""Gymnasium observation spaces that hold exactly the object observations of :mod:`games.envs`.
 
 An observation is a dict whose keys come and go: ``Player`` is absent while off screen, Space Invaders has
 ``Alien0 .. Alien{n-1}`` for the n aliens left, Asterix adds ``Enemies`` only while an enemy is on screen, and
@@ -11,13 +11,13 @@ Breakout's brick rows are lists that shrink. Gymnasium's ``Dict`` requires every
   order its game sorts it (Asterix's nearest first, the lane lists ascending);
 - :class:`OneOf`: one of a few values (an object's ``type``, Breakout's brick widths 8, 16, .., 144).
 
-Every object is a ``Dict`` of ``Discrete`` integer ranges (:func:`box`): ``x, y, w, h`` within ``int16``, the
-type of the store's object columns (OCAtari computes boxes from RAM bytes with int64 arithmetic and reports
-garbage off screen: values up to about +-600 were seen over 3,000 random steps of each of its 57 games, a 160 x 210
-screen is what matters); ``dx, dy`` are differences of two coordinates. A game narrows what its module knows
-(Q*bert keeps only on-screen objects, Freeway folds a car's dx into [-80, 80)). ``contains`` checks keys, types,
-ranges, lengths and declared orders; relations between fields (``dist`` against the player's position) are not
-a space's business. ``sample()`` returns a member of the space (ints as numpy integers).
+Every object is a ``Dict`` of ``Discrete`` integer ranges (:func:`box`): ``x, y, w, h`` within int16, as the
+step log stores them (OCAtari computes boxes from RAM bytes with int64 arithmetic and reports garbage off screen:
+values within +-600 over 3,000 random steps of each of the 57 games it reads, on a 160 x 210 screen); ``dx, dy``
+are differences of two coordinates. A game narrows what its module knows (Q*bert keeps only on-screen objects,
+Freeway folds a car's dx into [-80, 80)). ``contains`` checks keys, types, ranges, lengths and declared orders;
+relations between fields (``dist`` against the player's position) are not a space's business. ``sample()``
+returns a member of the space (its ints numpy integers).
 
 :func:`observation_space` builds a game's space: the generic objects from OCAtari's categories
 (:meth:`ObjectDict.of_objects`, keyed as :func:`games.envs.objects_to_dict` keys them), then the game's own
@@ -35,23 +35,19 @@ from gymnasium import spaces
 
 from games.base import Game
 
-INT16 = (-(2**15), 2**15 - 1)
-"""Bounds of a box's x, y, w and h: the step log's int16 columns (``tracing/steps.py``)."""
-
-
-def ints(low: int, high: int) -> spaces.Discrete:
-    """The integers ``low .. high``, both included."""
-    return spaces.Discrete(high - low + 1, start=low)
-
-
-COORDINATE = INT16
+COORDINATE = (-(2**15), 2**15 - 1)
+"""Bounds of a box's x, y, w and h: int16, the step log's columns (``tracing/steps.py``)."""
 DELTA = (COORDINATE[0] - COORDINATE[1], COORDINATE[1] - COORDINATE[0])
 """dx, dy, and any difference of two coordinates (Enduro's ``rel_x``)."""
 DISTANCE = (0, 2 * DELTA[1])
 """A Manhattan distance between two points (Asterix's ``dist``)."""
 LIVES = (0, 256)
 """ALE reads a game's lives from one RAM byte (Seaquest's plus one)."""
-BOX_FIELDS = ("x", "y", "w", "h", "dx", "dy")
+
+
+def ints(low: int, high: int) -> spaces.Discrete:
+    """The integers ``low .. high``, both included."""
+    return spaces.Discrete(high - low + 1, start=low)
 
 
 def box(**fields: spaces.Space | tuple[int, int]) -> spaces.Dict:

@@ -3,9 +3,12 @@ kwargs, and the observation spaces are exact (they hold what the env returns and
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
+import io
 import pickle
+import re
 import subprocess
 import sys
 import warnings
@@ -15,6 +18,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from games import GAMES, get_game
+from tests.conftest import ROOT
 from games.envs import gym_id, make_env
 from games.spaces import ObjectDict, observation_space
 
@@ -159,3 +163,14 @@ def test_a_game_that_changes_its_observation_must_declare_its_space():
     with pytest.raises(TypeError, match="declares no derive_space: add Game"):
         env.observation_space
     env.close()
+
+
+def test_the_readme_example_prints_what_it_says():
+    """README, section Environments: the example runs as printed; each ``print`` line's comment is its output."""
+    section = (ROOT / "README.md").read_text().split("### Environments", 1)[1].split("\n### ", 1)[0]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    expected = [line.split("  # ", 1)[1] for line in code.splitlines() if line.startswith("print(")]
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        exec(compile(code, "README.md", "exec"), {})
+    assert out.getvalue().splitlines() == expected
