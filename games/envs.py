@@ -8,7 +8,10 @@ paper's protocol; ``sticky=0.25, noop_max=30`` gives the standard stochastic Ata
 - :class:`OneLife` ends the episode at the first lost life (``one_life=True``: the authors' follow-up
   evaluation, see its docstring);
 - :class:`ObjectObservation` replaces the pixel observation by a plain dict of game objects read from RAM
-  by OCAtari's extractors.
+  by OCAtari's extractors; its ``observation_space`` holds exactly those dicts (``games/spaces.py``).
+
+Importing this module registers every game with Gymnasium as ``codearcade/<Game>-v0`` (:func:`register_envs`),
+so ``gymnasium.make("codearcade/Pong-v0", sticky=0.25, noop_max=30)`` builds the same environment.
 
 Observation conventions (the paper's): every object is ``{"x", "y", "w", "h", "dx", "dy"}`` (ints; dx/dy
 are the movement since the previous agent step, 0 when an object (re)appears). Categories with one object
