@@ -59,6 +59,11 @@ def _lane(y: int) -> int:
     return 0 if lane < 0 else 7 if lane > 7 else lane
 
 
+def nearest_first(item: dict) -> int:
+    """The order of ``Enemies``, ``Consumables`` and ``Rewards``: by ``dist``."""
+    return item["dist"]
+
+
 def derive(obs: dict, lives: int) -> None:
     """The authors' observation, in place: ``Player`` gains ``lane``; ``Enemies``, ``Consumables``, ``Rewards``
     are lists of {x, y, w, h, dx, dy, type, lane, dist} sorted by Manhattan distance to the player (nearest first,
@@ -82,11 +87,27 @@ def derive(obs: dict, lives: int) -> None:
             item["lane"] = _lane(item["y"])
             item["dist"] = abs(item["x"] - px) + abs(item["y"] - py)
             lanes.add(item["lane"])
-        items.sort(key=lambda item: item["dist"])  # stable: ties keep the slot order
+        items.sort(key=nearest_first)  # stable: ties keep the slot order
         obs[key] = items
     obs["enemy_lanes"] = sorted(enemy_lanes)
     obs["safe_collectible_lanes"] = sorted(item_lanes - enemy_lanes)
     obs["lives"] = int(lives)
+
+
+def derive_space(space) -> None:
+    """The Gymnasium space of :func:`derive`'s observation, from the generic one (``games.spaces``)."""
+    from games.spaces import DISTANCE, LIVES, ListOf, OneOf, ints, with_fields
+
+    lane = ints(0, len(LANE_Y) - 1)
+    player, _ = space.take("Player")
+    space.add("Player", with_fields(player, lane=lane), optional=True)
+    for category, key in GROUPS:
+        item, slots = space.take(category)
+        item = with_fields(item, type=OneOf([category]), lane=lane, dist=DISTANCE)
+        space.add(key, ListOf(item, slots, min_length=1, key=nearest_first), optional=True)
+    for key in ("enemy_lanes", "safe_collectible_lanes"):
+        space.add(key, ListOf(lane, len(LANE_Y), key=int, strict=True))
+    space.add("lives", ints(*LIVES))
 
 
 GAME = Game(
@@ -101,5 +122,6 @@ GAME = Game(
     colours={"Player": (187, 187, 53), "Enemy": (228, 111, 111), "Consumable": (84, 160, 197),
              "Reward": (252, 188, 116)},
     derive=derive,
+    derive_space=derive_space,
     scaffold=SCAFFOLDS / "asterix.py",
 )

@@ -88,6 +88,11 @@ class Game:
     """``derive(obs, lives)`` adds fields computed from the objects (lanes, nearest enemies, ``lives``) to the
     observation, in place. The store keeps the objects and lives; the same call rebuilds the derived fields
     when a prompt or a viewer reads a step back, so they are never stored twice."""
+    derive_space: Callable[[Any], None] | None = None
+    """``derive_space(space)`` turns the generic observation space (a ``games.spaces.ObjectDict`` of OCAtari's
+    categories) into this game's, in place, as ``object_hooks`` and ``derive`` turn the generic observation into
+    it (required when either is given). Called when an environment is made; it imports ``games.spaces`` (and so
+    Gymnasium) inside, so the registry stays light."""
     hot_keys: tuple[str, str | None] = ("Player", "Ball")
     """The observation keys of the player and of the ball (or what stands for it) whose x/y fill the ``steps``
     table's hot columns ``player_x/y`` and ``ball_x/y`` (Freeway's player is its ``Chicken``)."""

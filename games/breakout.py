@@ -31,6 +31,8 @@ INSTRUCTION = (
 ROWS = {57: "RB", 63: "OB", 69: "YB", 75: "GB", 81: "AB", 87: "BB"}
 """Brick rows by their y, top to bottom: Red, Orange, Yellow, Green, Aqua, Blue."""
 BRICK_WIDTH = 8
+WALL_WIDTH = 144
+"""Each row is 18 bricks of 8 px (x 8 .. 151)."""
 
 
 def split_bricks(block, obs: dict, rows: list | None) -> None:
@@ -49,6 +51,17 @@ def split_bricks(block, obs: dict, rows: list | None) -> None:
         bricks.append({"x": x + i * BRICK_WIDTH, "y": y, "w": BRICK_WIDTH, "h": h, "dx": 0, "dy": 0})
 
 
+def derive_space(space) -> None:
+    """The Gymnasium space of the rows :func:`split_bricks` makes, from the generic one (``games.spaces``): lists
+    of boxes at the row's y whose width is a multiple of 8 (one brick, or a run of them) up to the wall's."""
+    from games.spaces import ListOf, OneOf, with_fields
+
+    block, _ = space.take("Block")
+    widths = OneOf(range(BRICK_WIDTH, WALL_WIDTH + 1, BRICK_WIDTH))
+    for y, key in ROWS.items():
+        space.add(key, ListOf(with_fields(block, y=(y, y), w=widths), WALL_WIDTH // BRICK_WIDTH))
+
+
 GAME = Game(
     name="breakout",
     env_id="BreakoutNoFrameskip-v4",
@@ -62,5 +75,6 @@ GAME = Game(
     fire_on_life_loss=True,
     list_widths={key: BRICK_WIDTH for key in ROWS.values()},
     object_hooks={"Block": split_bricks},
+    derive_space=derive_space,
     scaffold=SCAFFOLDS / "breakout.py",
 )

@@ -99,6 +99,11 @@ def detect(objects: list, ram) -> None:
     match_objects(objects, boxes, 1, CAR_SLOTS, Car)
 
 
+def closest_first(car: dict) -> int:
+    """The order of ``EnemyCars``: largest y (closest) first."""
+    return -car["y"]
+
+
 def derive(obs: dict, lives: int) -> None:
     """The authors' observation, in place: ``EnemyCars``, a list of {x, y, w, h, dx, dy, rel_x, rel_y}
     (relative to the player), largest y (closest) first, ties in OCAtari's slot order, absent when no car is
@@ -112,10 +117,23 @@ def derive(obs: dict, lives: int) -> None:
     for car in cars:
         car["rel_x"] = car["x"] - px
         car["rel_y"] = car["y"] - py
-    cars.sort(key=lambda car: -car["y"])  # stable
+    cars.sort(key=closest_first)  # stable
     obs["EnemyCars"] = cars
     obs["nearest_enemy_rel_x"] = cars[0]["rel_x"]
     obs["nearest_enemy_rel_y"] = cars[0]["rel_y"]
+
+
+def derive_space(space) -> None:
+    """The Gymnasium space of :func:`derive`'s observation, from the generic one (``games.spaces``). OCAtari
+    declares 27 ``Car`` slots; :func:`detect` fills :data:`CAR_SLOTS`."""
+    from games.spaces import DELTA, ListOf, ints, with_fields
+
+    car, _ = space.take("Car")
+    space.add("EnemyCars", ListOf(with_fields(car, rel_x=DELTA, rel_y=DELTA), CAR_SLOTS, min_length=1,
+                                  key=closest_first), optional=True)
+    space.add("nearest_enemy_rel_x", ints(*DELTA), optional=True)
+    space.add("nearest_enemy_rel_y", ints(*DELTA), optional=True)
+    space.together("EnemyCars", "nearest_enemy_rel_x", "nearest_enemy_rel_y")
 
 
 GAME = Game(
@@ -129,5 +147,6 @@ GAME = Game(
     colours={"Player": (192, 192, 192), "Car": (228, 111, 111)},
     detect=detect,
     derive=derive,
+    derive_space=derive_space,
     scaffold=SCAFFOLDS / "enduro.py",
 )

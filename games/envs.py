@@ -8,7 +8,10 @@ paper's protocol; ``sticky=0.25, noop_max=30`` gives the standard stochastic Ata
 - :class:`OneLife` ends the episode at the first lost life (``one_life=True``: the authors' follow-up
   evaluation, see its docstring);
 - :class:`ObjectObservation` replaces the pixel observation by a plain dict of game objects read from RAM
-  by OCAtari's extractors.
+  by OCAtari's extractors; its ``observation_space`` holds exactly those dicts (``games/spaces.py``).
+
+Importing this module registers every game with Gymnasium as ``codearcade/<Game>-v0`` (:func:`register_envs`),
+so ``gymnasium.make("codearcade/Pong-v0", sticky=0.25, noop_max=30)`` builds the same environment.
 
 Observation conventions (the paper's): every object is ``{"x", "y", "w", "h", "dx", "dy"}`` (ints; dx/dy
 are the movement since the previous agent step, 0 when an object (re)appears). Categories with one object
@@ -37,6 +40,7 @@ from ocatari.ram import game_objects as ram_objects
 from ocatari.vision import game_objects as vision_objects
 
 from games import GAMES, Game, get_game
+from games.spaces import observation_space as game_observation_space
 
 Observation = dict[str, Any]
 
@@ -51,9 +55,10 @@ class ObjectObservation(gym.Wrapper):
     """Turn an ALE env's observations into the paper's object dicts (see the module docstring).
 
     The wrapped ALE env must observe its RAM (``obs_type="ram"``, as :func:`make_env` builds it): the objects
-    are read from it, and no screen is copied out every step. ``observation_space`` stays the wrapped RAM
-    space: a dict whose keys come and go has no Gymnasium space. The frame stays available through
-    ``env.unwrapped.ale.getScreenRGB()``.
+    are read from it, and no screen is copied out every step. ``observation_space`` is the game's
+    :class:`games.spaces.ObjectDict` (keys that come and go, lists, derived fields), built when first asked for:
+    codearcade never asks, Gymnasium's checkers and RL code do. The frame stays available through
+    ``env.unwrapped.ale.getScreenRGB()`` (``render()`` with ``render_mode="rgb_array"``).
     """
 
     def __init__(self, env: gym.Env, game: Game):
@@ -62,9 +67,20 @@ class ObjectObservation(gym.Wrapper):
         importlib.import_module(f"ocatari.ram.{game.ocatari_name.lower()}")  # generic games: on first use
         max_objects = extract_ram_info.get_max_objects(game.ocatari_name, False)
         self._numbered = {category for category, count in max_objects.items() if count > 1}
+        self.metadata = {**env.metadata, "render_modes": ["rgb_array"]}  # "human": gymnasium's HumanRendering
         self._objects: list = []
         self.object_rows: list[tuple] = []
         """The last observation as step-log rows (``tracing.steps.StepLog.observe(obs, rows)``), made with it."""
+
+    @property
+    def observation_space(self):
+        if self._observation_space is None:  # on first use: a game without derive_space plays, this raises
+            self._observation_space = game_observation_space(self.game)
+        return self._observation_space
+
+    @observation_space.setter
+    def observation_space(self, space):
+        self._observation_space = space
 
     def reset(self, **kwargs):
         ram, info = self.env.reset(**kwargs)
@@ -283,3 +299,43 @@ def discard_env(env: gym.Env) -> None:
         if shared is env:
             del _shared[key]
     env.close()
+
+
+# -- Gymnasium ids ----------------------------------------------------------------------------------------------
+
+NAMESPACE = "codearcade"
+
+
+def gym_id(game: str | Game) -> str:
+    """The Gymnasium id of a game: ``codearcade/SpaceInvaders-v0`` for ``space_invaders``."""
+    from games.generic import rom_title
+
+    return f"{NAMESPACE}/{rom_title(game.name if isinstance(game, Game) else game)}-v0"
+
+
+def make_registered(game: str, render_mode: str | None = None, sticky: float = 0.0, noop_max: int = 0,
+                    one_life: bool = False) -> gym.Env:
+    """What ``gymnasium.make("codearcade/<Game>-v0", ...)`` builds: :func:`make_env` (the paper's protocol unless
+    ``sticky``, ``noop_max`` or ``one_life`` say otherwise). ``render_mode="rgb_array"`` renders the frame;
+    ``"human"`` shows it in a window (Gymnasium's ``HumanRendering``, which needs pygame and a display)."""
+    if render_mode not in (None, "rgb_array", "human"):
+        raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
+    env = make_env(game, sticky=sticky, noop_max=noop_max, render=render_mode is not None, one_life=one_life)
+    return gym.wrappers.HumanRendering(env) if render_mode == "human" else env
+
+
+def register_envs() -> None:
+    """Register ``codearcade/<Game>-v0`` for every curated game and every generic one (done when this module is
+    imported; ``import games`` alone registers nothing, so it stays free of Gymnasium). Each id is capped at its
+    game's evaluation length (``Task.eval_max_steps``; ``gymnasium.make(..., max_episode_steps=-1)`` lifts it)."""
+    from games.generic import GENERIC_EVAL_MAX_STEPS, generic_names
+
+    caps = {name: GENERIC_EVAL_MAX_STEPS for name in generic_names()}  # no Game made: that reads each ROM
+    caps.update({game.name: game.task.eval_max_steps for game in GAMES.values()})
+    for name, max_steps in caps.items():
+        if gym_id(name) not in gym.registry:
+            gym.register(gym_id(name), entry_point=f"{__name__}:make_registered", kwargs={"game": name},
+                         max_episode_steps=max_steps)
+
+
+register_envs()

@@ -50,6 +50,8 @@ LANE_Y = (27, 43, 59, 75, 91, 107, 123, 139, 155, 171)
 """Car y per lane, lane 1 (top) to lane 10 (bottom). Lanes 1-5 drive left (dx < 0), 6-10 right (dx > 0)."""
 PLAYER_ONE_MAX_X = 80
 """The left chicken (player 1, ours) is at x=44; the idle second player's at x=108."""
+SPEED_FOLD = 80
+"""A car's dx is folded into [-80, 80): the jump of about +-159 px when it wraps around is not its speed."""
 
 
 def _box(o) -> tuple[int, int, int, int, int, int]:
@@ -81,7 +83,7 @@ def _car_key(n: int) -> str:
 def car(o, obs: dict, rows: list | None) -> None:
     """A car as ``Car<n>`` (n = its slot, lane n+1), with the screen wrap folded out of its dx."""
     x, y, w, h, dx, dy = _box(o)
-    dx = ((dx + 80) % 160) - 80
+    dx = ((dx + SPEED_FOLD) % (2 * SPEED_FOLD)) - SPEED_FOLD
     n = 0
     while _car_key(n) in obs:  # the next free number (every step, for every car: no scan of all keys)
         n += 1
@@ -91,14 +93,31 @@ def car(o, obs: dict, rows: list | None) -> None:
         rows.append((key, None, "Car", x, y, w, h, dx, dy))
 
 
+def top_first(car: dict) -> int:
+    """The order of ``Cars``: by y, lane 1 (top) first."""
+    return car["y"]
+
+
 def derive(obs: dict, lives: int) -> None:
     """The authors' observation, in place: ``Cars``, the cars sorted by y (lane 1, top, first), each
     {x, y, w, h, dx, dy, lane} with lane 1-10, always present. No ``lives``: Freeway has none."""
     cars = pop_numbered(obs, "Car")
-    cars.sort(key=lambda c: c["y"])  # stable
+    cars.sort(key=top_first)  # stable
     for c in cars:
         c["lane"] = _lane(c["y"])
     obs["Cars"] = cars
+
+
+def derive_space(space) -> None:
+    """The Gymnasium space of the observation :func:`chicken`, :func:`car` and :func:`derive` make, from the
+    generic one (``games.spaces``)."""
+    from games.spaces import COORDINATE, ListOf, ints, with_fields
+
+    chicken_box, _ = space.take("Chicken")
+    space.add("Chicken", with_fields(chicken_box, x=(COORDINATE[0], PLAYER_ONE_MAX_X - 1)), optional=True)
+    car_box, slots = space.take("Car")
+    car_box = with_fields(car_box, dx=(-SPEED_FOLD, SPEED_FOLD - 1), lane=ints(1, len(LANE_Y)))
+    space.add("Cars", ListOf(car_box, slots, key=top_first))
 
 
 def _nearest_lane(y: int) -> int:
@@ -126,5 +145,6 @@ GAME = Game(
     colours={"Chicken": (252, 252, 84), "Car": (167, 26, 26)},
     object_hooks={"Chicken": chicken, "Car": car},
     derive=derive,
+    derive_space=derive_space,
     scaffold=SCAFFOLDS / "freeway.py",
 )

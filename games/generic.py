@@ -80,7 +80,7 @@ def generic_game(name: str) -> Game | None:
     if rom in BROKEN_EXTRACTORS:
         raise BrokenGameError(f"{rom} cannot be played: OCAtari's {BROKEN_EXTRACTORS[rom]}")
     actions, lives = _ale_facts(rom)
-    title = "".join(part.capitalize() for part in rom.split("_"))
+    title = rom_title(rom)
     instruction = (f"You play Atari {title}. Improve the trainable methods so the policy scores as many points "
                    f"as possible" + (" without losing lives." if lives else "."))
     return Game(
@@ -93,6 +93,11 @@ def generic_game(name: str) -> Game | None:
                   eval_max_steps=GENERIC_EVAL_MAX_STEPS, feedback=GENERIC_FEEDBACK),
         status="generic",
     )
+
+
+def rom_title(rom: str) -> str:
+    """``MsPacman`` for ``ms_pacman``: a game's name as OCAtari and ALE's ids spell it (and ``games.envs.gym_id``)."""
+    return "".join(part.capitalize() for part in rom.split("_"))
 
 
 def _env_id(title: str) -> str:

@@ -61,7 +61,15 @@ CUBES = ((68, 34), (56, 62), (84, 62), (44, 91), (68, 91), (96, 91), (32, 120), 
 (cube_x + 6, cube_y - 17)."""
 ENEMY_TYPES = ("Coily", "PurpleBall", "RedBall")
 FRIENDLY_TYPES = ("Sam", "GreenBall")
+GROUPS = (("Enemies", ENEMY_TYPES), ("Friendlies", FRIENDLY_TYPES), ("Disks", ("Disk",)))
+"""The observation's lists and the OCAtari categories each gathers, in order (``Disks`` have no ``type``)."""
 SCREEN_W, SCREEN_H = 160, 210
+_TYPE_ORDER = {category: i for _, types in GROUPS for i, category in enumerate(types)}
+
+
+def by_type(item: dict) -> int:
+    """The order of ``Enemies`` and ``Friendlies``: by type, in :data:`GROUPS`' order."""
+    return _TYPE_ORDER[item["type"]]
 
 
 def drop(o, obs: dict, rows: list | None) -> None:
@@ -91,7 +99,7 @@ def derive(obs: dict, lives: int) -> None:
     player = obs.get("Player")
     if player is not None and not _on_screen(player):
         del obs["Player"]
-    for key, types in (("Enemies", ENEMY_TYPES), ("Friendlies", FRIENDLY_TYPES), ("Disks", ("Disk",))):
+    for key, types in GROUPS:
         items = []
         for category in types:
             for item in _numbered(obs, category):
@@ -102,6 +110,24 @@ def derive(obs: dict, lives: int) -> None:
         if items:
             obs[key] = items
     obs["lives"] = int(lives)
+
+
+def derive_space(space) -> None:
+    """The Gymnasium space of :func:`derive`'s observation, from the generic one (``games.spaces``)."""
+    from games.spaces import LIVES, ListOf, OneOf, ints, with_fields
+
+    on_screen = {"x": (0, SCREEN_W - 1), "y": (0, SCREEN_H - 1)}
+    space.take("Cube")  # dropped by its hook
+    player, _ = space.take("Player")
+    space.add("Player", with_fields(player, **on_screen), optional=True)
+    for key, types in GROUPS:
+        taken = [space.take(category) for category in types]
+        item = with_fields(taken[0][0], **on_screen)
+        if key != "Disks":
+            item = with_fields(item, type=OneOf(types))
+        slots = sum(n for _, n in taken)
+        space.add(key, ListOf(item, slots, min_length=1, key=None if key == "Disks" else by_type), optional=True)
+    space.add("lives", ints(*LIVES))
 
 
 GAME = Game(
@@ -117,5 +143,6 @@ GAME = Game(
              "RedBall": (228, 60, 60), "GreenBall": (50, 200, 50), "Sam": (100, 230, 100), "Disk": (84, 138, 210)},
     object_hooks={"Cube": drop},
     derive=derive,
+    derive_space=derive_space,
     scaffold=SCAFFOLDS / "qbert.py",
 )

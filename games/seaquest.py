@@ -60,6 +60,9 @@ SURFACE_Y = 46
 ENEMY_LANE_Y = (69, 93, 117, 141)
 """Submarine / Diver y per lane, top to bottom; sharks bob around these."""
 ENEMY_TYPES = ("Shark", "Submarine", "SurfaceSubmarine", "EnemyMissile")
+OXYGEN_FULL = 63
+"""``oxygen`` when the tank is full: OCAtari's oxygen bar is ``min(RAM[102], 63)`` px wide."""
+_TYPE_ORDER = {category: i for i, category in enumerate(ENEMY_TYPES)}
 MULTI_SLOT = frozenset({"Shark", "Submarine", "Diver", "EnemyMissile", "CollectedDiver"})
 
 
@@ -68,6 +71,11 @@ def _take(obs: dict, category: str) -> list[dict]:
         return pop_numbered(obs, category)
     item = obs.pop(category, None)
     return [] if item is None else [item]
+
+
+def by_type(item: dict) -> int:
+    """The order of ``Enemies``: by type, in :data:`ENEMY_TYPES`' order."""
+    return _TYPE_ORDER[item["type"]]
 
 
 def derive(obs: dict, lives: int) -> None:
@@ -91,6 +99,23 @@ def derive(obs: dict, lives: int) -> None:
     obs["divers_collected"] = len(_take(obs, "CollectedDiver"))
 
 
+def derive_space(space) -> None:
+    """The Gymnasium space of :func:`derive`'s observation, from the generic one (``games.spaces``)."""
+    from games.spaces import LIVES, ListOf, OneOf, ints, with_fields
+
+    taken = [space.take(category) for category in ENEMY_TYPES]
+    enemy = with_fields(taken[0][0], type=OneOf(ENEMY_TYPES))
+    space.add("Enemies", ListOf(enemy, sum(n for _, n in taken), min_length=1, key=by_type), optional=True)
+    diver, slots = space.take("Diver")
+    space.add("Divers", ListOf(diver, slots, min_length=1), optional=True)
+    space.take("PlayerMissile")
+    space.take("OxygenBar")
+    _, collected = space.take("CollectedDiver")
+    space.add("lives", ints(*LIVES))
+    space.add("oxygen", ints(0, OXYGEN_FULL))
+    space.add("divers_collected", ints(0, collected))
+
+
 GAME = Game(
     name="seaquest",
     env_id="SeaquestNoFrameskip-v4",
@@ -105,5 +130,6 @@ GAME = Game(
              "SurfaceSubmarine": (214, 214, 214), "EnemyMissile": (228, 111, 111), "Diver": (66, 72, 200),
              "PlayerMissile": (187, 187, 53), "OxygenBar": (214, 214, 214), "CollectedDiver": (24, 26, 167)},
     derive=derive,
+    derive_space=derive_space,
     scaffold=SCAFFOLDS / "seaquest.py",
 )

@@ -9,6 +9,7 @@ import pytest
 from games import GAMES, UnknownGameError, get_game
 from games.breakout import ROWS as BREAKOUT_ROWS
 from games.envs import make_env
+from games.spaces import observation_space
 
 FIELDS = {"x", "y", "w", "h", "dx", "dy"}
 
@@ -68,6 +69,8 @@ def test_every_object_has_int_fields(game):
     derived = get_game(game).derive is not None
     seen, _ = _play(game, [a for a in (0, 2, 3, 1) if a < get_game(game).n_actions], 300)
     assert any(len(list(_objects(o))) for o in seen)
+    space = observation_space(get_game(game))
+    assert all(obs in space for obs in seen), "every observation is in the env's observation_space"
     for obs in seen:
         for key, o in _objects(obs):
             assert FIELDS <= set(o) if derived else set(o) == FIELDS, key
