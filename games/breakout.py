@@ -3,6 +3,12 @@
 Everything codearcade knows about the game: environment, actions, the paper's task (training horizon,
 evaluation cap, staged feedback bands, instruction), observation hooks and Rerun colours. The policy
 scaffold is ``games/scaffolds/breakout.py``.
+
+Observation (the authors' ``breakout_training.py`` / ``trace_envs/breakout.py``, with full boxes): ``Player``,
+``Ball`` (absent while no ball is in play), the brick rows ``RB OB YB GB AB BB`` as lists of OCAtari's
+``Block`` objects, each a run of adjacent bricks (:func:`brick_runs`), and ``lives``. Runs stored before this
+convention (observation version 1) split the runs into 8-pixel bricks (:func:`split_bricks`) and replay so.
+The environment presses FIRE after reset and after each lost life (``games.envs.AutoFire``).
 """
 
 from games.base import SCAFFOLDS, Game, Task
@@ -33,9 +39,33 @@ ROWS = {57: "RB", 63: "OB", 69: "YB", 75: "GB", 81: "AB", 87: "BB"}
 BRICK_WIDTH = 8
 
 
+def brick_runs(block, obs: dict, rows: list | None) -> None:
+    """The authors' bricks: OCAtari reports each run of adjacent bricks in a row as one ``Block`` (w = 8 * n; a
+    full row is one Block, x 8, w 144), and their observation appends each Block unchanged to its row's list.
+    The row's list appears with its first Block: OCAtari lists Blocks row by row, top to bottom, left to right,
+    so the rows follow ``Player`` and ``Ball`` in the order red to blue, and a cleared row is absent."""
+    x, y = (int(v) for v in block._xy)
+    key = ROWS.get(y)
+    if key is None:
+        return
+    w, h = (int(v) for v in block.wh)
+    bricks = obs.get(key)
+    if bricks is None:
+        bricks = obs[key] = []
+    if rows is not None:
+        rows.append((key, len(bricks), key, x, y, w, h, 0, 0))
+    bricks.append({"x": x, "y": y, "w": w, "h": h, "dx": 0, "dy": 0})
+
+
+def derive(obs: dict, lives: int) -> None:
+    """The authors' ``lives`` (they also carry the previous step's ``reward``: docs/observations.md)."""
+    obs["lives"] = int(lives)
+
+
 def split_bricks(block, obs: dict, rows: list | None) -> None:
-    """OCAtari reports each run of adjacent bricks in a row as one ``Block`` of width 8*n: the paper's policies
-    read one 8-pixel brick per entry of the row's list, so the run is split (and stored as one step-log row)."""
+    """Observation version 1 (runs stored before the authors' conventions): each ``Block`` split into 8-pixel
+    bricks, one entry each, in row lists that are always present (``list_widths``); stored as one step-log row
+    per run all the same."""
     x, y = (int(v) for v in block._xy)
     key = ROWS.get(y)
     if key is None:
@@ -60,7 +90,9 @@ GAME = Game(
     colours={"Player": (92, 220, 92), "Ball": (255, 255, 255), "RB": (255, 80, 80), "OB": (255, 150, 60),
              "YB": (230, 220, 60), "GB": (120, 230, 90), "AB": (60, 220, 220), "BB": (90, 120, 255)},
     fire_on_life_loss=True,
-    list_widths={key: BRICK_WIDTH for key in ROWS.values()},
-    object_hooks={"Block": split_bricks},
+    object_hooks={"Block": brick_runs},
+    derive=derive,
     scaffold=SCAFFOLDS / "breakout.py",
+    earlier_observations={1: {"object_hooks": {"Block": split_bricks}, "derive": None,
+                              "list_widths": {key: BRICK_WIDTH for key in ROWS.values()}}},
 )

@@ -60,7 +60,11 @@ CUBES = ((68, 34), (56, 62), (84, 62), (44, 91), (68, 91), (96, 91), (32, 120), 
 """Top-left corners of the 21 cubes, row by row (rows of 1..6). Q*bert standing on a cube is at about
 (cube_x + 6, cube_y - 17)."""
 ENEMY_TYPES = ("Coily", "PurpleBall", "RedBall")
-FRIENDLY_TYPES = ("Sam", "GreenBall")
+FRIENDLY_TYPES = ("GreenBall", "Sam")
+"""Both in OCAtari's slot order (Coily 24, PurpleBall 25, GreenBall 26, Sam 27), the order in which the authors'
+loop appends them."""
+FRIENDLY_TYPES_V1 = ("Sam", "GreenBall")
+"""Observation version 1 listed Sam first."""
 SCREEN_W, SCREEN_H = 160, 210
 
 
@@ -83,15 +87,15 @@ def _numbered(obs: dict, category: str) -> list[dict]:
     return items
 
 
-def derive(obs: dict, lives: int) -> None:
+def derive(obs: dict, lives: int, friendly_types: tuple[str, ...] = FRIENDLY_TYPES) -> None:
     """The authors' observation, in place: ``Player`` (absent while falling or between lives); ``Enemies``:
     {x, y, w, h, dx, dy, type}, type Coily, PurpleBall or RedBall (in that order); ``Friendlies``: the same for
-    Sam and GreenBall; ``Disks``: the flying disks still available; each list absent when empty; objects off the
+    GreenBall and Sam (in that order); ``Disks``: the flying disks still available; each list absent when empty; objects off the
     160x210 screen dropped; ``lives``."""
     player = obs.get("Player")
     if player is not None and not _on_screen(player):
         del obs["Player"]
-    for key, types in (("Enemies", ENEMY_TYPES), ("Friendlies", FRIENDLY_TYPES), ("Disks", ("Disk",))):
+    for key, types in (("Enemies", ENEMY_TYPES), ("Friendlies", friendly_types), ("Disks", ("Disk",))):
         items = []
         for category in types:
             for item in _numbered(obs, category):
@@ -102,6 +106,11 @@ def derive(obs: dict, lives: int) -> None:
         if items:
             obs[key] = items
     obs["lives"] = int(lives)
+
+
+def derive_v1(obs: dict, lives: int) -> None:
+    """Observation version 1: :func:`derive` with Sam before the GreenBall."""
+    derive(obs, lives, FRIENDLY_TYPES_V1)
 
 
 GAME = Game(
@@ -118,4 +127,5 @@ GAME = Game(
     object_hooks={"Cube": drop},
     derive=derive,
     scaffold=SCAFFOLDS / "qbert.py",
+    earlier_observations={1: {"derive": derive_v1}},
 )

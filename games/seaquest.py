@@ -59,7 +59,11 @@ SURFACE_Y = 46
 """Player y at the surface; 46..108 in the water."""
 ENEMY_LANE_Y = (69, 93, 117, 141)
 """Submarine / Diver y per lane, top to bottom; sharks bob around these."""
-ENEMY_TYPES = ("Shark", "Submarine", "SurfaceSubmarine", "EnemyMissile")
+ENEMY_TYPES = ("Shark", "Submarine", "EnemyMissile", "SurfaceSubmarine")
+"""In OCAtari's slot order (sharks 1-12, submarines 13-24, missiles 29-32, the surface patrol 33), the order in
+which the authors' loop appends them: the enemies their list has are at the same positions in ours."""
+ENEMY_TYPES_V1 = ("Shark", "Submarine", "SurfaceSubmarine", "EnemyMissile")
+"""Observation version 1 put the surface patrol before the missiles."""
 MULTI_SLOT = frozenset({"Shark", "Submarine", "Diver", "EnemyMissile", "CollectedDiver"})
 
 
@@ -70,12 +74,12 @@ def _take(obs: dict, category: str) -> list[dict]:
     return [] if item is None else [item]
 
 
-def derive(obs: dict, lives: int) -> None:
+def derive(obs: dict, lives: int, enemy_types: tuple[str, ...] = ENEMY_TYPES) -> None:
     """The authors' observation, in place: ``Enemies``: {x, y, w, h, dx, dy, type}, type Shark, Submarine,
-    SurfaceSubmarine or EnemyMissile (in that order); ``Divers``: {x, y, w, h, dx, dy}; each list absent when
-    empty; ``lives``; ours: ``oxygen`` (0-63, 63 full) and ``divers_collected`` (0-6)."""
+    EnemyMissile or SurfaceSubmarine (in that order: :data:`ENEMY_TYPES`); ``Divers``: {x, y, w, h, dx, dy};
+    each list absent when empty; ``lives``; ours: ``oxygen`` (0-63, 63 full) and ``divers_collected`` (0-6)."""
     enemies = []
-    for category in ENEMY_TYPES:
+    for category in enemy_types:
         for item in _take(obs, category):
             item["type"] = category
             enemies.append(item)
@@ -89,6 +93,11 @@ def derive(obs: dict, lives: int) -> None:
     obs["lives"] = int(lives)
     obs["oxygen"] = bar[0]["w"] if bar else 0
     obs["divers_collected"] = len(_take(obs, "CollectedDiver"))
+
+
+def derive_v1(obs: dict, lives: int) -> None:
+    """Observation version 1: :func:`derive` with the surface patrol before the missiles."""
+    derive(obs, lives, ENEMY_TYPES_V1)
 
 
 GAME = Game(
@@ -106,4 +115,5 @@ GAME = Game(
              "PlayerMissile": (187, 187, 53), "OxygenBar": (214, 214, 214), "CollectedDiver": (24, 26, 167)},
     derive=derive,
     scaffold=SCAFFOLDS / "seaquest.py",
+    earlier_observations={1: {"derive": derive_v1}},
 )
