@@ -7,11 +7,12 @@ ameliakuang/LLM-Game-Playing-Agents), the observation and Rerun colours. The pol
 Observation (the authors' ``trace_envs/qbert.py`` with full boxes): cubes are left out, as the authors do (the
 ``Cube`` hook drops them before they are stored: OCAtari gives their fixed corners, not their colours; see
 :data:`CUBES`). :func:`derive` groups the rest into ``Enemies`` (Coily, PurpleBall, RedBall), ``Friendlies``
-(Sam, GreenBall) and ``Disks`` and drops OCAtari's off-screen garbage: while Q*bert falls or is between lives the
-extractor reports y = RAM[33] - 52 (-52..-35), and a GreenBall can come with x up to 319 (stale RAM).
-OCAtari 2.2.1 declares ``RedBall`` but never creates one: red balls are not reported. Its extractor keeps state
-in module globals (one Q*bert object list per process; ``init_objects`` resets it) and leaves absent objects
-``None``; with int64 RAM its objects are right (no ``detect``).
+(GreenBall, Sam: OCAtari's slot order, as the authors list them) and ``Disks`` and drops OCAtari's off-screen
+garbage: while Q*bert falls or is between lives the extractor reports y = RAM[33] - 52 (-52..-35), and a
+GreenBall can come with x up to 319 (stale RAM). OCAtari 2.2.1 declares ``RedBall`` but never creates one: red
+balls are not reported. Its extractor keeps state in module globals (one Q*bert object list per process;
+``init_objects`` resets it) and leaves absent objects ``None``; with int64 RAM its objects are right (no
+``detect``).
 """
 
 from games.base import SCAFFOLDS, Game, Task
@@ -90,8 +91,8 @@ def _numbered(obs: dict, category: str) -> list[dict]:
 def derive(obs: dict, lives: int, friendly_types: tuple[str, ...] = FRIENDLY_TYPES) -> None:
     """The authors' observation, in place: ``Player`` (absent while falling or between lives); ``Enemies``:
     {x, y, w, h, dx, dy, type}, type Coily, PurpleBall or RedBall (in that order); ``Friendlies``: the same for
-    GreenBall and Sam (in that order); ``Disks``: the flying disks still available; each list absent when empty; objects off the
-    160x210 screen dropped; ``lives``."""
+    GreenBall and Sam (in that order); ``Disks``: the flying disks still available; each list absent when
+    empty; objects off the 160x210 screen dropped; ``lives``."""
     player = obs.get("Player")
     if player is not None and not _on_screen(player):
         del obs["Player"]

@@ -5,14 +5,15 @@ of ameliakuang/LLM-Game-Playing-Agents), the observation and Rerun colours. The 
 ``games/scaffolds/seaquest.py``.
 
 Observation (the authors' ``trace_envs/seaquest.py`` with full boxes, plus two fields of ours): :func:`derive`
-groups the enemies (Shark, Submarine, SurfaceSubmarine, EnemyMissile) into ``Enemies`` and the divers into
-``Divers``; the player's torpedo, the oxygen bar and the collected-diver icons leave the policy's observation (the
-authors skip them; they stay in the stored steps) but give ``oxygen`` (the bar's width, OCAtari's
-``min(RAM[102], 63)``; 0 when the bar is gone) and ``divers_collected`` (the icons, 0-6). The authors'
-observation has neither, though their instruction asks the policy to surface before the oxygen runs out.
-OCAtari 2.2.1 names the surface patrol ``SurfaceSubmarine`` (the authors' fork lists no such class, so their
-filter drops it; ours counts it as an enemy). The direction the sub faces (RAM[86]) is not an object and is not
-in the observation. With int64 RAM the extractor is right (uint8 under numpy 2 raises OverflowError).
+groups the enemies (Shark, Submarine, EnemyMissile, SurfaceSubmarine: OCAtari's slot order, as the authors list
+them) into ``Enemies`` and the divers into ``Divers``; the player's torpedo, the oxygen bar and the
+collected-diver icons leave the policy's observation (the authors skip them; they stay in the stored steps) but
+give ``oxygen`` (the bar's width, OCAtari's ``min(RAM[102], 63)``; 0 when the bar is gone) and
+``divers_collected`` (the icons, 0-6). The authors' observation has neither, though their instruction asks the
+policy to surface before the oxygen runs out. OCAtari 2.2.1 names the surface patrol ``SurfaceSubmarine`` (the
+authors' fork lists no such class, so their filter drops it; ours counts it as an enemy). The direction the sub
+faces (RAM[86]) is not an object and is not in the observation. With int64 RAM the extractor is right (uint8
+under numpy 2 raises OverflowError).
 """
 
 from games.base import SCAFFOLDS, Game, Task, pop_numbered
