@@ -131,7 +131,8 @@ class Game:
             raise ValueError(f"{self.name} already builds observation version {self.observation}; "
                              "ask the registry's game (games.get_game) for another")
         if not 1 <= version <= OBSERVATION_VERSION:
-            raise ValueError(f"observation version {version} is unknown: codearcade builds 1..{OBSERVATION_VERSION}")
+            raise ValueError(f"observation version {version} is not one this codearcade builds "
+                             f"(1..{OBSERVATION_VERSION}); a newer codearcade made the run: upgrade to read it")
         listed = [v for v in sorted(self.earlier_observations) if v >= version]
         if not listed:
             return self  # built the same way then as now
