@@ -8,7 +8,7 @@ nothing heavier than the standard library, so the registry loads in milliseconds
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -16,6 +16,26 @@ STANDARD_STICKY = 0.25
 STANDARD_NOOP_MAX = 30
 """The standard stochastic Atari protocol (Machado et al. 2018): sticky actions with probability 0.25 and up to
 30 no-op starts. The paper's protocol is sticky 0, no no-op starts."""
+
+OBSERVATION_VERSION = 2
+"""The version of the observation conventions codearcade builds today. A run records the version it played
+(``config.observation``) and is read back and replayed with it, so that a stored run replays as it was made:
+
+1. Breakout's bricks split into 8-pixel entries, each row always present (``[]`` when cleared); Seaquest's
+   enemies grouped by type with ``SurfaceSubmarine`` before ``EnemyMissile``; Q*bert's ``Friendlies`` Sam first.
+2. The authors' conventions (docs/observations.md): Breakout's bricks one entry per OCAtari ``Block`` (a run
+   of adjacent bricks, ``w = 8 * n``), keys ``Player``, ``Ball``, the rows present only while they have
+   bricks, and ``lives``; Seaquest's enemies and Q*bert's friendlies in OCAtari's slot order.
+"""
+
+UNRECORDED_OBSERVATION = 1
+"""The version of a run whose config records none: every run stored before versions were recorded."""
+
+
+def recorded_observation(config: Mapping[str, Any]) -> int:
+    """The observation version a stored run's config (``runs.config``) says it played."""
+    return int(config.get("observation", UNRECORDED_OBSERVATION))
+
 
 SCAFFOLDS = Path(__file__).resolve().parent / "scaffolds"
 """The curated games' policy scaffolds: ``scaffolds/<game>.py`` beside the game modules."""
@@ -78,9 +98,9 @@ class Game:
     """RGB of each object category's boxes in Rerun recordings (others get a colour from their name)."""
     list_widths: Mapping[str, int] = field(default_factory=dict)
     """Observation keys that are always present as lists of equal-width items, with that width (Breakout's
-    brick rows); the step log stores runs of adjacent items as one object."""
+    8-pixel bricks under observation version 1); the step log stores runs of adjacent items as one object."""
     object_hooks: Mapping[str, ObjectHook] = field(default_factory=dict)
-    """Per OCAtari category, how its objects enter the observation (Breakout splits merged brick runs)."""
+    """Per OCAtari category, how its objects enter the observation (Breakout files its brick runs by row)."""
     detect: Callable[[list, Any], None] | None = None
     """``detect(objects, ram)`` updates OCAtari's object list from a RAM snapshot instead of OCAtari's own RAM
     extractor (run with int64 RAM); for a game whose extractor is wrong under numpy 2 (Enduro)."""
@@ -100,6 +120,28 @@ class Game:
     """``curated`` (a module with the authors' conventions and a scaffold) or ``generic`` (any OCAtari game)."""
     scaffold: Path | None = None
     """The policy scaffold the optimizer starts from; None for generic games (``codearcade new`` writes one)."""
+    earlier_observations: Mapping[int, Mapping[str, Any]] = field(default_factory=dict)
+    """How the observation of an earlier version (:data:`OBSERVATION_VERSION`) was built: per version, the
+    values of the fields that differed (``object_hooks``, ``list_widths``, ``derive``). Version v is built with
+    those of the smallest listed version >= v, or as today when none is listed."""
+    observation: int = OBSERVATION_VERSION
+    """The observation version this object builds (:meth:`observing` makes the others)."""
+
+    def observing(self, version: int | None) -> "Game":
+        """This game building the observation of ``version`` (None: today's), for a stored run to be read
+        back and replayed as it was made."""
+        if version is None or version == self.observation:
+            return self
+        if self.observation != OBSERVATION_VERSION:
+            raise ValueError(f"{self.name} already builds observation version {self.observation}; "
+                             "ask the registry's game (games.get_game) for another")
+        if not 1 <= version <= OBSERVATION_VERSION:
+            raise ValueError(f"observation version {version} is not one this codearcade builds "
+                             f"(1..{OBSERVATION_VERSION}); a newer codearcade made the run: upgrade to read it")
+        listed = [v for v in sorted(self.earlier_observations) if v >= version]
+        if not listed:
+            return self  # built the same way then as now
+        return replace(self, observation=version, **self.earlier_observations[listed[0]])
 
     @property
     def n_actions(self) -> int:

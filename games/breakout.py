@@ -3,6 +3,12 @@
 Everything codearcade knows about the game: environment, actions, the paper's task (training horizon,
 evaluation cap, staged feedback bands, instruction), observation hooks and Rerun colours. The policy
 scaffold is ``games/scaffolds/breakout.py``.
+
+Observation (the authors' ``breakout_training.py`` / ``trace_envs/breakout.py``, with full boxes): ``Player``,
+``Ball`` (absent while no ball is in play), the brick rows ``RB OB YB GB AB BB`` as lists of OCAtari's
+``Block`` objects, each a run of adjacent bricks (:func:`brick_runs`), and ``lives``. Runs stored before this
+convention (observation version 1) split the runs into 8-pixel bricks (:func:`split_bricks`) and replay so.
+The environment presses FIRE after reset and after each lost life (``games.envs.AutoFire``).
 """
 
 from games.base import SCAFFOLDS, Game, Task
@@ -35,9 +41,33 @@ WALL_WIDTH = 144
 """Each row is 18 bricks of 8 px (x 8 .. 151)."""
 
 
+def brick_runs(block, obs: dict, rows: list | None) -> None:
+    """The authors' bricks: OCAtari reports each run of adjacent bricks in a row as one ``Block`` (w = 8 * n; a
+    full row is one Block, x 8, w 144), and their observation appends each Block unchanged to its row's list.
+    The row's list appears with its first Block: OCAtari lists Blocks row by row, top to bottom, left to right,
+    so the rows follow ``Player`` and ``Ball`` in the order red to blue, and a cleared row is absent."""
+    x, y = (int(v) for v in block._xy)
+    key = ROWS.get(y)
+    if key is None:
+        return
+    w, h = (int(v) for v in block.wh)
+    bricks = obs.get(key)
+    if bricks is None:
+        bricks = obs[key] = []
+    if rows is not None:
+        rows.append((key, len(bricks), key, x, y, w, h, 0, 0))
+    bricks.append({"x": x, "y": y, "w": w, "h": h, "dx": 0, "dy": 0})
+
+
+def derive(obs: dict, lives: int) -> None:
+    """The authors' ``lives`` (they also carry the previous step's ``reward``: docs/observations.md)."""
+    obs["lives"] = int(lives)
+
+
 def split_bricks(block, obs: dict, rows: list | None) -> None:
-    """OCAtari reports each run of adjacent bricks in a row as one ``Block`` of width 8*n: the paper's policies
-    read one 8-pixel brick per entry of the row's list, so the run is split (and stored as one step-log row)."""
+    """Observation version 1 (runs stored before the authors' conventions): each ``Block`` split into 8-pixel
+    bricks, one entry each, in row lists that are always present (``list_widths``); stored as one step-log row
+    per run all the same."""
     x, y = (int(v) for v in block._xy)
     key = ROWS.get(y)
     if key is None:
@@ -52,14 +82,17 @@ def split_bricks(block, obs: dict, rows: list | None) -> None:
 
 
 def derive_space(space) -> None:
-    """The Gymnasium space of the rows :func:`split_bricks` makes, from the generic one (``games.spaces``): lists
-    of boxes at the row's y whose width is a multiple of 8 (one brick, or a run of them) up to the wall's."""
-    from games.spaces import ListOf, OneOf, with_fields
+    """The Gymnasium space of the rows :func:`brick_runs` makes and of :func:`derive`'s ``lives``, from the generic
+    one (``games.spaces``): a row is present while it has bricks, a list of boxes at the row's y, still (dx = dy =
+    0), whose width is a multiple of 8 (one brick, or a run of them) up to the wall's."""
+    from games.spaces import LIVES, ListOf, OneOf, ints, with_fields
 
     block, _ = space.take("Block")
     widths = OneOf(range(BRICK_WIDTH, WALL_WIDTH + 1, BRICK_WIDTH))
     for y, key in ROWS.items():
-        space.add(key, ListOf(with_fields(block, y=(y, y), w=widths), WALL_WIDTH // BRICK_WIDTH))
+        space.add(key, ListOf(with_fields(block, y=(y, y), w=widths, dx=(0, 0), dy=(0, 0)),
+                              WALL_WIDTH // BRICK_WIDTH, min_length=1), optional=True)
+    space.add("lives", ints(*LIVES))
 
 
 GAME = Game(
@@ -73,8 +106,10 @@ GAME = Game(
     colours={"Player": (92, 220, 92), "Ball": (255, 255, 255), "RB": (255, 80, 80), "OB": (255, 150, 60),
              "YB": (230, 220, 60), "GB": (120, 230, 90), "AB": (60, 220, 220), "BB": (90, 120, 255)},
     fire_on_life_loss=True,
-    list_widths={key: BRICK_WIDTH for key in ROWS.values()},
-    object_hooks={"Block": split_bricks},
+    object_hooks={"Block": brick_runs},
+    derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "breakout.py",
+    earlier_observations={1: {"object_hooks": {"Block": split_bricks}, "derive": None,
+                              "list_widths": {key: BRICK_WIDTH for key in ROWS.values()}}},
 )

@@ -18,8 +18,11 @@ are the movement since the previous agent step, 0 when an object (re)appears). C
 are keyed by name (``Player``, ``Ball``, ``Enemy``, ``Satellite``); categories with several are numbered
 densely in OCAtari's slot order (``Alien0``, ``Alien1``, ..., ``Shield0``, ``Bullet0``), so ``Alien{i}``
 exists for ``i < count``. Breakout's bricks are lists under ``RB OB YB GB AB BB`` (rows top to bottom),
-one 8-pixel brick per entry (OCAtari merges neighbouring bricks; we split them), always present, possibly
-empty. An object that is not on screen is an absent key, never a placeholder.
+one entry per OCAtari ``Block``, a run of adjacent bricks (``w = 8 * n``), as the authors have them; a row
+is absent once cleared. An object that is not on screen is an absent key, never a placeholder. The games of
+the authors' follow-up group and extend these objects (``Game.derive``). These are the conventions of
+observation version 2 (``games.base.OBSERVATION_VERSION``); ``make_env(..., observation=1)`` builds the
+earlier one that runs stored before it replay with (docs/observations.md).
 
 We call OCAtari's RAM extractors directly instead of its ``OCAtari`` env class: the class returns
 ``(obs, reward, truncated, terminated)`` in a non-Gymnasium order, keeps frame buffers we do not need, and
@@ -116,7 +119,7 @@ def objects_to_dict(objects: list, numbered: set[str], lists: Mapping[str, int] 
     """Convert OCAtari's padded object list into the observation dict (``NoObject`` and invisible slots skipped).
 
     ``lists`` are the keys that are always present as lists (``Game.list_widths``); ``hooks`` put the objects
-    of their category into the dict themselves (``Game.object_hooks``: Breakout splits its brick runs). With
+    of their category into the dict themselves (``Game.object_hooks``: Breakout files its brick runs by row). With
     ``rows``, also append the observation's rows for the step log (``tracing.steps.OBJECT_TYPE`` order),
     made from the same values in the same pass: what ``StepLog.observe`` would otherwise make by walking the
     dict again.
@@ -244,16 +247,19 @@ class NoopReset(gym.Wrapper):
 
 
 def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: bool = False,
-             one_life: bool = False) -> gym.Env:
+             one_life: bool = False, observation: int | None = None) -> gym.Env:
     """Build the wrapped environment for ``game``; see the module docstring for the observation format.
 
     ``one_life=True`` ends each episode at the first lost life (:class:`OneLife`, the authors' follow-up
     evaluation); a game without lives plays as before.
 
+    ``observation`` is the version of the observation conventions (``games.base.OBSERVATION_VERSION``; None:
+    today's, or the one ``game`` already builds when it is a :meth:`Game.observing` of another).
+
     ``render=True`` keeps the RGB frame available through ``env.unwrapped.ale.getScreenRGB()`` (it always is;
     the flag only asks ALE for ``rgb_array`` rendering for viewers that call ``env.render()``).
     """
-    spec = get_game(game)
+    spec = get_game(game).observing(observation)
     if not 0.0 <= sticky <= 1.0:
         raise ValueError(f"sticky-action probability must be within [0, 1], got {sticky}")
     if noop_max < 0:
@@ -276,17 +282,18 @@ def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: b
     return ObjectObservation(env, spec)
 
 
-_shared: dict[tuple[str, float, int, bool], gym.Env] = {}
+_shared: dict[tuple[str, int, float, int, bool], gym.Env] = {}
 
 
-def shared_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, one_life: bool = False) -> gym.Env:
+def shared_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, one_life: bool = False,
+               observation: int | None = None) -> gym.Env:
     """An environment for one episode after another in this process (``make_env`` is ~0.1 s a call).
 
     Reuse is safe because every episode starts with ``reset(seed=...)``, which reloads the game and reseeds
     every random source, so an episode plays the same on a fresh or a reused environment (tested).
     """
-    spec = get_game(game)
-    key = (spec.name, float(sticky), int(noop_max), bool(one_life))
+    spec = get_game(game).observing(observation)
+    key = (spec.name, spec.observation, float(sticky), int(noop_max), bool(one_life))
     env = _shared.get(key)
     if env is None:
         env = _shared[key] = make_env(spec, sticky=sticky, noop_max=noop_max, one_life=one_life)

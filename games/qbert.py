@@ -7,11 +7,12 @@ ameliakuang/LLM-Game-Playing-Agents), the observation and Rerun colours. The pol
 Observation (the authors' ``trace_envs/qbert.py`` with full boxes): cubes are left out, as the authors do (the
 ``Cube`` hook drops them before they are stored: OCAtari gives their fixed corners, not their colours; see
 :data:`CUBES`). :func:`derive` groups the rest into ``Enemies`` (Coily, PurpleBall, RedBall), ``Friendlies``
-(Sam, GreenBall) and ``Disks`` and drops OCAtari's off-screen garbage: while Q*bert falls or is between lives the
-extractor reports y = RAM[33] - 52 (-52..-35), and a GreenBall can come with x up to 319 (stale RAM).
-OCAtari 2.2.1 declares ``RedBall`` but never creates one: red balls are not reported. Its extractor keeps state
-in module globals (one Q*bert object list per process; ``init_objects`` resets it) and leaves absent objects
-``None``; with int64 RAM its objects are right (no ``detect``).
+(GreenBall, Sam: OCAtari's slot order, as the authors list them) and ``Disks`` and drops OCAtari's off-screen
+garbage: while Q*bert falls or is between lives the extractor reports y = RAM[33] - 52 (-52..-35), and a
+GreenBall can come with x up to 319 (stale RAM). OCAtari 2.2.1 declares ``RedBall`` but never creates one: red
+balls are not reported. Its extractor keeps state in module globals (one Q*bert object list per process;
+``init_objects`` resets it) and leaves absent objects ``None``; with int64 RAM its objects are right (no
+``detect``).
 """
 
 from games.base import SCAFFOLDS, Game, Task
@@ -60,7 +61,11 @@ CUBES = ((68, 34), (56, 62), (84, 62), (44, 91), (68, 91), (96, 91), (32, 120), 
 """Top-left corners of the 21 cubes, row by row (rows of 1..6). Q*bert standing on a cube is at about
 (cube_x + 6, cube_y - 17)."""
 ENEMY_TYPES = ("Coily", "PurpleBall", "RedBall")
-FRIENDLY_TYPES = ("Sam", "GreenBall")
+FRIENDLY_TYPES = ("GreenBall", "Sam")
+"""Both in OCAtari's slot order (Coily 24, PurpleBall 25, GreenBall 26, Sam 27), the order in which the authors'
+loop appends them."""
+FRIENDLY_TYPES_V1 = ("Sam", "GreenBall")
+"""Observation version 1 listed Sam first."""
 GROUPS = (("Enemies", ENEMY_TYPES), ("Friendlies", FRIENDLY_TYPES), ("Disks", ("Disk",)))
 """The observation's lists and the OCAtari categories each gathers, in order (``Disks`` have no ``type``)."""
 SCREEN_W, SCREEN_H = 160, 210
@@ -91,15 +96,15 @@ def _numbered(obs: dict, category: str) -> list[dict]:
     return items
 
 
-def derive(obs: dict, lives: int) -> None:
+def derive(obs: dict, lives: int, friendly_types: tuple[str, ...] = FRIENDLY_TYPES) -> None:
     """The authors' observation, in place: ``Player`` (absent while falling or between lives); ``Enemies``:
     {x, y, w, h, dx, dy, type}, type Coily, PurpleBall or RedBall (in that order); ``Friendlies``: the same for
-    Sam and GreenBall; ``Disks``: the flying disks still available; each list absent when empty; objects off the
-    160x210 screen dropped; ``lives``."""
+    GreenBall and Sam (in that order); ``Disks``: the flying disks still available; each list absent when
+    empty; objects off the 160x210 screen dropped; ``lives``."""
     player = obs.get("Player")
     if player is not None and not _on_screen(player):
         del obs["Player"]
-    for key, types in GROUPS:
+    for key, types in (("Enemies", ENEMY_TYPES), ("Friendlies", friendly_types), ("Disks", ("Disk",))):
         items = []
         for category in types:
             for item in _numbered(obs, category):
@@ -130,6 +135,11 @@ def derive_space(space) -> None:
     space.add("lives", ints(*LIVES))
 
 
+def derive_v1(obs: dict, lives: int) -> None:
+    """Observation version 1: :func:`derive` with Sam before the GreenBall."""
+    derive(obs, lives, FRIENDLY_TYPES_V1)
+
+
 GAME = Game(
     name="qbert",
     env_id="QbertNoFrameskip-v4",
@@ -145,4 +155,5 @@ GAME = Game(
     derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "qbert.py",
+    earlier_observations={1: {"derive": derive_v1}},
 )

@@ -5,14 +5,15 @@ of ameliakuang/LLM-Game-Playing-Agents), the observation and Rerun colours. The 
 ``games/scaffolds/seaquest.py``.
 
 Observation (the authors' ``trace_envs/seaquest.py`` with full boxes, plus two fields of ours): :func:`derive`
-groups the enemies (Shark, Submarine, SurfaceSubmarine, EnemyMissile) into ``Enemies`` and the divers into
-``Divers``; the player's torpedo, the oxygen bar and the collected-diver icons leave the policy's observation (the
-authors skip them; they stay in the stored steps) but give ``oxygen`` (the bar's width, OCAtari's
-``min(RAM[102], 63)``; 0 when the bar is gone) and ``divers_collected`` (the icons, 0-6). The authors'
-observation has neither, though their instruction asks the policy to surface before the oxygen runs out.
-OCAtari 2.2.1 names the surface patrol ``SurfaceSubmarine`` (the authors' fork lists no such class, so their
-filter drops it; ours counts it as an enemy). The direction the sub faces (RAM[86]) is not an object and is not
-in the observation. With int64 RAM the extractor is right (uint8 under numpy 2 raises OverflowError).
+groups the enemies (Shark, Submarine, EnemyMissile, SurfaceSubmarine: OCAtari's slot order, as the authors list
+them) into ``Enemies`` and the divers into ``Divers``; the player's torpedo, the oxygen bar and the
+collected-diver icons leave the policy's observation (the authors skip them; they stay in the stored steps) but
+give ``oxygen`` (the bar's width, OCAtari's ``min(RAM[102], 63)``; 0 when the bar is gone) and
+``divers_collected`` (the icons, 0-6). The authors' observation has neither, though their instruction asks the
+policy to surface before the oxygen runs out. OCAtari 2.2.1 names the surface patrol ``SurfaceSubmarine`` (the
+authors' fork lists no such class, so their filter drops it; ours counts it as an enemy). The direction the sub
+faces (RAM[86]) is not an object and is not in the observation. With int64 RAM the extractor is right (uint8
+under numpy 2 raises OverflowError).
 """
 
 from games.base import SCAFFOLDS, Game, Task, pop_numbered
@@ -59,7 +60,11 @@ SURFACE_Y = 46
 """Player y at the surface; 46..108 in the water."""
 ENEMY_LANE_Y = (69, 93, 117, 141)
 """Submarine / Diver y per lane, top to bottom; sharks bob around these."""
-ENEMY_TYPES = ("Shark", "Submarine", "SurfaceSubmarine", "EnemyMissile")
+ENEMY_TYPES = ("Shark", "Submarine", "EnemyMissile", "SurfaceSubmarine")
+"""In OCAtari's slot order (sharks 1-12, submarines 13-24, missiles 29-32, the surface patrol 33), the order in
+which the authors' loop appends them: the enemies their list has are at the same positions in ours."""
+ENEMY_TYPES_V1 = ("Shark", "Submarine", "SurfaceSubmarine", "EnemyMissile")
+"""Observation version 1 put the surface patrol before the missiles."""
 OXYGEN_FULL = 63
 """``oxygen`` when the tank is full: OCAtari's oxygen bar is ``min(RAM[102], 63)`` px wide."""
 _TYPE_ORDER = {category: i for i, category in enumerate(ENEMY_TYPES)}
@@ -78,12 +83,12 @@ def by_type(item: dict) -> int:
     return _TYPE_ORDER[item["type"]]
 
 
-def derive(obs: dict, lives: int) -> None:
+def derive(obs: dict, lives: int, enemy_types: tuple[str, ...] = ENEMY_TYPES) -> None:
     """The authors' observation, in place: ``Enemies``: {x, y, w, h, dx, dy, type}, type Shark, Submarine,
-    SurfaceSubmarine or EnemyMissile (in that order); ``Divers``: {x, y, w, h, dx, dy}; each list absent when
-    empty; ``lives``; ours: ``oxygen`` (0-63, 63 full) and ``divers_collected`` (0-6)."""
+    EnemyMissile or SurfaceSubmarine (in that order: :data:`ENEMY_TYPES`); ``Divers``: {x, y, w, h, dx, dy};
+    each list absent when empty; ``lives``; ours: ``oxygen`` (0-63, 63 full) and ``divers_collected`` (0-6)."""
     enemies = []
-    for category in ENEMY_TYPES:
+    for category in enemy_types:
         for item in _take(obs, category):
             item["type"] = category
             enemies.append(item)
@@ -116,6 +121,11 @@ def derive_space(space) -> None:
     space.add("divers_collected", ints(0, collected))
 
 
+def derive_v1(obs: dict, lives: int) -> None:
+    """Observation version 1: :func:`derive` with the surface patrol before the missiles."""
+    derive(obs, lives, ENEMY_TYPES_V1)
+
+
 GAME = Game(
     name="seaquest",
     env_id="SeaquestNoFrameskip-v4",
@@ -132,4 +142,5 @@ GAME = Game(
     derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "seaquest.py",
+    earlier_observations={1: {"derive": derive_v1}},
 )

@@ -93,15 +93,34 @@ def test_pong_keys_and_absent_ball():
     assert all(obs["Player"]["x"] == 140 for obs in seen if "Player" in obs)
 
 
-def test_breakout_rows_are_lists_of_bricks():
-    seen, _ = _play("breakout", [2, 3], 50)
+def test_breakout_rows_hold_one_entry_per_run_of_bricks_as_the_authors_have_them():
+    """OCAtari's Block is a run of adjacent bricks (w = 8 * n): one entry each, the rows in order after Player
+    and Ball, a cleared row absent, then lives (the authors' observation, observation version 2)."""
+    seen, _ = _play("breakout", [2] * 10 + [3] * 10, 2000)  # sweeping: a brick goes from the middle of a row
     first = seen[0]
+    assert list(first) == ["Player", "Ball", *BREAKOUT_ROWS.values(), "lives"]
     for row, y in zip(BREAKOUT_ROWS.values(), BREAKOUT_ROWS):
-        assert isinstance(first[row], list)
-        assert first[row], f"row {row} starts full"
-        assert all(b["y"] == y and b["w"] == 8 for b in first[row])
-    assert sum(len(first[row]) for row in BREAKOUT_ROWS.values()) == 108
-    assert "Block" not in first and "Player" in first
+        assert first[row] == [{"x": 8, "y": y, "w": 144, "h": 6, "dx": 0, "dy": 0}], "a full row is one run"
+    assert first["lives"] == 5 and "Block" not in first
+    broken = [obs for obs in seen if any(len(obs.get(row, [])) > 1 for row in BREAKOUT_ROWS.values())]
+    assert broken, "the test must see a row broken into runs"
+    for obs in broken:
+        keys = [k for k in obs if k in BREAKOUT_ROWS.values()]
+        assert keys == [k for k in BREAKOUT_ROWS.values() if k in keys], "rows top to bottom"
+        for row, y in zip(BREAKOUT_ROWS.values(), BREAKOUT_ROWS):
+            runs = obs.get(row, [])
+            assert all(b["y"] == y and b["w"] % 8 == 0 and b["w"] > 0 for b in runs)
+            assert all(a["x"] + a["w"] < b["x"] for a, b in zip(runs, runs[1:])), "runs apart, left to right"
+
+
+def test_breakout_under_observation_version_1_splits_the_runs_into_8_pixel_bricks():
+    """The convention runs stored before observation versions were recorded replay with."""
+    env = make_env("breakout", observation=1)
+    obs, _ = env.reset(seed=0)
+    env.close()
+    assert list(obs) == [*BREAKOUT_ROWS.values(), "Player", "Ball"]
+    for row, y in zip(BREAKOUT_ROWS.values(), BREAKOUT_ROWS):
+        assert [(b["x"], b["w"]) for b in obs[row]] == [(8 + 8 * i, 8) for i in range(18)]
 
 
 def test_breakout_fires_at_start_and_after_a_lost_life():

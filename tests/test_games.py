@@ -152,3 +152,21 @@ def test_hot_columns_follow_each_games_player():
     assert get_game("freeway").hot_keys[0] == "Chicken"
     assert outcome.steps.column("player_y").null_count == 0, "Freeway's player is its chicken"
     assert outcome.steps.column("ball_x").null_count == 60
+
+
+def test_a_game_builds_an_earlier_observation_version_only_where_it_differed():
+    """``Game.observing(v)``: the registry's game where version v was built as today (Pong), a variant where it
+    differed (Breakout's 8-pixel bricks); a version this codearcade does not know is refused in one line."""
+    from games.base import OBSERVATION_VERSION, recorded_observation
+
+    assert get_game("pong").observing(1) is get_game("pong")
+    old = get_game("breakout").observing(1)
+    assert old.observation == 1 and old.list_widths and old.derive is None
+    assert get_game("breakout").observing(None) is get_game("breakout").observing(OBSERVATION_VERSION)
+    assert old.observing(1) is old
+    with pytest.raises(ValueError, match="registry"):
+        old.observing(OBSERVATION_VERSION)
+    with pytest.raises(ValueError) as err:
+        get_game("breakout").observing(OBSERVATION_VERSION + 1)
+    assert "upgrade" in str(err.value) and "\n" not in str(err.value)
+    assert recorded_observation({}) == 1 and recorded_observation({"observation": 2}) == 2

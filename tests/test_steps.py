@@ -7,7 +7,7 @@ import random
 
 import pytest
 
-from games import list_widths
+from games import get_game, list_widths
 from games.envs import make_env
 from tracing.steps import StepLog, merge_runs, objects_to_obs
 
@@ -40,31 +40,48 @@ def test_list_keys_are_present_even_when_empty_and_other_lists_are_kept_item_by_
     assert _rebuilt(log, {"RB": 8, "OB": 8}) == [obs]
 
 
-@pytest.mark.parametrize("game", ["breakout", "space_invaders", "pong"])
-def test_observations_rebuild_exactly_from_either_way_of_logging_them(game):
+@pytest.mark.parametrize("game,observation", [("breakout", 2), ("breakout", 1), ("space_invaders", 2), ("pong", 2)])
+def test_observations_rebuild_exactly_from_either_way_of_logging_them(game, observation):
     """The rows the environment makes along with each observation and the rows StepLog makes from the dict
-    both rebuild the dict the policy saw; Breakout's bricks are stored as runs."""
-    widths = list_widths(game)
-    env = make_env(game)
+    both rebuild the dict the policy saw, keys in the same order (the game's derived fields, Breakout's
+    ``lives``, rebuilt by its ``derive``: the dict way takes observations without them). Breakout's bricks: one
+    entry (and one stored row) per OCAtari Block, a run of adjacent bricks; under observation version 1, 8-pixel
+    bricks stored as runs and split back."""
+    spec = get_game(game).observing(observation)
+    widths = list_widths(spec)
+    env = make_env(spec)
     rng = random.Random(0)
-    obs, _ = env.reset(seed=0)
+    obs, info = env.reset(seed=0)
     from_env, from_dict, seen = StepLog(widths), StepLog(widths), []
     for step in range(1500):  # long enough for Breakout's ball to knock bricks out
         seen.append(copy.deepcopy(obs))
         from_env.observe(obs, env.object_rows)
-        from_dict.observe(obs)
+        from_dict.observe({k: v for k, v in obs.items() if not isinstance(v, int)})
         action = rng.choice([0, 2, 3])
+        lives = info.get("lives")  # as the episode's step row has them: when the observation was made
         obs, reward, terminated, truncated, info = env.step(action)
         for log in (from_env, from_dict):
-            log.outcome(step, action, reward, 0.0, terminated, truncated, info.get("lives"))
+            log.outcome(step, action, reward, 0.0, terminated, truncated, lives)
         if terminated or truncated:
             break
     env.close()
-    assert _rebuilt(from_env, widths) == seen
-    assert _rebuilt(from_dict, widths) == seen
+    for log in (from_env, from_dict):
+        rebuilt = _rebuilt(log, widths)
+        if spec.derive is not None:
+            for o, lives in zip(rebuilt, log.scalars["lives"]):
+                spec.derive(o, lives)
+        assert rebuilt == seen
+        assert [list(o) for o in rebuilt] == [list(o) for o in seen]
     if game == "breakout":
-        bricks = [sum(len(o[row]) for row in widths) for o in seen]
+        rows = ("RB", "OB", "YB", "GB", "AB", "BB")
+        bricks = [sum(b["w"] // 8 for row in rows for b in o.get(row, [])) for o in seen]
         assert bricks[0] == 108 and min(bricks) < 108, "the test must see bricks knocked out"
         for log in (from_env, from_dict):
             first = log.table().to_pylist()[0]["objects"]
-            assert sum(o["key"] in widths for o in first) == 6  # six full rows: six runs, not 108 bricks
+            assert [(o["key"], o["w"]) for o in first if o["key"] in rows] == [(row, 144) for row in rows]
+        entries = [sum(len(o.get(row, [])) for row in rows) for o in seen]
+        if observation == 1:
+            assert all(b["w"] == 8 for o in seen for row in rows for b in o[row]) and entries == bricks
+        else:
+            assert entries[0] == 6 and max(entries) < min(bricks), "one entry per run of bricks"
+            assert any(b["w"] not in (8, 144) for o in seen for row in rows for b in o.get(row, []))

@@ -8,9 +8,12 @@ A step is logged before the policy sees its observation (:meth:`StepLog.observe`
 ``ball_x/y``: the objects each game names in ``Game.hot_keys``; NULL when absent) for quick SQL, and
 ``objects``, a list of ``{key, idx, category, x, y, w, h, dx, dy}`` structs that holds the whole dict: ``key``
 is the observation key (``Ball``, ``Alien3``, ``RB``), ``idx`` the position inside a list value (Breakout's
-brick rows) or NULL, ``category`` the key without its trailing number. A run of adjacent bricks is one row
-(``idx`` its first brick, ``w`` 8 times its bricks): Breakout's 108 bricks take 6 rows, not 108.
-:func:`objects_to_obs` rebuilds the exact dict the policy saw.
+brick rows) or NULL, ``category`` the key without its trailing number. Each entry of a list is one row, as it
+is: Breakout's entries are OCAtari's Blocks, runs of adjacent bricks (a full wall is 6 rows). A list of
+equal-width items (``list_widths``: Breakout's 8-pixel bricks under observation version 1) is stored with
+each run of adjacent items as one row (``idx`` its first item, ``w`` the items' width times their number) and
+split back when read with the same ``list_widths``; without them nothing is split.
+:func:`objects_to_obs` rebuilds the exact dict the policy saw, keys in the same order.
 """
 
 from __future__ import annotations

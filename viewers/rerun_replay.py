@@ -10,6 +10,7 @@ faithful). Frames are optional (``frames_every=0``: no replay at all) and taken 
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,9 +19,10 @@ import pyarrow as pa
 import rerun as rr
 
 from games import get_game, list_widths
+from games.base import OBSERVATION_VERSION, recorded_observation
 from games.envs import make_env
 from store import Store
-from store.readers import policy_text
+from store.readers import get_run, policy_text
 from store.showing import episode_tables
 from tracing.steps import objects_to_obs
 from viewers.frames import FrameEncoder
@@ -57,6 +59,8 @@ class StoredEpisode:
     steps: pa.Table
     nodes: pa.Table
     policy_text: str | None
+    observation: int = OBSERVATION_VERSION
+    """The version of the observation conventions its run played (``games.base.OBSERVATION_VERSION``)."""
 
 
 def read_episode(con: duckdb.DuckDBPyConnection, episode_id: str) -> StoredEpisode:
@@ -66,17 +70,21 @@ def read_episode(con: duckdb.DuckDBPyConnection, episode_id: str) -> StoredEpiso
         text = policy_text(con, episode["run_id"], episode["policy_version_id"])
     except KeyError:
         text = None
-    return StoredEpisode(episode, steps, nodes, text)
+    run = get_run(con, episode["run_id"])
+    observation = recorded_observation(json.loads(run["config"]) if run and run["config"] else {})
+    return StoredEpisode(episode, steps, nodes, text, observation)
 
 
-def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int) -> tuple[list[int], list[bytes], ReplayCheck]:
-    """Replay the stored actions; PNG frames of every ``every``-th step, and the check against stored objects."""
+def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int, observation: int = OBSERVATION_VERSION
+                  ) -> tuple[list[int], list[bytes], ReplayCheck]:
+    """Replay the stored actions; PNG frames of every ``every``-th step, and the check against stored objects
+    (both built with the run's ``observation`` version)."""
     check = ReplayCheck()
     frame_steps: list[int] = []
     pngs: list[bytes] = []
     if every <= 0 or steps.num_rows == 0:
         return frame_steps, pngs, check
-    game = get_game(episode["game"])
+    game = get_game(episode["game"]).observing(observation)
     widths = list_widths(game)
     env = make_env(game, sticky=float(episode.get("sticky") or 0.0), noop_max=int(episode.get("noop_max") or 0))
     try:
@@ -108,7 +116,7 @@ def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int) -> tuple
 def log_stored_episode(data: StoredEpisode, recording: rr.RecordingStream | None = None,
                        frames_every: int = 0) -> ReplayCheck:
     """Log a stored episode into ``recording`` (or the ambient one), frames regenerated every K-th step."""
-    frame_steps, pngs, check = replay_frames(data.episode, data.steps, frames_every)
+    frame_steps, pngs, check = replay_frames(data.episode, data.steps, frames_every, data.observation)
     logger = EpisodeLogger(resolve_recording(recording), traced=bool(data.episode.get("traced")),
                            frames_every=frames_every if frame_steps else 0)
     if data.policy_text is not None:

@@ -16,7 +16,9 @@ class Policy(trace.Module):
 
     Observation ``obs`` is a dict: ``Player`` (the paddle) and ``Ball`` map to dicts with ``x, y, w, h, dx,
     dy``; the brick rows are lists under ``RB, OB, YB, GB, AB, BB`` (Red, Orange, Yellow, Green, Aqua, Blue,
-    top to bottom), one dict per remaining brick (8 pixels wide). ``Ball`` is missing while no ball is in play.
+    top to bottom), one dict per run of adjacent bricks, left to right: a brick is 8 pixels wide, so a run of
+    n bricks has ``w = 8 * n`` (a full row is one dict, x 8, w 144). A cleared row is missing, and so is
+    ``Ball`` while no ball is in play. ``lives``: lives left (5 at the start).
     """
 
     def __call__(self, obs):

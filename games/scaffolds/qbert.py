@@ -16,7 +16,7 @@ class Policy(trace.Module):
 
     Observation ``obs``: ``Player`` {x, y, w, h, dx, dy} (absent while falling or between lives); ``Enemies``:
     list of {x, y, w, h, dx, dy, type} with type "Coily", "PurpleBall" or "RedBall"; ``Friendlies``: the same
-    for "Sam" and "GreenBall"; ``Disks``: flying disks still available {x, y, w, h, dx, dy} (left at x=12,
+    for "GreenBall" and "Sam"; ``Disks``: flying disks still available {x, y, w, h, dx, dy} (left at x=12,
     right at x=140, y=138); each list absent when empty; objects off the 160x210 screen are left out;
     ``lives`` (lives left). Cubes are not in the observation (their corners are fixed: see analyze_situation).
     """

@@ -16,9 +16,10 @@ class Policy(trace.Module):
 
     Observation ``obs``: ``Player`` {x, y, w, h, dx, dy} (our sub, 16x11; absent while exploding; the way it
     faces, which is the way its torpedoes go, is not in the observation: it turns with LEFT/RIGHT moves);
-    ``Enemies``: list of {x, y, w, h, dx, dy, type}, type "Shark", "Submarine", "SurfaceSubmarine" or
-    "EnemyMissile"; ``Divers``: list of {x, y, w, h, dx, dy}; each list absent when empty; ``lives`` (lives
-    left); ``oxygen`` (0-63, 63 full, 0 when empty); ``divers_collected`` (0-6, divers on board).
+    ``Enemies``: list of {x, y, w, h, dx, dy, type}, type "Shark", "Submarine", "EnemyMissile" or
+    "SurfaceSubmarine" (in that order); ``Divers``: list of {x, y, w, h, dx, dy}; each list absent when empty;
+    ``lives`` (lives left); ``oxygen`` (0-63, 63 full, 0 when empty); ``divers_collected`` (0-6, divers on
+    board).
     """
 
     def __call__(self, obs):

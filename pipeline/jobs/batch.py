@@ -53,7 +53,7 @@ NOT_IN_KEY = ("workers", "max_concurrent_calls") + BUDGET_FIELDS
 """Settings that do not change a run's results (or only how far it goes), so they do not change its identity:
 rerunning a batch with a larger budget resumes its runs."""
 KEYED_WHEN_SET = ("strategy", "candidates", "beam_width", "eval_cache", "collapse_repeats", "robust_episodes",
-                  "optimize_protocol", "screen_steps", "screen_margin", "one_life")
+                  "optimize_protocol", "screen_steps", "screen_margin", "one_life", "observation")
 """Settings added after run keys were introduced: they count in a key only away from their default, so the
 runs of an existing experiment file keep their keys (and are skipped or resumed, not run again)."""
 

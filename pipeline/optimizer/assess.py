@@ -73,7 +73,8 @@ def episode_specs(state: "RunState", iteration: int, candidate: int, text: str, 
     c = state.config
     common = dict(run_id=state.run_id, game=state.game, policy_text=text, policy_version_id=version_id,
                   policy_name="policy.py", iteration=iteration, call_time_limit_s=c.call_time_limit_s,
-                  episode_time_limit_s=c.episode_time_limit_s, rerun=state.rerun, one_life=c.one_life)
+                  episode_time_limit_s=c.episode_time_limit_s, rerun=state.rerun, one_life=c.one_life,
+                  observation=c.observation)
     train = EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "train", 0, candidate), kind="train",
                         index=0, seed=c.seed, max_steps=state.settings["rollout_steps"], trace=True, **common)
     evals = [EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "eval", i, candidate), kind="eval", index=i,
@@ -155,7 +156,7 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
                 episode_id=episode_id(state.run_id, iteration, "screen", 0, p.candidate), run_id=state.run_id,
                 game=state.game, policy_text=text, policy_version_id=p.version_id, iteration=iteration, kind="screen",
                 index=0, seed=c.seed, max_steps=c.screen_steps, call_time_limit_s=c.call_time_limit_s,
-                episode_time_limit_s=c.episode_time_limit_s, one_life=c.one_life))
+                episode_time_limit_s=c.episode_time_limit_s, one_life=c.one_life, observation=c.observation))
             owners.append((p.candidate, bar))
     if not specs:
         return found

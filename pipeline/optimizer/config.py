@@ -94,6 +94,9 @@ class OptimizeConfig:
     one_life: bool = False
     """The authors' protocol for Asterix, Breakout, Q*bert and Seaquest (``Task.one_life_episodes``): every
     episode, training rollouts included, ends at the first lost life. Off: whole games (the paper's)."""
+    observation: int = OBSERVATION_VERSION
+    """The version of the observation conventions the run plays (``games.base.OBSERVATION_VERSION``): today's,
+    recorded so that the run is read back and replayed with it after the conventions change."""
     collapse_repeats: bool = True
     """In the prompt's trace, show a run of consecutive steps whose calls, outputs and actions repeat as one line
     with its step range (more of the steps that matter fit the token budget)."""
@@ -110,7 +113,7 @@ class OptimizeConfig:
         return cls(**values)
 
 
-BEFORE_RECORDED: dict[str, Any] = {"collapse_repeats": False}
+BEFORE_RECORDED: dict[str, Any] = {"collapse_repeats": False, "observation": UNRECORDED_OBSERVATION}
 """Settings that change prompts, as runs behaved before the setting existed: an old run replays prompt for
 prompt."""
 

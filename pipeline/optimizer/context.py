@@ -17,6 +17,7 @@ from typing import Any
 import duckdb
 
 from games import get_game, list_widths
+from games.base import recorded_observation
 from pipeline.optimizer.strategies import Greedy, History, Ref
 from store.readers import candidates, episode_steps, episode_summaries, get_run, iterations, policy_texts, step_nodes
 from tracing.policy_file import PolicyInfo, inspect_policy
@@ -86,7 +87,8 @@ def context_for(
     traced training rollout, its evaluation and feedback (after ``note``), and the candidates in ``memory``."""
     base = history.candidate(parent)
     run = get_run(con, run_id)
-    game = get_game(run["game"])
+    config = json.loads(run["config"])
+    game = get_game(run["game"]).observing(recorded_observation(config))  # read back as the run played it
     rows = [history.candidate(ref) for ref in memory]
     texts = policy_texts(con, run_id, [base["policy_version_id"]] + [row["policy_version_id"] for row in rows])
     info = inspect_policy(texts[base["policy_version_id"]], "policy.py")
@@ -96,7 +98,7 @@ def context_for(
     train_episode, *eval_episodes = episode_summaries(con, [base["train_episode_id"], *(base["eval_episode_ids"] or [])])
     return PromptContext(
         game=game.name,
-        instruction=json.loads(run["config"]).get("instruction") or "",
+        instruction=config.get("instruction") or "",
         info=info,
         train_episode=train_episode,
         train_steps=train_steps,
@@ -127,6 +129,6 @@ def _rollout(con: duckdb.DuckDBPyConnection, episode_id: str, game) -> tuple[lis
     if episode_id not in _ROLLOUTS:
         while len(_ROLLOUTS) >= ROLLOUTS_KEPT:
             _ROLLOUTS.pop(next(iter(_ROLLOUTS)))
-        _ROLLOUTS[episode_id] = (episode_steps(con, episode_id, list_widths=list_widths(game.name), derive=game.derive),
+        _ROLLOUTS[episode_id] = (episode_steps(con, episode_id, list_widths=list_widths(game), derive=game.derive),
                                  step_nodes(con, episode_id))
     return _ROLLOUTS[episode_id]

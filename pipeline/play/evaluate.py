@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Callable
 
 from games import get_game
+from games.base import OBSERVATION_VERSION
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.play.runinfo import episode_id, new_run_id, package_versions
@@ -52,6 +53,8 @@ class EvalConfig:
     one_life: bool = False
     """End each episode at the first lost life, as the authors' follow-up evaluates Asterix, Breakout, Q*bert
     and Seaquest (``Task.one_life_episodes``; ``games.envs.OneLife``). Off: whole games (the paper's)."""
+    observation: int = OBSERVATION_VERSION
+    """The version of the observation conventions (``games.base.OBSERVATION_VERSION``), recorded in the run."""
     workers: int = 1
     """Worker processes playing episodes at once; 0 plays in this process (no isolation, for debugging)."""
     call_time_limit_s: float = 1.0
@@ -128,7 +131,8 @@ def evaluate(
             episode_id=episode_id(run_id, 0, "eval", i), run_id=run_id, game=game, policy_text=text,
             policy_version_id=info.version_id, policy_name=name, iteration=0, kind="eval", index=i,
             seed=config.seed + i, max_steps=config.max_steps, sticky=config.sticky, noop_max=config.noop_max,
-            one_life=config.one_life, trace=config.trace, trace_lines=config.trace_lines,
+            one_life=config.one_life, observation=config.observation, trace=config.trace,
+            trace_lines=config.trace_lines,
             call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s,
             rerun=config.rerun,
         )

@@ -29,6 +29,7 @@ import numpy as np
 import pyarrow as pa
 
 from games import Game, get_game, list_widths
+from games.base import OBSERVATION_VERSION
 from games.envs import discard_env, shared_env
 from tracing.capture import NodeRecorder, failing_policy_line
 from tracing.policy_file import PolicyLoadError, load_policy
@@ -59,6 +60,8 @@ class EpisodeSpec:
     noop_max: int = 0
     one_life: bool = False
     """End the episode at the first lost life (the authors' follow-up evaluation: ``games.envs.OneLife``)."""
+    observation: int = OBSERVATION_VERSION
+    """The version of the observation conventions the run plays (``games.base.OBSERVATION_VERSION``)."""
     trace: bool = False
     """Record a node for every call of a bundled method (slower; steps are always recorded)."""
     trace_lines: bool = True
@@ -142,7 +145,7 @@ def prepare_episode(spec: EpisodeSpec) -> PreparedEpisode:
     """Everything before the first step: seed the RNGs, load the policy, reset the environment (ALE's seeded
     reset reloads the ROM: ~0.1 s, as long as a few hundred steps). A staged worker (``pipeline/boundary/zygote.py``) does
     this, confined, while the previous episode still plays; it then waits for its go-ahead."""
-    game = get_game(spec.game)
+    game = get_game(spec.game).observing(spec.observation)
     t0 = time.perf_counter()
     random.seed(spec.seed)
     np.random.seed(spec.seed % 2**32)

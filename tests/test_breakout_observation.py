@@ -1,0 +1,191 @@
+"""Breakout's observation as the authors had it (observation version 2), and runs stored before it.
+
+OCAtari reports each run of adjacent bricks in a row as one ``Block`` (w = 8 * n): the authors' observation
+appends each Block unchanged, and so does codearcade's, from the environment through the store to the prompt.
+Runs stored before observation versions were recorded split the runs into 8-pixel bricks, and still replay so.
+The authors' own saved Breakout run (their repository's history; no licence, so it is read from a fetched copy
+and never stored here) checks the convention against their logged scores.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import os
+import pickletools
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from games import get_game
+from pipeline.evaluate import EvalConfig, evaluate
+from pipeline.replay import replay
+from store import Store
+from store.readers import episode_steps
+from tests.conftest import POLICIES
+from viewers.rerun_replay import read_episode, replay_frames
+
+FIXTURE = Path(__file__).parent / "fixtures" / "breakout_v1_run.duckdb.gz"
+ROWS = ("RB", "OB", "YB", "GB", "AB", "BB")
+
+FIRST_RED_BRICK = '''import tracing as trace
+
+GAME = "breakout"
+
+
+@trace.model
+class Policy(trace.Module):
+    def __call__(self, obs):
+        self.first_red_brick_width(obs)
+        return 0
+
+    @trace.bundle(trainable=True)
+    def first_red_brick_width(self, obs):
+        """The width of the first entry of the red row (a full row at the start)."""
+        return obs["RB"][0]["w"]
+'''
+
+
+def _first_red_brick(store: Store, write_policy, observation: int) -> dict:
+    path = write_policy(FIRST_RED_BRICK, "first_red_brick.py")
+    result = evaluate(path, EvalConfig(max_steps=3, trace=True, observation=observation), store)
+    episode_id = result.outcomes[0].episode["episode_id"]
+    with store.read() as con:
+        (width,) = con.execute("SELECT output FROM nodes WHERE episode_id = ? AND step = 0", [episode_id]).fetchone()
+        steps = episode_steps(con, episode_id, list_widths=get_game("breakout").observing(observation).list_widths,
+                              derive=get_game("breakout").observing(observation).derive)
+    config = json.loads(store.query("SELECT config FROM runs WHERE run_id = ?", [result.run_id])[0][0])
+    return {"config": config, "obs": steps[0]["obs"], "width": json.loads(width)}
+
+
+def test_a_policy_reading_the_first_brick_of_a_full_row_sees_the_whole_row(store, write_policy):
+    """The policy sees one entry of w 144 for the full red row (the authors' Block), and so does the step read
+    back from the store; the run records the convention."""
+    seen = _first_red_brick(store, write_policy, 2)
+    assert seen["width"] == 144
+    assert seen["config"]["observation"] == 2
+    assert seen["obs"]["RB"] == [{"x": 8, "y": 57, "w": 144, "h": 6, "dx": 0, "dy": 0}]
+    assert list(seen["obs"]) == ["Player", "Ball", *ROWS, "lives"] and seen["obs"]["lives"] == 5
+
+
+def test_observation_version_1_still_gives_8_pixel_bricks(store, write_policy):
+    seen = _first_red_brick(store, write_policy, 1)
+    assert seen["width"] == 8 and seen["config"]["observation"] == 1
+    assert [(b["x"], b["w"]) for b in seen["obs"]["RB"]] == [(8 + 8 * i, 8) for i in range(18)]
+    assert "lives" not in seen["obs"]
+
+
+@pytest.mark.parametrize("observation", [2, 1])
+def test_the_papers_best_breakout_policy_scores_353_with_runs_of_bricks_as_with_bricks(store, observation):
+    """Its gaps are measured between a row's neighbouring entries: the same gaps in both conventions."""
+    result = evaluate(POLICIES / "breakout_paper_best.py", EvalConfig(max_steps=4000, observation=observation), store)
+    episode = result.summary()["episodes"][0]
+    assert (episode["return"], episode["length"]) == (353.0, 4000), episode
+
+
+def test_a_breakout_run_stored_before_observation_versions_replays_with_8_pixel_bricks(tmp_path, monkeypatch):
+    """The fixture was written by the code before versions were recorded (tests/fixtures/
+    make_breakout_v1_run.py): its config has no version, its prompts show 8-pixel bricks, and it reads back,
+    replays prompt for prompt and score for score, and rebuilds its frames with them."""
+    path = tmp_path / "old.duckdb"
+    path.write_bytes(gzip.decompress(FIXTURE.read_bytes()))
+    store = Store(path)
+    (run_id, config), = store.query("SELECT run_id, config FROM runs")
+    assert "observation" not in json.loads(config)
+    prompts = [p for (p,) in store.query("SELECT b.text FROM llm_calls c JOIN blobs b ON b.hash = c.prompt_hash "
+                                         "WHERE c.run_id = ? ORDER BY c.iteration", [run_id])]
+    assert prompts and all("RB[18] y=57 w=8 h=6 x=8,16,24" in p for p in prompts)
+
+    report = replay(store, run_id)
+    assert report.status == "finished" and report.diverged_at is None, report.as_dict()
+    assert len(report.rows) == 3 and all(r.matches for r in report.rows)
+    replayed = json.loads(store.query("SELECT config FROM runs WHERE run_id = ?", [report.replay_run_id])[0][0])
+    assert replayed["observation"] == 1
+
+    old = get_game("breakout").observing(1)
+    with store.read() as con:
+        (episode_id,) = con.execute("SELECT train_episode_id FROM iterations WHERE run_id = ? AND iteration = 1",
+                                    [report.replay_run_id]).fetchone()
+        steps = episode_steps(con, episode_id, list_widths=old.list_widths, derive=old.derive)
+        as_today = episode_steps(con, episode_id, 0, 1)
+        stored = read_episode(con, episode_id)
+    assert all(b["w"] == 8 for row in ROWS for b in steps[0]["obs"][row]) and len(steps[0]["obs"]["RB"]) == 18
+    assert as_today[0]["obs"]["RB"] == [{"x": 8, "y": 57, "w": 144, "h": 6, "dx": 0, "dy": 0}], \
+        "the stored rows are runs either way: the recorded version decides what the policy was shown"
+    assert stored.observation == 1
+    _, _, check = replay_frames(stored.episode, stored.steps, 20, stored.observation)
+    assert check.faithful and check.steps_compared == len(steps), check.describe()
+
+    from pipeline import optimize as loop  # had the run not recorded its version, it would not replay
+    monkeypatch.setitem(loop.BEFORE_RECORDED, "observation", 2)
+    assert replay(store, run_id).diverged_at == 1
+
+
+# --- the authors' saved Breakout run ------------------------------------------------------------------------
+
+AUTHORS_REPO = Path(os.environ.get("CODEARCADE_AUTHORS_REPO",
+                                   "/work/.mirror/ameliakuang+LLM-Game-Playing-Agents/repo"))
+"""A clone (or bare git directory) of github.com/ameliakuang/LLM-Game-Playing-Agents."""
+AUTHORS_RUN_COMMIT = "abb46a11e342c4e852fbeead4b33071cdbba9600"
+"""The commit that added their Breakout run of 2025-03-12 (its checkpoints were deleted later)."""
+AUTHORS_RUN = "BreakoutNoFrameskip-v4_20250312_190211_skip4_sticky0.0_horizon300_optimSteps100_mem5"
+TRAINABLE = ("predict_ball_trajectory", "generate_paddle_target", "select_paddle_action")
+
+
+def _git(*args: str) -> bytes:
+    return subprocess.run(["git", f"--git-dir={_git_dir()}", *args], capture_output=True, check=True).stdout
+
+
+def _git_dir() -> Path:
+    return AUTHORS_REPO / ".git" if (AUTHORS_REPO / ".git").exists() else AUTHORS_REPO
+
+
+def _checkpoint_sources(pickle_bytes: bytes) -> dict[str, str]:
+    """The trainable methods' sources in a Trace checkpoint, read from the pickle's opcodes: a checkpoint is
+    untrusted and is never unpickled (that would run whatever it names)."""
+    sources = {}
+    for _, arg, _ in pickletools.genops(pickle_bytes):
+        if isinstance(arg, str) and arg.startswith("def ") and "(" in arg:
+            sources[arg[4:arg.index("(")].strip()] = arg
+    return sources
+
+
+def _policy_file(sources: dict[str, str]) -> str:
+    """The methods (``def`` at column 0, bodies at 8 spaces, as Trace saves them) in the paper's Breakout
+    class, with codearcade's ``tracing`` in place of Trace."""
+    text = ('import tracing as trace\n\nGAME = "breakout"\n\n\n@trace.model\nclass Policy(trace.Module):\n'
+            "    def __call__(self, obs):\n"
+            "        pre_ball_x = self.predict_ball_trajectory(obs)\n"
+            "        target_paddle_pos = self.generate_paddle_target(pre_ball_x, obs)\n"
+            "        return self.select_paddle_action(target_paddle_pos, obs)\n")
+    for name in TRAINABLE:
+        first, _, rest = sources[name].partition("\n")
+        text += f"\n    @trace.bundle(trainable=True)\n    {first}\n{rest}\n"
+    return text
+
+
+@pytest.mark.skipif(not _git_dir().exists(), reason="the authors' repository is not fetched here "
+                                                    "(CODEARCADE_AUTHORS_REPO)")
+def test_the_authors_saved_breakout_policies_score_what_their_run_logged(tmp_path):
+    """Their run of 2025-03-12 saved the policy of each iteration it evaluated (1 game, 4,000 steps,
+    deterministic) beside the logged score: every distinct policy scores here what it scored there."""
+    logged = {}
+    csv = _git("show", f"{AUTHORS_RUN_COMMIT}:logs/perf_{AUTHORS_RUN}.csv").decode().splitlines()
+    for line in csv[1:]:
+        step, mean, _ = line.split(",")
+        logged[int(step)] = float(mean)
+    policies: dict[str, tuple[int, float]] = {}  # policy text -> (first checkpoint, logged score)
+    for step in sorted(logged):
+        sources = _checkpoint_sources(_git("show", f"{AUTHORS_RUN_COMMIT}:trace_ckpt/{AUTHORS_RUN}/{step}.pkl"))
+        policies.setdefault(_policy_file(sources), (step, logged[step]))
+    assert len(policies) == 7 and len(logged) == 30
+
+    store = Store(tmp_path / "authors.duckdb")
+    scored = {}
+    for text, (step, _) in policies.items():
+        path = tmp_path / f"checkpoint_{step}.py"
+        path.write_text(text)
+        result = evaluate(path, EvalConfig(max_steps=4000, workers=1), store)
+        scored[step] = result.summary()["episodes"][0]["return"]
+    assert scored == {step: score for step, score in policies.values()}
