@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 
 from games import get_game
-from pipeline.evaluate import EvalConfig, evaluate
-from pipeline.replay import replay
+from pipeline.play.evaluate import EvalConfig, evaluate
+from pipeline.optimizer.replay import replay
 from store import Store
 from store.readers import episode_steps
 from tests.conftest import POLICIES
@@ -117,16 +117,16 @@ def test_a_breakout_run_stored_before_observation_versions_replays_with_8_pixel_
     _, _, check = replay_frames(stored.episode, stored.steps, 20, stored.observation)
     assert check.faithful and check.steps_compared == len(steps), check.describe()
 
-    from pipeline import optimize as loop  # had the run not recorded its version, it would not replay
-    monkeypatch.setitem(loop.BEFORE_RECORDED, "observation", 2)
+    from pipeline.optimizer import config  # had the run not recorded its version, it would not replay
+    monkeypatch.setitem(config.BEFORE_RECORDED, "observation", 2)
     assert replay(store, run_id).diverged_at == 1
 
 
 # --- the authors' saved Breakout run ------------------------------------------------------------------------
 
-AUTHORS_REPO = Path(os.environ.get("CODEARCADE_AUTHORS_REPO",
-                                   "/work/.mirror/ameliakuang+LLM-Game-Playing-Agents/repo"))
-"""A clone (or bare git directory) of github.com/ameliakuang/LLM-Game-Playing-Agents."""
+AUTHORS_REPO = Path(os.environ.get("CODEARCADE_AUTHORS_REPO", "/nonexistent"))
+"""A clone (or bare git directory) of github.com/ameliakuang/LLM-Game-Playing-Agents, named by
+``CODEARCADE_AUTHORS_REPO``; the tests that read it skip without it."""
 AUTHORS_RUN_COMMIT = "abb46a11e342c4e852fbeead4b33071cdbba9600"
 """The commit that added their Breakout run of 2025-03-12 (its checkpoints were deleted later)."""
 AUTHORS_RUN = "BreakoutNoFrameskip-v4_20250312_190211_skip4_sticky0.0_horizon300_optimSteps100_mem5"

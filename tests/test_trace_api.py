@@ -222,7 +222,7 @@ def test_an_error_in_a_bundled_method_is_an_execution_error_as_in_trace():
     assert (row["exc_type"], row["exc_source"]) == ("ZeroDivisionError", 'return obs["Ball"]["y"] / 0'), \
         "the node records the original exception and its line"
 
-    from pipeline.rollout import describe_exception
+    from pipeline.play.rollout import describe_exception
 
     text = trace_policy(body.replace("except trace.ExecutionError", "except KeyError"))
     line = text.splitlines().index('        return obs["Ball"]["y"] / 0') + 1
@@ -308,12 +308,13 @@ def test_a_trace_api_file_is_optimized_blamed_and_compared_without_edits(store, 
 
 # --- the authors' files ------------------------------------------------------------------------------------------
 
-AUTHORS_MIRROR = Path("/work/.mirror/ameliakuang+LLM-Game-Playing-Agents/repo")
 GAMES_OF_BEST_POLICIES = {"Pong": "pong", "Breakout": "breakout", "SpaceInvaders": "space_invaders"}
 
 
 def _authors_git_dir() -> Path | None:
-    root = Path(os.environ.get("CODEARCADE_AUTHORS_REPO", AUTHORS_MIRROR))
+    if not os.environ.get("CODEARCADE_AUTHORS_REPO"):
+        return None
+    root = Path(os.environ["CODEARCADE_AUTHORS_REPO"])
     for candidate in (root / ".git", root):
         if (candidate / "HEAD").is_file():
             return candidate
@@ -366,7 +367,7 @@ AUTHORS_FILES = authors_policy_files()
 def test_every_policy_file_of_the_authors_repository_loads_and_plays():
     from games import get_game
     from games.envs import make_env
-    from pipeline.rollout import coerce_action
+    from pipeline.play.rollout import coerce_action
 
     assert {game for _, game, _ in AUTHORS_FILES} == {
         "asterix", "breakout", "enduro", "freeway", "pong", "qbert", "seaquest", "space_invaders"}

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from games.base import OBSERVATION_VERSION, UNRECORDED_OBSERVATION
 from pipeline.optimizer.feedback import FEEDBACK_MODES
 from pipeline.optimizer.strategies import STRATEGIES, make_strategy
 
