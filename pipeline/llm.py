@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
 from pipeline.prompt import prompt_hash
-from pipeline.providers import LOCAL_SERVER_PROVIDERS, with_cache_breakpoint
+from pipeline.providers import LOCAL_SERVER_PROVIDERS, OFFLINE_REASONING_CHARS, reply_format, reply_schema, \
+    with_cache_breakpoint
 from pipeline.providers import request_params as provider_request_params
 from pipeline.tokens import import_litellm
 
@@ -53,6 +54,13 @@ class LLMReply:
     latency_s: float = 0.0
     attempts: int = 1
     replayed: bool = False
+    structured: bool = False
+    """The request held the provider to the reply schema (``response_format``)."""
+
+    @property
+    def cut_off(self) -> bool:
+        """The reply stopped at the token limit."""
+        return "length" in self.finish_reasons
 
 
 class LLMError(Exception):
@@ -113,6 +121,8 @@ class LiteLLMClient:
 
     Only the parameters the provider accepts are sent (``pipeline/providers.py``); ``request_params()`` is
     exactly what goes to litellm besides the messages, and ``dropped`` names what the provider would refuse.
+    With ``structured`` (the default) the reply is asked for as ``schema`` (default: the provider module's
+    ``REPLY_SCHEMA``) where the provider supports it; ``self.structured`` says whether it is.
     ``label`` is the model as the user asked for it (``offline:...`` for the built-in model), ``model`` the
     name litellm is given.
     """
@@ -130,6 +140,8 @@ class LiteLLMClient:
         backoff_s: float = DEFAULT_BACKOFF_S,
         label: str | None = None,
         stream: bool = False,
+        structured: bool = True,
+        schema: dict[str, Any] | None = None,
     ):
         self.litellm = import_litellm()
         self.model = model
@@ -150,6 +162,10 @@ class LiteLLMClient:
                                          max_tokens=max_tokens, seed=seed, timeout_s=timeout_s)
         self._params = params.sent
         self.dropped = params.dropped
+        wanted = reply_format(params.supported, schema) if structured else None
+        if wanted is not None:
+            self._params["response_format"] = wanted
+        self.structured = wanted is not None
         if api_base:
             self._params["api_base"] = api_base
         if stream:
@@ -200,7 +216,12 @@ class LiteLLMClient:
 
     def _reply(self, response: Any, attempts: int, latency_s: float) -> LLMReply:
         choice = response.choices[0] if response.choices else None
-        text = (choice.message.content if choice is not None and choice.message is not None else None) or ""
+        message = choice.message if choice is not None else None
+        text = (message.content if message is not None else None) or ""
+        if not text and message is not None and getattr(message, "tool_calls", None):
+            # litellm hands a forced tool's input back as the text; should an adapter leave it as a tool call,
+            # its arguments are the reply
+            text = getattr(message.tool_calls[0].function, "arguments", None) or ""
         usage = getattr(response, "usage", None)
         try:
             cost = self.litellm.completion_cost(completion_response=response)
@@ -218,6 +239,7 @@ class LiteLLMClient:
             cost_usd=cost or None,
             latency_s=latency_s,
             attempts=attempts,
+            structured=self.structured,
         )
 
 
@@ -269,6 +291,9 @@ def open_client(model: str | None, api_base: str | None, temperature: float, max
     show_offline_model_notice()
     server = LocalModelServer().start()
     max_tokens = max_tokens or OFFLINE_MAX_TOKENS
+    # llama.cpp compiles the schema into a grammar, so SmolLM2's reply is always this JSON; its reasoning is held
+    # short, or it would spend the whole reply on it
     client = LiteLLMClient(server.model, api_base=server.api_base, temperature=temperature, max_tokens=max_tokens,
-                           seed=seed, label=OFFLINE_MODEL_LABEL, backoff_s=backoff_s, stream=stream)
+                           seed=seed, label=OFFLINE_MODEL_LABEL, backoff_s=backoff_s, stream=stream,
+                           schema=reply_schema(OFFLINE_REASONING_CHARS))
     return client, server, server.context_tokens - max_tokens

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Callable
 from pipeline.llm import LLMClient, LLMError, LLMReply
 from pipeline.prompt import Prompt, PromptBudgetError, build_prompt, canonical_messages, context_for
 from pipeline.providers import price
-from pipeline.reply import ReplyParseError, clean_text, parse_reply
+from pipeline.reply import ReplyParseError, clean_text, read_reply
 from pipeline.runinfo import new_run_id
 from pipeline.strategies import History, ProposalRequest, Ref
 from pipeline.tokens import TokenCounter
@@ -85,12 +85,19 @@ class _Pending:
     error: LLMError | None = None
     suggestion: dict[str, str] | None = None
     parse_error: str | None = None
+    reading: str | None = None
+    """How the reply was read: structured, parsed, repaired or unusable (``pipeline/reply.py``)."""
+    repairs: tuple[str, ...] = ()
 
     def parse(self) -> None:
+        reply = self.reply
         try:
-            self.suggestion, self.parse_error = parse_reply(self.text), None
+            read = read_reply(self.text, structured=reply is not None and reply.structured,
+                              cut_off=reply is not None and reply.cut_off)
         except ReplyParseError as exc:
-            self.suggestion, self.parse_error = None, str(exc)
+            self.suggestion, self.parse_error, self.reading, self.repairs = None, str(exc), "unusable", ()
+            return
+        self.suggestion, self.parse_error, self.reading, self.repairs = read.suggestion, None, read.how, read.repairs
 
 
 def propose(store: Store, state: "RunState", history: History, iteration: int, requests: list[ProposalRequest],
@@ -272,7 +279,7 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
         if error is not None:
             row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
         if reply is not None:
-            row.update(parse_error=item.parse_error)
+            row.update(parse_error=item.parse_error, reply_reading=item.reading, reply_repairs=list(item.repairs))
         if id(item.prompt) not in canonical:
             canonical[id(item.prompt)] = canonical_messages(item.prompt.messages)
         calls.append((row, canonical[id(item.prompt)], clean_text(reply.text) if reply is not None else None,

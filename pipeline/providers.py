@@ -10,6 +10,12 @@ table does not list. Everything else asks litellm:
   Anthropic takes no ``seed``; reasoning models (OpenAI's o-series) take no ``temperature`` and get
   ``max_completion_tokens``. What is dropped is reported once, and what is kept is what gets sent and
   recorded in ``llm_calls.request_params``.
+- :func:`reply_format` asks for the reply's structure where the provider can be held to it: a JSON schema as
+  ``response_format``, which litellm's adapter for each provider turns into that provider's own form (OpenAI and
+  vLLM: ``response_format`` as is; Gemini: ``generationConfig.response_json_schema``; Ollama: ``format``;
+  Anthropic: a forced tool call whose input litellm hands back as the reply's text; llama.cpp's server, the
+  offline model: ``response_format``, which it compiles into a grammar). It is sent only where litellm lists
+  ``response_format`` as supported, and recorded with the other parameters.
 - :func:`with_cache_breakpoint` marks the stable prefix of a prompt for providers with explicit prompt
   caching (Anthropic's ``cache_control``); OpenAI and others cache prefixes by themselves.
 - :func:`price` gives litellm's price per input and output token, or None for a model it cannot price.
@@ -17,6 +23,7 @@ table does not list. Everything else asks litellm:
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -88,6 +95,45 @@ def check_credentials(model: str, api_base: str | None = None, environ: dict[str
     raise MissingCredentialsError(
         f"{model} needs an API key: set {either} in the environment (e.g. `export {missing[0]}=...`), or use "
         "--api-base URL for your own server, or leave out --model to use the offline model")
+
+
+REPLY_SCHEMA_NAME = "policy_update"
+
+REPLY_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "properties": {
+        "reasoning": {"type": "string"},
+        "suggestion": {"type": "object", "additionalProperties": {"type": "string"}},
+    },
+    "required": ["reasoning", "suggestion"],
+    "additionalProperties": False,
+}
+"""The reply the prompt asks for (``pipeline/prompt.py``'s system text), as a JSON schema: the reasoning, then
+``{method name: complete new source}`` for the methods changed. It names no method, so one
+schema serves every policy; validation checks the names. An object with open keys cannot be OpenAI's ``strict``
+kind (that needs every key listed), so it is sent with ``strict: false``: the provider is guided by it and the
+parser (``pipeline/reply.py``) checks the result."""
+
+OFFLINE_REASONING_CHARS = 400
+"""The offline model's reasoning is held to this many characters: SmolLM2 otherwise fills its few hundred reply
+tokens with reasoning and is cut off before it writes any code."""
+
+
+def reply_schema(max_reasoning_chars: int | None = None) -> dict[str, Any]:
+    """:data:`REPLY_SCHEMA`, with the reasoning held to ``max_reasoning_chars`` when given (the offline model)."""
+    schema = json.loads(json.dumps(REPLY_SCHEMA))
+    if max_reasoning_chars is not None:
+        schema["properties"]["reasoning"]["maxLength"] = max_reasoning_chars
+    return schema
+
+
+def reply_format(supported: frozenset[str] | set[str], schema: dict[str, Any] | None = None) -> dict[str, Any] | None:
+    """The ``response_format`` that holds a provider to ``schema`` (default :data:`REPLY_SCHEMA`), or None where
+    litellm does not list ``response_format`` among the provider's parameters (then the prompt alone asks)."""
+    if "response_format" not in supported:
+        return None
+    return {"type": "json_schema",
+            "json_schema": {"name": REPLY_SCHEMA_NAME, "schema": schema or REPLY_SCHEMA, "strict": False}}
 
 
 @dataclass(frozen=True)

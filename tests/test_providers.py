@@ -13,7 +13,8 @@ import time
 
 import pytest
 
-from pipeline.providers import PROVIDER_KEYS, MissingCredentialsError, check_credentials, with_cache_breakpoint
+from pipeline.providers import PROVIDER_KEYS, REPLY_SCHEMA, MissingCredentialsError, check_credentials, \
+    with_cache_breakpoint
 from tests.conftest import COMPETENT_REPLY, ROOT, pong_policy
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -63,10 +64,13 @@ def test_each_provider_protocol_wins_pong_in_one_iteration(store, scripted, prov
     assert request["protocol"] == {"anthropic": "anthropic", "ollama_chat": "ollama", "gemini": "gemini"}.get(
         provider, "openai")
     call = store.query("SELECT provider_name, request_model, request_params, input_tokens, output_tokens, cost_usd, "
-                       "finish_reasons, error_type FROM llm_calls")
+                       "finish_reasons, error_type, reply_reading FROM llm_calls")
     assert len(call) == 1
-    provider_name, request_model, params, input_tokens, output_tokens, cost, finish, error = call[0]
+    provider_name, request_model, params, input_tokens, output_tokens, cost, finish, error, reading = call[0]
     assert provider_name == provider and request_model == f"{provider}/{name}" and error is None
+    # the reply schema reached the server in the provider's own form, and litellm's adapter read the structured
+    # reply back (Anthropic's is a tool_use block): the reply was the schema's JSON object as is
+    assert reading == "structured"
     assert input_tokens > 1000 and output_tokens > 50
     assert finish == ["stop"]
     assert (cost is not None and cost > 0) == priced
@@ -79,13 +83,23 @@ def test_each_provider_protocol_wins_pong_in_one_iteration(store, scripted, prov
         assert body["max_tokens"] == params["max_tokens"] == 4096
         assert body["system"][0]["cache_control"] == {"type": "ephemeral"}
         assert "no 'seed' parameter" in done.stderr
+        # a forced tool call whose input is the reply, answered by a tool_use block
+        assert body["tool_choice"] == {"type": "tool", "name": body["tools"][0]["name"]}
+        assert body["tools"][0]["input_schema"] == REPLY_SCHEMA and "response_format" not in body
+        assert request["reply_blocks"] == ["tool_use"]
     elif provider == "ollama_chat":
         assert body["options"]["seed"] == params["seed"] == 0 and body["stream"] is False
+        assert body["format"] == REPLY_SCHEMA
     elif provider == "gemini":
         assert request["headers"]["x-goog-api-key"] == KEYS["GEMINI_API_KEY"]
         assert body["generationConfig"]["seed"] == 0
+        assert body["generationConfig"]["response_mime_type"] == "application/json"
+        assert body["generationConfig"]["response_json_schema"] == REPLY_SCHEMA
     else:
         assert body["seed"] == params["seed"] == 0 and body["max_tokens"] == params["max_tokens"]
+        assert body["response_format"] == {"type": "json_schema", "json_schema": {
+            "name": "policy_update", "schema": REPLY_SCHEMA, "strict": False}}
+    assert params["response_format"]["json_schema"]["schema"] == REPLY_SCHEMA, "recorded as litellm was given it"
 
 
 def test_reasoning_model_gets_max_completion_tokens_and_no_temperature(store, scripted):
@@ -276,6 +290,7 @@ def test_streamed_replies_land_like_whole_ones(store, scripted, provider, name):
     params, input_tokens, output_tokens, finish = store.query(
         "SELECT request_params, input_tokens, output_tokens, finish_reasons FROM llm_calls")[0]
     assert json.loads(params)["stream"] is True and input_tokens > 1000 and output_tokens > 50 and finish == ["stop"]
+    assert store.query("SELECT reply_reading FROM llm_calls") == [("structured",)], "a streamed tool call too"
 
 
 def test_waiting_line_shows_time_and_streamed_tokens():
