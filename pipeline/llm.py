@@ -94,6 +94,12 @@ def _error_name(exc: BaseException) -> str:
     return type(exc).__name__
 
 
+def _refuses_reply_format(name: str, exc: BaseException) -> bool:
+    """Whether a provider error refuses the reply schema (a bad request that names it)."""
+    return name in ("BadRequestError", "UnsupportedParamsError") and bool(
+        re.search(r"response_format|json_schema|response_schema|structured output", str(exc), re.IGNORECASE))
+
+
 def describe_error(exc: BaseException, limit: int = ERROR_MESSAGE_LIMIT) -> str:
     """The useful part of a provider error, on one line: litellm's own prefixes (``litellm.AuthenticationError:
     AnthropicException - ``) and JSON wrapping are taken off, so what is kept (and cut at ``limit``) is what the
@@ -122,7 +128,9 @@ class LiteLLMClient:
     Only the parameters the provider accepts are sent (``pipeline/providers.py``); ``request_params()`` is
     exactly what goes to litellm besides the messages, and ``dropped`` names what the provider would refuse.
     With ``structured`` (the default) the reply is asked for as ``schema`` (default: the provider module's
-    ``REPLY_SCHEMA``) where the provider supports it; ``self.structured`` says whether it is.
+    ``REPLY_SCHEMA``) where the provider supports it; ``self.structured`` says whether it is. A server that
+    refuses the schema all the same (a bad request naming ``response_format``) is asked again without it, and the
+    client sends it no more (``dropped`` then names it).
     ``label`` is the model as the user asked for it (``offline:...`` for the built-in model), ``model`` the
     name litellm is given.
     """
@@ -162,7 +170,8 @@ class LiteLLMClient:
                                          max_tokens=max_tokens, seed=seed, timeout_s=timeout_s)
         self._params = params.sent
         self.dropped = params.dropped
-        wanted = reply_format(params.supported, schema) if structured else None
+        wanted = reply_format(self.litellm, model, self.provider, params.supported, api_base, schema) \
+            if structured else None
         if wanted is not None:
             self._params["response_format"] = wanted
         self.structured = wanted is not None
@@ -185,20 +194,29 @@ class LiteLLMClient:
                                                                self.provider in LOCAL_SERVER_PROVIDERS else {})
         sent = with_cache_breakpoint(self.provider, messages)
         start = time.monotonic()
-        for attempt in range(1, self.retries + 2):
+        attempt = retried = 0
+        while True:
+            attempt += 1
             try:
                 response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
                 if params.get("stream"):
                     response = self._collect(response, sent, on_text)
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
                 name = _error_name(exc)
+                if self.structured and _refuses_reply_format(name, exc):
+                    # a server that does not take the reply schema: ask again without it (not a retry), and
+                    # from now on
+                    self.structured, self.dropped = False, self.dropped + ("response_format",)
+                    del self._params["response_format"]
+                    params = self.request_params()
+                    continue
                 fatal = name in FATAL
-                if fatal or attempt > self.retries:
+                if fatal or retried >= self.retries:
                     raise LLMError(name, describe_error(exc), attempt, fatal, time.monotonic() - start) from None
-                time.sleep(self.backoff_s * 2 ** (attempt - 1))
+                retried += 1
+                time.sleep(self.backoff_s * 2 ** (retried - 1))
                 continue
             return self._reply(response, attempt, time.monotonic() - start)
-        raise AssertionError("unreachable")
 
     def _collect(self, chunks: Any, sent: list[dict[str, Any]], on_text: Callable[[str], None] | None) -> Any:
         """A streamed reply, read to its end (pieces of text to ``on_text``) and built into one response."""

@@ -15,7 +15,7 @@ table does not list. Everything else asks litellm:
   vLLM: ``response_format`` as is; Gemini: ``generationConfig.response_json_schema``; Ollama: ``format``;
   Anthropic: a forced tool call whose input litellm hands back as the reply's text; llama.cpp's server, the
   offline model: ``response_format``, which it compiles into a grammar). It is sent only where litellm lists
-  ``response_format`` as supported, and recorded with the other parameters.
+  ``response_format`` as supported and the model can take a schema, and recorded with the other parameters.
 - :func:`with_cache_breakpoint` marks the stable prefix of a prompt for providers with explicit prompt
   caching (Anthropic's ``cache_control``); OpenAI and others cache prefixes by themselves.
 - :func:`price` gives litellm's price per input and output token, or None for a model it cannot price.
@@ -127,11 +127,24 @@ def reply_schema(max_reasoning_chars: int | None = None) -> dict[str, Any]:
     return schema
 
 
-def reply_format(supported: frozenset[str] | set[str], schema: dict[str, Any] | None = None) -> dict[str, Any] | None:
-    """The ``response_format`` that holds a provider to ``schema`` (default :data:`REPLY_SCHEMA`), or None where
-    litellm does not list ``response_format`` among the provider's parameters (then the prompt alone asks)."""
+def reply_format(litellm, model: str, provider: str, supported: frozenset[str] | set[str], api_base: str | None = None,
+                 schema: dict[str, Any] | None = None) -> dict[str, Any] | None:
+    """The ``response_format`` that holds ``model`` to ``schema`` (default :data:`REPLY_SCHEMA`), or None (then
+    the prompt alone asks for the JSON). Sent where litellm lists ``response_format`` among the provider's
+    parameters and either says the model takes a schema (``supports_response_schema``: hosted models it knows) or
+    the model runs on the user's own server (Ollama, vLLM, llama.cpp, LM Studio: they compile a schema into a
+    grammar; litellm cannot know their models). Should such a server still refuse it, the client stops sending
+    it (``pipeline/llm.py``)."""
     if "response_format" not in supported:
         return None
+    own_server = provider in NO_KEY_PROVIDERS or (api_base is not None and provider in LOCAL_SERVER_PROVIDERS)
+    if not own_server:
+        try:
+            known = bool(litellm.supports_response_schema(model=model, custom_llm_provider=provider))
+        except Exception:  # noqa: BLE001 - a model litellm cannot place: do not guess
+            known = False
+        if not known:
+            return None
     return {"type": "json_schema",
             "json_schema": {"name": REPLY_SCHEMA_NAME, "schema": schema or REPLY_SCHEMA, "strict": False}}
 

@@ -20,7 +20,8 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``"text"`` or ``{"content": "text"}``: a normal reply (``"usage": {"input": n, "output": m}`` overrides the
   token counts, which are otherwise the words of the prompt and of the reply);
 - ``{"status": 503}``: an HTTP error in the protocol's own error shape (``"times": n`` repeats it n times
-  before moving on; 401 is an authentication error, 400 a bad request, 429 a rate limit);
+  before moving on; 401 is an authentication error, 400 a bad request, 429 a rate limit; ``"message"`` replaces
+  the error's text);
 - ``{"sleep": seconds, "content": ...}``: reply late (to exercise time-outs);
 - ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
@@ -164,9 +165,9 @@ ERRORS = {
 }
 
 
-def _error_body(protocol: str, status: int) -> dict:
-    kind, text = ERRORS.get(status, ("api_error", "error"))
-    message = f"scripted error {status}: {text}"
+def _error_body(protocol: str, status: int, text: str | None = None) -> dict:
+    kind, default = ERRORS.get(status, ("api_error", "error"))
+    message = f"scripted error {status}: {text or default}"
     if protocol == "anthropic":
         return {"type": "error", "error": {"type": kind, "message": message}}
     if protocol == "ollama":
@@ -325,7 +326,7 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             if "sleep" in entry:
                 time.sleep(entry["sleep"])
             if "status" in entry:
-                self._send(entry["status"], json.dumps(_error_body(protocol, entry["status"])).encode())
+                self._send(entry["status"], json.dumps(_error_body(protocol, entry["status"], entry.get("message"))).encode())
                 return
             if "raw" in entry:
                 self._send(200, entry["raw"].encode("latin-1"))

@@ -112,6 +112,35 @@ def test_reasoning_model_gets_max_completion_tokens_and_no_temperature(store, sc
     assert "temperature" not in params and params["max_completion_tokens"] == 4096
 
 
+def test_the_reply_schema_goes_where_the_model_can_take_one():
+    from pipeline.llm import LiteLLMClient
+
+    for model, api_base, structured in [("openai/gpt-4o", None, True), ("anthropic/claude-sonnet-4-5", None, True),
+                                        ("gemini/gemini-2.5-pro", None, True), ("ollama_chat/qwen2.5-coder", None, True),
+                                        ("hosted_vllm/any", "http://127.0.0.1:1/v1", True),
+                                        ("openai/own-model", "http://127.0.0.1:1/v1", True),
+                                        # hosted models litellm does not know to take a schema: the prompt asks
+                                        ("groq/llama-3.1-70b-versatile", None, False), ("xai/grok-2", None, False)]:
+        client = LiteLLMClient(model, api_base=api_base)
+        assert client.structured == structured, model
+        assert ("response_format" in client.request_params()) == structured, model
+
+
+def test_a_server_that_refuses_the_reply_schema_is_asked_again_without_it(store, scripted):
+    """An OpenAI-compatible server of the user's own that does not take response_format: the call is made again
+    without it (not counted as a retry), and every later call leaves it out; llm_calls records what was sent."""
+    refusal = {"status": 400, "message": "Unsupported parameter: 'response_format' is not supported here"}
+    model = scripted([refusal, COMPETENT_REPLY, "No change."])
+    done = _optimize(store, model, "openai", "my-local-model", "--iterations", "2", "--eval-max-steps", "300", *FAST)
+    assert done.returncode == 0, done.stderr
+    bodies = [r["body"] for r in model.raw_requests()]
+    assert ["response_format" in b for b in bodies] == [True, False, False]
+    calls = store.query("SELECT iteration, attempts, reply_reading, request_params FROM llm_calls ORDER BY iteration")
+    assert [c[:3] for c in calls] == [(1, 2, "parsed"), (2, 1, "unusable")]
+    assert all("response_format" not in json.loads(c[3]) for c in calls)
+    assert store.query("SELECT update_status FROM iterations WHERE iteration = 1") == [("accepted",)]
+
+
 def test_anthropic_prompt_caching_is_recorded(store, scripted):
     model = scripted(["No change this time."])
     done = _optimize(store, model, "anthropic", "claude-sonnet-4-5", "--iterations", "2", "--eval-max-steps", "200",
