@@ -343,7 +343,8 @@ def _from_bare_code(text: str) -> dict[str, str] | None:
 def read_reply(text: str, structured: bool = False, cut_off: bool = False) -> Reading:
     """How ``text`` reads (see the module docstring), or :class:`ReplyParseError`. ``structured``: the request
     held the provider to the reply schema; ``cut_off``: the reply stopped at the token limit (named in the
-    reason when it is unusable)."""
+    reason when it is unusable). What a reply reads as depends on its text alone (the two flags change only the
+    label and the reason), so a resumed or replayed run, which has only the stored text, reads it the same."""
     if not isinstance(text, str):
         raise ReplyParseError(f"the reply is not text but {type(text).__name__}")
     if not text.strip():
@@ -358,13 +359,7 @@ def read_reply(text: str, structured: bool = False, cut_off: bool = False) -> Re
             if repairs:
                 return Reading(parsed, "repaired", repairs)
             return Reading(parsed, "structured" if structured else "parsed")
-        try:
-            parsed = _from_code_blocks(text)
-        except ReplyParseError:
-            parsed = _from_bare_code(text)
-            if parsed is None:
-                raise
-            return Reading(parsed, "repaired", ("code with a broken fence",))
+        parsed = _from_code_blocks(text)  # a block that does not parse is refused, never cut down to what parses
         if parsed is not None:
             return Reading(parsed, "parsed")
         parsed = _from_bare_code(text)
