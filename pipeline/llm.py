@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
 from pipeline.prompt import prompt_hash
-from pipeline.providers import LOCAL_SERVER_PROVIDERS, OFFLINE_REASONING_CHARS, reply_format, reply_schema, \
-    with_cache_breakpoint
+from pipeline.providers import LOCAL_SERVER_PROVIDERS, OFFLINE_CHARS_PER_TOKEN, OFFLINE_REASONING_CHARS, \
+    ReplyLimits, reply_format, reply_schema, with_cache_breakpoint
 from pipeline.providers import request_params as provider_request_params
 from pipeline.tokens import import_litellm
 
@@ -127,8 +127,10 @@ class LiteLLMClient:
 
     Only the parameters the provider accepts are sent (``pipeline/providers.py``); ``request_params()`` is
     exactly what goes to litellm besides the messages, and ``dropped`` names what the provider would refuse.
-    With ``structured`` (the default) the reply is asked for as ``schema`` (default: the provider module's
-    ``REPLY_SCHEMA``) where the provider supports it; ``self.structured`` says whether it is. A server that
+    With ``structured`` (the default) the reply is asked for as the provider module's ``REPLY_SCHEMA`` where the
+    provider supports it; ``self.structured`` says whether it is. With ``reply_limits`` (the offline model, held
+    to the schema by a grammar) every string of the reply is held to a length that ends it within ``max_tokens``,
+    and :meth:`hold_reply_to_methods` names the policy's methods in the schema. A server that
     refuses the schema all the same (a bad request naming ``response_format``) is asked again without it, and the
     client sends it no more (``dropped`` then names it).
     ``label`` is the model as the user asked for it (``offline:...`` for the built-in model), ``model`` the
@@ -149,7 +151,7 @@ class LiteLLMClient:
         label: str | None = None,
         stream: bool = False,
         structured: bool = True,
-        schema: dict[str, Any] | None = None,
+        reply_limits: ReplyLimits | None = None,
     ):
         self.litellm = import_litellm()
         self.model = model
@@ -170,8 +172,9 @@ class LiteLLMClient:
                                          max_tokens=max_tokens, seed=seed, timeout_s=timeout_s)
         self._params = params.sent
         self.dropped = params.dropped
-        wanted = reply_format(self.litellm, model, self.provider, params.supported, api_base, schema) \
-            if structured else None
+        self.reply_limits = reply_limits
+        wanted = reply_format(self.litellm, model, self.provider, params.supported, api_base,
+                              reply_schema(reply_limits)) if structured else None
         if wanted is not None:
             self._params["response_format"] = wanted
         self.structured = wanted is not None
@@ -184,6 +187,15 @@ class LiteLLMClient:
 
     def request_params(self) -> dict[str, Any]:
         return dict(self._params)
+
+    def hold_reply_to_methods(self, methods: list[str]) -> None:
+        """Let the reply's suggestion name only ``methods`` (the policy's trainable ones), each with its share of
+        the reply's length. Only for a client with ``reply_limits`` (the offline model: a grammar built from the
+        schema keeps a tiny model to real method names and a reply that closes); a hosted model reads the names
+        from the prompt, and its schema stays one for every policy."""
+        if self.structured and self.reply_limits is not None:
+            self._params["response_format"] = {**self._params["response_format"], "json_schema": {
+                **self._params["response_format"]["json_schema"], "schema": reply_schema(self.reply_limits, methods)}}
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
                  candidate: int = 0) -> LLMReply:
@@ -309,9 +321,10 @@ def open_client(model: str | None, api_base: str | None, temperature: float, max
     show_offline_model_notice()
     server = LocalModelServer().start()
     max_tokens = max_tokens or OFFLINE_MAX_TOKENS
-    # llama.cpp compiles the schema into a grammar, so SmolLM2's reply is always this JSON; its reasoning is held
-    # short, or it would spend the whole reply on it
+    # llama.cpp compiles the schema into a grammar, so SmolLM2's reply is always this JSON; its strings are held
+    # short enough that the JSON closes within max_tokens
+    limits = ReplyLimits(OFFLINE_REASONING_CHARS, OFFLINE_CHARS_PER_TOKEN * max_tokens)
     client = LiteLLMClient(server.model, api_base=server.api_base, temperature=temperature, max_tokens=max_tokens,
                            seed=seed, label=OFFLINE_MODEL_LABEL, backoff_s=backoff_s, stream=stream,
-                           schema=reply_schema(OFFLINE_REASONING_CHARS))
+                           reply_limits=limits)
     return client, server, server.context_tokens - max_tokens

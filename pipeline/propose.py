@@ -133,6 +133,9 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     to_call = [p for p in pending if p.text is None]
     if to_call:
         check_budgets(store, state, client, [p.prompt for p in to_call])
+        name_methods = getattr(client, "hold_reply_to_methods", None)  # the offline model's grammar
+        if name_methods is not None:
+            name_methods([method.name for method in to_call[0].info.trainable])
         # other processes may read the store while the model thinks: let go of it (checkpointing what this
         # process wrote) once the requests are on their way
         _complete_all(state, iteration, client, to_call, meanwhile=hold.release if hold is not None else None)

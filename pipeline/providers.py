@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Sequence
 
 PROVIDER_KEYS: dict[str, tuple[str, ...]] = {
     "anthropic": ("ANTHROPIC_API_KEY",),
@@ -114,16 +114,39 @@ schema serves every policy; validation checks the names. An object with open key
 kind (that needs every key listed), so it is sent with ``strict: false``: the provider is guided by it and the
 parser (``pipeline/reply.py``) checks the result."""
 
-OFFLINE_REASONING_CHARS = 400
-"""The offline model's reasoning is held to this many characters: SmolLM2 otherwise fills its few hundred reply
-tokens with reasoning and is cut off before it writes any code."""
+@dataclass(frozen=True)
+class ReplyLimits:
+    """Lengths that make a reply held to the schema by a grammar end within its token limit (the offline model:
+    SmolLM2 otherwise fills its few hundred reply tokens with reasoning, or repeats itself inside a string, and
+    is cut off before the JSON closes)."""
+
+    reasoning_chars: int
+    """The reasoning's longest length."""
+    reply_chars: int
+    """The whole reply's: the methods' code shares what the reasoning and the JSON around it leave."""
 
 
-def reply_schema(max_reasoning_chars: int | None = None) -> dict[str, Any]:
-    """:data:`REPLY_SCHEMA`, with the reasoning held to ``max_reasoning_chars`` when given (the offline model)."""
+OFFLINE_REASONING_CHARS = 160
+OFFLINE_CHARS_PER_TOKEN = 2
+"""The fewest characters a token of SmolLM2's replies held (2.1-5.6 measured over 13 cut-off replies): a reply of
+``max_tokens`` tokens has room for at least this many characters a token."""
+JSON_OVERHEAD_CHARS = 80
+MIN_CODE_CHARS = 120
+
+
+def reply_schema(limits: ReplyLimits | None = None, methods: Sequence[str] | None = None) -> dict[str, Any]:
+    """:data:`REPLY_SCHEMA`; with ``methods``, the suggestion may hold only those keys (a closed object); with
+    ``limits``, every string is held to its share of the reply's length."""
     schema = json.loads(json.dumps(REPLY_SCHEMA))
-    if max_reasoning_chars is not None:
-        schema["properties"]["reasoning"]["maxLength"] = max_reasoning_chars
+    if limits is not None:
+        schema["properties"]["reasoning"]["maxLength"] = limits.reasoning_chars
+    if methods:
+        code: dict[str, Any] = {"type": "string"}
+        if limits is not None:
+            left = limits.reply_chars - limits.reasoning_chars - JSON_OVERHEAD_CHARS
+            code["maxLength"] = max(MIN_CODE_CHARS, left // len(methods))
+        schema["properties"]["suggestion"] = {"type": "object", "properties": {name: dict(code) for name in methods},
+                                              "additionalProperties": False}
     return schema
 
 

@@ -206,3 +206,26 @@ def test_offline_run_killed_in_iteration_1_resumes_with_the_server_started_again
     assert store.query("SELECT status FROM runs")[0][0] == "finished"
     calls = store.query("SELECT request_model, error_type FROM llm_calls WHERE iteration = 1 AND error_type IS NULL")
     assert calls and calls[0][0] == f"openai/{local_llm.MODEL_ALIAS}", "the local server answered"
+
+
+def test_the_offline_model_is_held_to_the_reply_schema():
+    """The offline client asks llama.cpp for the reply schema (a grammar there): SmolLM2, which otherwise writes
+    prose and unclosed code fences, answers with the JSON object, its reasoning within the offline limit."""
+    from pipeline.llm import open_client
+    from pipeline.providers import OFFLINE_REASONING_CHARS
+    from pipeline.reply import read_reply
+
+    client, server, _ = open_client(None, None, temperature=0.0, max_tokens=384, seed=0)
+    try:
+        assert client.structured
+        schema = client.request_params()["response_format"]["json_schema"]["schema"]
+        assert schema["properties"]["reasoning"]["maxLength"] == OFFLINE_REASONING_CHARS
+        reply = client.complete([{"role": "user", "content": "Improve this Pong method and reply with JSON: "
+                                  "def select_action(self, predicted_ball_y, obs):\n    return 0\n"}])
+    finally:
+        server.stop()
+    assert reply.text.lstrip().startswith('{') and '"reasoning"' in reply.text[:20], reply.text[:200]
+    if not reply.cut_off:  # a complete reply is the schema's object as is
+        answer = json.loads(reply.text)
+        assert set(answer) == {"reasoning", "suggestion"} and len(answer["reasoning"]) <= OFFLINE_REASONING_CHARS
+        assert read_reply(reply.text, structured=True).how == "structured"
