@@ -28,9 +28,10 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
   candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call).
 A request with ``"stream": true`` gets the reply as server-sent events (OpenAI chat chunks, with a usage chunk
-when ``stream_options.include_usage`` asks for it; Anthropic's message events). Every request is appended to a JSONL log (protocol, path, the auth headers, the body, the messages in
-one normalized form, and for Anthropic the kind of content block it is answered with), so tests can read what
-the loop sent.
+when ``stream_options.include_usage`` asks for it; Anthropic's message events, a tool call's input as
+``input_json_delta`` pieces). Every request is appended to a JSONL log (protocol, path, the auth headers, the
+body, the messages in one normalized form, and for Anthropic the kind of content block it is answered with), so
+tests can read what the loop sent.
 """
 
 from __future__ import annotations
@@ -326,7 +327,8 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             if "sleep" in entry:
                 time.sleep(entry["sleep"])
             if "status" in entry:
-                self._send(entry["status"], json.dumps(_error_body(protocol, entry["status"], entry.get("message"))).encode())
+                error = _error_body(protocol, entry["status"], entry.get("message"))
+                self._send(entry["status"], json.dumps(error).encode())
                 return
             if "raw" in entry:
                 self._send(200, entry["raw"].encode("latin-1"))

@@ -209,8 +209,9 @@ def test_offline_run_killed_in_iteration_1_resumes_with_the_server_started_again
 
 
 def test_the_offline_model_is_held_to_the_reply_schema():
-    """The offline client asks llama.cpp for the reply schema (a grammar there): SmolLM2, which otherwise writes
-    prose and unclosed code fences, answers with the JSON object, its reasoning within the offline limit."""
+    """The offline client asks llama.cpp for the reply schema (a grammar there) with the policy's methods named
+    and every string held to its share of the reply: SmolLM2, which otherwise writes prose, unclosed code fences
+    or a string that runs to the token limit, answers with the JSON object, closed within max_tokens."""
     from pipeline.llm import open_client
     from pipeline.providers import OFFLINE_REASONING_CHARS
     from pipeline.reply import read_reply
@@ -218,14 +219,17 @@ def test_the_offline_model_is_held_to_the_reply_schema():
     client, server, _ = open_client(None, None, temperature=0.0, max_tokens=384, seed=0)
     try:
         assert client.structured
+        client.hold_reply_to_methods(["select_action"])
         schema = client.request_params()["response_format"]["json_schema"]["schema"]
         assert schema["properties"]["reasoning"]["maxLength"] == OFFLINE_REASONING_CHARS
+        code_chars = schema["properties"]["suggestion"]["properties"]["select_action"]["maxLength"]
         reply = client.complete([{"role": "user", "content": "Improve this Pong method and reply with JSON: "
                                   "def select_action(self, predicted_ball_y, obs):\n    return 0\n"}])
     finally:
         server.stop()
-    assert reply.text.lstrip().startswith('{') and '"reasoning"' in reply.text[:20], reply.text[:200]
-    if not reply.cut_off:  # a complete reply is the schema's object as is
-        answer = json.loads(reply.text)
-        assert set(answer) == {"reasoning", "suggestion"} and len(answer["reasoning"]) <= OFFLINE_REASONING_CHARS
-        assert read_reply(reply.text, structured=True).how == "structured"
+    assert not reply.cut_off and reply.finish_reasons == ["stop"], reply.text[-200:]
+    answer = json.loads(reply.text)
+    assert set(answer) == {"reasoning", "suggestion"} and len(answer["reasoning"]) <= OFFLINE_REASONING_CHARS
+    assert set(answer["suggestion"]) <= {"select_action"}
+    assert all(len(code) <= code_chars for code in answer["suggestion"].values())
+    assert read_reply(reply.text, structured=True).how == "structured"
