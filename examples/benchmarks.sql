@@ -36,9 +36,9 @@ WITH batch_runs AS (
 )
 SELECT coalesce(o.game, t.game) AS game, o.protocol, o.horizon, o.runs, o.iterations, o.best, o.mean_best, o.se,
        (SELECT p.score FROM published_scores p WHERE p.game = o.game AND p.horizon = o.horizon
-        AND p.setting <> 'paper') AS theirs,
+        AND p.setting <> 'paper' ORDER BY p.setting LIMIT 1) AS theirs,
        (SELECT p.stderr FROM published_scores p WHERE p.game = o.game AND p.horizon = o.horizon
-        AND p.setting <> 'paper') AS theirs_se,
+        AND p.setting <> 'paper' ORDER BY p.setting LIMIT 1) AS theirs_se,
        t.paper, t."default", t.h1, t.h100
 FROM ours o FULL JOIN theirs t ON t.game = o.game
 ORDER BY game;

@@ -19,9 +19,13 @@ def published_rows() -> list[tuple]:
     """Every published figure of every game codearcade knows, as :data:`PUBLISHED_COLUMNS` tuples."""
     from games import GAMES  # game modules import only games.base: cheap
 
-    return [(game.name, figure.source, figure.setting, figure.horizon, figure.trials, float(figure.score),
-             None if figure.stderr is None else float(figure.stderr))
-            for game in GAMES.values() for figure in game.task.published]
+    rows: dict[tuple[str, str], tuple] = {}
+    for game in GAMES.values():
+        for figure in game.task.published:  # one figure per game and setting (the table's key): the first
+            rows.setdefault((game.name, figure.setting), (
+                game.name, figure.source, figure.setting, figure.horizon, figure.trials, float(figure.score),
+                None if figure.stderr is None else float(figure.stderr)))
+    return list(rows.values())
 
 
 def refresh_published(con: duckdb.DuckDBPyConnection) -> bool:

@@ -10,7 +10,7 @@ import sys
 import tomllib
 
 from games import GAMES
-from store.published import published_rows
+from store.published import published_rows, refresh_published
 from tests.conftest import COMPETENT_REPLY, ROOT
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -26,6 +26,26 @@ def test_every_curated_game_publishes_the_authors_figures():
         assert (game, "h100") in rows and rows[game, "h100"][3] == GAMES[game].task.rollout_steps
     for game in ("pong", "breakout", "space_invaders"):
         assert rows[game, "default"][3] == GAMES[game].task.rollout_steps
+
+
+def test_the_table_follows_the_game_modules(store):
+    """published_scores holds exactly the modules' figures after a process first writes; a store whose copy
+    differs (an older codearcade's figures) is rewritten, one that agrees is left alone."""
+    from store import Store
+
+    with store.write():
+        pass
+    columns = "game, source, setting, horizon, trials, score, stderr"
+    assert set(store.query(f"SELECT {columns} FROM published_scores")) == set(published_rows())
+    with store.write() as con:
+        con.execute("UPDATE published_scores SET score = 1 WHERE game = 'pong' AND setting = 'paper'")
+        con.execute("DELETE FROM published_scores WHERE game = 'qbert'")
+    again = Store(store.path)
+    with again.write():
+        pass
+    assert set(again.query(f"SELECT {columns} FROM published_scores")) == set(published_rows())
+    with again.write() as con:
+        assert refresh_published(con) is False, "nothing to rewrite"
 
 
 def test_benchmarks_sql_over_a_real_short_batch(tmp_path, store, scripted):
