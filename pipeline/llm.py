@@ -323,7 +323,8 @@ def open_client(model: str | None, api_base: str | None, temperature: float, max
     max_tokens = max_tokens or OFFLINE_MAX_TOKENS
     # llama.cpp compiles the schema into a grammar, so SmolLM2's reply is always this JSON; its strings are held
     # short enough that the JSON closes within max_tokens
-    limits = ReplyLimits(OFFLINE_REASONING_CHARS, OFFLINE_CHARS_PER_TOKEN * max_tokens)
+    room = OFFLINE_CHARS_PER_TOKEN * max_tokens
+    limits = ReplyLimits(min(OFFLINE_REASONING_CHARS, room // 4), room)
     client = LiteLLMClient(server.model, api_base=server.api_base, temperature=temperature, max_tokens=max_tokens,
                            seed=seed, label=OFFLINE_MODEL_LABEL, backoff_s=backoff_s, stream=stream,
                            reply_limits=limits)
