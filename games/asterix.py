@@ -12,7 +12,7 @@ but their environment never computes): :func:`derive` turns the generic ``Enemy0
 with int64 RAM (no ``detect``).
 """
 
-from games.base import SCAFFOLDS, Game, Task, pop_numbered
+from games.base import SCAFFOLDS, Game, Published, Task, pop_numbered
 
 INSTRUCTION = (
     "In Asterix, you control a player across 8 horizontal lanes (lane 0-7) to collect items and avoid enemies. "
@@ -109,6 +109,12 @@ def derive_space(space) -> None:
         space.add(key, ListOf(lane, len(LANE_Y), key=int, strict=True))
     space.add("lives", ints(*LIVES))
 
+# The authors' published best scores (PAPER.md; mean over trials ± standard error): their follow-up's aggregate
+# (results/aggregated/all_games_aggregate.csv, the last optimization step)
+PUBLISHED = (
+    Published("follow-up", "h1", 310.0, horizon=1, trials=5, stderr=65.53),
+    Published("follow-up", "h100", 3466.67, horizon=100, trials=5, stderr=2107.68),
+)
 
 GAME = Game(
     name="asterix",
@@ -118,7 +124,8 @@ GAME = Game(
     lives=3,
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               eval_episodes=EVAL_EPISODES,
-              one_life_episodes=True),
+              one_life_episodes=True,
+              published=PUBLISHED),
     colours={"Player": (187, 187, 53), "Enemy": (228, 111, 111), "Consumable": (84, 160, 197),
              "Reward": (252, 188, 116)},
     derive=derive,

@@ -48,6 +48,26 @@ def normalize_name(name: str) -> str:
 
 
 @dataclass(frozen=True)
+class Published:
+    """A score the authors published for the game: the best-so-far evaluation return of their optimization runs
+    (the mean over ``trials`` runs, with its standard error), under their protocol (sticky 0, their caps and
+    episode counts; the follow-up ends an episode at a lost life where ``Task.one_life_episodes``). SQL reads
+    them from the store's ``published_scores`` (``store/published.py``)."""
+
+    source: str
+    """``paper`` (Kuang et al. 2025, Table 1) or ``follow-up`` (arXiv 2603.23994, their repository's
+    ``results/aggregated/all_games_aggregate.csv``, the last optimization step)."""
+    setting: str
+    """``paper``; or the follow-up's ``default`` (the paper's horizons), ``h1`` or ``h100`` (training horizon)."""
+    score: float
+    horizon: int
+    """Training rollout steps of the setting."""
+    trials: int = 1
+    stderr: float | None = None
+    """Standard error over the trials (None: one trial, or not published)."""
+
+
+@dataclass(frozen=True)
 class Task:
     """The optimization task of a game, as the paper and the authors' follow-up set it. A policy file may
     override each with an upper-case constant (``ROLLOUT_STEPS``, ``EVAL_MAX_STEPS``, ``FEEDBACK``,
@@ -68,6 +88,8 @@ class Task:
     """The authors' follow-up ends an episode at every lost life (their ``trace_envs/<game>.py`` implement
     baselines' ``EpisodicLifeEnv``): a "1 x 4,000" evaluation is the first life of a game. codearcade plays
     whole games unless ``codearcade eval --one-life`` asks for theirs (``games.envs.OneLife``)."""
+    published: tuple[Published, ...] = ()
+    """The authors' published scores for the game (``examples/benchmarks.sql`` sets a batch's beside them)."""
 
 
 ObjectHook = Callable[[Any, dict, "list | None"], None]

@@ -11,7 +11,7 @@ convention (observation version 1) split the runs into 8-pixel bricks (:func:`sp
 The environment presses FIRE after reset and after each lost life (``games.envs.AutoFire``).
 """
 
-from games.base import SCAFFOLDS, Game, Task
+from games.base import SCAFFOLDS, Game, Published, Task
 
 ROLLOUT_STEPS = 300      # traced training rollout shown to the optimizer (paper: 300 for Breakout)
 EVAL_MAX_STEPS = 4000
@@ -94,6 +94,13 @@ def derive_space(space) -> None:
                               WALL_WIDTH // BRICK_WIDTH, min_length=1), optional=True)
     space.add("lives", ints(*LIVES))
 
+# The authors' published best scores (PAPER.md; mean over trials ± standard error): the paper's Table 1 and
+# their follow-up's aggregate (results/aggregated/all_games_aggregate.csv, the last optimization step)
+PUBLISHED = (
+    Published("paper", "paper", 353, horizon=300),
+    Published("follow-up", "default", 123.0, horizon=300, trials=5, stderr=57.75),
+    Published("follow-up", "h1", 70.6, horizon=1, trials=5, stderr=12.8),
+)
 
 GAME = Game(
     name="breakout",
@@ -102,7 +109,8 @@ GAME = Game(
     actions=("NOOP", "FIRE", "RIGHT", "LEFT"),
     lives=5,
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
-              one_life_episodes=True),
+              one_life_episodes=True,
+              published=PUBLISHED),
     colours={"Player": (92, 220, 92), "Ball": (255, 255, 255), "RB": (255, 80, 80), "OB": (255, 150, 60),
              "YB": (230, 220, 60), "GB": (120, 230, 90), "AB": (60, 220, 220), "BB": (90, 120, 255)},
     fire_on_life_loss=True,

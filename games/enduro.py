@@ -19,7 +19,7 @@ into ``EnemyCars`` (closest first) with ``rel_x``/``rel_y`` and adds ``nearest_e
 the game after 3,328 agent steps when the 200-car quota is not met.
 """
 
-from games.base import SCAFFOLDS, Game, Task, pop_numbered
+from games.base import SCAFFOLDS, Game, Published, Task, pop_numbered
 
 INSTRUCTION = (
     "In Enduro, you race a car and score by overtaking enemy cars (+1 each) while avoiding being overtaken (-1 each). "
@@ -135,6 +135,12 @@ def derive_space(space) -> None:
     space.add("nearest_enemy_rel_y", ints(*DELTA), optional=True)
     space.together("EnemyCars", "nearest_enemy_rel_x", "nearest_enemy_rel_y")
 
+# The authors' published best scores (PAPER.md; mean over trials ± standard error): their follow-up's aggregate
+# (results/aggregated/all_games_aggregate.csv, the last optimization step)
+PUBLISHED = (
+    Published("follow-up", "h1", 104.0, horizon=1, trials=5, stderr=17.06),
+    Published("follow-up", "h100", 71.8, horizon=100, trials=5, stderr=9.38),
+)
 
 GAME = Game(
     name="enduro",
@@ -143,7 +149,8 @@ GAME = Game(
     actions=("NOOP", "FIRE", "RIGHT", "LEFT", "DOWN", "DOWNRIGHT", "DOWNLEFT", "RIGHTFIRE", "LEFTFIRE"),
     lives=0,
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
-              eval_episodes=EVAL_EPISODES),
+              eval_episodes=EVAL_EPISODES,
+              published=PUBLISHED),
     colours={"Player": (192, 192, 192), "Car": (228, 111, 111)},
     detect=detect,
     derive=derive,

@@ -12,7 +12,7 @@ OCAtari's RAM extractor is right with int64 RAM (a car at RAM x 0 is at x=-3; nu
 A game lasts 2,048 agent steps under any policy.
 """
 
-from games.base import SCAFFOLDS, Game, Task, pop_numbered
+from games.base import SCAFFOLDS, Game, Published, Task, pop_numbered
 
 INSTRUCTION = (
     "In Freeway, you guide a chicken from the bottom of the screen (y~187) to the top (y~0), crossing 10 lanes of traffic. "
@@ -133,6 +133,13 @@ def _lane(y: int) -> int:
     return _LANE_OF_Y[y] if 0 <= y < 256 else _nearest_lane(y)
 
 
+# The authors' published best scores (PAPER.md; mean over trials ± standard error): their follow-up's aggregate
+# (results/aggregated/all_games_aggregate.csv, the last optimization step)
+PUBLISHED = (
+    Published("follow-up", "h1", 27.93, horizon=1, trials=5, stderr=2.0),
+    Published("follow-up", "h100", 27.2, horizon=100, trials=5, stderr=1.58),
+)
+
 GAME = Game(
     name="freeway",
     hot_keys=("Chicken", None),  # the steps table's player_x/y follow the chicken; there is no ball
@@ -141,7 +148,8 @@ GAME = Game(
     actions=("NOOP", "UP", "DOWN"),
     lives=0,
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
-              eval_episodes=EVAL_EPISODES),
+              eval_episodes=EVAL_EPISODES,
+              published=PUBLISHED),
     colours={"Chicken": (252, 252, 84), "Car": (167, 26, 26)},
     object_hooks={"Chicken": chicken, "Car": car},
     derive=derive,

@@ -5,7 +5,7 @@ evaluation cap, staged feedback bands, instruction), observation hooks and Rerun
 scaffold is ``games/scaffolds/pong.py``.
 """
 
-from games.base import SCAFFOLDS, Game, Task
+from games.base import SCAFFOLDS, Game, Published, Task
 
 ROLLOUT_STEPS = 400      # traced training rollout shown to the optimizer (paper: 400 for Pong)
 EVAL_MAX_STEPS = 4000    # evaluation cap (paper: ~4000)
@@ -29,13 +29,22 @@ INSTRUCTION = (
     "ball and wins the game 21 to 0."
 )
 
+# The authors' published best scores (PAPER.md; mean over trials ± standard error): the paper's Table 1 and
+# their follow-up's aggregate (results/aggregated/all_games_aggregate.csv, the last optimization step)
+PUBLISHED = (
+    Published("paper", "paper", 21, horizon=400),
+    Published("follow-up", "default", 12.0, horizon=400, trials=5, stderr=4.02),
+    Published("follow-up", "h1", 5.8, horizon=1, trials=5, stderr=2.46),
+)
+
 GAME = Game(
     name="pong",
     env_id="PongNoFrameskip-v4",
     ocatari_name="Pong",
     actions=("NOOP", "FIRE", "RIGHT", "LEFT", "RIGHTFIRE", "LEFTFIRE"),
     lives=0,
-    task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK),
+    task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
+              published=PUBLISHED),
     colours={"Player": (92, 220, 92), "Ball": (255, 255, 255), "Enemy": (255, 140, 40)},
     scaffold=SCAFFOLDS / "pong.py",
 )

@@ -15,7 +15,7 @@ balls are not reported. Its extractor keeps state in module globals (one Q*bert 
 ``detect``).
 """
 
-from games.base import SCAFFOLDS, Game, Task
+from games.base import SCAFFOLDS, Game, Published, Task
 
 INSTRUCTION = (
     "In Q*bert, you control Q*bert hopping on an isometric pyramid of cubes. "
@@ -139,6 +139,12 @@ def derive_v1(obs: dict, lives: int) -> None:
     """Observation version 1: :func:`derive` with Sam before the GreenBall."""
     derive(obs, lives, FRIENDLY_TYPES_V1)
 
+# The authors' published best scores (PAPER.md; mean over trials ± standard error): their follow-up's aggregate
+# (results/aggregated/all_games_aggregate.csv, the last optimization step)
+PUBLISHED = (
+    Published("follow-up", "h1", 560.0, horizon=1, trials=5, stderr=6.12),
+    Published("follow-up", "h100", 505.0, horizon=100, trials=5, stderr=98.23),
+)
 
 GAME = Game(
     name="qbert",
@@ -148,7 +154,8 @@ GAME = Game(
     lives=4,
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               eval_episodes=EVAL_EPISODES,
-              one_life_episodes=True),
+              one_life_episodes=True,
+              published=PUBLISHED),
     colours={"Player": (181, 83, 40), "Coily": (146, 70, 192), "PurpleBall": (200, 72, 200),
              "RedBall": (228, 60, 60), "GreenBall": (50, 200, 50), "Sam": (100, 230, 100), "Disk": (84, 138, 210)},
     object_hooks={"Cube": drop},

@@ -16,7 +16,7 @@ faces (RAM[86]) is not an object and is not in the observation. With int64 RAM t
 under numpy 2 raises OverflowError).
 """
 
-from games.base import SCAFFOLDS, Game, Task, pop_numbered
+from games.base import SCAFFOLDS, Game, Published, Task, pop_numbered
 
 INSTRUCTION = (
     "In Seaquest, you pilot a submarine rescuing divers and fighting enemies underwater. "
@@ -125,6 +125,12 @@ def derive_v1(obs: dict, lives: int) -> None:
     """Observation version 1: :func:`derive` with the surface patrol before the missiles."""
     derive(obs, lives, ENEMY_TYPES_V1)
 
+# The authors' published best scores (PAPER.md; mean over trials ± standard error): their follow-up's aggregate
+# (results/aggregated/all_games_aggregate.csv, the last optimization step)
+PUBLISHED = (
+    Published("follow-up", "h1", 128.0, horizon=1, trials=5, stderr=22.45),
+    Published("follow-up", "h100", 92.0, horizon=100, trials=5, stderr=26.53),
+)
 
 GAME = Game(
     name="seaquest",
@@ -135,7 +141,8 @@ GAME = Game(
     lives=4,
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               eval_episodes=EVAL_EPISODES,
-              one_life_episodes=True),
+              one_life_episodes=True,
+              published=PUBLISHED),
     colours={"Player": (187, 187, 53), "Shark": (92, 186, 92), "Submarine": (170, 170, 170),
              "SurfaceSubmarine": (214, 214, 214), "EnemyMissile": (228, 111, 111), "Diver": (66, 72, 200),
              "PlayerMissile": (187, 187, 53), "OxygenBar": (214, 214, 214), "CollectedDiver": (24, 26, 167)},

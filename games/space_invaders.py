@@ -5,7 +5,7 @@ evaluation cap, staged feedback bands, instruction), observation hooks and Rerun
 scaffold is ``games/scaffolds/space_invaders.py``.
 """
 
-from games.base import SCAFFOLDS, Game, Task
+from games.base import SCAFFOLDS, Game, Published, Task
 
 ROLLOUT_STEPS = 15       # traced training rollout shown to the optimizer (paper: 15; observations are large)
 EVAL_MAX_STEPS = 4000
@@ -27,13 +27,22 @@ INSTRUCTION = (
     "aliens as possible while dodging their bullets."
 )
 
+# The authors' published best scores (PAPER.md; mean over trials ± standard error): the paper's Table 1 and
+# their follow-up's aggregate (results/aggregated/all_games_aggregate.csv, the last optimization step)
+PUBLISHED = (
+    Published("paper", "paper", 1200, horizon=15),
+    Published("follow-up", "default", 929.0, horizon=15, trials=5, stderr=71.02),
+    Published("follow-up", "h1", 570.0, horizon=1, trials=4, stderr=0.0),
+)
+
 GAME = Game(
     name="space_invaders",
     env_id="SpaceInvadersNoFrameskip-v4",
     ocatari_name="SpaceInvaders",
     actions=("NOOP", "FIRE", "RIGHT", "LEFT", "RIGHTFIRE", "LEFTFIRE"),
     lives=3,
-    task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK),
+    task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
+              published=PUBLISHED),
     colours={"Player": (92, 220, 92), "Alien": (255, 90, 220), "Shield": (90, 200, 255), "Bullet": (255, 255, 80),
              "Satellite": (255, 60, 60)},
     scaffold=SCAFFOLDS / "space_invaders.py",

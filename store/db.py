@@ -27,6 +27,7 @@ import duckdb
 
 from store.hub import HUB
 from store.migrations import LATEST, MIGRATIONS
+from store.published import refresh_published
 
 DEFAULT_STORE = "codearcade.duckdb"
 
@@ -211,6 +212,13 @@ class Store:
             except Exception:
                 con.execute("ROLLBACK")
                 raise
+        con.execute("BEGIN TRANSACTION")  # the game modules' published figures, as they are in this code
+        try:
+            refresh_published(con)
+            con.execute("COMMIT")
+        except Exception:
+            con.execute("ROLLBACK")
+            raise
         self._migrated = True
 
     def hold(self) -> "Hold":

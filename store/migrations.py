@@ -517,4 +517,41 @@ MIGRATIONS.append(
     )
 )
 
+# How each reply was read (issue 25, item 5): the parser (pipeline/reply.py) recovers near-misses and says so.
+# Rows written before keep NULL, except replies the parser of the day refused (parse_error set), which were
+# 'unusable' then whatever a re-read would give now: the column records what the run did with the reply.
+MIGRATIONS.append(
+    (
+        8,
+        "llm_calls: reply_reading (structured | parsed | repaired | unusable), reply_repairs",
+        """
+        ALTER TABLE llm_calls ADD COLUMN reply_reading VARCHAR;    -- structured | parsed | repaired | unusable
+        ALTER TABLE llm_calls ADD COLUMN reply_repairs VARCHAR[];  -- the near-misses recovered (repaired replies)
+        UPDATE llm_calls SET reply_reading = 'unusable' WHERE parse_error IS NOT NULL AND reply_hash IS NOT NULL;
+        """,
+    )
+)
+
+# The authors' published scores (issue 25, item 6): facts of each game, kept in its module (games/<game>.py,
+# Task.published). This table holds a copy for SQL, refilled from the game modules whenever a process first
+# writes to the store (store/published.py), so it follows the code that wrote the store.
+MIGRATIONS.append(
+    (
+        9,
+        "published_scores: the authors' published figures, per game, from the game modules",
+        """
+        CREATE TABLE published_scores (
+            game        VARCHAR NOT NULL,
+            source      VARCHAR NOT NULL,   -- paper (Kuang et al. 2025, Table 1) | follow-up (arXiv 2603.23994)
+            setting     VARCHAR NOT NULL,   -- paper | default | h1 | h100 (training horizon 1 or 100 steps)
+            horizon     INTEGER,            -- training rollout steps of that setting
+            trials      INTEGER NOT NULL,   -- runs the figure is the mean of
+            score       DOUBLE NOT NULL,    -- best-so-far evaluation return (mean over the trials)
+            stderr      DOUBLE,             -- its standard error over the trials (NULL: one trial)
+            PRIMARY KEY (game, setting)
+        );
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

@@ -7,7 +7,10 @@ reply. One server answers every protocol, chosen by the request's path:
 - ``POST …/chat/completions``: OpenAI chat completions (``openai/NAME``, ``hosted_vllm/NAME``, ``mistral/NAME``);
 - ``POST …/v1/messages``: Anthropic Messages (``anthropic/NAME``), with prompt caching: blocks marked
   ``cache_control`` are reported as ``cache_creation_input_tokens`` the first time and as
-  ``cache_read_input_tokens`` after;
+  ``cache_read_input_tokens`` after; a request that forces a tool (``tool_choice: {"type": "tool"}``, how litellm
+  asks Anthropic for a reply schema) is answered with a ``tool_use`` block whose input is the scripted reply's
+  JSON object (a reply that is not one becomes ``{"reasoning": text, "suggestion": {}}``, as a model held to the
+  schema would say it);
 - ``POST …/api/chat``: Ollama's chat API (``ollama_chat/NAME``; ``/api/show``, its model metadata, is answered
   and not logged);
 - ``POST …/models/NAME:generateContent``: Gemini's generateContent (``gemini/NAME``).
@@ -17,15 +20,18 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``"text"`` or ``{"content": "text"}``: a normal reply (``"usage": {"input": n, "output": m}`` overrides the
   token counts, which are otherwise the words of the prompt and of the reply);
 - ``{"status": 503}``: an HTTP error in the protocol's own error shape (``"times": n`` repeats it n times
-  before moving on; 401 is an authentication error, 400 a bad request, 429 a rate limit);
+  before moving on; 401 is an authentication error, 400 a bad request, 429 a rate limit; ``"message"`` replaces
+  the error's text);
 - ``{"sleep": seconds, "content": ...}``: reply late (to exercise time-outs);
 - ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
 - ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
   candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call).
 A request with ``"stream": true`` gets the reply as server-sent events (OpenAI chat chunks, with a usage chunk
-when ``stream_options.include_usage`` asks for it; Anthropic's message events). Every request is appended to a JSONL log (protocol, path, the auth headers, the body, and the messages in
-one normalized form), so tests can read what the loop sent.
+when ``stream_options.include_usage`` asks for it; Anthropic's message events, a tool call's input as
+``input_json_delta`` pieces). Every request is appended to a JSONL log (protocol, path, the auth headers, the
+body, the messages in one normalized form, and for Anthropic the kind of content block it is answered with), so
+tests can read what the loop sent.
 """
 
 from __future__ import annotations
@@ -160,9 +166,9 @@ ERRORS = {
 }
 
 
-def _error_body(protocol: str, status: int) -> dict:
-    kind, text = ERRORS.get(status, ("api_error", "error"))
-    message = f"scripted error {status}: {text}"
+def _error_body(protocol: str, status: int, text: str | None = None) -> dict:
+    kind, default = ERRORS.get(status, ("api_error", "error"))
+    message = f"scripted error {status}: {text or default}"
     if protocol == "anthropic":
         return {"type": "error", "error": {"type": kind, "message": message}}
     if protocol == "ollama":
@@ -170,6 +176,20 @@ def _error_body(protocol: str, status: int) -> dict:
     if protocol == "gemini":
         return {"error": {"code": status, "message": message, "status": kind.upper()}}
     return {"error": {"message": message, "type": kind, "code": kind}}
+
+
+def forced_tool(body: dict) -> str | None:
+    """The tool an Anthropic request forces the model to call (litellm's way of asking for a reply schema)."""
+    choice = body.get("tool_choice") or {}
+    return choice.get("name") if choice.get("type") == "tool" else None
+
+
+def _tool_input(content: str) -> dict:
+    try:
+        value = json.loads(content)
+    except ValueError:
+        value = None
+    return value if isinstance(value, dict) else {"reasoning": content, "suggestion": {}}
 
 
 def _reply_body(protocol: str, body: dict, content: str, count: int, input_tokens: int, output_tokens: int,
@@ -185,8 +205,11 @@ def _reply_body(protocol: str, body: dict, content: str, count: int, input_token
             else:
                 created = tokens
                 cache[hashlib.sha256(prefix.encode()).hexdigest()] = True
+        tool = forced_tool(body)
+        blocks = [{"type": "tool_use", "id": f"toolu_scripted_{count}", "name": tool, "input": _tool_input(content)}
+                  if tool else {"type": "text", "text": content}]
         return {"id": f"msg_scripted_{count}", "type": "message", "role": "assistant", "model": name,
-                "content": [{"type": "text", "text": content}], "stop_reason": "end_turn", "stop_sequence": None,
+                "content": blocks, "stop_reason": "tool_use" if tool else "end_turn", "stop_sequence": None,
                 "usage": {"input_tokens": input_tokens - created - read, "output_tokens": output_tokens,
                           "cache_creation_input_tokens": created, "cache_read_input_tokens": read}}
     if protocol == "ollama":
@@ -213,16 +236,20 @@ def _pieces(text: str) -> list[str]:
 def _sse_events(protocol: str, body: dict, request: dict) -> list[tuple[str | None, str]]:
     """A finished reply as the server-sent events of a streamed one (OpenAI chat chunks or Anthropic events)."""
     if protocol == "anthropic":
-        text = body["content"][0]["text"]
+        block = body["content"][0]
         start = {**body, "content": [], "stop_reason": None,
                  "usage": {**body["usage"], "output_tokens": 1}}
+        if block["type"] == "tool_use":  # the tool's input arrives as pieces of its JSON
+            opened = {**block, "input": {}}
+            deltas = [{"type": "input_json_delta", "partial_json": p} for p in _pieces(json.dumps(block["input"]))]
+        else:
+            opened = {"type": "text", "text": ""}
+            deltas = [{"type": "text_delta", "text": p} for p in _pieces(block["text"])]
         events = [("message_start", {"type": "message_start", "message": start}),
-                  ("content_block_start", {"type": "content_block_start", "index": 0,
-                                           "content_block": {"type": "text", "text": ""}})]
-        events += [("content_block_delta", {"type": "content_block_delta", "index": 0,
-                                            "delta": {"type": "text_delta", "text": p}}) for p in _pieces(text)]
+                  ("content_block_start", {"type": "content_block_start", "index": 0, "content_block": opened})]
+        events += [("content_block_delta", {"type": "content_block_delta", "index": 0, "delta": d}) for d in deltas]
         events += [("content_block_stop", {"type": "content_block_stop", "index": 0}),
-                   ("message_delta", {"type": "message_delta", "delta": {"stop_reason": "end_turn"},
+                   ("message_delta", {"type": "message_delta", "delta": {"stop_reason": body["stop_reason"]},
                                       "usage": {"output_tokens": body["usage"]["output_tokens"]}}),
                    ("message_stop", {"type": "message_stop"})]
         return [(name, json.dumps(data)) for name, data in events]
@@ -285,8 +312,10 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             messages = _normalize(protocol, request)
             headers = {k: self.headers[k] for k in LOGGED_HEADERS if self.headers.get(k) is not None}
             with open(log_path, "a") as log:
+                # reply_blocks: the kind of content an Anthropic reply carries (a forced tool gets a tool_use)
+                blocks = (["tool_use"] if forced_tool(request) else ["text"]) if protocol == "anthropic" else None
                 log.write(json.dumps({"protocol": protocol, "path": self.path, "headers": headers, "body": request,
-                                      "messages": messages, "received_at": time.time()}) + "\n")
+                                      "messages": messages, "reply_blocks": blocks, "received_at": time.time()}) + "\n")
             with lock:  # requests are served concurrently (an iteration's proposals are requested at once)
                 entry = next_entry()
                 state["count"] += 1
@@ -298,7 +327,8 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             if "sleep" in entry:
                 time.sleep(entry["sleep"])
             if "status" in entry:
-                self._send(entry["status"], json.dumps(_error_body(protocol, entry["status"])).encode())
+                error = _error_body(protocol, entry["status"], entry.get("message"))
+                self._send(entry["status"], json.dumps(error).encode())
                 return
             if "raw" in entry:
                 self._send(200, entry["raw"].encode("latin-1"))

@@ -206,3 +206,30 @@ def test_offline_run_killed_in_iteration_1_resumes_with_the_server_started_again
     assert store.query("SELECT status FROM runs")[0][0] == "finished"
     calls = store.query("SELECT request_model, error_type FROM llm_calls WHERE iteration = 1 AND error_type IS NULL")
     assert calls and calls[0][0] == f"openai/{local_llm.MODEL_ALIAS}", "the local server answered"
+
+
+def test_the_offline_model_is_held_to_the_reply_schema():
+    """The offline client asks llama.cpp for the reply schema (a grammar there) with the policy's methods named
+    and every string held to its share of the reply: SmolLM2, which otherwise writes prose, unclosed code fences
+    or a string that runs to the token limit, answers with the JSON object, closed within max_tokens."""
+    from pipeline.llm.client import open_client
+    from pipeline.llm.providers import OFFLINE_REASONING_CHARS
+    from pipeline.optimizer.reply import read_reply
+
+    client, server, _ = open_client(None, None, temperature=0.0, max_tokens=384, seed=0)
+    try:
+        assert client.structured
+        client.hold_reply_to_methods(["select_action"])
+        schema = client.request_params()["response_format"]["json_schema"]["schema"]
+        assert schema["properties"]["reasoning"]["maxLength"] == OFFLINE_REASONING_CHARS
+        code_chars = schema["properties"]["suggestion"]["properties"]["select_action"]["maxLength"]
+        reply = client.complete([{"role": "user", "content": "Improve this Pong method and reply with JSON: "
+                                  "def select_action(self, predicted_ball_y, obs):\n    return 0\n"}])
+    finally:
+        server.stop()
+    assert not reply.cut_off and reply.finish_reasons == ["stop"], reply.text[-200:]
+    answer = json.loads(reply.text)
+    assert set(answer) == {"reasoning", "suggestion"} and len(answer["reasoning"]) <= OFFLINE_REASONING_CHARS
+    assert set(answer["suggestion"]) <= {"select_action"}
+    assert all(len(code) <= code_chars for code in answer["suggestion"].values())
+    assert read_reply(reply.text, structured=True).how == "structured"

@@ -13,7 +13,8 @@ import time
 
 import pytest
 
-from pipeline.llm.providers import PROVIDER_KEYS, MissingCredentialsError, check_credentials, with_cache_breakpoint
+from pipeline.llm.providers import PROVIDER_KEYS, REPLY_SCHEMA, MissingCredentialsError, check_credentials, \
+    with_cache_breakpoint
 from tests.conftest import COMPETENT_REPLY, ROOT, pong_policy
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -63,10 +64,13 @@ def test_each_provider_protocol_wins_pong_in_one_iteration(store, scripted, prov
     assert request["protocol"] == {"anthropic": "anthropic", "ollama_chat": "ollama", "gemini": "gemini"}.get(
         provider, "openai")
     call = store.query("SELECT provider_name, request_model, request_params, input_tokens, output_tokens, cost_usd, "
-                       "finish_reasons, error_type FROM llm_calls")
+                       "finish_reasons, error_type, reply_reading FROM llm_calls")
     assert len(call) == 1
-    provider_name, request_model, params, input_tokens, output_tokens, cost, finish, error = call[0]
+    provider_name, request_model, params, input_tokens, output_tokens, cost, finish, error, reading = call[0]
     assert provider_name == provider and request_model == f"{provider}/{name}" and error is None
+    # the reply schema reached the server in the provider's own form, and litellm's adapter read the structured
+    # reply back (Anthropic's is a tool_use block): the reply was the schema's JSON object as is
+    assert reading == "structured"
     assert input_tokens > 1000 and output_tokens > 50
     assert finish == ["stop"]
     assert (cost is not None and cost > 0) == priced
@@ -79,13 +83,23 @@ def test_each_provider_protocol_wins_pong_in_one_iteration(store, scripted, prov
         assert body["max_tokens"] == params["max_tokens"] == 4096
         assert body["system"][0]["cache_control"] == {"type": "ephemeral"}
         assert "no 'seed' parameter" in done.stderr
+        # a forced tool call whose input is the reply, answered by a tool_use block
+        assert body["tool_choice"] == {"type": "tool", "name": body["tools"][0]["name"]}
+        assert body["tools"][0]["input_schema"] == REPLY_SCHEMA and "response_format" not in body
+        assert request["reply_blocks"] == ["tool_use"]
     elif provider == "ollama_chat":
         assert body["options"]["seed"] == params["seed"] == 0 and body["stream"] is False
+        assert body["format"] == REPLY_SCHEMA
     elif provider == "gemini":
         assert request["headers"]["x-goog-api-key"] == KEYS["GEMINI_API_KEY"]
         assert body["generationConfig"]["seed"] == 0
+        assert body["generationConfig"]["response_mime_type"] == "application/json"
+        assert body["generationConfig"]["response_json_schema"] == REPLY_SCHEMA
     else:
         assert body["seed"] == params["seed"] == 0 and body["max_tokens"] == params["max_tokens"]
+        assert body["response_format"] == {"type": "json_schema", "json_schema": {
+            "name": "policy_update", "schema": REPLY_SCHEMA, "strict": False}}
+    assert params["response_format"]["json_schema"]["schema"] == REPLY_SCHEMA, "recorded as litellm was given it"
 
 
 def test_reasoning_model_gets_max_completion_tokens_and_no_temperature(store, scripted):
@@ -96,6 +110,35 @@ def test_reasoning_model_gets_max_completion_tokens_and_no_temperature(store, sc
     assert body["max_completion_tokens"] == 4096 and "max_tokens" not in body and "temperature" not in body
     params = json.loads(store.query("SELECT request_params FROM llm_calls")[0][0])
     assert "temperature" not in params and params["max_completion_tokens"] == 4096
+
+
+def test_the_reply_schema_goes_where_the_model_can_take_one():
+    from pipeline.llm.client import LiteLLMClient
+
+    for model, api_base, structured in [("openai/gpt-4o", None, True), ("anthropic/claude-sonnet-4-5", None, True),
+                                        ("gemini/gemini-2.5-pro", None, True), ("ollama_chat/qwen2.5-coder", None, True),
+                                        ("hosted_vllm/any", "http://127.0.0.1:1/v1", True),
+                                        ("openai/own-model", "http://127.0.0.1:1/v1", True),
+                                        # hosted models litellm does not know to take a schema: the prompt asks
+                                        ("groq/llama-3.1-70b-versatile", None, False), ("xai/grok-2", None, False)]:
+        client = LiteLLMClient(model, api_base=api_base)
+        assert client.structured == structured, model
+        assert ("response_format" in client.request_params()) == structured, model
+
+
+def test_a_server_that_refuses_the_reply_schema_is_asked_again_without_it(store, scripted):
+    """An OpenAI-compatible server of the user's own that does not take response_format: the call is made again
+    without it (not counted as a retry), and every later call leaves it out; llm_calls records what was sent."""
+    refusal = {"status": 400, "message": "Unsupported parameter: 'response_format' is not supported here"}
+    model = scripted([refusal, COMPETENT_REPLY, "No change."])
+    done = _optimize(store, model, "openai", "my-local-model", "--iterations", "2", "--eval-max-steps", "300", *FAST)
+    assert done.returncode == 0, done.stderr
+    bodies = [r["body"] for r in model.raw_requests()]
+    assert ["response_format" in b for b in bodies] == [True, False, False]
+    calls = store.query("SELECT iteration, attempts, reply_reading, request_params FROM llm_calls ORDER BY iteration")
+    assert [c[:3] for c in calls] == [(1, 2, "parsed"), (2, 1, "unusable")]
+    assert all("response_format" not in json.loads(c[3]) for c in calls)
+    assert store.query("SELECT update_status FROM iterations WHERE iteration = 1") == [("accepted",)]
 
 
 def test_anthropic_prompt_caching_is_recorded(store, scripted):
@@ -276,6 +319,7 @@ def test_streamed_replies_land_like_whole_ones(store, scripted, provider, name):
     params, input_tokens, output_tokens, finish = store.query(
         "SELECT request_params, input_tokens, output_tokens, finish_reasons FROM llm_calls")[0]
     assert json.loads(params)["stream"] is True and input_tokens > 1000 and output_tokens > 50 and finish == ["stop"]
+    assert store.query("SELECT reply_reading FROM llm_calls") == [("structured",)], "a streamed tool call too"
 
 
 def test_waiting_line_shows_time_and_streamed_tokens():

@@ -18,7 +18,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
-from pipeline.llm.providers import LOCAL_SERVER_PROVIDERS, with_cache_breakpoint
+from pipeline.llm.providers import LOCAL_SERVER_PROVIDERS, OFFLINE_CHARS_PER_TOKEN, OFFLINE_REASONING_CHARS, \
+    ReplyLimits, reply_format, reply_schema, with_cache_breakpoint
 from pipeline.llm.providers import request_params as provider_request_params
 from pipeline.llm.tokens import import_litellm
 
@@ -64,6 +65,13 @@ class LLMReply:
     latency_s: float = 0.0
     attempts: int = 1
     replayed: bool = False
+    structured: bool = False
+    """The request held the provider to the reply schema (``response_format``)."""
+
+    @property
+    def cut_off(self) -> bool:
+        """The reply stopped at the token limit."""
+        return "length" in self.finish_reasons
 
 
 class LLMError(Exception):
@@ -97,6 +105,12 @@ def _error_name(exc: BaseException) -> str:
     return type(exc).__name__
 
 
+def _refuses_reply_format(name: str, exc: BaseException) -> bool:
+    """Whether a provider error refuses the reply schema (a bad request that names it)."""
+    return name in ("BadRequestError", "UnsupportedParamsError") and bool(
+        re.search(r"response_format|json_schema|response_schema|structured output", str(exc), re.IGNORECASE))
+
+
 def describe_error(exc: BaseException, limit: int = ERROR_MESSAGE_LIMIT) -> str:
     """The useful part of a provider error, on one line: litellm's own prefixes (``litellm.AuthenticationError:
     AnthropicException - ``) and JSON wrapping are taken off, so what is kept (and cut at ``limit``) is what the
@@ -124,6 +138,12 @@ class LiteLLMClient:
 
     Only the parameters the provider accepts are sent (``pipeline/llm/providers.py``); ``request_params()`` is
     exactly what goes to litellm besides the messages, and ``dropped`` names what the provider would refuse.
+    With ``structured`` (the default) the reply is asked for as the provider module's ``REPLY_SCHEMA`` where the
+    provider supports it; ``self.structured`` says whether it is. With ``reply_limits`` (the offline model, held
+    to the schema by a grammar) every string of the reply is held to a length that ends it within ``max_tokens``,
+    and :meth:`hold_reply_to_methods` names the policy's methods in the schema. A server that
+    refuses the schema all the same (a bad request naming ``response_format``) is asked again without it, and the
+    client sends it no more (``dropped`` then names it).
     ``label`` is the model as the user asked for it (``offline:...`` for the built-in model), ``model`` the
     name litellm is given.
     """
@@ -141,6 +161,8 @@ class LiteLLMClient:
         backoff_s: float = DEFAULT_BACKOFF_S,
         label: str | None = None,
         stream: bool = False,
+        structured: bool = True,
+        reply_limits: ReplyLimits | None = None,
     ):
         self.litellm = import_litellm()
         self.model = model
@@ -161,6 +183,12 @@ class LiteLLMClient:
                                          max_tokens=max_tokens, seed=seed, timeout_s=timeout_s)
         self._params = params.sent
         self.dropped = params.dropped
+        self.reply_limits = reply_limits
+        wanted = reply_format(self.litellm, model, self.provider, params.supported, api_base,
+                              reply_schema(reply_limits)) if structured else None
+        if wanted is not None:
+            self._params["response_format"] = wanted
+        self.structured = wanted is not None
         if api_base:
             self._params["api_base"] = api_base
         if stream:
@@ -171,6 +199,15 @@ class LiteLLMClient:
     def request_params(self) -> dict[str, Any]:
         return dict(self._params)
 
+    def hold_reply_to_methods(self, methods: list[str]) -> None:
+        """Let the reply's suggestion name only ``methods`` (the policy's trainable ones), each with its share of
+        the reply's length. Only for a client with ``reply_limits`` (the offline model: a grammar built from the
+        schema keeps a tiny model to real method names and a reply that closes); a hosted model reads the names
+        from the prompt, and its schema stays one for every policy."""
+        if self.structured and self.reply_limits is not None:
+            self._params["response_format"] = {**self._params["response_format"], "json_schema": {
+                **self._params["response_format"]["json_schema"], "schema": reply_schema(self.reply_limits, methods)}}
+
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
                  candidate: int = 0) -> LLMReply:
         """One reply, retried as the class docstring says; with streaming on, ``on_text`` gets each piece of
@@ -180,20 +217,29 @@ class LiteLLMClient:
                                                                self.provider in LOCAL_SERVER_PROVIDERS else {})
         sent = with_cache_breakpoint(self.provider, messages)
         start = time.monotonic()
-        for attempt in range(1, self.retries + 2):
+        attempt = retried = 0
+        while True:
+            attempt += 1
             try:
                 response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
                 if params.get("stream"):
                     response = self._collect(response, sent, on_text)
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
                 name = _error_name(exc)
+                if self.structured and _refuses_reply_format(name, exc):
+                    # a server that does not take the reply schema: ask again without it (not a retry), and
+                    # from now on
+                    self.structured, self.dropped = False, self.dropped + ("response_format",)
+                    del self._params["response_format"]
+                    params = self.request_params()
+                    continue
                 fatal = name in FATAL
-                if fatal or attempt > self.retries:
+                if fatal or retried >= self.retries:
                     raise LLMError(name, describe_error(exc), attempt, fatal, time.monotonic() - start) from None
-                time.sleep(self.backoff_s * 2 ** (attempt - 1))
+                retried += 1
+                time.sleep(self.backoff_s * 2 ** (retried - 1))
                 continue
             return self._reply(response, attempt, time.monotonic() - start)
-        raise AssertionError("unreachable")
 
     def _collect(self, chunks: Any, sent: list[dict[str, Any]], on_text: Callable[[str], None] | None) -> Any:
         """A streamed reply, read to its end (pieces of text to ``on_text``) and built into one response."""
@@ -211,7 +257,12 @@ class LiteLLMClient:
 
     def _reply(self, response: Any, attempts: int, latency_s: float) -> LLMReply:
         choice = response.choices[0] if response.choices else None
-        text = (choice.message.content if choice is not None and choice.message is not None else None) or ""
+        message = choice.message if choice is not None else None
+        text = (message.content if message is not None else None) or ""
+        if not text and message is not None and getattr(message, "tool_calls", None):
+            # litellm hands a forced tool's input back as the text; should an adapter leave it as a tool call,
+            # its arguments are the reply
+            text = getattr(message.tool_calls[0].function, "arguments", None) or ""
         usage = getattr(response, "usage", None)
         try:
             cost = self.litellm.completion_cost(completion_response=response)
@@ -229,6 +280,7 @@ class LiteLLMClient:
             cost_usd=cost or None,
             latency_s=latency_s,
             attempts=attempts,
+            structured=self.structured,
         )
 
 
@@ -280,6 +332,11 @@ def open_client(model: str | None, api_base: str | None, temperature: float, max
     show_offline_model_notice()
     server = LocalModelServer().start()
     max_tokens = max_tokens or OFFLINE_MAX_TOKENS
+    # llama.cpp compiles the schema into a grammar, so SmolLM2's reply is always this JSON; its strings are held
+    # short enough that the JSON closes within max_tokens
+    room = OFFLINE_CHARS_PER_TOKEN * max_tokens
+    limits = ReplyLimits(min(OFFLINE_REASONING_CHARS, room // 4), room)
     client = LiteLLMClient(server.model, api_base=server.api_base, temperature=temperature, max_tokens=max_tokens,
-                           seed=seed, label=OFFLINE_MODEL_LABEL, backoff_s=backoff_s, stream=stream)
+                           seed=seed, label=OFFLINE_MODEL_LABEL, backoff_s=backoff_s, stream=stream,
+                           reply_limits=limits)
     return client, server, server.context_tokens - max_tokens

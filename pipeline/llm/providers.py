@@ -10,6 +10,12 @@ table does not list. Everything else asks litellm:
   Anthropic takes no ``seed``; reasoning models (OpenAI's o-series) take no ``temperature`` and get
   ``max_completion_tokens``. What is dropped is reported once, and what is kept is what gets sent and
   recorded in ``llm_calls.request_params``.
+- :func:`reply_format` asks for the reply's structure where the provider can be held to it: a JSON schema as
+  ``response_format``, which litellm's adapter for each provider turns into that provider's own form (OpenAI and
+  vLLM: ``response_format`` as is; Gemini: ``generationConfig.response_json_schema``; Ollama: ``format``;
+  Anthropic: a forced tool call whose input litellm hands back as the reply's text; llama.cpp's server, the
+  offline model: ``response_format``, which it compiles into a grammar). It is sent only where litellm lists
+  ``response_format`` as supported and the model can take a schema, and recorded with the other parameters.
 - :func:`with_cache_breakpoint` marks the stable prefix of a prompt for providers with explicit prompt
   caching (Anthropic's ``cache_control``); OpenAI and others cache prefixes by themselves.
 - :func:`price` gives litellm's price per input and output token, or None for a model it cannot price.
@@ -17,9 +23,10 @@ table does not list. Everything else asks litellm:
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Sequence
 
 PROVIDER_KEYS: dict[str, tuple[str, ...]] = {
     "anthropic": ("ANTHROPIC_API_KEY",),
@@ -88,6 +95,81 @@ def check_credentials(model: str, api_base: str | None = None, environ: dict[str
     raise MissingCredentialsError(
         f"{model} needs an API key: set {either} in the environment (e.g. `export {missing[0]}=...`), or use "
         "--api-base URL for your own server, or leave out --model to use the offline model")
+
+
+REPLY_SCHEMA_NAME = "policy_update"
+
+REPLY_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "properties": {
+        "reasoning": {"type": "string"},
+        "suggestion": {"type": "object", "additionalProperties": {"type": "string"}},
+    },
+    "required": ["reasoning", "suggestion"],
+    "additionalProperties": False,
+}
+"""The reply the prompt asks for (``pipeline/prompt.py``'s system text), as a JSON schema: the reasoning, then
+``{method name: complete new source}`` for the methods changed. It names no method, so one
+schema serves every policy; validation checks the names. An object with open keys cannot be OpenAI's ``strict``
+kind (that needs every key listed), so it is sent with ``strict: false``: the provider is guided by it and the
+parser (``pipeline/reply.py``) checks the result."""
+
+@dataclass(frozen=True)
+class ReplyLimits:
+    """Lengths that make a reply held to the schema by a grammar end within its token limit (the offline model:
+    SmolLM2 otherwise fills its few hundred reply tokens with reasoning, or repeats itself inside a string, and
+    is cut off before the JSON closes)."""
+
+    reasoning_chars: int
+    """The reasoning's longest length."""
+    reply_chars: int
+    """The whole reply's: the methods' code shares what the reasoning and the JSON around it leave."""
+
+
+OFFLINE_REASONING_CHARS = 160
+OFFLINE_CHARS_PER_TOKEN = 2
+"""The fewest characters a token of SmolLM2's replies held (2.1-5.6 measured over 13 cut-off replies): a reply of
+``max_tokens`` tokens has room for at least this many characters a token."""
+JSON_OVERHEAD_CHARS = 80
+MIN_CODE_CHARS = 120
+
+
+def reply_schema(limits: ReplyLimits | None = None, methods: Sequence[str] | None = None) -> dict[str, Any]:
+    """:data:`REPLY_SCHEMA`; with ``methods``, the suggestion may hold only those keys (a closed object); with
+    ``limits``, every string is held to its share of the reply's length."""
+    schema = json.loads(json.dumps(REPLY_SCHEMA))
+    if limits is not None:
+        schema["properties"]["reasoning"]["maxLength"] = limits.reasoning_chars
+    if methods:
+        code: dict[str, Any] = {"type": "string"}
+        if limits is not None:
+            left = limits.reply_chars - limits.reasoning_chars - JSON_OVERHEAD_CHARS
+            code["maxLength"] = max(MIN_CODE_CHARS, left // len(methods))
+        schema["properties"]["suggestion"] = {"type": "object", "properties": {name: dict(code) for name in methods},
+                                              "additionalProperties": False}
+    return schema
+
+
+def reply_format(litellm, model: str, provider: str, supported: frozenset[str] | set[str], api_base: str | None = None,
+                 schema: dict[str, Any] | None = None) -> dict[str, Any] | None:
+    """The ``response_format`` that holds ``model`` to ``schema`` (default :data:`REPLY_SCHEMA`), or None (then
+    the prompt alone asks for the JSON). Sent where litellm lists ``response_format`` among the provider's
+    parameters and either says the model takes a schema (``supports_response_schema``: hosted models it knows) or
+    the model runs on the user's own server (Ollama, vLLM, llama.cpp, LM Studio: they compile a schema into a
+    grammar; litellm cannot know their models). Should such a server still refuse it, the client stops sending
+    it (``pipeline/llm.py``)."""
+    if "response_format" not in supported:
+        return None
+    own_server = provider in NO_KEY_PROVIDERS or (api_base is not None and provider in LOCAL_SERVER_PROVIDERS)
+    if not own_server:
+        try:
+            known = bool(litellm.supports_response_schema(model=model, custom_llm_provider=provider))
+        except Exception:  # noqa: BLE001 - a model litellm cannot place: do not guess
+            known = False
+        if not known:
+            return None
+    return {"type": "json_schema",
+            "json_schema": {"name": REPLY_SCHEMA_NAME, "schema": schema or REPLY_SCHEMA, "strict": False}}
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ from pipeline.llm.providers import price
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.context import context_for
 from pipeline.optimizer.prompt import Prompt, PromptBudgetError, build_prompt
-from pipeline.optimizer.reply import ReplyParseError, clean_text, parse_reply
+from pipeline.optimizer.reply import ReplyParseError, clean_text, read_reply
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History, ProposalRequest, Ref
 from pipeline.play.runinfo import new_run_id
@@ -84,12 +84,19 @@ class _Pending:
     error: LLMError | None = None
     suggestion: dict[str, str] | None = None
     parse_error: str | None = None
+    reading: str | None = None
+    """How the reply was read: structured, parsed, repaired or unusable (``pipeline/reply.py``)."""
+    repairs: tuple[str, ...] = ()
 
     def parse(self) -> None:
+        reply = self.reply
         try:
-            self.suggestion, self.parse_error = parse_reply(self.text), None
+            read = read_reply(self.text, structured=reply is not None and reply.structured,
+                              cut_off=reply is not None and reply.cut_off)
         except ReplyParseError as exc:
-            self.suggestion, self.parse_error = None, str(exc)
+            self.suggestion, self.parse_error, self.reading, self.repairs = None, str(exc), "unusable", ()
+            return
+        self.suggestion, self.parse_error, self.reading, self.repairs = read.suggestion, None, read.how, read.repairs
 
 
 def propose(store: Store, state: "RunState", history: History, iteration: int, requests: list[ProposalRequest],
@@ -125,6 +132,9 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     to_call = [p for p in pending if p.text is None]
     if to_call:
         check_budgets(store, state, client, [p.prompt for p in to_call])
+        name_methods = getattr(client, "hold_reply_to_methods", None)  # the offline model's grammar
+        if name_methods is not None:
+            name_methods([method.name for method in to_call[0].info.trainable])
         # other processes may read the store while the model thinks: let go of it (checkpointing what this
         # process wrote) once the requests are on their way
         _complete_all(state, iteration, client, to_call, meanwhile=hold.release if hold is not None else None)
@@ -271,7 +281,7 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
         if error is not None:
             row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
         if reply is not None:
-            row.update(parse_error=item.parse_error)
+            row.update(parse_error=item.parse_error, reply_reading=item.reading, reply_repairs=list(item.repairs))
         if id(item.prompt) not in canonical:
             canonical[id(item.prompt)] = canonical_messages(item.prompt.messages)
         calls.append((row, canonical[id(item.prompt)], clean_text(reply.text) if reply is not None else None,

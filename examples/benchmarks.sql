@@ -1,0 +1,44 @@
+-- The paper's table from a store: per game, codearcade's best scores in the runs of examples/benchmarks.toml beside
+-- the authors' published figures (table published_scores, filled from each game's module, games/<game>.py).
+--
+--   codearcade batch examples/benchmarks.toml
+--   codearcade sql "$(cat examples/benchmarks.sql)" --store benchmarks.duckdb
+--
+-- Scores are the authors' measure: a run's best evaluation score under their protocol (sticky 0, no no-op starts,
+-- their caps and episode counts: the frontier view's deterministic_score, iteration 0 included), averaged over the
+-- runs of a game (seeds) with its standard error. `protocol` says whether our evaluation episodes were whole games or
+-- single lives (the follow-up ends an episode at a lost life in Asterix, Breakout, Q*bert and Seaquest).
+-- `theirs` is their figure at our training horizon; paper, default, h1 and h100 are all of theirs (mean ± se).
+WITH batch_runs AS (
+    SELECT run_id, game, json_extract(config, '$.rollout_steps')::INTEGER AS horizon,
+           coalesce(json_extract(config, '$.one_life')::BOOLEAN, false) AS one_life
+    FROM runs WHERE kind = 'optimize' AND json_extract_string(config, '$.batch') = 'eight-games'
+), per_run AS (
+    SELECT b.game, b.run_id, any_value(b.horizon) AS horizon, bool_or(b.one_life) AS one_life,
+           max(f.deterministic_score) AS best,
+           (SELECT max(i.iteration) FROM iterations i WHERE i.run_id = b.run_id) AS iterations
+    FROM batch_runs b JOIN frontier f USING (run_id) GROUP BY b.game, b.run_id
+), ours AS (
+    SELECT game, CASE WHEN bool_and(one_life) THEN 'one life' WHEN bool_or(one_life) THEN 'mixed'
+                      ELSE 'whole games' END AS protocol,
+           min(horizon) AS horizon, count(*)::INTEGER AS runs, min(iterations) AS iterations,
+           max(best) AS best, round(avg(best), 1) AS mean_best,
+           round(stddev_samp(best) / sqrt(count(*)), 1) AS se
+    FROM per_run GROUP BY game
+), theirs AS (
+    SELECT game,
+           any_value(CASE WHEN stderr IS NULL THEN printf('%.1f', score)
+                          ELSE printf('%.1f ± %.1f', score, stderr) END) FILTER (WHERE setting = 'paper') AS paper,
+           any_value(printf('%.1f ± %.1f', score, stderr)) FILTER (WHERE setting = 'default') AS "default",
+           any_value(printf('%.1f ± %.1f', score, stderr)) FILTER (WHERE setting = 'h1') AS h1,
+           any_value(printf('%.1f ± %.1f', score, stderr)) FILTER (WHERE setting = 'h100') AS h100
+    FROM published_scores GROUP BY game
+)
+SELECT coalesce(o.game, t.game) AS game, o.protocol, o.horizon, o.runs, o.iterations, o.best, o.mean_best, o.se,
+       (SELECT p.score FROM published_scores p WHERE p.game = o.game AND p.horizon = o.horizon
+        AND p.setting <> 'paper' ORDER BY p.setting LIMIT 1) AS theirs,
+       (SELECT p.stderr FROM published_scores p WHERE p.game = o.game AND p.horizon = o.horizon
+        AND p.setting <> 'paper' ORDER BY p.setting LIMIT 1) AS theirs_se,
+       t.paper, t."default", t.h1, t.h100
+FROM ours o FULL JOIN theirs t ON t.game = o.game
+ORDER BY game;
