@@ -155,9 +155,9 @@ def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None)
             raise ValueError(f"no run {ref or repr(text)}{where}: there are no runs yet; `codearcade eval` or "
                              "`codearcade optimize` makes one")
         if RECENT_FORM.fullmatch(ref):
-            oldest = f"last~{total - 1}" if total > 1 else "last"
-            raise ValueError(f"no run {ref}{where}: it holds {total} run{'s' * (total != 1)}, last to {oldest} "
-                             f"(-1 to -{total}); `codearcade runs` lists them")
+            held = (f"{total} runs, last to last~{total - 1} (-1 to -{total})" if total > 1
+                    else "one run, last (-1)")
+            raise ValueError(f"no run {ref}{where}: it holds {held}; `codearcade runs` lists them")
         raise ValueError(f"no run {ref or repr(text)}{where}: no run id starts with it and no run is named so; "
                          "`codearcade runs` lists the runs")
     short = short_run_ids(con)

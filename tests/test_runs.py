@@ -93,11 +93,14 @@ def test_a_reference_that_names_nothing_says_what_there_is(four, text, says):
     assert says in str(refused.value) and str(four.path) in str(refused.value)
 
 
-def test_references_in_an_empty_store(store):
+def test_references_in_an_empty_store_and_one_with_a_single_run(store):
     with store.write():
         pass
     with pytest.raises(ValueError, match="there are no runs yet"):
         _resolve(store, "last")
+    _add(store, *RUNS[0][:4])
+    with pytest.raises(ValueError, match=r"no run last~1 in .*: it holds one run, last \(-1\);"):
+        _resolve(store, "last~1")
 
 
 def test_a_label_shared_by_two_runs_is_ambiguous(four):
