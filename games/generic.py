@@ -35,13 +35,14 @@ GENERIC_FEEDBACK = {
 
 
 BROKEN_EXTRACTORS = {
-    "adventure": "its extractor lacks MAX_NB_OBJECTS_HUD",
-    "air_raid": "its extractor indexes a list with a numpy bool",
-    "miniature_golf": "it has no RAM extractor (init_objects)",
-    "road_runner": "its extractor refers to an undefined BirdSeeds class",
-    "time_pilot": "its extractor overruns its object list within 300 steps",
+    "adventure": "OCAtari's RAM extractor for it lacks MAX_NB_OBJECTS_HUD",
+    "air_raid": "OCAtari's RAM extractor for it indexes a list with a numpy bool",
+    "miniature_golf": "OCAtari has no RAM extractor for it (no init_objects)",
+    "road_runner": "OCAtari's RAM extractor for it refers to an undefined BirdSeeds class",
+    "time_pilot": "OCAtari's RAM extractor for it overruns its object list within 300 steps",
 }
-"""Games whose OCAtari 2.2.1 RAM extractor fails (found by playing 300 steps of every game): refused by name."""
+"""Games whose OCAtari 2.2.1 RAM extractor fails (found by playing 300 steps of every game): refused by name, with
+the reason as a whole clause (the error is ``{game} cannot be played: {reason}``)."""
 
 
 class BrokenGameError(ValueError):
@@ -78,7 +79,7 @@ def generic_game(name: str) -> Game | None:
     if rom is None or key not in _ocatari_games():
         return None
     if rom in BROKEN_EXTRACTORS:
-        raise BrokenGameError(f"{rom} cannot be played: OCAtari's {BROKEN_EXTRACTORS[rom]}")
+        raise BrokenGameError(f"{rom} cannot be played: {BROKEN_EXTRACTORS[rom]}")
     actions, lives = _ale_facts(rom)
     title = rom_title(rom)
     instruction = (f"You play Atari {title}. Improve the trainable methods so the policy scores as many points "

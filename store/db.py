@@ -26,10 +26,9 @@ from typing import Any, Iterator
 import duckdb
 
 from store.hub import HUB
+from store.locate import DEFAULT_STORE, StoreLocation, locate_store  # noqa: F401 (DEFAULT_STORE: re-exported)
 from store.migrations import LATEST, MIGRATIONS
 from store.published import refresh_published
-
-DEFAULT_STORE = "codearcade.duckdb"
 
 
 class StoreError(Exception):
@@ -37,8 +36,9 @@ class StoreError(Exception):
 
 
 def default_store_path() -> str:
-    """``$CODEARCADE_STORE`` if set, else ``codearcade.duckdb`` in the current directory."""
-    return os.environ.get("CODEARCADE_STORE") or DEFAULT_STORE
+    """The store a command uses without ``--store`` (``store/locate.py``: ``$CODEARCADE_STORE``, the nearest
+    ``codearcade.duckdb`` here or in a parent directory, the per-user store)."""
+    return str(locate_store().path)
 
 
 def utcnow() -> datetime:
@@ -111,9 +111,12 @@ class Store:
     on error); ``store.read()`` yields a read-only connection. Both retry while another process holds the file.
     """
 
-    def __init__(self, path: str | os.PathLike | None = None, lock_timeout_s: float = 60.0,
+    def __init__(self, path: str | os.PathLike | StoreLocation | None = None, lock_timeout_s: float = 60.0,
                  write_lock_timeout_s: float = 600.0):
-        self.path = Path(path if path is not None else default_store_path())
+        location = path if isinstance(path, StoreLocation) else locate_store(path)
+        self.location = location
+        """How the store was chosen (``store/locate.py``): a path given here counts as ``--store``."""
+        self.path = location.path
         self.lock_timeout_s = lock_timeout_s
         # a run must not fail because someone ran a long query meanwhile: writers wait longer than readers
         self.write_lock_timeout_s = max(write_lock_timeout_s, lock_timeout_s)
@@ -232,6 +235,8 @@ class Store:
         A transaction that fails (a full disk included) is rolled back whole: what was committed before stays.
         """
         parent = self.path.parent
+        if not parent.exists() and self.location.rule == "user":  # the per-user store's directory, made once
+            parent.mkdir(parents=True, exist_ok=True)
         if not parent.exists():
             raise StoreError(f"directory {parent} for the store does not exist; create it or choose another --store")
         if not os.access(parent, os.W_OK) and not self.path.exists():
@@ -266,7 +271,9 @@ class Store:
     def read(self, check: bool = True) -> Iterator[duckdb.DuckDBPyConnection]:
         """A read-only connection to an existing store; ``check=False`` skips the damage check (the doctor)."""
         if not self.path.exists():
-            raise StoreError(f"no store at {self.path}; run `codearcade eval` or `codearcade optimize` first, "
+            where = (f"no {DEFAULT_STORE} in {os.getcwd()} or a parent directory, and no per-user store at "
+                     f"{self.path}" if self.location.rule == "user" else f"no store at {self.path}")
+            raise StoreError(f"{where}; run `codearcade eval` or `codearcade optimize` first, "
                              "or point --store / CODEARCADE_STORE at an existing one")
         if self._held:  # attached by this process's hold, checked and migrated: nothing to look at again
             con = self._open(read_only=True)

@@ -4,6 +4,9 @@ Each migration is a (version, name, SQL) triple applied once, in order, inside a
 ``schema_migrations``. Never edit a released migration: add a new one. A store whose highest recorded
 version is above :data:`LATEST` was written by a newer codearcade and is refused (see ``store/db.py``).
 The tables and their columns are documented in docs/schema.md; tests check that the two agree.
+
+Over ~600 lines because it is the schema's whole history, append-only: a released migration is never edited, so
+it cannot be shortened, and one file keeps the order plain.
 """
 
 from __future__ import annotations
@@ -550,6 +553,91 @@ MIGRATIONS.append(
             stderr      DOUBLE,             -- its standard error over the trials (NULL: one trial)
             PRIMARY KEY (game, setting)
         );
+        """,
+    )
+)
+
+# Runs as people address and tell them apart (issue 24): a label per run, a mark on the runs a command made for
+# its own use (compare's evaluations of two versions), run_summary with the settings that tell runs apart, and a
+# one-line description of every table and view (DuckDB comments: `codearcade sql --schema` lists them, and so does
+# any DuckDB client: SELECT table_name, comment FROM duckdb_tables()). Eval runs that compare made before this
+# migration are found by the temporary policy file it played them from.
+MIGRATIONS.append(
+    (
+        10,
+        "runs: name (a label), made_by (compare's own eval runs); run_summary tells runs apart; comments on every "
+        "table and view",
+        r"""
+        ALTER TABLE runs ADD COLUMN name VARCHAR;     -- a label: --name, or a batch entry's
+        ALTER TABLE runs ADD COLUMN made_by VARCHAR;  -- NULL: a person's command; compare: played by codearcade compare
+        UPDATE runs SET made_by = 'compare'
+        WHERE kind = 'eval' AND json_extract_string(config, '$.policy') LIKE '%codearcade-compare-%';
+
+        CREATE OR REPLACE VIEW run_summary AS
+        WITH it AS (
+            SELECT run_id, (count(*) FILTER (WHERE iteration >= 1))::INTEGER AS iterations_done,
+                   max(best_score) AS best_score, arg_max(best_iteration, iteration) AS best_iteration,
+                   arg_max(score, iteration) AS last_score
+            FROM iterations GROUP BY run_id
+        ), ep AS (
+            SELECT run_id, count(*)::INTEGER AS episodes, sum(length)::BIGINT AS steps,
+                   avg("return") FILTER (WHERE kind = 'eval') AS mean_eval_return
+            FROM episodes GROUP BY run_id
+        ), calls AS (
+            SELECT run_id, count(*)::INTEGER AS llm_calls,
+                   coalesce(sum(input_tokens), 0)::BIGINT AS input_tokens,
+                   coalesce(sum(output_tokens), 0)::BIGINT AS output_tokens,
+                   sum(cost_usd) AS cost_usd
+            FROM llm_calls GROUP BY run_id
+        )
+        SELECT r.run_id, r.name, r.created_at, r.finished_at, r.kind, r.game, r.model, r.seed, r.status,
+               json_extract_string(r.config, '$.policy') AS policy,
+               CASE WHEN r.kind <> 'eval' THEN coalesce(json_extract_string(r.config, '$.strategy'), 'greedy')
+               END AS strategy,
+               CASE WHEN r.kind <> 'eval' THEN json_extract_string(r.config, '$.feedback') END AS feedback,
+               json_extract_string(r.config, '$.batch') AS batch,
+               r.made_by,
+               coalesce(it.iterations_done, 0) AS iterations_done,
+               TRY_CAST(json_extract(r.config, '$.iterations') AS INTEGER) AS iterations_planned,
+               CASE WHEN r.kind = 'eval' THEN ep.mean_eval_return ELSE it.best_score END AS best_score,
+               it.best_iteration, it.last_score,
+               coalesce(ep.episodes, 0) AS episodes, coalesce(ep.steps, 0) AS steps,
+               coalesce(calls.llm_calls, 0) AS llm_calls,
+               coalesce(calls.input_tokens, 0) AS input_tokens,
+               coalesce(calls.output_tokens, 0) AS output_tokens,
+               (coalesce(calls.input_tokens, 0) + coalesce(calls.output_tokens, 0))::BIGINT AS total_tokens,
+               calls.cost_usd,
+               epoch(r.finished_at - r.created_at) AS duration_s,
+               r.error
+        FROM runs r
+        LEFT JOIN it ON it.run_id = r.run_id
+        LEFT JOIN ep ON ep.run_id = r.run_id
+        LEFT JOIN calls ON calls.run_id = r.run_id;
+
+        COMMENT ON TABLE schema_migrations IS 'the migrations applied to this store, in order: version, name, when';
+        COMMENT ON TABLE blobs IS 'texts stored once by their SHA-256: policy files, method sources, prompts, replies, feedback';
+        COMMENT ON TABLE runs IS 'one row per run (eval, optimize, replay): game, settings (config JSON), model, status, label (name)';
+        COMMENT ON TABLE policy_versions IS 'every policy version a run used or considered: how it was made, its validation, code metrics';
+        COMMENT ON TABLE episodes IS 'one row per played episode: return, length, lives lost, end reason, verification by replay';
+        COMMENT ON TABLE steps IS 'one row per environment step: action, reward, score, lives and the whole object observation';
+        COMMENT ON TABLE nodes IS 'one row per call of a bundled policy method in traced episodes: inputs, output, exception, lines run';
+        COMMENT ON TABLE iterations IS 'one row per optimizer iteration: the chosen candidate, its score, the best so far, times';
+        COMMENT ON TABLE feedback IS 'the feedback text of each iteration, as the next prompt shows it';
+        COMMENT ON TABLE llm_calls IS 'every LLM call (OpenTelemetry gen_ai names): model, prompt and reply hashes, tokens, cost, latency, error';
+        COMMENT ON TABLE candidates IS 'every candidate of every iteration: its parent, its evaluation (played, cached, screened), score, decision';
+        COMMENT ON TABLE published_scores IS 'the authors'' published scores per game and setting, refilled from the game modules';
+        COMMENT ON TABLE policy_lines IS 'every line of every version of the trainable methods, with the version that introduced it (blame)';
+        COMMENT ON VIEW learning_curve IS 'one row per iteration: score, best so far, LLM calls and tokens, times';
+        COMMENT ON VIEW code_metrics IS 'one row per iteration: lines, complexity and if depth of the version it evaluated (the paper Table 3)';
+        COMMENT ON VIEW llm_usage IS 'one row per run: LLM calls, errors, retries, tokens (cached too), cost, latency';
+        COMMENT ON VIEW rejected_candidates IS 'one row per rejected update: the stage (parse, static, runtime) and the reason';
+        COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: label, settings, status, best score, episodes, tokens';
+        COMMENT ON VIEW lineage IS 'one row per candidate, with its edge to the candidate it improved and the score gained';
+        COMMENT ON VIEW frontier IS 'each distinct version a run assessed, once, ranked by score';
+        COMMENT ON VIEW line_blame IS 'policy_lines with the LLM call that wrote each line';
+        COMMENT ON VIEW node_lines IS 'one row per line that ran in a traced call, with its text';
+        COMMENT ON VIEW line_coverage IS 'one row per line of a trainable method per traced episode: in how many calls it ran';
+        COMMENT ON VIEW unrun_lines IS 'the executable lines of a version that none of its traced calls in the run ran';
         """,
     )
 )

@@ -315,7 +315,10 @@ def version_of_iteration(con: duckdb.DuckDBPyConnection, run_id: str, iteration:
         rows = con.execute("SELECT policy_version_id FROM policy_versions WHERE run_id = ? AND iteration = ? "
                            "AND validation = 'accepted'", [run_id, iteration]).fetchall()
     if not rows:
-        (last,) = con.execute("SELECT max(iteration) FROM policy_versions WHERE run_id = ?", [run_id]).fetchone()
+        # every iteration has an ``iterations`` row, not always a version of its own (a parse error, no change)
+        (last,) = con.execute("SELECT greatest((SELECT max(iteration) FROM iterations WHERE run_id = $run), "
+                              "(SELECT max(iteration) FROM policy_versions WHERE run_id = $run))",
+                              {"run": run_id}).fetchone()
         raise ValueError(f"run {run_id} has no iteration {iteration} (iterations 0..{last}); give --iteration "
                          "within them")
     return rows[0][0]

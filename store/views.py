@@ -1,25 +1,33 @@
-"""Read-only queries for people: the SQL views, ad-hoc SQL, and run-id lookup.
+"""Read-only queries for people: the SQL views, ad-hoc SQL with parameters, and the list of what a store holds.
 
-The views themselves are created by migration 3 (``store/migrations.py``) and documented in docs/schema.md;
+The views themselves are created by migrations (``store/migrations.py``) and documented in docs/schema.md;
 :data:`VIEWS` names them for the CLI and the tests. A store an older codearcade wrote gets them the first time
 :meth:`store.Store.read` opens it (it applies pending migrations). :func:`run_query` runs one statement through
 :meth:`store.Store.read`, which retries while a writer holds the file, and returns every row at once, so the
 file is held only while DuckDB computes the result, never while the caller prints it. A person's SQL
 (``codearcade sql``) goes through :func:`run_user_query` instead, which makes it read-only for real: one
 reading statement, on a read-only connection of its own with DuckDB's external access off and its
-configuration locked (no ATTACH, COPY, EXPORT, INSTALL, no reading or writing of other files).
+configuration locked (no ATTACH, COPY, EXPORT, INSTALL, no reading or writing of other files); it may
+have parameters (:func:`bind_params`: ``?``, ``$1`` or ``$name``) and use the macros ``run(ref)`` and
+``run_matches(ref)`` (``store/runs.py``, which also resolves run references for every verb). :func:`schema_listing`
+lists the tables, views and macros with one line each (the tables' and views' DuckDB comments, set by migration 10).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
+import re
 import time
+from dataclasses import dataclass
+from typing import Any, Sequence
 
 import duckdb
 
 from store.db import Store, StoreError
+from store.runs import SQL_MACROS, create_sql_macros, resolve_run_id  # noqa: F401 (resolve_run_id: for callers)
+
+TABLES = ("runs", "blobs", "policy_versions", "episodes", "steps", "nodes", "policy_lines", "iterations", "candidates",
+          "feedback", "llm_calls", "schema_migrations")
+"""The tables, in the order docs/schema.md documents them."""
 
 VIEWS = ("learning_curve", "code_metrics", "llm_usage", "rejected_candidates", "run_summary", "lineage", "frontier",
          "line_blame", "node_lines", "line_coverage", "unrun_lines")
@@ -95,25 +103,76 @@ def check_user_sql(sql: str) -> None:
                          "VALUES, SHOW, DESCRIBE, SUMMARIZE), EXPLAIN, PRAGMA or CALL")
 
 
-def run_user_query(store: Store, sql: str) -> Result:
+_NAMED = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)=(.*)", re.S)
+
+
+def bind_params(sql: str, values: Sequence[str]) -> list[str] | dict[str, str]:
+    """The parameters of a person's query from ``--param`` texts: for ``?`` or ``$1, $2, ...`` one value per
+    parameter, in order, each taken as written; for ``$name`` one ``name=value`` each. DuckDB casts each text to the
+    type its place in the query asks for (``iteration = ?`` with ``3``). :class:`QueryError` naming what is missing
+    or extra."""
+    check_user_sql(sql)
+    wanted = duckdb.extract_statements(sql)[0].named_parameters
+    if not wanted:
+        if values:
+            raise QueryError(f"the query has no parameters (? or $name), but {len(values)} --param "
+                             f"value{'s were' if len(values) != 1 else ' was'} given; drop them or add ? to the query")
+        return []
+    if all(name.isdigit() for name in wanted):
+        if len(values) != len(wanted):
+            raise QueryError(f"the query has {len(wanted)} parameter{'s' * (len(wanted) != 1)} (? or $1..), "
+                             f"{len(values)} --param value{'s' * (len(values) != 1)} given: give one --param VALUE "
+                             "for each, in order")
+        return list(values)
+    named: dict[str, str] = {}
+    for text in values:
+        match = _NAMED.fullmatch(text)
+        if match is None or match.group(1) not in wanted:
+            known = ", ".join(f"${n}" for n in sorted(wanted))
+            raise QueryError(f"--param {text!r} names no parameter of the query ({known}); give --param NAME=VALUE "
+                             "for each")
+        named[match.group(1)] = match.group(2)
+    missing = sorted(set(wanted) - set(named))
+    if missing:
+        raise QueryError(f"no value for {', '.join('$' + n for n in missing)}; give --param "
+                         f"{missing[0]}=VALUE")
+    return named
+
+
+def run_user_query(store: Store, sql: str, params: Sequence[str] | None = None) -> Result:
     """Run a person's SQL (``codearcade sql``) so that it can only read the store.
 
     One statement of a reading type (:func:`check_user_sql`), on a connection of its own that opens the store
     file read-only, with external access off (DuckDB then refuses ATTACH, COPY ... TO, EXPORT, INSTALL/LOAD,
     and every function that reads a file: read_text, read_csv, glob, ...) and the configuration locked, so the
-    statement cannot turn any of it back on. The store is opened (and migrated) first through
-    :meth:`Store.read`, which gives the usual one-line errors for a missing, foreign or locked file.
+    statement cannot turn any of it back on. ``params`` are the ``--param`` texts (:func:`bind_params`); the
+    macros of ``store/runs.py`` are there (``WHERE run_id = run('last')``). The store is opened (and migrated)
+    first through :meth:`Store.read`, which gives the usual one-line errors for a missing, foreign or locked file.
     """
-    check_user_sql(sql)
+    bound = bind_params(sql, list(params or []))
     with store.read():
         pass
     con = _user_connection(store)
     try:
-        return _result(con.execute(sql))
+        return _result(con.execute(sql, bound))
     except duckdb.Error as exc:
         raise QueryError(one_line(exc)) from None
     finally:
         con.close()
+
+
+def schema_listing(store: Store) -> list[tuple[str, str, str]]:
+    """(name, kind, one line) of every table, view and macro a person's SQL can use: tables and views with their
+    DuckDB comment (set by the migrations), in the order docs/schema.md describes them, then the macros."""
+    with store.read() as con:
+        rows = con.execute(
+            "SELECT table_name, 'table', coalesce(comment, '') FROM duckdb_tables() "
+            "WHERE database_name = current_database() AND schema_name = 'main' "
+            "UNION ALL SELECT view_name, 'view', coalesce(comment, '') FROM duckdb_views() "
+            "WHERE database_name = current_database() AND schema_name = 'main' AND NOT internal").fetchall()
+    order = {name: k for k, name in enumerate(TABLES + VIEWS)}
+    rows.sort(key=lambda r: (r[1] != "table", order.get(r[0], len(order)), r[0]))
+    return rows + [(signature, "macro", help_line) for signature, help_line, _ in SQL_MACROS.values()]
 
 
 def _user_connection(store: Store) -> duckdb.DuckDBPyConnection:
@@ -128,19 +187,6 @@ def _user_connection(store: Store) -> duckdb.DuckDBPyConnection:
                 time.sleep(0.05)
                 continue
             raise StoreError(f"cannot open {store.path}: {one_line(exc)}") from None
+    create_sql_macros(con)  # temporary macros, before the configuration is locked
     con.execute("SET lock_configuration = true")
     return con
-
-
-def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Store | None = None) -> str:
-    """The run whose id is ``text`` or starts with it; ValueError if none or several match."""
-    matches = [r[0] for r in con.execute(
-        "SELECT run_id FROM runs WHERE starts_with(run_id, ?) ORDER BY run_id LIMIT 6", [text.strip()]).fetchall()]
-    where = f" in {store.path}" if store is not None else ""
-    if not matches or not text.strip():
-        raise ValueError(f"no run {text.strip() or repr(text)}{where}; `codearcade runs` lists the runs")
-    if text.strip() in matches:
-        return text.strip()
-    if len(matches) > 1:
-        raise ValueError(f"run {text!r} is ambiguous{where}: {', '.join(matches[:5])}...; give more of the id")
-    return matches[0]

@@ -18,6 +18,7 @@ import pyarrow as pa
 
 from store.db import utcnow
 from store.lines import write_version_lines
+from store.runs import check_run_name
 
 
 def text_hash(text: str) -> str:
@@ -61,15 +62,29 @@ def insert_run(
     model: str | None = None,
     seed: int | None = None,
     created_at: datetime | None = None,
+    name: str | None = None,
+    made_by: str | None = None,
 ) -> None:
+    """The run's row, status ``running``. ``name`` is its label (checked by :func:`store.runs.check_run_name`);
+    ``made_by`` names the command that made the run for its own use (``compare``), which ``runs`` and ``last``
+    leave out."""
+    if name is not None:
+        check_run_name(name)
     starter_hash = put_blob(con, "policy", starter_text)
     con.execute(
         """INSERT INTO runs (run_id, created_at, kind, game, config, model, seed, status, package_versions,
-                             starter_policy_hash, starter_version_id)
-           VALUES (?, ?, ?, ?, ?, ?, ?, 'running', ?, ?, ?)""",
+                             starter_policy_hash, starter_version_id, name, made_by)
+           VALUES (?, ?, ?, ?, ?, ?, ?, 'running', ?, ?, ?, ?, ?)""",
         [run_id, created_at or utcnow(), kind, game, json.dumps(config, sort_keys=True), model, seed,
-         json.dumps(package_versions, sort_keys=True), starter_hash, starter_version_id],
+         json.dumps(package_versions, sort_keys=True), starter_hash, starter_version_id, name, made_by],
     )
+
+
+def set_run_name(con: duckdb.DuckDBPyConnection, run_id: str, name: str | None) -> None:
+    """Give a run a label (or take it away with None)."""
+    if name is not None:
+        check_run_name(name)
+    con.execute("UPDATE runs SET name = ? WHERE run_id = ?", [name, run_id])
 
 
 def finish_run(con: duckdb.DuckDBPyConnection, run_id: str, status: str, error: str | None = None) -> None:

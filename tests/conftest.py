@@ -14,9 +14,31 @@ EXAMPLES = ROOT / "games" / "scaffolds"
 POLICIES = Path(__file__).resolve().parent / "policies"
 
 
+@pytest.fixture(autouse=True)
+def _private_user_store(tmp_path_factory, monkeypatch):
+    """A command run without --store in a test never writes the person's own per-user store (store/locate.py)."""
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path_factory.getbasetemp() / "xdg-data"))
+
+
 @pytest.fixture
 def store(tmp_path: Path) -> Store:
     return Store(tmp_path / "test.duckdb", lock_timeout_s=20)
+
+
+def old_store(path: Path, version: int):
+    """A store file as a codearcade at schema ``version`` left it (migrations 1..version applied, recorded); an
+    open read-write DuckDB connection to it, for the test to add rows with, then close."""
+    import duckdb
+
+    from store.migrations import MIGRATIONS
+
+    con = duckdb.connect(str(path))
+    con.execute("CREATE TABLE schema_migrations (version INTEGER PRIMARY KEY, name VARCHAR NOT NULL, "
+                "applied_at TIMESTAMP NOT NULL)")
+    for number, name, sql in MIGRATIONS[:version]:
+        con.execute(sql)
+        con.execute("INSERT INTO schema_migrations VALUES (?, ?, now())", [number, name])
+    return con
 
 
 @pytest.fixture

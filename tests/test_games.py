@@ -6,6 +6,7 @@ from __future__ import annotations
 import ast
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -13,6 +14,7 @@ import textwrap
 import pytest
 
 from games import GAMES, UnknownGameError, get_game
+from games.generic import BROKEN_EXTRACTORS
 from store import Store
 from tests.conftest import ROOT
 
@@ -53,8 +55,13 @@ def test_any_spelling_and_generic_games():
     assert riverraid.actions[:2] == ("NOOP", "FIRE") and riverraid.lives == 4
     with pytest.raises(UnknownGameError, match="Did you mean 'pong'"):
         get_game("pongg")
-    with pytest.raises(UnknownGameError, match="time_pilot cannot be played"):
+    with pytest.raises(UnknownGameError, match="time_pilot cannot be played: OCAtari's RAM extractor for it "):
         get_game("time_pilot")
+    for broken in BROKEN_EXTRACTORS:  # each reason reads as a sentence after the game's name
+        with pytest.raises(UnknownGameError) as refused:
+            get_game(broken)
+        assert re.fullmatch(rf"{broken} cannot be played: OCAtari(?:'s RAM extractor for it| has no RAM extractor "
+                            r"for it) [^']+", str(refused.value)), str(refused.value)
 
 
 @pytest.mark.parametrize("game", ["riverraid", "ms_pacman", "boxing", "tennis"])

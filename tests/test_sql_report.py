@@ -191,6 +191,16 @@ def test_report_of_an_unknown_or_ambiguous_run(filled, capsys):
     assert code == 2 and "ambiguous" in err
 
 
+def test_blame_of_a_missing_iteration_names_the_iterations_there_are(filled):
+    """Iteration 2 stored no version of its own (an unusable reply): the range still reaches it."""
+    from viewers.blame import blame
+
+    store, run_id, _ = filled
+    assert store.query("SELECT max(iteration) FROM policy_versions WHERE run_id = ?", [run_id])[0][0] == 1
+    with pytest.raises(ValueError, match=r"has no iteration 7 \(iterations 0\.\.2\); give --iteration within them"):
+        blame(store, run_id, iteration=7)
+
+
 # ------------------------------------------------------------------------------- reading during a writing run
 
 def _poll_counts(store_path: Path, writer: subprocess.Popen, query: str, capsys) -> tuple[list, list[str]]:

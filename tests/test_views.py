@@ -6,7 +6,6 @@ import json
 import re
 from pathlib import Path
 
-import duckdb
 import pytest
 
 from pipeline.llm.client import LiteLLMClient
@@ -15,8 +14,8 @@ from pipeline.optimizer.loop import optimize
 from pipeline.play.evaluate import EvalConfig, evaluate
 from store import Store
 from store.migrations import LATEST, MIGRATIONS
-from store.views import VIEWS, run_query
-from tests.conftest import COMPETENT_REPLY, EXAMPLES, json_reply
+from store.views import VIEWS, run_query, run_user_query
+from tests.conftest import COMPETENT_REPLY, EXAMPLES, json_reply, old_store
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -84,13 +83,7 @@ def test_views_reach_a_store_written_by_an_older_codearcade(tmp_path):
     from pipeline.cli import main
 
     path = tmp_path / "old.duckdb"
-    con = duckdb.connect(str(path))
-    con.execute("CREATE TABLE schema_migrations (version INTEGER PRIMARY KEY, name VARCHAR NOT NULL, "
-                "applied_at TIMESTAMP NOT NULL)")
-    for version, name, sql in MIGRATIONS[:2]:
-        con.execute(sql)
-        con.execute("INSERT INTO schema_migrations VALUES (?, ?, now())", [version, name])
-    con.close()
+    old_store(path, 2).close()
     assert main(["sql", "SELECT count(*) AS n FROM run_summary", "--csv", "--store", str(path)]) == 0
     assert Store(path).query("SELECT max(version) FROM schema_migrations")[0][0] == LATEST
 
@@ -172,6 +165,44 @@ def test_llm_usage_and_run_summary(runs):
     returns = [r[0] for r in store.query("SELECT return FROM episodes WHERE run_id = ?", [eval_id])]
     assert (e["kind"], e["model"], e["iterations_done"], e["iterations_planned"]) == ("eval", None, 0, None)
     assert e["best_score"] == pytest.approx(sum(returns) / 3) and e["steps"] == 3 * 200 and e["total_tokens"] == 0
+
+
+def test_run_summary_tells_runs_apart(runs):
+    store, run_id, eval_id = runs
+    summary = {r["run_id"]: r for r in _dicts(store, "SELECT * FROM run_summary")}
+    s, e = summary[run_id], summary[eval_id]
+    assert (s["name"], s["policy"], s["strategy"], s["feedback"], s["batch"], s["made_by"]) == (
+        None, None, "greedy", "staged", None, None), "an optimize run from the scaffold"
+    assert (e["policy"], e["strategy"], e["feedback"]) == (str(EXAMPLES / "pong.py"), None, None)
+
+
+def _doc_sql_examples() -> list[tuple[str, list[str]]]:
+    """Every `codearcade sql` command docs/schema.md prints: (query, --param values)."""
+    import shlex
+
+    doc = (ROOT / "docs" / "schema.md").read_text()
+    examples = []
+    for line in re.findall(r"^codearcade sql .*$", doc, re.M):
+        argv = shlex.split(line, comments=True)
+        params = [argv[k + 1] for k, arg in enumerate(argv) if arg == "--param"]
+        examples.append((argv[2], params))
+    return examples
+
+
+def test_schema_doc_examples_run_as_printed(runs):
+    """Each example runs as printed, its `?` filled by its --param values (`last` is here the eval run made last:
+    the examples about an optimization are given the one before it, `last~1`)."""
+    store, run_id, _ = runs
+    examples = _doc_sql_examples()
+    assert len(examples) >= 12 and sum(bool(p) for _, p in examples) >= 9
+    for sql, params in examples:
+        result = run_user_query(store, sql.replace("run('last')", "run('last~1')"),
+                                ["last~1" if p == "last" else p for p in params])
+        assert result.columns, sql
+        empty_here = "'RB'" in sql or "unrun_lines" in sql  # a Breakout example; lines every call ran
+        assert result.rows or empty_here, f"no rows: {sql}"
+        if "ORDER BY" not in sql and "run_matches" not in sql:
+            raise AssertionError(f"an example without ORDER BY: {sql}")
 
 
 def test_usage_of_failed_retried_and_priced_calls(store):

@@ -16,7 +16,7 @@ from store import Store
 from store.comparisons import resolve_version
 from store.lines import backfill_lines, has_lines, version_blame
 from store.readers import first_iteration_of, get_run, version_of_iteration
-from store.views import resolve_run_id
+from store.runs import resolve_run_id
 
 SHORT_VERSION = 8
 SHORT_CALL = 12

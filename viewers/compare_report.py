@@ -2,7 +2,8 @@
 
 Input is the plain data of :mod:`pipeline.play.versus` (``RunComparison.as_dict()`` / ``VersionComparison.as_dict()``).
 The plot draws both runs' score and best-so-far against the three budgets a run spends (LLM calls, tokens,
-wall seconds), one panel each, with matplotlib's Agg canvas (no display needed).
+wall seconds), one panel each, with matplotlib's Agg canvas (no display needed); A wide and solid under B narrow and
+dashed, A's dots filled inside B's hollow squares, so neither hides the other where they coincide.
 """
 
 from __future__ import annotations
@@ -11,31 +12,44 @@ import json
 from pathlib import Path
 from typing import Any
 
+from store.runs import shortest_prefixes
 from viewers.report import _md_table
 from viewers.tables import format_table
 
 COLOURS = {"A": "#1f77b4", "B": "#d62728"}
+LINES = {  # where the two curves coincide, A's wide solid line shows on both sides of B's narrow dashed one
+    "A": {"linestyle": "-", "linewidth": 3.2, "alpha": 0.55, "zorder": 2},
+    "B": {"linestyle": (0, (4, 2)), "linewidth": 1.5, "alpha": 1.0, "zorder": 3},
+}
+DOTS = {  # and A's filled dots show inside B's hollow squares
+    "A": {"marker": "o", "s": 16, "zorder": 4},
+    "B": {"marker": "s", "s": 46, "facecolors": "none", "linewidths": 1.1, "zorder": 5},
+}
 PANELS = (("llm_calls", "LLM calls", 1.0), ("tokens", "tokens (thousands)", 1000.0), ("elapsed_s", "wall seconds", 1.0))
 
 
-def plot_curves(data: dict[str, Any], path: Path) -> None:
-    """Both runs' learning curves on one PNG: score (dots) and best so far (steps) per LLM call, per thousand
+def curves_figure(data: dict[str, Any]):
+    """Both runs' learning curves on one figure: score (dots) and best so far (steps) per LLM call, per thousand
     tokens and per wall second."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(13, 4.2), dpi=110, layout="constrained")
     axes = fig.subplots(1, len(PANELS), sharey=True)
+    short = shortest_prefixes(run["run_id"] for run in data["runs"])
     for ax, (key, xlabel, scale) in zip(axes, PANELS):
         ax.grid(True, alpha=0.3)
         ax.spines[["top", "right"]].set_visible(False)
         for run in data["runs"]:
-            curve = data["curves"][run["label"]]
+            label = run["label"]
+            curve = data["curves"][label]
             xs = [p[key] / scale for p in curve]
-            colour = COLOURS[run["label"]]
-            ax.step(xs, [p["best_score"] for p in curve], where="post", color=colour, linewidth=1.8,
-                    label=f"{run['label']} {run['run_id'][:10]}… best so far")
-            ax.scatter(xs, [p["score"] for p in curve], color=colour, s=18, alpha=0.6, linewidths=0,
-                       label=f"{run['label']} score of an iteration")
+            colour = COLOURS[label]
+            ax.step(xs, [p["best_score"] for p in curve], where="post", color=colour, **LINES[label],
+                    label=f"{label} {short[run['run_id']]} best so far")
+            dots = DOTS[label]
+            ax.scatter(xs, [p["score"] for p in curve], **({"edgecolors": colour} if "facecolors" in dots
+                                                          else {"color": colour, "linewidths": 0}),
+                       **dots, label=f"{label} score of an iteration")
         ax.set_xlabel(xlabel)
     from matplotlib.ticker import MaxNLocator
 
@@ -45,7 +59,7 @@ def plot_curves(data: dict[str, Any], path: Path) -> None:
     runs = data["runs"]
     fig.suptitle(f"{data['game']}: A {runs[0]['run_id']} ({runs[0]['model']}) vs B {runs[1]['run_id']} "
                  f"({runs[1]['model']})", fontsize=10)
-    fig.savefig(path)
+    return fig
 
 
 def _score(value: Any) -> str:
@@ -147,7 +161,7 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     md: list[str] = []
     if data["mode"] == "runs":
-        plot_curves(data, out / "curves.png")
+        curves_figure(data).savefig(out / "curves.png")
         runs = data["runs"]
         md += [f"# {data['game']}: run `{runs[0]['run_id']}` (A) vs run `{runs[1]['run_id']}` (B)", "",
                "![learning curves against LLM calls, tokens and wall seconds](curves.png)", "",

@@ -4,7 +4,7 @@ An optimization run gets ``score.png`` (mean evaluation return per iteration, ea
 best so far, rollbacks), ``code.png`` (lines of code, cyclomatic complexity and nested-if depth of the version
 each iteration evaluated: the paper's Table 3 over time) and ``tokens.png`` (LLM input/output tokens per
 iteration and cumulative) and ``lineage.png`` (every candidate at its score, with an edge to the candidate it
-improved, and its standard-protocol score when measured); an eval run gets ``score.png`` with the return of each episode. ``README.md`` shows
+improved, and its standard-protocol score when measured; a candidate never played, hollow on a lane of its own); an eval run gets ``score.png`` with the return of each episode. ``README.md`` shows
 the plots with the run's settings and tables of its iterations (or episodes), rejected candidates and LLM
 usage. Everything is read in one read-only open (the views of docs/schema.md), so a report can be made while
 the run is still writing; plots are drawn with matplotlib's Agg canvas (no display needed).
@@ -21,7 +21,7 @@ from typing import Any, Callable, Sequence
 from store import Store
 from store.readers import get_run
 from store.showing import report_rows
-from store.views import resolve_run_id
+from store.runs import resolve_run_id
 
 STATUS_STYLE = {  # update_status -> (marker, colour, label)
     "initial": ("s", "#555555", "starting policy"),
@@ -71,17 +71,18 @@ def _title(data: dict[str, Any], what: str) -> str:
     run = data["run"]
     model = f", {run['model']}" if run["model"] else ""
     # wrapped, so a long model name never runs past the image's edge
+    named = f" '{run['name']}'" if run.get("name") else ""
     return "\n".join(textwrap.wrap(f"{run['game']} · {what}", 90) +
-                     textwrap.wrap(f"run {run['run_id']} ({run['kind']}{model})", 90))
+                     textwrap.wrap(f"run {run['run_id']}{named} ({run['kind']}{model})", 90))
 
 
-def plot_scores(data: dict[str, Any], path: Path) -> bool:
+def scores_figure(data: dict[str, Any]):
     """Score per iteration with the best so far (optimize runs); return per episode (eval runs)."""
     if data["run"]["kind"] == "eval":
-        return _plot_episode_returns(data, path)
+        return episode_returns_figure(data)
     curve = data["curve"]
     if not curve:
-        return False
+        return None
     fig, (ax,) = _figure()
     xs = [r["iteration"] for r in curve]
     evals = [e for e in data["episodes"] if e["kind"] == "eval"]
@@ -113,8 +114,7 @@ def plot_scores(data: dict[str, Any], path: Path) -> bool:
     ax.margins(y=0.15)
     ax.set_title(_title(data, "score per iteration"), fontsize=11)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-    fig.savefig(path)
-    return True
+    return fig
 
 
 DECISION_STYLE = {  # candidates.decision -> (marker, colour, label)
@@ -126,25 +126,76 @@ DECISION_STYLE = {  # candidates.decision -> (marker, colour, label)
 }
 
 
-def plot_lineage(data: dict[str, Any], path: Path) -> bool:
+UNPLAYED_STYLE = {  # how a candidate that was never played is drawn on the "not played" lane: hollow markers
+    "screened": ("D", "#9467bd", "not played: screened out"),
+    "llm_error": ("^", "#ff7f0e", "not played: LLM call failed"),
+    "rejected": ("X", "#d62728", "not played: rejected code"),
+}
+
+
+def unplayed_reason(node: dict[str, Any]) -> str | None:
+    """Why a lineage row's score is not its own (a key of :data:`UNPLAYED_STYLE`), or None when its code was played.
+
+    A candidate whose reply was rejected (no usable code, invalid code, screened out by the cascade) or whose LLM
+    call failed is assessed as its parent: the store gives it its parent's version and score, which say nothing
+    of what it proposed. A candidate caught tampering was played (its proposed version is the assessed one)."""
+    if node["update_status"] not in ("rejected", "llm_error"):
+        return None
+    if node["proposed_version_id"] is not None and node["proposed_version_id"] == node["policy_version_id"]:
+        return None
+    if node.get("evaluation") == "screened":
+        return "screened"
+    return "llm_error" if node["update_status"] == "llm_error" else "rejected"
+
+
+def lineage_figure(data: dict[str, Any]):
     """Every candidate at (iteration, score), an edge to the candidate it improved; the standard-protocol score
-    beside each one when the run measured it."""
+    beside each one when the run measured it. None when there is nothing to draw.
+
+    Candidates that were never played are drawn hollow on a "not played" lane below every score, with a dotted
+    edge from their parent: at their parent's score they would claim a result they never had."""
     nodes = [n for n in data.get("lineage") or [] if n["score"] is not None]
     if data["run"]["kind"] == "eval" or len(nodes) < 2:
-        return False
+        return None
     fig, (ax,) = _figure(height=4.8)
+    played = [n for n in nodes if unplayed_reason(n) is None]
+    scores = [n["score"] for n in played] or [0.0]
+    low, high = min(scores), max(scores)
+    lane = low - 0.22 * max(high - low, 1.0)
     at = {(n["iteration"], n["candidate"]): n for n in nodes}
+
+    def y(n: dict[str, Any]) -> float:
+        return n["score"] if unplayed_reason(n) is None else lane
+
+    def anchor(n: dict[str, Any] | None) -> dict[str, Any] | None:
+        """Where an edge to a child of ``n`` starts: ``n``, or for one never played the played candidate whose
+        code it stands for (its nearest played ancestor: what the child really improved)."""
+        seen = set()
+        while n is not None and unplayed_reason(n) is not None and id(n) not in seen:
+            seen.add(id(n))
+            n = at.get((n["parent_iteration"], n["parent_candidate"]))
+        return n
+
     for n in nodes:
-        parent = at.get((n["parent_iteration"], n["parent_candidate"]))
+        parent = anchor(at.get((n["parent_iteration"], n["parent_candidate"])))
         if parent is not None:
-            ax.plot([parent["iteration"], n["iteration"]], [parent["score"], n["score"]], "-", color="#bbbbbb",
-                    linewidth=0.9, zorder=1)
+            ax.plot([parent["iteration"], n["iteration"]], [y(parent), y(n)],
+                    ":" if unplayed_reason(n) else "-", color="#bbbbbb", linewidth=0.9, zorder=1)
     for decision, (marker, colour, label) in DECISION_STYLE.items():
-        pts = [(n["iteration"], n["score"]) for n in nodes if n["decision"] == decision]
+        pts = [(n["iteration"], n["score"]) for n in played if n["decision"] == decision]
         if pts:
             ax.scatter(*zip(*pts), marker=marker, s=70 if marker == "*" else 36, color=colour, label=label,
                        zorder=3, edgecolors="white", linewidths=0.5)
-    robust = [(n["iteration"], n["standard_score"]) for n in nodes if n.get("standard_score") is not None]
+    for reason, (marker, colour, label) in UNPLAYED_STYLE.items():
+        pts = [(n["iteration"], lane) for n in nodes if unplayed_reason(n) == reason]
+        if pts:
+            ax.scatter(*zip(*pts), marker=marker, s=40, facecolors="none", edgecolors=colour, linewidths=1.2,
+                       label=label, zorder=3)
+    if len(played) < len(nodes):
+        ax.axhline(lane, color="#dddddd", linewidth=6, zorder=0)
+        ax.annotate("not played", (0, lane), xycoords=("axes fraction", "data"), xytext=(4, 5),
+                    textcoords="offset points", fontsize=8, color="#777777", va="bottom")
+    robust = [(n["iteration"], n["standard_score"]) for n in played if n.get("standard_score") is not None]
     if robust:
         ax.scatter(*zip(*robust), marker="_", s=60, color="#2ca02c", zorder=2,
                    label="score under the standard protocol (sticky actions)")
@@ -153,16 +204,21 @@ def plot_lineage(data: dict[str, Any], path: Path) -> bool:
     ax.set_xlabel("iteration (each dot one candidate; lines to the candidate it improved)")
     ax.set_ylabel("evaluation return")
     ax.margins(y=0.12)
-    ax.set_title(_title(data, f"lineage ({strategy}: {len(nodes)} candidates)"), fontsize=11)
+    if len(played) < len(nodes):  # no score ticks at the lane: its height is no score
+        bottom, top = ax.get_ylim()
+        ax.set_yticks([t for t in ax.get_yticks() if (low + lane) / 2 <= t <= top])
+        ax.set_ylim(bottom, top)
+    ax.set_title(_title(data, f"lineage ({strategy}: {len(nodes)} candidates, {len(nodes) - len(played)} not played)"),
+                 fontsize=11)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-    fig.savefig(path)
-    return True
+    return fig
 
 
-def _plot_episode_returns(data: dict[str, Any], path: Path) -> bool:
+def episode_returns_figure(data: dict[str, Any]):
+    """Return per evaluation episode (eval runs), coloured by how it ended, with the mean."""
     episodes = [e for e in data["episodes"] if e["kind"] == "eval"]
     if not episodes:
-        return False
+        return None
     fig, (ax,) = _figure()
     xs = list(range(len(episodes)))
     colours = [END_COLOURS.get(e["end_reason"], "#1f77b4") for e in episodes]
@@ -176,22 +232,23 @@ def _plot_episode_returns(data: dict[str, Any], path: Path) -> bool:
 
     seen = dict.fromkeys(e["end_reason"] for e in episodes)
     handles = [Patch(color=END_COLOURS.get(r, "#1f77b4"), label=f"ended: {r}") for r in seen]
-    ax.legend(handles=ax.get_legend_handles_labels()[0] + handles, fontsize=8, loc="best", framealpha=0.85)
+    # beside the axes, never over a bar
+    ax.legend(handles=ax.get_legend_handles_labels()[0] + handles, fontsize=8, loc="upper left",
+              bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax.set_xticks(xs, [f"{e['episode_index']}\nseed {e['seed']}" for e in episodes] if len(xs) <= 12 else None)
     _integer_x(ax, xs)
     caps = sorted({e["max_steps"] for e in episodes if e.get("max_steps")})
     ax.set_xlabel("evaluation episode" + (f" (cut off after {caps[0]:,} steps)" if len(caps) == 1 else ""))
     ax.set_ylabel("return (sum of rewards)")
     ax.set_title(_title(data, "return per episode"), fontsize=11)
-    fig.savefig(path)
-    return True
+    return fig
 
 
-def plot_code(data: dict[str, Any], path: Path) -> bool:
+def code_figure(data: dict[str, Any]):
     """Lines of code and complexity of the version each iteration evaluated."""
     code = [r for r in data["code"] if r["loc"] is not None]
     if not code:
-        return False
+        return None
     fig, (top, bottom) = _figure(rows=2, height=6.2)
     xs = [r["iteration"] for r in code]
     for key, label, style in (("loc", "all lines of the file", "o-"), ("sloc", "source lines", "s-"),
@@ -209,15 +266,14 @@ def plot_code(data: dict[str, Any], path: Path) -> bool:
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     bottom.set_xlabel("iteration")
     _integer_x(bottom, xs)
-    fig.savefig(path)
-    return True
+    return fig
 
 
-def plot_tokens(data: dict[str, Any], path: Path) -> bool:
+def tokens_figure(data: dict[str, Any]):
     """Input and output tokens of the LLM calls of each iteration, and their running total."""
     curve = data["curve"]
     if not curve or not any(r["total_tokens"] for r in curve):
-        return False
+        return None
     fig, (ax,) = _figure()
     xs = [r["iteration"] for r in curve]
     inputs = [r["input_tokens"] for r in curve]
@@ -234,10 +290,10 @@ def plot_tokens(data: dict[str, Any], path: Path) -> bool:
     right.set_ylim(0, max(r["cumulative_tokens"] for r in curve) * 1.3)
     right.spines[["top"]].set_visible(False)
     handles = ax.get_legend_handles_labels()[0] + right.get_legend_handles_labels()[0]
-    ax.legend(handles=handles, fontsize=8, loc="upper left", ncol=3, framealpha=0.85)
+    # below the axes, never over a bar (the right axis's labels take the space beside them)
+    fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=3, frameon=False)
     ax.set_title(_title(data, "LLM tokens per iteration"), fontsize=11)
-    fig.savefig(path)
-    return True
+    return fig
 
 
 # ------------------------------------------------------------------------------------------------ markdown
@@ -264,10 +320,10 @@ def _md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
 
 def _settings(data: dict[str, Any]) -> list[tuple[str, Any]]:
     run, summary, config = data["run"], data["summary"], data["config"]
-    rows: list[tuple[str, Any]] = [("run id", f"`{run['run_id']}`"), ("kind", run["kind"]), ("game", run["game"]),
-                                   ("model", run["model"]), ("status", run["status"]), ("seed", run["seed"]),
-                                   ("created", run["created_at"]), ("finished", run["finished_at"]),
-                                   ("duration (s)", summary["duration_s"])]
+    rows: list[tuple[str, Any]] = [("run id", f"`{run['run_id']}`")] + ([("name", run["name"])] if run.get("name") else [])
+    rows += [("kind", run["kind"]), ("game", run["game"]), ("model", run["model"]), ("status", run["status"]),
+             ("seed", run["seed"]), ("created", run["created_at"]), ("finished", run["finished_at"]),
+             ("duration (s)", summary["duration_s"])]
     if run["error"]:
         rows.append(("error", run["error"]))
     skip = {"game", "model", "seed", "instruction", "feedback_bands"}
@@ -291,7 +347,8 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
     is the command line that starts a run with the same settings, ``price(model)`` the model's rates per token
     (see :func:`write_report`)."""
     run, summary, usage = data["run"], data["summary"], data["usage"]
-    out = [f"# {run['game']} {run['kind']} run `{run['run_id']}`", ""]
+    named = f" ({run['name']})" if run.get("name") else ""
+    out = [f"# {run['game']} {run['kind']} run `{run['run_id']}`{named}", ""]
     facts = [f"status **{run['status']}**"]
     if run["kind"] == "eval":
         facts.append(f"mean return **{_md(summary['best_score'])}** over {summary['episodes']} episode(s)")
@@ -391,15 +448,17 @@ def write_report(store: Store, run: str, out_dir: str | Path | None = None, *,
     out = Path(out_dir) if out_dir else Path("reports") / data["run"]["run_id"]
     out.mkdir(parents=True, exist_ok=True)
     images: dict[str, str] = {}
-    for name, plot, caption in (
-        ("score.png", plot_scores, "Return per episode" if data["run"]["kind"] == "eval" else "Score per iteration"),
-        ("code.png", plot_code, "Code size and complexity per iteration"),
-        ("tokens.png", plot_tokens, "LLM tokens per iteration"),
-        ("lineage.png", plot_lineage, "Every candidate and the version it improved"),
+    for name, figure, caption in (
+        ("score.png", scores_figure, "Return per episode" if data["run"]["kind"] == "eval" else "Score per iteration"),
+        ("code.png", code_figure, "Code size and complexity per iteration"),
+        ("tokens.png", tokens_figure, "LLM tokens per iteration"),
+        ("lineage.png", lineage_figure, "Every candidate and the version it improved"),
     ):
         if data["run"]["kind"] == "eval" and name != "score.png":
             continue
-        if plot(data, out / name):
+        fig = figure(data)
+        if fig is not None:
+            fig.savefig(out / name)
             images[name] = caption
     readme = out / "README.md"
     readme.write_text(render_markdown(data, images, reproduce, price))

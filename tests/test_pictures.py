@@ -1,0 +1,130 @@
+"""What the report's and compare's pictures draw, checked on the figures' plotted data (and pixels for overlap):
+a candidate never played is not drawn at its parent's score, legends sit beside the bars, and where two runs'
+curves coincide both stay visible."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.evaluate import EvalConfig, evaluate
+from pipeline.llm import LiteLLMClient
+from pipeline.optimize import OptimizeConfig, optimize
+from store import Store
+from tests.conftest import COMPETENT_REPLY, EXAMPLES, json_reply
+from viewers import compare_report
+from viewers.report import collect, episode_returns_figure, lineage_figure, tokens_figure, unplayed_reason
+
+KEY_ERROR = json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    return obs['Nope']\n"})
+# iteration 1 competent (played), 2 an unusable reply, 3 code that raises on recorded observations: 2 and 3 are
+# rejected before any game, and the store gives them their parent's version and score
+SCRIPT = [COMPETENT_REPLY, "Sorry, I cannot help with that.", KEY_ERROR]
+
+
+@pytest.fixture(scope="module")
+def pictured(tmp_path_factory):
+    from tests.scripted_llm import ScriptedModel
+
+    tmp = tmp_path_factory.mktemp("pictures")
+    store = Store(tmp / "p.duckdb", lock_timeout_s=20)
+    with ScriptedModel(SCRIPT, tmp / "model") as model:
+        client = LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
+        result = optimize(OptimizeConfig(game="pong", iterations=3, rollout_steps=100, eval_max_steps=300,
+                                         workers=2, token_budget=8000), store, client)
+    assert result.status == "finished", result.error
+    ev = evaluate(EXAMPLES / "pong.py", EvalConfig(episodes=3, max_steps=150, workers=2), store)
+    return collect(store, result.run_id), collect(store, ev.run_id)
+
+
+def _drawn(fig):
+    """The figure drawn on an Agg canvas (as savefig draws it); the canvas."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    return canvas
+
+
+def _points(ax) -> list[tuple[tuple[float, float], bool]]:
+    """Every scatter point of an axes: ((x, y), filled)."""
+    out = []
+    for collection in ax.collections:
+        filled = len(collection.get_facecolors()) > 0 and collection.get_facecolors()[0][3] > 0
+        out += [((float(x), float(y)), filled) for x, y in collection.get_offsets()]
+    return out
+
+
+def test_lineage_draws_a_candidate_never_played_apart_from_its_parents_score(pictured):
+    data, _ = pictured
+    nodes = {n["iteration"]: n for n in data["lineage"]}
+    assert [unplayed_reason(nodes[i]) for i in (0, 1, 2, 3)] == [None, None, "rejected", "rejected"]
+    assert nodes[2]["score"] == nodes[1]["score"], "the store gives a rejected candidate its parent's score"
+    fig = lineage_figure(data)
+    (ax,) = fig.axes
+    points = _points(ax)
+    for i in (2, 3):
+        at_parent = (float(i), float(nodes[i]["score"]))
+        assert at_parent not in [p for p, _ in points], f"iteration {i} drawn at its parent's score"
+    lane = [p for p, filled in points if p[0] in (2.0, 3.0)]
+    assert len(lane) == 2 and lane[0][1] == lane[1][1] < min(nodes[i]["score"] for i in (0, 1)), "on a lane below"
+    assert not any(filled for p, filled in points if p[0] in (2.0, 3.0)), "hollow markers"
+    played = sorted((p, filled) for p, filled in points if p[0] in (0.0, 1.0))
+    assert played == [((0.0, float(nodes[0]["score"])), True), ((1.0, float(nodes[1]["score"])), True)]
+    assert any(t.get_text() == "not played" for t in ax.texts)
+
+
+def _overlaps(a, b) -> bool:
+    return a.x0 < b.x1 and b.x0 < a.x1 and a.y0 < b.y1 and b.y0 < a.y1
+
+
+@pytest.mark.parametrize("which", ["tokens", "episode returns", "equal episode returns"])
+def test_legends_never_cover_a_bar(pictured, which):
+    data = pictured[0] if which == "tokens" else pictured[1]
+    if which == "equal episode returns":  # bars of one height across the plot: no corner of it is free
+        data = {**data, "episodes": [{**e, "return": 4.0} for e in data["episodes"]]}
+    fig = tokens_figure(data) if which == "tokens" else episode_returns_figure(data)
+    renderer = _drawn(fig).get_renderer()
+    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None] + list(fig.legends)
+    bars = [patch for ax in fig.axes for patch in ax.patches if patch.get_height() != 0]
+    assert legends and bars
+    for legend in legends:
+        box = legend.get_window_extent(renderer)
+        for bar in bars:
+            assert not _overlaps(box, bar.get_window_extent(renderer)), f"the {which} legend covers a bar"
+
+
+def _curves_data(shift_b: float = 0.0) -> dict:
+    """Two runs whose curves coincide (``shift_b`` moves B's scores)."""
+    curve = [{"iteration": i, "score": s, "best_score": b, "update_status": "accepted", "llm_calls": i,
+              "tokens": 1500 * i, "elapsed_s": 20.0 * i}
+             for i, (s, b) in enumerate([(-21, -21), (-15, -15), (-18, -15), (-9, -9), (-9, -9)])]
+    moved = [{**p, "score": p["score"] + shift_b, "best_score": p["best_score"] + shift_b} for p in curve]
+    runs = [{"label": label, "run_id": run_id, "model": "openai/scripted"}
+            for label, run_id in (("A", "01JDX3K2AB7Q000000000000A1"), ("B", "01JDX3K2AC1M000000000000B2"))]
+    return {"mode": "runs", "game": "pong", "runs": runs, "curves": {"A": curve, "B": moved}}
+
+
+def _pixels_of(fig, colour: str) -> int:
+    """Pixels inside the axes close to ``colour`` (in hue: either run's colour, drawn lighter or darker)."""
+    for ax in fig.axes:
+        if ax.get_legend() is not None:
+            ax.get_legend().remove()
+    image = np.asarray(_drawn(fig).buffer_rgba())[..., :3].astype(float) / 255
+    target = np.array([int(colour[i:i + 2], 16) / 255 for i in (1, 3, 5)])
+    direction = (target - target.mean()) / np.linalg.norm(target - target.mean())
+    chroma = image - image.mean(axis=-1, keepdims=True)
+    strength = np.linalg.norm(chroma, axis=-1)
+    along = (chroma @ direction) / np.maximum(strength, 1e-9)
+    return int(((strength > 0.08) & (along > 0.97)).sum())
+
+
+def test_compare_curves_that_coincide_both_show(tmp_path):
+    apart = compare_report.curves_figure(_curves_data(shift_b=4.0))
+    same = compare_report.curves_figure(_curves_data())
+    a_apart, a_same = _pixels_of(apart, compare_report.COLOURS["A"]), _pixels_of(same, compare_report.COLOURS["A"])
+    b_apart, b_same = _pixels_of(apart, compare_report.COLOURS["B"]), _pixels_of(same, compare_report.COLOURS["B"])
+    assert a_apart > 1000 and b_apart > 1000
+    assert a_same > 0.4 * a_apart, f"A's curve is hidden where it meets B's ({a_same} of {a_apart} pixels show)"
+    assert b_same > 0.4 * b_apart, f"B's curve is hidden where it meets A's ({b_same} of {b_apart} pixels show)"
+    compare_report.curves_figure(_curves_data()).savefig(tmp_path / "curves.png")
+    assert (tmp_path / "curves.png").stat().st_size > 20_000
