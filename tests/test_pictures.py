@@ -7,9 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.evaluate import EvalConfig, evaluate
-from pipeline.llm import LiteLLMClient
-from pipeline.optimize import OptimizeConfig, optimize
+from pipeline.play.evaluate import EvalConfig, evaluate
+from pipeline.llm.client import LiteLLMClient
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.loop import optimize
 from store import Store
 from tests.conftest import COMPETENT_REPLY, EXAMPLES, json_reply
 from viewers import compare_report

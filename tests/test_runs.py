@@ -341,7 +341,7 @@ def test_a_store_made_without_a_path_is_found_from_a_subdirectory(tmp_path, monk
 
 def test_run_ids_in_generated_stores_share_six_characters_within_minutes():
     """Why MIN_PREFIX is 8: the store's own ids (ULIDs) made a few minutes apart share their first 6 characters."""
-    from pipeline.runinfo import new_run_id  # the ids the runs get
+    from pipeline.play.runinfo import new_run_id  # the ids the runs get
 
     a = new_run_id()
     assert len(a) == 26 and set(a) <= set(string.digits + string.ascii_uppercase)
