@@ -1,20 +1,25 @@
 """Throughput of evaluation against the bare OCAtari environment, per game, measured in the same run.
 
-For each game it plays the starter policy (``games/scaffolds/``) with ``evaluate`` (one worker process, every
-step written to a real DuckDB store), then again with ``--trace`` (a node per bundled call), and replays the
-very same action sequences in OCAtari's own env class with its lean settings (the baseline: no policy, no
-logging). Both sides build their environment once, outside the timings (codearcade's zygote keeps them built
-for the workers it forks): the figures are the steady state of playing. It prints steps/s for each and the
-ratios to the baseline; targets: eval >= 0.85, eval --trace >= 0.60. Those two measure playing behind the
-untrusted-code boundary (confined workers, checked answers); they run with the parent's score verification off
-(``EvalConfig.verify_scores``), which a second table prices: ``eval`` as users run it (verified: the parent
-replays every episode's actions in raw ALE while the worker plays, ``pipeline/play/verify.py``), its ratio to the
-baseline, and the replay's own speed. On two cores the replay runs beside the worker, so its cost is the
-worker's share of a core it no longer has to itself.
-The configurations are measured in rotating order, several times; each one's best time counts (noise from
-other tenants of the cores only ever adds time), and the median of the per-repeat ratios is shown beside.
+``eval`` plays every episode with a game host (the environment, the score, the step log) and a confined policy
+process that sees observations only, one round trip per step (``pipeline/play/episodes.py``). Its scores need no
+replay to be trusted, so what is measured here is ``eval`` as users run it, every default on. Three tables:
 
-    .venv/bin/python bench/throughput.py [--games pong breakout] [--episodes 3] [--repeats 3]
+1. **Steady state.** For each game the starter policy (``games/scaffolds/``) plays with ``evaluate`` (every
+   step written to a real DuckDB store), then again with ``--trace`` (a node per bundled call); OCAtari's own env
+   class with its lean settings replays the very same action sequences (the baseline: no policy, no logging).
+   Both sides build their environment once, outside the timings. Targets: eval >= 0.85 x bare, --trace >= 0.70.
+2. **The round trip.** A policy that returns 0 at once, played by a host with a policy process and, for
+   reference, in the parent itself (``--workers 0``): the difference of the time the host waits per step is the
+   cost of the process boundary (marshalled observation out, an 8-byte action back, two processes on one core);
+   beside it, the observation's size on the wire.
+3. **End to end.** ``codearcade eval`` of the game's competent policy (``tests/policies/``), 4 whole games at the
+   authors' cap, as a command (start-up, imports, the zygotes, the store: everything a user waits for), against a
+   Python process that imports OCAtari and replays the same actions.
+
+The configurations are measured in rotating order, several times; each one's best time counts (noise from other
+tenants of the cores only ever adds time), and the median of the per-repeat ratios is shown beside.
+
+    .venv/bin/python bench/throughput.py [--games pong breakout] [--episodes 3] [--repeats 7] [--skip-end-to-end]
 
 OCAtari's class computes wrong objects for several games under numpy 2 and then overflows; the baseline gets
 the same int64-RAM fix codearcade uses, so both sides do the same extraction work.
@@ -23,7 +28,11 @@ the same int64-RAM fix codearcade uses, so both sides do the same extraction wor
 from __future__ import annotations
 
 import argparse
+import json
+import marshal
+import os
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -36,11 +45,10 @@ sys.path.insert(0, str(ROOT))
 
 from games import GAMES, get_game  # noqa: E402
 from pipeline.play.evaluate import EvalConfig, evaluate  # noqa: E402
-from pipeline.play.rollout import EpisodeSpec  # noqa: E402
-from pipeline.play.verify import replay_actions  # noqa: E402
 from store import Store  # noqa: E402
 
-TARGETS = {"eval": 0.85, "eval --trace": 0.60}
+TARGETS = {"eval": 0.85, "eval --trace": 0.70}
+END_TO_END_EPISODES = 4
 
 
 class BareOCAtari:
@@ -85,79 +93,152 @@ def played_actions(store: Store, run_id: str) -> tuple[list[int], list[list[int]
     return [r[0] for r in rows], [r[1] for r in rows]
 
 
-def timed_replay(game: str, action_sequences: list[list[int]], seeds: list[int]) -> float:
-    """Seconds the parent's verification spends replaying the given action sequences (pipeline/play/verify.py)."""
-    start = time.perf_counter()
-    for actions, seed in zip(action_sequences, seeds):
-        replay_actions(EpisodeSpec(episode_id="bench", run_id="bench", game=game, policy_text="", policy_version_id="",
-                                   seed=seed), actions)
-    return time.perf_counter() - start
-
-
-def timed_eval(policy: Path, store: Store, episodes: int, trace: bool, verify: bool = False) -> tuple[float, str]:
-    config = EvalConfig(episodes=episodes, trace=trace, workers=1, max_steps=4000, verify_scores=verify)
+def timed_eval(policy: Path, store: Store, episodes: int, trace: bool, workers: int = 1,
+               max_steps: int = 4000) -> tuple[float, str]:
+    config = EvalConfig(episodes=episodes, trace=trace, workers=workers, max_steps=max_steps)
     start = time.perf_counter()
     result = evaluate(policy, config, store)
     return time.perf_counter() - start, result.run_id
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--games", nargs="+", default=list(GAMES), choices=list(GAMES))
-    parser.add_argument("--episodes", type=int, default=3, help="episodes per measurement (default: 3)")
-    parser.add_argument("--repeats", type=int, default=7, help="measurements per configuration (best taken)")
-    args = parser.parse_args()
-
-    tmp = Path(tempfile.mkdtemp(prefix="codearcade-bench-"))
-    store = Store(tmp / "bench.duckdb")
-    evaluate(ROOT / "games" / "scaffolds" / "pong.py", EvalConfig(episodes=1, max_steps=50), store)  # start the forkserver
-
+def steady_state(games: list[str], store: Store, episodes: int, repeats: int) -> list[str]:
     print(f"{'game':<15} {'steps':>6} {'bare OCAtari':>13} {'eval':>13} {'eval --trace':>13} "
           f"{'eval/bare':>10} {'trace/bare':>11}   (median of paired ratios)")
     failures = []
-    verification = []
-    for game in args.games:
+    for game in games:
         policy = ROOT / "games" / "scaffolds" / f"{game}.py"
         # The paper's protocol is deterministic: every repeat plays these very actions.
-        _, run_id = timed_eval(policy, store, args.episodes, trace=False)
+        _, run_id = timed_eval(policy, store, episodes, trace=False)
         seeds, actions = played_actions(store, run_id)
         steps = sum(len(a) for a in actions)
         bare = BareOCAtari(game)
         measure = {
             "bare": lambda: bare.play(actions, seeds),
-            "eval": lambda: timed_eval(policy, store, args.episodes, trace=False)[0],
-            "trace": lambda: timed_eval(policy, store, args.episodes, trace=True)[0],
-            "verified": lambda: timed_eval(policy, store, args.episodes, trace=False, verify=True)[0],
-            "verify": lambda: timed_replay(game, actions, seeds),
+            "eval": lambda: timed_eval(policy, store, episodes, trace=False)[0],
+            "trace": lambda: timed_eval(policy, store, episodes, trace=True)[0],
         }
         seconds: dict[str, list[float]] = {name: [] for name in measure}
         order = list(measure)
-        for _ in range(args.repeats):
+        for _ in range(repeats):
             for name in order:
                 seconds[name].append(measure[name]())
             order = order[1:] + order[:1]  # rotate, so that no configuration always runs first
-        # Noise on shared cores only ever adds time: the best of the repeats is each one's own speed (as
-        # timeit reports); the median of the per-repeat ratios is printed to show how steady the run was.
         best = {name: min(times) for name, times in seconds.items()}
         ratios = {name: best["bare"] / best[name] for name in ("eval", "trace")}
         paired = {name: statistics.median(b / x for b, x in zip(seconds["bare"], seconds[name]))
                   for name in ("eval", "trace")}
         print(f"{game:<15} {steps:>6} {steps / best['bare']:>9.0f} st/s {steps / best['eval']:>9.0f} st/s "
               f"{steps / best['trace']:>9.0f} st/s {ratios['eval']:>10.2f} {ratios['trace']:>11.2f}   "
-              f"({paired['eval']:.2f}, {paired['trace']:.2f})")
-        verification.append((game, steps, steps / best["verified"], best["bare"] / best["verified"],
-                             best["eval"] / best["verified"], steps / best["verify"]))
+              f"({paired['eval']:.2f}, {paired['trace']:.2f})", flush=True)
         for name, label in (("eval", "eval"), ("trace", "eval --trace")):
             if ratios[name] < TARGETS[label]:
                 failures.append(f"{game}: {label} ratio {ratios[name]:.2f} below target {TARGETS[label]}")
-    print(f"targets: eval/bare >= 0.85, trace/bare >= 0.60 (best of {args.repeats} repeats each, interleaved; "
-          f"{args.episodes} episodes per measurement)")
-    print(f"\n{'game':<15} {'steps':>6} {'eval verified':>14} {'verified/bare':>14} {'verified/eval':>14} "
-          f"{'replay alone':>13}   (score verification, pipeline/play/verify.py)")
-    for game, steps, rate, ratio, share, replay in verification:
-        print(f"{game:<15} {steps:>6} {rate:>9.0f} st/s {ratio:>14.2f} {share:>14.2f} {replay:>8.0f} st/s")
+    print(f"targets: eval/bare >= {TARGETS['eval']}, trace/bare >= {TARGETS['eval --trace']} (best of {repeats} "
+          f"repeats each, interleaved; {episodes} episodes per measurement)")
+    return failures
+
+
+IDLE_POLICY = """
+import tracing as trace
+
+GAME = {game!r}
+
+
+@trace.model
+class Policy(trace.Module):
+    def __call__(self, obs):
+        return 0
+"""
+
+
+def observation_bytes(game: str, steps: int = 300) -> float:
+    """Mean size of an observation on the wire (``marshal``, as the host sends it) over random play."""
+    from games.envs import make_env
+
+    env = make_env(game)
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=0)
+    sizes = []
+    for _ in range(steps):
+        sizes.append(len(marshal.dumps(obs)))
+        obs, _, terminated, truncated, _ = env.step(int(rng.integers(get_game(game).n_actions)))
+        if terminated or truncated:
+            obs, _ = env.reset(seed=0)
+    env.close()
+    return statistics.fmean(sizes)
+
+
+def round_trip(games: list[str], store: Store, tmp: Path, repeats: int) -> None:
+    print(f"\n{'game':<15} {'obs bytes':>10} {'host waits, pair':>17} {'in-process call':>16} {'round trip':>11}")
+    for game in games:
+        policy = tmp / f"idle_{game}.py"
+        policy.write_text(IDLE_POLICY.format(game=game))
+        waits: dict[int, list[float]] = {1: [], 0: []}
+        for _ in range(repeats):
+            for workers in (1, 0):
+                _, run_id = timed_eval(policy, store, 1, trace=False, workers=workers, max_steps=2000)
+                (policy_s, length), = store.query("SELECT policy_s, length FROM episodes WHERE run_id = ?", [run_id])
+                waits[workers].append(policy_s / max(length, 1) * 1e6)
+        pair, local = min(waits[1]), min(waits[0])
+        print(f"{game:<15} {observation_bytes(game):>10.0f} {pair:>13.1f} µs {local:>12.1f} µs {pair - local:>8.1f} µs",
+              flush=True)
+    print(f"(time the host waits for a policy that returns 0 at once, per step; best of {repeats})")
+
+
+BARE_SCRIPT = """
+import json, sys, time
+sys.path.insert(0, {root!r})
+from bench.throughput import BareOCAtari
+seeds, actions = json.load(open({path!r}))
+BareOCAtari({game!r}).play(actions, seeds)
+"""
+
+
+def end_to_end(games: list[str], store: Store, tmp: Path, repeats: int) -> None:
+    print(f"\n{'game':<15} {'steps':>6} {'bare process':>13} {'codearcade eval':>16} {'eval/bare':>10}"
+          f"   ({END_TO_END_EPISODES} whole games at the authors' cap, start-up included)")
+    exe = str(Path(sys.executable).parent / "codearcade")
+    for game in games:
+        policy = ROOT / "tests" / "policies" / f"{game}_competent.py"
+        cap = get_game(game).task.eval_max_steps
+        _, run_id = timed_eval(policy, store, END_TO_END_EPISODES, trace=False, max_steps=cap)
+        seeds, actions = played_actions(store, run_id)
+        steps = sum(len(a) for a in actions)
+        recorded = tmp / f"actions_{game}.json"
+        recorded.write_text(json.dumps([seeds, actions]))
+        bare_cmd = [sys.executable, "-c", BARE_SCRIPT.format(root=str(ROOT), path=str(recorded), game=game)]
+        seconds: dict[str, list[float]] = {"bare": [], "eval": []}
+        for i in range(repeats):
+            eval_cmd = [exe, "eval", str(policy), "--episodes", str(END_TO_END_EPISODES), "--max-steps", str(cap),
+                        "--store", str(tmp / f"e2e_{game}_{i}.duckdb")]
+            for name, cmd in (("bare", bare_cmd), ("eval", eval_cmd))[::1 if i % 2 == 0 else -1]:
+                start = time.perf_counter()
+                subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp)
+                seconds[name].append(time.perf_counter() - start)
+        best = {name: min(times) for name, times in seconds.items()}
+        print(f"{game:<15} {steps:>6} {best['bare']:>11.1f} s {best['eval']:>14.1f} s "
+              f"{best['bare'] / best['eval']:>10.2f}", flush=True)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--games", nargs="+", default=list(GAMES), choices=list(GAMES))
+    parser.add_argument("--episodes", type=int, default=3, help="episodes per steady-state measurement (default: 3)")
+    parser.add_argument("--repeats", type=int, default=7, help="measurements per configuration (best taken)")
+    parser.add_argument("--skip-end-to-end", action="store_true", help="only the steady state and the round trip")
+    args = parser.parse_args()
+
+    tmp = Path(tempfile.mkdtemp(prefix="codearcade-bench-"))
+    store = Store(tmp / "bench.duckdb")
+    evaluate(ROOT / "games" / "scaffolds" / "pong.py", EvalConfig(episodes=1, max_steps=50), store)  # start the zygotes
+
+    failures = steady_state(args.games, store, args.episodes, args.repeats)
+    round_trip(args.games, store, tmp, max(1, args.repeats // 2))
+    if not args.skip_end_to_end:
+        end_to_end(args.games, store, tmp, max(1, min(3, args.repeats)))
     for failure in failures:
         print("BELOW TARGET:", failure)
+    print(f"\n(load average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
     return 0
 
 

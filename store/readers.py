@@ -328,3 +328,21 @@ def first_iteration_of(con: duckdb.DuckDBPyConnection, run_id: str, version_id: 
     """The first iteration of a run that stored ``version_id``."""
     return con.execute("SELECT min(iteration) FROM policy_versions WHERE run_id = ? AND policy_version_id = ?",
                        [run_id, version_id]).fetchone()[0]
+
+
+REPLAY_EPISODE_COLUMNS = ("episode_id", "game", "seed", "sticky", "noop_max", "max_steps", "return", "length",
+                          "lives_lost", "end_reason")
+"""What a replay of a stored episode needs of its row (``codearcade doctor --replay``)."""
+REPLAY_STEP_COLUMNS = ("step", "action", "reward", "score", "terminated", "truncated", "lives")
+
+
+def replay_material(con: duckdb.DuckDBPyConnection, run_id: str) -> list[tuple[dict[str, Any], Any]]:
+    """Each episode of a run that ended by the game or the step cap (a policy error ends by the policy: its last
+    step has no action), with its step rows as an Arrow table, in the order they were played."""
+    columns = ", ".join(f'"{c}"' for c in REPLAY_EPISODE_COLUMNS)
+    episodes = _rows(con.execute(
+        f"SELECT {columns} FROM episodes WHERE run_id = ? AND end_reason IN ('terminated', 'truncated') "
+        "ORDER BY started_at, episode_id", [run_id]))
+    steps = [con.sql(f"SELECT {', '.join(REPLAY_STEP_COLUMNS)} FROM steps WHERE episode_id = $episode ORDER BY step",
+                     params={"episode": row["episode_id"]}).to_arrow_table() for row in episodes]
+    return list(zip(episodes, steps))

@@ -142,11 +142,11 @@ def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():
              for i in range(2)]
     results = list(run_episodes(specs, workers=2))
     assert sorted(i for i, _ in results) == [0, 1] and all(o.end_reason == "truncated" for _, o in results)
-    zygote = workers.zygote()
+    zygotes = [workers.zygote("game"), workers.zygote("policy")]
     deadline = time.monotonic() + 10
-    while zygote.children() and time.monotonic() < deadline:
+    while any(z.count() for z in zygotes) and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert not zygote.children(), "every worker exited by itself"
+    assert [z.count() for z in zygotes] == [0, 0], "every host and policy process has exited"
 
 
 def test_a_worker_whose_parent_died_before_it_asked_for_the_death_signal_ends_at_once(tmp_path):
@@ -227,3 +227,13 @@ def test_a_staged_worker_plays_its_episode_as_a_fresh_one_and_its_wait_is_not_it
     assert len(set(second.steps.column("action").to_pylist())) > 1, "the policy's draws vary"
     # the staged worker waited for the whole first episode; its own duration is its reset and 40 steps
     assert second.episode["duration_s"] < first.episode["duration_s"] / 2, (second.episode, first.episode)
+
+
+def test_a_policy_that_does_not_load_in_its_process_ends_with_its_reason(store, write_policy, capsys):
+    # passes the static checks, fails when loaded: the policy process says why, its host records it
+    path = write_policy('GAME = "pong"\n\n\nclass Policy:\n    def __call__(self, obs):\n        return 0\n')
+    code = main(["eval", str(path), "--max-steps", "20", "--store", str(store.path), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 1, err
+    episode = json.loads(out)["episodes"][0]
+    assert episode["end_reason"] == "policy_error" and "must subclass tracing.Module" in episode["error"], episode

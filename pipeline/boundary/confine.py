@@ -4,7 +4,7 @@ One job: take a freshly forked worker (``pipeline/boundary/zygote.py``), after i
 policy code is loaded, and make the operating system the boundary:
 
 - ``PR_SET_NO_NEW_PRIVS``: nothing it executes could gain privileges (and it may not execute anything);
-- a network namespace of its own with no interface up (:func:`enter_network_namespace`, done once by the
+- a network namespace of its own with no interface up (:func:`enter_namespaces`, done once by the
   zygote; every worker inherits it): no network at all, not even 127.0.0.1 or abstract Unix sockets;
 - scratch directories on a small tmpfs in the zygote's own mount namespace (:func:`scratch_tmpfs`): what
   workers can write is bounded in all, and invisible to (and gone for) the rest of the machine;
@@ -36,6 +36,7 @@ import struct
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 WEAK_ENV = "CODEARCADE_ALLOW_WEAK_SANDBOX"
 """Set to 1 to run policy code even when a kernel feature of the sandbox is missing (warned on every run)."""
@@ -139,8 +140,8 @@ _LD_ABS_W, _JEQ, _JSET, _RET = 0x20, 0x15, 0x45, 0x06
 # x86_64 syscall numbers refused outright (EPERM)
 DENIED_SYSCALLS = {
     "execve": 59, "execveat": 322, "fork": 57, "vfork": 58, "ptrace": 101, "process_vm_readv": 310,
-    "process_vm_writev": 311, "process_madvise": 440, "mknod": 133, "mknodat": 259, "mount": 165,
-    "umount2": 166, "unshare": 272, "setns": 308, "pivot_root": 155, "chroot": 161, "socket": 41,
+    "process_vm_writev": 311, "process_madvise": 440, "process_mrelease": 448, "mknod": 133, "mknodat": 259,
+    "mount": 165, "umount2": 166, "unshare": 272, "setns": 308, "pivot_root": 155, "chroot": 161, "socket": 41,
     "connect": 42, "bind": 49, "listen": 50, "accept": 43, "accept4": 288, "tkill": 200,
     "rt_sigqueueinfo": 129, "rt_tgsigqueueinfo": 297, "pidfd_open": 434, "pidfd_send_signal": 424,
     "pidfd_getfd": 438, "kcmp": 312, "bpf": 321, "perf_event_open": 298, "userfaultfd": 323, "keyctl": 250,
@@ -150,11 +151,61 @@ DENIED_SYSCALLS = {
     "kexec_load": 246, "kexec_file_load": 320, "init_module": 175, "finit_module": 313, "delete_module": 176,
     "iopl": 172, "ioperm": 173, "swapon": 167, "swapoff": 168, "reboot": 169, "personality": 135,
     "setuid": 105, "setgid": 106, "setreuid": 113, "setregid": 114, "setresuid": 117, "setresgid": 119,
-    "setgroups": 116, "setfsuid": 122, "setfsgid": 123, "acct": 163, "quotactl": 179, "syslog": 103,
-    "settimeofday": 164, "clock_settime": 227, "adjtimex": 159, "clock_adjtime": 305, "sethostname": 170,
-    "setdomainname": 171, "vhangup": 153,
+    "setgroups": 116, "setfsuid": 122, "setfsgid": 123, "acct": 163, "quotactl": 179, "quotactl_fd": 443,
+    "syslog": 103, "settimeofday": 164, "clock_settime": 227, "adjtimex": 159, "clock_adjtime": 305,
+    "sethostname": 170, "setdomainname": 171, "vhangup": 153,
+    # calls that act on another process and have no harmless use here (migrate or inspect its memory,
+    # change its I/O priority or process group)
+    "migrate_pages": 256, "move_pages": 279, "ioprio_set": 251, "ioprio_get": 252, "setpgid": 109,
+    # host IPC and memory the address-space limit does not count (System V, POSIX message queues, memfds)
+    "shmget": 29, "shmat": 30, "shmctl": 31, "shmdt": 67, "semget": 64, "semop": 65, "semctl": 66,
+    "semtimedop": 220, "msgget": 68, "msgsnd": 69, "msgrcv": 70, "msgctl": 71, "mq_open": 240,
+    "mq_unlink": 241, "mq_timedsend": 242, "mq_timedreceive": 243, "mq_notify": 244, "mq_getsetattr": 245,
+    "memfd_create": 319, "memfd_secret": 447,
+    # watching files other processes touch
+    "inotify_init": 253, "inotify_init1": 294, "fanotify_init": 300,
 }
-SYS_CLONE, SYS_CLONE3, SYS_KILL, SYS_TGKILL = 56, 435, 62, 234
+SYS_CLONE, SYS_CLONE3, SYS_KILL, SYS_TGKILL, SYS_PRCTL = 56, 435, 62, 234, 157
+SELF_ONLY_SYSCALLS = {
+    # name: (number, index of the argument that names the target process); allowed only when that argument is
+    # 0 (the caller) or the caller's own pid: the family of calls that act on a process by its pid
+    "sched_setaffinity": (203, 0), "sched_getaffinity": (204, 0), "sched_setscheduler": (144, 0),
+    "sched_setparam": (142, 0), "sched_getparam": (143, 0), "sched_getscheduler": (145, 0),
+    "sched_setattr": (314, 0), "sched_getattr": (315, 0), "sched_rr_get_interval": (148, 0),
+    "prlimit64": (302, 0), "getpgid": (121, 0), "getsid": (124, 0), "get_robust_list": (274, 0),
+}
+PRIORITY_SYSCALLS = {"getpriority": 140, "setpriority": 141}
+"""(which, who): allowed for PRIO_PROCESS (0) of the caller only (who 0 or its own pid)."""
+PR_SET_PDEATHSIG_OPTION = 1
+
+
+class _Bpf:
+    """A classic BPF program with symbolic jump targets (offsets are counted when it is assembled)."""
+
+    def __init__(self) -> None:
+        self.code: list[tuple[int, Any, Any, int]] = []
+        self.labels: dict[str, int] = {}
+
+    def ld(self, offset: int) -> None:
+        self.code.append((_LD_ABS_W, 0, 0, offset))
+
+    def jeq(self, k: int, jt: Any = 0, jf: Any = 0) -> None:
+        self.code.append((_JEQ, jt, jf, k))
+
+    def ret(self, k: int) -> None:
+        self.code.append((_RET, 0, 0, k))
+
+    def label(self, name: str) -> None:
+        self.labels[name] = len(self.code)
+
+    def assemble(self) -> bytes:
+        out = []
+        for i, (code, jt, jf, k) in enumerate(self.code):
+            jt, jf = (self.labels[j] - i - 1 if isinstance(j, str) else j for j in (jt, jf))
+            if not (0 <= jt < 256 and 0 <= jf < 256):
+                raise ValueError("a BPF jump out of range")
+            out.append(_insn(code, jt, jf, k))
+        return b"".join(out)
 
 
 def _insn(code: int, jt: int, jf: int, k: int) -> bytes:
@@ -162,28 +213,57 @@ def _insn(code: int, jt: int, jf: int, k: int) -> bytes:
 
 
 def seccomp_program(own_pid: int) -> bytes:
-    """The BPF filter (x86_64): see the module docstring; ``own_pid`` is the one process kill may signal."""
-    arg0_lo = 16  # offsetof(struct seccomp_data, args[0]), low 32 bits (little-endian)
-    p = [
-        _insn(_LD_ABS_W, 0, 0, 4),  # arch
-        _insn(_JEQ, 1, 0, AUDIT_ARCH_X86_64),
-        _insn(_RET, 0, 0, RET_KILL_PROCESS),
-        _insn(_LD_ABS_W, 0, 0, 0),  # syscall number
-        _insn(0x35, 0, 1, 0x40000000),  # jge: the x32 ABI
-        _insn(_RET, 0, 0, RET_ERRNO | EPERM),
-    ]
+    """The BPF filter (x86_64): see the module docstring; ``own_pid`` is the one process the calls that name a
+    process may target."""
+    def arg(i: int) -> int:  # offsetof(struct seccomp_data, args[i]), low 32 bits (little-endian): a pid_t
+        return 16 + 8 * i
+
+    deny, allow = RET_ERRNO | EPERM, RET_ALLOW
+    p = _Bpf()
+    p.ld(4)  # arch
+    p.jeq(AUDIT_ARCH_X86_64, 1, 0)
+    p.ret(RET_KILL_PROCESS)
+    p.ld(0)  # syscall number
+    p.code.append((0x35, 0, 1, 0x40000000))  # jge: the x32 ABI
+    p.ret(deny)
     for nr in sorted(DENIED_SYSCALLS.values()):
-        p += [_insn(_JEQ, 0, 1, nr), _insn(_RET, 0, 0, RET_ERRNO | EPERM)]
-    p += [_insn(_JEQ, 0, 1, SYS_CLONE3), _insn(_RET, 0, 0, RET_ERRNO | ENOSYS)]
-    # clone: threads only
-    p += [_insn(_JEQ, 0, 4, SYS_CLONE), _insn(_LD_ABS_W, 0, 0, arg0_lo), _insn(_JSET, 0, 1, CLONE_THREAD),
-          _insn(_RET, 0, 0, RET_ALLOW), _insn(_RET, 0, 0, RET_ERRNO | EPERM)]
-    # kill / tgkill: this process only (no process groups, no pid 0 / -1)
-    for nr in (SYS_KILL, SYS_TGKILL):
-        p += [_insn(_LD_ABS_W, 0, 0, 0), _insn(_JEQ, 0, 4, nr), _insn(_LD_ABS_W, 0, 0, arg0_lo),
-              _insn(_JEQ, 0, 1, own_pid), _insn(_RET, 0, 0, RET_ALLOW), _insn(_RET, 0, 0, RET_ERRNO | EPERM)]
-    p.append(_insn(_RET, 0, 0, RET_ALLOW))
-    return b"".join(p)
+        p.jeq(nr, 0, 1)
+        p.ret(deny)
+    p.jeq(SYS_CLONE3, 0, 1)
+    p.ret(RET_ERRNO | ENOSYS)  # glibc then falls back to clone, refused below
+    p.jeq(SYS_CLONE, 0, 1)
+    p.ret(deny)  # no processes and no threads: the policy process is one thread, whatever it imports
+    # the calls that name a process: the caller only
+    for n, (nr, index) in enumerate(sorted(SELF_ONLY_SYSCALLS.values())):
+        p.jeq(nr, 0, f"next{n}")
+        p.ld(arg(index))
+        p.jeq(0, "allow", 0)
+        p.jeq(own_pid, "allow", "deny")
+        p.label(f"next{n}")
+        p.ld(0)
+    for nr, pid_arg, zero_ok in ((SYS_KILL, 0, False), (SYS_TGKILL, 0, False)):  # kill(0) is the process group
+        p.jeq(nr, 0, f"after{nr}")
+        p.ld(arg(pid_arg))
+        p.jeq(own_pid, "allow", "deny")
+        p.label(f"after{nr}")
+        p.ld(0)
+    for nr in sorted(PRIORITY_SYSCALLS.values()):
+        p.jeq(nr, 0, f"after{nr}")
+        p.ld(arg(0))
+        p.jeq(0, 0, "deny")  # PRIO_PROCESS; never a process group or a user's processes
+        p.ld(arg(1))
+        p.jeq(0, "allow", 0)
+        p.jeq(own_pid, "allow", "deny")
+        p.label(f"after{nr}")
+        p.ld(0)
+    p.jeq(SYS_PRCTL, 0, "allow")
+    p.ld(arg(0))
+    p.jeq(PR_SET_PDEATHSIG_OPTION, "deny", "allow")  # the parent-death signal stays as the zygote set it
+    p.label("deny")
+    p.ret(deny)
+    p.label("allow")
+    p.ret(allow)
+    return p.assemble()
 
 
 def _seccomp(program: bytes) -> None:
@@ -211,7 +291,7 @@ SCRATCH_MB = 64
 
 def scratch_tmpfs(path: str, size_mb: int = SCRATCH_MB) -> None:
     """Mount a tmpfs of ``size_mb`` over ``path`` in a mount namespace of this process's own (after
-    :func:`enter_network_namespace`, which provides the user namespace when not root): what workers write is
+    :func:`enter_namespaces`, which provides the user namespace when not root): what workers write is
     bounded in all, and gone when this process ends. ``path`` is this process's working directory again."""
     if _libc.unshare(ctypes.c_int(CLONE_NEWNS)) != 0:
         err = ctypes.get_errno()
@@ -227,27 +307,119 @@ def scratch_tmpfs(path: str, size_mb: int = SCRATCH_MB) -> None:
     os.chdir(path)
 
 
+MS_RDONLY, MS_REMOUNT, MS_BIND = 1, 32, 4096
+SYS_PIVOT_ROOT = 155
+
+
+def _mount(source: str | None, target: str, fstype: str | None, flags: int, data: str | None = None) -> None:
+    if _libc.mount(None if source is None else os.fsencode(source), os.fsencode(target),
+                   None if fstype is None else fstype.encode(), ctypes.c_ulong(flags),
+                   None if data is None else data.encode()) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, f"mount {source or fstype} on {target}: {os.strerror(err)}")
+
+
+def minimal_root(read: list[str], writable: list[str], devices: list[str]) -> None:
+    """Make this process's root a small tmpfs that holds only ``read`` (bound read-only), ``writable`` (bound
+    read-write: the scratch directories), ``devices`` (``/dev/null``, ``/dev/urandom``) and a ``/proc`` of this pid
+    namespace, each at its own path, then pivot into it (after :func:`scratch_tmpfs`: this process's own mount
+    namespace). Landlock decides what may be read or written; this decides what exists at all: ``stat()``,
+    which Landlock does not cover, finds nothing else (not a user's files, not another store, not the emulator).
+    Every child inherits the view."""
+    root = os.path.join(writable[0], ".root")
+    os.makedirs(root, exist_ok=True)
+    _mount("tmpfs", root, "tmpfs", MS_NOSUID | MS_NODEV, "size=4m,mode=0755")
+
+    def place(path: str, is_dir: bool) -> str:
+        target = root + path
+        os.makedirs(target if is_dir else os.path.dirname(target), exist_ok=True)
+        if not is_dir and not os.path.exists(target):
+            open(target, "wb").close()
+        return target
+
+    links: dict[str, str] = {}
+    for path in read + writable + devices:
+        probe = path
+        while probe not in ("/", ""):  # a symlink on the way (Debian's /lib -> usr/lib) is made a symlink inside
+            if os.path.islink(probe) and probe not in links:
+                links[probe] = os.readlink(probe)
+            probe = os.path.dirname(probe)
+    seen = set()
+    for path in read + writable + devices:
+        real = os.path.realpath(path)
+        if real in seen or not os.path.exists(real):
+            continue
+        seen.add(real)
+        target = place(real, os.path.isdir(real))
+        _mount(real, target, None, MS_BIND)  # not recursive: the scratch tmpfs holds this very root
+        flags = MS_BIND | MS_REMOUNT | MS_NOSUID
+        if path not in devices:
+            flags |= MS_NODEV
+        if path in read:
+            flags |= MS_RDONLY
+        _mount(None, target, None, flags)
+    for link, value in links.items():
+        target = root + link
+        if not os.path.lexists(target):
+            os.makedirs(os.path.dirname(target), exist_ok=True)
+            os.symlink(value, target)
+    os.makedirs(root + "/proc", exist_ok=True)
+    _mount("proc", root + "/proc", "proc", MS_NOSUID | MS_NODEV | MS_NOEXEC)
+    old = root + "/.old"
+    os.makedirs(old, exist_ok=True)
+    if _libc.syscall(ctypes.c_long(SYS_PIVOT_ROOT), os.fsencode(root), os.fsencode(old)) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, f"pivot_root: {os.strerror(err)}")
+    os.chdir("/")
+    if _libc.umount2(b"/.old", ctypes.c_int(2)) != 0:  # MNT_DETACH
+        err = ctypes.get_errno()
+        raise OSError(err, f"umount /.old: {os.strerror(err)}")
+    os.rmdir("/.old")
+    _mount(None, "/", None, MS_REMOUNT | MS_BIND | MS_RDONLY | MS_NOSUID | MS_NODEV)
+
+
 def unmount(path: str) -> None:
     """Detach the tmpfs of :func:`scratch_tmpfs` (so that the directory beneath can be removed)."""
     _libc.umount2(os.fsencode(path), ctypes.c_int(2))  # MNT_DETACH
 
 
-def enter_network_namespace() -> None:
-    """Move this process into a new, empty network namespace: directly as root, else inside a new user
-    namespace (unprivileged users, where the distribution allows it)."""
-    if _libc.unshare(ctypes.c_int(CLONE_NEWNET)) == 0:
-        return
+CLONE_NEWPID, CLONE_NEWIPC = 0x20000000, 0x08000000
+
+
+def enter_namespaces(offline: bool) -> list[str]:
+    """Move this process's future children into new pid and IPC namespaces (and, when ``offline``, this process
+    into a new, empty network namespace); the namespaces it could not have, by name. A new user namespace is
+    taken when not root (where the distribution allows unprivileged ones).
+
+    After this the process must fork at once (:func:`become_namespace_init`): its first child is pid 1 of the new
+    pid namespace, and the process itself can no longer start threads."""
+    missing = []
+    flags = CLONE_NEWPID | CLONE_NEWIPC | (CLONE_NEWNET if offline else 0)
+    if _libc.unshare(ctypes.c_int(flags)) == 0:
+        return missing
     err = ctypes.get_errno()
     uid, gid = os.geteuid(), os.getegid()
-    if _libc.unshare(ctypes.c_int(CLONE_NEWUSER | CLONE_NEWNET)) != 0:
-        err2 = ctypes.get_errno()
-        raise OSError(err, f"unshare(CLONE_NEWNET): {os.strerror(err)}; with a user namespace: {os.strerror(err2)}")
-    try:
-        for name, line in (("setgroups", "deny"), ("uid_map", f"{uid} {uid} 1"), ("gid_map", f"{gid} {gid} 1")):
-            with open(f"/proc/self/{name}", "w") as f:  # the same ids inside, so that files keep their owners
-                f.write(line)
-    except OSError:
-        pass  # (mapping root needs CAP_SETFCAP) unmapped ids still reach their files; the netns is what counts
+    if _libc.unshare(ctypes.c_int(CLONE_NEWUSER | flags)) == 0:
+        try:
+            for name, line in (("setgroups", "deny"), ("uid_map", f"{uid} {uid} 1"), ("gid_map", f"{gid} {gid} 1")):
+                with open(f"/proc/self/{name}", "w") as f:
+                    f.write(line)
+        except OSError:
+            pass  # (mapping root needs CAP_SETFCAP) unmapped ids still reach their files
+        return missing
+    for name, flag in (("network namespace", CLONE_NEWNET if offline else 0), ("IPC namespace", CLONE_NEWIPC),
+                       ("pid namespace", CLONE_NEWPID)):
+        if flag and _libc.unshare(ctypes.c_int(flag)) != 0:
+            missing.append(f"{name} (unshare: {os.strerror(ctypes.get_errno())}; {os.strerror(err)} together)")
+    return missing
+
+
+def become_namespace_init() -> None:
+    """In the first child after :func:`enter_namespaces`: die with the process that made the namespace (which
+    waits for us). As pid 1 of the namespace, when this process ends the kernel kills every process in it: no
+    worker outlives its zygote, whatever it did to its own parent-death signal."""
+    _libc.prctl(ctypes.c_int(PR_SET_PDEATHSIG), ctypes.c_ulong(9), ctypes.c_ulong(0), ctypes.c_ulong(0),
+                ctypes.c_ulong(0))
 
 
 def die_with_parent(parent_pid: int) -> None:
@@ -272,9 +444,15 @@ class Limits:
     """Directories the worker may write below (its scratch directory, a Rerun recording directory)."""
 
 
+EMULATOR_PACKAGES = ("ale_py", "ocatari", "gymnasium")
+"""What a policy process may never read (nor so import): the emulator, its ROMs, the object extractors and the
+environment API. The game runs in the host process (``pipeline/play``); the policy sees observations only."""
+
+
 def read_paths() -> tuple[list[str], list[str]]:
     """(paths readable below, directories that may only be listed): Python, site-packages, system
-    libraries, the project's packages (not the project directory's other files, such as a store)."""
+    libraries, the project's packages (not the project directory's other files, such as a store), minus
+    :data:`EMULATOR_PACKAGES` wherever they are installed (:func:`carve`)."""
     import site
 
     read = {sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix,
@@ -290,7 +468,57 @@ def read_paths() -> tuple[list[str], list[str]]:
     for sub in project.iterdir():
         if (sub / "__init__.py").exists():
             read.add(str(sub))
-    return sorted(read), sorted(list_only)
+    return carve(sorted(read), emulator_paths()), sorted(list_only)
+
+
+def emulator_paths() -> list[str]:
+    """Where :data:`EMULATOR_PACKAGES` are installed (their package directories, native libraries and metadata),
+    found without importing them."""
+    import glob
+    import importlib.util
+
+    found: list[str] = []
+    for name in EMULATOR_PACKAGES:
+        try:
+            spec = importlib.util.find_spec(name)
+        except (ImportError, ValueError):
+            spec = None
+        locations = list(spec.submodule_search_locations or []) if spec is not None else []
+        if spec is not None and spec.origin and not locations:
+            locations = [spec.origin]
+        for location in locations:
+            location = os.path.realpath(location)
+            found.append(location)
+            parent = os.path.dirname(location)
+            found += glob.glob(os.path.join(parent, f"{name}.libs")) + glob.glob(os.path.join(parent, f"{name}-*.dist-info"))
+    return sorted(set(found))
+
+
+def carve(allowed: list[str], forbidden: list[str]) -> list[str]:
+    """``allowed`` with every path in ``forbidden`` taken out: an allowed directory that contains a forbidden path
+    is replaced by its entries (and so on down the way to it), all but the forbidden one. Landlock only ever adds
+    rights, so what it must not grant has to be left out of the rules."""
+    forbidden = [os.path.realpath(f) for f in forbidden]
+    out: list[str] = []
+
+    def add(path: str) -> None:
+        real = os.path.realpath(path)
+        if any(real == f or real.startswith(f + os.sep) for f in forbidden):
+            return
+        inside = [f for f in forbidden if f.startswith(real.rstrip(os.sep) + os.sep)]
+        if not inside or not os.path.isdir(real):
+            out.append(path)
+            return
+        try:
+            entries = sorted(os.listdir(real))
+        except OSError:
+            return
+        for entry in entries:
+            add(os.path.join(real, entry))
+
+    for path in allowed:
+        add(path)
+    return sorted(set(out))
 
 
 def confine(limits: Limits, strict: bool = True) -> list[str]:

@@ -21,6 +21,8 @@ import struct
 from typing import Any
 
 HEADER = struct.Struct(">cI")
+GO = struct.Struct(">ch")
+"""A staged worker's go-ahead: ``G`` and the CPU to run on (-1: anywhere)."""
 MAX_JSON = 4 * 2**20
 MAX_ARROW = 512 * 2**20
 MAX_TEXT = 20_000
@@ -45,6 +47,11 @@ def arrow_frame(table: Any) -> bytes:
         writer.write_table(table)
     data = sink.getvalue().to_pybytes()
     return HEADER.pack(b"A", len(data)) + data
+
+
+def raw_arrow_frame(payload: bytes) -> bytes:
+    """An Arrow frame around bytes that already are an Arrow IPC stream (relayed unread, checked by the receiver)."""
+    return HEADER.pack(b"A", len(payload)) + payload
 
 
 def write_all(fd: int, data: bytes) -> None:

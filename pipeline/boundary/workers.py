@@ -1,17 +1,24 @@
-"""Run tasks in confined worker processes, behind the operating-system boundary, or in-process with
+"""Run tasks in worker processes, policy code always behind the operating-system boundary, or in-process with
 ``workers=0`` (for debugging; no isolation at all). The tasks themselves (an episode, a candidate's checks) are
 ``pipeline/play``'s: :class:`Task` says how one goes out and comes back, :func:`run_tasks` runs many.
 
 Policy code never runs in this process, nor in any process that holds this one's memory or environment
-(API keys, the store path). A :class:`Zygote` is started once per process with ``subprocess``: a fresh
-interpreter with an allow-listed environment (:func:`worker_environment`) that imports the environment stack
-and forks one worker per task (``pipeline/boundary/zygote.py``), so every episode starts from the same clean state
-(nothing a policy changes, module attributes included, survives into the next). The next worker is forked and
-confined while the current one plays (``staged``), and loads its policy and resets its environment (ALE's
-seeded reset reloads the ROM, ~0.1 s), so neither the fork (~5-20 ms) nor the reset sits between episodes. Each
-worker is confined by the kernel before it loads policy code (``pipeline/boundary/confine.py``: no exec, no fork, no
-network, no writes outside its scratch directory, no reads outside Python's and the project's files, rlimits),
-and its stdout/stderr go to /dev/null. A missing kernel feature stops the run with a one-line error unless
+(API keys, the store path), nor in one that holds the emulator. Two :class:`Zygote` processes are started once
+per process with ``subprocess`` (``pipeline/boundary/zygote.py``), fresh interpreters with an allow-listed
+environment (:func:`worker_environment`), each forking one worker per task so that every task starts from the same
+clean state (nothing a policy changes, module attributes included, survives into the next):
+
+- the **policy** zygote's workers run policy code, confined by the kernel before it loads
+  (``pipeline/boundary/confine.py``: no exec, no fork, no threads, no network, no writes outside a scratch
+  directory, no reads of the emulator or outside Python's and the project's files, nothing that names another
+  process, rlimits), in pid, IPC and network namespaces of their own;
+- the **game** zygote's workers are game hosts: the environment, the score, the step log, live recordings.
+
+An episode is a *paired* task: a host and a policy process joined by a socket of their own, one round trip per
+step, pinned to one CPU (a round trip across cores costs tens of microseconds here, on one a few: NOTES.md).
+The next episode's pair is forked and prepared while the current one plays (``staged``): the host resets its
+environment (ALE's seeded reset reloads the ROM, ~0.1 s) and its policy process loads the policy, so neither the
+forks nor the reset sit between episodes. A missing kernel feature stops the run with a one-line error unless
 ``CODEARCADE_ALLOW_WEAK_SANDBOX=1`` (then a warning is printed on every run).
 
 Only plain data crosses: the task goes out as one JSON frame, the answer comes back as JSON frames and Arrow
@@ -62,29 +69,38 @@ _ALLOWED_ENV = re.compile(r"^(PATH|LANG|LANGUAGE|LC_[A-Z]+|TZ|TERM|OMP_[A-Z_]+|O
 _SECRET_ENV = re.compile(r"(KEY|TOKEN|SECRET|PASSWORD|PASSWD|CREDENTIAL|AUTH|COOKIE|SESSION)", re.IGNORECASE)
 
 
-def worker_environment(home: str) -> dict[str, str]:
-    """The zygote's whole environment: an allow-list of harmless variables, never a secret."""
+SINGLE_THREADED = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+"""A policy process may not start threads (seccomp): numeric libraries must not try."""
+
+
+def worker_environment(home: str, role: str = "policy") -> dict[str, str]:
+    """A zygote's whole environment: an allow-list of harmless variables, never a secret."""
     env = {k: v for k, v in os.environ.items() if _ALLOWED_ENV.match(k) and not _SECRET_ENV.search(k)}
     paths = [str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
     env.update(HOME=home, TMPDIR=home, PYTHONPATH=os.pathsep.join(dict.fromkeys(paths)),
                PYTHONDONTWRITEBYTECODE="1")
+    if role == "policy":
+        env.update(SINGLE_THREADED)
     if weak_sandbox_allowed():
         env[WEAK_ENV] = "1"
     return env
 
 
 class Zygote:
-    """The process that forks confined workers (``pipeline/boundary/zygote.py``), seen from the parent."""
+    """A process that forks workers (``pipeline/boundary/zygote.py``) in one role (``policy`` or ``game``), seen
+    from the parent."""
 
-    def __init__(self) -> None:
+    def __init__(self, role: str = "policy") -> None:
+        self.role = role
         self.scratch = tempfile.mkdtemp(prefix="codearcade-sandbox-")
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self.ctl = ours
         self.log_path = os.path.join(self.scratch, "zygote.log")
         with open(self.log_path, "wb") as log:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "pipeline.boundary.zygote", str(theirs.fileno())], env=worker_environment(self.scratch),
-                cwd=self.scratch, pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+                [sys.executable, "-m", "pipeline.boundary.zygote", role, str(theirs.fileno())],
+                env=worker_environment(self.scratch, role), cwd=self.scratch, pass_fds=[theirs.fileno()],
+                stdin=subprocess.DEVNULL, stdout=log, stderr=log)
         theirs.close()
         self.events: dict[int, dict[str, Any]] = {}
         self.next_id = 0
@@ -92,7 +108,7 @@ class Zygote:
         if hello is None or hello.get("kind") != "hello":
             tail = Path(self.log_path).read_text(errors="replace").strip().splitlines()[-1:] or ["no output"]
             self.close()
-            raise SandboxUnavailable(f"the policy worker process did not start: {tail[0][:300]}")
+            raise SandboxUnavailable(f"the {self.role} worker process did not start: {tail[0][:300]}")
         self.missing: list[str] = list(hello.get("missing", []))
         if self.missing:
             if not weak_sandbox_allowed():
@@ -139,21 +155,13 @@ class Zygote:
     def send(self, msg: dict[str, Any], fds: list[int] = ()) -> None:
         socket.send_fds(self.ctl, [json.dumps(msg).encode()], list(fds))
 
-    def start(self, task: str, item: dict[str, Any], limits: dict[str, Any],
-              staged: bool = False) -> tuple[int, socket.socket]:
+    def start(self, task: str, item: dict[str, Any], limits: dict[str, Any], staged: bool = False,
+              extra: socket.socket | None = None) -> tuple[int, socket.socket]:
         """Fork a worker for ``task`` and send it ``item``; the task id and the socket its answer comes on.
-        A ``staged`` worker sets itself up, then waits for :meth:`go`."""
-        self.next_id += 1
-        task_id = self.next_id
-        self.events[task_id] = {}
+        A ``staged`` worker sets itself up, then waits for :meth:`go`. ``extra``: a second socket handed to the
+        worker (a host's, to its policy process)."""
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            self.send({"op": "run", "id": task_id, "task": task, "limits": limits, "staged": staged},
-                      [theirs.fileno()])
-        except OSError:
-            pass  # the zygote died: the worker's socket reads EOF, and the task is recorded as crashed
-        finally:
-            theirs.close()
+        task_id = self._run(task, theirs, limits, staged, extra)
         ours.settimeout(60)
         try:
             ours.sendall(wire.json_frame(item))
@@ -162,11 +170,32 @@ class Zygote:
         ours.setblocking(False)
         return task_id, ours
 
-    @staticmethod
-    def go(conn: socket.socket) -> None:
-        """Let a staged worker run its task (a worker that died meanwhile is seen at its EOF)."""
+    def attach(self, task: str, sock: socket.socket, limits: dict[str, Any]) -> int:
+        """Fork a worker for ``task`` on ``sock``, a socket whose other end is not this process's (a policy process
+        and its host): the worker reads its task from there and answers there. The task id."""
+        return self._run(task, sock, limits, False, None)
+
+    def _run(self, task: str, sock: socket.socket, limits: dict[str, Any], staged: bool,
+             extra: socket.socket | None) -> int:
+        self.next_id += 1
+        task_id = self.next_id
+        self.events[task_id] = {}
         try:
-            conn.send(b"G")
+            self.send({"op": "run", "id": task_id, "task": task, "limits": limits, "staged": staged},
+                      [sock.fileno()] + ([extra.fileno()] if extra is not None else []))
+        except OSError:
+            pass  # the zygote died: the worker's socket reads EOF, and the task is recorded as crashed
+        finally:
+            sock.close()
+            if extra is not None:
+                extra.close()
+        return task_id
+
+    @staticmethod
+    def go(conn: socket.socket, cpu: int | None = None) -> None:
+        """Let a staged worker run its task, on ``cpu`` if given (a worker that died meanwhile is seen at its EOF)."""
+        try:
+            conn.send(wire.GO.pack(b"G", -1 if cpu is None else cpu))
         except OSError:
             pass
 
@@ -186,13 +215,22 @@ class Zygote:
     def forget(self, task_id: int) -> None:
         self.events.pop(task_id, None)
 
-    def children(self) -> list[int]:
-        """The pids of the workers alive now."""
+    def count(self, timeout: float = 5.0) -> int | None:
+        """How many workers of this zygote are alive now (None: it did not say)."""
         try:
-            with open(f"/proc/{self.proc.pid}/task/{self.proc.pid}/children") as f:
-                return [int(p) for p in f.read().split()]
+            self.send({"op": "count"})
         except OSError:
-            return []
+            return None
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            msg = self._recv(deadline - time.monotonic())
+            if msg is None:
+                return None
+            if msg.get("kind") == "count":
+                return int(msg["workers"])
+            if msg.get("id") in self.events:
+                self.events[msg["id"]].update(msg)
+        return None
 
     def close(self) -> None:
         try:
@@ -208,30 +246,34 @@ class Zygote:
         shutil.rmtree(self.scratch, ignore_errors=True)
 
 
-_zygote: Zygote | None = None
-_zygote_pid: int | None = None
+_zygotes: dict[str, Zygote] = {}
+_zygotes_pid: int | None = None
 _lock = threading.RLock()
 
 
-def zygote() -> Zygote:
-    """This process's zygote, started on first use (and again if it died). Raises SandboxUnavailable."""
-    global _zygote, _zygote_pid
+def zygote(role: str = "policy") -> Zygote:
+    """This process's zygote of ``role``, started on first use (and again if it died). Raises SandboxUnavailable."""
+    global _zygotes_pid
     with _lock:
-        if _zygote is not None and (_zygote_pid != os.getpid() or not _zygote.alive()):
-            if _zygote_pid == os.getpid():
-                _zygote.close()
-            _zygote = None  # a forked copy of this process must not share its parent's zygote
-        if _zygote is None:
-            _zygote, _zygote_pid = Zygote(), os.getpid()
-        return _zygote
+        if _zygotes_pid != os.getpid():
+            _zygotes.clear()  # a forked copy of this process must not share its parent's zygotes
+            _zygotes_pid = os.getpid()
+        existing = _zygotes.get(role)
+        if existing is not None and not existing.alive():
+            existing.close()
+            existing = None
+        if existing is None:
+            existing = _zygotes[role] = Zygote(role)
+        return existing
 
 
 @atexit.register
 def stop_zygote() -> None:
-    global _zygote
-    if _zygote is not None and _zygote_pid == os.getpid():
-        _zygote.close()
-    _zygote = None
+    """Close this process's zygotes (their workers end with them)."""
+    if _zygotes_pid == os.getpid():
+        for zyg in _zygotes.values():
+            zyg.close()
+    _zygotes.clear()
 
 
 @dataclass(frozen=True)
@@ -248,7 +290,12 @@ class Task:
     tables: Callable[[dict[str, Any]], int] = lambda msg: 0
     """How many Arrow frames follow a result message."""
     limits: Callable[[Any], dict[str, Any]] = lambda item: {}
-    """The worker's :class:`pipeline.boundary.confine.Limits` for an item, as keyword arguments."""
+    """The (policy) worker's :class:`pipeline.boundary.confine.Limits` for an item, as keyword arguments."""
+    paired: bool = False
+    """Each item is played by a host of the game zygote (the task ``name``) with a policy process of its own from
+    the policy zygote (task ``policy``), joined by a socket; both pinned to one CPU."""
+    after_pair: Callable[[Any, Callable[[], int | None]], Any] | None = None
+    """For a paired task: (result, the policy process's exit code when asked) -> result."""
 
 
 @dataclass
@@ -258,6 +305,9 @@ class _Running:
     task_id: int
     conn: socket.socket
     begun: float
+    policy_id: int | None = None
+    """A paired task's policy process."""
+    cpu: int | None = None
     reader: wire.FrameReader = field(default_factory=wire.FrameReader)
     result: dict[str, Any] | None = None
     tables: list[bytes] = field(default_factory=list)
@@ -272,16 +322,14 @@ def run_tasks(
     progress: ProgressCallback | None = None,
     started: Callable[[], None] | None = None,
     prepare: Callable[[Zygote], None] | None = None,
-    on_actions: Callable[[int, list[int]], None] | None = None,
 ) -> Iterator[tuple[int, R]]:
-    """Run ``task`` on every item in a confined worker of its own, at most ``workers`` at once; yield
-    ``(index, result)`` as each finishes. ``on_actions(index, actions)`` gets the actions an episode reports
-    while it plays (checked: a list of small ints), so the caller can verify its score as it goes.
+    """Run ``task`` on every item in a worker of its own (a paired task: a host and a policy process), at most
+    ``workers`` at once; yield ``(index, result)`` as each finishes.
 
     A worker that dies, raises, sends a malformed answer, or outlives ``time_limit_s(item)`` plus a grace period
     yields ``failed(item, why, timed_out)`` instead. ``started`` is called once the first workers are running,
-    so the caller can do its own set-up meanwhile. ``workers=0`` runs the tasks one after another in this
-    process (no isolation; for debugging).
+    so the caller can do its own set-up meanwhile. ``prepare(zygote)`` may warm the (host's) zygote first.
+    ``workers=0`` runs the tasks one after another in this process (no isolation; for debugging).
     """
     items = list(items)
     if workers <= 0:
@@ -291,33 +339,52 @@ def run_tasks(
             yield i, task.local(item, (lambda n, i=i: progress(i, n)) if progress is not None else (lambda n: None))
         return
 
-    zyg = zygote()
+    zyg = zygote("game" if task.paired else "policy")
+    policies = zygote("policy") if task.paired else None
     if prepare is not None:
         prepare(zyg)
+    cpus = sorted(os.sched_getaffinity(0))
     pending = deque(enumerate(items))
     busy: dict[int, _Running] = {}  # by fd
     staged: deque[_Running] = deque()
     """The next worker, forked, confined and prepared (policy loaded, environment reset) while the others play:
-    the fork of the zygote (~5-20 ms) and ALE's seeded reset (~0.1 s) would otherwise come between one episode
-    and the next."""
+    the forks (~5-20 ms) and ALE's seeded reset (~0.1 s) would otherwise come between one episode and the next."""
 
-    def start(staged_: bool) -> _Running:
-        i, item = pending.popleft()
+    def limits_of(item: Any) -> dict[str, Any]:
         limits = task.limits(item)
         limit = time_limit_s(item)
         if limit is not None and "cpu_s" not in limits:
             limits["cpu_s"] = int(math.ceil(limit + KILL_GRACE_S + 10))
-        task_id, conn = zyg.start(task.name, task.encode(item), limits, staged=staged_)
-        return _Running(i, item, task_id, conn, time.monotonic())
+        return limits
+
+    def start(staged_: bool) -> _Running:
+        i, item = pending.popleft()
+        if policies is None:
+            task_id, conn = zyg.start(task.name, task.encode(item), limits_of(item), staged=staged_)
+            return _Running(i, item, task_id, conn, time.monotonic())
+        host_end, policy_end = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        policy_id = policies.attach("policy", policy_end, limits_of(item))
+        # a host always waits for its go-ahead, which names its CPU
+        task_id, conn = zyg.start(task.name, task.encode(item), {}, staged=True, extra=host_end)
+        return _Running(i, item, task_id, conn, time.monotonic(), policy_id=policy_id)
+
+    def free_cpu() -> int | None:
+        """A CPU no running pair holds (a pair alternates between its two processes: one core is all it needs)."""
+        if policies is None:
+            return None
+        held = {run.cpu for run in busy.values()}
+        return next((cpu for cpu in cpus if cpu not in held), None)
 
     def fill() -> None:
         while (staged or pending) and len(busy) < workers:
             if staged:
-                run = staged.popleft()
-                zyg.go(run.conn)
-                run.begun = time.monotonic()
+                run, waiting = staged.popleft(), True
             else:
-                run = start(False)
+                run, waiting = start(False), policies is not None  # a host always waits for its go-ahead
+            run.cpu = free_cpu()
+            if waiting:
+                zyg.go(run.conn, run.cpu)
+            run.begun = time.monotonic()
             busy[run.conn.fileno()] = run
         if pending and not staged:
             staged.append(start(True))
@@ -327,10 +394,17 @@ def run_tasks(
         run.conn.close()
         if kill:
             zyg.kill(run.task_id)
+        if policies is not None and run.policy_id is not None:
+            policies.kill(run.policy_id)  # done with its episode (or stuck): either way, it goes
+
+    def settle(run: _Running) -> None:
+        zyg.forget(run.task_id)
+        if policies is not None and run.policy_id is not None:
+            policies.forget(run.policy_id)
 
     def died(run: _Running) -> R:
         code = zyg.exit_code(run.task_id)
-        zyg.forget(run.task_id)
+        settle(run)
         if code == -signal.SIGXCPU:
             return failed(run.item, "worker exceeded its CPU-time limit", True)
         how = "unknown exit status" if code is None else (f"signal {-code}" if code < 0 else f"exit code {code}")
@@ -346,10 +420,6 @@ def run_tasks(
                 if kind != b"J":
                     raise wire.BadMessage("an Arrow table before the result")
                 msg = wire.parse_message(payload)  # kind and fields checked
-                if msg["kind"] == "actions":
-                    if on_actions is not None:
-                        on_actions(run.index, msg["actions"])
-                    continue
                 if msg["kind"] == "progress":
                     if progress is not None:
                         progress(run.index, msg["n"])
@@ -362,9 +432,13 @@ def run_tasks(
                 if len(run.tables) > wanted:
                     raise wire.BadMessage("more Arrow tables than announced")
                 if len(run.tables) == wanted:
-                    return task.decode(run.item, run.result, run.tables)
+                    result = task.decode(run.item, run.result, run.tables)
+                    if policies is not None and task.after_pair is not None:
+                        result = task.after_pair(result, lambda: policies.exit_code(run.policy_id, wait_s=1.0))
+                    return result
         return None
 
+    controls = [zyg] + ([policies] if policies is not None else [])
     try:
         fill()
         if started is not None:
@@ -372,9 +446,10 @@ def run_tasks(
         while pending or staged or busy:
             fill()
             finished: list[tuple[int, R]] = []
-            ready, _, _ = select.select(list(busy) + [zyg.ctl.fileno()], [], [], 0.5)
-            if zyg.ctl.fileno() in ready:
-                zyg.pump()
+            ready, _, _ = select.select(list(busy) + [z.ctl.fileno() for z in controls], [], [], 0.5)
+            for z in controls:
+                if z.ctl.fileno() in ready:
+                    z.pump()
             for fd in ready:
                 run = busy.get(fd)
                 if run is None:
@@ -395,35 +470,38 @@ def run_tasks(
                     if not isinstance(exc, wire.BadMessage):
                         exc = f"{type(exc).__name__}: {str(exc)[:300]}"
                     end(run, kill=True)
-                    zyg.forget(run.task_id)
+                    settle(run)
                     finished.append((run.index, failed(run.item, f"the worker sent a malformed message: {exc}",
                                                        False)))
                     continue
                 if result is not None:
                     end(run)
-                    zyg.forget(run.task_id)
+                    settle(run)
                     finished.append((run.index, result))
             now = time.monotonic()
             for run in list(busy.values()):
                 limit = time_limit_s(run.item)
                 if limit is not None and now - run.begun > limit + KILL_GRACE_S:
                     end(run, kill=True)
-                    zyg.forget(run.task_id)
+                    settle(run)
                     finished.append((run.index, failed(run.item, f"worker killed after {now - run.begun:.0f} s "
                                                                  f"(time limit {limit:g} s)", True)))
-            if not zyg.alive():
+            if not all(z.alive() for z in controls):
                 for run in list(busy.values()):
-                    end(run)
-                    finished.append((run.index, failed(run.item, "the worker's zygote process died", False)))
+                    end(run, kill=True)
+                    settle(run)
+                    finished.append((run.index, failed(run.item, "a zygote process died", False)))
             fill()  # before handing results out, so that workers play while the caller writes them
             yield from finished
     finally:
         for run in list(busy.values()):
             end(run, kill=True)
-            zyg.forget(run.task_id)
+            settle(run)
         for run in staged:
             run.conn.close()  # EOF instead of G: the worker exits without running anything
-            zyg.forget(run.task_id)
+            if policies is not None and run.policy_id is not None:
+                policies.kill(run.policy_id)
+            settle(run)
 
 
 def run_json_task(name: str, item: dict[str, Any], local: Callable[[dict[str, Any]], dict[str, str | None]],

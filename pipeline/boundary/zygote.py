@@ -1,26 +1,34 @@
-"""The zygote: a clean process that forks one confined worker per task (``python -m pipeline.boundary.zygote FD``).
+"""The zygotes: clean processes that fork one worker per task (``python -m pipeline.boundary.zygote ROLE FD``).
 
-The executor (``pipeline/boundary/workers.py``) starts it with a fresh interpreter, an environment reduced to an
-allow-list (no API keys, no store path), its scratch directory as HOME and cwd, and one end of a Unix
-``SOCK_SEQPACKET`` socket pair as its only inherited descriptor. It imports the environment stack once
-(``pipeline.boundary.preload``), moves itself into an empty network namespace, mounts a small tmpfs over its
-scratch directory in a mount namespace of its own (the workers' scratch directories), probes the features of
-``pipeline/boundary/confine.py`` in a throwaway child, and says hello with what is missing. Then it serves:
+The executor (``pipeline/boundary/workers.py``) starts two, each with a fresh interpreter, an environment
+reduced to an allow-list (no API keys, no store path), its scratch directory as HOME and cwd, and one end of a
+Unix ``SOCK_SEQPACKET`` socket pair as its only inherited descriptor. Each serves one :data:`ROLES` entry:
 
-- ``{"op": "prepare", "envs": [[game, sticky, noop_max], ...]}``: build those environments once (workers
-  inherit them built);
-- ``{"op": "run", "id", "task", "limits", "staged"}`` with a socket passed alongside (SCM_RIGHTS): fork a
-  worker that reads its task as a JSON frame from that socket, confines itself (scratch directory,
-  stdout/stderr to /dev/null, :func:`pipeline.boundary.confine.confine`), prepares it (an episode: policy loaded,
-  environment reset), waits for a ``G`` byte if ``staged`` (the executor sets up the next worker while the
-  current one plays), runs the task and writes its answer as frames (``pipeline/boundary/wire.py``); answered with
-  ``{"kind": "started", "id", "pid"}``;
-- ``{"op": "kill", "id"}``: SIGKILL that worker.
+- ``policy``: untrusted code runs in its workers (an episode's policy, the checks of a candidate). It imports
+  only what a policy needs (never the emulator: ``pipeline/boundary/preload.py``), takes new network, IPC and
+  pid namespaces (it is pid 1 of its own, the init of every worker: when it ends, the kernel ends them all),
+  mounts a small tmpfs over its scratch directory in a mount namespace of its own, probes the features of
+  ``pipeline/boundary/confine.py`` in a throwaway child, and confines every worker before it loads any code.
+- ``game``: the game hosts (``pipeline/play/episodes.py``): the emulator and everything that computes a score.
+  No policy code is ever loaded there. It builds each environment once (``prepare``), so that hosts start warm,
+  and keeps the machine's network (a host may stream a live Rerun recording); new IPC and pid namespaces.
+
+Both say hello with what is missing, then serve:
+
+- ``{"op": "prepare", "envs": [[game, sticky, noop_max, one_life, observation], ...]}`` (``game``): build those environments
+  once (hosts inherit them built);
+- ``{"op": "run", "id", "task", "limits", "staged"}`` with one or two sockets passed alongside (SCM_RIGHTS): fork
+  a worker that reads its task as a JSON frame from the first socket, sends stdout/stderr to /dev/null, confines
+  itself (role ``policy``: :func:`pipeline.boundary.confine.confine`), prepares (a host resets its environment and
+  has its policy process, on the second socket, load the policy), waits for a go-ahead (``G`` and the CPU to run
+  on) if ``staged`` (the executor sets up the next episode while the current one plays), runs the task and writes
+  its answer as frames (``pipeline/boundary/wire.py``); answered with ``{"kind": "started", "id", "pid"}``;
+- ``{"op": "kill", "id"}``: SIGKILL that worker; ``{"op": "count"}``: how many workers are alive.
 
 Every worker that ends is reported as ``{"kind": "exited", "id", "code"}`` (negative: killed by that signal)
 and its scratch directory removed. When the parent goes away (EOF on the socket) the zygote kills its workers
-and exits; workers die with the zygote (PDEATHSIG). Each worker is a fresh fork: no policy or module state
-survives from one task to the next.
+and exits; workers die with the zygote (PDEATHSIG, and the pid namespace). Each worker is a fresh fork: no policy
+or module state survives from one task to the next.
 """
 
 from __future__ import annotations
@@ -35,6 +43,7 @@ import signal
 import socket
 import sys
 import traceback
+from dataclasses import dataclass
 from typing import Any, Callable
 
 from pipeline.boundary import confine, wire
@@ -49,38 +58,64 @@ def _send(ctl: socket.socket, obj: dict[str, Any]) -> None:
 # ------------------------------------------------------------------------------------------ worker tasks
 
 
-TASKS: dict[str, tuple[str, bool]] = {
-    "episode": ("pipeline.play.episodes:episode_task", True),
-    "check": ("pipeline.play.validate:check_here", False),
-    "vet": ("pipeline.play.validate:vet_and_check_here", False),
+@dataclass(frozen=True)
+class Role:
+    """What a zygote loads, how its workers are confined, and the tasks they run."""
+
+    tasks: dict[str, tuple[str, bool]]
+    """Per task name: the function that does it, by module path (the tasks live in ``pipeline/play`` and here:
+    the boundary runs play's without importing them), and whether it prepares itself: ``fn(item, fd, extra_fd)``
+    prepares in the worker (before a staged worker's go-ahead) and returns what runs the task on a CPU and writes
+    its answer on ``fd``; otherwise ``fn(item)`` returns the text fields of one result message. Their modules are
+    imported once, in the zygote (``preload``)."""
+    confined: bool
+    """Workers run untrusted code: confined by the kernel (``confine.py``) before it loads."""
+    offline: bool
+    """No network: the zygote takes a new, empty network namespace that every worker inherits."""
+    no_emulator: bool
+    """The zygote must never load the emulator stack (checked after its preload)."""
+
+
+ROLES: dict[str, Role] = {
+    "policy": Role(tasks={"policy": ("pipeline.boundary.policy:policy_task", True),
+                          "check": ("pipeline.play.validate:check_here", False),
+                          "vet": ("pipeline.play.validate:vet_and_check_here", False)},
+                   confined=True, offline=True, no_emulator=True),
+    "game": Role(tasks={"host": ("pipeline.play.episodes:host_task", True)},
+                 confined=False, offline=False, no_emulator=False),
 }
-"""Per task name: the function that does it, by module path (the tasks live in ``pipeline/play``, above this
-package: the boundary runs them without importing them), and whether it prepares itself: ``fn(item, fd)``
-prepares in the confined worker (before a staged worker's go-ahead: an episode loads its policy and resets its
-environment) and returns what runs the task and writes its answer on ``fd``; otherwise ``fn(item)`` returns the
-text fields of one result message. Their modules are imported once, in the zygote (``preload``)."""
 
 
-def _task(name: str, item: dict[str, Any], fd: int) -> Callable[[], None]:
+def _task(role: Role, name: str, item: dict[str, Any], fd: int,
+          extra_fd: int | None) -> Callable[[int | None], None]:
     """What runs task ``name`` on ``item`` and writes its answer on ``fd`` (prepared already, if it prepares)."""
-    path, prepares = TASKS[name]
+    path, prepares = role.tasks[name]
     module, _, attr = path.partition(":")
     function = getattr(importlib.import_module(module), attr)  # preloaded: no file is read here
     if prepares:
-        return function(item, fd)
-    return lambda: wire.write_all(fd, wire.json_frame({"kind": "result", **function(item)}))
+        return function(item, fd, extra_fd)
+    return lambda cpu: wire.write_all(fd, wire.json_frame({"kind": "result", **function(item)}))
 
 
-def _worker(fd: int, msg: dict[str, Any], zygote_pid: int, scratch_base: str, strict: bool) -> None:
-    """In the forked worker: set up, confine, run the task; never returns."""
+def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: str, role: Role,
+            strict: bool) -> None:
+    """In the forked worker: set up, confine (role ``policy``), run the task; never returns. ``fds[0]`` carries the
+    task and its answer; a host's ``fds[1]`` is its policy process's socket."""
     code = 0
+    fd = fds[0]
     try:
         signal.set_wakeup_fd(-1)
         for sig in (signal.SIGCHLD, signal.SIGTERM, signal.SIGINT, signal.SIGPIPE):
             signal.signal(sig, signal.SIG_DFL)
+        if not role.confined:  # a host outlives its policy process's socket: a write there is an error, not death
+            signal.signal(signal.SIGPIPE, signal.SIG_IGN)
         confine.die_with_parent(zygote_pid)
-        os.closerange(3, fd)
-        os.closerange(fd + 1, 1 << 30)  # close_range(2): cheap whatever the bound
+        keep = sorted(fds)
+        low = 3
+        for kept in keep:
+            os.closerange(low, kept)
+            low = kept + 1
+        os.closerange(low, 1 << 30)  # close_range(2): cheap whatever the bound
         scratch = os.path.join(scratch_base, f"w{int(msg['id'])}")
         os.makedirs(scratch, exist_ok=True)
         os.chdir(scratch)
@@ -91,15 +126,24 @@ def _worker(fd: int, msg: dict[str, Any], zygote_pid: int, scratch_base: str, st
         os.close(devnull)
         kind, payload = wire.read_frame(fd, limit=64 * 2**20)
         item = json.loads(payload)
-        limits = confine.Limits(**msg["limits"])
-        for path in limits.write_paths:
-            os.makedirs(path, exist_ok=True)
-        limits.write_paths = [scratch, *limits.write_paths]
-        confine.confine(limits, strict=strict)
-        run = _task(msg["task"], item, fd)  # confined already: preparing an episode loads policy code
-        if msg.get("staged") and os.read(fd, 1) != b"G":
-            return  # staged ahead of time (set up, confined, prepared while another task ran), then not needed
-        run()
+        if role.confined:
+            limits = confine.Limits(**msg["limits"])
+            limits.write_paths = [scratch]  # nothing else, ever: recordings are written by the game host
+            confine.confine(limits, strict=strict)
+        run = _task(role, msg["task"], item, fd, fds[1] if len(fds) > 1 else None)  # a policy loads here
+        cpu = None
+        if msg.get("staged"):
+            go = os.read(fd, wire.GO.size)
+            if len(go) != wire.GO.size or go[:1] != b"G":
+                return  # staged ahead of time (set up, confined, prepared while another task ran), then not needed
+            cpu = wire.GO.unpack(go)[1]
+            cpu = None if cpu < 0 else cpu
+        if cpu is not None:
+            try:
+                os.sched_setaffinity(0, {cpu})  # the host and its policy process share one core (NOTES.md)
+            except OSError:
+                pass
+        run(cpu)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent as plain text
         code = 1
         try:
@@ -141,23 +185,44 @@ def _probe(scratch_base: str) -> list[str]:
 
 
 def main(argv: list[str]) -> int:
-    ctl = socket.socket(fileno=int(argv[0]))
+    """``python -m pipeline.boundary.zygote ROLE FD``: serve the parent on the socket ``FD``."""
+    role = ROLES[argv[0]]
+    fd = argv[1]
+    ctl = socket.socket(fileno=int(fd))
     scratch_base = os.getcwd()
+    # the parent manages our lifetime (EOF on the socket); a Ctrl-C meant for it must not end us first
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # no PDEATHSIG here: it follows the parent's *thread* that started us; EOF on the socket is the signal
+    missing = confine.enter_namespaces(offline=role.offline)
+    if not any(m.startswith("pid namespace") for m in missing):
+        pid = os.fork()
+        if pid:  # the outer process only waits: the namespace's init (below) ends with it, and everything in it
+            ctl.close()
+            while True:
+                try:
+                    return os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+                except InterruptedError:
+                    continue
+        confine.become_namespace_init()
     from pipeline.boundary import preload
 
-    preload.warm(sorted({path.partition(":")[0] for path, _ in TASKS.values()}))  # once, for every worker
-
-    missing = []
-    try:
-        confine.enter_network_namespace()
-    except OSError as exc:
-        missing.append(f"network namespace ({exc})")
-    try:
-        confine.scratch_tmpfs(scratch_base)
-    except OSError as exc:
-        missing.append(f"scratch tmpfs ({exc})")
-    missing += _probe(scratch_base)
+    preload.warm(sorted({path.partition(":")[0] for path, _ in role.tasks.values()}), no_emulator=role.no_emulator)
+    if not role.confined:
+        missing = []  # hosts run no untrusted code: namespaces are a tidiness there, not a defence
+    else:
+        try:
+            confine.scratch_tmpfs(scratch_base)
+        except OSError as exc:
+            missing.append(f"scratch tmpfs ({exc})")
+        else:
+            devices = ["/dev/null", "/dev/urandom"]
+            read = [p for p in confine.read_paths()[0] if p not in devices]
+            try:
+                confine.minimal_root(read, [scratch_base], devices)
+            except OSError as exc:
+                missing.append(f"minimal filesystem view ({exc})")
+            os.chdir(scratch_base)
+        missing += _probe(scratch_base)
     strict = not missing
     try:
         _send(ctl, {"kind": "hello", "pid": os.getpid(), "missing": missing})
@@ -184,8 +249,11 @@ def main(argv: list[str]) -> int:
                             pass
                     except BlockingIOError:
                         pass
-                    while children:
-                        pid, status = os.waitpid(-1, os.WNOHANG)
+                    while True:  # as a namespace's init, orphans are ours to reap too
+                        try:
+                            pid, status = os.waitpid(-1, os.WNOHANG)
+                        except ChildProcessError:
+                            break
                         if pid == 0:
                             break
                         task_id, scratch = children.pop(pid, (None, None))
@@ -195,7 +263,7 @@ def main(argv: list[str]) -> int:
                         shutil.rmtree(scratch, ignore_errors=True)
                         _send(ctl, {"kind": "exited", "id": task_id, "code": os.waitstatus_to_exitcode(status)})
                     continue
-                data, fds, _flags, _addr = socket.recv_fds(ctl, MAX_CONTROL, 1)
+                data, fds, _flags, _addr = socket.recv_fds(ctl, MAX_CONTROL, 2)
                 if not data:
                     return 0
                 msg = json.loads(data)
@@ -205,28 +273,32 @@ def main(argv: list[str]) -> int:
                     pid = os.fork()
                     if pid == 0:
                         sel.close()
-                        _worker(fds[0], msg, zygote_pid, scratch_base, strict)
-                    os.close(fds[0])
+                        _worker(fds, msg, zygote_pid, scratch_base, role, strict)
+                    for passed in fds:
+                        os.close(passed)
                     children[pid] = (task_id, os.path.join(scratch_base, f"w{task_id}"))
                     by_id[task_id] = pid
                     _send(ctl, {"kind": "started", "id": task_id, "pid": pid})
                 else:
-                    for fd in fds:
-                        os.close(fd)
+                    for passed in fds:
+                        os.close(passed)
                     if op == "kill" and int(msg["id"]) in by_id:
                         try:
                             os.kill(by_id[int(msg["id"])], signal.SIGKILL)
                         except ProcessLookupError:
                             pass
-                    elif op == "prepare":
+                    elif op == "prepare" and not role.confined:
                         from games.envs import shared_env
 
-                        for game, sticky, noop_max in msg["envs"]:
+                        for game, sticky, noop_max, one_life, observation in msg["envs"]:
                             try:
-                                shared_env(game, sticky=sticky, noop_max=noop_max)
-                            except Exception:  # noqa: BLE001 - the worker meets the same error and reports it
+                                shared_env(game, sticky=sticky, noop_max=noop_max, one_life=one_life,
+                                           observation=observation)
+                            except Exception:  # noqa: BLE001 - the host meets the same error and reports it
                                 pass
                         gc.freeze()
+                    elif op == "count":
+                        _send(ctl, {"kind": "count", "workers": len(children)})
                     elif op == "stop":
                         return 0
     except (BrokenPipeError, ConnectionResetError):

@@ -1,11 +1,12 @@
-"""``codearcade doctor``: check a store's integrity (``store/doctor.py``)."""
+"""``codearcade doctor``: check a store's integrity (``store/doctor.py``), and with ``--replay RUN`` re-check a
+stored run's scores by replaying its episodes (``pipeline/play/verify.py``)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 
-from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store
+from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store, resolve_run
 
 
 def add_parser(verbs) -> None:
@@ -16,6 +17,8 @@ def add_parser(verbs) -> None:
         description="Check references, uniqueness and completeness of everything in the store (see store/doctor.py). "
         "Exit 0 when sound (warnings allowed), 1 when damage is found.",
     )
+    p.add_argument("--replay", metavar="RUN", help="also replay every finished episode of RUN from its recorded "
+                   "actions and compare each step's reward, score, flags and lives with what is stored")
     p.add_argument("--json", action="store_true", help="print the findings as JSON")
     add_store(p)
     p.set_defaults(handler=run)
@@ -29,14 +32,26 @@ def run(args: argparse.Namespace) -> int:
         findings = check_store(con, store.path)
         counts = table_counts(con)
     errors = [f for f in findings if not f.warning]
+    replayed: list[tuple[str, str | None]] = []
+    if args.replay and not errors:
+        from pipeline.play.verify import replay_run
+
+        replayed = replay_run(store, resolve_run(store, args.replay))
+    disagree = [(episode, why) for episode, why in replayed if why is not None]
     if args.json:
-        print(json.dumps({"store": str(store.path), "ok": not errors, "counts": counts,
+        print(json.dumps({"store": str(store.path), "ok": not errors and not disagree, "counts": counts,
                           "findings": [{"check": f.check, "warning": f.warning, "rows": [list(map(str, r)) for r in f.rows]}
-                                       for f in findings]}, indent=2))
+                                       for f in findings],
+                          "replayed": [{"episode_id": e, "disagreement": why} for e, why in replayed]}, indent=2))
     else:
         shown = (f"{'?' if n is None else format(n, ',')} {t}" for t, n in counts.items())
         print(f"{store.path}: " + ", ".join(shown))
         for f in findings:
             print(("warning: " if f.warning else "PROBLEM: ") + f.summary())
-        print("ok: no damage found" if not errors else f"{len(errors)} kind(s) of damage found")
-    return EXIT_OK if not errors else EXIT_EPISODE_FAILED
+        for episode, why in disagree:
+            print(f"PROBLEM: episode {episode} does not replay as stored: {why}")
+        if args.replay and replayed:
+            print(f"replayed {len(replayed)} episode(s): {len(replayed) - len(disagree)} as stored")
+        print("ok: no damage found" if not errors and not disagree else
+              f"{len(errors) + bool(disagree)} kind(s) of damage found")
+    return EXIT_OK if not errors and not disagree else EXIT_EPISODE_FAILED

@@ -1,9 +1,10 @@
-"""*assess*: versions → a traced training rollout and the evaluation episodes → a verified score.
+"""*assess*: versions → a traced training rollout and the evaluation episodes → a score.
 
-Every version of an iteration is assessed at once: the episodes of all of them go to one pool of confined
-workers (``pipeline/boundary/workers.py``), so candidates are played concurrently. Each episode's score is verified by
-replaying its actions in this process as it plays (``pipeline/play/verify.py``); an episode whose replay disagrees is
-marked ``tampered``. Episodes are written to the store as they finish.
+Every version of an iteration is assessed at once: the episodes of all of them go to one pool of game hosts, each
+with a confined policy process (``pipeline/play/episodes.py``), so candidates are played concurrently. The host
+computes every score where no policy code runs, so a score needs no replay to be trusted (runs stored before the
+game host may hold episodes a replay caught, end reason ``tampered``: such a version is never taken as the best).
+Episodes are written to the store as they finish.
 
 **Cascade evaluation** (``screen_steps``): a new version first plays the first evaluation game for that many
 steps (kind ``screen``); one that trails its parent's score at the same step of the same game (deterministic:
@@ -33,7 +34,7 @@ from pipeline.optimizer.state import RunState
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.play.runinfo import episode_id
-from pipeline.play.verify import TAMPERED, StreamingVerification, tampering
+from pipeline.play.verify import TAMPERED, checked_outcome, tampering
 from store import Store
 from store.readers import earlier_screen, policy_text, reusable_assessment, score_at_step
 from store.writer import write_episode
@@ -161,9 +162,8 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
     if not specs:
         return found
     before_play()
-    verification = StreamingVerification(specs)
-    for i, outcome in run_episodes(specs, workers=max(1, c.workers), progress=progress, on_actions=verification.feed):
-        outcome = verification.verify(i, outcome)
+    for i, outcome in run_episodes(specs, workers=max(1, c.workers), progress=progress):
+        outcome = checked_outcome(specs[i], outcome)
         with store.write() as con:
             write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)
         candidate, bar = owners[i]
@@ -194,10 +194,8 @@ def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[i
     outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
     started = time.monotonic()
     trains = {indices[0] for _, indices in groups}
-    verification = StreamingVerification(specs)
-    for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress,
-                                   on_actions=verification.feed):
-        outcome = verification.verify(i, outcome)
+    for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress):
+        outcome = checked_outcome(specs[i], outcome)
         with store.write() as con:
             write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)
         outcomes[i] = outcome

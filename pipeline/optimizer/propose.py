@@ -24,6 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
+from games import get_game
 from pipeline.boundary.untrusted import clean_untrusted_text
 from pipeline.llm.client import LLMClient, LLMError, LLMReply, canonical_messages
 from pipeline.llm.providers import price
@@ -214,10 +215,13 @@ def _validate_all(state: "RunState", iteration: int, items: list[_Pending], coun
         return Proposal(item.request.candidate, item.request.parent, base, status, version or base, proposed,
                         item.call_id, note, item.prompt.tokens, row, text)
 
+    n_actions = get_game(state.game).n_actions
+
     def proposed(item: _Pending):
         observations = spread(item.observations)
         return (item.info, item.suggestion,
-                lambda text: RuntimeCheck(text, state.game, observations, call_time_limit_s=c.call_time_limit_s),
+                lambda text: RuntimeCheck(text, state.game, observations, n_actions=n_actions,
+                                           call_time_limit_s=c.call_time_limit_s),
                 lambda candidate: check_fits(candidate, c.token_budget, counter))
 
     checked = [item for item in items if item.error is None and item.parse_error is None]

@@ -1,20 +1,23 @@
-"""The episode task, on both sides of the boundary: one episode played in a confined worker, and many at once.
+"""The episode task, on both sides: one episode played by a game host with a confined policy process, and many at once.
 
-In the worker, :func:`episode_task` prepares the episode (policy loaded, environment reset: a staged worker does
-this before its go-ahead), plays it (``pipeline/play/rollout.py``) and writes its progress, the actions it
-played and its outcome as frames (``pipeline/boundary/wire.py``). In the parent, :func:`run_episodes` plays
-many through :func:`~pipeline.boundary.workers.run_tasks`, and :func:`episode_from_worker` checks every field
-of what a worker sent against what the parent asked for and the Arrow schemas ``rollout`` produces, raising
-:class:`~pipeline.boundary.wire.BadMessage` otherwise (the episode is then recorded as ``crashed`` with that
-reason). Fields the parent knows (ids, seed, settings) are taken from the :class:`EpisodeSpec`, never from the
-worker.
+A game host (the game zygote's ``host`` task, ``pipeline/boundary/zygote.py``) runs :func:`host_task`: it resets
+the environment, has its policy process (the policy zygote's ``policy`` task, ``pipeline/boundary/policy.py``)
+load the policy, and plays the episode (``pipeline/play/rollout.py``), asking the policy process for one action
+per step; it writes its progress and its outcome as frames (``pipeline/boundary/wire.py``). The host runs no
+policy code, so the rewards, score, lives and steps it reports are right by construction: nothing is replayed to
+trust them. In the parent, :func:`run_episodes` plays many through :func:`~pipeline.boundary.workers.run_tasks`,
+and :func:`episode_from_worker` checks every field of what a host sent (and the node rows its policy process
+made, which the host relays unread) against what the parent asked for and the Arrow schemas ``rollout``
+produces, raising :class:`~pipeline.boundary.wire.BadMessage` otherwise (the episode is then recorded as
+``crashed`` with that reason). Fields the parent knows (ids, seed, settings) are taken from the
+:class:`EpisodeSpec`, never from the worker.
 """
 
 from __future__ import annotations
 
 import math
-import os
-import sys
+import signal
+import socket
 from dataclasses import asdict, fields
 from datetime import datetime
 from typing import Any, Callable, Iterable, Iterator
@@ -23,32 +26,34 @@ from games import get_game
 from pipeline.boundary import wire
 from pipeline.boundary.wire import MAX_TEXT, BadMessage
 from pipeline.boundary.workers import ProgressCallback, Task, Zygote, run_tasks
-from pipeline.play.rollout import (EpisodeOutcome, EpisodeSpec, _episode_row, crashed_outcome, play_episode,
-                                   prepare_episode, run_episode)
+from pipeline.play.rollout import (EpisodeOutcome, EpisodeSpec, RemotePolicy, _episode_row, crashed_outcome,
+                                   play_episode, prepare_episode, run_episode)
 
-WORKER_END_REASONS = frozenset({"terminated", "truncated", "policy_error", "timeout"})
-"""End reasons a worker may report (``crashed`` is the parent's, ``tampered`` the verification's)."""
-
-
-# ---------------------------------------------------------------------------------------------- the worker
+WORKER_END_REASONS = frozenset({"terminated", "truncated", "policy_error", "timeout", "crashed"})
+"""End reasons a host may report (``crashed``: its policy process died or broke the protocol, the steps before
+kept; ``tampered`` belongs to the replay check of old runs)."""
 
 
-def episode_task(item: dict[str, Any], fd: int) -> Callable[[], None]:
-    """In a confined worker (the zygote's ``episode`` task, ``pipeline/boundary/zygote.py``): prepare the episode
-    ``item`` (an :class:`EpisodeSpec` as JSON) and return what plays it, writing its progress, the actions it
-    played and its outcome on ``fd``."""
-    # before the go-ahead: a staged worker loads the policy and resets its environment (ALE reloads the ROM,
-    # ~0.1 s) while the previous episode still plays
-    prepared = prepare_episode(spec_from_json(item))
+# ---------------------------------------------------------------------------------------------- the host
 
-    def play() -> None:
-        outcome = play_episode(prepared,
-                               lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})),
-                               lambda a: wire.write_all(fd, wire.json_frame({"kind": "actions", "actions": a})))
+
+def host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | None], None]:
+    """In a game host (the game zygote's ``host`` task): prepare the episode ``item`` (an :class:`EpisodeSpec` as
+    JSON) with its policy process on ``policy_fd`` (environment reset, policy loaded: a staged host does this
+    before its go-ahead, while the previous episode plays), and return what plays it on a CPU and writes its
+    progress and outcome on ``fd``: the result, the step rows, and the node rows as the policy process sent them."""
+    spec = spec_from_json(item)
+    policy = RemotePolicy(socket.socket(fileno=policy_fd), spec, get_game(spec.game).n_actions)
+    prepared = prepare_episode(spec, policy)
+
+    def play(cpu: int | None) -> None:
+        outcome = play_episode(prepared, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})),
+                               cpu=cpu)
+        nodes = outcome.nodes
         frames = [wire.json_frame({"kind": "result", "episode": episode_to_json(outcome.episode),
-                                   "nodes": outcome.nodes is not None}), wire.arrow_frame(outcome.steps)]
-        if outcome.nodes is not None:
-            frames.append(wire.arrow_frame(outcome.nodes))
+                                   "nodes": nodes is not None}), wire.arrow_frame(outcome.steps)]
+        if nodes is not None:
+            frames.append(wire.raw_arrow_frame(nodes) if isinstance(nodes, bytes) else wire.arrow_frame(nodes))
         wire.write_all(fd, b"".join(frames))
 
     return play
@@ -159,7 +164,7 @@ def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
         length=length, lives_lost=_int(row, "lives_lost", 0, 2**31 - 1), end_reason=end_reason,
         error=error[:MAX_TEXT] if error else error,
     )
-    failed_step = end_reason in ("policy_error", "timeout")  # the step the policy failed on is stored too
+    failed_step = end_reason in ("policy_error", "timeout", "crashed")  # the step the policy failed on is stored too
     if steps.num_rows not in ((length, length + 1) if failed_step else (length,)) or steps.num_rows > spec.max_steps:
         raise BadMessage(f"{steps.num_rows} step rows for an episode of length {length}")
     if steps.num_rows and steps.column("step").to_pylist() != list(range(steps.num_rows)):
@@ -192,20 +197,26 @@ def _decode_episode(spec: EpisodeSpec, msg: dict[str, Any], tables: list[bytes])
     return episode_from_worker(spec, msg.get("episode"), steps, nodes)
 
 
-def _rerun_dir(spec: EpisodeSpec) -> str | None:
-    if spec.rerun and "://" not in spec.rerun:
-        return os.path.abspath(spec.rerun)
-    return None
+def _policy_limits(spec: EpisodeSpec) -> dict[str, Any]:
+    """The policy process's limits (``pipeline.boundary.confine.Limits``); the host writes every file itself."""
+    return dict(memory_mb=spec.memory_limit_mb)
 
 
-def _episode_limits(spec: EpisodeSpec) -> dict[str, Any]:
-    rerun = _rerun_dir(spec)
-    return dict(memory_mb=spec.memory_limit_mb, write_paths=[rerun] if rerun else [],
-                file_size_mb=8192 if rerun else 64)
+def _policy_died(outcome: EpisodeOutcome, exit_code: Callable[[], int | None]) -> EpisodeOutcome:
+    """A ``crashed`` episode says how its policy process ended (a CPU limit is a time-out)."""
+    if outcome.end_reason != "crashed":
+        return outcome
+    code = exit_code()
+    if code == -signal.SIGXCPU:
+        outcome.episode.update(end_reason="timeout", error="the policy process exceeded its CPU-time limit")
+    elif code is not None and code < 0:
+        outcome.episode["error"] = f"{outcome.episode['error']} (killed by signal {-code})"
+    return outcome
 
 
-EPISODE = Task("episode", run_episode, spec_to_json, _decode_episode,
-               tables=lambda msg: 2 if msg.get("nodes") is True else 1, limits=_episode_limits)
+EPISODE = Task("host", run_episode, spec_to_json, _decode_episode,
+               tables=lambda msg: 2 if msg.get("nodes") is True else 1, limits=_policy_limits, paired=True,
+               after_pair=_policy_died)
 
 
 def run_episodes(
@@ -213,25 +224,19 @@ def run_episodes(
     workers: int = 1,
     progress: ProgressCallback | None = None,
     started: Callable[[], None] | None = None,
-    on_actions: Callable[[int, list[int]], None] | None = None,
 ) -> Iterator[tuple[int, EpisodeOutcome]]:
-    """Play ``specs`` in confined workers (see :func:`~pipeline.boundary.workers.run_tasks`); a worker that dies, misbehaves or hangs
-    yields an episode with end reason ``crashed`` or ``timeout``. ``on_actions``: see ``run_tasks``."""
+    """Play ``specs``, each by a game host with a confined policy process (see
+    :func:`~pipeline.boundary.workers.run_tasks`); an episode whose host or policy process dies, misbehaves or hangs
+    ends ``crashed`` or ``timeout``."""
     specs = list(specs)
-    streamed = [s for s in specs if s.rerun and _rerun_dir(s) is None] if workers > 0 else []
-    if streamed:
-        print(f"codearcade: no live Rerun stream of {len(streamed)} episode(s): policy workers have no network; "
-              "give --rerun a directory (or view the stored run with `codearcade view`)", file=sys.stderr)
-        for spec in streamed:
-            spec.rerun = None
 
     def prepare(zyg: Zygote) -> None:
-        # each environment is built once in the zygote (~0.1-0.2 s each): forked workers inherit it ready
-        envs = sorted({(s.game, s.sticky, s.noop_max) for s in specs})
+        # each environment is built once in the game zygote (~0.1-0.2 s each): forked hosts inherit it ready
+        envs = sorted({(s.game, s.sticky, s.noop_max, s.one_life, s.observation) for s in specs})
         try:
             zyg.send({"op": "prepare", "envs": [list(e) for e in envs]})
         except OSError:
             pass  # the zygote died: every episode is recorded as crashed
 
     return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
-                     progress=progress, started=started, prepare=prepare, on_actions=on_actions)
+                     progress=progress, started=started, prepare=prepare)

@@ -2,10 +2,10 @@
 
 The whole job in one place: read and check the policy statically (a broken file fails here with one line;
 policy code itself only ever runs in the workers), check the store (a damaged one is refused before anything
-plays), create a run (kind ``eval``) with its policy version, play the episodes in worker processes, verify each
-finished episode's score by replaying its actions here (``pipeline/play/verify.py``; a disagreement ends it
-``tampered``, with the replay's score), write it in its own transaction, and mark the run finished, failed or
-interrupted.
+plays), create a run (kind ``eval``) with its policy version, play the episodes (each by a game host with a
+confined policy process: ``pipeline/play/episodes.py``; the host computes the score, the policy only chooses
+actions), clean what came from policy code (``pipeline/play/verify.py``), write each episode in its own
+transaction, and mark the run finished, failed or interrupted.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.play.runinfo import episode_id, new_run_id, package_versions
 from pipeline.play.validate import checked_inspect
-from pipeline.play.verify import StreamingVerification
+from pipeline.play.verify import checked_outcome
 from pipeline.play.versions import policy_version_row
 from store import Store
 from store.locks import run_lock
@@ -63,10 +63,6 @@ class EvalConfig:
     """Wall-clock limit of one episode."""
     rerun: str | None = None
     """Live Rerun recording of each episode (``EpisodeSpec.rerun``): a directory or a gRPC url; None: off."""
-    verify_scores: bool = True
-    """Check each episode's score against a replay of its actions in this process (``pipeline/play/verify.py``).
-    Only a measurement turns it off (``bench/throughput.py`` prices it): the command line has no such flag, and
-    an unverified episode is stored with ``verified`` NULL."""
 
 
 @dataclass
@@ -154,11 +150,9 @@ def evaluate(
             held.enter_context(run_lock(store.path, run_id))
         except OSError:  # a read-only or full directory: the store's own one-line error says so below
             pass
-        verification = StreamingVerification(specs, check_scores=config.verify_scores)
         try:
-            for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run,
-                                           on_actions=verification.feed if config.verify_scores else None):
-                outcome = verification.verify(i, outcome)
+            for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
+                outcome = checked_outcome(specs[i], outcome, hosted=config.workers > 0)
                 done += 1
                 with store.write() as con:
                     write_episode(con, outcome.episode, outcome.steps, outcome.nodes)

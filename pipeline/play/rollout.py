@@ -1,26 +1,37 @@
-"""One episode of a policy in an environment, captured step by step (and call by call when traced).
+"""One episode, played by the game host: the environment here, the policy behind a channel.
 
-:func:`run_episode` is a pure function of an :class:`EpisodeSpec` (primitives only, sent to a worker as JSON: the
-policy travels as text), returning an :class:`EpisodeOutcome` that holds the episode row and its steps and nodes
-as Arrow tables. It runs in a confined worker process (``pipeline/boundary/workers.py``, which sends the outcome back as
-JSON and Arrow IPC) or, for debugging, in-process; only the caller writes to the store.
+This is the trusted side of an episode (DESIGN.md, "the game host and the policy process"). The emulator,
+OCAtari's objects, the game's observation builder, rewards, lives, the protocols, the step log and live Rerun
+recordings all live in the process that runs :func:`play_episode`, where no policy code ever runs; the policy
+answers each observation through a :class:`PolicyChannel`:
+
+- :class:`RemotePolicy`: a confined policy process (``pipeline/boundary/policy.py``), one round trip per step
+  over a socket; the normal case (``pipeline/play/episodes.py`` starts the host and the policy process as a pair);
+- :class:`LocalPolicy`: the policy loaded in this very process (``--workers 0``: debugging, no isolation at all).
+
+Every reward, score, life and step is therefore computed where the policy cannot reach: scores are right by
+construction, and nothing is replayed to trust them. :func:`run_episode` is a pure function of an
+:class:`EpisodeSpec` (primitives only, sent to the host as JSON: the policy travels as text), returning an
+:class:`EpisodeOutcome` that holds the episode row and its steps and nodes as Arrow tables (a remote policy's node
+rows stay the bytes it sent, checked by the parent: ``pipeline/play/episodes.py``); only the caller writes to the store.
 
 Whatever the policy does, the episode ends with a recorded ``end_reason``:
 ``terminated`` (the game ended), ``truncated`` (``max_steps`` reached, or ALE's own limit),
 ``policy_error`` (the policy raised, returned an illegal action, or could not be loaded), ``timeout`` (a
-policy call or the whole episode exceeded its time limit), or ``crashed`` (set by the executor when the worker
-process died or sent a malformed answer). When the policy failed on a step, that step is stored with ``action`` NULL: its observation
-is what the policy failed on, and its nodes show where.
+policy call or the whole episode exceeded its time limit), or ``crashed`` (the policy process died or broke the
+protocol; the steps before it are kept). When the policy failed on a step, that step is stored with ``action``
+NULL: its observation is what the policy failed on, and its nodes show where.
 """
 
 from __future__ import annotations
 
+import json
+import marshal
 import math
-import operator
 import random
+import socket
 import sys
 import time
-from contextlib import nullcontext
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any, Callable
@@ -31,13 +42,23 @@ import pyarrow as pa
 from games import Game, get_game, list_widths
 from games.base import OBSERVATION_VERSION
 from games.envs import discard_env, shared_env
-from tracing.capture import NodeRecorder, failing_policy_line
+from pipeline.boundary.policy import ACTION, MAX_ERROR_CHARS, Channel, coerce_action, describe_exception
+from tracing.capture import NodeRecorder
 from tracing.policy_file import PolicyLoadError, load_policy
 from tracing.sandbox import CallTimer, PolicyTimeout
 from tracing.steps import StepLog
 
 PROGRESS_EVERY = 250
 """Steps between progress callbacks."""
+ANSWER_GRACE_S = 1.0
+"""How long past its call limit the host waits for the policy process's answer (its own timer reports a slow
+call at the limit; this catches one that defeated the timer or hangs in C)."""
+LOAD_TIMEOUT_S = 60.0
+"""How long the policy process may take to load the policy."""
+FINISH_TIMEOUT_S = 30.0
+"""How long the policy process may take to send its node rows at the end."""
+MAX_POLICY_FRAME = 512 * 2**20
+"""The largest frame the host reads from the policy process (its node rows)."""
 
 
 @dataclass
@@ -92,46 +113,170 @@ class EpisodeOutcome:
         return self.episode["end_reason"]
 
 
-def coerce_action(action: Any, n_actions: int) -> int:
-    """The policy's return value as a legal action index, or ValueError saying why it is not one."""
-    if isinstance(action, (bool, np.bool_)):
-        raise ValueError(f"illegal action {action!r}: expected an int in 0..{n_actions - 1}, got a bool")
-    try:
-        index = operator.index(action)
-    except TypeError:
-        raise ValueError(
-            f"illegal action {action!r}: expected an int in 0..{n_actions - 1}, got {type(action).__name__}"
-        ) from None
-    if not 0 <= index < n_actions:
-        raise ValueError(f"illegal action {index}: legal actions are 0..{n_actions - 1}")
-    return index
+class PolicyFailed(Exception):
+    """The policy could not give an action: ``end_reason`` (``policy_error``, ``timeout``, ``crashed``) and why."""
+
+    def __init__(self, end_reason: str, error: str):
+        super().__init__(error)
+        self.end_reason, self.error = end_reason, error
 
 
-def describe_exception(exc: BaseException) -> str:
-    """One line: the exception, and the innermost line of policy code it came from."""
-    line, text = failing_policy_line(exc)
-    where = f" at line {line}: `{text}`" if line and text else (f" at line {line}" if line else "")
-    return f"{type(exc).__name__}: {exc}{where}"
+class PolicyChannel:
+    """How the host asks the policy for actions (see the module docstring)."""
+
+    def start(self) -> None:
+        """Load the policy (raises :class:`PolicyFailed`, e.g. for a policy file that does not load)."""
+
+    def go(self, cpu: int | None) -> None:
+        """The episode begins (on ``cpu``, where the host now runs)."""
+
+    def act(self, obs: dict[str, Any]) -> int:
+        """The policy's legal action for ``obs``; raises :class:`PolicyFailed`."""
+        raise NotImplementedError
+
+    def finish(self) -> Any:
+        """The episode is over: the node rows (an Arrow table, the raw Arrow bytes of a remote policy, or None)."""
+        return None
 
 
-def _report(steps: StepLog, reported: int, length: int, progress: Callable[[int], None] | None,
-            on_actions: Callable[[list[int]], None] | None) -> int:
-    """Tell the caller how far the episode is (and which actions it played since last time); the new mark."""
-    if on_actions is not None and length > reported:
-        on_actions([a for a in steps.scalars["action"][reported:length] if a is not None])
-    if progress is not None:
+class LocalPolicy(PolicyChannel):
+    """The policy in this process (``--workers 0``: for debugging; no isolation at all)."""
+
+    def __init__(self, spec: "EpisodeSpec", n_actions: int) -> None:
+        self.spec, self.n_actions = spec, n_actions
+        self.recorder = NodeRecorder(lines=spec.trace_lines) if spec.trace else None
+        self.timer = CallTimer()
+        self.policy: Any = None
+
+    def start(self) -> None:
+        random.seed(self.spec.seed)
+        np.random.seed(self.spec.seed % 2**32)
+        try:
+            self.policy = load_policy(self.spec.policy_text, self.spec.policy_name).policy
+        except PolicyLoadError as exc:
+            raise PolicyFailed("policy_error", str(exc)) from None
+        self.timer.__enter__()
+        if self.recorder is not None:
+            self.recorder.__enter__()
+        self.step = -1
+
+    def act(self, obs: dict[str, Any]) -> int:
+        self.step += 1
+        if self.recorder is not None:
+            self.recorder.begin_step(self.step, obs)
+        try:
+            self.timer.arm(self.spec.call_time_limit_s or math.inf)
+            try:
+                action = self.policy(obs)
+            finally:
+                self.timer.disarm()
+            return coerce_action(action, self.n_actions)
+        except PolicyTimeout as exc:
+            raise PolicyFailed("timeout", describe_exception(exc)) from None
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # noqa: BLE001 - untrusted code: anything, SystemExit too
+            raise PolicyFailed("policy_error", describe_exception(exc)) from None
+
+    def finish(self) -> Any:
+        if self.policy is not None:
+            self.timer.__exit__(None, None, None)
+            if self.recorder is not None:
+                self.recorder.__exit__(None, None, None)
+        return self.recorder.table() if self.recorder is not None else None
+
+
+class RemotePolicy(PolicyChannel):
+    """The host's end of a confined policy process (``pipeline/boundary/policy.py``): one frame out and one back
+    per step. Every answer is checked here: an action is a legal int, an error is capped text; a process that
+    does not answer within its call limit (plus :data:`ANSWER_GRACE_S`), that sends anything else, or that dies,
+    ends the episode (``timeout`` / ``crashed``) with the steps played so far."""
+
+    def __init__(self, sock: socket.socket, spec: "EpisodeSpec", n_actions: int) -> None:
+        self.channel = Channel(sock)
+        self.spec, self.n_actions = spec, n_actions
+        self.limit = (spec.call_time_limit_s or math.inf) + ANSWER_GRACE_S
+        self.done = False
+
+    def _receive(self, timeout: float, what: str) -> tuple[bytes, bytes]:
+        self.channel.sock.settimeout(None if math.isinf(timeout) else timeout)
+        try:
+            return self.channel.receive(MAX_POLICY_FRAME)
+        except TimeoutError:
+            raise PolicyFailed("timeout", f"the policy process did not answer {what} within {timeout:g} s") from None
+        except EOFError:
+            raise PolicyFailed("crashed", f"the policy process ended {what}") from None
+        except (OSError, ValueError) as exc:
+            raise PolicyFailed("crashed", f"the policy process broke the protocol {what}: {exc}") from None
+
+    def _failure(self, payload: bytes, what: str) -> PolicyFailed:
+        try:
+            message = json.loads(payload)
+            reason, error = message["end_reason"], message["error"]
+        except (ValueError, KeyError, TypeError, RecursionError):
+            return PolicyFailed("crashed", f"the policy process sent a malformed message {what}")
+        if message.get("kind") != "failed" or reason not in ("policy_error", "timeout") or not isinstance(error, str):
+            return PolicyFailed("crashed", f"the policy process sent a malformed message {what}")
+        return PolicyFailed(reason, error[:MAX_ERROR_CHARS])
+
+    def start(self) -> None:
+        spec = self.spec
+        self.channel.send_json({
+            "op": "start", "policy_text": spec.policy_text, "policy_name": spec.policy_name, "seed": spec.seed,
+            "trace": spec.trace, "trace_lines": spec.trace_lines, "call_time_limit_s": spec.call_time_limit_s,
+            "n_actions": self.n_actions})
+        kind, payload = self._receive(LOAD_TIMEOUT_S, "while loading the policy")
+        if kind == b"J" and payload == b'{"kind":"ready"}':
+            return
+        raise self._failure(payload, "while loading the policy") if kind == b"J" else \
+            PolicyFailed("crashed", "the policy process sent a malformed message while loading the policy")
+
+    def go(self, cpu: int | None) -> None:
+        self.channel.send_json({"op": "go", "cpu": cpu})
+
+    def act(self, obs: dict[str, Any]) -> int:
+        try:
+            self.channel.send(b"O", marshal.dumps(obs))
+        except OSError:
+            raise PolicyFailed("crashed", "the policy process ended before the step") from None
+        kind, payload = self._receive(self.limit, "at this step")
+        if kind == b"a" and len(payload) == ACTION.size:
+            (action,) = ACTION.unpack(payload)
+            if 0 <= action < self.n_actions:
+                return action
+            raise PolicyFailed("crashed", f"the policy process sent an illegal action {action}")
+        raise self._failure(payload, "at this step") if kind == b"J" else \
+            PolicyFailed("crashed", "the policy process sent a frame of an unknown kind")
+
+    def finish(self) -> bytes | None:
+        """The node rows as the policy process sent them (an Arrow stream, checked by the parent), or None."""
+        try:
+            self.channel.send_json({"op": "end"})
+            kind, payload = self._receive(FINISH_TIMEOUT_S, "at the end")
+            message = json.loads(payload) if kind == b"J" else None
+            if not isinstance(message, dict) or message.get("kind") != "done" or message.get("nodes") is not True:
+                return None
+            kind, payload = self._receive(FINISH_TIMEOUT_S, "at the end")
+            return payload if kind == b"A" else None
+        except (PolicyFailed, OSError, ValueError, RecursionError):
+            return None  # the steps are the host's: an episode without its node rows is still an episode
+
+
+def _report(steps: StepLog, reported: int, length: int, progress: Callable[[int], None] | None) -> int:
+    """Tell the caller how far the episode is; the new mark."""
+    if progress is not None and length > reported:
         progress(length)
     return length
 
 
 @dataclass
 class PreparedEpisode:
-    """An episode ready for its first step (:func:`prepare_episode`): RNGs seeded, policy loaded (or the reason it
-    did not load), environment reset."""
+    """An episode ready for its first step (:func:`prepare_episode`): environment reset, policy loaded (or the
+    reason it did not load)."""
 
     spec: EpisodeSpec
     game: Game
-    policy: Any | None
+    policy: PolicyChannel
     env: Any | None
     obs: Any
     info: dict[str, Any]
@@ -141,123 +286,121 @@ class PreparedEpisode:
     """Seconds the preparation took; they count in the episode's duration and against its time limit."""
 
 
-def prepare_episode(spec: EpisodeSpec) -> PreparedEpisode:
-    """Everything before the first step: seed the RNGs, load the policy, reset the environment (ALE's seeded
-    reset reloads the ROM: ~0.1 s, as long as a few hundred steps). A staged worker (``pipeline/boundary/zygote.py``) does
-    this, confined, while the previous episode still plays; it then waits for its go-ahead."""
+def prepare_episode(spec: EpisodeSpec, policy: PolicyChannel | None = None) -> PreparedEpisode:
+    """Everything before the first step: reset the environment (ALE's seeded reset reloads the ROM: ~0.1 s, as long
+    as a few hundred steps) and have the policy loaded. A staged host (``pipeline/boundary/zygote.py``) does this while the
+    previous episode still plays; it then waits for its go-ahead. ``policy`` defaults to a :class:`LocalPolicy`."""
     game = get_game(spec.game).observing(spec.observation)
     t0 = time.perf_counter()
-    random.seed(spec.seed)
-    np.random.seed(spec.seed % 2**32)
-    try:
-        policy = load_policy(spec.policy_text, spec.policy_name).policy
-    except PolicyLoadError as exc:
-        return PreparedEpisode(spec, game, None, None, None, {}, "policy_error", str(exc), time.perf_counter() - t0)
+    policy = policy if policy is not None else LocalPolicy(spec, game.n_actions)
     env = shared_env(game, sticky=spec.sticky, noop_max=spec.noop_max, one_life=spec.one_life)
     try:
         obs, info = env.reset(seed=spec.seed)
     except BaseException:
         discard_env(env)  # a failed reset leaves the environment in an unknown state
         raise
+    try:
+        policy.start()
+    except PolicyFailed as exc:
+        return PreparedEpisode(spec, game, policy, None, None, {}, exc.end_reason, exc.error,
+                               time.perf_counter() - t0)
     return PreparedEpisode(spec, game, policy, env, obs, info, None, None, time.perf_counter() - t0)
 
 
-def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None,
-                on_actions: Callable[[list[int]], None] | None = None) -> EpisodeOutcome:
-    """Play one episode as ``spec`` says and return what happened (never raises for policy misbehaviour).
-
-    ``progress(steps)`` is called every :data:`PROGRESS_EVERY` steps and at the end; ``on_actions(actions)``
-    just before it with the actions played since its last call (the parent verifies the score while the
-    episode plays: ``pipeline/play/verify.py``)."""
-    return play_episode(prepare_episode(spec), progress, on_actions)
+def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None) -> EpisodeOutcome:
+    """Play one episode as ``spec`` says, the policy in this process (``--workers 0``), and return what happened
+    (never raises for policy misbehaviour). ``progress(steps)`` is called every :data:`PROGRESS_EVERY` steps and
+    at the end."""
+    return play_episode(prepare_episode(spec), progress)
 
 
 def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | None = None,
-                 on_actions: Callable[[list[int]], None] | None = None) -> EpisodeOutcome:
-    """Play a :func:`prepare_episode`'d episode to its end (see :func:`run_episode`)."""
-    spec, game = prepared.spec, prepared.game
+                 cpu: int | None = None) -> EpisodeOutcome:
+    """Play a :func:`prepare_episode`'d episode to its end (see :func:`run_episode`); ``cpu``: where this host
+    runs, passed on to the policy process."""
+    spec, game, policy = prepared.spec, prepared.game, prepared.policy
     started_at = time.time() - prepared.prepare_s
-    t0 = time.perf_counter() - prepared.prepare_s  # the preparation counts, a staged worker's wait does not
+    t0 = time.perf_counter() - prepared.prepare_s  # the preparation counts, a staged host's wait does not
     steps = StepLog(list_widths(game), *game.hot_keys)
-    recorder = NodeRecorder(lines=spec.trace_lines) if spec.trace else None
     end_reason, error = prepared.end_reason or "truncated", prepared.error
     score, lives_lost, length = 0.0, 0, 0
-    reported = 0  # steps whose actions went to on_actions
+    reported = 0
     live = None  # live Rerun recorder (spec.rerun)
     env_s = policy_s = 0.0
 
-    if prepared.policy is not None:
-        policy, env, obs, info = prepared.policy, prepared.env, prepared.obs, prepared.info
+    if prepared.end_reason is None:
+        env, obs, info = prepared.env, prepared.obs, prepared.info
         try:
             if spec.rerun:
                 live = _live_recorder(spec, env, steps)
+            policy.go(cpu)
             lives = info.get("lives", 0)
             deadline = t0 + spec.episode_time_limit_s
-            with CallTimer() as timer, (recorder if recorder is not None else nullcontext()):
-                for step in range(spec.max_steps):
-                    now = time.perf_counter()
-                    if now >= deadline:
-                        end_reason = "timeout"
-                        error = f"episode exceeded its time limit of {spec.episode_time_limit_s:g} s"
-                        break
-                    # before the policy: a policy that mutates obs cannot alter the record
-                    steps.observe(obs, getattr(env, "object_rows", None))
-                    if live is not None:
-                        live.observe(step)
-                    if recorder is not None:
-                        recorder.begin_step(step, obs)
-                    end_reason = None
-                    try:
-                        timer.arm(min(spec.call_time_limit_s or math.inf, deadline - now))
-                        try:
-                            raw_action = policy(obs)
-                        finally:
-                            timer.disarm()
-                        action = coerce_action(raw_action, game.n_actions)
-                    except PolicyTimeout as exc:
-                        end_reason, error = "timeout", describe_exception(exc)
-                    except KeyboardInterrupt:
-                        raise
-                    except BaseException as exc:  # noqa: BLE001 - untrusted code: anything, SystemExit too
-                        end_reason, error = "policy_error", describe_exception(exc)
-                    after_policy = time.perf_counter()
-                    policy_s += after_policy - now
-                    if end_reason is not None:
-                        steps.outcome(step, None, 0.0, score, False, False, lives)
-                        break
-                    obs, reward, terminated, truncated, info = env.step(action)
-                    env_s += time.perf_counter() - after_policy
-                    score += float(reward)
-                    steps.outcome(step, action, float(reward), score, bool(terminated), bool(truncated), lives)
-                    new_lives = info.get("lives", lives)
-                    if game.lives:
-                        lives_lost += max(0, lives - new_lives)
-                    elif reward < 0:
-                        lives_lost += 1  # points conceded, for games without lives
-                    lives = new_lives
-                    length = step + 1
-                    if length % PROGRESS_EVERY == 0:
-                        reported = _report(steps, reported, length, progress, on_actions)
-                    if terminated or truncated:
-                        end_reason = "terminated" if terminated else "truncated"
-                        break
-                else:
-                    end_reason = "truncated"
+            for step in range(spec.max_steps):
+                now = time.perf_counter()
+                if now >= deadline:
+                    end_reason = "timeout"
+                    error = f"episode exceeded its time limit of {spec.episode_time_limit_s:g} s"
+                    break
+                steps.observe(obs, getattr(env, "object_rows", None))
+                if live is not None:
+                    live.observe(step)
+                try:
+                    action = policy.act(obs)
+                except PolicyFailed as exc:
+                    policy_s += time.perf_counter() - now
+                    end_reason, error = exc.end_reason, exc.error
+                    steps.outcome(step, None, 0.0, score, False, False, lives)
+                    break
+                after_policy = time.perf_counter()
+                policy_s += after_policy - now
+                obs, reward, terminated, truncated, info = env.step(action)
+                env_s += time.perf_counter() - after_policy
+                score += float(reward)
+                steps.outcome(step, action, float(reward), score, bool(terminated), bool(truncated), lives)
+                new_lives = info.get("lives", lives)
+                if game.lives:
+                    lives_lost += max(0, lives - new_lives)
+                elif reward < 0:
+                    lives_lost += 1  # points conceded, for games without lives
+                lives = new_lives
+                length = step + 1
+                if length % PROGRESS_EVERY == 0:
+                    reported = _report(steps, reported, length, progress)
+                if terminated or truncated:
+                    end_reason = "terminated" if terminated else "truncated"
+                    break
+            else:
+                end_reason = "truncated"
         except BaseException:
             discard_env(env)  # an error inside the loop leaves the environment in an unknown state
             raise
-    _report(steps, reported, length, progress, on_actions)
+    nodes = policy.finish()
+    _report(steps, reported, length, progress)
 
     episode = _episode_row(
         spec, game=game.name, started_at=_utc(started_at), duration_s=time.perf_counter() - t0, env_s=env_s,
         policy_s=policy_s, length=length, lives_lost=lives_lost, end_reason=end_reason, error=error, score=score,
     )
-    outcome = EpisodeOutcome(episode, steps.table(), recorder.table() if recorder is not None else None)
+    outcome = EpisodeOutcome(episode, steps.table(), nodes)
     if live is not None:
         from viewers.rerun_live import finish_recorder
 
-        finish_recorder(live, episode, outcome.nodes)
+        finish_recorder(live, episode, _node_table(nodes))
     return outcome
+
+
+def _node_table(nodes: Any) -> pa.Table | None:
+    """A remote policy's node rows as a checked table (for the live recording), or None if they are not one."""
+    if nodes is None or isinstance(nodes, pa.Table):
+        return nodes
+    from pipeline.boundary.wire import BadMessage, parse_arrow
+    from tracing.capture import NODE_SCHEMA
+
+    try:
+        return parse_arrow(nodes, NODE_SCHEMA)
+    except BadMessage:
+        return None
 
 
 def _live_recorder(spec: EpisodeSpec, env: Any, steps: StepLog) -> Any:
@@ -299,3 +442,4 @@ def crashed_outcome(spec: EpisodeSpec, error: str, duration_s: float = 0.0) -> E
 
 def _utc(epoch: float) -> datetime:
     return datetime.fromtimestamp(epoch, timezone.utc).replace(tzinfo=None)
+

@@ -28,7 +28,7 @@ from typing import Any, Callable
 from games import get_game
 from pipeline.boundary.untrusted import clean_untrusted_text
 from pipeline.boundary.workers import run_json_tasks
-from pipeline.play.rollout import coerce_action, describe_exception
+from pipeline.boundary.policy import coerce_action, describe_exception
 from tracing.metrics import function_metrics, policy_metrics
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods
 from tracing.sandbox import CallTimer, PolicyCodeError, PolicyTimeout, check_source
@@ -358,6 +358,9 @@ class RuntimeCheck:
     text: str
     game: str
     observations: list[tuple[int, dict[str, Any]]]
+    n_actions: int | None = None
+    """The game's number of actions (None: looked up here; a policy process cannot look up a generic game: it
+    cannot read OCAtari's files)."""
     call_time_limit_s: float = 1.0
     total_time_limit_s: float = 60.0
     memory_limit_mb: int | None = 4096
@@ -369,7 +372,7 @@ def run_check(check: RuntimeCheck, progress=None) -> str | None:
         policy = load_policy(check.text, "candidate.py").policy
     except PolicyLoadError as exc:
         return f"the candidate policy does not load: {exc}"
-    n_actions = get_game(check.game).n_actions
+    n_actions = check.n_actions if check.n_actions is not None else get_game(check.game).n_actions
     deadline = time.monotonic() + check.total_time_limit_s
     with CallTimer() as timer:
         for step, obs in check.observations:

@@ -1,40 +1,32 @@
-"""The score that counts is computed where no policy code ever ran.
+"""What the parent stores of an episode, and the replay that re-checks a stored one.
 
-A worker process plays an episode with untrusted policy code in it, and that code can reach the objects
-around it (a module that re-exports ``sys``, ``sys.modules["games.envs"]``, frames) and, for example,
-wrap the environment's ``step`` to add reward, or rewrite the episode row it sends back. So the parent takes
-nothing of a worker's episode on trust. :func:`verify_outcome`, called on every outcome as it arrives
-(``pipeline/play/evaluate.py``, ``pipeline/optimizer/loop.py``), before it is stored:
+Scores need no check when they are made: the game host (``pipeline/play/rollout.py``) computes every reward,
+score, life and step in a process where no policy code runs, so the policy cannot change them by any means
+(DESIGN.md, "the game host and the policy process"). What still comes from policy code is text and trace data:
+the error a policy raised, and the node rows its process recorded. :func:`checked_outcome`, called on every
+outcome as it arrives (``pipeline/play/evaluate.py``, ``pipeline/optimizer/assess.py``), before it is stored:
 
 1. rebuilds the episode row: the fields the parent decided (ids, seed, game, caps, protocol) come from the
    :class:`~pipeline.play.rollout.EpisodeSpec`, the measured ones are type-checked, unknown keys are dropped, and
    text (the error message) is cleaned (``pipeline/boundary/untrusted.py``: capped, secrets redacted);
 2. cleans the node table's text columns, and the object names in the step table, the same way;
-3. replays the recorded actions (the ``steps`` table's ``action`` column, up to the step where the policy
-   failed, whose action is NULL) in a fresh environment of this process with the same game, seed, sticky
-   probability, no-op and one-life setting (episodes are deterministic given those and the actions, under both
-   protocols: the sticky and no-op draws come from the environment's RNG seeded by ``reset(seed=...)``),
-   built from raw ALE without the object extraction, and compares per step the reward, the cumulative score,
-   the terminated/truncated flags and the lives, then the return, the length and the lives lost.
+3. marks the episode ``verified = true`` when a game host played it (``verified`` NULL with ``--workers 0``,
+   where the policy runs in the parent's own process and nothing can be trusted).
 
-An episode whose replay agrees gets ``verified = true``. One that disagrees (or whose tables are malformed)
-gets ``verified = false``, ``verify_error`` (the first disagreement), end reason ``tampered``, the replay's
-return, length and lives lost, and step rows whose reward, score, flags and lives are the replay's; its
-``error`` says "score tampering detected: ...". ``codearcade eval`` reports such an episode on stderr and exits
-1; ``codearcade optimize`` rejects the candidate (update status ``rejected``) and never takes it as the best.
-
-The parent is clean only when policy code runs in workers: with ``workers=0`` (debugging, no isolation) the
-policy runs in this very process and nothing here can be trusted.
-
-The replay is fed while the episode plays (:class:`StreamingVerification`): each worker reports the actions it
-played every few hundred steps, and the parent replays them at once (raw ALE, no object extraction, no
-policy: several times faster than playing), so when the episode ends only its last few hundred steps are
-left. A report that does not match the actions the episode finally records is not trusted: the replay starts
-over from the recorded ones. ``bench/throughput.py`` measures the replay ("verification replay").
+:func:`replay_outcome` re-checks an episode already stored (``codearcade doctor --replay RUN``): it replays the
+recorded actions (the ``steps`` table's ``action`` column, up to the step where the policy failed, whose action
+is NULL) in a fresh environment of this process with the same game, seed, sticky probability, no-op and one-life
+setting (episodes are deterministic given those and the actions, under both protocols: the sticky and no-op
+draws come from the environment's RNG seeded by ``reset(seed=...)``), built from raw ALE without the object
+extraction, and compares per step the reward, the cumulative score, the terminated/truncated flags and the
+lives, then the return, the length and the lives lost; the first disagreement, or None. Runs stored before the
+game host (when the policy process held the emulator and every episode was replayed as it arrived) keep their
+``verified`` flags, and end reason ``tampered`` for an episode whose replay disagreed.
 """
 
 from __future__ import annotations
 
+import json
 import math
 from datetime import datetime
 from typing import Any
@@ -137,26 +129,6 @@ def replay_actions(spec: EpisodeSpec, actions: list[int], replay: Replay | None 
     return replay
 
 
-class StreamingVerification:
-    """Verification of a batch of episodes fed as they play: ``run_episodes(..., on_actions=v.feed)``, then
-    ``v.verify(i, outcome)`` for each outcome. The replay keeps pace with the workers in this process (it needs
-    no policy and no object extraction), so an episode's score is checked almost as soon as it ends."""
-
-    def __init__(self, specs: list[EpisodeSpec], check_scores: bool = True):
-        self.specs = specs
-        self.check_scores = check_scores
-        self._replays: dict[int, Replay] = {}
-
-    def feed(self, index: int, actions: list[int]) -> None:
-        replay = self._replays.get(index)
-        if replay is None:
-            replay = self._replays[index] = Replay(self.specs[index])
-        replay.feed(actions)
-
-    def verify(self, index: int, outcome: EpisodeOutcome) -> EpisodeOutcome:
-        return verify_outcome(self.specs[index], outcome, self._replays.pop(index, None), self.check_scores)
-
-
 def _float(value: Any, default: float | None = None) -> float | None:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return default
@@ -246,45 +218,35 @@ def _compare(row: dict[str, Any], steps: pa.Table, replay: Replay, actions_end: 
     return None
 
 
-def verify_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome, replay: Replay | None = None,
-                   check_score: bool = True) -> EpisodeOutcome:
-    """The outcome of ``spec`` as the parent stores it: row rebuilt, text cleaned, score verified by replay
-    (see the module docstring), continuing ``replay`` if actions were fed to it while the episode played. Never
-    raises for anything the worker sent. ``check_score=False`` (only to measure what the replay costs) skips the
-    replay of a well-formed episode and stores it with ``verified`` NULL."""
+def checked_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome, hosted: bool = True) -> EpisodeOutcome:
+    """The outcome of ``spec`` as the parent stores it: row rebuilt, text cleaned (see the module docstring);
+    ``hosted``: a game host played it (``verified`` true), else the policy ran in this process (NULL). Never
+    raises for anything a worker sent: a malformed step table is kept out and the episode ends ``crashed``."""
     reported = getattr(outcome, "episode", None)
-    reported = reported if isinstance(reported, dict) else {}
-    row = _episode_row(spec, reported)
+    row = _episode_row(spec, reported if isinstance(reported, dict) else {})
     steps, nodes, why = _tables(outcome)
-    actions: list[int] = []
-    if why is None:
-        raw = steps.column("action").to_pylist()
-        first_null = raw.index(None) if None in raw else len(raw)
-        actions = raw[:first_null]
-        n_actions = get_game(spec.game).n_actions
-        if steps.column("step").to_pylist() != list(range(steps.num_rows)):
-            why = "the step rows are not numbered 0, 1, 2, ..."
-        elif len(raw) > first_null + 1:
-            why = f"actions recorded after the failing step {first_null}"
-        elif len(raw) > first_null and row["end_reason"] not in FAILURE_END_REASONS:
-            why = f"step {first_null} has no action but the episode reports {row['end_reason']}"
-        elif len(actions) > spec.max_steps:
-            why = f"{len(actions)} actions recorded, over the cap of {spec.max_steps}"
-        elif any(not 0 <= a < n_actions for a in actions):
-            why = "an action outside the game's action set was recorded"
     if why is not None:
-        actions = []
-    elif not check_score:
-        row.update(verified=None)
-        return EpisodeOutcome(row, steps, nodes)
-    replay = replay_actions(spec, actions, replay)
-    if why is None:
-        why = _compare(row, steps, replay, len(actions))
-    if why is None and row["end_reason"] != TAMPERED:
-        return EpisodeOutcome(row, steps, nodes)
-    if why is None:
-        why = f"unknown end reason {clean_untrusted_text(reported.get('end_reason'), 100)!r}"
-    return _tampered(row, steps, nodes, replay, why)
+        row.update(end_reason="crashed", error=why, verified=None, length=0)
+        return EpisodeOutcome(row, StepLog().table(), None)
+    row.update(verified=True if hosted else None)
+    return EpisodeOutcome(row, steps, nodes)
+
+
+def replay_outcome(spec: EpisodeSpec, row: dict[str, Any], steps: pa.Table) -> str | None:
+    """Replay a stored episode's actions (see the module docstring): None if the replay agrees with ``row`` and
+    ``steps`` in every step, else the first disagreement."""
+    row = dict(row)
+    raw = steps.column("action").to_pylist()
+    first_null = raw.index(None) if None in raw else len(raw)
+    actions = raw[:first_null]
+    if steps.column("step").to_pylist() != list(range(steps.num_rows)):
+        return "the step rows are not numbered 0, 1, 2, ..."
+    if len(raw) > first_null + 1:
+        return f"actions recorded after the failing step {first_null}"
+    if any(not 0 <= a < get_game(spec.game).n_actions for a in actions):
+        return "an action outside the game's action set was recorded"
+    replay = replay_actions(spec, actions)
+    return _compare(row, steps, replay, len(actions))
 
 
 def _tampered(row: dict[str, Any], steps: pa.Table | None, nodes: pa.Table | None, replay: Replay,
@@ -323,3 +285,23 @@ def tampering(outcomes: list[EpisodeOutcome]) -> str | None:
         if o.episode.get("end_reason") == TAMPERED:
             return o.episode.get("error") or "score tampering detected"
     return None
+
+
+def replay_run(store: Any, run_id: str) -> list[tuple[str, str | None]]:
+    """``codearcade doctor --replay RUN``: (episode id, the first disagreement or None) for every episode of the
+    run that ended by the game or the step cap, replayed from its recorded actions (see the module docstring)."""
+    from store.readers import get_run, replay_material
+
+    with store.read() as con:
+        run = get_run(con, run_id)
+        material = replay_material(con, run_id)
+    config = run.get("config") if run else None
+    config = json.loads(config) if isinstance(config, str) else (config or {})
+    found = []
+    for row, steps in material:
+        spec = EpisodeSpec(episode_id=row["episode_id"], run_id=run_id, game=row["game"], policy_text="",
+                           policy_version_id="", seed=int(row["seed"] or 0), max_steps=int(row["max_steps"] or 0),
+                           sticky=float(row["sticky"] or 0.0), noop_max=int(row["noop_max"] or 0),
+                           one_life=bool(config.get("one_life")))
+        found.append((row["episode_id"], replay_outcome(spec, row, steps)))
+    return found

@@ -1,0 +1,205 @@
+"""The policy process's side of an episode: observations in, actions out, and nothing else within reach.
+
+Policy code runs here, in a confined worker forked from the policy zygote (``pipeline/boundary/zygote.py``), a process that
+never imported the emulator, OCAtari or gymnasium and cannot read them (``pipeline/boundary/confine.py``). The game host
+(``pipeline/play/episodes.py``, ``pipeline/play/rollout.py``), a process where no policy code ever runs, holds the environment and drives this one over
+a single socket, one round trip per step:
+
+    host -> policy   J {"op": "start", policy_text, policy_name, seed, trace, trace_lines, call_time_limit_s, n_actions}
+    policy -> host   J {"kind": "ready"}  |  J {"kind": "failed", "end_reason": "policy_error", "error": ...}
+    host -> policy   J {"op": "go", "cpu": N}       (the host's CPU: the pair shares one core, NOTES.md)
+    host -> policy   O <marshal of the observation dict>          (once per step)
+    policy -> host   a <8-byte action>  |  J {"kind": "failed", "end_reason": "policy_error"|"timeout", "error"}
+    host -> policy   J {"op": "end"}
+    policy -> host   J {"kind": "done", "nodes": bool}  [A <Arrow stream of the node rows>]
+
+The host trusts nothing that comes back: an action is an int it checks against the game's actions, an error is
+text it caps and cleans, the node rows are checked by the parent (``pipeline/play/episodes.py``). Observations are sent
+with ``marshal`` because they come from the trusted host; nothing the policy sends is ever unmarshalled.
+"""
+
+from __future__ import annotations
+
+import json
+import marshal
+import math
+import operator
+import os
+import random
+import socket
+import struct
+from typing import Any, Callable
+
+import numpy as np
+
+from tracing.capture import NodeRecorder, failing_policy_line
+from tracing.policy_file import PolicyLoadError, load_policy
+from tracing.sandbox import CallTimer, PolicyTimeout
+
+ACTION = struct.Struct("<q")
+"""The payload of an ``a`` frame: the action, as a signed 64-bit int (the host checks its range)."""
+HEADER = struct.Struct(">cI")
+"""A frame's kind byte and payload length (as ``pipeline/wire.py``'s frames)."""
+MAX_OBSERVATION = 16 * 2**20
+MAX_ERROR_CHARS = 20_000
+
+
+def coerce_action(action: Any, n_actions: int) -> int:
+    """The policy's return value as a legal action index, or ValueError saying why it is not one."""
+    if isinstance(action, (bool, np.bool_)):
+        raise ValueError(f"illegal action {action!r}: expected an int in 0..{n_actions - 1}, got a bool")
+    try:
+        index = operator.index(action)
+    except TypeError:
+        raise ValueError(
+            f"illegal action {action!r}: expected an int in 0..{n_actions - 1}, got {type(action).__name__}"
+        ) from None
+    if not 0 <= index < n_actions:
+        raise ValueError(f"illegal action {index}: legal actions are 0..{n_actions - 1}")
+    return index
+
+
+def describe_exception(exc: BaseException) -> str:
+    """One line: the exception, and the innermost line of policy code it came from."""
+    line, text = failing_policy_line(exc)
+    where = f" at line {line}: `{text}`" if line and text else (f" at line {line}" if line else "")
+    return f"{type(exc).__name__}: {exc}{where}"
+
+
+class Channel:
+    """Frames over one blocking stream socket (both ends of the host <-> policy connection use it)."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.buffer = bytearray()
+
+    def send(self, kind: bytes, payload: bytes) -> None:
+        self.sock.sendall(HEADER.pack(kind, len(payload)) + payload)
+
+    def send_json(self, obj: Any) -> None:
+        self.send(b"J", json.dumps(obj, allow_nan=False, separators=(",", ":")).encode())
+
+    def receive(self, limit: int) -> tuple[bytes, bytes]:
+        """The next frame (kind, payload); EOFError when the other end is gone, ValueError for a frame over
+        ``limit`` bytes. A timeout set on the socket raises ``TimeoutError``."""
+        buffer = self.buffer
+        while True:
+            if len(buffer) >= HEADER.size:
+                kind, size = HEADER.unpack_from(buffer)
+                if size > limit:
+                    raise ValueError(f"a frame of {size} bytes is over the limit of {limit}")
+                end = HEADER.size + size
+                if len(buffer) >= end:
+                    payload = bytes(buffer[HEADER.size:end])
+                    del buffer[:end]
+                    return kind, payload
+            chunk = self.sock.recv(1 << 20)
+            if not chunk:
+                raise EOFError
+            buffer += chunk
+
+
+def policy_task(start: dict[str, Any], fd: int, _extra_fd: int | None) -> Callable[[int | None], None]:
+    """The policy zygote's ``policy`` task, in the confined worker: ``start`` is the host's first message (read
+    from ``fd``, the socket to the host, by the zygote): seed the RNGs and load the policy at once (while the
+    host resets its environment), then serve the host's observations."""
+    if start.get("op") != "start":
+        raise ValueError("the host's first message is not a start")
+    side = PolicySide(Channel(socket.socket(fileno=fd)), start)
+    return lambda cpu: side.serve()
+
+
+class PolicySide:
+    """One episode's policy, answering the host's observations (see the module docstring)."""
+
+    def __init__(self, channel: Channel, start: dict[str, Any]) -> None:
+        self.channel = channel
+        self.n_actions = int(start["n_actions"])
+        self.call_limit = float(start.get("call_time_limit_s") or 0) or math.inf
+        self.recorder = NodeRecorder(lines=bool(start.get("trace_lines", True))) if start.get("trace") else None
+        seed = int(start.get("seed", 0))
+        random.seed(seed)
+        np.random.seed(seed % 2**32)
+        self.error: str | None = None
+        try:
+            self.policy = load_policy(start["policy_text"], start.get("policy_name", "policy.py")).policy
+        except PolicyLoadError as exc:
+            self.policy, self.error = None, str(exc)
+
+    def serve(self) -> None:
+        """Answer until the host ends the episode, then send the node rows."""
+        channel = self.channel
+        if self.policy is None:
+            channel.send_json({"kind": "failed", "end_reason": "policy_error", "error": self.error[:MAX_ERROR_CHARS]})
+        else:
+            channel.send_json({"kind": "ready"})
+            self._play()
+        nodes = self.recorder.table() if self.recorder is not None else None
+        channel.send_json({"kind": "done", "nodes": nodes is not None})
+        if nodes is not None:
+            from pipeline.boundary.wire import arrow_frame
+
+            channel.sock.sendall(arrow_frame(nodes))
+
+    def _play(self) -> None:
+        channel, policy, recorder, n_actions = self.channel, self.policy, self.recorder, self.n_actions
+        step, failed = -1, False
+        with CallTimer() as timer, (recorder if recorder is not None else _nothing()):
+            while True:
+                kind, payload = channel.receive(MAX_OBSERVATION)
+                if kind == b"J":
+                    message = json.loads(payload)
+                    if message.get("op") == "go":
+                        _pin(message.get("cpu"))
+                        continue
+                    return  # "end"
+                if kind != b"O" or failed:
+                    raise ValueError("an observation after the policy failed, or a frame of an unknown kind")
+                obs = marshal.loads(payload)
+                step += 1
+                if recorder is not None:
+                    recorder.begin_step(step, obs)
+                try:
+                    timer.arm(self.call_limit)
+                    try:
+                        action = policy(obs)
+                    finally:
+                        timer.disarm()
+                    channel.send(b"a", ACTION.pack(coerce_action(action, n_actions)))
+                    continue
+                except PolicyTimeout as exc:
+                    end_reason, error = "timeout", _describe(exc)
+                except KeyboardInterrupt:
+                    raise
+                except BaseException as exc:  # noqa: BLE001 - untrusted code: anything, SystemExit too
+                    end_reason, error = "policy_error", _describe(exc)
+                failed = True
+                channel.send_json({"kind": "failed", "end_reason": end_reason, "error": error})
+
+
+def _describe(exc: BaseException) -> str:
+    """:func:`describe_exception` as plain, capped text, whatever the exception's ``__str__`` does (the host's
+    deadline stops one that never returns)."""
+    try:
+        text = str(describe_exception(exc))
+        return text[:MAX_ERROR_CHARS].encode("utf-8", "replace").decode("utf-8")
+    except BaseException:  # noqa: BLE001 - a str subclass or __str__ that misbehaves
+        return "the policy raised an exception that could not be described"
+
+
+def _pin(cpu: Any) -> None:
+    """Run on the host's CPU: a round trip between two processes on one core costs a few microseconds, across
+    cores tens (NOTES.md)."""
+    if isinstance(cpu, int) and not isinstance(cpu, bool):
+        try:
+            os.sched_setaffinity(0, {cpu})
+        except OSError:
+            pass
+
+
+class _nothing:
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, *exc: object) -> None:
+        return None
