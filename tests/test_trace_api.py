@@ -222,7 +222,7 @@ def test_an_error_in_a_bundled_method_is_an_execution_error_as_in_trace():
     assert (row["exc_type"], row["exc_source"]) == ("ZeroDivisionError", 'return obs["Ball"]["y"] / 0'), \
         "the node records the original exception and its line"
 
-    from pipeline.play.rollout import describe_exception
+    from pipeline.boundary.policy import describe_exception
 
     text = trace_policy(body.replace("except trace.ExecutionError", "except KeyError"))
     line = text.splitlines().index('        return obs["Ball"]["y"] / 0') + 1
@@ -367,7 +367,7 @@ AUTHORS_FILES = authors_policy_files()
 def test_every_policy_file_of_the_authors_repository_loads_and_plays():
     from games import get_game
     from games.envs import make_env
-    from pipeline.play.rollout import coerce_action
+    from pipeline.boundary.policy import coerce_action
 
     assert {game for _, game, _ in AUTHORS_FILES} == {
         "asterix", "breakout", "enduro", "freeway", "pong", "qbert", "seaquest", "space_invaders"}

@@ -99,10 +99,7 @@ def test_frames_are_capped_and_kinds_checked():
 
 
 @pytest.mark.parametrize("message, fragment", [
-    ({"kind": "actions", "actions": [0, 256]}, "small ints"),
-    ({"kind": "actions", "actions": [True]}, "small ints"),
-    ({"kind": "actions", "actions": "0,1"}, "small ints"),
-    ({"kind": "actions", "actions": [0] * (wire.MAX_REPORTED_ACTIONS + 1)}, "small ints"),
+    ({"kind": "actions", "actions": [0, 3]}, "unexpected message kind"),
     ({"kind": "progress", "n": -1}, "non-negative"),
     ({"kind": "progress", "n": 2.5}, "non-negative"),
     ({"kind": "progress"}, "non-negative"),
@@ -117,7 +114,6 @@ def test_well_formed_messages_pass_and_error_text_is_made_text():
     def parse(message):
         return wire.parse_message(wire.json_frame(message)[wire.HEADER.size:])
 
-    assert parse({"kind": "actions", "actions": [0, 3, 255]})["actions"] == [0, 3, 255]
     assert parse({"kind": "progress", "n": 250})["n"] == 250
     assert parse({"kind": "error", "error": {"not": "text"}})["error"] == "(no reason given)"
     assert parse({"kind": "error", "error": "  x" * 10_000})["error"] == ("x" + "  x" * 9_999)[:wire.MAX_TEXT]

@@ -1,13 +1,15 @@
-"""What crosses the boundary between a policy worker and the parent: plain data only, checked on arrival.
+"""What crosses between the parent and its workers (game hosts, policy processes): plain data only, checked on arrival.
 
 A message is a frame: one kind byte (``J`` JSON, ``A`` an Arrow IPC stream) and a 4-byte big-endian length,
 then that many bytes. The parent sends one ``J`` frame (the task, e.g. an episode's spec as a JSON object of
-primitives); the worker answers ``J`` frames (``{"kind": "progress", ...}`` and ``{"kind": "actions", ...}``
-while it works, then ``{"kind": "result", ...}`` or ``{"kind": "error", ...}``) and, after an episode's result,
-its steps (and nodes) as Arrow streams. Nothing is ever unpickled, imported or executed by the receiver.
+primitives) and, to a staged worker, its go-ahead (:data:`GO`); the worker answers ``J`` frames
+(``{"kind": "progress", ...}`` while it works, then ``{"kind": "result", ...}`` or ``{"kind": "error", ...}``)
+and, after an episode's result, its steps (and nodes) as Arrow streams. Nothing is ever unpickled, imported or
+executed by the receiver. (Between a host and its policy process the frames of ``pipeline/boundary/policy.py``
+carry one observation out and one action back per step.)
 
 This module owns the checks of every message: :class:`FrameReader` caps frame sizes, :func:`parse_message`
-checks a message's kind and the fields of each kind (progress counts, reported actions, error text),
+checks a message's kind and the fields of each kind (progress counts, error text),
 :func:`parse_arrow` a table's schema, :func:`text_answer` the fields of a JSON task's result; anything else
 raises :class:`BadMessage` (the parent then records the task as failed with that reason). The fields of a
 task's own result are checked by the task: an episode's by ``pipeline/play/episodes.py``.
@@ -27,8 +29,6 @@ MAX_JSON = 4 * 2**20
 MAX_ARROW = 512 * 2**20
 MAX_TEXT = 20_000
 """Longest error text kept from a worker."""
-MAX_REPORTED_ACTIONS = 10_000
-"""Most actions one report of a playing episode may carry (it reports every few hundred steps)."""
 
 class BadMessage(Exception):
     """A worker sent something other than what the protocol allows; ``str()`` says what."""
@@ -126,17 +126,12 @@ def parse_arrow(payload: bytes, schema: Any) -> Any:
 
 def parse_message(payload: bytes) -> dict[str, Any]:
     """A worker's JSON message, checked for its kind and that kind's fields: ``progress`` (``n``: an int >= 0),
-    ``actions`` (a list of at most :data:`MAX_REPORTED_ACTIONS` ints in 0..255), ``error`` (``error`` made text:
+    ``error`` (``error`` made text:
     stripped, capped, "(no reason given)" when it is none) or ``result`` (its fields are the task's to check);
     BadMessage for anything else."""
     msg = parse_json(payload)
     kind = msg["kind"]
-    if kind == "actions":
-        actions = msg.get("actions")
-        if not isinstance(actions, list) or len(actions) > MAX_REPORTED_ACTIONS or any(
-                isinstance(a, bool) or not isinstance(a, int) or not 0 <= a < 256 for a in actions):
-            raise BadMessage("reported actions that are not a short list of small ints")
-    elif kind == "progress":
+    if kind == "progress":
         n = msg.get("n")
         if isinstance(n, bool) or not isinstance(n, int) or n < 0:
             raise BadMessage("a progress count that is not a non-negative int")
