@@ -39,7 +39,7 @@ def test_a_genuine_answer_round_trips(played):
 @pytest.mark.parametrize("change, fragment", [
     ({"episode_id": "other"}, "answered for episode"),
     ({"game": "breakout"}, "game"),
-    ({"end_reason": "crashed"}, "end reason"),
+    ({"end_reason": "tampered"}, "end reason"),
     ({"end_reason": "won"}, "end reason"),
     ({"length": True}, "length"),
     ({"length": 5.0}, "length"),

@@ -348,19 +348,24 @@ except Exception:
     pass
 raise ValueError(' '.join(found) or 'nothing read')
 """
+    # as real commands: recording loads the Rerun SDK, which this test process must not (tests/test_rerun.py)
+    exe = str(Path(sys.executable).parent / "codearcade")
+    store = Store(tmp_path / f"{path}.duckdb")
     if path == "eval":
-        code, summary, printed, store = _eval(tmp_path, body, "--rerun", str(folder))
-        requests = []
-        assert list(folder.glob("*.rrd")), "the host wrote the recording"
+        policy = tmp_path / "attack.py"
+        policy.write_text(pong_policy(LEAK + body, prelude=PRELUDE))
+        command, requests = [exe, "eval", str(policy), "--max-steps", "40"], None
     else:
         model = scripted([json_reply({"select_action": _candidate(body)})])
-        store = Store(tmp_path / "optimize.duckdb")
-        client = LiteLLMClient(model.model, api_base=model.api_base, retries=0)
-        config = OptimizeConfig(game="pong", iterations=1, eval_max_steps=40, rollout_steps=20, token_budget=8000,
-                                workers=1)
-        result = optimize(config, store, client, rerun=str(folder))
-        assert result.status == "finished", result.error
-        printed, requests = "", model.raw_requests()
+        command = [exe, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+                   "--iterations", "1", "--eval-max-steps", "40", "--rollout-steps", "20", "--token-budget", "8000",
+                   "--workers", "1"]
+    done = subprocess.run(command + ["--rerun", str(folder), "--store", str(store.path)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode in (0, 1), done.stderr
+    assert list(folder.glob("*.rrd")), "the host wrote the recordings"
+    printed = done.stdout + done.stderr
+    requests = model.raw_requests() if path == "optimize" else []
     texts = [printed, _store_text(store.path), json.dumps(requests)]
     assert not any(secret in t or secret[::-1] in t for t in texts), "the .env beside the recordings was read"
     assert (folder / "other.duckdb").read_bytes() == b"DUCK" * 1000, "the other store is intact"
