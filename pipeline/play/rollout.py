@@ -196,10 +196,13 @@ class RemotePolicy(PolicyChannel):
         self.channel = Channel(sock)
         self.spec, self.n_actions = spec, n_actions
         self.limit = (spec.call_time_limit_s or math.inf) + ANSWER_GRACE_S
-        self.done = False
+        self._timeout: float | None = -1.0  # what the socket was last told (-1: nothing yet)
 
     def _receive(self, timeout: float, what: str) -> tuple[bytes, bytes]:
-        self.channel.sock.settimeout(None if math.isinf(timeout) else timeout)
+        timeout = None if math.isinf(timeout) else timeout
+        if timeout != self._timeout:  # settimeout costs system calls: only when the wait changes
+            self.channel.sock.settimeout(timeout)
+            self._timeout = timeout
         try:
             return self.channel.receive(MAX_POLICY_FRAME)
         except TimeoutError:
