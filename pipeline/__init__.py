@@ -1,10 +1,10 @@
 """The pipeline: everything that plays, learns and is driven from the command line, in sub-packages along the
 data path (docs/architecture.md draws it):
 
-- ``boundary``  the policy process and what crosses into and out of it: confinement, the zygote, workers, the
+- ``boundary``  the policy process and what crosses into and out of it: confinement, the zygotes, workers, the
                 wire format, untrusted text;
-- ``play``      the trusted side of what runs in those workers: episodes, candidate checks, evaluation, score
-                verification, playing two versions side by side;
+- ``play``      the trusted side of playing: the game host (environment and score where no policy code runs),
+                episodes, candidate checks, evaluation, the replay check, playing two versions side by side;
 - ``llm``       LLM access: the client, what each provider accepts, the offline model, token counts;
 - ``optimizer`` the loop: settings, strategies, proposals, assessment, the prompt and its context, feedback;
 - ``jobs``      many runs at once: batch files, local processes and Ray;
