@@ -70,6 +70,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from games import GAMES
+from tracing.bounded import load_json
 
 APPLICATION_ID = "codearcade"
 SCREEN_W, SCREEN_H = 160, 210
@@ -367,7 +368,7 @@ class EpisodeLogger:
         if n == 0:
             return
         steps, calls, functions = data["step"], data["call_index"], data["function"]
-        outputs = [json.loads(o) if o is not None else None for o in data["output"]]
+        outputs = [load_json(o) if o is not None else None for o in data["output"]]  # nesting bounded
         by_step_call = {(steps[i], calls[i]): i for i in range(n)}
         names = self._name_outputs(data, outputs, by_step_call)
 
@@ -458,7 +459,9 @@ class EpisodeLogger:
                 if j is None or data["function"][j] in names or outputs[j] is None:
                     continue
                 if inputs is None:
-                    inputs = json.loads(data["inputs"][i])
+                    inputs = load_json(data["inputs"][i])
+                if not isinstance(inputs, dict):  # a marker (too deep, too long) or a store edited by hand
+                    break
                 for param, value in inputs.items():
                     if value == outputs[j] and not isinstance(value, dict):
                         names[data["function"][j]] = param

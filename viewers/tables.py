@@ -4,7 +4,8 @@ Shared by ``codearcade sql``, ``codearcade runs`` and the Markdown reports. Valu
 formats: NULL is ``NULL`` in a table, an empty field in CSV and ``null`` in JSON; DuckDB ``JSON`` columns are
 embedded as JSON (not as strings) in JSON output and as their text elsewhere; lists and structs are JSON text
 in tables and CSV; timestamps are ISO 8601; non-finite floats are ``"NaN"``, ``"Infinity"``, ``"-Infinity"``
-in JSON (as in the store's own JSON columns).
+in JSON (as in the store's own JSON columns). A ``JSON`` value that is not JSON, or is nested deeper than
+``tracing/bounded.py`` allows, is embedded as its text (a string), so every stored character is still there.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import math
 import uuid
 from typing import IO, Any, Sequence
 
+from tracing.bounded import MAX_DEPTH, deeper_than
+
 DEFAULT_MAX_WIDTH = 40
 
 
@@ -26,9 +29,11 @@ def to_json_value(value: Any, duck_type: str = "") -> Any:
         return value
     if duck_type == "JSON" and isinstance(value, str):
         try:
-            return json.loads(value)
-        except ValueError:
+            parsed = json.loads(value)
+        except (ValueError, RecursionError):
             return value
+        # nested deeper than a reader can follow (tracing/bounded.py): the stored text itself, as a string
+        return value if deeper_than(parsed, MAX_DEPTH) else parsed
     if isinstance(value, float):
         if math.isnan(value):
             return "NaN"
