@@ -19,6 +19,7 @@ import uuid
 from typing import IO, Any, Sequence
 
 from tracing.bounded import MAX_DEPTH, deeper_than
+from viewers.safe_text import terminal_text
 
 DEFAULT_MAX_WIDTH = 40
 
@@ -77,7 +78,7 @@ def _is_number(value: Any) -> bool:
 
 
 def _clip(text: str, width: int) -> str:
-    text = text.replace("\r", "").replace("\n", "\\n").replace("\t", " ")
+    text = terminal_text(text)  # one line, no control characters: a cell may hold anything a policy wrote
     if width and len(text) > width:
         return text[: max(width - 1, 1)] + "…"
     return text
@@ -85,7 +86,8 @@ def _clip(text: str, width: int) -> str:
 
 def format_table(columns: Sequence[str], rows: Sequence[Sequence[Any]], max_width: int = DEFAULT_MAX_WIDTH,
                  null: str = "NULL") -> str:
-    """Rows as an aligned text table (numbers right-aligned); cells wider than ``max_width`` end in "…"."""
+    """Rows as an aligned text table (numbers right-aligned); cells wider than ``max_width`` end in "…"; every cell
+    and name is made terminal-safe (``viewers/safe_text.py``: one line, no escape sequences)."""
     texts = [[_clip(cell_text(v, null), max_width) for v in row] for row in rows]
     headers = [_clip(str(c), 0) for c in columns]  # names are never cut
     widths = [max([len(h)] + [len(r[i]) for r in texts]) for i, h in enumerate(headers)]

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
 
-from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store
+from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store, show, show_json
 
 
 def add_parser(verbs) -> None:
@@ -30,13 +29,13 @@ def run(args: argparse.Namespace) -> int:
         counts = table_counts(con)
     errors = [f for f in findings if not f.warning]
     if args.json:
-        print(json.dumps({"store": str(store.path), "ok": not errors, "counts": counts,
-                          "findings": [{"check": f.check, "warning": f.warning, "rows": [list(map(str, r)) for r in f.rows]}
-                                       for f in findings]}, indent=2))
+        show_json({"store": str(store.path), "ok": not errors, "counts": counts,
+                   "findings": [{"check": f.check, "warning": f.warning, "rows": [list(map(str, r)) for r in f.rows]}
+                                for f in findings]})
     else:
         shown = (f"{'?' if n is None else format(n, ',')} {t}" for t, n in counts.items())
-        print(f"{store.path}: " + ", ".join(shown))
-        for f in findings:
-            print(("warning: " if f.warning else "PROBLEM: ") + f.summary())
-        print("ok: no damage found" if not errors else f"{len(errors)} kind(s) of damage found")
+        show(f"{store.path}: " + ", ".join(shown))
+        for f in findings:  # a finding quotes the rows it found: a damaged store's text is anyone's
+            show(("warning: " if f.warning else "PROBLEM: ") + f.summary())
+        show("ok: no damage found" if not errors else f"{len(errors)} kind(s) of damage found")
     return EXIT_OK if not errors else EXIT_EPISODE_FAILED
