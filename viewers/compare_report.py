@@ -148,8 +148,8 @@ def text_lines(data: dict[str, Any]) -> list[str]:
                  terminal_text(data["diff"] or "(the best versions are the same code)", multiline=True)]
         return lines
     versions = data["versions"]
-    lines = [terminal_text(f"A {versions[0]['ref']} ({versions[0]['policy_version_id']}), eval run {versions[0]['eval_run']}"),
-             terminal_text(f"B {versions[1]['ref']} ({versions[1]['policy_version_id']}), eval run {versions[1]['eval_run']}")]
+    lines = [terminal_text(f"{v['label']} {v['ref']} ({v['policy_version_id']}), eval run {v['eval_run']}")
+             for v in versions]
     for e in data["episodes"]:
         lines += [""] + [terminal_text(line) for line in _episode_headline(e)]
         if e["around"]:
@@ -182,8 +182,8 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
         versions = data["versions"]
         md += [f"# {markdown_text(data['game'])}: {markdown_text(versions[0]['ref'])} (A) vs "
                f"{markdown_text(versions[1]['ref'])} (B)", ""]
-        md += [f"- {markdown_text(v['label'])}: {markdown_text(v['ref'])}, version {markdown_code(v['policy_version_id'])}, "
-               f"eval run {markdown_code(v['eval_run'])}" for v in versions]
+        md += [f"- {markdown_text(v['label'])}: {markdown_text(v['ref'])}, version "
+               f"{markdown_code(v['policy_version_id'])}, eval run {markdown_code(v['eval_run'])}" for v in versions]
         for e in data["episodes"]:
             md += ["", f"## Seed {e['seed']}", ""] + [markdown_text(line.strip()) for line in _episode_headline(e)]
             if e["around"]:

@@ -7,8 +7,9 @@ iteration and cumulative) and ``lineage.png`` (every candidate at its score, wit
 improved, and its standard-protocol score when measured; a candidate never played, hollow on a lane of its own); an eval run gets ``score.png`` with the return of each episode. ``README.md`` shows
 the plots with the run's settings and tables of its iterations (or episodes), rejected candidates and LLM
 usage; every text read from the store is escaped for Markdown (``viewers/safe_text.py``: an episode's error
-cannot add HTML, a link or an image to the page), and the command lines are a fenced block no text can close. Everything is read in one read-only open (the views of docs/schema.md), so a report can be made while
-the run is still writing; plots are drawn with matplotlib's Agg canvas (no display needed).
+cannot add HTML, a link or an image to the page), and the command lines are a fenced block no text can close.
+Everything is read in one read-only open (the views of docs/schema.md), so a report can be made while the run is
+still writing; plots are drawn with matplotlib's Agg canvas (no display needed).
 """
 
 from __future__ import annotations
@@ -368,7 +369,8 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
         out += ["## Episodes", "", _md_table(
             ("episode", "seed", "return", "length", "lives lost", "end reason", "seconds", "error"),
             [(e["episode_index"], e["seed"], e["return"], e["length"], e["lives_lost"], e["end_reason"],
-              e["duration_s"], terminal_text(e["error"] or "")[:120]) for e in data["episodes"] if e["kind"] == "eval"]),
+              e["duration_s"], terminal_text(e["error"] or "")[:120])
+             for e in data["episodes"] if e["kind"] == "eval"]),
                 ""]
     else:
         code = {r["iteration"]: r for r in data["code"]}

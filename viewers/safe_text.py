@@ -13,10 +13,12 @@ candidate's reason, a label, a stored cell, a line of a policy) may hold anythin
   become U+FFFD. A newline is kept only in a block meant to span lines (``multiline=True``: a diff, a prompt);
   elsewhere it shows as ``\\n``, so one untrusted line can never look like two lines of codearcade's own.
 - :func:`markdown_text` for untrusted text inline in a rendered Markdown file (a table cell, a line of a
-  report): the same, then ``< > &`` HTML-escaped (no ``<script>``, ``<img onerror=...>`` or entity is formed) and
-  the ASCII punctuation Markdown builds links, images, code, emphasis and tables from backslash-escaped
-  (``\\[ \\] \\( \\) \\: \\=`` ...: no ``[text](javascript:...)`` link, ``![](...)`` image or ``<javascript:...>``
-  autolink can form, and a ``|`` cannot end a table cell); a renderer shows the text as it was.
+  report): the same, then ``< > &`` HTML-escaped (no ``<script>``, ``<img onerror=...>`` or entity is formed)
+  and the ASCII punctuation Markdown builds links, images, code, emphasis and tables from backslash-escaped
+  (``[ ] ( ) { } | ! # * _ ~``, the backtick and the backslash: no ``[text](javascript:...)`` link,
+  ``![](...)`` image or ``<javascript:...>`` autolink can form, and a ``|`` cannot end a table cell), and so
+  is a colon or equals sign glued to a word (``javascript\\:``, ``onerror\\=``); a renderer shows the text
+  as it was.
 - :func:`markdown_code` and :func:`markdown_code_block` for code and other literal text (a policy file, a diff, a
   path): a code span or fenced block whose fence is longer than any run of backticks inside, so the text can
   never close it and continue as Markdown.
@@ -76,7 +78,9 @@ def plot_text(text: object) -> str:
     return terminal_text(text).replace("$", "\\$")
 
 
-_MARKDOWN_PUNCTUATION = re.compile(r"[\\`*_\[\](){}#|!:=~]")
+# Markdown's link, image, code, emphasis, heading and table punctuation; and, so that no raw "javascript:" or
+# "onerror=" is left even as inert text, a colon or equals sign glued to a word ("step: 16", "a = 1" stay as written)
+_MARKDOWN_PUNCTUATION = re.compile(r"[\\`*_\[\](){}#|!~]|(?<=\w):(?=\S)|(?<=\w)=")
 
 
 def markdown_text(text: object) -> str:

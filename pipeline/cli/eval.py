@@ -57,7 +57,8 @@ def _progress_bar(episodes: int, description: str):
     from viewers.safe_text import terminal_text
 
     tqdm.monitor_interval = 0  # no monitor thread: episode workers are forked from this process
-    bar = tqdm(total=episodes, desc=terminal_text(description), unit="episode", disable=None, dynamic_ncols=True, leave=False)
+    bar = tqdm(total=episodes, desc=terminal_text(description), unit="episode", disable=None, dynamic_ncols=True,
+               leave=False)
     steps: dict[int, int] = {}
 
     def show_steps() -> None:

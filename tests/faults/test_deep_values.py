@@ -46,7 +46,8 @@ def _deep_policy(depth: int) -> str:
     text = pong_policy("return 0", prelude="import typing\n")
     head, _, rest = text.partition("    @trace.bundle(trainable=True)\n    def predict_ball_trajectory")
     _, _, tail = rest.partition("    @trace.bundle(trainable=True)\n    def select_action")
-    return (head + "    @trace.bundle(trainable=True)\n" + textwrap.indent(_deep_method("predict_ball_trajectory", depth), "    ")
+    deep = textwrap.indent(_deep_method("predict_ball_trajectory", depth), "    ")
+    return (head + "    @trace.bundle(trainable=True)\n" + deep
             + "\n    @trace.bundle(trainable=True)\n    def select_action" + tail)
 
 

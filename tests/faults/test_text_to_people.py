@@ -97,7 +97,8 @@ def _cli(*args: str, expect: tuple[int, ...] = (0,)) -> str:
     for name, data in (("stdout", done.stdout), ("stderr", done.stderr)):
         text = data.decode("utf-8")  # strict: a raw C1 byte (\x9b) is not UTF-8 and fails here
         found = UNSAFE.search(text)
-        assert found is None, f"{args[0]}: {found.group()!r} reached {name} at {text[max(found.start() - 60, 0):found.end() + 20]!r}"
+        where = text[max(found.start() - 60, 0):found.end() + 20] if found else ""
+        assert found is None, f"{args[0]}: {found.group()!r} reached {name} at {where!r}"
     return done.stdout.decode() + done.stderr.decode()
 
 
@@ -148,7 +149,8 @@ def test_terminal_text_removes_every_sequence_and_keeps_the_words():
     for words in ("all episodes verified OK", "click here", "OVERWRITTEN", "evil reversed", "<script>"):
         assert words in shown
     assert "[2J" not in shown and "pwned title" not in shown and "31m" not in shown  # sequences go whole
-    assert terminal_text("one\ntwo") == "one\\ntwo" and terminal_text("one\r\ntwo\tthree", multiline=True) == "one\ntwo three"
+    assert terminal_text("one\ntwo") == "one\\ntwo"
+    assert terminal_text("one\r\ntwo\tthree", multiline=True) == "one\ntwo three"
     assert terminal_text("a lone surrogate \ud800") == "a lone surrogate \ufffd"
     assert terminal_text("plain text, unchanged") == "plain text, unchanged"
     # --json keeps every character: the same value, and nothing raw that a terminal acts on
