@@ -6,12 +6,12 @@ open. Step slices come back with the observation dict rebuilt exactly as the pol
 
 from __future__ import annotations
 
-import json
 import statistics
 from typing import Any, Callable, Mapping
 
 import duckdb
 
+from tracing.bounded import load_json
 from tracing.steps import objects_to_obs
 
 
@@ -48,7 +48,9 @@ def episode_steps(
 def step_nodes(
     con: duckdb.DuckDBPyConnection, episode_id: str, start: int = 0, stop: int | None = None
 ) -> list[dict[str, Any]]:
-    """Node calls of steps ``start <= step < stop``, ordered by step and call index; JSON decoded."""
+    """Node calls of steps ``start <= step < stop``, ordered by step and call index; JSON decoded within the bounds
+    of ``tracing/bounded.py`` (a value nested too deep or too long comes back cut or as its marker, never an
+    error: a store holding one stays readable and its run resumable)."""
     rows = _rows(
         con.execute(
             """SELECT step, call_index, function, trainable, policy_version_id, inputs, output, exc_type,
@@ -58,8 +60,8 @@ def step_nodes(
         )
     )
     for row in rows:
-        row["inputs"] = json.loads(row["inputs"]) if row["inputs"] is not None else None
-        row["output"] = json.loads(row["output"]) if row["output"] is not None else None
+        row["inputs"] = load_json(row["inputs"]) if row["inputs"] is not None else None
+        row["output"] = load_json(row["output"]) if row["output"] is not None else None
     return rows
 
 

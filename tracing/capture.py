@@ -14,7 +14,10 @@ With ``lines=True`` each call also records ``lines_run``: the lines of the metho
 Inputs that are the step's observation dict itself are stored as ``{"$ref": "obs"}``: the observation is
 already in the ``steps`` table, and repeating it per call would triple the store. Values are stored as JSON
 text: numpy values as numbers/lists, non-finite floats as the strings ``"NaN"``/``"Infinity"``, anything
-else as its ``repr`` with memory addresses removed (prompts built from nodes must be deterministic).
+else as its ``repr`` with memory addresses removed (prompts built from nodes must be deterministic). Each is
+held to the bounds of ``tracing/bounded.py``: lists and objects nested deeper than 64 levels are cut (even where
+the policy raised its recursion limit, which would let ``json.dumps`` go on until the process's stack overflows),
+and a text over 20,000 characters becomes ``{"$truncated": n, "preview": ...}``.
 """
 
 from __future__ import annotations
@@ -23,20 +26,23 @@ import json
 import linecache
 import math
 import re
+import sys
 import time
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 
+from tracing.bounded import MAX_CHARS, MAX_DEPTH, TOO_DEEP, deeper_than, truncated
 from tracing.lines import LineCall
 
 ACTIVE: "NodeRecorder | None" = None
 """The recorder bundled methods report to; None when capture is off."""
 
-MAX_VALUE_CHARS = 20_000
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 OBS_REF = {"$ref": "obs"}
+_USUAL_RECURSION_LIMIT = sys.getrecursionlimit()
+"""The recursion limit before any policy code ran (policy code can raise its own; see :func:`to_json`)."""
 
 NODE_SCHEMA = pa.schema(
     [
@@ -85,8 +91,8 @@ def _jsonable(value: Any, depth: int = 0) -> Any:
         return "NaN" if math.isnan(value) else ("Infinity" if value > 0 else "-Infinity")
     if isinstance(value, np.generic):
         return _jsonable(value.item(), depth)
-    if depth > 20:
-        return "..."
+    if depth >= MAX_DEPTH:  # a list or object below the allowed nesting (scalars were answered above)
+        return TOO_DEEP
     if isinstance(value, dict):
         return {str(k): _jsonable(v, depth + 1) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -100,12 +106,18 @@ def _jsonable(value: Any, depth: int = 0) -> Any:
 
 def to_json(value: Any) -> str:
     """Deterministic JSON text for a node input or output (see the module docstring)."""
+    nested = isinstance(value, (dict, list, tuple))
+    if nested and sys.getrecursionlimit() > _USUAL_RECURSION_LIMIT and deeper_than(value, MAX_DEPTH):
+        # the policy raised its recursion limit: json.dumps would follow a deep value until the stack overflows
+        value = _jsonable(value)
     try:
         text = json.dumps(value, allow_nan=False, separators=(",", ":"))
     except (TypeError, ValueError, RecursionError):
         text = json.dumps(_jsonable(value), separators=(",", ":"))
-    if len(text) > MAX_VALUE_CHARS:
-        text = json.dumps({"$truncated": len(text), "preview": text[:2000]})
+    if nested and text.count("[") + text.count("{") > MAX_DEPTH and deeper_than(value, MAX_DEPTH):
+        text = json.dumps(_jsonable(value), separators=(",", ":"))  # nested deeper than allowed: cut
+    if len(text) > MAX_CHARS:
+        text = json.dumps(truncated(text))
     return text
 
 

@@ -17,6 +17,7 @@ from store.comparisons import resolve_version
 from store.lines import backfill_lines, has_lines, version_blame
 from store.readers import first_iteration_of, get_run, version_of_iteration
 from store.runs import resolve_run_id
+from viewers.safe_text import terminal_text
 
 SHORT_VERSION = 8
 SHORT_CALL = 12
@@ -54,7 +55,8 @@ def blame(store: Store, run: str, version: str | None = None, iteration: int | N
 
 
 def format_blame(report: dict[str, Any]) -> str:
-    """The report as text: a header per method, then ``iteration version call ran line_no text`` per line."""
+    """The report as text: a header per method, then ``iteration version call ran line_no text`` per line; each
+    line terminal-safe (``viewers/safe_text.py``)."""
     out = [f"run {report['run_id']} ({report['game']}), policy version {report['policy_version_id']} "
            f"(iteration {report['iteration']}{', the best' if report['best'] else ''})"]
     for function in report["functions"]:
@@ -68,4 +70,4 @@ def format_blame(report: dict[str, Any]) -> str:
                        f"{call:<{SHORT_CALL}}  {ran:>6} {line['line_no']:>4}  {line['text']}")
     if not report["functions"]:
         out.append("(the version has no trainable methods)")
-    return "\n".join(out)
+    return "\n".join(terminal_text(line) for line in out)  # a policy's line may hold escape sequences

@@ -14,6 +14,7 @@ from typing import Any
 
 from store.runs import shortest_prefixes
 from viewers.report import _md_table
+from viewers.safe_text import markdown_code, markdown_code_block, markdown_text, plot_text, terminal_text
 from viewers.tables import format_table
 
 COLOURS = {"A": "#1f77b4", "B": "#d62728"}
@@ -57,8 +58,8 @@ def curves_figure(data: dict[str, Any]):
     axes[0].set_ylabel("evaluation score")
     axes[-1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     runs = data["runs"]
-    fig.suptitle(f"{data['game']}: A {runs[0]['run_id']} ({runs[0]['model']}) vs B {runs[1]['run_id']} "
-                 f"({runs[1]['model']})", fontsize=10)
+    fig.suptitle(plot_text(f"{data['game']}: A {runs[0]['run_id']} ({runs[0]['model']}) vs B {runs[1]['run_id']} "
+                           f"({runs[1]['model']})"), fontsize=10)
     return fig
 
 
@@ -132,7 +133,8 @@ def _action(e: dict[str, Any], label: str) -> str:
 
 
 def text_lines(data: dict[str, Any]) -> list[str]:
-    """What ``codearcade compare`` prints on a terminal."""
+    """What ``codearcade compare`` prints on a terminal, terminal-safe (``viewers/safe_text.py``): a line each, but
+    the tables and the diff, which span lines."""
     if data["mode"] == "runs":
         runs = data["runs"]
         lines = [format_table(("", "run", "model", "status", "iterations", "best", "at iteration", "LLM calls",
@@ -142,47 +144,51 @@ def text_lines(data: dict[str, Any]) -> list[str]:
                                for r in runs], max_width=32, null="-"),
                  "", "best score reached within the same budget:",
                  format_table(("budget in", "up to", "A best", "B best"), _budget_rows(data), max_width=40, null="-"),
-                 "", "diff of the best versions (A -> B):", data["diff"] or "(the best versions are the same code)"]
+                 "", "diff of the best versions (A -> B):",
+                 terminal_text(data["diff"] or "(the best versions are the same code)", multiline=True)]
         return lines
     versions = data["versions"]
-    lines = [f"A {versions[0]['ref']} ({versions[0]['policy_version_id']}), eval run {versions[0]['eval_run']}",
-             f"B {versions[1]['ref']} ({versions[1]['policy_version_id']}), eval run {versions[1]['eval_run']}"]
+    lines = [terminal_text(f"{v['label']} {v['ref']} ({v['policy_version_id']}), eval run {v['eval_run']}")
+             for v in versions]
     for e in data["episodes"]:
-        lines += [""] + _episode_headline(e)
+        lines += [""] + [terminal_text(line) for line in _episode_headline(e)]
         if e["around"]:
             lines.append(format_table(("step", "", "action", "node outputs", "objects"), _around_rows(e),
                                       max_width=70, null="-"))
-    lines += ["", "diff (A -> B):", data["diff"] or "(the same code)"]
+    lines += ["", "diff (A -> B):", terminal_text(data["diff"] or "(the same code)", multiline=True)]
     return lines
 
 
 def write_report(data: dict[str, Any], out: Path) -> Path:
-    """README.md (and ``curves.png`` for two runs) in ``out``; the README's path."""
+    """README.md (and ``curves.png`` for two runs) in ``out``; the README's path. Stored text is escaped for
+    Markdown, and code is in fenced blocks no line of it can close (``viewers/safe_text.py``)."""
     out.mkdir(parents=True, exist_ok=True)
     md: list[str] = []
     if data["mode"] == "runs":
         curves_figure(data).savefig(out / "curves.png")
         runs = data["runs"]
-        md += [f"# {data['game']}: run `{runs[0]['run_id']}` (A) vs run `{runs[1]['run_id']}` (B)", "",
+        md += [f"# {markdown_text(data['game'])}: run {markdown_code(runs[0]['run_id'])} (A) vs run "
+               f"{markdown_code(runs[1]['run_id'])} (B)", "",
                "![learning curves against LLM calls, tokens and wall seconds](curves.png)", "",
                _md_table(("", "run", "model", "status", "iterations", "best", "at iteration", "LLM calls", "tokens",
                           "seconds"),
-                         [(r["label"], f"`{r['run_id']}`", r["model"], r["status"], r["iterations"], r["best_score"],
+                         [(r["label"], markdown_code(r["run_id"]), r["model"], r["status"], r["iterations"], r["best_score"],
                            r["best_iteration"], r["llm_calls"], r["total_tokens"], r["elapsed_s"]) for r in runs]),
                "", "## Best score within the same budget", "",
                "Only budgets both runs spent are matched; `all` is each run's whole spending.", "",
                _md_table(("budget in", "up to", "A best", "B best"), _budget_rows(data)), "",
-               "## Diff of the best versions", "", "```diff", data["diff"] or "(the same code)", "```", ""]
+               "## Diff of the best versions", "", markdown_code_block(data["diff"] or "(the same code)", "diff"), ""]
     else:
         versions = data["versions"]
-        md += [f"# {data['game']}: {versions[0]['ref']} (A) vs {versions[1]['ref']} (B)", ""]
-        md += [f"- {v['label']}: `{v['ref']}`, version `{v['policy_version_id']}`, eval run `{v['eval_run']}`"
-               for v in versions]
+        md += [f"# {markdown_text(data['game'])}: {markdown_text(versions[0]['ref'])} (A) vs "
+               f"{markdown_text(versions[1]['ref'])} (B)", ""]
+        md += [f"- {markdown_text(v['label'])}: {markdown_text(v['ref'])}, version "
+               f"{markdown_code(v['policy_version_id'])}, eval run {markdown_code(v['eval_run'])}" for v in versions]
         for e in data["episodes"]:
-            md += ["", f"## Seed {e['seed']}", ""] + [line.strip() for line in _episode_headline(e)]
+            md += ["", f"## Seed {e['seed']}", ""] + [markdown_text(line.strip()) for line in _episode_headline(e)]
             if e["around"]:
                 md += ["", _md_table(("step", "", "action", "node outputs", "objects"), _around_rows(e))]
-        md += ["", "## Diff", "", "```diff", data["diff"] or "(the same code)", "```", ""]
+        md += ["", "## Diff", "", markdown_code_block(data["diff"] or "(the same code)", "diff"), ""]
     readme = out / "README.md"
     readme.write_text("\n".join(md))
     return readme

@@ -6,8 +6,10 @@ each iteration evaluated: the paper's Table 3 over time) and ``tokens.png`` (LLM
 iteration and cumulative) and ``lineage.png`` (every candidate at its score, with an edge to the candidate it
 improved, and its standard-protocol score when measured; a candidate never played, hollow on a lane of its own); an eval run gets ``score.png`` with the return of each episode. ``README.md`` shows
 the plots with the run's settings and tables of its iterations (or episodes), rejected candidates and LLM
-usage. Everything is read in one read-only open (the views of docs/schema.md), so a report can be made while
-the run is still writing; plots are drawn with matplotlib's Agg canvas (no display needed).
+usage; every text read from the store is escaped for Markdown (``viewers/safe_text.py``: an episode's error
+cannot add HTML, a link or an image to the page), and the command lines are a fenced block no text can close.
+Everything is read in one read-only open (the views of docs/schema.md), so a report can be made while the run is
+still writing; plots are drawn with matplotlib's Agg canvas (no display needed).
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from store import Store
 from store.readers import get_run
 from store.showing import report_rows
 from store.runs import resolve_run_id
+from viewers.safe_text import (markdown_cell, markdown_code, markdown_code_block, markdown_text, plot_text,
+                               terminal_text)
 
 STATUS_STYLE = {  # update_status -> (marker, colour, label)
     "initial": ("s", "#555555", "starting policy"),
@@ -72,8 +76,8 @@ def _title(data: dict[str, Any], what: str) -> str:
     model = f", {run['model']}" if run["model"] else ""
     # wrapped, so a long model name never runs past the image's edge
     named = f" '{run['name']}'" if run.get("name") else ""
-    return "\n".join(textwrap.wrap(f"{run['game']} · {what}", 90) +
-                     textwrap.wrap(f"run {run['run_id']}{named} ({run['kind']}{model})", 90))
+    return "\n".join(textwrap.wrap(plot_text(f"{run['game']} · {what}"), 90) +
+                     textwrap.wrap(plot_text(f"run {run['run_id']}{named} ({run['kind']}{model})"), 90))
 
 
 def scores_figure(data: dict[str, Any]):
@@ -231,7 +235,7 @@ def episode_returns_figure(data: dict[str, Any]):
     from matplotlib.patches import Patch
 
     seen = dict.fromkeys(e["end_reason"] for e in episodes)
-    handles = [Patch(color=END_COLOURS.get(r, "#1f77b4"), label=f"ended: {r}") for r in seen]
+    handles = [Patch(color=END_COLOURS.get(r, "#1f77b4"), label=plot_text(f"ended: {r}")) for r in seen]
     # beside the axes, never over a bar
     ax.legend(handles=ax.get_legend_handles_labels()[0] + handles, fontsize=8, loc="upper left",
               bbox_to_anchor=(1.01, 1.0), frameon=False)
@@ -309,7 +313,7 @@ def _md(value: Any, digits: int = 2) -> str:
         return value.strftime("%Y-%m-%d %H:%M:%S UTC")
     if isinstance(value, (dict, list)):
         value = json.dumps(value)
-    return str(value).replace("|", "\\|").replace("\n", " ")
+    return markdown_cell(value)  # stored text is escaped (an episode's error may hold <script> or a link)
 
 
 def _md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
@@ -320,14 +324,14 @@ def _md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
 
 def _settings(data: dict[str, Any]) -> list[tuple[str, Any]]:
     run, summary, config = data["run"], data["summary"], data["config"]
-    rows: list[tuple[str, Any]] = [("run id", f"`{run['run_id']}`")] + ([("name", run["name"])] if run.get("name") else [])
+    rows: list[tuple[str, Any]] = [("run id", markdown_code(run["run_id"]))] + ([("name", run["name"])] if run.get("name") else [])
     rows += [("kind", run["kind"]), ("game", run["game"]), ("model", run["model"]), ("status", run["status"]),
              ("seed", run["seed"]), ("created", run["created_at"]), ("finished", run["finished_at"]),
              ("duration (s)", summary["duration_s"])]
     if run["error"]:
         rows.append(("error", run["error"]))
     skip = {"game", "model", "seed", "instruction", "feedback_bands"}
-    rows += [(f"`{k}`", v) for k, v in sorted(config.items()) if k not in skip]
+    rows += [(markdown_code(k), v) for k, v in sorted(config.items()) if k not in skip]
     bands = config.get("feedback_bands")
     if isinstance(bands, dict):
         rows.append(("feedback bands", f"high ≥ {bands.get('high')}, low ≤ {bands.get('low')}, "
@@ -347,9 +351,9 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
     is the command line that starts a run with the same settings, ``price(model)`` the model's rates per token
     (see :func:`write_report`)."""
     run, summary, usage = data["run"], data["summary"], data["usage"]
-    named = f" ({run['name']})" if run.get("name") else ""
-    out = [f"# {run['game']} {run['kind']} run `{run['run_id']}`{named}", ""]
-    facts = [f"status **{run['status']}**"]
+    named = f" ({markdown_text(run['name'])})" if run.get("name") else ""
+    out = [f"# {markdown_text(run['game'])} {markdown_text(run['kind'])} run {markdown_code(run['run_id'])}{named}", ""]
+    facts = [f"status **{markdown_text(run['status'])}**"]
     if run["kind"] == "eval":
         facts.append(f"mean return **{_md(summary['best_score'])}** over {summary['episodes']} episode(s)")
     else:
@@ -365,7 +369,9 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
         out += ["## Episodes", "", _md_table(
             ("episode", "seed", "return", "length", "lives lost", "end reason", "seconds", "error"),
             [(e["episode_index"], e["seed"], e["return"], e["length"], e["lives_lost"], e["end_reason"],
-              e["duration_s"], (e["error"] or "")[:120]) for e in data["episodes"] if e["kind"] == "eval"]), ""]
+              e["duration_s"], terminal_text(e["error"] or "")[:120])
+             for e in data["episodes"] if e["kind"] == "eval"]),
+                ""]
     else:
         code = {r["iteration"]: r for r in data["code"]}
         rows = []
@@ -374,7 +380,7 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
             status = r["update_status"] + (" ↺ rolled back" if r["rolled_back"] else "")
             rows.append((r["iteration"], status, r["score"], r["best_score"], r["train_return"], c.get("loc"),
                          c.get("sloc"), c.get("complexity"), c.get("max_if_depth"), r["input_tokens"],
-                         r["output_tokens"], r["wall_s"], f"`{r['policy_version_id']}`"))
+                         r["output_tokens"], r["wall_s"], markdown_code(r["policy_version_id"])))
         out += ["## Iterations", "",
                 "Score: mean evaluation return. Train: return of the traced training rollout. Code metrics are "
                 "those of the version evaluated (`code_metrics`); tokens are those of the iteration's LLM calls.", "",
@@ -383,7 +389,7 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
         if data["rejected"]:
             out += ["## Rejected candidates", "", _md_table(
                 ("iteration", "stage", "reason"),
-                [(r["iteration"], r["stage"], (r["reason"] or "")[:300]) for r in data["rejected"]]), ""]
+                [(r["iteration"], r["stage"], terminal_text(r["reason"] or "")[:300]) for r in data["rejected"]]), ""]
         if usage["calls"]:
             out += ["## LLM usage", "", _md_table(
                 ("calls", "errors", "unusable replies", "retries", "input tokens", "cached input tokens",
@@ -401,22 +407,25 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                     and v["validation"] != "rejected"), None)
     if version is not None:
         which = "best version" if best_id else "policy"
-        out += [f"## Methods of the {which} (`{version['policy_version_id']}`)", "",
+        out += [f"## Methods of the {which} ({markdown_code(version['policy_version_id'])})", "",
                 f"{version['loc']} lines, {version['sloc']} source lines, cyclomatic complexity "
                 f"{version['complexity']}, nested-if depth {version['max_if_depth']}.", "",
                 _functions_table(version), ""]
     out += ["## Settings", "", _md_table(("setting", "value"), _settings(data)), ""]
     if data["config"].get("instruction"):
-        out += ["Instruction given to the model:", "", "> " + data["config"]["instruction"].replace("\n", "\n> "), ""]
+        out += ["Instruction given to the model:", "",
+                "\n".join("> " + markdown_text(line) for line in str(data["config"]["instruction"]).splitlines()), ""]
     if data["packages"]:
-        out += ["Package versions: " + ", ".join(f"{k} {v}" for k, v in sorted(data["packages"].items())), ""]
+        out += ["Package versions: " + ", ".join(markdown_text(f"{k} {v}") for k, v in sorted(data["packages"].items())),
+                ""]
     query = ("SELECT episode_index, seed, return, length, end_reason FROM episodes WHERE run_id = '{}' "
              "ORDER BY episode_index" if run["kind"] == "eval" else
              "SELECT * FROM learning_curve WHERE run_id = '{}' ORDER BY iteration").format(run["run_id"])
     out += ["## Reproduce", "", "The command that made this run (a new run with the same settings; with a "
             "deterministic policy and model it plays the same episodes), and the queries behind this report:", "",
-            "```bash", *([reproduce(run, data["config"])] if reproduce is not None else []),
-            f"codearcade report {run['run_id']}", f'codearcade sql "{query}"', "```", ""]
+            markdown_code_block("\n".join([*([reproduce(run, data["config"])] if reproduce is not None else []),
+                                            f"codearcade report {run['run_id']}", f'codearcade sql "{query}"']),
+                                "bash"), ""]
     return "\n".join(out)
 
 
@@ -432,7 +441,7 @@ def _cache_saving(run: dict[str, Any], usage: dict[str, Any], price: Callable[[s
         return f"Prompt caching: {cached:,} input tokens ({share:.0%}) were read from the provider's cache."
     saved = cached * (rates.input - rates.cached_input)
     return (f"Prompt caching: {cached:,} input tokens ({share:.0%}) were read from the provider's cache, "
-            f"saving about ${saved:.4f} at {run['model']}'s prices.")
+            f"saving about ${saved:.4f} at {markdown_text(run['model'])}'s prices.")
 
 
 def write_report(store: Store, run: str, out_dir: str | Path | None = None, *,

@@ -30,6 +30,7 @@ from store import Store
 from viewers.rerun_episode import STEP_SERIES, game_view, new_recording
 from viewers.rerun_replay import log_stored_episode, read_episode
 from viewers.rerun_sinks import is_grpc_url
+from viewers.safe_text import markdown_code_block
 
 SIDES = ("A", "B")
 SIDE_COLOURS = {"A": (31, 119, 180), "B": (214, 39, 40)}
@@ -104,7 +105,7 @@ def write(store: Store, episodes: dict[str, str], to: str, divergent_step: int |
             for name in STEP_SERIES:  # one legend entry per side: "A action", "B action"
                 rec.log(f"/{side}/series/{name}", rr.SeriesLines(names=f"{side} {name}", colors=SIDE_COLOURS[side],
                                                                  interpolation_mode="StepAfter"), static=True)
-        rec.log("/compare/diff", rr.TextDocument(f"```diff\n{diff or '(the same code)'}\n```",
+        rec.log("/compare/diff", rr.TextDocument(markdown_code_block(diff or "(the same code)", "diff"),
                                                  media_type="text/markdown"), static=True)
         if divergent_step is not None:
             actions = {side: _action_at(data[side].steps, divergent_step) for side in SIDES}

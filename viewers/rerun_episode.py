@@ -70,6 +70,8 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from games import GAMES
+from tracing.bounded import load_json
+from viewers.safe_text import markdown_code_block, markdown_text
 
 APPLICATION_ID = "codearcade"
 SCREEN_W, SCREEN_H = 160, 210
@@ -270,7 +272,7 @@ class EpisodeLogger:
     def code(self, policy_text: str) -> None:
         """The policy file, as a markdown text document at ``/code``."""
         self._policy_text = policy_text
-        self.rec.log("/code", rr.TextDocument(f"```python\n{policy_text}\n```", media_type="text/markdown"),
+        self.rec.log("/code", rr.TextDocument(markdown_code_block(policy_text, "python"), media_type="text/markdown"),
                      static=True)
 
     def properties(self, episode: Mapping[str, Any], frames_every: int = 0) -> None:
@@ -367,7 +369,7 @@ class EpisodeLogger:
         if n == 0:
             return
         steps, calls, functions = data["step"], data["call_index"], data["function"]
-        outputs = [json.loads(o) if o is not None else None for o in data["output"]]
+        outputs = [load_json(o) if o is not None else None for o in data["output"]]  # nesting bounded
         by_step_call = {(steps[i], calls[i]): i for i in range(n)}
         names = self._name_outputs(data, outputs, by_step_call)
 
@@ -438,7 +440,7 @@ class EpisodeLogger:
                 span = f"step {first}" if first == last else f"steps {first}-{last}"
                 body = "\n".join(f"{'▶' if i in ran else ' '} {i:>3}  {text}"
                                   for i, text in enumerate(sources[fn], start=1))
-                docs.append(f"**{fn}**: ▶ the lines that ran at {span}\n\n```python\n{body}\n```")
+                docs.append(f"**{markdown_text(fn)}**: ▶ the lines that ran at {span}\n\n{markdown_code_block(body, 'python')}")
             if fn not in self._line_functions:
                 self._line_functions.append(fn)
             self.rec.send_columns(entity("lines", fn), indexes=[rr.TimeColumn("step", sequence=[calls[k][0]
@@ -458,7 +460,9 @@ class EpisodeLogger:
                 if j is None or data["function"][j] in names or outputs[j] is None:
                     continue
                 if inputs is None:
-                    inputs = json.loads(data["inputs"][i])
+                    inputs = load_json(data["inputs"][i])
+                if not isinstance(inputs, dict):  # a marker (too deep, too long) or a store edited by hand
+                    break
                 for param, value in inputs.items():
                     if value == outputs[j] and not isinstance(value, dict):
                         names[data["function"][j]] = param

@@ -40,6 +40,7 @@ import rerun.blueprint as rrb
 from store import Store
 from store.showing import run_timeline
 from viewers.rerun_episode import new_recording, resolve_recording
+from viewers.safe_text import markdown_code_block
 
 
 def read_run(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
@@ -87,7 +88,7 @@ def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -
             if it[key] is not None:
                 rec.log(f"/llm/{path}", rr.Scalars(float(it[key])))
         if it["code"] is not None:
-            rec.log("/code", rr.TextDocument(f"```python\n{it['code']}\n```", media_type="text/markdown"))
+            rec.log("/code", rr.TextDocument(markdown_code_block(it["code"], "python"), media_type="text/markdown"))
         if it["prompt"] is not None:
             rec.log("/llm/prompt", rr.TextDocument(prompt_text(it["prompt"]), media_type="text/plain"))
         reply = it["reply"]

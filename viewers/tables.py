@@ -4,7 +4,8 @@ Shared by ``codearcade sql``, ``codearcade runs`` and the Markdown reports. Valu
 formats: NULL is ``NULL`` in a table, an empty field in CSV and ``null`` in JSON; DuckDB ``JSON`` columns are
 embedded as JSON (not as strings) in JSON output and as their text elsewhere; lists and structs are JSON text
 in tables and CSV; timestamps are ISO 8601; non-finite floats are ``"NaN"``, ``"Infinity"``, ``"-Infinity"``
-in JSON (as in the store's own JSON columns).
+in JSON (as in the store's own JSON columns). A ``JSON`` value that is not JSON, or is nested deeper than
+``tracing/bounded.py`` allows, is embedded as its text (a string), so every stored character is still there.
 """
 
 from __future__ import annotations
@@ -17,6 +18,9 @@ import math
 import uuid
 from typing import IO, Any, Sequence
 
+from tracing.bounded import MAX_DEPTH, deeper_than
+from viewers.safe_text import terminal_text
+
 DEFAULT_MAX_WIDTH = 40
 
 
@@ -26,9 +30,11 @@ def to_json_value(value: Any, duck_type: str = "") -> Any:
         return value
     if duck_type == "JSON" and isinstance(value, str):
         try:
-            return json.loads(value)
-        except ValueError:
+            parsed = json.loads(value)
+        except (ValueError, RecursionError):
             return value
+        # nested deeper than a reader can follow (tracing/bounded.py): the stored text itself, as a string
+        return value if deeper_than(parsed, MAX_DEPTH) else parsed
     if isinstance(value, float):
         if math.isnan(value):
             return "NaN"
@@ -72,7 +78,7 @@ def _is_number(value: Any) -> bool:
 
 
 def _clip(text: str, width: int) -> str:
-    text = text.replace("\r", "").replace("\n", "\\n").replace("\t", " ")
+    text = terminal_text(text)  # one line, no control characters: a cell may hold anything a policy wrote
     if width and len(text) > width:
         return text[: max(width - 1, 1)] + "…"
     return text
@@ -80,7 +86,8 @@ def _clip(text: str, width: int) -> str:
 
 def format_table(columns: Sequence[str], rows: Sequence[Sequence[Any]], max_width: int = DEFAULT_MAX_WIDTH,
                  null: str = "NULL") -> str:
-    """Rows as an aligned text table (numbers right-aligned); cells wider than ``max_width`` end in "…"."""
+    """Rows as an aligned text table (numbers right-aligned); cells wider than ``max_width`` end in "…"; every cell
+    and name is made terminal-safe (``viewers/safe_text.py``: one line, no escape sequences)."""
     texts = [[_clip(cell_text(v, null), max_width) for v in row] for row in rows]
     headers = [_clip(str(c), 0) for c in columns]  # names are never cut
     widths = [max([len(h)] + [len(r[i]) for r in texts]) for i, h in enumerate(headers)]

@@ -14,9 +14,13 @@ output), whatever a candidate's validation reports, and every note composed into
   ``hf_...``) become ``[redacted]``. Values shorter than :data:`MIN_SECRET_CHARS` are left alone (a
   ``*_KEY`` set to ``1`` must not redact every digit).
 
-:func:`clean_json_text` does the same for a JSON text (a node's inputs and output) and keeps it valid JSON;
-:func:`clean_nodes` applies both to the string columns of a node table as it arrives from a worker, and
-:func:`clean_step_objects` to the object names inside a step table.
+:func:`clean_json_text` does the same for a JSON text (a node's inputs and output), keeps it valid JSON, and
+holds it to the bounds of ``tracing/bounded.py`` (lists and objects nested at most 64 levels deep: a worker whose
+policy raised its recursion limit, or that forged its node table, can send a list nested 3,000 deep, which would
+raise ``RecursionError`` in every later reader: the optimizer building its next prompt, ``--resume``); this is
+the check that counts, as ``to_json``'s own bound runs in the policy's process. :func:`clean_nodes` applies both
+to the string columns of a node table as it arrives from a worker, and :func:`clean_step_objects` to the object
+names inside a step table.
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ from functools import lru_cache
 
 import pyarrow as pa
 import pyarrow.compute as pc
+
+from tracing.bounded import MAX_DEPTH, bound_json_text
 
 MESSAGE_LIMIT = 2_000
 """Characters kept of one message (an error, an exception message, a validation reason, a feedback note)."""
@@ -120,7 +126,8 @@ def clean_untrusted_text(text: object, limit: int = MESSAGE_LIMIT) -> str | None
 
 
 def clean_json_text(text: str | None, limit: int = JSON_LIMIT) -> str | None:
-    """A JSON text from a worker, scrubbed and capped, and still valid JSON (a cut value becomes a JSON string)."""
+    """A JSON text from a worker, scrubbed, capped and bounded in nesting, and still valid JSON (a cut value
+    becomes a JSON string; a value nested too deep, its marker: ``tracing/bounded.py``)."""
     if text is None:
         return None
     if not isinstance(text, str):
@@ -128,11 +135,11 @@ def clean_json_text(text: str | None, limit: int = JSON_LIMIT) -> str | None:
     cleaned = scrub_secrets(text) if len(text) <= limit else None
     if cleaned is not None:
         if cleaned == text:
-            return text
+            return bound_json_text(text, limit, MAX_DEPTH)
         try:
             json.loads(cleaned)
-            return cleaned
-        except ValueError:
+            return bound_json_text(cleaned, limit, MAX_DEPTH)
+        except (ValueError, RecursionError):
             pass
     return json.dumps(clean_untrusted_text(text, limit), ensure_ascii=False)
 
@@ -151,7 +158,7 @@ def clean_nodes(nodes: pa.Table | None) -> pa.Table | None:
             nodes = _clean_column(nodes, name, lambda v, limit=limit: clean_untrusted_text(v, limit), limit)
     for name in _NODE_JSON:
         if name in nodes.column_names:
-            nodes = _clean_column(nodes, name, clean_json_text, JSON_LIMIT)
+            nodes = _clean_column(nodes, name, clean_json_text, JSON_LIMIT, nested=True)
     return nodes
 
 
@@ -183,11 +190,15 @@ def clean_step_objects(steps: pa.Table) -> pa.Table:
     return steps.set_column(index, steps.schema.field(index), rebuilt.cast(steps.schema.field(index).type))
 
 
-def _suspects(column: pa.ChunkedArray, limit: int) -> list[int]:
-    """Rows of a string column that cleaning could change: too long, a secret's value, or a key's shape. Found
-    with Arrow's vectorised kernels, so the common case (a traced episode's thousands of short, clean values)
-    costs a few milliseconds instead of a Python call per value."""
+def _suspects(column: pa.ChunkedArray, limit: int, nested: bool = False) -> list[int]:
+    """Rows of a string column that cleaning could change: too long, a secret's value, or a key's shape; with
+    ``nested``, also a JSON text with more opening brackets than the nesting allowed (only such a one can be
+    nested too deep). Found with Arrow's vectorised kernels, so the common case (a traced episode's thousands of
+    short, clean values) costs a few milliseconds instead of a Python call per value."""
     mask = pc.greater(pc.utf8_length(column), limit)
+    if nested:
+        openers = pc.add(pc.count_substring(column, "["), pc.count_substring(column, "{"))
+        mask = pc.or_(mask, pc.greater(openers, MAX_DEPTH))
     mask = pc.or_(mask, pc.match_substring_regex(column, _KEY_SHAPES.pattern))
     for value in _secret_values():
         mask = pc.or_(mask, pc.match_substring(column, value))
@@ -197,8 +208,8 @@ def _suspects(column: pa.ChunkedArray, limit: int) -> list[int]:
     return pc.indices_nonzero(mask).to_pylist()
 
 
-def _clean_column(table: pa.Table, name: str, clean, limit: int) -> pa.Table:
-    rows = _suspects(table.column(name), limit)
+def _clean_column(table: pa.Table, name: str, clean, limit: int, nested: bool = False) -> pa.Table:
+    rows = _suspects(table.column(name), limit, nested)
     if not rows:
         return table
     values = table.column(name).to_pylist()

@@ -7,7 +7,8 @@ verbs' modules (``pipeline/cli/<verb>.py``: each adds its own arguments, beside 
 
 Exit codes: 0 success; 1 the job ran but an episode ended in a policy error, time-out, crash or score
 tampering; 2 bad input (unknown game, missing or broken policy file, unusable or damaged store), with a
-one-line message on stderr; 130 interrupted.
+one-line message on stderr; 130 interrupted. Everything a verb prints goes through ``common.show``, which makes
+text from policy code, an LLM's reply or the store safe for a terminal (``viewers/safe_text.py``).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Callable, Sequence
 
 from pipeline.cli import batch, blame, compare, doctor, export, games, new, optimize, replay, report, runs, sql, view
 from pipeline.cli import eval as eval_  # the verb's module (the builtin is not used here)
-from pipeline.cli.common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError
+from pipeline.cli.common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, show
 
 VERBS = (eval_, optimize, batch, doctor, replay, sql, runs, report, blame, games, new, view, export, compare)
 """The verbs' modules, in the order ``codearcade --help`` lists them; each adds its parser (``add_parser``), whose
@@ -61,16 +62,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())  # so the interpreter's final flush does not fail again
         return EXIT_OK
     except KeyboardInterrupt:
-        print("codearcade: interrupted", file=sys.stderr)
+        show("codearcade: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except _user_errors() as exc:
-        print(f"codearcade: error: {exc}", file=sys.stderr)
+    except _user_errors() as exc:  # the message may quote a policy file, a stored text or an LLM's reply
+        from pipeline.llm.local import LocalModelError
+
+        # one line; but the offline model's failure ends with its server's log
+        show(f"codearcade: error: {exc}", multiline=isinstance(exc, LocalModelError), file=sys.stderr)
         return EXIT_BAD_INPUT
     except _store_damage_errors() as exc:  # a store damaged beyond what the checks on opening see
         from store.views import one_line
 
-        print(f"codearcade: error: cannot use the store ({one_line(exc)[:300]}); it may be damaged: "
-              "`codearcade doctor` reports what is left", file=sys.stderr)
+        show(f"codearcade: error: cannot use the store ({one_line(exc)[:300]}); it may be damaged: "
+             "`codearcade doctor` reports what is left", file=sys.stderr)
         return EXIT_BAD_INPUT
 
 

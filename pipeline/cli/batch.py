@@ -8,7 +8,7 @@ import argparse
 import os
 import sys
 
-from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, positive_int
+from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, positive_int, show
 
 
 def add_parser(verbs) -> None:
@@ -32,11 +32,16 @@ def add_parser(verbs) -> None:
 
 
 def _batch_display():
-    """A live table on a terminal (rich), nothing otherwise (the log lines tell the story)."""
+    """A live table on a terminal (rich), nothing otherwise (the log lines tell the story). Its cells are plain
+    ``Text``, never rich markup (a label or a failure's note is anyone's text: ``[link=...]`` stays as written),
+    and terminal-safe (``viewers/safe_text.py``)."""
     if not sys.stdout.isatty():
         return (lambda progress: None), (lambda: None)
     from rich.live import Live
     from rich.table import Table
+    from rich.text import Text
+
+    from viewers.safe_text import terminal_text
 
     live = Live(refresh_per_second=2, transient=False)
     live.start()
@@ -48,7 +53,7 @@ def _batch_display():
         for p in progress:
             it = "-" if p.iteration is None else f"{p.iteration}/{p.iterations}"
             best = "-" if p.best is None else f"{p.best:g}"
-            table.add_row(p.label, p.state, it, best, p.run_id or "")
+            table.add_row(*(Text(terminal_text(cell)) for cell in (p.label, p.state, it, best, p.run_id or "")))
         counts = {s: sum(1 for p in progress if p.state == s)
                   for s in ("finished", "budget", "running", "failed", "skipped")}
         table.caption = "  ".join(f"{k} {v}" for k, v in counts.items())
@@ -63,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
 
     from pipeline.jobs.batch import load_experiments, plan, run_local, run_ray
     from store import Store
+    from viewers.safe_text import terminal_text
 
     batch = load_experiments(args.experiments)
     if args.store:
@@ -79,30 +85,32 @@ def run(args: argparse.Namespace) -> int:
             if item.action != "skip" and item.run.config.model:
                 check_credentials(item.run.config.model, item.run.config.api_base)
     if args.dry_run:
-        print(f"batch {batch.name}: {len(planned)} runs into {store.path}")
+        show(f"batch {batch.name}: {len(planned)} runs into {store.path}")
         for p in planned:
-            print(f"  {p.action:<6} {p.run.label}" + (f"  (run {p.run_id}, {p.status})" if p.run_id else ""))
+            show(f"  {p.action:<6} {p.run.label}" + (f"  (run {p.run_id}, {p.status})" if p.run_id else ""))
         return EXIT_OK
     log_path = Path(args.log) if args.log else store.path.with_name(f"{store.path.name}.{batch.name}.log")
     log_file = open(log_path, "a")
-    show, stop = _batch_display()
+    display, stop = _batch_display()
     quiet = sys.stdout.isatty()
 
     def log(line: str) -> None:
-        stamped = f"{datetime.now().isoformat(timespec='seconds')} {line}"
+        # the log file is read with cat and tail: it gets the terminal-safe line too (a failure's note quotes
+        # the last line a run printed)
+        stamped = terminal_text(f"{datetime.now().isoformat(timespec='seconds')} {line}")
         log_file.write(stamped + "\n")
         log_file.flush()
         if not quiet:
-            print(stamped, flush=True)
+            show(stamped, flush=True)
 
     log(f"batch {batch.name}: {len(planned)} runs ({sum(p.action == 'skip' for p in planned)} finished already), "
         f"executor {args.executor}, store {store.path}")
     try:
         if args.executor == "ray":
-            result = run_ray(batch, store, planned, args.address, log, show)
+            result = run_ray(batch, store, planned, args.address, log, display)
         else:
             workers = args.workers or (os.cpu_count() or 1)
-            result = run_local(batch, store, planned, workers, log, show,
+            result = run_local(batch, store, planned, workers, log, display,
                                log_dir=log_path.with_name(log_path.name + ".runs"))
     finally:
         stop()
@@ -111,5 +119,5 @@ def run(args: argparse.Namespace) -> int:
         f"{sum(p.state == 'skipped' for p in result.progress)} skipped, {len(failed)} failed")
     log_file.close()
     for p in failed:
-        print(f"codearcade: {p.label} failed: {p.note}; rerun the same command to resume it", file=sys.stderr)
+        show(f"codearcade: {p.label} failed: {p.note}; rerun the same command to resume it", file=sys.stderr)
     return EXIT_EPISODE_FAILED if failed else EXIT_OK

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
 
-from pipeline.cli.common import EXIT_OK, add_store, non_negative_int, open_store
+from pipeline.cli.common import EXIT_OK, add_store, non_negative_int, open_store, show, show_json
 
 
 def add_parser(verbs) -> None:
@@ -31,5 +30,8 @@ def run(args: argparse.Namespace) -> int:
     from viewers.blame import blame, format_blame
 
     report = blame(open_store(args), args.run_id, args.version, args.iteration)
-    print(json.dumps(report, indent=2, default=str) if args.json else format_blame(report))
+    if args.json:
+        show_json(report, default=str)
+    else:
+        show(format_blame(report), multiline=True)  # each line of it terminal-safe already (a policy's own lines)
     return EXIT_OK

@@ -1,10 +1,15 @@
 """What the verbs of the command line share: exit codes, the one-line user error, ``--store`` and ``--rerun``,
-argument types, and resolving a run id.
+argument types, resolving a run id, and :func:`show`, through which every verb prints.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import sys
+from typing import IO, Any, Callable
+
+from viewers.safe_text import terminal_json, terminal_text
 
 EXIT_OK, EXIT_EPISODE_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 FAILED_END_REASONS = ("policy_error", "timeout", "crashed", "tampered")
@@ -12,6 +17,19 @@ FAILED_END_REASONS = ("policy_error", "timeout", "crashed", "tampered")
 
 class CliError(Exception):
     """A user error with a one-line message; exits with code 2."""
+
+
+def show(text: object, *, multiline: bool = False, file: IO[str] | None = None, flush: bool = False) -> None:
+    """Print ``text`` made terminal-safe (``viewers/safe_text.py``: no escape sequence, control character or
+    bidirectional override; one line unless ``multiline``). Every line a verb prints passes here: any of it may
+    hold text from policy code, an LLM's reply or the store. (``--json`` output goes through :func:`show_json`.)"""
+    print(terminal_text(text, multiline), file=file if file is not None else sys.stdout, flush=flush)
+
+
+def show_json(value: Any, *, default: Callable[[Any], Any] | None = None, ensure_ascii: bool = True) -> None:
+    """Print ``value`` as indented JSON (``--json``): every character of it kept, none raw that a terminal acts on
+    (JSON escapes C0 controls; ``terminal_json`` the rest)."""
+    print(terminal_json(json.dumps(value, indent=2, default=default, ensure_ascii=ensure_ascii)))
 
 
 def add_store(p: argparse.ArgumentParser) -> None:

@@ -5,12 +5,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from typing import Callable
 
-from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, positive_int
+from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, positive_int, show, show_json
 
 
 def add_parser(verbs) -> None:
@@ -60,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     workers = args.workers if args.workers is not None else min(args.episodes, os.cpu_count() or 1)
     config = CompareConfig(game=args.game, episodes=args.episodes, seed=args.seed, max_steps=args.max_steps,
                            context=args.context, workers=workers)
-    result = compare(store, args.a, args.b, config, progress=lambda line: print(line, file=sys.stderr, flush=True))
+    result = compare(store, args.a, args.b, config, progress=lambda line: show(line, file=sys.stderr, flush=True))
     data = result.as_dict()
     if args.rerun:
         if data["mode"] != "versions":
@@ -72,14 +71,14 @@ def run(args: argparse.Namespace) -> int:
     if out is not None:
         data["report"] = str(write_report(data, out))
     if args.json:
-        print(json.dumps(data, indent=2, default=str))
+        show_json(data, default=str)
         return EXIT_OK
-    for line in text_lines(data):
-        print(line)
+    for line in text_lines(data):  # terminal-safe already; the tables and the diff span lines
+        show(line, multiline=True)
     if data.get("rerun"):
-        print(f"side-by-side recording: {data['rerun']}")
+        show(f"side-by-side recording: {data['rerun']}")
     if data.get("report"):
-        print(f"report: {data['report']}")
+        show(f"report: {data['report']}")
     return EXIT_OK
 
 

@@ -4,9 +4,8 @@ stored run's scores by replaying its episodes (``pipeline/play/verify.py``)."""
 from __future__ import annotations
 
 import argparse
-import json
 
-from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store, resolve_run
+from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store, resolve_run, show, show_json
 
 
 def add_parser(verbs) -> None:
@@ -39,19 +38,19 @@ def run(args: argparse.Namespace) -> int:
         replayed = replay_run(store, resolve_run(store, args.replay))
     disagree = [(episode, why) for episode, why in replayed if why is not None]
     if args.json:
-        print(json.dumps({"store": str(store.path), "ok": not errors and not disagree, "counts": counts,
-                          "findings": [{"check": f.check, "warning": f.warning, "rows": [list(map(str, r)) for r in f.rows]}
-                                       for f in findings],
-                          "replayed": [{"episode_id": e, "disagreement": why} for e, why in replayed]}, indent=2))
+        show_json({"store": str(store.path), "ok": not errors and not disagree, "counts": counts,
+                   "findings": [{"check": f.check, "warning": f.warning, "rows": [list(map(str, r)) for r in f.rows]}
+                                for f in findings],
+                   "replayed": [{"episode_id": e, "disagreement": why} for e, why in replayed]})
     else:
         shown = (f"{'?' if n is None else format(n, ',')} {t}" for t, n in counts.items())
-        print(f"{store.path}: " + ", ".join(shown))
-        for f in findings:
-            print(("warning: " if f.warning else "PROBLEM: ") + f.summary())
+        show(f"{store.path}: " + ", ".join(shown))
+        for f in findings:  # a finding quotes the rows it found: a damaged store's text is anyone's
+            show(("warning: " if f.warning else "PROBLEM: ") + f.summary())
         for episode, why in disagree:
-            print(f"PROBLEM: episode {episode} does not replay as stored: {why}")
+            show(f"PROBLEM: episode {episode} does not replay as stored: {why}")
         if args.replay and replayed:
-            print(f"replayed {len(replayed)} episode(s): {len(replayed) - len(disagree)} as stored")
-        print("ok: no damage found" if not errors and not disagree else
-              f"{len(errors) + bool(disagree)} kind(s) of damage found")
+            show(f"replayed {len(replayed)} episode(s): {len(replayed) - len(disagree)} as stored")
+        show("ok: no damage found" if not errors and not disagree else
+             f"{len(errors) + bool(disagree)} kind(s) of damage found")
     return EXIT_OK if not errors and not disagree else EXIT_EPISODE_FAILED

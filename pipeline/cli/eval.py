@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
 from games import GAMES
 from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, FAILED_END_REASONS, add_rerun, add_store,
-                                 non_negative_int, open_store, positive_int, probability, rerun_target)
+                                 non_negative_int, open_store, positive_int, probability, rerun_target, show, show_json)
 
 
 def add_parser(verbs) -> None:
@@ -55,8 +54,11 @@ def _progress_bar(episodes: int, description: str):
     per-episode callback that feed it."""
     from tqdm import tqdm
 
+    from viewers.safe_text import terminal_text
+
     tqdm.monitor_interval = 0  # no monitor thread: episode workers are forked from this process
-    bar = tqdm(total=episodes, desc=description, unit="episode", disable=None, dynamic_ncols=True, leave=False)
+    bar = tqdm(total=episodes, desc=terminal_text(description), unit="episode", disable=None, dynamic_ncols=True,
+               leave=False)
     steps: dict[int, int] = {}
 
     def show_steps() -> None:
@@ -93,14 +95,14 @@ def run(args: argparse.Namespace) -> int:
     summary = result.summary()
     failed = [e for e in summary["episodes"] if e["end_reason"] in FAILED_END_REASONS]
     if args.json:
-        print(json.dumps(summary, indent=2))
+        show_json(summary)
     else:
-        print(f"run {result.run_id}  game {result.game}  policy {result.policy_version_id}  store {store.path}")
-        print(f"{'episode':>7}  {'seed':>5}  {'return':>8}  {'length':>6}  end reason")
+        show(f"run {result.run_id}  game {result.game}  policy {result.policy_version_id}  store {store.path}")
+        show(f"{'episode':>7}  {'seed':>5}  {'return':>8}  {'length':>6}  end reason")
         for i, e in enumerate(summary["episodes"]):
-            print(f"{i:>7}  {e['seed']:>5}  {e['return']:>8.1f}  {e['length']:>6}  {e['end_reason']}")
+            show(f"{i:>7}  {e['seed']:>5}  {e['return']:>8.1f}  {e['length']:>6}  {e['end_reason']}")
         returns = [e["return"] for e in summary["episodes"]]
-        print(f"mean return {sum(returns) / len(returns):.2f} over {len(returns)} episode(s)")
-    for e in failed:
-        print(f"codearcade: episode {e['episode_id']} ended with {e['end_reason']}: {e['error']}", file=sys.stderr)
+        show(f"mean return {sum(returns) / len(returns):.2f} over {len(returns)} episode(s)")
+    for e in failed:  # the error is the policy's exception: escape sequences in it must not reach the terminal
+        show(f"codearcade: episode {e['episode_id']} ended with {e['end_reason']}: {e['error']}", file=sys.stderr)
     return EXIT_EPISODE_FAILED if failed else EXIT_OK

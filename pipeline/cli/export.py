@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
 
-from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, resolve_run
+from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, resolve_run, show, show_json
 
 
 def add_parser(verbs) -> None:
@@ -56,11 +55,11 @@ def run(args: argparse.Namespace) -> int:
                         timeout_s=args.timeout, headers=headers or None, service_name=args.service_name,
                         text_limit=DEFAULT_TEXT_LIMIT if args.max_text_chars is None else args.max_text_chars)
     if args.json:
-        print(json.dumps(report.as_dict(), indent=2))
+        show_json(report.as_dict())
     else:
         names = {"run": ("run", "runs"), "iteration": ("iteration", "iterations"), "llm_call": ("LLM call", "LLM calls"),
                  "episode": ("episode", "episodes")}
         kinds = ", ".join(f"{n} {names.get(kind, (kind, kind))[n != 1]}" for kind, n in report.spans.items())
-        print(f"run {report.run_id}: {sum(report.spans.values())} spans ({kinds}) sent to {report.endpoint} "
-              f"({report.protocol}); trace id {report.trace_id}")
+        show(f"run {report.run_id}: {sum(report.spans.values())} spans ({kinds}) sent to {report.endpoint} "
+             f"({report.protocol}); trace id {report.trace_id}")
     return EXIT_OK

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
 
-from pipeline.cli.common import EXIT_OK
+from pipeline.cli.common import EXIT_OK, show, show_json
 
 
 def add_parser(verbs) -> None:
@@ -39,9 +38,9 @@ def run(args: argparse.Namespace) -> int:
                      "feedback_low": task.feedback["low"] if game.status == "curated" else None,
                      "scaffold": str(game.scaffold.relative_to(game.scaffold.parents[2])) if game.scaffold else None})
     if args.json:
-        print(json.dumps(rows, indent=2))
+        show_json(rows)
         return EXIT_OK
-    print(format_table(tuple(rows[0]), [tuple(r.values()) for r in rows], max_width=40, null="-"))
-    print(f"({sum(r['status'] == 'curated' for r in rows)} curated, {sum(r['status'] == 'generic' for r in rows)} "
-          "generic; `codearcade new POLICY.py --game G` writes a scaffold for any of them)")
+    show(format_table(tuple(rows[0]), [tuple(r.values()) for r in rows], max_width=40, null="-"), multiline=True)
+    show(f"({sum(r['status'] == 'curated' for r in rows)} curated, {sum(r['status'] == 'generic' for r in rows)} "
+         "generic; `codearcade new POLICY.py --game G` writes a scaffold for any of them)")
     return EXIT_OK

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import EXIT_OK, CliError
+from pipeline.cli.common import EXIT_OK, CliError, show
 
 
 def add_parser(verbs) -> None:
@@ -34,8 +34,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{path} exists; pass --force to overwrite it")
     game = get_game(args.game)
     if game.scaffold is None:
-        print(f"surveying {game.name}: {SURVEY_STEPS} random steps...", file=sys.stderr, flush=True)
+        show(f"surveying {game.name}: {SURVEY_STEPS} random steps...", file=sys.stderr, flush=True)
     path.write_text(scaffold_text(game))
-    print(f"wrote {path} ({game.status} game {game.name}); evaluate it with `codearcade eval {path}`, improve it "
-          f"with `codearcade optimize {path}`")
+    show(f"wrote {path} ({game.status} game {game.name}); evaluate it with `codearcade eval {path}`, improve it "
+         f"with `codearcade optimize {path}`")
     return EXIT_OK

@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from typing import Callable
 
 from games import GAMES
 from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_rerun, add_store, non_negative_int,
-                                 open_store, positive_int, probability, rerun_target)
+                                 open_store, positive_int, probability, rerun_target, show, show_json)
 from pipeline.optimizer.strategies import STRATEGIES
+from viewers.safe_text import terminal_text
 
 
 def add_parser(verbs) -> None:
@@ -112,14 +112,15 @@ def add_parser(verbs) -> None:
 
 def _print_iteration(item) -> None:
     tokens = f"prompt {item.prompt_tokens} tok" if item.prompt_tokens else ""
-    note = f"  ({item.detail})" if item.detail and item.update_status != "accepted" else ""
+    # the detail quotes a rejected candidate's exception: its escape sequences go before it is cut to fit
+    note = f"  ({terminal_text(item.detail)})" if item.detail and item.update_status != "accepted" else ""
     back = "  rolled back" if item.rolled_back else ""
     if item.candidates > 1:
         tokens = f"best of {item.candidates} candidates  " + tokens
     if item.standard_score is not None:
         tokens = f"standard protocol {item.standard_score:g}  " + tokens
-    print(f"iteration {item.iteration:>3}  score {item.score:>8.1f}  best {item.best_score:>8.1f} (it {item.best_iteration})"
-          f"  update {item.update_status:<9} {tokens}{back}{note[:160]}", flush=True)
+    show(f"iteration {item.iteration:>3}  score {item.score:>8.1f}  best {item.best_score:>8.1f} (it {item.best_iteration})"
+         f"  update {item.update_status:<9} {tokens}{back}{note[:160]}", flush=True)
 
 
 OPTIMIZE_OPTIONS = ("game", "policy", "model", "api_base", "iterations", "memory", "token_budget", "eval_episodes",
@@ -142,6 +143,7 @@ def _llm_waiting(stream=None):
 
     @contextmanager
     def waiting(iteration: int, label: str):
+        label = terminal_text(label)
         started = time.monotonic()
         received = {"pieces": 0, "chars": 0}
 
@@ -150,7 +152,7 @@ def _llm_waiting(stream=None):
             received["chars"] += len(piece)
 
         if not stream.isatty():
-            print(f"iteration {iteration}: waiting for {label}", file=stream, flush=True)
+            show(f"iteration {iteration}: waiting for {label}", file=stream, flush=True)
             yield on_text
             return
         stop = threading.Event()
@@ -197,8 +199,11 @@ def run(args: argparse.Namespace) -> int:
             raise CliError("--dry-run starts a new run; it cannot go with --resume")
         plan = plan_resume(store, args.resume, given)
         if plan.nothing_to_do:
-            print(json.dumps({"run_id": plan.run_id, "status": plan.status, "error": None, "iterations": [],
-                              "note": plan.nothing_to_do}, indent=2) if args.json else plan.nothing_to_do)
+            if args.json:
+                show_json({"run_id": plan.run_id, "status": plan.status, "error": None, "iterations": [],
+                           "note": plan.nothing_to_do})
+            else:
+                show(plan.nothing_to_do)
             return EXIT_OK
         config, run_id = plan.config, plan.run_id
         if config.model and "model" not in given:
@@ -219,35 +224,35 @@ def run(args: argparse.Namespace) -> int:
     if cap is not None and config.token_budget > cap:
         config.token_budget = cap
     for name in getattr(client, "dropped", ()):
-        print(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
+        show(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
     rerun = rerun_target(args.rerun)
     on_iteration, recordings = _run_recordings(store, rerun, None if args.json else _print_iteration)
     try:
         if not args.json:
-            print(f"store {store.path}  model {client.label}{' (offline default)' if offline else ''}", flush=True)
+            show(f"store {store.path}  model {client.label}{' (offline default)' if offline else ''}", flush=True)
         result = optimize(config, store, client, resume=run_id, on_iteration=on_iteration,
-                          log=lambda line: print(line, file=sys.stderr), rerun=rerun, waiting=_llm_waiting())
+                          log=lambda line: show(line, file=sys.stderr), rerun=rerun, waiting=_llm_waiting())
     finally:
         if server is not None:
             server.stop()
         if recordings is not None:
             recordings.close()
     if args.json:
-        print(json.dumps({
+        show_json({
             "run_id": result.run_id, "status": result.status, "error": result.error,
             "iterations": [dict(iteration=i.iteration, policy_version_id=i.policy_version_id, score=i.score,
                                 best_score=i.best_score, update_status=i.update_status, rolled_back=i.rolled_back)
                            for i in result.iterations],
-        }, indent=2))
+        })
     else:
-        print(f"run {result.run_id} {result.status}" + (f": {result.error}" if result.error else ""))
+        show(f"run {result.run_id} {result.status}" + (f": {result.error}" if result.error else ""))
     if result.status == "budget":
-        print(f"codearcade: run {result.run_id} stopped by its budget; continue it with a larger one: "
-              f"`codearcade optimize --resume {result.run_id} --max-...`", file=sys.stderr)
+        show(f"codearcade: run {result.run_id} stopped by its budget; continue it with a larger one: "
+             f"`codearcade optimize --resume {result.run_id} --max-...`", file=sys.stderr)
         return EXIT_OK
     if result.status != "finished":
-        print(f"codearcade: run {result.run_id} {result.status}: {result.error}; fix the cause, then continue it "
-              f"with `codearcade optimize --resume {result.run_id}`", file=sys.stderr)
+        show(f"codearcade: run {result.run_id} {result.status}: {result.error}; fix the cause, then continue it "
+             f"with `codearcade optimize --resume {result.run_id}`", file=sys.stderr)
         return EXIT_EPISODE_FAILED
     return EXIT_OK
 
@@ -255,17 +260,17 @@ def run(args: argparse.Namespace) -> int:
 def _dry_run(config, args: argparse.Namespace) -> int:
     from pipeline.optimizer.estimate import estimate_run
 
-    report = estimate_run(config, progress_log=lambda line: print(line, file=sys.stderr))
+    report = estimate_run(config, progress_log=lambda line: show(line, file=sys.stderr))
     if args.json:
-        print(json.dumps(report.as_dict(include_prompt=args.show_prompt), indent=2))
+        show_json(report.as_dict(include_prompt=args.show_prompt))
         return EXIT_OK
     if args.show_prompt:
-        for message in report.prompt.messages:
-            print(f"----- {message['role']} -----")
-            print(message["content"])
-        print("-----")
+        for message in report.prompt.messages:  # the prompt quotes the policy's outputs and errors
+            show(f"----- {message['role']} -----")
+            show(message["content"], multiline=True)
+        show("-----")
     for line in report.lines():
-        print(line)
+        show(line)
     return EXIT_OK
 
 

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
-from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store, resolve_run
+from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store, resolve_run, show, show_json
 
 
 def add_parser(verbs) -> None:
@@ -28,17 +27,17 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.optimizer.replay import replay
 
     store = open_store(args)
-    report = replay(store, resolve_run(store, args.run_id), log=lambda line: print(line, file=sys.stderr))
+    report = replay(store, resolve_run(store, args.run_id), log=lambda line: show(line, file=sys.stderr))
     if args.json:
-        print(json.dumps(report.as_dict(), indent=2))
+        show_json(report.as_dict())
     else:
-        print(f"replay of {report.original_run_id} as {report.replay_run_id}: {report.status}")
-        print(f"{'iteration':>9}  {'prompt':<14} {'original':>9} {'replay':>9}")
+        show(f"replay of {report.original_run_id} as {report.replay_run_id}: {report.status}")
+        show(f"{'iteration':>9}  {'prompt':<14} {'original':>9} {'replay':>9}")
         for r in report.rows:
             same = "same" if r.original_prompt == r.replay_prompt else "DIFFERENT"
             o = "-" if r.original_score is None else f"{r.original_score:.1f}"
             n = "-" if r.replay_score is None else f"{r.replay_score:.1f}"
-            print(f"{r.iteration:>9}  {same:<14} {o:>9} {n:>9}")
+            show(f"{r.iteration:>9}  {same:<14} {o:>9} {n:>9}")
         if report.diverged_at is not None:
-            print(f"first divergence at iteration {report.diverged_at}")
+            show(f"first divergence at iteration {report.diverged_at}")
     return EXIT_OK if report.diverged_at is None else EXIT_EPISODE_FAILED

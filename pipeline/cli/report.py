@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from pipeline.cli.common import EXIT_OK, add_store, open_store
+from pipeline.cli.common import EXIT_OK, add_store, open_store, show
 
 
 def add_parser(verbs) -> None:
@@ -66,5 +66,5 @@ def run(args: argparse.Namespace) -> int:
     from viewers.report import write_report
 
     path = write_report(open_store(args), args.run_id, args.out, reproduce=reproduce_command, price=price)
-    print(path)
+    show(path)
     return EXIT_OK

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
 
-from pipeline.cli.common import EXIT_OK, add_store, open_store
+from pipeline.cli.common import EXIT_OK, add_store, open_store, show, show_json
 
 
 def add_parser(verbs) -> None:
@@ -34,10 +33,10 @@ def run(args: argparse.Namespace) -> int:
         if r["status"] == "running" and not run_is_live(store.path, r["run_id"]):
             r["status"] = "interrupted"  # killed: no process holds its lock (`doctor` says the same)
     if args.json:
-        print(json.dumps([{k: v for k, v in r.items() if k != "_created"} for r in runs], indent=2))
+        show_json([{k: v for k, v in r.items() if k != "_created"} for r in runs])
         return EXIT_OK
     if not runs:
-        print(f"no runs in {store.path}")
+        show(f"no runs in {store.path}")
         return EXIT_OK
     rows = []
     for r in runs:
@@ -45,6 +44,6 @@ def run(args: argparse.Namespace) -> int:
         rows.append((r["run_id"], r["_created"].strftime("%Y-%m-%d %H:%M"), r["kind"], r["game"],
                      r["model"], r["status"], done, None if r["best_score"] is None else round(r["best_score"], 2),
                      r["episodes"], r["total_tokens"]))
-    print(format_table(("run", "created (UTC)", "kind", "game", "model", "status", "iterations", "best", "episodes",
-                        "tokens"), rows, max_width=32, null="-"))
+    show(format_table(("run", "created (UTC)", "kind", "game", "model", "status", "iterations", "best", "episodes",
+                       "tokens"), rows, max_width=32, null="-"), multiline=True)  # labels, models: cells made safe
     return EXIT_OK

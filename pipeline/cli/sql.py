@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
-from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store
+from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, show, show_json
 
 
 def add_parser(verbs) -> None:
@@ -44,13 +43,13 @@ def run(args: argparse.Namespace) -> int:
     store = open_store(args)
     result = run_user_query(store, query)  # read-only for real; every row is fetched and the file let go first
     if args.json:
-        print(json.dumps(records(result.columns, result.types, result.rows), indent=2, ensure_ascii=False))
+        show_json(records(result.columns, result.types, result.rows), ensure_ascii=False)
     elif args.csv:
         write_csv(sys.stdout, result.columns, result.rows)
     elif result.columns:
         shown = result.rows[: args.max_rows] if args.max_rows else result.rows
-        print(format_table(result.columns, shown, args.max_width))
+        show(format_table(result.columns, shown, args.max_width), multiline=True)  # each cell made terminal-safe
         more = len(result.rows) - len(shown)
-        print(f"({len(result.rows)} row{'s' * (len(result.rows) != 1)}"
-              + (f", {more} not shown: use --max-rows 0, --csv or --json)" if more else ")"))
+        show(f"({len(result.rows)} row{'s' * (len(result.rows) != 1)}"
+             + (f", {more} not shown: use --max-rows 0, --csv or --json)" if more else ")"))
     return EXIT_OK

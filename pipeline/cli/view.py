@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, resolve_run
+from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, resolve_run, show
 
 
 def add_parser(verbs) -> None:
@@ -42,13 +42,13 @@ def run(args: argparse.Namespace) -> int:
 
     def out(line: str) -> None:
         if not args.quiet:
-            print(line, flush=True)
+            show(line, flush=True)
 
     store = open_store(args)
     try:
         view(store, resolve_run(store, args.run_id), iteration=args.iteration, episode=args.episode, save=args.save,
              connect=args.connect, spawn=args.spawn, serve_web=args.serve_web, frames_every=args.frames_every,
-             out=out, warn=lambda line: print(line, file=sys.stderr))
+             out=out, warn=lambda line: show(line, file=sys.stderr))
     except ViewerError as exc:
         raise CliError(str(exc)) from None
     return EXIT_OK

@@ -19,14 +19,21 @@ from pipeline.llm.client import OFFLINE_TOKEN_BUDGET, open_client
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import OptimizeResult, optimize
 from store import Store
+from viewers.safe_text import terminal_text
 
 BUDGET_EXIT = 3
 """Exit code of a batch run process whose run stopped at its budget (not a failure)."""
 
 
+def _say(line: str) -> None:
+    """One line of the run's log (its stdout, a file the batch's log quotes): terminal-safe, as a line may quote
+    a rejected candidate's exception (``viewers/safe_text.py``)."""
+    print(terminal_text(line), flush=True)
+
+
 @contextmanager
 def _waiting(iteration: int, model: str):
-    print(f"iteration {iteration}: waiting for {model}", flush=True)
+    _say(f"iteration {iteration}: waiting for {model}")
     yield
 
 
@@ -39,9 +46,9 @@ def _run(spec: dict[str, Any], store: Store) -> OptimizeResult:
         config.token_budget = min(config.token_budget, cap, OFFLINE_TOKEN_BUDGET)
     try:
         return optimize(config, store, client, resume=spec.get("resume"), waiting=_waiting,
-                        log=lambda line: print(line, flush=True),
-                        on_iteration=lambda item: print(f"iteration {item.iteration}: score {item.score:g} "
-                                                        f"best {item.best_score:g} {item.update_status}", flush=True),
+                        log=_say,
+                        on_iteration=lambda item: _say(f"iteration {item.iteration}: score {item.score:g} "
+                                                       f"best {item.best_score:g} {item.update_status}"),
                         tags={"batch": spec["batch"], "batch_key": spec["batch_key"]})
     finally:
         if server is not None:
@@ -65,7 +72,7 @@ def run_remote(spec: dict[str, Any], previous: dict | None):
 def main(argv: list[str] | None = None) -> int:
     spec = json.loads((argv if argv is not None else sys.argv[1:])[0])
     result = _run(spec, Store(spec["store"]))
-    print(f"run {result.run_id} {result.status}" + (f": {result.error}" if result.error else ""), flush=True)
+    _say(f"run {result.run_id} {result.status}" + (f": {result.error}" if result.error else ""))
     return {"finished": 0, "budget": BUDGET_EXIT}.get(result.status, 1)
 
 

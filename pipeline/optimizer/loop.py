@@ -414,7 +414,7 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
                          f"({'evaluate the policy again with codearcade eval' if row['kind'] == 'eval' else 'replay the original run again'})")
     fixed = sorted(k for k in given if k not in RESUME_OVERRIDES)
     if fixed:
-        flags = ", ".join("--" + k.replace("_s", "").replace("_", "-") for k in fixed)
+        flags = ", ".join("--" + k.removesuffix("_s").replace("_", "-") for k in fixed)
         raise ValueError(f"{flags} cannot change when resuming run {run_id}: they are part of its settings "
                          "(start a new run instead)")
     recorded = json.loads(row["config"])

@@ -138,7 +138,11 @@ def _call(node: dict[str, Any]) -> str:
 
 def _render_call(node: dict[str, Any]) -> str:
     inputs = node["inputs"] or {}
-    args = ", ".join(("obs" if k == "obs" and v == {"$ref": "obs"} else f"{k}={_value(v)}") for k, v in inputs.items())
+    if isinstance(inputs, dict):
+        args = ", ".join(("obs" if k == "obs" and v == {"$ref": "obs"} else f"{k}={_value(v)}")
+                         for k, v in inputs.items())
+    else:  # a marker for inputs too deep or too long (tracing/bounded.py), or a store edited by hand
+        args = _value(inputs)
     head = f"{node['function']}({args})"
     if node["exc_type"]:
         line = f" at line {node['exc_line']}: {node['exc_source']}" if node["exc_source"] else ""

@@ -1,0 +1,221 @@
+"""Text from policy code reaches a person only made safe (viewers/safe_text.py), tested by effect.
+
+A policy file puts every kind of terminal escape into what it leaves behind: its exception (clear screen, window
+title, an OSC 8 link, colours that print a fake "all episodes verified OK", a lone carriage return, backspaces,
+the 8-bit CSI ``\\x9b``, a DCS string, a terminal reset, bidirectional overrides and isolates), a node's output,
+and raw in a string literal of its own source (which ``blame`` prints); the exception also carries HTML and
+Markdown (``<script>``, ``<img onerror=...>``, ``javascript:`` links and images). The same text comes back as a
+rejected candidate's exception through ``optimize`` with a scripted model.
+
+``codearcade eval``, ``optimize``, ``blame``, ``runs``, ``sql``, ``report`` and ``doctor`` run as real processes
+(their output on pipes: no progress bar, so the command line writes no escape of its own either) and no byte a
+terminal acts on reaches stdout or stderr: no C0 control but newline, no DEL, no C1 (as a byte or as a
+character), no bidirectional control. The report's README.md, rendered by a CommonMark renderer with HTML on,
+has no script, no image but the report's own plots, no ``javascript:`` link and no event handler. The store still
+holds the original text.
+"""
+
+from __future__ import annotations
+
+import html.parser
+import json
+import os
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import ROOT, json_reply
+from viewers.safe_text import markdown_code, markdown_code_block, markdown_text, terminal_json, terminal_text
+
+EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
+
+# Every kind of sequence, written with Python escapes (the exception and the output are built from this at run time).
+ESCAPES = (
+    "\x1b[2J\x1b[H"                                              # clear the screen, cursor home
+    "\x1b]0;pwned title\x07"                                     # window title, ended by BEL
+    "\x1b]8;;https://evil.example/\x1b\\click here\x1b]8;;\x1b\\"  # an OSC 8 hyperlink, ended by ST
+    "\x1b[1;32mall episodes verified OK\x1b[0m"                  # colours
+    "\rOVERWRITTEN"                                              # a lone carriage return
+    "abc\x08\x08\x08"                                            # backspaces
+    "\x9b31mC1 CSI"                                              # the 8-bit CSI
+    "\x1bPqDCS string\x1b\\"                                     # a device control string
+    "\x9d8;;https://evil.example/\x9c"                           # an 8-bit OSC, ended by the 8-bit ST
+    "\u202eevil reversed\u202c \u2066isolated\u2069"             # bidirectional override, isolate
+    "\x1bc"                                                      # reset the terminal
+    "\x07\x7f\x00"                                               # bell, DEL, NUL
+)
+MARKUP = ('<script>alert(1)</script> <img src=x onerror=alert(2)> [click](javascript:alert(3)) '
+          '![pic](javascript:alert(4)) <javascript:alert(5)> [ref]: javascript:alert(6) &#60;script&#62;')
+# In source, as raw characters inside a string literal (a CR or a NUL cannot be: one ends the line, the other the
+# file), and in a comment (a "Trojan Source" bidi override).
+RAW_IN_SOURCE = "".join(c for c in ESCAPES if c not in '\r\x00\\"')  # nor a quote or backslash, in a literal
+
+POLICY = textwrap.dedent('''\
+    import tracing as trace
+
+    GAME = "pong"
+    ESCAPES = {escapes!r}
+    MARKUP = {markup!r}
+
+    @trace.model
+    class Policy(trace.Module):
+        def __call__(self, obs):
+            y = self.predict_ball_trajectory(obs)
+            return self.select_action(y, obs)
+
+        @trace.bundle(trainable=True)
+        def predict_ball_trajectory(self, obs):
+            """Returns the escapes as its output."""
+            return ESCAPES
+
+        @trace.bundle(trainable=True)
+        def select_action(self, predicted_ball_y, obs):
+            """Plays NOOP, then raises with markup and every escape in its message."""
+            banner = "{raw}"  # {bidi} a comment
+            self.calls = getattr(self, "calls", 0) + 1
+            if self.calls > 5:
+                raise ValueError(MARKUP + " " + ESCAPES + banner)
+            return 0
+    ''').format(escapes=ESCAPES, markup=MARKUP, raw=RAW_IN_SOURCE, bidi="\u202e\u2066")
+
+CANDIDATE = ('def select_action(self, predicted_ball_y, obs):\n'
+             '    """Raises at once: the message becomes the rejection reason, shown in the progress line."""\n'
+             f'    raise RuntimeError({ESCAPES!r} + {MARKUP!r})\n')
+
+# What must never reach a terminal: C0 but newline, DEL, C1, the bidirectional controls (as characters: the
+# output is decoded strictly as UTF-8 first, so a raw C1 byte fails the decoding).
+UNSAFE = re.compile("[\x00-\x09\x0b-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]")
+
+
+def _cli(*args: str, expect: tuple[int, ...] = (0,)) -> str:
+    done = subprocess.run([EXE, *args], cwd=ROOT, capture_output=True, timeout=600)
+    assert done.returncode in expect, done.stderr.decode(errors="replace")[-3000:]
+    for name, data in (("stdout", done.stdout), ("stderr", done.stderr)):
+        text = data.decode("utf-8")  # strict: a raw C1 byte (\x9b) is not UTF-8 and fails here
+        found = UNSAFE.search(text)
+        where = text[max(found.start() - 60, 0):found.end() + 20] if found else ""
+        assert found is None, f"{args[0]}: {found.group()!r} reached {name} at {where!r}"
+    return done.stdout.decode() + done.stderr.decode()
+
+
+class _Tags(html.parser.HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.tags: list[tuple[str, dict[str, str | None]]] = []
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append((tag, dict(attrs)))
+
+
+def _rendered_tags(markdown: str) -> list[tuple[str, dict[str, str | None]]]:
+    """The HTML tags a CommonMark renderer (raw HTML allowed, GitHub's tables on) makes of ``markdown``."""
+    from markdown_it import MarkdownIt
+
+    parser = _Tags()
+    parser.feed(MarkdownIt("commonmark", {"html": True}).enable("table").render(markdown))
+    return parser.tags
+
+
+def _assert_no_markup(markdown: str, own_images: set[str]) -> None:
+    """No raw markup from the policy's text in ``markdown`` (outside fenced code blocks, where it is inert), and
+    none in what a renderer makes of it."""
+    lowered = re.sub(r"^(`{3,})\w*\n.*?^\1$", "", markdown, flags=re.S | re.M).lower()
+    for raw in ("<script", "<img", "javascript:", "onerror="):
+        assert raw not in lowered, f"{raw} is in the Markdown"
+    for tag, attrs in _rendered_tags(markdown):
+        assert tag != "script"
+        assert not any(name.startswith("on") for name in attrs), (tag, attrs)
+        assert not any((value or "").strip().lower().startswith("javascript:") for value in attrs.values()), attrs
+        if tag == "img":
+            assert attrs.get("src") in own_images, attrs
+        if tag == "a":
+            assert False, f"a link was formed: {attrs}"
+
+
+@pytest.fixture
+def evil_policy(tmp_path: Path) -> Path:
+    path = tmp_path / "evil.py"
+    path.write_text(POLICY, encoding="utf-8")
+    return path
+
+
+def test_terminal_text_removes_every_sequence_and_keeps_the_words():
+    shown = terminal_text(MARKUP + ESCAPES)
+    assert UNSAFE.search(shown) is None
+    for words in ("all episodes verified OK", "click here", "OVERWRITTEN", "evil reversed", "<script>"):
+        assert words in shown
+    assert "[2J" not in shown and "pwned title" not in shown and "31m" not in shown  # sequences go whole
+    assert terminal_text("one\ntwo") == "one\\ntwo"
+    assert terminal_text("one\r\ntwo\tthree", multiline=True) == "one\ntwo three"
+    assert terminal_text("a lone surrogate \ud800") == "a lone surrogate \ufffd"
+    assert terminal_text("plain text, unchanged") == "plain text, unchanged"
+    # --json keeps every character: the same value, and nothing raw that a terminal acts on
+    encoded = terminal_json(json.dumps({"e": ESCAPES}, ensure_ascii=False))
+    assert json.loads(encoded) == {"e": ESCAPES} and UNSAFE.search(encoded) is None
+
+
+def test_markdown_escapes_and_fences():
+    escaped = markdown_text(MARKUP + ESCAPES)
+    _assert_no_markup(escaped, set())
+    assert UNSAFE.search(escaped) is None
+    code = "a = '```'\nb = '````'\n</code><script>"
+    block = markdown_code_block(code, "python")
+    assert block.startswith("`````python\n") and block.endswith("\n`````")
+    assert [tag for tag, _ in _rendered_tags(block)] == ["pre", "code"]  # the whole block stays one code block
+    assert [tag for tag, _ in _rendered_tags(markdown_code("a `` b | <img src=x>"))] == ["p", "code"]
+
+
+def test_no_escape_reaches_the_terminal_and_no_markup_the_report(evil_policy, store, scripted, tmp_path):
+    model = scripted([json_reply({"select_action": CANDIDATE})])
+    s = ("--store", str(store.path))
+    shown = _cli("eval", str(evil_policy), "--trace", "--max-steps", "40", *s, expect=(1,))
+    assert "ended with policy_error" in shown and "all episodes verified OK" in shown  # the words, not the codes
+    shown = _cli("optimize", str(evil_policy), "--model", model.model, "--api-base", model.api_base,
+                 "--iterations", "1", "--eval-max-steps", "40", "--rollout-steps", "30", "--workers", "2", *s)
+    assert "update rejected" in shown and "all episodes verified OK" in shown
+    eval_run, optimize_run = (r[0] for r in store.query("SELECT run_id FROM runs ORDER BY created_at"))
+    with store.write() as con:  # a label and a run error are shown by `runs`, `report` and `sql`
+        con.execute("UPDATE runs SET name = ?, error = ? WHERE run_id = ?", ["x" + ESCAPES, MARKUP + ESCAPES, eval_run])
+    assert "banner" in _cli("blame", optimize_run, *s)
+    assert "pwned" not in _cli("runs", *s)
+    for query in ("SELECT exc_message, output FROM nodes WHERE exc_type IS NOT NULL",
+                  "SELECT name, error FROM runs", "SELECT reason FROM rejected_candidates"):
+        _cli("sql", query, *s)
+        _cli("sql", query, "--json", *s)  # every character kept, as \u escapes
+    _cli("doctor", *s)
+    for run in (eval_run, optimize_run):
+        out = tmp_path / f"report-{run}"
+        _cli("report", run, "--out", str(out), *s)
+        readme = (out / "README.md").read_text(encoding="utf-8")
+        assert UNSAFE.search(readme) is None
+        _assert_no_markup(readme, {p.name for p in out.glob("*.png")})
+    assert "all episodes verified OK" in readme  # the rejection reason is there, as text
+
+    # the store keeps what the policy wrote (only the display changed)
+    assert any(ESCAPES in e for (e,) in store.query("SELECT error FROM episodes WHERE error IS NOT NULL"))
+    assert store.query("SELECT count(*) FROM nodes WHERE output = ?", [json.dumps(ESCAPES)])[0][0] > 0
+    assert any(MARKUP in r for (r,) in store.query("SELECT reason FROM rejected_candidates"))
+    assert any(RAW_IN_SOURCE in t for (t,) in store.query("SELECT text FROM blobs"))
+
+
+def test_compare_shows_and_writes_stored_text_safely(tmp_path):
+    from viewers.compare_report import text_lines, write_report
+
+    evil = MARKUP + ESCAPES
+    side = {"action": 1, "action_name": evil, "nodes": {"f": evil}, "obs": {"Ball": {"x": 1, "y": 2}, "k": evil}}
+    data = {"mode": "versions", "game": "pong", "diff": f"-    return 0\n+    return 1  # {evil}\n```\n",
+            "versions": [{"label": "A", "ref": f"a{evil}.py", "policy_version_id": "v1", "eval_run": "r1"},
+                         {"label": "B", "ref": "b.py", "policy_version_id": "v2", "eval_run": "r2"}],
+            "episodes": [{"seed": 0, "first_divergent_step": 3,
+                          "A": {"return": 1.0, "length": 9, "end_reason": evil},
+                          "B": {"return": 2.0, "length": 9, "end_reason": "truncated"},
+                          "around": [{"step": 3, "A": side, "B": side}]}]}
+    for line in text_lines(data):
+        assert UNSAFE.search(line.replace("\n", "")) is None, line
+    readme = write_report(data, tmp_path / "cmp").read_text(encoding="utf-8")
+    assert UNSAFE.search(readme) is None
+    _assert_no_markup(readme, set())
