@@ -40,6 +40,9 @@ ACTION = struct.Struct("<q")
 """The payload of an ``a`` frame: the action, as a signed 64-bit int (the host checks its range)."""
 HEADER = struct.Struct(">cI")
 """A frame's kind byte and payload length (as ``pipeline/wire.py``'s frames)."""
+RECEIVE_CHUNK = 64 * 1024
+"""Bytes asked of the socket at a time: a buffer this size comes from the allocator's arena, where one of a
+megabyte would be mapped and unmapped again on every step."""
 MAX_OBSERVATION = 16 * 2**20
 MAX_ERROR_CHARS = 20_000
 
@@ -93,7 +96,7 @@ class Channel:
                     payload = bytes(buffer[HEADER.size:end])
                     del buffer[:end]
                     return kind, payload
-            chunk = self.sock.recv(1 << 20)
+            chunk = self.sock.recv(RECEIVE_CHUNK)
             if not chunk:
                 raise EOFError
             buffer += chunk
