@@ -107,6 +107,13 @@ def test_a_continued_asterix_game_goes_on_where_each_life_was_lost(store, capsys
     found = dict(replay_run(store, run_id))
     assert [i for i in ids if found[i]] == [ids[2]] and "step 3: recorded reward" in found[ids[2]]
 
+    # the doctor finds a game whose episodes do not add up
+    with store.write() as con:
+        con.execute("UPDATE episodes SET start_step = start_step + 1 WHERE episode_id = ?", [ids[3]])
+    code = main(["doctor", "--store", str(store.path)])
+    out, _ = capsys.readouterr()
+    assert code == 1 and f"episodes that continue a game that is not there: 1 — {ids[3]}" in out, out
+
 
 def test_breakout_continues_with_a_noop_then_a_fire_and_drops_both_rewards(store, capsys):
     """Breakout: their reset presses FIRE after the real reset and after the NOOP of a continued game; their step
@@ -279,3 +286,26 @@ def test_experiment_files_take_the_protocol_and_the_benchmarks_use_it_where_the_
     with pytest.raises(ExperimentError) as err:
         load_experiments(path)
     assert "one_life must be false, true" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_the_gymnasium_environment_continues_the_game_on_reset():
+    """``gymnasium.make("codearcade/Asterix-v0", one_life="continue")``: ``reset()`` goes on with the game (a
+    standing player loses a life at a time), ``reset(seed=...)`` and a game over start a new one."""
+    import games.envs  # noqa: F401 - registers the ids
+
+    env = gym.make("codearcade/Asterix-v0", one_life="continue")
+    played = []
+    for k in range(4):
+        obs, info = env.reset(seed=0) if k == 0 else env.reset()
+        assert obs in env.observation_space
+        first_lives, steps = info["lives"], 0
+        while True:
+            obs, _, terminated, truncated, info = env.step(NOOP)
+            steps += 1
+            if terminated or truncated:
+                break
+        played.append((first_lives, info["lives"], steps, terminated))
+    assert [p[:2] for p in played] == [(3, 2), (2, 1), (1, 0), (3, 2)]
+    assert all(p[3] for p in played) and played[3][2] == played[0][2], "after the game over, the same new game"
+    obs, info = env.reset(seed=0)
+    assert info["lives"] == 3, "a seed starts a new game wherever the last one was"
