@@ -13,6 +13,8 @@ object extraction only, with the authors' steps written out by hand.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import gymnasium as gym
 import pytest
@@ -23,7 +25,8 @@ from pipeline.cli import main
 from pipeline.play.rollout import EpisodeSpec
 from pipeline.play.verify import replay_outcome, replay_run
 from store.readers import episode_steps, replay_material
-from tests.conftest import EXAMPLES, POLICIES
+from store.showing import lead_in_actions
+from tests.conftest import EXAMPLES, POLICIES, ROOT
 
 NOOP, FIRE = 0, 1
 
@@ -55,7 +58,7 @@ def bare_env(game: str):
     return ObjectObservation(ale, spec)
 
 
-def test_a_continued_asterix_game_goes_on_where_each_life_was_lost(store, capsys):
+def test_a_continued_asterix_game_goes_on_where_each_life_was_lost(store, capsys, tmp_path):
     """Four episodes of the (random, seeded) starter: lives 1-3 of one game, then, after the game over, the first
     life of the next game (their evaluation resets on a real game over), all from seed 0."""
     summary = evaluate(capsys, store, EXAMPLES / "asterix.py", "--one-life-continue", "--episodes", 4,
@@ -100,6 +103,16 @@ def test_a_continued_asterix_game_goes_on_where_each_life_was_lost(store, capsys
     code = main(["doctor", "--replay", run_id, "--store", str(store.path)])
     out, _ = capsys.readouterr()
     assert code == 0 and "replayed 4 episode(s): 4 as stored" in out, out
+
+    # the frames of `codearcade view` come from the same replay: the third episode after the first two's actions
+    # (the command runs apart: loading the Rerun SDK into this process would stay for the tests after this one)
+    with store.read() as con:
+        assert [len(actions) for actions in lead_in_actions(con, ids[2])] == lengths[:2]
+    shown = subprocess.run([sys.executable, "-m", "pipeline.cli", "view", run_id, "--episode", "2", "--save",
+                            str(tmp_path / "third.rrd"), "--store", str(store.path)], cwd=ROOT, capture_output=True,
+                           text=True, timeout=300)
+    assert shown.returncode == 0, shown.stderr
+    assert f"replayed frames match the stored objects on all {lengths[2]} steps" in shown.stdout, shown.stdout
 
     # a stored reward changed in the third episode is caught by the replay there, and only there
     with store.write() as con:
