@@ -6,21 +6,23 @@
 --
 -- Scores are the authors' measure: a run's best evaluation score under their protocol (sticky 0, no no-op starts,
 -- their caps and episode counts: the frontier view's deterministic_score, iteration 0 included), averaged over the
--- runs of a game (seeds) with its standard error. `protocol` says whether our evaluation episodes were whole games or
--- single lives (the follow-up ends an episode at a lost life in Asterix, Breakout, Q*bert and Seaquest).
+-- runs of a game (seeds) with its standard error. `protocol` says what our evaluation episodes were: `lives of one
+-- game` (the authors' protocol, `one_life = "continue"`: the follow-up ends an episode at a lost life in Asterix,
+-- Breakout, Q*bert and Seaquest and goes on with the same game in the next), `first lives` (`one_life = true`: the
+-- first life of each episode's own seeded game), `whole games`, or `mixed` across a game's runs.
 -- `theirs` is their figure at our training horizon; paper, default, h1 and h100 are all of theirs (mean ± se).
 WITH batch_runs AS (
     SELECT run_id, game, json_extract(config, '$.rollout_steps')::INTEGER AS horizon,
-           coalesce(json_extract(config, '$.one_life')::BOOLEAN, false) AS one_life
+           CASE json_extract_string(config, '$.one_life') WHEN 'continue' THEN 'lives of one game'
+                WHEN 'true' THEN 'first lives' ELSE 'whole games' END AS protocol
     FROM runs WHERE kind = 'optimize' AND json_extract_string(config, '$.batch') = 'eight-games'
 ), per_run AS (
-    SELECT b.game, b.run_id, any_value(b.horizon) AS horizon, bool_or(b.one_life) AS one_life,
+    SELECT b.game, b.run_id, any_value(b.horizon) AS horizon, any_value(b.protocol) AS protocol,
            max(f.deterministic_score) AS best,
            (SELECT max(i.iteration) FROM iterations i WHERE i.run_id = b.run_id) AS iterations
     FROM batch_runs b JOIN frontier f USING (run_id) GROUP BY b.game, b.run_id
 ), ours AS (
-    SELECT game, CASE WHEN bool_and(one_life) THEN 'one life' WHEN bool_or(one_life) THEN 'mixed'
-                      ELSE 'whole games' END AS protocol,
+    SELECT game, CASE WHEN count(DISTINCT protocol) > 1 THEN 'mixed' ELSE any_value(protocol) END AS protocol,
            min(horizon) AS horizon, count(*)::INTEGER AS runs, min(iterations) AS iterations,
            max(best) AS best, round(avg(best), 1) AS mean_best,
            round(stddev_samp(best) / sqrt(count(*)), 1) AS se

@@ -17,6 +17,25 @@ STANDARD_NOOP_MAX = 30
 """The standard stochastic Atari protocol (Machado et al. 2018): sticky actions with probability 0.25 and up to
 30 no-op starts. The paper's protocol is sticky 0, no no-op starts."""
 
+ONE_LIFE_CONTINUE = "continue"
+"""The ``one_life`` setting (``codearcade eval --one-life-continue``; ``OptimizeConfig.one_life``) that plays the
+authors' one-life protocol exactly: the evaluation episodes of a run are the lives of one game, each continuing
+where the one before ended (``games.envs.EpisodicLife``). The other values: ``False``, whole games (the paper's);
+``True`` (``--one-life``), each episode the *first* life of a game reset from its own seed (``games.envs.OneLife``)."""
+ONE_LIFE_SETTINGS = (False, True, ONE_LIFE_CONTINUE)
+
+
+def one_life_setting(value: Any) -> bool | str:
+    """``value`` as a ``one_life`` setting (:data:`ONE_LIFE_SETTINGS`; ``"first"`` is ``True``), or ValueError in
+    one line that names the choices."""
+    if value == "first":
+        return True
+    if isinstance(value, bool) or value == ONE_LIFE_CONTINUE:
+        return value
+    raise ValueError(f"one_life must be false, true (--one-life: first lives) or {ONE_LIFE_CONTINUE!r} "
+                     f"(--one-life-continue: the lives of one game), not {value!r}")
+
+
 OBSERVATION_VERSION = 2
 """The version of the observation conventions codearcade builds today. A run records the version it played
 (``config.observation``) and is read back and replayed with it, so that a stored run replays as it was made:
@@ -86,8 +105,10 @@ class Task:
     """Evaluation episodes the authors average over (informational; ``--eval-episodes`` sets it for a run)."""
     one_life_episodes: bool = False
     """The authors' follow-up ends an episode at every lost life (their ``trace_envs/<game>.py`` implement
-    baselines' ``EpisodicLifeEnv``): a "1 x 4,000" evaluation is the first life of a game. codearcade plays
-    whole games unless ``codearcade eval --one-life`` asks for theirs (``games.envs.OneLife``)."""
+    baselines' ``EpisodicLifeEnv``) and goes on with the same game in the next: a "1 x 4,000" evaluation is the
+    first life of a game, "3 x 20,000" lives 1-3 of one game. codearcade plays whole games unless asked for
+    theirs: ``--one-life-continue`` exactly (``games.envs.EpisodicLife``), ``--one-life`` the first life of each
+    of N seeded games (``games.envs.OneLife``)."""
     published: tuple[Published, ...] = ()
     """The authors' published scores for the game (``examples/benchmarks.sql`` sets a batch's beside them)."""
 

@@ -5,8 +5,9 @@ paper's protocol; ``sticky=0.25, noop_max=30`` gives the standard stochastic Ata
 
 - :class:`NoopReset` takes a random number of NOOPs after reset (standard protocol only);
 - :class:`AutoFire` presses FIRE after reset and after every lost life (Breakout);
-- :class:`OneLife` ends the episode at the first lost life (``one_life=True``: the authors' follow-up
-  evaluation, see its docstring);
+- :class:`OneLife` ends the episode at the first lost life (``one_life=True``: the first life of a seeded game);
+- :class:`EpisodicLife` is the authors' one-life protocol exactly (``one_life="continue"``): an episode ends at
+  a lost life and the next ``reset()`` goes on with the same game (see its docstring);
 - :class:`ObjectObservation` replaces the pixel observation by a plain dict of game objects read from RAM
   by OCAtari's extractors; its ``observation_space`` holds exactly those dicts (``games/spaces.py``).
 
@@ -43,6 +44,7 @@ from ocatari.ram import game_objects as ram_objects
 from ocatari.vision import game_objects as vision_objects
 
 from games import GAMES, Game, get_game
+from games.base import ONE_LIFE_CONTINUE, one_life_setting
 from games.spaces import observation_space as game_observation_space
 
 Observation = dict[str, Any]
@@ -201,15 +203,15 @@ class AutoFire(gym.Wrapper):
 
 
 class OneLife(gym.Wrapper):
-    """End the episode (``terminated``) at the first lost life: the authors' follow-up evaluation.
+    """End the episode (``terminated``) at the first lost life: the first life of a game reset from its seed.
 
     Their environments (``trace_envs/{asterix,breakout,qbert,seaquest}.py`` of ameliakuang/LLM-Game-Playing-Agents,
     baselines' ``EpisodicLifeEnv``) report ``terminated`` on the step whose ``lives`` fell below the previous
     step's while still above 0 (the last life ends the game anyway), and their evaluation sums the rewards up
-    to that step: one life is one episode. Their *next* episode goes on with the same game (one NOOP, whose
-    reward is dropped, then for Breakout a FIRE); here every episode is the first life of a game reset from its
-    seed, so that an episode stays reproducible on its own (the same for one evaluation episode; for their
-    3 x 20,000 Asterix evaluation, lives 1-3 of one game, ours are the first life of three).
+    to that step: one life is one episode. Their *next* episode goes on with the same game (:class:`EpisodicLife`);
+    here every episode is the first life of a game reset from its seed, so that an episode stays reproducible on
+    its own (the same for one evaluation episode; for their 3 x 20,000 Asterix evaluation, lives 1-3 of one game,
+    these are the first life of three).
     """
 
     def __init__(self, env: gym.Env):
@@ -223,6 +225,69 @@ class OneLife(gym.Wrapper):
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
+        lives = info.get("lives", 0)
+        if 0 < lives < self._lives:
+            terminated = True
+        self._lives = lives
+        return obs, reward, terminated, truncated, info
+
+
+class EpisodicLife(gym.Wrapper):
+    """The authors' one-life protocol exactly: baselines' ``EpisodicLifeEnv`` as their
+    ``trace_envs/{asterix,breakout,qbert,seaquest}.py`` (ameliakuang/LLM-Game-Playing-Agents) implement it.
+
+    - ``step``: ``terminated`` on the step whose ``lives`` fell below the previous step's while still above 0
+      (as :class:`OneLife`); the game itself goes on underneath.
+    - ``reset()`` without a seed after a step that did not end the game (a lost life, or an episode cut at its
+      step cap) *continues* it: one NOOP, whose reward is dropped (a real reset if that NOOP ended the game);
+      after a game over, a real reset, not reseeded (the environment's RNG goes on, so the whole sequence stays
+      reproducible from the first seed and the actions).
+    - ``reset(seed=...)`` always starts a new game from that seed (theirs never pass one: their first reset is
+      a fresh environment's).
+    - ``fire`` (Breakout): every reset then presses FIRE, its reward dropped too (their ``FireResetEnv`` phase;
+      a real reset if it ended the game). Breakout is built without :class:`AutoFire` under this protocol: their
+      step that loses a life presses nothing more.
+
+    It wraps :class:`ObjectObservation` (when built with objects), so that the NOOP and FIRE are ordinary steps of
+    the object extraction, as in their OCAtari environment: the first observation of a continued episode is that
+    of the NOOP (or FIRE) step, its ``dx/dy`` the movement since the step before. ``continued`` says whether the
+    last reset went on with a game.
+    """
+
+    NOOP = 0
+    FIRE = 1
+
+    def __init__(self, env: gym.Env, fire: bool = False):
+        super().__init__(env)
+        self.fire = fire
+        self._lives = 0
+        self._real_done = True
+        self.continued = False
+
+    @property
+    def object_rows(self) -> list[tuple]:
+        """The inner :class:`ObjectObservation`'s rows of the last observation (AttributeError without one)."""
+        return self.env.object_rows
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is not None or self._real_done:
+            obs, info = self.env.reset(seed=seed, options=options)
+            self._real_done, self.continued = True, False  # as their fresh environment: a second reset is real too
+        else:
+            obs, _, terminated, truncated, info = self.env.step(self.NOOP)
+            self.continued = True
+            if terminated or truncated:
+                obs, info = self.env.reset(options=options)
+        if self.fire:
+            obs, _, terminated, truncated, info = self.env.step(self.FIRE)
+            if terminated or truncated:
+                obs, info = self.env.reset(options=options)
+        self._lives = self.env.unwrapped.ale.lives()
+        return obs, info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._real_done = bool(terminated or truncated)
         lives = info.get("lives", 0)
         if 0 < lives < self._lives:
             terminated = True
@@ -247,11 +312,15 @@ class NoopReset(gym.Wrapper):
 
 
 def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: bool = False,
-             one_life: bool = False, observation: int | None = None) -> gym.Env:
+             one_life: bool | str = False, observation: int | None = None, objects: bool = True) -> gym.Env:
     """Build the wrapped environment for ``game``; see the module docstring for the observation format.
 
-    ``one_life=True`` ends each episode at the first lost life (:class:`OneLife`, the authors' follow-up
-    evaluation); a game without lives plays as before.
+    ``one_life=True`` ends each episode at the first lost life (:class:`OneLife`); ``one_life="continue"``
+    is the authors' protocol exactly, each ``reset()`` going on with the game (:class:`EpisodicLife`); a game
+    without lives plays as before.
+
+    ``objects=False`` leaves out the object extraction (:class:`ObjectObservation`): the observation is the RAM,
+    rewards, flags and lives are the same (what a replay of recorded actions needs).
 
     ``observation`` is the version of the observation conventions (``games.base.OBSERVATION_VERSION``; None:
     today's, or the one ``game`` already builds when it is a :meth:`Game.observing` of another).
@@ -260,6 +329,7 @@ def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: b
     the flag only asks ALE for ``rgb_array`` rendering for viewers that call ``env.render()``).
     """
     spec = get_game(game).observing(observation)
+    one_life = one_life_setting(one_life)
     if not 0.0 <= sticky <= 1.0:
         raise ValueError(f"sticky-action probability must be within [0, 1], got {sticky}")
     if noop_max < 0:
@@ -275,25 +345,29 @@ def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: b
     )
     if noop_max:
         env = NoopReset(env, noop_max)
-    if spec.fire_on_life_loss:
+    episodic = one_life == ONE_LIFE_CONTINUE
+    if spec.fire_on_life_loss and not episodic:
         env = AutoFire(env)
-    if one_life:
+    if one_life is True:
         env = OneLife(env)
-    return ObjectObservation(env, spec)
+    if objects:
+        env = ObjectObservation(env, spec)
+    return EpisodicLife(env, fire=spec.fire_on_life_loss) if episodic else env
 
 
-_shared: dict[tuple[str, int, float, int, bool], gym.Env] = {}
+_shared: dict[tuple[str, int, float, int, bool | str], gym.Env] = {}
 
 
-def shared_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, one_life: bool = False,
+def shared_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, one_life: bool | str = False,
                observation: int | None = None) -> gym.Env:
     """An environment for one episode after another in this process (``make_env`` is ~0.1 s a call).
 
     Reuse is safe because every episode starts with ``reset(seed=...)``, which reloads the game and reseeds
-    every random source, so an episode plays the same on a fresh or a reused environment (tested).
+    every random source, so an episode plays the same on a fresh or a reused environment (tested); the episodes
+    that continue a game (``one_life="continue"``) follow the one they continue on the same environment.
     """
     spec = get_game(game).observing(observation)
-    key = (spec.name, spec.observation, float(sticky), int(noop_max), bool(one_life))
+    key = (spec.name, spec.observation, float(sticky), int(noop_max), one_life_setting(one_life))
     env = _shared.get(key)
     if env is None:
         env = _shared[key] = make_env(spec, sticky=sticky, noop_max=noop_max, one_life=one_life)
@@ -321,7 +395,7 @@ def gym_id(game: str | Game) -> str:
 
 
 def make_registered(game: str, render_mode: str | None = None, sticky: float = 0.0, noop_max: int = 0,
-                    one_life: bool = False) -> gym.Env:
+                    one_life: bool | str = False) -> gym.Env:
     """What ``gymnasium.make("codearcade/<Game>-v0", ...)`` builds: :func:`make_env` (the paper's protocol unless
     ``sticky``, ``noop_max`` or ``one_life`` say otherwise). ``render_mode="rgb_array"`` renders the frame;
     ``"human"`` shows it in a window (Gymnasium's ``HumanRendering``, which needs pygame and a display)."""

@@ -8,7 +8,9 @@ Each check is one SQL query that returns the offending rows (nothing, when the s
 - completeness: each run's iterations are 0, 1, ..., n without a gap; each iteration has its feedback, its
   evaluated policy version, its chosen candidate, its episodes and (for updates that called a model) its LLM
   call; every candidate's episodes exist (a cached one's are an earlier candidate's); each episode has
-  ``length`` step rows numbered from 0 (one more, with no action, where the policy failed);
+  ``length`` step rows numbered from 0 (one more, with no action, where the policy failed); an episode that
+  ``continues`` another (the authors' one-life protocol) finds it in its run, and starts where it ended
+  (``start_step``);
 - damage to the file itself (``store.db.store_damage``: a table or view missing, a truncated file) and any
   check that cannot run (a block that cannot be read) are findings too, so a damaged store gets a report, not
   a traceback;
@@ -78,6 +80,11 @@ CHECKS: list[tuple[str, str]] = [
         HAVING NOT (
             (count(s.step) = e.length OR (count(s.step) = e.length + 1 AND e.end_reason IN ('policy_error', 'timeout')))
             AND coalesce(min(s.step), 0) = 0 AND coalesce(max(s.step), -1) = count(s.step) - 1)"""),
+    ("episodes that continue a game that is not there", """
+        SELECT e.episode_id, e.continues, e.start_step, p.start_step + p.length AS game_steps_before
+        FROM episodes e LEFT JOIN episodes p ON p.episode_id = e.continues
+        WHERE e.continues IS NOT NULL AND (p.episode_id IS NULL OR p.run_id <> e.run_id
+                                           OR e.start_step IS DISTINCT FROM p.start_step + p.length)"""),
 ]
 
 

@@ -642,4 +642,19 @@ MIGRATIONS.append(
     )
 )
 
+# The authors' one-life protocol exactly (issue 25, item 3; `one_life = "continue"`): the evaluation episodes of a
+# run are the lives of one game, each going on from where the one before ended. What makes such an episode
+# reproducible is the episode it continues (replayed first, in the same environment) and where in the game it
+# starts; an episode of any other run starts from reset(seed): continues NULL, start_step 0.
+MIGRATIONS.append(
+    (
+        11,
+        "episodes: continues, start_step (an episode that goes on with the game of another)",
+        """
+        ALTER TABLE episodes ADD COLUMN continues VARCHAR;              -- the episode whose game it goes on with
+        ALTER TABLE episodes ADD COLUMN start_step INTEGER DEFAULT 0;   -- steps of its game played before it
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

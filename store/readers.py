@@ -333,14 +333,15 @@ def first_iteration_of(con: duckdb.DuckDBPyConnection, run_id: str, version_id: 
 
 
 REPLAY_EPISODE_COLUMNS = ("episode_id", "game", "seed", "sticky", "noop_max", "max_steps", "return", "length",
-                          "lives_lost", "end_reason")
+                          "lives_lost", "end_reason", "continues")
 """What a replay of a stored episode needs of its row (``codearcade doctor --replay``)."""
 REPLAY_STEP_COLUMNS = ("step", "action", "reward", "score", "terminated", "truncated", "lives")
 
 
 def replay_material(con: duckdb.DuckDBPyConnection, run_id: str) -> list[tuple[dict[str, Any], Any]]:
     """Each episode of a run that ended by the game or the step cap (a policy error ends by the policy: its last
-    step has no action), with its step rows as an Arrow table, in the order they were played."""
+    step has no action), with its step rows as an Arrow table, in the order they were played (an episode that
+    ``continues`` another after it)."""
     columns = ", ".join(f'"{c}"' for c in REPLAY_EPISODE_COLUMNS)
     episodes = _rows(con.execute(
         f"SELECT {columns} FROM episodes WHERE run_id = ? AND end_reason IN ('terminated', 'truncated') "

@@ -84,3 +84,20 @@ def episode_tables(con: duckdb.DuckDBPyConnection, episode_id: str) -> tuple[dic
                     "parents, lines_run FROM nodes WHERE episode_id = $1 ORDER BY step, call_index",
                     params=[episode_id]).to_arrow_table()
     return rows[0], steps, nodes
+
+
+def lead_in_actions(con: duckdb.DuckDBPyConnection, episode_id: str) -> list[list[int]]:
+    """The recorded actions of the episodes that ``episode_id`` continues (the authors' one-life protocol:
+    ``episodes.continues``), the game's first episode first: what a replay plays before it; [] for an episode
+    that starts from ``reset(seed)``."""
+    chain = _query(con, """
+        WITH RECURSIVE chain(episode_id, continues, depth) AS (
+            SELECT episode_id, continues, 0 FROM episodes WHERE episode_id = ?
+            UNION ALL
+            SELECT e.episode_id, e.continues, c.depth + 1 FROM episodes e JOIN chain c ON e.episode_id = c.continues
+        )
+        SELECT c.episode_id, list(s.action ORDER BY s.step) FILTER (WHERE s.action IS NOT NULL) AS actions
+        FROM chain c LEFT JOIN steps s USING (episode_id) WHERE c.depth > 0
+        GROUP BY c.episode_id, c.depth ORDER BY c.depth DESC""", [episode_id])
+    return [row["actions"] or [] for row in chain]
+

@@ -3,7 +3,8 @@
 The store holds every step's objects, action, reward and score, and (for traced episodes) every bundled
 call, but no pixels. Episodes are deterministic given the game, seed, sticky-action probability and
 ``noop_max`` (they seed the environment's RNG at reset), so replaying the stored actions in a fresh
-``make_env`` reproduces the screens. The replay is checked: the objects it observes at each step are
+``make_env`` reproduces the screens (an episode that continues a game, under the authors' one-life protocol,
+after the actions of the episodes before it: ``store.showing.lead_in_actions``). The replay is checked: the objects it observes at each step are
 compared with the stored ones, and :class:`ReplayCheck` says how many steps differed (0 when the frames are
 faithful). Frames are optional (``frames_every=0``: no replay at all) and taken every K-th step.
 """
@@ -11,7 +12,7 @@ faithful). Frames are optional (``frames_every=0``: no replay at all) and taken 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import duckdb
@@ -19,11 +20,11 @@ import pyarrow as pa
 import rerun as rr
 
 from games import get_game, list_widths
-from games.base import OBSERVATION_VERSION, recorded_observation
+from games.base import ONE_LIFE_CONTINUE, OBSERVATION_VERSION, recorded_observation
 from games.envs import make_env
 from store import Store
 from store.readers import get_run, policy_text
-from store.showing import episode_tables
+from store.showing import episode_tables, lead_in_actions
 from tracing.steps import objects_to_obs
 from viewers.frames import FrameEncoder
 from viewers.rerun_episode import EpisodeLogger, StepColumns, new_recording, resolve_recording
@@ -61,6 +62,8 @@ class StoredEpisode:
     policy_text: str | None
     observation: int = OBSERVATION_VERSION
     """The version of the observation conventions its run played (``games.base.OBSERVATION_VERSION``)."""
+    lead_in: list[list[int]] = field(default_factory=list)
+    """The actions of the episodes it continues, in order (``store.showing.lead_in_actions``)."""
 
 
 def read_episode(con: duckdb.DuckDBPyConnection, episode_id: str) -> StoredEpisode:
@@ -72,13 +75,14 @@ def read_episode(con: duckdb.DuckDBPyConnection, episode_id: str) -> StoredEpiso
         text = None
     run = get_run(con, episode["run_id"])
     observation = recorded_observation(json.loads(run["config"]) if run and run["config"] else {})
-    return StoredEpisode(episode, steps, nodes, text, observation)
+    return StoredEpisode(episode, steps, nodes, text, observation, lead_in_actions(con, episode_id))
 
 
-def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int, observation: int = OBSERVATION_VERSION
-                  ) -> tuple[list[int], list[bytes], ReplayCheck]:
+def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int, observation: int = OBSERVATION_VERSION,
+                  lead_in: list[list[int]] = ()) -> tuple[list[int], list[bytes], ReplayCheck]:
     """Replay the stored actions; PNG frames of every ``every``-th step, and the check against stored objects
-    (both built with the run's ``observation`` version)."""
+    (both built with the run's ``observation`` version). An episode that ``continues`` a game is replayed after
+    ``lead_in``, the actions of the episodes before it, each followed by the reset that goes on with the game."""
     check = ReplayCheck()
     frame_steps: list[int] = []
     pngs: list[bytes] = []
@@ -86,9 +90,14 @@ def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int, observat
         return frame_steps, pngs, check
     game = get_game(episode["game"]).observing(observation)
     widths = list_widths(game)
-    env = make_env(game, sticky=float(episode.get("sticky") or 0.0), noop_max=int(episode.get("noop_max") or 0))
+    env = make_env(game, sticky=float(episode.get("sticky") or 0.0), noop_max=int(episode.get("noop_max") or 0),
+                   one_life=ONE_LIFE_CONTINUE if episode.get("continues") else False)
     try:
         obs, _ = env.reset(seed=int(episode["seed"]))
+        for actions in lead_in if episode.get("continues") else ():
+            for action in actions:
+                env.step(action)
+            obs, _ = env.reset()
         encoder = FrameEncoder(env.unwrapped.ale)
         for step, action, lives, objects in zip(steps.column("step").to_pylist(), steps.column("action").to_pylist(),
                                                 steps.column("lives").to_pylist(), steps.column("objects").to_pylist()):
@@ -116,7 +125,7 @@ def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int, observat
 def log_stored_episode(data: StoredEpisode, recording: rr.RecordingStream | None = None,
                        frames_every: int = 0) -> ReplayCheck:
     """Log a stored episode into ``recording`` (or the ambient one), frames regenerated every K-th step."""
-    frame_steps, pngs, check = replay_frames(data.episode, data.steps, frames_every, data.observation)
+    frame_steps, pngs, check = replay_frames(data.episode, data.steps, frames_every, data.observation, data.lead_in)
     logger = EpisodeLogger(resolve_recording(recording), traced=bool(data.episode.get("traced")),
                            frames_every=frames_every if frame_steps else 0)
     if data.policy_text is not None:

@@ -10,8 +10,12 @@ a single socket, one round trip per step:
     host -> policy   J {"op": "go", "cpu": N}       (the host's CPU: the pair shares one core, NOTES.md)
     host -> policy   O <marshal of the observation dict>          (once per step)
     policy -> host   a <8-byte action>  |  J {"kind": "failed", "end_reason": "policy_error"|"timeout", "error"}
-    host -> policy   J {"op": "end"}
+    host -> policy   J {"op": "end", "more": bool}
     policy -> host   J {"kind": "done", "nodes": bool}  [A <Arrow stream of the node rows>]
+
+With ``"more": true`` (the next episode of a continued game follows: ``one_life="continue"``) the policy stays
+loaded, its state and RNGs as they are, and the exchange goes on from ``go`` for the next episode, its node rows
+recorded afresh (steps numbered from 0).
 
 The host trusts nothing that comes back: an action is an int it checks against the game's actions, an error is
 text it caps and cleans, the node rows are checked by the parent (``pipeline/play/episodes.py``). Observations are sent
@@ -119,7 +123,8 @@ class PolicySide:
         self.channel = channel
         self.n_actions = int(start["n_actions"])
         self.call_limit = float(start.get("call_time_limit_s") or 0) or math.inf
-        self.recorder = NodeRecorder(lines=bool(start.get("trace_lines", True))) if start.get("trace") else None
+        self.trace, self.lines = bool(start.get("trace")), bool(start.get("trace_lines", True))
+        self.recorder = NodeRecorder(lines=self.lines) if self.trace else None
         seed = int(start.get("seed", 0))
         random.seed(seed)
         np.random.seed(seed % 2**32)
@@ -130,21 +135,29 @@ class PolicySide:
             self.policy, self.error = None, str(exc)
 
     def serve(self) -> None:
-        """Answer until the host ends the episode, then send the node rows."""
+        """Answer until the host ends the episode, then send the node rows (and again for each next episode of a
+        continued game)."""
         channel = self.channel
+        more = False
         if self.policy is None:
             channel.send_json({"kind": "failed", "end_reason": "policy_error", "error": self.error[:MAX_ERROR_CHARS]})
         else:
             channel.send_json({"kind": "ready"})
-            self._play()
-        nodes = self.recorder.table() if self.recorder is not None else None
-        channel.send_json({"kind": "done", "nodes": nodes is not None})
-        if nodes is not None:
-            from pipeline.boundary.wire import arrow_frame
+            more = self._play()
+        while True:
+            nodes = self.recorder.table() if self.recorder is not None else None
+            channel.send_json({"kind": "done", "nodes": nodes is not None})
+            if nodes is not None:
+                from pipeline.boundary.wire import arrow_frame
 
-            channel.sock.sendall(arrow_frame(nodes))
+                channel.sock.sendall(arrow_frame(nodes))
+            if not more:
+                return
+            self.recorder = NodeRecorder(lines=self.lines) if self.trace else None
+            more = self._play()
 
-    def _play(self) -> None:
+    def _play(self) -> bool:
+        """One episode's exchange; whether the host asked for more (the next episode of the same game)."""
         channel, policy, recorder, n_actions = self.channel, self.policy, self.recorder, self.n_actions
         step, failed = -1, False
         with CallTimer() as timer, (recorder if recorder is not None else _nothing()):
@@ -155,7 +168,7 @@ class PolicySide:
                     if message.get("op") == "go":
                         _pin(message.get("cpu"))
                         continue
-                    return  # "end"
+                    return message.get("more") is True and not failed  # "end"
                 if kind != b"O" or failed:
                     raise ValueError("an observation after the policy failed, or a frame of an unknown kind")
                 obs = marshal.loads(payload)

@@ -9,7 +9,8 @@ Unix ``SOCK_SEQPACKET`` socket pair as its only inherited descriptor. Each serve
   pid namespaces (it is pid 1 of its own, the init of every worker: when it ends, the kernel ends them all),
   mounts a small tmpfs over its scratch directory in a mount namespace of its own, probes the features of
   ``pipeline/boundary/confine.py`` in a throwaway child, and confines every worker before it loads any code.
-- ``game``: the game hosts (``pipeline/play/episodes.py``): the emulator and everything that computes a score.
+- ``game``: the game hosts (``pipeline/play/episodes.py``: ``host`` plays one episode, ``game`` the episodes of one
+  continued game): the emulator and everything that computes a score.
   No policy code is ever loaded there. It builds each environment once (``prepare``), so that hosts start warm,
   and keeps the machine's network (a host may stream a live Rerun recording); new IPC and pid namespaces.
 
@@ -81,7 +82,8 @@ ROLES: dict[str, Role] = {
                           "check": ("pipeline.play.validate:check_here", False),
                           "vet": ("pipeline.play.validate:vet_and_check_here", False)},
                    confined=True, offline=True, no_emulator=True),
-    "game": Role(tasks={"host": ("pipeline.play.episodes:host_task", True)},
+    "game": Role(tasks={"host": ("pipeline.play.episodes:host_task", True),
+                        "game": ("pipeline.play.episodes:game_host_task", True)},
                  confined=False, offline=False, no_emulator=False),
 }
 

@@ -32,9 +32,13 @@ def add_parser(verbs) -> None:
                    "standard stochastic protocol)")
     p.add_argument("--noop-max", type=non_negative_int, default=0,
                    help="up to this many random NOOPs after reset (default: 0)")
-    p.add_argument("--one-life", action="store_true",
-                   help="end each episode at the first lost life, as the authors' follow-up evaluates Asterix, "
-                   "Breakout, Q*bert and Seaquest (default: whole games, the paper's)")
+    lives = p.add_mutually_exclusive_group()
+    lives.add_argument("--one-life", action="store_const", const=True, default=False, dest="one_life",
+                       help="end each episode at the first lost life of its own seeded game (default: whole games, "
+                       "the paper's)")
+    lives.add_argument("--one-life-continue", action="store_const", const="continue", dest="one_life",
+                       help="the authors' protocol for Asterix, Breakout, Q*bert and Seaquest exactly: the episodes "
+                       "are the lives of one game from --seed, each going on where the one before ended")
     p.add_argument("--workers", type=non_negative_int, default=None,
                    help="episodes played at once in worker processes (default: min(episodes, cores)); "
                    "0 plays in this process without isolation, for debugging")

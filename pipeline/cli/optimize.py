@@ -79,9 +79,14 @@ def add_parser(verbs) -> None:
                         "and is assessed fully only if it keeps up with its parent there (default: off)")
     search.add_argument("--screen-margin", type=float, metavar="POINTS",
                         help="how far behind its parent a screened version may be (default: 0)")
-    search.add_argument("--one-life", action="store_const", const=True, dest="one_life",
-                        help="the authors' protocol for Asterix, Breakout, Q*bert and Seaquest: every episode, "
-                        "training rollouts included, ends at the first lost life (default: whole games)")
+    lives = search.add_mutually_exclusive_group()
+    lives.add_argument("--one-life", action="store_const", const=True, dest="one_life",
+                       help="every episode, training rollouts included, ends at a lost life: each the first life of "
+                       "its own seeded game (default: whole games)")
+    lives.add_argument("--one-life-continue", action="store_const", const="continue", dest="one_life",
+                       help="the authors' protocol for Asterix, Breakout, Q*bert and Seaquest exactly: as "
+                       "--one-life, but the evaluation episodes are the lives of one game, each going on where the "
+                       "one before ended")
     search.add_argument("--no-eval-cache", action="store_const", const=False, dest="eval_cache",
                         help="play every version's episodes again instead of reusing those of an earlier assessment")
     budgets = p.add_argument_group("budgets", "the run stops with status 'budget' before it would exceed one; "

@@ -10,6 +10,9 @@ Episodes are written to the store as they finish.
 steps (kind ``screen``); one that trails its parent's score at the same step of the same game (deterministic:
 the same seed) by more than ``screen_margin`` is screened out before its full assessment (:func:`screen`).
 
+Under the authors' one-life protocol (``one_life = "continue"``) the evaluation episodes are the lives of one
+game, played in order by one game host and policy process (``pipeline/play/episodes.py``).
+
 With ``robust_episodes``, each version also plays that many evaluation episodes under the standard protocol
 (sticky actions, no-op starts; kind ``robust``, seeded like the others): both scores are recorded, and
 ``optimize_protocol`` says which one the strategy optimizes.
@@ -29,7 +32,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-from games.base import STANDARD_NOOP_MAX, STANDARD_STICKY
+from games.base import ONE_LIFE_CONTINUE, STANDARD_NOOP_MAX, STANDARD_STICKY
 from pipeline.optimizer.state import RunState
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
@@ -78,8 +81,11 @@ def episode_specs(state: "RunState", iteration: int, candidate: int, text: str, 
                   observation=c.observation)
     train = EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "train", 0, candidate), kind="train",
                         index=0, seed=c.seed, max_steps=state.settings["rollout_steps"], trace=True, **common)
+    one_game = c.one_life == ONE_LIFE_CONTINUE  # the authors' protocol: the evaluation episodes are one game's lives
     evals = [EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "eval", i, candidate), kind="eval", index=i,
-                         seed=c.seed + i, max_steps=state.settings["eval_max_steps"], **common)
+                         seed=c.seed if one_game else c.seed + i, max_steps=state.settings["eval_max_steps"],
+                         continues=episode_id(state.run_id, iteration, "eval", i - 1, candidate) if one_game and i
+                         else None, **common)
              for i in range(c.eval_episodes)]
     robust = [EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "robust", i, candidate), kind="robust",
                           index=i, seed=c.seed + i, max_steps=state.settings["eval_max_steps"], sticky=STANDARD_STICKY,

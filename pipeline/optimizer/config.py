@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from games.base import OBSERVATION_VERSION, UNRECORDED_OBSERVATION
+from games.base import OBSERVATION_VERSION, UNRECORDED_OBSERVATION, one_life_setting
 from pipeline.optimizer.feedback import FEEDBACK_MODES
 from pipeline.optimizer.strategies import STRATEGIES, make_strategy
 
@@ -92,9 +92,13 @@ class OptimizeConfig:
     out (rejected, with both scores in its feedback) and never fully played. None: off."""
     screen_margin: float = 0.0
     """How far behind its parent a screened version may be and still be assessed fully."""
-    one_life: bool = False
+    one_life: bool | str = False
     """The authors' protocol for Asterix, Breakout, Q*bert and Seaquest (``Task.one_life_episodes``): every
-    episode, training rollouts included, ends at the first lost life. Off: whole games (the paper's)."""
+    episode, training rollouts included, ends at a lost life. ``"continue"`` (``--one-life-continue``) is theirs
+    exactly: the evaluation episodes of an assessment are the lives of one game from ``seed``, each going on where
+    the one before ended (``games.envs.EpisodicLife``; the training rollout is that game's first life, the
+    ``robust`` episodes each the first life of its own game); ``True`` (``--one-life``): every episode the first
+    life of its own seeded game. Off: whole games (the paper's)."""
     observation: int = OBSERVATION_VERSION
     """The version of the observation conventions the run plays (``games.base.OBSERVATION_VERSION``): today's,
     recorded so that the run is read back and replayed with it after the conventions change."""
@@ -157,6 +161,7 @@ def validate_config(config: OptimizeConfig) -> None:
         raise ValueError("--screen-steps must be at least 1")
     if config.screen_margin < 0:
         raise ValueError("--screen-margin must be 0 or more")
+    one_life_setting(config.one_life)
     if config.strategy not in STRATEGIES:
         raise ValueError(f"--strategy must be one of {', '.join(STRATEGIES)}, not {config.strategy!r}")
     for name, flag in (("candidates", "--candidates"), ("beam_width", "--beam-width"),

@@ -26,8 +26,8 @@ from games import get_game
 from pipeline.boundary import wire
 from pipeline.boundary.wire import MAX_TEXT, BadMessage
 from pipeline.boundary.workers import ProgressCallback, Task, Zygote, run_tasks
-from pipeline.play.rollout import (EpisodeOutcome, EpisodeSpec, RemotePolicy, _episode_row, crashed_outcome,
-                                   play_episode, prepare_episode, run_episode)
+from pipeline.play.rollout import (GAME_END_REASONS, EpisodeOutcome, EpisodeSpec, RemotePolicy, _episode_row,
+                                   crashed_outcome, play_episode, play_game, prepare_episode, run_episode, run_game)
 
 WORKER_END_REASONS = frozenset({"terminated", "truncated", "policy_error", "timeout", "crashed"})
 """End reasons a host may report (``crashed``: its policy process died or broke the protocol, the steps before
@@ -54,6 +54,31 @@ def host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | 
                                    "nodes": nodes is not None}), wire.arrow_frame(outcome.steps)]
         if nodes is not None:
             frames.append(wire.raw_arrow_frame(nodes) if isinstance(nodes, bytes) else wire.arrow_frame(nodes))
+        wire.write_all(fd, b"".join(frames))
+
+    return play
+
+
+def game_host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | None], None]:
+    """In a game host (the game zygote's ``game`` task): the episodes of one continued game (``item["episodes"]``,
+    :class:`EpisodeSpec` s as JSON, in order), played one after the other with one environment and one policy
+    process that keeps its state (``pipeline/play/rollout.py`` :func:`play_game`). Prepared as :func:`host_task`
+    (the first episode's reset, the policy loaded); it writes the game's steps so far as progress and, at the
+    end, one result with every episode's row, then each episode's step rows (and node rows)."""
+    specs = [spec_from_json(data) for data in item["episodes"]]
+    policy = RemotePolicy(socket.socket(fileno=policy_fd), specs[0], get_game(specs[0].game).n_actions)
+    first = prepare_episode(specs[0], policy)
+
+    def play(cpu: int | None) -> None:
+        outcomes = play_game(specs, first, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})),
+                             cpu=cpu)
+        frames = [wire.json_frame({"kind": "result", "episodes": [episode_to_json(o.episode) for o in outcomes],
+                                   "nodes": [o.nodes is not None for o in outcomes]})]
+        for outcome in outcomes:
+            frames.append(wire.arrow_frame(outcome.steps))
+            nodes = outcome.nodes
+            if nodes is not None:
+                frames.append(wire.raw_arrow_frame(nodes) if isinstance(nodes, bytes) else wire.arrow_frame(nodes))
         wire.write_all(fd, b"".join(frames))
 
     return play
@@ -219,6 +244,74 @@ EPISODE = Task("host", run_episode, spec_to_json, _decode_episode,
                after_pair=_policy_died)
 
 
+# ------------------------------------------------------------------------- continued games (one_life="continue")
+
+
+def games_of(specs: list[EpisodeSpec]) -> list[list[int]]:
+    """The indices of ``specs`` grouped into games, in order: an episode that ``continues`` another joins that
+    one's game, right after it; every other episode is a game of its own. ValueError for a spec that continues
+    one that is not the last of a game listed before it."""
+    games: list[list[int]] = []
+    last_of: dict[str, list[int]] = {}  # episode id -> its game, while it is the game's last episode
+    for i, spec in enumerate(specs):
+        if spec.continues is None:
+            game = [i]
+            games.append(game)
+        else:
+            game = last_of.pop(spec.continues, None)
+            if game is None:
+                raise ValueError(f"episode {spec.episode_id} continues {spec.continues}, which is not the last "
+                                 f"episode of a game listed before it")
+            game.append(i)
+        last_of[spec.episode_id] = game
+    return games
+
+
+def _game_to_json(game: list[EpisodeSpec]) -> dict[str, Any]:
+    return {"episodes": [spec_to_json(spec) for spec in game]}
+
+
+def _game_tables(msg: dict[str, Any]) -> int:
+    flags = msg.get("nodes")
+    if not isinstance(flags, list) or len(flags) > 2**16:
+        raise BadMessage("a game's result without its list of node flags")
+    return sum(2 if flag is True else 1 for flag in flags)
+
+
+def _decode_game(game: list[EpisodeSpec], msg: dict[str, Any], tables: list[bytes]) -> list[EpisodeOutcome]:
+    """Each episode of a continued game from what its host sent, checked as :func:`episode_from_worker` does,
+    and as a game: once an episode ended by the policy's failure, the rest were not played (length 0); each
+    ``start_step`` is the sum of the lengths before it (the parent's, never the host's)."""
+    rows, flags = msg.get("episodes"), msg.get("nodes")
+    if not isinstance(rows, list) or not isinstance(flags, list) or len(rows) != len(game) or len(flags) != len(game):
+        raise BadMessage(f"a game of {len(game)} episodes answered with another number of episodes")
+    outcomes, at, played, stopped = [], 0, 0, False
+    for spec, row, flag in zip(game, rows, flags):
+        taken = tables[at:at + (2 if flag is True else 1)]
+        at += len(taken)
+        outcome = _decode_episode(spec, {"episode": row}, taken)
+        if stopped and outcome.episode["length"]:
+            raise BadMessage(f"episode {spec.index} was played after its game ended by the policy's failure")
+        outcome.episode["start_step"] = played
+        played += outcome.episode["length"]
+        stopped = stopped or outcome.end_reason not in GAME_END_REASONS
+        outcomes.append(outcome)
+    return outcomes
+
+
+def _game_failed(game: list[EpisodeSpec], error: str, timed_out: bool) -> list[EpisodeOutcome]:
+    return [_episode_failed(spec, error, timed_out) for spec in game]
+
+
+def _game_policy_died(outcomes: list[EpisodeOutcome], exit_code: Callable[[], int | None]) -> list[EpisodeOutcome]:
+    return [_policy_died(outcome, exit_code) for outcome in outcomes]
+
+
+GAME = Task("game", run_game, _game_to_json, _decode_game, tables=_game_tables,
+            limits=lambda game: _policy_limits(game[0]), paired=True, after_pair=_game_policy_died)
+"""A continued game: one host and one policy process play its episodes in order (:func:`game_host_task`)."""
+
+
 def run_episodes(
     specs: Iterable[EpisodeSpec],
     workers: int = 1,
@@ -232,11 +325,29 @@ def run_episodes(
 
     def prepare(zyg: Zygote) -> None:
         # each environment is built once in the game zygote (~0.1-0.2 s each): forked hosts inherit it ready
-        envs = sorted({(s.game, s.sticky, s.noop_max, s.one_life, s.observation) for s in specs})
+        envs = {(s.game, s.sticky, s.noop_max, s.one_life, s.observation) for s in specs}
         try:
-            zyg.send({"op": "prepare", "envs": [list(e) for e in envs]})
+            zyg.send({"op": "prepare", "envs": [list(e) for e in sorted(envs, key=str)]})
         except OSError:
             pass  # the zygote died: every episode is recorded as crashed
 
-    return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
-                     progress=progress, started=started, prepare=prepare)
+    if all(spec.continues is None for spec in specs):
+        return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
+                         progress=progress, started=started, prepare=prepare)
+    return _run_games(specs, workers, progress, started, prepare)
+
+
+def _run_games(specs: list[EpisodeSpec], workers: int, progress: ProgressCallback | None,
+               started: Callable[[], None] | None, prepare: Callable[[Zygote], None]
+               ) -> Iterator[tuple[int, EpisodeOutcome]]:
+    """:func:`run_episodes` where some episodes continue others: each game (:func:`games_of`) is one task of
+    one host and one policy process (:data:`GAME`), an episode of its own a game of one; its time limit is the
+    sum of its episodes'. Progress is reported under the index of the game's first episode."""
+    games = games_of(specs)
+    items = [[specs[i] for i in game] for game in games]
+    report = None if progress is None else (lambda g, n: progress(games[g][0], n))
+    for g, outcomes in run_tasks(GAME, items, workers, _game_failed,
+                                 time_limit_s=lambda game: sum(spec.episode_time_limit_s for spec in game),
+                                 progress=report, started=started, prepare=prepare):
+        for i, outcome in zip(games[g], outcomes):
+            yield i, outcome

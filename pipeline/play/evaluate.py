@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Callable
 
 from games import get_game
-from games.base import OBSERVATION_VERSION
+from games.base import OBSERVATION_VERSION, ONE_LIFE_CONTINUE, one_life_setting
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.play.runinfo import episode_id, new_run_id, package_versions
@@ -40,7 +40,7 @@ class EvalConfig:
     max_steps: int = 4000
     """Steps after which an episode is cut off (reported as ``truncated``); the paper's cap is 4000."""
     seed: int = 0
-    """Seed of the first episode; episode i uses ``seed + i``."""
+    """Seed of the first episode; episode i uses ``seed + i`` (``one_life="continue"``: the seed of the one game)."""
     trace: bool = False
     """Record a node event for every call of a bundled method."""
     trace_lines: bool = True
@@ -50,9 +50,12 @@ class EvalConfig:
     """Sticky-action probability (paper: 0.0; standard Atari protocol: 0.25)."""
     noop_max: int = 0
     """Up to this many random NOOPs after reset (paper: 0; standard protocol: 30)."""
-    one_life: bool = False
-    """End each episode at the first lost life, as the authors' follow-up evaluates Asterix, Breakout, Q*bert
-    and Seaquest (``Task.one_life_episodes``; ``games.envs.OneLife``). Off: whole games (the paper's)."""
+    one_life: bool | str = False
+    """End each episode at a lost life, as the authors' follow-up evaluates Asterix, Breakout, Q*bert and Seaquest
+    (``Task.one_life_episodes``): ``"continue"`` (``--one-life-continue``) exactly as theirs, the episodes the
+    lives of one game from ``seed``, each going on where the one before ended (``games.envs.EpisodicLife``);
+    ``True`` (``--one-life``) the first life of each episode's own seeded game (``games.envs.OneLife``).
+    Off: whole games (the paper's)."""
     observation: int = OBSERVATION_VERSION
     """The version of the observation conventions (``games.base.OBSERVATION_VERSION``), recorded in the run."""
     workers: int = 1
@@ -114,6 +117,7 @@ def evaluate(
         raise ValueError("--episodes must be at least 1")
     if config.max_steps < 1:
         raise ValueError("--max-steps must be at least 1")
+    one_life = one_life_setting(config.one_life)
     text = read_policy_file(policy_path)
     name = Path(policy_path).name
     info = checked_inspect(text, name, workers=config.workers)  # parsed in a confined worker first
@@ -122,15 +126,16 @@ def evaluate(
     with store.write():  # creates or upgrades the store, and refuses a damaged one, before anything plays
         pass
     run_id = new_run_id()
+    one_game = one_life == ONE_LIFE_CONTINUE  # the authors' protocol: the episodes are the lives of one game
     specs = [
         EpisodeSpec(
             episode_id=episode_id(run_id, 0, "eval", i), run_id=run_id, game=game, policy_text=text,
             policy_version_id=info.version_id, policy_name=name, iteration=0, kind="eval", index=i,
-            seed=config.seed + i, max_steps=config.max_steps, sticky=config.sticky, noop_max=config.noop_max,
-            one_life=config.one_life, observation=config.observation, trace=config.trace,
+            seed=config.seed if one_game else config.seed + i, max_steps=config.max_steps, sticky=config.sticky,
+            noop_max=config.noop_max, one_life=one_life, observation=config.observation, trace=config.trace,
             trace_lines=config.trace_lines,
             call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s,
-            rerun=config.rerun,
+            rerun=config.rerun, continues=episode_id(run_id, 0, "eval", i - 1) if one_game and i else None,
         )
         for i in range(config.episodes)
     ]

@@ -79,8 +79,13 @@ class EpisodeSpec:
     max_steps: int = 4000
     sticky: float = 0.0
     noop_max: int = 0
-    one_life: bool = False
-    """End the episode at the first lost life (the authors' follow-up evaluation: ``games.envs.OneLife``)."""
+    one_life: bool | str = False
+    """End the episode at a lost life: ``True``, the first life of the game reset from ``seed``
+    (``games.envs.OneLife``); ``"continue"``, the authors' protocol exactly (``games.envs.EpisodicLife``)."""
+    continues: str | None = None
+    """The episode whose game this one goes on with (``one_life="continue"``): it is played right after that one,
+    by the same game host and policy process, from where it ended (one NOOP, Breakout a FIRE); None: it starts
+    from ``reset(seed)``. ``seed`` is then the seed of the game."""
     observation: int = OBSERVATION_VERSION
     """The version of the observation conventions the run plays (``games.base.OBSERVATION_VERSION``)."""
     trace: bool = False
@@ -134,8 +139,9 @@ class PolicyChannel:
         """The policy's legal action for ``obs``; raises :class:`PolicyFailed`."""
         raise NotImplementedError
 
-    def finish(self) -> Any:
-        """The episode is over: the node rows (an Arrow table, the raw Arrow bytes of a remote policy, or None)."""
+    def finish(self, more: bool = False) -> Any:
+        """The episode is over: the node rows (an Arrow table, the raw Arrow bytes of a remote policy, or None).
+        ``more``: the next episode of the same game follows, played by the same policy (loaded, its state kept)."""
         return None
 
 
@@ -178,12 +184,18 @@ class LocalPolicy(PolicyChannel):
         except BaseException as exc:  # noqa: BLE001 - untrusted code: anything, SystemExit too
             raise PolicyFailed("policy_error", describe_exception(exc)) from None
 
-    def finish(self) -> Any:
+    def finish(self, more: bool = False) -> Any:
         if self.policy is not None:
             self.timer.__exit__(None, None, None)
             if self.recorder is not None:
                 self.recorder.__exit__(None, None, None)
-        return self.recorder.table() if self.recorder is not None else None
+        nodes = self.recorder.table() if self.recorder is not None else None
+        if more and self.policy is not None:  # the next episode: a new node log, the same policy object
+            self.timer.__enter__()
+            if self.recorder is not None:
+                self.recorder = NodeRecorder(lines=self.spec.trace_lines).__enter__()
+            self.step = -1
+        return nodes
 
 
 class RemotePolicy(PolicyChannel):
@@ -251,10 +263,10 @@ class RemotePolicy(PolicyChannel):
         raise self._failure(payload, "at this step") if kind == b"J" else \
             PolicyFailed("crashed", "the policy process sent a frame of an unknown kind")
 
-    def finish(self) -> bytes | None:
+    def finish(self, more: bool = False) -> bytes | None:
         """The node rows as the policy process sent them (an Arrow stream, checked by the parent), or None."""
         try:
-            self.channel.send_json({"op": "end"})
+            self.channel.send_json({"op": "end", "more": more})
             kind, payload = self._receive(FINISH_TIMEOUT_S, "at the end")
             message = json.loads(payload) if kind == b"J" else None
             if not isinstance(message, dict) or message.get("kind") != "done" or message.get("nodes") is not True:
@@ -310,6 +322,21 @@ def prepare_episode(spec: EpisodeSpec, policy: PolicyChannel | None = None) -> P
     return PreparedEpisode(spec, game, policy, env, obs, info, None, None, time.perf_counter() - t0)
 
 
+def continue_episode(spec: EpisodeSpec, previous: PreparedEpisode) -> PreparedEpisode:
+    """The next episode of a continued game (``spec.continues``, after ``previous`` was played to its end by the
+    game or the step cap): the same environment, reset without a seed, which goes on with the game
+    (``games.envs.EpisodicLife``: one NOOP, Breakout a FIRE, their rewards dropped), and the same policy, still
+    loaded with whatever state it kept."""
+    t0 = time.perf_counter()
+    env = previous.env
+    try:
+        obs, info = env.reset()
+    except BaseException:
+        discard_env(env)
+        raise
+    return PreparedEpisode(spec, previous.game, previous.policy, env, obs, info, None, None, time.perf_counter() - t0)
+
+
 def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None) -> EpisodeOutcome:
     """Play one episode as ``spec`` says, the policy in this process (``--workers 0``), and return what happened
     (never raises for policy misbehaviour). ``progress(steps)`` is called every :data:`PROGRESS_EVERY` steps and
@@ -318,9 +345,10 @@ def run_episode(spec: EpisodeSpec, progress: Callable[[int], None] | None = None
 
 
 def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | None = None,
-                 cpu: int | None = None) -> EpisodeOutcome:
+                 cpu: int | None = None, more: bool = False) -> EpisodeOutcome:
     """Play a :func:`prepare_episode`'d episode to its end (see :func:`run_episode`); ``cpu``: where this host
-    runs, passed on to the policy process."""
+    runs, passed on to the policy process; ``more``: the next episode of the same game follows with the same
+    policy (unless this one ends by the policy's failure)."""
     spec, game, policy = prepared.spec, prepared.game, prepared.policy
     started_at = time.time() - prepared.prepare_s
     t0 = time.perf_counter() - prepared.prepare_s  # the preparation counts, a staged host's wait does not
@@ -378,7 +406,7 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
         except BaseException:
             discard_env(env)  # an error inside the loop leaves the environment in an unknown state
             raise
-    nodes = policy.finish()
+    nodes = policy.finish(more=more and end_reason in GAME_END_REASONS)
     _report(steps, reported, length, progress)
 
     episode = _episode_row(
@@ -391,6 +419,50 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
 
         finish_recorder(live, episode, _node_table(nodes))
     return outcome
+
+
+GAME_END_REASONS = ("terminated", "truncated")
+"""End reasons after which a continued game goes on (the others are the policy's failures)."""
+
+
+def run_game(specs: list[EpisodeSpec], progress: Callable[[int], None] | None = None) -> list[EpisodeOutcome]:
+    """Play the episodes of one continued game, the policy in this process (``--workers 0``); see
+    :func:`play_game`."""
+    return play_game(specs, prepare_episode(specs[0]), progress)
+
+
+def play_game(specs: list[EpisodeSpec], first: PreparedEpisode, progress: Callable[[int], None] | None = None,
+              cpu: int | None = None) -> list[EpisodeOutcome]:
+    """Play ``specs``, the episodes of one game in order (each after the first ``continues`` the one before it),
+    from the :func:`prepare_episode`'d first, with one environment and one policy that keeps its state from one
+    episode to the next (the authors' evaluation calls one policy object throughout). ``progress(steps)``: the
+    steps of the whole game so far. An episode that ends by the policy's failure ends the game: the episodes
+    after it are not played (length 0, the same end reason, an error that says so)."""
+    outcomes: list[EpisodeOutcome] = []
+    played = 0
+    prepared = first
+    for k, spec in enumerate(specs):
+        if k:
+            prepared = continue_episode(spec, prepared)
+        outcome = play_episode(prepared, (lambda n, base=played: progress(base + n)) if progress else None, cpu,
+                               more=k + 1 < len(specs))
+        outcome.episode["start_step"] = played
+        outcomes.append(outcome)
+        played += outcome.episode["length"]
+        if outcome.end_reason not in GAME_END_REASONS:
+            for rest in specs[k + 1:]:
+                outcomes.append(not_played(rest, spec, outcome.end_reason, played))
+            break
+    return outcomes
+
+
+def not_played(spec: EpisodeSpec, failed: EpisodeSpec, end_reason: str, start_step: int) -> EpisodeOutcome:
+    """The outcome of an episode of a continued game that was not played because ``failed``, an earlier episode
+    of it, ended by the policy's failure (``end_reason``)."""
+    episode = _episode_row(spec, game=spec.game, started_at=None, duration_s=0.0, env_s=None, policy_s=None,
+                           length=0, lives_lost=0, end_reason=end_reason, score=0.0, start_step=start_step,
+                           error=f"not played: episode {failed.index} of this game ended with {end_reason}")
+    return EpisodeOutcome(episode, StepLog().table(), None)
 
 
 def _node_table(nodes: Any) -> pa.Table | None:
@@ -430,8 +502,10 @@ def _episode_row(spec: EpisodeSpec, score: float, **measured: Any) -> dict[str, 
     row = dict(
         episode_id=spec.episode_id, run_id=spec.run_id, iteration=spec.iteration, kind=spec.kind,
         episode_index=spec.index, seed=spec.seed, policy_version_id=spec.policy_version_id,
-        max_steps=spec.max_steps, traced=spec.trace, sticky=spec.sticky, noop_max=spec.noop_max, **measured,
+        max_steps=spec.max_steps, traced=spec.trace, sticky=spec.sticky, noop_max=spec.noop_max,
+        continues=spec.continues, start_step=0,
     )
+    row.update(measured)
     row["return"] = score  # a Python keyword, hence not a keyword argument
     return row
 

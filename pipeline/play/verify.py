@@ -19,7 +19,9 @@ is NULL) in a fresh environment of this process with the same game, seed, sticky
 setting (episodes are deterministic given those and the actions, under both protocols: the sticky and no-op
 draws come from the environment's RNG seeded by ``reset(seed=...)``), built from raw ALE without the object
 extraction, and compares per step the reward, the cumulative score, the terminated/truncated flags and the
-lives, then the return, the length and the lives lost; the first disagreement, or None. Runs stored before the
+lives, then the return, the length and the lives lost; the first disagreement, or None. An episode that
+``continues`` another (the authors' one-life protocol, ``one_life = "continue"``) is replayed after it, in its
+environment, from where its replay ended (:meth:`Replay.after`). Runs stored before the
 game host (when the policy process held the emulator and every episode was replayed as it arrived) keep their
 ``verified`` flags, and end reason ``tampered`` for an episode whose replay disagreed.
 """
@@ -35,6 +37,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from games import get_game
+from games.base import ONE_LIFE_CONTINUE, one_life_setting
 from games.envs import make_env
 from pipeline.boundary.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
@@ -46,27 +49,35 @@ END_REASONS = ("terminated", "truncated", "policy_error", "timeout", "crashed")
 FAILURE_END_REASONS = ("policy_error", "timeout", "crashed")
 TAMPERED = "tampered"
 
-_replay_envs: dict[tuple[str, float, int, bool], list[Any]] = {}
+_replay_envs: dict[tuple[str, float, int, bool | str], list[Any]] = {}
 
 
-def _acquire_env(game: str, sticky: float, noop_max: int, one_life: bool = False):
+def _acquire_env(game: str, sticky: float, noop_max: int, one_life: bool | str = False):
     """A raw-ALE environment (no object extraction) for one replay, from a pool per setting in this process
     (replays of episodes that play at the same time each need their own) and never handed to policy code:
     ``make_env``'s wrappers minus ``ObjectObservation``."""
-    key = (get_game(game).name, float(sticky), int(noop_max), bool(one_life))
+    key = (get_game(game).name, float(sticky), int(noop_max), one_life_setting(one_life))
     free = _replay_envs.setdefault(key, [])
-    return key, (free.pop() if free else make_env(key[0], sticky=key[1], noop_max=key[2], one_life=key[3]).env)
+    return key, (free.pop() if free else make_env(key[0], sticky=key[1], noop_max=key[2], one_life=key[3],
+                                                  objects=False))
 
 
 class Replay:
     """Replaying an episode's actions from its reset, step by step: per step reward, flags and lives (before
     the step). Actions can be fed as they are played (:meth:`feed`, from a worker's progress reports), so that
-    by the time the episode ends only its last few hundred steps are left to replay."""
+    by the time the episode ends only its last few hundred steps are left to replay. ``after``: the replay of
+    the episode this one continues, whose environment it takes over and resets without a seed (the game goes
+    on: ``games.envs.EpisodicLife``)."""
 
-    def __init__(self, spec: EpisodeSpec):
-        self._key, self._env = _acquire_env(spec.game, spec.sticky, spec.noop_max, spec.one_life)
+    def __init__(self, spec: EpisodeSpec, after: "Replay | None" = None):
+        if after is None:
+            self._key, self._env = _acquire_env(spec.game, spec.sticky, spec.noop_max, spec.one_life)
+            _, info = self._env.reset(seed=spec.seed)
+        else:
+            self._key, self._env = after._key, after._env
+            after._env = None
+            _, info = self._env.reset()
         self._has_lives = bool(get_game(spec.game).lives)
-        _, info = self._env.reset(seed=spec.seed)
         self._lives = int(info.get("lives", 0))
         self.actions: list[int] = []
         self.rewards: list[float] = []
@@ -129,6 +140,20 @@ def replay_actions(spec: EpisodeSpec, actions: list[int], replay: Replay | None 
     return replay
 
 
+def _recorded_actions(spec: EpisodeSpec, steps: pa.Table) -> tuple[list[int] | None, str | None]:
+    """The actions a stored episode recorded (up to its failing step), or (None, why they cannot be replayed)."""
+    raw = steps.column("action").to_pylist()
+    first_null = raw.index(None) if None in raw else len(raw)
+    if steps.column("step").to_pylist() != list(range(steps.num_rows)):
+        return None, "the step rows are not numbered 0, 1, 2, ..."
+    if len(raw) > first_null + 1:
+        return None, f"actions recorded after the failing step {first_null}"
+    actions = raw[:first_null]
+    if any(not 0 <= a < get_game(spec.game).n_actions for a in actions):
+        return None, "an action outside the game's action set was recorded"
+    return actions, None
+
+
 def _float(value: Any, default: float | None = None) -> float | None:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return default
@@ -148,7 +173,8 @@ def _episode_row(spec: EpisodeSpec, reported: dict[str, Any]) -> dict[str, Any]:
         episode_id=spec.episode_id, run_id=spec.run_id, iteration=spec.iteration, kind=spec.kind,
         episode_index=spec.index, game=get_game(spec.game).name, seed=spec.seed,
         policy_version_id=spec.policy_version_id, max_steps=spec.max_steps, traced=spec.trace,
-        sticky=spec.sticky, noop_max=spec.noop_max,
+        sticky=spec.sticky, noop_max=spec.noop_max, continues=spec.continues,
+        start_step=max(0, _int(reported.get("start_step"))),
         started_at=started_at if isinstance(started_at, datetime) else None,
         duration_s=_float(reported.get("duration_s"), 0.0), env_s=_float(reported.get("env_s")),
         policy_s=_float(reported.get("policy_s")),
@@ -235,18 +261,11 @@ def checked_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome, hosted: bool = T
 def replay_outcome(spec: EpisodeSpec, row: dict[str, Any], steps: pa.Table) -> str | None:
     """Replay a stored episode's actions (see the module docstring): None if the replay agrees with ``row`` and
     ``steps`` in every step, else the first disagreement."""
-    row = dict(row)
-    raw = steps.column("action").to_pylist()
-    first_null = raw.index(None) if None in raw else len(raw)
-    actions = raw[:first_null]
-    if steps.column("step").to_pylist() != list(range(steps.num_rows)):
-        return "the step rows are not numbered 0, 1, 2, ..."
-    if len(raw) > first_null + 1:
-        return f"actions recorded after the failing step {first_null}"
-    if any(not 0 <= a < get_game(spec.game).n_actions for a in actions):
-        return "an action outside the game's action set was recorded"
+    actions, why = _recorded_actions(spec, steps)
+    if why is not None:
+        return why
     replay = replay_actions(spec, actions)
-    return _compare(row, steps, replay, len(actions))
+    return _compare(dict(row), steps, replay, len(actions))
 
 
 def _tampered(row: dict[str, Any], steps: pa.Table | None, nodes: pa.Table | None, replay: Replay,
@@ -289,7 +308,8 @@ def tampering(outcomes: list[EpisodeOutcome]) -> str | None:
 
 def replay_run(store: Any, run_id: str) -> list[tuple[str, str | None]]:
     """``codearcade doctor --replay RUN``: (episode id, the first disagreement or None) for every episode of the
-    run that ended by the game or the step cap, replayed from its recorded actions (see the module docstring)."""
+    run that ended by the game or the step cap, replayed from its recorded actions (see the module docstring);
+    the episodes of a continued game in order, each from where the replay of the one before it ended."""
     from store.readers import get_run, replay_material
 
     with store.read() as con:
@@ -297,11 +317,34 @@ def replay_run(store: Any, run_id: str) -> list[tuple[str, str | None]]:
         material = replay_material(con, run_id)
     config = run.get("config") if run else None
     config = json.loads(config) if isinstance(config, str) else (config or {})
+    one_life = one_life_setting(config.get("one_life") or False)
     found = []
+    continued = {row.get("continues") for row, _ in material} - {None}
+    open_games: dict[str, Replay] = {}  # episode id -> its replay, whose game a later episode continues
     for row, steps in material:
+        continues = row.get("continues")
         spec = EpisodeSpec(episode_id=row["episode_id"], run_id=run_id, game=row["game"], policy_text="",
                            policy_version_id="", seed=int(row["seed"] or 0), max_steps=int(row["max_steps"] or 0),
                            sticky=float(row["sticky"] or 0.0), noop_max=int(row["noop_max"] or 0),
-                           one_life=bool(config.get("one_life")))
-        found.append((row["episode_id"], replay_outcome(spec, row, steps)))
+                           one_life=one_life, continues=continues)
+        if one_life != ONE_LIFE_CONTINUE:
+            found.append((row["episode_id"], replay_outcome(spec, row, steps)))
+            continue
+        previous = open_games.pop(continues, None) if continues is not None else None
+        actions, why = _recorded_actions(spec, steps)
+        if why is None and continues is not None and previous is None:
+            why = f"it continues episode {continues}, which was not replayed before it"
+        if why is None:
+            replay = Replay(spec, after=previous)
+            replay.feed(actions)
+            why = _compare(dict(row), steps, replay, len(actions))
+            if row["episode_id"] in continued:
+                open_games[row["episode_id"]] = replay
+            else:
+                replay.release()
+        elif previous is not None:
+            previous.release()
+        found.append((row["episode_id"], why))
+    for replay in open_games.values():
+        replay.release()
     return found
