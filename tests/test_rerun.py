@@ -140,7 +140,13 @@ def test_view_rejects_what_is_not_there(store, capsys):
     assert code == 2 and "no episodes in iteration 3" in err
     code, out, err = run_cli(capsys, "view", run_id, "--episode", 7, "--store", store.path)
     assert code == 2 and "no episode 7" in err
-    assert "rerun" not in sys.modules, "eval --rerun and view's checks never load the Rerun SDK in this process"
+    # in a process of its own: another test module may have loaded the SDK into this one
+    check = ("import contextlib, io, sys\nfrom pipeline.cli import main\n"
+             f"with contextlib.redirect_stderr(io.StringIO()):\n"
+             f"    main(['view', {run_id!r}, '--episode', '7', '--store', {str(store.path)!r}])\n"
+             "print('rerun' in sys.modules)")
+    loaded = subprocess.run([sys.executable, "-c", check], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert loaded.stdout.strip() == "False", ("view's checks never load the Rerun SDK", loaded.stderr[-500:])
 
 
 def test_run_recording_has_one_score_per_iteration(store, tmp_path, scripted, capsys):
