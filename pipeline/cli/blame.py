@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from pipeline.cli.common import EXIT_OK, add_store, non_negative_int, open_store
+from pipeline.cli.common import EXIT_OK, add_run, add_store, non_negative_int, open_store, resolve_run
 
 
 def add_parser(verbs) -> None:
@@ -18,7 +18,7 @@ def add_parser(verbs) -> None:
         "versions like `git blame` (table policy_lines, view line_blame). The version is the run's best unless "
         "--version or --iteration names another.",
     )
-    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
+    add_run(p)
     which = p.add_mutually_exclusive_group()
     which.add_argument("--version", metavar="V", help="policy version id, or a unique prefix of one (default: the best)")
     which.add_argument("--iteration", type=non_negative_int, metavar="I", help="the version evaluated in iteration I")
@@ -30,6 +30,7 @@ def add_parser(verbs) -> None:
 def run(args: argparse.Namespace) -> int:
     from viewers.blame import blame, format_blame
 
-    report = blame(open_store(args), args.run_id, args.version, args.iteration)
+    store = open_store(args)
+    report = blame(store, resolve_run(store, args.run_id), args.version, args.iteration)
     print(json.dumps(report, indent=2, default=str) if args.json else format_blame(report))
     return EXIT_OK

@@ -83,11 +83,26 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def is_version_ref(text: str) -> bool:
-    """A policy file that exists, or ``RUN:VERSION``; anything else is taken for a run id."""
+def is_version_ref(text: str, store=None) -> bool:
+    """A policy file that exists, or ``RUN:VERSION``; anything else is taken for a run (a reference, as every verb
+    takes one). A text with a colon that names a run as it is (a batch run's label, ``pong-ablation:pong,seed=0``)
+    is that run."""
     from pathlib import Path
 
-    return Path(text).is_file() or ":" in text
+    if Path(text).is_file():
+        return True
+    if ":" not in text:
+        return False
+    if store is None or not store.exists():
+        return True
+    from store.runs import resolve_run_id
+
+    with store.read() as con:
+        try:
+            resolve_run_id(con, text, store)
+        except ValueError:
+            return True
+    return False
 
 
 def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] | None = None):
@@ -103,7 +118,7 @@ def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] 
     for ref in (a, b):
         if ref.endswith(".py") and not Path(ref).is_file():
             raise PolicyLoadError(f"policy file '{ref}' does not exist")
-    kinds = [is_version_ref(x) for x in (a, b)]
+    kinds = [is_version_ref(x, store) for x in (a, b)]
     if all(kinds):
         return compare_versions(store, a, b, config, progress)
     if not any(kinds):
