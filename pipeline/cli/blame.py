@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from pipeline.cli.common import EXIT_OK, add_run, add_store, non_negative_int, open_store, resolve_run
+from pipeline.cli.common import EXIT_OK, add_run, add_store, non_negative_int, open_store, resolve_run, short_id
 
 
 def add_parser(verbs) -> None:
@@ -32,5 +32,6 @@ def run(args: argparse.Namespace) -> int:
 
     store = open_store(args)
     report = blame(store, resolve_run(store, args.run_id), args.version, args.iteration)
-    print(json.dumps(report, indent=2, default=str) if args.json else format_blame(report))
+    print(json.dumps(report, indent=2, default=str) if args.json
+          else format_blame({**report, "run_id": short_id(store, report["run_id"])}))
     return EXIT_OK

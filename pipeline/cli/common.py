@@ -151,7 +151,9 @@ def open_store(args: argparse.Namespace, announce: bool = True):
 def store_flag(store) -> list[str]:
     """The ``--store`` words a command printed for the person to run must carry: none when the store is found
     again from here without one (the environment, this directory, a parent, the per-user store)."""
-    return ["--store", str(store.path)] if store.location.rule == "option" else []
+    import os
+
+    return ["--store", os.path.abspath(store.path)] if store.location.rule == "option" else []
 
 
 # ------------------------------------------------------------------------------------------------------ runs

@@ -96,8 +96,8 @@ def add_parser(verbs) -> None:
                          help="LLM calls (an equal budget for comparing strategies)")
     budgets.add_argument("--max-wall", type=float, dest="max_wall_minutes", metavar="MINUTES",
                          help="wall-clock time of the run's iterations")
-    p.add_argument("--resume", metavar="RUN_ID", help="continue a run that was interrupted, failed or stopped by a "
-                   "budget (an id or a unique prefix); budgets, limits, --model/--api-base and a larger "
+    p.add_argument("--resume", metavar="RUN", help="continue a run that was interrupted, failed or stopped by a "
+                   "budget (last, last~N, -N, its label, its id or a unique prefix); budgets, limits, --model/--api-base and a larger "
                    "--iterations may be given again")
     add_name(p, "run (with --resume: a new label for the run)")
     p.add_argument("--dry-run", action="store_true",

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import EXIT_OK, CliError, add_run, add_store, non_negative_int, open_store, resolve_run
+from pipeline.cli.common import (EXIT_OK, CliError, add_run, add_store, non_negative_int, open_store, resolve_run,
+                                 short_id)
 
 
 def add_parser(verbs) -> None:
@@ -63,12 +64,17 @@ def _reused(store, run_id: str, ref: str, iteration: int, episode: str | None) -
     (the evaluation cache), the id of the reused episode ``episode`` names, said on stderr; None otherwise."""
     import shlex
 
+    from store.readers import last_iteration
     from store.showing import episode_list, reused_episodes
 
     with store.read() as con:
         if any(e[1] == iteration for e in episode_list(con, run_id)):
             return None
         reused = reused_episodes(con, run_id, iteration)
+        last = last_iteration(con, run_id)
+    if last is not None and iteration > last["iteration"]:
+        raise CliError(f"run {short_id(store, run_id)} has iterations 0..{last['iteration']}, no iteration "
+                       f"{iteration}; `codearcade report {ref}` shows them")
     if not reused:
         return None
     first = reused[0]
