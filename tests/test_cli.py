@@ -185,7 +185,7 @@ def test_view_explains_episodes_reused_from_an_earlier_iteration(day):
     done = _ok(_cli("view", "morning", "--iteration", "2", "--save", saved, cwd=day["sub"], env=day["env"]))
     note = [line for line in done.stderr.splitlines() if "played no episodes" in line]
     assert len(note) == 1 and "reused" in note[0] and "evaluation cache" in note[0]
-    assert f"assessed in iteration 1" in note[0] and f"showing {morning}.1.train.0" in note[0]
+    assert "assessed in iteration 1" in note[0] and f"showing {morning}.1.train.0" in note[0]
     assert "`codearcade view morning --iteration 1`" in note[0] and saved.stat().st_size > 0
     beyond = _cli("view", "morning", "--iteration", "7", cwd=day["sub"], env=day["env"])
     assert beyond.returncode == 2 and "has iterations 0..2, no iteration 7" in beyond.stderr

@@ -97,9 +97,9 @@ def add_parser(verbs) -> None:
     budgets.add_argument("--max-wall", type=float, dest="max_wall_minutes", metavar="MINUTES",
                          help="wall-clock time of the run's iterations")
     p.add_argument("--resume", metavar="RUN", help="continue a run that was interrupted, failed or stopped by a "
-                   "budget (last, last~N, -N, its label, its id or a unique prefix); budgets, limits, --model/--api-base and a larger "
-                   "--iterations may be given again")
-    add_name(p, "run (with --resume: a new label for the run)")
+                   "budget (last, last~N, -N, its label, its id or a unique prefix); budgets, limits, "
+                   "--model/--api-base and a larger --iterations may be given again")
+    add_name(p, "run (with --resume: its new label)")
     p.add_argument("--dry-run", action="store_true",
                    help="evaluate the starting policy into a temporary store, build the first prompt, and print its "
                    "tokens and the estimated cost of one update and of the whole run; calls no model")
@@ -221,12 +221,12 @@ def run(args: argparse.Namespace) -> int:
         from pipeline.llm.providers import check_reachable
 
         check_reachable(config.api_base)
-    started: dict[str, str] = {}
+    started = {} if run_id is None else {"run_id": run_id, "short": short}
     try:
         return _optimize(args, store, config, run_id, started)
     except KeyboardInterrupt:
         if "run_id" not in started:
-            print("codearcade: interrupted before the run started; nothing was stored", file=sys.stderr)
+            print("codearcade: interrupted before the run was made; nothing was stored", file=sys.stderr)
         else:
             print(f"codearcade: interrupted: run {started['short']} is stored up to its last whole iteration; "
                   f"continue it with `{_resume_command(store, started['short'])}`", file=sys.stderr, flush=True)
@@ -283,7 +283,8 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
     error = shorten_run_ids(result.error, {run_id: short}) if result.error else None
     if args.json:
         print(json.dumps({
-            "run_id": result.run_id, "short_id": short, "name": args.name, "status": result.status, "error": error,
+            "run_id": result.run_id, "short_id": short, "name": args.name, "status": result.status,
+            "error": result.error,
             "iterations": [dict(iteration=i.iteration, policy_version_id=i.policy_version_id, score=i.score,
                                 best_score=i.best_score, update_status=i.update_status, rolled_back=i.rolled_back)
                            for i in result.iterations],

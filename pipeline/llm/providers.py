@@ -19,6 +19,9 @@ table does not list. Everything else asks litellm:
 - :func:`with_cache_breakpoint` marks the stable prefix of a prompt for providers with explicit prompt
   caching (Anthropic's ``cache_control``); OpenAI and others cache prefixes by themselves.
 - :func:`price` gives litellm's price per input and output token, or None for a model it cannot price.
+
+:func:`check_reachable` is the credential check's companion for ``--api-base``: a TCP connection to the URL's host
+and port, with a short time-out, before anything plays.
 """
 
 from __future__ import annotations
