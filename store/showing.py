@@ -84,3 +84,16 @@ def episode_tables(con: duckdb.DuckDBPyConnection, episode_id: str) -> tuple[dic
                     "parents, lines_run FROM nodes WHERE episode_id = $1 ORDER BY step, call_index",
                     params=[episode_id]).to_arrow_table()
     return rows[0], steps, nodes
+
+
+def reused_episodes(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> list[dict[str, Any]]:
+    """The candidates of an iteration whose episodes were reused from an earlier assessment of the same version
+    (``candidates.evaluation = 'cached'``, the evaluation cache), in order: candidate, version, training rollout and
+    evaluation episode ids, and ``played_in``, the iteration that played them."""
+    return _query(con, """
+        SELECT c.candidate, c.policy_version_id, c.decision, c.train_episode_id, c.eval_episode_ids,
+               e.iteration AS played_in
+        FROM candidates c
+        LEFT JOIN episodes e ON e.episode_id = coalesce(c.train_episode_id, c.eval_episode_ids[1])
+        WHERE c.run_id = ? AND c.iteration = ? AND c.evaluation = 'cached'
+        ORDER BY c.candidate""", [run_id, iteration])
