@@ -26,9 +26,10 @@ DEFAULT_STORE = "codearcade.duckdb"
 
 ENV_STORE = "CODEARCADE_STORE"
 
-RULES = ("option", "environment", "here", "parent", "user")
+RULES = ("option", "environment", "here", "parent", "user", "experiment")
 """How a store was chosen: ``--store``; ``$CODEARCADE_STORE``; ``codearcade.duckdb`` in the working directory; in
-a parent directory; the per-user default."""
+a parent directory; the per-user default; an experiment file's ``store`` (``codearcade batch``, which puts it
+between ``--store`` and the environment)."""
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,7 @@ class StoreLocation:
             "parent": "the nearest in a parent directory",
             "user": f"the per-user store: no {DEFAULT_STORE} in this directory or a parent, no --store, "
                     f"no ${ENV_STORE}",
+            "experiment": "named by the experiment file's store",
         }[self.rule]
         return f"store {self.path} ({why})"
 

@@ -101,3 +101,15 @@ def lead_in_actions(con: duckdb.DuckDBPyConnection, episode_id: str) -> list[lis
         GROUP BY c.episode_id, c.depth ORDER BY c.depth DESC""", [episode_id])
     return [row["actions"] or [] for row in chain]
 
+
+def reused_episodes(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> list[dict[str, Any]]:
+    """The candidates of an iteration whose episodes were reused from an earlier assessment of the same version
+    (``candidates.evaluation = 'cached'``, the evaluation cache), in order: candidate, version, training rollout and
+    evaluation episode ids, and ``played_in``, the iteration that played them."""
+    return _query(con, """
+        SELECT c.candidate, c.policy_version_id, c.decision, c.train_episode_id, c.eval_episode_ids,
+               e.iteration AS played_in
+        FROM candidates c
+        LEFT JOIN episodes e ON e.episode_id = coalesce(c.train_episode_id, c.eval_episode_ids[1])
+        WHERE c.run_id = ? AND c.iteration = ? AND c.evaluation = 'cached'
+        ORDER BY c.candidate""", [run_id, iteration])

@@ -103,14 +103,14 @@ def check_user_sql(sql: str) -> None:
                          "VALUES, SHOW, DESCRIBE, SUMMARIZE), EXPLAIN, PRAGMA or CALL")
 
 
-_NAMED = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)=(.*)", re.S)
+_NAMED = re.compile(r"\$?([A-Za-z_][A-Za-z0-9_]*)=(.*)", re.S)
 
 
 def bind_params(sql: str, values: Sequence[str]) -> list[str] | dict[str, str]:
     """The parameters of a person's query from ``--param`` texts: for ``?`` or ``$1, $2, ...`` one value per
-    parameter, in order, each taken as written; for ``$name`` one ``name=value`` each. DuckDB casts each text to the
-    type its place in the query asks for (``iteration = ?`` with ``3``). :class:`QueryError` naming what is missing
-    or extra."""
+    parameter, in order, each taken as written; for ``$name`` one ``name=value`` (or ``$name=value``) each. DuckDB
+    casts each text to the type its place in the query asks for (``iteration = ?`` with ``3``). :class:`QueryError`
+    naming what is missing or extra."""
     check_user_sql(sql)
     wanted = duckdb.extract_statements(sql)[0].named_parameters
     if not wanted:

@@ -95,6 +95,14 @@ def test_identical_versions_never_diverge(store, capsys):
     code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--max-steps", 50, "--store", store.path)
     assert code == 0, err
     assert "the two versions chose the same action at every step" in out and "(the same code)" in out
+    # its two eval runs are compare's own: marked so, left out of `runs` and of last
+    assert store.query("SELECT kind, made_by FROM runs") == [("eval", "compare")] * 2
+    code, out, err = run_cli(capsys, "runs", "--store", store.path)
+    assert code == 0 and out.startswith("no runs in")
+    code, out, err = run_cli(capsys, "runs", "--all", "--json", "--store", store.path)
+    assert [r["made_by"] for r in json.loads(out)] == ["compare", "compare"]
+    code, out, err = run_cli(capsys, "report", "last", "--store", store.path)
+    assert code == 2 and "there are no runs yet" in err
 
 
 def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted):

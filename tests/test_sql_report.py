@@ -125,17 +125,29 @@ def test_sql_reads_the_query_from_stdin(filled, capsys, monkeypatch):
 
 # ----------------------------------------------------------------------------------------------------- runs
 
+def _columns(out: str) -> list[dict[str, str]]:
+    """An aligned table's rows by heading (the dashes under each heading give its column)."""
+    import re
+
+    lines = out.splitlines()
+    spans = [m.span() for m in re.finditer(r"-+", lines[1])]
+    heads = [lines[0][a:b].strip() for a, b in spans]
+    return [{h: line[a:b].strip() for h, (a, b) in zip(heads, spans)} for line in lines[2:]]
+
+
 def test_runs_lists_every_run(filled, capsys):
     store, run_id, eval_id = filled
     code, out, _ = _run(capsys, "runs", "--store", str(store.path))
-    lines = out.splitlines()
-    assert code == 0 and lines[0].split()[:2] == ["run", "created"] and len(lines) == 4
-    opt = next(line for line in lines if line.startswith(run_id)).split()
-    assert opt[3:9] == ["optimize", "pong", "openai/scripted", "finished", "2/2", opt[8]]
+    rows = _columns(out)
+    assert code == 0 and len(rows) == 2 and list(rows[0])[:3] == ["run", "created (UTC)", "kind"]
+    assert eval_id.startswith(rows[0]["run"]) and run_id.startswith(rows[1]["run"]), "newest first, short ids"
+    opt, ev = rows[1], rows[0]
+    assert [opt[k] for k in ("kind", "game", "policy", "strategy", "feedback", "model", "status", "iterations")] == \
+        ["optimize", "pong", "scaffold", "greedy", "staged", "openai/scripted", "finished", "2/2"]
     tokens = store.query("SELECT sum(input_tokens + output_tokens) FROM llm_calls")[0][0]
-    assert int(opt[-1]) == tokens
-    ev = next(line for line in lines if line.startswith(eval_id)).split()
-    assert ev[3:8] == ["eval", "pong", "-", "finished", "-"] and ev[-2:] == ["3", "0"]
+    assert int(opt["tokens"]) == tokens
+    assert [ev[k] for k in ("kind", "game", "strategy", "model", "status", "iterations", "episodes", "tokens")] == \
+        ["eval", "pong", "-", "-", "finished", "-", "3", "-"]
 
     code, out, _ = _run(capsys, "runs", "--json", "--store", str(store.path))
     records = {r["run_id"]: r for r in json.loads(out)}

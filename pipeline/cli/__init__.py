@@ -5,10 +5,13 @@ verbs' modules (``pipeline/cli/<verb>.py``: each adds its own arguments, beside 
 ``common.py`` holds what they share. A verb's module imports what its handler needs only when it runs, so
 ``codearcade --help`` stays quick.
 
-Exit codes: 0 success; 1 the job ran but an episode ended in a policy error, time-out, crash or score
-tampering; 2 bad input (unknown game, missing or broken policy file, unusable or damaged store), with a
-one-line message on stderr; 130 interrupted. Everything a verb prints goes through ``common.show``, which makes
-text from policy code, an LLM's reply or the store safe for a terminal (``viewers/safe_text.py``).
+Every verb's parser is :class:`~pipeline.cli.common.CodearcadeParser`: a typo'd flag or verb is answered in one
+line with the nearest one. Run ids in error messages are printed by their shortest unique prefix.
+
+Exit codes: 0 success; 1 the job ran but an episode ended in a policy error, time-out, crash or score tampering;
+2 bad input (unknown game, missing or broken policy file, unusable or damaged store), with a one-line message on
+stderr; 130 interrupted. Everything a verb prints goes through ``common.show``, which makes text from policy code,
+an LLM's reply or the store safe for a terminal (``viewers/safe_text.py``).
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ from typing import Callable, Sequence
 
 from pipeline.cli import batch, blame, compare, doctor, export, games, new, optimize, replay, report, runs, sql, view
 from pipeline.cli import eval as eval_  # the verb's module (the builtin is not used here)
-from pipeline.cli.common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, show
+from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, CodearcadeParser,
+                                 shorten_in_message, show)
 
 VERBS = (eval_, optimize, batch, doctor, replay, sql, runs, report, blame, games, new, view, export, compare)
 """The verbs' modules, in the order ``codearcade --help`` lists them; each adds its parser (``add_parser``), whose
@@ -28,7 +32,7 @@ handler is its ``run(args)``."""
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CodearcadeParser(
         prog="codearcade",
         description="Game-playing agents whose policies are Python programs, improved by an LLM; "
         "every step and call in a DuckDB store.",
@@ -67,8 +71,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except _user_errors() as exc:  # the message may quote a policy file, a stored text or an LLM's reply
         from pipeline.llm.local import LocalModelError
 
-        # one line; but the offline model's failure ends with its server's log
-        show(f"codearcade: error: {exc}", multiline=isinstance(exc, LocalModelError), file=sys.stderr)
+        # one line (but the offline model's failure ends with its server's log), its run ids as the person types
+        # them: shortest unique prefixes
+        show(f"codearcade: error: {shorten_in_message(str(exc), args)}", multiline=isinstance(exc, LocalModelError),
+             file=sys.stderr)
         return EXIT_BAD_INPUT
     except _store_damage_errors() as exc:  # a store damaged beyond what the checks on opening see
         from store.views import one_line

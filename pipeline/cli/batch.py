@@ -8,7 +8,7 @@ import argparse
 import os
 import sys
 
-from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, positive_int, show
+from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_store, positive_int, short_ids, show
 
 
 def add_parser(verbs) -> None:
@@ -25,13 +25,15 @@ def add_parser(verbs) -> None:
     p.add_argument("--executor", choices=["local", "ray"], default="local",
                    help="local processes (default) or a Ray cluster")
     p.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
-    p.add_argument("--dry-run", action="store_true", help="list what would run, and do nothing")
+    p.add_argument("--dry-run", action="store_true",
+                   help="list what would run (each run's label in the store), warn of unset API keys and servers "
+                   "that do not answer, and do nothing")
     p.add_argument("--log", metavar="FILE", help="plain log file (default: <store>.<batch>.log beside the store)")
     add_store(p)
     p.set_defaults(handler=run)
 
 
-def _batch_display():
+def _batch_display(store):
     """A live table on a terminal (rich), nothing otherwise (the log lines tell the story). Its cells are plain
     ``Text``, never rich markup (a label or a failure's note is anyone's text: ``[link=...]`` stays as written),
     and terminal-safe (``viewers/safe_text.py``)."""
@@ -47,13 +49,18 @@ def _batch_display():
     live.start()
 
     def show(progress) -> None:
+        try:
+            short = short_ids(store)
+        except Exception:  # the store is made by the first run; until then there is nothing to shorten
+            short = {}
         table = Table(title="codearcade batch", expand=False)
         for column in ("run", "state", "iteration", "best", "run id"):
             table.add_column(column)
         for p in progress:
             it = "-" if p.iteration is None else f"{p.iteration}/{p.iterations}"
             best = "-" if p.best is None else f"{p.best:g}"
-            table.add_row(*(Text(terminal_text(cell)) for cell in (p.label, p.state, it, best, p.run_id or "")))
+            table.add_row(*(Text(terminal_text(cell)) for cell in (p.label, p.state, it, best,
+                                                                    short.get(p.run_id, p.run_id) or "")))
         counts = {s: sum(1 for p in progress if p.state == s)
                   for s in ("finished", "budget", "running", "failed", "skipped")}
         table.caption = "  ".join(f"{k} {v}" for k, v in counts.items())
@@ -62,36 +69,66 @@ def _batch_display():
     return show, live.stop
 
 
+def _endpoint_problems(planned) -> list[str]:
+    """One line per model whose key is unset, and per ``api_base`` that does not answer, among the runs that
+    would start or resume (``pipeline/llm/providers.py``), with how many runs each would stop."""
+    from pipeline.llm.providers import check_credentials, check_reachable
+
+    found: dict[tuple, str | None] = {}  # each model and each server checked once
+    problems: dict[str, int] = {}
+    for item in planned:
+        config = item.run.config
+        if item.action == "skip":
+            continue
+        checks = ([(check_credentials, config.model, config.api_base)] if config.model else []) + \
+            ([(check_reachable, config.api_base)] if config.api_base else [])
+        for check, *values in checks:
+            key = (check.__name__, *values)
+            if key not in found:
+                try:
+                    check(*values)
+                    found[key] = None
+                except ValueError as exc:  # MissingCredentialsError, UnreachableEndpointError
+                    found[key] = str(exc)
+            if found[key] is not None:
+                problems[found[key]] = problems.get(found[key], 0) + 1
+    return [f"{text} ({n} run{'s' * (n != 1)})" for text, n in problems.items()]
+
+
 def run(args: argparse.Namespace) -> int:
     from datetime import datetime
     from pathlib import Path
 
     from pipeline.jobs.batch import load_experiments, plan, run_local, run_ray
-    from store import Store
+    from store import Store, StoreLocation, locate_store
     from viewers.safe_text import terminal_text
 
     batch = load_experiments(args.experiments)
-    if args.store:
-        store = Store(args.store)
-    elif batch.store:
-        store = Store(Path(batch.store))  # relative to where the user runs it, like --store
-    else:
-        store = Store()
+    if args.store or not batch.store:
+        location = locate_store(args.store)
+    else:  # relative to where the user runs it, like --store
+        location = StoreLocation(Path(batch.store), "experiment")
+    if location.surprising:
+        show(f"codearcade: {location.describe()}", file=sys.stderr, flush=True)
+    store = Store(location)
     planned = plan(batch, store)
-    if not args.dry_run:  # a missing key stops the batch before any run starts
-        from pipeline.llm.providers import check_credentials
-
-        for item in planned:
-            if item.action != "skip" and item.run.config.model:
-                check_credentials(item.run.config.model, item.run.config.api_base)
+    problems = _endpoint_problems(planned)
     if args.dry_run:
+        short = short_ids(store) if store.exists() else {}
         show(f"batch {batch.name}: {len(planned)} runs into {store.path}")
         for p in planned:
-            show(f"  {p.action:<6} {p.run.label}" + (f"  (run {p.run_id}, {p.status})" if p.run_id else ""))
+            name = f"  [{p.run.name}]" if p.run.name else ""
+            show(f"  {p.action:<6} {p.run.label}{name}"
+                 + (f"  (run {short.get(p.run_id, p.run_id)}, {p.status})" if p.run_id else ""))
+        for line in problems:  # what would stop the batch: said now, before it is run for real
+            show(f"codearcade: warning: {line}", file=sys.stderr)
         return EXIT_OK
+    if problems:  # a missing key or a server that does not answer stops the batch before any run starts
+        raise CliError(problems[0] + (f"; and {len(problems) - 1} more problem(s): `codearcade batch "
+                                      f"{args.experiments} --dry-run` lists them" if len(problems) > 1 else ""))
     log_path = Path(args.log) if args.log else store.path.with_name(f"{store.path.name}.{batch.name}.log")
     log_file = open(log_path, "a")
-    display, stop = _batch_display()
+    display, stop = _batch_display(store)
     quiet = sys.stdout.isatty()
 
     def log(line: str) -> None:

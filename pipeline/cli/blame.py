@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.cli.common import EXIT_OK, add_store, non_negative_int, open_store, show, show_json
+from pipeline.cli.common import (EXIT_OK, add_run, add_store, non_negative_int, open_store, resolve_run, short_id, show,
+                                 show_json)
 
 
 def add_parser(verbs) -> None:
@@ -17,7 +18,7 @@ def add_parser(verbs) -> None:
         "versions like `git blame` (table policy_lines, view line_blame). The version is the run's best unless "
         "--version or --iteration names another.",
     )
-    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
+    add_run(p)
     which = p.add_mutually_exclusive_group()
     which.add_argument("--version", metavar="V", help="policy version id, or a unique prefix of one (default: the best)")
     which.add_argument("--iteration", type=non_negative_int, metavar="I", help="the version evaluated in iteration I")
@@ -29,9 +30,10 @@ def add_parser(verbs) -> None:
 def run(args: argparse.Namespace) -> int:
     from viewers.blame import blame, format_blame
 
-    report = blame(open_store(args), args.run_id, args.version, args.iteration)
+    store = open_store(args)
+    report = blame(store, resolve_run(store, args.run_id), args.version, args.iteration)
     if args.json:
         show_json(report, default=str)
-    else:
-        show(format_blame(report), multiline=True)  # each line of it terminal-safe already (a policy's own lines)
+    else:  # each line of it terminal-safe already (a policy's own lines)
+        show(format_blame({**report, "run_id": short_id(store, report["run_id"])}), multiline=True)
     return EXIT_OK

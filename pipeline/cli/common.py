@@ -1,13 +1,17 @@
-"""What the verbs of the command line share: exit codes, the one-line user error, ``--store`` and ``--rerun``,
-argument types, resolving a run id, and :func:`show`, through which every verb prints.
+"""What the verbs of the command line share: exit codes, the one-line user error, :func:`show`, through which every
+verb prints, the parser every verb uses (a typo'd flag or verb answered with the nearest one), ``--store`` (found
+by ``store/locate.py``) and ``--rerun``, argument types, and run references: resolving them and printing ids by
+their shortest unique prefix.
 """
 
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
+import re
 import sys
-from typing import IO, Any, Callable
+from typing import IO, Any, Callable, Iterable, Sequence
 
 from viewers.safe_text import terminal_json, terminal_text
 
@@ -32,13 +36,112 @@ def show_json(value: Any, *, default: Callable[[Any], Any] | None = None, ensure
     print(terminal_json(json.dumps(value, indent=2, default=default, ensure_ascii=ensure_ascii)))
 
 
+# --------------------------------------------------------------------------------------------------- parsing
+
+
+class CodearcadeParser(argparse.ArgumentParser):
+    """The parser of ``codearcade`` and of every verb (``add_subparsers`` makes each verb's parser of its parent's
+    class): a mistake on the command line is one line on stderr, ``codearcade eval: unknown flag --epsiodes; did
+    you mean --episodes?``, with the nearest flag, verb or choice (``difflib``) where there is one, and exit 2."""
+
+    def parse_known_args(self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None):
+        # kept for error(): argparse reports a missing argument before the flags it did not know
+        self._given = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
+    def parse_args(self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None):
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:  # left over by the verb's parser (argparse hands them up to this one)
+            verb = self._verb_parser(parsed)
+            (verb or self).error((verb or self).unknown_message(extras))
+        return parsed
+
+    def _verb_parser(self, parsed: argparse.Namespace) -> "CodearcadeParser | None":
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                chosen = action.choices.get(getattr(parsed, action.dest, None) or "")
+                return chosen if isinstance(chosen, CodearcadeParser) else None
+        return None
+
+    def _long_flags(self) -> list[str]:
+        return [s for s in self._option_string_actions if s.startswith("--")]
+
+    def _is_known(self, token: str) -> bool:
+        flag = token.split("=", 1)[0]
+        if flag in self._option_string_actions:
+            return True
+        # argparse takes an unambiguous start of a long flag (--epi for --episodes)
+        return flag.startswith("--") and len([s for s in self._long_flags() if s.startswith(flag)]) == 1
+
+    def _unknown_flags(self, tokens: Iterable[str]) -> list[str]:
+        unknown = []
+        for token in tokens:
+            if token == "--":
+                break
+            if token.startswith("--") and len(token) > 2 and not self._is_known(token):
+                unknown.append(token.split("=", 1)[0])
+        return unknown
+
+    def unknown_message(self, extras: Sequence[str]) -> str:
+        """What to say of arguments this parser did not take: the first unknown flag and its nearest known one."""
+        flags = self._unknown_flags(extras) or [t.split("=", 1)[0] for t in extras
+                                                if t.startswith("-") and not _is_number(t)]
+        if not flags:
+            return f"unexpected argument{'s' * (len(extras) != 1)} {' '.join(extras)}; `{self.prog} --help` " \
+                   "shows the usage"
+        return self._flag_message(flags[0])
+
+    def _flag_message(self, flag: str) -> str:
+        close = difflib.get_close_matches(flag, self._long_flags() if flag.startswith("--")
+                                          else list(self._option_string_actions), n=1, cutoff=0.6)
+        if close:
+            return f"unknown flag {flag}; did you mean {close[0]}?"
+        return f"unknown flag {flag}; `{self.prog} --help` lists the flags"
+
+    def error(self, message: str):  # noqa: D102 (argparse's hook)
+        typo = self._unknown_flags(getattr(self, "_given", ()))
+        if typo and "required" in message:  # `report --lsat`: the typo, not the RUN it kept from being read
+            message = self._flag_message(typo[0])
+        else:
+            message = self._nearest_choice(message)
+        if not message.startswith(("unknown flag", "unknown verb", "unexpected argument")) and \
+                "did you mean" not in message and "choose from" not in message:
+            message += f" (`{self.prog} --help` shows the usage)"
+        self.exit(2, f"{self.prog}: {message}\n")
+
+    def _nearest_choice(self, message: str) -> str:
+        """argparse's "invalid choice" with the nearest choice named; an unknown verb said so."""
+        match = re.match(r"argument (\S+): invalid choice: '(.*)' \(choose from (.*)\)$", message, re.S)
+        if match is None:
+            return message
+        name, value, listed = match.groups()
+        choices = re.findall(r"'([^']*)'", listed)
+        close = difflib.get_close_matches(value, choices, n=1, cutoff=0.5)
+        hint = f"; did you mean {close[0]}?" if close else ""
+        if name == "VERB":
+            return f"unknown verb {value!r}{hint or '; `codearcade --help` lists the verbs'}"
+        return f"argument {name}: invalid choice {value!r}{hint} (choose from {', '.join(choices)})"
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+# ----------------------------------------------------------------------------------------------------- store
+
+
+STORE_HELP = ("the DuckDB store; without it: $CODEARCADE_STORE, else the nearest codearcade.duckdb in this "
+              "directory or a parent (as git finds .git), else the per-user "
+              "~/.local/share/codearcade/codearcade.duckdb")
+"""``--store``'s help: the rule of ``store/locate.py``."""
+
+
 def add_store(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--store",
-        default=None,
-        metavar="PATH",
-        help="DuckDB store file (default: $CODEARCADE_STORE or ./codearcade.duckdb)",
-    )
+    p.add_argument("--store", default=None, metavar="PATH", help=STORE_HELP)
 
 
 def add_rerun(p: argparse.ArgumentParser) -> None:
@@ -48,18 +151,104 @@ def add_rerun(p: argparse.ArgumentParser) -> None:
                    "a rerun+http://HOST:PORT/proxy url streams there; off (default) records nothing")
 
 
-def open_store(args: argparse.Namespace):
-    from store import Store
+def open_store(args: argparse.Namespace, announce: bool = True):
+    """The store the command uses (``store/locate.py``: ``--store``, ``$CODEARCADE_STORE``, the nearest
+    ``codearcade.duckdb`` here or in a parent directory, the per-user store). Where the choice may surprise (a
+    parent directory's store, or the per-user one), one line on stderr says which it is, unless ``announce`` is
+    off (a verb that names the store itself) or there is no such file yet (the verb's error says so, or its start
+    line names the store it makes)."""
+    from store import Store, locate_store
 
-    return Store(args.store) if args.store else Store()
+    location = locate_store(getattr(args, "store", None))
+    if announce and location.surprising and location.path.exists():  # a missing one: the error or start line says
+        show(f"codearcade: {location.describe()}", file=sys.stderr, flush=True)
+    return Store(location)
+
+
+def store_flag(store) -> list[str]:
+    """The ``--store`` words a command printed for the person to run must carry: none when the store is found
+    again from here without one (the environment, this directory, a parent, the per-user store)."""
+    import os
+
+    return ["--store", os.path.abspath(store.path)] if store.location.rule == "option" else []
+
+
+# ------------------------------------------------------------------------------------------------------ runs
+
+
+RUN_HELP = ("the run: last (the newest), last~N (the N-th before it), -N (the N-th newest), its label, its id or a "
+            "unique prefix of one (`codearcade runs` lists them)")
+"""What a RUN argument takes (``store/runs.py``), said the same in every verb."""
+
+
+def add_run(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run_id", metavar="RUN", help=RUN_HELP)
 
 
 def resolve_run(store, text: str) -> str:
-    """The run whose id is ``text`` or starts with it (every verb that takes a run accepts a unique prefix)."""
-    from store.views import resolve_run_id
+    """The run ``text`` names (``store/runs.py``: a whole id, ``last``, ``last~N``, ``-N``, a label or a unique
+    prefix), the same in every verb."""
+    from store.runs import resolve_run_id
 
     with store.read() as con:
         return resolve_run_id(con, text, store)
+
+
+def short_ids(store) -> dict[str, str]:
+    """Every run id of the store -> its shortest unique prefix (as git abbreviates commits)."""
+    from store.runs import short_run_ids
+
+    with store.read() as con:
+        return short_run_ids(con)
+
+
+def short_id(store, run_id: str) -> str:
+    """``run_id``'s shortest unique prefix in ``store`` (the id itself when the store does not have it)."""
+    return short_ids(store).get(run_id, run_id)
+
+
+_RUN_ID = re.compile(r"\b[0-9A-HJKMNP-TV-Z]{26}\b(?!\.[0-9])")
+"""A ULID, not one that starts an episode id (``RUN.ITERATION.KIND.INDEX``, which is only ever given whole)."""
+
+
+def shorten_run_ids(text: str, short: dict[str, str]) -> str:
+    """``text`` with every whole run id of ``short`` replaced by its shortest unique prefix."""
+    return _RUN_ID.sub(lambda m: short.get(m.group(0), m.group(0)), text)
+
+
+def shorten_in_message(text: str, args: argparse.Namespace | None) -> str:
+    """An error message with its run ids shortened, read from the command's store when it has one and it opens
+    at once; the message unchanged otherwise (an error is never lost to this)."""
+    if not _RUN_ID.search(text) or args is None:
+        return text
+    try:
+        from store import Store, locate_store
+
+        location = locate_store(getattr(args, "store", None))
+        if not location.path.is_file():
+            return text
+        return shorten_run_ids(text, short_ids(Store(location, lock_timeout_s=1.0)))
+    except Exception:  # a locked or damaged store: the whole ids are still right
+        return text
+
+
+def run_name(text: str) -> str:
+    """``--name``: a run's label, checked as the store checks it (``store/runs.py``)."""
+    from store.runs import check_run_name
+
+    try:
+        return check_run_name(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_name(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--name", type=run_name, metavar="LABEL",
+                   help=f"a label for the {what}: every verb then takes LABEL for it, as for its id "
+                   "(starts with a letter, at most 64 characters)")
+
+
+# ------------------------------------------------------------------------------------------- argument types
 
 
 def positive_int(text: str) -> int:
@@ -91,3 +280,8 @@ def rerun_target(value: str | None) -> str | None:
         return resolve_live_target(value)
     except ViewerError as exc:
         raise CliError(str(exc)) from None
+
+
+def json_default(value: Any) -> str:
+    """``json.dumps``'s fallback for the store's timestamps and decimals."""
+    return str(value)

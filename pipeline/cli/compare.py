@@ -9,7 +9,8 @@ import os
 import sys
 from typing import Callable
 
-from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, positive_int, show, show_json
+from pipeline.cli.common import (EXIT_OK, CliError, add_store, non_negative_int, open_store, positive_int, short_ids,
+                                 shorten_run_ids, show, show_json)
 
 
 def add_parser(verbs) -> None:
@@ -17,16 +18,18 @@ def add_parser(verbs) -> None:
     p = verbs.add_parser(
         "compare",
         help="compare two runs, or play two policy versions on the same seeds and find where they part",
-        description="Two runs (ids or unique prefixes): their learning curves on one plot, the best score each "
-        "reached within the same LLM calls, tokens and wall seconds, and the diff of their best versions. Two "
-        "versions of one game (policy files, or RUN:VERSION for a version stored in a run: an id, a unique "
-        "prefix of one, or 'best'): both play the same seeds, traced, into the store (two eval runs), and the "
-        "report names the first step where their actions differ, with both sides' observations and node "
-        "outputs around it.",
-        epilog="examples: codearcade compare 01JDA 01JDB --out cmp/   |   codearcade compare pong_a.py pong_b.py "
-        "--max-steps 600 --rerun side_by_side.rrd   |   codearcade compare 01JDA:best 01JDB:best",
+        description="Two runs (each as every verb takes a run: last, last~N, -N, a label, an id or a unique "
+        "prefix of one): their learning curves on one plot, the best score each reached within the same LLM "
+        "calls, tokens and wall seconds, and the diff of their best versions. Two versions of one game (policy "
+        "files, or RUN:VERSION for a version stored in a run: a version id, a unique prefix of one, or 'best'): "
+        "both play the same seeds, traced, into the store (two eval runs, which `codearcade runs` and last leave "
+        "out), and the report names the first step where their actions differ, with both sides' observations "
+        "and node outputs around it.",
+        epilog="examples: codearcade compare last~1 last --out cmp/   |   codearcade compare pong_a.py pong_b.py "
+        "--max-steps 600 --rerun side_by_side.rrd   |   codearcade compare last~1:best last:best",
     )
-    p.add_argument("a", metavar="A", help="a run id, a policy file or RUN:VERSION")
+    p.add_argument("a", metavar="A", help="a run (last, last~N, -N, a label, an id or a unique prefix), a policy "
+                   "file or RUN:VERSION")
     p.add_argument("b", metavar="B", help="the same kind as A")
     p.add_argument("--out", metavar="DIR", help="write README.md there (and curves.png for two runs); default for "
                    "two runs: ./reports/compare-A-B; two versions: no files")
@@ -65,15 +68,16 @@ def run(args: argparse.Namespace) -> int:
         if data["mode"] != "versions":
             raise CliError("--rerun shows two played episodes: it goes with two versions (files or RUN:VERSION)")
         data["rerun"] = _compare_recording(store, data, args.rerun)
+    shown = _with_short_ids(store, data)
     out = Path(args.out) if args.out else (
-        Path("reports") / f"compare-{data['runs'][0]['run_id']}-{data['runs'][1]['run_id']}"
+        Path("reports") / f"compare-{shown['runs'][0]['run_id']}-{shown['runs'][1]['run_id']}"
         if data["mode"] == "runs" else None)
     if out is not None:
         data["report"] = str(write_report(data, out))
     if args.json:
         show_json(data, default=str)
         return EXIT_OK
-    for line in text_lines(data):  # terminal-safe already; the tables and the diff span lines
+    for line in text_lines(shown):  # terminal-safe already; the tables and the diff span lines
         show(line, multiline=True)
     if data.get("rerun"):
         show(f"side-by-side recording: {data['rerun']}")
@@ -82,11 +86,41 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def is_version_ref(text: str) -> bool:
-    """A policy file that exists, or ``RUN:VERSION``; anything else is taken for a run id."""
+def _with_short_ids(store, data: dict) -> dict:
+    """``data`` with its run ids as a terminal shows them: by their shortest unique prefix in the store (in the
+    diff's two header lines too; its body is the policies' code, shown as it is)."""
+    short = short_ids(store)
+    shown = dict(data)
+    if data.get("diff"):
+        head, body = data["diff"].split("\n", 2)[:2], data["diff"].split("\n", 2)[2:]
+        shown["diff"] = "\n".join([shorten_run_ids(line, short) for line in head] + body)
+    if "runs" in data:
+        shown["runs"] = [{**r, "run_id": short.get(r["run_id"], r["run_id"])} for r in data["runs"]]
+    if "versions" in data:
+        shown["versions"] = [{**v, "eval_run": short.get(v["eval_run"], v["eval_run"])} for v in data["versions"]]
+    return shown
+
+
+def is_version_ref(text: str, store=None) -> bool:
+    """A policy file that exists, or ``RUN:VERSION``; anything else is taken for a run (a reference, as every verb
+    takes one). A text with a colon that names a run as it is (a batch run's label, ``pong-ablation:pong,seed=0``)
+    is that run."""
     from pathlib import Path
 
-    return Path(text).is_file() or ":" in text
+    if Path(text).is_file():
+        return True
+    if ":" not in text:
+        return False
+    if store is None or not store.exists():
+        return True
+    from store.runs import resolve_run_id
+
+    with store.read() as con:
+        try:
+            resolve_run_id(con, text, store)
+        except ValueError:
+            return True
+    return False
 
 
 def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] | None = None):
@@ -102,7 +136,7 @@ def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] 
     for ref in (a, b):
         if ref.endswith(".py") and not Path(ref).is_file():
             raise PolicyLoadError(f"policy file '{ref}' does not exist")
-    kinds = [is_version_ref(x) for x in (a, b)]
+    kinds = [is_version_ref(x, store) for x in (a, b)]
     if all(kinds):
         return compare_versions(store, a, b, config, progress)
     if not any(kinds):

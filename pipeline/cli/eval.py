@@ -7,8 +7,9 @@ import os
 import sys
 
 from games import GAMES
-from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, FAILED_END_REASONS, add_rerun, add_store,
-                                 non_negative_int, open_store, positive_int, probability, rerun_target, show, show_json)
+from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, FAILED_END_REASONS, add_name, add_rerun, add_store,
+                                 non_negative_int, open_store, positive_int, probability, rerun_target, short_id, show,
+                                 show_json)
 
 
 def add_parser(verbs) -> None:
@@ -46,6 +47,7 @@ def add_parser(verbs) -> None:
                    help="time limit of one policy call (default: 1.0)")
     p.add_argument("--episode-time-limit", type=float, default=900.0, metavar="SECONDS",
                    help="wall-clock limit of one episode (default: 900)")
+    add_name(p, "run")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     add_rerun(p)
     add_store(p)
@@ -81,7 +83,10 @@ def _progress_bar(episodes: int, description: str):
 
 
 def run(args: argparse.Namespace) -> int:
+    import time
+
     from pipeline.play.evaluate import EvalConfig, evaluate
+    from viewers.safe_text import terminal_text
 
     workers = args.workers if args.workers is not None else min(args.episodes, os.cpu_count() or 1)
     config = EvalConfig(
@@ -92,21 +97,38 @@ def run(args: argparse.Namespace) -> int:
     )
     store = open_store(args)
     bar, update, finished = _progress_bar(args.episodes, f"eval {os.path.basename(args.policy)}")
+    label = f" '{args.name}'" if args.name else ""
+
+    def started(run_id: str) -> None:  # the run's row is stored: its id can be given to other verbs from now on
+        if not args.json:
+            # through tqdm, above its bar; made terminal-safe as show() does (the label is the person's text)
+            bar.write(terminal_text(f"run {short_id(store, run_id)}{label} started: eval "
+                                    f"{os.path.basename(args.policy)}, {args.episodes} episode(s); "
+                                    f"{store.location.describe()}"), file=sys.stdout)
+
+    began = time.monotonic()
     try:
-        result = evaluate(args.policy, config, store, progress=update, on_episode=finished)
+        result = evaluate(args.policy, config, store, progress=update, on_episode=finished, run_name=args.name,
+                          on_start=started)
     finally:
         bar.close()
+    elapsed = time.monotonic() - began
     summary = result.summary()
+    short = short_id(store, result.run_id)
+    steps = sum(e["length"] for e in summary["episodes"])
+    summary.update(short_id=short, name=args.name, elapsed_s=round(elapsed, 3), steps=steps,
+                   steps_per_s=round(steps / elapsed, 1) if elapsed > 0 else None)
     failed = [e for e in summary["episodes"] if e["end_reason"] in FAILED_END_REASONS]
     if args.json:
         show_json(summary)
     else:
-        show(f"run {result.run_id}  game {result.game}  policy {result.policy_version_id}  store {store.path}")
+        show(f"run {short}{label}  game {result.game}  policy {result.policy_version_id}  store {store.path}")
         show(f"{'episode':>7}  {'seed':>5}  {'return':>8}  {'length':>6}  end reason")
         for i, e in enumerate(summary["episodes"]):
             show(f"{i:>7}  {e['seed']:>5}  {e['return']:>8.1f}  {e['length']:>6}  {e['end_reason']}")
         returns = [e["return"] for e in summary["episodes"]]
-        show(f"mean return {sum(returns) / len(returns):.2f} over {len(returns)} episode(s)")
+        show(f"mean return {sum(returns) / len(returns):.2f} over {len(returns)} episode(s); {steps:,} steps in "
+             f"{elapsed:.1f} s ({summary['steps_per_s'] or 0:,.0f} steps/s, setup and checks included)")
     for e in failed:  # the error is the policy's exception: escape sequences in it must not reach the terminal
         show(f"codearcade: episode {e['episode_id']} ended with {e['end_reason']}: {e['error']}", file=sys.stderr)
     return EXIT_EPISODE_FAILED if failed else EXIT_OK

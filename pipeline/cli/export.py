@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, resolve_run, show, show_json
+from pipeline.cli.common import (EXIT_OK, CliError, add_run, add_store, non_negative_int, open_store, resolve_run,
+                                 short_id, show, show_json)
 
 
 def add_parser(verbs) -> None:
@@ -19,7 +20,7 @@ def add_parser(verbs) -> None:
         "Tempo or any OTLP receiver. Ids come from the run id, so exporting again sends the same spans "
         "(viewers/otlp_export.py says what receivers do with them).",
     )
-    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
+    add_run(p)
     p.add_argument("--otlp", required=True, metavar="URL",
                    help="the receiver: for http/protobuf its base URL (e.g. http://127.0.0.1:4318, Phoenix "
                    "http://127.0.0.1:6006; /v1/traces is appended unless the URL ends with it), for grpc its "
@@ -60,6 +61,6 @@ def run(args: argparse.Namespace) -> int:
         names = {"run": ("run", "runs"), "iteration": ("iteration", "iterations"), "llm_call": ("LLM call", "LLM calls"),
                  "episode": ("episode", "episodes")}
         kinds = ", ".join(f"{n} {names.get(kind, (kind, kind))[n != 1]}" for kind, n in report.spans.items())
-        show(f"run {report.run_id}: {sum(report.spans.values())} spans ({kinds}) sent to {report.endpoint} "
-             f"({report.protocol}); trace id {report.trace_id}")
+        show(f"run {short_id(store, report.run_id)}: {sum(report.spans.values())} spans ({kinds}) sent to "
+             f"{report.endpoint} ({report.protocol}); trace id {report.trace_id}")
     return EXIT_OK

@@ -8,8 +8,9 @@ import sys
 from typing import Callable
 
 from games import GAMES
-from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_rerun, add_store, non_negative_int,
-                                 open_store, positive_int, probability, rerun_target, show, show_json)
+from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError, add_name, add_rerun,
+                                 add_store, non_negative_int, open_store, positive_int, probability, rerun_target,
+                                 short_id, shorten_run_ids, show, show_json, store_flag)
 from pipeline.optimizer.strategies import STRATEGIES
 from viewers.safe_text import terminal_text
 
@@ -100,9 +101,10 @@ def add_parser(verbs) -> None:
                          help="LLM calls (an equal budget for comparing strategies)")
     budgets.add_argument("--max-wall", type=float, dest="max_wall_minutes", metavar="MINUTES",
                          help="wall-clock time of the run's iterations")
-    p.add_argument("--resume", metavar="RUN_ID", help="continue a run that was interrupted, failed or stopped by a "
-                   "budget (an id or a unique prefix); budgets, limits, --model/--api-base and a larger "
-                   "--iterations may be given again")
+    p.add_argument("--resume", metavar="RUN", help="continue a run that was interrupted, failed or stopped by a "
+                   "budget (last, last~N, -N, its label, its id or a unique prefix); budgets, limits, "
+                   "--model/--api-base and a larger --iterations may be given again")
+    add_name(p, "run (with --resume: its new label)")
     p.add_argument("--dry-run", action="store_true",
                    help="evaluate the starting policy into a temporary store, build the first prompt, and print its "
                    "tokens and the estimated cost of one update and of the whole run; calls no model")
@@ -194,21 +196,23 @@ def run(args: argparse.Namespace) -> int:
         check_credentials(args.model, args.api_base)
     if args.show_prompt and not args.dry_run:
         raise CliError("--show-prompt goes with --dry-run")
-    from pipeline.llm.client import OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET, open_client
+    from pipeline.llm.client import OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET
     from pipeline.optimizer.config import OptimizeConfig
-    from pipeline.optimizer.loop import optimize, plan_resume
+    from pipeline.optimizer.loop import plan_resume
 
-    store = open_store(args)
+    store = open_store(args, announce=False)  # the start line names the store and why it is that one
     if args.resume:
         if args.dry_run:
             raise CliError("--dry-run starts a new run; it cannot go with --resume")
         plan = plan_resume(store, args.resume, given)
+        short = short_id(store, plan.run_id)
         if plan.nothing_to_do:
+            note = shorten_run_ids(plan.nothing_to_do, {plan.run_id: short})
             if args.json:
-                show_json({"run_id": plan.run_id, "status": plan.status, "error": None, "iterations": [],
-                           "note": plan.nothing_to_do})
+                show_json({"run_id": plan.run_id, "short_id": short, "status": plan.status, "error": None,
+                           "iterations": [], "note": note})
             else:
-                show(plan.nothing_to_do)
+                show(note)
             return EXIT_OK
         config, run_id = plan.config, plan.run_id
         if config.model and "model" not in given:
@@ -223,18 +227,62 @@ def run(args: argparse.Namespace) -> int:
         config, run_id = OptimizeConfig(**given), None
     if args.dry_run:
         return _dry_run(config, args)
+    if config.api_base:  # a server that does not answer: one line now, not a failed call after iteration 0
+        from pipeline.llm.providers import check_reachable
+
+        check_reachable(config.api_base)
+    started = {} if run_id is None else {"run_id": run_id, "short": short}
+    try:
+        return _optimize(args, store, config, run_id, started)
+    except KeyboardInterrupt:
+        if "run_id" not in started:
+            show("codearcade: interrupted before the run was made; nothing was stored", file=sys.stderr)
+        else:
+            show(f"codearcade: interrupted: run {started['short']} is stored up to its last whole iteration; "
+                 f"continue it with `{_resume_command(store, started['short'])}`", file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+
+
+def _resume_command(store, run: str, *more: str) -> str:
+    import shlex
+
+    return shlex.join(["codearcade", "optimize", "--resume", run, *more, *store_flag(store)])
+
+
+def _optimize(args: argparse.Namespace, store, config, run_id: str | None, started: dict[str, str]) -> int:
+    """Start (or resume) the run, print its start line, run the loop, print its end; ``started`` gets the run's id
+    as soon as it exists (for the interrupt message)."""
+    from pipeline.llm.client import open_client
+    from pipeline.optimizer.loop import optimize, start_run
+    from store.readers import get_run
+    from store.writer import set_run_name
+
+    say = (lambda line: show(line, file=sys.stderr, flush=True)) if args.json else \
+        (lambda line: show(line, flush=True))
     offline = config.model is None
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
                                       config.seed, stream=args.stream)
-    if cap is not None and config.token_budget > cap:
-        config.token_budget = cap
-    for name in getattr(client, "dropped", ()):
-        show(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
-    rerun = rerun_target(args.rerun)
-    on_iteration, recordings = _run_recordings(store, rerun, None if args.json else _print_iteration)
+    recordings = None
     try:
-        if not args.json:
-            show(f"store {store.path}  model {client.label}{' (offline default)' if offline else ''}", flush=True)
+        if cap is not None and config.token_budget > cap:
+            config.token_budget = cap
+        for name in getattr(client, "dropped", ()):
+            show(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
+        rerun = rerun_target(args.rerun)
+        resumed = run_id is not None
+        if run_id is None:  # made here, so that its id is printed before iteration 0 plays
+            run_id = start_run(config, store, client.label)
+        started["run_id"] = started["short"] = run_id
+        if args.name is not None:
+            with store.write() as con:
+                set_run_name(con, run_id, args.name)
+        started["short"] = short = short_id(store, run_id)
+        with store.read() as con:
+            game = get_run(con, run_id)["game"]
+        label = f" '{args.name}'" if args.name else ""
+        say(f"run {short}{label} {'resumed' if resumed else 'started'}: optimize {game}, model {client.label}"
+            f"{' (offline default)' if offline else ''}; {store.location.describe()}")
+        on_iteration, recordings = _run_recordings(store, rerun, None if args.json else _print_iteration)
         result = optimize(config, store, client, resume=run_id, on_iteration=on_iteration,
                           log=lambda line: show(line, file=sys.stderr), rerun=rerun, waiting=_llm_waiting())
     finally:
@@ -242,22 +290,24 @@ def run(args: argparse.Namespace) -> int:
             server.stop()
         if recordings is not None:
             recordings.close()
+    error = shorten_run_ids(result.error, {run_id: short}) if result.error else None
     if args.json:
         show_json({
-            "run_id": result.run_id, "status": result.status, "error": result.error,
+            "run_id": result.run_id, "short_id": short, "name": args.name, "status": result.status,
+            "error": result.error,
             "iterations": [dict(iteration=i.iteration, policy_version_id=i.policy_version_id, score=i.score,
                                 best_score=i.best_score, update_status=i.update_status, rolled_back=i.rolled_back)
                            for i in result.iterations],
         })
     else:
-        show(f"run {result.run_id} {result.status}" + (f": {result.error}" if result.error else ""))
+        show(f"run {short} {result.status}" + (f": {error}" if error else ""))
     if result.status == "budget":
-        show(f"codearcade: run {result.run_id} stopped by its budget; continue it with a larger one: "
-             f"`codearcade optimize --resume {result.run_id} --max-...`", file=sys.stderr)
+        show(f"codearcade: run {short} stopped by its budget; continue it with a larger one: "
+             f"`{_resume_command(store, short, '--max-...')}`", file=sys.stderr)
         return EXIT_OK
     if result.status != "finished":
-        show(f"codearcade: run {result.run_id} {result.status}: {result.error}; fix the cause, then continue it "
-             f"with `codearcade optimize --resume {result.run_id}`", file=sys.stderr)
+        show(f"codearcade: run {short} {result.status}: {error}; fix the cause, then continue it "
+             f"with `{_resume_command(store, short)}`", file=sys.stderr)
         return EXIT_EPISODE_FAILED
     return EXIT_OK
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store, resolve_run, show, show_json
+from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, add_run, add_store, open_store, resolve_run, short_ids,
+                                 show, show_json)
 
 
 def add_parser(verbs) -> None:
@@ -17,7 +18,7 @@ def add_parser(verbs) -> None:
         "reply stored for the same prompt. Reports per iteration whether prompts and scores match the original, "
         "and stops where they diverge.",
     )
-    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
+    add_run(p)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     add_store(p)
     p.set_defaults(handler=run)
@@ -31,7 +32,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         show_json(report.as_dict())
     else:
-        show(f"replay of {report.original_run_id} as {report.replay_run_id}: {report.status}")
+        short = short_ids(store)
+        show(f"replay of {short.get(report.original_run_id, report.original_run_id)} as "
+             f"{short.get(report.replay_run_id, report.replay_run_id)}: {report.status}")
         show(f"{'iteration':>9}  {'prompt':<14} {'original':>9} {'replay':>9}")
         for r in report.rows:
             same = "same" if r.original_prompt == r.replay_prompt else "DIFFERENT"

@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from pipeline.cli.common import EXIT_OK, add_store, open_store, show
+from pipeline.cli.common import EXIT_OK, add_run, add_store, open_store, resolve_run, show
 
 
 def add_parser(verbs) -> None:
@@ -19,7 +19,7 @@ def add_parser(verbs) -> None:
         "for eval runs), code size and complexity per iteration, LLM tokens per iteration, as PNG files, and "
         "README.md showing them with the run's settings and a table of its iterations.",
     )
-    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
+    add_run(p)
     p.add_argument("--out", metavar="DIR", help="output directory (default: ./reports/RUN_ID)")
     add_store(p)
     p.set_defaults(handler=run)
@@ -65,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.llm.providers import price
     from viewers.report import write_report
 
-    path = write_report(open_store(args), args.run_id, args.out, reproduce=reproduce_command, price=price)
+    store = open_store(args)
+    path = write_report(store, resolve_run(store, args.run_id), args.out, reproduce=reproduce_command, price=price)
     show(path)
     return EXIT_OK

@@ -1,49 +1,86 @@
-"""``codearcade runs``: the runs in the store (view ``run_summary``)."""
+"""``codearcade runs``: the runs in the store, newest first, with what tells them apart (``store/runs.py``)."""
 
 from __future__ import annotations
 
 import argparse
+import os
 
-from pipeline.cli.common import EXIT_OK, add_store, open_store, show, show_json
+from pipeline.cli.common import EXIT_OK, add_store, open_store, positive_int, show, show_json
+
+KINDS = ("eval", "optimize", "replay")
+STATUSES = ("running", "finished", "failed", "interrupted", "budget", "diverged")
+"""``runs.status`` (store/runs.py's RUN_STATUSES, written out so that ``codearcade --help`` imports no store)."""
 
 
 def add_parser(verbs) -> None:
     """Add ``runs`` and its arguments to the verbs of the top-level parser."""
     p = verbs.add_parser(
         "runs",
-        help="list the runs in the store",
-        description="List the runs in the store, oldest first: kind, game, model, status, iterations done of "
-        "those planned, best score (the mean return for eval runs), episodes and LLM tokens (view run_summary).",
+        help="list the runs in the store, newest first",
+        description="List the runs in the store, newest first: the shortest unique prefix of each id (what every "
+        "verb takes, as do last, last~N, -N and a label), label, when, kind, game, starting policy file, "
+        "strategy, feedback, seed, batch, model, status, iterations done of those planned, best score (the mean "
+        "return for eval runs), episodes and LLM tokens (view run_summary). The evaluations `codearcade compare` "
+        "plays of two versions are left out unless --all.",
     )
-    p.add_argument("--json", action="store_true", help="print the run_summary rows as JSON")
+    p.add_argument("-n", "--limit", type=positive_int, metavar="N", help="the N newest runs (after the filters)")
+    p.add_argument("--game", help="only this game's runs")
+    p.add_argument("--kind", choices=KINDS, help="only runs of this kind")
+    p.add_argument("--status", choices=STATUSES,
+                   help="only runs with this status (interrupted: killed, or running with no live process)")
+    p.add_argument("--all", action="store_true", dest="everything",
+                   help="also the eval runs `codearcade compare` made to play two versions (made_by = compare)")
+    p.add_argument("--json", action="store_true", help="print the run_summary rows as JSON (with short_id)")
     add_store(p)
     p.set_defaults(handler=run)
 
 
+def _policy(row: dict) -> str | None:
+    if row["policy"]:
+        return os.path.basename(row["policy"])
+    return "scaffold" if row["kind"] == "optimize" else None  # no file: the game's scaffold (games/scaffolds/)
+
+
+COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has a value in is left out
+    ("run", lambda r: r["short_id"]),
+    ("name", lambda r: r["name"]),
+    ("created (UTC)", lambda r: r["created_at"].strftime("%Y-%m-%d %H:%M")),
+    ("kind", lambda r: r["kind"] + (" (compare)" if r["made_by"] == "compare" else "")),
+    ("game", lambda r: r["game"]),
+    ("policy", _policy),
+    ("strategy", lambda r: r["strategy"]),
+    ("feedback", lambda r: r["feedback"]),
+    ("seed", lambda r: r["seed"]),
+    ("batch", lambda r: r["batch"]),
+    ("model", lambda r: r["model"]),
+    ("status", lambda r: r["status"]),
+    ("iterations", lambda r: None if r["kind"] == "eval"
+     else f"{r['iterations_done']}/{r['iterations_planned'] or '?'}"),
+    ("best", lambda r: None if r["best_score"] is None else round(r["best_score"], 2)),
+    ("episodes", lambda r: r["episodes"]),
+    ("tokens", lambda r: r["total_tokens"] or None),
+)
+
+
 def run(args: argparse.Namespace) -> int:
-    from store.locks import run_is_live
-    from store.views import run_query
-    from viewers.tables import format_table, records
+    from store.runs import list_runs
+    from viewers.tables import format_table
 
     store = open_store(args)
-    result = run_query(store, "SELECT * FROM run_summary ORDER BY created_at, run_id")
-    runs = records(result.columns, result.types, result.rows)
-    for r, row in zip(runs, result.rows):
-        r["_created"] = row[result.columns.index("created_at")]
-        if r["status"] == "running" and not run_is_live(store.path, r["run_id"]):
-            r["status"] = "interrupted"  # killed: no process holds its lock (`doctor` says the same)
+    with store.read() as con:
+        runs = list_runs(con, store.path, game=args.game, kind=args.kind, status=args.status, limit=args.limit,
+                         everything=args.everything)
     if args.json:
-        show_json([{k: v for k, v in r.items() if k != "_created"} for r in runs])
+        show_json(runs, default=str)
         return EXIT_OK
     if not runs:
-        show(f"no runs in {store.path}")
+        filtered = args.game or args.kind or args.status
+        show(f"no runs{' match' if filtered else ''} in {store.path}"
+             + ("" if filtered else ": `codearcade eval` or `codearcade optimize` makes one"))
         return EXIT_OK
-    rows = []
-    for r in runs:
-        done = "-" if r["kind"] == "eval" else f"{r['iterations_done']}/{r['iterations_planned'] or '?'}"
-        rows.append((r["run_id"], r["_created"].strftime("%Y-%m-%d %H:%M"), r["kind"], r["game"],
-                     r["model"], r["status"], done, None if r["best_score"] is None else round(r["best_score"], 2),
-                     r["episodes"], r["total_tokens"]))
-    show(format_table(("run", "created (UTC)", "kind", "game", "model", "status", "iterations", "best", "episodes",
-                       "tokens"), rows, max_width=32, null="-"), multiline=True)  # labels, models: cells made safe
+    table = [[value(r) for _, value in COLUMNS] for r in runs]
+    kept = [k for k, (heading, _) in enumerate(COLUMNS)
+            if heading in ("run", "status") or any(row[k] is not None for row in table)]
+    show(format_table(tuple(COLUMNS[k][0] for k in kept), [tuple(row[k] for k in kept) for row in table],
+                      max_width=32, null="-"), multiline=True)  # labels, models, policy files: cells made safe
     return EXIT_OK

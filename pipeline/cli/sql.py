@@ -1,4 +1,5 @@
-"""``codearcade sql``: one read-only query on the store, printed as a table, CSV or JSON."""
+"""``codearcade sql``: one read-only query on the store, printed as a table, CSV or JSON; ``--schema`` lists what
+there is to query."""
 
 from __future__ import annotations
 
@@ -17,11 +18,19 @@ def add_parser(verbs) -> None:
         "table, CSV or JSON. One statement per call: SELECT (WITH, FROM, VALUES, SHOW, DESCRIBE, SUMMARIZE), "
         "EXPLAIN, PRAGMA or CALL; the store is opened read-only with DuckDB's external access off (no ATTACH, "
         "COPY, EXPORT, INSTALL, nor reading other files). Works while a run is writing to the store (it waits "
-        "between the run's writes). "
-        "Besides the tables, the views learning_curve, code_metrics, llm_usage, rejected_candidates and "
-        "run_summary are there; docs/schema.md describes them all.",
+        "between the run's writes). `codearcade sql --schema` lists every table, view and macro with one line "
+        "each; docs/schema.md describes their columns. The macro run(ref) takes a run as every verb does: "
+        "WHERE run_id = run('last') (or last~1, -2, a label, a unique prefix of an id).",
+        epilog="examples: codearcade sql \"SELECT * FROM run_summary ORDER BY created_at DESC\"   |   "
+        "codearcade sql \"SELECT iteration, score FROM learning_curve WHERE run_id = run(?) ORDER BY iteration\" "
+        "--param last   |   codearcade sql --schema",
     )
-    p.add_argument("query", metavar="SQL", help="the query; '-' reads it from stdin")
+    p.add_argument("query", metavar="SQL", nargs="?", help="the query; '-' reads it from stdin")
+    p.add_argument("--param", action="append", default=[], metavar="VALUE",
+                   help="a value for the query's parameters, repeatable: one per ? (or $1, $2, ...), in order; "
+                   "NAME=VALUE (or $NAME=VALUE) for $NAME; cast to the type its place asks for")
+    p.add_argument("--schema", action="store_true",
+                   help="list the tables, views and macros of the store with one line each, and nothing else")
     fmt = p.add_mutually_exclusive_group()
     fmt.add_argument("--csv", action="store_true", help="print CSV with a header row")
     fmt.add_argument("--json", action="store_true", help="print a JSON list of row objects")
@@ -34,22 +43,37 @@ def add_parser(verbs) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from store.views import run_user_query
-    from viewers.tables import format_table, records, write_csv
+    from store.views import Result, run_user_query, schema_listing
 
+    if args.schema:
+        if args.query is not None or args.param:
+            raise CliError("--schema lists what there is to query and runs no query; drop the SQL (and --param)")
+        store = open_store(args)
+        rows = schema_listing(store)
+        _print(args, Result(["name", "kind", "what it holds"], ["VARCHAR"] * 3, rows), max_width=0)
+        return EXIT_OK
+    if args.query is None:
+        raise CliError("give a query, e.g. codearcade sql \"SELECT * FROM run_summary\", or --schema to list the "
+                       "tables and views")
     query = sys.stdin.read() if args.query == "-" else args.query
     if not query.strip():
         raise CliError("empty query; give a SQL statement, e.g. codearcade sql \"SELECT * FROM run_summary\"")
     store = open_store(args)
-    result = run_user_query(store, query)  # read-only for real; every row is fetched and the file let go first
+    result = run_user_query(store, query, args.param)  # read-only for real; every row fetched, the file let go
+    _print(args, result, args.max_width)
+    return EXIT_OK
+
+
+def _print(args: argparse.Namespace, result, max_width: int) -> None:
+    from viewers.tables import format_table, records, write_csv
+
     if args.json:
         show_json(records(result.columns, result.types, result.rows), ensure_ascii=False)
     elif args.csv:
         write_csv(sys.stdout, result.columns, result.rows)
     elif result.columns:
         shown = result.rows[: args.max_rows] if args.max_rows else result.rows
-        show(format_table(result.columns, shown, args.max_width), multiline=True)  # each cell made terminal-safe
+        show(format_table(result.columns, shown, max_width), multiline=True)  # each cell made terminal-safe
         more = len(result.rows) - len(shown)
         show(f"({len(result.rows)} row{'s' * (len(result.rows) != 1)}"
              + (f", {more} not shown: use --max-rows 0, --csv or --json)" if more else ")"))
-    return EXIT_OK

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, resolve_run, show
+from pipeline.cli.common import (EXIT_OK, CliError, add_run, add_store, non_negative_int, open_store, resolve_run,
+                                 short_id, show)
 
 
 def add_parser(verbs) -> None:
@@ -19,7 +20,7 @@ def add_parser(verbs) -> None:
         "stored actions (checked against the stored objects). Without --spawn/--serve-web/--connect the "
         "recording is saved to a file (default ./<recording id>.rrd).",
     )
-    p.add_argument("run_id", metavar="RUN", help="run id, or a unique prefix of one")
+    add_run(p)
     p.add_argument("--iteration", type=non_negative_int, metavar="I", help="optimizer iteration (default: 0)")
     p.add_argument("--episode", metavar="E",
                    help="evaluation episode index within the iteration, 'train' for its training rollout, or an episode id")
@@ -45,10 +46,51 @@ def run(args: argparse.Namespace) -> int:
             show(line, flush=True)
 
     store = open_store(args)
+    run_id = resolve_run(store, args.run_id)
+    episode = args.episode
+    if args.iteration is not None and not (episode and "." in episode):
+        episode = _reused(store, run_id, args.run_id, args.iteration, episode) or episode
     try:
-        view(store, resolve_run(store, args.run_id), iteration=args.iteration, episode=args.episode, save=args.save,
+        view(store, run_id, iteration=args.iteration, episode=episode, save=args.save,
              connect=args.connect, spawn=args.spawn, serve_web=args.serve_web, frames_every=args.frames_every,
              out=out, warn=lambda line: show(line, file=sys.stderr))
     except ViewerError as exc:
         raise CliError(str(exc)) from None
     return EXIT_OK
+
+
+def _reused(store, run_id: str, ref: str, iteration: int, episode: str | None) -> str | None:
+    """When iteration ``iteration`` played no episodes because its version's were reused from an earlier iteration
+    (the evaluation cache), the id of the reused episode ``episode`` names, said on stderr; None otherwise."""
+    import shlex
+
+    from store.readers import last_iteration
+    from store.showing import episode_list, reused_episodes
+
+    with store.read() as con:
+        if any(e[1] == iteration for e in episode_list(con, run_id)):
+            return None
+        reused = reused_episodes(con, run_id, iteration)
+        last = last_iteration(con, run_id)
+    if last is not None and iteration > last["iteration"]:
+        raise CliError(f"run {short_id(store, run_id)} has iterations 0..{last['iteration']}, no iteration "
+                       f"{iteration}; `codearcade report {ref}` shows them")
+    if not reused:
+        return None
+    first = reused[0]
+    if episode in (None, "train"):
+        chosen = first["train_episode_id"] or (first["eval_episode_ids"] or [None])[0]
+    else:
+        try:
+            chosen = (first["eval_episode_ids"] or [])[int(episode)]
+        except (ValueError, IndexError):
+            return None  # the viewer's own message says what the iteration has
+    if chosen is None:
+        return None
+    same = ["codearcade", "view", ref, "--iteration", str(first["played_in"])] + (["--episode", episode] if episode
+                                                                                   else [])
+    show(f"codearcade: iteration {iteration} played no episodes: its version {first['policy_version_id']} had been "
+         f"assessed in iteration {first['played_in']}, whose episodes it reused (the evaluation cache; "
+         f"--no-eval-cache plays them again); showing {chosen}, as `{shlex.join(same)}` does", file=sys.stderr,
+         flush=True)
+    return chosen

@@ -13,11 +13,18 @@ An experiment file declares defaults, a matrix (every combination becomes a run)
     seed = [0, 1, 2]
     [[run]]                           # optional extra runs, merged over the defaults
     game = "breakout"
+    name = "breakout-extra"           # optional: the run's label (default: "{batch}:{entry}")
 
 Keys are the fields of :class:`~pipeline.optimizer.config.OptimizeConfig` (``game``, ``policy``, ``model``,
 ``api_base``, ``iterations``, ``memory``, ``token_budget``, ``eval_episodes``, ``feedback``, ``seed``, ...).
 Each run has a stable key (a hash of the batch name and its settings) stored in its config, so running the
 same command again skips finished runs, resumes interrupted ones from the store, and starts the rest.
+
+Each run is labelled in the store (``runs.name``, what every verb takes in place of its id): a ``[[run]]`` table's
+``name``, else ``{batch}:{entry}``, the entry being the game (or the policy file's stem) and the matrix's settings
+of the run, joined by commas (``pong-ablation:pong,feedback=rollout,seed=0``); entries that would share a label
+get ``#2``, ``#3``, ... after it, in the file's order, and a label that cannot be a run name (over 64 characters,
+or a batch name that does not start with a letter) is left out.
 
 Executors: ``local`` runs each run in its own process (``--workers`` at once; the processes die with the
 batch, so a killed batch leaves nothing running and nothing locked), all writing the one store in short
@@ -46,9 +53,12 @@ from pipeline.jobs.worker import BUDGET_EXIT, run_remote
 from pipeline.optimizer.config import BUDGET_FIELDS, OptimizeConfig, validate_config
 from store import Store
 from store.readers import batch_progress, batch_runs
+from store.runs import check_run_name
 
 TOP_LEVEL_KEYS = ("name", "store", "defaults", "matrix", "run")
 RUN_KEYS = tuple(f.name for f in fields(OptimizeConfig))
+ENTRY_KEYS = ("name",)
+"""Keys of a ``[[run]]`` table beside :data:`RUN_KEYS`: its label, which is no setting (nor part of the run's key)."""
 NOT_IN_KEY = ("workers", "max_concurrent_calls") + BUDGET_FIELDS
 """Settings that do not change a run's results (or only how far it goes), so they do not change its identity:
 rerunning a batch with a larger budget resumes its runs."""
@@ -66,7 +76,10 @@ class ExperimentError(ValueError):
 class BatchRun:
     key: str
     label: str
+    """How the batch's log and display name the run (its game and matrix settings)."""
     config: OptimizeConfig
+    name: str | None = None
+    """Its label in the store (``runs.name``): the entry's ``name``, else ``{batch}:{entry}`` (module docstring)."""
 
 
 @dataclass
@@ -110,10 +123,32 @@ def _run_key(name: str, config: OptimizeConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def _label(settings: dict[str, Any], varying: list[str]) -> str:
+def _label_parts(settings: dict[str, Any], varying: list[str]) -> list[str]:
     parts = [str(settings.get("game") or Path(settings.get("policy") or "?").stem)]
-    parts += [f"{k}={settings[k]}" for k in varying if k != "game" and k in settings]
-    return " ".join(parts)
+    return parts + [f"{k}={settings[k]}" for k in varying if k != "game" and k in settings]
+
+
+def _label(settings: dict[str, Any], varying: list[str]) -> str:
+    return " ".join(_label_parts(settings, varying))
+
+
+def _run_names(batch: str, runs: list[tuple[dict[str, Any], str | None]], varying: list[str]) -> list[str | None]:
+    """Each run's label in the store: its entry's ``name``, else ``{batch}:{entry}`` (``#k`` after labels that
+    several entries would share; None where the label cannot be a run name)."""
+    defaults = [f"{batch}:{','.join(_label_parts(settings, varying))}" for settings, _ in runs]
+    seen: dict[str, int] = {}
+    names: list[str | None] = []
+    for (_, given), default in zip(runs, defaults):
+        if given is not None:
+            names.append(given)
+            continue
+        seen[default] = seen.get(default, 0) + 1
+        label = default if defaults.count(default) == 1 else f"{default}#{seen[default]}"
+        try:
+            names.append(check_run_name(label))
+        except ValueError:
+            names.append(None)
+    return names
 
 
 def load_experiments(path: str | os.PathLike) -> Batch:
@@ -146,14 +181,26 @@ def load_experiments(path: str | os.PathLike) -> Batch:
         keys = list(matrix)
         for combo in itertools.product(*(matrix[k] for k in keys)):
             points.append({**defaults, **dict(zip(keys, combo))})
+    given_names: list[str | None] = [None] * len(points)
     for i, entry in enumerate(explicit):
+        if not isinstance(entry, dict):
+            raise ExperimentError(f"{path.name}: 'run' must be an array of tables: [[run]]")
+        entry = dict(entry)
+        label = entry.pop("name", None)
+        if label is not None:
+            try:
+                check_run_name(str(label))
+            except ValueError as exc:
+                raise ExperimentError(f"{path.name} [[run]] #{i + 1}: name: {exc}") from None
         _check_settings(entry, f"{path.name} [[run]] #{i + 1}")
         points.append({**defaults, **entry})
+        given_names.append(None if label is None else str(label))
     if not points:
         raise ExperimentError(f"{path.name}: no runs: add a [matrix] or [[run]] tables")
 
+    kept: list[tuple[dict[str, Any], str | None]] = []
     runs, seen = [], set()
-    for settings in points:
+    for settings, given in zip(points, given_names):
         if settings.get("policy"):
             policy = Path(settings["policy"])
             settings["policy"] = str(policy if policy.is_absolute() else (path.parent / policy).resolve())
@@ -169,6 +216,9 @@ def load_experiments(path: str | os.PathLike) -> Batch:
             continue
         seen.add(key)
         runs.append(BatchRun(key, _label(settings, list(matrix)), config))
+        kept.append((settings, given))
+    for run, label in zip(runs, _run_names(name, kept, list(matrix))):
+        run.name = label
     return Batch(name, path, data.get("store"), runs)
 
 
@@ -195,7 +245,7 @@ def plan(batch: Batch, store: Store) -> list[PlannedRun]:
 
 def worker_command(store: Store, item: PlannedRun, batch: Batch, episode_workers: int) -> list[str]:
     spec = {"store": str(store.path), "config": asdict(item.run.config), "resume": item.run_id,
-            "batch": batch.name, "batch_key": item.run.key, "episode_workers": episode_workers}
+            "batch": batch.name, "batch_key": item.run.key, "name": item.run.name, "episode_workers": episode_workers}
     return [sys.executable, "-m", "pipeline.jobs.worker", json.dumps(spec)]
 
 
@@ -311,7 +361,7 @@ def run_ray(batch: Batch, store: Store, planned: list[PlannedRun], address: str 
                 with store.read() as con:
                     previous = export_run(con, item.run_id)
             spec = {"config": asdict(item.run.config), "resume": item.run_id, "batch": batch.name,
-                    "batch_key": item.run.key, "episode_workers": 1}
+                    "batch_key": item.run.key, "name": item.run.name, "episode_workers": 1}
             futures[remote.remote(spec, previous)] = i
             progress[i].state = "running"
             log(f"{item.action} {item.run.label} on ray")

@@ -1,9 +1,9 @@
 """One run of a batch: ``python -m pipeline.jobs.worker SPEC_JSON`` (local executor) or a Ray task.
 
 The spec carries the run's :class:`~pipeline.optimizer.config.OptimizeConfig`, the batch name and run key (stored in
-the run's config so a later ``codearcade batch`` finds it), and the run id to resume, if any. Locally the
-process works on the shared store directly; on Ray, :func:`run_remote` works on a private store seeded with
-the run's earlier rows and returns all of them for the driver to write.
+the run's config so a later ``codearcade batch`` finds it), the run's label (``runs.name``) and the run id to
+resume, if any. Locally the process works on the shared store directly; on Ray, :func:`run_remote` works on a
+private store seeded with the run's earlier rows and returns all of them for the driver to write.
 """
 
 from __future__ import annotations
@@ -17,8 +17,9 @@ from typing import Any
 
 from pipeline.llm.client import OFFLINE_TOKEN_BUDGET, open_client
 from pipeline.optimizer.config import OptimizeConfig
-from pipeline.optimizer.loop import OptimizeResult, optimize
+from pipeline.optimizer.loop import OptimizeResult, optimize, start_run
 from store import Store
+from store.writer import set_run_name
 from viewers.safe_text import terminal_text
 
 BUDGET_EXIT = 3
@@ -45,11 +46,15 @@ def _run(spec: dict[str, Any], store: Store) -> OptimizeResult:
     if cap is not None:
         config.token_budget = min(config.token_budget, cap, OFFLINE_TOKEN_BUDGET)
     try:
-        return optimize(config, store, client, resume=spec.get("resume"), waiting=_waiting,
+        run_id = spec.get("resume") or start_run(config, store, client.label,
+                                                 extra={"batch": spec["batch"], "batch_key": spec["batch_key"]})
+        if spec.get("name"):  # the entry's label (pipeline/jobs/batch.py), given again when the run resumes
+            with store.write() as con:
+                set_run_name(con, run_id, spec["name"])
+        return optimize(config, store, client, resume=run_id, waiting=_waiting,
                         log=_say,
                         on_iteration=lambda item: _say(f"iteration {item.iteration}: score {item.score:g} "
-                                                       f"best {item.best_score:g} {item.update_status}"),
-                        tags={"batch": spec["batch"], "batch_key": spec["batch_key"]})
+                                                       f"best {item.best_score:g} {item.update_status}"))
     finally:
         if server is not None:
             server.stop()

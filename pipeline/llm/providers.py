@@ -19,6 +19,9 @@ table does not list. Everything else asks litellm:
 - :func:`with_cache_breakpoint` marks the stable prefix of a prompt for providers with explicit prompt
   caching (Anthropic's ``cache_control``); OpenAI and others cache prefixes by themselves.
 - :func:`price` gives litellm's price per input and output token, or None for a model it cannot price.
+
+:func:`check_reachable` is the credential check's companion for ``--api-base``: a TCP connection to the URL's host
+and port, with a short time-out, before anything plays.
 """
 
 from __future__ import annotations
@@ -95,6 +98,43 @@ def check_credentials(model: str, api_base: str | None = None, environ: dict[str
     raise MissingCredentialsError(
         f"{model} needs an API key: set {either} in the environment (e.g. `export {missing[0]}=...`), or use "
         "--api-base URL for your own server, or leave out --model to use the offline model")
+
+
+class UnreachableEndpointError(ValueError):
+    """``--api-base`` names a server that does not answer; the message names the URL and the fix."""
+
+
+def check_reachable(api_base: str, timeout_s: float = 3.0) -> None:
+    """Raise :class:`UnreachableEndpointError` unless a TCP connection to ``api_base``'s host and port opens within
+    ``timeout_s``: checked before iteration 0, as keys are, so a mistyped port or a server not started is one line
+    at once rather than a failed LLM call after the first evaluation. Skipped when a proxy from the environment
+    carries the request (only the proxy is reached then)."""
+    import socket
+    import urllib.parse
+    import urllib.request
+
+    example = "e.g. http://127.0.0.1:8000/v1 for vLLM, http://127.0.0.1:11434 for Ollama"
+    parts = urllib.parse.urlsplit(api_base)
+    try:
+        port = parts.port or {"http": 80, "https": 443}.get(parts.scheme)
+    except ValueError:
+        port = None
+    if parts.scheme not in ("http", "https") or not parts.hostname or port is None:
+        raise UnreachableEndpointError(f"--api-base {api_base!r} is not an http(s)://HOST[:PORT] URL; give the "
+                                       f"server's URL ({example})")
+    if urllib.request.getproxies().get(parts.scheme) and not urllib.request.proxy_bypass(parts.hostname):
+        return
+    try:
+        with socket.create_connection((parts.hostname, port), timeout=timeout_s):
+            return
+    except socket.timeout:
+        why = f"no answer within {timeout_s:g} s"
+    except socket.gaierror:
+        why = f"unknown host {parts.hostname}"
+    except OSError as exc:
+        why = (exc.strerror or type(exc).__name__).lower()
+    raise UnreachableEndpointError(f"--api-base {api_base} cannot be reached ({why} at {parts.hostname}:{port}): "
+                                   f"start the server there, or give the URL it listens on ({example})")
 
 
 REPLY_SCHEMA_NAME = "policy_update"

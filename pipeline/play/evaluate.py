@@ -110,9 +110,16 @@ def evaluate(
     store: Store,
     progress: Callable[[int, int], None] | None = None,
     on_episode: Callable[[int, int], None] | None = None,
+    *,
+    run_name: str | None = None,
+    made_by: str | None = None,
+    on_start: Callable[[str], None] | None = None,
 ) -> EvalResult:
     """Evaluate the policy file at ``policy_path``; see the module docstring. Raises PolicyLoadError,
-    UnknownGameError or StoreError with one-line messages for bad input, before anything is stored."""
+    UnknownGameError or StoreError with one-line messages for bad input, before anything is stored.
+
+    ``run_name`` labels the run and ``made_by`` marks one a command plays for its own use (``runs.name``,
+    ``runs.made_by``); ``on_start`` gets the run id once its row is stored."""
     if config.episodes < 1:
         raise ValueError("--episodes must be at least 1")
     if config.max_steps < 1:
@@ -143,9 +150,12 @@ def evaluate(
     def create_run() -> None:  # runs while the first episodes play
         with store.write() as con:
             insert_run(con, run_id, "eval", game, {**asdict(config), "game": game, "policy": str(policy_path)},
-                       text, info.version_id, package_versions(), seed=config.seed)
+                       text, info.version_id, package_versions(), seed=config.seed, name=run_name,
+                       made_by=made_by)
             insert_policy_version(con, policy_version_row(info, run_id, 0, produced_by="file",
                                                           validation="unvalidated"))
+        if on_start is not None:
+            on_start(run_id)
 
     outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
     done = 0

@@ -125,7 +125,8 @@ def compare_versions(store: Store, a: str, b: str, config: CompareConfig,
             if progress is not None:
                 progress(f"playing {v.label} = {v.ref} ({v.policy_version_id}) on {config.episodes} seed(s) from "
                          f"{config.seed}, traced")
-            v.eval_run = evaluate(path, eval_config, store).run_id
+            # marked as compare's own: `runs` and `last` count the runs a person started, not these
+            v.eval_run = evaluate(path, eval_config, store, made_by="compare").run_id
     diff = unified_diff(versions[0].text, versions[1].text, f"A {a} ({versions[0].policy_version_id})",
                         f"B {b} ({versions[1].policy_version_id})")
     result = VersionComparison(game, versions, diff)

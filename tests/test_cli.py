@@ -1,0 +1,489 @@
+"""The everyday command line (#24): runs addressed without ids, `runs` that tells them apart, the store found from
+a subdirectory, `sql --param/--schema` and every SQL example of README and docs run as printed, typo'd flags and
+verbs answered with the nearest, optimize's start line and its Ctrl-C (a real SIGINT), reused episodes explained,
+an unreachable --api-base refused before anything plays, batch labels and its dry run's key warnings, eval's
+speed. Real DuckDB files, the real console script in subprocesses, a scripted model behind real HTTP."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+from store import Store
+from store.locate import user_store_path
+from tests.conftest import COMPETENT_REPLY, ROOT, json_reply
+from tests.scripted_llm import ScriptedModel
+
+EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
+COMPETENT = ROOT / "tests" / "policies" / "pong_competent.py"
+SHORT = r"[0-9A-Z]{8,25}"
+"""A run id as the command line prints it: its shortest unique prefix (8 characters or more, never whole)."""
+FAST = ("--eval-max-steps", "300", "--rollout-steps", "60", "--workers", "2")
+
+
+def _env(home: Path, **extra) -> dict[str, str]:
+    """The environment of a person with no keys and no $CODEARCADE_STORE, whose per-user store is under ``home``."""
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_API_KEY") and k != "CODEARCADE_STORE"}
+    env.update(XDG_DATA_HOME=str(home / "xdg"), LITELLM_LOCAL_MODEL_COST_MAP="True", OMP_WAIT_POLICY="PASSIVE",
+               CODEARCADE_LLM_BACKOFF_S="0.05", **extra)
+    return env
+
+
+def _cli(*argv, cwd: Path, env: dict[str, str], timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([EXE, *map(str, argv)], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout,
+                          stdin=subprocess.DEVNULL)
+
+
+def _ok(done: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
+    assert done.returncode == 0, done.stdout + done.stderr
+    return done
+
+
+def _in_process(capsys, *argv) -> tuple[int, str, str]:
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse's errors
+        code = exc.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+# --------------------------------------------------------------------------------------------- a day's use
+
+
+@pytest.fixture(scope="module")
+def day(tmp_path_factory):
+    """A project whose store was made once with --store, then used from a subdirectory without ids: a traced eval,
+    then two short optimizations (the first labelled, its iteration 2 reusing iteration 1's episodes)."""
+    root = tmp_path_factory.mktemp("project")
+    sub = root / "notes" / "today"
+    sub.mkdir(parents=True)
+    env = _env(root)
+    model = ScriptedModel([COMPETENT_REPLY, json_reply({}, "nothing to change")], root / "model").start()
+    try:
+        made = _ok(_cli("eval", COMPETENT, "--trace", "--max-steps", "200", "--store", "codearcade.duckdb",
+                        cwd=root, env=env))
+        first = _ok(_cli("optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+                         "--iterations", "2", "--name", "morning", *FAST, cwd=sub, env=env))
+        second = _ok(_cli("optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+                          "--iterations", "2", "--feedback", "rollout", *FAST, cwd=sub, env=env))
+    finally:
+        model.stop()
+    store = Store(root / "codearcade.duckdb")
+    ids = [r[0] for r in store.query("SELECT run_id FROM runs ORDER BY created_at")]
+    return {"root": root, "sub": sub, "env": env, "store": store, "ids": ids, "eval": made, "first": first,
+            "second": second}
+
+
+def test_a_day_without_ids_from_a_subdirectory(day):
+    env, sub, ids = day["env"], day["sub"], day["ids"]
+    assert len(ids) == 3
+    eval_id, morning, afternoon = ids
+
+    def cli(*argv, whole_ids=False):
+        done = _ok(_cli(*argv, cwd=sub, env=env))
+        assert "nearest in a parent directory" in done.stderr, "the store found in a parent directory is said"
+        for run_id in ids if not whole_ids else ():  # ids are printed by their shortest unique prefixes
+            assert run_id not in done.stdout
+        return done
+
+    # the store was made with --store once, then found from the subdirectory; each run's id said before iteration 0
+    assert re.match(rf"run ({SHORT}) started: eval pong_competent.py, 1 episode\(s\); store codearcade.duckdb "
+                    r"\(given with --store\)", day["eval"].stdout)
+    start = day["first"].stdout.splitlines()
+    assert re.fullmatch(rf"run ({SHORT}) 'morning' started: optimize pong, model openai/scripted; store "
+                        rf"{re.escape(str(day['root'] / 'codearcade.duckdb'))} \(the nearest in a parent directory\)",
+                        start[0]), start[0]
+    assert start[1].startswith("iteration   0") and morning.startswith(start[0].split()[1])
+    assert start[-1] == f"run {start[0].split()[1]} finished"
+
+    listed = cli("runs", "-n", "3").stdout.splitlines()
+    header = listed[0].split()
+    for column in ("run", "name", "policy", "strategy", "feedback", "status", "best"):
+        assert column in header
+    rows = [line.split() for line in listed[2:]]
+    assert [afternoon.startswith(rows[0][0]), morning.startswith(rows[1][0]), eval_id.startswith(rows[2][0])] == \
+        [True] * 3, "newest first"
+    assert rows[1][1] == "morning" and "rollout" in rows[0] and "staged" in rows[1], "labels and settings tell apart"
+
+    report = Path(cli("report", "last", whole_ids=True).stdout.strip())  # a directory named for good: the whole id
+    assert report == Path("reports") / afternoon / "README.md" and (sub / report).is_file()
+    blamed = cli("blame", "last").stdout
+    assert re.match(rf"run ({SHORT}) \(pong\), policy version", blamed) and afternoon.startswith(blamed.split()[1])
+    compared = cli("compare", "last~1", "last").stdout
+    table = {line.split()[0]: line.split()[1] for line in compared.splitlines()[2:4]}
+    assert morning.startswith(table["A"]) and afternoon.startswith(table["B"])
+
+    by_last = json.loads(cli("sql", "SELECT run_id, name, kind FROM runs WHERE run_id = run('last')", "--json",
+                             whole_ids=True).stdout)  # the rows asked for
+    assert by_last == [{"run_id": afternoon, "name": None, "kind": "optimize"}]
+    short = rows[1][0]
+    by_prefix = cli("sql", f"SELECT iteration, score FROM learning_curve WHERE run_id = run('{short.lower()}') "
+                    "ORDER BY iteration").stdout
+    assert [line.split()[0] for line in by_prefix.splitlines()[2:5]] == ["0", "1", "2"]
+    by_label = json.loads(cli("sql", "SELECT run_id FROM runs WHERE run_id = run(?)", "--param", "morning",
+                              "--json", whole_ids=True).stdout)
+    assert by_label == [{"run_id": morning}]
+
+
+def _examples() -> list[tuple[str, int, str]]:
+    """Every `codearcade sql` command in README.md and docs/*.md: (file, line, the command), continuation lines of
+    a query that spans lines joined as the shell would."""
+    found = []
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        lines = path.read_text().splitlines()
+        k = 0
+        while k < len(lines):
+            if lines[k].startswith("codearcade sql "):
+                text, first = lines[k], k
+                while True:
+                    try:
+                        shlex.split(text, comments=True)
+                        break
+                    except ValueError:  # an open quote: the query goes on on the next line
+                        k += 1
+                        text += "\n" + lines[k]
+                found.append((path.name, first + 1, text))
+            else:  # in a sentence: `codearcade sql ...` (the command table's synopses, with their "...", are not)
+                found += [(path.name, k + 1, span) for span in re.findall(r"`(codearcade sql [^`]+)`", lines[k])
+                          if "..." not in span]
+            k += 1
+    return found
+
+
+def test_every_sql_example_in_readme_and_docs_runs_as_printed(day):
+    examples = _examples()
+    assert len(examples) >= 22 and {name for name, _, _ in examples} >= {"README.md", "schema.md"}
+    for name, line, text in examples:
+        # "$(cat examples/x.sql)" is the file's text, as the shell reads it; another store named is this one
+        text = re.sub(r'"\$\(cat ([^)]+)\)"', lambda m: shlex.quote((ROOT / m.group(1)).read_text()), text)
+        argv = shlex.split(text, comments=True)[1:]
+        if "--store" in argv:
+            argv[argv.index("--store") + 1] = str(day["store"].path)
+        done = _cli(*argv, cwd=day["sub"], env=day["env"])
+        assert done.returncode == 0, f"{name}:{line}: {text}\n{done.stderr}"
+        assert "row" in done.stdout.splitlines()[-1] or done.stdout.lstrip().startswith("["), f"{name}:{line}"
+
+
+def test_view_explains_episodes_reused_from_an_earlier_iteration(day):
+    store, morning = day["store"], day["ids"][1]
+    assert store.query("SELECT evaluation FROM candidates WHERE run_id = ? AND iteration = 2", [morning]) == \
+        [("cached",)], "iteration 2 proposed no change: its episodes are iteration 1's"
+    saved = day["root"] / "it2.rrd"
+    done = _ok(_cli("view", "morning", "--iteration", "2", "--save", saved, cwd=day["sub"], env=day["env"]))
+    note = [line for line in done.stderr.splitlines() if "played no episodes" in line]
+    assert len(note) == 1 and "reused" in note[0] and "evaluation cache" in note[0]
+    assert "assessed in iteration 1" in note[0] and f"showing {morning}.1.train.0" in note[0]
+    assert "`codearcade view morning --iteration 1`" in note[0] and saved.stat().st_size > 0
+    beyond = _cli("view", "morning", "--iteration", "7", cwd=day["sub"], env=day["env"])
+    assert beyond.returncode == 2 and "has iterations 0..2, no iteration 7" in beyond.stderr
+    assert len(beyond.stderr.strip().splitlines()) == 2  # the store's line, then the error
+
+
+# ------------------------------------------------------------------------------------------------- optimize
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ctrl_c_prints_the_resume_command_and_it_continues_the_run(tmp_path):
+    """A real SIGINT while iteration 1 waits for the model: exit 130 with the run and the exact command, which
+    then finishes the same run."""
+    env = _env(tmp_path)
+    store = Store(tmp_path / "s.duckdb")
+    with ScriptedModel([{"sleep": 120, "content": COMPETENT_REPLY}, COMPETENT_REPLY], tmp_path / "model") as model:
+        proc = subprocess.Popen([EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base",
+                                 model.api_base, "--iterations", "1", *FAST, "--store", str(store.path)],
+                                cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        lines = []
+        for line in proc.stdout:
+            lines.append(line.rstrip("\n"))
+            if line.startswith("iteration   0"):
+                break
+        deadline = time.monotonic() + 60
+        while not (model.log_path.exists() and model.raw_requests()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert model.raw_requests(), "iteration 1 asked the model (which takes 120 s to answer)"
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 130, err
+        start = re.fullmatch(rf"run ({SHORT}) started: optimize pong, model openai/scripted; store \S+ \(given with "
+                             r"--store\)", lines[0])
+        assert start and lines[1].startswith("iteration   0"), lines
+        said = err.strip().splitlines()[-1]
+        match = re.fullmatch(rf"codearcade: interrupted: run ({SHORT}) is stored up to its last whole iteration; "
+                             r"continue it with `(.+)`", said)
+        assert match and match.group(1) == start.group(1), said
+        command = shlex.split(match.group(2))
+        assert command == ["codearcade", "optimize", "--resume", start.group(1), "--store", str(store.path)]
+        (run_id, status), = store.query("SELECT run_id, status FROM runs")
+        assert status == "interrupted" and run_id.startswith(start.group(1))
+        resumed = _ok(_cli(*command[1:], cwd=tmp_path / "..", env=env))
+    assert resumed.stdout.startswith(f"run {start.group(1)} resumed: optimize pong")
+    assert store.query("SELECT run_id, status FROM runs") == [(run_id, "finished")]
+    assert store.query("SELECT iteration, update_status FROM iterations ORDER BY iteration") == \
+        [(0, "initial"), (1, "accepted")]
+
+
+def test_an_unreachable_api_base_is_one_line_before_anything_plays(tmp_path):
+    url = f"http://127.0.0.1:{_closed_port()}/v1"
+    done = _cli("optimize", "--game", "pong", "--model", "openai/local", "--api-base", url, "--store", "s.duckdb",
+                cwd=tmp_path, env=_env(tmp_path))
+    assert done.returncode == 2
+    (line,) = done.stderr.strip().splitlines()
+    assert f"--api-base {url} cannot be reached" in line and "start the server there" in line
+    assert not (tmp_path / "s.duckdb").exists(), "nothing was stored: iteration 0 never played"
+    from pipeline.llm.providers import UnreachableEndpointError, check_reachable
+
+    with pytest.raises(UnreachableEndpointError, match="not an http"):
+        check_reachable("127.0.0.1:8000")
+
+
+# ------------------------------------------------------------------------------------------------------ eval
+
+
+def test_eval_labels_its_run_says_its_id_and_speed(tmp_path):
+    env = _env(tmp_path)
+    done = _ok(_cli("eval", COMPETENT, "--episodes", "2", "--max-steps", "150", "--name", "first-look", "--store",
+                    "s.duckdb", cwd=tmp_path, env=env))
+    lines = done.stdout.splitlines()
+    start = re.fullmatch(rf"run ({SHORT}) 'first-look' started: eval pong_competent.py, 2 episode\(s\); store "
+                         r"s.duckdb \(given with --store\)", lines[0])
+    assert start and lines[1].startswith(f"run {start.group(1)} 'first-look'  game pong"), lines
+    speed = re.fullmatch(r"mean return \S+ over 2 episode\(s\); 300 steps in ([0-9.]+) s \(([0-9,]+) steps/s, "
+                         r"setup and checks included\)", lines[-1])
+    assert speed, lines[-1]
+    assert abs(int(speed.group(2).replace(",", "")) - 300 / float(speed.group(1))) <= 0.02 * 300 / float(
+        speed.group(1)) + 1
+    store = Store(tmp_path / "s.duckdb")
+    (run_id, name), = store.query("SELECT run_id, name FROM runs")
+    assert name == "first-look" and run_id.startswith(start.group(1)) and run_id != start.group(1)
+
+    summary = json.loads(_ok(_cli("eval", COMPETENT, "--max-steps", "100", "--json", "--store", "s.duckdb",
+                                  cwd=tmp_path, env=env)).stdout)
+    assert summary["steps"] == 100 and summary["elapsed_s"] > 0
+    assert summary["steps_per_s"] == pytest.approx(100 / summary["elapsed_s"], rel=0.02)
+
+    refused = _cli("eval", COMPETENT, "--name", "7up", "--store", "other.duckdb", cwd=tmp_path, env=env)
+    assert refused.returncode == 2 and "run name '7up' cannot be used" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1 and not (tmp_path / "other.duckdb").exists()
+
+    # an error names a run by its shortest unique prefix too
+    wrong = _cli("optimize", "--resume", run_id, "--store", "s.duckdb", cwd=tmp_path, env=env)
+    assert wrong.returncode == 2 and f"run {start.group(1)} is an eval run" in wrong.stderr
+    assert run_id not in wrong.stderr
+
+
+# -------------------------------------------------------------------------------------------------- parsing
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["eval", "--epsiodes", "3", "pong.py"], "codearcade eval: unknown flag --epsiodes; did you mean --episodes?"),
+    (["evl", "pong.py"], "codearcade: unknown verb 'evl'; did you mean eval?"),
+    (["blame", "--iteraton", "2"], "codearcade blame: unknown flag --iteraton; did you mean --iteration?"),
+    (["runs", "--limt=3"], "codearcade runs: unknown flag --limt; did you mean --limit?"),
+    (["sql", "--parma", "x", "SELECT 1"], "codearcade sql: unknown flag --parma; did you mean --param?"),
+    (["optimize", "--strategy", "beem"], "codearcade optimize: argument --strategy: invalid choice 'beem'; did you "
+                                         "mean beam? (choose from greedy, best-of-n, beam, map-elites)"),
+    (["runs", "--zzz"], "codearcade runs: unknown flag --zzz; `codearcade runs --help` lists the flags"),
+])
+def test_a_mistyped_flag_or_verb_gets_the_nearest_in_one_line(capsys, argv, said):
+    code, out, err = _in_process(capsys, *argv)
+    assert code == 2 and out == "" and err == said + "\n"
+
+
+def test_the_console_script_answers_a_typo_the_same(tmp_path):
+    done = _cli("eval", "--epsiodes", "3", "x.py", cwd=tmp_path, env=_env(tmp_path))
+    assert done.returncode == 2 and done.stderr == "codearcade eval: unknown flag --epsiodes; did you mean --episodes?\n"
+
+
+# ------------------------------------------------------------------------------------------------ runs, sql
+
+
+@pytest.fixture
+def four(store):
+    from tests.test_runs import RUNS, _add
+
+    for run_id, minutes, kind, game, name, made_by, config in RUNS:
+        _add(store, run_id, minutes, kind, game, name, made_by, config)
+    return store
+
+
+def _table(out: str) -> list[list[str]]:
+    return [line.split() for line in out.splitlines()[2:]]
+
+
+def test_runs_newest_first_with_filters_and_without_compares_own(four, capsys):
+    from pipeline.cli.runs import STATUSES
+    from store.runs import RUN_STATUSES
+
+    assert STATUSES == RUN_STATUSES
+    code, out, _ = _in_process(capsys, "runs", "--store", four.path)
+    assert code == 0
+    header = out.splitlines()[0].split()
+    assert header[:2] == ["run", "name"] and {"policy", "strategy", "feedback", "batch"} <= set(header)
+    rows = _table(out)
+    assert [r[0] for r in rows] == ["01JDX3K9", "01JDX3K2AC", "01JDX3K2AB"], "newest first, shortest prefixes"
+    assert rows[2][1] == "baseline" and "beam" in rows[1] and "ablation" in rows[1] and "pong_start.py" in rows[2]
+    _, out, _ = _in_process(capsys, "runs", "--all", "--store", four.path)
+    assert _table(out)[0][0] == "01JDX3KZ" and "(compare)" in out.splitlines()[2]
+    for argv, expected in [(["-n", "1"], ["01JDX3K9"]), (["--game", "Pong"], ["01JDX3K2AC", "01JDX3K2AB"]),
+                           (["--kind", "eval"], ["01JDX3K9"]), (["--kind", "optimize", "--limit", "1"], ["01JDX3K2AC"]),
+                           (["--status", "finished", "--game", "breakout"], ["01JDX3K9"])]:
+        _, out, _ = _in_process(capsys, "runs", *argv, "--store", four.path)
+        assert [r[0] for r in _table(out)] == expected, argv
+    _, out, _ = _in_process(capsys, "runs", "--status", "failed", "--store", four.path)
+    assert out.startswith("no runs match in")
+    _, out, _ = _in_process(capsys, "runs", "--json", "-n", "2", "--store", four.path)
+    listed = json.loads(out)
+    assert [(r["short_id"], r["run_id"][:10]) for r in listed] == [("01JDX3K9", "01JDX3K9QQ"), ("01JDX3K2AC",
+                                                                                                 "01JDX3K2AC")]
+    assert listed[1]["strategy"] == "beam" and listed[1]["batch"] == "ablation"
+
+
+def test_sql_params_and_schema(four, capsys):
+    from store.views import TABLES, VIEWS
+
+    def sql(*argv):
+        code, out, err = _in_process(capsys, "sql", *argv, "--store", four.path, "--json")
+        return code, (json.loads(out) if code == 0 else err)
+
+    assert sql("SELECT name FROM runs WHERE run_id = run(?)", "--param", "last~2") == (0, [{"name": "baseline"}])
+    assert sql("SELECT count(*) AS n FROM runs WHERE game = $game AND kind = $kind", "--param", "$game=pong",
+               "--param", "kind=optimize") == (0, [{"n": 2}])
+    code, err = sql("SELECT count(*) FROM runs WHERE game = ? AND kind = ?", "--param", "pong")
+    assert code == 2 and "2 parameters" in err and len(err.strip().splitlines()) == 1
+    code, err = sql("SELECT run_id FROM runs WHERE run_id = run('01JDX3K2A')")
+    assert code == 2 and "ambiguous" in err
+    code, out, err = _in_process(capsys, "sql", "--schema", "--store", four.path)
+    assert code == 0
+    names = {line.split()[0] for line in out.splitlines()[2:-1]}
+    assert names >= set(TABLES) | set(VIEWS) | {"run(ref)", "run_matches(ref)"}
+    code, _, err = _in_process(capsys, "sql", "--schema", "SELECT 1", "--store", four.path)
+    assert code == 2 and "--schema" in err
+    code, _, err = _in_process(capsys, "sql", "--store", four.path)
+    assert code == 2 and "give a query" in err and "--schema" in err
+    code, out, _ = _in_process(capsys, "sql", "--help")
+    assert code == 0 and "--schema" in out and "run('last')" in out
+
+
+def test_the_per_user_store_is_said_and_the_rule_is_in_the_help(tmp_path):
+    from tests.test_runs import RUNS, _add
+
+    env = _env(tmp_path)
+    user = Store(user_store_path(env))
+    user.path.parent.mkdir(parents=True)
+    _add(user, *RUNS[0][:5])
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    done = _ok(_cli("runs", cwd=elsewhere, env=env))
+    assert done.stderr == f"codearcade: store {user.path} (the per-user store: no codearcade.duckdb in this " \
+                          "directory or a parent, no --store, no $CODEARCADE_STORE)\n"
+    assert "baseline" in done.stdout
+    quiet = _ok(_cli("runs", "--store", user.path, cwd=elsewhere, env=env))
+    assert quiet.stderr == "", "a store given is not announced"
+    helped = " ".join(_ok(_cli("runs", "--help", cwd=elsewhere, env=env)).stdout.split())
+    assert "$CODEARCADE_STORE, else the nearest codearcade.duckdb in this directory or a parent" in helped
+    assert "per-user" in helped
+
+
+# ----------------------------------------------------------------------------------------------------- batch
+
+
+def test_batch_dry_run_shows_labels_and_warns_of_an_unset_key(tmp_path):
+    ablation = ROOT / "examples" / "ablation.toml"
+    env = _env(tmp_path)
+    done = _ok(_cli("batch", ablation, "--dry-run", "--store", "a.duckdb", cwd=tmp_path, env=env))
+    labels = re.findall(r"\[(\S+)\]", done.stdout)
+    assert labels == [f"pong-ablation:pong,feedback={f},seed={s}" for f in ("rollout", "staged") for s in (0, 1, 2)]
+    (warning,) = done.stderr.strip().splitlines()
+    assert warning.startswith("codearcade: warning: anthropic/claude-sonnet-4-5 needs an API key: set "
+                              "ANTHROPIC_API_KEY") and warning.endswith("(6 runs)")
+    keyed = _ok(_cli("batch", ablation, "--dry-run", "--store", "a.duckdb", cwd=tmp_path,
+                     env={**env, "ANTHROPIC_API_KEY": "sk-ant-x"}))
+    assert keyed.stderr == ""
+    refused = _cli("batch", ablation, "--store", "a.duckdb", cwd=tmp_path, env=env)
+    assert refused.returncode == 2 and "ANTHROPIC_API_KEY" in refused.stderr and not (tmp_path / "a.duckdb").exists()
+
+    down = tmp_path / "down.toml"
+    down.write_text(textwrap.dedent(f"""
+        name = "down"
+        [defaults]
+        model = "openai/local"
+        api_base = "http://127.0.0.1:{_closed_port()}/v1"
+        [matrix]
+        game = ["pong", "breakout"]
+    """))
+    done = _ok(_cli("batch", down, "--dry-run", "--store", "a.duckdb", cwd=tmp_path, env=env))
+    assert "cannot be reached" in done.stderr and done.stderr.strip().endswith("(2 runs)")
+
+
+def test_batch_labels_follow_the_entries(tmp_path):
+    from pipeline.jobs.batch import ExperimentError, load_experiments
+
+    path = tmp_path / "x.toml"
+    path.write_text('name = "x"\n[[run]]\ngame = "pong"\n[[run]]\ngame = "pong"\nseed = 1\n'
+                    '[[run]]\ngame = "breakout"\nname = "brk"\n')
+    assert [r.name for r in load_experiments(path).runs] == ["x:pong#1", "x:pong#2", "brk"]
+    path.write_text('name = "2024"\n[[run]]\ngame = "pong"\n')
+    assert [r.name for r in load_experiments(path).runs] == [None], "a label must start with a letter"
+    path.write_text('name = "x"\n[[run]]\ngame = "pong"\nname = "last"\n')
+    with pytest.raises(ExperimentError, match=r"\[\[run\]\] #1: name: run name 'last' cannot be used"):
+        load_experiments(path)
+
+
+def test_a_batch_stores_its_labels_and_they_name_the_runs(tmp_path, scripted, capsys):
+    from pipeline.cli.compare import is_version_ref
+
+    model = scripted([COMPETENT_REPLY])
+    path = tmp_path / "tiny.toml"
+    path.write_text(textwrap.dedent(f"""
+        name = "tiny"
+        [defaults]
+        game = "pong"
+        iterations = 0
+        eval_max_steps = 100
+        rollout_steps = 50
+        model = "{model.model}"
+        api_base = "{model.api_base}"
+        [matrix]
+        seed = [0, 1]
+        [[run]]
+        seed = 5
+        name = "mine"
+    """))
+    store = Store(tmp_path / "b.duckdb")
+    _ok(_cli("batch", path, "--workers", "2", "--store", store.path, cwd=tmp_path, env=_env(tmp_path)))
+    assert sorted(store.query("SELECT name, json_extract(config, '$.seed')::INT FROM runs")) == \
+        [("mine", 5), ("tiny:pong,seed=0", 0), ("tiny:pong,seed=1", 1)]
+    code, out, _ = _in_process(capsys, "sql", "SELECT seed FROM runs WHERE run_id = run(?)", "--param",
+                               "tiny:pong,seed=1", "--store", store.path, "--json")
+    assert code == 0 and json.loads(out) == [{"seed": 1}]
+    assert not is_version_ref("tiny:pong,seed=1", store), "a label with a colon is a run, not RUN:VERSION"
+    assert is_version_ref("tiny:pong,seed=1:best", store)
+    code, out, _ = _in_process(capsys, "runs", "--store", store.path)
+    assert "tiny:pong,seed=0" in out and "mine" in out
+
+
+def test_run_ids_in_messages_are_shortened_but_episode_ids_are_not():
+    from pipeline.cli.common import shorten_run_ids
+
+    short = {"01JDX3K2AB7Q000000000000A1": "01JDX3K2AB"}
+    text = "run 01JDX3K2AB7Q000000000000A1 failed in 01JDX3K2AB7Q000000000000A1.3.eval.0; see 01JDX3K2AB7Q000000000000B9"
+    assert shorten_run_ids(text, short) == ("run 01JDX3K2AB failed in 01JDX3K2AB7Q000000000000A1.3.eval.0; see "
+                                            "01JDX3K2AB7Q000000000000B9")
