@@ -8,7 +8,6 @@ and those tests skip when neither is there.
 
 from __future__ import annotations
 
-import ast
 import json
 import os
 import subprocess
@@ -21,7 +20,7 @@ from pipeline.cli import main
 from tests.conftest import POLICIES, json_reply
 from tests.test_sandbox import REFUSED
 from tracing.capture import NodeRecorder
-from tracing.policy_file import PolicyLoadError, inspect_policy, load_policy, replace_methods
+from tracing.policy_file import PolicyLoadError, inspect_policy, load_policy, policy_from_script, replace_methods
 from tracing.sandbox import TRACE_API, PolicyCodeError, check_source
 
 TRACE_TWIN = POLICIES / "pong_competent_trace.py"
@@ -306,6 +305,69 @@ def test_a_trace_api_file_is_optimized_blamed_and_compared_without_edits(store, 
     assert added == [f"+    {changed_line}"], "the two files differ in the changed line only"
 
 
+# --- new --from: the policy out of a Trace training script ---------------------------------------------------
+
+TRAINING_LOOP = """import os
+import gymnasium as gym
+from opto.optimizers import OptoPrime
+from opto.trace.bundle import ExceptionNode
+
+env = gym.make("ALE/Pong-v5")
+UNUSED_SETTING = 5
+
+
+def optimize_policy(policy, steps=10):
+    optimizer = OptoPrime(policy.parameters())
+    for _ in range(steps):
+        optimizer.step()
+
+
+if __name__ == "__main__":
+    optimize_policy(Policy())
+"""
+
+
+def test_new_from_a_training_script_keeps_the_policy_and_what_it_uses(store, capsys, tmp_path):
+    twin = TRACE_TWIN.read_text()
+    header, rest = twin.split("GAME = ", 1)
+    script = tmp_path / "pong_training.py"
+    script.write_text(TRAINING_LOOP.split("\nenv =")[0] + "\n" + header.split('"""', 2)[2] + "GAME = " + rest
+                      + "\n\nenv =" + TRAINING_LOOP.split("\nenv =")[1])
+    assert "OptoPrime" in script.read_text() and "class Policy" in script.read_text()
+    code, out, err = run_cli(capsys, "eval", script, "--store", store.path)
+    assert code == 2 and "os" in err, "the script itself is no policy file"
+
+    written = tmp_path / "pong.py"
+    code, out, err = run_cli(capsys, "new", written, "--from", script)
+    assert code == 0, err
+    assert "PADDLE_X" in out and "select_action" in out and "left out 4 import(s)" in out
+    text = written.read_text()
+    for gone in ("OptoPrime", "gymnasium", "__main__", "UNUSED_SETTING", "optimize_policy", "env =", "import os"):
+        assert gone not in text, gone
+    def methods(policy_text):
+        return [(m.name, m.source, m.trainable) for m in inspect_policy(policy_text).methods]
+
+    assert methods(text) == methods(twin)
+    assert _eval(capsys, store, written)["return"] == _eval(capsys, store, TRACE_TWIN)["return"]
+
+
+def test_new_from_refuses_what_it_cannot_take_and_writes_nothing(capsys, tmp_path):
+    script = tmp_path / "script.py"
+    script.write_text("import os\n\ndef act(obs):\n    return 0\n")
+    code, _, err = run_cli(capsys, "new", tmp_path / "p.py", "--from", script, "--game", "pong")
+    assert code == 2 and "no class named 'Policy'" in err
+    code, _, err = run_cli(capsys, "new", tmp_path / "p.py", "--from", TRACE_TWIN, "--game", "breakout")
+    assert code == 2 and "declares GAME = 'pong'" in err
+    no_game = tmp_path / "nogame.py"
+    no_game.write_text(TRACE_TWIN.read_text().replace('GAME = "pong"\n', ""))
+    code, _, err = run_cli(capsys, "new", tmp_path / "p.py", "--from", no_game)
+    assert code == 2 and "--game" in err
+    assert not (tmp_path / "p.py").exists()
+    code, out, err = run_cli(capsys, "new", tmp_path / "p.py", "--from", no_game, "--game", "pong")
+    assert code == 0, err
+    assert inspect_policy((tmp_path / "p.py").read_text()).game == "pong"
+
+
 # --- the authors' files ------------------------------------------------------------------------------------------
 
 GAMES_OF_BEST_POLICIES = {"Pong": "pong", "Breakout": "breakout", "SpaceInvaders": "space_invaders"}
@@ -326,24 +388,6 @@ def _git(git_dir: Path, *args: str) -> str:
                           timeout=60).stdout
 
 
-def policy_part(script: str) -> str:
-    """The policy of a Trace training script: its imports that policy code may use and ``class Policy``."""
-    tree = ast.parse(script)
-    kept = []
-    for node in tree.body:
-        segment = ast.get_source_segment(script, node)
-        if isinstance(node, (ast.Import, ast.ImportFrom)):
-            try:
-                check_source(segment)
-            except PolicyCodeError:
-                continue  # os, gymnasium, opto.optimizers, their environment and logging modules
-            kept.append(segment)
-        elif isinstance(node, ast.ClassDef) and node.name == "Policy":
-            first = node.decorator_list[0].lineno if node.decorator_list else node.lineno
-            kept.append("\n" + "".join(script.splitlines(True)[first - 1: node.end_lineno]))
-    return "\n".join(kept) + "\n"
-
-
 def authors_policy_files() -> list[tuple[str, str, str]]:
     """(path, game, policy text) of every policy in the authors' repository: best_policies/*.py as they are, and
     the policy part of each ``<game>_training.py``."""
@@ -356,7 +400,7 @@ def authors_policy_files() -> list[tuple[str, str, str]]:
             found.append((path, GAMES_OF_BEST_POLICIES[Path(path).stem], _git(git_dir, "show", f"HEAD:{path}")))
         elif "/" not in path and path.endswith("_training.py"):
             found.append((path, path.removesuffix("_training.py"),
-                          policy_part(_git(git_dir, "show", f"HEAD:{path}"))))
+                          policy_from_script(_git(git_dir, "show", f"HEAD:{path}"), path).text))
     return found
 
 

@@ -34,6 +34,9 @@ from tracing.bundle import Module
 from tracing.capture import failing_policy_line
 from tracing.sandbox import PolicyCodeError, check_source, safe_builtins, time_limit
 
+TASK_CONSTANTS = ("GAME", "ROLLOUT_STEPS", "EVAL_MAX_STEPS", "FEEDBACK", "INSTRUCTION")
+"""The module constants of a policy file that declare its task (the list above)."""
+
 LOAD_TIME_LIMIT_S = 5.0
 """Module-level code and ``Policy()`` together must finish within this (a file that loops is refused)."""
 
@@ -224,3 +227,81 @@ def replace_methods(text: str, sources: dict[str, str]) -> str:
     for start, end, body in sorted(spans, reverse=True):
         lines[start:end] = [body]
     return "".join(lines)
+
+
+@dataclass(frozen=True)
+class ExtractedPolicy:
+    """The policy part of a script (:func:`policy_from_script`): the text of a policy file, and what was left out."""
+
+    text: str
+    kept: list[str]
+    """Top-level names kept beside ``Policy`` (helpers and constants it uses), in file order."""
+    dropped_imports: list[str]
+    """Imports policy code may not make (the training loop's ``os``, ``gymnasium``, ``opto.optimizers`` ...)."""
+
+
+def _statement_names(node: ast.stmt) -> list[str]:
+    """The names a top-level definition binds (a def, a class, an assignment to plain names)."""
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        return [node.name]
+    targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+    return [t.id for target in targets for t in ast.walk(target) if isinstance(t, ast.Name)]
+
+
+def policy_from_script(text: str, name: str = "script.py", game: str | None = None) -> ExtractedPolicy:
+    """The policy file inside a Trace training script (or any module that defines ``class Policy``), found
+    without running anything: the imports policy code may make, ``Policy`` and the top-level definitions it uses,
+    transitively (helper functions, constants, classes), in their original order and text. Everything else — the
+    environment, the optimizer, the training loop, ``if __name__ == "__main__":`` — is left out: it cannot run
+    in the sandbox and is not the policy. ``game`` adds ``GAME = "<game>"`` after the imports where the script
+    declares none. Raises :class:`PolicyLoadError` with a one-line reason."""
+    try:
+        tree = ast.parse(text, name)
+    except SyntaxError as exc:
+        raise PolicyLoadError(f"{name}, line {exc.lineno}: SyntaxError: {exc.msg}") from None
+    except (RecursionError, MemoryError, ValueError) as exc:
+        raise PolicyLoadError(f"{name}: the code cannot be read ({type(exc).__name__}: too large, too deeply "
+                              "nested or not text)") from None
+    definitions: dict[str, ast.stmt] = {}
+    for node in tree.body:
+        for bound in _statement_names(node):
+            definitions[bound] = node  # the last binding wins, as when the module runs
+    if not isinstance(definitions.get("Policy"), ast.ClassDef):
+        raise PolicyLoadError(f"{name}: no class named 'Policy' to take (a policy is `class Policy(trace.Module)`)")
+    wanted: set[int] = set()
+    pending = [definitions["Policy"], *(definitions[c] for c in TASK_CONSTANTS if c in definitions)]
+    while pending:
+        node = pending.pop()
+        if id(node) in wanted:
+            continue
+        wanted.add(id(node))
+        used = {n.id for n in ast.walk(node) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
+        pending.extend(definitions[u] for u in used if u in definitions)
+    lines = text.splitlines(True)
+    parts, kept, dropped = [], [], []
+    imports_end = 0
+    for node in tree.body:
+        segment = ast.get_source_segment(text, node) or ""
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            try:
+                check_source(segment)
+            except PolicyCodeError:
+                dropped.append(segment)
+                continue
+            parts.append(segment + "\n")
+            imports_end = len(parts)
+        elif id(node) in wanted:
+            first = min([node.lineno] + [d.lineno for d in getattr(node, "decorator_list", [])])
+            parts.append("\n\n" + "".join(lines[first - 1: node.end_lineno]).rstrip("\n") + "\n")
+            kept.extend(n for n in _statement_names(node) if n != "Policy")
+    declared = definitions.get("GAME")
+    if game is not None and declared is not None:
+        try:
+            stated = ast.literal_eval(declared.value) if isinstance(declared, ast.Assign) else None
+        except ValueError:
+            stated = None
+        if stated != game:
+            raise PolicyLoadError(f"{name} declares GAME = {stated!r}; leave out --game or give that game")
+    elif game is not None:
+        parts.insert(imports_end, f"\nGAME = {game!r}\n")
+    return ExtractedPolicy("".join(parts).lstrip("\n"), kept, dropped)

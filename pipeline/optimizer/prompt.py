@@ -29,12 +29,11 @@ from pipeline.llm.client import prompt_hash
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.context import PromptContext
 from pipeline.optimizer.strategies import format_number
-from tracing.policy_file import PolicyInfo, replace_methods
+from tracing.policy_file import TASK_CONSTANTS, PolicyInfo, replace_methods
 from tracing.sandbox import ALLOWED_MODULES
 
 EVENT_WINDOW = 30
 """Steps shown before each lost point/life (about one ball crossing in Pong)."""
-TASK_CONSTANTS = ("GAME", "ROLLOUT_STEPS", "EVAL_MAX_STEPS", "FEEDBACK", "INSTRUCTION")
 MAX_VALUE_CHARS = 300
 
 SYSTEM = """You improve a game-playing policy written in Python. The policy is a class; some of its methods are \
