@@ -372,6 +372,39 @@ raise ValueError(' '.join(found) or 'nothing read')
     assert not hook.exists(), "no hook was planted"
 
 
+@pytest.mark.parametrize("path", PATHS)
+def test_the_user_s_files_cannot_even_be_stat_ed(path, tmp_path, scripted):
+    """``stat()`` is outside Landlock's rules: only the policy process's minimal filesystem view keeps a file's
+    existence, size and times from it. A file of a telling size and mtime, its folder, the store: not there for
+    the policy (each stat fails). The user's home and the project folder exist in the view only as the empty
+    folders its mounts hang from (the interpreter and the venv live below them): their real figures never show."""
+    secret = tmp_path / "plans" / "secret.txt"
+    secret.parent.mkdir()
+    secret.write_bytes(b"x" * 48_611)
+    os.utime(secret, (1_234_567_890, 1_234_567_890))
+    hidden = [str(secret), str(secret.parent), str(tmp_path / f"{path}.duckdb")]
+    above_mounts = [str(Path.home()), str(ROOT)]
+    body = f"""
+seen = []
+for target in {hidden + above_mounts!r}:
+    try:
+        st = os.stat(target)
+        seen.append(str(st.st_size) + '@' + str(int(st.st_mtime)))
+    except OSError as exc:
+        seen.append(type(exc).__name__)
+raise ValueError('stat: ' + ' '.join(seen))
+"""
+    real = [f"{st.st_size}@{int(st.st_mtime)}" for st in map(os.stat, above_mounts)]
+    store, printed, requests = _run(path, tmp_path, scripted, body)
+    texts = [printed, _store_text(store.path), json.dumps(requests)]
+    for figure in ("48611", "1234567890", *real):
+        assert not any(figure in t for t in texts), f"{figure} got out"
+    errors = [e for (e,) in store.query("SELECT error FROM episodes WHERE error IS NOT NULL")]
+    reasons = [r for (r,) in store.query("SELECT reason FROM rejected_candidates")] if path == "optimize" else []
+    nothing = "ValueError: stat: " + " ".join(["FileNotFoundError"] * len(hidden))
+    assert any(nothing in e for e in errors + reasons), ("the attack ran, and found nothing", errors, reasons)
+
+
 CHILD_SUBREAPER = 36
 
 
