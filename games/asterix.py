@@ -43,7 +43,7 @@ FEEDBACK = {
     },
 }
 ROLLOUT_STEPS = 100      # authors: --horizon 100 (also run with 1)
-EVAL_MAX_STEPS = 20000   # authors: 3 episodes x 20,000 steps (each ends at a lost life: see README)
+EVAL_MAX_STEPS = 20000   # authors: 3 episodes x 20,000 steps (each ends at a lost life: see docs/games.md)
 EVAL_EPISODES = 3
 
 

@@ -52,7 +52,7 @@ FEEDBACK = {
     },
 }
 ROLLOUT_STEPS = 100      # authors: --horizon 100 (also run with 1)
-EVAL_MAX_STEPS = 4000    # authors: 1 episode x 4,000 steps (ending at the first lost life: see README)
+EVAL_MAX_STEPS = 4000    # authors: 1 episode x 4,000 steps (ending at the first lost life: see docs/games.md)
 EVAL_EPISODES = 1
 
 

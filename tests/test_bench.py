@@ -1,7 +1,7 @@
 """The benchmarks in bench/ still run: each one, at its smallest size, ends cleanly and prints its ratios.
 
 Their figures are not checked here (the shared cores are far too noisy for timed assertions); a benchmark
-that crashes or stops printing what the README quotes is.
+that crashes or stops printing what docs/benchmarks.md quotes is.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ store (generic objects + ``derive``) is the one the environment gave the policy;
 episode of each game has frames and object boxes.
 
 The caps are short (1,000 steps; Breakout 1,500) and chosen where the competent policy is already far ahead
-(measured: README, section Games)."""
+(measured: docs/games.md, section Games)."""
 
 from __future__ import annotations
 

@@ -165,12 +165,13 @@ def test_a_game_that_changes_its_observation_must_declare_its_space():
     env.close()
 
 
-def test_the_readme_example_prints_what_it_says():
-    """README, section Environments: the example runs as printed; each ``print`` line's comment is its output."""
-    section = (ROOT / "README.md").read_text().split("### Environments", 1)[1].split("\n### ", 1)[0]
+def test_the_documented_example_prints_what_it_says():
+    """docs/games.md, section Environments: the example runs as printed; each ``print`` line's comment is its
+    output."""
+    section = (ROOT / "docs" / "games.md").read_text().split("\n## Environments\n", 1)[1].split("\n## ", 1)[0]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
     expected = [line.split("  # ", 1)[1] for line in code.splitlines() if line.startswith("print(")]
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        exec(compile(code, "README.md", "exec"), {})
+        exec(compile(code, "docs/games.md", "exec"), {})
     assert out.getvalue().splitlines() == expected

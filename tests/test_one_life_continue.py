@@ -209,7 +209,7 @@ def test_one_policy_object_plays_the_whole_game(store, capsys, write_policy, wor
 
 def test_the_competent_asterix_policy_scores_their_figure_under_their_protocol(store, capsys):
     """3 x 20,000 (their Asterix evaluation) of tests/policies/asterix_competent.py: lives 1-3 of one game score
-    3,400, 32,300 and 6,800, mean 14,166.7 (their 14,167: README, section Games), where ``--one-life`` (the
+    3,400, 32,300 and 6,800, mean 14,166.7 (their 14,167: docs/games.md, section Games), where ``--one-life`` (the
     first life of three seeded games) gives 3,400."""
     summary = evaluate(capsys, store, POLICIES / "asterix_competent.py", "--one-life-continue", "--episodes", 3,
                        "--max-steps", 20000, "--workers", 1)

@@ -2,7 +2,7 @@
 
 One module-scoped run drives ``optimize`` through litellm against the scripted model: each reply changes known
 lines of ``select_action``, so every line of the final version has a known iteration. The same run's traced
-training rollouts (real ALE, real DuckDB file) answer the two SQL questions of the README.
+training rollouts (real ALE, real DuckDB file) answer the two SQL questions of docs/provenance.md.
 """
 
 from __future__ import annotations
@@ -142,7 +142,7 @@ def test_blame_is_computed_for_a_store_written_before_migration_7(run, tmp_path)
 
 
 def test_unrun_lines_of_the_best_version(run):
-    """The README's query: the executable lines of the best version that no traced call of it ran."""
+    """docs/provenance.md's query: the executable lines of the best version that no traced call of it ran."""
     store, run_id = run
     rows = store.query(
         """SELECT u.function, u.line_no, u.text FROM unrun_lines u
@@ -170,7 +170,7 @@ def test_unrun_lines_of_the_best_version(run):
 
 
 def test_lines_that_ran_before_each_lost_point(run):
-    """The README's query: which lines of select_action ran in the 10 steps before each point the player lost;
+    """docs/provenance.md's query: which lines of select_action ran in the 10 steps before each point the player lost;
     the return line that ran at each step is the one that returns the action the step played."""
     store, run_id = run
     [(episode,)] = store.query("SELECT train_episode_id FROM iterations WHERE run_id = ? AND iteration = 0", [run_id])

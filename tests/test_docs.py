@@ -1,0 +1,143 @@
+"""The README and the pages of docs/ hold together: every relative link reaches a file (and a heading, when it names
+one), every `codearcade` command their shell blocks show is one the command line accepts as printed, and the
+README's test command is the one CI runs. (The SQL examples run for real in tests/test_cli.py, the Gymnasium
+example in tests/test_gym_envs.py, the schema's tables and views in tests/test_store.py and tests/test_views.py.)"""
+
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import build_parser
+from tests.conftest import ROOT
+
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
+FENCE = re.compile(r"^```(\S*)\n(.*?)^```", re.S | re.M)
+
+
+def _prose(text: str) -> str:
+    """The page without its fenced blocks, where `[x](y)` is code, not a link."""
+    return FENCE.sub("", text)
+
+
+def _anchor(heading: str) -> str:
+    """A heading's anchor as GitHub makes it: lower case, punctuation dropped (hyphens and underscores kept),
+    each space a hyphen."""
+    text = re.sub(r"[^\w\- ]", "", heading.strip().lower())
+    return text.replace(" ", "-")
+
+
+def _anchors(path: Path) -> set[str]:
+    headings = re.findall(r"^#{1,6} (.+)$", _prose(path.read_text()), re.M)
+    return {_anchor(h) for h in headings}
+
+
+def _links() -> list[tuple[str, str]]:
+    """Every relative link (and image) of README.md and docs/*.md: (page, target)."""
+    found = []
+    for page in PAGES:
+        for target in LINK.findall(_prose(page.read_text())):
+            if not re.match(r"[a-z][a-z0-9+.-]*:", target):  # http:, https:, mailto: leave the repository
+                found.append((str(page.relative_to(ROOT)), target))
+    return found
+
+
+def test_every_relative_link_reaches_a_file_and_its_heading():
+    links = _links()
+    # the README links every topic page, and the pages link each other and their pictures
+    readme_targets = {target.split("#")[0] for page, target in links if page == "README.md"}
+    assert {f"docs/{p.name}" for p in PAGES[1:]} <= readme_targets, "a page of docs/ the README does not link"
+    assert sum(target.endswith(".png") for _, target in links) >= 4
+    broken = []
+    for page, target in links:
+        path_part, _, anchor = target.partition("#")
+        dest = (ROOT / page).parent / path_part if path_part else ROOT / page
+        if not dest.exists():
+            broken.append(f"{page}: {target} (no such file)")
+        elif anchor and dest.suffix == ".md" and anchor not in _anchors(dest):
+            broken.append(f"{page}: {target} (no such heading in {dest.name})")
+    assert not broken, "\n".join(broken)
+
+
+def test_the_link_check_sees_a_broken_link_and_heading(tmp_path):
+    """The anchors are GitHub's: a heading with code, a dash and a colon keeps its words and hyphens only."""
+    assert _anchor("`runs` — one row per `codearcade eval` or `optimize` run") == \
+        "runs--one-row-per-codearcade-eval-or-optimize-run"
+    assert _anchor("The evaluation protocol: one life per episode") == "the-evaluation-protocol-one-life-per-episode"
+    assert "naming-a-run" in _anchors(ROOT / "docs" / "schema.md")
+    assert "nowhere" not in _anchors(ROOT / "docs" / "schema.md")
+
+
+def _shown_commands() -> list[tuple[str, int, str]]:
+    """Every `codearcade ...` command line of a shell block in README.md and docs/*.md, and every `$ codearcade ...`
+    of a block that shows a session: (page, line, command), a command continued with a backslash joined as the
+    shell joins it."""
+    found = []
+    for page in PAGES:
+        text = page.read_text()
+        for block in FENCE.finditer(text):
+            prompt = "" if block.group(1) in ("bash", "sh") else "$ "
+            first_line = text.count("\n", 0, block.start(2)) + 1
+            lines = block.group(2).splitlines()
+            k = 0
+            while k < len(lines):
+                line, at = lines[k], first_line + k
+                while line.endswith("\\") and k + 1 < len(lines):
+                    k += 1
+                    line = line[:-1] + lines[k]
+                if line.startswith(prompt + "codearcade "):
+                    line = line[len(prompt):]
+                    while True:  # a query that spans lines: join them until the quotes close
+                        try:
+                            shlex.split(line, comments=True)
+                            break
+                        except ValueError:
+                            k += 1
+                            line += "\n" + lines[k]
+                    found.append((str(page.relative_to(ROOT)), at, line))
+                k += 1
+    return found
+
+
+def test_every_command_shown_is_accepted_as_printed(capsys):
+    """Flags, verbs and choices as the parser knows them: a flag renamed or dropped breaks the page that shows it.
+    (Its run ids and files are examples; the commands that run for real are in the tests of each verb.)"""
+    commands = _shown_commands()
+    pages = {page for page, _, _ in commands}
+    assert len(commands) >= 50 and {"README.md", "docs/cli.md", "docs/games.md", "docs/recordings.md"} <= pages
+    parser = build_parser()
+    refused = []
+    for page, line, command in commands:
+        argv = shlex.split(command, comments=True)[1:]
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit:
+            refused.append(f"{page}:{line}: {command}\n    {capsys.readouterr().err.strip()}")
+            continue
+        assert callable(args.handler)
+    assert not refused, "\n".join(refused)
+
+
+def test_a_renamed_flag_would_be_caught(capsys):
+    """The check above refuses what the parser refuses: a typo'd flag, an unknown verb, a choice not offered."""
+    parser = build_parser()
+    for argv in (["eval", "p.py", "--epsiodes", "3"], ["evaluate", "p.py"], ["optimize", "--strategy", "best"]):
+        with pytest.raises(SystemExit):
+            parser.parse_args(argv)
+    assert "did you mean --episodes?" in capsys.readouterr().err
+
+
+def test_the_readme_shows_the_commands_ci_runs():
+    """The set-up commands of the README, byte for byte, and .ci/run runs the test one's steps in its order."""
+    readme = (ROOT / "README.md").read_text()
+    main_job = "bash scripts/setup.sh && .venv/bin/codearcade optimize --game pong --iterations 2\n"
+    tests = "bash scripts/setup.sh && bash scripts/setup_phoenix.sh && .venv/bin/python -m pytest -q\n"
+    assert main_job in readme and tests in readme
+    ci = [line for line in (ROOT / ".ci" / "run").read_text().splitlines() if line and not line.startswith("#")]
+    steps = [next(k for k, line in enumerate(ci) if line.startswith(step))
+             for step in tests.strip().split(" && ")]
+    assert steps == sorted(steps), ci
