@@ -1,6 +1,8 @@
 """The pipeline: everything that plays, learns and is driven from the command line, in sub-packages along the
 data path (docs/architecture.md draws it):
 
+- ``settings``  how a setting is declared once (its flag, help, checks, batch key, ``--resume`` rule) and the
+                episode limits every layer above plays under (a module below the sub-packages);
 - ``boundary``  the policy process and what crosses into and out of it: confinement, the zygotes, workers, the
                 wire format, untrusted text;
 - ``play``      the trusted side of playing: the game host (environment and score where no policy code runs),

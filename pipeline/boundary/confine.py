@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pipeline.settings import EpisodeLimits
+
 WEAK_ENV = "CODEARCADE_ALLOW_WEAK_SANDBOX"
 """Set to 1 to run policy code even when a kernel feature of the sandbox is missing (warned on every run)."""
 
@@ -434,7 +436,7 @@ def die_with_parent(parent_pid: int) -> None:
 class Limits:
     """What one worker may use."""
 
-    memory_mb: int | None = 4096
+    memory_mb: int | None = EpisodeLimits.memory_limit_mb
     """Address space above what the worker had when confined (None: unlimited)."""
     cpu_s: int | None = None
     """CPU seconds before SIGXCPU/SIGKILL (a backstop; the parent's wall-clock kill comes first)."""

@@ -51,6 +51,7 @@ from typing import Any, Callable, Iterable, Iterator, TypeVar
 
 from pipeline.boundary import wire
 from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, weak_sandbox_allowed
+from pipeline.settings import EpisodeLimits
 
 KILL_GRACE_S = 30.0
 """How long past its time limit a worker may run before the parent kills it."""
@@ -505,7 +506,7 @@ def run_tasks(
 
 
 def run_json_task(name: str, item: dict[str, Any], local: Callable[[dict[str, Any]], dict[str, str | None]],
-                  time_limit_s: float, memory_mb: int | None = 4096, workers: int = 1) -> tuple[bool, Any]:
+                  time_limit_s: float, memory_mb: int | None = EpisodeLimits.memory_limit_mb, workers: int = 1) -> tuple[bool, Any]:
     """Run a task whose answer is ``{"kind": "result", FIELD: str | None, ...}`` (``local`` returns the fields)
     in a confined worker: (True, the fields) when it answered, (False, why not) when it crashed, misbehaved or
     timed out."""
@@ -515,7 +516,7 @@ def run_json_task(name: str, item: dict[str, Any], local: Callable[[dict[str, An
 
 def run_json_tasks(name: str, items: list[dict[str, Any]], local: Callable[[dict[str, Any]], dict[str, str | None]],
                    time_limit_s: Callable[[dict[str, Any]], float],
-                   memory_mb: Callable[[dict[str, Any]], int | None] = lambda item: 4096,
+                   memory_mb: Callable[[dict[str, Any]], int | None] = lambda item: EpisodeLimits.memory_limit_mb,
                    workers: int = 1) -> list[tuple[bool, Any]]:
     """:func:`run_json_task` of each item (limits per item), up to ``workers`` at once; results in item order."""
     def decode(_item: Any, msg: dict[str, Any], _tables: list[bytes]) -> tuple[bool, Any]:

@@ -285,3 +285,61 @@ def rerun_target(value: str | None) -> str | None:
 def json_default(value: Any) -> str:
     """``json.dumps``'s fallback for the store's timestamps and decimals."""
     return str(value)
+
+
+# ------------------------------------------------------------------------------------- declared settings
+
+
+def _argument_type(kind, declared) -> Callable[[str], Any] | None:
+    """The argparse type of a setting: its value type, held to its range where one of these types says it."""
+    low = declared.minimum if declared.minimum is not None else (
+        None if declared.above is None else declared.above + (1 if kind is int else 0))
+    if kind is int:
+        return non_negative_int if low == 0 else positive_int if low is not None and low >= 1 else int
+    if kind is float:
+        return probability if (declared.minimum, declared.maximum) == (0, 1) else float
+    return None
+
+
+def add_settings(p: argparse.ArgumentParser, config: type, groups: dict[str, str] | None = None, *,
+                 defaults: bool = False, only: Sequence[str] | None = None, help_prefix: str = "") -> tuple[str, ...]:
+    """Add the flags of the declared settings of ``config`` (``pipeline/settings.py``; those named in ``only``, in
+    its order) to ``p``: each with its help, type, range and choices, in its group (``groups``: each group's
+    title and line). Without ``defaults`` every flag defaults to None, so that the handler sees which were given.
+    Returns the names (``dest``) of the settings added."""
+    from dataclasses import replace
+
+    from pipeline.settings import UNSET, declarations, value_type
+
+    declared = declarations(config)
+    names = list(only) if only is not None else [n for n, (_, s) in declared.items() if s.cli]
+    names.sort(key=lambda n: not declared[n][1].positional)  # positionals first, as a verb's usage shows them
+    made: dict[str | None, Any] = {None: p}
+    # each group's flags together, the verb's own first (argparse lists them in the order they are added)
+    order = [None] + [g for g in (groups or {})]
+    for group in order:
+        for name in names:
+            f, s = declared[name]
+            if (s.group or ("budgets" if s.budget else None)) != group:
+                continue
+            if group not in made:
+                made[group] = p.add_argument_group(group, groups[group])
+            target = made[group]
+            default = (f.default if s.flag_default is UNSET else s.flag_default) if defaults else None
+            shown = f"{f.default:g}" if isinstance(f.default, float) else str(f.default)
+            s = replace(s, help=s.help.replace("%(default)s", shown),
+                        switches=tuple(replace(w, help=w.help.replace("%(default)s", shown)) for w in s.switches))
+            if s.positional:
+                target.add_argument(name, metavar=s.metavar, nargs="?", default=default, help=help_prefix + s.help)
+            elif s.switches:
+                if len(s.switches) > 1:
+                    target = target.add_mutually_exclusive_group()
+                for i, switch in enumerate(s.switches):
+                    target.add_argument(switch.flag, action="store_const", const=switch.value, dest=name,
+                                        help=help_prefix + switch.help, **({"default": default} if i == 0 else {}))
+            else:
+                kind = value_type(config, name)
+                extra = {"choices": s.choices} if s.choices is not None else {"type": _argument_type(kind, s)}
+                target.add_argument(*s.flags(name), dest=name, metavar=s.metavar, default=default,
+                                    help=help_prefix + s.help, **{k: v for k, v in extra.items() if v is not None})
+    return tuple(names)

@@ -9,8 +9,10 @@ import os
 import sys
 from typing import Callable
 
-from pipeline.cli.common import (EXIT_OK, CliError, add_store, non_negative_int, open_store, positive_int, short_ids,
-                                 shorten_run_ids, show, show_json)
+from pipeline.cli.common import (EXIT_OK, CliError, add_settings, add_store, open_store, short_ids, shorten_run_ids,
+                                 show, show_json)
+from pipeline.play.config import CompareConfig
+from pipeline.settings import declarations
 
 
 def add_parser(verbs) -> None:
@@ -33,15 +35,7 @@ def add_parser(verbs) -> None:
     p.add_argument("b", metavar="B", help="the same kind as A")
     p.add_argument("--out", metavar="DIR", help="write README.md there (and curves.png for two runs); default for "
                    "two runs: ./reports/compare-A-B; two versions: no files")
-    p.add_argument("--game", help="versions: the game both play (default: their runs' or files' GAME)")
-    p.add_argument("--episodes", type=positive_int, default=1,
-                   help="versions: seeds to play, from --seed on (default: 1)")
-    p.add_argument("--seed", type=int, default=0, help="versions: the first seed (default: 0)")
-    p.add_argument("--max-steps", type=positive_int, default=4000, help="versions: step cap (default: 4000)")
-    p.add_argument("--context", type=non_negative_int, default=3,
-                   help="versions: steps shown before and after the first divergent step (default: 3)")
-    p.add_argument("--workers", type=non_negative_int, default=None,
-                   help="versions: episode worker processes (default: min(episodes, cores))")
+    add_settings(p, CompareConfig, defaults=True, help_prefix="versions: ")
     p.add_argument("--rerun", metavar="FILE.rrd|URL",
                    help="versions: write a side-by-side Rerun recording of the two episodes of the first seed "
                    "where they part (a .rrd file, or a rerun+http://HOST:PORT/proxy viewer)")
@@ -53,15 +47,15 @@ def add_parser(verbs) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from pipeline.play.versus import CompareConfig
     from viewers.compare_report import text_lines, write_report
 
     if args.rerun and not args.rerun.endswith(".rrd") and not args.rerun.startswith(("rerun://", "rerun+http")):
         raise CliError(f"--rerun {args.rerun}: give a FILE.rrd or a rerun+http://HOST:PORT/proxy url")
     store = open_store(args)
-    workers = args.workers if args.workers is not None else min(args.episodes, os.cpu_count() or 1)
-    config = CompareConfig(game=args.game, episodes=args.episodes, seed=args.seed, max_steps=args.max_steps,
-                           context=args.context, workers=workers)
+    given = {name: getattr(args, name) for name in declarations(CompareConfig)}
+    if given["workers"] is None:
+        given["workers"] = min(args.episodes, os.cpu_count() or 1)
+    config = CompareConfig(**given)
     result = compare(store, args.a, args.b, config, progress=lambda line: show(line, file=sys.stderr, flush=True))
     data = result.as_dict()
     if args.rerun:
@@ -129,7 +123,7 @@ def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] 
     from pathlib import Path
 
     from pipeline.optimizer.runs import compare_runs
-    from pipeline.play.versus import CompareConfig, compare_versions
+    from pipeline.play.versus import compare_versions
     from tracing.policy_file import PolicyLoadError
 
     config = config or CompareConfig()

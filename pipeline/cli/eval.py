@@ -6,10 +6,13 @@ import argparse
 import os
 import sys
 
-from games import GAMES
-from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, FAILED_END_REASONS, add_name, add_rerun, add_store,
-                                 non_negative_int, open_store, positive_int, probability, rerun_target, short_id, show,
-                                 show_json)
+from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, FAILED_END_REASONS, add_name, add_rerun, add_settings,
+                                 add_store, open_store, rerun_target, short_id, show, show_json)
+from pipeline.play.config import EvalConfig
+from pipeline.settings import declarations
+
+EVAL_OPTIONS = tuple(n for n, (_, s) in declarations(EvalConfig).items() if s.cli)
+"""The ``eval`` flags that are :class:`~pipeline.play.config.EvalConfig` fields (declared there)."""
 
 
 def add_parser(verbs) -> None:
@@ -21,32 +24,7 @@ def add_parser(verbs) -> None:
         "every step and, with --trace, every call of its bundled methods to the store.",
     )
     p.add_argument("policy", metavar="POLICY.py", help="policy file; may declare GAME = 'pong'")
-    p.add_argument("--game", help=f"game to play: {', '.join(GAMES)}, or any game OCAtari reads (`codearcade "
-                   "games` lists them) (default: the file's GAME)")
-    p.add_argument("--episodes", type=positive_int, default=1, help="evaluation episodes (default: 1)")
-    p.add_argument("--max-steps", type=positive_int, default=4000,
-                   help="cut an episode off after this many steps, reported as truncated (default: 4000, the paper's)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the first episode; episode i uses seed+i (default: 0)")
-    p.add_argument("--trace", action="store_true", help="record a node for every call of a bundled method")
-    p.add_argument("--sticky", type=probability, default=0.0,
-                   help="sticky-action probability (default: 0.0, the paper's; 0.25 with --noop-max 30 is the "
-                   "standard stochastic protocol)")
-    p.add_argument("--noop-max", type=non_negative_int, default=0,
-                   help="up to this many random NOOPs after reset (default: 0)")
-    lives = p.add_mutually_exclusive_group()
-    lives.add_argument("--one-life", action="store_const", const=True, default=False, dest="one_life",
-                       help="end each episode at the first lost life of its own seeded game (default: whole games, "
-                       "the paper's)")
-    lives.add_argument("--one-life-continue", action="store_const", const="continue", dest="one_life",
-                       help="the authors' protocol for Asterix, Breakout, Q*bert and Seaquest exactly: the episodes "
-                       "are the lives of one game from --seed, each going on where the one before ended")
-    p.add_argument("--workers", type=non_negative_int, default=None,
-                   help="episodes played at once in worker processes (default: min(episodes, cores)); "
-                   "0 plays in this process without isolation, for debugging")
-    p.add_argument("--call-time-limit", type=float, default=1.0, metavar="SECONDS",
-                   help="time limit of one policy call (default: 1.0)")
-    p.add_argument("--episode-time-limit", type=float, default=900.0, metavar="SECONDS",
-                   help="wall-clock limit of one episode (default: 900)")
+    add_settings(p, EvalConfig, defaults=True)
     add_name(p, "run")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     add_rerun(p)
@@ -85,16 +63,13 @@ def _progress_bar(episodes: int, description: str):
 def run(args: argparse.Namespace) -> int:
     import time
 
-    from pipeline.play.evaluate import EvalConfig, evaluate
+    from pipeline.play.evaluate import evaluate
     from viewers.safe_text import terminal_text
 
-    workers = args.workers if args.workers is not None else min(args.episodes, os.cpu_count() or 1)
-    config = EvalConfig(
-        game=args.game, episodes=args.episodes, max_steps=args.max_steps, seed=args.seed, trace=args.trace,
-        sticky=args.sticky, noop_max=args.noop_max, one_life=args.one_life, workers=workers,
-        call_time_limit_s=args.call_time_limit, episode_time_limit_s=args.episode_time_limit,
-        rerun=rerun_target(args.rerun),
-    )
+    given = {name: getattr(args, name) for name in EVAL_OPTIONS}
+    if given["workers"] is None:
+        given["workers"] = min(args.episodes, os.cpu_count() or 1)
+    config = EvalConfig(**given, rerun=rerun_target(args.rerun))
     store = open_store(args)
     bar, update, finished = _progress_bar(args.episodes, f"eval {os.path.basename(args.policy)}")
     label = f" '{args.name}'" if args.name else ""

@@ -7,11 +7,11 @@ import os
 import sys
 from typing import Callable
 
-from games import GAMES
 from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError, add_name, add_rerun,
-                                 add_store, non_negative_int, open_store, positive_int, probability, rerun_target,
-                                 short_id, shorten_run_ids, show, show_json, store_flag)
-from pipeline.optimizer.strategies import STRATEGIES
+                                 add_settings, add_store, open_store, rerun_target, short_id, shorten_run_ids, show,
+                                 show_json, store_flag)
+from pipeline.optimizer.config import FLAG_GROUPS, OptimizeConfig
+from pipeline.settings import declarations
 from viewers.safe_text import terminal_text
 
 
@@ -25,82 +25,7 @@ def add_parser(verbs) -> None:
         "Without --model a small local model (SmolLM2-135M) is started: it exercises the pipeline offline but "
         "cannot really improve code.",
     )
-    p.add_argument("policy", metavar="POLICY.py", nargs="?",
-                   help="starting policy file (default: the game's scaffold in games/scaffolds/)")
-    p.add_argument("--game", help=f"game: {', '.join(GAMES)}, or any game OCAtari reads (default: the file's GAME)")
-    p.add_argument("--model", help="litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o "
-                   "(OPENAI_API_KEY), gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME "
-                   "or openai/NAME with --api-base (your own server) (default: the offline SmolLM2 server)")
-    p.add_argument("--api-base", metavar="URL", help="the provider's endpoint: your own OpenAI-compatible, vLLM or "
-                   "Ollama server, or a proxy")
-    p.add_argument("--iterations", type=non_negative_int, default=None,
-                   help="LLM updates after evaluating the starting policy (default: 20; with --resume, a larger "
-                   "number extends the run)")
-    p.add_argument("--memory", type=non_negative_int, help="earlier iterations in the prompt (default: 5)")
-    p.add_argument("--token-budget", type=positive_int, default=None,
-                   help="hard limit on prompt tokens (default: 16000; 3000 with the offline model)")
-    p.add_argument("--eval-episodes", type=positive_int, help="evaluation episodes per iteration, in parallel "
-                   "(default: 1)")
-    p.add_argument("--feedback", choices=["staged", "rollout"],
-                   help="staged: from the evaluation score (paper, default); rollout: rollout reward only (ablation)")
-    p.add_argument("--no-rollback", action="store_const", const=False, dest="rollback",
-                   help="never go back to the best version after a regression")
-    p.add_argument("--rollback-fraction", type=probability,
-                   help="roll back below best - (1-F)*max(|best|,1) (default: 0.5)")
-    p.add_argument("--seed", type=int, help="seed (default: 0)")
-    p.add_argument("--temperature", type=float, help="LLM temperature (default: 0; not sent to models that "
-                   "take none)")
-    p.add_argument("--max-tokens", type=positive_int, default=None,
-                   help="longest reply (default: 4096; 512 with the offline model)")
-    p.add_argument("--rollout-steps", type=positive_int, help="training rollout horizon (default: the task's)")
-    p.add_argument("--eval-max-steps", type=positive_int, help="evaluation cap (default: the task's, 4000)")
-    p.add_argument("--workers", type=positive_int, default=None, help="episode worker processes (default: cores)")
-    p.add_argument("--call-time-limit", type=float, dest="call_time_limit_s", metavar="SECONDS",
-                   help="per policy call (default: 1)")
-    search = p.add_argument_group("search", "how versions are chosen for improvement (pipeline/optimizer/strategies.py)")
-    search.add_argument("--strategy", choices=STRATEGIES,
-                        help="greedy: the paper's loop, one proposal from the last version, rollback after a "
-                        "regression (default); best-of-n: N proposals from the best version, keep the best; beam: "
-                        "expand the --beam-width best versions; map-elites: improve random elites of an archive "
-                        "over code complexity x game length, with other elites as inspirations")
-    search.add_argument("--candidates", type=positive_int, metavar="N",
-                        help="proposals per iteration (best-of-n, map-elites: default 4) or per beam member (beam: "
-                        "default 1)")
-    search.add_argument("--beam-width", type=positive_int, metavar="K", help="beam: versions kept (default: 3)")
-    search.add_argument("--max-concurrent-calls", type=positive_int, metavar="N",
-                        help="LLM calls in flight at once (default: 4)")
-    search.add_argument("--robust-episodes", type=non_negative_int, metavar="N",
-                        help="also evaluate every version in N games under the standard protocol (sticky actions "
-                        "0.25, up to 30 no-op starts; seeded), beside the paper's deterministic one (default: 0)")
-    search.add_argument("--optimize-for", choices=("deterministic", "standard"), dest="optimize_protocol",
-                        help="the score the strategy optimizes: deterministic (the paper's protocol, default) or "
-                        "standard (needs --robust-episodes)")
-    search.add_argument("--screen-steps", type=positive_int, metavar="N",
-                        help="cascade evaluation: a new version first plays N steps of the first evaluation game, "
-                        "and is assessed fully only if it keeps up with its parent there (default: off)")
-    search.add_argument("--screen-margin", type=float, metavar="POINTS",
-                        help="how far behind its parent a screened version may be (default: 0)")
-    lives = search.add_mutually_exclusive_group()
-    lives.add_argument("--one-life", action="store_const", const=True, dest="one_life",
-                       help="every episode, training rollouts included, ends at a lost life: each the first life of "
-                       "its own seeded game (default: whole games)")
-    lives.add_argument("--one-life-continue", action="store_const", const="continue", dest="one_life",
-                       help="the authors' protocol for Asterix, Breakout, Q*bert and Seaquest exactly: as "
-                       "--one-life, but the evaluation episodes are the lives of one game, each going on where the "
-                       "one before ended")
-    search.add_argument("--no-eval-cache", action="store_const", const=False, dest="eval_cache",
-                        help="play every version's episodes again instead of reusing those of an earlier assessment")
-    budgets = p.add_argument_group("budgets", "the run stops with status 'budget' before it would exceed one; "
-                                   "--resume with a larger budget continues it")
-    budgets.add_argument("--max-cost", type=float, dest="max_cost_usd", metavar="USD",
-                         help="LLM cost, at litellm's price for the model (each call counted at its worst case: "
-                         "the prompt plus a reply of --max-tokens)")
-    budgets.add_argument("--max-total-tokens", type=positive_int, dest="max_total_tokens", metavar="N",
-                         help="LLM input + output tokens")
-    budgets.add_argument("--max-llm-calls", type=positive_int, dest="max_llm_calls", metavar="N",
-                         help="LLM calls (an equal budget for comparing strategies)")
-    budgets.add_argument("--max-wall", type=float, dest="max_wall_minutes", metavar="MINUTES",
-                         help="wall-clock time of the run's iterations")
+    add_settings(p, OptimizeConfig, FLAG_GROUPS)
     p.add_argument("--resume", metavar="RUN", help="continue a run that was interrupted, failed or stopped by a "
                    "budget (last, last~N, -N, its label, its id or a unique prefix); budgets, limits, "
                    "--model/--api-base and a larger --iterations may be given again")
@@ -130,12 +55,8 @@ def _print_iteration(item) -> None:
          f"  update {item.update_status:<9} {tokens}{back}{note[:160]}", flush=True)
 
 
-OPTIMIZE_OPTIONS = ("game", "policy", "model", "api_base", "iterations", "memory", "token_budget", "eval_episodes",
-                    "feedback", "rollback", "rollback_fraction", "seed", "temperature", "max_tokens", "rollout_steps",
-                    "eval_max_steps", "workers", "call_time_limit_s", "max_cost_usd", "max_total_tokens",
-                    "max_llm_calls", "max_wall_minutes", "strategy", "candidates", "beam_width", "max_concurrent_calls", "eval_cache",
-                    "robust_episodes", "optimize_protocol", "screen_steps", "screen_margin", "one_life")
-"""The ``optimize`` flags that are :class:`~pipeline.optimizer.config.OptimizeConfig` fields (defaults live there)."""
+OPTIMIZE_OPTIONS = tuple(n for n, (_, s) in declarations(OptimizeConfig).items() if s.cli)
+"""The ``optimize`` flags that are :class:`~pipeline.optimizer.config.OptimizeConfig` fields (declared there)."""
 
 
 def _llm_waiting(stream=None):
@@ -196,8 +117,7 @@ def run(args: argparse.Namespace) -> int:
         check_credentials(args.model, args.api_base)
     if args.show_prompt and not args.dry_run:
         raise CliError("--show-prompt goes with --dry-run")
-    from pipeline.llm.client import OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET
-    from pipeline.optimizer.config import OptimizeConfig
+    from pipeline.optimizer.config import model_defaults
     from pipeline.optimizer.loop import plan_resume
 
     store = open_store(args, announce=False)  # the start line names the store and why it is that one
@@ -221,10 +141,7 @@ def run(args: argparse.Namespace) -> int:
             check_credentials(config.model, config.api_base)
     else:
         given.setdefault("workers", os.cpu_count() or 1)
-        if args.model is None:
-            given.setdefault("max_tokens", OFFLINE_MAX_TOKENS)
-            given.setdefault("token_budget", OFFLINE_TOKEN_BUDGET)
-        config, run_id = OptimizeConfig(**given), None
+        config, run_id = OptimizeConfig(**model_defaults(given)), None
     if args.dry_run:
         return _dry_run(config, args)
     if config.api_base:  # a server that does not answer: one line now, not a failed call after iteration 0
@@ -253,6 +170,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
     """Start (or resume) the run, print its start line, run the loop, print its end; ``started`` gets the run's id
     as soon as it exists (for the interrupt message)."""
     from pipeline.llm.client import open_client
+    from pipeline.optimizer.config import fit_to_model
     from pipeline.optimizer.loop import optimize, start_run
     from store.readers import get_run
     from store.writer import set_run_name
@@ -264,8 +182,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
                                       config.seed, stream=args.stream)
     recordings = None
     try:
-        if cap is not None and config.token_budget > cap:
-            config.token_budget = cap
+        fit_to_model(config, cap)
         for name in getattr(client, "dropped", ()):
             show(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
         rerun = rerun_target(args.rerun)

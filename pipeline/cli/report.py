@@ -25,40 +25,38 @@ def add_parser(verbs) -> None:
     p.set_defaults(handler=run)
 
 
-# Flags of `codearcade optimize` whose name is not the config field's with dashes.
-_FLAG_NAMES = {"call_time_limit_s": "--call-time-limit", "max_cost_usd": "--max-cost",
-               "max_wall_minutes": "--max-wall", "episode_time_limit_s": None, "workers": None, "policy": None,
-               "game": "--game", "rollback": None}
-
-
 def reproduce_command(run: dict[str, Any], config: dict[str, Any]) -> str:
-    """The ``codearcade`` command line that starts a run with ``run``'s settings (defaults left out)."""
+    """The ``codearcade`` command line that starts a run with ``run``'s settings (defaults left out): each
+    setting's flag as its declaration names it (``pipeline/settings.py``)."""
     import shlex
 
     if run["kind"] == "eval":
+        from pipeline.play.config import EvalConfig
+
         parts = ["codearcade", "eval", config.get("policy") or "POLICY.py", "--game", run["game"]]
-        for key, flag, default in (("episodes", "--episodes", 1), ("max_steps", "--max-steps", 4000),
-                                   ("seed", "--seed", 0), ("sticky", "--sticky", 0.0),
-                                   ("noop_max", "--noop-max", 0)):
-            if config.get(key) not in (None, default):
-                parts += [flag, str(config[key])]
-        if config.get("trace"):
-            parts.append("--trace")
-        return shlex.join(parts)
+        return shlex.join(parts + _flags(EvalConfig, config))
     from pipeline.optimizer.config import OptimizeConfig
 
-    defaults = OptimizeConfig()
     parts = ["codearcade", "optimize"] + ([config["policy"]] if config.get("policy") else [])
-    parts += ["--game", run["game"]]
-    for key in OptimizeConfig.__dataclass_fields__:
-        flag = _FLAG_NAMES.get(key, "--" + key.replace("_", "-"))
-        value = config.get(key)
-        if flag is None or key == "game" or value is None or value == getattr(defaults, key):
+    return shlex.join(parts + ["--game", run["game"]] + _flags(OptimizeConfig, config))
+
+
+def _flags(config_class: type, config: dict[str, Any]) -> list[str]:
+    """The flags that give the settings of a stored ``config`` that differ from their defaults: every setting with
+    a flag that reproduces a run (not the game, given first, nor the machine's own, like worker counts)."""
+    from pipeline.settings import declarations
+
+    parts: list[str] = []
+    for name, (f, s) in declarations(config_class).items():
+        value = config.get(name)
+        if not s.flags(name) or name == "game" or not s.reproduce or value is None or value == f.default:
             continue
-        parts += [flag, f"{value:g}" if isinstance(value, float) else str(value)]
-    if config.get("rollback") is False:
-        parts.append("--no-rollback")
-    return shlex.join(parts)
+        switch = [w.flag for w in s.switches if w.value == value]
+        if s.switches:
+            parts += switch[:1]  # a value no switch sets (a batch's own) has no flag
+        else:
+            parts += [s.flags(name)[0], f"{value:g}" if isinstance(value, float) else str(value)]
+    return parts
 
 
 def run(args: argparse.Namespace) -> int:

@@ -44,26 +44,28 @@ import subprocess
 import sys
 import time
 import tomllib
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 from games import get_game
 from pipeline.jobs.worker import BUDGET_EXIT, run_remote
-from pipeline.optimizer.config import BUDGET_FIELDS, OptimizeConfig, validate_config
+from pipeline.optimizer.config import OptimizeConfig, model_defaults, validate_config
+from pipeline.settings import declarations
 from store import Store
 from store.readers import batch_progress, batch_runs
 from store.runs import check_run_name
 
 TOP_LEVEL_KEYS = ("name", "store", "defaults", "matrix", "run")
-RUN_KEYS = tuple(f.name for f in fields(OptimizeConfig))
+RUN_KEYS = tuple(declarations(OptimizeConfig))
+"""The settings a batch file may give: every declared setting of :class:`OptimizeConfig`, by its field name."""
 ENTRY_KEYS = ("name",)
 """Keys of a ``[[run]]`` table beside :data:`RUN_KEYS`: its label, which is no setting (nor part of the run's key)."""
-NOT_IN_KEY = ("workers", "max_concurrent_calls") + BUDGET_FIELDS
+NOT_IN_KEY = tuple(n for n, (_, s) in declarations(OptimizeConfig).items() if s.run_key == "never" or s.budget)
 """Settings that do not change a run's results (or only how far it goes), so they do not change its identity:
-rerunning a batch with a larger budget resumes its runs."""
-KEYED_WHEN_SET = ("strategy", "candidates", "beam_width", "eval_cache", "collapse_repeats", "robust_episodes",
-                  "optimize_protocol", "screen_steps", "screen_margin", "one_life", "observation")
+rerunning a batch with a larger budget resumes its runs (each setting's ``run_key``)."""
+KEYED_WHEN_SET = tuple(n for n, (_, s) in declarations(OptimizeConfig).items()
+                       if s.run_key == "if_set" and not s.budget)
 """Settings added after run keys were introduced: they count in a key only away from their default, so the
 runs of an existing experiment file keep their keys (and are skipped or resumed, not run again)."""
 
@@ -206,12 +208,14 @@ def load_experiments(path: str | os.PathLike) -> Batch:
             settings["policy"] = str(policy if policy.is_absolute() else (path.parent / policy).resolve())
         if not settings.get("game") and not settings.get("policy"):
             raise ExperimentError(f"{path.name}: every run needs a game or a policy (add game = ... to [defaults])")
-        config = OptimizeConfig(**settings)
         try:
+            # the key is the entry's settings', before the model's defaults (a function of them): an experiment
+            # file keeps its keys
+            key = _run_key(name, OptimizeConfig(**settings))
+            config = OptimizeConfig(**model_defaults(settings))
             validate_config(config)
         except ValueError as exc:
             raise ExperimentError(f"{path.name}: {_label(settings, list(matrix))}: {exc}") from None
-        key = _run_key(name, config)
         if key in seen:
             continue
         seen.add(key)

@@ -15,8 +15,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pipeline.llm.client import OFFLINE_TOKEN_BUDGET, open_client
-from pipeline.optimizer.config import OptimizeConfig
+from pipeline.llm.client import open_client
+from pipeline.optimizer.config import OptimizeConfig, fit_to_model
 from pipeline.optimizer.loop import OptimizeResult, optimize, start_run
 from store import Store
 from store.writer import set_run_name
@@ -43,8 +43,7 @@ def _run(spec: dict[str, Any], store: Store) -> OptimizeResult:
     config.workers = spec.get("episode_workers", config.workers)
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
                                       config.seed)
-    if cap is not None:
-        config.token_budget = min(config.token_budget, cap, OFFLINE_TOKEN_BUDGET)
+    fit_to_model(config, cap)
     try:
         run_id = spec.get("resume") or start_run(config, store, client.label,
                                                  extra={"batch": spec["batch"], "batch_key": spec["batch_key"]})

@@ -15,6 +15,7 @@ the sum against the whole encoding.
 
 from __future__ import annotations
 
+import atexit
 import math
 import os
 import re
@@ -41,9 +42,30 @@ def import_litellm():
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")  # we fork workers; HF tokenizers would warn
     import litellm
 
-    litellm.suppress_debug_info = True
-    litellm.telemetry = False
+    if not getattr(litellm, "_codearcade_ready", False):
+        litellm.suppress_debug_info = True
+        litellm.telemetry = False
+        atexit.register(_close_leftover_event_loop)  # runs before litellm's own exit hooks (registered earlier)
+        litellm._codearcade_ready = True
     return litellm
+
+
+def _close_leftover_event_loop() -> None:
+    """Close the event loop litellm's logging sets on the main thread and leaves open. Left to the interpreter's
+    last garbage collection, it may be collected after its own self-pipe socket and print "Exception ignored ...
+    Invalid file descriptor: -1" under the last line a command wrote (what ``codearcade optimize`` says when
+    interrupted), depending on the order the collection happens to take."""
+    import asyncio
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        try:
+            loop = asyncio.get_event_loop_policy().get_event_loop()
+        except RuntimeError:  # none on this thread
+            return
+    if not loop.is_running() and not loop.is_closed():
+        loop.close()
 
 
 @lru_cache(maxsize=None)

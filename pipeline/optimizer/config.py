@@ -1,8 +1,12 @@
 """The settings of an optimization run (``codearcade optimize``, batch files, ``--resume``) and their checks.
 
-:class:`OptimizeConfig` holds every setting with its default; :func:`validate_config` is the one check of their
-ranges that the command line, batch files and ``--resume`` share; :data:`RESUME_OVERRIDES` and
-:data:`BUDGET_FIELDS` say which settings may change when a run is resumed, and which are budgets.
+:class:`OptimizeConfig` declares every setting once (``pipeline/settings.py``): its default, the help of its flag,
+its checks, whether ``--resume`` may change it, whether it is a budget, what it does to a batch run's key. What
+the rest of the code needs is derived here: :func:`validate_config` (the one check the command line, batch files
+and ``--resume`` share), :data:`RESUME_OVERRIDES`, :data:`BUDGET_FIELDS`, :data:`BEFORE_RECORDED`; the flags of
+``codearcade optimize`` and a batch file's keys are derived from the same declarations where they are used.
+:func:`model_defaults` applies the model's own defaults (the offline model's shorter replies and prompts), for
+the command line and for batches alike.
 """
 
 from __future__ import annotations
@@ -10,105 +14,177 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from games import GAMES
 from games.base import OBSERVATION_VERSION, UNRECORDED_OBSERVATION, one_life_setting
-from pipeline.optimizer.feedback import FEEDBACK_MODES
 from pipeline.optimizer.strategies import STRATEGIES, make_strategy
+from pipeline.settings import Switch, before_recorded, budgets, check_settings, limit, resumable, setting
+
+FEEDBACK_MODES = ("staged", "rollout")
+"""What the feedback of an iteration is made from (``pipeline/optimizer/feedback.py``): the evaluation score (the
+paper's method) or the rollout reward only (the ablation)."""
 
 PROTOCOLS = ("deterministic", "standard")
 """What a score can be measured under: the paper's protocol, or the standard one (``games.base``)."""
 
+FLAG_GROUPS = {
+    "search": "how versions are chosen for improvement (pipeline/optimizer/strategies.py)",
+    "budgets": "the run stops with status 'budget' before it would exceed one; --resume with a larger budget "
+               "continues it",
+}
+"""The groups of ``codearcade optimize --help`` beside its own options (a setting's ``group``; budgets go in
+``budgets``), with the line that introduces each."""
+
 
 @dataclass
 class OptimizeConfig:
-    """Options of an optimization run (the CLI flags of ``codearcade optimize``)."""
+    """Options of an optimization run (the flags of ``codearcade optimize``, the keys of a batch file)."""
 
-    game: str | None = None
+    game: str | None = setting(
+        None, f"game: {', '.join(GAMES)}, or any game OCAtari reads (default: the file's GAME)", run_key="always")
     """Game; None takes the policy file's ``GAME``."""
-    policy: str | None = None
+    policy: str | None = setting(
+        None, "starting policy file (default: the game's scaffold in games/scaffolds/)", positional=True,
+        metavar="POLICY.py", run_key="always")
     """Starting policy file; None starts from the game's scaffold in ``games/scaffolds/``."""
-    model: str | None = None
+    model: str | None = setting(
+        None, "litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o (OPENAI_API_KEY), "
+        "gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME or openai/NAME with "
+        "--api-base (your own server) (default: the offline SmolLM2 server)", resumable=True, run_key="always")
     """litellm model string (``anthropic/...``, ``openai/...``); None: the offline SmolLM2 server."""
-    api_base: str | None = None
+    api_base: str | None = setting(
+        None, "the provider's endpoint: your own OpenAI-compatible, vLLM or Ollama server, or a proxy",
+        metavar="URL", resumable=True, run_key="always")
     """Base URL of an OpenAI-compatible server (use with ``--model openai/NAME``)."""
-    iterations: int = 20
+    iterations: int = setting(
+        20, "LLM updates after evaluating the starting policy (default: 20; with --resume, a larger number extends "
+        "the run)", minimum=0, resumable=True, run_key="always")
     """Optimization iterations (LLM updates) after the evaluation of the starting policy (paper: 20)."""
-    memory: int = 5
+    memory: int = setting(5, "earlier iterations in the prompt (default: 5)", minimum=0, run_key="always")
     """Earlier iterations shown in the prompt (paper: 5)."""
-    token_budget: int = 16_000
+    token_budget: int = setting(
+        16_000, "hard limit on prompt tokens (default: 16000; 3000 with the offline model)", minimum=500,
+        resumable=True, run_key="always")
     """Hard limit on the prompt's tokens; the trace slice is chosen to fit."""
-    eval_episodes: int = 1
+    eval_episodes: int = setting(
+        1, "evaluation episodes per iteration, in parallel (default: 1)", minimum=1, run_key="always")
     """Evaluation episodes per iteration, played in parallel; the score is their mean return."""
-    feedback: str = "staged"
+    feedback: str = setting(
+        "staged", "staged: from the evaluation score (paper, default); rollout: rollout reward only (ablation)",
+        choices=FEEDBACK_MODES, run_key="always")
     """``staged`` (from the evaluation score; the paper's method) or ``rollout`` (rollout reward only: the ablation)."""
-    rollback: bool = True
-    """Send the next update back to the best version after a regression."""
-    rollback_fraction: float = 0.5
+    rollback: bool = setting(
+        True, "never go back to the best version after a regression", run_key="always")
+    """Send the next update back to the best version after a regression (``--no-rollback``: never)."""
+    rollback_fraction: float = setting(
+        0.5, "roll back below best - (1-F)*max(|best|,1) (default: 0.5)", minimum=0.0, maximum=1.0,
+        run_key="always")
     """Regression threshold: below ``best - (1 - f) * max(|best|, 1)``."""
-    seed: int = 0
+    seed: int = setting(0, "seed (default: 0)", run_key="always")
     """Seed of the training rollout; evaluation episode i uses ``seed + i``."""
-    temperature: float = 0.0
+    temperature: float = setting(
+        0.0, "LLM temperature (default: 0; not sent to models that take none)", run_key="always")
     """Sampling temperature of the LLM."""
-    max_tokens: int = 4096
-    """Longest reply asked for."""
-    rollout_steps: int | None = None
+    max_tokens: int = setting(
+        4096, "longest reply (default: 4096; 512 with the offline model)", minimum=1, resumable=True,
+        run_key="always")
+    """Longest reply asked for (the offline model's: :func:`model_defaults`)."""
+    rollout_steps: int | None = setting(
+        None, "training rollout horizon (default: the task's)", minimum=1, run_key="always")
     """Training rollout horizon; None: the task's (400 Pong, 300 Breakout, 15 Space Invaders)."""
-    eval_max_steps: int | None = None
-    """Evaluation cap; None: the task's (4000)."""
-    workers: int = 2
-    """Worker processes for the episodes of an iteration."""
-    call_time_limit_s: float = 1.0
-    """Time limit of one policy call."""
-    episode_time_limit_s: float = 900.0
-    """Wall-clock limit of one episode."""
-    max_cost_usd: float | None = None
+    eval_max_steps: int | None = setting(
+        None, "evaluation cap (default: the task's, 4000)", minimum=1, run_key="always")
+    """Evaluation cap; None: the task's (``games/<game>.py``)."""
+    workers: int = setting(
+        2, "episode worker processes (default: cores)", minimum=1, resumable=True, run_key="never", reproduce=False)
+    """Worker processes for the episodes of an iteration (the command line's default: the machine's cores)."""
+    call_time_limit_s: float = limit("call_time_limit_s", resumable=True, run_key="always")
+    """Time limit of one policy call (``EpisodeLimits``)."""
+    episode_time_limit_s: float = limit("episode_time_limit_s", cli=False, resumable=True, run_key="always")
+    """Wall-clock limit of one episode (``EpisodeLimits``); a batch key, no flag of ``optimize``."""
+    max_cost_usd: float | None = setting(
+        None, "LLM cost, at litellm's price for the model (each call counted at its worst case: the prompt plus a "
+        "reply of --max-tokens)", flag="--max-cost", metavar="USD", above=0, budget=True)
     """Stop (status ``budget``) before an LLM call that could take the run's cost past this many USD, counting
     the prompt and a reply of ``max_tokens`` at litellm's price; None: no limit. Needs a model litellm prices."""
-    max_total_tokens: int | None = None
+    max_total_tokens: int | None = setting(
+        None, "LLM input + output tokens", metavar="N", above=0, budget=True)
     """Stop (status ``budget``) before an LLM call that could take the run's input + output tokens past this."""
-    max_llm_calls: int | None = None
+    max_llm_calls: int | None = setting(
+        None, "LLM calls (an equal budget for comparing strategies)", metavar="N", above=0, budget=True)
     """Stop (status ``budget``) before LLM calls that would take the run's count of calls past this (an equal
     budget for comparing strategies: greedy makes one call per iteration, best-of-n N)."""
-    max_wall_minutes: float | None = None
+    max_wall_minutes: float | None = setting(
+        None, "wall-clock time of the run's iterations", flag="--max-wall", metavar="MINUTES", above=0, budget=True)
     """Stop (status ``budget``) before an iteration that, lasting as long as the last one, would take the run's
     wall time (the sum of its iterations) past this many minutes."""
-    strategy: str = "greedy"
-    """Search strategy (``pipeline/optimizer/strategies.py``): ``greedy`` (the paper's loop), ``best-of-n``, ``beam``."""
-    candidates: int | None = None
+    strategy: str = setting(
+        "greedy", "greedy: the paper's loop, one proposal from the last version, rollback after a regression "
+        "(default); best-of-n: N proposals from the best version, keep the best; beam: expand the --beam-width best "
+        "versions; map-elites: improve random elites of an archive over code complexity x game length, with other "
+        "elites as inspirations", choices=STRATEGIES, group="search")
+    """Search strategy (``pipeline/optimizer/strategies.py``): ``greedy`` (the paper's loop), ``best-of-n``, ``beam``,
+    ``map-elites``."""
+    candidates: int | None = setting(
+        None, "proposals per iteration (best-of-n, map-elites: default 4) or per beam member (beam: default 1)",
+        metavar="N", minimum=1, group="search")
     """Proposals per parent and iteration: best-of-n's N (default 4), beam's proposals per beam member (default
     1); greedy makes one."""
-    beam_width: int = 3
+    beam_width: int = setting(
+        3, "beam: versions kept (default: 3)", metavar="K", minimum=1,
+        group="search")
     """``beam``: how many of the best versions are kept and expanded."""
-    max_concurrent_calls: int = 4
+    max_concurrent_calls: int = setting(
+        4, "LLM calls in flight at once (default: 4)", metavar="N", minimum=1, group="search", resumable=True,
+        run_key="never")
     """At most this many LLM calls in flight at once (an iteration's proposals are requested concurrently)."""
-    robust_episodes: int = 0
+    robust_episodes: int = setting(
+        0, "also evaluate every version in N games under the standard protocol (sticky actions 0.25, up to 30 "
+        "no-op starts; seeded), beside the paper's deterministic one (default: 0)", metavar="N", minimum=0,
+        group="search")
     """Evaluation episodes under the standard protocol (sticky actions 0.25, up to 30 no-op starts; seeded, so
     reproducible) added to every assessment, beside the ``eval_episodes`` under the paper's; 0: none."""
-    optimize_protocol: str = "deterministic"
+    optimize_protocol: str = setting(
+        "deterministic", "the score the strategy optimizes: deterministic (the paper's protocol, default) or "
+        "standard (needs --robust-episodes)", flag="--optimize-for", choices=PROTOCOLS, group="search")
     """The score the strategy optimizes: ``deterministic`` (the paper's protocol) or ``standard`` (needs
     ``robust_episodes``): policies good under sticky actions, not only on one replayed trajectory."""
-    screen_steps: int | None = None
+    screen_steps: int | None = setting(
+        None, "cascade evaluation: a new version first plays N steps of the first evaluation game, and is assessed "
+        "fully only if it keeps up with its parent there (default: off)", metavar="N", minimum=1, group="search")
     """Cascade evaluation: before its full assessment, a new version plays the first evaluation game for this many
     steps; if it then trails its parent's score at the same step by more than ``screen_margin``, it is screened
     out (rejected, with both scores in its feedback) and never fully played. None: off."""
-    screen_margin: float = 0.0
+    screen_margin: float = setting(
+        0.0, "how far behind its parent a screened version may be (default: 0)", metavar="POINTS", minimum=0,
+        group="search")
     """How far behind its parent a screened version may be and still be assessed fully."""
-    one_life: bool | str = False
+    one_life: bool | str = setting(
+        False, "every episode ends at a lost life", check=one_life_setting, group="search", switches=(
+            Switch("--one-life", True, "every episode, training rollouts included, ends at a lost life: each the "
+                   "first life of its own seeded game (default: whole games)"),
+            Switch("--one-life-continue", "continue", "the authors' protocol for Asterix, Breakout, Q*bert and "
+                   "Seaquest exactly: as --one-life, but the evaluation episodes are the lives of one game, each "
+                   "going on where the one before ended")))
     """The authors' protocol for Asterix, Breakout, Q*bert and Seaquest (``Task.one_life_episodes``): every
     episode, training rollouts included, ends at a lost life. ``"continue"`` (``--one-life-continue``) is theirs
     exactly: the evaluation episodes of an assessment are the lives of one game from ``seed``, each going on where
     the one before ended (``games.envs.EpisodicLife``; the training rollout is that game's first life, the
     ``robust`` episodes each the first life of its own game); ``True`` (``--one-life``): every episode the first
     life of its own seeded game. Off: whole games (the paper's)."""
-    observation: int = OBSERVATION_VERSION
+    observation: int = setting(
+        OBSERVATION_VERSION, "the version of the observation conventions the run plays", cli=False,
+        before_recorded=UNRECORDED_OBSERVATION)
     """The version of the observation conventions the run plays (``games.base.OBSERVATION_VERSION``): today's,
     recorded so that the run is read back and replayed with it after the conventions change."""
-    collapse_repeats: bool = True
+    collapse_repeats: bool = setting(
+        True, "show repeated steps of the prompt's trace as one line", cli=False, before_recorded=False)
     """In the prompt's trace, show a run of consecutive steps whose calls, outputs and actions repeat as one line
     with its step range (more of the steps that matter fit the token budget)."""
-    eval_cache: bool = True
+    eval_cache: bool = setting(
+        True, "play every version's episodes again instead of reusing those of an earlier assessment",
+        group="search")
     """Reuse the stored episodes of a version already assessed in the run instead of playing them again (episodes
     are deterministic given the code and the run's settings)."""
-
 
     @classmethod
     def from_record(cls, recorded: dict[str, Any]) -> "OptimizeConfig":
@@ -118,55 +194,43 @@ class OptimizeConfig:
         return cls(**values)
 
 
-BEFORE_RECORDED: dict[str, Any] = {"collapse_repeats": False, "observation": UNRECORDED_OBSERVATION}
+BEFORE_RECORDED: dict[str, Any] = before_recorded(OptimizeConfig)
 """Settings that change prompts, as runs behaved before the setting existed: an old run replays prompt for
-prompt."""
+prompt (each setting's ``before_recorded``)."""
 
-BUDGET_FIELDS = ("max_cost_usd", "max_total_tokens", "max_llm_calls", "max_wall_minutes")
+BUDGET_FIELDS = budgets(OptimizeConfig)
 """Limits of how far a run goes, not of what it does: ``--resume`` may change them, batch keys ignore them."""
 
-RESUME_OVERRIDES = BUDGET_FIELDS + ("model", "api_base", "iterations", "token_budget", "max_tokens", "workers",
-                                    "call_time_limit_s", "episode_time_limit_s", "max_concurrent_calls")
-"""Settings that ``--resume`` takes from the command line; every other setting is the run's own."""
+RESUME_OVERRIDES = resumable(OptimizeConfig)
+"""Settings that ``--resume`` takes from the command line (the resumable ones and the budgets); every other
+setting is the run's own."""
 
 
 def validate_config(config: OptimizeConfig) -> None:
     """ValueError (one line naming the flag) for a setting out of range: the one check the CLI, batch files and
-    ``--resume`` share."""
-    if config.iterations < 0:
-        raise ValueError("--iterations must be 0 or more")
-    if config.memory < 0:
-        raise ValueError("--memory must be 0 or more")
-    if config.token_budget < 500:
-        raise ValueError("--token-budget must be at least 500 tokens")
-    if config.eval_episodes < 1:
-        raise ValueError("--eval-episodes must be at least 1")
-    if config.feedback not in FEEDBACK_MODES:
-        raise ValueError(f"--feedback must be one of {', '.join(FEEDBACK_MODES)}")
-    if not 0.0 <= config.rollback_fraction <= 1.0:
-        raise ValueError("--rollback-fraction must be within [0, 1]")
-    for name, flag in (("max_cost_usd", "--max-cost"), ("max_total_tokens", "--max-total-tokens"),
-                       ("max_llm_calls", "--max-llm-calls"), ("max_wall_minutes", "--max-wall")):
-        value = getattr(config, name)
-        if value is not None and value <= 0:
-            raise ValueError(f"{flag} must be above 0, got {value:g}")
-    if config.robust_episodes < 0:
-        raise ValueError("--robust-episodes must be 0 or more")
-    if config.optimize_protocol not in PROTOCOLS:
-        raise ValueError(f"--optimize-for must be one of {', '.join(PROTOCOLS)}, not {config.optimize_protocol!r}")
+    ``--resume`` share. Each setting's own checks are declared with it; here are those between settings."""
+    check_settings(config)
     if config.optimize_protocol == "standard" and config.robust_episodes < 1:
         raise ValueError("--optimize-for standard needs --robust-episodes N (N >= 1): the episodes its score is "
                          "the mean of")
-    if config.screen_steps is not None and config.screen_steps < 1:
-        raise ValueError("--screen-steps must be at least 1")
-    if config.screen_margin < 0:
-        raise ValueError("--screen-margin must be 0 or more")
-    one_life_setting(config.one_life)
-    if config.strategy not in STRATEGIES:
-        raise ValueError(f"--strategy must be one of {', '.join(STRATEGIES)}, not {config.strategy!r}")
-    for name, flag in (("candidates", "--candidates"), ("beam_width", "--beam-width"),
-                       ("max_concurrent_calls", "--max-concurrent-calls")):
-        value = getattr(config, name)
-        if value is not None and value < 1:
-            raise ValueError(f"{flag} must be at least 1, got {value}")
     make_strategy(config)
+
+
+def model_defaults(settings: dict[str, Any]) -> dict[str, Any]:
+    """``settings`` (an optimize run's, as given: the command line's flags or a batch entry) with the model's own
+    defaults for what they leave out: the offline model (no ``model``) gets replies of ``OFFLINE_MAX_TOKENS`` and
+    prompts of ``OFFLINE_TOKEN_BUDGET`` tokens (SmolLM2 on the CPU reads ~200 and writes ~80 tokens/s: this keeps
+    an iteration near a minute). The command line and batch workers both start runs through it, so the same
+    settings give the same run."""
+    if settings.get("model"):
+        return dict(settings)
+    from pipeline.llm.client import OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET
+
+    return {"max_tokens": OFFLINE_MAX_TOKENS, "token_budget": OFFLINE_TOKEN_BUDGET, **settings}
+
+
+def fit_to_model(config: OptimizeConfig, prompt_cap: int | None) -> None:
+    """Hold the prompt's token budget to what the model's context leaves beside the reply (``prompt_cap``, from
+    ``open_client``; None: no cap), for the command line and batch workers alike."""
+    if prompt_cap is not None and config.token_budget > prompt_cap:
+        config.token_budget = prompt_cap

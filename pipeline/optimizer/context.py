@@ -19,6 +19,7 @@ import duckdb
 from games import get_game, list_widths
 from games.base import recorded_observation
 from pipeline.optimizer.strategies import Greedy, History, Ref
+from pipeline.settings import EpisodeLimits
 from store.readers import candidates, episode_steps, episode_summaries, get_run, iterations, policy_texts, step_nodes
 from tracing.policy_file import PolicyInfo, inspect_policy
 
@@ -45,7 +46,7 @@ class PromptContext:
     eval_episodes: list[dict[str, Any]]
     feedback: str
     memory: list[MemoryEntry] = field(default_factory=list)
-    call_time_limit_s: float = 1.0
+    call_time_limit_s: float = EpisodeLimits.call_time_limit_s
     collapse_repeats: bool = False
     """Show runs of steps whose calls, outputs and actions repeat as one line each (``OptimizeConfig``)."""
 
@@ -55,7 +56,7 @@ def read_context(
     run_id: str,
     next_iteration: int,
     memory: int,
-    call_time_limit_s: float = 1.0,
+    call_time_limit_s: float = EpisodeLimits.call_time_limit_s,
     collapse_repeats: bool = False,
 ) -> PromptContext:
     """The context of the paper's (``greedy``) update that starts iteration ``next_iteration`` of ``run_id``.
@@ -80,7 +81,7 @@ def context_for(
     parent: Ref,
     memory: list[Ref],
     note: str = "",
-    call_time_limit_s: float = 1.0,
+    call_time_limit_s: float = EpisodeLimits.call_time_limit_s,
     collapse_repeats: bool = False,
 ) -> PromptContext:
     """The context of an update that improves the candidate ``parent``, from the store alone: its code, its

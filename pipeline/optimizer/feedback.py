@@ -13,8 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pipeline.boundary.untrusted import clean_untrusted_text
-
-FEEDBACK_MODES = ("staged", "rollout")
+from pipeline.optimizer.config import FEEDBACK_MODES  # the choices of the ``feedback`` setting, declared there
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,7 @@ from pipeline.llm.client import LLMClient, LLMError
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.assess import assess, screen
 from pipeline.optimizer.config import RESUME_OVERRIDES, OptimizeConfig, validate_config
+from pipeline.settings import flag_of
 from pipeline.optimizer.feedback import FeedbackBands, compose_feedback
 from pipeline.optimizer.propose import BudgetExhausted, Proposal, propose
 from pipeline.optimizer.state import RunState
@@ -414,7 +415,7 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
                          f"({'evaluate the policy again with codearcade eval' if row['kind'] == 'eval' else 'replay the original run again'})")
     fixed = sorted(k for k in given if k not in RESUME_OVERRIDES)
     if fixed:
-        flags = ", ".join("--" + k.removesuffix("_s").replace("_", "-") for k in fixed)
+        flags = ", ".join(flag_of(OptimizeConfig, k) for k in fixed)
         raise ValueError(f"{flags} cannot change when resuming run {run_id}: they are part of its settings "
                          "(start a new run instead)")
     recorded = json.loads(row["config"])

@@ -30,6 +30,8 @@ import random
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from pipeline.settings import EpisodeLimits
+
 STRATEGIES = ("greedy", "best-of-n", "beam", "map-elites")
 
 
@@ -318,7 +320,7 @@ class MapElites:
     candidates: int = 4
     memory: int = 5
     seed: int = 0
-    eval_max_steps: int = 4000
+    eval_max_steps: int = EpisodeLimits.max_steps
     name: str = "map-elites"
 
     COMPLEXITY_BIN = 4
@@ -380,5 +382,5 @@ def make_strategy(config: Any, eval_max_steps: int | None = None) -> Strategy:
     if name == "beam":
         return Beam(config.beam_width, candidates or 1, config.memory)
     if name == "map-elites":
-        return MapElites(candidates or 4, config.memory, config.seed, eval_max_steps or config.eval_max_steps or 4000)
+        return MapElites(candidates or 4, config.memory, config.seed, eval_max_steps or config.eval_max_steps or EpisodeLimits.max_steps)
     raise ValueError(f"--strategy must be one of {', '.join(STRATEGIES)}, not {name!r}")

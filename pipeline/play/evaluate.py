@@ -16,56 +16,19 @@ from pathlib import Path
 from typing import Callable
 
 from games import get_game
-from games.base import OBSERVATION_VERSION, ONE_LIFE_CONTINUE, one_life_setting
+from games.base import ONE_LIFE_CONTINUE, one_life_setting
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.play.runinfo import episode_id, new_run_id, package_versions
 from pipeline.play.validate import checked_inspect
 from pipeline.play.verify import checked_outcome
 from pipeline.play.versions import policy_version_row
+from pipeline.play.config import EvalConfig  # noqa: F401  (its home; callers import it from here too)
+from pipeline.settings import check_settings
 from store import Store
 from store.locks import run_lock
 from store.writer import finish_run, insert_policy_version, insert_run, write_episode
 from tracing.policy_file import PolicyLoadError, read_policy_file
-
-
-@dataclass
-class EvalConfig:
-    """Options of an evaluation (the CLI flags of ``codearcade eval``)."""
-
-    game: str | None = None
-    """Game to play; None takes the policy file's ``GAME``. Both given and different is an error."""
-    episodes: int = 1
-    """Number of evaluation episodes."""
-    max_steps: int = 4000
-    """Steps after which an episode is cut off (reported as ``truncated``); the paper's cap is 4000."""
-    seed: int = 0
-    """Seed of the first episode; episode i uses ``seed + i`` (``one_life="continue"``: the seed of the one game)."""
-    trace: bool = False
-    """Record a node event for every call of a bundled method."""
-    trace_lines: bool = True
-    """With ``trace``: record in each node the lines of the method that ran (``nodes.lines_run``). Only a
-    measurement turns it off (``bench/lines.py`` prices it): it costs little, so ``--trace`` always records them."""
-    sticky: float = 0.0
-    """Sticky-action probability (paper: 0.0; standard Atari protocol: 0.25)."""
-    noop_max: int = 0
-    """Up to this many random NOOPs after reset (paper: 0; standard protocol: 30)."""
-    one_life: bool | str = False
-    """End each episode at a lost life, as the authors' follow-up evaluates Asterix, Breakout, Q*bert and Seaquest
-    (``Task.one_life_episodes``): ``"continue"`` (``--one-life-continue``) exactly as theirs, the episodes the
-    lives of one game from ``seed``, each going on where the one before ended (``games.envs.EpisodicLife``);
-    ``True`` (``--one-life``) the first life of each episode's own seeded game (``games.envs.OneLife``).
-    Off: whole games (the paper's)."""
-    observation: int = OBSERVATION_VERSION
-    """The version of the observation conventions (``games.base.OBSERVATION_VERSION``), recorded in the run."""
-    workers: int = 1
-    """Worker processes playing episodes at once; 0 plays in this process (no isolation, for debugging)."""
-    call_time_limit_s: float = 1.0
-    """Time limit of one policy call."""
-    episode_time_limit_s: float = 900.0
-    """Wall-clock limit of one episode."""
-    rerun: str | None = None
-    """Live Rerun recording of each episode (``EpisodeSpec.rerun``): a directory or a gRPC url; None: off."""
 
 
 @dataclass
@@ -120,10 +83,7 @@ def evaluate(
 
     ``run_name`` labels the run and ``made_by`` marks one a command plays for its own use (``runs.name``,
     ``runs.made_by``); ``on_start`` gets the run id once its row is stored."""
-    if config.episodes < 1:
-        raise ValueError("--episodes must be at least 1")
-    if config.max_steps < 1:
-        raise ValueError("--max-steps must be at least 1")
+    check_settings(config)
     one_life = one_life_setting(config.one_life)
     text = read_policy_file(policy_path)
     name = Path(policy_path).name

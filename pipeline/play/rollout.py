@@ -43,6 +43,7 @@ from games import Game, get_game, list_widths
 from games.base import OBSERVATION_VERSION
 from games.envs import discard_env, shared_env
 from pipeline.boundary.policy import ACTION, MAX_ERROR_CHARS, Channel, coerce_action, describe_exception
+from pipeline.settings import EpisodeLimits
 from tracing.capture import NodeRecorder
 from tracing.policy_file import PolicyLoadError, load_policy
 from tracing.sandbox import CallTimer, PolicyTimeout
@@ -76,7 +77,7 @@ class EpisodeSpec:
     """``eval`` (evaluation episode) or ``train`` (traced training rollout of the optimizer)."""
     index: int = 0
     seed: int = 0
-    max_steps: int = 4000
+    max_steps: int = EpisodeLimits.max_steps
     sticky: float = 0.0
     noop_max: int = 0
     one_life: bool | str = False
@@ -92,11 +93,11 @@ class EpisodeSpec:
     """Record a node for every call of a bundled method (slower; steps are always recorded)."""
     trace_lines: bool = True
     """With ``trace``: record in each node the lines of the method that ran (``nodes.lines_run``)."""
-    call_time_limit_s: float = 1.0
+    call_time_limit_s: float = EpisodeLimits.call_time_limit_s
     """Limit for one policy call, ``policy(obs)``, including every bundled method it calls."""
-    episode_time_limit_s: float = 900.0
+    episode_time_limit_s: float = EpisodeLimits.episode_time_limit_s
     """Wall-clock limit for the whole episode."""
-    memory_limit_mb: int | None = 4096
+    memory_limit_mb: int | None = EpisodeLimits.memory_limit_mb
     """Extra address space a worker process may take beyond what it had at start (None: unlimited)."""
     rerun: str | None = None
     """Live Rerun recording: a directory (``DIR/<episode_id>.rrd``) or a ``rerun+http://…/proxy`` URL; None: off.

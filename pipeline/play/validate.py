@@ -29,6 +29,7 @@ from games import get_game
 from pipeline.boundary.untrusted import clean_untrusted_text
 from pipeline.boundary.workers import run_json_tasks
 from pipeline.boundary.policy import coerce_action, describe_exception
+from pipeline.settings import EpisodeLimits
 from tracing.metrics import function_metrics, policy_metrics
 from tracing.policy_file import PolicyInfo, PolicyLoadError, inspect_policy, load_policy, replace_methods
 from tracing.sandbox import CallTimer, PolicyCodeError, PolicyTimeout, check_source
@@ -361,9 +362,9 @@ class RuntimeCheck:
     n_actions: int | None = None
     """The game's number of actions (None: looked up here; a policy process cannot look up a generic game: it
     cannot read OCAtari's files)."""
-    call_time_limit_s: float = 1.0
+    call_time_limit_s: float = EpisodeLimits.call_time_limit_s
     total_time_limit_s: float = 60.0
-    memory_limit_mb: int | None = 4096
+    memory_limit_mb: int | None = EpisodeLimits.memory_limit_mb
 
 
 def run_check(check: RuntimeCheck, progress=None) -> str | None:

@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from games import get_game, list_widths
-from pipeline.play.evaluate import EvalConfig, evaluate
+from pipeline.play.config import CompareConfig, EvalConfig
+from pipeline.play.evaluate import evaluate
 from pipeline.play.validate import checked_inspect
 from store import Store
 from store.comparisons import episode_rows, first_divergent_step, resolve_version
@@ -31,24 +32,6 @@ from store.views import resolve_run_id
 from tracing.policy_file import PolicyLoadError, read_policy_file
 
 LABELS = ("A", "B")
-
-
-@dataclass
-class CompareConfig:
-    """Options of ``codearcade compare`` for two versions (two runs are only read)."""
-
-    game: str | None = None
-    """Game both versions play; None takes it from the stored runs or the files' ``GAME``."""
-    episodes: int = 1
-    """Seeds to play: ``seed``, ``seed + 1``, ...; each version plays each of them once."""
-    seed: int = 0
-    """The first seed."""
-    max_steps: int = 4000
-    """Step cap of each episode (the paper's 4000)."""
-    context: int = 3
-    """Steps shown before and after the first divergent step."""
-    workers: int = 1
-    """Episode worker processes (``codearcade eval --workers``)."""
 
 
 @dataclass

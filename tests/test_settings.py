@@ -1,0 +1,215 @@
+"""Settings declared once (``pipeline/settings.py``): a new optimize option is one field, and what is derived from
+the declarations (flags, checks, batch keys, ``--resume``'s rules, the reproduce command) is what it was before.
+
+``tests/fixtures/settings_before.json`` was captured from main before the settings were declared once: the argparse
+actions of ``codearcade optimize``, ``eval`` and ``compare`` (every flag, its dest, default, type, choices, metavar,
+group and help) and what ``OptimizeConfig``'s settings derived to (``RESUME_OVERRIDES``, batch keys, defaults, ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from dataclasses import asdict, fields
+
+import pytest
+
+from pipeline.cli import build_parser
+from pipeline.optimizer.config import BEFORE_RECORDED, BUDGET_FIELDS, RESUME_OVERRIDES, OptimizeConfig, model_defaults
+from pipeline.play.config import CompareConfig, EvalConfig
+from pipeline.settings import EpisodeLimits, declarations
+from tests.conftest import ROOT
+
+BEFORE = json.loads((ROOT / "tests" / "fixtures" / "settings_before.json").read_text())
+
+REWORDED = {
+    ("optimize", "--call-time-limit"): ("per policy call (default: 1)", "time limit of one policy call (default: 1)"),
+    ("eval", "--call-time-limit"): ("time limit of one policy call (default: 1.0)",
+                                    "time limit of one policy call (default: 1)"),
+}
+"""Help texts that changed on purpose: one flag of two verbs now has one declaration (``EpisodeLimits``)."""
+
+
+def _verb(name: str) -> argparse.ArgumentParser:
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices[name]
+
+
+def _actions(parser: argparse.ArgumentParser) -> list[dict]:
+    """What the fixture holds of each action (see the module docstring)."""
+    groups = {id(a): g.title for g in parser._action_groups for a in g._group_actions}
+    mutex = {id(a): i for i, g in enumerate(parser._mutually_exclusive_groups) for a in g._group_actions}
+    return [{"flags": list(a.option_strings), "dest": a.dest, "default": a.default,
+             "type": getattr(a.type, "__name__", None) if a.type else None,
+             "choices": list(a.choices) if a.choices is not None else None, "const": a.const, "nargs": a.nargs,
+             "metavar": a.metavar, "help": a.help, "group": groups.get(id(a)), "mutex": mutex.get(id(a))}
+            for a in parser._actions if not isinstance(a, argparse._HelpAction)]
+
+
+@pytest.mark.parametrize("verb", ["optimize", "eval", "compare"])
+def test_the_flags_are_todays(verb):
+    """Same flags in the same order, same dests (optimize's are the config's fields), defaults, types, choices,
+    metavars, groups and help (but for :data:`REWORDED`)."""
+    before, now = BEFORE["parsers"][verb], _actions(_verb(verb))
+    assert [a["flags"] for a in now] == [a["flags"] for a in before]
+    for old, new in zip(before, now):
+        flag = (old["flags"] or [old["dest"]])[0]
+        if verb == "eval" and old["dest"] in ("call_time_limit", "episode_time_limit"):
+            old = {**old, "dest": old["dest"] + "_s"}  # eval's handler reads the config's field names now
+        if (verb, flag) in REWORDED:
+            assert (old["help"], new["help"]) == REWORDED[verb, flag]
+            old = {**old, "help": new["help"]}
+        assert new == old, flag
+
+
+def test_what_the_declarations_derive_is_todays():
+    """--resume's rules, budgets, the values that replay old runs, batch keys and run-key rules, defaults."""
+    from pipeline.cli.optimize import OPTIMIZE_OPTIONS
+    from pipeline.jobs.batch import KEYED_WHEN_SET, NOT_IN_KEY, RUN_KEYS
+
+    before = BEFORE["optimize"]
+    assert sorted(RESUME_OVERRIDES) == before["resume"] and list(BUDGET_FIELDS) == before["budgets"]
+    assert BEFORE_RECORDED == before["before"]
+    assert list(RUN_KEYS) == before["run_keys"] and sorted(OPTIMIZE_OPTIONS) == before["options"]
+    assert sorted(NOT_IN_KEY) == before["not_in_key"] and sorted(KEYED_WHEN_SET) == before["keyed_when_set"]
+    defaults = asdict(OptimizeConfig())
+    assert defaults.pop("observation") >= before["defaults"].pop("observation")  # moves with the conventions
+    assert defaults == before["defaults"]  # the stored runs.config keeps its keys, in order, and its defaults
+    assert list(asdict(OptimizeConfig())) == list(BEFORE["optimize"]["run_keys"])
+
+
+@pytest.mark.parametrize("config", [OptimizeConfig, EvalConfig, CompareConfig, EpisodeLimits])
+def test_every_setting_is_declared_with_its_help(config):
+    declared = declarations(config)
+    undeclared = [f.name for f in fields(config) if f.name not in declared]
+    assert not undeclared, f"{config.__name__}: fields without a setting(): {undeclared}"
+    for name, (_, setting) in declared.items():
+        assert setting.help.strip() and setting.help == setting.help.strip(), name
+        assert all(s.help.strip() for s in setting.switches), name
+
+
+def test_episode_limits_are_one_declaration():
+    """eval, optimize, compare, the candidate checks and the episode specs all take their limits' defaults from
+    EpisodeLimits: change one there and every one of them follows."""
+    from pipeline.boundary.confine import Limits
+    from pipeline.play.rollout import EpisodeSpec
+    from pipeline.play.validate import RuntimeCheck
+
+    limits = EpisodeLimits()
+    spec = EpisodeSpec("e", "r", "pong", "", "v")
+    for config in (EvalConfig(), OptimizeConfig(), CompareConfig(), spec, RuntimeCheck("", "pong", [])):
+        assert EpisodeLimits.of(config) == limits, type(config).__name__
+    assert Limits().memory_mb == limits.memory_limit_mb
+    assert EpisodeLimits.of(EvalConfig(max_steps=7, call_time_limit_s=0.5)) == EpisodeLimits(7, 0.5)
+
+
+def test_model_defaults_fill_only_what_is_not_given():
+    assert model_defaults({"game": "pong"}) == {"game": "pong", "max_tokens": 512, "token_budget": 3000}
+    assert model_defaults({"max_tokens": 64})["max_tokens"] == 64
+    assert model_defaults({"model": "openai/x", "game": "pong"}) == {"model": "openai/x", "game": "pong"}
+
+
+def test_the_cli_and_a_batch_entry_record_the_same_config(tmp_path):
+    """The same settings, once on the command line and once in a batch file, with the offline model (whose
+    defaults the two used to apply differently: 512-token replies against 4,096): the same runs.config, but for
+    the batch's own keys and the worker count (each machine's own)."""
+    from store import Store
+
+    exe = os.path.join(os.path.dirname(sys.executable), "codearcade")
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "LITELLM_LOCAL_MODEL_COST_MAP": "True"}
+    store = tmp_path / "s.duckdb"
+    settings = {"game": "pong", "iterations": 0, "rollout_steps": 20, "eval_max_steps": 40, "seed": 3}
+    flags = ["--game", "pong", "--iterations", "0", "--rollout-steps", "20", "--eval-max-steps", "40", "--seed", "3"]
+    cli = subprocess.run([exe, "optimize", *flags, "--store", str(store)], capture_output=True, text=True, env=env,
+                         timeout=600)
+    assert cli.returncode == 0, cli.stdout + cli.stderr
+    experiments = tmp_path / "same.toml"
+    experiments.write_text('name = "same"\n[[run]]\n' + "".join(f"{k} = {json.dumps(v)}\n" for k, v in settings.items()))
+    batch = subprocess.run([exe, "batch", str(experiments), "--store", str(store)], capture_output=True, text=True,
+                           env=env, timeout=600)
+    assert batch.returncode == 0, batch.stdout + batch.stderr
+    rows = Store(store).query("SELECT config FROM runs WHERE kind = 'optimize' ORDER BY created_at")
+    assert len(rows) == 2
+    by_cli, by_batch = (json.loads(config) for (config,) in rows)
+    assert by_batch.pop("batch") == "same" and by_batch.pop("batch_key")
+    by_cli.pop("workers"), by_batch.pop("workers")
+    assert by_cli == by_batch
+    assert by_cli["max_tokens"] == 512 and by_cli["token_budget"] == 3000
+
+
+NEW_OPTION = '''
+    patience: int = setting(
+        3, "stop after N iterations without a better score (default: %(default)s)", metavar="N", minimum=1,
+        resumable=True, group="search")
+'''
+"""The option the next test adds: one field, written once, in pipeline/optimizer/config.py."""
+
+
+def test_a_new_optimize_option_is_written_in_one_place(tmp_path):
+    """Add one field to OptimizeConfig (in a copy of the pipeline package) and nothing else: it is a flag of
+    ``codearcade optimize`` with its help and type, a key of a batch file, checked in both, taken by --resume, kept
+    in the stored config and in the command that reproduces a run."""
+    copy = tmp_path / "pipeline"
+    shutil.copytree(ROOT / "pipeline", copy, ignore=shutil.ignore_patterns("__pycache__"))
+    config = copy / "optimizer" / "config.py"
+    source = config.read_text()
+    anchor = "\n    @classmethod\n    def from_record("
+    assert source.count(anchor) == 1
+    config.write_text(source.replace(anchor, NEW_OPTION + anchor))
+
+    experiments = tmp_path / "patient.toml"
+    experiments.write_text('name = "patient"\n[defaults]\ngame = "pong"\nmodel = "openai/x"\n[matrix]\npatience = [2, 5]\n')
+    wrong = tmp_path / "impatient.toml"
+    wrong.write_text('name = "impatient"\n[[run]]\ngame = "pong"\npatience = 0\n')
+    probe = textwrap.dedent(f"""
+        import contextlib, io, json
+        from pipeline.cli import build_parser
+        from pipeline.cli.optimize import OPTIMIZE_OPTIONS
+        from pipeline.cli.report import reproduce_command
+        from pipeline.jobs.batch import ExperimentError, RUN_KEYS, load_experiments
+        from pipeline.optimizer.config import RESUME_OVERRIDES, OptimizeConfig, validate_config
+
+        out = {{}}
+        help = io.StringIO()
+        with contextlib.redirect_stdout(help), contextlib.suppress(SystemExit):
+            build_parser().parse_args(["optimize", "--help"])
+        out["help"] = " ".join(help.getvalue().split())
+        out["parsed"] = build_parser().parse_args(["optimize", "--game", "pong", "--patience", "4"]).patience
+        bad = io.StringIO()
+        with contextlib.redirect_stderr(bad), contextlib.suppress(SystemExit):
+            build_parser().parse_args(["optimize", "--patience", "0"])
+        out["bad_flag"] = bad.getvalue().strip().splitlines()[-1]
+        out["options"], out["resume"], out["keys"] = list(OPTIMIZE_OPTIONS), list(RESUME_OVERRIDES), list(RUN_KEYS)
+        out["batch"] = [run.config.patience for run in load_experiments({str(experiments)!r}).runs]
+        try:
+            load_experiments({str(wrong)!r})
+        except ExperimentError as exc:
+            out["batch_error"] = str(exc)
+        try:
+            validate_config(OptimizeConfig(patience=0))
+        except ValueError as exc:
+            out["check"] = str(exc)
+        out["default"] = OptimizeConfig().patience
+        out["reproduce"] = reproduce_command({{"kind": "optimize", "game": "pong"}}, {{"patience": 7, "seed": 1}})
+        print(json.dumps(out))
+    """)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)]),
+           "LITELLM_LOCAL_MODEL_COST_MAP": "True"}
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, cwd=tmp_path,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert "search: how versions are chosen" in out["help"]
+    assert "--patience N stop after N iterations without a better score (default: 3)" in out["help"]
+    assert out["parsed"] == 4 and "--patience: must be at least 1, got 0" in out["bad_flag"]
+    assert "patience" in out["options"] and "patience" in out["resume"] and "patience" in out["keys"]
+    assert out["batch"] == [2, 5]
+    assert out["batch_error"].endswith("--patience must be at least 1, got 0") and "\n" not in out["batch_error"]
+    assert out["check"] == "--patience must be at least 1, got 0"
+    assert out["default"] == 3
+    assert out["reproduce"] == "codearcade optimize --game pong --seed 1 --patience 7"
