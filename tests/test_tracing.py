@@ -270,5 +270,6 @@ def test_inputs_of_the_usual_call_are_the_json_of_their_dict():
     args = (obs, 7, True, "ünï", 0.25, None)
     generic = to_json({"obs": OBS_REF, "y": 7, "flag": True, "name": "ünï", "ratio": 0.25, "nothing": None})
     assert recorder._encode_inputs(method, args, {}) == generic
-    assert recorder._encode_inputs(method, args[:2], {"flag": False}) == to_json({"obs": OBS_REF, "y": 7, "flag": False})
+    with_keyword = to_json({"obs": OBS_REF, "y": 7, "flag": False})
+    assert recorder._encode_inputs(method, args[:2], {"flag": False}) == with_keyword
     assert recorder._encode_inputs(method, (float("nan"),), {}) == to_json({"obs": "NaN"})
