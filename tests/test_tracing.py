@@ -258,6 +258,21 @@ def test_to_json_recovers_after_a_value_it_cannot_write():
     assert to_json(circular) == json.dumps(circular, separators=(",", ":")) == '[{"true":1}]'
 
 
+def test_to_json_inside_to_json_leaves_the_outer_value_alone():
+    """A dict subclass's ``items()`` runs while the encoder is inside it: a value it encodes there (one that fails,
+    even) gets an encoder of its own, so the outer value is still written as json.dumps writes it."""
+    inner = []
+
+    class Talkative(dict):
+        def items(self):
+            inner.append(to_json([float("nan")]))
+            return super().items()
+
+    value = [Talkative(a=1), {True: 1}]
+    assert to_json(value) == json.dumps(value, separators=(",", ":")) == '[{"a":1},{"true":1}]'
+    assert inner and set(inner) == {'["NaN"]'}
+
+
 def test_inputs_of_the_usual_call_are_the_json_of_their_dict():
     """A call with positional scalars and the observation is encoded directly; its text is the generic one."""
     recorder = NodeRecorder()

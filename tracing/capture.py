@@ -120,11 +120,10 @@ class _Encoder:
         make = getattr(json.encoder, "c_make_encoder", None)
         self.encode = None if make is None else make(
             self.markers, _refuse, json.encoder.encode_basestring_ascii, None, ":", ",", False, False, False)
-        self.fallback = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
 
     def __call__(self, value: Any) -> str:
-        if self.encode is None:
-            return self.fallback.encode(value)
+        if self.encode is None or self.markers:  # a dict subclass's items() encoding inside an encoding: its own
+            return json.dumps(value, allow_nan=False, separators=(",", ":"))
         try:
             return "".join(self.encode(value, 0))
         except BaseException:
