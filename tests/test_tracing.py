@@ -8,6 +8,7 @@ import pytest
 
 import tracing as trace
 from tests.conftest import EXAMPLES, pong_policy
+from tracing.bounded import TOO_DEEP as TOO_DEEP_MARK
 from tracing.capture import OBS_REF, NodeRecorder, to_json
 from tracing.metrics import function_metrics, max_if_depth, policy_metrics
 from tracing.policy_file import PolicyLoadError, inspect_policy, load_policy, replace_methods, version_id
@@ -197,3 +198,93 @@ def test_metrics():
     assert max_if_depth(ast.parse("if a:\n    pass\nelif b:\n    pass\nelif c:\n    pass\n")) == 1
     whole = policy_metrics((EXAMPLES / "pong.py").read_text())
     assert whole.loc > 50 and whole.complexity >= 4 and whole.max_if_depth == 1
+
+
+@pytest.mark.parametrize("workers", [1, 0], ids=["policy process", "in process"])
+def test_traced_node_rows_are_stored_as_before(workers, store):
+    """Node capture's fast paths (the usual values encoded without ``json.dumps``, rows kept as tuples) store
+    exactly what it stored before them: every column but ``duration_us`` of each node of fixed traced episodes,
+    against the rows the earlier code left (``tests/fixtures/make_traced_nodes.py``). ``pong_traced_values.py``
+    passes every kind of value capture encodes, exceptions, cut and truncated values included."""
+    import gzip
+
+    from pipeline.play.evaluate import EvalConfig, evaluate
+    from tests.fixtures.make_traced_nodes import HERE, POLICIES, STEPS, node_rows
+
+    with gzip.open(HERE / "traced_nodes.json.gz", "rt", encoding="utf-8") as fixture:
+        before = json.load(fixture)
+    root = HERE.parents[1]
+    for policy in POLICIES:
+        config = EvalConfig(episodes=1, max_steps=STEPS, trace=True, workers=workers)
+        rows = node_rows(store, evaluate(root / policy, config, store).run_id)
+        assert json.loads(json.dumps(rows, ensure_ascii=False)) == before[policy], policy
+
+
+@pytest.mark.parametrize("value", [
+    None, True, False, 0, -7, 2**70, 1.5, -0.0, 1e300, 5e-324, float("nan"), float("inf"), "", "plain",
+    "bällé ✓ \"q\" \\ \n\t\x00 \ud800", "[" * 80, "x" * 25_000, (1, "a"), [1, [2, [3]]], {"k": {"j": None}},
+    {3: "int key", "s": {1, 2}}, [float("nan")], {"deep": [[[[]]]] * 3},
+])
+def test_to_json_writes_what_json_dumps_writes(value):
+    """The fast paths of ``to_json`` (scalars, a reused C encoder) give json.dumps's own text for every value it
+    can write, and the documented markers for the rest."""
+    import math
+
+    from tracing.capture import _jsonable
+
+    try:
+        expected = json.dumps(value, allow_nan=False, separators=(",", ":"))
+    except (TypeError, ValueError):  # NaN, infinities, sets, int keys beside str keys: written as documented
+        expected = json.dumps(_jsonable(value), separators=(",", ":"))
+    text = to_json(value)
+    if len(expected) > 20_000:
+        assert json.loads(text)["$truncated"] == len(expected)
+    elif expected.count("[") + expected.count("{") <= 64:
+        assert text == expected
+    else:
+        assert text == expected or TOO_DEEP_MARK in text
+    if isinstance(value, float) and math.isfinite(value):
+        assert text == repr(value)
+
+
+def test_to_json_recovers_after_a_value_it_cannot_write():
+    """The reused encoder forgets the containers it was inside of when a value fails half-way (here a circular
+    list): the same list, no longer circular, is then written as json.dumps writes it (a stale mark would send it
+    down the fallback, which writes the key ``True`` as ``"True"``, not ``"true"``)."""
+    circular: list = [{True: 1}]
+    circular.append(circular)
+    assert TOO_DEEP_MARK in to_json(circular)
+    circular.pop()
+    assert to_json(circular) == json.dumps(circular, separators=(",", ":")) == '[{"true":1}]'
+
+
+def test_to_json_inside_to_json_leaves_the_outer_value_alone():
+    """A dict subclass's ``items()`` runs while the encoder is inside it: a value it encodes there (one that fails,
+    even) gets an encoder of its own, so the outer value is still written as json.dumps writes it."""
+    inner = []
+
+    class Talkative(dict):
+        def items(self):
+            inner.append(to_json([float("nan")]))
+            return super().items()
+
+    value = [Talkative(a=1), {True: 1}]
+    assert to_json(value) == json.dumps(value, separators=(",", ":")) == '[{"a":1},{"true":1}]'
+    assert inner and set(inner) == {'["NaN"]'}
+
+
+def test_inputs_of_the_usual_call_are_the_json_of_their_dict():
+    """A call with positional scalars and the observation is encoded directly; its text is the generic one."""
+    recorder = NodeRecorder()
+    obs = {"Ball": {"x": 1, "y": 2, "w": 1, "h": 1, "dx": 0, "dy": 0}}
+    recorder.begin_step(0, obs)
+
+    def method(self, obs, y, flag, name, ratio, nothing):
+        return None
+
+    args = (obs, 7, True, "ünï", 0.25, None)
+    generic = to_json({"obs": OBS_REF, "y": 7, "flag": True, "name": "ünï", "ratio": 0.25, "nothing": None})
+    assert recorder._encode_inputs(method, args, {}) == generic
+    with_keyword = to_json({"obs": OBS_REF, "y": 7, "flag": False})
+    assert recorder._encode_inputs(method, args[:2], {"flag": False}) == with_keyword
+    assert recorder._encode_inputs(method, (float("nan"),), {}) == to_json({"obs": "NaN"})

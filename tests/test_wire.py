@@ -121,3 +121,41 @@ def test_well_formed_messages_pass_and_error_text_is_made_text():
         {"reason": "y" * wire.MAX_TEXT, "other": None}
     with pytest.raises(wire.BadMessage, match="not text"):
         wire.text_answer({"kind": "result", "reason": 3})
+
+
+def _frames_for_pieces() -> list[bytes]:
+    nodes = wire.raw_arrow_frame(bytes(range(256)) * 400)  # 100 KB: a large frame, read in pieces
+    return [wire.json_frame({"kind": "progress", "n": i}) for i in range(3)] + [nodes, nodes,
+                                                                                wire.json_frame({"kind": "result"})]
+
+
+@pytest.mark.parametrize("piece", [1, 3, 1000, 65_536, 10**7])
+def test_frames_arriving_in_any_pieces_come_out_whole(piece):
+    frames = _frames_for_pieces()
+    stream = b"".join(frames)
+    reader, got = wire.FrameReader(), []
+    for at in range(0, len(stream), piece):
+        got.extend(reader.feed(stream[at:at + piece]))
+    assert got == [(frame[:1], frame[wire.HEADER.size:]) for frame in frames]
+    assert reader.held == 0
+
+
+def test_the_policy_channel_reads_small_and_large_frames_whole_and_caps_them():
+    import socket
+    import threading
+
+    from pipeline.boundary.policy import Channel
+
+    frames = _frames_for_pieces() + [wire.raw_arrow_frame(b"x" * 3 * 2**20), wire.json_frame({"kind": "done"})]
+    host, policy = socket.socketpair()
+    sender = threading.Thread(target=lambda: policy.sendall(b"".join(frames)))
+    sender.start()
+    channel = Channel(host)
+    got = [channel.receive(wire.MAX_ARROW) for _ in frames]
+    sender.join()
+    assert got == [(frame[:1], frame[wire.HEADER.size:]) for frame in frames]
+    policy.sendall(wire.raw_arrow_frame(b"y" * 100_000))
+    with pytest.raises(ValueError, match="over the limit"):
+        channel.receive(99_999)
+    policy.close()
+    host.close()

@@ -23,6 +23,7 @@ and a text over 20,000 characters becomes ``{"$truncated": n, "preview": ...}``.
 from __future__ import annotations
 
 import json
+import json.encoder
 import linecache
 import math
 import re
@@ -41,6 +42,8 @@ ACTIVE: "NodeRecorder | None" = None
 
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 OBS_REF = {"$ref": "obs"}
+OBS_REF_TEXT = '{"$ref":"obs"}'
+"""``to_json(OBS_REF)``."""
 _USUAL_RECURSION_LIMIT = sys.getrecursionlimit()
 """The recursion limit before any policy code ran (policy code can raise its own; see :func:`to_json`)."""
 
@@ -104,14 +107,74 @@ def _jsonable(value: Any, depth: int = 0) -> Any:
     return _ADDRESS.sub("", repr(value))[:200]
 
 
+def _refuse(value: Any) -> Any:
+    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
+
+
+class _Encoder:
+    """``json.dumps(value, allow_nan=False, separators=(",", ":"))``, the very same C encoder, built once: ``dumps``
+    builds a ``JSONEncoder`` and a C encoder on every call, which cost more than encoding a node's usual value."""
+
+    def __init__(self) -> None:
+        self.markers: dict[int, Any] = {}  # the encoder's circular-reference check: emptied after each value
+        make = getattr(json.encoder, "c_make_encoder", None)
+        self.encode = None if make is None else make(
+            self.markers, _refuse, json.encoder.encode_basestring_ascii, None, ":", ",", False, False, False)
+
+    def __call__(self, value: Any) -> str:
+        if self.encode is None or self.markers:  # a dict subclass's items() encoding inside an encoding: its own
+            return json.dumps(value, allow_nan=False, separators=(",", ":"))
+        try:
+            return "".join(self.encode(value, 0))
+        except BaseException:
+            self.markers.clear()  # the C encoder leaves the containers it was inside of marked when it raises
+            raise
+
+
+_encode = _Encoder()
+
+
+def _finite_float_text(value: float) -> str:
+    if value - value != 0.0:  # inf or nan: json.dumps refuses them with allow_nan=False (to_json's fallback)
+        raise ValueError("not a finite float")
+    return float.__repr__(value)
+
+
+_SCALAR_TEXT = {
+    type(None): lambda value: "null",
+    bool: lambda value: "true" if value else "false",
+    int: int.__repr__,
+    float: _finite_float_text,
+    str: json.encoder.encode_basestring_ascii,
+}
+"""The JSON text of a value of exactly these types, as ``json.dumps`` writes it (its C encoder calls the same
+functions); ``ValueError`` where ``json.dumps`` raises too (a non-finite float, an int of more than 4,300 digits),
+which sends the value down :func:`to_json`'s general path. Node values are mostly such scalars: this path costs a
+dict lookup and a call, where ``json.dumps`` cost several microseconds."""
+
+
+def _scalar_text(value: Any) -> str | None:
+    """:data:`_SCALAR_TEXT` of ``value``, or None when it has none."""
+    text_of = _SCALAR_TEXT.get(type(value))
+    if text_of is None:
+        return None
+    try:
+        return text_of(value)
+    except ValueError:
+        return None
+
+
 def to_json(value: Any) -> str:
     """Deterministic JSON text for a node input or output (see the module docstring)."""
+    text = _scalar_text(value)
+    if text is not None:
+        return text if len(text) <= MAX_CHARS else json.dumps(truncated(text))
     nested = isinstance(value, (dict, list, tuple))
     if nested and sys.getrecursionlimit() > _USUAL_RECURSION_LIMIT and deeper_than(value, MAX_DEPTH):
         # the policy raised its recursion limit: json.dumps would follow a deep value until the stack overflows
         value = _jsonable(value)
     try:
-        text = json.dumps(value, allow_nan=False, separators=(",", ":"))
+        text = _encode(value)
     except (TypeError, ValueError, RecursionError):
         text = json.dumps(_jsonable(value), separators=(",", ":"))
     if nested and text.count("[") + text.count("{") > MAX_DEPTH and deeper_than(value, MAX_DEPTH):
@@ -122,14 +185,22 @@ def to_json(value: Any) -> str:
 
 
 class NodeRecorder:
-    """Collects node events for one episode, column by column; ``table()`` returns them as Arrow."""
+    """Collects node events for one episode, a tuple per node; ``table()`` returns them as Arrow.
+
+    This runs around every bundled call of a traced episode, so its bookkeeping is kept to a few operations per
+    call: a node's values are encoded once, when the call ends (:func:`to_json`; the usual ones, a dict of the
+    observation and a few scalars, by :meth:`_encode_inputs`'s own path, to the same text), and its row is one
+    tuple, turned into columns at the end. ``parents`` and ``lines_run`` are tuples, which the cyclic garbage
+    collector stops tracking, so that a long episode's nodes do not make each of its collections slower."""
 
     def __init__(self, lines: bool = False) -> None:
         self.lines = lines
         """Record the lines each call ran (``lines_run``); costs a trace function call per line executed."""
         self._line_counts: dict[Any, int] = {}
-        self._cols: dict[str, list] = {name: [] for name in NODE_SCHEMA.names}
-        self._arg_names: dict[Any, tuple[str, ...]] = {}
+        self._rows: list[tuple] = []
+        """One tuple per node, in ``NODE_SCHEMA`` order."""
+        self._keys: dict[Any, tuple[tuple[str, ...], tuple[str, ...]]] = {}
+        """Per method: its parameter names (after ``self``) and each one's JSON text as a key (``"obs":``)."""
         self.step = -1
         self.obs: Any = None
         self._outputs: list[tuple[Any, int]] = []
@@ -146,7 +217,7 @@ class NodeRecorder:
         ACTIVE = self._previous
 
     def __len__(self) -> int:
-        return len(self._cols["step"])
+        return len(self._rows)
 
     def begin_step(self, step: int, obs: Any) -> None:
         self.step = step
@@ -154,16 +225,29 @@ class NodeRecorder:
         self._outputs.clear()
         self._next_index = 0
 
-    def _names(self, fn: Any) -> tuple[str, ...]:
-        names = self._arg_names.get(fn)
-        if names is None:
+    def _names(self, fn: Any) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        keys = self._keys.get(fn)
+        if keys is None:
             code = fn.__code__
-            names = self._arg_names[fn] = code.co_varnames[1 : code.co_argcount]  # skip self
-        return names
+            names = code.co_varnames[1 : code.co_argcount]  # skip self
+            keys = self._keys[fn] = names, tuple(json.encoder.encode_basestring_ascii(n) + ":" for n in names)
+        return keys
 
     def _encode_inputs(self, fn: Any, args: tuple, kwargs: dict) -> str:
-        names = self._names(fn)
+        names, keys = self._names(fn)
         obs = self.obs
+        if not kwargs and len(args) <= len(names):
+            # the usual call, positional arguments that are the observation or scalars: their text put together
+            # directly, as json.dumps of the dict below writes it
+            parts = []
+            for key, value in zip(keys, args):
+                text = OBS_REF_TEXT if value is obs else _scalar_text(value)
+                if text is None:
+                    break
+                parts.append(key + text)
+            else:
+                text = "{" + ",".join(parts) + "}"
+                return text if len(text) <= MAX_CHARS else json.dumps(truncated(text))
         inputs: dict[str, Any] = {}
         for i, value in enumerate(args):
             key = names[i] if i < len(names) else f"arg{i}"
@@ -172,26 +256,29 @@ class NodeRecorder:
             inputs[key] = OBS_REF if value is obs else value
         return to_json(inputs)
 
-    def _parents(self, args: tuple, kwargs: dict) -> list[int]:
-        if not self._outputs:
-            return []
-        values = list(args) + list(kwargs.values())
+    def _parents(self, args: tuple, kwargs: dict) -> tuple[int, ...]:
+        outputs = self._outputs
+        if not outputs:
+            return ()
+        values = list(args)
+        if kwargs:
+            values.extend(kwargs.values())
         for value in list(values):
             if isinstance(value, (tuple, list)) and len(value) <= 16:
                 values.extend(value)
         parents = set()
         for value in values:
             # the most recent call that returned this very object is its direct producer
-            for output, index in reversed(self._outputs):
+            for output, index in reversed(outputs):
                 if value is output:
                     parents.add(index)
                     break
-        return sorted(parents)
+        return tuple(sorted(parents)) if parents else ()
 
     def call(self, parameter: Any, instance: Any, args: tuple, kwargs: dict) -> Any:
         """Run one bundled call and record it (exceptions are recorded, then re-raised)."""
         index = self._next_index
-        self._next_index += 1
+        self._next_index = index + 1
         fn = parameter.fn
         parents = self._parents(args, kwargs)
         inputs = self._encode_inputs(fn, args, kwargs)
@@ -202,12 +289,12 @@ class NodeRecorder:
         except BaseException as exc:
             duration = (time.perf_counter_ns() - start) // 1000
             line, text = failing_policy_line(exc)
-            self._append(index, parameter, inputs, None, type(exc).__name__, str(exc)[:2000], line, text, duration, parents,
-                         run.lines() if self.lines else None)
+            self._rows.append((self.step, index, parameter.name, parameter.trainable, inputs, None, type(exc).__name__,
+                               str(exc)[:2000], line, text, duration, parents, run.lines() if self.lines else None))
             raise
         duration = (time.perf_counter_ns() - start) // 1000
-        self._append(index, parameter, inputs, to_json(output), None, None, None, None, duration, parents,
-                     run.lines() if self.lines else None)
+        self._rows.append((self.step, index, parameter.name, parameter.trainable, inputs, to_json(output), None, None,
+                           None, None, duration, parents, run.lines() if self.lines else None))
         self._outputs.append((output, index))
         return output
 
@@ -218,22 +305,7 @@ class NodeRecorder:
             count = self._line_counts[source] = source.count("\n")
         return count
 
-    def _append(self, index, parameter, inputs, output, exc_type, exc_message, exc_line, exc_source, duration, parents,
-                lines_run):
-        c = self._cols
-        c["step"].append(self.step)
-        c["call_index"].append(index)
-        c["function"].append(parameter.name)
-        c["trainable"].append(parameter.trainable)
-        c["inputs"].append(inputs)
-        c["output"].append(output)
-        c["exc_type"].append(exc_type)
-        c["exc_message"].append(exc_message)
-        c["exc_line"].append(exc_line)
-        c["exc_source"].append(exc_source)
-        c["duration_us"].append(duration)
-        c["parents"].append(parents)
-        c["lines_run"].append(lines_run)
-
     def table(self) -> pa.Table:
-        return pa.table(self._cols, schema=NODE_SCHEMA)
+        columns = zip(*self._rows) if self._rows else [()] * len(NODE_SCHEMA)
+        return pa.Table.from_arrays([pa.array(column, type=field.type) for column, field in zip(columns, NODE_SCHEMA)],
+                                    schema=NODE_SCHEMA)

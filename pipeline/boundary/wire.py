@@ -79,24 +79,41 @@ def read_frame(fd: int, limit: int = MAX_JSON) -> tuple[bytes, bytes]:
 
 
 class FrameReader:
-    """Frames from bytes arriving in pieces (a non-blocking socket), sizes capped."""
+    """Frames from bytes arriving in pieces (a non-blocking socket), sizes capped.
+
+    The pieces of a frame are kept as they came and joined once it is whole: appending each piece to one buffer
+    copied the whole buffer again every few pieces (4 ms for an episode's 2 MB of node rows, against 0.5)."""
 
     def __init__(self) -> None:
-        self.buffer = bytearray()
+        self.pieces: list[bytes] = []
+        self.held = 0
+        """Bytes in ``pieces``."""
+        self.needed = HEADER.size
+        """Bytes to hold before the next frame (or its header) can be read."""
 
     def feed(self, data: bytes) -> list[tuple[bytes, bytes]]:
-        self.buffer += data
-        frames = []
-        while len(self.buffer) >= HEADER.size:
-            kind, size = HEADER.unpack_from(self.buffer)
+        if data:
+            self.pieces.append(bytes(data))
+            self.held += len(data)
+        if self.held < self.needed:
+            return []
+        buffer = self.pieces[0] if len(self.pieces) == 1 else b"".join(self.pieces)
+        frames, at, needed = [], 0, HEADER.size
+        while len(buffer) - at >= HEADER.size:
+            kind, size = HEADER.unpack_from(buffer, at)
             if kind not in (b"J", b"A"):
                 raise BadMessage(f"unknown frame kind {kind!r}")
             if size > (MAX_JSON if kind == b"J" else MAX_ARROW):
                 raise BadMessage(f"a {'JSON' if kind == b'J' else 'Arrow'} frame of {size} bytes is over the limit")
-            if len(self.buffer) < HEADER.size + size:
+            end = at + HEADER.size + size
+            if len(buffer) < end:
+                needed = end - at
                 break
-            frames.append((kind, bytes(self.buffer[HEADER.size:HEADER.size + size])))
-            del self.buffer[:HEADER.size + size]
+            frames.append((kind, buffer[at + HEADER.size:end]))
+            at = end
+        rest = buffer[at:] if at else buffer
+        self.pieces = [rest] if rest else []
+        self.held, self.needed = len(rest), needed
         return frames
 
 

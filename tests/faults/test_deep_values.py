@@ -130,6 +130,7 @@ FORGER = pong_policy("return 0", prelude="import typing\n").replace(
     '        ball = obs.get("Ball")\n',
     '        capture = typing.sys.modules["tracing.capture"]\n'
     '        capture.to_json = lambda value: "[" * 3000 + "]" * 3000  # its own process: it may\n'
+    '        capture.NodeRecorder._encode_inputs = lambda recorder, fn, args, kwargs: capture.to_json(args)\n'
     '        ball = obs.get("Ball")\n', 1)
 
 
