@@ -136,8 +136,13 @@ class PolicyChannel:
     def go(self, cpu: int | None) -> None:
         """The episode begins (on ``cpu``, where the host now runs)."""
 
-    def act(self, obs: dict[str, Any]) -> int:
-        """The policy's legal action for ``obs``; raises :class:`PolicyFailed`."""
+    def ask(self, obs: dict[str, Any]) -> None:
+        """Put ``obs`` to the policy; its action is :meth:`answer`'s. Between the two the host does its own work
+        of the step (the step log, a live recording) while a policy process thinks on its own core."""
+        raise NotImplementedError
+
+    def answer(self) -> int:
+        """The policy's legal action for the observation last asked about; raises :class:`PolicyFailed`."""
         raise NotImplementedError
 
     def finish(self, more: bool = False) -> Any:
@@ -167,7 +172,11 @@ class LocalPolicy(PolicyChannel):
             self.recorder.__enter__()
         self.step = -1
 
-    def act(self, obs: dict[str, Any]) -> int:
+    def ask(self, obs: dict[str, Any]) -> None:
+        self.asked = obs  # in this process the policy runs when the answer is wanted, after the step is logged
+
+    def answer(self) -> int:
+        obs = self.asked
         self.step += 1
         if self.recorder is not None:
             self.recorder.begin_step(self.step, obs)
@@ -250,11 +259,13 @@ class RemotePolicy(PolicyChannel):
     def go(self, cpu: int | None) -> None:
         self.channel.send_json({"op": "go", "cpu": cpu})
 
-    def act(self, obs: dict[str, Any]) -> int:
+    def ask(self, obs: dict[str, Any]) -> None:
         try:
             self.channel.send(b"O", marshal.dumps(obs))
         except OSError:
             raise PolicyFailed("crashed", "the policy process ended before the step") from None
+
+    def answer(self) -> int:
         kind, payload = self._receive(self.limit, "at this step")
         if kind == b"a" and len(payload) == ACTION.size:
             (action,) = ACTION.unpack(payload)
@@ -374,18 +385,27 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
                     end_reason = "timeout"
                     error = f"episode exceeded its time limit of {spec.episode_time_limit_s:g} s"
                     break
+                try:
+                    policy.ask(obs)
+                    unasked = None
+                except PolicyFailed as exc:
+                    unasked = exc
+                logging = time.perf_counter()
                 steps.observe(obs, getattr(env, "object_rows", None))
                 if live is not None:
                     live.observe(step)
+                logged = time.perf_counter()
                 try:
-                    action = policy.act(obs)
+                    if unasked is not None:
+                        raise unasked
+                    action = policy.answer()
                 except PolicyFailed as exc:
-                    policy_s += time.perf_counter() - now
+                    policy_s += time.perf_counter() - now - (logged - logging)
                     end_reason, error = exc.end_reason, exc.error
                     steps.outcome(step, None, 0.0, score, False, False, lives)
                     break
                 after_policy = time.perf_counter()
-                policy_s += after_policy - now
+                policy_s += after_policy - now - (logged - logging)  # the host's logging ran while the policy thought
                 obs, reward, terminated, truncated, info = env.step(action)
                 env_s += time.perf_counter() - after_policy
                 score += float(reward)
