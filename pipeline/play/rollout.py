@@ -137,8 +137,9 @@ class PolicyChannel:
         """The episode begins (on ``cpu``, where the host now runs)."""
 
     def ask(self, obs: dict[str, Any]) -> None:
-        """Put ``obs`` to the policy; its action is :meth:`answer`'s. Between the two the host does its own work
-        of the step (the step log, a live recording) while a policy process thinks on its own core."""
+        """Put ``obs`` to the policy; its action is :meth:`answer`'s. The host logs the step between the two, so a
+        policy process woken by the observation can start on it at once where it has a CPU to itself (pinned to
+        its host's CPU, as workers pins pairs, the two take turns either way)."""
         raise NotImplementedError
 
     def answer(self) -> int:
