@@ -33,7 +33,7 @@ import importlib
 import signal
 import types
 from contextlib import contextmanager
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 ALLOWED_MODULES = frozenset(
     {
@@ -340,6 +340,14 @@ class CallTimer:
 
     def disarm(self) -> None:
         signal.setitimer(signal.ITIMER_REAL, 0)
+
+    def call(self, seconds: float | None, policy: Callable[[Any], Any], obs: Any) -> Any:
+        """``policy(obs)`` under a limit of ``seconds``: the one policy call of a step."""
+        self.arm(seconds)
+        try:
+            return policy(obs)
+        finally:
+            self.disarm()
 
 
 @contextmanager

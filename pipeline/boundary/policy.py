@@ -196,11 +196,7 @@ class PolicySide:
                 if recorder is not None:
                     recorder.begin_step(step, obs)
                 try:
-                    timer.arm(self.call_limit)
-                    try:
-                        action = policy(obs)
-                    finally:
-                        timer.disarm()
+                    action = timer.call(self.call_limit, policy, obs)
                     channel.send(b"a", ACTION.pack(coerce_action(action, n_actions)))
                     continue
                 except PolicyTimeout as exc:

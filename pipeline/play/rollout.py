@@ -182,12 +182,8 @@ class LocalPolicy(PolicyChannel):
         if self.recorder is not None:
             self.recorder.begin_step(self.step, obs)
         try:
-            self.timer.arm(self.spec.call_time_limit_s or math.inf)
-            try:
-                action = self.policy(obs)
-            finally:
-                self.timer.disarm()
-            return coerce_action(action, self.n_actions)
+            return coerce_action(self.timer.call(self.spec.call_time_limit_s or math.inf, self.policy, obs),
+                                 self.n_actions)
         except PolicyTimeout as exc:
             raise PolicyFailed("timeout", describe_exception(exc)) from None
         except KeyboardInterrupt:

@@ -380,12 +380,7 @@ def run_check(check: RuntimeCheck, progress=None) -> str | None:
             if time.monotonic() > deadline:
                 return f"the candidate took more than {check.total_time_limit_s:g} s on {len(check.observations)} recorded steps"
             try:
-                timer.arm(check.call_time_limit_s)
-                try:
-                    action = policy(obs)
-                finally:
-                    timer.disarm()
-                coerce_action(action, n_actions)
+                coerce_action(timer.call(check.call_time_limit_s, policy, obs), n_actions)
             except PolicyTimeout as exc:
                 return f"on the recorded observation of step {step}: {describe_exception(exc)}"
             except KeyboardInterrupt:
