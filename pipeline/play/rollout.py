@@ -136,14 +136,8 @@ class PolicyChannel:
     def go(self, cpu: int | None) -> None:
         """The episode begins (on ``cpu``, where the host now runs)."""
 
-    def ask(self, obs: dict[str, Any]) -> None:
-        """Put ``obs`` to the policy; its action is :meth:`answer`'s. The host logs the step between the two, so a
-        policy process woken by the observation can start on it at once where it has a CPU to itself (pinned to
-        its host's CPU, as workers pins pairs, the two take turns either way)."""
-        raise NotImplementedError
-
-    def answer(self) -> int:
-        """The policy's legal action for the observation last asked about; raises :class:`PolicyFailed`."""
+    def act(self, obs: dict[str, Any]) -> int:
+        """The policy's legal action for ``obs``; raises :class:`PolicyFailed`."""
         raise NotImplementedError
 
     def finish(self, more: bool = False) -> Any:
@@ -173,11 +167,7 @@ class LocalPolicy(PolicyChannel):
             self.recorder.__enter__()
         self.step = -1
 
-    def ask(self, obs: dict[str, Any]) -> None:
-        self.asked = obs  # in this process the policy runs when the answer is wanted, after the step is logged
-
-    def answer(self) -> int:
-        obs = self.asked
+    def act(self, obs: dict[str, Any]) -> int:
         self.step += 1
         if self.recorder is not None:
             self.recorder.begin_step(self.step, obs)
@@ -256,13 +246,11 @@ class RemotePolicy(PolicyChannel):
     def go(self, cpu: int | None) -> None:
         self.channel.send_json({"op": "go", "cpu": cpu})
 
-    def ask(self, obs: dict[str, Any]) -> None:
+    def act(self, obs: dict[str, Any]) -> int:
         try:
             self.channel.send(b"O", marshal.dumps(obs))
         except OSError:
             raise PolicyFailed("crashed", "the policy process ended before the step") from None
-
-    def answer(self) -> int:
         kind, payload = self._receive(self.limit, "at this step")
         if kind == b"a" and len(payload) == ACTION.size:
             (action,) = ACTION.unpack(payload)
@@ -382,27 +370,18 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
                     end_reason = "timeout"
                     error = f"episode exceeded its time limit of {spec.episode_time_limit_s:g} s"
                     break
-                try:
-                    policy.ask(obs)
-                    unasked = None
-                except PolicyFailed as exc:
-                    unasked = exc
-                logging = time.perf_counter()
                 steps.observe(obs, getattr(env, "object_rows", None))
                 if live is not None:
                     live.observe(step)
-                logged = time.perf_counter()
                 try:
-                    if unasked is not None:
-                        raise unasked
-                    action = policy.answer()
+                    action = policy.act(obs)
                 except PolicyFailed as exc:
-                    policy_s += time.perf_counter() - now - (logged - logging)
+                    policy_s += time.perf_counter() - now
                     end_reason, error = exc.end_reason, exc.error
                     steps.outcome(step, None, 0.0, score, False, False, lives)
                     break
                 after_policy = time.perf_counter()
-                policy_s += after_policy - now - (logged - logging)  # the host's logging ran while the policy thought
+                policy_s += after_policy - now
                 obs, reward, terminated, truncated, info = env.step(action)
                 env_s += time.perf_counter() - after_policy
                 score += float(reward)
