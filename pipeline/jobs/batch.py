@@ -298,6 +298,7 @@ def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: in
     for i, p in enumerate(planned):
         if p.action == "skip":
             progress[i].state = "skipped"
+            log(f"skipped {p.run.label} (finished already, run {p.run_id})")
         else:
             queue.append(i)
     episode_workers = max(1, (os.cpu_count() or 1) // max(1, workers))
@@ -359,6 +360,7 @@ def run_ray(batch: Batch, store: Store, planned: list[PlannedRun], address: str 
         for i, item in enumerate(planned):
             if item.action == "skip":
                 progress[i].state = "skipped"
+                log(f"skipped {item.run.label} (finished already, run {item.run_id})")
                 continue
             previous = None
             if item.run_id:
