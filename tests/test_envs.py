@@ -174,6 +174,42 @@ def test_bad_protocol_values():
         make_env("pong", noop_max=-1)
 
 
+def _trajectory(env, seed: int, actions: list[int]) -> list:
+    """Everything an episode shows: observations, rewards, flags, lives, and the emulator's screen and RAM."""
+    ale = env.unwrapped.ale
+    obs, info = env.reset(seed=seed)
+    seen = [(obs, info.get("lives"), ale.getScreenRGB().tobytes(), ale.getRAM().tobytes())]
+    for action in actions:
+        obs, reward, terminated, truncated, info = env.step(action)
+        seen.append((obs, reward, terminated, truncated, info.get("lives"), ale.getScreenRGB().tobytes(),
+                     ale.getRAM().tobytes()))
+        if terminated or truncated:
+            break
+    return seen
+
+
+@pytest.mark.parametrize("game", sorted(GAMES))
+def test_a_reset_from_the_loaded_snapshot_is_a_rom_load_byte_for_byte(game):
+    """Without sticky actions a seeded reset restores the state the environment was built with instead of loading
+    the ROM again (games.envs.reload_from_snapshot): after another episode, at other seeds, every step is the
+    same as after a real ``loadROM``."""
+    import numpy as np
+
+    snapshot = make_env(game)
+    rom = make_env(game)
+    ale_env = rom.unwrapped
+    ale_env.load_game = type(ale_env).load_game.__get__(ale_env)  # the class's own: loadROM
+    rng = np.random.default_rng(7)
+    n = snapshot.action_space.n
+    _trajectory(snapshot, 99, [int(a) for a in rng.integers(0, n, 120)])  # leave the emulator mid-game
+    for seed in (3, 11):
+        actions = [int(a) for a in rng.integers(0, n, 400)]
+        assert _trajectory(snapshot, seed, actions) == _trajectory(rom, seed, actions), f"{game} seed {seed}"
+    sticky = make_env(game, sticky=0.25)
+    assert sticky.unwrapped.load_game.__func__ is type(sticky.unwrapped).load_game, \
+        "with sticky actions the seed must reseed ALE's generator: a real loadROM"
+
+
 @pytest.mark.parametrize("protocol", [dict(), dict(sticky=0.25, noop_max=30)])
 def test_a_reused_environment_plays_episodes_like_a_fresh_one(protocol):
     from pipeline.play.rollout import EpisodeSpec, run_episode

@@ -299,9 +299,10 @@ class PreparedEpisode:
 
 
 def prepare_episode(spec: EpisodeSpec, policy: PolicyChannel | None = None) -> PreparedEpisode:
-    """Everything before the first step: reset the environment (ALE's seeded reset reloads the ROM: ~0.1 s, as long
-    as a few hundred steps) and have the policy loaded. A staged host (``pipeline/boundary/zygote.py``) does this while the
-    previous episode still plays; it then waits for its go-ahead. ``policy`` defaults to a :class:`LocalPolicy`."""
+    """Everything before the first step: reset the environment (a few ms; with sticky actions ALE's seeded reset
+    reloads the ROM, ~0.15 s, as long as 150 steps) and have the policy loaded. A staged host
+    (``pipeline/boundary/zygote.py``) does this while the previous episode still plays; it then waits for its
+    go-ahead. ``policy`` defaults to a :class:`LocalPolicy`."""
     game = get_game(spec.game).observing(spec.observation)
     t0 = time.perf_counter()
     policy = policy if policy is not None else LocalPolicy(spec, game.n_actions)
