@@ -16,7 +16,7 @@ from pipeline.play.rollout import EpisodeSpec, run_episode
 from store import Store, StoreError
 from store.migrations import LATEST, MIGRATIONS
 from store.readers import episode_steps, run_episodes, step_nodes
-from store.writer import put_blob, write_episode
+from store.writer import EpisodeWriter, put_blob, write_episode
 from tests.conftest import EXAMPLES
 from tracing.capture import NODE_SCHEMA
 from tracing.steps import STEP_SCHEMA
@@ -145,6 +145,37 @@ def test_episode_roundtrip_and_slices(store):
     assert [(n["step"], n["call_index"]) for n in nodes] == [(10, 0), (10, 1), (10, 2), (11, 0), (11, 1), (11, 2)]
     assert nodes[2]["parents"] == [1] and nodes[1]["parents"] == [0]
     assert episodes[0]["length"] == 120 and episodes[0]["end_reason"] == "truncated"
+
+
+def test_episode_writer_groups_episodes_and_lets_other_processes_in_between(store):
+    """EpisodeWriter: episodes queued within ``every_s`` go in one write; the file is free for another process
+    between writes; a run's end lands with the last group; a re-played group replaces its rows."""
+    text = (EXAMPLES / "breakout.py").read_text()
+    outcomes = [run_episode(EpisodeSpec(f"ep{i}", "run", "breakout", text, "v1", seed=i, max_steps=30))
+                for i in range(3)]
+    with store.write() as con:
+        con.execute("INSERT INTO runs (run_id, created_at, kind, game, config, status) VALUES ('run', now(), 'eval', "
+                    "'breakout', '{}', 'running')")
+    writer = EpisodeWriter(store, every_s=3600)
+    writer.add(outcomes[0].episode, outcomes[0].steps, outcomes[0].nodes)
+    writer.add(outcomes[1].episode, outcomes[1].steps, outcomes[1].nodes)
+    assert store.query("SELECT count(*) FROM episodes") == [(0,)], "queued, not yet written"
+    other = subprocess.run([sys.executable, "-c", "import duckdb, sys; c = duckdb.connect(sys.argv[1]); "
+                            "print(c.execute('SELECT count(*) FROM episodes').fetchone()[0])", str(store.path)],
+                           capture_output=True, text=True, timeout=60)
+    assert other.stdout.strip() == "0", other.stderr
+    writer.every_s = 0.0
+    writer.add(outcomes[2].episode, outcomes[2].steps, outcomes[2].nodes)  # the last write is old: all three go
+    assert store.query("SELECT count(*), sum(length) FROM episodes") == [(3, 90)]
+    writer.every_s = 3600
+    writer.add(outcomes[2].episode, outcomes[2].steps, outcomes[2].nodes)
+    with pytest.raises(duckdb.ConstraintException):  # a fresh writer never deletes: the same episode twice fails
+        writer.flush()
+    with EpisodeWriter(store, replace=True, every_s=3600) as again:
+        again.add(outcomes[2].episode, outcomes[2].steps, outcomes[2].nodes)
+        again.flush(also=lambda con: con.execute("UPDATE runs SET status = 'finished' WHERE run_id = 'run'"))
+    assert store.query("SELECT count(*) FROM steps") == [(90,)], "replaced, not duplicated"
+    assert store.query("SELECT status FROM runs") == [("finished",)]
 
 
 def test_unrelated_duckdb_database_is_refused_and_untouched(tmp_path):

@@ -40,7 +40,7 @@ from pipeline.play.runinfo import episode_id
 from pipeline.play.verify import TAMPERED, checked_outcome, tampering
 from store import Store
 from store.readers import earlier_screen, policy_text, reusable_assessment, score_at_step
-from store.writer import write_episode
+from store.writer import EpisodeWriter
 
 
 @dataclass
@@ -168,13 +168,13 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
     if not specs:
         return found
     before_play()
-    for i, outcome in run_episodes(specs, workers=max(1, c.workers), progress=progress):
-        outcome = checked_outcome(specs[i], outcome)
-        with store.write() as con:
-            write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)
-        candidate, bar = owners[i]
-        found[candidate] = Screen(outcome.episode["episode_id"], c.screen_steps, outcome.episode["return"], bar,
-                                  tampered=outcome.episode["end_reason"] == TAMPERED)
+    with EpisodeWriter(store, replace=True) as writer:
+        for i, outcome in run_episodes(specs, workers=max(1, c.workers), progress=progress):
+            outcome = checked_outcome(specs[i], outcome)
+            writer.add(outcome.episode, outcome.steps, outcome.nodes)
+            candidate, bar = owners[i]
+            found[candidate] = Screen(outcome.episode["episode_id"], c.screen_steps, outcome.episode["return"], bar,
+                                      tampered=outcome.episode["end_reason"] == TAMPERED)
     return found
 
 
@@ -200,14 +200,15 @@ def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[i
     outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
     started = time.monotonic()
     trains = {indices[0] for _, indices in groups}
-    for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress):
-        outcome = checked_outcome(specs[i], outcome)
-        with store.write() as con:
-            write_episode(con, outcome.episode, outcome.steps, outcome.nodes, replace=True)
-        outcomes[i] = outcome
-        trains.discard(i)
-        if not trains and not times.train_s:
-            times.train_s = time.monotonic() - started
+    with EpisodeWriter(store, replace=True) as writer:
+        for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress):
+            outcome = checked_outcome(specs[i], outcome)
+            writer.add(outcome.episode, outcome.steps, outcome.nodes)
+            outcomes[i] = outcome
+            trains.discard(i)
+            if not trains and not times.train_s:
+                times.train_s = time.monotonic() - started
+                writer.flush()  # the training rollouts are stored before the evaluations go on
     times.eval_s = time.monotonic() - started
     found = {}
     for version, indices in groups:

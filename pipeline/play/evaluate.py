@@ -27,7 +27,7 @@ from pipeline.play.config import EvalConfig  # noqa: F401  (its home; callers im
 from pipeline.settings import check_settings
 from store import Store
 from store.locks import run_lock
-from store.writer import finish_run, insert_policy_version, insert_run, write_episode
+from store.writer import EpisodeWriter, finish_run, insert_policy_version, insert_run
 from tracing.policy_file import PolicyLoadError, read_policy_file
 
 
@@ -125,26 +125,22 @@ def evaluate(
             held.enter_context(run_lock(store.path, run_id))
         except OSError:  # a read-only or full directory: the store's own one-line error says so below
             pass
+        writer = EpisodeWriter(store)
         try:
             for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
                 outcome = checked_outcome(specs[i], outcome, hosted=config.workers > 0)
                 done += 1
-                with store.write() as con:
-                    write_episode(con, outcome.episode, outcome.steps, outcome.nodes)
-                    if done == len(specs):  # the last episode and the run's end in one transaction
-                        status = "finished"
-                        finish_run(con, run_id, status)
+                writer.add(outcome.episode, outcome.steps, outcome.nodes)
                 outcomes[i] = outcome
                 if on_episode is not None:
                     on_episode(i, outcome.episode["length"])
+            status = "finished"
         except KeyboardInterrupt:
             status, error = "interrupted", "interrupted by the user"
             raise
         except BaseException as exc:
             status, error = "failed", f"{type(exc).__name__}: {exc}"
             raise
-        finally:
-            if status != "finished":
-                with store.write() as con:
-                    finish_run(con, run_id, status, error)
+        finally:  # the episodes not yet written and the run's end, in one transaction
+            writer.flush(also=lambda con: finish_run(con, run_id, status, error))
     return EvalResult(run_id, game, info.version_id, [o for o in outcomes if o is not None])
