@@ -118,7 +118,6 @@ def evaluate(
             on_start(run_id)
 
     outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
-    done = 0
     status, error = "failed", None
     with ExitStack() as held:
         try:  # held while the run is "running", so `runs` and `doctor` tell a live eval from a killed one
@@ -129,7 +128,6 @@ def evaluate(
         try:
             for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
                 outcome = checked_outcome(specs[i], outcome, hosted=config.workers > 0)
-                done += 1
                 writer.add(outcome.episode, outcome.steps, outcome.nodes)
                 outcomes[i] = outcome
                 if on_episode is not None:
