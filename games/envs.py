@@ -385,7 +385,8 @@ def shared_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, one_lif
 
     Reuse is safe because every episode starts with ``reset(seed=...)``, which reloads the game (or restores it
     as loaded: :func:`reload_from_snapshot`) and reseeds every random source, so an episode plays the same on a
-    fresh or a reused environment (tested); the episodes that continue a game (``one_life="continue"``) follow the one they continue on the same environment.
+    fresh or a reused environment (tested); the episodes that continue a game (``one_life="continue"``) follow
+    the one they continue on the same environment.
     """
     spec = get_game(game).observing(observation)
     key = (spec.name, spec.observation, float(sticky), int(noop_max), one_life_setting(one_life))

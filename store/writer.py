@@ -18,7 +18,7 @@ from typing import Any, Callable
 import duckdb
 import pyarrow as pa
 
-from store.db import utcnow
+from store.db import Store, utcnow
 from store.lines import write_version_lines
 from store.runs import check_run_name
 
@@ -179,7 +179,7 @@ class EpisodeWriter:
     Use it as a context manager, or call :meth:`flush` before reading what was written.
     """
 
-    def __init__(self, store: Any, replace: bool = False, every_s: float = 1.0) -> None:
+    def __init__(self, store: Store, replace: bool = False, every_s: float = 1.0) -> None:
         self.store = store
         self.replace = replace
         """Re-played episodes (resume): their earlier rows are deleted first (:func:`write_episode`)."""

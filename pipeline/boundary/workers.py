@@ -18,8 +18,8 @@ An episode is a *paired* task: a host and a policy process joined by a socket of
 step, pinned to one CPU (a round trip across cores costs tens of microseconds here, on one a few: NOTES.md).
 The next episode's pair is forked and prepared while the current one plays (``staged``): the host resets its
 environment (a few ms without sticky actions; with them ALE reloads the ROM, ~0.15 s) and its policy process
-loads the policy, so neither the forks nor the reset sit between episodes. A missing kernel feature stops the run with a one-line error unless
-``CODEARCADE_ALLOW_WEAK_SANDBOX=1`` (then a warning is printed on every run).
+loads the policy, so neither the forks nor the reset sit between episodes. A missing kernel feature stops the
+run with a one-line error unless ``CODEARCADE_ALLOW_WEAK_SANDBOX=1`` (then a warning is printed on every run).
 
 Only plain data crosses: the task goes out as one JSON frame, the answer comes back as JSON frames and Arrow
 IPC streams (``pipeline/boundary/wire.py``), every value checked here; nothing is unpickled. Whatever a worker does,
@@ -349,7 +349,8 @@ def run_tasks(
     busy: dict[int, _Running] = {}  # by fd
     staged: deque[_Running] = deque()
     """The next worker, forked, confined and prepared (policy loaded, environment reset) while the others play:
-    the forks (~5-20 ms) and the seeded reset (up to ~0.15 s) would otherwise come between one episode and the next."""
+    the forks (~5-20 ms) and the seeded reset (up to ~0.15 s) would otherwise come between one episode and the
+    next."""
 
     def limits_of(item: Any) -> dict[str, Any]:
         limits = task.limits(item)
