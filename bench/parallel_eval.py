@@ -13,6 +13,10 @@ OCAtari's bare env class in 1 and in 2 processes (no policy, no store), and prin
 ceiling this machine allowed during the run. All four configurations are measured in rotating order.
 
     .venv/bin/python bench/parallel_eval.py [--game breakout] [--episodes 8] [--repeats 7]
+
+Long episodes, as evaluations of a policy that plays well have them (every episode reaches the 4,000-step cap):
+
+    .venv/bin/python bench/parallel_eval.py --policy tests/policies/breakout_competent.py --episodes 4 --repeats 3
 """
 
 from __future__ import annotations
@@ -37,19 +41,21 @@ TARGET = 1.7
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--game", default="breakout", help="example policy to play (default: breakout)")
+    parser.add_argument("--game", default="breakout", help="game whose scaffold is played (default: breakout; --policy plays its own game)")
+    parser.add_argument("--policy", type=Path, help="policy file to play (default: the game's scaffold, "
+                        "games/scaffolds/GAME.py, whose episodes end after ~570 steps)")
     parser.add_argument("--episodes", type=int, default=8, help="episodes per measurement (default: 8)")
     parser.add_argument("--repeats", type=int, default=7, help="measurements per configuration (best taken)")
     args = parser.parse_args()
     store = Store(Path(tempfile.mkdtemp(prefix="codearcade-bench-")) / "parallel.duckdb")
-    policy = ROOT / "games" / "scaffolds" / f"{args.game}.py"
+    policy = args.policy or ROOT / "games" / "scaffolds" / f"{args.game}.py"
     evaluate(policy, EvalConfig(episodes=1, max_steps=50), store)  # warm caches and the store
 
     # The paper's protocol is deterministic: the bare replays play the actions of these very episodes.
     result = evaluate(policy, EvalConfig(episodes=args.episodes, workers=1, seed=0), store)
     seeds, actions = played_actions(store, result.run_id)
     steps = sum(len(a) for a in actions)
-    bare = BareOCAtari(args.game)  # built once, before the forks, as codearcade's workers inherit theirs
+    bare = BareOCAtari(result.game)  # built once, before the forks, as codearcade's workers inherit theirs
 
     def bare_play(processes: int) -> float:
         """Seconds to replay every episode in ``processes`` forked processes, episodes dealt round-robin."""
@@ -79,7 +85,8 @@ def main() -> int:
     # Noise from other tenants of the cores only ever slows a measurement down: each configuration's best
     # repeat is its own speed; the median of the per-repeat ratios is printed to show how steady the run was.
     best = {key: max(r) for key, r in rates.items()}
-    print(f"{args.game}: {args.episodes} episodes ({steps} steps) per measurement, best of {args.repeats} repeats")
+    print(f"{result.game} ({policy.name}): {args.episodes} episodes ({steps} steps) per measurement, "
+          f"best of {args.repeats} repeats")
     print(f"{'':<14} {'1 process':>12} {'2 processes':>12} {'ratio':>7}   (median of paired ratios)")
     ratios = {}
     for kind, label in (("eval", "codearcade"), ("bare", "bare OCAtari")):
