@@ -213,3 +213,17 @@ def test_a_new_optimize_option_is_written_in_one_place(tmp_path):
     assert out["check"] == "--patience must be at least 1, got 0"
     assert out["default"] == 3
     assert out["reproduce"] == "codearcade optimize --game pong --seed 1 --patience 7"
+
+
+def test_the_reply_length_default_is_written_once():
+    """--max-tokens's default is the client's (a client made without one asks for what a run asks for), and the
+    help of --max-tokens and --token-budget names the offline model's own defaults as model_defaults applies them."""
+    import inspect
+
+    from pipeline.llm.client import LiteLLMClient
+
+    assert inspect.signature(LiteLLMClient).parameters["max_tokens"].default == OptimizeConfig().max_tokens
+    offline = model_defaults({})
+    declared = declarations(OptimizeConfig)
+    assert f"{offline['max_tokens']} with the offline model" in declared["max_tokens"][1].help
+    assert f"{offline['token_budget']} with the offline model" in declared["token_budget"][1].help
