@@ -16,6 +16,7 @@ from typing import Any
 
 from games import GAMES
 from games.base import OBSERVATION_VERSION, UNRECORDED_OBSERVATION, one_life_setting
+from games.generic import GENERIC_EVAL_MAX_STEPS
 from pipeline.llm.client import MAX_TOKENS, OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET
 from pipeline.optimizer.strategies import STRATEGIES, make_strategy
 from pipeline.settings import Switch, before_recorded, budgets, check_settings, limit, resumable, setting
@@ -26,6 +27,12 @@ paper's method) or the rollout reward only (the ablation)."""
 
 PROTOCOLS = ("deterministic", "standard")
 """What a score can be measured under: the paper's protocol, or the standard one (``games.base``)."""
+
+_TASK_EVAL_CAPS = "; ".join([str(GENERIC_EVAL_MAX_STEPS)] + [
+    f"{name} {game.task.eval_max_steps}" for name, game in GAMES.items()
+    if game.task.eval_max_steps != GENERIC_EVAL_MAX_STEPS])
+"""The evaluation caps the games' tasks set (``games/<game>.py``: most the paper's, the generic games' too; the
+games whose authors set another, by name), as ``--eval-max-steps``'s help names them."""
 
 FLAG_GROUPS = {
     "search": "how versions are chosen for improvement (pipeline/optimizer/strategies.py)",
@@ -93,7 +100,7 @@ class OptimizeConfig:
         None, "training rollout horizon (default: the task's)", minimum=1, run_key="always")
     """Training rollout horizon; None: the task's (400 Pong, 300 Breakout, 15 Space Invaders)."""
     eval_max_steps: int | None = setting(
-        None, "evaluation cap (default: the task's, 4000)", minimum=1, run_key="always")
+        None, f"evaluation cap (default: the game's, {_TASK_EVAL_CAPS})", minimum=1, run_key="always")
     """Evaluation cap; None: the task's (``games/<game>.py``)."""
     workers: int = setting(
         2, "episode worker processes (default: cores)", minimum=1, resumable=True, run_key="never", reproduce=False)
