@@ -520,7 +520,7 @@ MIGRATIONS.append(
     )
 )
 
-# How each reply was read (issue 25, item 5): the parser (pipeline/reply.py) recovers near-misses and says so.
+# How each reply was read (issue 25, item 5): the parser (pipeline/optimizer/reply.py) recovers near-misses and says so.
 # Rows written before keep NULL, except replies the parser of the day refused (parse_error set), which were
 # 'unusable' then whatever a re-read would give now: the column records what the run did with the reply.
 MIGRATIONS.append(

@@ -67,7 +67,8 @@ def imports(module: str, path: Path, known: dict[str, Path]) -> list[tuple[str, 
             if node.level:
                 anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
                 base = ".".join(anchor + ([base] if base else []))
-            # `from pipeline import wire` imports the module pipeline.wire; `from store import Store` the package
+            # `from pipeline.boundary import wire` imports the module pipeline.boundary.wire; `from store import Store`
+            # the package
             targets = [f"{base}.{alias.name}" if f"{base}.{alias.name}" in known else base for alias in node.names]
         else:
             continue

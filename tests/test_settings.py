@@ -31,8 +31,12 @@ REWORDED = {
     ("optimize", "--call-time-limit"): ("per policy call (default: 1)", "time limit of one policy call (default: 1)"),
     ("eval", "--call-time-limit"): ("time limit of one policy call (default: 1.0)",
                                     "time limit of one policy call (default: 1)"),
+    ("optimize", "--eval-max-steps"): ("evaluation cap (default: the task's, 4000)",
+                                       "evaluation cap (default: the game's, 4000; asterix 20000; enduro 5000; "
+                                       "freeway 2500)"),
 }
-"""Help texts that changed on purpose: one flag of two verbs now has one declaration (``EpisodeLimits``)."""
+"""Help texts that changed on purpose: one flag of two verbs now has one declaration (``EpisodeLimits``);
+--eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them)."""
 
 
 def _verb(name: str) -> argparse.ArgumentParser:
@@ -213,3 +217,17 @@ def test_a_new_optimize_option_is_written_in_one_place(tmp_path):
     assert out["check"] == "--patience must be at least 1, got 0"
     assert out["default"] == 3
     assert out["reproduce"] == "codearcade optimize --game pong --seed 1 --patience 7"
+
+
+def test_the_reply_length_default_is_written_once():
+    """--max-tokens's default is the client's (a client made without one asks for what a run asks for), and the
+    help of --max-tokens and --token-budget names the offline model's own defaults as model_defaults applies them."""
+    import inspect
+
+    from pipeline.llm.client import LiteLLMClient
+
+    assert inspect.signature(LiteLLMClient).parameters["max_tokens"].default == OptimizeConfig().max_tokens
+    offline = model_defaults({})
+    declared = declarations(OptimizeConfig)
+    assert f"{offline['max_tokens']} with the offline model" in declared["max_tokens"][1].help
+    assert f"{offline['token_budget']} with the offline model" in declared["token_budget"][1].help

@@ -1,1 +1,2 @@
-"""Viewers of the store: Rerun recordings of episodes and runs, reports and plots (being built)."""
+"""Viewers of the store: Rerun recordings of episodes and runs, reports and plots, comparisons, the OTLP export, and
+stored text made safe to show (``safe_text``)."""

@@ -43,7 +43,7 @@ from tracing.sandbox import CallTimer, PolicyTimeout
 ACTION = struct.Struct("<q")
 """The payload of an ``a`` frame: the action, as a signed 64-bit int (the host checks its range)."""
 HEADER = struct.Struct(">cI")
-"""A frame's kind byte and payload length (as ``pipeline/wire.py``'s frames)."""
+"""A frame's kind byte and payload length (as ``pipeline/boundary/wire.py``'s frames)."""
 RECEIVE_CHUNK = 64 * 1024
 """Bytes asked of the socket at a time: a buffer this size comes from the allocator's arena, where one of a
 megabyte would be mapped and unmapped again on every step."""

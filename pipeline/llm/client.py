@@ -35,6 +35,10 @@ DEFAULT_BACKOFF_S = 2.0
 """First wait before retrying a transient error; it doubles each retry (``CODEARCADE_LLM_BACKOFF_S`` changes it,
 which the tests use to keep retries quick)."""
 
+MAX_TOKENS = 4_096
+"""The longest reply asked of a model unless told otherwise: ``--max-tokens``'s default (the offline model's is
+:data:`OFFLINE_MAX_TOKENS`) and the client's."""
+
 ERROR_MESSAGE_LIMIT = 1_000
 """Characters of a provider's error message kept in ``llm_calls.error_message`` and shown to the user."""
 
@@ -154,7 +158,7 @@ class LiteLLMClient:
         api_base: str | None = None,
         api_key: str | None = None,
         temperature: float | None = 0.0,
-        max_tokens: int = 4096,
+        max_tokens: int = MAX_TOKENS,
         seed: int | None = None,
         timeout_s: float = 300.0,
         retries: int = 3,
@@ -313,25 +317,27 @@ OFFLINE_MODEL_LABEL = "offline:smollm2-135m-instruct"
 
 OFFLINE_TOKEN_BUDGET = 3_000
 OFFLINE_MAX_TOKENS = 512
-"""The offline model reads ~100-200 prompt tokens/s on two cores: small prompts keep an iteration near a minute."""
+"""The offline model reads ~100-200 prompt tokens/s on two cores: small prompts keep an iteration near a minute.
+These are the offline model's defaults of ``--token-budget`` and ``--max-tokens``, applied to a run's settings by
+one function (``pipeline/optimizer/config.py: model_defaults``) for the command line and batches alike."""
 
 
-def open_client(model: str | None, api_base: str | None, temperature: float, max_tokens: int | None, seed: int,
+def open_client(model: str | None, api_base: str | None, temperature: float, max_tokens: int, seed: int,
                 stream: bool = False):
     """(client, local server or None, prompt-token cap or None) for ``--model``, or the offline default.
 
     With no model, SmolLM2 is started on 127.0.0.1 (``pipeline/llm/local.py``) and a one-time notice says it
-    only exercises the pipeline; the caller stops the server when done.
+    only exercises the pipeline; the caller stops the server when done. ``max_tokens`` is the run's own: the
+    model's default reply length was applied to its settings before (``model_defaults``), not here.
     """
     backoff_s = float(os.environ.get("CODEARCADE_LLM_BACKOFF_S", DEFAULT_BACKOFF_S))
     if model:
-        return LiteLLMClient(model, api_base=api_base, temperature=temperature, max_tokens=max_tokens or 4096,
+        return LiteLLMClient(model, api_base=api_base, temperature=temperature, max_tokens=max_tokens,
                              seed=seed, backoff_s=backoff_s, stream=stream), None, None
     from pipeline.llm.local import LocalModelServer, show_offline_model_notice
 
     show_offline_model_notice()
     server = LocalModelServer().start()
-    max_tokens = max_tokens or OFFLINE_MAX_TOKENS
     # llama.cpp compiles the schema into a grammar, so SmolLM2's reply is always this JSON; its strings are held
     # short enough that the JSON closes within max_tokens
     room = OFFLINE_CHARS_PER_TOKEN * max_tokens

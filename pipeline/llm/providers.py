@@ -148,11 +148,11 @@ REPLY_SCHEMA: dict[str, Any] = {
     "required": ["reasoning", "suggestion"],
     "additionalProperties": False,
 }
-"""The reply the prompt asks for (``pipeline/prompt.py``'s system text), as a JSON schema: the reasoning, then
+"""The reply the prompt asks for (``pipeline/optimizer/prompt.py``'s system text), as a JSON schema: the reasoning, then
 ``{method name: complete new source}`` for the methods changed. It names no method, so one
 schema serves every policy; validation checks the names. An object with open keys cannot be OpenAI's ``strict``
 kind (that needs every key listed), so it is sent with ``strict: false``: the provider is guided by it and the
-parser (``pipeline/reply.py``) checks the result."""
+parser (``pipeline/optimizer/reply.py``) checks the result."""
 
 @dataclass(frozen=True)
 class ReplyLimits:
@@ -197,7 +197,7 @@ def reply_format(litellm, model: str, provider: str, supported: frozenset[str] |
     parameters and either says the model takes a schema (``supports_response_schema``: hosted models it knows) or
     the model runs on the user's own server (Ollama, vLLM, llama.cpp, LM Studio: they compile a schema into a
     grammar; litellm cannot know their models). Should such a server still refuse it, the client stops sending
-    it (``pipeline/llm.py``)."""
+    it (``pipeline/llm/client.py``)."""
     if "response_format" not in supported:
         return None
     own_server = provider in NO_KEY_PROVIDERS or (api_base is not None and provider in LOCAL_SERVER_PROVIDERS)

@@ -16,6 +16,8 @@ from typing import Any
 
 from games import GAMES
 from games.base import OBSERVATION_VERSION, UNRECORDED_OBSERVATION, one_life_setting
+from games.generic import GENERIC_EVAL_MAX_STEPS
+from pipeline.llm.client import MAX_TOKENS, OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET
 from pipeline.optimizer.strategies import STRATEGIES, make_strategy
 from pipeline.settings import Switch, before_recorded, budgets, check_settings, limit, resumable, setting
 
@@ -25,6 +27,12 @@ paper's method) or the rollout reward only (the ablation)."""
 
 PROTOCOLS = ("deterministic", "standard")
 """What a score can be measured under: the paper's protocol, or the standard one (``games.base``)."""
+
+_TASK_EVAL_CAPS = "; ".join([str(GENERIC_EVAL_MAX_STEPS)] + [
+    f"{name} {game.task.eval_max_steps}" for name, game in GAMES.items()
+    if game.task.eval_max_steps != GENERIC_EVAL_MAX_STEPS])
+"""The evaluation caps the games' tasks set (``games/<game>.py``: most the paper's, the generic games' too; the
+games whose authors set another, by name), as ``--eval-max-steps``'s help names them."""
 
 FLAG_GROUPS = {
     "search": "how versions are chosen for improvement (pipeline/optimizer/strategies.py)",
@@ -62,8 +70,8 @@ class OptimizeConfig:
     memory: int = setting(5, "earlier iterations in the prompt (default: 5)", minimum=0, run_key="always")
     """Earlier iterations shown in the prompt (paper: 5)."""
     token_budget: int = setting(
-        16_000, "hard limit on prompt tokens (default: 16000; 3000 with the offline model)", minimum=500,
-        resumable=True, run_key="always")
+        16_000, f"hard limit on prompt tokens (default: 16000; {OFFLINE_TOKEN_BUDGET} with the offline model)",
+        minimum=500, resumable=True, run_key="always")
     """Hard limit on the prompt's tokens; the trace slice is chosen to fit."""
     eval_episodes: int = setting(
         1, "evaluation episodes per iteration, in parallel (default: 1)", minimum=1, run_key="always")
@@ -85,14 +93,14 @@ class OptimizeConfig:
         0.0, "LLM temperature (default: 0; not sent to models that take none)", run_key="always")
     """Sampling temperature of the LLM."""
     max_tokens: int = setting(
-        4096, "longest reply (default: 4096; 512 with the offline model)", minimum=1, resumable=True,
-        run_key="always")
+        MAX_TOKENS, f"longest reply (default: {MAX_TOKENS}; {OFFLINE_MAX_TOKENS} with the offline model)", minimum=1,
+        resumable=True, run_key="always")
     """Longest reply asked for (the offline model's: :func:`model_defaults`)."""
     rollout_steps: int | None = setting(
         None, "training rollout horizon (default: the task's)", minimum=1, run_key="always")
     """Training rollout horizon; None: the task's (400 Pong, 300 Breakout, 15 Space Invaders)."""
     eval_max_steps: int | None = setting(
-        None, "evaluation cap (default: the task's, 4000)", minimum=1, run_key="always")
+        None, f"evaluation cap (default: the game's, {_TASK_EVAL_CAPS})", minimum=1, run_key="always")
     """Evaluation cap; None: the task's (``games/<game>.py``)."""
     workers: int = setting(
         2, "episode worker processes (default: cores)", minimum=1, resumable=True, run_key="never", reproduce=False)
@@ -224,8 +232,6 @@ def model_defaults(settings: dict[str, Any]) -> dict[str, Any]:
     settings give the same run."""
     if settings.get("model"):
         return dict(settings)
-    from pipeline.llm.client import OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET
-
     return {"max_tokens": OFFLINE_MAX_TOKENS, "token_budget": OFFLINE_TOKEN_BUDGET, **settings}
 
 

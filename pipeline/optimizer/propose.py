@@ -86,7 +86,7 @@ class _Pending:
     suggestion: dict[str, str] | None = None
     parse_error: str | None = None
     reading: str | None = None
-    """How the reply was read: structured, parsed, repaired or unusable (``pipeline/reply.py``)."""
+    """How the reply was read: structured, parsed, repaired or unusable (``pipeline/optimizer/reply.py``)."""
     repairs: tuple[str, ...] = ()
 
     def parse(self) -> None:

@@ -3,7 +3,7 @@
 The prompt asks for JSON only: ``{"reasoning": ..., "suggestion": {"select_action": "def select_action(...)..."}}``
 (an empty suggestion means "no change"; a method given as ``null`` is unchanged), or, failing that, each changed
 method as a complete ``def`` in a ```python fenced block (or a ``class Policy`` whose methods are taken). Where
-the provider can be held to a schema (``pipeline/providers.py``), the reply is that JSON object.
+the provider can be held to a schema (``pipeline/llm/providers.py``), the reply is that JSON object.
 
 Models get the format slightly wrong, and such a reply still counts when what it means is unambiguous. The
 near-misses recovered here are the ones models were seen to send (7 of the 20 replies of the authors' logged Pong
