@@ -24,6 +24,7 @@ runs a person's SQL.
 
 from __future__ import annotations
 
+import difflib
 import os
 import re
 import unicodedata
@@ -158,14 +159,39 @@ def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None)
             held = (f"{total} runs, last to last~{total - 1} (-1 to -{total})" if total > 1
                     else "one run, last (-1)")
             raise ValueError(f"no run {ref}{where}: it holds {held}; `codearcade runs` lists them")
-        raise ValueError(f"no run {ref or repr(text)}{where}: no run id starts with it and no run is named so; "
-                         "`codearcade runs` lists the runs")
+        names = [r[0] for r in con.execute("SELECT DISTINCT name FROM runs WHERE name IS NOT NULL").fetchall()]
+        near = difflib.get_close_matches(ref, ["last", *names], n=1, cutoff=0.6) if ref else []
+        hint = f"; did you mean {near[0]}?" if near else "; `codearcade runs` lists the runs"
+        raise ValueError(f"no run {ref or repr(text)}{where}: no run id starts with it and no run is named so{hint}")
     short = short_run_ids(con)
     listed = ", ".join(_candidate(row, short) for row in rows[:6]) + (f" and {len(rows) - 6} more" if len(rows) > 6
                                                                        else "")
     if rows[0][1] == "name":
         raise ValueError(f"{len(rows)} runs are named {ref!r}{where}: {listed}; give one by its id")
     raise ValueError(f"run {ref} is ambiguous{where}: {listed}; give more of the id")
+
+
+MIN_HINTED_PREFIX = 4
+"""Shortest text taken for the start of a run id in :func:`references_by_value` (fewer is any run of the year)."""
+
+
+def references_by_value(con: duckdb.DuckDBPyConnection, texts: Iterable[str]) -> list[tuple[str, str, list[str]]]:
+    """For each of ``texts`` (the string values a person's query compares as they are) that is a run reference but
+    not a whole run id (``last``, ``last~N``, a label, the start of an id of at least :data:`MIN_HINTED_PREFIX`
+    characters): (the text, how it names runs: ``recency``, ``name`` or ``prefix``, the run ids it names).
+    ``-N`` is left out: as a value it is far more often a number than a run. What ``codearcade sql`` says when a
+    query with ``WHERE run_id = '01JDX3K2'`` finds nothing: the store keeps ids whole, ``run('01JDX3K2')`` names
+    the run."""
+    found = []
+    for text in dict.fromkeys(texts):
+        ref = text.strip()
+        if not ref or re.fullmatch(r"-[0-9]+", ref):
+            continue
+        rows = con.execute(RUN_MATCHES_SQL + " ORDER BY run_id", {"ref": ref}).fetchall()
+        if not rows or rows[0][1] == "id" or (rows[0][1] == "prefix" and len(ref) < MIN_HINTED_PREFIX):
+            continue
+        found.append((text, rows[0][1], [r[0] for r in rows]))
+    return found
 
 
 def check_run_name(name: str) -> str:

@@ -11,6 +11,8 @@ configuration locked (no ATTACH, COPY, EXPORT, INSTALL, no reading or writing of
 have parameters (:func:`bind_params`: ``?``, ``$1`` or ``$name``) and use the macros ``run(ref)`` and
 ``run_matches(ref)`` (``store/runs.py``, which also resolves run references for every verb). :func:`schema_listing`
 lists the tables, views and macros with one line each (the tables' and views' DuckDB comments, set by migration 10).
+:func:`run_references_by_value` finds the values of a query that name a run without being its id (the short id
+``codearcade runs`` prints, compared with ``run_id`` as it is), for the note a query that found nothing gets.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from typing import Any, Sequence
 import duckdb
 
 from store.db import Store, StoreError
-from store.runs import SQL_MACROS, create_sql_macros, resolve_run_id  # noqa: F401 (resolve_run_id: for callers)
+from store.runs import SQL_MACROS, create_sql_macros, references_by_value, resolve_run_id  # noqa: F401 (resolve_run_id: for callers)
 
 TABLES = ("runs", "blobs", "policy_versions", "episodes", "steps", "nodes", "policy_lines", "iterations", "candidates",
           "feedback", "llm_calls", "published_scores", "schema_migrations")
@@ -159,6 +161,40 @@ def run_user_query(store: Store, sql: str, params: Sequence[str] | None = None) 
         raise QueryError(one_line(exc)) from None
     finally:
         con.close()
+
+
+def values_compared_as_written(sql: str, params: Sequence[str] | None = None) -> list[str]:
+    """The string values of a person's query that stand as themselves: its quoted literals and the ``--param``
+    values of its ``?`` placeholders, leaving out those given to ``run(...)`` or ``run_matches(...)``, which are
+    resolved as run references already (:func:`store.runs.references_by_value` looks at the rest)."""
+    tokens = duckdb.tokenize(sql)
+    texts = [sql[pos:(tokens[k + 1][0] if k + 1 < len(tokens) else len(sql))].rstrip()
+             for k, (pos, _) in enumerate(tokens)]
+    values, placeholders = [], 0
+    for k, ((_, kind), text) in enumerate(zip(tokens, texts)):
+        resolved = k >= 2 and texts[k - 1] == "(" and texts[k - 2].lower() in ("run", "run_matches")
+        if kind == duckdb.token_type.string_const and text[:1] == "'" and text[-1:] == "'" and len(text) > 1:
+            value = text[1:-1].replace("''", "'")
+        elif text == "?":
+            value = params[placeholders] if params and placeholders < len(params) else None
+            placeholders += 1
+        else:
+            continue
+        if value is not None and not resolved:
+            values.append(value)
+    return values
+
+
+def run_references_by_value(store: Store, sql: str, params: Sequence[str] | None = None
+                            ) -> list[tuple[str, str, list[str]]]:
+    """The values of ``sql`` (:func:`values_compared_as_written`) that name runs but are no run id, with how and
+    which (:func:`store.runs.references_by_value`): why a query that compares ``run_id`` with the short id
+    ``codearcade runs`` printed found no rows."""
+    values = values_compared_as_written(sql, params)
+    if not values:
+        return []
+    with store.read() as con:
+        return references_by_value(con, values)
 
 
 def schema_listing(store: Store) -> list[tuple[str, str, str]]:

@@ -187,6 +187,10 @@ def test_view_explains_episodes_reused_from_an_earlier_iteration(day):
     assert len(note) == 1 and "reused" in note[0] and "evaluation cache" in note[0]
     assert "assessed in iteration 1" in note[0] and f"showing {morning}.1.train.0" in note[0]
     assert "`codearcade view morning --iteration 1`" in note[0] and saved.stat().st_size > 0
+    whole = _ok(_cli("view", "morning", "--save", day["root"] / "run.rrd", cwd=day["sub"], env=day["env"]))
+    said = whole.stdout.splitlines()[0]
+    assert re.fullmatch(rf"run ({SHORT}): 3 iteration\(s\)", said) and morning.startswith(said.split()[1][:-1])
+    assert morning not in said, "the run by its shortest unique prefix, as every verb prints it"
     beyond = _cli("view", "morning", "--iteration", "7", cwd=day["sub"], env=day["env"])
     assert beyond.returncode == 2 and "has iterations 0..2, no iteration 7" in beyond.stderr
     assert len(beyond.stderr.strip().splitlines()) == 2  # the store's line, then the error
@@ -209,7 +213,10 @@ def test_ctrl_c_prints_the_resume_command_and_it_continues_the_run(tmp_path):
     with ScriptedModel([{"sleep": 120, "content": COMPETENT_REPLY}, COMPETENT_REPLY], tmp_path / "model") as model:
         proc = subprocess.Popen([EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base",
                                  model.api_base, "--iterations", "1", *FAST, "--store", str(store.path)],
-                                cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                # as from a terminal: a suite started in the background (`cmd &` in a script)
+                                # passes SIGINT on ignored, and Python then never raises KeyboardInterrupt
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         lines = []
         for line in proc.stdout:
             lines.append(line.rstrip("\n"))
@@ -289,6 +296,22 @@ def test_eval_labels_its_run_says_its_id_and_speed(tmp_path):
     assert run_id not in wrong.stderr
 
 
+def test_eval_names_the_store_once(tmp_path):
+    """From a subdirectory the start line says which store and why, so no separate line on stderr says it again;
+    with --json (no start line) the stderr line is the one that says it."""
+    env = _env(tmp_path)
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    _ok(_cli("eval", COMPETENT, "--max-steps", "50", "--store", "codearcade.duckdb", cwd=tmp_path, env=env))
+    done = _ok(_cli("eval", COMPETENT, "--max-steps", "50", cwd=sub, env=env))
+    assert done.stdout.splitlines()[0].endswith(f"; store {tmp_path / 'codearcade.duckdb'} (the nearest in a "
+                                                "parent directory)")
+    assert "store" not in done.stderr, done.stderr
+    quiet = _ok(_cli("eval", COMPETENT, "--max-steps", "50", "--json", cwd=sub, env=env))
+    assert json.loads(quiet.stdout)["steps"] == 50
+    assert quiet.stderr == f"codearcade: store {tmp_path / 'codearcade.duckdb'} (the nearest in a parent directory)\n"
+
+
 # -------------------------------------------------------------------------------------------------- parsing
 
 
@@ -355,6 +378,13 @@ def test_runs_newest_first_with_filters_and_without_compares_own(four, capsys):
                                                                                                  "01JDX3K2AC")]
     assert listed[1]["strategy"] == "beam" and listed[1]["batch"] == "ablation"
 
+    from tests.test_runs import _add
+
+    _add(four, "01JDX3M000000000000000000E", 20, "replay", "pong", config={"strategy": "greedy"})
+    _, out, _ = _in_process(capsys, "runs", "-n", "1", "--store", four.path)
+    assert _table(out)[0][:5] == ["01JDX3M0", "2026-12-02", "14:20", "replay", "pong"]
+    assert _table(out)[0][5] == "scaffold", "a replay of a run from the game's scaffold starts from it too"
+
 
 def test_sql_params_and_schema(four, capsys):
     from store.views import TABLES, VIEWS
@@ -380,6 +410,37 @@ def test_sql_params_and_schema(four, capsys):
     assert code == 2 and "give a query" in err and "--schema" in err
     code, out, _ = _in_process(capsys, "sql", "--help")
     assert code == 0 and "--schema" in out and "run('last')" in out
+
+
+def test_a_query_that_finds_nothing_by_a_short_id_says_how_to_name_the_run(four, capsys):
+    """The short id `runs` prints, a label or `last` compared with run_id as a plain value finds nothing (ids are
+    stored whole): one note on stderr says to write run(...); the rows asked for are still printed, and a value
+    that is a whole id, or already inside run(...), or a query with rows, gets no note."""
+    def sql(*argv):
+        code, out, err = _in_process(capsys, "sql", *argv, "--store", four.path, "--json")
+        assert code == 0, err
+        return json.loads(out), err.strip().splitlines()
+
+    rows, said = sql("SELECT kind FROM runs WHERE run_id = '01JDX3K2AC'")
+    assert rows == [] and said == ["codearcade: note: no rows; '01JDX3K2AC' is the start of run 01JDX3K2AC's id, "
+                                   "and the store keeps ids whole (26 characters): write run('01JDX3K2AC') where a "
+                                   "run id goes, e.g. WHERE run_id = run('01JDX3K2AC')"]
+    assert sql("SELECT kind FROM runs WHERE run_id = run('01JDX3K2AC')") == ([{"kind": "optimize"}], [])
+    rows, said = sql("SELECT iteration FROM iterations WHERE run_id = ? AND iteration > ?", "--param", "baseline",
+                     "--param", "1")
+    assert rows == [] and len(said) == 1 and "'baseline' is run 01JDX3K2AB's label" in said[0]
+    rows, said = sql("SELECT kind FROM runs WHERE run_id = 'last'")
+    assert len(said) == 1 and "'last' names run 01JDX3K9 only through run(): write run('last')" in said[0]
+    rows, said = sql("SELECT kind FROM runs WHERE run_id = '01JDX3K2A'")
+    assert len(said) == 1 and "'01JDX3K2A' is the start of 2 run ids" in said[0] and "run_matches(" in said[0]
+    # nothing to say: a whole id, a value inside run(...) (no rows for another reason), too short a prefix, a
+    # number (-1 is not taken for a run), and a query that found rows
+    for argv in (["SELECT 1 FROM runs WHERE run_id = '01JDX3K2AB7Q000000000000A1' AND kind = 'eval'"],
+                 ["SELECT 1 FROM iterations WHERE run_id = run('01JDX3K2AC') AND iteration = 7"],
+                 ["SELECT 1 FROM iterations WHERE run_id = run(?) AND iteration = 7", "--param", "baseline"],
+                 ["SELECT 1 FROM runs WHERE run_id = '01J'"], ["SELECT 1 FROM runs WHERE seed = ?", "--param", "-1"],
+                 ["SELECT kind FROM runs WHERE kind = 'eval' OR run_id = '01JDX3K2AC'"]):
+        assert sql(*argv)[1] == [], argv
 
 
 def test_the_per_user_store_is_said_and_the_rule_is_in_the_help(tmp_path):

@@ -77,6 +77,15 @@ def test_a_registered_id_is_the_env_codearcade_plays():
     ours.close()
 
 
+def test_the_module_prefixed_id_needs_no_import():
+    """Gymnasium's own convention for environments of a package it does not know: ``gym.make("MODULE:ID")``
+    imports the module that registers them, so RL code needs no ``import games.envs`` of its own."""
+    code = ("import gymnasium as gym; env = gym.make('games.envs:codearcade/Pong-v0'); obs, _ = env.reset(seed=0); "
+            "print(env.spec.entry_point, obs in env.observation_space, type(obs).__name__, env.spec.id)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT).stdout
+    assert out.split() == ["games.envs:make_registered", "True", "dict", "codearcade/Pong-v0"]
+
+
 def test_import_games_stays_free_of_gymnasium():
     """Registration happens in games.envs; policy workers and the CLI import games alone."""
     code = "import sys, games; print(sorted({'gymnasium', 'games.envs', 'games.spaces'} & set(sys.modules)))"

@@ -126,7 +126,7 @@ def test_blame_text_and_errors(run, capsys):
     err = capsys.readouterr().err
     assert err.startswith("codearcade: error: run ") and "no policy version 'ffff'" in err and "Traceback" not in err
     assert main(["blame", run_id, "--iteration", "9", "--store", str(store.path)]) == 2
-    assert "no iteration 9" in capsys.readouterr().err
+    assert "no iteration 9 (iterations 0..3)" in capsys.readouterr().err, "the range is the run's, rejects too"
 
 
 def test_blame_is_computed_for_a_store_written_before_migration_7(run, tmp_path):

@@ -208,6 +208,31 @@ def test_fatal_error_mid_run_fails_then_resume_finishes_each_iteration_once(stor
     assert _runs(store)[0][1] == "finished"
 
 
+def test_an_error_a_wrong_address_gives_names_the_url_without_its_credentials(scripted):
+    """A server that answers 404 (a path it does not serve, a model it does not have) or is gone since the check
+    before iteration 0 is named by the URL the request went to, as the provider's own text does not; a key in the
+    URL is left out."""
+    from pipeline.llm.client import LiteLLMClient, LLMError
+
+    model = scripted([{"status": 404}])
+    _, base = model.route("openai")
+    with_key = base.replace("http://", "http://user:sk-secret@") + "?key=sk-query"
+    for api_base in (base, with_key):
+        client = LiteLLMClient(model.model, api_base=api_base, backoff_s=0.01)
+        with pytest.raises(LLMError) as raised:
+            client.complete([{"role": "user", "content": "hello"}])
+        assert raised.value.error_type == "NotFoundError" and raised.value.fatal
+        assert raised.value.message.endswith(f"(asked at {base})"), raised.value.message
+        assert "sk-" not in str(raised.value)
+    model.stop()
+    client = LiteLLMClient(model.model, api_base=base, retries=1, backoff_s=0.01, timeout_s=5)
+    with pytest.raises(LLMError) as raised:
+        client.complete([{"role": "user", "content": "hello"}])
+    # litellm calls a refused connection an InternalServerError, saying "Connection error." and nothing more
+    assert raised.value.error_type == "InternalServerError" and raised.value.attempts == 2
+    assert raised.value.message == f"Connection error. (asked at {base})"
+
+
 def test_a_run_whose_every_update_failed_is_not_a_success(store, scripted):
     model = scripted([{"status": 503}])
     done = _optimize(store, model, "openai", "gpt-4o", "--iterations", "1", "--eval-max-steps", "200", *FAST,

@@ -84,7 +84,9 @@ def test_an_ambiguous_prefix_lists_the_candidates_by_their_shortest_unique_prefi
 @pytest.mark.parametrize("text, says", [
     ("last~3", "it holds 3 runs, last to last~2 (-1 to -3)"),
     ("-4", "it holds 3 runs"), ("-0", "it holds 3 runs"),
-    ("NOPE", "no run id starts with it and no run is named so"),
+    ("NOPE", "no run id starts with it and no run is named so; `codearcade runs` lists the runs"),
+    ("lsat", "no run id starts with it and no run is named so; did you mean last?"),  # a typo: the nearest
+    ("basline", "did you mean baseline?"),
     ("", "no run ''"),
 ])
 def test_a_reference_that_names_nothing_says_what_there_is(four, text, says):

@@ -80,8 +80,9 @@ def select(store: Store, run_id: str, iteration: int | None = None, episode: str
 def view(store: Store, run_id: str, iteration: int | None = None, episode: str | None = None,
          save: str | None = None, connect: str | None = None, spawn: bool = False, serve_web: bool = False,
          frames_every: int = 4, out: Callable[[str], None] = print, warn: Callable[[str], None] = print,
-         wait: Callable[[], None] | None = None) -> Selection:
-    """Rebuild the selected recording and send it to one sink (see the module docstring).
+         wait: Callable[[], None] | None = None, run_label: str | None = None) -> Selection:
+    """Rebuild the selected recording and send it to one sink (see the module docstring). ``run_label``: the run
+    as the lines given to ``out`` name it (the command line's shortest unique prefix; the id by default).
 
     With ``serve_web`` it serves until interrupted (or until ``wait`` returns, for tests), then stops the server.
     """
@@ -109,7 +110,7 @@ def view(store: Store, run_id: str, iteration: int | None = None, episode: str |
             with store.read() as con:
                 data = read_run(con, run_id)
             log_run(data, rec)
-            out(f"run {run_id}: {len(data['iterations'])} iteration(s)")
+            out(f"run {run_label or run_id}: {len(data['iterations'])} iteration(s)")
         else:
             from viewers.rerun_replay import log_stored_episode, read_episode
 

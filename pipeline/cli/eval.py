@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     if given["workers"] is None:
         given["workers"] = min(args.episodes, os.cpu_count() or 1)
     config = EvalConfig(**given, rerun=rerun_target(args.rerun))
-    store = open_store(args)
+    store = open_store(args, announce=args.json)  # without --json the start line names the store and why
     bar, update, finished = _progress_bar(args.episodes, f"eval {os.path.basename(args.policy)}")
     label = f" '{args.name}'" if args.name else ""
 

@@ -38,7 +38,8 @@ def add_parser(verbs) -> None:
 def _policy(row: dict) -> str | None:
     if row["policy"]:
         return os.path.basename(row["policy"])
-    return "scaffold" if row["kind"] == "optimize" else None  # no file: the game's scaffold (games/scaffolds/)
+    # no file: the game's scaffold (games/scaffolds/), which a replay starts from as its original did
+    return "scaffold" if row["kind"] in ("optimize", "replay") else None
 
 
 COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has a value in is left out

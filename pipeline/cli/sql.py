@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, show, show_json
+from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, short_ids, show, show_json
 
 
 def add_parser(verbs) -> None:
@@ -61,7 +61,35 @@ def run(args: argparse.Namespace) -> int:
     store = open_store(args)
     result = run_user_query(store, query, args.param)  # read-only for real; every row fetched, the file let go
     _print(args, result, args.max_width)
+    if not result.rows and result.columns:
+        for line in _why_no_rows(store, query, args.param):
+            show(line, file=sys.stderr)
     return EXIT_OK
+
+
+def _why_no_rows(store, query: str, params: list[str]) -> list[str]:
+    """Notes for a query that found nothing while comparing a value that names a run but is no run id (the short
+    id `codearcade runs` prints, ``last``, a label): the store keeps ids whole, and ``run(...)`` resolves them."""
+    from store.views import run_references_by_value
+
+    notes = []
+    short = short_ids(store)
+    for text, how, run_ids in run_references_by_value(store, query, params):
+        quoted = "'" + text.replace("'", "''") + "'"
+        if len(run_ids) > 1:
+            what = (f"the start of {len(run_ids)} run ids" if how == "prefix" else f"the label of {len(run_ids)} "
+                    "runs")
+            notes.append(f"codearcade: note: no rows; {quoted} is {what}, not a run id (ids are stored whole): "
+                         f"FROM run_matches({quoted}) lists them, and run(...) with one of their short ids names "
+                         f"one, e.g. WHERE run_id = run('{short[run_ids[0]]}')")
+            continue
+        run = short.get(run_ids[0], run_ids[0])
+        what = {"prefix": f"the start of run {run}'s id, and the store keeps ids whole ({len(run_ids[0])} "
+                          "characters)",
+                "name": f"run {run}'s label, not its id", "recency": f"names run {run} only through run()"}[how]
+        notes.append(f"codearcade: note: no rows; {quoted} {'' if how == 'recency' else 'is '}{what}: write "
+                     f"run({quoted}) where a run id goes, e.g. WHERE run_id = run({quoted})")
+    return notes
 
 
 def _print(args: argparse.Namespace, result, max_width: int) -> None:

@@ -41,19 +41,20 @@ def run(args: argparse.Namespace) -> int:
     from viewers.rerun_sinks import ViewerError
     from viewers.rerun_view import view
 
+    store = open_store(args)
+    run_id = resolve_run(store, args.run_id)
+
     def out(line: str) -> None:
         if not args.quiet:
             show(line, flush=True)
 
-    store = open_store(args)
-    run_id = resolve_run(store, args.run_id)
     episode = args.episode
     if args.iteration is not None and not (episode and "." in episode):
         episode = _reused(store, run_id, args.run_id, args.iteration, episode) or episode
     try:
         view(store, run_id, iteration=args.iteration, episode=episode, save=args.save,
              connect=args.connect, spawn=args.spawn, serve_web=args.serve_web, frames_every=args.frames_every,
-             out=out, warn=lambda line: show(line, file=sys.stderr))
+             out=out, warn=lambda line: show(line, file=sys.stderr), run_label=short_id(store, run_id))
     except ViewerError as exc:
         raise CliError(str(exc)) from None
     return EXIT_OK

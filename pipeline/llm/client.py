@@ -128,6 +128,15 @@ def describe_error(exc: BaseException, limit: int = ERROR_MESSAGE_LIMIT) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
+def _without_credentials(url: str) -> str:
+    """``url`` without a ``user:password@`` part and a query (where a key given in the URL would be): shown and
+    stored without them."""
+    import urllib.parse
+
+    parts = urllib.parse.urlsplit(url)
+    return urllib.parse.urlunsplit(parts._replace(netloc=parts.netloc.rsplit("@", 1)[-1], query="", fragment=""))
+
+
 def _usage_number(usage: Any, *path: str) -> int | None:
     value = usage
     for name in path:
@@ -239,7 +248,10 @@ class LiteLLMClient:
                     continue
                 fatal = name in FATAL
                 if fatal or retried >= self.retries:
-                    raise LLMError(name, describe_error(exc), attempt, fatal, time.monotonic() - start) from None
+                    message = describe_error(exc)
+                    if self.api_base:  # "Connection error.", "Error code: 404": the provider's text has no URL
+                        message += f" (asked at {_without_credentials(self.api_base)})"
+                    raise LLMError(name, message, attempt, fatal, time.monotonic() - start) from None
                 retried += 1
                 time.sleep(self.backoff_s * 2 ** (retried - 1))
                 continue

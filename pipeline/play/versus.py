@@ -77,7 +77,7 @@ def load_version(store: Store, label: str, ref: str, workers: int) -> Version:
         return Version(label, ref, text, info.game, info.version_id, path=ref)
     run_text, _, version_text = ref.rpartition(":")
     if not run_text:
-        raise PolicyLoadError(f"{ref!r}: not a policy file; give a file or RUN:VERSION (e.g. 01JD:best)")
+        raise PolicyLoadError(f"{ref!r}: not a policy file; give a file or RUN:VERSION (e.g. last:best)")
     with store.read() as con:
         run_id = resolve_run_id(con, run_text, store)
         version = resolve_version(con, run_id, version_text)
