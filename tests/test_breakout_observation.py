@@ -76,6 +76,36 @@ def test_observation_version_1_still_gives_8_pixel_bricks(store, write_policy):
     assert "lives" not in seen["obs"]
 
 
+YELLOW_ROW_BYTES = [3 + 6 * k for k in range(6)]
+"""Where Breakout keeps the yellow row's bricks: RAM bytes 0-35 are six bitmaps of six bytes, one byte of each row
+per group (byte 3 + 6k: yellow; measured by clearing each byte: it takes a run of bricks out of one row)."""
+
+
+def test_a_cleared_row_is_absent_as_in_the_authors_observation_and_empty_under_version_1():
+    """The game's own brick memory with the yellow row cleared: the authors' observation (rebuilt by their rules
+    from the same OCAtari objects) has no ``YB`` key, and neither has ours; version 1 shows ``YB: []``."""
+    from games.envs import make_env
+    from tests.authors_conventions import as_decided, authors_observation, differences
+
+    seen = {}
+    for observation in (2, 1):
+        env = make_env("breakout", observation=observation)
+        try:
+            env.reset(seed=0)
+            for address in YELLOW_ROW_BYTES:
+                env.unwrapped.ale.setRAM(address, 0)
+            obs, reward, *_ = env.step(0)
+            if observation == 2:
+                theirs = authors_observation("breakout", env._objects, env.unwrapped.ale.lives(), reward)
+                assert "YB" not in theirs and differences("breakout", obs, as_decided("breakout", theirs)) == []
+        finally:
+            env.close()
+        seen[observation] = obs
+    assert [k for k in seen[2] if k in ROWS] == ["RB", "OB", "GB", "AB", "BB"]
+    assert seen[2].get("YB", []) == [] and "YB" not in seen[2], "a cleared row is absent, not an empty list"
+    assert seen[1]["YB"] == [] and all(len(seen[1][row]) == 18 for row in ROWS if row != "YB")
+
+
 @pytest.mark.parametrize("observation", [2, 1])
 def test_the_papers_best_breakout_policy_scores_353_with_runs_of_bricks_as_with_bricks(store, observation):
     """Its gaps are measured between a row's neighbouring entries: the same gaps in both conventions."""
@@ -175,17 +205,20 @@ def test_the_authors_saved_breakout_policies_score_what_their_run_logged(tmp_pat
     for line in csv[1:]:
         step, mean, _ = line.split(",")
         logged[int(step)] = float(mean)
-    policies: dict[str, tuple[int, float]] = {}  # policy text -> (first checkpoint, logged score)
+    policy_at = {}  # checkpoint -> its policy's text
     for step in sorted(logged):
         sources = _checkpoint_sources(_git("show", f"{AUTHORS_RUN_COMMIT}:trace_ckpt/{AUTHORS_RUN}/{step}.pkl"))
-        policies.setdefault(_policy_file(sources), (step, logged[step]))
-    assert len(policies) == 7 and len(logged) == 30
+        policy_at[step] = _policy_file(sources)
+    first_at = {text: step for step, text in sorted(policy_at.items(), reverse=True)}
+    assert len(first_at) == 7 and len(logged) == 30
+    assert [logged[step] for step in sorted(first_at.values())] == [0, 329, 34, 238, 45, 34, 27]
 
     store = Store(tmp_path / "authors.duckdb")
     scored = {}
-    for text, (step, _) in policies.items():
+    for text, step in first_at.items():
         path = tmp_path / f"checkpoint_{step}.py"
         path.write_text(text)
         result = evaluate(path, EvalConfig(max_steps=4000, workers=1), store)
-        scored[step] = result.summary()["episodes"][0]["return"]
-    assert scored == {step: score for step, score in policies.values()}
+        scored[text] = result.summary()["episodes"][0]["return"]
+    assert {step: scored[text] for step, text in policy_at.items()} == logged, \
+        "every checkpoint (the 7 distinct policies and their 23 repeats) scores what the run logged for it"

@@ -95,7 +95,8 @@ def test_pong_keys_and_absent_ball():
 
 def test_breakout_rows_hold_one_entry_per_run_of_bricks_as_the_authors_have_them():
     """OCAtari's Block is a run of adjacent bricks (w = 8 * n): one entry each, the rows in order after Player
-    and Ball, a cleared row absent, then lives (the authors' observation, observation version 2)."""
+    and Ball, then lives (the authors' observation, observation version 2; a cleared row is absent:
+    tests/test_breakout_observation.py)."""
     seen, _ = _play("breakout", [2] * 10 + [3] * 10, 2000)  # sweeping: a brick goes from the middle of a row
     first = seen[0]
     assert list(first) == ["Player", "Ball", *BREAKOUT_ROWS.values(), "lives"]

@@ -50,15 +50,18 @@ def test_the_table_follows_the_game_modules(store):
 
 def test_benchmarks_sql_over_a_real_short_batch(tmp_path, store, scripted):
     """examples/benchmarks.toml cut to two games and one iteration, the scripted model standing in; then
-    examples/benchmarks.sql prints our best beside theirs, for every game."""
+    examples/benchmarks.sql prints our best beside theirs, for every game, and the protocol each was played
+    under (Breakout as in the file: the authors' one-life protocol)."""
     model = scripted([COMPETENT_REPLY])
     data = tomllib.loads((ROOT / "examples" / "benchmarks.toml").read_text())
     assert data["name"] == "eight-games"
     defaults = data["defaults"]
+    one_life = {run["game"]: run.get("one_life", False) for run in data["run"]}
+    assert one_life["breakout"] == "continue" and one_life["pong"] is False
     path = tmp_path / "benchmarks.toml"
     path.write_text(f'name = "{data["name"]}"\n[defaults]\niterations = 1\nmemory = {defaults["memory"]}\n'
                     f'eval_episodes = 1\neval_max_steps = 300\nmodel = "{model.model}"\napi_base = "{model.api_base}"\n'
-                    '[[run]]\ngame = "pong"\n[[run]]\ngame = "breakout"\n')
+                    '[[run]]\ngame = "pong"\n[[run]]\ngame = "breakout"\none_life = "continue"\n')
     done = subprocess.run([EXE, "batch", str(path), "--store", str(store.path), "--workers", "2"], cwd=ROOT,
                           capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr + done.stdout
@@ -69,11 +72,12 @@ def test_benchmarks_sql_over_a_real_short_batch(tmp_path, store, scripted):
     table = {row["game"]: row for row in json.loads(printed.stdout)}
     assert set(table) == set(GAMES), "every game's published figures, ours where the batch ran it"
     best = dict(store.query("SELECT r.game, max(i.score) FROM runs r JOIN iterations i USING (run_id) GROUP BY 1"))
-    for game, horizon, theirs in (("pong", 400, 12.0), ("breakout", 300, 123.0)):
+    for game, horizon, theirs, protocol in (("pong", 400, 12.0, "whole games"),
+                                            ("breakout", 300, 123.0, "lives of one game")):
         row = table[game]
         assert row["runs"] == 1 and row["iterations"] == 1 and row["horizon"] == horizon
         assert row["best"] == best[game] and row["mean_best"] == round(best[game], 1)
-        assert row["protocol"] == "whole games" and row["theirs"] == theirs
+        assert row["protocol"] == protocol and row["theirs"] == theirs
     starter = store.query("SELECT i.score FROM runs r JOIN iterations i USING (run_id) "
                           "WHERE r.game = 'pong' AND i.iteration = 0")[0][0]
     assert table["pong"]["best"] > starter, "the best is the accepted competent policy's, not the starter's"

@@ -113,14 +113,16 @@ def test_a_cut_off_code_string_is_never_closed_into_code():
 
 
 def test_the_loop_records_how_each_reply_was_read(store, scripted):
-    """Through the real loop (OpenAI wire protocol, litellm): a nested answer is accepted, a fenced JSON with a
-    trailing comma read, prose refused with its reason; llm_calls says how each was read."""
+    """Through the real loop (OpenAI wire protocol, litellm): a nested answer is accepted; a fenced JSON with a
+    trailing comma, a JSON in prose and one with a brace too many are read (the same code again); prose is refused
+    with its reason; llm_calls says how each was read."""
     nested = json.dumps({"json_payload": json.loads(COMPETENT_REPLY)})
     fenced = "```json\n" + COMPETENT_REPLY[:-1] + ",}\n```"
-    model = scripted([nested, fenced, "I would rather not change anything."])
+    in_prose = f"Here is my answer:\n{COMPETENT_REPLY}\nThe paddle should win now."
+    model = scripted([nested, fenced, in_prose, COMPETENT_REPLY + "}", "I would rather not change anything."])
     client = LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
     assert client.structured, "the OpenAI protocol takes a response_format"
-    config = OptimizeConfig(game="pong", iterations=3, eval_max_steps=300, rollout_steps=60, workers=2)
+    config = OptimizeConfig(game="pong", iterations=5, eval_max_steps=300, rollout_steps=60, workers=2)
     result = optimize(config, store, client)
     assert result.status == "finished", result.error
     rows = store.query("SELECT c.iteration, c.reply_reading, c.reply_repairs, c.parse_error, i.update_status "
@@ -129,8 +131,10 @@ def test_the_loop_records_how_each_reply_was_read(store, scripted):
     assert rows[0][3] is None and rows[0][4] == "accepted"
     assert rows[1][1] == "repaired" and rows[1][2] == ["a code fence around the JSON", "a trailing comma"]
     assert rows[1][4] == "unchanged", "the same code again"
-    assert rows[2][1] == "unusable" and rows[2][2] == [] and rows[2][4] == "rejected"
-    assert "neither a JSON suggestion" in rows[2][3]
+    assert rows[2][1:3] == ("repaired", ["prose around the JSON"]) and rows[2][4] == "unchanged"
+    assert rows[3][1:3] == ("repaired", ["a closing brace too many"]) and rows[3][4] == "unchanged"
+    assert rows[4][1] == "unusable" and rows[4][2] == [] and rows[4][4] == "rejected"
+    assert "neither a JSON suggestion" in rows[4][3] and "\n" not in rows[4][3], "its one-line reason"
     body = model.raw_requests()[0]["body"]
     assert body["response_format"]["json_schema"]["schema"]["required"] == ["reasoning", "suggestion"]
     params = json.loads(store.query("SELECT request_params FROM llm_calls LIMIT 1")[0][0])
