@@ -41,7 +41,8 @@ TARGET = 1.7
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--game", default="breakout", help="game whose scaffold is played (default: breakout; --policy plays its own game)")
+    parser.add_argument("--game", default="breakout",
+                        help="game whose scaffold is played (default: breakout; --policy plays its own game)")
     parser.add_argument("--policy", type=Path, help="policy file to play (default: the game's scaffold, "
                         "games/scaffolds/GAME.py, whose episodes end after ~570 steps)")
     parser.add_argument("--episodes", type=int, default=8, help="episodes per measurement (default: 8)")
