@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import tracing.trace_api  # noqa: F401  (answers policy code's `opto.trace` imports; loaded before a worker is confined)
+from tracing import trace_api  # answers policy code's `opto.trace` imports (loaded before a worker is confined)
 from tracing.bundle import Module
 from tracing.capture import failing_policy_line
 from tracing.sandbox import PolicyCodeError, check_source, safe_builtins, time_limit
@@ -176,7 +176,7 @@ def load_policy(text: str, name: str = "policy.py", time_limit_s: float = LOAD_T
     filename = f"<policy {name}>"
     code = compile(text, filename, "exec")
     linecache.cache[filename] = (len(text), None, text.splitlines(True), filename)
-    namespace: dict[str, Any] = {"__name__": "policy", "__builtins__": safe_builtins()}
+    namespace: dict[str, Any] = {"__name__": "policy", "__builtins__": safe_builtins(trace_api)}
     try:
         with time_limit(time_limit_s, "loading the policy"):
             exec(code, namespace)

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import ast
 import builtins
-import importlib
 import signal
 import types
 from contextlib import contextmanager
@@ -226,15 +225,14 @@ def _safe_module(module: types.ModuleType) -> SafeModule:
     return view
 
 
-def _trace_view(module: str) -> SafeModule:
+def _trace_view(module: str, api: types.ModuleType) -> SafeModule:
     """The read-only view policy code gets for ``opto`` or a module of :data:`TRACE_API`: exactly the names that
-    module offers, taken from ``tracing/trace_api.py``, and the views of the modules below it."""
+    module offers, taken from ``api`` (``tracing/trace_api.py``), and the views of the modules below it."""
     view = _safe_modules.get(module)  # policy code can import no real module named opto*, so no clash
     if view is None:
-        api = importlib.import_module("tracing.trace_api")
         stub = types.ModuleType(module, api.__doc__)
         for child in _trace_children(module):
-            setattr(stub, child, _trace_view(f"{module}.{child}"))
+            setattr(stub, child, _trace_view(f"{module}.{child}", api))
         for name in TRACE_API.get(module, ()):
             setattr(stub, name, getattr(api, name))  # a name wins over a module of the same name, as in Trace
         view = _safe_modules[module] = SafeModule(stub)
@@ -242,7 +240,7 @@ def _trace_view(module: str) -> SafeModule:
     return view
 
 
-def _guarded_import(name, globals=None, locals=None, fromlist=(), level=0):
+def _guarded_import(name, globals=None, locals=None, fromlist=(), level=0, *, trace_api=None):
     if level:
         raise ImportError("relative imports are not allowed in policy code")
     try:
@@ -250,8 +248,10 @@ def _guarded_import(name, globals=None, locals=None, fromlist=(), level=0):
     except PolicyCodeError as exc:
         raise ImportError(str(exc).split(": ", 1)[1]) from None
     if name.split(".")[0] == TRACE_PACKAGE:
+        if trace_api is None:
+            raise ImportError(f"Trace's policy API ({name}) is not offered here")
         # `from opto.trace import x` takes x from opto.trace's view; `import opto.trace [as t]` binds opto.
-        return _trace_view(name if fromlist else TRACE_PACKAGE)
+        return _trace_view(name if fromlist else TRACE_PACKAGE, trace_api)
     module = builtins.__import__(name, None, None, fromlist or (), 0)
     if fromlist:
         for item in fromlist:
@@ -289,15 +289,21 @@ def _safe_delattr(obj, name):
     return delattr(obj, name)
 
 
-def safe_builtins() -> dict[str, Any]:
-    """The ``__builtins__`` mapping for policy code (a fresh dict: policies cannot alter each other's)."""
+def safe_builtins(trace_api: types.ModuleType | None = None) -> dict[str, Any]:
+    """The ``__builtins__`` mapping for policy code (a fresh dict: policies cannot alter each other's).
+
+    ``trace_api``: the module whose names answer imports of Trace's policy API (``tracing/trace_api.py``, which
+    the policy loader passes: it is built on ``tracing/bundle.py``, which uses this module's checks, so this
+    module does not import it); None: such imports raise ImportError."""
     allowed = {
         name: value
         for name, value in vars(builtins).items()
         if not name.startswith("_") and name not in FORBIDDEN_NAMES
     }
     allowed.update(
-        __import__=_guarded_import,
+        # a closure, not functools.partial: a partial shows its arguments as plain attributes
+        __import__=lambda name, globals=None, locals=None, fromlist=(), level=0: _guarded_import(
+            name, globals, locals, fromlist, level, trace_api=trace_api),
         __build_class__=builtins.__build_class__,
         __name__="builtins",
         getattr=_safe_getattr,
