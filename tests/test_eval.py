@@ -10,6 +10,7 @@ import time
 
 import pytest
 
+from games import GAMES, get_game
 from pipeline.cli import main
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeSpec
@@ -227,6 +228,47 @@ def test_a_staged_worker_plays_its_episode_as_a_fresh_one_and_its_wait_is_not_it
     assert len(set(second.steps.column("action").to_pylist())) > 1, "the policy's draws vary"
     # the staged worker waited for the whole first episode; its own duration is its reset and 40 steps
     assert second.episode["duration_s"] < first.episode["duration_s"] / 2, (second.episode, first.episode)
+
+
+RANDOM_POLICY = """
+import random
+import tracing as trace
+
+GAME = "{game}"
+
+@trace.model
+class Policy(trace.Module):
+    def __call__(self, obs):
+        return self.act(obs)
+
+    @trace.bundle(trainable=True)
+    def act(self, obs):
+        return (random.randrange({n}) + len(obs)) % {n}
+"""
+
+
+@pytest.mark.parametrize("game", sorted(GAMES))
+def test_a_game_host_plays_each_next_episode_as_a_fresh_host_would(game):
+    """A game host is handed the next episode instead of exiting (``pipeline/boundary/zygote.py``: the
+    environment is reset with the episode's seed, the policy process is new): every episode it plays, steps and
+    observations, is the one a fresh host plays alone. Breakout also under the standard stochastic protocol, whose
+    reset reloads the ROM and draws its no-ops."""
+    from pipeline.boundary import workers
+
+    text = RANDOM_POLICY.format(game=game, n=get_game(game).n_actions)
+    protocols = [dict(sticky=0.0, noop_max=0)] + ([dict(sticky=0.25, noop_max=30)] if game == "breakout" else [])
+    for protocol in protocols:
+        specs = [EpisodeSpec(f"e{i}", "r", game, text, "v", index=i, seed=11 + i, max_steps=120, **protocol)
+                 for i in range(3)]
+        forks_before = workers.zygote("game").next_id
+        together = dict(run_episodes(specs, workers=1))
+        assert workers.zygote("game").next_id - forks_before < len(specs), "hosts were handed the next episode"
+        for i, spec in enumerate(specs):
+            [(_, alone)] = list(run_episodes([spec], workers=1))
+            assert together[i].end_reason == alone.end_reason, (game, protocol, i, together[i].episode)
+            assert together[i].steps.equals(alone.steps), (game, protocol, i)
+            assert together[i].episode["return"] == alone.episode["return"]
+        assert len(set(together[2].steps.column("action").to_pylist())) > 1, "the policy's draws vary"
 
 
 def test_a_policy_that_does_not_load_in_its_process_ends_with_its_reason(store, write_policy, capsys):

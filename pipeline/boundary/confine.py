@@ -29,6 +29,7 @@ every run (see :func:`weak_sandbox_allowed`).
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import platform
 import resource
@@ -451,10 +452,14 @@ EMULATOR_PACKAGES = ("ale_py", "ocatari", "gymnasium")
 environment API. The game runs in the host process (``pipeline/play``); the policy sees observations only."""
 
 
-def read_paths() -> tuple[list[str], list[str]]:
+@functools.cache
+def read_paths() -> tuple[tuple[str, ...], tuple[str, ...]]:
     """(paths readable below, directories that may only be listed): Python, site-packages, system
     libraries, the project's packages (not the project directory's other files, such as a store), minus
-    :data:`EMULATOR_PACKAGES` wherever they are installed (:func:`carve`)."""
+    :data:`EMULATOR_PACKAGES` wherever they are installed (:func:`carve`).
+
+    Computed once per process: the policy zygote computes it for its filesystem view and every worker it forks
+    inherits the answer (walking site-packages again cost each worker several ms)."""
     import site
 
     read = {sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix,
@@ -470,7 +475,7 @@ def read_paths() -> tuple[list[str], list[str]]:
     for sub in project.iterdir():
         if (sub / "__init__.py").exists():
             read.add(str(sub))
-    return carve(sorted(read), emulator_paths()), sorted(list_only)
+    return tuple(carve(sorted(read), emulator_paths())), tuple(sorted(list_only))
 
 
 def emulator_paths() -> list[str]:
@@ -576,7 +581,7 @@ def confine(limits: Limits, strict: bool = True) -> list[str]:
         if abi < 1:
             raise OSError("Landlock is not enabled in this kernel (needs Linux >= 5.13 with lsm=landlock)")
         read, list_only = read_paths()
-        _landlock(read, list(limits.write_paths), list_only, abi)
+        _landlock(list(read), list(limits.write_paths), list(list_only), abi)
 
     def seccomp() -> None:
         if platform.machine() != "x86_64":

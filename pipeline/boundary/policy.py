@@ -35,6 +35,7 @@ import struct
 from typing import Any, Callable
 
 import numpy as np
+import numpy.random  # noqa: F401  (numpy loads it on first use: imported here, the zygote holds it for every worker)
 
 from tracing.capture import NodeRecorder, failing_policy_line
 from tracing.policy_file import PolicyLoadError, load_policy

@@ -25,6 +25,9 @@ from typing import Any
 HEADER = struct.Struct(">cI")
 GO = struct.Struct(">ch")
 """A staged worker's go-ahead: ``G`` and the CPU to run on (-1: anywhere)."""
+NEXT = b"N"
+"""Sent to a game host after its answer, the next task's second socket attached (SCM_RIGHTS), then the task as a
+JSON frame (``pipeline/boundary/zygote.py``: ``Role.serves_many``). EOF instead: the host exits."""
 MAX_JSON = 4 * 2**20
 MAX_ARROW = 512 * 2**20
 MAX_TEXT = 20_000

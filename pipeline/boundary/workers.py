@@ -12,7 +12,9 @@ clean state (nothing a policy changes, module attributes included, survives into
   (``pipeline/boundary/confine.py``: no exec, no fork, no threads, no network, no writes outside a scratch
   directory, no reads of the emulator or outside Python's and the project's files, nothing that names another
   process, rlimits), in pid, IPC and network namespaces of their own;
-- the **game** zygote's workers are game hosts: the environment, the score, the step log, live recordings.
+- the **game** zygote's workers are game hosts: the environment, the score, the step log, live recordings. A
+  host whose episode is done is handed the next one of the same call (with a new policy process) rather than
+  forked again: no policy code runs there, and the fork and teardown cost more than the episode's reset.
 
 An episode is a *paired* task: a host and a policy process joined by a socket of their own, one round trip per
 step, pinned to one CPU (a round trip across cores costs tens of microseconds here, on one a few: NOTES.md).
@@ -193,6 +195,21 @@ class Zygote:
         return task_id
 
     @staticmethod
+    def hand(conn: socket.socket, item: dict[str, Any], extra: socket.socket) -> bool:
+        """Give a worker whose task is done (a game host: ``serves_many``) the next one, ``item`` with ``extra``, a
+        socket for it (a host's, to its new policy process; the caller closes its copy). False if the worker is
+        gone."""
+        conn.settimeout(60)
+        try:
+            socket.send_fds(conn, [wire.NEXT], [extra.fileno()])
+            conn.sendall(wire.json_frame(item))
+            return True
+        except OSError:
+            return False
+        finally:
+            conn.setblocking(False)
+
+    @staticmethod
     def go(conn: socket.socket, cpu: int | None = None) -> None:
         """Let a staged worker run its task, on ``cpu`` if given (a worker that died meanwhile is seen at its EOF)."""
         try:
@@ -359,13 +376,25 @@ def run_tasks(
             limits["cpu_s"] = int(math.ceil(limit + KILL_GRACE_S + 10))
         return limits
 
+    idle: list[tuple[int, socket.socket]] = []
+    """Game hosts whose episode is done, ready to play another (task id, socket): a host runs no policy code, so
+    it need not be fresh, and handing it the next episode saves the fork and the teardown of a process that holds
+    the whole emulator stack (``zygote.Role.serves_many``)."""
+
     def start(staged_: bool) -> _Running:
         i, item = pending.popleft()
         if policies is None:
             task_id, conn = zyg.start(task.name, task.encode(item), limits_of(item), staged=staged_)
             return _Running(i, item, task_id, conn, time.monotonic())
         host_end, policy_end = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        policy_id = policies.attach("policy", policy_end, limits_of(item))
+        policy_id = policies.attach("policy", policy_end, limits_of(item))  # always a fresh policy process
+        while idle:
+            task_id, conn = idle.pop()
+            if zyg.hand(conn, task.encode(item), host_end):
+                host_end.close()
+                return _Running(i, item, task_id, conn, time.monotonic(), policy_id=policy_id)
+            conn.close()  # that host is gone: its exit is of no interest now
+            zyg.forget(task_id)
         # a host always waits for its go-ahead, which names its CPU
         task_id, conn = zyg.start(task.name, task.encode(item), {}, staged=True, extra=host_end)
         return _Running(i, item, task_id, conn, time.monotonic(), policy_id=policy_id)
@@ -402,6 +431,20 @@ def run_tasks(
     def settle(run: _Running) -> None:
         zyg.forget(run.task_id)
         if policies is not None and run.policy_id is not None:
+            policies.forget(run.policy_id)
+
+    def done(run: _Running) -> None:
+        """A task that answered in full: its host (paired) waits for the next episode, its policy process goes."""
+        # a host that reported an error has exited (or is about to); one that sent anything past its answer is
+        # not trusted with another
+        if policies is None or run.result is None or run.reader.held:
+            end(run)
+            settle(run)
+            return
+        del busy[run.conn.fileno()]
+        idle.append((run.task_id, run.conn))
+        if run.policy_id is not None:
+            policies.kill(run.policy_id)
             policies.forget(run.policy_id)
 
     def died(run: _Running) -> R:
@@ -477,8 +520,7 @@ def run_tasks(
                                                        False)))
                     continue
                 if result is not None:
-                    end(run)
-                    settle(run)
+                    done(run)
                     finished.append((run.index, result))
             now = time.monotonic()
             for run in list(busy.values()):
@@ -504,6 +546,9 @@ def run_tasks(
             if policies is not None and run.policy_id is not None:
                 policies.kill(run.policy_id)
             settle(run)
+        for task_id, conn in idle:
+            conn.close()  # EOF instead of the next task: the host exits
+            zyg.forget(task_id)
 
 
 def run_json_task(name: str, item: dict[str, Any], local: Callable[[dict[str, Any]], dict[str, str | None]],

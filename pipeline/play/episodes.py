@@ -47,8 +47,11 @@ def host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | 
     prepared = prepare_episode(spec, policy)
 
     def play(cpu: int | None) -> None:
-        outcome = play_episode(prepared, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})),
-                               cpu=cpu)
+        try:
+            outcome = play_episode(prepared, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress",
+                                                                                          "n": n})), cpu=cpu)
+        finally:
+            policy.close()  # the host may play the next episode, with a new policy process
         nodes = outcome.nodes
         frames = [wire.json_frame({"kind": "result", "episode": episode_to_json(outcome.episode),
                                    "nodes": nodes is not None}), wire.arrow_frame(outcome.steps)]
@@ -70,8 +73,11 @@ def game_host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[i
     first = prepare_episode(specs[0], policy)
 
     def play(cpu: int | None) -> None:
-        outcomes = play_game(specs, first, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress", "n": n})),
-                             cpu=cpu)
+        try:
+            outcomes = play_game(specs, first, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress",
+                                                                                            "n": n})), cpu=cpu)
+        finally:
+            policy.close()
         frames = [wire.json_frame({"kind": "result", "episodes": [episode_to_json(o.episode) for o in outcomes],
                                    "nodes": [o.nodes is not None for o in outcomes]})]
         for outcome in outcomes:

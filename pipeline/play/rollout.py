@@ -260,6 +260,10 @@ class RemotePolicy(PolicyChannel):
         raise self._failure(payload, "at this step") if kind == b"J" else \
             PolicyFailed("crashed", "the policy process sent a frame of an unknown kind")
 
+    def close(self) -> None:
+        """Let the policy process go (a game host that plays another episode next must not keep its socket)."""
+        self.channel.sock.close()
+
     def finish(self, more: bool = False) -> bytes | None:
         """The node rows as the policy process sent them (an Arrow stream, checked by the parent), or None."""
         try:
