@@ -136,6 +136,18 @@ def test_worker_crash_is_recorded_not_raised():
     assert index == 0 and outcome.end_reason == "crashed" and "unknown game" in outcome.episode["error"]
 
 
+def test_a_host_that_failed_is_not_handed_the_next_episode():
+    """A host that reported an error exits; the episodes after it are played in full, by other hosts (one handed
+    to a host that is gone, or going, would look crashed too)."""
+    bad = EpisodeSpec("e0", "r", "pong", "", "v", index=0)
+    bad.game = "not-a-game"
+    good = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, seed=i, max_steps=30)
+            for i in (1, 2, 3)]
+    results = dict(run_episodes([bad, *good], workers=1))
+    assert results[0].end_reason == "crashed" and "unknown game" in results[0].episode["error"]
+    assert [results[i].end_reason for i in (1, 2, 3)] == ["truncated"] * 3, [results[i].episode for i in (1, 2, 3)]
+
+
 def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():
     from pipeline.boundary import workers
 
