@@ -83,6 +83,23 @@ def pong_policy(select_action_body: str, prelude: str = "") -> str:
     )
 
 
+def random_policy(game: str, action: str) -> str:
+    """A policy for ``game`` whose one bundled method returns ``action`` (an expression; ``random`` is imported)."""
+    return f"GAME = {game!r}\n" + textwrap.dedent("""
+        import random
+        import tracing as trace
+
+        @trace.model
+        class Policy(trace.Module):
+            def __call__(self, obs):
+                return self.act(obs)
+
+            @trace.bundle(trainable=True)
+            def act(self, obs):
+                return ACTION
+        """).replace("ACTION", action)
+
+
 # The competent Pong policy's two methods with its constants written in, as an LLM would suggest them.
 COMPETENT_PREDICT = '''def predict_ball_trajectory(self, obs):
     """Where the ball's centre reaches x=140, bouncing off y=30 and y=190; None if unknown."""

@@ -14,7 +14,7 @@ from games import GAMES, get_game
 from pipeline.cli import main
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeSpec
-from tests.conftest import EXAMPLES, POLICIES, ROOT, pong_policy
+from tests.conftest import EXAMPLES, POLICIES, ROOT, pong_policy, random_policy
 
 BUNDLED_CALLS_PER_STEP = {"pong": 2, "breakout": 3, "space_invaders": 3}
 
@@ -242,23 +242,6 @@ def test_a_staged_worker_plays_its_episode_as_a_fresh_one_and_its_wait_is_not_it
     assert second.episode["duration_s"] < first.episode["duration_s"] / 2, (second.episode, first.episode)
 
 
-RANDOM_POLICY = """
-import random
-import tracing as trace
-
-GAME = "{game}"
-
-@trace.model
-class Policy(trace.Module):
-    def __call__(self, obs):
-        return self.act(obs)
-
-    @trace.bundle(trainable=True)
-    def act(self, obs):
-        return (random.randrange({n}) + len(obs)) % {n}
-"""
-
-
 @pytest.mark.parametrize("game", sorted(GAMES))
 def test_a_game_host_plays_each_next_episode_as_a_fresh_host_would(game):
     """A game host is handed the next episode instead of exiting (``pipeline/boundary/zygote.py``: the
@@ -267,7 +250,8 @@ def test_a_game_host_plays_each_next_episode_as_a_fresh_host_would(game):
     reset reloads the ROM and draws its no-ops."""
     from pipeline.boundary import workers
 
-    text = RANDOM_POLICY.format(game=game, n=get_game(game).n_actions)
+    n = get_game(game).n_actions
+    text = random_policy(game, f"(random.randrange({n}) + len(obs)) % {n}")
     protocols = [dict(sticky=0.0, noop_max=0)] + ([dict(sticky=0.25, noop_max=30)] if game == "breakout" else [])
     for protocol in protocols:
         specs = [EpisodeSpec(f"e{i}", "r", game, text, "v", index=i, seed=11 + i, max_steps=120, **protocol)

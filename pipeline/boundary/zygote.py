@@ -105,6 +105,15 @@ def _task(role: Role, name: str, item: dict[str, Any], fd: int,
     return lambda cpu: wire.write_all(fd, wire.json_frame({"kind": "result", **function(item)}))
 
 
+MAX_TASK = 64 * 2**20
+"""The largest task frame a worker reads (a task holds a policy's text, or a game's episodes)."""
+
+
+def _read_task(fd: int) -> dict[str, Any]:
+    _kind, payload = wire.read_frame(fd, limit=MAX_TASK)
+    return json.loads(payload)
+
+
 def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: str, role: Role,
             strict: bool) -> None:
     """In the forked worker: set up, confine (role ``policy``), run the task; never returns. ``fds[0]`` carries the
@@ -132,8 +141,7 @@ def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: 
         for target in (0, 1, 2):
             os.dup2(devnull, target)
         os.close(devnull)
-        kind, payload = wire.read_frame(fd, limit=64 * 2**20)
-        item = json.loads(payload)
+        item = _read_task(fd)
         if role.confined:
             limits = confine.Limits(**msg["limits"])
             limits.write_paths = [scratch]  # nothing else, ever: recordings are written by the game host
@@ -171,8 +179,7 @@ def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: 
                     os.close(unexpected)
                 return  # EOF: no more tasks
             extra_fd = passed[0]
-            kind, payload = wire.read_frame(fd, limit=64 * 2**20)
-            item = json.loads(payload)
+            item = _read_task(fd)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent as plain text
         code = 1
         try:

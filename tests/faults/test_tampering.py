@@ -22,7 +22,7 @@ from pipeline.optimizer.loop import optimize
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec, run_episode
 from pipeline.play.verify import checked_outcome, replay_outcome
-from tests.conftest import json_reply, pong_policy
+from tests.conftest import json_reply, pong_policy, random_policy
 
 TAMPER_BODY = """
 mods = typing.sys.modules
@@ -101,19 +101,7 @@ def test_a_tampering_candidate_scores_no_more_than_its_actions(store, scripted):
 @pytest.mark.parametrize("game, sticky, noop_max", [("pong", 0.25, 30), ("breakout", 0.25, 30),
                                                      ("space_invaders", 0.0, 0), ("breakout", 0.0, 0)])
 def test_a_stored_episode_replays_under_both_protocols(game, sticky, noop_max):
-    text = f"GAME = {game!r}\n" + textwrap.dedent("""
-        import random
-        import tracing as trace
-
-        @trace.model
-        class Policy(trace.Module):
-            def __call__(self, obs):
-                return self.act(obs)
-
-            @trace.bundle(trainable=True)
-            def act(self, obs):
-                return random.randrange(4)
-        """)
+    text = random_policy(game, "random.randrange(4)")
     spec = _spec(text, game=game, sticky=sticky, noop_max=noop_max, seed=3, max_steps=800)
     outcome = run_episode(spec)
     assert replay_outcome(spec, outcome.episode, outcome.steps) is None
