@@ -136,6 +136,26 @@ def test_worker_crash_is_recorded_not_raised():
     assert index == 0 and outcome.end_reason == "crashed" and "unknown game" in outcome.episode["error"]
 
 
+def test_a_policy_that_misbehaves_leaves_nothing_in_its_host_for_the_next_episode():
+    """The host of a policy that spun past its call limit, and of one that raised, plays the next episode on it
+    exactly as a fresh host does: nothing of a hostile episode stays in the host it shared."""
+    from pipeline.boundary import workers
+
+    hostile = [pong_policy("while True:\n    pass"), pong_policy("raise ValueError('x' * 100000)")]
+    benign = pong_policy("return random.randrange(6)", prelude="import random\n")
+    for text in hostile:
+        specs = [EpisodeSpec("e0", "r", "pong", text, "v", index=0, max_steps=50, call_time_limit_s=0.3),
+                 EpisodeSpec("e1", "r", "pong", benign, "v", index=1, seed=5, max_steps=60),
+                 EpisodeSpec("e2", "r", "pong", benign, "v", index=2, seed=9, max_steps=60)]
+        forks_before = workers.zygote("game").next_id
+        together = dict(run_episodes(specs, workers=1))
+        assert workers.zygote("game").next_id - forks_before == 2, "e2 was played by e0's host"
+        assert together[0].end_reason in ("timeout", "policy_error"), together[0].episode
+        [(_, alone)] = list(run_episodes([specs[2]], workers=1))
+        assert together[2].end_reason == alone.end_reason == "truncated"
+        assert together[2].steps.equals(alone.steps)
+
+
 def test_a_host_that_failed_is_not_handed_the_next_episode():
     """A host that reported an error exits; the episodes after it are played in full, by other hosts (one handed
     to a host that is gone, or going, would look crashed too)."""
