@@ -657,4 +657,143 @@ MIGRATIONS.append(
     )
 )
 
+
+# Scores that mean what they say (issue 33): an episode the policy ended (policy_error, timeout, crashed, tampered)
+# is a forfeit, and an assessment with a forfeit has no score to rank (store/scores.py is the rule): its ``score``
+# (and the protocol's own score) is NULL, ``forfeit`` names what ended it and ``forfeit_score`` keeps the mean of
+# the partial returns. ``score_low``/``score_high`` are the 95% bootstrap interval of ``score`` over its episodes.
+# Runs stored before keep the scores they were recorded with; their forfeited candidates are named here.
+MIGRATIONS.append(
+    (
+        12,
+        "candidates: forfeit, forfeit_score, score_low, score_high; forfeits and intervals in learning_curve, "
+        "lineage, frontier and run_summary",
+        r"""
+        ALTER TABLE candidates ADD COLUMN forfeit VARCHAR;        -- NULL: every episode played out; else what ended one
+        ALTER TABLE candidates ADD COLUMN forfeit_score DOUBLE;   -- mean return with forfeits at their partial return
+        ALTER TABLE candidates ADD COLUMN score_low DOUBLE;       -- 95% bootstrap interval of score over its episodes
+        ALTER TABLE candidates ADD COLUMN score_high DOUBLE;
+        UPDATE candidates c SET forfeit = f.forfeit, forfeit_score = c.score
+        FROM (SELECT c2.run_id, c2.iteration, c2.candidate,
+                     count(*)::VARCHAR || ' of ' || any_value(len(c2.eval_episode_ids))::VARCHAR
+                         || ' episodes forfeited: ' || arg_min(e.end_reason, e.episode_id) || ' at step '
+                         || arg_min(e.length, e.episode_id)::VARCHAR AS forfeit
+              FROM candidates c2, unnest(c2.eval_episode_ids) AS u(episode_id)
+              JOIN episodes e ON e.episode_id = u.episode_id
+              WHERE e.end_reason NOT IN ('terminated', 'truncated')
+              GROUP BY c2.run_id, c2.iteration, c2.candidate) f
+        WHERE f.run_id = c.run_id AND f.iteration = c.iteration AND f.candidate = c.candidate
+          AND c.evaluation <> 'screened';
+
+        CREATE OR REPLACE VIEW learning_curve AS
+        WITH calls AS (
+            SELECT run_id, iteration, count(*) AS llm_calls,
+                   coalesce(sum(input_tokens), 0) AS input_tokens,
+                   coalesce(sum(output_tokens), 0) AS output_tokens
+            FROM llm_calls GROUP BY run_id, iteration
+        )
+        SELECT i.run_id, i.iteration, i.score, i.best_score, i.best_iteration, i.train_return, i.update_status,
+               i.rolled_back, i.policy_version_id, i.best_version_id,
+               coalesce(c.llm_calls, 0)::INTEGER AS llm_calls,
+               coalesce(c.input_tokens, 0)::BIGINT AS input_tokens,
+               coalesce(c.output_tokens, 0)::BIGINT AS output_tokens,
+               (coalesce(c.input_tokens, 0) + coalesce(c.output_tokens, 0))::BIGINT AS total_tokens,
+               sum(coalesce(c.input_tokens, 0) + coalesce(c.output_tokens, 0))
+                   OVER (PARTITION BY i.run_id ORDER BY i.iteration)::BIGINT AS cumulative_tokens,
+               i.llm_s, i.train_s, i.eval_s, i.wall_s,
+               sum(i.wall_s) OVER (PARTITION BY i.run_id ORDER BY i.iteration) AS elapsed_s,
+               i.started_at, i.finished_at,
+               k.score_low, k.score_high, k.forfeit, k.forfeit_score
+        FROM iterations i
+        LEFT JOIN calls c ON c.run_id = i.run_id AND c.iteration = i.iteration
+        LEFT JOIN candidates k ON k.run_id = i.run_id AND k.iteration = i.iteration
+             AND k.candidate = coalesce(i.candidate, 0);
+
+        CREATE OR REPLACE VIEW lineage AS  -- one row per candidate: an edge to the candidate it improved
+        SELECT c.run_id, c.iteration, c.candidate, c.strategy, c.policy_version_id, c.proposed_version_id,
+               c.parent_iteration, c.parent_candidate, c.parent_version_id, c.update_status, c.evaluation,
+               c.score, c.deterministic_score, c.standard_score, p.score AS parent_score, c.score - p.score AS gain, c.decision, c.llm_call_id,
+               v.loc, v.complexity, c.score_low, c.score_high, c.forfeit, c.forfeit_score
+        FROM candidates c
+        LEFT JOIN candidates p ON p.run_id = c.run_id AND p.iteration = c.parent_iteration
+             AND p.candidate = c.parent_candidate
+        LEFT JOIN policy_versions v ON v.run_id = c.run_id AND v.iteration = c.iteration
+             AND v.policy_version_id = c.policy_version_id;
+
+        CREATE OR REPLACE VIEW frontier AS  -- each distinct assessed version once, with its score and rank in the run
+        WITH versions AS (
+            SELECT run_id, policy_version_id, max(score) AS score, max(deterministic_score) AS deterministic_score,
+                   max(standard_score) AS standard_score, min(iteration) AS first_iteration,
+                   count(*) AS assessments, count(*) FILTER (WHERE evaluation = 'cached') AS cached,
+                   count(*) FILTER (WHERE forfeit IS NOT NULL) AS forfeited, any_value(forfeit) AS forfeit
+            FROM candidates  -- not a version caught tampering (assessed, then rejected)
+            WHERE NOT (decision = 'rejected' AND policy_version_id IS NOT DISTINCT FROM proposed_version_id)
+            GROUP BY run_id, policy_version_id
+        )
+        SELECT v.* EXCLUDE (forfeited, forfeit),
+               rank() OVER (PARTITION BY v.run_id ORDER BY v.forfeited > 0, v.score DESC NULLS LAST) AS rank,
+               m.loc, m.complexity, v.forfeited, v.forfeit
+        FROM versions v
+        LEFT JOIN (SELECT run_id, policy_version_id, any_value(loc) AS loc, any_value(complexity) AS complexity
+                   FROM policy_versions GROUP BY ALL) m
+               ON m.run_id = v.run_id AND m.policy_version_id = v.policy_version_id;
+
+        CREATE OR REPLACE VIEW run_summary AS
+        WITH it AS (
+            SELECT run_id, (count(*) FILTER (WHERE iteration >= 1))::INTEGER AS iterations_done,
+                   max(best_score) AS best_score, arg_max(best_iteration, iteration) AS best_iteration,
+                   arg_max(score, iteration) AS last_score
+            FROM iterations GROUP BY run_id
+        ), ep AS (
+            SELECT run_id, count(*)::INTEGER AS episodes, sum(length)::BIGINT AS steps,
+                   avg("return") FILTER (WHERE kind = 'eval' AND end_reason IN ('terminated', 'truncated'))
+                       AS mean_eval_return,
+                   (count(*) FILTER (WHERE kind = 'eval' AND end_reason NOT IN ('terminated', 'truncated')))::INTEGER
+                       AS eval_forfeits
+            FROM episodes GROUP BY run_id
+        ), cand AS (
+            SELECT run_id, (count(*) FILTER (WHERE forfeit IS NOT NULL))::INTEGER AS forfeits
+            FROM candidates GROUP BY run_id
+        ), calls AS (
+            SELECT run_id, count(*)::INTEGER AS llm_calls,
+                   coalesce(sum(input_tokens), 0)::BIGINT AS input_tokens,
+                   coalesce(sum(output_tokens), 0)::BIGINT AS output_tokens,
+                   sum(cost_usd) AS cost_usd
+            FROM llm_calls GROUP BY run_id
+        )
+        SELECT r.run_id, r.name, r.created_at, r.finished_at, r.kind, r.game, r.model, r.seed, r.status,
+               json_extract_string(r.config, '$.policy') AS policy,
+               CASE WHEN r.kind <> 'eval' THEN coalesce(json_extract_string(r.config, '$.strategy'), 'greedy')
+               END AS strategy,
+               CASE WHEN r.kind <> 'eval' THEN json_extract_string(r.config, '$.feedback') END AS feedback,
+               json_extract_string(r.config, '$.batch') AS batch,
+               r.made_by,
+               coalesce(it.iterations_done, 0) AS iterations_done,
+               TRY_CAST(json_extract(r.config, '$.iterations') AS INTEGER) AS iterations_planned,
+               CASE WHEN r.kind = 'eval' THEN ep.mean_eval_return ELSE it.best_score END AS best_score,
+               it.best_iteration, it.last_score,
+               coalesce(ep.episodes, 0) AS episodes, coalesce(ep.steps, 0) AS steps,
+               coalesce(calls.llm_calls, 0) AS llm_calls,
+               coalesce(calls.input_tokens, 0) AS input_tokens,
+               coalesce(calls.output_tokens, 0) AS output_tokens,
+               (coalesce(calls.input_tokens, 0) + coalesce(calls.output_tokens, 0))::BIGINT AS total_tokens,
+               calls.cost_usd,
+               epoch(r.finished_at - r.created_at) AS duration_s,
+               r.error,
+               CASE WHEN r.kind = 'eval' THEN coalesce(ep.eval_forfeits, 0) ELSE coalesce(cand.forfeits, 0)
+               END AS forfeits
+        FROM runs r
+        LEFT JOIN it ON it.run_id = r.run_id
+        LEFT JOIN ep ON ep.run_id = r.run_id
+        LEFT JOIN cand ON cand.run_id = r.run_id
+        LEFT JOIN calls ON calls.run_id = r.run_id;
+
+        COMMENT ON VIEW learning_curve IS 'one row per iteration: score (NULL: forfeited) with its interval, best so far, LLM calls and tokens, times';
+        COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: label, settings, status, best score, forfeits, episodes, tokens';
+        COMMENT ON VIEW lineage IS 'one row per candidate, with its edge to the candidate it improved, the score gained and any forfeit';
+        COMMENT ON VIEW frontier IS 'each distinct version a run assessed, once, ranked by score (forfeited ones last)';
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

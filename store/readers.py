@@ -175,7 +175,7 @@ HISTORY_CANDIDATE_COLUMNS = (
     "run_id", "iteration", "candidate", "strategy", "parent_iteration", "parent_candidate", "parent_version_id",
     "proposed_version_id", "policy_version_id", "llm_call_id", "update_status", "evaluation", "train_episode_id",
     "eval_episode_ids", "robust_episode_ids", "train_return", "score", "deterministic_score", "standard_score",
-    "decision", "feedback", "complexity", "eval_length")
+    "decision", "feedback", "complexity", "eval_length", "forfeit")
 """The fields of a candidate in a run's history (:func:`candidates`): its ``candidates`` row, its feedback text,
 its version's complexity and the mean length of its evaluation games."""
 _CANDIDATE_FROM = {"feedback": "b.text", "complexity": "v.complexity", "eval_length": "e.eval_length"}
@@ -204,7 +204,7 @@ def earlier_screen(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str)
     """The first screening game (cascade evaluation) a version played in this run: its episode id, verified
     return and end."""
     rows = _rows(con.execute(
-        """SELECT e.episode_id, e.return AS score, e.end_reason FROM candidates c
+        """SELECT e.episode_id, e.return AS score, e.return, e.end_reason, e.length, e.error FROM candidates c
            JOIN episodes e ON e.episode_id = c.screen_episode_id
            WHERE c.run_id = ? AND c.proposed_version_id = ? AND e.verified AND e.end_reason <> 'timeout'
            ORDER BY c.iteration, c.candidate LIMIT 1""", [run_id, version_id]))
@@ -244,7 +244,7 @@ def reusable_assessment(con: duckdb.DuckDBPyConnection, run_id: str, version_id:
     and the optimizer asks this for every candidate."""
     assessments = _rows(con.execute(
         """SELECT iteration, candidate, train_episode_id, eval_episode_ids, robust_episode_ids, train_return, score,
-                  deterministic_score, standard_score
+                  deterministic_score, standard_score, score_low, score_high
            FROM candidates
            WHERE run_id = ? AND policy_version_id = ? AND evaluation = 'played'
              AND NOT (decision = 'rejected' AND policy_version_id IS NOT DISTINCT FROM proposed_version_id)

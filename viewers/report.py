@@ -63,6 +63,11 @@ def _figure(rows: int = 1, height: float = 4.4):
     return fig, axes
 
 
+def _nan(value: float | None) -> float:
+    """A score for a plot: None (a forfeit: no score) is a gap in the line."""
+    return float("nan") if value is None else value
+
+
 def _integer_x(ax, xs: Sequence[int]) -> None:
     from matplotlib.ticker import MaxNLocator
 
@@ -95,12 +100,21 @@ def scores_figure(data: dict[str, Any]):
         ax.scatter([e["iteration"] for e in evals if e["iteration"] in xs],
                    [e["return"] for e in evals if e["iteration"] in xs],
                    s=12, color="#1f77b4", alpha=0.25, linewidths=0, label="one evaluation episode", zorder=2)
-    ax.plot(xs, [r["score"] for r in curve], "-", color="#1f77b4", linewidth=1.8, zorder=3,
+    band = [(r["iteration"], r["score_low"], r["score_high"]) for r in curve if r.get("score_low") is not None]
+    if band and any(low != high for _, low, high in band):
+        ax.fill_between([b[0] for b in band], [b[1] for b in band], [b[2] for b in band], color="#1f77b4",
+                        alpha=0.15, linewidth=0, zorder=1, label="95% interval (bootstrap over its episodes)")
+    ax.plot(xs, [_nan(r["score"]) for r in curve], "-", color="#1f77b4", linewidth=1.8, zorder=3,
             label=f"score (mean return of {n_eval} evaluation episode{'s' * (n_eval != 1)})")
-    ax.step(xs, [r["best_score"] for r in curve], where="post", color="#ff7f0e", linestyle="--", linewidth=1.6,
-            label="best so far", zorder=3)
+    ax.step(xs, [_nan(r["best_score"]) for r in curve], where="post", color="#ff7f0e", linestyle="--",
+            linewidth=1.6, label="best so far", zorder=3)
+    forfeits = [(r["iteration"], r["forfeit_score"]) for r in curve if r.get("forfeit") and r.get("forfeit_score")
+                is not None]
+    if forfeits:  # drawn where they stopped, apart from the curve: a forfeit has no score (store/scores.py)
+        ax.scatter(*zip(*forfeits), marker="X", s=52, facecolors="none", edgecolors="#d62728", linewidths=1.2,
+                   zorder=4, label="forfeited: return when the policy stopped (no score)")
     for status, (marker, colour, label) in STATUS_STYLE.items():
-        pts = [(r["iteration"], r["score"]) for r in curve if r["update_status"] == status]
+        pts = [(r["iteration"], r["score"]) for r in curve if r["update_status"] == status and r["score"] is not None]
         if pts:
             ax.scatter(*zip(*pts), marker=marker, s=46, color=colour, label=label, zorder=4,
                        edgecolors="white", linewidths=0.6)
@@ -111,10 +125,12 @@ def scores_figure(data: dict[str, Any]):
     _integer_x(ax, xs)
     ax.set_xlabel("iteration (0 = starting policy; k = after the k-th LLM update)")
     ax.set_ylabel("evaluation return")
-    best = max(curve, key=lambda r: (r["best_score"], -r["iteration"]))
-    ax.annotate(f"best {best['best_score']:g}\n(iteration {best['best_iteration']})",
-                (best["best_iteration"], best["best_score"]), textcoords="offset points", xytext=(0, 10),
-                ha="center", va="bottom", fontsize=8, color="#ff7f0e")
+    scored = [r for r in curve if r["best_score"] is not None]
+    if scored:
+        best = max(scored, key=lambda r: (r["best_score"], -r["iteration"]))
+        ax.annotate(f"best {best['best_score']:g}\n(iteration {best['best_iteration']})",
+                    (best["best_iteration"], best["best_score"]), textcoords="offset points", xytext=(0, 10),
+                    ha="center", va="bottom", fontsize=8, color="#ff7f0e")
     ax.margins(y=0.15)
     ax.set_title(_title(data, "score per iteration"), fontsize=11)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
@@ -354,11 +370,17 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
     named = f" ({markdown_text(run['name'])})" if run.get("name") else ""
     out = [f"# {markdown_text(run['game'])} {markdown_text(run['kind'])} run {markdown_code(run['run_id'])}{named}", ""]
     facts = [f"status **{markdown_text(run['status'])}**"]
+    forfeits = summary.get("forfeits") or 0
     if run["kind"] == "eval":
-        facts.append(f"mean return **{_md(summary['best_score'])}** over {summary['episodes']} episode(s)")
+        played = summary["episodes"] - forfeits
+        facts.append(f"mean return **{_md(summary['best_score'])}** over {played} episode(s) played out")
+        if forfeits:
+            facts.append(f"**{forfeits} forfeited** (ended by the policy; not averaged in)")
     else:
         facts.append(f"{summary['iterations_done']} of {_md(summary['iterations_planned'])} iterations")
         facts.append(f"best score **{_md(summary['best_score'])}** (iteration {_md(summary['best_iteration'])})")
+        if forfeits:
+            facts.append(f"{forfeits} candidate(s) forfeited a game (never the best)")
         facts.append(f"{summary['total_tokens']:,} LLM tokens")
     facts.append(f"created {_md(run['created_at'])}")
     out += [" · ".join(facts), ""]
@@ -378,11 +400,17 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
         for r in data["curve"]:
             c = code.get(r["iteration"], {})
             status = r["update_status"] + (" ↺ rolled back" if r["rolled_back"] else "")
-            rows.append((r["iteration"], status, r["score"], r["best_score"], r["train_return"], c.get("loc"),
+            score = (r["score"] if not r.get("forfeit") else
+                     f"forfeit: {terminal_text(r['forfeit'])} ({_md(r['forfeit_score'])} when it stopped)")
+            if r.get("score_low") is not None and r["score_low"] != r["score_high"]:
+                score = f"{_md(r['score'])} [{_md(r['score_low'])}, {_md(r['score_high'])}]"
+            rows.append((r["iteration"], status, score, r["best_score"], r["train_return"], c.get("loc"),
                          c.get("sloc"), c.get("complexity"), c.get("max_if_depth"), r["input_tokens"],
                          r["output_tokens"], r["wall_s"], markdown_code(r["policy_version_id"])))
         out += ["## Iterations", "",
-                "Score: mean evaluation return. Train: return of the traced training rollout. Code metrics are "
+                "Score: mean evaluation return, with its 95% bootstrap interval over the episodes when they differ; "
+                "an iteration whose version ended a game itself (an error, a time limit) has no score: a forfeit "
+                "(never the best). Train: return of the traced training rollout. Code metrics are "
                 "those of the version evaluated (`code_metrics`); tokens are those of the iteration's LLM calls.", "",
                 _md_table(("iteration", "update", "score", "best", "train", "LOC", "SLOC", "complexity", "if depth",
                            "tokens in", "tokens out", "wall s", "version"), rows), ""]

@@ -101,9 +101,9 @@ def run(args: argparse.Namespace) -> int:
         show(f"{'episode':>7}  {'seed':>5}  {'return':>8}  {'length':>6}  end reason")
         for i, e in enumerate(summary["episodes"]):
             show(f"{i:>7}  {e['seed']:>5}  {e['return']:>8.1f}  {e['length']:>6}  {e['end_reason']}")
-        returns = [e["return"] for e in summary["episodes"]]
-        show(f"mean return {sum(returns) / len(returns):.2f} over {len(returns)} episode(s); {steps:,} steps in "
-             f"{elapsed:.1f} s ({summary['steps_per_s'] or 0:,.0f} steps/s, setup and checks included)")
+        # forfeits are named, never averaged in (store/scores.py); the interval is over the episodes played out
+        show(f"{result.score.summary()}; {steps:,} steps in {elapsed:.1f} s "
+             f"({summary['steps_per_s'] or 0:,.0f} steps/s, setup and checks included)")
     for e in failed:  # the error is the policy's exception: escape sequences in it must not reach the terminal
         show(f"codearcade: episode {e['episode_id']} ended with {e['end_reason']}: {e['error']}", file=sys.stderr)
     return EXIT_EPISODE_FAILED if failed else EXIT_OK

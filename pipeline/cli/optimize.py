@@ -51,8 +51,12 @@ def _print_iteration(item) -> None:
         tokens = f"best of {item.candidates} candidates  " + tokens
     if item.standard_score is not None:
         tokens = f"standard protocol {item.standard_score:g}  " + tokens
-    show(f"iteration {item.iteration:>3}  score {item.score:>8.1f}  best {item.best_score:>8.1f} (it {item.best_iteration})"
-         f"  update {item.update_status:<9} {tokens}{back}{note[:160]}", flush=True)
+    score = f"{item.score:>8.1f}" if item.score is not None else f"{'forfeit':>8}"
+    best = f"{item.best_score:>8.1f}" if item.best_score is not None else f"{'forfeit':>8}"
+    if item.forfeit:  # the partial score is what the policy had when it stopped: shown, never taken as its score
+        note = f"  ({terminal_text(item.forfeit)}; {item.forfeit_score:g} when it stopped)" + note
+    show(f"iteration {item.iteration:>3}  score {score}  best {best} (it {item.best_iteration})"
+         f"  update {item.update_status:<9} {tokens}{back}{note[:200]}", flush=True)
 
 
 OPTIMIZE_OPTIONS = tuple(n for n, (_, s) in declarations(OptimizeConfig).items() if s.cli)
@@ -213,7 +217,8 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
             "run_id": result.run_id, "short_id": short, "name": args.name, "status": result.status,
             "error": result.error,
             "iterations": [dict(iteration=i.iteration, policy_version_id=i.policy_version_id, score=i.score,
-                                best_score=i.best_score, update_status=i.update_status, rolled_back=i.rolled_back)
+                                best_score=i.best_score, update_status=i.update_status, rolled_back=i.rolled_back,
+                                forfeit=i.forfeit)
                            for i in result.iterations],
         })
     else:

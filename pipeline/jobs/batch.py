@@ -389,7 +389,8 @@ def run_ray(batch: Batch, store: Store, planned: list[PlannedRun], address: str 
             progress[i].run_id = bundle["runs"].column("run_id")[0].as_py()
             if iterations.num_rows:
                 progress[i].iteration = max(iterations.column("iteration").to_pylist())
-                progress[i].best = max(iterations.column("best_score").to_pylist())
+                progress[i].best = max((b for b in iterations.column("best_score").to_pylist() if b is not None),
+                                       default=None)
             progress[i].state = status if status in ("finished", "budget") else "failed"
             progress[i].note = error or ""
             log(f"{progress[i].state} {planned[i].run.label} (run {progress[i].run_id})")

@@ -52,8 +52,8 @@ def _run(spec: dict[str, Any], store: Store) -> OptimizeResult:
                 set_run_name(con, run_id, spec["name"])
         return optimize(config, store, client, resume=run_id, waiting=_waiting,
                         log=_say,
-                        on_iteration=lambda item: _say(f"iteration {item.iteration}: score {item.score:g} "
-                                                       f"best {item.best_score:g} {item.update_status}"))
+                        on_iteration=lambda item: _say(f"iteration {item.iteration}: score {_shown(item.score)} "
+                                                       f"best {_shown(item.best_score)} {item.update_status}"))
     finally:
         if server is not None:
             server.stop()
@@ -71,6 +71,11 @@ def run_remote(spec: dict[str, Any], previous: dict | None):
         result = _run(spec, store)
         with store.read() as con:
             return export_run(con, result.run_id), result.status, result.error
+
+
+def _shown(score: float | None) -> str:
+    """A score in a log line; None is a forfeit (``store/scores.py``)."""
+    return f"{score:g}" if score is not None else "forfeit"
 
 
 def main(argv: list[str] | None = None) -> int:

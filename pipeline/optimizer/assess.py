@@ -40,6 +40,7 @@ from pipeline.play.runinfo import episode_id
 from pipeline.play.verify import TAMPERED, checked_outcome, tampering
 from store import Store
 from store.readers import earlier_screen, policy_text, reusable_assessment, score_at_step
+from store.scores import score_episodes
 from store.writer import EpisodeWriter
 
 
@@ -50,18 +51,27 @@ class Assessment:
     eval_episode_ids: list[str]
     train_return: float
     train_length: int
-    score: float
-    """The score the run optimizes: ``deterministic_score`` or ``standard_score`` (``optimize_protocol``)."""
+    score: float | None
+    """The score the run optimizes: ``deterministic_score`` or ``standard_score`` (``optimize_protocol``); None
+    when any of the version's evaluation games was forfeited (``store/scores.py``: a forfeit has no score to rank)."""
     evaluation: str
     """``played``, or ``cached``: the episodes of an earlier assessment of the same version."""
-    deterministic_score: float
-    """Mean (verified) return of the evaluation episodes under the paper's protocol."""
+    deterministic_score: float | None
+    """The score of the evaluation episodes under the paper's protocol (None: one was forfeited)."""
     standard_score: float | None = None
-    """Mean (verified) return of the ``robust`` episodes under the standard protocol (None: none played)."""
+    """The score of the ``robust`` episodes under the standard protocol (None: none played, or one forfeited)."""
     robust_episode_ids: list[str] = field(default_factory=list)
     tampered: str | None = None
     eval_length: float = 0.0
     """Mean length of the evaluation games (a behaviour descriptor for ``map-elites``)."""
+    forfeit: str | None = None
+    """What ended a forfeited evaluation game (``1 of 3 episodes forfeited: RuntimeError at step 300
+    (policy_error)``); None when every one was played out."""
+    forfeit_score: float | None = None
+    """With a forfeit: the mean return of the optimized protocol's games, forfeits at their partial return."""
+    score_low: float | None = None
+    score_high: float | None = None
+    """The 95% bootstrap interval of ``score`` over its episodes (None: fewer than two, or forfeited)."""
 
 
 @dataclass
@@ -78,7 +88,7 @@ def episode_specs(state: "RunState", iteration: int, candidate: int, text: str, 
     common = dict(run_id=state.run_id, game=state.game, policy_text=text, policy_version_id=version_id,
                   policy_name="policy.py", iteration=iteration, call_time_limit_s=c.call_time_limit_s,
                   episode_time_limit_s=c.episode_time_limit_s, rerun=state.rerun, one_life=c.one_life,
-                  observation=c.observation)
+                  observation=c.observation, rng_key=state.rng_key)
     train = EpisodeSpec(episode_id=episode_id(state.run_id, iteration, "train", 0, candidate), kind="train",
                         index=0, seed=c.seed, max_steps=state.settings["rollout_steps"], trace=True, **common)
     one_game = c.one_life == ONE_LIFE_CONTINUE  # the authors' protocol: the evaluation episodes are one game's lives
@@ -131,10 +141,12 @@ class Screen:
     bar: float
     """Its parent's score at the same step of the same game, less ``screen_margin``: what it had to reach."""
     tampered: bool = False
+    forfeit: str | None = None
+    """The policy ended the screening game itself (an error, a time limit, tampering): it cannot pass."""
 
     @property
     def passed(self) -> bool:
-        return not self.tampered and self.score >= self.bar
+        return not self.tampered and self.forfeit is None and self.score >= self.bar
 
 
 def screen(store: Store, state: "RunState", iteration: int, history, proposals: list,
@@ -156,14 +168,16 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
             earlier = earlier_screen(con, state.run_id, p.version_id) if c.eval_cache else None
             if earlier is not None:  # screened before in this run: the same game, the same score
                 found[p.candidate] = Screen(earlier["episode_id"], c.screen_steps, earlier["score"], bar,
-                                            tampered=earlier["end_reason"] == TAMPERED)
+                                            tampered=earlier["end_reason"] == TAMPERED,
+                                            forfeit=score_episodes([earlier]).forfeit)
                 continue
             text = p.text if p.text is not None else policy_text(con, state.run_id, p.version_id)
             specs.append(EpisodeSpec(
                 episode_id=episode_id(state.run_id, iteration, "screen", 0, p.candidate), run_id=state.run_id,
                 game=state.game, policy_text=text, policy_version_id=p.version_id, iteration=iteration, kind="screen",
                 index=0, seed=c.seed, max_steps=c.screen_steps, call_time_limit_s=c.call_time_limit_s,
-                episode_time_limit_s=c.episode_time_limit_s, one_life=c.one_life, observation=c.observation))
+                episode_time_limit_s=c.episode_time_limit_s, one_life=c.one_life, observation=c.observation,
+                rng_key=state.rng_key))
             owners.append((p.candidate, bar))
     if not specs:
         return found
@@ -174,14 +188,16 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
             writer.add(outcome.episode, outcome.steps, outcome.nodes)
             candidate, bar = owners[i]
             found[candidate] = Screen(outcome.episode["episode_id"], c.screen_steps, outcome.episode["return"], bar,
-                                      tampered=outcome.episode["end_reason"] == TAMPERED)
+                                      tampered=outcome.episode["end_reason"] == TAMPERED,
+                                      forfeit=score_episodes([outcome.episode]).forfeit)
     return found
 
 
 def _cached(version: str, row: dict) -> Assessment:
     return Assessment(version, row["train_episode_id"], list(row["eval_episode_ids"]), row["train_return"],
                       row["train_length"], row["score"], "cached", row["deterministic_score"], row["standard_score"],
-                      list(row["robust_episode_ids"] or []), eval_length=float(row["eval_length"]))
+                      list(row["robust_episode_ids"] or []), eval_length=float(row["eval_length"]),
+                      score_low=row.get("score_low"), score_high=row.get("score_high"))
 
 
 def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[int, str]],
@@ -215,11 +231,15 @@ def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[i
         train = outcomes[indices[0]]
         evals = [outcomes[i] for i in indices[1:] if specs[i].kind == "eval"]
         robust = [outcomes[i] for i in indices[1:] if specs[i].kind == "robust"]
-        deterministic = statistics.fmean(o.episode["return"] for o in evals)
-        standard = statistics.fmean(o.episode["return"] for o in robust) if robust else None
+        deterministic = score_episodes(o.episode for o in evals)
+        standard = score_episodes(o.episode for o in robust) if robust else None
+        optimized = standard if state.config.optimize_protocol == "standard" else deterministic
+        forfeit = deterministic.forfeit or (standard.forfeit if standard is not None else None)
         found[version] = Assessment(
             version, train.episode["episode_id"], [o.episode["episode_id"] for o in evals], train.episode["return"],
-            train.episode["length"], standard if state.config.optimize_protocol == "standard" else deterministic,
-            "played", deterministic, standard, [o.episode["episode_id"] for o in robust],
-            tampering([train] + evals + robust), statistics.fmean(o.episode["length"] for o in evals))
+            train.episode["length"], None if forfeit else optimized.ranked, "played", deterministic.ranked,
+            standard.ranked if standard is not None else None, [o.episode["episode_id"] for o in robust],
+            tampering([train] + evals + robust), statistics.fmean(o.episode["length"] for o in evals),
+            forfeit=forfeit, forfeit_score=optimized.partial if forfeit else None,
+            score_low=None if forfeit else optimized.low, score_high=None if forfeit else optimized.high)
     return found

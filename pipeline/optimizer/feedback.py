@@ -55,9 +55,19 @@ def compose_feedback(
     train_return: float,
     train_steps: int,
     notes: list[str],
+    forfeit: str | None = None,
+    forfeit_score: float | None = None,
 ) -> tuple[str, float, str]:
-    """(stage, score the stage was chosen by, text) for one iteration."""
-    if mode == "staged":
+    """(stage, score the stage was chosen by, text) for one iteration. ``forfeit``: what ended an evaluation game
+    the policy forfeited (``store/scores.py``; ``eval_score`` is then None and ``forfeit_score`` the mean return
+    when it stopped): the stage is ``low`` whatever it had scored, and the text says why."""
+    if mode == "staged" and forfeit:
+        score = forfeit_score if forfeit_score is not None else 0.0
+        stage = "low"
+        text = (f"Evaluation (full game): the policy did not play the game to its end: {forfeit}. It had scored "
+                f"{score:g} when it stopped, but a forfeited game counts below every game played to its end, "
+                f"whatever its score: make the code run without errors and within its time limits first.")
+    elif mode == "staged":
         score = eval_score
         stage, text = bands.message(score)
         text = f"Evaluation (full game): {text}"
@@ -65,6 +75,8 @@ def compose_feedback(
         score = train_return
         stage = bands.stage(score)
         text = f"Training rollout: the policy scored {score:g} over {train_steps} steps."
+        if forfeit:
+            text += f" It did not play its evaluation game to the end: {forfeit}."
     else:
         raise ValueError(f"unknown feedback mode '{mode}'; use one of {', '.join(FEEDBACK_MODES)}")
     if notes:  # notes quote rejected code's errors and LLM errors: untrusted text, capped and scrubbed

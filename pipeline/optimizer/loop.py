@@ -82,8 +82,9 @@ class IterationResult:
     iteration: int
     policy_version_id: str
     update_status: str
-    score: float
-    best_score: float
+    score: float | None
+    """The chosen candidate's score; None when it forfeited (``forfeit`` says how)."""
+    best_score: float | None
     best_iteration: int
     rolled_back: bool
     detail: str = ""
@@ -92,6 +93,9 @@ class IterationResult:
     """How many candidates the iteration assessed."""
     standard_score: float | None = None
     """The chosen candidate's score under the standard protocol, when the run measures it."""
+    forfeit: str | None = None
+    """What ended the evaluation game the chosen candidate forfeited (``store/scores.py``)."""
+    forfeit_score: float | None = None
 
 
 @dataclass
@@ -133,7 +137,7 @@ def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str =
         info, game = starter, get_game(config.game or starter.game).name
     settings = task_settings(info, game)
     run_id = new_run_id()
-    record = {**asdict(config), "game": game,
+    record = {**asdict(config), "game": game, "rng_key": run_id,
               "rollout_steps": config.rollout_steps or settings.rollout_steps,
               "eval_max_steps": config.eval_max_steps or settings.eval_max_steps,
               "instruction": settings.instruction, "feedback_bands": asdict(settings.feedback), **(extra or {})}
@@ -155,7 +159,7 @@ def load_state(store: Store, run_id: str) -> RunState:
     config = OptimizeConfig.from_record(recorded)
     settings = {k: recorded[k] for k in ("rollout_steps", "eval_max_steps", "instruction", "feedback_bands")}
     settings["bands"] = FeedbackBands(**recorded["feedback_bands"])
-    state = RunState(run_id, run["game"], config, settings)
+    state = RunState(run_id, run["game"], config, settings, rng_key=recorded.get("rng_key"))
     if last is not None:
         state.next_iteration = last["iteration"] + 1
         state.best_score, state.best_iteration = last["best_score"], last["best_iteration"]
@@ -219,9 +223,13 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
             if p.candidate in screens and not screens[p.candidate].passed:
                 s = screens[p.candidate]
                 p.status, p.version_id = "rejected", p.parent_version_id
-                p.note = (f"Your last suggestion was screened out: in the first {s.steps} steps of the evaluation "
-                          f"game it scored {s.score:g}, where the code it was meant to improve scores {s.bar:g}. The "
-                          "code is unchanged.")
+                if s.forfeit:
+                    p.note = (f"Your last suggestion was screened out: it did not play the first {s.steps} steps of "
+                              f"the evaluation game to their end ({s.forfeit}). The code is unchanged.")
+                else:
+                    p.note = (f"Your last suggestion was screened out: in the first {s.steps} steps of the "
+                              f"evaluation game it scored {s.score:g}, where the code it was meant to improve scores "
+                              f"{s.bar:g}. The code is unchanged.")
     assessments, times = assess(store, state, iteration, {p.candidate: p.version_id for p in proposals}, progress,
                                 texts={p.version_id: p.text for p in proposals if p.text is not None},
                                 before_play=hold.release)
@@ -239,7 +247,8 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
         notes = [p.note] if p.note else []
         assessed.append(Assessed(p.candidate, p.parent, p.version_id, "rejected" if tampered else p.status,
                                  a.score, tampered, notes,
-                                 {"complexity": complexity.get(p.version_id), "eval_length": a.eval_length}))
+                                 {"complexity": complexity.get(p.version_id), "eval_length": a.eval_length},
+                                 forfeit=a.forfeit))
     decision = decide_starter(assessed) if iteration == 0 else strategy.decide(history, iteration, assessed)
     if decision.new_best is not None:
         best = assessed[decision.new_best]
@@ -251,15 +260,21 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
     return IterationResult(state.run_id, iteration, chosen.version_id, chosen.status, chosen.score, state.best_score,
                            state.best_iteration, decision.rolled_back, notes[0] if notes else "",
                            proposals[decision.chosen].prompt_tokens, candidates=len(proposals),
-                           standard_score=assessments[decision.chosen].standard_score)
+                           standard_score=assessments[decision.chosen].standard_score,
+                           forfeit=assessments[decision.chosen].forfeit,
+                           forfeit_score=assessments[decision.chosen].forfeit_score)
 
 
 def _protocols_note(config: OptimizeConfig, a) -> str:
     """Both scores, for the feedback: the model sees how the code fares under sticky actions too."""
     optimized = "the score being optimized" if config.optimize_protocol == "standard" else "not the score optimized"
-    return (f"Under the paper's deterministic protocol it scored {a.deterministic_score:g} (mean of "
+
+    def told(score: float | None) -> str:
+        return f"{score:g}" if score is not None else "nothing (a game forfeited)"
+
+    return (f"Under the paper's deterministic protocol it scored {told(a.deterministic_score)} (mean of "
             f"{len(a.eval_episode_ids)}); under the standard protocol (sticky actions 0.25, up to 30 no-op starts: "
-            f"the game does not always do what the policy asks) {a.standard_score:g} (mean of "
+            f"the game does not always do what the policy asks) {told(a.standard_score)} (mean of "
             f"{len(a.robust_episode_ids)}; {optimized}).")
 
 
@@ -272,10 +287,10 @@ def _commit(store: Store, state: RunState, iteration: int, history: History, pro
     texts = {}
     for p, a in zip(proposals, assessed):
         played = assessments[p.candidate]
-        notes = decision.notes[p.candidate] + ([_protocols_note(c, played)] if played.standard_score is not None
+        notes = decision.notes[p.candidate] + ([_protocols_note(c, played)] if played.robust_episode_ids
                                                else [])
         texts[p.candidate] = compose_feedback(c.feedback, state.settings["bands"], a.score, played.train_return,
-                                              played.train_length, notes)
+                                              played.train_length, notes, played.forfeit, played.forfeit_score)
     chosen = proposals[decision.chosen]
     chosen_play = assessments[chosen.candidate]
     with store.write() as con:
@@ -302,7 +317,8 @@ def _commit(store: Store, state: RunState, iteration: int, history: History, pro
                 else played.evaluation, train_episode_id=played.train_episode_id,
                 eval_episode_ids=played.eval_episode_ids, robust_episode_ids=played.robust_episode_ids or None,
                 train_return=played.train_return, score=a.score, deterministic_score=played.deterministic_score,
-                standard_score=played.standard_score,
+                standard_score=played.standard_score, forfeit=played.forfeit, forfeit_score=played.forfeit_score,
+                score_low=played.score_low, score_high=played.score_high,
                 screen_episode_id=screens[p.candidate].episode_id if p.candidate in screens else None,
                 screen_score=screens[p.candidate].score if p.candidate in screens else None,
                 screen_bar=screens[p.candidate].bar if p.candidate in screens else None,

@@ -379,7 +379,7 @@ def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prom
     memory_texts: list[str] = []
     current = {m.name: m.source for m in ctx.info.trainable}
     for entry in ctx.memory:  # newest first
-        head = (f"Iteration {entry.iteration}: score {format_number(entry.score) if entry.score is not None else 'n/a'}, "
+        head = (f"Iteration {entry.iteration}: score {format_number(entry.score) if entry.score is not None else 'none (a game forfeited)'}, "
                 f"update {entry.update_status}.\nFeedback: {entry.feedback.strip()}")
         diff = _diff(entry.sources, current)
         full = head + ("\nCode differences from the current version:\n```diff\n" + diff + "\n```" if diff

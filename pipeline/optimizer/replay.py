@@ -64,7 +64,7 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
     recorded = json.loads(run["config"])
     config = OptimizeConfig.from_record(recorded)
     client = ReplayClient(replies, model=run["model"] or "replay")
-    new_run = start_run(config, store, client.model, kind="replay", extra={"replay_of": run_id}, starter=starter)
+    new_run = start_run(config, store, client.model, kind="replay", extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
     result = run_loop(store, load_state(store, new_run), client, log)
 
     with store.read() as con:

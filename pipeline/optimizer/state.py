@@ -24,6 +24,8 @@ class RunState:
     best_iteration: int = 0
     best_version_id: str | None = None
     llm_failures: int = 0
+    rng_key: str | None = None
+    """The key of the run's random stream for policies (``EpisodeSpec.rng_key``; None: a run recorded before it)."""
     history: History | None = None
     """The run's completed iterations as stored: read from the store once, then extended by each commit with
     the rows it wrote (``test_strategies.py`` checks it against the store)."""

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from pipeline.settings import EpisodeLimits
+from store.scores import beats, rank_key
 
 STRATEGIES = ("greedy", "best-of-n", "beam", "map-elites")
 
@@ -63,13 +64,16 @@ class Assessed:
     """The version that was played for it (the parent's when the proposal was rejected or unchanged)."""
     status: str
     """``initial``, ``accepted``, ``unchanged``, ``rejected`` (also: caught tampering) or ``llm_error``."""
-    score: float
+    score: float | None
+    """Its score (``store/scores.py``); None when it forfeited an evaluation game: never the best, ranked last."""
     tampered: str | None = None
     notes: list[str] = field(default_factory=list)
     """What the proposal step has to say in the candidate's feedback (a rejection reason, an LLM error)."""
     behaviour: dict[str, Any] = field(default_factory=dict)
     """Behaviour descriptors from the store: ``complexity`` (of its code), ``eval_length`` (mean length of its
     evaluation games)."""
+    forfeit: str | None = None
+    """What ended the evaluation game it forfeited (then ``score`` is None)."""
 
 
 @dataclass
@@ -135,16 +139,27 @@ class History:
                     if c["parent_iteration"] == ref.iteration and (c["parent_candidate"] or 0) == ref.candidate]
         return (attempts + self.ancestors(ref))[:size]
 
-    def assessed_versions(self) -> list[tuple[float, Ref]]:
+    def assessed_versions(self) -> list[tuple[float | None, Ref]]:
         """Each distinct version that was played and not caught tampering, by its first candidate: (score, ref),
-        best first (earlier first among equals)."""
-        first: dict[str, tuple[float, Ref]] = {}
+        best first (earlier first among equals); versions that forfeited (score None) after every other."""
+        first: dict[str, tuple[float | None, Ref]] = {}
         for c in self.candidates:
             tampered = c["decision"] == "rejected" and c["policy_version_id"] == c["proposed_version_id"]
-            if tampered or c["score"] is None or c["policy_version_id"] in first:
+            unscored = c["score"] is None and c.get("forfeit") is None  # never assessed (no score, no forfeit)
+            if tampered or unscored or c["policy_version_id"] in first:
                 continue
             first[c["policy_version_id"]] = (c["score"], Ref(c["iteration"], c["candidate"]))
-        return sorted(first.values(), key=lambda item: (-item[0], item[1]))
+        return sorted(first.values(), key=lambda item: (_descending(item[0]), item[1]))
+
+    def beaten_by(self, score: float | None) -> bool:
+        """Whether a version that scored ``score`` takes the run's best (``store.scores.beats``)."""
+        return beats(score, self.best_score, self.best is not None)
+
+
+def _descending(score: float | None) -> tuple[bool, float]:
+    """Sort key, best first: higher scores first, a forfeit (None) after every score."""
+    present, value = rank_key(score)
+    return (not present, -value)
 
 
 def format_number(value: Any) -> str:
@@ -166,8 +181,8 @@ class Strategy(Protocol):
 def _rank(assessed: list[Assessed]) -> list[Assessed]:
     """Candidates best first; among equal scores, new code before a rejected proposal (which only re-played its
     parent), then the lowest index; tampered ones last."""
-    return sorted(assessed, key=lambda a: (a.tampered is not None, -a.score, a.status in ("rejected", "llm_error"),
-                                           a.candidate))
+    return sorted(assessed, key=lambda a: (a.tampered is not None, _descending(a.score),
+                                           a.status in ("rejected", "llm_error"), a.candidate))
 
 
 def _with_tampering(a: Assessed) -> list[str]:
@@ -216,9 +231,20 @@ class Greedy:
         if a.tampered:  # never the best; the next update starts from the best
             decision.decisions[a.candidate] = "rejected"
             decision.rolled_back = best_version is not None and a.version_id != best_version
-        elif best_score is None or a.score > best_score:
+        elif history.beaten_by(a.score):
             decision.new_best = a.candidate
             decision.decisions[a.candidate] = "best"
+        elif a.score is None:  # a forfeit: never the best, and a regression whatever it had scored when it stopped
+            if self.rollback and a.version_id != best_version:
+                decision.rolled_back = True
+                decision.decisions[a.candidate] = "rolled_back"
+                notes.append(f"This version did not play its evaluation game to the end ({a.forfeit}): a forfeit "
+                             f"never counts as an improvement, so its change is rolled back, and the next update "
+                             f"starts again from iteration {best.iteration}'s code.")
+            if a.status == "rejected":
+                decision.decisions[a.candidate] = "rejected"
+        elif best_score is None:  # the best so far forfeited too (the starting policy): nothing to fall back to
+            pass
         else:
             threshold = best_score - (1 - self.rollback_fraction) * max(abs(best_score), 1.0)
             if self.rollback and a.score < threshold and a.version_id != best_version:
@@ -238,7 +264,7 @@ def _decide_by_rank(history: History, assessed: list[Assessed], kept: set[str]) 
     ranked = _rank(assessed)
     top = ranked[0]
     decision = Decision(chosen=top.candidate, decisions={}, notes={})
-    if top.tampered is None and (history.best_score is None or top.score > history.best_score):
+    if top.tampered is None and history.beaten_by(top.score):
         decision.new_best = top.candidate
     for a in assessed:
         notes = _with_tampering(a)
@@ -300,9 +326,10 @@ class Beam:
 
     def decide(self, history: History, iteration: int, assessed: list[Assessed]) -> Decision:
         scored = [(c["score"], c["policy_version_id"]) for c in (history.candidate(r) for r in self.beam(history))]
-        scored += [(a.score, a.version_id) for a in assessed if not a.tampered and a.status != "rejected"]
+        scored += [(a.score, a.version_id) for a in assessed
+                   if not a.tampered and a.status != "rejected" and a.score is not None]
         kept, seen = set(), set()
-        for score, version in sorted(scored, key=lambda item: -item[0]):
+        for score, version in sorted(scored, key=lambda item: _descending(item[0])):
             if version not in seen and len(seen) < self.width:
                 kept.add(version)
             seen.add(version)
@@ -337,9 +364,9 @@ class MapElites:
     def archive(self, history: History) -> dict[tuple[int, int], Ref]:
         """Cell -> its elite (the first candidate reaching the cell's best score)."""
         elites: dict[tuple[int, int], tuple[float, Ref]] = {}
-        for score, ref in history.assessed_versions():
+        for score, ref in history.assessed_versions():  # best first: a cell's first is its elite
             cell = self.cell(history.candidate(ref))
-            if cell not in elites or score > elites[cell][0]:
+            if cell not in elites:
                 elites[cell] = (score, ref)
         return {cell: ref for cell, (_, ref) in elites.items()}
 
@@ -359,10 +386,10 @@ class MapElites:
         archive = {cell: history.candidate(ref) for cell, ref in self.archive(history).items()}
         kept = set()
         for a in _rank(assessed):
-            if a.tampered or a.status == "rejected":
+            if a.tampered or a.status == "rejected" or a.score is None:
                 continue
             cell = self.cell(a.behaviour)
-            if cell not in archive or a.score > archive[cell]["score"]:
+            if cell not in archive or rank_key(a.score) > rank_key(archive[cell]["score"]):
                 archive[cell] = {"score": a.score, "policy_version_id": a.version_id}
                 kept.add(a.version_id)
         return _decide_by_rank(history, assessed, kept)

@@ -27,6 +27,7 @@ from pipeline.play.config import EvalConfig  # noqa: F401  (its home; callers im
 from pipeline.settings import check_settings
 from store import Store
 from store.locks import run_lock
+from store.scores import Score, score_episodes
 from store.writer import EpisodeWriter, finish_run, insert_policy_version, insert_run
 from tracing.policy_file import PolicyLoadError, read_policy_file
 
@@ -38,12 +39,20 @@ class EvalResult:
     policy_version_id: str
     outcomes: list[EpisodeOutcome]
 
+    @property
+    def score(self) -> Score:
+        """The episodes' score (``store/scores.py``): the mean of those played out, its interval, the forfeits."""
+        return score_episodes(o.episode for o in self.outcomes)
+
     def summary(self) -> dict:
         """The machine-readable summary printed by ``codearcade eval --json``."""
+        score = self.score
         return {
             "run_id": self.run_id,
             "game": self.game,
             "policy_version_id": self.policy_version_id,
+            "score": {"mean": score.mean, "low": score.low, "high": score.high, "played": score.played,
+                      "forfeits": len(score.forfeits), "forfeit": score.forfeit, "partial_mean": score.partial},
             "episodes": [
                 {
                     "episode_id": o.episode["episode_id"],
@@ -103,13 +112,15 @@ def evaluate(
             trace_lines=config.trace_lines,
             call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s,
             rerun=config.rerun, continues=episode_id(run_id, 0, "eval", i - 1) if one_game and i else None,
+            rng_key=run_id,
         )
         for i in range(config.episodes)
     ]
 
     def create_run() -> None:  # runs while the first episodes play
         with store.write() as con:
-            insert_run(con, run_id, "eval", game, {**asdict(config), "game": game, "policy": str(policy_path)},
+            insert_run(con, run_id, "eval", game, {**asdict(config), "game": game, "policy": str(policy_path),
+                                                   "rng_key": run_id},
                        text, info.version_id, package_versions(), seed=config.seed, name=run_name,
                        made_by=made_by)
             insert_policy_version(con, policy_version_row(info, run_id, 0, produced_by="file",

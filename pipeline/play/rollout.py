@@ -43,6 +43,7 @@ from games import Game, get_game, list_widths
 from games.base import OBSERVATION_VERSION
 from games.envs import discard_env, shared_env
 from pipeline.boundary.policy import ACTION, MAX_ERROR_CHARS, Channel, coerce_action, describe_exception
+from pipeline.play.runinfo import policy_rng_seed
 from pipeline.settings import EpisodeLimits
 from tracing.capture import NodeRecorder
 from tracing.policy_file import PolicyLoadError, load_policy
@@ -104,6 +105,15 @@ class EpisodeSpec:
     Rerun is imported only inside the process that plays the episode (``viewers/rerun_live.py``)."""
     rerun_frames_every: int = 4
     """With ``rerun``: log the screen every this many steps (0: no frames)."""
+    rng_key: str | None = None
+    """The key of the run's random stream for policies (``runinfo.policy_rng_seed``): the policy process's
+    generators are seeded from it and the game's seed, never with the game's seed itself. None: a run recorded
+    before the key existed, whose policies' generators were seeded with the game's seed (kept, so it replays)."""
+
+    @property
+    def policy_seed(self) -> int:
+        """The seed of the policy's ``random`` and NumPy generators in this episode."""
+        return policy_rng_seed(self.rng_key, self.seed) if self.rng_key else self.seed
 
 
 @dataclass
@@ -156,8 +166,8 @@ class LocalPolicy(PolicyChannel):
         self.policy: Any = None
 
     def start(self) -> None:
-        random.seed(self.spec.seed)
-        np.random.seed(self.spec.seed % 2**32)
+        random.seed(self.spec.policy_seed)
+        np.random.seed(self.spec.policy_seed % 2**32)
         try:
             self.policy = load_policy(self.spec.policy_text, self.spec.policy_name).policy
         except PolicyLoadError as exc:
@@ -234,7 +244,7 @@ class RemotePolicy(PolicyChannel):
     def start(self) -> None:
         spec = self.spec
         self.channel.send_json({
-            "op": "start", "policy_text": spec.policy_text, "policy_name": spec.policy_name, "seed": spec.seed,
+            "op": "start", "policy_text": spec.policy_text, "policy_name": spec.policy_name, "seed": spec.policy_seed,
             "trace": spec.trace, "trace_lines": spec.trace_lines, "call_time_limit_s": spec.call_time_limit_s,
             "n_actions": self.n_actions})
         kind, payload = self._receive(LOAD_TIMEOUT_S, "while loading the policy")

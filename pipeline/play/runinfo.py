@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
 import time
 from importlib import metadata
@@ -27,6 +28,19 @@ def episode_id(run_id: str, iteration: int, kind: str, index: int, candidate: in
     if candidate:
         return f"{run_id}.{iteration}.c{candidate}.{kind}.{index}"
     return f"{run_id}.{iteration}.{kind}.{index}"
+
+
+def policy_rng_seed(key: str, game_seed: int) -> int:
+    """The seed of a policy process's ``random`` and NumPy generators for the game of ``game_seed``, in the run
+    whose random stream is ``key`` (its ``rng_key``: the run's id, or the replayed run's).
+
+    A keyed hash (BLAKE2b of the game's seed, keyed with the run's key), so the same run and game seed give the
+    same stream (a resumed or replayed run, and the evaluation cache, see the same policy behaviour) while the
+    policy, which never sees the key, cannot read the game's seed back from what its generators draw, nor carry a
+    table keyed by them from one run to another."""
+    digest = hashlib.blake2b(str(int(game_seed)).encode(), digest_size=8, key=key.encode()[:64],
+                             person=b"codearcade.rng").digest()
+    return int.from_bytes(digest, "big") >> 1
 
 
 def package_versions() -> dict[str, str]:
