@@ -15,7 +15,7 @@ import pyarrow as pa
 Bundle = dict[str, pa.Table]
 
 RUN_TABLES = ("runs", "policy_versions", "policy_lines", "iterations", "candidates", "feedback", "llm_calls",
-              "episodes")
+              "audits", "episodes")
 EPISODE_TABLES = ("steps", "nodes")
 
 _BLOB_HASHES = """

@@ -796,4 +796,100 @@ MIGRATIONS.append(
     )
 )
 
+# The held-out audit (issue 33, item 2): when a run finishes (and on demand, `codearcade audit RUN`), its best
+# version and its starting policy play games on seeds the loop never played (games.base.AUDIT_SEED_BASE + i; kind
+# `audit` in `episodes`), under the standard protocol and the run's own. One row per (run, role, protocol), replaced
+# by the next audit of the run; `overfit` (on the best's standard row) flags a run whose gain over its starter does
+# not hold up on the held-out games (store/scores.py, `overfit`). run_summary shows the audit beside the tuning score.
+MIGRATIONS.append(
+    (
+        13,
+        "audits (the best version and the starter on held-out seeds); audit scores and the overfit flag in "
+        "run_summary",
+        r"""
+        CREATE TABLE audits (
+            run_id              VARCHAR NOT NULL,
+            role                VARCHAR NOT NULL,    -- best | starter
+            protocol            VARCHAR NOT NULL,    -- standard (sticky 0.25, up to 30 no-op starts) | run (its own)
+            policy_version_id   VARCHAR NOT NULL,
+            iteration           INTEGER NOT NULL,    -- the iteration whose version it is (0: the starter)
+            seeds               BIGINT[] NOT NULL,
+            episode_ids         VARCHAR[] NOT NULL,
+            score               DOUBLE,              -- mean return of the games (NULL: one was forfeited)
+            score_low           DOUBLE,              -- its 95% bootstrap interval
+            score_high          DOUBLE,
+            forfeit             VARCHAR,             -- what ended a forfeited game
+            tuning_score        DOUBLE,              -- the version's score in the loop, on the tuning seeds
+            overfit             BOOLEAN,             -- best, standard: its gain over the starter did not hold up
+            created_at          TIMESTAMP NOT NULL,
+            PRIMARY KEY (run_id, role, protocol)
+        );
+        COMMENT ON TABLE audits IS 'the held-out audit of each run: its best version and its starter on seeds the loop never played, under the standard protocol and its own';
+
+        CREATE OR REPLACE VIEW run_summary AS
+        WITH it AS (
+            SELECT run_id, (count(*) FILTER (WHERE iteration >= 1))::INTEGER AS iterations_done,
+                   max(best_score) AS best_score, arg_max(best_iteration, iteration) AS best_iteration,
+                   arg_max(score, iteration) AS last_score
+            FROM iterations GROUP BY run_id
+        ), ep AS (
+            SELECT run_id, count(*)::INTEGER AS episodes, sum(length)::BIGINT AS steps,
+                   avg("return") FILTER (WHERE kind = 'eval' AND end_reason IN ('terminated', 'truncated'))
+                       AS mean_eval_return,
+                   (count(*) FILTER (WHERE kind = 'eval' AND end_reason NOT IN ('terminated', 'truncated')))::INTEGER
+                       AS eval_forfeits
+            FROM episodes GROUP BY run_id
+        ), cand AS (
+            SELECT run_id, (count(*) FILTER (WHERE forfeit IS NOT NULL))::INTEGER AS forfeits
+            FROM candidates GROUP BY run_id
+        ), calls AS (
+            SELECT run_id, count(*)::INTEGER AS llm_calls,
+                   coalesce(sum(input_tokens), 0)::BIGINT AS input_tokens,
+                   coalesce(sum(output_tokens), 0)::BIGINT AS output_tokens,
+                   sum(cost_usd) AS cost_usd
+            FROM llm_calls GROUP BY run_id
+        ), audit AS (
+            SELECT run_id,
+                   any_value(score) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_score,
+                   any_value(score_low) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_low,
+                   any_value(score_high) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_high,
+                   any_value(score) FILTER (WHERE role = 'best' AND protocol = 'run') AS audit_run_score,
+                   any_value(score) FILTER (WHERE role = 'starter' AND protocol = 'standard') AS starter_audit_score,
+                   any_value(overfit) FILTER (WHERE role = 'best' AND protocol = 'standard') AS overfit
+            FROM audits GROUP BY run_id
+        )
+        SELECT r.run_id, r.name, r.created_at, r.finished_at, r.kind, r.game, r.model, r.seed, r.status,
+               json_extract_string(r.config, '$.policy') AS policy,
+               CASE WHEN r.kind <> 'eval' THEN coalesce(json_extract_string(r.config, '$.strategy'), 'greedy')
+               END AS strategy,
+               CASE WHEN r.kind <> 'eval' THEN json_extract_string(r.config, '$.feedback') END AS feedback,
+               json_extract_string(r.config, '$.batch') AS batch,
+               r.made_by,
+               coalesce(it.iterations_done, 0) AS iterations_done,
+               TRY_CAST(json_extract(r.config, '$.iterations') AS INTEGER) AS iterations_planned,
+               CASE WHEN r.kind = 'eval' THEN ep.mean_eval_return ELSE it.best_score END AS best_score,
+               it.best_iteration, it.last_score,
+               coalesce(ep.episodes, 0) AS episodes, coalesce(ep.steps, 0) AS steps,
+               coalesce(calls.llm_calls, 0) AS llm_calls,
+               coalesce(calls.input_tokens, 0) AS input_tokens,
+               coalesce(calls.output_tokens, 0) AS output_tokens,
+               (coalesce(calls.input_tokens, 0) + coalesce(calls.output_tokens, 0))::BIGINT AS total_tokens,
+               calls.cost_usd,
+               epoch(r.finished_at - r.created_at) AS duration_s,
+               r.error,
+               CASE WHEN r.kind = 'eval' THEN coalesce(ep.eval_forfeits, 0) ELSE coalesce(cand.forfeits, 0)
+               END AS forfeits,
+               audit.audit_score, audit.audit_low, audit.audit_high, audit.audit_run_score,
+               audit.starter_audit_score, audit.overfit
+        FROM runs r
+        LEFT JOIN it ON it.run_id = r.run_id
+        LEFT JOIN ep ON ep.run_id = r.run_id
+        LEFT JOIN cand ON cand.run_id = r.run_id
+        LEFT JOIN calls ON calls.run_id = r.run_id
+        LEFT JOIN audit ON audit.run_id = r.run_id;
+        COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: label, settings, status, best score, forfeits, audit, episodes, tokens';
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

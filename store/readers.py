@@ -152,6 +152,33 @@ def last_iteration(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any
     return rows[0] if rows else None
 
 
+def audit_subjects(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict[str, Any]]:
+    """What a run's audit plays: its best version (role ``best``) and its starting policy (``starter``), each
+    with its iteration, its tuning score and its policy text; one row when the best is the starter (no rows for a
+    run without iterations)."""
+    return _rows(con.execute(
+        """WITH last AS (SELECT best_version_id, best_iteration, best_score FROM iterations WHERE run_id = $run
+                         ORDER BY iteration DESC LIMIT 1),
+                subjects AS (
+                    SELECT 'best' AS role, best_version_id AS policy_version_id, best_iteration AS iteration,
+                           best_score AS tuning_score FROM last
+                    UNION ALL
+                    SELECT 'starter', i.policy_version_id, 0, i.score FROM iterations i
+                    WHERE i.run_id = $run AND i.iteration = 0)
+           SELECT s.role, s.policy_version_id, s.iteration, s.tuning_score, b.text AS policy_text
+           FROM subjects s
+           JOIN (SELECT policy_version_id, any_value(source_hash) AS source_hash FROM policy_versions
+                 WHERE run_id = $run GROUP BY policy_version_id) v USING (policy_version_id)
+           JOIN blobs b ON b.hash = v.source_hash
+           ORDER BY s.role""", {"run": run_id}))
+
+
+def audits(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict[str, Any]]:
+    """A run's ``audits`` rows (best first, the standard protocol first)."""
+    return _rows(con.execute(
+        "SELECT * FROM audits WHERE run_id = ? ORDER BY role, protocol DESC", [run_id]))
+
+
 def iteration_count(con: duckdb.DuckDBPyConnection, run_id: str) -> int:
     return con.execute("SELECT count(*) FROM iterations WHERE run_id = ?", [run_id]).fetchone()[0]
 

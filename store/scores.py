@@ -18,7 +18,7 @@ the ``episodes`` table, but it is never averaged into a score as if the game had
 - ``partial``: the mean return of all the episodes, forfeits at their partial return: what the model is told the
   policy had scored when it stopped, kept in ``candidates.forfeit_score``.
 
-``codearcade eval`` prints the mean and names the forfeits beside it (``mean -20.0 over 2 episodes; 1 forfeit:
+``codearcade eval`` prints the mean and names the forfeits beside it (``mean return -20 over 2 episodes; 1 forfeit:
 RuntimeError at step 300``). :func:`difference` says whether two sets of returns differ by more than the noise
 (a bootstrap interval of the difference of their means), and :func:`iqm` aggregates over games or seeds as
 rliable recommends: the interquartile mean with a stratified bootstrap interval (each stratum resampled on its
@@ -104,12 +104,13 @@ class Score:
                 f"{first.describe()} ({first.end_reason}){more}")
 
     def summary(self) -> str:
-        """``mean -20 [-21, -19] over 2 episodes; 1 forfeit: RuntimeError at step 300`` for people."""
+        """``mean return -19.5 [-20, -19] over 2 episodes; 1 forfeit: RuntimeError at step 300`` for people (the
+        95% interval when the returns differ)."""
         if self.mean is None:
             text = f"no episode played out of {self.episodes}"
         else:
-            band = f" [{self.low:g}, {self.high:g}]" if self.low is not None else ""
-            text = f"mean {self.mean:g}{band} over {self.played} episode{'s' * (self.played != 1)}"
+            band = f" [{self.low:g}, {self.high:g}]" if self.low is not None and self.low != self.high else ""
+            text = f"mean return {self.mean:g}{band} over {self.played} episode{'s' * (self.played != 1)}"
         if self.forfeits:
             names = ", ".join(f.describe() for f in self.forfeits[:3]) + (", ..." if len(self.forfeits) > 3 else "")
             text += f"; {len(self.forfeits)} forfeit{'s' * (len(self.forfeits) != 1)}: {names}"
@@ -235,6 +236,22 @@ def iqm(strata: Sequence[Sequence[float]], confidence: float = CONFIDENCE
     result = stats.bootstrap(tuple(varying), statistic, vectorized=True, paired=False, confidence_level=confidence,
                              n_resamples=RESAMPLES, method="percentile", random_state=np.random.default_rng(SEED))
     return point, float(result.confidence_interval.low), float(result.confidence_interval.high)
+
+
+def overfit(tuning_best: float | None, tuning_starter: float | None, audit_best: float | None,
+            audit_starter: float | None) -> bool:
+    """Whether a run's held-out audit says its best version was fitted to the tuning games: the best forfeited
+    an audit game, or less than half of the gain it showed over the starting policy on the tuning seeds is left
+    on the audit seeds (both measured against the starter on the same games, so a harder protocol alone, where
+    every policy scores less, is not taken for overfitting). A run whose best did not beat its starter claims no
+    gain and is never flagged."""
+    if tuning_best is None or tuning_starter is None or tuning_best <= tuning_starter:
+        return False
+    if audit_best is None:
+        return True
+    gain = tuning_best - tuning_starter
+    reference = audit_starter if audit_starter is not None else tuning_starter
+    return audit_best - reference < gain / 2
 
 
 _ERROR_NAME = re.compile(r"\s*([A-Za-z_][A-Za-z0-9_.]*(?:Error|Exception|Exit|Interrupt|Timeout|Warning))\b")

@@ -36,6 +36,8 @@ def report_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
                       "ORDER BY iteration, kind, episode_index"),
         "versions": q("SELECT policy_version_id, iteration, produced_by, validation, loc, sloc, complexity, "
                       "max_if_depth, functions FROM policy_versions WHERE run_id = ? ORDER BY iteration"),
+        "audits": q("SELECT role, protocol, iteration, policy_version_id, seeds, score, score_low, score_high, "
+                    "forfeit, tuning_score, overfit FROM audits WHERE run_id = ? ORDER BY role, protocol DESC"),
     }
 
 

@@ -28,7 +28,7 @@ from store.db import Store, StoreError
 from store.runs import SQL_MACROS, create_sql_macros, references_by_value, resolve_run_id  # noqa: F401 (resolve_run_id: for callers)
 
 TABLES = ("runs", "blobs", "policy_versions", "episodes", "steps", "nodes", "policy_lines", "iterations", "candidates",
-          "feedback", "llm_calls", "published_scores", "schema_migrations")
+          "feedback", "llm_calls", "audits", "published_scores", "schema_migrations")
 """The tables, in the order docs/schema.md documents them."""
 
 VIEWS = ("learning_curve", "code_metrics", "llm_usage", "rejected_candidates", "run_summary", "lineage", "frontier",

@@ -221,6 +221,13 @@ def insert_candidate(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -> Non
     _insert(con, "candidates", row)
 
 
+def replace_audits(con: duckdb.DuckDBPyConnection, run_id: str, rows: list[dict[str, Any]]) -> None:
+    """The run's ``audits`` rows, replacing those of an earlier audit of the run."""
+    con.execute("DELETE FROM audits WHERE run_id = ?", [run_id])
+    for row in rows:
+        _insert(con, "audits", {"created_at": utcnow(), **row, "run_id": run_id})
+
+
 def insert_iteration(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -> None:
     """Insert the ``iterations`` row that completes an iteration (the candidate its strategy chose)."""
     _insert(con, "iterations", row)

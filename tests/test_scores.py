@@ -65,7 +65,7 @@ def test_the_rule():
     mixed = score_episodes(played + [forfeit])
     assert mixed.ranked is None, "a forfeited assessment has no score to rank"
     assert mixed.mean == -19.5 and mixed.partial == pytest.approx(-46 / 3), "forfeits are named, never averaged in"
-    assert mixed.summary() == "mean -19.5 [-20, -19] over 2 episodes; 1 forfeit: RuntimeError at step 300"
+    assert mixed.summary() == "mean return -19.5 [-20, -19] over 2 episodes; 1 forfeit: RuntimeError at step 300"
     assert mixed.forfeit == "1 of 3 episodes forfeited: RuntimeError at step 300 (policy_error)"
     timeout = score_episodes([{"return": 3.0, "end_reason": "timeout", "length": 12, "error": "the call took 2 s"}])
     assert timeout.mean is None and timeout.summary() == "no episode played out of 1; 1 forfeit: timeout at step 12"

@@ -159,9 +159,12 @@ def test_llm_usage_and_run_summary(runs):
     assert (s["kind"], s["game"], s["model"], s["status"]) == ("optimize", "pong", "openai/scripted", "finished")
     assert (s["iterations_done"], s["iterations_planned"], s["best_iteration"]) == (5, 5, 1)
     assert s["best_score"] == max(r[0] for r in store.query("SELECT score FROM iterations"))
-    played = store.query("SELECT count(*) FROM episodes WHERE run_id = ?", [run_id])[0][0]
+    played = store.query("SELECT count(*) FROM episodes WHERE run_id = ? AND kind <> 'audit'", [run_id])[0][0]
     assert played == 3 * 3, "iterations 0-2 played; 3-5 fell back to the best version and reused its episodes"
-    assert s["episodes"] == played and s["total_tokens"] == sum(tokens) and s["duration_s"] > 0
+    audited = store.query("SELECT count(*) FROM episodes WHERE run_id = ? AND kind = 'audit'", [run_id])[0][0]
+    assert audited == 2 * 2 * 3, "the held-out audit: the best and the starter, two protocols, three games each"
+    assert s["episodes"] == played + audited and s["total_tokens"] == sum(tokens) and s["duration_s"] > 0
+    assert s["audit_score"] is not None and s["overfit"] is not None
     returns = [r[0] for r in store.query("SELECT return FROM episodes WHERE run_id = ?", [eval_id])]
     assert (e["kind"], e["model"], e["iterations_done"], e["iterations_planned"]) == ("eval", None, 0, None)
     assert e["best_score"] == pytest.approx(sum(returns) / 3) and e["steps"] == 3 * 200 and e["total_tokens"] == 0

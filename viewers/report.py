@@ -381,6 +381,14 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
         facts.append(f"best score **{_md(summary['best_score'])}** (iteration {_md(summary['best_iteration'])})")
         if forfeits:
             facts.append(f"{forfeits} candidate(s) forfeited a game (never the best)")
+        if summary.get("audit_score") is not None or summary.get("overfit") is not None:
+            held = _md(summary["audit_score"]) if summary["audit_score"] is not None else "forfeit"
+            band = (f" [{_md(summary['audit_low'])}, {_md(summary['audit_high'])}]"
+                    if summary.get("audit_low") is not None and summary["audit_low"] != summary["audit_high"] else "")
+            facts.append(f"held-out audit **{held}**{band} (standard protocol; starter "
+                         f"{_md(summary['starter_audit_score'])})" + (" · **OVERFIT**: less than half of the gain "
+                                                                      "over the starter holds up" if summary["overfit"]
+                                                                      else ""))
         facts.append(f"{summary['total_tokens']:,} LLM tokens")
     facts.append(f"created {_md(run['created_at'])}")
     out += [" · ".join(facts), ""]
@@ -414,6 +422,18 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                 "those of the version evaluated (`code_metrics`); tokens are those of the iteration's LLM calls.", "",
                 _md_table(("iteration", "update", "score", "best", "train", "LOC", "SLOC", "complexity", "if depth",
                            "tokens in", "tokens out", "wall s", "version"), rows), ""]
+        if data.get("audits"):
+            out += ["## Held-out audit", "",
+                    "The best version and the starting policy on seeds the loop never played (from 1,000,000), "
+                    "under the standard protocol (sticky actions 0.25, up to 30 no-op starts) and the run's own; "
+                    "tuning: its score on the seeds the loop selected on. Overfit: less than half of the best's "
+                    "gain over the starter holds up (`codearcade audit` plays it again).", "",
+                    _md_table(("version", "iteration", "protocol", "games", "score", "95% interval", "tuning",
+                               "overfit"),
+                              [(a["role"], a["iteration"], a["protocol"], len(a["seeds"]),
+                                a["score"] if a["score"] is not None else f"forfeit: {terminal_text(a['forfeit'])}",
+                                f"{_md(a['score_low'])} – {_md(a['score_high'])}", a["tuning_score"], a["overfit"])
+                               for a in data["audits"]]), ""]
         if data["rejected"]:
             out += ["## Rejected candidates", "", _md_table(
                 ("iteration", "stage", "reason"),

@@ -223,6 +223,8 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
         })
     else:
         show(f"run {short} {result.status}" + (f": {error}" if error else ""))
+        for line in result.audit.lines() if result.audit is not None else []:
+            show(line)
     if result.status == "budget":
         show(f"codearcade: run {short} stopped by its budget; continue it with a larger one: "
              f"`{_resume_command(store, short, '--max-...')}`", file=sys.stderr)

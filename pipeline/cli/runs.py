@@ -42,6 +42,14 @@ def _policy(row: dict) -> str | None:
     return "scaffold" if row["kind"] in ("optimize", "replay") else None
 
 
+def _audit(row: dict) -> str | None:
+    """The best version's held-out score (standard protocol), beside the tuning score: ``11.5 OVERFIT``."""
+    if row.get("audit_score") is None and row.get("overfit") is None:
+        return None
+    score = "forfeit" if row["audit_score"] is None else f"{round(row['audit_score'], 2):g}"
+    return score + (" OVERFIT" if row.get("overfit") else "")
+
+
 COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has a value in is left out
     ("run", lambda r: r["short_id"]),
     ("name", lambda r: r["name"]),
@@ -58,6 +66,8 @@ COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has
     ("iterations", lambda r: None if r["kind"] == "eval"
      else f"{r['iterations_done']}/{r['iterations_planned'] or '?'}"),
     ("best", lambda r: None if r["best_score"] is None else round(r["best_score"], 2)),
+    ("forfeits", lambda r: r.get("forfeits") or None),
+    ("audit", lambda r: _audit(r)),
     ("episodes", lambda r: r["episodes"]),
     ("tokens", lambda r: r["total_tokens"] or None),
 )

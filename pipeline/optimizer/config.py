@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from games import GAMES
-from games.base import OBSERVATION_VERSION, UNRECORDED_OBSERVATION, one_life_setting
+from games.base import AUDIT_SEED_BASE, OBSERVATION_VERSION, UNRECORDED_OBSERVATION, one_life_setting
 from games.generic import GENERIC_EVAL_MAX_STEPS
 from pipeline.llm.client import MAX_TOKENS, OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET
 from pipeline.optimizer.strategies import STRATEGIES, make_strategy
@@ -188,6 +188,13 @@ class OptimizeConfig:
         True, "show repeated steps of the prompt's trace as one line", cli=False, before_recorded=False)
     """In the prompt's trace, show a run of consecutive steps whose calls, outputs and actions repeat as one line
     with its step range (more of the steps that matter fit the token budget)."""
+    audit_episodes: int = setting(
+        3, "when the run finishes, play the best version and the starting policy in N held-out games each (seeds "
+        "from 1,000,000, never played by the loop nor shown to the model), under the standard protocol and the "
+        "run's own; 0: no audit (default: 3)", metavar="N", minimum=0, group="search", resumable=True,
+        run_key="never")
+    """The held-out audit (``pipeline/optimizer/audit.py``): games per version and protocol on the audit seeds
+    (``games.base.AUDIT_SEED_BASE``), played when the run finishes; it never changes what the loop chose."""
     eval_cache: bool = setting(
         True, "play every version's episodes again instead of reusing those of an earlier assessment",
         group="search")
@@ -218,6 +225,11 @@ def validate_config(config: OptimizeConfig) -> None:
     """ValueError (one line naming the flag) for a setting out of range: the one check the CLI, batch files and
     ``--resume`` share. Each setting's own checks are declared with it; here are those between settings."""
     check_settings(config)
+    tuning_seeds = max(config.eval_episodes, config.robust_episodes, 1)
+    if config.seed < 0 or config.seed + tuning_seeds > AUDIT_SEED_BASE:
+        raise ValueError(f"--seed must be from 0 to {AUDIT_SEED_BASE - tuning_seeds}: the tuning "
+                         f"seeds (--seed and the seeds after it) stay below the held-out audit seeds, which start at "
+                         f"{AUDIT_SEED_BASE:,}")
     if config.optimize_protocol == "standard" and config.robust_episodes < 1:
         raise ValueError("--optimize-for standard needs --robust-episodes N (N >= 1): the episodes its score is "
                          "the mean of")

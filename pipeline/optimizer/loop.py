@@ -104,6 +104,8 @@ class OptimizeResult:
     status: str
     iterations: list[IterationResult] = field(default_factory=list)
     error: str | None = None
+    audit: Any = None
+    """The held-out audit played when the run ended (``pipeline/optimizer/audit.py``: an ``AuditResult``)."""
 
 
 def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
@@ -372,11 +374,14 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
         status, error = "finished", _all_updates_failed(store, state.run_id)
         if error is not None:
             status = "failed"
+        else:
+            result.audit = _audit(store, state, log, progress, hold)
     except KeyboardInterrupt:
         status, error = "interrupted", "interrupted by the user; continue with --resume"
         raise
     except BudgetExhausted as exc:
         status, error = "budget", f"{exc}; continue with a larger budget and --resume"
+        result.audit = _audit(store, state, log, progress, hold)
     except LLMError as exc:
         status, error = "failed", f"the LLM call failed: {exc}"
     except Exception as exc:
@@ -390,6 +395,22 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
         finally:
             hold.release()
     return result
+
+
+def _audit(store: Store, state: RunState, log: Callable[[str], None], progress, hold: Hold):
+    """The held-out audit of the run's best version and starter (``audit_episodes`` games each; none: 0). It only
+    measures: a failure is logged and leaves the run as it is (``codearcade audit RUN`` plays it again)."""
+    from pipeline.optimizer.audit import audit_run
+
+    if not state.config.audit_episodes:
+        return None
+    hold.release()  # playing takes a while: let readers in
+    try:
+        return audit_run(store, state.run_id, progress=progress)
+    except Exception as exc:  # noqa: BLE001 - the run's iterations are stored; the audit can be played again
+        log(f"codearcade: the held-out audit failed ({type(exc).__name__}: {exc}); play it with "
+            f"`codearcade audit {state.run_id}`")
+        return None
 
 
 def _all_updates_failed(store: Store, run_id: str) -> str | None:

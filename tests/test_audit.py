@@ -1,0 +1,106 @@
+"""The held-out audit (pipeline/optimizer/audit.py): a memorised game is caught, a policy that plays is not.
+
+Under the paper's protocol every seed is the same game, so a policy that replays the moves the competent policy
+made in it scores exactly as the competent policy does. The audit plays the best version on seeds the loop never
+played under the standard protocol, where the replay falls apart: its run is flagged, the honest run is not.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import textwrap
+
+import pytest
+
+from games.base import AUDIT_SEED_BASE
+from pipeline.cli import main
+from pipeline.llm.client import LiteLLMClient
+from pipeline.optimizer.config import OptimizeConfig, validate_config
+from pipeline.optimizer.loop import optimize
+from tests.conftest import COMPETENT_REPLY, json_reply
+
+STEPS = 1000
+POLICIES = __import__("pathlib").Path(__file__).parent / "policies"
+
+
+def _cli(*argv: str) -> tuple[int, str]:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(list(argv))
+    return code, out.getvalue()
+
+
+@pytest.fixture(scope="module")
+def competent_moves(tmp_path_factory) -> tuple[list[int], float]:
+    """The competent policy's actions in the first STEPS steps of Pong under the paper's protocol, and its return."""
+    from store import Store
+
+    store = Store(tmp_path_factory.mktemp("moves") / "moves.duckdb")
+    code, _ = _cli("eval", str(POLICIES / "pong_competent.py"), "--max-steps", str(STEPS), "--store", str(store.path))
+    assert code == 0
+    actions = [a for (a,) in store.query("SELECT action FROM steps ORDER BY step")]
+    [(score,)] = store.query("SELECT return FROM episodes")
+    return actions, score
+
+
+def replay_reply(actions: list[int]) -> str:
+    """A suggestion that ignores the game and replays ``actions`` step by step."""
+    select = textwrap.dedent(f"""\
+        def select_action(self, predicted_ball_y, obs):
+            moves = {actions!r}
+            self.t = getattr(self, "t", -1) + 1
+            return moves[self.t] if self.t < len(moves) else 0
+        """)
+    return json_reply({"select_action": select})
+
+
+def _run(store, model) -> tuple[object, dict]:
+    config = OptimizeConfig(game="pong", iterations=1, eval_max_steps=STEPS, rollout_steps=40, workers=2,
+                            token_budget=8000, audit_episodes=3)
+    result = optimize(config, store, LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05))
+    assert result.status == "finished", result.error
+    code, out = _cli("runs", "--json", "--store", str(store.path))
+    [summary] = json.loads(out)
+    return result, summary
+
+
+def test_a_replayed_game_matches_the_policy_it_copies_and_fails_the_audit(store, scripted, competent_moves):
+    actions, competent_score = competent_moves
+    result, summary = _run(store, scripted([replay_reply(actions)]))
+    it0, it1 = result.iterations
+    assert it1.update_status == "accepted" and it1.score == competent_score, "the same game, move for move"
+    assert it1.best_iteration == 1 and it1.score > it0.score
+    audit = result.audit
+    best, starter = audit.row("best", "standard"), audit.row("starter", "standard")
+    assert best["seeds"] == [AUDIT_SEED_BASE + i for i in range(3)]
+    assert best["tuning_score"] == competent_score and starter["tuning_score"] == it0.score
+    # on held-out games under sticky actions the replay is no better than the random starter
+    assert best["score"] - starter["score"] < (competent_score - it0.score) / 2, audit.rows
+    assert audit.overfit and summary["overfit"] is True and summary["audit_score"] == best["score"]
+    episodes = store.query("SELECT kind, count(*), min(seed), bool_and(sticky = 0.25) FILTER (WHERE episode_id LIKE "
+                           "'%audit-standard%') FROM episodes WHERE kind = 'audit' GROUP BY kind")
+    assert episodes == [("audit", 12, AUDIT_SEED_BASE, True)], "2 versions x 2 protocols x 3 games, stored as audit"
+    prompts = store.query("SELECT count(*) FROM llm_calls c JOIN blobs b ON b.hash = c.prompt_hash "
+                          "WHERE b.text LIKE '%audit%' OR b.text LIKE '%1000000%'")
+    assert prompts == [(0,)], "no prompt shows the audit"
+    code, out = _cli("runs", "--store", str(store.path))
+    assert code == 0 and "OVERFIT" in out
+
+
+def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
+    result, summary = _run(store, scripted([COMPETENT_REPLY]))
+    best, starter = result.audit.row("best", "standard"), result.audit.row("starter", "standard")
+    assert best["score"] - starter["score"] >= (best["tuning_score"] - starter["tuning_score"]) / 2, result.audit.rows
+    assert not result.audit.overfit and summary["overfit"] is False
+    # on demand, again, with more games: the run's audit is replaced, not added to
+    code, out = _cli("audit", "last", "--episodes", "4", "--json", "--store", str(store.path))
+    assert code == 0 and len(json.loads(out)["audits"][0]["seeds"]) == 4
+    assert store.query("SELECT count(*) FROM audits") == [(4,)]
+
+
+def test_tuning_seeds_stay_below_the_audit_seeds():
+    with pytest.raises(ValueError, match="1,000,000"):
+        validate_config(OptimizeConfig(game="pong", seed=AUDIT_SEED_BASE - 1, eval_episodes=3))
+    validate_config(OptimizeConfig(game="pong", seed=AUDIT_SEED_BASE - 3, eval_episodes=3))
