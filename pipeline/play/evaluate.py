@@ -86,12 +86,15 @@ def evaluate(
     run_name: str | None = None,
     made_by: str | None = None,
     on_start: Callable[[str], None] | None = None,
+    rng_key: str | None = None,
 ) -> EvalResult:
     """Evaluate the policy file at ``policy_path``; see the module docstring. Raises PolicyLoadError,
     UnknownGameError or StoreError with one-line messages for bad input, before anything is stored.
 
     ``run_name`` labels the run and ``made_by`` marks one a command plays for its own use (``runs.name``,
-    ``runs.made_by``); ``on_start`` gets the run id once its row is stored."""
+    ``runs.made_by``); ``on_start`` gets the run id once its row is stored. ``rng_key`` keys the policy's random
+    stream (``EpisodeSpec.rng_key``; default: the new run's id): two evaluations given the same key draw the same
+    numbers on the same seeds (``codearcade compare`` plays both versions so)."""
     check_settings(config)
     one_life = one_life_setting(config.one_life)
     text = read_policy_file(policy_path)
@@ -102,6 +105,7 @@ def evaluate(
     with store.write():  # creates or upgrades the store, and refuses a damaged one, before anything plays
         pass
     run_id = new_run_id()
+    rng_key = rng_key or run_id
     one_game = one_life == ONE_LIFE_CONTINUE  # the authors' protocol: the episodes are the lives of one game
     specs = [
         EpisodeSpec(
@@ -112,7 +116,7 @@ def evaluate(
             trace_lines=config.trace_lines,
             call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s,
             rerun=config.rerun, continues=episode_id(run_id, 0, "eval", i - 1) if one_game and i else None,
-            rng_key=run_id,
+            rng_key=rng_key,
         )
         for i in range(config.episodes)
     ]
@@ -120,7 +124,7 @@ def evaluate(
     def create_run() -> None:  # runs while the first episodes play
         with store.write() as con:
             insert_run(con, run_id, "eval", game, {**asdict(config), "game": game, "policy": str(policy_path),
-                                                   "rng_key": run_id},
+                                                   "rng_key": rng_key},
                        text, info.version_id, package_versions(), seed=config.seed, name=run_name,
                        made_by=made_by)
             insert_policy_version(con, policy_version_row(info, run_id, 0, produced_by="file",
