@@ -25,6 +25,8 @@ SMALLEST = {
     "prompt_density.py": (["--budgets", "3000"], ["steps/1k before", "competent"]),
     "optimizer_overhead.py": (["--iterations", "2", "--delay", "0.5", "--eval-max-steps", "200"],
                               ["overhead / wall =", "LLM calls", "environment"]),
+    "file_view.py": (["--limit", "2000", "--top", "3"], ["files listed:", "readable (os.open O_RDONLY):",
+                                                        "below the read rules:", "tests/policies/pong_competent.py"]),
     "cascade_steps.py": (["--iterations", "3", "--eval-max-steps", "400", "--screen-steps", "100"],
                          ["steps cheap / baseline =", "same best-so-far curve"]),
 }

@@ -8,8 +8,9 @@ policy code is loaded, and make the operating system the boundary:
   zygote; every worker inherits it): no network at all, not even 127.0.0.1 or abstract Unix sockets;
 - scratch directories on a small tmpfs in the zygote's own mount namespace (:func:`scratch_tmpfs`): what
   workers can write is bounded in all, and invisible to (and gone for) the rest of the machine;
-- Landlock (ABI probed with ``landlock_create_ruleset(NULL, 0, VERSION)``): reads only below the Python
-  installation, site-packages (ROMs included), system libraries and the project's own packages; writes only
+- Landlock (ABI probed with ``landlock_create_ruleset(NULL, 0, VERSION)``): reads only what a policy process
+  imports from (``pipeline/boundary/view.py``: the standard library, the allowed packages, what its zygote loaded,
+  never the emulator, the project's tests, examples or stores); writes only
   in the episode's scratch directory (and a requested Rerun recording directory); from ABI 4 no TCP bind or
   connect, from ABI 6 no signals to processes outside the worker and no abstract Unix sockets;
 - a seccomp filter (classic BPF written here): ``execve``/``execveat``, ``fork``/``vfork``, ``clone`` without
@@ -29,16 +30,14 @@ every run (see :func:`weak_sandbox_allowed`).
 from __future__ import annotations
 
 import ctypes
-import functools
 import os
 import platform
 import resource
 import struct
-import sys
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
+from pipeline.boundary.view import EMULATOR_PACKAGES, carve, read_paths  # noqa: F401 (the view's API, here too)
 from pipeline.settings import EpisodeLimits
 
 WEAK_ENV = "CODEARCADE_ALLOW_WEAK_SANDBOX"
@@ -445,87 +444,6 @@ class Limits:
     open_files: int = 256
     write_paths: list[str] = field(default_factory=list)
     """Directories the worker may write below (its scratch directory, a Rerun recording directory)."""
-
-
-EMULATOR_PACKAGES = ("ale_py", "ocatari", "gymnasium")
-"""What a policy process may never read (nor so import): the emulator, its ROMs, the object extractors and the
-environment API. The game runs in the host process (``pipeline/play``); the policy sees observations only."""
-
-
-@functools.cache
-def read_paths() -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """(paths readable below, directories that may only be listed): Python, site-packages, system
-    libraries, the project's packages (not the project directory's other files, such as a store), minus
-    :data:`EMULATOR_PACKAGES` wherever they are installed (:func:`carve`).
-
-    Computed once per process: the policy zygote computes it for its filesystem view and every worker it forks
-    inherits the answer (walking site-packages again cost each worker several ms)."""
-    import site
-
-    read = {sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix,
-            os.path.dirname(os.path.realpath(sys.executable)), "/usr/lib", "/usr/lib64", "/lib", "/lib64",
-            "/usr/local/lib", "/etc/ld.so.cache", "/usr/share/zoneinfo", "/etc/localtime", "/dev/urandom",
-            "/dev/null"}
-    try:
-        read.update(site.getsitepackages())
-    except AttributeError:
-        pass
-    project = Path(__file__).resolve().parents[2]
-    list_only = {str(project)}
-    for sub in project.iterdir():
-        if (sub / "__init__.py").exists():
-            read.add(str(sub))
-    return tuple(carve(sorted(read), emulator_paths())), tuple(sorted(list_only))
-
-
-def emulator_paths() -> list[str]:
-    """Where :data:`EMULATOR_PACKAGES` are installed (their package directories, native libraries and metadata),
-    found without importing them."""
-    import glob
-    import importlib.util
-
-    found: list[str] = []
-    for name in EMULATOR_PACKAGES:
-        try:
-            spec = importlib.util.find_spec(name)
-        except (ImportError, ValueError):
-            spec = None
-        locations = list(spec.submodule_search_locations or []) if spec is not None else []
-        if spec is not None and spec.origin and not locations:
-            locations = [spec.origin]
-        for location in locations:
-            location = os.path.realpath(location)
-            found.append(location)
-            parent = os.path.dirname(location)
-            found += glob.glob(os.path.join(parent, f"{name}.libs")) + glob.glob(os.path.join(parent, f"{name}-*.dist-info"))
-    return sorted(set(found))
-
-
-def carve(allowed: list[str], forbidden: list[str]) -> list[str]:
-    """``allowed`` with every path in ``forbidden`` taken out: an allowed directory that contains a forbidden path
-    is replaced by its entries (and so on down the way to it), all but the forbidden one. Landlock only ever adds
-    rights, so what it must not grant has to be left out of the rules."""
-    forbidden = [os.path.realpath(f) for f in forbidden]
-    out: list[str] = []
-
-    def add(path: str) -> None:
-        real = os.path.realpath(path)
-        if any(real == f or real.startswith(f + os.sep) for f in forbidden):
-            return
-        inside = [f for f in forbidden if f.startswith(real.rstrip(os.sep) + os.sep)]
-        if not inside or not os.path.isdir(real):
-            out.append(path)
-            return
-        try:
-            entries = sorted(os.listdir(real))
-        except OSError:
-            return
-        for entry in entries:
-            add(os.path.join(real, entry))
-
-    for path in allowed:
-        add(path)
-    return sorted(set(out))
 
 
 def confine(limits: Limits, strict: bool = True) -> list[str]:

@@ -3,7 +3,7 @@
 :func:`warm` imports the modules of the zygote's tasks once: the game zygote's host task brings the rollout stack
 (gymnasium, ALE, OCAtari's extractors: about 1.5 s); the policy zygote's tasks bring only the tracing layer, numpy
 and the validation code, and :func:`warm` then checks that nothing pulled in the emulator stack
-(:data:`~pipeline.boundary.confine.EMULATOR_PACKAGES`: a policy process must have no emulator in memory, and
+(:data:`~pipeline.boundary.view.EMULATOR_PACKAGES`: a policy process must have no emulator in memory, and
 cannot read one from disk either). It also makes pyarrow's first array and IPC stream (about 0.25 s). Paying
 these once in the zygote instead of in every worker is what makes a fresh worker per episode cheap.
 
@@ -19,7 +19,7 @@ from typing import Iterable
 
 import pyarrow as pa
 
-from pipeline.boundary.confine import EMULATOR_PACKAGES
+from pipeline.boundary.view import EMULATOR_PACKAGES
 from pipeline.boundary.wire import arrow_frame
 from tracing.capture import NodeRecorder
 

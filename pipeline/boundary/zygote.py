@@ -246,6 +246,9 @@ def main(argv: list[str]) -> int:
     if not role.confined:
         missing = []  # hosts run no untrusted code: namespaces are a tidiness there, not a defence
     else:
+        # the file view is derived from what this process loaded (pipeline/boundary/view.py): computed here, after
+        # the preload, before the probe and the workers, which inherit it (also when there is no minimal root)
+        confine.read_paths()
         try:
             confine.scratch_tmpfs(scratch_base)
         except OSError as exc:
