@@ -64,7 +64,8 @@ def forged(table, pa=pa, wire=wire):
                    parents=pa.array([[]], pa.list_(pa.int16())))
     bomb = pa.table(columns, schema=table.schema)
     sink = pa.BufferOutputStream()
-    with pa.ipc.new_stream(sink, bomb.schema, options=pa.ipc.IpcWriteOptions(compression='zstd', use_threads=False)) as writer:
+    options = pa.ipc.IpcWriteOptions(compression='zstd', use_threads=False)  # no threads in the sandbox
+    with pa.ipc.new_stream(sink, bomb.schema, options=options) as writer:
         writer.write_table(bomb)
     payload = sink.getvalue().to_pybytes()
     return wire.HEADER.pack(b'A', len(payload)) + payload
@@ -175,8 +176,9 @@ def run_measured(args: list[str], cwd: Path = ROOT, env: dict | None = None) -> 
     """``codearcade ARGS`` in a process of its own: (exit code, stdout, stderr, its peak RSS in MB, the highest peak
     of its game hosts in MB)."""
     peaks = HostPeaks()
+    env = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {})}
     proc = subprocess.Popen([sys.executable, "-c", DRIVER, *args], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
+                            stderr=subprocess.PIPE, text=True, env=env)
     peaks.start(proc.pid)
     try:
         out, err = proc.communicate(timeout=600)
