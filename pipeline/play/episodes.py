@@ -280,7 +280,8 @@ def _decode_game(game: list[EpisodeSpec], msg: dict[str, Any], tables: list[byte
             raise BadMessage(f"episode {spec.index} was played after its game ended by the policy's failure")
         outcome.episode["start_step"] = played
         played += outcome.episode["length"]
-        stopped = stopped or outcome.end_reason not in GAME_END_REASONS
+        # the game goes on after an episode the host saw end normally, even if its trace is then refused here
+        stopped = stopped or (row.get("end_reason") if isinstance(row, dict) else None) not in GAME_END_REASONS
         outcomes.append(outcome)
     return outcomes
 

@@ -15,7 +15,7 @@ from pipeline.boundary.nodes import MalformedTrace, read_nodes
 from pipeline.play import episodes
 from pipeline.play.rollout import EpisodeSpec, run_episode
 from store.writer import EpisodeWriter
-from tests.conftest import pong_policy
+from tests.conftest import ROOT, pong_policy
 
 NESTED = pong_policy("""
 if obs.get("Ball") is None:
@@ -140,3 +140,26 @@ def test_a_write_the_store_refuses_loses_no_other_episode(honest, store, capfd):
     assert [r[0] for r in store.query("SELECT episode_id FROM episodes ORDER BY 1")] == ["e0", "e2"]
     assert store.query("SELECT count(*) FROM nodes")[0][0] == 2 * outcome.nodes.num_rows
     assert "episode e1 not stored" in capfd.readouterr().err
+
+
+def test_a_continued_game_goes_on_past_an_episode_whose_trace_is_refused():
+    """The host played the game's next episode (it saw the first end normally): the parent keeps it, and only the
+    episode whose node rows are malformed is the policy's error."""
+    from pipeline.play.rollout import run_game
+
+    first = EpisodeSpec("run.0.eval.0", "run", "breakout", _BREAKOUT, "v", max_steps=6, trace=True,
+                        one_life="continue")
+    second = EpisodeSpec("run.0.eval.1", "run", "breakout", _BREAKOUT, "v", index=1, max_steps=6, trace=True,
+                         one_life="continue", continues=first.episode_id)
+    outcomes = run_game([first, second])
+    assert [o.end_reason for o in outcomes] == ["truncated", "truncated"]
+    msg = {"episodes": [episodes.episode_to_json(o.episode) for o in outcomes], "nodes": [True, True]}
+    tables = [_payload(outcomes[0].steps), _payload(_set(outcomes[0].nodes, "output", 0, "{not json")),
+              _payload(outcomes[1].steps), _payload(outcomes[1].nodes)]
+    checked = episodes._decode_game([first, second], msg, tables)
+    assert [o.end_reason for o in checked] == ["policy_error", "truncated"]
+    assert checked[0].nodes is None and checked[1].nodes.num_rows == outcomes[1].nodes.num_rows
+    assert checked[1].episode["start_step"] == outcomes[0].episode["length"]
+
+
+_BREAKOUT = (ROOT / "games" / "scaffolds" / "breakout.py").read_text()
