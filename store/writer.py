@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 import time
 from datetime import datetime
 from typing import Any, Callable
@@ -198,12 +199,36 @@ class EpisodeWriter:
         if not self.waiting and also is None:
             return
         waiting, self.waiting = self.waiting, []
-        with self.store.write() as con:
-            for episode, steps, nodes in waiting:
-                write_episode(con, episode, steps, nodes, replace=self.replace)
+        try:
+            with self.store.write() as con:
+                for episode, steps, nodes in waiting:
+                    write_episode(con, episode, steps, nodes, replace=self.replace)
+                if also is not None:
+                    also(con)
+        except duckdb.Error:
+            if len(waiting) < 2 or not self._one_by_one(waiting):
+                raise
             if also is not None:
-                also(con)
+                with self.store.write() as con:
+                    also(con)
         self.written_at = time.monotonic()
+
+    def _one_by_one(self, waiting: list[tuple[dict[str, Any], pa.Table, pa.Table | None]]) -> bool:
+        """After a group's transaction failed (rolled back whole): each episode in a transaction of its own, so
+        that one the store refuses does not lose the others; whether any was written (none: the store itself
+        failed, e.g. a full disk, and the caller hears of it). The episodes refused again are left out, said on
+        stderr."""
+        written, refused = 0, []
+        for episode, steps, nodes in waiting:
+            try:
+                with self.store.write() as con:
+                    write_episode(con, episode, steps, nodes, replace=self.replace)
+                written += 1
+            except duckdb.Error as exc:
+                refused.append((episode["episode_id"], exc))
+        for episode_id, exc in refused:
+            print(f"codearcade: episode {episode_id} not stored: {str(exc).splitlines()[0][:300]}", file=sys.stderr)
+        return written > 0
 
     def __enter__(self) -> "EpisodeWriter":
         return self

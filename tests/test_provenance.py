@@ -13,12 +13,11 @@ import textwrap
 import pyarrow as pa
 import pytest
 
-from pipeline.boundary.wire import BadMessage
 from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
-from pipeline.play.episodes import check_lines_run
+from pipeline.boundary.nodes import MalformedTrace, check_nodes
 from pipeline.play.rollout import EpisodeSpec, run_episode
 from store import Store
 from tests.conftest import json_reply, pong_policy
@@ -213,7 +212,12 @@ def test_lines_run_of_nested_and_failing_calls():
 def test_the_parent_refuses_lines_a_worker_could_not_have_run():
     text = pong_policy("return 2")
     spec = EpisodeSpec("ep", "run", "pong", text, "v", max_steps=3, trace=True)
-    good = run_episode(spec).nodes
+    outcome = run_episode(spec)
+    good = outcome.nodes
+
+    def check_lines_run(spec, nodes):
+        check_nodes(nodes, spec, outcome.steps.num_rows, outcome.episode["duration_s"])
+
     check_lines_run(spec, good)  # what the worker sent is accepted
     column = good.schema.get_field_index("lines_run")
 
@@ -222,14 +226,14 @@ def test_the_parent_refuses_lines_a_worker_could_not_have_run():
 
     n = good.num_rows
     for lines, why in (([[99]] * n, "outside"), ([[3, 2]] * n, "increasing"), ([[0]] * n, "outside")):
-        with pytest.raises(BadMessage, match=why):
+        with pytest.raises(MalformedTrace, match=why):
             check_lines_run(spec, forged(lines))
     renamed = forged([[2]] * n).set_column(good.schema.get_field_index("function"), "function",
                                            pa.array(["os_system"] * n))
-    with pytest.raises(BadMessage, match="not a bundled method"):
+    with pytest.raises(MalformedTrace, match="not a bundled method"):
         check_lines_run(spec, renamed)
     spec.trace_lines = False
-    with pytest.raises(BadMessage, match="without line recording"):
+    with pytest.raises(MalformedTrace, match="without line recording"):
         check_lines_run(spec, good)
 
 

@@ -79,8 +79,39 @@ def test_tables_of_another_schema_or_broken_streams_are_refused(played):
     renumbered = steps.set_column(0, "step", pa.array([3, 1, 2, 0, 4], pa.int32()))
     with pytest.raises(wire.BadMessage, match="numbered"):
         _decode(spec, row, renumbered)
-    with pytest.raises(wire.BadMessage, match="untraced"):
-        _decode(spec, row, steps, NODE_SCHEMA.empty_table())
+    untraced = _decode(spec, row, steps, NODE_SCHEMA.empty_table())  # the policy's rows: its error, not a crash
+    assert (untraced.end_reason, untraced.nodes) == ("policy_error", None)
+    assert untraced.episode["error"] == "malformed trace: node rows for an episode that is not traced"
+
+
+def _stream(table, batches=1, **options) -> bytes:
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, table.schema, options=pa.ipc.IpcWriteOptions(**options)) as writer:
+        for _ in range(batches):
+            writer.write_table(table)
+    return sink.getvalue().to_pybytes()
+
+
+def test_an_arrow_stream_is_bounded_before_it_is_decoded(played):
+    """Compressed batches and dictionaries are refused from their headers, batches and rows counted before any
+    body is read; an uncompressed stream is read in place."""
+    _, _, steps = played
+    bomb = pa.table({"s": pa.array(["x" * 2**20] * 4)})
+    payload = _stream(bomb, compression="zstd")
+    assert len(payload) < 2**16  # 4 MiB of strings
+    with pytest.raises(wire.BadMessage, match="compressed"):
+        wire.parse_arrow(payload, bomb.schema)
+    coded = pa.table({"s": pa.array(["a", "b"]).dictionary_encode()})
+    with pytest.raises(wire.BadMessage, match="schema"):
+        wire.parse_arrow(_stream(coded), pa.schema([("s", pa.string())]))
+    with pytest.raises(wire.BadMessage, match="record batches"):
+        wire.parse_arrow(_stream(steps.slice(0, 1), batches=wire.MAX_BATCHES + 1), STEP_SCHEMA)
+    with pytest.raises(wire.BadMessage, match="more than 4 rows"):
+        wire.parse_arrow(_stream(steps), STEP_SCHEMA, max_rows=4)
+    payload = _stream(bomb)
+    before = pa.total_allocated_bytes()
+    table = wire.parse_arrow(payload, bomb.schema, max_rows=4)
+    assert pa.total_allocated_bytes() - before < 2**16 and table.equals(bomb)  # slices of the payload
 
 
 def test_frames_are_capped_and_kinds_checked():

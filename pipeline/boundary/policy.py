@@ -51,7 +51,20 @@ megabyte would be mapped and unmapped again on every step."""
 LARGE_PIECE = 4 * 2**20
 """The most a large frame is read at once (the socket's ``recv`` allocates that much before it reads)."""
 MAX_OBSERVATION = 16 * 2**20
-MAX_ERROR_CHARS = 20_000
+MAX_ERROR_CHARS = 2_000
+"""Characters of a failure's error text (what the store keeps of it: ``untrusted.MESSAGE_LIMIT``)."""
+MAX_ANSWER = 32 * 1024
+"""The largest frame the host reads from the policy process before the episode's end (ready, an action, a
+failure): refused at its header, before it is read or decoded. A failure's error of :data:`MAX_ERROR_CHARS`
+characters is at most 12 bytes a character as JSON (an astral character escaped as two ``\\uXXXX``)."""
+
+
+def capped_error(text: str) -> str:
+    """An error text cut to :data:`MAX_ERROR_CHARS` characters, the cut marked, so its failure frame fits
+    :data:`MAX_ANSWER`."""
+    if len(text) <= MAX_ERROR_CHARS:
+        return text
+    return f"{text[:MAX_ERROR_CHARS]}… [cut {len(text) - MAX_ERROR_CHARS:,} characters]"
 
 
 def coerce_action(action: Any, n_actions: int) -> int:
@@ -161,7 +174,7 @@ class PolicySide:
         channel = self.channel
         more = False
         if self.policy is None:
-            channel.send_json({"kind": "failed", "end_reason": "policy_error", "error": self.error[:MAX_ERROR_CHARS]})
+            channel.send_json({"kind": "failed", "end_reason": "policy_error", "error": capped_error(self.error)})
         else:
             channel.send_json({"kind": "ready"})
             more = self._play()
@@ -215,7 +228,7 @@ def _describe(exc: BaseException) -> str:
     deadline stops one that never returns)."""
     try:
         text = str(describe_exception(exc))
-        return text[:MAX_ERROR_CHARS].encode("utf-8", "replace").decode("utf-8")
+        return capped_error(text).encode("utf-8", "replace").decode("utf-8")
     except BaseException:  # noqa: BLE001 - a str subclass or __str__ that misbehaves
         return "the policy raised an exception that could not be described"
 

@@ -17,8 +17,9 @@ output), whatever a candidate's validation reports, and every note composed into
 :func:`clean_json_text` does the same for a JSON text (a node's inputs and output), keeps it valid JSON, and
 holds it to the bounds of ``tracing/bounded.py`` (lists and objects nested at most 64 levels deep: a worker whose
 policy raised its recursion limit, or that forged its node table, can send a list nested 3,000 deep, which would
-raise ``RecursionError`` in every later reader: the optimizer building its next prompt, ``--resume``); this is
-the check that counts, as ``to_json``'s own bound runs in the policy's process. :func:`clean_nodes` applies both
+raise ``RecursionError`` in every later reader: the optimizer building its next prompt, ``--resume``);
+``to_json``'s own bound runs in the policy's process, so a node table from a policy process with a value nested
+deeper is refused before it gets here (``pipeline/boundary/nodes.py``), and this bound holds for the rest. :func:`clean_nodes` applies both
 to the string columns of a node table as it arrives from a worker, and :func:`clean_step_objects` to the object
 names inside a step table.
 """

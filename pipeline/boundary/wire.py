@@ -130,17 +130,73 @@ def parse_json(payload: bytes) -> dict[str, Any]:
     return obj
 
 
-def parse_arrow(payload: bytes, schema: Any) -> Any:
-    """The table of an Arrow IPC stream, fully validated and of exactly ``schema``."""
+MAX_BATCHES = 64
+"""Record batches one Arrow stream may hold (a writer sends one per table; more only make readers copy)."""
+
+
+def _flat_field(meta: bytes, table: int, index: int) -> int | None:
+    """Where field ``index`` of the flatbuffer table at ``table`` lies in ``meta`` (None: absent); struct.error or
+    IndexError for offsets outside ``meta``."""
+    vtable = table - struct.unpack_from("<i", meta, table)[0]
+    size = struct.unpack_from("<H", meta, vtable)[0]
+    if 4 + 2 * index + 2 > size:
+        return None
+    offset = struct.unpack_from("<H", meta, vtable + 4 + 2 * index)[0]
+    return table + offset if offset else None
+
+
+def batch_header(meta: bytes) -> tuple[int, bool]:
+    """(rows, compressed) of a record batch message's metadata (the ``Message`` flatbuffer of Arrow's
+    ``Message.fbs``: its ``header``, a ``RecordBatch``, has ``length`` and ``compression``), read before its body
+    is decoded; BadMessage for metadata that is not one. Reading the body of a compressed batch is what inflates:
+    100 KB of zstd became three 1 GiB strings."""
+    try:
+        root = struct.unpack_from("<I", meta, 0)[0]
+        header = _flat_field(meta, root, 2)  # Message.header
+        if header is None:
+            raise BadMessage("a record batch message without its header")
+        batch = header + struct.unpack_from("<I", meta, header)[0]
+        length = _flat_field(meta, batch, 0)  # RecordBatch.length
+        rows = struct.unpack_from("<q", meta, length)[0] if length is not None else 0
+        return rows, _flat_field(meta, batch, 3) is not None  # RecordBatch.compression
+    except (struct.error, IndexError):
+        raise BadMessage("a record batch message whose metadata is malformed") from None
+
+
+def parse_arrow(payload: bytes, schema: Any, max_rows: int | None = None) -> Any:
+    """The table of an Arrow IPC stream, fully validated and of exactly ``schema``, bounded before it is decoded:
+    the schema is compared first, then each message's header is read before its body: only uncompressed record
+    batches (no dictionaries, no compression), at most :data:`MAX_BATCHES` of them and ``max_rows`` rows in all.
+    An uncompressed batch is read in place (its buffers are slices of ``payload``), so the table takes no more
+    memory than the frame it came in."""
     import pyarrow as pa
 
     try:
-        table = pa.ipc.open_stream(pa.py_buffer(payload)).read_all()
+        reader = pa.ipc.MessageReader.open_stream(pa.py_buffer(payload))
+        message = reader.read_next_message()
+        if message.type != "schema":
+            raise BadMessage("an Arrow stream that does not begin with its schema")
+        if not pa.ipc.read_schema(message).equals(schema, check_metadata=False):
+            raise BadMessage("an Arrow table from the worker does not have the expected schema")
+        batches, rows = [], 0
+        for message in reader:
+            if message.type != "record batch":
+                raise BadMessage(f"an Arrow {message.type} message in a table of plain columns")
+            if len(batches) == MAX_BATCHES:
+                raise BadMessage(f"an Arrow stream of more than {MAX_BATCHES} record batches")
+            count, compressed = batch_header(message.metadata.to_pybytes())
+            if compressed:
+                raise BadMessage("a compressed Arrow record batch (refused unread: it could inflate to any size)")
+            rows += count
+            if count < 0 or (max_rows is not None and rows > max_rows):
+                raise BadMessage(f"an Arrow stream of more than {max_rows:,} rows")
+            batches.append(pa.ipc.read_record_batch(message, schema))
+        table = pa.Table.from_batches(batches, schema)
         table.validate(full=True)
+    except BadMessage:
+        raise
     except Exception as exc:  # noqa: BLE001 - any malformed stream
         raise BadMessage(f"malformed Arrow stream from the worker: {type(exc).__name__}: {str(exc)[:200]}") from None
-    if not table.schema.equals(schema, check_metadata=False):
-        raise BadMessage("an Arrow table from the worker does not have the expected schema")
     return table
 
 

@@ -9,8 +9,10 @@ trust them. In the parent, :func:`run_episodes` plays many through :func:`~pipel
 and :func:`episode_from_worker` checks every field of what a host sent (and the node rows its policy process
 made, which the host relays unread) against what the parent asked for and the Arrow schemas ``rollout``
 produces, raising :class:`~pipeline.boundary.wire.BadMessage` otherwise (the episode is then recorded as
-``crashed`` with that reason). Fields the parent knows (ids, seed, settings) are taken from the
-:class:`EpisodeSpec`, never from the worker.
+``crashed`` with that reason). Node rows are the policy process's: read within bounds and checked field by field
+(``pipeline/boundary/nodes.py``); rows that break a rule make the episode a ``policy_error`` ("malformed trace at
+step N: ..."), its steps kept and its nodes dropped. Fields the parent knows (ids, seed, settings) are taken from
+the :class:`EpisodeSpec`, never from the worker.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from typing import Any, Callable, Iterable, Iterator
 
 from games import get_game
 from pipeline.boundary import wire
+from pipeline.boundary.nodes import MalformedTrace, check_nodes, read_nodes
 from pipeline.boundary.wire import MAX_TEXT, BadMessage
 from pipeline.boundary.workers import ProgressCallback, Task, Zygote, run_tasks
 from pipeline.play.rollout import (GAME_END_REASONS, EpisodeOutcome, EpisodeSpec, RemotePolicy, _episode_row,
@@ -135,38 +138,6 @@ def _int(row: dict, key: str, low: int, high: int) -> int:
     return value
 
 
-def check_lines_run(spec: Any, nodes: Any) -> None:
-    """BadMessage unless every ``lines_run`` of ``nodes`` is NULL (lines not recorded) or strictly increasing
-    line numbers inside the source of the node's method in ``spec.policy_text`` (what an honest worker sends)."""
-    import numpy as np
-    import pyarrow.compute as pc
-
-    lines = nodes.column("lines_run").combine_chunks()
-    if lines.null_count == len(lines):
-        return
-    if not spec.trace_lines:
-        raise BadMessage("lines_run for an episode played without line recording")
-    from tracing.policy_file import PolicyLoadError, inspect_policy
-
-    try:
-        methods = {m.name: m.source.count("\n") for m in inspect_policy(spec.policy_text, spec.policy_name).methods}
-    except PolicyLoadError:
-        raise BadMessage("lines_run for a policy that does not load") from None
-    functions = nodes.column("function").combine_chunks()
-    for name in pc.unique(pc.filter(functions, pc.is_valid(lines))).to_pylist():
-        if name not in methods:
-            raise BadMessage(f"lines_run for {str(name)[:60]!r}, which is not a bundled method of the policy")
-        chosen = pc.filter(lines, pc.equal(functions, name))
-        values = np.asarray(pc.list_flatten(chosen), dtype=np.int64)
-        if values.size and (values.min() < 1 or values.max() > methods[name]):
-            raise BadMessage(f"lines_run of {name} outside its {methods[name]} lines")
-        starts = np.asarray(pc.list_value_length(chosen).fill_null(0), dtype=np.int64).cumsum()[:-1]
-        rising = np.diff(values) > 0
-        rising[starts[(starts > 0) & (starts < values.size)] - 1] = True  # a new call may start lower
-        if not rising.all():
-            raise BadMessage(f"lines_run of {name} not strictly increasing")
-
-
 def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
     """The :class:`EpisodeOutcome` of ``spec`` from what its worker sent, every value checked; BadMessage if
     anything is off. Fields the parent knows (ids, seed, settings) come from ``spec``, never from the worker."""
@@ -200,12 +171,22 @@ def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
         raise BadMessage(f"{steps.num_rows} step rows for an episode of length {length}")
     if steps.num_rows and steps.column("step").to_pylist() != list(range(steps.num_rows)):
         raise BadMessage("the step rows are not numbered 0, 1, 2, ...")
-    if nodes is not None and not spec.trace:
-        raise BadMessage("nodes for an untraced episode")
-    if nodes is not None:
-        check_lines_run(spec, nodes)
     episode = _episode_row(spec, score=_number(row, "return"), **measured)
+    if nodes is not None:
+        try:
+            nodes = (read_nodes(nodes, spec, steps.num_rows, episode["duration_s"]) if isinstance(nodes, bytes)
+                     else check_nodes(nodes, spec, steps.num_rows, episode["duration_s"]) or nodes)
+        except MalformedTrace as exc:
+            return EpisodeOutcome(trace_refused(episode, str(exc)), steps, None)
     return EpisodeOutcome(episode, steps, nodes)
+
+
+def trace_refused(episode: dict[str, Any], error: str) -> dict[str, Any]:
+    """``episode`` (a row) ended by its policy's malformed trace: a policy error (a forfeit), unless the policy
+    had already failed (that error stays: it came first)."""
+    if episode["end_reason"] in GAME_END_REASONS:
+        episode.update(end_reason="policy_error", error=error)
+    return episode
 
 
 # ----------------------------------------------------------------------------------------------- the parent
@@ -220,12 +201,11 @@ def _episode_failed(spec: EpisodeSpec, error: str, timed_out: bool) -> EpisodeOu
 
 
 def _decode_episode(spec: EpisodeSpec, msg: dict[str, Any], tables: list[bytes]) -> EpisodeOutcome:
-    from tracing.capture import NODE_SCHEMA
     from tracing.steps import STEP_SCHEMA
 
-    steps = wire.parse_arrow(tables[0], STEP_SCHEMA)
-    nodes = wire.parse_arrow(tables[1], NODE_SCHEMA) if len(tables) > 1 else None
-    return episode_from_worker(spec, msg.get("episode"), steps, nodes)
+    steps = wire.parse_arrow(tables[0], STEP_SCHEMA, max_rows=spec.max_steps)
+    # the node rows as the policy process sent them (the host relays them unread): read bounded, then checked
+    return episode_from_worker(spec, msg.get("episode"), steps, tables[1] if len(tables) > 1 else None)
 
 
 def _policy_limits(spec: EpisodeSpec) -> dict[str, Any]:
@@ -300,7 +280,8 @@ def _decode_game(game: list[EpisodeSpec], msg: dict[str, Any], tables: list[byte
             raise BadMessage(f"episode {spec.index} was played after its game ended by the policy's failure")
         outcome.episode["start_step"] = played
         played += outcome.episode["length"]
-        stopped = stopped or outcome.end_reason not in GAME_END_REASONS
+        # the game goes on after an episode the host saw end normally, even if its trace is then refused here
+        stopped = stopped or (row.get("end_reason") if isinstance(row, dict) else None) not in GAME_END_REASONS
         outcomes.append(outcome)
     return outcomes
 

@@ -42,7 +42,9 @@ import pyarrow as pa
 from games import Game, get_game, list_widths
 from games.base import OBSERVATION_VERSION
 from games.envs import discard_env, shared_env
-from pipeline.boundary.policy import ACTION, MAX_ERROR_CHARS, Channel, coerce_action, describe_exception
+from pipeline.boundary.nodes import MAX_NODE_FRAME, MalformedTrace, read_nodes
+from pipeline.boundary.policy import (ACTION, MAX_ANSWER, Channel, capped_error, coerce_action,
+                                     describe_exception)
 from pipeline.play.runinfo import policy_rng_seed
 from pipeline.settings import EpisodeLimits
 from tracing.capture import NodeRecorder
@@ -59,8 +61,6 @@ LOAD_TIMEOUT_S = 60.0
 """How long the policy process may take to load the policy."""
 FINISH_TIMEOUT_S = 30.0
 """How long the policy process may take to send its node rows at the end."""
-MAX_POLICY_FRAME = 512 * 2**20
-"""The largest frame the host reads from the policy process (its node rows)."""
 
 
 @dataclass
@@ -223,7 +223,7 @@ class RemotePolicy(PolicyChannel):
             self.channel.sock.settimeout(timeout)
             self._timeout = timeout
         try:
-            return self.channel.receive(MAX_POLICY_FRAME)
+            return self.channel.receive(MAX_ANSWER)
         except TimeoutError:
             raise PolicyFailed("timeout", f"the policy process did not answer {what} within {timeout:g} s") from None
         except EOFError:
@@ -239,7 +239,7 @@ class RemotePolicy(PolicyChannel):
             return PolicyFailed("crashed", f"the policy process sent a malformed message {what}")
         if message.get("kind") != "failed" or reason not in ("policy_error", "timeout") or not isinstance(error, str):
             return PolicyFailed("crashed", f"the policy process sent a malformed message {what}")
-        return PolicyFailed(reason, error[:MAX_ERROR_CHARS])
+        return PolicyFailed(reason, capped_error(error))
 
     def start(self) -> None:
         spec = self.spec
@@ -275,17 +275,29 @@ class RemotePolicy(PolicyChannel):
         self.channel.sock.close()
 
     def finish(self, more: bool = False) -> bytes | None:
-        """The node rows as the policy process sent them (an Arrow stream, checked by the parent), or None."""
+        """The node rows as the policy process sent them (an Arrow stream of at most
+        :data:`~pipeline.boundary.nodes.MAX_NODE_FRAME` bytes, read and checked by the parent), or None.
+        :class:`PolicyFailed` (``policy_error``, a malformed trace) for node rows the episode did not ask for
+        (refused unread) or a node frame over the limit (refused at its header)."""
         try:
             self.channel.send_json({"op": "end", "more": more})
             kind, payload = self._receive(FINISH_TIMEOUT_S, "at the end")
             message = json.loads(payload) if kind == b"J" else None
             if not isinstance(message, dict) or message.get("kind") != "done" or message.get("nodes") is not True:
                 return None
-            kind, payload = self._receive(FINISH_TIMEOUT_S, "at the end")
-            return payload if kind == b"A" else None
         except (PolicyFailed, OSError, ValueError, RecursionError):
             return None  # the steps are the host's: an episode without its node rows is still an episode
+        if not self.spec.trace:
+            raise PolicyFailed("policy_error", "malformed trace: node rows for an episode that is not traced")
+        try:
+            self.channel.sock.settimeout(FINISH_TIMEOUT_S)
+            self._timeout = FINISH_TIMEOUT_S
+            kind, payload = self.channel.receive(MAX_NODE_FRAME)
+        except ValueError as exc:  # over the limit, refused at the header
+            raise PolicyFailed("policy_error", f"malformed trace: {exc}") from None
+        except (OSError, EOFError):
+            return None
+        return payload if kind == b"A" else None
 
 
 def _report(steps: StepLog, reported: int, length: int, progress: Callable[[int], None] | None) -> int:
@@ -418,18 +430,34 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
         except BaseException:
             discard_env(env)  # an error inside the loop leaves the environment in an unknown state
             raise
-    nodes = policy.finish(more=more and end_reason in GAME_END_REASONS)
+    try:
+        nodes = policy.finish(more=more and end_reason in GAME_END_REASONS)
+    except PolicyFailed as exc:  # node rows the episode did not ask for, or too many bytes of them
+        nodes = None
+        if end_reason in GAME_END_REASONS:
+            end_reason, error = exc.end_reason, exc.error
     _report(steps, reported, length, progress)
+    step_table = steps.table()
+    duration_s = time.perf_counter() - t0
+    live_nodes = nodes
+    if live is not None and isinstance(nodes, bytes):
+        # the recording shows the node rows: read as the parent reads them, within bounds, every field checked
+        try:
+            live_nodes = read_nodes(nodes, spec, step_table.num_rows, duration_s)
+        except MalformedTrace as exc:
+            live_nodes = nodes = None
+            if end_reason in GAME_END_REASONS:
+                end_reason, error = "policy_error", str(exc)
 
     episode = _episode_row(
-        spec, game=game.name, started_at=_utc(started_at), duration_s=time.perf_counter() - t0, env_s=env_s,
+        spec, game=game.name, started_at=_utc(started_at), duration_s=duration_s, env_s=env_s,
         policy_s=policy_s, length=length, lives_lost=lives_lost, end_reason=end_reason, error=error, score=score,
     )
-    outcome = EpisodeOutcome(episode, steps.table(), nodes)
+    outcome = EpisodeOutcome(episode, step_table, nodes)
     if live is not None:
         from viewers.rerun_live import finish_recorder
 
-        finish_recorder(live, episode, _node_table(nodes))
+        finish_recorder(live, episode, live_nodes if isinstance(live_nodes, pa.Table) else None)
     return outcome
 
 
@@ -475,19 +503,6 @@ def not_played(spec: EpisodeSpec, failed: EpisodeSpec, end_reason: str, start_st
                            length=0, lives_lost=0, end_reason=end_reason, score=0.0, start_step=start_step,
                            error=f"not played: episode {failed.index} of this game ended with {end_reason}")
     return EpisodeOutcome(episode, StepLog().table(), None)
-
-
-def _node_table(nodes: Any) -> pa.Table | None:
-    """A remote policy's node rows as a checked table (for the live recording), or None if they are not one."""
-    if nodes is None or isinstance(nodes, pa.Table):
-        return nodes
-    from pipeline.boundary.wire import BadMessage, parse_arrow
-    from tracing.capture import NODE_SCHEMA
-
-    try:
-        return parse_arrow(nodes, NODE_SCHEMA)
-    except BadMessage:
-        return None
 
 
 def _live_recorder(spec: EpisodeSpec, env: Any, steps: StepLog) -> Any:

@@ -134,14 +134,17 @@ FORGER = pong_policy("return 0", prelude="import typing\n").replace(
     '        ball = obs.get("Ball")\n', 1)
 
 
-def test_forged_deep_node_values_are_bounded_where_the_parent_receives_them(store, tmp_path, capfd):
+def test_forged_deep_node_values_are_refused_where_the_parent_receives_them(store, tmp_path, capfd):
+    """The recorder cuts an honest value at 64 levels: one nested deeper was forged, and the episode's node rows
+    are refused as a malformed trace (``pipeline/boundary/nodes.py``), the run going on."""
     path = tmp_path / "forger.py"
     path.write_text(FORGER)
-    assert main(["eval", str(path), "--trace", "--max-steps", "30", "--store", str(store.path)]) == 0
+    assert main(["eval", str(path), "--trace", "--max-steps", "30", "--store", str(store.path)]) == 1
     capfd.readouterr()
-    texts = store.query("SELECT inputs, output FROM nodes WHERE step > 0")
-    assert texts and all("$too_deep" in i and "$too_deep" in o for i, o in texts)  # to_json did forge them
-    assert _depth_ok(store) > 0
+    assert store.query("SELECT end_reason, error, length FROM episodes") == [
+        ("policy_error", "malformed trace at step 0: a node's inputs is nested deeper than 64 levels", 30)]
+    assert store.query("SELECT count(*) FROM nodes") == [(0,)]
+    assert store.query("SELECT status FROM runs") == [("finished",)]
 
 
 @pytest.mark.parametrize("depth", DEPTHS)

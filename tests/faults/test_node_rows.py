@@ -1,0 +1,165 @@
+"""Every field of a node row is checked against its episode (pipeline/boundary/nodes.py), and a store write the
+store refuses loses no other episode (store/writer.py), asserted on the tables themselves: an honest traced
+episode (nested calls, an exception, lines) passes as it is; each field forged as a compromised policy process
+can forge it is refused as ``malformed trace at step N: ...``, which the parent turns into the episode's
+``policy_error`` with its node rows dropped (tests/faults/test_bounded_frames.py shows it through the CLI)."""
+
+from __future__ import annotations
+
+import pyarrow as pa
+import pyarrow.compute as pc
+import pytest
+
+from pipeline.boundary import wire
+from pipeline.boundary.nodes import MalformedTrace, read_nodes
+from pipeline.play import episodes
+from pipeline.play.rollout import EpisodeSpec, run_episode
+from store.writer import EpisodeWriter
+from tests.conftest import ROOT, pong_policy
+
+NESTED = pong_policy("""
+if obs.get("Ball") is None:
+    return self.fallback(predicted_ball_y)
+return 0 if predicted_ball_y is None else 3
+""") + """
+    @trace.bundle()
+    def fallback(self, y):
+        if y is not None and y > 10**9:
+            raise ValueError("never")
+        return 0
+"""
+RAISES = pong_policy("""
+if obs["frame"] >= 3:
+    raise KeyError("at step 3")
+return 0
+""")
+
+
+@pytest.fixture(scope="module")
+def honest():
+    spec = EpisodeSpec("run.0.eval.0", "run", "pong", NESTED, "v", max_steps=8, trace=True)
+    outcome = run_episode(spec)
+    assert outcome.nodes.num_rows >= 16
+    return spec, outcome
+
+
+def _payload(table: pa.Table) -> bytes:
+    return wire.arrow_frame(table)[wire.HEADER.size:]
+
+
+def _read(spec, outcome, table):
+    return read_nodes(_payload(table), spec, outcome.steps.num_rows, outcome.episode["duration_s"])
+
+
+def _set(table: pa.Table, name: str, row: int, value) -> pa.Table:
+    values = table.column(name).to_pylist()
+    values[row] = value
+    index = table.schema.get_field_index(name)
+    return table.set_column(index, table.schema.field(index), pa.array(values, table.schema.field(index).type))
+
+
+def test_honest_node_rows_pass_as_they_are(honest):
+    spec, outcome = honest
+    assert _read(spec, outcome, outcome.nodes).equals(outcome.nodes)
+    raising = EpisodeSpec("run.0.eval.1", "run", "pong", RAISES, "v", max_steps=8, trace=True)
+    failed = run_episode(raising)
+    assert failed.end_reason == "policy_error" and failed.nodes.column("exc_type").null_count < failed.nodes.num_rows
+    assert _read(raising, failed, failed.nodes).num_rows == failed.nodes.num_rows
+
+
+FORGERIES = [
+    ("step", 2**31 - 1, "a node row for step 2147483647"),
+    ("step", -1, "a node row for step -1"),
+    ("call_index", 7, "at step 0: call indexes that are not 0..n-1"),
+    ("call_index", None, "call_index missing"),
+    ("function", "os_system", "at step 0: a call of 'os_system', which is not a bundled method"),
+    ("trainable", False, "at step 0: a call whose trainable flag is not its method's"),
+    ("duration_us", 2**62, "at step 0: a call lasting"),
+    ("duration_us", -5, "at step 0: a call lasting -5 us"),
+    ("parents", [32767], "at step 0: a parent that is not an earlier call of the same step"),
+    ("parents", [0, 0], "at step 0: a parent that is not an earlier call of the same step"),
+    ("output", "{not json", "at step 0: a node's output is not JSON"),
+    ("output", "NaN", "at step 0: a node's output is not JSON"),
+    ("output", '"\\ud800"', "at step 0: a node's output is not JSON (a lone surrogate)"),
+    ("output", "[" * 65 + "]" * 65, "at step 0: a node's output is nested deeper than 64 levels"),
+    ("output", '"' + "y" * 90_000 + '"', "at step 0: a node's output of more than 80,000 bytes"),
+    ("inputs", None, "at step 0: a node without its inputs"),
+    ("exc_type", "KeyError", "at step 0: a node with both an output and an exception"),
+    ("exc_line", 10_000, "at step 0: an exception line outside the policy's"),
+    ("lines_run", [999], "lines_run of predict_ball_trajectory outside"),
+]
+
+
+@pytest.mark.parametrize("column, value, error", FORGERIES, ids=[f"{c}={str(v)[:20]}" for c, v, _ in FORGERIES])
+def test_a_forged_field_is_a_malformed_trace(column, value, error, honest):
+    spec, outcome = honest
+    with pytest.raises(MalformedTrace, match="^malformed trace.*" + error.replace("(", r"\(").replace(")", r"\)")
+                       .replace("[", r"\[")):
+        _read(spec, outcome, _set(outcome.nodes, column, 0, value))
+
+
+def test_honest_json_the_fast_path_leaves_out_is_parsed_and_accepted(honest):
+    spec, outcome = honest
+    for text in ('{"a": [1, {"b": [true, null]}], "c": "\\u00e9\\ud83d\\ude00"}', '"caf\u00e9"', "[[[]]]", "-0.5e-3"):
+        assert _read(spec, outcome, _set(outcome.nodes, "output", 0, text)).num_rows == outcome.nodes.num_rows
+
+
+def test_too_many_rows_are_refused_before_they_are_read(honest):
+    spec, outcome = honest
+    steps = outcome.steps.num_rows
+    many = pa.concat_tables([outcome.nodes] * (256 * steps // outcome.nodes.num_rows + 1)).combine_chunks()
+    with pytest.raises(MalformedTrace, match=f"more than {256 * steps:,} rows"):
+        _read(spec, outcome, many)
+    one_step = outcome.nodes.filter(pc.equal(outcome.nodes.column("step"), 0))
+    crowded = pa.concat_tables([one_step] * 200).combine_chunks()  # 200 times step 0's calls, in step 0
+    calls = 200 * one_step.num_rows
+    with pytest.raises(MalformedTrace, match=f"at step 0: {calls} calls in one step \\(at most 256\\)"):
+        _read(spec, outcome, crowded)
+
+
+def test_the_parent_records_a_malformed_trace_as_the_episodes_policy_error(honest):
+    spec, outcome = honest
+    row = episodes.episode_to_json(outcome.episode)
+    forged = _payload(_set(outcome.nodes, "output", 5, "{not json"))
+    checked = episodes.episode_from_worker(spec, row, outcome.steps, forged)
+    assert checked.end_reason == "policy_error" and checked.nodes is None
+    step = outcome.nodes.column("step")[5].as_py()
+    assert checked.episode["error"] == f"malformed trace at step {step}: a node's output is not JSON"
+    assert checked.steps.num_rows == outcome.steps.num_rows and checked.episode["return"] == outcome.episode["return"]
+    fine = episodes.episode_from_worker(spec, dict(row), outcome.steps, _payload(outcome.nodes))
+    assert fine.end_reason == "truncated" and fine.nodes.num_rows == outcome.nodes.num_rows
+
+
+def test_a_write_the_store_refuses_loses_no_other_episode(honest, store, capfd):
+    """Should a value the store refuses ever get past the checks, only its own episode goes unstored."""
+    spec, outcome = honest
+    bad = _set(outcome.nodes, "output", 0, "[1,")  # no JSON at all: the store's JSON column refuses it
+    with EpisodeWriter(store, every_s=3600) as writer:
+        for i, nodes in enumerate((outcome.nodes, bad, outcome.nodes)):
+            writer.add(dict(outcome.episode, episode_id=f"e{i}", run_id="run"), outcome.steps, nodes)
+    assert [r[0] for r in store.query("SELECT episode_id FROM episodes ORDER BY 1")] == ["e0", "e2"]
+    assert store.query("SELECT count(*) FROM nodes")[0][0] == 2 * outcome.nodes.num_rows
+    assert "episode e1 not stored" in capfd.readouterr().err
+
+
+def test_a_continued_game_goes_on_past_an_episode_whose_trace_is_refused():
+    """The host played the game's next episode (it saw the first end normally): the parent keeps it, and only the
+    episode whose node rows are malformed is the policy's error."""
+    from pipeline.play.rollout import run_game
+
+    first = EpisodeSpec("run.0.eval.0", "run", "breakout", _BREAKOUT, "v", max_steps=6, trace=True,
+                        one_life="continue")
+    second = EpisodeSpec("run.0.eval.1", "run", "breakout", _BREAKOUT, "v", index=1, max_steps=6, trace=True,
+                         one_life="continue", continues=first.episode_id)
+    outcomes = run_game([first, second])
+    assert [o.end_reason for o in outcomes] == ["truncated", "truncated"]
+    msg = {"episodes": [episodes.episode_to_json(o.episode) for o in outcomes], "nodes": [True, True]}
+    tables = [_payload(outcomes[0].steps), _payload(_set(outcomes[0].nodes, "output", 0, "{not json")),
+              _payload(outcomes[1].steps), _payload(outcomes[1].nodes)]
+    checked = episodes._decode_game([first, second], msg, tables)
+    assert [o.end_reason for o in checked] == ["policy_error", "truncated"]
+    assert checked[0].nodes is None and checked[1].nodes.num_rows == outcomes[1].nodes.num_rows
+    assert checked[1].episode["start_step"] == outcomes[0].episode["length"]
+
+
+_BREAKOUT = (ROOT / "games" / "scaffolds" / "breakout.py").read_text()
