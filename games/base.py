@@ -17,6 +17,9 @@ STANDARD_NOOP_MAX = 30
 """The standard stochastic Atari protocol (Machado et al. 2018): sticky actions with probability 0.25 and up to
 30 no-op starts. The paper's protocol is sticky 0, no no-op starts."""
 
+AUDIT_SEED_BASE = 1_000_000
+"""first seed of the held-out audit seeds: tuning seeds are below it"""
+
 ONE_LIFE_CONTINUE = "continue"
 """The ``one_life`` setting (``codearcade eval --one-life-continue``; ``OptimizeConfig.one_life``) that plays the
 authors' one-life protocol exactly: the evaluation episodes of a run are the lives of one game, each continuing
