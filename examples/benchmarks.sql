@@ -6,7 +6,9 @@
 --
 -- Scores are the authors' measure: a run's best evaluation score under their protocol (sticky 0, no no-op starts,
 -- their caps and episode counts: the frontier view's deterministic_score, iteration 0 included), averaged over the
--- runs of a game (seeds) with its standard error. `protocol` says what our evaluation episodes were: `lives of one
+-- runs of a game (seeds) with its 95% bootstrap interval (`mean_best`: mean [low, high], mean_ci and ci_text, which
+-- `codearcade sql` provides: docs/schema.md), and their interquartile mean with its interval (`iqm_best`, as
+-- rliable recommends for few seeds). `protocol` says what our evaluation episodes were: `lives of one
 -- game` (the authors' protocol, `one_life = "continue"`: the follow-up ends an episode at a lost life in Asterix,
 -- Breakout, Q*bert and Seaquest and goes on with the same game in the next), `first lives` (`one_life = true`: the
 -- first life of each episode's own seeded game), `whole games`, or `mixed` across a game's runs.
@@ -24,8 +26,7 @@ WITH batch_runs AS (
 ), ours AS (
     SELECT game, CASE WHEN count(DISTINCT protocol) > 1 THEN 'mixed' ELSE any_value(protocol) END AS protocol,
            min(horizon) AS horizon, count(*)::INTEGER AS runs, min(iterations) AS iterations,
-           max(best) AS best, round(avg(best), 1) AS mean_best,
-           round(stddev_samp(best) / sqrt(count(*)), 1) AS se
+           max(best) AS best, mean_ci(list(best)) AS m, iqm_ci(list(best)) AS q
     FROM per_run GROUP BY game
 ), theirs AS (
     SELECT game,
@@ -36,7 +37,8 @@ WITH batch_runs AS (
            any_value(printf('%.1f ± %.1f', score, stderr)) FILTER (WHERE setting = 'h100') AS h100
     FROM published_scores GROUP BY game
 )
-SELECT coalesce(o.game, t.game) AS game, o.protocol, o.horizon, o.runs, o.iterations, o.best, o.mean_best, o.se,
+SELECT coalesce(o.game, t.game) AS game, o.protocol, o.horizon, o.runs, o.iterations, o.best,
+       ci_text(o.m.mean, o.m.low, o.m.high) AS mean_best, ci_text(o.q.iqm, o.q.low, o.q.high) AS iqm_best,
        (SELECT p.score FROM published_scores p WHERE p.game = o.game AND p.horizon = o.horizon
         AND p.setting <> 'paper' ORDER BY p.setting LIMIT 1) AS theirs,
        (SELECT p.stderr FROM published_scores p WHERE p.game = o.game AND p.horizon = o.horizon

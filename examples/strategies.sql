@@ -1,5 +1,6 @@
--- Strategies compared at equal LLM budgets. Per strategy (means over the seeds): the best score reached after
--- 5, 10 and 20 LLM calls (the starting policy's score counts from call 0), the tokens and the wall-clock
+-- Strategies compared at equal LLM budgets. Per strategy (means over the seeds, the scores with their 95% bootstrap
+-- intervals, mean [low, high]: mean_ci and ci_text, which `codearcade sql` provides: docs/schema.md):
+-- the best score reached after 5, 10 and 20 LLM calls (the starting policy's score counts from call 0), the tokens and the wall-clock
 -- minutes the runs spent, and how many candidates they assessed (and how many reused stored episodes).
 WITH runs_of_batch AS (
     SELECT run_id, json_extract_string(config, '$.strategy') AS strategy,
@@ -19,12 +20,17 @@ WITH runs_of_batch AS (
            count(*) FILTER (WHERE s.iteration > 0) AS candidates,
            count(*) FILTER (WHERE s.evaluation = 'cached') AS cached
     FROM runs_of_batch b JOIN scored s USING (run_id) GROUP BY ALL
+), per_strategy AS (
+    SELECT p.strategy, count(*) AS runs, mean_ci(list(best_at_5)) AS at_5, mean_ci(list(best_at_10)) AS at_10,
+           mean_ci(list(best_at_20)) AS at_20, max(best_at_20) AS max_best,
+           round(avg(u.calls), 1) AS calls, round(avg(u.total_tokens)) AS tokens,
+           round(avg((SELECT sum(wall_s) FROM iterations i WHERE i.run_id = p.run_id)) / 60, 1) AS wall_minutes,
+           sum(candidates) AS candidates, sum(cached) AS cached_assessments
+    FROM per_run p JOIN llm_usage u USING (run_id)
+    GROUP BY p.strategy
 )
-SELECT p.strategy, count(*) AS runs,
-       round(avg(best_at_5), 1) AS best_after_5_calls, round(avg(best_at_10), 1) AS best_after_10_calls,
-       round(avg(best_at_20), 1) AS best_after_20_calls, max(best_at_20) AS max_best,
-       round(avg(u.calls), 1) AS calls, round(avg(u.total_tokens)) AS tokens,
-       round(avg((SELECT sum(wall_s) FROM iterations i WHERE i.run_id = p.run_id)) / 60, 1) AS wall_minutes,
-       sum(candidates) AS candidates, sum(cached) AS cached_assessments
-FROM per_run p JOIN llm_usage u USING (run_id)
-GROUP BY p.strategy ORDER BY best_after_20_calls DESC;
+SELECT strategy, runs, ci_text(at_5.mean, at_5.low, at_5.high) AS best_after_5_calls,
+       ci_text(at_10.mean, at_10.low, at_10.high) AS best_after_10_calls,
+       ci_text(at_20.mean, at_20.low, at_20.high) AS best_after_20_calls, max_best, calls, tokens, wall_minutes,
+       candidates, cached_assessments
+FROM per_strategy ORDER BY at_20.mean DESC NULLS LAST;

@@ -76,3 +76,26 @@ def episode_rows(con: duckdb.DuckDBPyConnection, episode_ids: list[str]) -> dict
         """SELECT episode_id, run_id, seed, policy_version_id, return, length, lives_lost, end_reason, error, traced
            FROM episodes WHERE list_contains(?, episode_id)""", [episode_ids]))
     return {r["episode_id"]: r for r in rows}
+
+
+def best_evaluation(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any] | None:
+    """The assessment that made the run's best: its ``score`` with ``score_low`` and ``score_high`` (the 95%
+    interval, ``candidates``) and its ``episodes`` (return, length, end reason, error, in order): the evaluation
+    episodes, or the robust ones for a run that optimizes the standard protocol's score. None without iterations."""
+    rows = _rows(con.execute(
+        """SELECT c.score, c.score_low, c.score_high,
+                  CASE WHEN json_extract_string(r.config, '$.optimize_protocol') = 'standard'
+                       THEN c.robust_episode_ids ELSE c.eval_episode_ids END AS episode_ids
+           FROM iterations i JOIN candidates c ON c.run_id = i.run_id AND c.iteration = i.best_iteration
+                AND c.policy_version_id = i.best_version_id
+           JOIN runs r ON r.run_id = i.run_id
+           WHERE i.run_id = ? ORDER BY i.iteration DESC, c.score DESC NULLS LAST, c.candidate LIMIT 1""", [run_id]))
+    if not rows:
+        return None
+    best = rows[0]
+    ids = best.pop("episode_ids") or []
+    by_id = {e["episode_id"]: e for e in _rows(con.execute(
+        """SELECT episode_id, return, length, end_reason, error FROM episodes WHERE list_contains(?, episode_id)""",
+        [ids]))}
+    best["episodes"] = [by_id[i] for i in ids if i in by_id]
+    return best

@@ -9,7 +9,8 @@ file is held only while DuckDB computes the result, never while the caller print
 reading statement, on a read-only connection of its own with DuckDB's external access off and its
 configuration locked (no ATTACH, COPY, EXPORT, INSTALL, no reading or writing of other files); it may
 have parameters (:func:`bind_params`: ``?``, ``$1`` or ``$name``) and use the macros ``run(ref)`` and
-``run_matches(ref)`` (``store/runs.py``, which also resolves run references for every verb). :func:`schema_listing`
+``run_matches(ref)`` (``store/runs.py``, which also resolves run references for every verb), and the interval
+functions ``mean_ci``, ``iqm_ci``, ``iqm_ci_strata`` and ``ci_text`` (``store/sql_stats.py``). :func:`schema_listing`
 lists the tables, views and macros with one line each (the tables' and views' DuckDB comments, set by migration 10).
 :func:`run_references_by_value` finds the values of a query that name a run without being its id (the short id
 ``codearcade runs`` prints, compared with ``run_id`` as it is), for the note a query that found nothing gets.
@@ -26,6 +27,7 @@ import duckdb
 
 from store.db import Store, StoreError
 from store.runs import SQL_MACROS, create_sql_macros, references_by_value, resolve_run_id  # noqa: F401 (resolve_run_id: for callers)
+from store.sql_stats import create_sql_functions, function_listing
 
 TABLES = ("runs", "blobs", "policy_versions", "episodes", "steps", "nodes", "policy_lines", "iterations", "candidates",
           "feedback", "llm_calls", "audits", "published_scores", "schema_migrations")
@@ -198,8 +200,9 @@ def run_references_by_value(store: Store, sql: str, params: Sequence[str] | None
 
 
 def schema_listing(store: Store) -> list[tuple[str, str, str]]:
-    """(name, kind, one line) of every table, view and macro a person's SQL can use: tables and views with their
-    DuckDB comment (set by the migrations), in the order docs/schema.md describes them, then the macros."""
+    """(name, kind, one line) of every table, view, macro and function a person's SQL can use: tables and views
+    with their DuckDB comment (set by the migrations), in the order docs/schema.md describes them, then the macros,
+    then the interval functions (``store/sql_stats.py``)."""
     with store.read() as con:
         rows = con.execute(
             "SELECT table_name, 'table', coalesce(comment, '') FROM duckdb_tables() "
@@ -208,7 +211,8 @@ def schema_listing(store: Store) -> list[tuple[str, str, str]]:
             "WHERE database_name = current_database() AND schema_name = 'main' AND NOT internal").fetchall()
     order = {name: k for k, name in enumerate(TABLES + VIEWS)}
     rows.sort(key=lambda r: (r[1] != "table", order.get(r[0], len(order)), r[0]))
-    return rows + [(signature, "macro", help_line) for signature, help_line, _ in SQL_MACROS.values()]
+    return (rows + [(signature, "macro", help_line) for signature, help_line, _ in SQL_MACROS.values()]
+            + function_listing())
 
 
 def _user_connection(store: Store) -> duckdb.DuckDBPyConnection:
@@ -223,6 +227,9 @@ def _user_connection(store: Store) -> duckdb.DuckDBPyConnection:
                 time.sleep(0.05)
                 continue
             raise StoreError(f"cannot open {store.path}: {one_line(exc)}") from None
-    create_sql_macros(con)  # temporary macros, before the configuration is locked
+    create_sql_macros(con)  # temporary macros and functions, before the configuration is locked
+    create_sql_functions(con)
+    # the interval functions import scipy on first use, which may take seconds: no progress bar on the terminal
+    con.execute("SET enable_progress_bar = false")
     con.execute("SET lock_configuration = true")
     return con

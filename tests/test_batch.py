@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -12,6 +13,7 @@ import time
 import pytest
 
 from pipeline.jobs.batch import ExperimentError, load_experiments
+from store.views import run_user_query
 from tests.conftest import COMPETENT_REPLY, ROOT
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -143,9 +145,15 @@ def test_ablation_example_and_its_sql(tmp_path, store, scripted):
     done = _batch(path, store, "--workers", "2")
     assert done.returncode == 0, done.stderr + done.stdout
     sql = (ROOT / "examples" / "ablation.sql").read_text()
-    rows = store.query(sql)
+    rows = run_user_query(store, sql).rows  # as `codearcade sql` runs it: with mean_ci and ci_text
     assert [r[0] for r in rows] == ["rollout", "staged"]
     assert all(r[1] == 3 and r[5] == 1 for r in rows), rows
+    for feedback, _, mean_best, max_best, _, _ in rows:  # mean [low, high] over the three seeds
+        bests = [b for (b,) in store.query(
+            "SELECT max(i.score) FROM runs r JOIN iterations i USING (run_id) WHERE json_extract_string(r.config, "
+            "'$.feedback') = ? GROUP BY r.run_id", [feedback])]
+        mean, low, high = (float(x) for x in re.fullmatch(r"(\S+) \[(\S+), (\S+)\]", mean_best).groups())
+        assert mean == round(sum(bests) / 3, 1) and low <= mean <= high and max_best == max(bests)
 
 
 def test_anthropic_batch_with_a_token_budget_stops_then_resumes_with_a_larger_one(tmp_path, store, scripted):

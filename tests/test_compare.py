@@ -145,6 +145,21 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted
         assert [p["score"] for p in report["curves"][label]] == scores
     assert report["runs"][0]["best_iteration"] == 1 and report["runs"][1]["best_iteration"] == 0
     assert re.search(r"^-.*offset = \(y - 30\) % 320", report["diff"], re.M), "A's best has the competent code"
+    # each best with its interval (the candidate that scored it), and whether the bests differ beyond the noise:
+    # the difference of the returns of the evaluation episodes that scored them
+    from store.scores import difference
+    from viewers.safe_text import markdown_text
+
+    returns = []
+    for run in report["runs"]:
+        (low, high, ids_), = store.query(
+            "SELECT score_low, score_high, eval_episode_ids FROM candidates WHERE run_id = ? AND iteration = ? AND "
+            "policy_version_id = ?", [run["run_id"], run["best_iteration"], run["best_version_id"]])
+        assert (run["best_low"], run["best_high"], run["best_episodes"]) == (low, high, len(ids_))
+        returns.append([dict(store.query("SELECT episode_id, return FROM episodes"))[i] for i in ids_])
+    assert report["difference"]["verdict"] == difference(*returns).verdict()
+    verdict = f"best versions, over their evaluation episodes (1 and 1): {difference(*returns).verdict()}"
+    assert markdown_text(verdict) in (tmp_path / "cmp" / "README.md").read_text()
     png = (tmp_path / "cmp" / "curves.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 20_000
     assert "![learning curves" in (tmp_path / "cmp" / "README.md").read_text()
@@ -166,3 +181,79 @@ def test_what_cannot_be_compared_is_said_in_one_line(store, capsys, tmp_path):
         code, out, err = run_cli(capsys, *argv, "--store", store.path)
         assert code == 2 and message in err, (argv, err)
         assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+# ------------------------------------------------------------------------------------ beyond the noise (--audit)
+# Figures (docs/compare.md): the competent policy on audit seeds 1000000..11 against 1000012..23, 1000 steps:
+# A - B = 0 [-1.17, +1.17]; with 5, 6, 8 or 10 episodes a side the same policy's first seeds happen to lose
+# more (6: -1.67 [-3, -0.33]), so fewer episodes would call it a difference. The scaffold against it on
+# 6 seeds each: -14.8 [-17.2, -12.7].
+AUDIT_STEPS = 1000
+
+
+def audit_compare(capsys, store, a, b, episodes: int) -> dict:
+    code, out, err = run_cli(capsys, "compare", a, b, "--audit", "--episodes", episodes, "--max-steps", AUDIT_STEPS,
+                             "--workers", 2, "--store", store.path, "--json")
+    assert code == 0, err
+    return json.loads(out)
+
+
+def stored_returns(store, run_id: str) -> list[float]:
+    return [r[0] for r in store.query("SELECT return FROM episodes WHERE run_id = ? AND kind = 'eval' "
+                                      "ORDER BY episode_index", [run_id])]
+
+
+def test_a_policy_against_itself_on_other_audit_seeds_differs_by_no_more_than_the_noise(store, capsys):
+    from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY
+    from store.scores import difference, score_episodes
+
+    report = audit_compare(capsys, store, COMPETENT, COMPETENT, 12)
+    assert report["protocol"] == "audit" and report["episodes"] == [], "different games: no divergent step"
+    runs = [v["eval_run"] for v in report["versions"]]
+    # each side on its own audit seeds, under the standard protocol, as the store recorded them
+    for k, run_id in enumerate(runs):
+        seeds = [r[0] for r in store.query("SELECT seed FROM episodes WHERE run_id = ? ORDER BY episode_index",
+                                           [run_id])]
+        assert seeds == [AUDIT_SEED_BASE + 12 * k + i for i in range(12)]
+        config = json.loads(store.query("SELECT config FROM runs WHERE run_id = ?", [run_id])[0][0])
+        assert (config["sticky"], config["noop_max"]) == (STANDARD_STICKY, STANDARD_NOOP_MAX)
+    returns = [stored_returns(store, r) for r in runs]
+    assert returns[0] != returns[1], "the standard protocol's seeds are different games"
+    expected = difference(*returns)
+    assert report["difference"]["significant"] is False and expected.significant is False
+    assert (report["difference"]["low"], report["difference"]["high"]) == (expected.low, expected.high)
+    assert report["difference"]["low"] < 0 < report["difference"]["high"]
+    for label, side in zip("AB", returns):
+        score = score_episodes([{"return": r, "end_reason": "truncated", "length": AUDIT_STEPS} for r in side])
+        assert report["scores"][label]["returns"] == side
+        assert (report["scores"][label]["mean"], report["scores"][label]["low"]) == (score.mean, score.low)
+
+
+def test_the_starter_against_the_competent_policy_differs_beyond_the_noise(store, capsys, tmp_path):
+    from pipeline.cli import main as cli
+
+    report = audit_compare(capsys, store, EXAMPLES / "pong.py", COMPETENT, 6)
+    difference = report["difference"]
+    assert difference["significant"] is True and difference["high"] < 0, difference
+    assert report["scores"]["A"]["high"] < report["scores"]["B"]["low"], "the intervals do not even overlap"
+    # the text and the README say it in words, with both sides' scores
+    code = cli(["compare", str(EXAMPLES / "pong.py"), str(COMPETENT), "--audit", "--episodes", "2", "--max-steps", "100",
+                "--store", str(store.path), "--out", str(tmp_path / "cmp")])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert re.search(r"^  A: mean \S+ \[\S+, \S+\] over 2 episodes \(seeds 1000000\.\.1000001; returns ", out, re.M)
+    assert re.search(r"^  B: .*\(seeds 1000002\.\.1000003; ", out, re.M)
+    assert re.search(r"^  A - B = ", out, re.M) and "first divergent step" not in out
+    readme = (tmp_path / "cmp" / "README.md").read_text()
+    assert "## Scores" in readme and "- A - B = " in readme
+
+
+def test_same_seed_comparison_says_the_paper_protocol_measures_no_noise(store, capsys):
+    code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--episodes", 2, "--max-steps", 50,
+                             "--store", store.path)
+    assert code == 0, err
+    assert "A - B = +0 [+0, +0]: no difference beyond the noise" in out
+    assert "under the paper's protocol every seed is the same game" in out
+    code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--audit", "--rerun", "x.rrd",
+                             "--store", store.path)
+    assert code == 2 and "with --audit each side plays its own seeds" in err

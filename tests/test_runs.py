@@ -208,9 +208,10 @@ def test_user_sql_stays_read_only_with_the_macros(four, tmp_path):
 def test_schema_listing_has_a_line_for_every_table_view_and_macro(four):
     listing = schema_listing(four)
     names = [name for name, _, _ in listing]
-    assert names == list(TABLES) + list(VIEWS) + ["run(ref)", "run_matches(ref)"]
+    assert names == list(TABLES) + list(VIEWS) + ["run(ref)", "run_matches(ref)", "mean_ci(values)", "iqm_ci(values)",
+                                                  "iqm_ci_strata(lists)", "ci_text(point, low, high)"]
     for name, kind, line in listing:
-        assert kind in ("table", "view", "macro") and 20 < len(line) < 160 and "\n" not in line, name
+        assert kind in ("table", "view", "macro", "function") and 20 < len(line) < 160 and "\n" not in line, name
     con = duckdb.connect(str(four.path), read_only=True)  # any DuckDB client sees the same lines
     comments = dict(con.execute("SELECT table_name, comment FROM duckdb_tables()").fetchall())
     con.close()

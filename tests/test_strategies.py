@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import re
 import os
 import signal
 import subprocess
@@ -224,11 +225,18 @@ def test_strategies_example_and_its_sql(tmp_path, store, scripted):
                         "JOIN llm_usage u USING (run_id) ORDER BY ALL")
     assert all(status == "budget" and 0 < n <= 4 for _, status, n in calls), calls
     assert dict((s, n) for s, _, n in calls if s != "beam") == {"best-of-n": 4, "greedy": 4}
-    rows = store.query((ROOT / "examples" / "strategies.sql").read_text())
+    from store.views import run_user_query
+
+    # as `codearcade sql` runs it, with mean_ci and ci_text: mean [low, high] over a strategy's runs (alone for one)
+    rows = run_user_query(store, (ROOT / "examples" / "strategies.sql").read_text()).rows
     assert sorted(r[0] for r in rows) == ["beam", "best-of-n", "greedy"]
     by_strategy = {r[0]: r for r in rows}
     assert by_strategy["beam"][1] == 2 and by_strategy["greedy"][1] == 1
-    assert all(r[2] <= r[3] <= r[4] for r in rows), "the best so far never falls as calls are spent"
+    assert by_strategy["greedy"][4] == f"{by_strategy['greedy'][5]:.1f}", "one run: its best, no interval"
+    assert re.fullmatch(r"\S+ \[\S+, \S+\]", by_strategy["beam"][4]), "two runs: the mean and its interval"
+    means = [[float(text.split()[0]) for text in r[2:5]] for r in rows]
+    assert all(a <= b <= c for a, b, c in means), "the best so far never falls as calls are spent"
+    assert [m[2] for m in means] == sorted((m[2] for m in means), reverse=True)
 
 
 def test_both_protocols_are_scored_and_the_chosen_one_is_optimized(store, scripted):

@@ -67,6 +67,19 @@ def _score(value: Any) -> str:
     return "-" if value is None else f"{value:g}"
 
 
+def _best(run: dict[str, Any]) -> str:
+    """A run's best score with its 95% interval, ``12 [10.5, 13]`` (alone when it has none)."""
+    if run["best_score"] is None or run.get("best_low") is None:
+        return _score(run["best_score"])
+    return f"{run['best_score']:g} [{run['best_low']:g}, {run['best_high']:g}]"
+
+
+def _best_difference(data: dict[str, Any]) -> str:
+    """Whether the two runs' bests differ beyond the noise, in words."""
+    counts = " and ".join(f"{r['best_episodes']}" for r in data["runs"])
+    return (f"best versions, over their evaluation episodes ({counts}): {data['difference']['verdict']}")
+
+
 def _amount(value: float) -> str:
     """A budget for people: whole numbers as such, others to one decimal."""
     return f"{value:g}" if float(value).is_integer() else f"{value:.1f}"
@@ -132,6 +145,26 @@ def _action(e: dict[str, Any], label: str) -> str:
     return "no action (its policy failed)" if at["action"] is None else f"{at['action']} {at['action_name']}"
 
 
+PAPER_NOTE = ("under the paper's protocol every seed is the same game, so the interval measures no noise; --audit "
+              "plays each side on its own audit seeds under the standard protocol")
+
+
+def _score_lines(data: dict[str, Any]) -> list[str]:
+    """Whether two versions' scores differ beyond the noise: each side's score (``store/scores.py``) with its
+    seeds and returns, and the difference's verdict; a line on the protocol when it was the paper's."""
+    if not data.get("scores"):
+        return []
+    lines = ["scores (mean of the episodes played out, 95% bootstrap interval):"]
+    for label, side in data["scores"].items():
+        seeds = side["seeds"]
+        where = f"seeds {seeds[0]}..{seeds[-1]}" if len(seeds) > 1 else f"seed {seeds[0]}" if seeds else "no seeds"
+        lines.append(f"  {label}: {side['summary']} ({where}; returns {', '.join(f'{r:g}' for r in side['returns'])})")
+    lines.append(f"  {data['difference']['verdict']}")
+    if data.get("protocol") == "paper":
+        lines.append(f"  ({PAPER_NOTE})")
+    return lines
+
+
 def text_lines(data: dict[str, Any]) -> list[str]:
     """What ``codearcade compare`` prints on a terminal, terminal-safe (``viewers/safe_text.py``): a line each, but
     the tables and the diff, which span lines."""
@@ -139,9 +172,10 @@ def text_lines(data: dict[str, Any]) -> list[str]:
         runs = data["runs"]
         lines = [format_table(("", "run", "model", "status", "iterations", "best", "at iteration", "LLM calls",
                                "tokens", "seconds"),
-                              [(r["label"], r["run_id"], r["model"], r["status"], r["iterations"], _score(r["best_score"]),
+                              [(r["label"], r["run_id"], r["model"], r["status"], r["iterations"], _best(r),
                                 r["best_iteration"], r["llm_calls"], r["total_tokens"], round(r["elapsed_s"], 1))
                                for r in runs], max_width=32, null="-"),
+                 terminal_text(_best_difference(data)),
                  "", "best score reached within the same budget:",
                  format_table(("budget in", "up to", "A best", "B best"), _budget_rows(data), max_width=40, null="-"),
                  "", "diff of the best versions (A -> B):",
@@ -155,6 +189,7 @@ def text_lines(data: dict[str, Any]) -> list[str]:
         if e["around"]:
             lines.append(format_table(("step", "", "action", "node outputs", "objects"), _around_rows(e),
                                       max_width=70, null="-"))
+    lines += [""] + [terminal_text(line) for line in _score_lines(data)]
     lines += ["", "diff (A -> B):", terminal_text(data["diff"] or "(the same code)", multiline=True)]
     return lines
 
@@ -172,8 +207,9 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
                "![learning curves against LLM calls, tokens and wall seconds](curves.png)", "",
                _md_table(("", "run", "model", "status", "iterations", "best", "at iteration", "LLM calls", "tokens",
                           "seconds"),
-                         [(r["label"], markdown_code(r["run_id"]), r["model"], r["status"], r["iterations"], r["best_score"],
+                         [(r["label"], markdown_code(r["run_id"]), r["model"], r["status"], r["iterations"], _best(r),
                            r["best_iteration"], r["llm_calls"], r["total_tokens"], r["elapsed_s"]) for r in runs]),
+               "", markdown_text(_best_difference(data)) + " (95% bootstrap intervals, `store/scores.py`)",
                "", "## Best score within the same budget", "",
                "Only budgets both runs spent are matched; `all` is each run's whole spending.", "",
                _md_table(("budget in", "up to", "A best", "B best"), _budget_rows(data)), "",
@@ -188,6 +224,10 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
             md += ["", f"## Seed {e['seed']}", ""] + [markdown_text(line.strip()) for line in _episode_headline(e)]
             if e["around"]:
                 md += ["", _md_table(("step", "", "action", "node outputs", "objects"), _around_rows(e))]
+        scores = _score_lines(data)
+        if scores:
+            md += ["", "## Scores", "", markdown_text(scores[0]), ""]
+            md += [f"- {markdown_text(line.strip())}" for line in scores[1:]]
         md += ["", "## Diff", "", markdown_code_block(data["diff"] or "(the same code)", "diff"), ""]
     readme = out / "README.md"
     readme.write_text("\n".join(md))

@@ -26,9 +26,12 @@ def add_parser(verbs) -> None:
         "files, or RUN:VERSION for a version stored in a run: a version id, a unique prefix of one, or 'best'): "
         "both play the same seeds, traced, into the store (two eval runs, which `codearcade runs` and last leave "
         "out), and the report names the first step where their actions differ, with both sides' observations "
-        "and node outputs around it.",
+        "and node outputs around it. Both also say whether the scores differ beyond the noise (95% bootstrap "
+        "intervals, store/scores.py); --audit plays each version on its own audit seeds under the standard "
+        "protocol, which is what that needs.",
         epilog="examples: codearcade compare last~1 last --out cmp/   |   codearcade compare pong_a.py pong_b.py "
-        "--max-steps 600 --rerun side_by_side.rrd   |   codearcade compare last~1:best last:best",
+        "--max-steps 600 --rerun side_by_side.rrd   |   codearcade compare pong_a.py pong_b.py --audit --episodes 6 "
+        "--max-steps 1000   |   codearcade compare last~1:best last:best",
     )
     p.add_argument("a", metavar="A", help="a run (last, last~N, -N, a label, an id or a unique prefix), a policy "
                    "file or RUN:VERSION")
@@ -51,6 +54,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.rerun and not args.rerun.endswith(".rrd") and not args.rerun.startswith(("rerun://", "rerun+http")):
         raise CliError(f"--rerun {args.rerun}: give a FILE.rrd or a rerun+http://HOST:PORT/proxy url")
+    if args.rerun and args.audit:
+        raise CliError("--rerun shows the episodes of one seed on both sides; with --audit each side plays its own "
+                       "seeds: leave one of them out")
     store = open_store(args)
     given = {name: getattr(args, name) for name in declarations(CompareConfig)}
     if given["workers"] is None:

@@ -1,7 +1,9 @@
 """``codearcade compare A B`` of two optimization runs: their learning curves side by side, a budget-matched table
 (the best score each run had reached within the same number of LLM calls, thousand tokens and wall seconds;
-only budgets both runs spent are matched, so neither is credited with spending it never made) and the unified
-diff of their best versions.
+only budgets both runs spent are matched, so neither is credited with spending it never made), the unified
+diff of their best versions, each best score with its 95% interval (``candidates.score_low``/``score_high``), and
+whether the two bests differ beyond the noise: ``store.scores.difference`` of the returns of the evaluation
+episodes that scored them.
 
 Everything is read back from the store (``store/comparisons.py``) and returned as plain data
 (``viewers/compare_report.py`` renders it). It lives beside the optimizer because what it weighs is the
@@ -13,10 +15,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from pipeline.play.versus import LABELS, unified_diff
+from pipeline.play.versus import LABELS, difference_data, unified_diff
 from store import Store
-from store.comparisons import best_version, learning_curve
+from store.comparisons import best_evaluation, best_version, learning_curve
 from store.readers import get_run, policy_text
+from store.scores import score_episodes
 from store.views import resolve_run_id
 
 
@@ -27,17 +30,20 @@ class RunComparison:
     curves: dict[str, list[dict[str, Any]]]
     budgets: list[dict[str, Any]]
     diff: str
+    difference: dict[str, Any]
+    """A's best minus B's best (mean returns of the episodes that scored them) with its 95% interval, whether that
+    leaves out 0, and the verdict in words."""
 
     def as_dict(self) -> dict[str, Any]:
         return {"mode": "runs", "game": self.game, "runs": self.runs, "curves": self.curves,
-                "budgets": self.budgets, "diff": self.diff}
+                "budgets": self.budgets, "diff": self.diff, "difference": self.difference}
 
 
 def compare_runs(store: Store, a: str, b: str) -> RunComparison:
     """Learning curves, budget-matched table and best-version diff of two optimization runs."""
     with store.read() as con:
         ids = [resolve_run_id(con, x, store) for x in (a, b)]
-        runs, curves, texts = [], {}, []
+        runs, curves, texts, returns = [], {}, [], []
         for label, run_id in zip(LABELS, ids):
             run = get_run(con, run_id)
             curve = learning_curve(con, run_id)
@@ -46,12 +52,16 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
                 raise ValueError(f"run {run_id} is an {run['kind']} run without iterations: compare optimization "
                                  f"runs, or play its policy against another version with {run_id}:best")
             texts.append(policy_text(con, run_id, best["policy_version_id"]))
+            assessed = best_evaluation(con, run_id) or {"score_low": None, "score_high": None, "episodes": []}
+            returns.append(score_episodes(assessed["episodes"]).returns)
             curves[label] = [_curve_point(row) for row in _cumulative_calls(curve)]
             last = curves[label][-1]
             runs.append({"label": label, "run_id": run_id, "kind": run["kind"], "game": run["game"],
                          "model": run["model"], "status": run["status"], "iterations": len(curve) - 1,
                          "llm_calls": last["llm_calls"], "total_tokens": last["tokens"], "elapsed_s": last["elapsed_s"],
-                         "best_score": best["score"], "best_iteration": best["iteration"],
+                         "best_score": best["score"], "best_low": assessed["score_low"],
+                         "best_high": assessed["score_high"], "best_episodes": len(assessed["episodes"]),
+                         "best_iteration": best["iteration"],
                          "best_version_id": best["policy_version_id"]})
     games = {r["game"] for r in runs}
     if len(games) > 1:
@@ -59,7 +69,8 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
                          "scores of different games do not compare")
     names = [f"{r['run_id']}:{r['best_version_id']} (best, iteration {r['best_iteration']}, score {r['best_score']:g})"
              for r in runs]
-    return RunComparison(games.pop(), runs, curves, budget_table(curves), unified_diff(texts[0], texts[1], *names))
+    return RunComparison(games.pop(), runs, curves, budget_table(curves), unified_diff(texts[0], texts[1], *names),
+                         difference_data(*returns))
 
 
 def _cumulative_calls(curve: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -9,7 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from games import GAMES
-from games.base import OBSERVATION_VERSION, one_life_setting
+from games.base import (AUDIT_SEED_BASE, OBSERVATION_VERSION, STANDARD_NOOP_MAX, STANDARD_STICKY,
+                        one_life_setting)
 from pipeline.settings import Switch, limit, setting
 
 
@@ -73,6 +74,16 @@ class CompareConfig:
     """The first seed."""
     max_steps: int = limit("max_steps", help="step cap (default: %(default)s)")
     """Step cap of each episode (``EpisodeLimits``)."""
+    audit: bool = setting(False, f"play each side on its own audit seeds under the standard protocol (sticky "
+                          f"{STANDARD_STICKY}, up to {STANDARD_NOOP_MAX} no-op starts): A on {AUDIT_SEED_BASE}+seed "
+                          "on, B on the next --episodes seeds; the scores then say whether the versions differ beyond "
+                          "the noise (default: both on the same seeds under the paper's protocol, every seed the "
+                          "same game, to find where their actions part)")
+    """Play A on audit seeds ``AUDIT_SEED_BASE + seed + i`` and B on ``AUDIT_SEED_BASE + seed + episodes + i``
+    (``i < episodes``), under the standard protocol (``games.base.STANDARD_STICKY``/``STANDARD_NOOP_MAX``). Under
+    the paper's protocol every seed is the same game, so a difference of scores there measures no noise; here each
+    side's episodes are independent draws and ``store.scores.difference`` of their returns says whether the versions
+    differ. No divergent step is looked for: the two sides play different games."""
     context: int = setting(3, "steps shown before and after the first divergent step (default: %(default)s)",
                            minimum=0)
     """Steps shown before and after the first divergent step."""

@@ -7,6 +7,14 @@ report names the first step where their actions differ, with both sides' actions
 outputs on the steps around it. Episodes are deterministic under the default protocol (sticky 0, no no-op
 starts), so that step is where their behaviour really parts, not noise.
 
+Beside where the actions part, it says whether the scores differ beyond the noise: each side's score by the one
+rule of ``store/scores.py`` (mean of the episodes played out with its 95% interval, forfeits named) and the
+bootstrap interval of the difference of their returns (``scores.difference``). Under the paper's protocol every
+seed is the same game, so that says little; ``--audit`` (``CompareConfig.audit``) plays each side on its own
+audit seeds under the standard protocol instead (sticky 0.25, up to 30 no-op starts), independent draws whose
+difference is the one that means something (and then no divergent step is looked for: the sides play different
+games).
+
 Everything shown is read back from the store (``store/comparisons.py``); this module only decides what to
 play and assembles the report as plain data (``viewers/compare_report.py`` renders it). Two optimization runs
 are compared by ``pipeline/optimizer/runs.py``.
@@ -22,12 +30,14 @@ from pathlib import Path
 from typing import Any, Callable
 
 from games import get_game, list_widths
+from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY
 from pipeline.play.config import CompareConfig, EvalConfig
 from pipeline.play.evaluate import evaluate
 from pipeline.play.validate import checked_inspect
 from store import Store
 from store.comparisons import episode_rows, first_divergent_step, resolve_version
 from store.readers import episode_steps, get_run, policy_text, run_episodes, step_nodes
+from store.scores import difference, score_episodes
 from store.views import resolve_run_id
 from tracing.policy_file import PolicyLoadError, read_policy_file
 
@@ -54,9 +64,17 @@ class VersionComparison:
     versions: list[Version]
     diff: str
     episodes: list[dict[str, Any]] = field(default_factory=list)
+    protocol: str = "paper"
+    """``paper`` (both sides on the same seeds, sticky 0, no no-op starts) or ``audit`` (each on its own audit
+    seeds under the standard protocol)."""
+    scores: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Per side: its seeds and returns, and its score (``store.scores.Score``) as plain data."""
+    difference: dict[str, Any] = field(default_factory=dict)
+    """A's mean minus B's with its 95% interval, whether that leaves out 0, and the verdict in words."""
 
     def as_dict(self) -> dict[str, Any]:
-        return {"mode": "versions", "game": self.game, "diff": self.diff, "episodes": self.episodes,
+        return {"mode": "versions", "game": self.game, "protocol": self.protocol, "diff": self.diff,
+                "episodes": self.episodes, "scores": self.scores, "difference": self.difference,
                 "versions": [{"label": v.label, "ref": v.ref, "policy_version_id": v.policy_version_id,
                               "source_run": v.source_run, "eval_run": v.eval_run} for v in self.versions]}
 
@@ -97,27 +115,56 @@ def compare_versions(store: Store, a: str, b: str, config: CompareConfig,
     if get_game(games[0]) != get_game(games[1]):
         raise PolicyLoadError(f"{a} plays {games[0]} but {b} plays {games[1]}: compare two versions of one game")
     game = get_game(games[0]).name
-    eval_config = EvalConfig(game=game, episodes=config.episodes, max_steps=config.max_steps, seed=config.seed,
-                             trace=True, workers=config.workers)
     with tempfile.TemporaryDirectory(prefix="codearcade-compare-") as scratch:
-        for v in versions:
+        for k, v in enumerate(versions):
+            eval_config = _eval_config(game, config, k)
             path = v.path
             if path is None:  # a stored version is played from a file named after where it came from
                 path = os.path.join(scratch, f"{v.source_run}.{v.policy_version_id}.py")
                 Path(path).write_text(v.text)
             if progress is not None:
                 progress(f"playing {v.label} = {v.ref} ({v.policy_version_id}) on {config.episodes} seed(s) from "
-                         f"{config.seed}, traced")
+                         f"{eval_config.seed}" + (", standard protocol" if config.audit else ", traced"))
             # marked as compare's own: `runs` and `last` count the runs a person started, not these
             v.eval_run = evaluate(path, eval_config, store, made_by="compare").run_id
     diff = unified_diff(versions[0].text, versions[1].text, f"A {a} ({versions[0].policy_version_id})",
                         f"B {b} ({versions[1].policy_version_id})")
-    result = VersionComparison(game, versions, diff)
+    result = VersionComparison(game, versions, diff, protocol="audit" if config.audit else "paper")
     with store.read() as con:
         played = [[e for e in run_episodes(con, v.eval_run) if e["kind"] == "eval"] for v in versions]
-        for ep_a, ep_b in zip(*played):
-            result.episodes.append(_divergence(con, game, ep_a, ep_b, config.context))
+        if not config.audit:  # the same seed is the same game on both sides only under the paper's protocol
+            for ep_a, ep_b in zip(*played):
+                result.episodes.append(_divergence(con, game, ep_a, ep_b, config.context))
+    scores = [score_episodes(episodes) for episodes in played]
+    result.scores = {label: _score_data(score, episodes) for label, score, episodes in zip(LABELS, scores, played)}
+    result.difference = difference_data(scores[0].returns, scores[1].returns)
     return result
+
+
+def difference_data(a: tuple[float, ...], b: tuple[float, ...]) -> dict[str, Any]:
+    """``store.scores.difference`` of two sets of returns as plain data: A's mean minus B's, its 95% interval,
+    whether that leaves out 0 (None: too few episodes to tell) and the verdict in words."""
+    delta = difference(a, b)
+    return {"delta": delta.delta, "low": delta.low, "high": delta.high, "significant": delta.significant,
+            "verdict": delta.verdict()}
+
+
+def _eval_config(game: str, config: CompareConfig, side: int) -> EvalConfig:
+    """How side ``side`` (0: A, 1: B) plays: both on ``seed`` on under the paper's protocol, traced; with
+    ``audit``, each on its own audit seeds under the standard protocol (A's first, then B's)."""
+    if not config.audit:
+        return EvalConfig(game=game, episodes=config.episodes, max_steps=config.max_steps, seed=config.seed,
+                          trace=True, workers=config.workers)
+    return EvalConfig(game=game, episodes=config.episodes, max_steps=config.max_steps,
+                      seed=AUDIT_SEED_BASE + config.seed + side * config.episodes, sticky=STANDARD_STICKY,
+                      noop_max=STANDARD_NOOP_MAX, workers=config.workers)
+
+
+def _score_data(score, episodes: list[dict[str, Any]]) -> dict[str, Any]:
+    """A side's :class:`store.scores.Score` as plain data, with the seeds and returns of its episodes."""
+    return {"seeds": [e["seed"] for e in episodes], "returns": [e["return"] for e in episodes],
+            "mean": score.mean, "low": score.low, "high": score.high, "played": score.played,
+            "forfeits": [f.describe() for f in score.forfeits], "summary": score.summary()}
 
 
 def _divergence(con, game: str, ep_a: dict[str, Any], ep_b: dict[str, Any], context: int) -> dict[str, Any]:
