@@ -27,6 +27,7 @@ def _experiments(tmp_path, model, name="smoke", iterations=1):
         iterations = {iterations}
         eval_max_steps = 300
         rollout_steps = 100
+        rng_key = "smoke"
         model = "{model.model}"
         api_base = "{model.api_base}"
         [matrix]

@@ -107,7 +107,9 @@ def test_a_day_without_ids_from_a_subdirectory(day):
                         rf"{re.escape(str(day['root'] / 'codearcade.duckdb'))} \(the nearest in a parent directory\)",
                         start[0]), start[0]
     assert start[1].startswith("iteration   0") and morning.startswith(start[0].split()[1])
-    assert start[-1] == f"run {start[0].split()[1]} finished"
+    finished = start.index(f"run {start[0].split()[1]} finished")
+    assert all(line.startswith("audit  ") for line in start[finished + 1:]) and len(start) > finished + 1, \
+        "the run's held-out audit follows its end"
 
     listed = cli("runs", "-n", "3").stdout.splitlines()
     header = listed[0].split()
@@ -272,7 +274,7 @@ def test_eval_labels_its_run_says_its_id_and_speed(tmp_path):
     start = re.fullmatch(rf"run ({SHORT}) 'first-look' started: eval pong_competent.py, 2 episode\(s\); store "
                          r"s.duckdb \(given with --store\)", lines[0])
     assert start and lines[1].startswith(f"run {start.group(1)} 'first-look'  game pong"), lines
-    speed = re.fullmatch(r"mean return \S+ over 2 episode\(s\); 300 steps in ([0-9.]+) s \(([0-9,]+) steps/s, "
+    speed = re.fullmatch(r"mean return \S+(?: \[\S+, \S+\])? over 2 episodes; 300 steps in ([0-9.]+) s \(([0-9,]+) steps/s, "
                          r"setup and checks included\)", lines[-1])
     assert speed, lines[-1]
     assert abs(int(speed.group(2).replace(",", "")) - 300 / float(speed.group(1))) <= 0.02 * 300 / float(

@@ -20,7 +20,8 @@ EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 
 def _optimize(model, store, *extra):
     return [EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
-            "--iterations", "3", "--eval-max-steps", "1200", "--store", str(store.path), *extra]
+            "--iterations", "3", "--eval-max-steps", "1200", "--store", str(store.path),
+            "--rng-key", "resume", *extra]  # every run's random starter draws the same: runs can be compared
 
 
 def _start(model, store, *extra):
@@ -64,8 +65,13 @@ def _assert_complete(store, iterations=3):
     # episodes: the evaluation cache)
     referenced = store.query("SELECT count(DISTINCT e) FROM (SELECT unnest(list_append(eval_episode_ids, "
                              "train_episode_id)) AS e FROM candidates)")[0][0]
-    assert store.query("SELECT count(*), count(DISTINCT episode_id) FROM episodes")[0] == (referenced, referenced)
+    assert store.query("SELECT count(*), count(DISTINCT episode_id) FROM episodes WHERE kind <> 'audit'")[0] == \
+        (referenced, referenced)
     assert referenced >= 4
+    # and the held-out audit of the finished run, once: its rows and episodes
+    audited = store.query("SELECT count(*), sum(len(episode_ids)) FROM audits")[0]
+    assert audited[0] in (2, 4) and store.query("SELECT count(*) FROM episodes WHERE kind = 'audit'")[0][0] == \
+        store.query("SELECT count(DISTINCT e) FROM (SELECT unnest(episode_ids) AS e FROM audits)")[0][0]
     assert store.query("SELECT count(*) FROM (SELECT episode_id, step FROM steps GROUP BY ALL HAVING count(*) > 1)")[0][0] == 0
     lengths = store.query("SELECT e.length, count(s.step) FROM episodes e JOIN steps s USING (episode_id) GROUP BY e.episode_id, e.length")
     assert all(a == b for a, b in lengths)

@@ -89,6 +89,12 @@ class OptimizeConfig:
     """Regression threshold: below ``best - (1 - f) * max(|best|, 1)``."""
     seed: int = setting(0, "seed (default: 0)", run_key="always")
     """Seed of the training rollout; evaluation episode i uses ``seed + i``."""
+    rng_key: str | None = setting(
+        None, "key of the policy's own random stream: its random and NumPy generators are seeded from this key and "
+        "each game's seed, never with the seed (default: the run's id, which the policy cannot know); give two "
+        "runs the same key to have their policies draw the same numbers", metavar="KEY")
+    """The key of the policies' random stream (``pipeline/play/runinfo.py``, ``policy_rng_seed``); None: the run's
+    id. A run records the key it used; runs recorded before the key existed seeded policies with the game's seed."""
     temperature: float = setting(
         0.0, "LLM temperature (default: 0; not sent to models that take none)", run_key="always")
     """Sampling temperature of the LLM."""

@@ -139,7 +139,7 @@ def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str =
         info, game = starter, get_game(config.game or starter.game).name
     settings = task_settings(info, game)
     run_id = new_run_id()
-    record = {**asdict(config), "game": game, "rng_key": run_id,
+    record = {**asdict(config), "game": game, "rng_key": config.rng_key or run_id,
               "rollout_steps": config.rollout_steps or settings.rollout_steps,
               "eval_max_steps": config.eval_max_steps or settings.eval_max_steps,
               "instruction": settings.instruction, "feedback_bands": asdict(settings.feedback), **(extra or {})}

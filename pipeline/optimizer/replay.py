@@ -65,7 +65,9 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
     config = OptimizeConfig.from_record(recorded)
     client = ReplayClient(replies, model=run["model"] or "replay")
     new_run = start_run(config, store, client.model, kind="replay", extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
-    result = run_loop(store, load_state(store, new_run), client, log)
+    state = load_state(store, new_run)
+    state.config.audit_episodes = 0  # a replay checks that the loop reproduces; its audit is `codearcade audit`
+    result = run_loop(store, state, client, log)
 
     with store.read() as con:
         original, again = iteration_prompts(con, run_id), iteration_prompts(con, new_run)

@@ -27,6 +27,10 @@ class EvalConfig:
     """Steps after which an episode is cut off (reported as ``truncated``; ``EpisodeLimits``)."""
     seed: int = setting(0, "seed of the first episode; episode i uses seed+i (default: %(default)s)")
     """Seed of the first episode; episode i uses ``seed + i`` (``one_life="continue"``: the seed of the one game)."""
+    rng_key: str | None = setting(
+        None, "key of the policy's own random stream: its random and NumPy generators are seeded from this key and "
+        "each game's seed, never with the seed (default: the run's id, which the policy cannot know); give two "
+        "runs the same key to have their policies draw the same numbers", metavar="KEY")
     trace: bool = setting(False, "record a node for every call of a bundled method")
     """Record a node event for every call of a bundled method."""
     trace_lines: bool = setting(True, "record the lines each traced call ran", cli=False)

@@ -86,15 +86,12 @@ def evaluate(
     run_name: str | None = None,
     made_by: str | None = None,
     on_start: Callable[[str], None] | None = None,
-    rng_key: str | None = None,
 ) -> EvalResult:
     """Evaluate the policy file at ``policy_path``; see the module docstring. Raises PolicyLoadError,
     UnknownGameError or StoreError with one-line messages for bad input, before anything is stored.
 
     ``run_name`` labels the run and ``made_by`` marks one a command plays for its own use (``runs.name``,
-    ``runs.made_by``); ``on_start`` gets the run id once its row is stored. ``rng_key`` keys the policy's random
-    stream (``EpisodeSpec.rng_key``; default: the new run's id): two evaluations given the same key draw the same
-    numbers on the same seeds (``codearcade compare`` plays both versions so)."""
+    ``runs.made_by``); ``on_start`` gets the run id once its row is stored."""
     check_settings(config)
     one_life = one_life_setting(config.one_life)
     text = read_policy_file(policy_path)
@@ -105,7 +102,7 @@ def evaluate(
     with store.write():  # creates or upgrades the store, and refuses a damaged one, before anything plays
         pass
     run_id = new_run_id()
-    rng_key = rng_key or run_id
+    rng_key = config.rng_key or run_id  # the policy's random stream (EpisodeSpec.rng_key)
     one_game = one_life == ONE_LIFE_CONTINUE  # the authors' protocol: the episodes are the lives of one game
     specs = [
         EpisodeSpec(

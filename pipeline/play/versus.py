@@ -33,6 +33,7 @@ from games import get_game, list_widths
 from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY
 from pipeline.play.config import CompareConfig, EvalConfig
 from pipeline.play.evaluate import evaluate
+from pipeline.play.runinfo import new_run_id
 from pipeline.play.validate import checked_inspect
 from store import Store
 from store.comparisons import episode_rows, first_divergent_step, resolve_version
@@ -115,9 +116,11 @@ def compare_versions(store: Store, a: str, b: str, config: CompareConfig,
     if get_game(games[0]) != get_game(games[1]):
         raise PolicyLoadError(f"{a} plays {games[0]} but {b} plays {games[1]}: compare two versions of one game")
     game = get_game(games[0]).name
+    rng_key = new_run_id()  # one random stream for both sides: on a seed, their policies draw the same numbers
     with tempfile.TemporaryDirectory(prefix="codearcade-compare-") as scratch:
         for k, v in enumerate(versions):
             eval_config = _eval_config(game, config, k)
+            eval_config.rng_key = rng_key
             path = v.path
             if path is None:  # a stored version is played from a file named after where it came from
                 path = os.path.join(scratch, f"{v.source_run}.{v.policy_version_id}.py")
