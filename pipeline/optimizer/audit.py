@@ -54,19 +54,35 @@ class AuditResult:
         return bool(best and best["overfit"])
 
     def lines(self) -> list[str]:
-        """What a person reads: one line per audited version and protocol, then the verdict."""
+        """What a person reads: a line per audited version (the best, the starter; one when they are the same
+        version) with both protocols' scores beside its tuning score, then the verdict."""
         out = []
-        for r in self.rows:
-            shown = (f"{r['score']:g}" + (f" [{r['score_low']:g}, {r['score_high']:g}]"
-                                          if r["score_low"] is not None and r["score_low"] != r["score_high"] else "")
-                     if r["score"] is not None else f"forfeit ({r['forfeit']})")
-            tuning = f"{r['tuning_score']:g}" if r["tuning_score"] is not None else "forfeit"
-            out.append(f"audit  {r['role']:<7}  (iteration {r['iteration']})  {r['protocol']:<8}  {shown}  over "
-                       f"{len(r['seeds'])} held-out game{'s' * (len(r['seeds']) != 1)}  (tuning {tuning})")
+        best = self.row("best", "standard")
+        for role in ("best", "starter"):
+            standard, own = self.row(role, "standard"), self.row(role, "run")
+            if standard is None or (role == "starter" and standard["policy_version_id"] == best["policy_version_id"]):
+                continue
+            name = "best = starter" if role == "best" and standard["iteration"] == 0 else role
+            games = len(standard["seeds"])
+            out.append(f"audit  {name} (iteration {standard['iteration']}) on {games} held-out game"
+                       f"{'s' * (games != 1)}: standard protocol {_shown(standard)}, the run's own {_shown(own)}; "
+                       f"tuning {_number(standard['tuning_score'])}")
         if self.overfit:
             out.append("audit  OVERFIT: less than half of the best version's gain over the starting policy holds up "
                        "on the held-out games (standard protocol)")
         return out
+
+
+def _number(value: float | None) -> str:
+    return "forfeit" if value is None else f"{value:.2f}".rstrip("0").rstrip(".")
+
+
+def _shown(row: dict[str, Any]) -> str:
+    """A score with its 95% interval when it has width, or the forfeit."""
+    if row["score"] is None:
+        return f"forfeit ({row['forfeit']})"
+    band = row["score_low"] is not None and row["score_low"] != row["score_high"]
+    return _number(row["score"]) + (f" [{_number(row['score_low'])}, {_number(row['score_high'])}]" if band else "")
 
 
 def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: int | None = None,
