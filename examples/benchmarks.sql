@@ -11,7 +11,9 @@
 -- rliable recommends for few seeds). `protocol` says what our evaluation episodes were: `lives of one
 -- game` (the authors' protocol, `one_life = "continue"`: the follow-up ends an episode at a lost life in Asterix,
 -- Breakout, Q*bert and Seaquest and goes on with the same game in the next), `first lives` (`one_life = true`: the
--- first life of each episode's own seeded game), `whole games`, or `mixed` across a game's runs.
+-- first life of each episode's own seeded game), `whole games`, or `mixed` across a game's runs. Beside them, the
+-- held-out audit (`audit`: the runs' best versions on seeds the loop never played, under the standard protocol,
+-- mean [95% interval] over the runs; `overfit`: how many runs the audit flagged; docs/optimizer.md).
 -- `theirs` is their figure at our training horizon; paper, default, h1 and h100 are all of theirs (mean ± se).
 WITH batch_runs AS (
     SELECT run_id, game, json_extract(config, '$.rollout_steps')::INTEGER AS horizon,
@@ -21,12 +23,14 @@ WITH batch_runs AS (
 ), per_run AS (
     SELECT b.game, b.run_id, any_value(b.horizon) AS horizon, any_value(b.protocol) AS protocol,
            max(f.deterministic_score) AS best,
-           (SELECT max(i.iteration) FROM iterations i WHERE i.run_id = b.run_id) AS iterations
-    FROM batch_runs b JOIN frontier f USING (run_id) GROUP BY b.game, b.run_id
+           (SELECT max(i.iteration) FROM iterations i WHERE i.run_id = b.run_id) AS iterations,
+           any_value(s.audit_score) AS audit, any_value(s.overfit) AS overfit
+    FROM batch_runs b JOIN frontier f USING (run_id) JOIN run_summary s USING (run_id) GROUP BY b.game, b.run_id
 ), ours AS (
     SELECT game, CASE WHEN count(DISTINCT protocol) > 1 THEN 'mixed' ELSE any_value(protocol) END AS protocol,
            min(horizon) AS horizon, count(*)::INTEGER AS runs, min(iterations) AS iterations,
-           max(best) AS best, mean_ci(list(best)) AS m, iqm_ci(list(best)) AS q
+           max(best) AS best, mean_ci(list(best)) AS m, iqm_ci(list(best)) AS q, mean_ci(list(audit)) AS a,
+           (count(*) FILTER (WHERE overfit))::INTEGER AS overfit
     FROM per_run GROUP BY game
 ), theirs AS (
     SELECT game,
@@ -39,6 +43,7 @@ WITH batch_runs AS (
 )
 SELECT coalesce(o.game, t.game) AS game, o.protocol, o.horizon, o.runs, o.iterations, o.best,
        ci_text(o.m.mean, o.m.low, o.m.high) AS mean_best, ci_text(o.q.iqm, o.q.low, o.q.high) AS iqm_best,
+       ci_text(o.a.mean, o.a.low, o.a.high) AS audit, o.overfit,
        (SELECT p.score FROM published_scores p WHERE p.game = o.game AND p.horizon = o.horizon
         AND p.setting <> 'paper' ORDER BY p.setting LIMIT 1) AS theirs,
        (SELECT p.stderr FROM published_scores p WHERE p.game = o.game AND p.horizon = o.horizon

@@ -71,6 +71,9 @@ CHECKS: list[tuple[str, str]] = [
         SELECT c.run_id, c.iteration, c.candidate, e.episode_id FROM candidates c,
                unnest(list_prepend(c.train_episode_id, c.eval_episode_ids)) AS e(episode_id)
         WHERE e.episode_id NOT IN (SELECT episode_id FROM episodes)"""),
+    ("audits whose episodes are missing", """
+        SELECT a.run_id, a.role, a.protocol, e.episode_id FROM audits a, unnest(a.episode_ids) AS e(episode_id)
+        WHERE e.episode_id NOT IN (SELECT episode_id FROM episodes)"""),
     ("iterations whose LLM call is missing", """
         SELECT run_id, iteration, llm_call_id FROM iterations
         WHERE llm_call_id IS NOT NULL AND llm_call_id NOT IN (SELECT call_id FROM llm_calls)"""),

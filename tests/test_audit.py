@@ -98,6 +98,12 @@ def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
     code, out = _cli("audit", "last", "--episodes", "4", "--json", "--store", str(store.path))
     assert code == 0 and len(json.loads(out)["audits"][0]["seeds"]) == 4
     assert store.query("SELECT count(*) FROM audits") == [(4,)]
+    assert _cli("doctor", "--store", str(store.path))[0] == 0
+    with store.write() as con:  # an audit whose games are gone is damage the doctor names
+        con.execute("DELETE FROM steps WHERE episode_id IN (SELECT unnest(episode_ids) FROM audits LIMIT 1)")
+        con.execute("DELETE FROM episodes WHERE episode_id IN (SELECT unnest(episode_ids) FROM audits LIMIT 1)")
+    code, out = _cli("doctor", "--store", str(store.path))
+    assert code == 1 and "audits whose episodes are missing" in out
 
 
 def test_tuning_seeds_stay_below_the_audit_seeds():

@@ -149,7 +149,11 @@ def test_ablation_example_and_its_sql(tmp_path, store, scripted):
     rows = run_user_query(store, sql).rows  # as `codearcade sql` runs it: with mean_ci and ci_text
     assert [r[0] for r in rows] == ["rollout", "staged"]
     assert all(r[1] == 3 and r[5] == 1 for r in rows), rows
-    for feedback, _, mean_best, max_best, _, _ in rows:  # mean [low, high] over the three seeds
+    audited = dict(store.query("SELECT json_extract_string(r.config, '$.feedback'), count(*) FROM run_summary s "
+                               "JOIN runs r USING (run_id) WHERE s.audit_score IS NOT NULL GROUP BY 1"))
+    assert audited == {"rollout": 3, "staged": 3}, "every run has its held-out audit"
+    assert all(r[6] is not None and r[7] <= 3 for r in rows), "the audit and its overfit count beside the scores"
+    for feedback, _, mean_best, max_best, _, _, _, _ in rows:  # mean [low, high] over the three seeds
         bests = [b for (b,) in store.query(
             "SELECT max(i.score) FROM runs r JOIN iterations i USING (run_id) WHERE json_extract_string(r.config, "
             "'$.feedback') = ? GROUP BY r.run_id", [feedback])]

@@ -97,7 +97,7 @@ def test_one_life_episode_ends_at_the_first_lost_life_with_the_return_so_far(gam
     fell, and its return is the whole game's score at that step (the same actions, step for step)."""
     def play(*extra):
         code, out, err = run_cli(capsys, "eval", EXAMPLES / f"{game}.py", "--max-steps", CAP, "--store", store.path,
-                                 "--json", *extra)
+                                 "--json", "--rng-key", "one-life", *extra)  # the random starters draw alike
         assert code == 0, err
         episode_id = json.loads(out)["episodes"][0]["episode_id"]
         steps = store.query("SELECT action, reward, score, terminated, lives FROM steps WHERE episode_id = ? "

@@ -186,7 +186,8 @@ def test_one_policy_object_plays_the_whole_game(store, capsys, write_policy, wor
     from one life to the next, in the policy process (``--workers 1``) as in this process (``--workers 0``).
     A policy failure ends the game: the lives after it are not played."""
     policy = write_policy(COUNTING_POLICY.format(fail_at=0))
-    summary = evaluate(capsys, store, policy, "--one-life-continue", "--episodes", 3, "--trace", "--workers", workers)
+    summary = evaluate(capsys, store, policy, "--one-life-continue", "--episodes", 3, "--trace", "--workers", workers,
+                       "--rng-key", "counting")  # the failing twin below draws the same numbers
     ids = [e["episode_id"] for e in summary["episodes"]]
     lengths = [e["length"] for e in summary["episodes"]]
     first_counts = [int(store.query("SELECT output FROM nodes WHERE episode_id = ? AND step = 0 AND function = "
@@ -198,7 +199,8 @@ def test_one_policy_object_plays_the_whole_game(store, capsys, write_policy, wor
         "--one-life: a fresh policy for each seeded game"
 
     failing = write_policy(COUNTING_POLICY.format(fail_at=lengths[0] + 5), "failing.py")
-    broken = evaluate(capsys, store, failing, "--one-life-continue", "--episodes", 3, "--workers", workers)
+    broken = evaluate(capsys, store, failing, "--one-life-continue", "--episodes", 3, "--workers", workers,
+                      "--rng-key", "counting")
     (first, second, third) = broken["episodes"]
     assert (first["length"], first["end_reason"]) == (lengths[0], "terminated"), "the same game until it fails"
     assert (second["length"], second["end_reason"]) == (4, "policy_error") and "enough" in second["error"]
@@ -272,7 +274,7 @@ def test_the_optimizer_evaluates_the_lives_of_one_game(store, scripted):
     result = optimize(config, store, LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05))
     assert result.status == "finished", result.error
     episodes = store.query("SELECT iteration, kind, episode_index, seed, continues, start_step, length, lives_lost, "
-                           "end_reason FROM episodes WHERE run_id = ? "
+                           "end_reason FROM episodes WHERE run_id = ? AND kind <> 'audit' "
                            "ORDER BY iteration, kind <> 'train', episode_index", [result.run_id])
     assert {e[0] for e in episodes} == {0}, "iteration 1's unchanged version reused iteration 0's episodes"
     train, *evals = episodes

@@ -21,7 +21,9 @@ def runs(tmp_path_factory):
     store = Store(tmp_path_factory.mktemp("prompts") / "prompts.duckdb")
     run_ids = {}
     for game in ("pong", "breakout", "space_invaders"):
-        run_id = start_run(OptimizeConfig(game=game, iterations=0, eval_max_steps=300), store, "openai/gpt-4o")
+        config = OptimizeConfig(game=game, iterations=0, eval_max_steps=300, audit_episodes=0,
+                                rng_key="prompts")  # a fixed random stream: the same rollouts every time
+        run_id = start_run(config, store, "openai/gpt-4o")
         run_loop(store, load_state(store, run_id), None)
         run_ids[game] = run_id
     return store, run_ids

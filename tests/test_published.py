@@ -79,6 +79,9 @@ def test_benchmarks_sql_over_a_real_short_batch(tmp_path, store, scripted):
         # one run: the mean has no interval yet (ci_text prints it alone), the IQM is the one value
         assert row["best"] == best[game] and row["mean_best"] == row["iqm_best"] == f"{best[game]:.1f}"
         assert row["protocol"] == protocol and row["theirs"] == theirs
+        audit = store.query("SELECT s.audit_score FROM run_summary s JOIN runs r USING (run_id) WHERE r.game = ?",
+                            [game])[0][0]
+        assert audit is not None and row["audit"] == f"{audit:.1f}" and row["overfit"] in (0, 1), row
     starter = store.query("SELECT i.score FROM runs r JOIN iterations i USING (run_id) "
                           "WHERE r.game = 'pong' AND i.iteration = 0")[0][0]
     assert table["pong"]["best"] > starter, "the best is the accepted competent policy's, not the starter's"

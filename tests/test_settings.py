@@ -38,6 +38,12 @@ REWORDED = {
 """Help texts that changed on purpose: one flag of two verbs now has one declaration (``EpisodeLimits``);
 --eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them)."""
 
+ADDED = {"optimize": ("--rng-key", "--audit-episodes"), "eval": ("--rng-key",), "compare": ("--audit",)}
+"""Flags added on purpose since the snapshot (issue 33: the policies' random stream, the held-out audit, compare
+on audit seeds); every other flag is as it was."""
+ADDED_FIELDS = {"rng_key": None, "audit_episodes": 3}
+"""``OptimizeConfig``'s fields behind them, with their defaults."""
+
 
 def _verb(name: str) -> argparse.ArgumentParser:
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
@@ -60,6 +66,9 @@ def test_the_flags_are_todays(verb):
     """Same flags in the same order, same dests (optimize's are the config's fields), defaults, types, choices,
     metavars, groups and help (but for :data:`REWORDED`)."""
     before, now = BEFORE["parsers"][verb], _actions(_verb(verb))
+    added = [a for a in now if a["flags"] and a["flags"][0] in ADDED.get(verb, ())]
+    assert sorted(a["flags"][0] for a in added) == sorted(ADDED.get(verb, ())) and all(a["help"] for a in added)
+    now = [a for a in now if a not in added]
     assert [a["flags"] for a in now] == [a["flags"] for a in before]
     for old, new in zip(before, now):
         flag = (old["flags"] or [old["dest"]])[0]
@@ -77,14 +86,22 @@ def test_what_the_declarations_derive_is_todays():
     from pipeline.jobs.batch import KEYED_WHEN_SET, NOT_IN_KEY, RUN_KEYS
 
     before = BEFORE["optimize"]
-    assert sorted(RESUME_OVERRIDES) == before["resume"] and list(BUDGET_FIELDS) == before["budgets"]
+
+    def old(names) -> list[str]:  # what was there before the fields added since (ADDED_FIELDS)
+        return [n for n in names if n not in ADDED_FIELDS]
+
+    assert sorted(RESUME_OVERRIDES) == sorted(before["resume"] + ["audit_episodes"])  # an audit may change
+    assert list(BUDGET_FIELDS) == before["budgets"]
     assert BEFORE_RECORDED == before["before"]
-    assert list(RUN_KEYS) == before["run_keys"] and sorted(OPTIMIZE_OPTIONS) == before["options"]
-    assert sorted(NOT_IN_KEY) == before["not_in_key"] and sorted(KEYED_WHEN_SET) == before["keyed_when_set"]
+    assert old(RUN_KEYS) == before["run_keys"] and sorted(OPTIMIZE_OPTIONS) == sorted(before["options"] +
+                                                                                         list(ADDED_FIELDS))
+    assert sorted(NOT_IN_KEY) == sorted(before["not_in_key"] + ["audit_episodes"])  # it measures, changes nothing
+    assert sorted(KEYED_WHEN_SET) == sorted(before["keyed_when_set"] + ["rng_key"])
     defaults = asdict(OptimizeConfig())
+    assert {k: defaults.pop(k) for k in ADDED_FIELDS} == ADDED_FIELDS
     assert defaults.pop("observation") >= before["defaults"].pop("observation")  # moves with the conventions
     assert defaults == before["defaults"]  # the stored runs.config keeps its keys, in order, and its defaults
-    assert list(asdict(OptimizeConfig())) == list(BEFORE["optimize"]["run_keys"])
+    assert old(asdict(OptimizeConfig())) == list(BEFORE["optimize"]["run_keys"])
 
 
 @pytest.mark.parametrize("config", [OptimizeConfig, EvalConfig, CompareConfig, EpisodeLimits])
@@ -142,6 +159,7 @@ def test_the_cli_and_a_batch_entry_record_the_same_config(tmp_path):
     by_cli, by_batch = (json.loads(config) for (config,) in rows)
     assert by_batch.pop("batch") == "same" and by_batch.pop("batch_key")
     by_cli.pop("workers"), by_batch.pop("workers")
+    assert by_cli.pop("rng_key") != by_batch.pop("rng_key"), "each run's policies draw from a stream of its own"
     assert by_cli == by_batch
     assert by_cli["max_tokens"] == 512 and by_cli["token_budget"] == 3000
 

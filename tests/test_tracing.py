@@ -209,13 +209,13 @@ def test_traced_node_rows_are_stored_as_before(workers, store):
     import gzip
 
     from pipeline.play.evaluate import EvalConfig, evaluate
-    from tests.fixtures.make_traced_nodes import HERE, POLICIES, STEPS, node_rows
+    from tests.fixtures.make_traced_nodes import HERE, POLICIES, RNG_KEY, STEPS, node_rows
 
     with gzip.open(HERE / "traced_nodes.json.gz", "rt", encoding="utf-8") as fixture:
         before = json.load(fixture)
     root = HERE.parents[1]
     for policy in POLICIES:
-        config = EvalConfig(episodes=1, max_steps=STEPS, trace=True, workers=workers)
+        config = EvalConfig(episodes=1, max_steps=STEPS, trace=True, workers=workers, rng_key=RNG_KEY)
         rows = node_rows(store, evaluate(root / policy, config, store).run_id)
         assert json.loads(json.dumps(rows, ensure_ascii=False)) == before[policy], policy
 

@@ -53,10 +53,11 @@ def _print_iteration(item) -> None:
         tokens = f"standard protocol {item.standard_score:g}  " + tokens
     score = f"{item.score:>8.1f}" if item.score is not None else f"{'forfeit':>8}"
     best = f"{item.best_score:>8.1f}" if item.best_score is not None else f"{'forfeit':>8}"
+    forfeit = ""
     if item.forfeit:  # the partial score is what the policy had when it stopped: shown, never taken as its score
-        note = f"  ({terminal_text(item.forfeit)}; {item.forfeit_score:g} when it stopped)" + note
+        forfeit = f"  ({terminal_text(item.forfeit)}; {item.forfeit_score:g} when it stopped)"
     show(f"iteration {item.iteration:>3}  score {score}  best {best} (it {item.best_iteration})"
-         f"  update {item.update_status:<9} {tokens}{back}{note[:200]}", flush=True)
+         f"  update {item.update_status:<9} {tokens}{back}{note[:160]}{forfeit[:120]}", flush=True)
 
 
 OPTIMIZE_OPTIONS = tuple(n for n, (_, s) in declarations(OptimizeConfig).items() if s.cli)

@@ -234,25 +234,18 @@ class Greedy:
         elif history.beaten_by(a.score):
             decision.new_best = a.candidate
             decision.decisions[a.candidate] = "best"
-        elif a.score is None:  # a forfeit: never the best, and a regression whatever it had scored when it stopped
-            if self.rollback and a.version_id != best_version:
-                decision.rolled_back = True
-                decision.decisions[a.candidate] = "rolled_back"
-                notes.append(f"This version did not play its evaluation game to the end ({a.forfeit}): a forfeit "
-                             f"never counts as an improvement, so its change is rolled back, and the next update "
-                             f"starts again from iteration {best.iteration}'s code.")
-            if a.status == "rejected":
-                decision.decisions[a.candidate] = "rejected"
-        elif best_score is None:  # the best so far forfeited too (the starting policy): nothing to fall back to
-            pass
         else:
-            threshold = best_score - (1 - self.rollback_fraction) * max(abs(best_score), 1.0)
-            if self.rollback and a.score < threshold and a.version_id != best_version:
+            regressed = None  # why the next update starts again from the best
+            if a.score is None:  # a forfeit: a regression whatever it had scored when it stopped
+                regressed = (f"did not play its evaluation game to the end ({a.forfeit}): a forfeit never counts as "
+                             "an improvement, so")
+            elif a.score < best_score - (1 - self.rollback_fraction) * max(abs(best_score), 1.0):
+                regressed = f"scored {a.score:g}, below the best {best_score:g} (iteration {best.iteration}):"
+            if regressed and self.rollback and a.version_id != best_version:
                 decision.rolled_back = True
                 decision.decisions[a.candidate] = "rolled_back"
-                notes.append(f"This version scored {a.score:g}, below the best {best_score:g} (iteration "
-                             f"{best.iteration}): its change is rolled back, and the next update starts again from "
-                             f"iteration {best.iteration}'s code.")
+                notes.append(f"This version {regressed} its change is rolled back, and the next update starts again "
+                             f"from iteration {best.iteration}'s code.")
             if a.status == "rejected":
                 decision.decisions[a.candidate] = "rejected"
         return decision
