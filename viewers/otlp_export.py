@@ -14,7 +14,8 @@ beside a team's other LLM traces. The span tree::
     │   └── eval episode 0
     ...
 
-An eval run (no iterations) has its episodes directly under the root. LLM call spans are CLIENT spans named
+An eval run (no iterations) has its episodes directly under the root, and so has an optimize run its held-out
+audit's (kind ``audit``), played after its iterations. LLM call spans are CLIENT spans named
 ``{gen_ai.operation.name} {gen_ai.request.model}`` with the ``gen_ai.*`` attributes the ``llm_calls`` columns
 were named after (``gen_ai.provider.name`` and its older spelling ``gen_ai.system``, request model,
 temperature, max tokens, seed, response model, id, finish reasons, input/output and cache tokens,
@@ -364,12 +365,13 @@ def plan_spans(rows: dict[str, Any], text_limit: int = DEFAULT_TEXT_LIMIT) -> _P
     by_iteration = {row["iteration"]: row for row in rows["iterations"]}
     wanted = set(by_iteration) | {c["iteration"] for c in rows["llm_calls"]}
     if run["kind"] != "eval":
-        wanted |= {e["iteration"] for e in rows["episodes"]}
+        wanted |= {e["iteration"] for e in rows["episodes"] if e["kind"] != "audit"}
     spans = {i: _iteration_span(i, by_iteration.get(i)) for i in sorted(wanted)}
     for call in rows["llm_calls"]:
         spans[call["iteration"]].children.append(_llm_span(call, text_limit))
-    for episode in rows["episodes"]:
-        parent = spans.get(episode["iteration"], root) if run["kind"] != "eval" else root
+    for episode in rows["episodes"]:  # the held-out audit is played after the iterations: under the run itself
+        in_iteration = run["kind"] != "eval" and episode["kind"] != "audit"
+        parent = spans.get(episode["iteration"], root) if in_iteration else root
         parent.children.append(_episode_span(episode))
     for item in rows["feedback"]:
         if item["iteration"] in spans:
