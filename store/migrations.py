@@ -155,7 +155,7 @@ MIGRATIONS.append(
             call_id             VARCHAR PRIMARY KEY,    -- ULID
             run_id              VARCHAR NOT NULL,
             iteration           INTEGER NOT NULL,
-            purpose             VARCHAR NOT NULL,       -- update
+            purpose             VARCHAR NOT NULL,       -- update (repair: migration 14)
             created_at          TIMESTAMP NOT NULL,
             operation_name      VARCHAR NOT NULL,       -- gen_ai.operation.name (chat)
             provider_name       VARCHAR,                -- gen_ai.provider.name (openai, anthropic, local, replay)
@@ -888,6 +888,124 @@ MIGRATIONS.append(
         LEFT JOIN calls ON calls.run_id = r.run_id
         LEFT JOIN audit ON audit.run_id = r.run_id;
         COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: label, settings, status, best score, forfeits, audit, episodes, tokens';
+        """,
+    )
+)
+
+# Repair turns (issue 32, item 1): a reply rejected before it is played goes back to the model with the exact error,
+# in the same conversation, up to `repairs` times. Each repair is its own call (purpose `repair`), linked to the call
+# it repairs (`repair_of`; `repair_turn` 1, 2, ...; a first call is turn 0); a candidate records how many turns its
+# reply took (`repairs`) and its `llm_call_id` is the last of them. An update "saved by a repair" is a candidate
+# accepted after at least one. learning_curve and run_summary count both.
+MIGRATIONS.append(
+    (
+        14,
+        "llm_calls: repair_of, repair_turn; candidates: repairs; repair calls and updates saved by a repair in "
+        "learning_curve and run_summary",
+        r"""
+        ALTER TABLE llm_calls ADD COLUMN repair_of VARCHAR;               -- the call whose rejected reply it repairs
+        ALTER TABLE llm_calls ADD COLUMN repair_turn INTEGER DEFAULT 0;   -- 0: a first call; n: the nth repair turn
+        ALTER TABLE candidates ADD COLUMN repairs INTEGER DEFAULT 0;      -- repair turns its reply took
+
+        CREATE OR REPLACE VIEW learning_curve AS
+        WITH calls AS (
+            SELECT run_id, iteration, count(*) AS llm_calls,
+                   count(*) FILTER (WHERE purpose = 'repair') AS repair_calls,
+                   coalesce(sum(input_tokens), 0) AS input_tokens,
+                   coalesce(sum(output_tokens), 0) AS output_tokens
+            FROM llm_calls GROUP BY run_id, iteration
+        ), saved AS (
+            SELECT run_id, iteration, count(*) FILTER (WHERE repairs > 0 AND update_status = 'accepted') AS saved
+            FROM candidates GROUP BY run_id, iteration
+        )
+        SELECT i.run_id, i.iteration, i.score, i.best_score, i.best_iteration, i.train_return, i.update_status,
+               i.rolled_back, i.policy_version_id, i.best_version_id,
+               coalesce(c.llm_calls, 0)::INTEGER AS llm_calls,
+               coalesce(c.input_tokens, 0)::BIGINT AS input_tokens,
+               coalesce(c.output_tokens, 0)::BIGINT AS output_tokens,
+               (coalesce(c.input_tokens, 0) + coalesce(c.output_tokens, 0))::BIGINT AS total_tokens,
+               sum(coalesce(c.input_tokens, 0) + coalesce(c.output_tokens, 0))
+                   OVER (PARTITION BY i.run_id ORDER BY i.iteration)::BIGINT AS cumulative_tokens,
+               i.llm_s, i.train_s, i.eval_s, i.wall_s,
+               sum(i.wall_s) OVER (PARTITION BY i.run_id ORDER BY i.iteration) AS elapsed_s,
+               i.started_at, i.finished_at,
+               k.score_low, k.score_high, k.forfeit, k.forfeit_score,
+               coalesce(c.repair_calls, 0)::INTEGER AS repair_calls,
+               coalesce(s.saved, 0)::INTEGER AS saved_by_repair,
+               coalesce(k.repairs, 0)::INTEGER AS repairs
+        FROM iterations i
+        LEFT JOIN calls c ON c.run_id = i.run_id AND c.iteration = i.iteration
+        LEFT JOIN candidates k ON k.run_id = i.run_id AND k.iteration = i.iteration
+             AND k.candidate = coalesce(i.candidate, 0)
+        LEFT JOIN saved s ON s.run_id = i.run_id AND s.iteration = i.iteration;
+
+
+        CREATE OR REPLACE VIEW run_summary AS
+        WITH it AS (
+            SELECT run_id, (count(*) FILTER (WHERE iteration >= 1))::INTEGER AS iterations_done,
+                   max(best_score) AS best_score, arg_max(best_iteration, iteration) AS best_iteration,
+                   arg_max(score, iteration) AS last_score
+            FROM iterations GROUP BY run_id
+        ), ep AS (
+            SELECT run_id, count(*)::INTEGER AS episodes, sum(length)::BIGINT AS steps,
+                   avg("return") FILTER (WHERE kind = 'eval' AND end_reason IN ('terminated', 'truncated'))
+                       AS mean_eval_return,
+                   (count(*) FILTER (WHERE kind = 'eval' AND end_reason NOT IN ('terminated', 'truncated')))::INTEGER
+                       AS eval_forfeits
+            FROM episodes GROUP BY run_id
+        ), cand AS (
+            SELECT run_id, (count(*) FILTER (WHERE forfeit IS NOT NULL))::INTEGER AS forfeits,
+                   (count(*) FILTER (WHERE repairs > 0 AND update_status = 'accepted'))::INTEGER AS saved_by_repair
+            FROM candidates GROUP BY run_id
+        ), calls AS (
+            SELECT run_id, count(*)::INTEGER AS llm_calls,
+                   (count(*) FILTER (WHERE purpose = 'repair'))::INTEGER AS repair_calls,
+                   coalesce(sum(input_tokens), 0)::BIGINT AS input_tokens,
+                   coalesce(sum(output_tokens), 0)::BIGINT AS output_tokens,
+                   sum(cost_usd) AS cost_usd
+            FROM llm_calls GROUP BY run_id
+        ), audit AS (
+            SELECT run_id,
+                   any_value(score) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_score,
+                   any_value(score_low) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_low,
+                   any_value(score_high) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_high,
+                   any_value(score) FILTER (WHERE role = 'best' AND protocol = 'run') AS audit_run_score,
+                   any_value(score) FILTER (WHERE role = 'starter' AND protocol = 'standard') AS starter_audit_score,
+                   any_value(overfit) FILTER (WHERE role = 'best' AND protocol = 'standard') AS overfit
+            FROM audits GROUP BY run_id
+        )
+        SELECT r.run_id, r.name, r.created_at, r.finished_at, r.kind, r.game, r.model, r.seed, r.status,
+               json_extract_string(r.config, '$.policy') AS policy,
+               CASE WHEN r.kind <> 'eval' THEN coalesce(json_extract_string(r.config, '$.strategy'), 'greedy')
+               END AS strategy,
+               CASE WHEN r.kind <> 'eval' THEN json_extract_string(r.config, '$.feedback') END AS feedback,
+               json_extract_string(r.config, '$.batch') AS batch,
+               r.made_by,
+               coalesce(it.iterations_done, 0) AS iterations_done,
+               TRY_CAST(json_extract(r.config, '$.iterations') AS INTEGER) AS iterations_planned,
+               CASE WHEN r.kind = 'eval' THEN ep.mean_eval_return ELSE it.best_score END AS best_score,
+               it.best_iteration, it.last_score,
+               coalesce(ep.episodes, 0) AS episodes, coalesce(ep.steps, 0) AS steps,
+               coalesce(calls.llm_calls, 0) AS llm_calls,
+               coalesce(calls.input_tokens, 0) AS input_tokens,
+               coalesce(calls.output_tokens, 0) AS output_tokens,
+               (coalesce(calls.input_tokens, 0) + coalesce(calls.output_tokens, 0))::BIGINT AS total_tokens,
+               calls.cost_usd,
+               epoch(r.finished_at - r.created_at) AS duration_s,
+               r.error,
+               CASE WHEN r.kind = 'eval' THEN coalesce(ep.eval_forfeits, 0) ELSE coalesce(cand.forfeits, 0)
+               END AS forfeits,
+               audit.audit_score, audit.audit_low, audit.audit_high, audit.audit_run_score,
+               audit.starter_audit_score, audit.overfit,
+               coalesce(calls.repair_calls, 0) AS repair_calls, coalesce(cand.saved_by_repair, 0) AS saved_by_repair
+        FROM runs r
+        LEFT JOIN it ON it.run_id = r.run_id
+        LEFT JOIN ep ON ep.run_id = r.run_id
+        LEFT JOIN cand ON cand.run_id = r.run_id
+        LEFT JOIN calls ON calls.run_id = r.run_id
+        LEFT JOIN audit ON audit.run_id = r.run_id;
+        COMMENT ON VIEW learning_curve IS 'one row per iteration: score (NULL: forfeited) with its interval, best so far, LLM calls (repairs among them), updates saved by a repair, tokens, times';
+        COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: label, settings, status, best score, forfeits, audit, episodes, tokens, repairs';
         """,
     )
 )

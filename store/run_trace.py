@@ -44,7 +44,8 @@ def run_trace_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any
                   c.request_model, c.response_model, c.request_temperature, c.request_max_tokens, c.request_seed,
                   c.response_id, c.finish_reasons, c.input_tokens, c.output_tokens, c.cached_input_tokens,
                   c.cache_creation_input_tokens, c.prompt_tokens_counted, c.cost_usd, c.attempts, c.error_type,
-                  c.error_message, c.parse_error, c.replayed, c.prompt_hash, p.text AS prompt_text,
+                  c.error_message, c.parse_error, c.replayed, c.prompt_hash, c.repair_of, c.repair_turn,
+                  p.text AS prompt_text,
                   r.text AS reply_text
            FROM llm_calls c LEFT JOIN blobs p ON p.hash = c.prompt_hash LEFT JOIN blobs r ON r.hash = c.reply_hash
            WHERE c.run_id = ? ORDER BY c.iteration, c.created_at, c.call_id""", [run_id]))

@@ -38,7 +38,26 @@ def report_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
                       "max_if_depth, functions FROM policy_versions WHERE run_id = ? ORDER BY iteration"),
         "audits": q("SELECT role, protocol, iteration, policy_version_id, seeds, score, score_low, score_high, "
                     "forfeit, tuning_score, overfit FROM audits WHERE run_id = ? ORDER BY role, protocol DESC"),
+        "calls": llm_call_outcomes(con, run_id),
     }
+
+
+def llm_call_outcomes(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict[str, Any]]:
+    """Every LLM call of a run in the order they started, with when it started and ended and what came of it:
+    ``outcome`` is the update status of the candidate it made (``accepted``, ``rejected``, ``unchanged``), ``repaired``
+    for a reply a repair turn replaced, or ``failed`` for a call without a reply."""
+    return _query(con, """
+        SELECT c.call_id, c.iteration, c.candidate, c.purpose, c.repair_turn, c.request_model,
+               c.created_at - to_microseconds(CAST(coalesce(c.latency_s, 0) * 1e6 AS BIGINT)) AS started_at,
+               c.created_at AS ended_at, c.latency_s, c.cost_usd,
+               CASE WHEN c.error_type IS NOT NULL THEN 'failed'
+                    WHEN k.update_status IS NOT NULL THEN k.update_status
+                    WHEN EXISTS (SELECT 1 FROM llm_calls r WHERE r.run_id = c.run_id AND r.repair_of = c.call_id)
+                        THEN 'repaired'
+                    ELSE 'rejected' END AS outcome
+        FROM llm_calls c
+        LEFT JOIN candidates k ON k.run_id = c.run_id AND k.llm_call_id = c.call_id
+        WHERE c.run_id = ? ORDER BY started_at, c.call_id""", [run_id])
 
 
 def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:

@@ -19,7 +19,8 @@ def _client(model, **kwargs):
 
 
 def _config(**kwargs):
-    defaults = dict(game="pong", iterations=3, eval_max_steps=4000, workers=2, token_budget=8000)
+    defaults = dict(game="pong", iterations=3, eval_max_steps=4000, workers=2, token_budget=8000,
+                    repairs=0)  # one scripted reply per update (repairs: tests/test_repairs.py)
     return OptimizeConfig(**{**defaults, **kwargs})
 
 

@@ -175,12 +175,12 @@ def test_a_run_sent_to_phoenix_reads_back_with_its_tree_times_and_tokens(run_and
     iterations = store.query("SELECT iteration, started_at, finished_at, score, update_status FROM iterations "
                              "WHERE run_id = ? ORDER BY iteration", [run_id])
     calls = store.query("SELECT call_id, iteration, input_tokens, output_tokens, created_at, latency_s FROM llm_calls "
-                        "WHERE run_id = ? ORDER BY iteration", [run_id])
+                        "WHERE run_id = ? ORDER BY iteration, repair_turn", [run_id])
     episodes = store.query("SELECT episode_id, iteration, kind, return, length, end_reason FROM episodes "
                            "WHERE run_id = ?", [run_id])
-    assert [i[4] for i in iterations] == ["initial", "accepted", "rejected"] and len(calls) == 2
+    assert [i[4] for i in iterations] == ["initial", "accepted", "rejected"] and len(calls) == 3
     assert sent["trace_id"] == f"{trace_id_for(run_id):032x}"
-    assert sent["spans_by_kind"] == {"run": 1, "iteration": 3, "llm_call": 2, "episode": len(episodes)}
+    assert sent["spans_by_kind"] == {"run": 1, "iteration": 3, "llm_call": 3, "episode": len(episodes)}
     assert (sent["input_tokens"], sent["output_tokens"]) == (sum(c[2] for c in calls), sum(c[3] for c in calls))
 
     spans = phoenix.wait_for_spans(sent["trace_id"], sent["spans"])
@@ -192,8 +192,13 @@ def test_a_run_sent_to_phoenix_reads_back_with_its_tree_times_and_tokens(run_and
     assert root["name"] == "optimize pong" and root["attributes"]["codearcade.run.id"] == run_id
     assert root["attributes"]["codearcade.best_score"] == max(i[3] for i in iterations)
     assert root["context"]["span_id"] == f"{span_id_for(run_id, 'run'):016x}"
-    iteration_spans = {s["attributes"]["codearcade.iteration"]: s for s in spans
-                       if s["parent_id"] == root["context"]["span_id"]}
+    under_root = [s for s in spans if s["parent_id"] == root["context"]["span_id"]]
+    iteration_spans = {s["attributes"]["codearcade.iteration"]: s for s in under_root
+                       if s["attributes"]["codearcade.span"] == "iteration"}
+    # the held-out audit is played after the iterations: its episodes hang from the run, not from an iteration
+    audits = [s for s in under_root if s["attributes"]["codearcade.span"] == "episode"]
+    assert len(audits) == sum(e[2] == "audit" for e in episodes) > 0
+    assert {s["attributes"]["codearcade.episode.kind"] for s in audits} == {"audit"}
     assert sorted(iteration_spans) == [0, 1, 2]
     for number, started, finished, score, status in iterations:
         span = iteration_spans[number]
@@ -227,6 +232,12 @@ def test_a_run_sent_to_phoenix_reads_back_with_its_tree_times_and_tokens(run_and
         assert span["span_kind"] == "LLM" and attributes["llm.token_count.prompt"] == input_tokens
         assert _utc_us(span["end_time"]) == _stored_us(created_at)
         assert abs(_utc_us(span["end_time"]) - _utc_us(span["start_time"]) - latency_s * 1e6) <= 2
+    # iteration 2's reply raised on the recorded observations: one repair turn, linked to the call it repairs
+    first, repair = calls[1][0], calls[2][0]
+    assert llm[repair]["attributes"]["codearcade.llm.purpose"] == "repair"
+    assert llm[repair]["attributes"]["codearcade.llm.repair_of"] == first
+    assert llm[repair]["attributes"]["codearcade.llm.repair_turn"] == 1
+    assert "KeyError" in json.loads(llm[repair]["attributes"]["gen_ai.input.messages"])[-1]["parts"][0]["content"]
 
     # episodes: under their iteration, with return, length and end reason
     episode_spans = {s["attributes"]["codearcade.episode.id"]: s for s in spans
@@ -234,8 +245,11 @@ def test_a_run_sent_to_phoenix_reads_back_with_its_tree_times_and_tokens(run_and
     assert len(episode_spans) == len(episodes)
     for episode_id, iteration, kind, return_, length, end_reason in episodes:
         span = episode_spans[episode_id]
-        assert by_id[span["parent_id"]] is iteration_spans[iteration]
-        assert span["name"] == ("train rollout" if kind == "train" else "eval episode 0")
+        if kind == "audit":
+            assert by_id[span["parent_id"]] is root and span["name"].startswith("audit episode ")
+        else:
+            assert by_id[span["parent_id"]] is iteration_spans[iteration]
+            assert span["name"] == ("train rollout" if kind == "train" else "eval episode 0")
         assert (span["attributes"]["codearcade.episode.return"], span["attributes"]["codearcade.episode.length"],
                 span["attributes"]["codearcade.episode.end_reason"]) == (return_, length, end_reason)
 

@@ -83,7 +83,7 @@ def run(tmp_path_factory):
               json_reply({"select_action": V3})]
     with ScriptedModel(script, tmp / "model") as model:
         config = OptimizeConfig(game="pong", policy=str(policy), iterations=3, rollback=False, rollout_steps=400,
-                                eval_max_steps=300, workers=1, token_budget=8000)
+                                eval_max_steps=300, workers=1, token_budget=8000, repairs=0)  # one scripted reply per update (repairs: tests/test_repairs.py)
         result = optimize(config, store, LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05))
     assert result.status == "finished"
     return store, result.run_id

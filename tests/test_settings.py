@@ -38,10 +38,10 @@ REWORDED = {
 """Help texts that changed on purpose: one flag of two verbs now has one declaration (``EpisodeLimits``);
 --eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them)."""
 
-ADDED = {"optimize": ("--rng-key", "--audit-episodes"), "eval": ("--rng-key",), "compare": ("--audit",)}
+ADDED = {"optimize": ("--rng-key", "--audit-episodes", "--repairs"), "eval": ("--rng-key",), "compare": ("--audit",)}
 """Flags added on purpose since the snapshot (issue 33: the policies' random stream, the held-out audit, compare
-on audit seeds); every other flag is as it was."""
-ADDED_FIELDS = {"rng_key": None, "audit_episodes": 3}
+on audit seeds; issue 32: repair turns); every other flag is as it was."""
+ADDED_FIELDS = {"rng_key": None, "audit_episodes": 3, "repairs": 1}
 """``OptimizeConfig``'s fields behind them, with their defaults."""
 
 
@@ -92,11 +92,11 @@ def test_what_the_declarations_derive_is_todays():
 
     assert sorted(RESUME_OVERRIDES) == sorted(before["resume"] + ["audit_episodes"])  # an audit may change
     assert list(BUDGET_FIELDS) == before["budgets"]
-    assert BEFORE_RECORDED == before["before"]
+    assert BEFORE_RECORDED == {**before["before"], "repairs": 0}  # runs before repairs made none
     assert old(RUN_KEYS) == before["run_keys"] and sorted(OPTIMIZE_OPTIONS) == sorted(before["options"] +
                                                                                          list(ADDED_FIELDS))
     assert sorted(NOT_IN_KEY) == sorted(before["not_in_key"] + ["audit_episodes"])  # it measures, changes nothing
-    assert sorted(KEYED_WHEN_SET) == sorted(before["keyed_when_set"] + ["rng_key"])
+    assert sorted(KEYED_WHEN_SET) == sorted(before["keyed_when_set"] + ["rng_key", "repairs"])
     defaults = asdict(OptimizeConfig())
     assert {k: defaults.pop(k) for k in ADDED_FIELDS} == ADDED_FIELDS
     assert defaults.pop("observation") >= before["defaults"].pop("observation")  # moves with the conventions

@@ -90,7 +90,8 @@ def test_greedy_replays_a_run_made_before_strategies_existed(tmp_path):
 def test_evaluation_cache_saves_steps_not_scores(store, scripted):
     replies = ["not code", json_reply({}), COMPETENT_REPLY, ALWAYS_UP, "still not code"]
     config = dict(game="pong", iterations=5, eval_max_steps=900, rollout_steps=50, workers=2, token_budget=6000,
-                  rng_key="cache")  # both runs' random starter draws the same numbers
+                  rng_key="cache",  # both runs' random starter draws the same numbers
+                  repairs=0)  # one scripted reply per update (repairs: tests/test_repairs.py)
     cached = optimize(OptimizeConfig(**config), store, _client(scripted(replies)))
     played = optimize(OptimizeConfig(**config, eval_cache=False), store, _client(scripted(replies)))
     assert [i.score for i in cached.iterations] == [i.score for i in played.iterations]
@@ -113,7 +114,8 @@ def test_best_of_n_asks_for_its_proposals_at_once_and_keeps_the_best(store, scri
     delay = 2.0
     model = scripted([{"pool": POOL, "seed": 3, "sleep": delay}])
     config = OptimizeConfig(game="pong", strategy="best-of-n", candidates=4, iterations=2, eval_max_steps=900,
-                            rollout_steps=50, workers=2, token_budget=6000, temperature=1.0)
+                            rollout_steps=50, workers=2, token_budget=6000, temperature=1.0,
+                            repairs=0)  # one scripted reply per update (repairs: tests/test_repairs.py)
     result = optimize(config, store, _client(model))
     assert result.status == "finished", result.error
     arrivals = sorted(r["received_at"] for r in model.raw_requests())
@@ -169,7 +171,7 @@ def test_kill_during_a_concurrent_iteration_then_resume(store, scripted):
     process = subprocess.Popen(
         [exe, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--strategy",
          "best-of-n", "--candidates", "3", "--iterations", "2", "--eval-max-steps", "3000", "--rollout-steps", "40",
-         "--workers", "1", "--store", str(store.path)],
+         "--workers", "1", "--repairs", "0", "--store", str(store.path)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline:  # iteration 1's three replies are stored; its candidates are being played

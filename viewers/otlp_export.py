@@ -262,6 +262,8 @@ def _llm_span(call: dict[str, Any], text_limit: int) -> _Planned:
         codearcade__llm__attempts=call["attempts"],
         codearcade__llm__replayed=call["replayed"],
         codearcade__llm__parse_error=call["parse_error"],
+        codearcade__llm__repair_of=call["repair_of"],  # a repair turn: the call whose rejected reply it repairs
+        codearcade__llm__repair_turn=call["repair_turn"],
         codearcade__iteration=call["iteration"],
     )
     attributes.update(_content_attributes(call, text_limit))

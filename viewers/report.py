@@ -118,6 +118,11 @@ def scores_figure(data: dict[str, Any]):
         if pts:
             ax.scatter(*zip(*pts), marker=marker, s=46, color=colour, label=label, zorder=4,
                        edgecolors="white", linewidths=0.6)
+    repaired = [(r["iteration"], r["score"]) for r in curve
+                if r.get("repairs") and r["update_status"] == "accepted" and r["score"] is not None]
+    if repaired:  # updates a repair turn saved: without it these iterations would have been rejections
+        ax.scatter(*zip(*repaired), marker="o", s=140, facecolors="none", edgecolors="#2ca02c", linewidths=1.4,
+                   zorder=5, label="accepted after a repair turn (--repairs)")
     backs = [r["iteration"] for r in curve if r["rolled_back"]]
     for i, x in enumerate(backs):
         ax.axvline(x, color="#9467bd", linestyle=":", linewidth=1.2,
@@ -316,6 +321,65 @@ def tokens_figure(data: dict[str, Any]):
     return fig
 
 
+CALL_OUTCOME_STYLE = {  # outcome -> (edge colour, hatch, label)
+    "accepted": ("#2ca02c", "", "accepted"),
+    "rejected": ("#d62728", "", "rejected"),
+    "repaired": ("#d62728", "///", "rejected, then repaired (the next bar of its candidate)"),
+    "unchanged": ("#999999", "", "no change"),
+    "failed": ("#ff7f0e", "xx", "call failed"),
+}
+
+
+def calls_figure(data: dict[str, Any]):
+    """The run's LLM calls over time: each call a bar from its start to its reply, coloured by model and edged by
+    what came of it (a repair turn hatched), on lanes so that calls in flight together stand apart; below, how
+    many were in flight."""
+    calls = [c for c in data.get("calls") or [] if c["started_at"] is not None]
+    if not calls:
+        return None
+    from matplotlib.patches import Patch
+    from matplotlib.ticker import MaxNLocator
+
+    t0 = min(c["started_at"] for c in calls)
+    spans = [((c["started_at"] - t0).total_seconds(), (c["ended_at"] - t0).total_seconds()) for c in calls]
+    lanes: list[float] = []  # each lane's end: a call takes the first lane free when it starts
+    placed = []
+    for start, end in spans:
+        lane = next((k for k, free_at in enumerate(lanes) if free_at <= start), len(lanes))
+        if lane == len(lanes):
+            lanes.append(end)
+        else:
+            lanes[lane] = end
+        placed.append(lane)
+    models = list(dict.fromkeys(c["request_model"] or "?" for c in calls))
+    palette = ("#1f77b4", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+    colour = {m: palette[i % len(palette)] for i, m in enumerate(models)}
+    fig, (ax, flight) = _figure(rows=2, height=5.4)
+    for c, (start, end), lane in zip(calls, spans, placed):
+        edge, hatch, _ = CALL_OUTCOME_STYLE.get(c["outcome"], ("#555555", "", c["outcome"]))
+        ax.barh(lane, max(end - start, 1e-3), left=start, height=0.7, color=colour[c["request_model"] or "?"],
+                edgecolor=edge, linewidth=1.6, hatch=hatch, zorder=2)
+        ax.text(start, lane, f" {c['iteration']}.{c['candidate'] or 0}" + ("r" if c["purpose"] == "repair" else ""),
+                va="center", ha="left", fontsize=6.5, color="white", zorder=3, clip_on=True)
+    ax.set_ylabel("call lane")
+    ax.set_ylim(-0.6, len(lanes) - 0.4)
+    ax.invert_yaxis()
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    edges = sorted({t for span in spans for t in span})
+    in_flight = [sum(1 for start, end in spans if start <= t < end) for t in edges]
+    flight.step(edges, in_flight, where="post", color="#333333", linewidth=1.4)
+    flight.set_ylabel("calls in flight")
+    flight.set_xlabel("seconds since the run's first call")
+    flight.set_ylim(0, max(in_flight, default=1) + 0.5)
+    handles = [Patch(facecolor=colour[m], label=plot_text(m)) for m in models]
+    used = dict.fromkeys(c["outcome"] for c in calls)
+    handles += [Patch(facecolor="white", edgecolor=CALL_OUTCOME_STYLE[o][0], hatch=CALL_OUTCOME_STYLE[o][1],
+                      linewidth=1.6, label=CALL_OUTCOME_STYLE[o][2]) for o in used if o in CALL_OUTCOME_STYLE]
+    fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=3, frameon=False)
+    ax.set_title(_title(data, "LLM calls over time (label: iteration.candidate, r = repair turn)"), fontsize=11)
+    return fig
+
+
 # ------------------------------------------------------------------------------------------------ markdown
 
 def _md(value: Any, digits: int = 2) -> str:
@@ -390,6 +454,10 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                                                                       "over the starter holds up" if summary["overfit"]
                                                                       else ""))
         facts.append(f"{summary['total_tokens']:,} LLM tokens")
+        if summary.get("repair_calls"):
+            saved = summary.get("saved_by_repair") or 0
+            facts.append(f"{summary['repair_calls']} repair call{'s' * (summary['repair_calls'] > 1)}, {saved} "
+                         f"update{'s' * (saved != 1)} saved by a repair")
     facts.append(f"created {_md(run['created_at'])}")
     out += [" · ".join(facts), ""]
     for name, caption in images.items():
@@ -408,6 +476,8 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
         for r in data["curve"]:
             c = code.get(r["iteration"], {})
             status = r["update_status"] + (" ↺ rolled back" if r["rolled_back"] else "")
+            if r.get("repairs"):
+                status += f" after {r['repairs']} repair{'s' * (r['repairs'] > 1)}"
             score = (r["score"] if not r.get("forfeit") else
                      f"forfeit: {terminal_text(r['forfeit'])} ({_md(r['forfeit_score'])} when it stopped)")
             if r.get("score_low") is not None and r["score_low"] != r["score_high"]:
@@ -510,6 +580,7 @@ def write_report(store: Store, run: str, out_dir: str | Path | None = None, *,
         ("code.png", code_figure, "Code size and complexity per iteration"),
         ("tokens.png", tokens_figure, "LLM tokens per iteration"),
         ("lineage.png", lineage_figure, "Every candidate and the version it improved"),
+        ("calls.png", calls_figure, "LLM calls over time: model, calls in flight, what came of each"),
     ):
         if data["run"]["kind"] == "eval" and name != "score.png":
             continue

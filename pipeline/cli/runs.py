@@ -50,6 +50,13 @@ def _audit(row: dict) -> str | None:
     return score + (" OVERFIT" if row.get("overfit") else "")
 
 
+def _repairs(row: dict) -> str | None:
+    """Repair calls and the updates they saved: ``3 (2 saved)``."""
+    if not row.get("repair_calls"):
+        return None
+    return f"{row['repair_calls']} ({row.get('saved_by_repair') or 0} saved)"
+
+
 COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has a value in is left out
     ("run", lambda r: r["short_id"]),
     ("name", lambda r: r["name"]),
@@ -70,6 +77,7 @@ COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has
     ("audit", lambda r: _audit(r)),
     ("episodes", lambda r: r["episodes"]),
     ("tokens", lambda r: r["total_tokens"] or None),
+    ("repairs", lambda r: _repairs(r)),
 )
 
 

@@ -201,6 +201,14 @@ class OptimizeConfig:
         run_key="never")
     """The held-out audit (``pipeline/optimizer/audit.py``): games per version and protocol on the audit seeds
     (``games.base.AUDIT_SEED_BASE``), played when the run finishes; it never changes what the loop chose."""
+    repairs: int = setting(
+        1, "when a reply is rejected before it is played (it does not parse, has the wrong methods or signatures, or "
+        "raises or returns an invalid action on the recorded observations), send the model the exact error in the "
+        "same conversation and take its corrected reply, up to N times (default: 1; 0: off)", metavar="N",
+        minimum=0, maximum=5, group="search", before_recorded=0)
+    """Repair turns (``pipeline/optimizer/propose.py``): each is its own LLM call, linked to the call it repairs
+    (``llm_calls.repair_of``) and counted by every budget; the corrected reply is validated exactly as a first reply
+    is. Runs recorded before repairs existed made none (``before_recorded``), so they replay call for call."""
     eval_cache: bool = setting(
         True, "play every version's episodes again instead of reusing those of an earlier assessment",
         group="search")

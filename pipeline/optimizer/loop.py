@@ -96,6 +96,8 @@ class IterationResult:
     forfeit: str | None = None
     """What ended the evaluation game the chosen candidate forfeited (``store/scores.py``)."""
     forfeit_score: float | None = None
+    repairs: int = 0
+    """Repair turns the chosen candidate's reply took (``--repairs``)."""
 
 
 @dataclass
@@ -264,7 +266,8 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
                            proposals[decision.chosen].prompt_tokens, candidates=len(proposals),
                            standard_score=assessments[decision.chosen].standard_score,
                            forfeit=assessments[decision.chosen].forfeit,
-                           forfeit_score=assessments[decision.chosen].forfeit_score)
+                           forfeit_score=assessments[decision.chosen].forfeit_score,
+                           repairs=proposals[decision.chosen].repairs)
 
 
 def _protocols_note(config: OptimizeConfig, a) -> str:
@@ -314,7 +317,7 @@ def _commit(store: Store, state: RunState, iteration: int, history: History, pro
                 parent_iteration=p.parent.iteration if p.parent else None,
                 parent_candidate=p.parent.candidate if p.parent else None, parent_version_id=p.parent_version_id,
                 proposed_version_id=p.proposed_version_id, policy_version_id=a.version_id, llm_call_id=p.call_id,
-                update_status=a.status,
+                repairs=p.repairs, update_status=a.status,
                 evaluation="screened" if p.candidate in screens and not screens[p.candidate].passed
                 else played.evaluation, train_episode_id=played.train_episode_id,
                 eval_episode_ids=played.eval_episode_ids, robust_episode_ids=played.robust_episode_ids or None,

@@ -10,7 +10,16 @@ For each :class:`~pipeline.optimizer.strategies.ProposalRequest` of an iteration
    replies parsed into (one transaction, in candidate order, so the store does not depend on which reply came
    first); then each suggestion is validated (``pipeline/play/validate.py``): an
    accepted one becomes a ``policy_versions`` row; a rejected one is stored with its reason, which goes into the
-   feedback, and the candidate falls back to its parent's code.
+   feedback, and the candidate falls back to its parent's code;
+4. **repair turns** (``repairs``, default 1): a reply rejected before it is played (it does not parse, has the
+   wrong methods or signatures, raises or returns an invalid action on the recorded observations) goes back to
+   the model in the same conversation — its own reply, then the exact error — and the corrected reply is parsed
+   and validated exactly as a first one is, up to ``repairs`` times. Each repair is its own call in ``llm_calls``
+   (purpose ``repair``, ``repair_of`` the call it repairs), counted by every budget; a resumed iteration and a
+   replay find it by its conversation's hash like any prompt. A repair conversation is the prompt plus the
+   rejected reply (at most ``max_tokens``) and the error (at most :data:`REPAIR_NOTE_CHARS`): it may go past the
+   prompt's token budget by those. A repair that the budgets forbid, or whose call fails, is not made: the
+   candidate stays rejected, and the run goes on.
 
 LLM errors: fatal ones (authentication, unknown model, ...) stop the run after every call of the iteration is
 recorded; an iteration whose every call failed counts towards :data:`MAX_CONSECUTIVE_LLM_FAILURES`.
@@ -44,6 +53,9 @@ from store.writer import insert_llm_calls
 
 MAX_CONSECUTIVE_LLM_FAILURES = 3
 
+REPAIR_NOTE_CHARS = 2_000
+"""The longest error sent back in a repair turn (it quotes the candidate's own exception, which the code chose)."""
+
 
 class BudgetExhausted(Exception):
     """The next step would exceed one of the run's budgets; the run stops with status ``budget``."""
@@ -70,6 +82,10 @@ class Proposal:
     iteration's other rows (``pipeline/optimizer/loop.py``)."""
     text: str | None = None
     """The proposed policy file, when accepted (what its episodes play)."""
+    repairs: int = 0
+    """Repair turns the reply took (0: the first reply stands)."""
+    fixable: str | None = None
+    """Why the reply was rejected before it was played, when a repair turn could fix it (what is sent back)."""
 
 
 @dataclass
@@ -88,6 +104,10 @@ class _Pending:
     reading: str | None = None
     """How the reply was read: structured, parsed, repaired or unusable (``pipeline/optimizer/reply.py``)."""
     repairs: tuple[str, ...] = ()
+    turn: int = 0
+    """0: the first call for the request; n: its nth repair turn."""
+    repair_of: str | None = None
+    """The call whose rejected reply this one repairs."""
 
     def parse(self) -> None:
         reply = self.reply
@@ -159,7 +179,77 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
             raise failed[-1].error
     else:
         state.llm_failures = 0
-    return _validate_all(state, iteration, pending, counter)
+    proposals = _validate_all(state, iteration, pending, counter)
+    for turn in range(1, c.repairs + 1):
+        if not any(p.fixable for p in proposals):
+            break
+        proposals = _repair_turn(store, state, iteration, turn, pending, proposals, stored, client, counter, log,
+                                 hold)
+    return proposals
+
+
+def repair_messages(item: _Pending, error: str) -> list[dict[str, str]]:
+    """The conversation of a repair turn: the rejected reply's, then the reply, then the error and what to do."""
+    error = clean_untrusted_text(error)
+    if len(error) > REPAIR_NOTE_CHARS:
+        error = error[: REPAIR_NOTE_CHARS - 1] + "…"
+    return item.prompt.messages + [
+        {"role": "assistant", "content": item.text},
+        {"role": "user", "content": f"{error}\n\nFix this and reply again in the same JSON format, with the "
+                                    "complete corrected definition of every method you change."}]
+
+
+def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pending: list[_Pending],
+                 proposals: list[Proposal], stored: dict, client: LLMClient, counter: TokenCounter,
+                 log: Callable[[str], None], hold: Hold | None) -> list[Proposal]:
+    """One repair turn for every proposal rejected before it was played (``pending[i]`` made ``proposals[i]``):
+    ``pending`` is updated in place with the repair's call where one was made, and the proposals are returned
+    with each repaired one's outcome in its place."""
+    repairs: dict[int, _Pending] = {}
+    for i, p in enumerate(proposals):
+        if p.fixable is None:
+            continue
+        item = pending[i]
+        messages = repair_messages(item, p.fixable)
+        prompt = Prompt(messages, counter.messages(messages), item.prompt.budget, item.prompt.steps_shown,
+                        item.prompt.memory_shown, item.prompt.token_method)
+        repair = _Pending(item.request, prompt, item.context_version, item.observations, item.info, turn=turn,
+                          repair_of=item.call_id)
+        if (prompt.hash, item.request.candidate) in stored:  # a resumed iteration: this repair was made before
+            repair.call_id, repair.text = stored[prompt.hash, item.request.candidate]
+            repair.parse()
+        repairs[i] = repair
+    to_call = [r for r in repairs.values() if r.text is None]
+    if to_call:
+        try:
+            check_budgets(store, state, client, [r.prompt for r in to_call])
+        except BudgetExhausted as exc:
+            log(f"iteration {iteration}: no repair turn ({exc})")
+            return proposals
+        who = ", ".join(str(r.request.candidate) for r in to_call)
+        log(f"iteration {iteration}: repair turn {turn} of {state.config.repairs} for the rejected "
+            f"{'reply' if len(to_call) == 1 else 'replies'} of candidate{'' if len(to_call) == 1 else 's'} {who}")
+        _complete_all(state, iteration, client, to_call, meanwhile=hold.release if hold is not None else None)
+        if hold is not None:
+            hold.take()
+        for item in to_call:
+            if item.reply is not None:
+                item.text = item.reply.text
+                item.parse()
+        record_calls(store, state.run_id, iteration, client, to_call)
+    made = {i: r for i, r in repairs.items() if r.error is None}  # a failed repair leaves the rejection standing
+    for i, r in repairs.items():
+        if r.error is not None:
+            log(f"iteration {iteration}: the repair call for candidate {r.request.candidate} failed ({r.error}); "
+                "its rejection stands")
+            proposals[i].fixable = None
+    repaired = _validate_all(state, iteration, list(made.values()), counter)
+    result = list(proposals)
+    for (i, item), outcome in zip(made.items(), repaired):
+        outcome.repairs, outcome.prompt_tokens = turn, proposals[i].prompt_tokens
+        pending[i] = item
+        result[i] = outcome
+    return result
 
 
 def _replies(n: int) -> str:
@@ -210,10 +300,10 @@ def _validate_all(state: "RunState", iteration: int, items: list[_Pending], coun
     workers = max(1, c.workers)  # candidates are always checked in confined workers, even with --workers 0
 
     def outcome(item: _Pending, status: str, note: str, version: str | None = None, proposed: str | None = None,
-                row: dict | None = None, text: str | None = None) -> Proposal:
+                row: dict | None = None, text: str | None = None, fixable: str | None = None) -> Proposal:
         base = item.context_version
         return Proposal(item.request.candidate, item.request.parent, base, status, version or base, proposed,
-                        item.call_id, note, item.prompt.tokens, row, text)
+                        item.call_id, note, item.prompt.tokens, row, text, repairs=item.turn, fixable=fixable)
 
     n_actions = get_game(state.game).n_actions
 
@@ -233,11 +323,13 @@ def _validate_all(state: "RunState", iteration: int, items: list[_Pending], coun
             continue
         if item.parse_error is not None:
             proposals.append(outcome(item, "rejected", f"Your last reply was not usable: {item.parse_error}. Reply "
-                                                       "with the JSON format asked for."))
+                                                       "with the JSON format asked for.",
+                                     fixable=f"Your reply was not usable: {item.parse_error}."))
             continue
         result = results[id(item)]
         if isinstance(result, CandidateRejected):  # nothing runnable to store: the reason is the record
-            proposals.append(outcome(item, "rejected", f"Your last suggestion was rejected: {result}"))
+            proposals.append(outcome(item, "rejected", f"Your last suggestion was rejected: {result}",
+                                     fixable=f"Your suggestion was rejected: {result}"))
             continue
         candidate, reason = result
         if candidate is None:
@@ -248,7 +340,8 @@ def _validate_all(state: "RunState", iteration: int, items: list[_Pending], coun
                                  llm_call_id=item.call_id)
         if reason is not None:
             proposals.append(outcome(item, "rejected", f"Your last suggestion was rejected: {reason}",
-                                     proposed=candidate.version_id, row=row))
+                                     proposed=candidate.version_id, row=row,
+                                     fixable=f"Your suggestion was rejected: {reason}"))
         else:
             proposals.append(outcome(item, "accepted", "", version=candidate.version_id,
                                      proposed=candidate.version_id, row=row, text=candidate.text))
@@ -267,7 +360,8 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
         reply, error = item.reply, item.error
         row = {
             "call_id": item.call_id, "run_id": run_id, "iteration": iteration,
-            "candidate": item.request.candidate, "purpose": "update", "operation_name": "chat",
+            "candidate": item.request.candidate, "purpose": "repair" if item.turn else "update",
+            "repair_of": item.repair_of, "repair_turn": item.turn, "operation_name": "chat",
             "provider_name": client.provider, "request_model": client.model,
             "request_temperature": params.get("temperature"),
             "request_max_tokens": params.get("max_tokens", params.get("max_completion_tokens")),
