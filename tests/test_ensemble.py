@@ -217,3 +217,21 @@ def test_the_dry_run_prices_the_mix(tmp_path):
     blend = report["update_cost_usd"]["typical"]
     assert blend == pytest.approx(0.75 * costs["openai/gpt-4o"] + 0.25 * costs["openai/gpt-4o-mini"])
     assert report["update_cost_usd"]["at_most"] > blend
+
+
+def test_a_batch_entry_lists_its_models(tmp_path):
+    from pipeline.jobs.batch import ExperimentError, load_experiments
+
+    path = tmp_path / "ens.toml"
+    path.write_text('[defaults]\ngame = "pong"\niterations = 2\n'
+                    'models = ["openai/gpt-4o,weight=2", {model = "ollama_chat/qwen2.5-coder", '
+                    'api_base = "http://gpu:11434"}]\n[matrix]\nseed = [0, 1]\n')
+    batch = load_experiments(path)
+    assert len(batch.runs) == 2
+    config = batch.runs[0].config
+    assert config.model == "openai/gpt-4o" and config.model_choice == "fixed"
+    assert [(e["model"], e["weight"], e["api_base"]) for e in config.models] == [
+        ("openai/gpt-4o", 2.0, None), ("ollama_chat/qwen2.5-coder", 1.0, "http://gpu:11434")]
+    path.write_text('[defaults]\ngame = "pong"\nmodels = ["openai/gpt-4o", "openai/gpt-4o"]\n[matrix]\nseed = [0]\n')
+    with pytest.raises(ExperimentError, match="given twice"):
+        load_experiments(path)
