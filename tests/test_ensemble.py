@@ -110,6 +110,9 @@ def test_the_command_line_refuses_what_it_cannot_use(tmp_path):
     done = _cli("optimize", "--game", "pong", "--model", "openai/a,weight=2", "--model", "openai/b",
                 "--model-choice", "thompson", "--store", store, "--dry-run")
     assert done.returncode == 2 and "weights are the shares of --model-choice fixed" in done.stderr, done.stderr
+    done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model-choice", "ucb", "--store", store,
+                "--dry-run")
+    assert done.returncode == 2 and "give --model more than once" in done.stderr, done.stderr
 
 
 def test_fixed_weights_give_exact_shares_and_bandits_follow_the_rewards():

@@ -148,7 +148,10 @@ def split_model_flags(given: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def check_choice(models: list | None, choice: str) -> None:
-    """Errors between ``models`` and ``model_choice``: weights only mean something to ``fixed``."""
+    """Errors between ``models`` and ``model_choice``: a rule needs several models; weights only mean something to
+    ``fixed``."""
+    if not models and choice != "fixed":
+        raise ValueError(f"--model-choice {choice} chooses among several models: give --model more than once")
     if models and choice != "fixed":
         weighted = [e for e in model_entries(models) if e["weight"] != 1.0]
         if weighted:
