@@ -75,6 +75,8 @@ class Setting:
     before_recorded: Any = UNSET
     """The value that reproduces what a run stored before the setting existed did (``OptimizeConfig.from_record``),
     when that is not the default."""
+    repeat: bool = False
+    """The flag may be given several times; the handler gets the list of values (``--model`` for an ensemble)."""
     reproduce: bool = True
     """False: left out of the command line that reproduces a run (the machine's own, like worker counts)."""
 

@@ -1006,6 +1006,47 @@ MIGRATIONS.append(
         LEFT JOIN audit ON audit.run_id = r.run_id;
         COMMENT ON VIEW learning_curve IS 'one row per iteration: score (NULL: forfeited) with its interval, best so far, LLM calls (repairs among them), updates saved by a repair, tokens, times';
         COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: label, settings, status, best score, forfeits, audit, episodes, tokens, repairs';
+
+# Model ensembles (issue 32): one row per (run, model) with what its calls brought. A candidate counts for the
+# model of its llm_calls row; it improved when it was accepted and scored above its parent (or its parent forfeited):
+# the rule of store/scores.py `beats`, as pipeline/optimizer/ensemble.py rewards the models.
+MIGRATIONS.append(
+    (
+        15,
+        "model_stats: per run and model, calls, share, accepted candidates, improvements, cost and latency",
+        r"""
+        CREATE VIEW model_stats AS
+        WITH calls AS (
+            SELECT run_id, request_model AS model, count(*)::INTEGER AS calls,
+                   count(error_type)::INTEGER AS errors,
+                   coalesce(sum(input_tokens), 0)::BIGINT AS input_tokens,
+                   coalesce(sum(output_tokens), 0)::BIGINT AS output_tokens,
+                   sum(cost_usd) AS cost_usd,
+                   coalesce(sum(latency_s), 0) AS latency_s,
+                   avg(latency_s) AS mean_latency_s
+            FROM llm_calls GROUP BY run_id, request_model
+        ), cand AS (
+            SELECT c.run_id, l.request_model AS model, count(*)::INTEGER AS candidates,
+                   (count(*) FILTER (WHERE c.update_status = 'accepted'))::INTEGER AS accepted,
+                   (count(*) FILTER (WHERE c.update_status = 'accepted' AND c.score IS NOT NULL
+                                     AND (p.score IS NULL OR c.score > p.score)))::INTEGER AS improvements,
+                   coalesce(sum(c.score - p.score) FILTER (WHERE c.update_status = 'accepted'
+                                                          AND c.score > p.score), 0) AS gain
+            FROM candidates c
+            JOIN llm_calls l ON l.call_id = c.llm_call_id
+            LEFT JOIN candidates p ON p.run_id = c.run_id AND p.iteration = c.parent_iteration
+                                  AND p.candidate = coalesce(c.parent_candidate, 0)
+            GROUP BY c.run_id, l.request_model
+        )
+        SELECT calls.run_id, calls.model, calls.calls,
+               calls.calls / sum(calls.calls) OVER (PARTITION BY calls.run_id) AS share,
+               calls.errors, coalesce(cand.candidates, 0) AS candidates, coalesce(cand.accepted, 0) AS accepted,
+               coalesce(cand.improvements, 0) AS improvements, coalesce(cand.gain, 0) AS gain,
+               calls.input_tokens, calls.output_tokens, calls.cost_usd,
+               calls.cost_usd / nullif(cand.improvements, 0) AS cost_per_improvement,
+               calls.latency_s, calls.mean_latency_s
+        FROM calls LEFT JOIN cand ON cand.run_id = calls.run_id AND cand.model = calls.model;
+        COMMENT ON VIEW model_stats IS 'one row per run and model it called (an ensemble has several): calls, share, accepted candidates, improvements over the parent, cost, latency';
         """,
     )
 )

@@ -122,7 +122,20 @@ def run_spending(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, float
             "last_wall_s": float(last_wall)}
 
 
+def model_spending(con: duckdb.DuckDBPyConnection, run_id: str) -> list[tuple[str, int, float]]:
+    """(model, calls, cost in USD) of each model a run has called, most calls first (an ensemble's progress)."""
+    return [(m, int(n), float(cost)) for m, n, cost in con.execute(
+        "SELECT request_model, count(*), coalesce(sum(cost_usd), 0) FROM llm_calls WHERE run_id = ? "
+        "GROUP BY request_model ORDER BY count(*) DESC, request_model", [run_id]).fetchall()]
+
+
 # ---------------------------------------------------------------------------------------------- the optimizer
+
+
+def call_models(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, str]:
+    """call id -> the model it asked (``request_model``) of each LLM call of a run: which model of an ensemble
+    made each candidate (``pipeline/optimizer/ensemble.py``)."""
+    return dict(con.execute("SELECT call_id, request_model FROM llm_calls WHERE run_id = ?", [run_id]).fetchall())
 
 
 def stored_replies(con: duckdb.DuckDBPyConnection, run_id: str,

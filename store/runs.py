@@ -231,13 +231,21 @@ def list_runs(con: duckdb.DuckDBPyConnection, store_path: str | os.PathLike, gam
     names = [d[0] for d in cursor.description]
     rows = [dict(zip(names, row)) for row in cursor.fetchall()]
     short = short_run_ids(con)
+    per_model: dict[str, list[dict[str, Any]]] = {}  # an ensemble's models (view model_stats)
+    cursor = con.execute("SELECT * FROM model_stats WHERE run_id IN (SELECT run_id FROM llm_calls GROUP BY run_id "
+                         "HAVING count(DISTINCT request_model) > 1) ORDER BY run_id, calls DESC, model")
+    columns = [d[0] for d in cursor.description]
+    for values in cursor.fetchall():
+        stats = dict(zip(columns, values))
+        per_model.setdefault(stats.pop("run_id"), []).append(stats)
     listed = []
     for row in rows:
         if row["status"] == "running" and not run_is_live(store_path, row["run_id"]):
             row["status"] = "interrupted"  # killed: no process holds its lock (`doctor` says the same)
         if status is not None and row["status"] != status:
             continue
-        listed.append({"short_id": short[row["run_id"]], **row})
+        listed.append({"short_id": short[row["run_id"]], **row,
+                       **({"models": per_model[row["run_id"]]} if row["run_id"] in per_model else {})})
         if limit is not None and len(listed) >= limit:
             break
     return listed

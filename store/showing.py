@@ -29,6 +29,7 @@ def report_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
         "curve": q("SELECT * FROM learning_curve WHERE run_id = ? ORDER BY iteration"),
         "code": q("SELECT * FROM code_metrics WHERE run_id = ? ORDER BY iteration"),
         "usage": q("SELECT * FROM llm_usage WHERE run_id = ?")[0],
+        "models": q("SELECT * FROM model_stats WHERE run_id = ? ORDER BY calls DESC, model"),
         "rejected": q("SELECT * FROM rejected_candidates WHERE run_id = ? ORDER BY iteration"),
         "lineage": q("SELECT * FROM lineage WHERE run_id = ? ORDER BY iteration, candidate"),
         "episodes": q("SELECT episode_id, iteration, kind, episode_index, seed, policy_version_id, return, length, "

@@ -34,15 +34,21 @@ REWORDED = {
     ("optimize", "--eval-max-steps"): ("evaluation cap (default: the task's, 4000)",
                                        "evaluation cap (default: the game's, 4000; asterix 20000; enduro 5000; "
                                        "freeway 2500)"),
+    ("optimize", "--model"): ('litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o (OPENAI_API_KEY), gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME or openai/NAME with --api-base (your own server) (default: the offline SmolLM2 server)',
+                              'litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o (OPENAI_API_KEY), gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME or openai/NAME with --api-base (your own server) (default: the offline SmolLM2 server); give it several times for an ensemble, each as MODEL[,weight=W][,api_base=URL] (see --model-choice)'),
 }
 """Help texts that changed on purpose: one flag of two verbs now has one declaration (``EpisodeLimits``);
---eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them)."""
+--eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them); --model may be
+given several times (an ensemble, issue 32)."""
 
-ADDED = {"optimize": ("--rng-key", "--audit-episodes", "--repairs"), "eval": ("--rng-key",), "compare": ("--audit",)}
+ADDED = {"optimize": ("--rng-key", "--audit-episodes", "--repairs", "--model-choice"), "eval": ("--rng-key",),
+         "compare": ("--audit",)}
 """Flags added on purpose since the snapshot (issue 33: the policies' random stream, the held-out audit, compare
-on audit seeds; issue 32: repair turns); every other flag is as it was."""
-ADDED_FIELDS = {"rng_key": None, "audit_episodes": 3, "repairs": 1}
-"""``OptimizeConfig``'s fields behind them, with their defaults."""
+on audit seeds; issue 32: repair turns, model ensembles); every other flag is as it was."""
+ADDED_FIELDS = {"rng_key": None, "audit_episodes": 3, "repairs": 1, "model_choice": "fixed", "models": None}
+"""``OptimizeConfig``'s fields behind them, with their defaults (``models``, an ensemble, has no flag of its own:
+``--model`` given several times sets it)."""
+NO_FLAG = ("models",)
 
 
 def _verb(name: str) -> argparse.ArgumentParser:
@@ -90,13 +96,14 @@ def test_what_the_declarations_derive_is_todays():
     def old(names) -> list[str]:  # what was there before the fields added since (ADDED_FIELDS)
         return [n for n in names if n not in ADDED_FIELDS]
 
-    assert sorted(RESUME_OVERRIDES) == sorted(before["resume"] + ["audit_episodes"])  # an audit may change
+    # an audit may change; so may an ensemble's models, as --model may
+    assert sorted(RESUME_OVERRIDES) == sorted(before["resume"] + ["audit_episodes", "models"])
     assert list(BUDGET_FIELDS) == before["budgets"]
     assert BEFORE_RECORDED == {**before["before"], "repairs": 0}  # runs before repairs made none
-    assert old(RUN_KEYS) == before["run_keys"] and sorted(OPTIMIZE_OPTIONS) == sorted(before["options"] +
-                                                                                         list(ADDED_FIELDS))
+    assert old(RUN_KEYS) == before["run_keys"] and sorted(OPTIMIZE_OPTIONS) == sorted(
+        before["options"] + [f for f in ADDED_FIELDS if f not in NO_FLAG])
     assert sorted(NOT_IN_KEY) == sorted(before["not_in_key"] + ["audit_episodes"])  # it measures, changes nothing
-    assert sorted(KEYED_WHEN_SET) == sorted(before["keyed_when_set"] + ["rng_key", "repairs"])
+    assert sorted(KEYED_WHEN_SET) == sorted(before["keyed_when_set"] + ["rng_key", "repairs", "model_choice", "models"])
     defaults = asdict(OptimizeConfig())
     assert {k: defaults.pop(k) for k in ADDED_FIELDS} == ADDED_FIELDS
     assert defaults.pop("observation") >= before["defaults"].pop("observation")  # moves with the conventions

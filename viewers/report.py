@@ -518,6 +518,13 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
             saving = _cache_saving(run, usage, price)
             if saving:
                 out += [saving, ""]
+        if len(data.get("models") or ()) > 1:  # an ensemble: what each model's calls brought (view model_stats)
+            out += ["## Models", "", _md_table(
+                ("model", "calls", "share", "accepted", "improvements", "gain", "cost (USD)",
+                 "cost per improvement (USD)", "mean latency (s)"),
+                [(terminal_text(m["model"] or ""), m["calls"], f"{m['share']:.0%}", m["accepted"], m["improvements"],
+                  m["gain"], m["cost_usd"], m["cost_per_improvement"], m["mean_latency_s"])
+                 for m in data["models"]]), ""]
     best_id = None
     if run["kind"] != "eval" and data["curve"]:
         best_id = data["curve"][-1]["best_version_id"]

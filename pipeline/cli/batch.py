@@ -80,8 +80,10 @@ def _endpoint_problems(planned) -> list[str]:
         config = item.run.config
         if item.action == "skip":
             continue
-        checks = ([(check_credentials, config.model, config.api_base)] if config.model else []) + \
-            ([(check_reachable, config.api_base)] if config.api_base else [])
+        entries = config.models or ([{"model": config.model, "api_base": config.api_base}] if config.model else [])
+        checks = [(check_credentials, e["model"], e["api_base"]) for e in entries] + \
+            [(check_reachable, base) for base in dict.fromkeys([e["api_base"] for e in entries] + [config.api_base])
+             if base]
         for check, *values in checks:
             key = (check.__name__, *values)
             if key not in found:

@@ -340,6 +340,8 @@ def add_settings(p: argparse.ArgumentParser, config: type, groups: dict[str, str
             else:
                 kind = value_type(config, name)
                 extra = {"choices": s.choices} if s.choices is not None else {"type": _argument_type(kind, s)}
+                if s.repeat:
+                    extra["action"] = "append"
                 target.add_argument(*s.flags(name), dest=name, metavar=s.metavar, default=default,
                                     help=help_prefix + s.help, **{k: v for k, v in extra.items() if v is not None})
     return tuple(names)

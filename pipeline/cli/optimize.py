@@ -59,7 +59,17 @@ def _print_iteration(item) -> None:
     if item.forfeit:  # the partial score is what the policy had when it stopped: shown, never taken as its score
         forfeit = f"  ({terminal_text(item.forfeit)}; {item.forfeit_score:g} when it stopped)"
     show(f"iteration {item.iteration:>3}  score {score}  best {best} (it {item.best_iteration})"
-         f"  update {item.update_status:<9} {tokens}{back}{note[:160]}{forfeit[:120]}", flush=True)
+         f"  update {item.update_status:<9} {tokens}{back}{note[:160]}{forfeit[:120]}{_model_shares(item.models)}",
+         flush=True)
+
+
+def _model_shares(models) -> str:
+    """An ensemble's models on the progress line: each one's share of the calls so far and its spend."""
+    total = sum(calls for _, calls, _ in models)
+    if not models or not total:
+        return ""
+    return "  models " + ", ".join(f"{terminal_text(name)} {calls / total:.0%} ${cost:.4f}"
+                                   for name, calls, cost in models)
 
 
 OPTIMIZE_OPTIONS = tuple(n for n, (_, s) in declarations(OptimizeConfig).items() if s.cli)
@@ -118,10 +128,17 @@ def _llm_waiting(stream=None):
 
 def run(args: argparse.Namespace) -> int:
     given = {k: getattr(args, k) for k in OPTIMIZE_OPTIONS if getattr(args, k) is not None}
-    if args.model and not args.dry_run:
+    from pipeline.optimizer.ensemble import split_model_flags
+
+    try:  # --model given several times: an ensemble (pipeline/optimizer/ensemble.py)
+        given = split_model_flags(given)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    if given.get("model") and not args.dry_run:
         from pipeline.llm.providers import check_credentials  # no litellm import: a missing key is reported at once
 
-        check_credentials(args.model, args.api_base)
+        for entry in given.get("models") or [{"model": given["model"], "api_base": given.get("api_base")}]:
+            check_credentials(entry["model"], entry["api_base"])
     if args.show_prompt and not args.dry_run:
         raise CliError("--show-prompt goes with --dry-run")
     from pipeline.optimizer.config import model_defaults
@@ -145,16 +162,18 @@ def run(args: argparse.Namespace) -> int:
         if config.model and "model" not in given:
             from pipeline.llm.providers import check_credentials
 
-            check_credentials(config.model, config.api_base)
+            for entry in config.models or [{"model": config.model, "api_base": config.api_base}]:
+                check_credentials(entry["model"], entry["api_base"])
     else:
         given.setdefault("workers", os.cpu_count() or 1)
         config, run_id = OptimizeConfig(**model_defaults(given)), None
     if args.dry_run:
         return _dry_run(config, args)
-    if config.api_base:  # a server that does not answer: one line now, not a failed call after iteration 0
-        from pipeline.llm.providers import check_reachable
+    for base in dict.fromkeys([e["api_base"] for e in config.models or []] + [config.api_base]):
+        if base:  # a server that does not answer: one line now, not a failed call after iteration 0
+            from pipeline.llm.providers import check_reachable
 
-        check_reachable(config.api_base)
+            check_reachable(base)
     started = {} if run_id is None else {"run_id": run_id, "short": short}
     try:
         return _optimize(args, store, config, run_id, started)
@@ -186,7 +205,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
         (lambda line: show(line, flush=True))
     offline = config.model is None
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
-                                      config.seed, stream=args.stream)
+                                      config.seed, stream=args.stream, models=config.models)
     recordings = None
     try:
         fit_to_model(config, cap)

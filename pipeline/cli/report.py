@@ -49,6 +49,11 @@ def _flags(config_class: type, config: dict[str, Any]) -> list[str]:
     parts: list[str] = []
     for name, (f, s) in declarations(config_class).items():
         value = config.get(name)
+        if name in ("model", "api_base") and config.get("models"):  # an ensemble: --model per entry
+            from pipeline.optimizer.ensemble import entry_flag
+
+            parts += [w for e in config["models"] for w in ("--model", entry_flag(e))] if name == "model" else []
+            continue
         if not s.flags(name) or name == "game" or not s.reproduce or value is None or value == f.default:
             continue
         switch = [w.flag for w in s.switches if w.value == value]

@@ -78,7 +78,16 @@ COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has
     ("episodes", lambda r: r["episodes"]),
     ("tokens", lambda r: r["total_tokens"] or None),
     ("repairs", lambda r: _repairs(r)),
+    ("models", lambda r: _models(r)),
 )
+
+
+def _models(row: dict) -> str | None:
+    """An ensemble's models: each one's calls, improvements and cost (view model_stats), ``gpt-4o 7c 3i $0.02``."""
+    if not row.get("models"):
+        return None
+    return "; ".join(f"{m['model'].rsplit('/', 1)[-1]} {m['calls']}c {m['improvements']}i"
+                     + (f" ${m['cost_usd']:.2f}" if m["cost_usd"] is not None else "") for m in row["models"])
 
 
 def run(args: argparse.Namespace) -> int:

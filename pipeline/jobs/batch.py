@@ -51,6 +51,7 @@ from typing import Any, Callable
 from games import get_game
 from pipeline.jobs.worker import BUDGET_EXIT, run_remote
 from pipeline.optimizer.config import OptimizeConfig, model_defaults, validate_config
+from pipeline.optimizer.ensemble import split_model_flags
 from pipeline.settings import declarations
 from store import Store
 from store.readers import batch_progress, batch_runs
@@ -211,6 +212,7 @@ def load_experiments(path: str | os.PathLike) -> Batch:
         try:
             # the key is the entry's settings', before the model's defaults (a function of them): an experiment
             # file keeps its keys
+            settings = split_model_flags(settings)  # an ensemble: models = [...] (pipeline/optimizer/ensemble.py)
             key = _run_key(name, OptimizeConfig(**settings))
             config = OptimizeConfig(**model_defaults(settings))
             validate_config(config)

@@ -42,7 +42,7 @@ def _run(spec: dict[str, Any], store: Store) -> OptimizeResult:
     config = OptimizeConfig(**spec["config"])
     config.workers = spec.get("episode_workers", config.workers)
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
-                                      config.seed)
+                                      config.seed, models=config.models)
     fit_to_model(config, cap)
     try:
         run_id = spec.get("resume") or start_run(config, store, client.label,

@@ -323,6 +323,30 @@ class ReplayClient:
         return LLMReply(text=self.replies[key], response_model=self.model, replayed=True, latency_s=0.0)
 
 
+class EnsembleClient:
+    """Several models behind one client (``--model`` given several times): each call is made by the member the
+    run's rule chose for it (``pipeline/optimizer/ensemble.py``; propose asks :meth:`member`). The first member
+    stands for the ensemble where one model is needed: its tokenizer counts the prompts (they are the same text
+    for every model), and a call nobody chose for goes to it."""
+
+    def __init__(self, members: list[Any]):
+        self.members = {m.model: m for m in members}
+        first = members[0]
+        self.model, self.provider = first.model, first.provider
+        self.label = " + ".join(m.label for m in members)
+        self.dropped = tuple(dict.fromkeys(d for m in members for d in getattr(m, "dropped", ())))
+
+    def member(self, model: str) -> Any:
+        return self.members[model]
+
+    def request_params(self) -> dict[str, Any]:
+        return next(iter(self.members.values())).request_params()
+
+    def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
+                 candidate: int = 0) -> LLMReply:
+        return next(iter(self.members.values())).complete(messages, on_text, candidate)
+
+
 OFFLINE_MODEL_LABEL = "offline:smollm2-135m-instruct"
 """What ``runs.model`` says of a run made with the built-in offline model (its config says ``model: null``, so
 ``--resume`` starts the local server again rather than calling the server's internal name as a hosted model)."""
@@ -335,14 +359,20 @@ one function (``pipeline/optimizer/config.py: model_defaults``) for the command 
 
 
 def open_client(model: str | None, api_base: str | None, temperature: float, max_tokens: int, seed: int,
-                stream: bool = False):
-    """(client, local server or None, prompt-token cap or None) for ``--model``, or the offline default.
+                stream: bool = False, models: list[dict[str, Any]] | None = None):
+    """(client, local server or None, prompt-token cap or None) for ``--model``, or the offline default; with
+    ``models`` (an ensemble's entries), an :class:`EnsembleClient` of one client per entry, each with its own
+    endpoint.
 
     With no model, SmolLM2 is started on 127.0.0.1 (``pipeline/llm/local.py``) and a one-time notice says it
     only exercises the pipeline; the caller stops the server when done. ``max_tokens`` is the run's own: the
     model's default reply length was applied to its settings before (``model_defaults``), not here.
     """
     backoff_s = float(os.environ.get("CODEARCADE_LLM_BACKOFF_S", DEFAULT_BACKOFF_S))
+    if models:
+        return EnsembleClient([LiteLLMClient(e["model"], api_base=e.get("api_base"), temperature=temperature,
+                                             max_tokens=max_tokens, seed=seed, backoff_s=backoff_s, stream=stream)
+                               for e in models]), None, None
     if model:
         return LiteLLMClient(model, api_base=api_base, temperature=temperature, max_tokens=max_tokens,
                              seed=seed, backoff_s=backoff_s, stream=stream), None, None

@@ -18,6 +18,7 @@ from games import GAMES
 from games.base import AUDIT_SEED_BASE, OBSERVATION_VERSION, UNRECORDED_OBSERVATION, one_life_setting
 from games.generic import GENERIC_EVAL_MAX_STEPS
 from pipeline.llm.client import MAX_TOKENS, OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET
+from pipeline.optimizer.ensemble import MODEL_CHOICES, check_choice, check_models
 from pipeline.optimizer.strategies import STRATEGIES, make_strategy
 from pipeline.settings import Switch, before_recorded, budgets, check_settings, limit, resumable, setting
 
@@ -57,12 +58,26 @@ class OptimizeConfig:
     model: str | None = setting(
         None, "litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o (OPENAI_API_KEY), "
         "gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME or openai/NAME with "
-        "--api-base (your own server) (default: the offline SmolLM2 server)", resumable=True, run_key="always")
+        "--api-base (your own server) (default: the offline SmolLM2 server); give it several times for an "
+        "ensemble, each as MODEL[,weight=W][,api_base=URL] (see --model-choice)", resumable=True, run_key="always",
+        repeat=True)
     """litellm model string (``anthropic/...``, ``openai/...``); None: the offline SmolLM2 server."""
     api_base: str | None = setting(
         None, "the provider's endpoint: your own OpenAI-compatible, vLLM or Ollama server, or a proxy",
         metavar="URL", resumable=True, run_key="always")
     """Base URL of an OpenAI-compatible server (use with ``--model openai/NAME``)."""
+    models: list | None = setting(
+        None, "an ensemble: several models, each a litellm model string or 'MODEL[,weight=W][,api_base=URL]'",
+        cli=False, resumable=True, check=check_models)
+    """An ensemble (``pipeline/optimizer/ensemble.py``): ``--model`` given several times, or a batch entry's
+    ``models``; each entry ``{"model", "weight", "api_base"}`` (and, once the run starts, litellm's ``price``).
+    ``model`` is then the first entry's. None: one model (``model``)."""
+    model_choice: str = setting(
+        "fixed", "with --model given several times, how each call's model is chosen: fixed (shares by each "
+        "model's weight, default), ucb or thompson (a bandit over the improvement each model's candidates bring "
+        "per dollar)", choices=MODEL_CHOICES, metavar="RULE")
+    """How an ensemble chooses each call's model (``pipeline/optimizer/ensemble.py``): ``fixed`` weights, or a
+    bandit, ``ucb`` or ``thompson``."""
     iterations: int = setting(
         20, "LLM updates after evaluating the starting policy (default: 20; with --resume, a larger number extends "
         "the run)", minimum=0, resumable=True, run_key="always")
@@ -247,6 +262,10 @@ def validate_config(config: OptimizeConfig) -> None:
     if config.optimize_protocol == "standard" and config.robust_episodes < 1:
         raise ValueError("--optimize-for standard needs --robust-episodes N (N >= 1): the episodes its score is "
                          "the mean of")
+    check_choice(config.models, config.model_choice)
+    if config.models and config.model != config.models[0]["model"]:
+        raise ValueError("models: the run's model is the ensemble's first (give the ensemble as --model several "
+                         "times)")
     make_strategy(config)
 
 

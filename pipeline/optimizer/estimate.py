@@ -42,6 +42,15 @@ class Estimate:
     prompt: Prompt
     price: Price | None
     starter_score: float
+    mix: list[tuple[str, float, Price | None]] | None = None
+    """An ensemble's models: (model, expected share of the calls, its price); ``price`` is then their blend, and
+    the most a call can cost is at the dearest model's price."""
+
+    @property
+    def dearest(self) -> Price | None:
+        if not self.mix:
+            return self.price
+        return max((p for _, _, p in self.mix), key=lambda p: p.cost(self.token_budget, self.max_tokens))
 
     def update_cost(self, reply_tokens: int) -> float | None:
         return None if self.price is None else self.price.cost(self.prompt.tokens, reply_tokens)
@@ -50,7 +59,7 @@ class Estimate:
         if self.price is None:
             return None
         return (self.iterations * self.price.cost(self.prompt.tokens, TYPICAL_REPLY_TOKENS),
-                self.iterations * self.price.cost(self.token_budget, self.max_tokens))
+                self.iterations * self.dearest.cost(self.token_budget, self.max_tokens))
 
     def as_dict(self, include_prompt: bool = False) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -59,9 +68,15 @@ class Estimate:
             "prompt_tokens": self.prompt.tokens, "token_count_method": self.prompt.token_method,
             "steps_shown": len(self.prompt.steps_shown), "priced": self.price is not None,
             "update_cost_usd": None if self.price is None else {
-                "typical": self.update_cost(TYPICAL_REPLY_TOKENS), "at_most": self.update_cost(self.max_tokens)},
+                "typical": self.update_cost(TYPICAL_REPLY_TOKENS),
+                "at_most": self.dearest.cost(self.prompt.tokens, self.max_tokens)},
             "run_cost_usd": None if self.price is None else dict(zip(("typical", "at_most"), self.run_cost_range())),
         }
+        if self.mix:
+            out["models"] = [{"model": m, "share": share, "priced": p is not None,
+                              "update_cost_usd": None if p is None else p.cost(self.prompt.tokens,
+                                                                               TYPICAL_REPLY_TOKENS)}
+                             for m, share, p in self.mix]
         if include_prompt:
             out["prompt"] = self.prompt.messages
         return out
@@ -70,6 +85,10 @@ class Estimate:
         out = [f"dry run for {self.model}: starting policy scored {self.starter_score:g}",
                f"first prompt: {self.prompt.tokens:,} tokens of a {self.token_budget:,}-token budget "
                f"({len(self.prompt.steps_shown)} rollout steps shown; {self.prompt.token_method})"]
+        for name, share, rates in self.mix or ():
+            out.append(f"model {name}: {share:.0%} of the calls, " + (
+                f"${rates.cost(self.prompt.tokens, TYPICAL_REPLY_TOKENS):.4f} an update" if rates is not None
+                else "no price in litellm"))
         if self.price is None:
             out.append(f"cost: litellm has no price for {self.model} (a local or unknown model); tokens per update "
                        f"up to {self.token_budget + self.max_tokens:,}, for the run up to "
@@ -77,7 +96,8 @@ class Estimate:
             return out
         low, high = self.run_cost_range()
         out.append(f"one update: ${self.update_cost(TYPICAL_REPLY_TOKENS):.4f} with a typical "
-                   f"{TYPICAL_REPLY_TOKENS:,}-token reply, at most ${self.update_cost(self.max_tokens):.4f} "
+                   f"{TYPICAL_REPLY_TOKENS:,}-token reply{' (the mix)' if self.mix else ''}, at most "
+                   f"${self.dearest.cost(self.prompt.tokens, self.max_tokens):.4f} "
                    f"(a {self.max_tokens:,}-token reply)")
         out.append(f"whole run ({self.iterations} LLM calls): about ${low:.2f}, at most ${high:.2f} (every prompt "
                    f"filling the budget); cap it with --max-cost USD")
@@ -101,5 +121,21 @@ def estimate_run(config: OptimizeConfig, progress_log: Callable[[str], None] = l
     calls = config.iterations * state.strategy.max_proposals
     if config.max_llm_calls is not None:
         calls = min(calls, config.max_llm_calls)
+    if config.models:
+        return _ensemble_estimate(config, calls, prompt, first.score)
     return Estimate(model, calls, config.token_budget, config.max_tokens, prompt,
                     price(config.model) if config.model else None, first.score)
+
+
+def _ensemble_estimate(config: OptimizeConfig, calls: int, prompt: Prompt, starter_score: float) -> Estimate:
+    """An ensemble's estimate: each model's expected share of the calls (``fixed``: its weight's; a bandit
+    learns its shares, so each model is taken at an equal share), the blended price, and the dearest model's
+    for the most a call can cost. A model litellm cannot price leaves the mix unpriced (tokens only)."""
+    weights = [float(e["weight"]) if config.model_choice == "fixed" else 1.0 for e in config.models]
+    mix = [(e["model"], w / sum(weights), price(e["model"])) for e, w in zip(config.models, weights)]
+    blend = None
+    if all(p is not None for _, _, p in mix):
+        blend = Price(sum(s * p.input for _, s, p in mix), sum(s * p.output for _, s, p in mix))
+    label = " + ".join(e["model"] for e in config.models) + f" ({config.model_choice})"
+    return Estimate(label, calls, config.token_budget, config.max_tokens, prompt, blend, starter_score,
+                    mix=mix if blend is not None else [(m, s, p) for m, s, p in mix])

@@ -54,6 +54,7 @@ from store.readers import (
     iteration_count,
     iterations,
     last_iteration,
+    model_spending,
     policy_text,
     run_spending,
     starter_version_id,
@@ -98,6 +99,8 @@ class IterationResult:
     forfeit_score: float | None = None
     repairs: int = 0
     """Repair turns the chosen candidate's reply took (``--repairs``)."""
+    models: list[tuple[str, int, float]] = field(default_factory=list)
+    """An ensemble's calls so far: (model, calls, cost in USD) of each model, most calls first."""
 
 
 @dataclass
@@ -145,11 +148,20 @@ def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str =
               "rollout_steps": config.rollout_steps or settings.rollout_steps,
               "eval_max_steps": config.eval_max_steps or settings.eval_max_steps,
               "instruction": settings.instruction, "feedback_bands": asdict(settings.feedback), **(extra or {})}
+    if config.models:  # an ensemble's prices, as litellm has them now: its choices do not move with a later one
+        record["models"] = _priced(config.models)
     with store.write() as con:
         insert_run(con, run_id, kind, game, record, info.text, info.version_id, package_versions(),
                    model=model_name, seed=config.seed)
         insert_policy_version(con, policy_version_row(info, run_id, 0, produced_by="initial", validation="accepted"))
     return run_id
+
+
+def _priced(models: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    from pipeline.llm.providers import price
+    from pipeline.optimizer.ensemble import priced
+
+    return priced(models, price)
 
 
 def load_state(store: Store, run_id: str) -> RunState:
@@ -260,13 +272,17 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
     _commit(store, state, iteration, history, proposals, assessments, assessed, decision, screens,
             timing=dict(started_at=started_at, llm_s=llm_s, train_s=times.train_s, eval_s=times.eval_s, t0=t0))
     state.next_iteration = iteration + 1
+    models = []
+    if state.config.models:  # the progress line shows each model's share and spend
+        with store.read() as con:
+            models = model_spending(con, state.run_id)
     chosen, notes = assessed[decision.chosen], decision.notes[decision.chosen]
     return IterationResult(state.run_id, iteration, chosen.version_id, chosen.status, chosen.score, state.best_score,
                            state.best_iteration, decision.rolled_back, notes[0] if notes else "",
                            proposals[decision.chosen].prompt_tokens, candidates=len(proposals),
                            standard_score=assessments[decision.chosen].standard_score,
                            forfeit=assessments[decision.chosen].forfeit,
-                           forfeit_score=assessments[decision.chosen].forfeit_score,
+                           forfeit_score=assessments[decision.chosen].forfeit_score, models=models,
                            repairs=proposals[decision.chosen].repairs)
 
 
@@ -465,6 +481,8 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
     if given.get("iterations") is not None and given["iterations"] < config.iterations:
         raise ValueError(f"run {run_id} has {config.iterations} iterations planned; --iterations can only extend "
                          f"it, not shrink it")
+    if "model" in given and "models" not in given:
+        config.models = None  # one --model resumes an ensemble's run with that model alone
     for key, value in given.items():
         setattr(config, key, value)
     validate_config(config)
@@ -496,6 +514,8 @@ def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: st
         state.waiting = waiting
     if resume:
         changed = {k: getattr(config, k) for k in RESUME_OVERRIDES if getattr(config, k) != getattr(state.config, k)}
+        if changed.get("models"):
+            changed["models"] = _priced(changed["models"])
         if changed:
             for key, value in changed.items():
                 setattr(state.config, key, value)

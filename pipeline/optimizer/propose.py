@@ -39,6 +39,7 @@ from pipeline.llm.client import LLMClient, LLMError, LLMReply, canonical_message
 from pipeline.llm.providers import price
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.context import context_for
+from pipeline.optimizer.ensemble import choose_members
 from pipeline.optimizer.prompt import Prompt, PromptBudgetError, build_prompt
 from pipeline.optimizer.reply import ReplyParseError, clean_text, read_reply
 from pipeline.optimizer.state import RunState
@@ -108,6 +109,8 @@ class _Pending:
     """0: the first call for the request; n: its nth repair turn."""
     repair_of: str | None = None
     """The call whose rejected reply this one repairs."""
+    client: LLMClient | None = None
+    """The model that answers it, when the run has several (``pipeline/optimizer/ensemble.py``); else the run's."""
 
     def parse(self) -> None:
         reply = self.reply
@@ -147,12 +150,13 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
                 item.call_id, item.text = stored[prompt.hash, request.candidate]
                 item.parse()
             pending.append(item)
+    choose_members(store, state, history, iteration, client, pending)
     reused = [p for p in pending if p.text is not None]
     if reused:
         log(f"iteration {iteration}: reusing {_replies(len(reused))} stored for {'this prompt' if len(pending) == 1 else 'these prompts'}")
     to_call = [p for p in pending if p.text is None]
     if to_call:
-        check_budgets(store, state, client, [p.prompt for p in to_call])
+        check_budgets(store, state, client, [p.prompt for p in to_call], [p.client or client for p in to_call])
         name_methods = getattr(client, "hold_reply_to_methods", None)  # the offline model's grammar
         if name_methods is not None:
             name_methods([method.name for method in to_call[0].info.trainable])
@@ -214,7 +218,7 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
         prompt = Prompt(messages, counter.messages(messages), item.prompt.budget, item.prompt.steps_shown,
                         item.prompt.memory_shown, item.prompt.token_method)
         repair = _Pending(item.request, prompt, item.context_version, item.observations, item.info, turn=turn,
-                          repair_of=item.call_id)
+                          repair_of=item.call_id, client=item.client)  # the model that wrote the reply fixes it
         if (prompt.hash, item.request.candidate) in stored:  # a resumed iteration: this repair was made before
             repair.call_id, repair.text = stored[prompt.hash, item.request.candidate]
             repair.parse()
@@ -222,7 +226,7 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
     to_call = [r for r in repairs.values() if r.text is None]
     if to_call:
         try:
-            check_budgets(store, state, client, [r.prompt for r in to_call])
+            check_budgets(store, state, client, [r.prompt for r in to_call], [r.client or client for r in to_call])
         except BudgetExhausted as exc:
             log(f"iteration {iteration}: no repair turn ({exc})")
             return proposals
@@ -263,7 +267,8 @@ def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: l
 
     def complete(item: _Pending, on_text) -> None:
         try:
-            item.reply = client.complete(item.prompt.messages, on_text=on_text, candidate=item.request.candidate)
+            item.reply = (item.client or client).complete(item.prompt.messages, on_text=on_text,
+                                                          candidate=item.request.candidate)
         except LLMError as exc:
             item.error = exc
 
@@ -352,17 +357,18 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
     """Write the ``llm_calls`` rows of an iteration's calls (failed ones too) with what each reply parsed into,
     in one transaction and in candidate order (the store does not depend on which reply came first); each item
     gets its call id."""
-    params = client.request_params()
     calls = []
     canonical: dict[int, str] = {}  # best-of-n: N calls share one prompt
     for item in items:
         item.call_id = new_run_id()
         reply, error = item.reply, item.error
+        model = item.client or client
+        params = model.request_params()
         row = {
             "call_id": item.call_id, "run_id": run_id, "iteration": iteration,
             "candidate": item.request.candidate, "purpose": "repair" if item.turn else "update",
             "repair_of": item.repair_of, "repair_turn": item.turn, "operation_name": "chat",
-            "provider_name": client.provider, "request_model": client.model,
+            "provider_name": model.provider, "request_model": model.model,
             "request_temperature": params.get("temperature"),
             "request_max_tokens": params.get("max_tokens", params.get("max_completion_tokens")),
             "request_seed": params.get("seed"), "request_params": json.dumps(params, sort_keys=True),
@@ -388,10 +394,12 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
         insert_llm_calls(con, calls)
 
 
-def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: list[Prompt]) -> None:
+def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: list[Prompt],
+                  models: list[LLMClient] | None = None) -> None:
     """Raise :class:`BudgetExhausted` if the calls about to be made could take the run past a budget: their
     number, and each counted at its prompt plus a reply of the longest length asked for, priced at litellm's
-    rates."""
+    rates for the model that makes it (``models``, one per prompt; default: ``client`` for all). The run's
+    spending so far is every call's, whichever model made it."""
     c = state.config
     if c.max_cost_usd is None and c.max_total_tokens is None and c.max_llm_calls is None:
         return
@@ -409,11 +417,13 @@ def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: l
             f"(prompt {prompt_tokens:,} + reply up to {c.max_tokens * len(prompts):,}), over --max-total-tokens "
             f"{c.max_total_tokens:,}")
     if c.max_cost_usd is not None:
-        rates = price(client.model)
-        if rates is None:
-            raise BudgetExhausted(f"--max-cost needs a price for {client.label}, and litellm has none: use "
-                                  "--max-total-tokens instead")
-        worst = sum(rates.cost(p.tokens, c.max_tokens) for p in prompts)
+        worst = 0.0
+        for p, model in zip(prompts, models or [client] * len(prompts)):
+            rates = price(model.model)
+            if rates is None:
+                raise BudgetExhausted(f"--max-cost needs a price for {model.label}, and litellm has none: use "
+                                      "--max-total-tokens instead")
+            worst += rates.cost(p.tokens, c.max_tokens)
         if spent["cost_usd"] + worst > c.max_cost_usd:
             raise BudgetExhausted(
                 f"cost budget: ${spent['cost_usd']:.4f} spent, {calls} may cost up to ${worst:.4f}, over "

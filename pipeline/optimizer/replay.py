@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 
-from pipeline.llm.client import ReplayClient
+from pipeline.llm.client import EnsembleClient, ReplayClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import load_state, run_loop, start_run
 from store import Store
@@ -64,7 +64,10 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
     recorded = json.loads(run["config"])
     config = OptimizeConfig.from_record(recorded)
     client = ReplayClient(replies, model=run["model"] or "replay")
-    new_run = start_run(config, store, client.model, kind="replay", extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
+    if config.models:  # an ensemble: each call is answered as the model the rule chooses again
+        client = EnsembleClient([ReplayClient(replies, model=e["model"]) for e in config.models])
+        client.label = run["model"]  # its first model counts the prompts' tokens, as in the original
+    new_run = start_run(config, store, client.label, kind="replay", extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
     state = load_state(store, new_run)
     state.config.audit_episodes = 0  # a replay checks that the loop reproduces; its audit is `codearcade audit`
     result = run_loop(store, state, client, log)

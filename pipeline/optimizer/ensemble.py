@@ -1,0 +1,285 @@
+"""Model ensembles: several models in one run, and the rule that picks the model of each LLM call.
+
+An ensemble is ``--model`` given more than once (or a batch entry's ``models = [...]``). Each entry is a litellm
+model string, optionally followed by comma-separated options (commas never appear in litellm model strings)::
+
+    --model 'openai/gpt-4o-mini,weight=2' --model 'anthropic/claude-sonnet-4-5,api_base=http://proxy:4000'
+
+``weight`` (a number above 0, default 1) is the model's share under ``--model-choice fixed``; ``api_base`` is
+its own endpoint (default: ``--api-base``). In a batch file an entry is such a string or a table
+``{model = "...", weight = 2, api_base = "..."}``. Each model may appear once: a call's model is how its
+``llm_calls`` row (``request_model``) says which arm it pulled.
+
+**The rule, written once.** Every proposal (candidate) of an iteration is one pull of one model, chosen before
+the call, in candidate order, from the run's committed history alone (the ``candidates`` of earlier iterations
+and the model of each one's ``llm_calls`` row) and a seed derived from the run (its ``rng_key``, the iteration
+and the candidate). A resumed iteration therefore chooses again exactly what the killed attempt chose, and
+``codearcade replay`` (which plays the same history and uses the original's ``rng_key``) chooses the same.
+
+- A pull's **improvement** is how much its candidate's score beats its parent's (``store.scores.beats``): 0 when
+  not better, when it was rejected, unchanged, failed or forfeited; a played-out candidate of a forfeited parent
+  counts as the largest improvement seen. Its **reward** is the improvement divided by the largest improvement
+  any candidate of the run has brought so far (so rewards lie in [0, 1]; all 0 until something improves).
+- A model's **cost** is litellm's price of a reference call (a prompt of ``--token-budget`` tokens and a reply
+  of ``--max-tokens``), relative to the cheapest model of the ensemble; prices are recorded in the run's config
+  when it starts (``models[i].price``), so a later litellm does not change a run's choices. When any model has
+  no price (a local or unknown model), every model costs 1: the bandit then maximises improvement per call.
+- ``fixed``: each call goes to the model furthest below its share of the calls so far (``weight / sum of
+  weights``; ties to the first listed): weights 2 and 1 give exactly 2 of every 3 calls to the first.
+- ``ucb`` (UCB1 per dollar): a model not yet pulled first (in order); else the largest
+  ``(mean reward + sqrt(2 ln N / n)) / cost``, with ``n`` the model's pulls and ``N`` all pulls.
+- ``thompson``: each model's reward is drawn from ``Beta(1 + rewards, 1 + pulls - rewards)`` with the call's
+  seeded generator, and the largest ``draw / cost`` wins.
+
+Within one iteration (best-of-n, beam) the earlier choices count as pulls (``fixed`` and ``ucb``: at the model's
+current mean reward), so an iteration's calls spread over the models as the rule would spread them one at a
+time. Nothing here speaks SQL or calls a model: ``store/readers.py: call_models`` is the one reader.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass
+from typing import Any, Iterable, Mapping, Sequence
+
+from store.scores import beats
+
+MODEL_CHOICES = ("fixed", "ucb", "thompson")
+"""How each call's model is chosen in an ensemble (module docstring)."""
+
+ENTRY_OPTIONS = ("weight", "api_base")
+
+
+def parse_model_entry(value: Any) -> dict[str, Any]:
+    """One ensemble entry as a dict ``{"model", "weight", "api_base"}`` (and ``price`` where recorded), from
+    ``'MODEL[,weight=W][,api_base=URL]'`` or a dict; ValueError with one line saying what to fix."""
+    if isinstance(value, str):
+        model, *options = [part.strip() for part in value.split(",")]
+        entry: dict[str, Any] = {"model": model}
+        for option in options:
+            key, sep, text = option.partition("=")
+            key = key.strip().replace("-", "_")
+            if not sep or key not in ENTRY_OPTIONS:
+                raise ValueError(f"--model {value!r}: {option!r} is not an option of a model; write "
+                                 "MODEL[,weight=W][,api_base=URL]")
+            entry[key] = text.strip()
+    elif isinstance(value, Mapping):
+        unknown = sorted(set(value) - {"model", "price", *ENTRY_OPTIONS})
+        if unknown:
+            raise ValueError(f"models: an entry takes model, weight and api_base, not {', '.join(unknown)}")
+        entry = dict(value)
+    else:
+        raise ValueError(f"models: each entry is a model string or a table with model, weight and api_base, "
+                         f"not {value!r}")
+    model = entry.get("model")
+    if not isinstance(model, str) or not model.strip() or any(c.isspace() for c in model.strip()):
+        raise ValueError(f"--model {value!r}: give a litellm model string such as openai/gpt-4o")
+    weight = entry.get("weight", 1.0)
+    try:
+        weight = float(weight)
+    except (TypeError, ValueError):
+        raise ValueError(f"--model {model}: weight must be a number above 0, not {entry.get('weight')!r}") from None
+    if not math.isfinite(weight) or weight <= 0:
+        raise ValueError(f"--model {model}: weight must be a number above 0, not {entry.get('weight')!r}")
+    api_base = entry.get("api_base") or None
+    if api_base is not None and not isinstance(api_base, str):
+        raise ValueError(f"--model {model}: api_base must be a URL, not {api_base!r}")
+    out = {"model": model.strip(), "weight": weight, "api_base": api_base}
+    if "price" in entry:
+        out["price"] = entry["price"]
+    return out
+
+
+def entry_flag(entry: Mapping[str, Any]) -> str:
+    """An entry as ``--model`` takes it back: ``MODEL[,weight=W][,api_base=URL]``."""
+    text = entry["model"]
+    if float(entry.get("weight", 1.0)) != 1.0:
+        text += f",weight={float(entry['weight']):g}"
+    if entry.get("api_base"):
+        text += f",api_base={entry['api_base']}"
+    return text
+
+
+def model_entries(values: Iterable[Any]) -> list[dict[str, Any]]:
+    """Every entry of an ensemble, parsed and checked (each model once)."""
+    entries = [parse_model_entry(v) for v in values]
+    seen = set()
+    for entry in entries:
+        if entry["model"] in seen:
+            raise ValueError(f"--model {entry['model']} is given twice: give each model of an ensemble once "
+                             "(its llm_calls rows say which model a call went to)")
+        seen.add(entry["model"])
+    return entries
+
+
+def check_models(value: Any) -> None:
+    """The ``models`` setting's check (``OptimizeConfig``)."""
+    if not isinstance(value, list) or len(value) < 2:
+        raise ValueError("models must list at least two models (one model is --model alone)")
+    model_entries(value)
+
+
+def split_model_flags(given: Mapping[str, Any]) -> dict[str, Any]:
+    """The settings of the command line or a batch entry with ``--model`` given several times (a list) or a
+    ``models`` list turned into ``models`` (parsed entries) and ``model`` (the first entry's, which counts the
+    prompt's tokens); a single plain ``--model`` is left exactly as it always was."""
+    out = dict(given)
+    model = out.get("model")
+    if isinstance(model, list):
+        if len(model) == 1 and "," not in model[0]:
+            out["model"] = model[0]
+        elif len(model) == 1:
+            entry = parse_model_entry(model[0])
+            out["model"], out["api_base"] = entry["model"], entry["api_base"] or out.get("api_base")
+        else:
+            if out.get("models"):
+                raise ValueError("give the ensemble either as --model several times or as models, not both")
+            out["models"] = model
+    if out.get("models") is not None:
+        entries = model_entries(out["models"])
+        if len(entries) < 2:
+            raise ValueError("models must list at least two models (one model is --model alone)")
+        default_base = out.get("api_base")
+        out["models"] = [{**e, "api_base": e["api_base"] or default_base} for e in entries]
+        out["model"] = entries[0]["model"]
+        out["api_base"] = out["models"][0]["api_base"]
+    return out
+
+
+def check_choice(models: list | None, choice: str) -> None:
+    """Errors between ``models`` and ``model_choice``: a rule needs several models; weights only mean something to
+    ``fixed``."""
+    if not models and choice != "fixed":
+        raise ValueError(f"--model-choice {choice} chooses among several models: give --model more than once")
+    if models and choice != "fixed":
+        weighted = [e for e in model_entries(models) if e["weight"] != 1.0]
+        if weighted:
+            raise ValueError(f"--model {weighted[0]['model']},weight=...: weights are the shares of --model-choice "
+                             f"fixed; --model-choice {choice} learns the shares itself")
+
+
+def priced(entries: list[dict[str, Any]], price_of) -> list[dict[str, Any]]:
+    """``entries`` with litellm's price recorded in each (``price``: [USD per input token, per output token], or
+    None): what a run's config keeps, so that its choices do not move with litellm's price table."""
+    out = []
+    for entry in entries:
+        rates = entry["price"] if "price" in entry else price_of(entry["model"])
+        if rates is not None and not isinstance(rates, (list, tuple)):
+            rates = [rates.input, rates.output]
+        out.append({**entry, "price": list(rates) if rates is not None else None})
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ the rule
+
+
+@dataclass(frozen=True)
+class Pull:
+    """One earlier proposal of the run: which model made it, and the improvement it brought (>= 0, or
+    ``math.inf`` for a played-out candidate of a forfeited parent)."""
+
+    model: str
+    improvement: float
+
+
+def pulls(history_candidates: Sequence[Mapping[str, Any]], call_models: Mapping[str, str]) -> list[Pull]:
+    """The pulls of a run's committed history: each candidate with an LLM call, in (iteration, candidate) order,
+    with the improvement over its parent's score (module docstring)."""
+    scores = {(c["iteration"], c["candidate"]): c["score"] for c in history_candidates}
+    out = []
+    for c in history_candidates:
+        model = call_models.get(c.get("llm_call_id") or "")
+        if model is None or c.get("parent_iteration") is None:
+            continue
+        parent = scores.get((c["parent_iteration"], c["parent_candidate"] or 0))
+        improvement = 0.0
+        if c["update_status"] == "accepted" and beats(c["score"], parent):
+            improvement = math.inf if parent is None else float(c["score"] - parent)
+        out.append(Pull(model, improvement))
+    return out
+
+
+def rewards(history: Sequence[Pull]) -> list[tuple[str, float]]:
+    """(model, reward in [0, 1]) of each pull: its improvement over the largest one seen."""
+    finite = [p.improvement for p in history if math.isfinite(p.improvement)]
+    scale = max(finite, default=0.0)
+    out = []
+    for p in history:
+        if math.isinf(p.improvement):
+            out.append((p.model, 1.0))
+        else:
+            out.append((p.model, p.improvement / scale if scale > 0 else 0.0))
+    return out
+
+
+def relative_costs(entries: Sequence[Mapping[str, Any]], prompt_tokens: int, reply_tokens: int) -> list[float]:
+    """Each model's price of a reference call relative to the cheapest (all 1 when any has no price)."""
+    costs = []
+    for entry in entries:
+        rates = entry.get("price")
+        if not rates or not (rates[0] or rates[1]):
+            return [1.0] * len(entries)
+        costs.append(prompt_tokens * rates[0] + reply_tokens * rates[1])
+    cheapest = min(costs)
+    return [c / cheapest for c in costs]
+
+
+def choose(rule: str, entries: Sequence[Mapping[str, Any]], history: Sequence[Pull], candidates: Sequence[int],
+           seed_key: str, iteration: int, costs: Sequence[float] | None = None) -> list[int]:
+    """The index (in ``entries``) of the model of each of ``candidates`` (an iteration's proposals, in order)."""
+    if rule not in MODEL_CHOICES:
+        raise ValueError(f"--model-choice must be one of {', '.join(MODEL_CHOICES)}, not {rule!r}")
+    names = [e["model"] for e in entries]
+    index = {name: i for i, name in enumerate(names)}
+    n = [0.0] * len(names)
+    s = [0.0] * len(names)
+    for model, reward in rewards(history):
+        if model in index:
+            n[index[model]] += 1
+            s[index[model]] += reward
+    costs = list(costs) if costs is not None else [1.0] * len(names)
+    chosen = []
+    for candidate in candidates:
+        if rule == "fixed":
+            weights = [float(e.get("weight", 1.0)) for e in entries]
+            total, pulled = sum(weights), sum(n)
+            deficit = [w / total * (pulled + 1) - k for w, k in zip(weights, n)]
+            pick = max(range(len(names)), key=lambda i: (deficit[i], -i))
+        elif rule == "ucb":
+            untried = [i for i in range(len(names)) if n[i] == 0]
+            if untried:
+                pick = untried[0]
+            else:
+                pulled = sum(n)
+                ucb = [(s[i] / n[i] + math.sqrt(2 * math.log(pulled) / n[i])) / costs[i] for i in range(len(names))]
+                pick = max(range(len(names)), key=lambda i: (ucb[i], -i))
+        else:
+            rng = random.Random(f"{seed_key}:model:{iteration}:{candidate}")
+            draws = [rng.betavariate(1 + s[i], 1 + n[i] - s[i]) / costs[i] for i in range(len(names))]
+            pick = max(range(len(names)), key=lambda i: (draws[i], -i))
+        chosen.append(pick)
+        if rule != "thompson":  # the iteration's earlier choices count as pulls at the model's mean reward
+            mean = s[pick] / n[pick] if n[pick] else 0.0
+            n[pick] += 1
+            s[pick] += mean
+    return chosen
+
+
+def choose_members(store, state, history, iteration: int, client, items: Sequence[Any]) -> None:
+    """Set ``item.client`` to the member of ``client`` (an ``EnsembleClient``) that answers each of ``items``
+    (propose's requests) by the run's rule and its recorded ``models``; a single model's client is left alone. Every request of the
+    iteration is chosen for (those answered from the store too), so a resumed iteration chooses as before."""
+    entries = state.config.models
+    if not entries or not hasattr(client, "member"):
+        return
+    from store.readers import call_models
+
+    with store.read() as con:
+        models = call_models(con, state.run_id)
+    c = state.config
+    costs = relative_costs(entries, c.token_budget, c.max_tokens)
+    picks = choose(c.model_choice, entries, pulls(history.candidates, models),
+                   [item.request.candidate for item in items], state.rng_key or state.run_id, iteration, costs)
+    for item, pick in zip(items, picks):
+        item.client = client.member(entries[pick]["model"])

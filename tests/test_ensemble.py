@@ -1,0 +1,240 @@
+"""Model ensembles (``pipeline/optimizer/ensemble.py``): ``--model`` given several times, each call's model chosen
+by fixed weights or a bandit from the stored history; budgets over all models; resume and replay choose alike.
+
+The end-to-end runs play Freeway, whose policies form a ladder with scores that only go up: a policy that moves
+the chicken up with probability P scores 1, 2, 3, 4, 7 crossings for P = 0.2, 0.4, 0.6, 0.8, 1.0 in 500 steps
+(seed 0, ``--rng-key ens``: the policy's random stream is the same in every run). The *good* model climbs the
+ladder one rung a call (its last reply repeats: unchanged, no improvement); the *bad* one always replies with a
+policy that never moves (score 0: accepted, never better)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+
+from pipeline.optimizer.ensemble import Pull, choose, model_entries, parse_model_entry, pulls, relative_costs, \
+    split_model_flags
+from tests.conftest import ROOT, json_reply
+
+EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
+GOOD, BAD = "openai/gpt-4o", "openai/gpt-4o-2024-08-06"  # the same price at litellm: only improvements differ
+FAST = ("--game", "freeway", "--eval-max-steps", "500", "--rollout-steps", "40", "--workers", "2", "--rng-key", "ens",
+        "--audit-episodes", "0", "--token-budget", "4000", "--max-tokens", "1000")
+
+
+def _freeway(p: str) -> str:
+    return json_reply({"act": f"def act(self, obs):\n    return 1 if random.random() < {p} else 0\n"})
+
+
+STARTER = '''GAME = "freeway"
+import random
+import tracing as trace
+
+@trace.model
+class Policy(trace.Module):
+    def __call__(self, obs):
+        return self.act(obs)
+
+    @trace.bundle(trainable=True)
+    def act(self, obs):
+        return 1 if random.random() < 0.2 else 0
+'''
+LADDER = [_freeway(p) for p in ("0.4", "0.6", "0.8", "1.0")]
+NEVER = json_reply({"act": "def act(self, obs):\n    return 0\n"})
+USAGE = {"input": 3000, "output": 500}
+"""Every reply's usage: at gpt-4o's $2.5/$10 per M tokens, $0.0125 a call."""
+
+
+def _env():
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_API_KEY")}
+    env.update(CODEARCADE_LLM_BACKOFF_S="0.05", LITELLM_LOCAL_MODEL_COST_MAP="True", OMP_WAIT_POLICY="PASSIVE")
+    return env
+
+
+def _cli(*argv):
+    return subprocess.run([EXE, *argv], cwd=ROOT, capture_output=True, text=True, timeout=900, env=_env())
+
+
+def _models(scripted):
+    good = scripted([{"content": text, "usage": USAGE} for text in LADDER])
+    bad = scripted([{"content": NEVER, "usage": USAGE}])
+    # the bad model is listed first: a bandit's first call goes to it
+    return ["--model", f"{BAD},api_base={bad.api_base}", "--model", f"{GOOD},api_base={good.api_base}"]
+
+
+def _choices(store, run_id):
+    return [m for (m,) in store.query("SELECT request_model FROM llm_calls WHERE run_id = ? ORDER BY iteration, "
+                                      "candidate", [run_id])]
+
+
+def _run_ids(store):
+    return [r for (r,) in store.query("SELECT run_id FROM runs ORDER BY created_at")]
+
+
+# ------------------------------------------------------------------------------------------- the rule alone
+
+
+def test_entries_parse_and_say_what_to_fix():
+    assert parse_model_entry("openai/a,weight=2,api_base=http://h:1/v1") == {
+        "model": "openai/a", "weight": 2.0, "api_base": "http://h:1/v1"}
+    assert parse_model_entry({"model": "openai/a"}) == {"model": "openai/a", "weight": 1.0, "api_base": None}
+    for bad, said in [("openai/a,weight=0", "weight must be a number above 0"),
+                      ("openai/a,weight=x", "weight must be a number above 0"),
+                      ("openai/a,colour=red", "is not an option of a model"),
+                      (",weight=2", "give a litellm model string")]:
+        with pytest.raises(ValueError, match=said):
+            parse_model_entry(bad)
+    with pytest.raises(ValueError, match="given twice"):
+        model_entries(["openai/a", "openai/a,weight=2"])
+    # one plain --model is what it always was; several are an ensemble whose first model counts the prompts
+    assert split_model_flags({"model": ["openai/a"]}) == {"model": "openai/a"}
+    both = split_model_flags({"model": ["openai/a,weight=3", "openai/b"], "api_base": "http://x/v1"})
+    assert both["model"] == "openai/a" and both["api_base"] == "http://x/v1"
+    assert [(e["model"], e["weight"], e["api_base"]) for e in both["models"]] == [
+        ("openai/a", 3.0, "http://x/v1"), ("openai/b", 1.0, "http://x/v1")]
+
+
+def test_the_command_line_refuses_what_it_cannot_use(tmp_path):
+    store = str(tmp_path / "s.duckdb")
+    done = _cli("optimize", "--game", "pong", "--model", "openai/a,weight=-1", "--model", "openai/b",
+                "--store", store, "--dry-run")
+    assert done.returncode == 2 and "weight must be a number above 0" in done.stderr, done.stderr
+    done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model", "openai/b", "--model-choice", "ubc",
+                "--store", store, "--dry-run")
+    assert done.returncode == 2 and "did you mean ucb?" in done.stderr, done.stderr
+    done = _cli("optimize", "--game", "pong", "--model", "openai/a,weight=2", "--model", "openai/b",
+                "--model-choice", "thompson", "--store", store, "--dry-run")
+    assert done.returncode == 2 and "weights are the shares of --model-choice fixed" in done.stderr, done.stderr
+    done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model-choice", "ucb", "--store", store,
+                "--dry-run")
+    assert done.returncode == 2 and "give --model more than once" in done.stderr, done.stderr
+
+
+def test_fixed_weights_give_exact_shares_and_bandits_follow_the_rewards():
+    entries = [{"model": "a", "weight": 2.0}, {"model": "b", "weight": 1.0}]
+    picks = choose("fixed", entries, [], list(range(9)), "k", 1)
+    assert [entries[i]["model"] for i in picks].count("a") == 6, picks
+    history = [Pull("a", 0.0), Pull("b", 3.0), Pull("a", 0.0), Pull("b", 1.0), Pull("b", 2.0)]
+    assert choose("ucb", entries, history, [0], "k", 6) == [1]
+    draws = [choose("thompson", entries, history, [0], "k", it)[0] for it in range(6, 46)]
+    assert draws.count(1) >= 30, draws
+    assert draws == [choose("thompson", entries, history, [0], "k", it)[0] for it in range(6, 46)], "seeded"
+    # an untried model is tried first, and a batch spreads over the models
+    assert choose("ucb", entries, [Pull("a", 1.0)], [0, 1], "k", 2) == [1, 0]
+    # per dollar: a model 10 times dearer must bring 10 times more
+    costs = relative_costs([{"price": [1e-6, 1e-6]}, {"price": [1e-5, 1e-5]}], 1000, 1000)
+    assert costs == pytest.approx([1.0, 10.0])
+    even = [Pull("a", 1.0), Pull("b", 2.0)] * 20
+    assert choose("ucb", entries, even, [0], "k", 41, costs) == [0]
+    assert relative_costs([{"price": [1e-6, 1e-6]}, {"price": None}], 1000, 1000) == [1.0, 1.0], "per call"
+
+
+def test_improvements_are_counted_against_the_parent_by_the_score_rule():
+    rows = [dict(iteration=0, candidate=0, parent_iteration=None, parent_candidate=None, llm_call_id=None,
+                 update_status="initial", score=None),
+            dict(iteration=1, candidate=0, parent_iteration=0, parent_candidate=0, llm_call_id="c1",
+                 update_status="accepted", score=-5.0),  # the starter forfeited: the largest improvement
+            dict(iteration=2, candidate=0, parent_iteration=1, parent_candidate=0, llm_call_id="c2",
+                 update_status="accepted", score=-2.0),
+            dict(iteration=3, candidate=0, parent_iteration=2, parent_candidate=0, llm_call_id="c3",
+                 update_status="accepted", score=None),  # a forfeit: nothing
+            dict(iteration=4, candidate=0, parent_iteration=2, parent_candidate=0, llm_call_id="c4",
+                 update_status="rejected", score=-2.0)]
+    got = pulls(rows, {"c1": "a", "c2": "b", "c3": "a", "c4": "b"})
+    assert got == [Pull("a", math.inf), Pull("b", 3.0), Pull("a", 0.0), Pull("b", 0.0)]
+
+
+# ------------------------------------------------------------------------------------------- end to end
+
+
+def test_the_bandit_gives_the_improving_model_most_calls_and_replay_chooses_alike(store, scripted, write_policy):
+    policy = write_policy(STARTER)
+    done = _cli("optimize", str(policy), *_models(scripted), "--model-choice", "ucb", "--iterations", "8", *FAST,
+                "--store", str(store.path))
+    assert done.returncode == 0, done.stderr
+    assert "models " in done.stdout and "$0.0" in done.stdout, "the progress line shows each model's share and spend"
+    (run_id,) = _run_ids(store)
+    choices = _choices(store, run_id)
+    assert len(choices) == 8 and choices[:2] == [BAD, GOOD], "each model is tried once first, in order"
+    assert choices.count(GOOD) >= 5, choices
+    stats = {m: (calls, accepted, improvements) for m, calls, accepted, improvements in store.query(
+        "SELECT model, calls, accepted, improvements FROM model_stats WHERE run_id = ?", [run_id])}
+    assert stats[BAD][2] == 0 and stats[GOOD][2] == 4 and stats[GOOD][0] == choices.count(GOOD), stats
+    assert store.query("SELECT best_score FROM iterations WHERE run_id = ? ORDER BY iteration DESC LIMIT 1",
+                       [run_id])[0][0] == 7
+    recorded = json.loads(store.query("SELECT config FROM runs")[0][0])
+    assert [e["model"] for e in recorded["models"]] == [BAD, GOOD] and all(e["price"] for e in recorded["models"])
+    listed = json.loads(_cli("runs", "--json", "--store", str(store.path)).stdout)
+    assert {m["model"]: m["calls"] for m in listed[0]["models"]} == {BAD: choices.count(BAD), GOOD: choices.count(GOOD)}
+
+    again = _cli("replay", run_id, "--store", str(store.path))
+    assert again.returncode == 0, again.stderr + again.stdout
+    replayed = [r for r in _run_ids(store) if r != run_id]
+    assert _choices(store, replayed[0]) == choices, "the replay chose every model as the run did"
+
+
+def test_a_resumed_run_chooses_what_an_uninterrupted_one_does(store, scripted, write_policy):
+    policy = write_policy(STARTER)
+    args = ("--model-choice", "thompson", *FAST, "--store", str(store.path))
+    whole = _cli("optimize", str(policy), *_models(scripted), "--iterations", "5", *args)
+    assert whole.returncode == 0, whole.stderr
+    first = _cli("optimize", str(policy), *_models(scripted), "--iterations", "2", *args)
+    assert first.returncode == 0, first.stderr
+    whole_id, resumed_id = _run_ids(store)
+    more = _cli("optimize", "--resume", resumed_id, "--iterations", "5", "--store", str(store.path))
+    assert more.returncode == 0, more.stderr
+    assert len(_choices(store, resumed_id)) == 5 and set(_choices(store, whole_id)) == {BAD, GOOD}
+    assert _choices(store, resumed_id) == _choices(store, whole_id)
+
+
+def test_the_cost_cap_holds_across_both_models(store, scripted, write_policy):
+    # every call costs $0.0125 (3000 + 500 tokens at $2.5/$10 per M, both models); before a call its worst case
+    # (the prompt as counted plus a 1000-token reply) is at most $0.02. With $0.05: calls 1 (0 + 0.02), 2
+    # (0.0125 + 0.02) and 3 (0.025 + 0.02) fit, call 4 (0.0375 + > 0.0125) does not.
+    policy = write_policy(STARTER)
+    done = _cli("optimize", str(policy), *_models(scripted), "--model-choice", "ucb", "--iterations", "6", *FAST,
+                "--max-cost", "0.05", "--store", str(store.path))
+    assert done.returncode == 0, done.stderr
+    (run_id,) = _run_ids(store)
+    status, error = store.query("SELECT status, error FROM runs")[0]
+    assert status == "budget" and "--max-cost" in error, error
+    choices = _choices(store, run_id)
+    assert len(choices) == 3 and set(choices) == {BAD, GOOD}, choices
+    assert store.query("SELECT sum(cost_usd) FROM llm_calls")[0][0] <= 0.05
+
+
+def test_the_dry_run_prices_the_mix(tmp_path):
+    done = _cli("optimize", "--game", "pong", "--model", "openai/gpt-4o,weight=3", "--model", "openai/gpt-4o-mini",
+                "--iterations", "4", "--eval-max-steps", "100", "--rollout-steps", "40", "--dry-run", "--json",
+                "--store", str(tmp_path / "s.duckdb"))
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    shares = {m["model"]: m["share"] for m in report["models"]}
+    assert shares == {"openai/gpt-4o": 0.75, "openai/gpt-4o-mini": 0.25}
+    costs = {m["model"]: m["update_cost_usd"] for m in report["models"]}
+    blend = report["update_cost_usd"]["typical"]
+    assert blend == pytest.approx(0.75 * costs["openai/gpt-4o"] + 0.25 * costs["openai/gpt-4o-mini"])
+    assert report["update_cost_usd"]["at_most"] > blend
+
+
+def test_a_batch_entry_lists_its_models(tmp_path):
+    from pipeline.jobs.batch import ExperimentError, load_experiments
+
+    path = tmp_path / "ens.toml"
+    path.write_text('[defaults]\ngame = "pong"\niterations = 2\n'
+                    'models = ["openai/gpt-4o,weight=2", {model = "ollama_chat/qwen2.5-coder", '
+                    'api_base = "http://gpu:11434"}]\n[matrix]\nseed = [0, 1]\n')
+    batch = load_experiments(path)
+    assert len(batch.runs) == 2
+    config = batch.runs[0].config
+    assert config.model == "openai/gpt-4o" and config.model_choice == "fixed"
+    assert [(e["model"], e["weight"], e["api_base"]) for e in config.models] == [
+        ("openai/gpt-4o", 2.0, None), ("ollama_chat/qwen2.5-coder", 1.0, "http://gpu:11434")]
+    path.write_text('[defaults]\ngame = "pong"\nmodels = ["openai/gpt-4o", "openai/gpt-4o"]\n[matrix]\nseed = [0]\n')
+    with pytest.raises(ExperimentError, match="given twice"):
+        load_experiments(path)
