@@ -1006,6 +1006,9 @@ MIGRATIONS.append(
         LEFT JOIN audit ON audit.run_id = r.run_id;
         COMMENT ON VIEW learning_curve IS 'one row per iteration: score (NULL: forfeited) with its interval, best so far, LLM calls (repairs among them), updates saved by a repair, tokens, times';
         COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: label, settings, status, best score, forfeits, audit, episodes, tokens, repairs';
+        """,
+    )
+)
 
 # Model ensembles (issue 32): one row per (run, model) with what its calls brought. A candidate counts for the
 # model of its llm_calls row; it improved when it was accepted and scored above its parent (or its parent forfeited):
