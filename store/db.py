@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import random
 import re
+import threading
 import time
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -102,6 +103,19 @@ def store_damage(con: duckdb.DuckDBPyConnection, path: str | os.PathLike, versio
             if size < needed:
                 problems.append(f"the file is truncated ({size:,} bytes, its used blocks need at least {needed:,})")
     return problems
+
+
+_USE_LOCKS: dict[str, threading.RLock] = {}
+_USE_LOCKS_GUARD = threading.Lock()
+
+
+def _one_use_at_a_time(path: Path) -> threading.RLock:
+    """The lock that makes a process's threads use a store file one at a time (a read and a write of two threads
+    at once would ask the hub to attach the file read-only and read-write together: ``store/hub.py``). Reentrant: a
+    read inside a write of the same thread shares the write's attachment."""
+    key = os.path.abspath(path)
+    with _USE_LOCKS_GUARD:
+        return _USE_LOCKS.setdefault(key, threading.RLock())
 
 
 class Store:
@@ -241,6 +255,10 @@ class Store:
             raise StoreError(f"directory {parent} for the store does not exist; create it or choose another --store")
         if not os.access(parent, os.W_OK) and not self.path.exists():
             raise StoreError(f"cannot create {self.path}: directory {parent} is not writable; choose another --store")
+        with _one_use_at_a_time(self.path):
+            yield from self._write()
+
+    def _write(self) -> Iterator[duckdb.DuckDBPyConnection]:
         con = self._open(read_only=False)
         try:
             if not self._migrated:
@@ -275,6 +293,10 @@ class Store:
                      f"{self.path}" if self.location.rule == "user" else f"no store at {self.path}")
             raise StoreError(f"{where}; run `codearcade eval` or `codearcade optimize` first, "
                              "or point --store / CODEARCADE_STORE at an existing one")
+        with _one_use_at_a_time(self.path):
+            yield from self._read(check)
+
+    def _read(self, check: bool) -> Iterator[duckdb.DuckDBPyConnection]:
         if self._held:  # attached by this process's hold, checked and migrated: nothing to look at again
             con = self._open(read_only=True)
             try:

@@ -1054,4 +1054,19 @@ MIGRATIONS.append(
     )
 )
 
+# The asynchronous proposal pool (issue 32, item 3; `pool`): a call of iteration i may start before iteration i - 1
+# is committed, its prompt built from the iterations committed then. `history_iterations` records how many that was
+# (its prompt saw iterations 0 .. n-1), so that --resume and `codearcade replay` build the same prompt again. Runs
+# without the pool build every prompt of iteration i from iterations 0 .. i-1: the column says so for them too.
+MIGRATIONS.append(
+    (
+        16,
+        "llm_calls: history_iterations (the iterations its prompt was built from: the proposal pool)",
+        r"""
+        ALTER TABLE llm_calls ADD COLUMN history_iterations INTEGER;  -- its prompt saw iterations 0 .. n-1
+        UPDATE llm_calls SET history_iterations = iteration;
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

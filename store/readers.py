@@ -153,6 +153,29 @@ def stored_replies(con: duckdb.DuckDBPyConnection, run_id: str,
     return replies
 
 
+def replay_replies(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[int, str, int], str]:
+    """The reply of the first successful call for each (iteration, prompt hash, candidate) of a run: what
+    ``codearcade replay`` answers with (the proposal pool may send one prompt in two iterations, each with its own
+    reply)."""
+    rows = con.execute(
+        "SELECT c.iteration, c.prompt_hash, coalesce(c.candidate, 0), b.text FROM llm_calls c "
+        "JOIN blobs b ON b.hash = c.reply_hash WHERE c.run_id = ? AND c.error_type IS NULL ORDER BY c.created_at",
+        [run_id]).fetchall()
+    replies: dict[tuple[int, str, int], str] = {}
+    for iteration, digest, candidate, text in rows:
+        replies.setdefault((iteration, digest, candidate), text)
+    return replies
+
+
+def pool_bases(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[int, int], int]:
+    """(iteration, candidate) -> how many iterations the prompt of its first call was built from
+    (``llm_calls.history_iterations``): what a proposal pool's resume and replay build each prompt from again."""
+    rows = con.execute(
+        "SELECT iteration, coalesce(candidate, 0), min(history_iterations) FROM llm_calls WHERE run_id = ? "
+        "AND coalesce(repair_turn, 0) = 0 AND history_iterations IS NOT NULL GROUP BY ALL", [run_id]).fetchall()
+    return {(iteration, candidate): basis for iteration, candidate, basis in rows}
+
+
 def starter_version_id(con: duckdb.DuckDBPyConnection, run_id: str) -> str:
     return con.execute("SELECT starter_version_id FROM runs WHERE run_id = ?", [run_id]).fetchone()[0]
 

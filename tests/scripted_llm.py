@@ -26,7 +26,9 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
 - ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
-  candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call).
+  candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call);
+- ``"latency": [median_s, sigma, seed]`` beside any entry: reply after a seeded log-normal time (by request
+  number): a provider's typical latency with a long tail.
 A request with ``"stream": true`` gets the reply as server-sent events (OpenAI chat chunks, with a usage chunk
 when ``stream_options.include_usage`` asks for it; Anthropic's message events, a tool call's input as
 ``input_json_delta`` pieces). Every request is appended to a JSONL log (protocol, path, the auth headers, the
@@ -326,6 +328,9 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
                 entry = {**entry, "content": random.Random(entry.get("seed", 0) * 100_003 + count).choice(entry["pool"])}
             if "sleep" in entry:
                 time.sleep(entry["sleep"])
+            if "latency" in entry:
+                median, sigma, seed = entry["latency"]
+                time.sleep(median * random.Random(seed * 7_919 + count).lognormvariate(0.0, sigma))
             if "status" in entry:
                 error = _error_body(protocol, entry["status"], entry.get("message"))
                 self._send(entry["status"], json.dumps(error).encode())

@@ -34,7 +34,7 @@ POOL = [COMPETENT_REPLY, ALWAYS_UP, RAISES, HALF, "no code today"]
 def history_is_what_the_store_reads_back(monkeypatch):
     """The loop keeps its history in memory (``RunState.history``), extended by each commit with the rows it
     wrote: after every commit of every run here, it must equal what the store reads back."""
-    from pipeline.optimizer import loop
+    from pipeline.optimizer import conclude as loop  # where the commit is
     from pipeline.optimizer.strategies import History
     from store.readers import candidates, iterations
 

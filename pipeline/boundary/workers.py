@@ -356,7 +356,17 @@ def run_tasks(
         for i, item in enumerate(items):
             yield i, task.local(item, (lambda n, i=i: progress(i, n)) if progress is not None else (lambda n: None))
         return
+    with _ZYGOTE_USE:  # the zygotes serve one caller at a time (the proposal pool's threads share them)
+        yield from _run_tasks(task, items, workers, failed, time_limit_s, progress, started, prepare)
 
+
+_ZYGOTE_USE = threading.RLock()
+"""Held by the thread whose tasks the zygotes are running: their requests and answers share one socket each."""
+
+
+def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, progress, started,
+               prepare) -> Iterator[tuple[int, Any]]:
+    """:func:`run_tasks` with worker processes (under :data:`_ZYGOTE_USE`)."""
     zyg = zygote("game" if task.paired else "policy")
     policies = zygote("policy") if task.paired else None
     if prepare is not None:

@@ -47,6 +47,8 @@ def _print_iteration(item) -> None:
     # the detail quotes a rejected candidate's exception: its escape sequences go before it is cut to fit
     note = f"  ({terminal_text(item.detail)})" if item.detail and item.update_status != "accepted" else ""
     back = "  rolled back" if item.rolled_back else ""
+    if item.pool:
+        back += f"  [{item.pool}]"
     if item.repairs:  # the update as the model finally made it: say how many repair turns it took
         back += f"  after {item.repairs} repair{'s' if item.repairs > 1 else ''}"
     if item.candidates > 1:

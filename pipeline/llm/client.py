@@ -97,9 +97,10 @@ class LLMClient(Protocol):
     def request_params(self) -> dict[str, Any]: ...
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0) -> LLMReply:
-        """The reply to ``messages``; ``on_text`` gets streamed text; ``candidate``: which of an iteration's
-        proposals this is (a replay answers with that candidate's stored reply)."""
+                 candidate: int = 0, iteration: int | None = None) -> LLMReply:
+        """The reply to ``messages``; ``on_text`` gets streamed text; ``candidate`` and ``iteration``: which
+        proposal this is (a replay answers with that proposal's stored reply: the proposal pool may ask the same
+        prompt in two iterations)."""
 
 
 def _error_name(exc: BaseException) -> str:
@@ -222,7 +223,7 @@ class LiteLLMClient:
                 **self._params["response_format"]["json_schema"], "schema": reply_schema(self.reply_limits, methods)}}
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0) -> LLMReply:
+                 candidate: int = 0, iteration: int | None = None) -> LLMReply:
         """One reply, retried as the class docstring says; with streaming on, ``on_text`` gets each piece of
         text as it arrives (a retry starts the text again)."""
         params = self.request_params()
@@ -301,12 +302,12 @@ class LiteLLMClient:
 
 
 class ReplayClient:
-    """Answers with replies stored for a run, by (prompt hash, candidate); a prompt never seen raises a fatal
-    LLMError."""
+    """Answers with replies stored for a run, by (iteration, prompt hash, candidate); a prompt never seen raises a
+    fatal LLMError."""
 
     provider = "replay"
 
-    def __init__(self, replies: dict[tuple[str, int], str], model: str):
+    def __init__(self, replies: dict[tuple[int, str, int], str], model: str):
         self.replies = replies
         self.model = model
         self.label = model
@@ -315,11 +316,11 @@ class ReplayClient:
         return {"model": self.model, "replay": True}
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0) -> LLMReply:
-        key = (prompt_hash(messages), candidate)
+                 candidate: int = 0, iteration: int | None = None) -> LLMReply:
+        key = (iteration, prompt_hash(messages), candidate)
         if key not in self.replies:
-            raise LLMError("ReplayMiss", f"no stored reply for prompt {key[0][:12]} (candidate {candidate})", 1,
-                           fatal=True)
+            raise LLMError("ReplayMiss", f"no stored reply for prompt {key[1][:12]} (iteration {iteration}, "
+                           f"candidate {candidate})", 1, fatal=True)
         return LLMReply(text=self.replies[key], response_model=self.model, replayed=True, latency_s=0.0)
 
 
@@ -343,8 +344,8 @@ class EnsembleClient:
         return next(iter(self.members.values())).request_params()
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0) -> LLMReply:
-        return next(iter(self.members.values())).complete(messages, on_text, candidate)
+                 candidate: int = 0, iteration: int | None = None) -> LLMReply:
+        return next(iter(self.members.values())).complete(messages, on_text, candidate, iteration)
 
 
 OFFLINE_MODEL_LABEL = "offline:smollm2-135m-instruct"

@@ -216,6 +216,13 @@ class OptimizeConfig:
         run_key="never")
     """The held-out audit (``pipeline/optimizer/audit.py``): games per version and protocol on the audit seeds
     (``games.base.AUDIT_SEED_BASE``), played when the run finishes; it never changes what the loop chose."""
+    pool: bool = setting(
+        False, "the asynchronous proposal pool (best-of-n, beam, map-elites): keep --max-concurrent-calls calls in "
+        "flight across iterations, play each candidate as soon as its reply is in, and start the next call from the "
+        "iterations committed by then; no iteration waits for its slowest call (default: off)", group="search")
+    """The proposal pool (``pipeline/optimizer/pool.py``): candidates start as call slots free, each from the
+    iterations committed when it starts (recorded: ``llm_calls.history_iterations``), are played as soon as they are
+    ready, and iterations commit in order. Greedy keeps its strict order and refuses it."""
     repairs: int = setting(
         1, "when a reply is rejected before it is played (it does not parse, has the wrong methods or signatures, or "
         "raises or returns an invalid action on the recorded observations), send the model the exact error in the "
@@ -259,6 +266,9 @@ def validate_config(config: OptimizeConfig) -> None:
         raise ValueError(f"--seed must be from 0 to {AUDIT_SEED_BASE - tuning_seeds}: the tuning "
                          f"seeds (--seed and the seeds after it) stay below the held-out audit seeds, which start at "
                          f"{AUDIT_SEED_BASE:,}")
+    if config.pool and config.strategy == "greedy":
+        raise ValueError("--pool is for best-of-n, beam and map-elites: greedy's next prompt needs the outcome of "
+                         "the update before it (give --strategy best-of-n, beam or map-elites)")
     if config.optimize_protocol == "standard" and config.robust_episodes < 1:
         raise ValueError("--optimize-for standard needs --robust-episodes N (N >= 1): the episodes its score is "
                          "the mean of")

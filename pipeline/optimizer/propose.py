@@ -109,6 +109,9 @@ class _Pending:
     """0: the first call for the request; n: its nth repair turn."""
     repair_of: str | None = None
     """The call whose rejected reply this one repairs."""
+    basis: int = 0
+    """How many iterations its prompt was built from (0 .. basis-1; the proposal pool may start a call before the
+    iteration before it is committed: ``pipeline/optimizer/pool.py``)."""
     client: LLMClient | None = None
     """The model that answers it, when the run has several (``pipeline/optimizer/ensemble.py``); else the run's."""
 
@@ -145,7 +148,7 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
                     raise ValueError(str(exc)) from None
             ctx, prompt = built[key]
             item = _Pending(request, prompt, ctx.info.version_id, [(r["step"], r["obs"]) for r in ctx.train_steps],
-                            ctx.info)
+                            ctx.info, basis=len(history.iterations))
             if (prompt.hash, request.candidate) in stored:
                 item.call_id, item.text = stored[prompt.hash, request.candidate]
                 item.parse()
@@ -155,14 +158,20 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     if reused:
         log(f"iteration {iteration}: reusing {_replies(len(reused))} stored for {'this prompt' if len(pending) == 1 else 'these prompts'}")
     to_call = [p for p in pending if p.text is None]
+    reservation = None
     if to_call:
-        check_budgets(store, state, client, [p.prompt for p in to_call], [p.client or client for p in to_call])
+        reservation = check_budgets(store, state, client, [p.prompt for p in to_call],
+                                    [p.client or client for p in to_call])
         name_methods = getattr(client, "hold_reply_to_methods", None)  # the offline model's grammar
         if name_methods is not None:
             name_methods([method.name for method in to_call[0].info.trainable])
         # other processes may read the store while the model thinks: let go of it (checkpointing what this
         # process wrote) once the requests are on their way
-        _complete_all(state, iteration, client, to_call, meanwhile=hold.release if hold is not None else None)
+        try:
+            _complete_all(state, iteration, client, to_call, meanwhile=hold.release if hold is not None else None)
+        except BaseException:
+            release_budget(state, reservation)
+            raise
     if hold is not None:
         hold.take()
     if to_call:
@@ -170,7 +179,10 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
             if item.reply is not None:
                 item.text = item.reply.text
                 item.parse()
-        record_calls(store, state.run_id, iteration, client, to_call)
+        try:
+            record_calls(store, state.run_id, iteration, client, to_call)
+        finally:
+            release_budget(state, reservation)
         failed = [p for p in to_call if p.error is not None]
         fatal = next((p.error for p in failed if p.error.fatal), None)
         if len(failed) == len(pending):
@@ -218,7 +230,7 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
         prompt = Prompt(messages, counter.messages(messages), item.prompt.budget, item.prompt.steps_shown,
                         item.prompt.memory_shown, item.prompt.token_method)
         repair = _Pending(item.request, prompt, item.context_version, item.observations, item.info, turn=turn,
-                          repair_of=item.call_id, client=item.client)  # the model that wrote the reply fixes it
+                          repair_of=item.call_id, client=item.client, basis=item.basis)  # the same model fixes it
         if (prompt.hash, item.request.candidate) in stored:  # a resumed iteration: this repair was made before
             repair.call_id, repair.text = stored[prompt.hash, item.request.candidate]
             repair.parse()
@@ -226,21 +238,25 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
     to_call = [r for r in repairs.values() if r.text is None]
     if to_call:
         try:
-            check_budgets(store, state, client, [r.prompt for r in to_call], [r.client or client for r in to_call])
+            reservation = check_budgets(store, state, client, [r.prompt for r in to_call],
+                                        [r.client or client for r in to_call])
         except BudgetExhausted as exc:
             log(f"iteration {iteration}: no repair turn ({exc})")
             return proposals
         who = ", ".join(str(r.request.candidate) for r in to_call)
         log(f"iteration {iteration}: repair turn {turn} of {state.config.repairs} for the rejected "
             f"{'reply' if len(to_call) == 1 else 'replies'} of candidate{'' if len(to_call) == 1 else 's'} {who}")
-        _complete_all(state, iteration, client, to_call, meanwhile=hold.release if hold is not None else None)
-        if hold is not None:
-            hold.take()
-        for item in to_call:
-            if item.reply is not None:
-                item.text = item.reply.text
-                item.parse()
-        record_calls(store, state.run_id, iteration, client, to_call)
+        try:
+            _complete_all(state, iteration, client, to_call, meanwhile=hold.release if hold is not None else None)
+            if hold is not None:
+                hold.take()
+            for item in to_call:
+                if item.reply is not None:
+                    item.text = item.reply.text
+                    item.parse()
+            record_calls(store, state.run_id, iteration, client, to_call)
+        finally:
+            release_budget(state, reservation)
     made = {i: r for i, r in repairs.items() if r.error is None}  # a failed repair leaves the rejection standing
     for i, r in repairs.items():
         if r.error is not None:
@@ -268,7 +284,7 @@ def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: l
     def complete(item: _Pending, on_text) -> None:
         try:
             item.reply = (item.client or client).complete(item.prompt.messages, on_text=on_text,
-                                                          candidate=item.request.candidate)
+                                                          candidate=item.request.candidate, iteration=iteration)
         except LLMError as exc:
             item.error = exc
 
@@ -367,7 +383,8 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
         row = {
             "call_id": item.call_id, "run_id": run_id, "iteration": iteration,
             "candidate": item.request.candidate, "purpose": "repair" if item.turn else "update",
-            "repair_of": item.repair_of, "repair_turn": item.turn, "operation_name": "chat",
+            "repair_of": item.repair_of, "repair_turn": item.turn, "history_iterations": item.basis,
+            "operation_name": "chat",
             "provider_name": model.provider, "request_model": model.model,
             "request_temperature": params.get("temperature"),
             "request_max_tokens": params.get("max_tokens", params.get("max_completion_tokens")),
@@ -395,36 +412,51 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
 
 
 def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: list[Prompt],
-                  models: list[LLMClient] | None = None) -> None:
+                  models: list[LLMClient] | None = None) -> tuple[int, int, float] | None:
     """Raise :class:`BudgetExhausted` if the calls about to be made could take the run past a budget: their
     number, and each counted at its prompt plus a reply of the longest length asked for, priced at litellm's
     rates for the model that makes it (``models``, one per prompt; default: ``client`` for all). The run's
-    spending so far is every call's, whichever model made it."""
+    spending so far is every call's, whichever model made it, and the worst case of the calls other threads have
+    in flight (the proposal pool); these calls' worst case is reserved until :func:`release_budget` (after their
+    rows are recorded): the reservation, or None without budgets."""
     c = state.config
     if c.max_cost_usd is None and c.max_total_tokens is None and c.max_llm_calls is None:
-        return
-    with store.read() as con:
-        spent = run_spending(con, state.run_id)
-    if c.max_llm_calls is not None and spent["calls"] + len(prompts) > c.max_llm_calls:
-        raise BudgetExhausted(f"call budget: {spent['calls']} LLM calls made, the next iteration makes "
-                              f"{len(prompts)}, over --max-llm-calls {c.max_llm_calls}")
+        return None
     prompt_tokens = sum(p.tokens for p in prompts)
     worst_tokens = prompt_tokens + c.max_tokens * len(prompts)
-    calls = "the next call" if len(prompts) == 1 else f"the next {len(prompts)} calls"
-    if c.max_total_tokens is not None and spent["tokens"] + worst_tokens > c.max_total_tokens:
-        raise BudgetExhausted(
-            f"token budget: {spent['tokens']:,} tokens used, {calls} may use up to {worst_tokens:,} "
-            f"(prompt {prompt_tokens:,} + reply up to {c.max_tokens * len(prompts):,}), over --max-total-tokens "
-            f"{c.max_total_tokens:,}")
+    worst = 0.0
     if c.max_cost_usd is not None:
-        worst = 0.0
         for p, model in zip(prompts, models or [client] * len(prompts)):
             rates = price(model.model)
             if rates is None:
                 raise BudgetExhausted(f"--max-cost needs a price for {model.label}, and litellm has none: use "
                                       "--max-total-tokens instead")
             worst += rates.cost(p.tokens, c.max_tokens)
-        if spent["cost_usd"] + worst > c.max_cost_usd:
+    calls = "the next call" if len(prompts) == 1 else f"the next {len(prompts)} calls"
+    with state.budget_lock:
+        with store.read() as con:
+            spent = run_spending(con, state.run_id)
+        flying_calls, flying_tokens, flying_cost = state.in_flight
+        flying = f" ({flying_calls} more in flight)" if flying_calls else ""
+        if c.max_llm_calls is not None and spent["calls"] + flying_calls + len(prompts) > c.max_llm_calls:
+            raise BudgetExhausted(f"call budget: {spent['calls']} LLM calls made{flying}, {calls} would go over "
+                                  f"--max-llm-calls {c.max_llm_calls}")
+        if c.max_total_tokens is not None and spent["tokens"] + flying_tokens + worst_tokens > c.max_total_tokens:
             raise BudgetExhausted(
-                f"cost budget: ${spent['cost_usd']:.4f} spent, {calls} may cost up to ${worst:.4f}, over "
+                f"token budget: {spent['tokens']:,} tokens used{flying}, {calls} may use up to {worst_tokens:,} "
+                f"(prompt {prompt_tokens:,} + reply up to {c.max_tokens * len(prompts):,}), over "
+                f"--max-total-tokens {c.max_total_tokens:,}")
+        if c.max_cost_usd is not None and spent["cost_usd"] + flying_cost + worst > c.max_cost_usd:
+            raise BudgetExhausted(
+                f"cost budget: ${spent['cost_usd']:.4f} spent{flying}, {calls} may cost up to ${worst:.4f}, over "
                 f"--max-cost ${c.max_cost_usd:g}")
+        reservation = (len(prompts), worst_tokens, worst)
+        state.in_flight = [a + b for a, b in zip(state.in_flight, reservation)]
+        return reservation
+
+
+def release_budget(state: "RunState", reservation: tuple[int, int, float] | None) -> None:
+    """Give back what :func:`check_budgets` reserved (the calls are recorded, or were never made)."""
+    if reservation is not None:
+        with state.budget_lock:
+            state.in_flight = [a - b for a, b in zip(state.in_flight, reservation)]

@@ -16,7 +16,7 @@ from pipeline.llm.client import EnsembleClient, ReplayClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import load_state, run_loop, start_run
 from store import Store
-from store.readers import blob_text, get_run, iteration_prompts, stored_replies
+from store.readers import blob_text, get_run, iteration_prompts, pool_bases, replay_replies
 from store.writer import finish_run
 from tracing.policy_file import inspect_policy
 
@@ -60,7 +60,8 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
         if run["kind"] not in ("optimize", "replay"):
             raise ValueError(f"run {run_id} is an {run['kind']} run; only optimize runs can be replayed")
         starter = inspect_policy(blob_text(con, run["starter_policy_hash"]), "policy.py")
-        replies = {key: text for key, (_, text) in stored_replies(con, run_id).items()}
+        replies = replay_replies(con, run_id)
+        bases = pool_bases(con, run_id)
     recorded = json.loads(run["config"])
     config = OptimizeConfig.from_record(recorded)
     client = ReplayClient(replies, model=run["model"] or "replay")
@@ -69,6 +70,7 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
         client.label = run["model"]  # its first model counts the prompts' tokens, as in the original
     new_run = start_run(config, store, client.label, kind="replay", extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
     state = load_state(store, new_run)
+    state.pool_bases = bases  # the proposal pool starts each candidate from the iterations its original saw
     state.config.audit_episodes = 0  # a replay checks that the loop reproduces; its audit is `codearcade audit`
     result = run_loop(store, state, client, log)
 

@@ -3,8 +3,9 @@ itself, so that *propose* and *assess* can read it without importing the loop th
 
 from __future__ import annotations
 
+import threading
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, ContextManager
 
 from pipeline.optimizer.config import OptimizeConfig
@@ -29,11 +30,19 @@ class RunState:
     history: History | None = None
     """The run's completed iterations as stored: read from the store once, then extended by each commit with
     the rows it wrote (``test_strategies.py`` checks it against the store)."""
+    pool_bases: dict[tuple[int, int], int] | None = None
+    """The proposal pool's recorded bases to start candidates from (``store.readers.pool_bases``): a replay's are
+    its original run's; None: the run's own (``--resume``)."""
     rerun: str | None = None
     """Live Rerun recordings of this invocation's episodes (``EpisodeSpec.rerun``); an output option, not recorded."""
     waiting: Callable[[int, str], ContextManager[Callable[[str], None] | None]] = lambda it, model: nullcontext()
     """Wrapped around each iteration's LLM calls (iteration, model label); what it yields gets the streamed text,
     if any. The CLI shows how long it has been waiting and how much text has arrived."""
+
+    budget_lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+    in_flight: list[float] = field(default_factory=lambda: [0, 0, 0.0], repr=False, compare=False)
+    """The worst case of the calls checked against the budgets and not yet recorded: calls, tokens, USD (the
+    proposal pool's threads check theirs while others are in flight: ``propose.check_budgets``)."""
 
     @property
     def strategy(self) -> Strategy:

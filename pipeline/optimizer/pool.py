@@ -1,0 +1,213 @@
+"""*pool*: the asynchronous proposal pool of the population strategies (``--pool``; best-of-n, beam, map-elites).
+
+The barrier loop (``loop.py``) asks for all of an iteration's proposals, waits for the slowest reply, plays them
+all, then commits: the cores idle while the model thinks, and every call waits for the slowest one. The pool keeps
+``max_concurrent_calls`` calls in flight instead:
+
+- **Start.** Candidates start in order (iteration i's candidates 0 .. N-1, N the strategy's ``max_proposals``, then
+  iteration i+1's), each as soon as a call slot frees, at most :data:`LOOKAHEAD` iterations past the last one
+  committed. A candidate's request is the strategy's plan for its iteration made from the iterations committed
+  when it starts, its *basis* (recorded as ``llm_calls.history_iterations``); candidate c takes the plan's
+  request c (modulo the plan's length: a beam narrower than its width plans fewer).
+- **Propose.** In its slot's thread the prompt is built from the basis, the model asked, the reply read and
+  validated, with repair turns (``propose.py``), exactly as in the barrier loop.
+- **Play.** One player thread plays whatever candidates are ready, together (cascade screens first), while the
+  calls go on; each candidate is played as soon as the player is free after its reply is in.
+- **Commit.** Iterations are committed in order, each once all its candidates are assessed: the strategy decides
+  on them against the iterations before (``conclude.py``), exactly as in the barrier loop.
+
+Reproducible: a candidate's prompt depends only on its basis, and the basis is recorded with its first call, so
+``--resume`` and ``codearcade replay`` start every recorded candidate from the same basis (waiting until the basis
+is committed) and build the same prompt, which the stored reply answers; a candidate that had no call recorded when
+a run was killed starts afresh. Budgets are checked before each call; once one is reached no candidate starts, the
+calls in flight finish, the iterations they complete are committed, and the run stops (status ``budget``) — an
+iteration left incomplete is not committed, and a resume with a larger budget completes it from its stored calls.
+
+Greedy keeps its strict order (each prompt needs the outcome of the update before it): it never uses the pool.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections import defaultdict
+from contextlib import nullcontext
+from dataclasses import dataclass, field, replace
+from datetime import datetime
+from typing import Callable
+
+from pipeline.llm.client import LLMClient
+from pipeline.llm.tokens import TokenCounter
+from pipeline.optimizer.assess import Assessment, Screen, assess, screen
+from pipeline.optimizer.conclude import IterationResult, conclude, screen_out
+from pipeline.optimizer.propose import BudgetExhausted, Proposal, propose
+from pipeline.optimizer.state import RunState
+from pipeline.optimizer.strategies import History
+from store import Store
+from store.db import utcnow
+from store.readers import candidates, iterations, pool_bases, run_spending
+
+LOOKAHEAD = 2
+"""How many iterations past the last committed one may have candidates in flight: enough to keep the slots busy
+while an iteration's last candidates play, little enough that prompts are built from recent iterations."""
+
+
+@dataclass
+class _Candidate:
+    iteration: int
+    candidate: int
+    basis: int
+    """Its prompt is built from iterations 0 .. basis-1."""
+    started_at: datetime = field(default_factory=utcnow)
+    started: float = field(default_factory=time.monotonic)
+    llm_s: float = 0.0
+    proposal: Proposal | None = None
+    assessment: Assessment | None = None
+    screen: Screen | None = None
+    train_s: float = 0.0
+    eval_s: float = 0.0
+
+
+@dataclass
+class PoolProgress:
+    """What the pool is doing, for the running line: calls in flight, candidates playing and waiting to play."""
+
+    calls: int = 0
+    playing: int = 0
+    episodes: int = 0
+    waiting: int = 0
+
+    def line(self) -> str:
+        return (f"pool: {self.calls} call{'s' * (self.calls != 1)} in flight, {self.playing} candidate"
+                f"{'s' * (self.playing != 1)} playing ({self.episodes} episodes), {self.waiting} waiting to play")
+
+
+def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCounter | None,
+             log: Callable[[str], None], on_iteration: Callable[[IterationResult], None] | None = None,
+             progress: Callable[[int, int], None] | None = None) -> None:
+    """Iterations ``state.next_iteration .. config.iterations`` through the pool (module docstring), each given to
+    ``on_iteration`` once committed; iteration 0 must be committed. Raises what stopped it (:class:`BudgetExhausted`, an ``LLMError``, ...) once the calls and
+    games in flight are done and the iterations they completed are committed."""
+    c = state.config
+    per_iteration = state.strategy.max_proposals
+    episodes_each = 1 + c.eval_episodes + c.robust_episodes  # a training rollout and the evaluation games
+    with store.read() as con:
+        recorded = state.pool_bases if state.pool_bases is not None else pool_bases(con, state.run_id)
+        if state.history is None or len(state.history.iterations) != state.next_iteration:
+            state.history = History(iterations(con, state.run_id, state.next_iteration),
+                                    candidates(con, state.run_id, state.next_iteration))
+    events: queue.Queue = queue.Queue()
+    order = iter([(i, j) for i in range(state.next_iteration, c.iterations + 1) for j in range(per_iteration)])
+    next_up = next(order, None)
+    calling: dict[tuple[int, int], _Candidate] = {}
+    ready: list[_Candidate] = []
+    playing: list[_Candidate] = []
+    assessed: dict[int, dict[int, _Candidate]] = defaultdict(dict)
+    stop: BaseException | None = None
+    last_commit = time.monotonic()
+    shown = PoolProgress()
+    waiting, state.waiting = state.waiting, lambda iteration, model: nullcontext()  # no line per call
+
+    def propose_one(item: _Candidate) -> None:
+        try:
+            with store.read() as con:
+                history = History(iterations(con, state.run_id, item.basis), candidates(con, state.run_id, item.basis))
+            plan = state.strategy.plan(history, item.iteration)
+            request = replace(plan[item.candidate % len(plan)], candidate=item.candidate)
+            (item.proposal,) = propose(store, state, history, item.iteration, [request], client, counter, log)
+            item.llm_s = time.monotonic() - item.started
+            events.put(("proposed", item, None))
+        except BaseException as exc:  # noqa: BLE001 - raised by the coordinator, after the work in flight
+            events.put(("proposed", item, exc))
+
+    def play(batch: list[_Candidate]) -> None:
+        try:
+            by_iteration: dict[int, list[_Candidate]] = defaultdict(list)
+            for item in batch:
+                by_iteration[item.iteration].append(item)
+            for iteration, items in sorted(by_iteration.items()):
+                proposals = [item.proposal for item in items]
+                screens = {}
+                if c.screen_steps:
+                    screens = screen(store, state, iteration, state.history,
+                                     [p for p in proposals if p.status == "accepted"], progress)
+                    screen_out(proposals, screens)
+                found, times = assess(store, state, iteration, {p.candidate: p.version_id for p in proposals},
+                                      progress, texts={p.version_id: p.text for p in proposals if p.text is not None})
+                for item in items:
+                    item.assessment, item.screen = found[item.candidate], screens.get(item.candidate)
+                    item.train_s, item.eval_s = times.train_s, times.eval_s
+            events.put(("played", batch, None))
+        except BaseException as exc:  # noqa: BLE001
+            events.put(("played", batch, exc))
+
+    def start_what_can_start() -> None:
+        nonlocal next_up, stop
+        while stop is None and next_up is not None and len(calling) < c.max_concurrent_calls:
+            iteration, candidate = next_up
+            committed = state.next_iteration
+            basis = recorded.get((iteration, candidate), committed)
+            if iteration >= committed + LOOKAHEAD or basis > committed:
+                return  # it waits for the iterations before it (a recorded candidate: for those it saw)
+            if c.max_wall_minutes is not None:
+                with store.read() as con:
+                    spent = run_spending(con, state.run_id)["wall_s"]
+                if spent > c.max_wall_minutes * 60:
+                    stop = BudgetExhausted(f"time budget: the run has taken {spent / 60:.1f} min, over --max-wall "
+                                           f"{c.max_wall_minutes:g} min")
+                    return
+            item = _Candidate(iteration, candidate, basis)
+            calling[iteration, candidate] = item
+            threading.Thread(target=propose_one, args=(item,), name=f"propose-{iteration}.{candidate}",
+                             daemon=True).start()
+            next_up = next(order, None)
+
+    def commit_what_is_complete() -> None:
+        nonlocal last_commit
+        while len(assessed.get(state.next_iteration, {})) == per_iteration:
+            iteration = state.next_iteration
+            done = assessed.pop(iteration)
+            items = [done[j] for j in range(per_iteration)]
+            timing = dict(started_at=min(item.started_at for item in items),
+                          llm_s=max(item.llm_s for item in items), train_s=max(item.train_s for item in items),
+                          eval_s=max(item.eval_s for item in items), t0=last_commit)
+            result = conclude(store, state, iteration, state.history, [item.proposal for item in items],
+                              {item.candidate: item.assessment for item in items},
+                              {item.candidate: item.screen for item in items if item.screen is not None}, timing)
+            last_commit = time.monotonic()
+            result.pool = shown.line()  # what was in flight when it was committed
+            if on_iteration is not None:
+                on_iteration(result)
+
+    try:
+        while True:
+            start_what_can_start()
+            if ready and not playing:
+                playing[:], ready[:] = ready, []
+                threading.Thread(target=play, args=(list(playing),), name="play", daemon=True).start()
+            shown = PoolProgress(len(calling), len(playing), len(playing) * episodes_each, len(ready))
+            if not calling and not playing and not ready and (next_up is None or stop is not None):
+                break
+            kind, payload, error = events.get()
+            if kind == "proposed":
+                calling.pop((payload.iteration, payload.candidate))
+                if error is not None:
+                    stop = stop or error
+                else:
+                    ready.append(payload)
+            else:
+                playing.clear()
+                if error is not None:
+                    stop = stop or error
+                else:
+                    for item in payload:
+                        assessed[item.iteration][item.candidate] = item
+            if stop is None or isinstance(stop, BudgetExhausted):  # a budget lets what is in flight finish
+                commit_what_is_complete()
+            else:
+                ready.clear()  # an error: no more play, only what is in flight ends
+    finally:
+        state.waiting = waiting
+    if stop is not None:
+        raise stop

@@ -1,0 +1,135 @@
+"""The asynchronous proposal pool (``--pool``): calls in flight across iterations, candidates played as their replies
+come in, iterations committed in order, and runs that resume and replay to the same versions and scores — against a
+scripted model with a long-tailed latency behind a real HTTP endpoint, called through litellm."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from datetime import timedelta
+
+import pytest
+
+from pipeline.llm.client import LiteLLMClient
+from pipeline.optimizer.config import OptimizeConfig, validate_config
+from pipeline.optimizer.loop import optimize
+from pipeline.optimizer.replay import replay
+from tests.conftest import ROOT
+from tests.test_strategies import POOL
+
+EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
+SCRIPT = [{"pool": POOL, "seed": 3, "latency": [0.8, 0.7, 1]}]
+"""Candidates of mixed quality, each after a log-normal time (median 0.8 s, a long tail)."""
+
+
+def _config(**kwargs):
+    defaults = dict(game="pong", strategy="best-of-n", candidates=4, iterations=3, eval_max_steps=600,
+                    rollout_steps=50, workers=2, token_budget=6000, temperature=1.0, audit_episodes=0, pool=True,
+                    rng_key="pool")
+    return OptimizeConfig(**{**defaults, **kwargs})
+
+
+def _client(model):
+    return LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
+
+
+def _calls(store, run_id):
+    return store.query("SELECT iteration, candidate, repair_turn, history_iterations, created_at, latency_s "
+                       "FROM llm_calls WHERE run_id = ? ORDER BY created_at", [run_id])
+
+
+def _outcome(store, run_id):
+    """What a run made: per iteration, its chosen version and score, and every candidate's version and score."""
+    iterations = store.query("SELECT iteration, policy_version_id, score, best_score FROM iterations WHERE run_id = ? "
+                             "ORDER BY iteration", [run_id])
+    candidates = store.query("SELECT iteration, candidate, policy_version_id, score, update_status FROM candidates "
+                             "WHERE run_id = ? ORDER BY iteration, candidate", [run_id])
+    return iterations, candidates
+
+
+def test_calls_stay_in_flight_across_iterations_and_iterations_commit_in_order(store, scripted):
+    model = scripted(SCRIPT)
+    result = optimize(_config(), store, _client(model))
+    assert result.status == "finished" and [i.iteration for i in result.iterations] == [0, 1, 2, 3]
+    run_id = result.run_id
+    counts = store.query("SELECT iteration, count(*) FROM candidates WHERE run_id = ? GROUP BY 1 ORDER BY 1", [run_id])
+    assert counts == [(0, 1), (1, 4), (2, 4), (3, 4)], "every iteration committed whole, in order"
+    calls = _calls(store, run_id)
+    firsts = [c for c in calls if c[2] == 0]
+    assert sorted((c[0], c[1]) for c in firsts) == [(i, j) for i in (1, 2, 3) for j in range(4)]
+    # no barrier: calls of a later iteration started from the iterations committed then, before the one before it
+    assert all(basis <= iteration for iteration, _, _, basis, _, _ in firsts)
+    assert any(basis < iteration for iteration, _, _, basis, _, _ in firsts), firsts
+    spans = [(end - timedelta(seconds=latency), end, iteration) for iteration, _, _, _, end, latency in calls]
+    overlapping = [{it for start, end, it in spans if start <= moment < end} for moment, _, _ in spans]
+    assert max(sum(1 for start, end, _ in spans if start <= m < end) for m, _, _ in spans) <= 4, "at most K at once"
+    assert any(len(iterations) > 1 for iterations in overlapping), "calls of two iterations were in flight together"
+    finished = [r[0] for r in store.query("SELECT finished_at FROM iterations WHERE run_id = ? ORDER BY iteration",
+                                          [run_id])]
+    assert finished == sorted(finished)
+    assert "calls in flight" in result.iterations[1].pool and "playing" in result.iterations[1].pool
+
+    report = replay(store, run_id)
+    assert report.status == "finished" and all(row.matches for row in report.rows), [(r["iteration"], r["original_score"], r["replay_score"], r["original_prompt"] == r["replay_prompt"]) for r in report.as_dict()["iterations"]]
+    assert _outcome(store, report.replay_run_id) == _outcome(store, run_id), "the same versions and scores"
+    requests = len(model.requests())
+    assert requests == len(calls), "a replay never calls the model"
+
+
+def test_greedy_keeps_its_order():
+    with pytest.raises(ValueError, match="--pool is for best-of-n, beam and map-elites"):
+        validate_config(OptimizeConfig(game="pong", pool=True))
+
+
+def test_a_call_budget_holds_while_calls_are_in_flight(store, scripted):
+    model = scripted(SCRIPT)
+    result = optimize(_config(max_llm_calls=6, repairs=0), store, _client(model))
+    assert result.status == "budget" and "call budget" in result.error
+    assert len(_calls(store, result.run_id)) == 6 == len(model.requests()), "never more calls than the budget"
+    counts = store.query("SELECT iteration, count(*) FROM candidates WHERE run_id = ? GROUP BY 1 ORDER BY 1",
+                         [result.run_id])
+    assert counts == [(0, 1), (1, 4)], "the incomplete iteration is not committed"
+
+
+def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_scores(store, scripted):
+    model = scripted(SCRIPT)
+    command = [EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+               "--strategy", "best-of-n", "--candidates", "4", "--iterations", "4", "--pool", "--eval-max-steps",
+               "600", "--rollout-steps", "50", "--temperature", "1", "--audit-episodes", "0", "--rng-key", "pool",
+               "--store", str(store.path), "--json"]
+    process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def count(sql):
+        try:
+            return store.query(sql)[0][0] if store.exists() else 0
+        except Exception:  # noqa: BLE001 - tables not made yet
+            return 0
+
+    deadline = time.monotonic() + 300
+    while not (count("SELECT count(*) FROM llm_calls WHERE iteration >= 2") >= 2
+               and count("SELECT count(*) FROM iterations") <= 3):
+        assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+        time.sleep(0.05)
+    process.kill()
+    process.wait()
+    run_id = store.query("SELECT run_id FROM runs")[0][0]
+    before = {(c[0], c[1], c[2]): c[3] for c in _calls(store, run_id)}
+    assert count("SELECT count(*) FROM iterations") < 5, "killed before the end"
+    done = subprocess.run([EXE, "optimize", "--resume", run_id, "--store", str(store.path), "--json"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["status"] == "finished"
+    counts = store.query("SELECT iteration, count(*) FROM candidates WHERE run_id = ? GROUP BY 1 ORDER BY 1", [run_id])
+    assert counts == [(0, 1)] + [(i, 4) for i in range(1, 5)]
+    after = _calls(store, run_id)
+    # a candidate whose call was recorded before the kill was started again from the same iterations: its reply was
+    # reused, never asked for twice
+    assert len(after) == len({(c[0], c[1], c[2]) for c in after}), "one call per candidate and turn"
+    assert all({(c[0], c[1], c[2]): c[3] for c in after}[key] == basis for key, basis in before.items())
+
+    report = replay(store, run_id)
+    assert report.status == "finished" and all(row.matches for row in report.rows), [(r["iteration"], r["original_score"], r["replay_score"], r["original_prompt"] == r["replay_prompt"]) for r in report.as_dict()["iterations"]]
+    assert _outcome(store, report.replay_run_id) == _outcome(store, run_id)
