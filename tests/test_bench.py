@@ -27,6 +27,8 @@ SMALLEST = {
                               ["overhead / wall =", "LLM calls", "environment"]),
     "file_view.py": (["--limit", "2000", "--top", "3"], ["files listed:", "readable (os.open O_RDONLY):",
                                                         "below the read rules:", "tests/policies/pong_competent.py"]),
+    "proposal_pool.py": (["--calls", "8", "--latency", "0.3", "--repeats", "1", "--greedy-iterations", "1",
+                          "--eval-max-steps", "200"], ["pool / barrier =", "greedy wall / (call + needed episodes) ="]),
     "cascade_steps.py": (["--iterations", "3", "--eval-max-steps", "400", "--screen-steps", "100"],
                          ["steps cheap / baseline =", "same best-so-far curve"]),
 }

@@ -41,11 +41,12 @@ REWORDED = {
 --eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them); --model may be
 given several times (an ensemble, issue 32)."""
 
-ADDED = {"optimize": ("--rng-key", "--audit-episodes", "--repairs", "--model-choice"), "eval": ("--rng-key",),
+ADDED = {"optimize": ("--rng-key", "--audit-episodes", "--repairs", "--model-choice", "--pool"), "eval": ("--rng-key",),
          "compare": ("--audit",)}
 """Flags added on purpose since the snapshot (issue 33: the policies' random stream, the held-out audit, compare
-on audit seeds; issue 32: repair turns, model ensembles); every other flag is as it was."""
-ADDED_FIELDS = {"rng_key": None, "audit_episodes": 3, "repairs": 1, "model_choice": "fixed", "models": None}
+on audit seeds; issue 32: repair turns, model ensembles, the proposal pool); every other flag is as it was."""
+ADDED_FIELDS = {"rng_key": None, "audit_episodes": 3, "repairs": 1, "model_choice": "fixed", "models": None,
+                "pool": False}
 """``OptimizeConfig``'s fields behind them, with their defaults (``models``, an ensemble, has no flag of its own:
 ``--model`` given several times sets it)."""
 NO_FLAG = ("models",)
@@ -103,7 +104,8 @@ def test_what_the_declarations_derive_is_todays():
     assert old(RUN_KEYS) == before["run_keys"] and sorted(OPTIMIZE_OPTIONS) == sorted(
         before["options"] + [f for f in ADDED_FIELDS if f not in NO_FLAG])
     assert sorted(NOT_IN_KEY) == sorted(before["not_in_key"] + ["audit_episodes"])  # it measures, changes nothing
-    assert sorted(KEYED_WHEN_SET) == sorted(before["keyed_when_set"] + ["rng_key", "repairs", "model_choice", "models"])
+    assert sorted(KEYED_WHEN_SET) == sorted(before["keyed_when_set"] + ["rng_key", "repairs", "model_choice", "models",
+                                                                        "pool"])
     defaults = asdict(OptimizeConfig())
     assert {k: defaults.pop(k) for k in ADDED_FIELDS} == ADDED_FIELDS
     assert defaults.pop("observation") >= before["defaults"].pop("observation")  # moves with the conventions
