@@ -131,7 +131,8 @@ def test_a_server_that_refuses_the_reply_schema_is_asked_again_without_it(store,
     without it (not counted as a retry), and every later call leaves it out; llm_calls records what was sent."""
     refusal = {"status": 400, "message": "Unsupported parameter: 'response_format' is not supported here"}
     model = scripted([refusal, COMPETENT_REPLY, "No change."])
-    done = _optimize(store, model, "openai", "my-local-model", "--iterations", "2", "--eval-max-steps", "300", *FAST)
+    done = _optimize(store, model, "openai", "my-local-model", "--iterations", "2", "--eval-max-steps", "300",
+                     "--repairs", "0", *FAST)  # one call per update: the bodies below are the updates
     assert done.returncode == 0, done.stderr
     bodies = [r["body"] for r in model.raw_requests()]
     assert ["response_format" in b for b in bodies] == [True, False, False]
@@ -295,11 +296,11 @@ def test_resume_of_a_finished_run_changes_nothing(store, scripted):
     model = scripted(["No change."])
     assert _optimize(store, model, "openai", "scripted", "--iterations", "1", "--eval-max-steps", "200",
                      *FAST).returncode == 0
-    before = store.query("SELECT * FROM runs")
+    before, asked = store.query("SELECT * FROM runs"), len(model.requests())
     done = _cli("optimize", "--resume", before[0][0], "--store", str(store.path))
     assert done.returncode == 0 and "nothing to do" in done.stdout, done.stdout + done.stderr
     assert store.query("SELECT * FROM runs") == before
-    assert len(model.requests()) == 1
+    assert len(model.requests()) == asked == 2, "the update and its repair turn; the resume asked nothing"
 
 
 def test_eval_runs_cannot_be_resumed_and_a_killed_one_shows_interrupted(tmp_path):

@@ -17,9 +17,10 @@ For each :class:`~pipeline.optimizer.strategies.ProposalRequest` of an iteration
    and validated exactly as a first one is, up to ``repairs`` times. Each repair is its own call in ``llm_calls``
    (purpose ``repair``, ``repair_of`` the call it repairs), counted by every budget; a resumed iteration and a
    replay find it by its conversation's hash like any prompt. A repair conversation is the prompt plus the
-   rejected reply (at most ``max_tokens``) and the error (at most :data:`REPAIR_NOTE_CHARS`): it may go past the
-   prompt's token budget by those. A repair that the budgets forbid, or whose call fails, is not made: the
-   candidate stays rejected, and the run goes on.
+   rejected reply and the error (at most :data:`REPAIR_NOTE_CHARS`): it may go past the prompt's token budget by
+   a reply of ``max_tokens`` and the error (:func:`repair_limit`); a longer one (a reply far over ``max_tokens``)
+   is not sent. A repair that the budgets forbid, or whose call fails, is not made either: the candidate stays
+   rejected, and the run goes on.
 
 LLM errors: fatal ones (authentication, unknown model, ...) stop the run after every call of the iteration is
 recorded; an iteration whose every call failed counts towards :data:`MAX_CONSECUTIVE_LLM_FAILURES`.
@@ -56,6 +57,14 @@ MAX_CONSECUTIVE_LLM_FAILURES = 3
 
 REPAIR_NOTE_CHARS = 2_000
 """The longest error sent back in a repair turn (it quotes the candidate's own exception, which the code chose)."""
+REPAIR_NOTE_TOKENS = 1_000
+"""Room for that error and the request around it in a repair conversation's token limit (:func:`repair_limit`)."""
+
+
+def repair_limit(config) -> int:
+    """The most tokens a repair conversation may have: the prompt's budget, a reply of ``max_tokens`` and the error.
+    A reply longer than ``max_tokens`` allows (a server that ignored the limit) is never sent back."""
+    return config.token_budget + config.max_tokens + REPAIR_NOTE_TOKENS
 
 
 class BudgetExhausted(Exception):
@@ -226,9 +235,19 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
         if p.fixable is None:
             continue
         item = pending[i]
-        messages = repair_messages(item, p.fixable)
-        prompt = Prompt(messages, counter.messages(messages), item.prompt.budget, item.prompt.steps_shown,
-                        item.prompt.memory_shown, item.prompt.token_method)
+        limit = repair_limit(state.config)
+        # counted only when it may fit: a reply of megabytes is not tokenized to learn that it does not
+        fits = len(item.text) + REPAIR_NOTE_CHARS <= 16 * (limit - item.prompt.tokens)
+        messages = repair_messages(item, p.fixable) if fits else []
+        tokens = counter.messages(messages) if fits else 0
+        if not fits or tokens > limit:
+            log(f"iteration {iteration}: no repair turn for candidate {item.request.candidate}: its reply is too "
+                f"long to send back (the conversation would pass {limit:,} tokens: the prompt's budget, a reply of "
+                f"--max-tokens and the error)")
+            p.fixable = None
+            continue
+        prompt = Prompt(messages, tokens, item.prompt.budget, item.prompt.steps_shown, item.prompt.memory_shown,
+                        item.prompt.token_method)
         repair = _Pending(item.request, prompt, item.context_version, item.observations, item.info, turn=turn,
                           repair_of=item.call_id, client=item.client, basis=item.basis)  # the same model fixes it
         if (prompt.hash, item.request.candidate) in stored:  # a resumed iteration: this repair was made before

@@ -105,6 +105,8 @@ raise ValueError(' '.join(found)[:20000])
     model = scripted([json_reply({"select_action": _method(steal)}), "No change."])
     done = _optimize(model, store, tmp_path)
     _assert_no_leak(done, model, store)
-    assert len(model.raw_requests()) == 2, "the second prompt, carrying the first reply's feedback, was sent"
+    # each rejected reply had its repair turn, whose prompt carries the exact error: the key is in none of them
+    assert len(model.raw_requests()) == 4, "the repair prompts and the second prompt, carrying the feedback, were sent"
+    assert "ValueError" in model.requests()[1][-1]["content"], "the reason reached the model (without the key)"
     feedback = store.query("SELECT text FROM feedback WHERE iteration = 1")[0][0]
-    assert "ValueError" in feedback, "the rejection reason reached the feedback (without the key)"
+    assert "not usable" in feedback, "the feedback is the repaired reply's: the last word on the update"

@@ -103,7 +103,7 @@ def test_a_deep_value_from_a_policy_file_stops_no_run_and_no_resume(depth, store
     assert _optimize(store, model, "--resume", run_id, "--iterations", "2") == 0
     capfd.readouterr()
     assert store.query("SELECT status FROM runs WHERE run_id = ?", [run_id]) == [("finished",)]
-    assert store.query("SELECT count(*) FROM llm_calls WHERE run_id = ?", [run_id]) == [(2,)]
+    assert store.query("SELECT count(*) FROM llm_calls WHERE run_id = ? AND purpose = 'update'", [run_id]) == [(2,)]
     assert _depth_ok(store) > 0
     assert TOO_DEEP in " ".join(m["content"] for m in model.requests()[-1])  # the prompt shows the cut value
 
@@ -121,7 +121,7 @@ def test_a_deep_value_from_a_candidate_stops_no_run_and_no_resume(depth, store, 
     assert _optimize(store, model, "--resume", run_id, "--iterations", "3") == 0
     capfd.readouterr()
     assert store.query("SELECT status FROM runs") == [("finished",)]
-    assert store.query("SELECT count(*) FROM llm_calls") == [(3,)]
+    assert store.query("SELECT count(*) FROM llm_calls WHERE purpose = 'update'") == [(3,)]
     assert _depth_ok(store) > 0
     assert TOO_DEEP in " ".join(m["content"] for m in model.requests()[1])  # the accepted version's rollout, cut
 

@@ -45,7 +45,7 @@ def test_hostile_replies_through_the_loop(store, scripted):
     model = scripted([reply for _, reply, _ in HOSTILE_REPLIES])
     client = LiteLLMClient(model.model, api_base=model.api_base, retries=0)  # one script entry per iteration
     config = OptimizeConfig(game="pong", iterations=len(HOSTILE_REPLIES), eval_max_steps=100, rollout_steps=60,
-                            token_budget=6000, workers=2)
+                            token_budget=6000, workers=2, repairs=0)  # each reply is judged as it came
     result = optimize(config, store, client)
     assert result.status == "finished", result.error
     rows = store.query("SELECT i.iteration, i.update_status, f.text FROM iterations i JOIN feedback f "

@@ -20,6 +20,8 @@ import pytest
 
 from pipeline.boundary.untrusted import clean_json_text, clean_step_objects, clean_untrusted_text, secret_env_names
 from pipeline.cli import main
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.propose import repair_limit
 from tests.conftest import json_reply
 from tracing.steps import StepLog
 
@@ -142,7 +144,9 @@ def test_a_leaking_policy_leaks_nothing_through_optimize(canaries, store, script
     out, err = capfd.readouterr()
     assert code == 0, err
     requests = model.log_path.read_text()
-    assert len(model.requests()) == 2 and "[redacted]" in requests
+    # two updates, each rejected and given a repair turn whose prompt quotes the (redacted) error
+    assert len(model.requests()) == 4 and "[redacted]" in requests
+    assert [r[0] for r in store.query("SELECT purpose FROM llm_calls ORDER BY created_at")] == ["update", "repair"] * 2
     _assert_clean(requests, "a request the model received")
     _assert_clean(out + err, "the terminal")
     texts = _store_texts(store)
@@ -168,8 +172,12 @@ def test_megabyte_messages_do_not_break_the_next_prompt(store, scripted, tmp_pat
     out, err = capfd.readouterr()
     assert code == 0, err[-3000:]
     assert len(out) + len(err) < 20_000
-    counted = store.query("SELECT iteration, prompt_tokens_counted FROM llm_calls ORDER BY iteration")
-    assert len(counted) == 3 and all(tokens <= budget for _, tokens in counted), counted
+    counted = store.query("SELECT iteration, purpose, prompt_tokens_counted FROM llm_calls ORDER BY created_at")
+    # iteration 1's reply raises an 8 MB message: its repair turn quotes it cut short, and is answered by 8 MB of
+    # "z"; the later replies are the same 8 MB, too long to send back: no repair for them
+    assert [c[:2] for c in counted] == [(1, "update"), (1, "repair"), (2, "update"), (3, "update")], counted
+    assert all(tokens <= (budget if purpose == "update" else repair_limit(OptimizeConfig(token_budget=budget)))
+               for _, purpose, tokens in counted), counted
     assert max(len(r) for r in model.log_path.read_text().splitlines()) < budget * 8
     longest = store.query("SELECT max(length(error)) FROM episodes")[0][0]
     assert 2000 <= longest < 2100
@@ -189,7 +197,7 @@ def test_resume_honours_the_token_budget_given(store, scripted, tmp_path, capfd)
     capfd.readouterr()
     config = json.loads(store.query("SELECT config FROM runs")[0][0])
     assert (config["token_budget"], config["call_time_limit_s"], config["iterations"]) == (2500, 0.5, 2)
-    counted = dict(store.query("SELECT iteration, prompt_tokens_counted FROM llm_calls"))
+    counted = dict(store.query("SELECT iteration, prompt_tokens_counted FROM llm_calls WHERE purpose = 'update'"))
     assert counted[1] > 2500 >= counted[2], counted
 
 
@@ -207,3 +215,4 @@ def test_a_huge_candidate_that_validates_does_not_end_the_run(store, scripted, c
     assert rows == [("rejected",), ("rejected",)]
     assert "keep the methods short" in store.query("SELECT text FROM feedback WHERE iteration = 1")[0][0]
     assert all(t <= 8000 for (t,) in store.query("SELECT prompt_tokens_counted FROM llm_calls"))
+    assert store.query("SELECT DISTINCT purpose FROM llm_calls") == [("update",)], "a 400 KB reply is not sent back"
