@@ -19,7 +19,7 @@ import pytest
 
 from pipeline.optimizer.ensemble import Pull, choose, model_entries, parse_model_entry, pulls, relative_costs, \
     split_model_flags
-from tests.conftest import ROOT, json_reply
+from tests.conftest import ROOT, json_reply, random_policy
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 GOOD, BAD = "openai/gpt-4o", "openai/gpt-4o-2024-08-06"  # the same price at litellm: only improvements differ
@@ -31,19 +31,7 @@ def _freeway(p: str) -> str:
     return json_reply({"act": f"def act(self, obs):\n    return 1 if random.random() < {p} else 0\n"})
 
 
-STARTER = '''GAME = "freeway"
-import random
-import tracing as trace
-
-@trace.model
-class Policy(trace.Module):
-    def __call__(self, obs):
-        return self.act(obs)
-
-    @trace.bundle(trainable=True)
-    def act(self, obs):
-        return 1 if random.random() < 0.2 else 0
-'''
+STARTER = random_policy("freeway", "1 if random.random() < 0.2 else 0")
 LADDER = [_freeway(p) for p in ("0.4", "0.6", "0.8", "1.0")]
 NEVER = json_reply({"act": "def act(self, obs):\n    return 0\n"})
 USAGE = {"input": 3000, "output": 500}

@@ -287,7 +287,12 @@ def test_dry_run_prices_the_first_update_without_calling_the_model(tmp_path, scr
     assert report["prompt_tokens"] > 1000 and report["priced"]
     typical, most = report["update_cost_usd"]["typical"], report["update_cost_usd"]["at_most"]
     assert 0 < typical < most
-    assert report["run_cost_usd"]["at_most"] == pytest.approx(10 * (16000 * 3e-6 + 4096 * 15e-6))
+    # at most: 10 updates filling the budget, and a repair turn for each (--repairs 1), of up to the budget, a
+    # reply of --max-tokens and the error (repair_limit)
+    repair = 16000 + 4096 + 1000
+    assert report["repair_calls"] == 10
+    assert report["run_cost_usd"]["at_most"] == pytest.approx(10 * (16000 * 3e-6 + 4096 * 15e-6)
+                                                             + 10 * (repair * 3e-6 + 4096 * 15e-6))
     assert "#Instruction" in report["prompt"][1]["content"]
     assert model.raw_requests() == [] and not store.exists()
 

@@ -321,12 +321,12 @@ def tokens_figure(data: dict[str, Any]):
     return fig
 
 
-CALL_OUTCOME_STYLE = {  # outcome -> (edge colour, hatch, label)
-    "accepted": ("#2ca02c", "", "accepted"),
-    "rejected": ("#d62728", "", "rejected"),
-    "repaired": ("#d62728", "///", "rejected, then repaired (the next bar of its candidate)"),
-    "unchanged": ("#999999", "", "no change"),
-    "failed": ("#ff7f0e", "xx", "call failed"),
+CALL_OUTCOME_STYLE = {  # outcome -> (edge colour, edge line style, label); the fill is the model's colour
+    "accepted": ("#2ca02c", "solid", "accepted"),
+    "rejected": ("#d62728", "solid", "rejected"),
+    "repaired": ("#d62728", "dashed", "rejected, then repaired (the next bar of its candidate)"),
+    "unchanged": ("#999999", "solid", "no change"),
+    "failed": ("#ff7f0e", "dotted", "call failed"),
 }
 
 
@@ -356,9 +356,9 @@ def calls_figure(data: dict[str, Any]):
     colour = {m: palette[i % len(palette)] for i, m in enumerate(models)}
     fig, (ax, flight) = _figure(rows=2, height=5.4)
     for c, (start, end), lane in zip(calls, spans, placed):
-        edge, hatch, _ = CALL_OUTCOME_STYLE.get(c["outcome"], ("#555555", "", c["outcome"]))
+        edge, style, _ = CALL_OUTCOME_STYLE.get(c["outcome"], ("#555555", "solid", c["outcome"]))
         ax.barh(lane, max(end - start, 1e-3), left=start, height=0.7, color=colour[c["request_model"] or "?"],
-                edgecolor=edge, linewidth=1.6, hatch=hatch, zorder=2)
+                edgecolor=edge, linewidth=1.8, linestyle=style, zorder=2)
         ax.text(start, lane, f" {c['iteration']}.{c['candidate'] or 0}" + ("r" if c["purpose"] == "repair" else ""),
                 va="center", ha="left", fontsize=6.5, color="white", zorder=3, clip_on=True)
     ax.set_ylabel("call lane")
@@ -373,8 +373,8 @@ def calls_figure(data: dict[str, Any]):
     flight.set_ylim(0, max(in_flight, default=1) + 0.5)
     handles = [Patch(facecolor=colour[m], label=plot_text(m)) for m in models]
     used = dict.fromkeys(c["outcome"] for c in calls)
-    handles += [Patch(facecolor="white", edgecolor=CALL_OUTCOME_STYLE[o][0], hatch=CALL_OUTCOME_STYLE[o][1],
-                      linewidth=1.6, label=CALL_OUTCOME_STYLE[o][2]) for o in used if o in CALL_OUTCOME_STYLE]
+    handles += [Patch(facecolor="white", edgecolor=CALL_OUTCOME_STYLE[o][0], linestyle=CALL_OUTCOME_STYLE[o][1],
+                      linewidth=1.8, label=CALL_OUTCOME_STYLE[o][2]) for o in used if o in CALL_OUTCOME_STYLE]
     fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=3, frameon=False)
     ax.set_title(_title(data, "LLM calls over time (label: iteration.candidate, r = repair turn)"), fontsize=11)
     return fig

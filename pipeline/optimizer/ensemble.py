@@ -226,8 +226,11 @@ def relative_costs(entries: Sequence[Mapping[str, Any]], prompt_tokens: int, rep
 
 
 def choose(rule: str, entries: Sequence[Mapping[str, Any]], history: Sequence[Pull], candidates: Sequence[int],
-           seed_key: str, iteration: int, costs: Sequence[float] | None = None) -> list[int]:
-    """The index (in ``entries``) of the model of each of ``candidates`` (an iteration's proposals, in order)."""
+           seed_key: str, iteration: int, costs: Sequence[float] | None = None,
+           in_flight: Sequence[str] = ()) -> list[int]:
+    """The index (in ``entries``) of the model of each of ``candidates`` (an iteration's proposals, in order).
+    ``in_flight``: the models of calls started before these and not yet in ``history`` (the proposal pool's), which
+    count like the iteration's earlier choices."""
     if rule not in MODEL_CHOICES:
         raise ValueError(f"--model-choice must be one of {', '.join(MODEL_CHOICES)}, not {rule!r}")
     names = [e["model"] for e in entries]
@@ -239,6 +242,11 @@ def choose(rule: str, entries: Sequence[Mapping[str, Any]], history: Sequence[Pu
             n[index[model]] += 1
             s[index[model]] += reward
     costs = list(costs) if costs is not None else [1.0] * len(names)
+    for model in in_flight if rule != "thompson" else ():
+        if model in index:  # a pull at the model's mean reward so far, like an earlier choice of the iteration
+            i = index[model]
+            s[i] += s[i] / n[i] if n[i] else 0.0
+            n[i] += 1
     chosen = []
     for candidate in candidates:
         if rule == "fixed":
@@ -266,20 +274,31 @@ def choose(rule: str, entries: Sequence[Mapping[str, Any]], history: Sequence[Pu
     return chosen
 
 
-def choose_members(store, state, history, iteration: int, client, items: Sequence[Any]) -> None:
-    """Set ``item.client`` to the member of ``client`` (an ``EnsembleClient``) that answers each of ``items``
-    (propose's requests) by the run's rule and its recorded ``models``; a single model's client is left alone. Every request of the
-    iteration is chosen for (those answered from the store too), so a resumed iteration chooses as before."""
+def member_picks(store, state, history, iteration: int, candidates: Sequence[int],
+                 in_flight: Sequence[str] = ()) -> list[str] | None:
+    """The model chosen for each of ``candidates`` (an iteration's proposals, in order) by the run's rule and its
+    recorded ``models``, from the committed ``history``; ``in_flight``: the models of the proposal pool's calls
+    started before these and not in ``history``. None for a run of one model."""
     entries = state.config.models
-    if not entries or not hasattr(client, "member"):
-        return
+    if not entries:
+        return None
     from store.readers import call_models
 
     with store.read() as con:
         models = call_models(con, state.run_id)
     c = state.config
     costs = relative_costs(entries, c.token_budget, c.max_tokens)
-    picks = choose(c.model_choice, entries, pulls(history.candidates, models),
-                   [item.request.candidate for item in items], state.rng_key or state.run_id, iteration, costs)
-    for item, pick in zip(items, picks):
-        item.client = client.member(entries[pick]["model"])
+    picks = choose(c.model_choice, entries, pulls(history.candidates, models), candidates,
+                   state.rng_key or state.run_id, iteration, costs, in_flight)
+    return [entries[pick]["model"] for pick in picks]
+
+
+def choose_members(store, state, history, iteration: int, client, items: Sequence[Any]) -> None:
+    """Set ``item.client`` to the member of ``client`` (an ``EnsembleClient``) that answers each of ``items``
+    (propose's requests): :func:`member_picks`; a single model's client is left alone. Every request of the
+    iteration is chosen for (those answered from the store too), so a resumed iteration chooses as before."""
+    if not hasattr(client, "member"):
+        return
+    picks = member_picks(store, state, history, iteration, [item.request.candidate for item in items])
+    for item, model in zip(items, picks or ()):
+        item.client = client.member(model)

@@ -26,6 +26,7 @@ from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.context import read_context
 from pipeline.optimizer.loop import load_state, run_iteration, start_run
 from pipeline.optimizer.prompt import Prompt, build_prompt
+from pipeline.optimizer.propose import repair_limit
 from store import Store
 
 TYPICAL_REPLY_TOKENS = 1_500
@@ -45,6 +46,10 @@ class Estimate:
     mix: list[tuple[str, float, Price | None]] | None = None
     """An ensemble's models: (model, expected share of the calls, its price); ``price`` is then their blend, and
     the most a call can cost is at the dearest model's price."""
+    repair_calls: int = 0
+    """The most repair turns the run can make (``--repairs`` for every update, within a call budget)."""
+    repair_tokens: int = 0
+    """The longest a repair conversation may be (``propose.repair_limit``)."""
 
     @property
     def dearest(self) -> Price | None:
@@ -59,12 +64,13 @@ class Estimate:
         if self.price is None:
             return None
         return (self.iterations * self.price.cost(self.prompt.tokens, TYPICAL_REPLY_TOKENS),
-                self.iterations * self.dearest.cost(self.token_budget, self.max_tokens))
+                self.iterations * self.dearest.cost(self.token_budget, self.max_tokens)
+                + self.repair_calls * self.dearest.cost(self.repair_tokens, self.max_tokens))
 
     def as_dict(self, include_prompt: bool = False) -> dict[str, Any]:
         out: dict[str, Any] = {
             "model": self.model, "iterations": self.iterations, "token_budget": self.token_budget,
-            "max_tokens": self.max_tokens, "starter_score": self.starter_score,
+            "max_tokens": self.max_tokens, "starter_score": self.starter_score, "repair_calls": self.repair_calls,
             "prompt_tokens": self.prompt.tokens, "token_count_method": self.prompt.token_method,
             "steps_shown": len(self.prompt.steps_shown), "priced": self.price is not None,
             "update_cost_usd": None if self.price is None else {
@@ -90,9 +96,10 @@ class Estimate:
                 f"${rates.cost(self.prompt.tokens, TYPICAL_REPLY_TOKENS):.4f} an update" if rates is not None
                 else "no price in litellm"))
         if self.price is None:
+            most = (self.iterations * (self.token_budget + self.max_tokens)
+                    + self.repair_calls * (self.repair_tokens + self.max_tokens))
             out.append(f"cost: litellm has no price for {self.model} (a local or unknown model); tokens per update "
-                       f"up to {self.token_budget + self.max_tokens:,}, for the run up to "
-                       f"{self.iterations * (self.token_budget + self.max_tokens):,}")
+                       f"up to {self.token_budget + self.max_tokens:,}, for the run up to {most:,}{self._repairs()}")
             return out
         low, high = self.run_cost_range()
         out.append(f"one update: ${self.update_cost(TYPICAL_REPLY_TOKENS):.4f} with a typical "
@@ -100,8 +107,11 @@ class Estimate:
                    f"${self.dearest.cost(self.prompt.tokens, self.max_tokens):.4f} "
                    f"(a {self.max_tokens:,}-token reply)")
         out.append(f"whole run ({self.iterations} LLM calls): about ${low:.2f}, at most ${high:.2f} (every prompt "
-                   f"filling the budget); cap it with --max-cost USD")
+                   f"filling the budget{self._repairs()}); cap it with --max-cost USD")
         return out
+
+    def _repairs(self) -> str:
+        return f"; with up to {self.repair_calls} repair turns" if self.repair_calls else ""
 
 
 def estimate_run(config: OptimizeConfig, progress_log: Callable[[str], None] = lambda s: None) -> Estimate:
@@ -119,12 +129,17 @@ def estimate_run(config: OptimizeConfig, progress_log: Callable[[str], None] = l
             ctx = read_context(con, run_id, 1, config.memory, config.call_time_limit_s, config.collapse_repeats)
         prompt = build_prompt(ctx, config.token_budget, TokenCounter(config.model or "offline"))
     calls = config.iterations * state.strategy.max_proposals
+    repairs = calls * config.repairs  # at most: every update rejected, every repair too
     if config.max_llm_calls is not None:
         calls = min(calls, config.max_llm_calls)
+        repairs = min(repairs, config.max_llm_calls - calls)
     if config.models:
-        return _ensemble_estimate(config, calls, prompt, first.score)
-    return Estimate(model, calls, config.token_budget, config.max_tokens, prompt,
-                    price(config.model) if config.model else None, first.score)
+        found = _ensemble_estimate(config, calls, prompt, first.score)
+    else:
+        found = Estimate(model, calls, config.token_budget, config.max_tokens, prompt,
+                         price(config.model) if config.model else None, first.score)
+    found.repair_calls, found.repair_tokens = repairs, repair_limit(config)
+    return found
 
 
 def _ensemble_estimate(config: OptimizeConfig, calls: int, prompt: Prompt, starter_score: float) -> Estimate:

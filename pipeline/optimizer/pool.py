@@ -41,12 +41,13 @@ from pipeline.llm.client import LLMClient
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.assess import Assessment, Screen, assess, screen
 from pipeline.optimizer.conclude import IterationResult, conclude, screen_out
+from pipeline.optimizer.ensemble import member_picks
 from pipeline.optimizer.propose import BudgetExhausted, Proposal, propose
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History
 from store import Store
 from store.db import utcnow
-from store.readers import candidates, iterations, pool_bases, run_spending
+from store.readers import candidates, first_call_models, iterations, pool_bases, run_spending
 
 LOOKAHEAD = 2
 """How many iterations past the last committed one may have candidates in flight: enough to keep the slots busy
@@ -94,6 +95,8 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
     episodes_each = 1 + c.eval_episodes + c.robust_episodes  # a training rollout and the evaluation games
     with store.read() as con:
         recorded = state.pool_bases if state.pool_bases is not None else pool_bases(con, state.run_id)
+        # an ensemble's model of each candidate started, in start order: a resumed run's committed ones first
+        picks = first_call_models(con, state.run_id, state.next_iteration) if c.models else {}
         if state.history is None or len(state.history.iterations) != state.next_iteration:
             state.history = History(iterations(con, state.run_id, state.next_iteration),
                                     candidates(con, state.run_id, state.next_iteration))
@@ -109,13 +112,13 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
     shown = PoolProgress()
     waiting, state.waiting = state.waiting, lambda iteration, model: nullcontext()  # no line per call
 
-    def propose_one(item: _Candidate) -> None:
+
+    def propose_one(item: _Candidate, history: History, member: LLMClient | None) -> None:
         try:
-            with store.read() as con:
-                history = History(iterations(con, state.run_id, item.basis), candidates(con, state.run_id, item.basis))
             plan = state.strategy.plan(history, item.iteration)
             request = replace(plan[item.candidate % len(plan)], candidate=item.candidate)
-            (item.proposal,) = propose(store, state, history, item.iteration, [request], client, counter, log)
+            (item.proposal,) = propose(store, state, history, item.iteration, [request], client, counter, log,
+                                       members={item.candidate: member} if member is not None else None)
             item.llm_s = time.monotonic() - item.started
             events.put(("proposed", item, None))
         except BaseException as exc:  # noqa: BLE001 - raised by the coordinator, after the work in flight
@@ -158,8 +161,15 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
                                            f"{c.max_wall_minutes:g} min")
                     return
             item = _Candidate(iteration, candidate, basis)
+            with store.read() as con:
+                history = History(iterations(con, state.run_id, basis), candidates(con, state.run_id, basis))
+            member = None
+            if c.models:  # chosen here, in start order, counting the candidates in flight that its history lacks
+                in_flight = [model for (i, _), model in picks.items() if i >= basis]
+                (model,) = member_picks(store, state, history, iteration, [candidate], in_flight)
+                picks[iteration, candidate], member = model, client.member(model)
             calling[iteration, candidate] = item
-            threading.Thread(target=propose_one, args=(item,), name=f"propose-{iteration}.{candidate}",
+            threading.Thread(target=propose_one, args=(item, history, member), name=f"propose-{iteration}.{candidate}",
                              daemon=True).start()
             next_up = next(order, None)
 

@@ -137,7 +137,7 @@ class _Pending:
 
 def propose(store: Store, state: "RunState", history: History, iteration: int, requests: list[ProposalRequest],
             client: LLMClient, counter: TokenCounter, log: Callable[[str], None],
-            hold: Hold | None = None) -> list[Proposal]:
+            hold: Hold | None = None, members: dict[int, LLMClient] | None = None) -> list[Proposal]:
     """The candidates of iteration ``iteration`` for ``requests`` (see the module docstring). ``hold`` (the
     caller's hold on the store) is let go while the model is asked and taken again once it has answered (what
     follows is short: store the calls, validate, and the caller's commit)."""
@@ -162,7 +162,11 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
                 item.call_id, item.text = stored[prompt.hash, request.candidate]
                 item.parse()
             pending.append(item)
-    choose_members(store, state, history, iteration, client, pending)
+    if members is None:
+        choose_members(store, state, history, iteration, client, pending)
+    else:  # chosen by the proposal pool as it started them (pipeline/optimizer/pool.py)
+        for item in pending:
+            item.client = members.get(item.request.candidate)
     reused = [p for p in pending if p.text is not None]
     if reused:
         log(f"iteration {iteration}: reusing {_replies(len(reused))} stored for {'this prompt' if len(pending) == 1 else 'these prompts'}")
