@@ -133,3 +133,27 @@ def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_
     report = replay(store, run_id)
     assert report.status == "finished" and all(row.matches for row in report.rows), [(r["iteration"], r["original_score"], r["replay_score"], r["original_prompt"] == r["replay_prompt"]) for r in report.as_dict()["iterations"]]
     assert _outcome(store, report.replay_run_id) == _outcome(store, run_id)
+
+
+def test_an_ensemble_in_the_pool_shares_its_calls_by_weight_and_replays_alike(store, scripted):
+    """Models are chosen as the pool starts candidates, in order, the calls in flight counting as chosen: 1:1
+    weights give each model half the calls although most start before the iterations they follow are committed."""
+    first, second = scripted(SCRIPT), scripted(SCRIPT)
+    done = subprocess.run(
+        [EXE, "optimize", "--game", "pong", "--strategy", "best-of-n", "--candidates", "4", "--iterations", "3",
+         "--pool", "--model", f"openai/gpt-4o,api_base={first.api_base}",
+         "--model", f"openai/gpt-4o-mini,api_base={second.api_base}", "--model-choice", "fixed",
+         "--eval-max-steps", "600", "--rollout-steps", "50", "--temperature", "1", "--audit-episodes", "0",
+         "--rng-key", "pool", "--repairs", "0", "--store", str(store.path), "--json"],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+        env={**os.environ, "OPENAI_API_KEY": "none", "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
+    assert done.returncode == 0, done.stderr
+    run_id = json.loads(done.stdout)["run_id"]
+    query = "SELECT iteration, candidate, request_model FROM llm_calls WHERE run_id = ? ORDER BY iteration, candidate"
+    chosen = store.query(query, [run_id])
+    models = [m for _, _, m in chosen]
+    assert models.count("openai/gpt-4o") == models.count("openai/gpt-4o-mini") == 6, chosen
+    assert len(first.requests()) == len(second.requests()) == 6
+    report = replay(store, run_id)
+    assert report.status == "finished" and all(row.matches for row in report.rows)
+    assert store.query(query, [report.replay_run_id]) == chosen, "the replay chose the same model for every call"
