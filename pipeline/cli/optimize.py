@@ -169,6 +169,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         given.setdefault("workers", os.cpu_count() or 1)
         config, run_id = OptimizeConfig(**model_defaults(given)), None
+        from pipeline.optimizer.config import validate_config
+
+        validate_config(config)  # a bad setting is one line before any model starts (the offline one takes seconds)
     if args.dry_run:
         return _dry_run(config, args)
     for base in dict.fromkeys([e["api_base"] for e in config.models or []] + [config.api_base]):
