@@ -73,27 +73,32 @@ def main() -> int:
                   max_llm_calls=args.calls, max_concurrent_calls=args.in_flight, eval_max_steps=args.eval_max_steps,
                   rollout_steps=50, temperature=1.0, workers=2, repairs=0, audit_episodes=0, rng_key="bench")
     found: dict[str, list[tuple[float, int, float]]] = {"barrier": [], "pool": []}
+    script = [{"pool": POOL, "latency": [args.latency, args.sigma, 7]}]
+    for repeat in range(args.repeats):
+        for name in ("barrier", "pool"):
+            # a fresh model for each run, seeded by the repeat: both loops of a repeat meet the same replies and
+            # the same latencies, request by request
+            script[0]["seed"] = script[0]["latency"][2] = repeat
+            with ScriptedModel(script, work / f"model-{repeat}-{name}") as model:
+                client = LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
+                result = optimize(OptimizeConfig(**common, pool=name == "pool"), store, client)
+            found[name].append(throughput(store, result.run_id))
+            rate, count, seconds = found[name][-1]
+            print(f"repeat {repeat + 1} {name:<8} {count:>3} candidates in {seconds:6.1f} s = {rate:6.1f} "
+                  f"per minute ({result.status})", flush=True)
+    print(f"\nbest-of-n, {CANDIDATES} candidates an iteration, {args.calls} calls each, at most {args.in_flight} "
+          f"in flight; latency log-normal, median {args.latency:g} s, sigma {args.sigma:g}")
+    print(f"{'loop':<8} {'candidates/min':>15}")
+    best = {name: max(rate for rate, _, _ in runs) for name, runs in found.items()}
+    for name in found:
+        print(f"{name:<8} {best[name]:>15.1f}")
+    paired = statistics.median(p[0] / b[0] for b, p in zip(found["barrier"], found["pool"]))
+    ratio = best["pool"] / best["barrier"]
+    print(f"pool / barrier = {ratio:.2f} (median of paired ratios {paired:.2f}; target >= {TARGET}) -> "
+          f"{'OK' if ratio >= TARGET else 'BELOW TARGET'}")
+
     with ScriptedModel([{"pool": POOL, "seed": 1, "latency": [args.latency, args.sigma, 7]}], work / "model") as model:
         client = LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
-        for repeat in range(args.repeats):
-            for name in ("barrier", "pool"):
-                result = optimize(OptimizeConfig(**common, pool=name == "pool"), store, client)
-                found[name].append(throughput(store, result.run_id))
-                rate, count, seconds = found[name][-1]
-                print(f"repeat {repeat + 1} {name:<8} {count:>3} candidates in {seconds:6.1f} s = {rate:6.1f} "
-                      f"per minute ({result.status})", flush=True)
-
-        print(f"\nbest-of-n, {CANDIDATES} candidates an iteration, {args.calls} calls each, at most {args.in_flight} "
-              f"in flight; latency log-normal, median {args.latency:g} s, sigma {args.sigma:g}")
-        print(f"{'loop':<8} {'candidates/min':>15}")
-        best = {name: max(rate for rate, _, _ in runs) for name, runs in found.items()}
-        for name in found:
-            print(f"{name:<8} {best[name]:>15.1f}")
-        paired = statistics.median(p[0] / b[0] for b, p in zip(found["barrier"], found["pool"]))
-        ratio = best["pool"] / best["barrier"]
-        print(f"pool / barrier = {ratio:.2f} (median of paired ratios {paired:.2f}; target >= {TARGET}) -> "
-              f"{'OK' if ratio >= TARGET else 'BELOW TARGET'}")
-
         config = OptimizeConfig(game="pong", iterations=args.greedy_iterations, eval_max_steps=args.eval_max_steps,
                                 rollout_steps=50, temperature=1.0, workers=2, repairs=0, audit_episodes=0,
                                 rng_key="bench")

@@ -49,9 +49,10 @@ from store import Store
 from store.db import utcnow
 from store.readers import candidates, first_call_models, iterations, pool_bases, run_spending
 
-LOOKAHEAD = 2
-"""How many iterations past the last committed one may have candidates in flight: enough to keep the slots busy
-while an iteration's last candidates play, little enough that prompts are built from recent iterations."""
+LOOKAHEAD = 4
+"""How many iterations past the last committed one may have candidates started: enough that one slow call (a long
+tail of latency) does not idle the other slots while its iteration waits to commit, little enough that prompts are
+built from recent iterations and a hung call does not leave a pile of candidates waiting behind it."""
 
 
 @dataclass
