@@ -155,7 +155,7 @@ def stored_replies(con: duckdb.DuckDBPyConnection, run_id: str,
 
 def first_call_models(con: duckdb.DuckDBPyConnection, run_id: str, before: int) -> dict[tuple[int, int], str]:
     """(iteration, candidate) -> the model of its first call, for the iterations before ``before``, in order: the
-    models an ensemble's proposal pool counts as chosen before the candidates it starts (``pipeline/optimizer/pool.py``)."""
+    models an ensemble's proposal pool counts as chosen before the candidates it starts (``optimizer/pool.py``)."""
     rows = con.execute(
         "SELECT iteration, coalesce(candidate, 0), any_value(request_model) FROM llm_calls WHERE run_id = ? "
         "AND iteration < ? AND coalesce(repair_turn, 0) = 0 GROUP BY ALL ORDER BY 1, 2", [run_id, before]).fetchall()

@@ -89,8 +89,9 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
              log: Callable[[str], None], on_iteration: Callable[[IterationResult], None] | None = None,
              progress: Callable[[int, int], None] | None = None) -> None:
     """Iterations ``state.next_iteration .. config.iterations`` through the pool (module docstring), each given to
-    ``on_iteration`` once committed; iteration 0 must be committed. Raises what stopped it (:class:`BudgetExhausted`, an ``LLMError``, ...) once the calls and
-    games in flight are done and the iterations they completed are committed."""
+    ``on_iteration`` once committed; iteration 0 must be committed. Raises what stopped it
+    (:class:`BudgetExhausted`, an ``LLMError``, ...) once the calls and games in flight are done and the iterations
+    they completed are committed."""
     c = state.config
     per_iteration = state.strategy.max_proposals
     episodes_each = 1 + c.eval_episodes + c.robust_episodes  # a training rollout and the evaluation games
@@ -111,8 +112,8 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
     stop: BaseException | None = None
     last_commit = time.monotonic()
     shown = PoolProgress()
-    waiting, state.waiting = state.waiting, lambda iteration, model: nullcontext()  # no line per call
-
+    # calls overlap: no "waiting for the model" line per call (each iteration's line says what is in flight)
+    waiting, state.waiting = state.waiting, lambda iteration, model: nullcontext()
 
     def propose_one(item: _Candidate, history: History, member: LLMClient | None) -> None:
         try:
