@@ -70,7 +70,7 @@ def test_calls_stay_in_flight_across_iterations_and_iterations_commit_in_order(s
     finished = [r[0] for r in store.query("SELECT finished_at FROM iterations WHERE run_id = ? ORDER BY iteration",
                                           [run_id])]
     assert finished == sorted(finished)
-    assert "calls in flight" in result.iterations[1].pool and "playing" in result.iterations[1].pool
+    assert "in flight" in result.iterations[1].pool and "playing" in result.iterations[1].pool
 
     report = replay(store, run_id)
     assert report.status == "finished" and all(row.matches for row in report.rows), report.as_dict()["iterations"]
