@@ -139,14 +139,14 @@ def call_models(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, str]:
 
 
 def stored_replies(con: duckdb.DuckDBPyConnection, run_id: str,
-                   iteration: int | None = None) -> dict[tuple[str, int], tuple[str, str]]:
-    """(call id, reply text) of the first successful call for each (prompt hash, candidate) of a run, or of one of
-    its iterations: what ``codearcade replay`` answers with, and what a resumed iteration reuses (its proposals
-    can share one prompt: each keeps its own reply)."""
+                   iteration: int) -> dict[tuple[str, int], tuple[str, str]]:
+    """(call id, reply text) of the first successful call for each (prompt hash, candidate) of one iteration of a
+    run: what a resumed iteration reuses (its proposals can share one prompt: each keeps its own reply;
+    ``codearcade replay`` answers from :func:`replay_replies`)."""
     rows = con.execute(
         "SELECT c.prompt_hash, coalesce(c.candidate, 0), c.call_id, b.text FROM llm_calls c "
-        "JOIN blobs b ON b.hash = c.reply_hash WHERE c.run_id = ? AND (? IS NULL OR c.iteration = ?) "
-        "AND c.error_type IS NULL ORDER BY c.created_at", [run_id, iteration, iteration]).fetchall()
+        "JOIN blobs b ON b.hash = c.reply_hash WHERE c.run_id = ? AND c.iteration = ? "
+        "AND c.error_type IS NULL ORDER BY c.created_at", [run_id, iteration]).fetchall()
     replies: dict[tuple[str, int], tuple[str, str]] = {}
     for digest, candidate, call_id, text in rows:
         replies.setdefault((digest, candidate), (call_id, text))

@@ -171,31 +171,13 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     if reused:
         log(f"iteration {iteration}: reusing {_replies(len(reused))} stored for {'this prompt' if len(pending) == 1 else 'these prompts'}")
     to_call = [p for p in pending if p.text is None]
-    reservation = None
     if to_call:
         reservation = check_budgets(store, state, client, [p.prompt for p in to_call],
                                     [p.client or client for p in to_call])
         name_methods = getattr(client, "hold_reply_to_methods", None)  # the offline model's grammar
         if name_methods is not None:
             name_methods([method.name for method in to_call[0].info.trainable])
-        # other processes may read the store while the model thinks: let go of it (checkpointing what this
-        # process wrote) once the requests are on their way
-        try:
-            _complete_all(state, iteration, client, to_call, meanwhile=hold.release if hold is not None else None)
-        except BaseException:
-            release_budget(state, reservation)
-            raise
-    if hold is not None:
-        hold.take()
-    if to_call:
-        for item in to_call:
-            if item.reply is not None:
-                item.text = item.reply.text
-                item.parse()
-        try:
-            record_calls(store, state.run_id, iteration, client, to_call)
-        finally:
-            release_budget(state, reservation)
+        _ask(store, state, iteration, client, to_call, reservation, hold)
         failed = [p for p in to_call if p.error is not None]
         fatal = next((p.error for p in failed if p.error.fatal), None)
         if len(failed) == len(pending):
@@ -269,17 +251,7 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
         who = ", ".join(str(r.request.candidate) for r in to_call)
         log(f"iteration {iteration}: repair turn {turn} of {state.config.repairs} for the rejected "
             f"{'reply' if len(to_call) == 1 else 'replies'} of candidate{'' if len(to_call) == 1 else 's'} {who}")
-        try:
-            _complete_all(state, iteration, client, to_call, meanwhile=hold.release if hold is not None else None)
-            if hold is not None:
-                hold.take()
-            for item in to_call:
-                if item.reply is not None:
-                    item.text = item.reply.text
-                    item.parse()
-            record_calls(store, state.run_id, iteration, client, to_call)
-        finally:
-            release_budget(state, reservation)
+        _ask(store, state, iteration, client, to_call, reservation, hold)
     made = {i: r for i, r in repairs.items() if r.error is None}  # a failed repair leaves the rejection standing
     for i, r in repairs.items():
         if r.error is not None:
@@ -293,6 +265,25 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
         pending[i] = item
         result[i] = outcome
     return result
+
+
+def _ask(store: Store, state: "RunState", iteration: int, client: LLMClient, items: list[_Pending],
+         reservation: tuple[int, int, float] | None, hold: Hold | None) -> None:
+    """Ask for the replies of ``items`` (their worst case reserved by :func:`check_budgets`), read them and record
+    the calls; the reservation is given back once they are recorded (or the asking failed). Other processes may
+    read the store while the model thinks: ``hold`` is let go (checkpointing what this process wrote) once the
+    requests are on their way, and taken again for the recording."""
+    try:
+        _complete_all(state, iteration, client, items, meanwhile=hold.release if hold is not None else None)
+        if hold is not None:
+            hold.take()
+        for item in items:
+            if item.reply is not None:
+                item.text = item.reply.text
+                item.parse()
+        record_calls(store, state.run_id, iteration, client, items)
+    finally:
+        release_budget(state, reservation)
 
 
 def _replies(n: int) -> str:
