@@ -397,7 +397,9 @@ raise ValueError('stat: ' + ' '.join(seen))
     real = [f"{st.st_size}@{int(st.st_mtime)}" for st in map(os.stat, above_mounts)]
     store, printed, requests = _run(path, tmp_path, scripted, body)
     texts = [printed, _store_text(store.path), json.dumps(requests)]
-    for figure in ("48611", "1234567890", *real):
+    # The figures as the policy writes them (size@mtime): a bare "48611" also turns up by chance among the
+    # store's durations and token counts (it did, once in CI), which says nothing of the sandbox.
+    for figure in ("48611@", "@1234567890", *real):
         assert not any(figure in t for t in texts), f"{figure} got out"
     errors = [e for (e,) in store.query("SELECT error FROM episodes WHERE error IS NOT NULL")]
     reasons = [r for (r,) in store.query("SELECT reason FROM rejected_candidates")] if path == "optimize" else []
