@@ -94,6 +94,17 @@ def test_a_call_budget_holds_while_calls_are_in_flight(store, scripted):
     assert counts == [(0, 1), (1, 4)], "the incomplete iteration is not committed"
 
 
+@pytest.mark.parametrize("pool", [False, True])
+def test_the_time_budget_stops_the_run_before_its_next_call(store, scripted, pool):
+    """``--max-wall`` 0.001 min (60 ms) is spent by the starter's iteration: the barrier loop does not start an iteration
+    (one as long as the last would pass it), the pool starts no call; the run ends ``budget``, saying why."""
+    model = scripted(SCRIPT)
+    result = optimize(_config(pool=pool, max_wall_minutes=0.001), store, _client(model))
+    assert result.status == "budget" and "time budget" in result.error and "--max-wall 0.001 min" in result.error
+    assert model.requests() == [] and _calls(store, result.run_id) == [], "no call was made"
+    assert store.query("SELECT iteration FROM iterations WHERE run_id = ?", [result.run_id]) == [(0,)]
+
+
 def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_scores(store, scripted):
     model = scripted(SCRIPT)
     command = [EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,

@@ -39,7 +39,7 @@ from pipeline.optimizer.pool import run_pool
 from pipeline.optimizer.config import RESUME_OVERRIDES, OptimizeConfig, validate_config
 from pipeline.settings import flag_of
 from pipeline.optimizer.feedback import FeedbackBands
-from pipeline.optimizer.propose import BudgetExhausted, Proposal, propose
+from pipeline.optimizer.propose import BudgetExhausted, Proposal, check_wall, propose
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History
 from pipeline.optimizer.task import example_path, task_settings
@@ -54,7 +54,6 @@ from store.readers import (
     iteration_count,
     iterations,
     last_iteration,
-    run_spending,
     starter_version_id,
     update_failures,
 )
@@ -144,19 +143,6 @@ def load_state(store: Store, run_id: str) -> RunState:
     return state
 
 
-def _check_wall(store: Store, state: RunState) -> None:
-    """Raise :class:`BudgetExhausted` if another iteration as long as the last would pass ``max_wall_minutes``."""
-    limit = state.config.max_wall_minutes
-    if limit is None:
-        return
-    with store.read() as con:
-        spent = run_spending(con, state.run_id)
-    if spent["wall_s"] + spent["last_wall_s"] > limit * 60:
-        raise BudgetExhausted(
-            f"time budget: the run has taken {spent['wall_s'] / 60:.1f} min and its last iteration "
-            f"{spent['last_wall_s'] / 60:.1f} min, over --max-wall {limit:g} min")
-
-
 def run_iteration(store: Store, state: RunState, iteration: int, client: LLMClient | None,
                   counter: TokenCounter | None, log: Callable[[str], None],
                   progress: Callable[[int, int], None] | None = None, hold: Hold | None = None) -> IterationResult:
@@ -231,7 +217,7 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
                 run_pool(store, state, client, counter, log, lambda item: _report(result, item, on_iteration), progress)
                 break
             if iteration > 0:
-                _check_wall(store, state)
+                check_wall(store, state, ahead=True)
             _report(result, run_iteration(store, state, iteration, client, counter, log, progress, hold), on_iteration)
         status, error = "finished", _all_updates_failed(store, state.run_id)
         if error is not None:

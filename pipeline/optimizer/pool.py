@@ -42,12 +42,12 @@ from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.assess import Assessment, Screen, assess, screen
 from pipeline.optimizer.conclude import IterationResult, conclude, screen_out
 from pipeline.optimizer.ensemble import member_picks
-from pipeline.optimizer.propose import BudgetExhausted, Proposal, propose
+from pipeline.optimizer.propose import BudgetExhausted, Proposal, check_wall, propose
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History
 from store import Store
 from store.db import utcnow
-from store.readers import candidates, first_call_models, iterations, pool_bases, run_spending
+from store.readers import candidates, first_call_models, iterations, pool_bases
 
 LOOKAHEAD = 4
 """How many iterations past the last committed one may have candidates started: enough that one slow call (a long
@@ -155,13 +155,11 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
             basis = recorded.get((iteration, candidate), committed)
             if iteration >= committed + LOOKAHEAD or basis > committed:
                 return  # it waits for the iterations before it (a recorded candidate: for those it saw)
-            if c.max_wall_minutes is not None:
-                with store.read() as con:
-                    spent = run_spending(con, state.run_id)["wall_s"]
-                if spent > c.max_wall_minutes * 60:
-                    stop = BudgetExhausted(f"time budget: the run has taken {spent / 60:.1f} min, over --max-wall "
-                                           f"{c.max_wall_minutes:g} min")
-                    return
+            try:
+                check_wall(store, state, uncommitted_s=time.monotonic() - last_commit)
+            except BudgetExhausted as exc:
+                stop = exc
+                return
             item = _Candidate(iteration, candidate, basis)
             with store.read() as con:
                 history = History(iterations(con, state.run_id, basis), candidates(con, state.run_id, basis))

@@ -474,3 +474,22 @@ def release_budget(state: "RunState", reservation: tuple[int, int, float] | None
     if reservation is not None:
         with state.budget_lock:
             state.in_flight = [a - b for a, b in zip(state.in_flight, reservation)]
+
+
+def check_wall(store: Store, state: "RunState", *, ahead: bool = False, uncommitted_s: float = 0.0) -> None:
+    """Raise :class:`BudgetExhausted` if the run's time has passed ``max_wall_minutes`` — or, ``ahead``, if one
+    more iteration as long as the last would pass it (the barrier loop, whose iterations come one after another).
+    The run's time is the sum of its committed iterations' (time between a kill and its resume does not count) and
+    ``uncommitted_s``, the time since the last commit (the proposal pool, whose calls run ahead of its commits)."""
+    limit = state.config.max_wall_minutes
+    if limit is None:
+        return
+    with store.read() as con:
+        spent = run_spending(con, state.run_id)
+    taken = spent["wall_s"] + uncommitted_s
+    if ahead and taken + spent["last_wall_s"] > limit * 60:
+        raise BudgetExhausted(
+            f"time budget: the run has taken {taken / 60:.1f} min and its last iteration "
+            f"{spent['last_wall_s'] / 60:.1f} min, over --max-wall {limit:g} min")
+    if taken > limit * 60:
+        raise BudgetExhausted(f"time budget: the run has taken {taken / 60:.1f} min, over --max-wall {limit:g} min")
