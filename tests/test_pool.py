@@ -94,6 +94,23 @@ def test_a_call_budget_holds_while_calls_are_in_flight(store, scripted):
     assert counts == [(0, 1), (1, 4)], "the incomplete iteration is not committed"
 
 
+def test_a_token_budget_is_not_spent_by_the_worst_cases_of_calls_in_flight(store, scripted):
+    """Calls in flight reserve their worst case (prompt + a reply of --max-tokens), and a real reply is far
+    shorter: a call that only those reservations keep out waits for them to be recorded. The pool spends as much of
+    a token budget as the barrier loop (which asks for an iteration's calls at once), and never more than it."""
+    made = {}
+    for pool in (False, True):
+        model = scripted(SCRIPT)
+        result = optimize(_config(pool=pool, candidates=3, iterations=4, repairs=0, max_total_tokens=40_000),
+                          store, _client(model))
+        used = store.query("SELECT sum(input_tokens + output_tokens), count(*) FROM llm_calls WHERE run_id = ?",
+                           [result.run_id])[0]
+        assert used[0] <= 40_000, "the budget holds"
+        made[pool] = (result.status, result.error, used)
+    assert made[True][2][1] >= made[False][2][1] >= 6, made
+    assert made[True][0] == "finished", "12 calls of ~2,000 tokens fit in 40,000, though 4 worst cases do not"
+
+
 @pytest.mark.parametrize("pool", [False, True])
 def test_the_time_budget_stops_the_run_before_its_next_call(store, scripted, pool):
     """``--max-wall`` 0.001 min (60 ms) is spent by the starter's iteration: the barrier loop does not start an iteration

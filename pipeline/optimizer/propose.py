@@ -432,7 +432,8 @@ def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: l
     rates for the model that makes it (``models``, one per prompt; default: ``client`` for all). The run's
     spending so far is every call's, whichever model made it, and the worst case of the calls other threads have
     in flight (the proposal pool); these calls' worst case is reserved until :func:`release_budget` (after their
-    rows are recorded): the reservation, or None without budgets."""
+    rows are recorded): the reservation, or None without budgets. When only the reservations of calls in flight
+    stand in the way, it waits for them to be recorded (they seldom use their worst case) and looks again."""
     c = state.config
     if c.max_cost_usd is None and c.max_total_tokens is None and c.max_llm_calls is None:
         return None
@@ -447,23 +448,34 @@ def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: l
                                       "--max-total-tokens instead")
             worst += rates.cost(p.tokens, c.max_tokens)
     calls = "the next call" if len(prompts) == 1 else f"the next {len(prompts)} calls"
-    with state.budget_lock:
-        with store.read() as con:
-            spent = run_spending(con, state.run_id)
-        flying_calls, flying_tokens, flying_cost = state.in_flight
-        flying = f" ({flying_calls} more in flight)" if flying_calls else ""
+
+    def refusal(spent: dict, flying_calls: int, flying_tokens: int, flying_cost: float) -> str | None:
+        flying = f" ({flying_calls} more call{'s' * (flying_calls != 1)} in flight)" if flying_calls else ""
         if c.max_llm_calls is not None and spent["calls"] + flying_calls + len(prompts) > c.max_llm_calls:
-            raise BudgetExhausted(f"call budget: {spent['calls']} LLM calls made{flying}, {calls} would go over "
-                                  f"--max-llm-calls {c.max_llm_calls}")
+            return (f"call budget: {spent['calls']} LLM calls made{flying}, {calls} would go over "
+                    f"--max-llm-calls {c.max_llm_calls}")
         if c.max_total_tokens is not None and spent["tokens"] + flying_tokens + worst_tokens > c.max_total_tokens:
-            raise BudgetExhausted(
-                f"token budget: {spent['tokens']:,} tokens used{flying}, {calls} may use up to {worst_tokens:,} "
-                f"(prompt {prompt_tokens:,} + reply up to {c.max_tokens * len(prompts):,}), over "
-                f"--max-total-tokens {c.max_total_tokens:,}")
+            return (f"token budget: {spent['tokens']:,} tokens used{flying}, {calls} may use up to {worst_tokens:,} "
+                    f"(prompt {prompt_tokens:,} + reply up to {c.max_tokens * len(prompts):,}), over "
+                    f"--max-total-tokens {c.max_total_tokens:,}")
         if c.max_cost_usd is not None and spent["cost_usd"] + flying_cost + worst > c.max_cost_usd:
-            raise BudgetExhausted(
-                f"cost budget: ${spent['cost_usd']:.4f} spent{flying}, {calls} may cost up to ${worst:.4f}, over "
-                f"--max-cost ${c.max_cost_usd:g}")
+            return (f"cost budget: ${spent['cost_usd']:.4f} spent{flying}, {calls} may cost up to ${worst:.4f}, "
+                    f"over --max-cost ${c.max_cost_usd:g}")
+        return None
+
+    with state.budget_lock:
+        while True:
+            with store.read() as con:
+                spent = run_spending(con, state.run_id)
+            why = refusal(spent, *state.in_flight)
+            if why is None:
+                break
+            if state.in_flight[0] and refusal(spent, 0, 0, 0.0) is None:
+                # only the worst cases of the calls in flight are in the way, and they mostly use far less: wait
+                # for one to be recorded and look again
+                state.budget_lock.wait()
+                continue
+            raise BudgetExhausted(why)
         reservation = (len(prompts), worst_tokens, worst)
         state.in_flight = [a + b for a, b in zip(state.in_flight, reservation)]
         return reservation
@@ -474,6 +486,7 @@ def release_budget(state: "RunState", reservation: tuple[int, int, float] | None
     if reservation is not None:
         with state.budget_lock:
             state.in_flight = [a - b for a, b in zip(state.in_flight, reservation)]
+            state.budget_lock.notify_all()
 
 
 def check_wall(store: Store, state: "RunState", *, ahead: bool = False, uncommitted_s: float = 0.0) -> None:

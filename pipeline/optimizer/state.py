@@ -39,7 +39,9 @@ class RunState:
     """Wrapped around each iteration's LLM calls (iteration, model label); what it yields gets the streamed text,
     if any. The CLI shows how long it has been waiting and how much text has arrived."""
 
-    budget_lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+    # the proposal pool's calls in flight: their worst case reserved (calls, tokens, cost), and a condition that a
+    # call waits on while only those reservations stand between it and the budget
+    budget_lock: threading.Condition = field(default_factory=threading.Condition, repr=False, compare=False)
     in_flight: list[float] = field(default_factory=lambda: [0, 0, 0.0], repr=False, compare=False)
     """The worst case of the calls checked against the budgets and not yet recorded: calls, tokens, USD (the
     proposal pool's threads check theirs while others are in flight: ``propose.check_budgets``)."""
