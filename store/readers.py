@@ -122,10 +122,11 @@ def run_spending(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, float
             "last_wall_s": float(last_wall)}
 
 
-def model_spending(con: duckdb.DuckDBPyConnection, run_id: str) -> list[tuple[str, int, float]]:
-    """(model, calls, cost in USD) of each model a run has called, most calls first (an ensemble's progress)."""
-    return [(m, int(n), float(cost)) for m, n, cost in con.execute(
-        "SELECT request_model, count(*), coalesce(sum(cost_usd), 0) FROM llm_calls WHERE run_id = ? "
+def model_spending(con: duckdb.DuckDBPyConnection, run_id: str) -> list[tuple[str, int, float | None]]:
+    """(model, calls, cost in USD or None without a price) of each model a run has called, most calls first (an
+    ensemble's progress)."""
+    return [(m, int(n), None if cost is None else float(cost)) for m, n, cost in con.execute(
+        "SELECT request_model, count(*), sum(cost_usd) FROM llm_calls WHERE run_id = ? "
         "GROUP BY request_model ORDER BY count(*) DESC, request_model", [run_id]).fetchall()]
 
 

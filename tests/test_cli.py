@@ -257,6 +257,11 @@ def test_an_unreachable_api_base_is_one_line_before_anything_plays(tmp_path):
     (line,) = done.stderr.strip().splitlines()
     assert f"--api-base {url} cannot be reached" in line and "start the server there" in line
     assert not (tmp_path / "s.duckdb").exists(), "nothing was stored: iteration 0 never played"
+    # an ensemble's model with its own server: the message names where that URL was given
+    done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model", f"openai/b,api_base={url}",
+                "--store", "s.duckdb", cwd=tmp_path, env={**_env(tmp_path), "OPENAI_API_KEY": "sk-test"})
+    assert done.returncode == 2 and f"the api_base of --model openai/b {url} cannot be reached" in done.stderr, \
+        done.stderr
     from pipeline.llm.providers import UnreachableEndpointError, check_reachable
 
     with pytest.raises(UnreachableEndpointError, match="not an http"):

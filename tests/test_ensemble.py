@@ -17,6 +17,7 @@ import sys
 
 import pytest
 
+from viewers.tables import money
 from pipeline.optimizer.ensemble import Pull, choose, model_entries, parse_model_entry, pulls, relative_costs, \
     split_model_flags
 from tests.conftest import ROOT, json_reply, random_policy
@@ -74,7 +75,9 @@ def test_entries_parse_and_say_what_to_fix():
     for bad, said in [("openai/a,weight=0", "weight must be a number above 0"),
                       ("openai/a,weight=x", "weight must be a number above 0"),
                       ("openai/a,colour=red", "is not an option of a model"),
-                      (",weight=2", "give a litellm model string")]:
+                      (",weight=2", "give a litellm model string"),
+                      ("openai/a,weight=1,weight=2", "weight is given twice"),
+                      ("openai/a,api_base=", "api_base is empty")]:
         with pytest.raises(ValueError, match=said):
             parse_model_entry(bad)
     with pytest.raises(ValueError, match="given twice"):
@@ -85,6 +88,11 @@ def test_entries_parse_and_say_what_to_fix():
     assert both["model"] == "openai/a" and both["api_base"] == "http://x/v1"
     assert [(e["model"], e["weight"], e["api_base"]) for e in both["models"]] == [
         ("openai/a", 3.0, "http://x/v1"), ("openai/b", 1.0, "http://x/v1")]
+
+
+def test_a_call_s_cost_is_shown_to_the_part_of_a_cent():
+    assert [money(v) for v in (0.0049, 0.00098, 0.0625, 0.15, 12.3456, 0.0, None)] == [
+        "0.0049", "0.00098", "0.0625", "0.15", "12.35", "0.00", "–"]
 
 
 def test_the_command_line_refuses_what_it_cannot_use(tmp_path):
@@ -101,6 +109,11 @@ def test_the_command_line_refuses_what_it_cannot_use(tmp_path):
     done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model-choice", "ucb", "--store", store,
                 "--dry-run")
     assert done.returncode == 2 and "give --model more than once" in done.stderr, done.stderr
+    # a cost cap cannot be kept by a model without a price: said before anything is played, not as a budget stop
+    done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model", "openai/gpt-4o-mini", "--max-cost",
+                "1", "--store", store, "--dry-run")
+    assert done.returncode == 2 and "it has none for openai/a (a local" in done.stderr, done.stderr
+    assert "--max-total-tokens" in done.stderr and not os.path.exists(store)
 
 
 def test_fixed_weights_give_exact_shares_and_bandits_follow_the_rewards():
@@ -159,6 +172,11 @@ def test_the_bandit_gives_the_improving_model_most_calls_and_replay_chooses_alik
     assert [e["model"] for e in recorded["models"]] == [BAD, GOOD] and all(e["price"] for e in recorded["models"])
     listed = json.loads(_cli("runs", "--json", "--store", str(store.path)).stdout)
     assert {m["model"]: m["calls"] for m in listed[0]["models"]} == {BAD: choices.count(BAD), GOOD: choices.count(GOOD)}
+    report = store.path.parent / "report"
+    assert _cli("report", run_id, "--store", str(store.path), "--out", str(report)).returncode == 0
+    (row,) = [line for line in (report / "README.md").read_text().splitlines() if line.startswith(f"| {GOOD} |")]
+    spent = choices.count(GOOD) * 0.0125  # a few cents, each cent's part shown (not rounded to 0.06)
+    assert f"| {money(spent)} | {money(spent / 4)} |" in row and money(spent) == f"{spent:.3g}", row
 
     again = _cli("replay", run_id, "--store", str(store.path))
     assert again.returncode == 0, again.stderr + again.stdout
@@ -208,6 +226,13 @@ def test_the_dry_run_prices_the_mix(tmp_path):
     blend = report["update_cost_usd"]["typical"]
     assert blend == pytest.approx(0.75 * costs["openai/gpt-4o"] + 0.25 * costs["openai/gpt-4o-mini"])
     assert report["update_cost_usd"]["at_most"] > blend
+    done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model", "openai/gpt-4o-mini",
+                "--iterations", "4", "--eval-max-steps", "100", "--rollout-steps", "40", "--dry-run",
+                "--store", str(tmp_path / "s.duckdb"))
+    assert done.returncode == 0, done.stderr
+    (cost,) = [line for line in done.stdout.splitlines() if line.startswith("cost:")]
+    assert cost.startswith("cost: litellm has no price for openai/a (a local or unknown model);"), cost
+    assert "model openai/gpt-4o-mini: 50% of the calls, $" in done.stdout, "the priced one is priced"
 
 
 def test_a_batch_entry_lists_its_models(tmp_path):

@@ -24,6 +24,7 @@ from store import Store
 from store.readers import get_run
 from store.showing import report_rows
 from store.runs import resolve_run_id
+from viewers.tables import money
 from viewers.safe_text import (markdown_cell, markdown_code, markdown_code_block, markdown_text, plot_text,
                                terminal_text)
 
@@ -513,7 +514,7 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                 ("calls", "errors", "unusable replies", "retries", "input tokens", "cached input tokens",
                  "output tokens", "cost (USD)", "mean latency (s)", "max latency (s)", "models"),
                 [(usage["calls"], usage["errors"], usage["parse_errors"], usage["retries"], usage["input_tokens"],
-                  usage.get("cached_input_tokens"), usage["output_tokens"], usage["cost_usd"],
+                  usage.get("cached_input_tokens"), usage["output_tokens"], money(usage["cost_usd"]),
                   usage["mean_latency_s"], usage["max_latency_s"], usage["request_models"])]), ""]
             saving = _cache_saving(run, usage, price)
             if saving:
@@ -523,7 +524,7 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                 ("model", "calls", "share", "accepted", "improvements", "gain", "cost (USD)",
                  "cost per improvement (USD)", "mean latency (s)"),
                 [(terminal_text(m["model"] or ""), m["calls"], f"{m['share']:.0%}", m["accepted"], m["improvements"],
-                  m["gain"], m["cost_usd"], m["cost_per_improvement"], m["mean_latency_s"])
+                  m["gain"], money(m["cost_usd"]), money(m["cost_per_improvement"]), m["mean_latency_s"])
                  for m in data["models"]]), ""]
     best_id = None
     if run["kind"] != "eval" and data["curve"]:

@@ -58,6 +58,16 @@ def to_json_value(value: Any, duck_type: str = "") -> Any:
     return str(value)
 
 
+def money(value: float | None) -> str:
+    """An amount of US dollars to read: cents and up to the cent, below a cent to two significant figures (an
+    LLM call costs fractions of a cent, and ``0.00`` would say it was free); ``–`` when it has no price."""
+    if value is None:
+        return "–"
+    if value == 0 or abs(value) >= 0.995:
+        return f"{value:,.2f}"
+    return f"{value:.2g}" if abs(value) < 0.01 else f"{value:.3g}"
+
+
 def cell_text(value: Any, null: str = "NULL") -> str:
     """A value as the one-line text of a table cell or CSV field."""
     if value is None:

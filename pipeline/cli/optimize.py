@@ -70,7 +70,10 @@ def _model_shares(models) -> str:
     total = sum(calls for _, calls, _ in models)
     if not models or not total:
         return ""
-    return "  models " + ", ".join(f"{terminal_text(name)} {calls / total:.0%} ${cost:.4f}"
+    from viewers.tables import money
+
+    return "  models " + ", ".join(f"{terminal_text(name)} {calls / total:.0%}"
+                                   + (f" ${money(cost)}" if cost is not None else " (no price)")
                                    for name, calls, cost in models)
 
 
@@ -174,11 +177,12 @@ def run(args: argparse.Namespace) -> int:
         validate_config(config)  # a bad setting is one line before any model starts (the offline one takes seconds)
     if args.dry_run:
         return _dry_run(config, args)
+    given_as = {e["api_base"]: f"the api_base of --model {e['model']}" for e in reversed(config.models or [])}
     for base in dict.fromkeys([e["api_base"] for e in config.models or []] + [config.api_base]):
         if base:  # a server that does not answer: one line now, not a failed call after iteration 0
             from pipeline.llm.providers import check_reachable
 
-            check_reachable(base)
+            check_reachable(base, given_as="--api-base" if base == config.api_base else given_as[base])
     started = {} if run_id is None else {"run_id": run_id, "short": short}
     try:
         return _optimize(args, store, config, run_id, started)

@@ -83,11 +83,13 @@ COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has
 
 
 def _models(row: dict) -> str | None:
-    """An ensemble's models: each one's calls, improvements and cost (view model_stats), ``gpt-4o 7c 3i $0.02``."""
+    """An ensemble's models: each one's calls, improvements and cost (view model_stats), ``gpt-4o 7c 3i $0.0049``."""
+    from viewers.tables import money
+
     if not row.get("models"):
         return None
     return "; ".join(f"{m['model'].rsplit('/', 1)[-1]} {m['calls']}c {m['improvements']}i"
-                     + (f" ${m['cost_usd']:.2f}" if m["cost_usd"] is not None else "") for m in row["models"])
+                     + (f" ${money(m['cost_usd'])}" if m["cost_usd"] is not None else "") for m in row["models"])
 
 
 def run(args: argparse.Namespace) -> int:

@@ -104,11 +104,12 @@ class UnreachableEndpointError(ValueError):
     """``--api-base`` names a server that does not answer; the message names the URL and the fix."""
 
 
-def check_reachable(api_base: str, timeout_s: float = 3.0) -> None:
+def check_reachable(api_base: str, timeout_s: float = 3.0, given_as: str = "--api-base") -> None:
     """Raise :class:`UnreachableEndpointError` unless a TCP connection to ``api_base``'s host and port opens within
     ``timeout_s``: checked before iteration 0, as keys are, so a mistyped port or a server not started is one line
     at once rather than a failed LLM call after the first evaluation. Skipped when a proxy from the environment
-    carries the request (only the proxy is reached then)."""
+    carries the request (only the proxy is reached then). ``given_as``: where the user wrote the URL, for the
+    message."""
     import socket
     import urllib.parse
     import urllib.request
@@ -120,7 +121,7 @@ def check_reachable(api_base: str, timeout_s: float = 3.0) -> None:
     except ValueError:
         port = None
     if parts.scheme not in ("http", "https") or not parts.hostname or port is None:
-        raise UnreachableEndpointError(f"--api-base {api_base!r} is not an http(s)://HOST[:PORT] URL; give the "
+        raise UnreachableEndpointError(f"{given_as} {api_base!r} is not an http(s)://HOST[:PORT] URL; give the "
                                        f"server's URL ({example})")
     if urllib.request.getproxies().get(parts.scheme) and not urllib.request.proxy_bypass(parts.hostname):
         return
@@ -133,7 +134,7 @@ def check_reachable(api_base: str, timeout_s: float = 3.0) -> None:
         why = f"unknown host {parts.hostname}"
     except OSError as exc:
         why = (exc.strerror or type(exc).__name__).lower()
-    raise UnreachableEndpointError(f"--api-base {api_base} cannot be reached ({why} at {parts.hostname}:{port}): "
+    raise UnreachableEndpointError(f"{given_as} {api_base} cannot be reached ({why} at {parts.hostname}:{port}): "
                                    f"start the server there, or give the URL it listens on ({example})")
 
 

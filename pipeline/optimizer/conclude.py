@@ -47,7 +47,7 @@ class IterationResult:
     """Repair turns the chosen candidate's reply took (``--repairs``)."""
     pool: str = ""
     """The proposal pool (``--pool``): what was in flight when the iteration was committed."""
-    models: list[tuple[str, int, float]] = field(default_factory=list)
+    models: list[tuple[str, int, float | None]] = field(default_factory=list)
     """An ensemble's calls so far: (model, calls, cost in USD) of each model, most calls first."""
 
 

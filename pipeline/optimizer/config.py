@@ -277,6 +277,15 @@ def validate_config(config: OptimizeConfig) -> None:
         raise ValueError("models: the run's model is the ensemble's first (give the ensemble as --model several "
                          "times)")
     make_strategy(config)
+    if config.max_cost_usd is not None:
+        from pipeline.llm.providers import price  # litellm: only when a cost budget needs its prices
+
+        models = [entry["model"] for entry in config.models] if config.models else [config.model]
+        unpriced = [model or "the offline model" for model in models if model is None or price(model) is None]
+        if unpriced:
+            raise ValueError(f"--max-cost needs litellm's price of every model, and it has none for "
+                             f"{', '.join(unpriced)} (a local or unknown model): give --max-total-tokens or "
+                             f"--max-llm-calls instead")
 
 
 def model_defaults(settings: dict[str, Any]) -> dict[str, Any]:

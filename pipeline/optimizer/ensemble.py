@@ -63,6 +63,10 @@ def parse_model_entry(value: Any) -> dict[str, Any]:
             if not sep or key not in ENTRY_OPTIONS:
                 raise ValueError(f"--model {value!r}: {option!r} is not an option of a model; write "
                                  "MODEL[,weight=W][,api_base=URL]")
+            if key in entry:
+                raise ValueError(f"--model {value!r}: {key} is given twice; give it once")
+            if not text.strip():
+                raise ValueError(f"--model {value!r}: {key} is empty; give a value or leave it out")
             entry[key] = text.strip()
     elif isinstance(value, Mapping):
         unknown = sorted(set(value) - {"model", "price", *ENTRY_OPTIONS})

@@ -98,7 +98,9 @@ class Estimate:
         if self.price is None:
             most = (self.iterations * (self.token_budget + self.max_tokens)
                     + self.repair_calls * (self.repair_tokens + self.max_tokens))
-            out.append(f"cost: litellm has no price for {self.model} (a local or unknown model); tokens per update "
+            unpriced = [name for name, _, rates in self.mix if rates is None] if self.mix else [self.model]
+            out.append(f"cost: litellm has no price for {', '.join(unpriced)} (a local or unknown model"
+                       f"{'s' * (len(unpriced) > 1)}); tokens per update "
                        f"up to {self.token_budget + self.max_tokens:,}, for the run up to {most:,}{self._repairs()}")
             return out
         low, high = self.run_cost_range()
@@ -152,5 +154,4 @@ def _ensemble_estimate(config: OptimizeConfig, calls: int, prompt: Prompt, start
     if all(p is not None for _, _, p in mix):
         blend = Price(sum(s * p.input for _, s, p in mix), sum(s * p.output for _, s, p in mix))
     label = " + ".join(e["model"] for e in config.models) + f" ({config.model_choice})"
-    return Estimate(label, calls, config.token_budget, config.max_tokens, prompt, blend, starter_score,
-                    mix=mix if blend is not None else [(m, s, p) for m, s, p in mix])
+    return Estimate(label, calls, config.token_budget, config.max_tokens, prompt, blend, starter_score, mix=mix)
