@@ -138,7 +138,7 @@ def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_
 
     deadline = time.monotonic() + 300
     while not (count("SELECT count(*) FROM llm_calls WHERE iteration >= 2") >= 2
-               and count("SELECT count(*) FROM iterations") <= 3):
+               and 2 <= count("SELECT count(*) FROM iterations") <= 3):
         assert process.poll() is None and time.monotonic() < deadline, process.communicate()
         time.sleep(0.05)
     process.kill()
@@ -146,6 +146,13 @@ def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_
     run_id = store.query("SELECT run_id FROM runs")[0][0]
     before = {(c[0], c[1], c[2]): c[3] for c in _calls(store, run_id)}
     assert count("SELECT count(*) FROM iterations") < 5, "killed before the end"
+    committed = [i for (i,) in store.query("SELECT iteration FROM iterations WHERE run_id = ?", [run_id])]
+    # replayed as it was left: the iterations it committed replay alike (their candidates' calls are all
+    # recorded); the first it did not is where the replay stops
+    early = replay(store, run_id)
+    rows = {row.iteration: row for row in early.rows}
+    assert all(rows[i].matches for i in committed), early.as_dict()["iterations"]
+    assert early.diverged_at is None or early.diverged_at > max(committed), early.as_dict()
     done = subprocess.run([EXE, "optimize", "--resume", run_id, "--store", str(store.path), "--json"], cwd=ROOT,
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr

@@ -110,6 +110,8 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
     playing: list[_Candidate] = []
     assessed: dict[int, dict[int, _Candidate]] = defaultdict(dict)
     stop: BaseException | None = None
+    failed_at: int | None = None  # the first iteration with a call that failed
+    player_failed = False
     last_commit = time.monotonic()
     shown = PoolProgress()
     # calls overlap: no "waiting for the model" line per call (each iteration's line says what is in flight)
@@ -204,19 +206,25 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
                 calling.pop((payload.iteration, payload.candidate))
                 if error is not None:
                     stop = stop or error
+                    # the iterations before it still finish, as the barrier loop had committed them before this
+                    # call (a replay that misses at iteration 3 still compares 1 and 2); those from it on cannot
+                    failed_at = payload.iteration if failed_at is None else min(failed_at, payload.iteration)
                 else:
                     ready.append(payload)
             else:
                 playing.clear()
                 if error is not None:
                     stop = stop or error
+                    player_failed = True
                 else:
                     for item in payload:
                         assessed[item.iteration][item.candidate] = item
-            if stop is None or isinstance(stop, BudgetExhausted):  # a budget lets what is in flight finish
+            if failed_at is not None:
+                ready[:] = [item for item in ready if item.iteration < failed_at]
+            if player_failed:
+                ready.clear()  # no more play, only what is in flight ends
+            else:  # a budget or a failed call lets what is in flight before it finish
                 commit_what_is_complete()
-            else:
-                ready.clear()  # an error: no more play, only what is in flight ends
     finally:
         state.waiting = waiting
     if stop is not None:
