@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 from typing import Callable, Sequence
 
 from pipeline.cli import (audit, batch, blame, compare, doctor, export, games, new, optimize, replay, report, runs,
@@ -56,10 +58,31 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     return (CliError, PolicyLoadError, UnknownGameError, StoreError, RunBusyError, LocalModelError, ValueError)
 
 
+def _interrupted_once(signum: int, frame: object) -> None:
+    """Ctrl-C: raise KeyboardInterrupt once, then ignore Ctrl-C while the command winds down (the run is marked
+    interrupted, the zygotes and their processes are stopped): a second press would break that off with a
+    traceback and leave processes behind. ``kill -9`` still ends it at once."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handler: Callable[[argparse.Namespace], int] = args.handler
+    # only where Ctrl-C raises KeyboardInterrupt now (a process started with SIGINT ignored keeps ignoring it)
+    if threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _interrupted_once)
+    try:
+        return _handle(handler, args)
+    finally:  # not interrupted (a caller in this process, such as a test): Ctrl-C as it was
+        if signal.getsignal(signal.SIGINT) is _interrupted_once:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def _handle(handler: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
+    """The verb's handler, its user's errors said in one line with the exit code that says what they were."""
     try:
         return handler(args)
     except BrokenPipeError:  # `codearcade sql ... | head`: the reader has what it wanted; say nothing more
