@@ -194,6 +194,7 @@ def test_anthropic_batch_with_a_token_budget_stops_then_resumes_with_a_larger_on
     assert done.returncode == 0, done.stdout + done.stderr
     # each call uses 3,100 tokens and may use up to 2,700: two fit in 7,000 (0 + 2,700, 3,100 + 2,700), a third not
     assert store.query("SELECT status, count(*) FROM runs GROUP BY status") == [("budget", 2)]
+    assert "done: 0 finished, 2 stopped by a budget" in done.stdout, done.stdout
     assert store.query("SELECT max(iteration) FROM iterations GROUP BY run_id") == [(2,), (2,)]
     assert all("seed" not in r["body"] for r in model.raw_requests())
     done = _batch(write(100_000), store, "--workers", "2", env=env)

@@ -154,8 +154,10 @@ def run(args: argparse.Namespace) -> int:
     finally:
         stop()
     failed = result.failed
+    budget = sum(p.state == "budget" for p in result.progress)
     log(f"batch {batch.name} done: {sum(p.state == 'finished' for p in result.progress)} finished, "
-        f"{sum(p.state == 'skipped' for p in result.progress)} skipped, {len(failed)} failed")
+        + (f"{budget} stopped by a budget (rerun with a larger one to resume), " if budget else "")
+        + f"{sum(p.state == 'skipped' for p in result.progress)} skipped, {len(failed)} failed")
     log_file.close()
     for p in failed:
         show(f"codearcade: {p.label} failed: {p.note}; rerun the same command to resume it", file=sys.stderr)
