@@ -17,10 +17,10 @@ import sys
 
 import pytest
 
-from viewers.tables import money
 from pipeline.optimizer.ensemble import Pull, choose, model_entries, parse_model_entry, pulls, relative_costs, \
     split_model_flags
 from tests.conftest import ROOT, json_reply, random_policy
+from viewers.tables import money
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 GOOD, BAD = "openai/gpt-4o", "openai/gpt-4o-2024-08-06"  # the same price at litellm: only improvements differ

@@ -24,9 +24,9 @@ from store import Store
 from store.readers import get_run
 from store.showing import report_rows
 from store.runs import resolve_run_id
-from viewers.tables import money
 from viewers.safe_text import (markdown_cell, markdown_code, markdown_code_block, markdown_text, plot_text,
                                terminal_text)
+from viewers.tables import money
 
 STATUS_STYLE = {  # update_status -> (marker, colour, label)
     "initial": ("s", "#555555", "starting policy"),

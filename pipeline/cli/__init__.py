@@ -75,15 +75,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, _interrupted_once)
     try:
-        return _handle(handler, args)
-    finally:  # not interrupted (a caller in this process, such as a test): Ctrl-C as it was
-        if signal.getsignal(signal.SIGINT) is _interrupted_once:
-            signal.signal(signal.SIGINT, signal.default_int_handler)
-
-
-def _handle(handler: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
-    """The verb's handler, its user's errors said in one line with the exit code that says what they were."""
-    try:
         return handler(args)
     except BrokenPipeError:  # `codearcade sql ... | head`: the reader has what it wanted; say nothing more
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -106,6 +97,9 @@ def _handle(handler: Callable[[argparse.Namespace], int], args: argparse.Namespa
         show(f"codearcade: error: cannot use the store ({one_line(exc)[:300]}); it may be damaged: "
              "`codearcade doctor` reports what is left", file=sys.stderr)
         return EXIT_BAD_INPUT
+    finally:  # not interrupted (a caller in this process, such as a test): Ctrl-C as it was
+        if signal.getsignal(signal.SIGINT) is _interrupted_once:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _store_damage_errors() -> tuple[type[BaseException], ...]:
