@@ -1,7 +1,12 @@
-"""Shared fixtures: a fresh store per test, the example policies, and a writer of throwaway policy files."""
+"""Shared fixtures: a fresh store per test, the example policies, and a writer of throwaway policy files; and the
+suite's own rules of time: a ceiling per test, and ``--soak`` for the long form of the soak loops.
+
+How to run the suite, its quick lane and the full soak: docs/install.md, "Running the tests".
+"""
 
 from __future__ import annotations
 
+import os
 import textwrap
 from pathlib import Path
 
@@ -12,6 +17,35 @@ from store import Store
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "games" / "scaffolds"
 POLICIES = Path(__file__).resolve().parent / "policies"
+
+CEILING_S = float(os.environ.get("CODEARCADE_TEST_CEILING_S", "150"))
+"""No single test may take longer (its call, on a 2-core machine beside the other worker, loaded or not): a test
+that grows past it fails with its time, so it is seen when it lands, not when the suite no longer fits CI's
+90 minutes. The slowest test takes about a quarter of it on an idle machine. ``--soak`` lifts it."""
+
+
+def pytest_addoption(parser):
+    parser.addoption("--soak", action="store_true",
+                     help="codearcade: run the soak loops in full (twenty kills instead of four, ...); no ceiling "
+                          "per test")
+
+
+@pytest.fixture
+def soak(request) -> bool:
+    """Whether the soak loops run in full (``pytest --soak``) or as a few representative rounds (default)."""
+    return bool(request.config.getoption("--soak"))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if (call.when == "call" and report.passed and call.duration > CEILING_S
+            and not item.config.getoption("--soak")):
+        report.outcome = "failed"
+        report.longrepr = (f"{item.nodeid} passed, but took {call.duration:.0f} s, over the ceiling of "
+                           f"{CEILING_S:.0f} s a test (tests/conftest.py: CEILING_S): play fewer steps, share what "
+                           f"it builds, or split it")
 
 
 @pytest.fixture(autouse=True)

@@ -19,7 +19,9 @@ from tests.conftest import COMPETENT_REPLY, ROOT
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 
 
-def _experiments(tmp_path, model, name="smoke", iterations=1):
+def _experiments(tmp_path, model, name="smoke", iterations=1, seeds=(0, 1), audit_episodes=3):
+    """A batch of Pong and Breakout runs, one per seed and game (what these tests check of a batch does not need
+    each run's held-out audit: ``audit_episodes=0`` leaves it out; tests/test_audit.py tests it)."""
     path = tmp_path / f"{name}.toml"
     path.write_text(textwrap.dedent(f"""
         name = "{name}"
@@ -28,11 +30,12 @@ def _experiments(tmp_path, model, name="smoke", iterations=1):
         eval_max_steps = 300
         rollout_steps = 100
         rng_key = "smoke"
+        audit_episodes = {audit_episodes}
         model = "{model.model}"
         api_base = "{model.api_base}"
         [matrix]
         game = ["pong", "breakout"]
-        seed = [0, 1]
+        seed = {list(seeds)}
     """))
     return path
 
@@ -74,9 +77,10 @@ def test_matrix_expands_with_stable_keys(tmp_path, scripted):
     assert len({r.key for r in batch.runs}) == 4
 
 
+@pytest.mark.slow
 def test_local_batch_then_kill_and_rerun(tmp_path, store, scripted):
     model = scripted([COMPETENT_REPLY])
-    path = _experiments(tmp_path, model, iterations=2)
+    path = _experiments(tmp_path, model, iterations=2, audit_episodes=0)
     process = subprocess.Popen([EXE, "batch", str(path), "--store", str(store.path), "--workers", "2"], cwd=ROOT,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 300
@@ -114,12 +118,13 @@ def test_local_batch_then_kill_and_rerun(tmp_path, store, scripted):
     assert again.stdout.count("skip") == 4, "a finished batch has nothing left to do"
 
 
+@pytest.mark.slow
 def test_ray_executor_produces_the_same_rows(tmp_path, scripted):
     pytest.importorskip("ray")
     from store import Store
 
     model = scripted([COMPETENT_REPLY])
-    path = _experiments(tmp_path, model)
+    path = _experiments(tmp_path, model, seeds=(0,), audit_episodes=0)  # a run of each game
     local, remote = Store(tmp_path / "local.duckdb"), Store(tmp_path / "ray.duckdb")
     done = _batch(path, local, "--workers", "2")
     assert done.returncode == 0, done.stderr + done.stdout
@@ -130,6 +135,7 @@ def test_ray_executor_produces_the_same_rows(tmp_path, scripted):
         assert remote.query(f"SELECT count(*) FROM {table}") == local.query(f"SELECT count(*) FROM {table}"), table
 
 
+@pytest.mark.slow
 def test_ablation_example_and_its_sql(tmp_path, store, scripted):
     """examples/ablation.toml with the scripted model standing in, shortened; then examples/ablation.sql."""
     import tomllib
@@ -161,6 +167,7 @@ def test_ablation_example_and_its_sql(tmp_path, store, scripted):
         assert mean == round(sum(bests) / 3, 1) and low <= mean <= high and max_best == max(bests)
 
 
+@pytest.mark.slow
 def test_anthropic_batch_with_a_token_budget_stops_then_resumes_with_a_larger_one(tmp_path, store, scripted):
     """An Anthropic model in a batch (no seed sent), a missing key refused before any run starts, and a
     per-run budget: status `budget`, then the same batch with a larger budget resumes the same runs."""

@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from store import Store
 from tests.conftest import COMPETENT_REPLY, ROOT, json_reply
 from tests.scripted_llm import ScriptedModel
@@ -39,6 +41,7 @@ def test_the_tour_is_ten_codearcade_commands():
     assert len(commands) == 10 and all(words[0] == "codearcade" for words in commands), commands
 
 
+@pytest.mark.slow
 def test_the_readme_tour_runs_as_printed(tmp_path):
     project = tmp_path / "project"
     project.mkdir()
@@ -88,16 +91,24 @@ def test_the_readme_tour_runs_as_printed(tmp_path):
 
 def serve_until_interrupted(words: list[str], cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
     """Run a serving command until it prints its URL and the line that says Ctrl-C stops it, then press Ctrl-C."""
+    # Its own process group with Ctrl-C live, as a terminal's shell starts it: under `nohup` or a CI runner that
+    # ignores SIGINT the child would inherit the ignoring and serve on, holding its ports, after the test.
     proc = subprocess.Popen([EXE, *words[1:]], cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, stdin=subprocess.DEVNULL)
-    lines = []
-    deadline = time.monotonic() + 120
-    for line in proc.stdout:
-        lines.append(line)
-        if "Ctrl-C" in line or time.monotonic() > deadline:
-            break
-    proc.send_signal(signal.SIGINT)
-    rest, err = proc.communicate(timeout=60)
+                            text=True, stdin=subprocess.DEVNULL, process_group=0,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        lines = []
+        deadline = time.monotonic() + 120
+        for line in proc.stdout:
+            lines.append(line)
+            if "Ctrl-C" in line or time.monotonic() > deadline:
+                break
+        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C at a terminal does: the whole group
+        rest, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
     out = "".join(lines) + rest
     assert proc.returncode in (0, 130), out + err
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)

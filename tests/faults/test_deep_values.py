@@ -26,6 +26,9 @@ from tracing.bounded import MAX_DEPTH, TOO_DEEP, bound_json_text, deeper_than, l
 from tracing.capture import to_json
 
 DEPTHS = (3_000, 100_000)
+ROOMY = ("--call-time-limit", "30")
+"""Building a 100,000-deep list each step takes ~0.1-0.3 s of a call, past the default 1 s limit on a loaded
+machine: these tests are about depth, not time, so they give the calls room."""
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 
 
@@ -90,14 +93,15 @@ def test_bounds_hold_for_any_text_and_any_value():
     assert not deeper_than(json.loads(text)) and TOO_DEEP in text
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("depth", DEPTHS)
 def test_a_deep_value_from_a_policy_file_stops_no_run_and_no_resume(depth, store, scripted, tmp_path, capfd):
     path = tmp_path / "deep.py"
     path.write_text(_deep_policy(depth))
-    assert main(["eval", str(path), "--trace", "--max-steps", "30", "--store", str(store.path)]) == 0
+    assert main(["eval", str(path), "--trace", "--max-steps", "30", *ROOMY, "--store", str(store.path)]) == 0
     assert store.query("SELECT end_reason FROM episodes") == [("truncated",)]  # not crashed
     model = scripted(["no suggestion in this reply"])
-    common = ("--iterations", "1", "--eval-max-steps", "40", "--rollout-steps", "30", "--workers", "2")
+    common = ("--iterations", "1", "--eval-max-steps", "40", "--rollout-steps", "30", "--workers", "2", *ROOMY)
     assert _optimize(store, model, str(path), *common) == 0
     run_id = store.query("SELECT run_id FROM runs WHERE kind = 'optimize'")[0][0]
     assert _optimize(store, model, "--resume", run_id, "--iterations", "2") == 0
@@ -108,13 +112,14 @@ def test_a_deep_value_from_a_policy_file_stops_no_run_and_no_resume(depth, store
     assert TOO_DEEP in " ".join(m["content"] for m in model.requests()[-1])  # the prompt shows the cut value
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("depth", DEPTHS)
 def test_a_deep_value_from_a_candidate_stops_no_run_and_no_resume(depth, store, scripted, tmp_path, capfd):
     path = tmp_path / "start.py"
     path.write_text(pong_policy("return 0", prelude="import typing\n"))
     model = scripted([json_reply({"predict_ball_trajectory": _deep_method("predict_ball_trajectory", depth)}),
                       "no suggestion in this reply"])
-    common = ("--eval-max-steps", "40", "--rollout-steps", "30", "--workers", "2")
+    common = ("--eval-max-steps", "40", "--rollout-steps", "30", "--workers", "2", *ROOMY)
     assert _optimize(store, model, str(path), "--iterations", "2", *common) == 0
     run_id = store.query("SELECT run_id FROM runs")[0][0]
     assert store.query("SELECT update_status FROM iterations WHERE iteration = 1") == [("accepted",)]
@@ -147,6 +152,7 @@ def test_forged_deep_node_values_are_refused_where_the_parent_receives_them(stor
     assert store.query("SELECT status FROM runs") == [("finished",)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("depth", DEPTHS)
 def test_a_store_already_holding_a_deep_value_still_resumes(depth, store, scripted, capfd):
     model = scripted(["no suggestion in this reply"])

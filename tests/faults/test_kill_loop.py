@@ -1,4 +1,8 @@
-"""kill -9 at random points of an optimize run, 20+ times, each followed by --resume.
+"""kill -9 at random points of an optimize run, again and again, each followed by --resume.
+
+By default four kills, the three after the first at times drawn from three strata of the first nine seconds of a
+resume (start-up and litellm's import, the first call, evaluation), so a short loop still spreads its kills over
+the whole span; ``pytest --soak tests/faults/test_kill_loop.py`` makes it the full twenty (about 2-3 minutes).
 
 At the end the store passes `codearcade doctor`, every iteration exists exactly once, and the run's results
 (versions and scores per iteration) equal those of an uninterrupted run with the same scripted model.
@@ -13,11 +17,14 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from store import Store
 from tests.conftest import COMPETENT_REPLY, ROOT
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
-KILLS = 20
+KILLS = 4
+SOAK_KILLS = 20
 SEED = 20261124
 
 
@@ -31,7 +38,8 @@ def _results(store):
     return store.query("SELECT iteration, policy_version_id, update_status, score FROM iterations ORDER BY iteration")
 
 
-def test_twenty_kills_lose_nothing(tmp_path, scripted):
+@pytest.mark.slow
+def test_kills_lose_nothing(tmp_path, scripted, soak):
     # one reply for every call: what an iteration gets cannot depend on how often calls were cut off
     model = scripted([COMPETENT_REPLY])
     reference = Store(tmp_path / "reference.duckdb")
@@ -56,12 +64,17 @@ def test_twenty_kills_lose_nothing(tmp_path, scripted):
     first.wait()
     run_id = store.query("SELECT run_id FROM runs")[0][0]
 
+    wanted = SOAK_KILLS if soak else KILLS
+    # litellm's import alone takes seconds: kill anywhere between start-up and a few iterations' work, one kill
+    # in each stratum of that span (in a random order)
+    edges = [0.2 + (9.0 - 0.2) * i / (wanted - 1) for i in range(wanted)]
+    delays = [rng.uniform(low, high) for low, high in zip(edges, edges[1:])]
+    rng.shuffle(delays)
     kills, finished_early = 1, False
-    while kills < KILLS:
+    while kills < wanted:
         process = subprocess.Popen([EXE, "optimize", "--resume", run_id, "--store", str(store.path)], cwd=ROOT,
                                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        # litellm's import alone takes seconds: kill anywhere between start-up and a few iterations' work
-        time.sleep(rng.uniform(0.2, 9.0))
+        time.sleep(delays[kills - 1])
         if process.poll() is not None:  # it finished before the kill: nothing left to interrupt
             finished_early = True
             break
@@ -72,7 +85,7 @@ def test_twenty_kills_lose_nothing(tmp_path, scripted):
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["status"] == "finished"
-    assert kills >= KILLS or finished_early
+    assert kills >= wanted or finished_early
 
     doctor = subprocess.run([EXE, "doctor", "--store", str(store.path), "--json"], cwd=ROOT, capture_output=True,
                             text=True, timeout=120)
