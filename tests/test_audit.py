@@ -66,6 +66,7 @@ def _run(store, model) -> tuple[object, dict]:
     return result, summary
 
 
+@pytest.mark.slow
 def test_a_replayed_game_matches_the_policy_it_copies_and_fails_the_audit(store, scripted, competent_moves):
     actions, competent_score = competent_moves
     result, summary = _run(store, scripted([replay_reply(actions)]))
@@ -89,6 +90,7 @@ def test_a_replayed_game_matches_the_policy_it_copies_and_fails_the_audit(store,
     assert code == 0 and "OVERFIT" in out
 
 
+@pytest.mark.slow
 def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
     result, summary = _run(store, scripted([COMPETENT_REPLY]))
     best, starter = result.audit.row("best", "standard"), result.audit.row("starter", "standard")

@@ -38,6 +38,7 @@ def test_every_benchmark_is_covered():
     assert sorted(p.name for p in (ROOT / "bench").glob("*.py")) == sorted(SMALLEST)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("script", sorted(SMALLEST))
 def test_benchmark_runs_at_its_smallest_size(script):
     args, expected = SMALLEST[script]

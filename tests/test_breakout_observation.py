@@ -106,6 +106,7 @@ def test_a_cleared_row_is_absent_as_in_the_authors_observation_and_empty_under_v
     assert seen[1]["YB"] == [] and all(len(seen[1][row]) == 18 for row in ROWS if row != "YB")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("observation", [2, 1])
 def test_the_papers_best_breakout_policy_scores_353_with_runs_of_bricks_as_with_bricks(store, observation):
     """Its gaps are measured between a row's neighbouring entries: the same gaps in both conventions."""
@@ -114,6 +115,7 @@ def test_the_papers_best_breakout_policy_scores_353_with_runs_of_bricks_as_with_
     assert (episode["return"], episode["length"]) == (353.0, 4000), episode
 
 
+@pytest.mark.slow
 def test_a_breakout_run_stored_before_observation_versions_replays_with_8_pixel_bricks(tmp_path, monkeypatch):
     """The fixture was written by the code before versions were recorded (tests/fixtures/
     make_breakout_v1_run.py): its config has no version, its prompts show 8-pixel bricks, and it reads back,

@@ -87,6 +87,7 @@ def day(tmp_path_factory):
             "second": second}
 
 
+@pytest.mark.slow
 def test_a_day_without_ids_from_a_subdirectory(day):
     env, sub, ids = day["env"], day["sub"], day["ids"]
     assert len(ids) == 3
@@ -165,6 +166,7 @@ def _examples() -> list[tuple[str, int, str]]:
     return found
 
 
+@pytest.mark.slow
 def test_every_sql_example_in_readme_and_docs_runs_as_printed(day):
     examples = _examples()
     assert len(examples) >= 22 and {name for name, _, _ in examples} >= {"README.md", "schema.md"}
@@ -179,6 +181,7 @@ def test_every_sql_example_in_readme_and_docs_runs_as_printed(day):
         assert "row" in done.stdout.splitlines()[-1] or done.stdout.lstrip().startswith("["), f"{name}:{line}"
 
 
+@pytest.mark.slow
 def test_view_explains_episodes_reused_from_an_earlier_iteration(day):
     store, morning = day["store"], day["ids"][1]
     assert store.query("SELECT evaluation FROM candidates WHERE run_id = ? AND iteration = 2", [morning]) == \
@@ -207,6 +210,7 @@ def _closed_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_ctrl_c_prints_the_resume_command_and_it_continues_the_run(tmp_path):
     """A real SIGINT while iteration 1 waits for the model: exit 130 with the run and the exact command, which
     then finishes the same run."""
@@ -254,6 +258,7 @@ def test_ctrl_c_prints_the_resume_command_and_it_continues_the_run(tmp_path):
         [(0, "initial"), (1, "accepted")]
 
 
+@pytest.mark.slow
 def test_an_unreachable_api_base_is_one_line_before_anything_plays(tmp_path):
     url = f"http://127.0.0.1:{_closed_port()}/v1"
     done = _cli("optimize", "--game", "pong", "--model", "openai/local", "--api-base", url, "--store", "s.duckdb",
@@ -276,6 +281,7 @@ def test_an_unreachable_api_base_is_one_line_before_anything_plays(tmp_path):
 # ------------------------------------------------------------------------------------------------------ eval
 
 
+@pytest.mark.slow
 def test_eval_labels_its_run_says_its_id_and_speed(tmp_path):
     env = _env(tmp_path)
     done = _ok(_cli("eval", COMPETENT, "--episodes", "2", "--max-steps", "150", "--name", "first-look", "--store",
@@ -308,6 +314,7 @@ def test_eval_labels_its_run_says_its_id_and_speed(tmp_path):
     assert run_id not in wrong.stderr
 
 
+@pytest.mark.slow
 def test_eval_names_the_store_once(tmp_path):
     """From a subdirectory the start line says which store and why, so no separate line on stderr says it again;
     with --json (no start line) the stderr line is the one that says it."""
@@ -478,6 +485,7 @@ def test_the_per_user_store_is_said_and_the_rule_is_in_the_help(tmp_path):
 # ----------------------------------------------------------------------------------------------------- batch
 
 
+@pytest.mark.slow
 def test_batch_dry_run_shows_labels_and_warns_of_an_unset_key(tmp_path):
     ablation = ROOT / "examples" / "ablation.toml"
     env = _env(tmp_path)
@@ -520,6 +528,7 @@ def test_batch_labels_follow_the_entries(tmp_path):
         load_experiments(path)
 
 
+@pytest.mark.slow
 def test_a_batch_stores_its_labels_and_they_name_the_runs(tmp_path, scripted, capsys):
     from pipeline.cli.compare import is_version_ref
 

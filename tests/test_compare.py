@@ -42,6 +42,7 @@ def stored_actions(store, run_id: str) -> list:
     return [r[0] for r in rows]
 
 
+@pytest.mark.slow
 def test_two_versions_report_the_first_divergent_step(store, tmp_path, capsys, wider_dead_zone):
     rrd = tmp_path / "side_by_side.rrd"
     code, out, err = run_cli(capsys, "compare", COMPETENT, wider_dead_zone, "--max-steps", STEPS, "--rerun", rrd,
@@ -105,6 +106,7 @@ def test_identical_versions_never_diverge(store, capsys):
     assert code == 2 and "there are no runs yet" in err
 
 
+@pytest.mark.slow
 def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted):
     ids = []
     for replies in ([COMPETENT_REPLY, "Sorry, I cannot help with that."], ["Sorry.", "Still no."]):
@@ -203,6 +205,7 @@ def stored_returns(store, run_id: str) -> list[float]:
                                       "ORDER BY episode_index", [run_id])]
 
 
+@pytest.mark.slow
 def test_a_policy_against_itself_on_other_audit_seeds_differs_by_no_more_than_the_noise(store, capsys):
     from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY
     from store.scores import difference, score_episodes
@@ -229,6 +232,7 @@ def test_a_policy_against_itself_on_other_audit_seeds_differs_by_no_more_than_th
         assert (report["scores"][label]["mean"], report["scores"][label]["low"]) == (score.mean, score.low)
 
 
+@pytest.mark.slow
 def test_the_starter_against_the_competent_policy_differs_beyond_the_noise(store, capsys, tmp_path):
     from pipeline.cli import main as cli
 

@@ -95,6 +95,7 @@ def test_a_call_s_cost_is_shown_to_the_part_of_a_cent():
         "0.0049", "0.00098", "0.0625", "0.15", "12.35", "0.00", "–"]
 
 
+@pytest.mark.slow
 def test_the_command_line_refuses_what_it_cannot_use(tmp_path):
     store = str(tmp_path / "s.duckdb")
     done = _cli("optimize", "--game", "pong", "--model", "openai/a,weight=-1", "--model", "openai/b",
@@ -153,6 +154,7 @@ def test_improvements_are_counted_against_the_parent_by_the_score_rule():
 # ------------------------------------------------------------------------------------------- end to end
 
 
+@pytest.mark.slow
 def test_the_bandit_gives_the_improving_model_most_calls_and_replay_chooses_alike(store, scripted, write_policy):
     policy = write_policy(STARTER)
     done = _cli("optimize", str(policy), *_models(scripted), "--model-choice", "ucb", "--iterations", "8", *FAST,
@@ -184,6 +186,7 @@ def test_the_bandit_gives_the_improving_model_most_calls_and_replay_chooses_alik
     assert _choices(store, replayed[0]) == choices, "the replay chose every model as the run did"
 
 
+@pytest.mark.slow
 def test_a_resumed_run_chooses_what_an_uninterrupted_one_does(store, scripted, write_policy):
     policy = write_policy(STARTER)
     args = ("--model-choice", "thompson", *FAST, "--store", str(store.path))
@@ -198,6 +201,7 @@ def test_a_resumed_run_chooses_what_an_uninterrupted_one_does(store, scripted, w
     assert _choices(store, resumed_id) == _choices(store, whole_id)
 
 
+@pytest.mark.slow
 def test_the_cost_cap_holds_across_both_models(store, scripted, write_policy):
     # every call costs $0.0125 (3000 + 500 tokens at $2.5/$10 per M, both models); before a call its worst case
     # (the prompt as counted plus a 1000-token reply) is at most $0.02. With $0.05: calls 1 (0 + 0.02), 2
@@ -214,6 +218,7 @@ def test_the_cost_cap_holds_across_both_models(store, scripted, write_policy):
     assert store.query("SELECT sum(cost_usd) FROM llm_calls")[0][0] <= 0.05
 
 
+@pytest.mark.slow
 def test_the_dry_run_prices_the_mix(tmp_path):
     done = _cli("optimize", "--game", "pong", "--model", "openai/gpt-4o,weight=3", "--model", "openai/gpt-4o-mini",
                 "--iterations", "4", "--eval-max-steps", "100", "--rollout-steps", "40", "--dry-run", "--json",

@@ -189,6 +189,7 @@ def _trajectory(env, seed: int, actions: list[int]) -> list:
     return seen
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("game", sorted(GAMES))
 def test_a_reset_from_the_loaded_snapshot_is_a_rom_load_byte_for_byte(game):
     """Without sticky actions a seeded reset restores the state the environment was built with instead of loading

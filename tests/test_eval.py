@@ -212,6 +212,7 @@ def test_parallel_workers_keep_every_episode(store, capsys):
     assert store.query("SELECT count(*), count(DISTINCT episode_id) FROM steps") == [(240, 3)]
 
 
+@pytest.mark.slow
 def test_console_script(tmp_path):
     exe = os.path.join(os.path.dirname(sys.executable), "codearcade")
     help_text = subprocess.run([exe, "eval", "--help"], capture_output=True, text=True, check=True).stdout

@@ -64,6 +64,7 @@ def test_any_spelling_and_generic_games():
                             r"for it) [^']+", str(refused.value)), str(refused.value)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("game", ["riverraid", "ms_pacman", "boxing", "tennis"])
 def test_generic_game_scaffold_from_new_evaluates_and_stores_steps(tmp_path, game):
     policy = tmp_path / f"{game}.py"
@@ -84,6 +85,7 @@ def test_generic_game_scaffold_from_new_evaluates_and_stores_steps(tmp_path, gam
     assert again.returncode == 2 and "--force" in again.stderr
 
 
+@pytest.mark.slow
 def test_games_lists_curated_and_generic():
     listed = json.loads(_cli("games", "--json").stdout)
     by_name = {g["game"]: g for g in listed}
@@ -94,6 +96,7 @@ def test_games_lists_curated_and_generic():
     assert by_name["riverraid"]["one_life"] is None, "the authors' protocol is known for their games only"
 
 
+@pytest.mark.slow
 def test_a_game_added_from_outside_the_package_plays_through_eval(tmp_path):
     """One module and its scaffold, in a package of their own: no file of codearcade changes."""
     package = tmp_path / "arcade_extra"

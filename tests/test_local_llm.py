@@ -172,6 +172,7 @@ def test_offline_notice_is_shown_once(monkeypatch):
     assert "--model" in out.getvalue() and "--api-base" in out.getvalue()
 
 
+@pytest.mark.slow
 def test_offline_run_killed_in_iteration_1_resumes_with_the_server_started_again(tmp_path):
     """kill -9 of an offline run while iteration 1 asks the model; --resume starts the local server again."""
     import signal
@@ -208,6 +209,7 @@ def test_offline_run_killed_in_iteration_1_resumes_with_the_server_started_again
     assert calls and calls[0][0] == f"openai/{local_llm.MODEL_ALIAS}", "the local server answered"
 
 
+@pytest.mark.slow
 def test_the_offline_model_is_held_to_the_reply_schema():
     """The offline client asks llama.cpp for the reply schema (a grammar there) with the policy's methods named
     and every string held to its share of the reply: SmolLM2, which otherwise writes prose, unclosed code fences

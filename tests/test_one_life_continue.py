@@ -58,6 +58,7 @@ def bare_env(game: str):
     return ObjectObservation(ale, spec)
 
 
+@pytest.mark.slow
 def test_a_continued_asterix_game_goes_on_where_each_life_was_lost(store, capsys, tmp_path):
     """Four episodes of the (random, seeded) starter: lives 1-3 of one game, then, after the game over, the first
     life of the next game (their evaluation resets on a real game over), all from seed 0."""
@@ -209,6 +210,7 @@ def test_one_policy_object_plays_the_whole_game(store, capsys, write_policy, wor
     assert store.query("SELECT count(*) FROM steps WHERE episode_id = ?", [second["episode_id"]])[0][0] == 5
 
 
+@pytest.mark.slow
 def test_the_competent_asterix_policy_scores_their_figure_under_their_protocol(store, capsys):
     """3 x 20,000 (their Asterix evaluation) of tests/policies/asterix_competent.py: lives 1-3 of one game score
     3,400, 32,300 and 6,800, mean 14,166.7 (their 14,167: docs/games.md, section Games), where ``--one-life`` (the

@@ -24,6 +24,7 @@ def _config(**kwargs):
     return OptimizeConfig(**{**defaults, **kwargs})
 
 
+@pytest.mark.slow
 def test_competent_update_makes_the_score_jump(store, scripted):
     model = scripted([COMPETENT_REPLY, "Sorry, I cannot help with that.",
                       json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    return obs['Nope']\n"})])
@@ -55,6 +56,7 @@ def test_competent_update_makes_the_score_jump(store, scripted):
     assert table3[1][2] > table3[0][2], "the competent version is more complex than the starter"
 
 
+@pytest.mark.slow
 def test_both_reply_formats_and_hostile_candidates(store, scripted):
     fenced = f"Here you go:\n```python\n{COMPETENT_SELECT}```\nand\n```python\n{COMPETENT_PREDICT}```"
     replies = [
@@ -89,6 +91,7 @@ def test_transient_errors_are_retried_and_fatal_ones_stop_cleanly(store, scripte
     assert store.query("SELECT status, error FROM runs")[0][0] == "failed"
 
 
+@pytest.mark.slow
 def test_rollback_after_a_regression(store, scripted):
     bad = json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    return 2\n"})
     model = scripted([COMPETENT_REPLY, bad, COMPETENT_REPLY])
@@ -133,6 +136,7 @@ def test_rollout_only_feedback_for_the_ablation(store, scripted):
     assert "Evaluation (full game)" not in model.requests()[0][1]["content"].split("#Feedback")[1]
 
 
+@pytest.mark.slow
 def test_offline_default_model_runs_the_loop(tmp_path):
     """The README's main job, shortened: no --model starts SmolLM2 locally and calls it through litellm."""
     import os

@@ -167,6 +167,7 @@ def _stored_us(moment: datetime) -> int:
     return round(moment.replace(tzinfo=timezone.utc).timestamp() * 1e6)
 
 
+@pytest.mark.slow
 def test_a_run_sent_to_phoenix_reads_back_with_its_tree_times_and_tokens(run_and_phoenix, phoenix, capsys):
     store, run_id, _ = run_and_phoenix
     code, out, err = _export(capsys, run_id[:10], "--otlp", phoenix.http_url, "--store", str(store.path), "--json")
@@ -318,6 +319,7 @@ def test_a_receiver_that_refuses_is_one_line(run_and_phoenix, phoenix, capsys):
     assert f"{phoenix.http_url}/not/otlp/v1/traces refused the spans" in err and "--protocol grpc" in err
 
 
+@pytest.mark.slow
 def test_an_eval_run_has_its_episodes_under_the_run(tmp_path):
     store = Store(tmp_path / "eval.duckdb")
     done = subprocess.run([EXE, "eval", str(ROOT / "tests" / "policies" / "pong_competent.py"), "--episodes", "2",

@@ -55,6 +55,7 @@ def _points(ax) -> list[tuple[tuple[float, float], bool]]:
     return out
 
 
+@pytest.mark.slow
 def test_lineage_draws_a_candidate_never_played_apart_from_its_parents_score(pictured):
     data, _ = pictured
     nodes = {n["iteration"]: n for n in data["lineage"]}

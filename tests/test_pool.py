@@ -50,6 +50,7 @@ def _outcome(store, run_id):
     return iterations, candidates
 
 
+@pytest.mark.slow
 def test_calls_stay_in_flight_across_iterations_and_iterations_commit_in_order(store, scripted):
     model = scripted(SCRIPT)
     result = optimize(_config(), store, _client(model))
@@ -84,6 +85,7 @@ def test_greedy_keeps_its_order():
         validate_config(OptimizeConfig(game="pong", pool=True))
 
 
+@pytest.mark.slow
 def test_a_call_budget_holds_while_calls_are_in_flight(store, scripted):
     model = scripted(SCRIPT)
     result = optimize(_config(max_llm_calls=6, repairs=0), store, _client(model))
@@ -94,6 +96,7 @@ def test_a_call_budget_holds_while_calls_are_in_flight(store, scripted):
     assert counts == [(0, 1), (1, 4)], "the incomplete iteration is not committed"
 
 
+@pytest.mark.slow
 def test_a_token_budget_is_not_spent_by_the_worst_cases_of_calls_in_flight(store, scripted):
     """Calls in flight reserve their worst case (prompt + a reply of --max-tokens), and a real reply is far
     shorter: a call that only those reservations keep out waits for them to be recorded. The pool spends as much of
@@ -122,6 +125,7 @@ def test_the_time_budget_stops_the_run_before_its_next_call(store, scripted, poo
     assert store.query("SELECT iteration FROM iterations WHERE run_id = ?", [result.run_id]) == [(0,)]
 
 
+@pytest.mark.slow
 def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_scores(store, scripted):
     model = scripted(SCRIPT)
     command = [EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
@@ -170,6 +174,7 @@ def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_
     assert _outcome(store, report.replay_run_id) == _outcome(store, run_id)
 
 
+@pytest.mark.slow
 def test_an_ensemble_in_the_pool_shares_its_calls_by_weight_and_replays_alike(store, scripted):
     """Models are chosen as the pool starts candidates, in order, the calls in flight counting as chosen: 1:1
     weights give each model half the calls although most start before the iterations they follow are committed."""

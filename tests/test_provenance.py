@@ -89,6 +89,7 @@ def run(tmp_path_factory):
     return store, result.run_id
 
 
+@pytest.mark.slow
 def test_blame_attributes_every_line_of_the_final_version_to_its_iteration(run):
     store, run_id = run
     statuses = [r[0] for r in store.query("SELECT update_status FROM iterations WHERE run_id = ? ORDER BY iteration",

@@ -53,6 +53,7 @@ PROVIDERS = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("provider,name,priced", PROVIDERS, ids=[p[0] for p in PROVIDERS])
 def test_each_provider_protocol_wins_pong_in_one_iteration(store, scripted, provider, name, priced):
     model = scripted([COMPETENT_REPLY])
@@ -102,6 +103,7 @@ def test_each_provider_protocol_wins_pong_in_one_iteration(store, scripted, prov
     assert params["response_format"]["json_schema"]["schema"] == REPLY_SCHEMA, "recorded as litellm was given it"
 
 
+@pytest.mark.slow
 def test_reasoning_model_gets_max_completion_tokens_and_no_temperature(store, scripted):
     model = scripted(["Nothing to change."])
     done = _optimize(store, model, "openai", "o3-mini", "--iterations", "1", "--eval-max-steps", "200", *FAST)
@@ -126,6 +128,7 @@ def test_the_reply_schema_goes_where_the_model_can_take_one():
         assert ("response_format" in client.request_params()) == structured, model
 
 
+@pytest.mark.slow
 def test_a_server_that_refuses_the_reply_schema_is_asked_again_without_it(store, scripted):
     """An OpenAI-compatible server of the user's own that does not take response_format: the call is made again
     without it (not counted as a retry), and every later call leaves it out; llm_calls records what was sent."""
@@ -142,6 +145,7 @@ def test_a_server_that_refuses_the_reply_schema_is_asked_again_without_it(store,
     assert store.query("SELECT update_status FROM iterations WHERE iteration = 1") == [("accepted",)]
 
 
+@pytest.mark.slow
 def test_anthropic_prompt_caching_is_recorded(store, scripted):
     model = scripted(["No change this time."])
     done = _optimize(store, model, "anthropic", "claude-sonnet-4-5", "--iterations", "2", "--eval-max-steps", "200",
@@ -191,6 +195,7 @@ def test_no_key_fails_at_once_naming_the_variable(tmp_path):
     assert not store.exists(), "nothing is evaluated or stored before the key is there"
 
 
+@pytest.mark.slow
 def test_fatal_error_mid_run_fails_then_resume_finishes_each_iteration_once(store, scripted):
     model = scripted([COMPETENT_REPLY, {"status": 401}, "No change."])
     done = _optimize(store, model, "anthropic", "claude-sonnet-4-5", "--iterations", "2", "--eval-max-steps", "300",
@@ -234,6 +239,7 @@ def test_an_error_a_wrong_address_gives_names_the_url_without_its_credentials(sc
     assert raised.value.message == f"Connection error. (asked at {base})"
 
 
+@pytest.mark.slow
 def test_a_run_whose_every_update_failed_is_not_a_success(store, scripted):
     model = scripted([{"status": 503}])
     done = _optimize(store, model, "openai", "gpt-4o", "--iterations", "1", "--eval-max-steps", "200", *FAST,
@@ -245,6 +251,7 @@ def test_a_run_whose_every_update_failed_is_not_a_success(store, scripted):
     assert attempts == [(4, "ServiceUnavailableError")], "transient errors are retried (3 retries) and recorded"
 
 
+@pytest.mark.slow
 def test_cost_budget_stops_at_the_right_iteration_and_resumes(store, scripted):
     # every reply costs 5000 input + 500 output tokens at claude-sonnet-4-5's $3/$15 per M: $0.0225; before a
     # call its worst case (a prompt of at most 4000 tokens and a 1000-token reply) is at most $0.027. With
@@ -266,6 +273,7 @@ def test_cost_budget_stops_at_the_right_iteration_and_resumes(store, scripted):
     assert json.loads(store.query("SELECT config FROM runs")[0][0])["max_cost_usd"] == 1
 
 
+@pytest.mark.slow
 def test_token_budget_needs_no_price(store, scripted):
     model = scripted([{"content": "No change.", "usage": {"input": 100, "output": 10}}])
     done = _optimize(store, model, "ollama_chat", "qwen2.5-coder", "--iterations", "3", "--eval-max-steps", "200",
@@ -275,6 +283,7 @@ def test_token_budget_needs_no_price(store, scripted):
     assert store.query("SELECT count(*) FROM llm_calls")[0][0] == 0, "a 3000-token prompt + 500 never fits 3000"
 
 
+@pytest.mark.slow
 def test_dry_run_prices_the_first_update_without_calling_the_model(tmp_path, scripted):
     model = scripted(["never sent"])
     store = tmp_path / "s.duckdb"
@@ -297,6 +306,7 @@ def test_dry_run_prices_the_first_update_without_calling_the_model(tmp_path, scr
     assert model.raw_requests() == [] and not store.exists()
 
 
+@pytest.mark.slow
 def test_resume_of_a_finished_run_changes_nothing(store, scripted):
     model = scripted(["No change."])
     assert _optimize(store, model, "openai", "scripted", "--iterations", "1", "--eval-max-steps", "200",
@@ -308,6 +318,7 @@ def test_resume_of_a_finished_run_changes_nothing(store, scripted):
     assert len(model.requests()) == asked == 2, "the update and its repair turn; the resume asked nothing"
 
 
+@pytest.mark.slow
 def test_eval_runs_cannot_be_resumed_and_a_killed_one_shows_interrupted(tmp_path):
     store_path = tmp_path / "s.duckdb"
     slow = tmp_path / "slow.py"  # ~10 ms a step: the episode outlasts the checks below
@@ -339,6 +350,7 @@ def test_eval_runs_cannot_be_resumed_and_a_killed_one_shows_interrupted(tmp_path
     assert any("interrupted" in f["check"] for f in json.loads(doctor.stdout)["findings"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("provider,name", [("anthropic", "claude-sonnet-4-5"), ("openai", "gpt-4o")])
 def test_streamed_replies_land_like_whole_ones(store, scripted, provider, name):
     model = scripted([COMPETENT_REPLY])

@@ -9,6 +9,8 @@ import subprocess
 import sys
 import tomllib
 
+import pytest
+
 from games import GAMES
 from store.published import published_rows, refresh_published
 from tests.conftest import COMPETENT_REPLY, ROOT
@@ -48,6 +50,7 @@ def test_the_table_follows_the_game_modules(store):
         assert refresh_published(con) is False, "nothing to rewrite"
 
 
+@pytest.mark.slow
 def test_benchmarks_sql_over_a_real_short_batch(tmp_path, store, scripted):
     """examples/benchmarks.toml cut to two games and one iteration, the scripted model standing in; then
     examples/benchmarks.sql prints our best beside theirs, for every game, and the protocol each was played

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
@@ -80,6 +82,7 @@ def test_the_repaired_reply_is_validated_like_a_first_one_and_the_conversation_g
     assert store.query("SELECT repair_calls, saved_by_repair FROM run_summary") == [(2, 0)]
 
 
+@pytest.mark.slow
 def test_no_repairs_with_zero_and_none_past_the_call_budget(store, scripted):
     model = scripted([RAISES, COMPETENT_REPLY])
     result = optimize(_config(repairs=0), store, _client(model))

@@ -112,6 +112,7 @@ def test_a_cut_off_code_string_is_never_closed_into_code():
         read_reply(cut)
 
 
+@pytest.mark.slow
 def test_the_loop_records_how_each_reply_was_read(store, scripted):
     """Through the real loop (OpenAI wire protocol, litellm): a nested answer is accepted; a fenced JSON with a
     trailing comma, a JSON in prose and one with a brace too many are read (the same code again); prose is refused

@@ -85,6 +85,7 @@ def assert_holds_episode(content: dict, store, episode_id: str, frames_every: in
     assert props["episode:episode_id"] == episode_id and props["episode:length"] == n
 
 
+@pytest.mark.slow
 def test_live_and_rebuilt_recordings_hold_the_stored_episode(store, tmp_path, capsys):
     live = tmp_path / "live"
     code, out, err = run_cli(capsys, "eval", EXAMPLES / "breakout.py", "--trace", "--episodes", 2, "--max-steps", STEPS,
@@ -117,6 +118,7 @@ def test_live_and_rebuilt_recordings_hold_the_stored_episode(store, tmp_path, ca
     assert "/code:TextDocument:text" in again["static"]
 
 
+@pytest.mark.slow
 def test_replay_that_diverges_from_the_store_is_reported(store, tmp_path, capsys):
     code, out, err = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 80, "--store", store.path, "--json")
     assert code == 0, err
@@ -149,6 +151,7 @@ def test_view_rejects_what_is_not_there(store, capsys):
     assert loaded.stdout.strip() == "False", ("view's checks never load the Rerun SDK", loaded.stderr[-500:])
 
 
+@pytest.mark.slow
 def test_run_recording_has_one_score_per_iteration(store, tmp_path, scripted, capsys):
     model = scripted([COMPETENT_REPLY, "Sorry, I cannot help with that."])
     live = tmp_path / "live"

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 
+import pytest
 
 import pipeline.optimizer.prompt
 from pipeline.optimizer.replay import replay
@@ -77,6 +78,7 @@ def _assert_complete(store, iterations=3):
     assert all(a == b for a, b in lengths)
 
 
+@pytest.mark.slow
 def test_kill_during_llm_call_then_resume(store, scripted):
     model = scripted([COMPETENT_REPLY, {"sleep": 60, "content": COMPETENT_REPLY}, COMPETENT_REPLY])
     process = _start(model, store)
@@ -91,6 +93,7 @@ def test_kill_during_llm_call_then_resume(store, scripted):
     assert json.loads(done.stdout)["status"] == "finished"
 
 
+@pytest.mark.slow
 def test_kill_during_evaluation_reuses_the_stored_reply(store, scripted):
     model = scripted([COMPETENT_REPLY])
     # One worker and whole games: the evaluation starts after the training rollout is written and plays for
@@ -109,6 +112,7 @@ def test_kill_during_evaluation_reuses_the_stored_reply(store, scripted):
     assert _count(store, "SELECT count(*) FROM llm_calls WHERE iteration = 1") == 1
 
 
+@pytest.mark.slow
 def test_random_kills_end_like_an_uninterrupted_run(store, scripted, tmp_path):
     from store import Store
 
@@ -137,6 +141,7 @@ def test_random_kills_end_like_an_uninterrupted_run(store, scripted, tmp_path):
     assert store.query("SELECT iteration, policy_version_id, score FROM iterations ORDER BY iteration") == expected
 
 
+@pytest.mark.slow
 def test_replay_matches_then_reports_divergence(store, scripted, monkeypatch):
     model = scripted([COMPETENT_REPLY, "no code here", COMPETENT_REPLY])
     done = subprocess.run(_optimize(model, store), cwd=ROOT, capture_output=True, text=True, timeout=600)

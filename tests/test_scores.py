@@ -85,6 +85,7 @@ def test_differences_and_aggregates():
     assert iqm([[7], [7]]) == (7.0, 7.0, 7.0)
 
 
+@pytest.mark.slow
 def test_a_candidate_that_raises_at_step_300_is_never_the_best(store, scripted, tmp_path):
     model = scripted([failing_reply("raise")])
     result = _optimize(store, model)
@@ -113,6 +114,7 @@ def test_a_candidate_that_raises_at_step_300_is_never_the_best(store, scripted, 
     assert code == 0 and f"{it0.score:g}" in readme and "forfeit" in readme.lower()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("strategy", ["best-of-n"])
 def test_no_way_of_failing_at_step_300_wins_a_population(store, scripted, strategy):
     model = scripted([failing_reply("raise"), failing_reply("spin"), failing_reply("memory")])

@@ -144,6 +144,7 @@ def test_model_defaults_fill_only_what_is_not_given():
     assert model_defaults({"model": "openai/x", "game": "pong"}) == {"model": "openai/x", "game": "pong"}
 
 
+@pytest.mark.slow
 def test_the_cli_and_a_batch_entry_record_the_same_config(tmp_path):
     """The same settings, once on the command line and once in a batch file, with the offline model (whose
     defaults the two used to apply differently: 512-token replies against 4,096): the same runs.config, but for

@@ -228,6 +228,7 @@ def _poll_counts(store_path: Path, writer: subprocess.Popen, query: str, capsys)
     return seen, failures
 
 
+@pytest.mark.slow
 def test_queries_while_eval_writes(tmp_path, capsys):
     """A real `codearcade eval` writes 4 episodes; `codearcade sql` in this process and in subprocesses meanwhile."""
     path = tmp_path / "live.duckdb"
@@ -256,6 +257,7 @@ def test_queries_while_eval_writes(tmp_path, capsys):
     assert seen[-1][0] <= final[0] == 4 and seen[-1][1] <= final[1]
 
 
+@pytest.mark.slow
 def test_queries_while_a_writer_commits_many_times_a_second(tmp_path, capsys):
     """A harsher writer: 40 small transactions through Store.write, 50 a second (an evaluation commits about
     twice a second); every query gets in between them and sees the counts grow."""

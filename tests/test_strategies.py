@@ -87,6 +87,7 @@ def test_greedy_replays_a_run_made_before_strategies_existed(tmp_path):
     assert _steps(store, report.replay_run_id) < _steps(store, run_id) * 0.6
 
 
+@pytest.mark.slow
 def test_evaluation_cache_saves_steps_not_scores(store, scripted):
     replies = ["not code", json_reply({}), COMPETENT_REPLY, ALWAYS_UP, "still not code"]
     config = dict(game="pong", iterations=5, eval_max_steps=900, rollout_steps=50, workers=2, token_budget=6000,
@@ -110,6 +111,7 @@ def test_evaluation_cache_saves_steps_not_scores(store, scripted):
     assert five == three
 
 
+@pytest.mark.slow
 def test_best_of_n_asks_for_its_proposals_at_once_and_keeps_the_best(store, scripted):
     delay = 2.0
     model = scripted([{"pool": POOL, "seed": 3, "sleep": delay}])
@@ -143,6 +145,7 @@ def test_best_of_n_asks_for_its_proposals_at_once_and_keeps_the_best(store, scri
     assert lineage == (8, 8)
 
 
+@pytest.mark.slow
 def test_beam_expands_its_best_versions(store, scripted):
     model = scripted([{"pool": POOL, "seed": 11}])
     config = OptimizeConfig(game="pong", strategy="beam", beam_width=2, candidates=2, iterations=3,
@@ -165,6 +168,7 @@ def test_beam_expands_its_best_versions(store, scripted):
     assert frontier[0][1] == max(c[3] for c in candidates)
 
 
+@pytest.mark.slow
 def test_kill_during_a_concurrent_iteration_then_resume(store, scripted):
     exe = os.path.join(os.path.dirname(os.sys.executable), "codearcade")
     model = scripted([{"pool": POOL, "seed": 5}])
@@ -208,6 +212,7 @@ def test_strategy_options_are_checked():
         optimize(OptimizeConfig(game="pong", candidates=3), Store("/nonexistent/x.duckdb"), None)
 
 
+@pytest.mark.slow
 def test_strategies_example_and_its_sql(tmp_path, store, scripted):
     """examples/strategies.toml, shortened to a budget of 4 calls with the scripted model standing in; then
     examples/strategies.sql tabulates the strategies at that equal budget."""
@@ -243,6 +248,7 @@ def test_strategies_example_and_its_sql(tmp_path, store, scripted):
     assert [m[2] for m in means] == sorted((m[2] for m in means), reverse=True)
 
 
+@pytest.mark.slow
 def test_both_protocols_are_scored_and_the_chosen_one_is_optimized(store, scripted):
     model = scripted([COMPETENT_REPLY])
     config = OptimizeConfig(game="pong", iterations=1, eval_max_steps=800, rollout_steps=40, workers=2,
@@ -265,6 +271,7 @@ def test_both_protocols_are_scored_and_the_chosen_one_is_optimized(store, script
         optimize(OptimizeConfig(game="pong", optimize_protocol="standard"), store, None)
 
 
+@pytest.mark.slow
 def test_map_elites_draws_parents_from_its_archive_and_replays(store, scripted):
     model = scripted([{"pool": POOL, "seed": 17}])
     config = OptimizeConfig(game="pong", strategy="map-elites", candidates=3, iterations=3, eval_max_steps=600,
@@ -286,6 +293,7 @@ def test_map_elites_draws_parents_from_its_archive_and_replays(store, scripted):
     assert replayed == [r[:4] for r in rows]
 
 
+@pytest.mark.slow
 def test_cascade_and_cache_cut_the_steps_not_the_best_scores(store, scripted):
     """A candidate that falls behind its parent in the first steps of the evaluation game is screened out before
     its full assessment; with the evaluation cache this plays far fewer steps for the same best-so-far curve."""

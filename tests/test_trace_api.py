@@ -268,6 +268,7 @@ def test_a_trace_api_policy_plays_the_same_as_its_tracing_twin(store, capsys):
 
 # --- optimize, blame, compare: the file goes through unedited ---------------------------------------------------
 
+@pytest.mark.slow
 def test_a_trace_api_file_is_optimized_blamed_and_compared_without_edits(store, capsys, scripted):
     start = TRACE_TWIN.read_text()
     select = next(m.source for m in inspect_policy(start).methods if m.name == "select_action")

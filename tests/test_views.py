@@ -88,6 +88,7 @@ def test_views_reach_a_store_written_by_an_older_codearcade(tmp_path):
     assert Store(path).query("SELECT max(version) FROM schema_migrations")[0][0] == LATEST
 
 
+@pytest.mark.slow
 def test_learning_curve(runs):
     store, run_id, _ = runs
     curve = _dicts(store, "SELECT * FROM learning_curve WHERE run_id = ? ORDER BY iteration", [run_id])

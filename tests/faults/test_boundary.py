@@ -61,6 +61,7 @@ def _cli(path, store, env=None, *extra):
                           env=env, timeout=300)
 
 
+@pytest.mark.slow
 def test_a_file_written_outside_scratch_does_not_appear(store, write_policy, sentinel, capsys):
     a, b, _ = sentinel
     path = write_policy(pong_policy(ESCAPE + f"""
@@ -129,6 +130,7 @@ def _store_text(path: Path) -> str:
     return "\n".join(repr(store.query(f'SELECT * FROM "{t}"')) for t in tables)
 
 
+@pytest.mark.slow
 def test_the_parents_secrets_are_out_of_reach(tmp_path, write_policy):
     path = write_policy(pong_policy(ESCAPE + r"""
 import dataclasses
@@ -165,6 +167,7 @@ raise ValueError(text[-20000:] + text[:20000])
     assert episode["end_reason"] == "policy_error" and episode["error"]
 
 
+@pytest.mark.slow
 def test_a_policys_output_cannot_forge_the_json(tmp_path, write_policy):
     path = write_policy(pong_policy(ESCAPE + """
 print('{"run_id": "FORGED-PRINT", "episodes": []}', flush=True)
@@ -240,6 +243,7 @@ return 0
     assert episode["return"] == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("body", [
     "import typing\nsig = typing.sys.modules['signal']\nsig.signal(sig.SIGALRM, sig.SIG_IGN)\nwhile True:\n    pass",
     "class Loud(Exception):\n    def __str__(self):\n        while True:\n            pass\nraise Loud()",
@@ -291,6 +295,7 @@ def _cli_limited(verb: str, path: Path, store: Store, *extra: str) -> subprocess
                           cwd=ROOT, capture_output=True, text=True, timeout=300, preexec_fn=limit)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("verb, body", [
     ("eval", DEEP_METRICS), ("eval", PARSER_MEMORY), ("optimize", DEEP_METRICS), ("optimize", PARSER_MEMORY),
 ], ids=["eval: deep for radon", "eval: parser memory", "optimize: deep for radon", "optimize: parser memory"])
@@ -340,6 +345,7 @@ def test_the_weak_sandbox_is_an_explicit_choice_warned_about(kernel_lacks_landlo
     assert "WARNING: weak sandbox" in err and "landlock" in err
 
 
+@pytest.mark.slow
 def test_the_store_cannot_be_read_or_truncated(store, write_policy, capsys):
     assert main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "30", "--store", str(store.path)]) == 0
     capsys.readouterr()

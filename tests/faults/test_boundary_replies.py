@@ -46,6 +46,7 @@ def _assert_no_leak(done, model, store: Store) -> None:
     assert json.loads(done.stdout)["status"] == "finished"
 
 
+@pytest.mark.slow
 def test_file_process_and_socket_attacks_as_replies_have_no_effect(store, scripted, tmp_path):
     sentinels = [Path("/tmp") / f"codearcade-reply-{uuid.uuid4().hex}-{i}" for i in range(4)]
     listener = socket.create_server(("127.0.0.1", 0))
@@ -91,6 +92,7 @@ return 0
         p.unlink(missing_ok=True)
 
 
+@pytest.mark.slow
 def test_a_reply_that_reads_the_key_cannot_carry_it_into_the_next_prompt(store, scripted, tmp_path):
     steal = r"""
 import dataclasses

@@ -211,6 +211,7 @@ def _episode(store: Store) -> dict:
     return dict(zip(("end_reason", "error", "length"), rows[0]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("flags", [["--trace"], ["--trace", "--rerun", "RRD"], ["--rerun", "RRD"]],
                          ids=["traced", "traced, --rerun DIR", "untraced, --rerun DIR"])
 def test_a_decompression_bomb_is_refused_unread(flags, store, write_policy, tmp_path):
@@ -227,6 +228,7 @@ def test_a_decompression_bomb_is_refused_unread(flags, store, write_policy, tmp_
     assert json.loads(out)["episodes"][0]["end_reason"] == "policy_error"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("forge, reason", [(NOT_JSON, "is not JSON"), (FORGED_ROWS, "more than 1,280 rows")],
                          ids=["output not JSON", "10,000 forged rows"])
 def test_forged_node_rows_are_the_episodes_error_and_never_stored(forge, reason, store, write_policy, honest_store):
@@ -242,6 +244,7 @@ def test_forged_node_rows_are_the_episodes_error_and_never_stored(forge, reason,
     assert store.query("SELECT status FROM runs") == [("finished",)]
 
 
+@pytest.mark.slow
 def test_a_300_mib_failure_frame_is_refused_at_its_header(store, write_policy):
     path = write_policy(pong_policy(FLOOD, prelude=""))
     code, out, err, parent_mb, host_mb = _eval(path, store, "--call-time-limit", "30")  # 600 MB to write first
@@ -252,6 +255,7 @@ def test_a_300_mib_failure_frame_is_refused_at_its_header(store, write_policy):
     assert len(episode["error"]) < 300
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("forge", [NOT_JSON, BOMB], ids=["output not JSON", "decompression bomb"])
 def test_optimize_goes_on_past_a_candidates_forged_trace(forge, store, scripted, tmp_path):
     """A candidate (an LLM's reply) whose traced rollout sends forged node rows: that rollout is its policy error,

@@ -127,6 +127,7 @@ BEFORE = {"pong": 2.0, "breakout": 154.0, "space_invaders": 1160.0, "asterix": 1
 previous, wide file view: the narrow one must change nothing of a normal episode."""
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("game", sorted(BEFORE))
 def test_normal_episodes_play_as_before(game, tmp_path, capsys):
     policy = ROOT / "tests" / "policies" / f"{game}_competent.py"

@@ -121,6 +121,7 @@ def test_hostile_candidate_is_rejected(name, body, expected):
     assert not SENTINEL.exists()
 
 
+@pytest.mark.slow
 def test_a_candidate_that_kills_its_check_worker_is_not_blamed_on_the_static_checks(monkeypatch):
     """Static and runtime checks share a worker; when it dies (here a C loop the call timer cannot stop, killed
     at the worker's time limit), the static checks run alone to tell which part failed."""

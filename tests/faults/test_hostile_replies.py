@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -41,6 +42,7 @@ HOSTILE_REPLIES = [
 ]
 
 
+@pytest.mark.slow
 def test_hostile_replies_through_the_loop(store, scripted):
     model = scripted([reply for _, reply, _ in HOSTILE_REPLIES])
     client = LiteLLMClient(model.model, api_base=model.api_base, retries=0)  # one script entry per iteration

@@ -97,6 +97,7 @@ def bystander(tmp_path):
     proc.wait()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", PATHS)
 def test_calls_that_name_a_process_change_nothing_outside(path, tmp_path, scripted, bystander):
     proc, mark = bystander
@@ -218,6 +219,7 @@ def _shmem_kb() -> int:
     return 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", PATHS)
 def test_memory_outside_the_address_space_limit_is_refused(path, tmp_path, scripted):
     body = """
@@ -322,6 +324,7 @@ raise ValueError('emulator search: ' + (', '.join(f for f in found if f) or 'not
     assert any("emulator search: nothing found" in e for e in recorded), recorded
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", PATHS)
 def test_a_rerun_directory_grants_the_policy_nothing(path, tmp_path, scripted):
     folder = tmp_path / "project"
@@ -410,6 +413,7 @@ raise ValueError('stat: ' + ' '.join(seen))
 CHILD_SUBREAPER = 36
 
 
+@pytest.mark.slow
 def test_no_process_of_a_run_outlives_it(tmp_path):
     """kill -9 of ``codearcade`` while its policy process tries to outlive it: it cleared its parent-death signal
     and lowered its zygote's CPU limit, then ignores its timer and spins. Orphans of the run are reparented to a

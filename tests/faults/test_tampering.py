@@ -64,6 +64,7 @@ def _spec(text: str, **kwargs) -> EpisodeSpec:
     return EpisodeSpec(**{**defaults, **kwargs})
 
 
+@pytest.mark.slow
 def test_a_tampering_policy_file_scores_what_its_actions_score(store, write_policy, capsys):
     honest = write_policy(HONEST_POLICY, "honest.py")
     assert main(["eval", str(honest), "--max-steps", "600", "--store", str(store.path), "--json"]) == 0
@@ -83,6 +84,7 @@ def test_a_tampering_policy_file_scores_what_its_actions_score(store, write_poli
     assert main(["doctor", "--replay", run, "--store", str(store.path)]) == 0, capsys.readouterr()
 
 
+@pytest.mark.slow
 def test_a_tampering_candidate_scores_no_more_than_its_actions(store, scripted):
     model = scripted([json_reply({"select_action": TAMPER_SELECT})])
     client = LiteLLMClient(model.model, api_base=model.api_base, retries=0)

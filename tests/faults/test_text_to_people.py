@@ -169,6 +169,7 @@ def test_markdown_escapes_and_fences():
     assert [tag for tag, _ in _rendered_tags(markdown_code("a `` b | <img src=x>"))] == ["p", "code"]
 
 
+@pytest.mark.slow
 def test_no_escape_reaches_the_terminal_and_no_markup_the_report(evil_policy, store, scripted, tmp_path):
     model = scripted([json_reply({"select_action": CANDIDATE})])
     s = ("--store", str(store.path))

@@ -161,6 +161,7 @@ HUGE_SELECT = ('def select_action(self, predicted_ball_y, obs):\n'
                '    """Raises an 8 MB message."""\n    raise RuntimeError("y" * 8_000_000)\n')
 
 
+@pytest.mark.slow
 def test_megabyte_messages_do_not_break_the_next_prompt(store, scripted, tmp_path, capfd):
     path = tmp_path / "huge.py"
     path.write_text(HUGE_POLICY)
@@ -185,6 +186,7 @@ def test_megabyte_messages_do_not_break_the_next_prompt(store, scripted, tmp_pat
     assert store.query("SELECT max(length(text)) FROM feedback")[0][0] < 5000
 
 
+@pytest.mark.slow
 def test_resume_honours_the_token_budget_given(store, scripted, tmp_path, capfd):
     model = scripted(["no suggestion here"])
     common = ["--model", model.model, "--api-base", model.api_base, "--store", str(store.path)]
