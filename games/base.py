@@ -18,9 +18,11 @@ STANDARD_NOOP_MAX = 30
 30 no-op starts. The paper's protocol is sticky 0, no no-op starts."""
 
 AUDIT_SEED_BASE = 1_000_000
-"""The first seed of the held-out audit seeds (``codearcade audit``): a run's audit plays seeds
-``AUDIT_SEED_BASE + i``; tuning seeds (those the loop selects on: ``--seed`` and the seeds after it) are below it,
-so the two sets never meet, and no prompt ever shows an audit episode."""
+AUDIT_SEED_END = 2**31 - 1
+"""The held-out audit's seeds (``codearcade audit``) are drawn, when an audit runs, from the OS's entropy over
+``[AUDIT_SEED_BASE, AUDIT_SEED_END)``; tuning seeds (those the loop selects on: ``--seed`` and the seeds after it)
+are below it, so the two sets never meet, no prompt ever shows an audit episode, and no policy can know the
+audit's games in advance (they are recorded only with the episodes they produced)."""
 
 ONE_LIFE_CONTINUE = "continue"
 """The ``one_life`` setting (``codearcade eval --one-life-continue``; ``OptimizeConfig.one_life``) that plays the

@@ -14,7 +14,7 @@ import textwrap
 
 import pytest
 
-from games.base import AUDIT_SEED_BASE
+from games.base import AUDIT_SEED_BASE, AUDIT_SEED_END
 from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig, validate_config
@@ -75,17 +75,21 @@ def test_a_replayed_game_matches_the_policy_it_copies_and_fails_the_audit(store,
     assert it1.best_iteration == 1 and it1.score > it0.score
     audit = result.audit
     best, starter = audit.row("best", "standard"), audit.row("starter", "standard")
-    assert best["seeds"] == [AUDIT_SEED_BASE + i for i in range(3)]
+    # sealed: three games drawn when the audit ran, the same for the best and the starter, none a tuning seed
+    assert len(set(best["seeds"])) == 3 and best["seeds"] == starter["seeds"], audit.rows
+    assert all(AUDIT_SEED_BASE <= seed < AUDIT_SEED_END for seed in best["seeds"])
+    assert best["seeds"] != [AUDIT_SEED_BASE + i for i in range(3)], "not the public seeds of earlier versions"
     assert best["tuning_score"] == competent_score and starter["tuning_score"] == it0.score
     # on held-out games under sticky actions the replay is no better than the random starter
     assert best["score"] - starter["score"] < (competent_score - it0.score) / 2, audit.rows
     assert audit.overfit and summary["overfit"] is True and summary["audit_score"] == best["score"]
-    episodes = store.query("SELECT kind, count(*), min(seed), bool_and(sticky = 0.25) FILTER (WHERE episode_id LIKE "
-                           "'%audit-standard%') FROM episodes WHERE kind = 'audit' GROUP BY kind")
-    assert episodes == [("audit", 12, AUDIT_SEED_BASE, True)], "2 versions x 2 protocols x 3 games, stored as audit"
-    prompts = store.query("SELECT count(*) FROM llm_calls c JOIN blobs b ON b.hash = c.prompt_hash "
-                          "WHERE b.text LIKE '%audit%' OR b.text LIKE '%1000000%'")
-    assert prompts == [(0,)], "no prompt shows the audit"
+    episodes = store.query("SELECT kind, count(*), list_sort(list_distinct(list(seed))), bool_and(sticky = 0.25) "
+                           "FILTER (WHERE episode_id LIKE '%audit-standard%') FROM episodes WHERE kind = 'audit' "
+                           "GROUP BY kind")
+    assert episodes == [("audit", 12, sorted(best["seeds"]), True)], "2 versions x 2 protocols x 3 games, as audit"
+    prompts = store.query("SELECT b.text FROM llm_calls c JOIN blobs b ON b.hash = c.prompt_hash")
+    assert prompts and not any("audit" in text or any(str(seed) in text for seed in best["seeds"])
+                               for (text,) in prompts), "no prompt shows the audit or its games"
     code, out = _cli("runs", "--store", str(store.path))
     assert code == 0 and "OVERFIT" in out
 
@@ -97,15 +101,49 @@ def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
     assert best["score"] - starter["score"] >= (best["tuning_score"] - starter["tuning_score"]) / 2, result.audit.rows
     assert not result.audit.overfit and summary["overfit"] is False
     # on demand, again, with more games: the run's audit is replaced, not added to
+    first = {row["seeds"][0] for row in result.audit.rows}
     code, out = _cli("audit", "last", "--episodes", "4", "--json", "--store", str(store.path))
     assert code == 0 and len(json.loads(out)["audits"][0]["seeds"]) == 4
     assert store.query("SELECT count(*) FROM audits") == [(4,)]
+    seeds = json.loads(out)["audits"][0]["seeds"]
+    assert not first & set(seeds), "each audit draws its games afresh"
+    returns = _audit_returns(store)
+    # reproduced from its seeds: the same games, the same returns, episode for episode
+    code, out = _cli("audit", "last", "--seeds", ",".join(map(str, seeds)), "--json", "--store", str(store.path))
+    assert code == 0 and json.loads(out)["audits"][0]["seeds"] == seeds
+    assert _audit_returns(store) == returns and len(returns) == 16  # 2 versions x 2 protocols x 4 games
     assert _cli("doctor", "--store", str(store.path))[0] == 0
     with store.write() as con:  # an audit whose games are gone is damage the doctor names
         con.execute("DELETE FROM steps WHERE episode_id IN (SELECT unnest(episode_ids) FROM audits LIMIT 1)")
         con.execute("DELETE FROM episodes WHERE episode_id IN (SELECT unnest(episode_ids) FROM audits LIMIT 1)")
     code, out = _cli("doctor", "--store", str(store.path))
     assert code == 1 and "audits whose episodes are missing" in out
+
+
+def _audit_returns(store) -> list[tuple]:
+    return store.query('SELECT episode_id, seed, "return", length FROM episodes WHERE kind = \'audit\' '
+                       "ORDER BY episode_id")
+
+
+def test_audit_seeds_given_by_hand_are_checked(store, capsys):
+    for seeds, fragment in [("5", "5 is not an audit seed"), ("1000001,1000001", "each seed once"),
+                            ("1e6", "not a list of whole numbers"), (str(AUDIT_SEED_END), "is not an audit seed")]:
+        with pytest.raises(SystemExit) as exit_:
+            main(["audit", "last", "--seeds", seeds, "--store", str(store.path)])
+        assert exit_.value.code == 2 and fragment in capsys.readouterr().err, seeds
+    assert main(["audit", "last", "--seeds", "1000001,1000002", "--episodes", "3", "--store", str(store.path)]) == 2
+    assert "disagree" in capsys.readouterr().err and not store.exists()
+
+
+def test_audit_seeds_are_drawn_afresh_from_the_whole_range():
+    from pipeline.optimizer.audit import draw_audit_seeds
+
+    draws = [draw_audit_seeds(3) for _ in range(200)]
+    assert all(len(set(d)) == 3 and all(AUDIT_SEED_BASE <= s < AUDIT_SEED_END for s in d) for d in draws)
+    assert len({tuple(d) for d in draws}) == 200, "no two audits play the same games"
+    everything = [s for d in draws for s in d]
+    # spread over the range, not a block near its start (600 uniform draws: each half holds about 300)
+    assert 200 < sum(s < (AUDIT_SEED_BASE + AUDIT_SEED_END) // 2 for s in everything) < 400
 
 
 def test_tuning_seeds_stay_below_the_audit_seeds():

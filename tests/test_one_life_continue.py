@@ -287,6 +287,13 @@ def test_the_optimizer_evaluates_the_lives_of_one_game(store, scripted):
     assert train[6] == evals[0][6], "the training rollout is the game's first life, as its first episode"
     assert store.query("SELECT json_extract_string(config, '$.one_life') FROM runs WHERE run_id = ?",
                        [result.run_id]) == [("continue",)]
+    # audited under its own protocol too: per protocol, the lives of one sealed game, each going on from the last
+    audit = store.query("SELECT episode_id, episode_index, seed, continues, start_step, length FROM episodes "
+                        "WHERE run_id = ? AND kind = 'audit' AND episode_id LIKE '%audit-run%' ORDER BY episode_index",
+                        [result.run_id])
+    assert [a[1] for a in audit] == [0, 1, 2] and len({a[2] for a in audit}) == 1 and audit[0][2] >= 1_000_000
+    assert [a[3] for a in audit] == [None, audit[0][0], audit[1][0]]
+    assert [a[4] for a in audit] == [0, audit[0][5], audit[0][5] + audit[1][5]]
     assert all(why is None for _, why in replay_run(store, result.run_id))
 
 

@@ -10,36 +10,56 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import EXIT_OK, add_run, add_store, open_store, positive_int, resolve_run, show, show_json
+from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_OK, add_run, add_store, open_store, positive_int, resolve_run,
+                                 show, show_json)
 
 
 def add_parser(verbs) -> None:
     """Add ``audit`` and its arguments to the verbs of the top-level parser."""
     p = verbs.add_parser(
         "audit",
-        help="play a run's best version and its starting policy on held-out seeds the loop never saw",
+        help="play a run's best version and its starting policy on sealed held-out games the loop never saw",
         description="The held-out audit of an optimization run: its best version and its starting policy play N "
-        "games each on the audit seeds (1,000,000 and up: never played by the loop, never shown to the model), "
-        "under the standard protocol (sticky actions 0.25, up to 30 no-op starts) and under the run's own. The "
-        "scores (with 95%% intervals) are stored beside the tuning scores (table audits; runs, report) and the run "
-        "is flagged overfit when less than half of its best version's gain over the starter holds up.",
-        epilog="examples: codearcade audit last   |   codearcade audit my-run --episodes 10 --json",
+        "games each on audit seeds drawn now from the OS's entropy (from 1,000,000 up: never played by the loop, "
+        "never shown to the model, unknowable to a policy in advance), under the standard protocol (sticky actions "
+        "0.25, up to 30 no-op starts; held out) and under the run's own (the tuning game again). The scores, with "
+        "their intervals, are stored beside the tuning scores (table audits, with the seeds; runs, report) and the "
+        "run is flagged overfit when less than half of its best version's gain over the starter holds up.",
+        epilog="examples: codearcade audit last   |   codearcade audit my-run --episodes 10 --json   |   "
+               "codearcade audit my-run --seeds 1234567,7654321 (an earlier audit's games again)",
     )
     add_run(p)
     p.add_argument("--episodes", type=positive_int, metavar="N",
                    help="games per version and protocol (default: the run's --audit-episodes, or 3)")
+    p.add_argument("--seeds", type=_seeds, metavar="S,S,...",
+                   help="play these audit seeds instead of drawing new ones (an earlier audit's, from its audits row "
+                        "or episodes, to reproduce it); their number is the number of games")
     p.add_argument("--workers", type=positive_int, metavar="N", help="episodes played at once (default: the run's)")
     p.add_argument("--json", action="store_true", help="print the audit's rows as JSON")
     add_store(p)
     p.set_defaults(handler=run)
 
 
+def _seeds(text: str) -> list[int]:
+    from pipeline.optimizer.audit import check_audit_seeds
+
+    try:
+        return check_audit_seeds(int(part) for part in text.split(",") if part.strip())
+    except ValueError as err:
+        message = str(err) if "--seeds" in str(err) else f"{text!r} is not a list of whole numbers"
+        raise argparse.ArgumentTypeError(message.removeprefix("--seeds: ")) from None
+
+
 def run(args: argparse.Namespace) -> int:
     from pipeline.optimizer.audit import audit_run
 
+    if args.seeds is not None and args.episodes is not None and args.episodes != len(args.seeds):
+        show(f"codearcade audit: --episodes {args.episodes} and {len(args.seeds)} --seeds disagree: leave out "
+             f"--episodes (the seeds are the games)", file=sys.stderr)
+        return EXIT_BAD_INPUT
     store = open_store(args)
     run_id = resolve_run(store, args.run_id)
-    result = audit_run(store, run_id, episodes=args.episodes, workers=args.workers, on_demand=True)
+    result = audit_run(store, run_id, episodes=args.episodes, workers=args.workers, on_demand=True, seeds=args.seeds)
     if args.json:
         show_json({"run_id": run_id, "overfit": result.overfit, "audits": result.rows}, default=str)
     else:

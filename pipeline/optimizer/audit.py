@@ -2,29 +2,35 @@
 
 The loop selects on its *tuning* seeds (``--seed`` and the seeds after it); under the paper's protocol (sticky
 actions 0, no no-op starts) every one of them is the same game, so a version that only memorised that game's
-moves scores there exactly like one that plays. The audit plays the best version and the starter on the *audit*
-seeds, ``games.base.AUDIT_SEED_BASE + i`` (disjoint from every tuning seed, which ``validate_config`` keeps below
-them), ``audit_episodes`` games each under
+moves scores there exactly like one that plays. The audit plays the best version and the starter on the same
+``audit_episodes`` *audit* seeds, drawn when the audit runs from the OS's entropy over the seeds above every tuning
+seed (``games.base.AUDIT_SEED_BASE`` up; ``validate_config`` keeps tuning seeds below it). They are **sealed**:
+no code, doc or prompt holds them and no policy can know them in advance (a policy that replays moves recorded for
+some games plays blind on these), and they are recorded only with the episodes they produced (and the ``audits``
+row that lists them), so ``codearcade audit RUN --seeds ...`` can play the same games again. Two protocols:
 
-- the **standard** protocol (sticky actions 0.25, up to 30 no-op starts): the game does not always do what the
-  policy asks, and each seed starts differently, so a memorised sequence falls apart; and
-- the run's **own** protocol (``run``: its evaluation settings on the new seeds).
+- the **standard** protocol (sticky actions 0.25, up to 30 no-op starts): held out — the game does not always do
+  what the policy asks, and each seed starts differently, so a memorised sequence falls apart; and
+- the run's **own** protocol (``run``: its evaluation settings, ``--one-life`` and ``--one-life-continue``
+  included, on the audit seeds). Held out only where the run's protocol is stochastic: under the paper's
+  (sticky 0, no no-op starts) every seed is the same game, so this is the tuning game again, and says so.
 
-Each set is scored by the one rule (``store/scores.py``: forfeits, a 95% interval) and stored as an ``audits``
-row beside the version's tuning score; the episodes are stored too (kind ``audit``). The best's standard row
-carries ``overfit`` (:func:`store.scores.overfit`: less than half of its gain over the starter holds up). The
-audit never changes what the loop chose, and no prompt reads an audit episode (prompts are built from the
-candidates' own episodes). It runs when a run finishes (``OptimizeConfig.audit_episodes``, default 3) and on
-demand for any stored run (``codearcade audit RUN``), replacing the run's earlier audit.
+Each set is scored by the one rule (``store/scores.py``: forfeits, an interval) and stored as an ``audits`` row
+beside the version's tuning score; the episodes are stored too (kind ``audit``). The best's standard row carries
+``overfit`` (:func:`store.scores.overfit`: less than half of its gain over the starter holds up). The audit never
+changes what the loop chose, and no prompt reads an audit episode (prompts are built from the candidates' own
+episodes). It runs when a run finishes (``OptimizeConfig.audit_episodes``, default 3) and on demand for any
+stored run (``codearcade audit RUN``), replacing the run's earlier audit.
 """
 
 from __future__ import annotations
 
 import json
+import secrets
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
-from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY
+from games.base import AUDIT_SEED_BASE, AUDIT_SEED_END, ONE_LIFE_CONTINUE, STANDARD_NOOP_MAX, STANDARD_STICKY
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeSpec
@@ -63,10 +69,12 @@ class AuditResult:
             if standard is None or (role == "starter" and standard["policy_version_id"] == best["policy_version_id"]):
                 continue
             name = "best = starter" if role == "best" and standard["iteration"] == 0 else role
-            games = len(standard["seeds"])
-            out.append(f"audit  {name} (iteration {standard['iteration']}) on {games} held-out game"
-                       f"{'s' * (games != 1)}: standard protocol {_shown(standard)}, the run's own {_shown(own)}; "
-                       f"tuning {_number(standard['tuning_score'])}")
+            games = len(set(standard["seeds"]))
+            own_text = "" if own is None else (f", the run's own protocol {_shown(own)} (the tuning game again, not "
+                                               f"held out)")
+            out.append(f"audit  {name} (iteration {standard['iteration']}): held out, on {games} sealed game"
+                       f"{'s' * (games != 1)} of the standard protocol {_shown(standard)}{own_text}; tuning "
+                       f"{_number(standard['tuning_score'])}")
         if self.overfit:
             out.append("audit  OVERFIT: less than half of the best version's gain over the starting policy holds up "
                        "on the held-out games (standard protocol)")
@@ -85,11 +93,34 @@ def _shown(row: dict[str, Any]) -> str:
     return _number(row["score"]) + (f" [{_number(row['score_low'])}, {_number(row['score_high'])}]" if band else "")
 
 
+def draw_audit_seeds(n: int) -> list[int]:
+    """``n`` distinct audit seeds from the OS's entropy: nothing before the audit runs can know them."""
+    return secrets.SystemRandom().sample(range(AUDIT_SEED_BASE, AUDIT_SEED_END), n)
+
+
+def check_audit_seeds(seeds: Sequence[int]) -> list[int]:
+    """The seeds ``codearcade audit --seeds`` replays, checked: distinct, each in the audit's range (a seed
+    below it may be a tuning seed, and those games are not held out). ValueError with one line."""
+    seeds = list(seeds)
+    if not seeds:
+        raise ValueError("--seeds needs at least one seed")
+    outside = [s for s in seeds if not AUDIT_SEED_BASE <= s < AUDIT_SEED_END]
+    if outside:
+        raise ValueError(f"--seeds: {outside[0]} is not an audit seed (they are from {AUDIT_SEED_BASE:,} to "
+                         f"{AUDIT_SEED_END - 1:,}; an audit's seeds are in its audits rows and its episodes)")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError("--seeds: each seed once (a seed twice is the same game twice)")
+    return seeds
+
+
 def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: int | None = None,
-              progress: Callable[[int, int], None] | None = None, on_demand: bool = False) -> AuditResult:
+              progress: Callable[[int, int], None] | None = None, on_demand: bool = False,
+              seeds: Sequence[int] | None = None) -> AuditResult:
     """Play the audit of ``run_id`` (see the module docstring) and store it; ``episodes`` and ``workers`` default
     to the run's own settings (``on_demand``, ``codearcade audit``: a run that turned its audit off, or was made
-    before audits existed, gets the default number of games). A run without iterations has nothing to audit."""
+    before audits existed, gets the default number of games). ``seeds``: the games to play (an earlier audit's,
+    to reproduce it; their number is the number of games), else drawn afresh (:func:`draw_audit_seeds`). A run
+    without iterations has nothing to audit."""
     with store.read() as con:
         run = get_run(con, run_id)
         if run is None:
@@ -99,10 +130,17 @@ def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: i
         raise ValueError(f"run {run_id} is an eval run: only optimization runs have a best version to audit")
     recorded = json.loads(run["config"])
     config = OptimizeConfig.from_record(recorded)
-    n = episodes if episodes is not None else (config.audit_episodes or (OptimizeConfig.audit_episodes
-                                                                          if on_demand else 0))
+    if seeds is not None:
+        seeds = check_audit_seeds(seeds)
+        n = len(seeds)
+    else:
+        n = episodes if episodes is not None else (config.audit_episodes or (OptimizeConfig.audit_episodes
+                                                                              if on_demand else 0))
     if n < 1 or not subjects:
         return AuditResult(run_id, [])
+    one_game = config.one_life == ONE_LIFE_CONTINUE  # the run's episodes are the lives of one game: so the audit's
+    if seeds is None:
+        seeds = draw_audit_seeds(1 if one_game else n)
     specs: list[EpisodeSpec] = []
     groups: dict[tuple[str, str], list[int]] = {}  # (version, protocol) -> indices of its specs
     for subject in {s["policy_version_id"]: s for s in subjects}.values():  # the best may be the starter
@@ -110,12 +148,14 @@ def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: i
             indices = groups.setdefault((subject["policy_version_id"], protocol), [])
             for i in range(n):
                 indices.append(len(specs))
+                kind = f"audit-{protocol}"
                 specs.append(EpisodeSpec(
-                    episode_id=episode_id(run_id, subject["iteration"], f"audit-{protocol}", i), run_id=run_id,
+                    episode_id=episode_id(run_id, subject["iteration"], kind, i), run_id=run_id,
                     game=run["game"], policy_text=subject["policy_text"],
                     policy_version_id=subject["policy_version_id"], iteration=subject["iteration"], kind="audit",
-                    index=i, seed=AUDIT_SEED_BASE + i, max_steps=recorded["eval_max_steps"], sticky=sticky,
-                    noop_max=noop_max, one_life=bool(config.one_life), observation=config.observation,
+                    index=i, seed=seeds[0] if one_game else seeds[i], max_steps=recorded["eval_max_steps"],
+                    sticky=sticky, noop_max=noop_max, one_life=config.one_life, observation=config.observation,
+                    continues=episode_id(run_id, subject["iteration"], kind, i - 1) if one_game and i else None,
                     call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s,
                     rng_key=recorded.get("rng_key")))
     outcomes: list[dict[str, Any] | None] = [None] * len(specs)

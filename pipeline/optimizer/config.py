@@ -210,12 +210,13 @@ class OptimizeConfig:
     """In the prompt's trace, show a run of consecutive steps whose calls, outputs and actions repeat as one line
     with its step range (more of the steps that matter fit the token budget)."""
     audit_episodes: int = setting(
-        3, "when the run finishes, play the best version and the starting policy in N held-out games each (seeds "
-        "from 1,000,000, never played by the loop nor shown to the model), under the standard protocol and the "
-        "run's own; 0: no audit (default: 3)", metavar="N", minimum=0, group="search", resumable=True,
-        run_key="never")
-    """The held-out audit (``pipeline/optimizer/audit.py``): games per version and protocol on the audit seeds
-    (``games.base.AUDIT_SEED_BASE``), played when the run finishes; it never changes what the loop chose."""
+        3, "when the run finishes, play the best version and the starting policy in N held-out games each (sealed "
+        "seeds drawn then from the OS's entropy, never played by the loop nor shown to the model), under the "
+        "standard protocol and the run's own; 0: no audit (default: 3)", metavar="N", minimum=0, group="search",
+        resumable=True, run_key="never")
+    """The held-out audit (``pipeline/optimizer/audit.py``): games per version and protocol on sealed audit seeds
+    (drawn above ``games.base.AUDIT_SEED_BASE``), played when the run finishes; it never changes what the loop
+    chose."""
     pool: bool = setting(
         False, "the asynchronous proposal pool (best-of-n, beam, map-elites): keep --max-concurrent-calls calls in "
         "flight across iterations, play each candidate as soon as its reply is in, and start the next call from the "
