@@ -214,9 +214,15 @@ class EpisodeLimits:
         return cls(**{f.name: getattr(config, f.name) for f in dataclasses.fields(cls) if hasattr(config, f.name)})
 
 
-def limit(name: str, **changes: Any) -> Any:
-    """A config's field for the episode limit ``name``: :class:`EpisodeLimits`'s declaration (default, help, flag,
-    checks), with ``changes`` to its setting (``resumable=True``, ``cli=False``, ...) or its default (``default``)."""
-    f = EpisodeLimits.__dataclass_fields__[name]
+def same_as(cls: type, name: str, **changes: Any) -> Any:
+    """A config's field declared as ``cls``'s field ``name`` is (default, help, flag, checks), with ``changes`` to
+    its setting (``resumable=True``, ``cli=False``, ...) or its default (``default``): one declaration for a setting
+    that several verbs take."""
+    f = cls.__dataclass_fields__[name]
     default = changes.pop("default", f.default)
     return dataclasses.field(default=default, metadata={"setting": dataclasses.replace(f.metadata["setting"], **changes)})
+
+
+def limit(name: str, **changes: Any) -> Any:
+    """A config's field for the episode limit ``name``: :class:`EpisodeLimits`'s declaration (see :func:`same_as`)."""
+    return same_as(EpisodeLimits, name, **changes)

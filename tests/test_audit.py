@@ -58,7 +58,7 @@ def replay_reply(actions: list[int]) -> str:
 
 def _run(store, model) -> tuple[object, dict]:
     config = OptimizeConfig(game="pong", iterations=1, eval_max_steps=STEPS, rollout_steps=40, workers=2,
-                            token_budget=8000, audit_episodes=3)
+                            token_budget=8000, audit_episodes=3, rng_key="audit")
     result = optimize(config, store, LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05))
     assert result.status == "finished", result.error
     code, out = _cli("runs", "--json", "--store", str(store.path))

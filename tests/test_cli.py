@@ -30,7 +30,7 @@ EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 COMPETENT = ROOT / "tests" / "policies" / "pong_competent.py"
 SHORT = r"[0-9A-Z]{8,25}"
 """A run id as the command line prints it: its shortest unique prefix (8 characters or more, never whole)."""
-FAST = ("--eval-max-steps", "300", "--rollout-steps", "60", "--workers", "2")
+FAST = ("--eval-max-steps", "300", "--rollout-steps", "60", "--workers", "2", "--rng-key", "cli")
 
 
 def _env(home: Path, **extra) -> dict[str, str]:

@@ -113,7 +113,8 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted
         model = scripted(replies)
         code, out, err = run_cli(capsys, "optimize", "--game", "pong", "--model", model.model, "--api-base",
                                  model.api_base, "--iterations", 2, "--eval-max-steps", 800, "--rollout-steps", 40,
-                                 "--workers", 2, "--repairs", 0, "--store", store.path, "--json")
+                                 "--workers", 2, "--repairs", 0, "--rng-key", "cmp", "--store", store.path,
+                                 "--json")
         assert code == 0, err
         ids.append(json.loads(out)["run_id"])
     code, out, err = run_cli(capsys, "compare", ids[0][:22], ids[1], "--out", tmp_path / "cmp", "--store",
@@ -195,7 +196,7 @@ AUDIT_STEPS = 1000
 
 def audit_compare(capsys, store, a, b, episodes: int) -> dict:
     code, out, err = run_cli(capsys, "compare", a, b, "--audit", "--episodes", episodes, "--max-steps", AUDIT_STEPS,
-                             "--workers", 2, "--store", store.path, "--json")
+                             "--workers", 2, "--rng-key", "audit-compare", "--store", store.path, "--json")
     assert code == 0, err
     return json.loads(out)
 

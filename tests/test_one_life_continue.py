@@ -63,7 +63,7 @@ def test_a_continued_asterix_game_goes_on_where_each_life_was_lost(store, capsys
     """Four episodes of the (random, seeded) starter: lives 1-3 of one game, then, after the game over, the first
     life of the next game (their evaluation resets on a real game over), all from seed 0."""
     summary = evaluate(capsys, store, EXAMPLES / "asterix.py", "--one-life-continue", "--episodes", 4,
-                       "--max-steps", 4000)
+                       "--max-steps", 4000, "--rng-key", "asterix")
     run_id, episodes = summary["run_id"], summary["episodes"]
     table = rows(store, run_id)
     assert [r[1] for r in table] == [0, 0, 0, 0], "every episode has the game's seed"
@@ -272,7 +272,7 @@ def test_the_optimizer_evaluates_the_lives_of_one_game(store, scripted):
 
     model = scripted([json_reply({})])
     config = OptimizeConfig(game="asterix", iterations=1, eval_episodes=3, eval_max_steps=4000, rollout_steps=4000,
-                            workers=2, token_budget=6000, one_life="continue")
+                            workers=2, token_budget=6000, one_life="continue", rng_key="lives")
     result = optimize(config, store, LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05))
     assert result.status == "finished", result.error
     episodes = store.query("SELECT iteration, kind, episode_index, seed, continues, start_step, length, lives_lost, "

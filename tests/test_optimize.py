@@ -19,7 +19,7 @@ def _client(model, **kwargs):
 
 
 def _config(**kwargs):
-    defaults = dict(game="pong", iterations=3, eval_max_steps=4000, workers=2, token_budget=8000,
+    defaults = dict(game="pong", iterations=3, eval_max_steps=4000, workers=2, token_budget=8000, rng_key="optimize",
                     repairs=0)  # one scripted reply per update (repairs: tests/test_repairs.py)
     return OptimizeConfig(**{**defaults, **kwargs})
 

@@ -31,9 +31,9 @@ def pictured(tmp_path_factory):
     with ScriptedModel(SCRIPT, tmp / "model") as model:
         client = LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
         result = optimize(OptimizeConfig(game="pong", iterations=3, rollout_steps=100, eval_max_steps=300,
-                                         workers=2, token_budget=8000), store, client)
+                                         workers=2, token_budget=8000, rng_key="pictures"), store, client)
     assert result.status == "finished", result.error
-    ev = evaluate(EXAMPLES / "pong.py", EvalConfig(episodes=3, max_steps=150, workers=2), store)
+    ev = evaluate(EXAMPLES / "pong.py", EvalConfig(episodes=3, max_steps=150, workers=2, rng_key="pictures"), store)
     return collect(store, result.run_id), collect(store, ev.run_id)
 
 

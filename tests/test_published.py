@@ -63,7 +63,7 @@ def test_benchmarks_sql_over_a_real_short_batch(tmp_path, store, scripted):
     assert one_life["breakout"] == "continue" and one_life["pong"] is False
     path = tmp_path / "benchmarks.toml"
     path.write_text(f'name = "{data["name"]}"\n[defaults]\niterations = 1\nmemory = {defaults["memory"]}\n'
-                    f'eval_episodes = 1\neval_max_steps = 300\nmodel = "{model.model}"\napi_base = "{model.api_base}"\n'
+                    f'eval_episodes = 1\neval_max_steps = 300\nrng_key = "published"\nmodel = "{model.model}"\napi_base = "{model.api_base}"\n'
                     '[[run]]\ngame = "pong"\n[[run]]\ngame = "breakout"\none_life = "continue"\n')
     done = subprocess.run([EXE, "batch", str(path), "--store", str(store.path), "--workers", "2"], cwd=ROOT,
                           capture_output=True, text=True, timeout=900)

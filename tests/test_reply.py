@@ -123,7 +123,7 @@ def test_the_loop_records_how_each_reply_was_read(store, scripted):
     model = scripted([nested, fenced, in_prose, COMPETENT_REPLY + "}", "I would rather not change anything."])
     client = LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
     assert client.structured, "the OpenAI protocol takes a response_format"
-    config = OptimizeConfig(game="pong", iterations=5, eval_max_steps=300, rollout_steps=60, workers=2)
+    config = OptimizeConfig(game="pong", iterations=5, eval_max_steps=300, rollout_steps=60, workers=2, rng_key="reply")
     result = optimize(config, store, client)
     assert result.status == "finished", result.error
     rows = store.query("SELECT c.iteration, c.reply_reading, c.reply_repairs, c.parse_error, i.update_status "

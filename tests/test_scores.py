@@ -48,7 +48,7 @@ def _cli(*argv: str) -> tuple[int, str]:
 
 def _optimize(store, model, **settings):
     config = OptimizeConfig(**{**dict(game="pong", iterations=1, eval_max_steps=400, rollout_steps=50, workers=2,
-                                      token_budget=8000, call_time_limit_s=0.5), **settings})
+                                      token_budget=8000, call_time_limit_s=0.5, rng_key="scores"), **settings})
     result = optimize(config, store, LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05))
     assert result.status == "finished", result.error
     return result

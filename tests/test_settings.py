@@ -42,9 +42,10 @@ REWORDED = {
 given several times (an ensemble, issue 32)."""
 
 ADDED = {"optimize": ("--rng-key", "--audit-episodes", "--repairs", "--model-choice", "--pool"), "eval": ("--rng-key",),
-         "compare": ("--audit",)}
+         "compare": ("--audit", "--rng-key")}
 """Flags added on purpose since the snapshot (issue 33: the policies' random stream, the held-out audit, compare
-on audit seeds; issue 32: repair turns, model ensembles, the proposal pool); every other flag is as it was."""
+on audit seeds; issue 32: repair turns, model ensembles, the proposal pool; issue 36: compare's random stream,
+so that a test can pin it); every other flag is as it was."""
 ADDED_FIELDS = {"rng_key": None, "audit_episodes": 3, "repairs": 1, "model_choice": "fixed", "models": None,
                 "pool": False}
 """``OptimizeConfig``'s fields behind them, with their defaults (``models``, an ensemble, has no flag of its own:

@@ -37,7 +37,7 @@ def runs(tmp_path_factory):
     with ScriptedModel(SCRIPT, tmp / "model") as model:
         client = LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
         config = OptimizeConfig(game="pong", iterations=5, rollout_steps=100, eval_max_steps=200, eval_episodes=2,
-                                workers=2, token_budget=8000, repairs=0)  # one scripted reply per update (repairs: tests/test_repairs.py)
+                                workers=2, token_budget=8000, repairs=0, rng_key="views")  # one scripted reply per update (repairs: tests/test_repairs.py)
         result = optimize(config, store, client)
     assert result.status == "finished", result.error
     ev = evaluate(EXAMPLES / "pong.py", EvalConfig(episodes=3, max_steps=200, workers=2), store)

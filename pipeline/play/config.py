@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from games import GAMES
 from games.base import (AUDIT_SEED_BASE, OBSERVATION_VERSION, STANDARD_NOOP_MAX, STANDARD_STICKY,
                         one_life_setting)
-from pipeline.settings import Switch, limit, setting
+from pipeline.settings import Switch, limit, same_as, setting
 
 
 @dataclass
@@ -76,6 +76,8 @@ class CompareConfig:
     """Seeds to play: ``seed``, ``seed + 1``, ...; each version plays each of them once."""
     seed: int = setting(0, "the first seed (default: %(default)s)")
     """The first seed."""
+    rng_key: str | None = same_as(EvalConfig, "rng_key")
+    """The key of both sides' random stream (None: a new one each time); on a seed, their policies draw alike."""
     max_steps: int = limit("max_steps", help="step cap (default: %(default)s)")
     """Step cap of each episode (``EpisodeLimits``)."""
     audit: bool = setting(False, f"play each side on its own audit seeds under the standard protocol (sticky "

@@ -116,7 +116,8 @@ def compare_versions(store: Store, a: str, b: str, config: CompareConfig,
     if get_game(games[0]) != get_game(games[1]):
         raise PolicyLoadError(f"{a} plays {games[0]} but {b} plays {games[1]}: compare two versions of one game")
     game = get_game(games[0]).name
-    rng_key = new_run_id()  # one random stream for both sides: on a seed, their policies draw the same numbers
+    # one random stream for both sides: on a seed, their policies draw the same numbers
+    rng_key = config.rng_key or new_run_id()
     with tempfile.TemporaryDirectory(prefix="codearcade-compare-") as scratch:
         for k, v in enumerate(versions):
             eval_config = _eval_config(game, config, k)

@@ -89,7 +89,7 @@ def test_a_tampering_candidate_scores_no_more_than_its_actions(store, scripted):
     model = scripted([json_reply({"select_action": TAMPER_SELECT})])
     client = LiteLLMClient(model.model, api_base=model.api_base, retries=0)
     config = OptimizeConfig(game="pong", iterations=1, eval_max_steps=600, rollout_steps=60, token_budget=8000,
-                            workers=2)
+                            workers=2, rng_key="tamper")
     result = optimize(config, store, client)
     assert result.status == "finished", result.error
     rows = store.query("SELECT iteration, score FROM iterations ORDER BY iteration")

@@ -191,7 +191,7 @@ def test_resume_honours_the_token_budget_given(store, scripted, tmp_path, capfd)
     model = scripted(["no suggestion here"])
     common = ["--model", model.model, "--api-base", model.api_base, "--store", str(store.path)]
     assert main(["optimize", "--game", "pong", "--iterations", "1", "--eval-max-steps", "60", "--rollout-steps", "40",
-                 "--token-budget", "8000", "--workers", "1", *common]) == 0
+                 "--token-budget", "8000", "--workers", "1", "--rng-key", "budget", *common]) == 0
     run_id = store.query("SELECT run_id FROM runs")[0][0]
     capfd.readouterr()
     assert main(["optimize", "--resume", run_id, "--iterations", "2", "--token-budget", "2500",
