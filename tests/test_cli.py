@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
+from pipeline.cli.eval import PAPER_PROTOCOL_NOTE
 from store import Store
 from store.locate import user_store_path
 from tests.conftest import COMPETENT_REPLY, ROOT, json_reply
@@ -278,6 +279,26 @@ def test_an_unreachable_api_base_is_one_line_before_anything_plays(tmp_path):
         check_reachable("127.0.0.1:8000")
 
 
+@pytest.mark.parametrize("argv, said", [
+    (["--game", "pongg"], "unknown game 'pongg'"),
+    (["missing.py"], "policy file 'missing.py' does not exist"),
+    (["broken.py"], "broken.py:1: syntax error"),
+    (["notrain.py"], "no trainable methods"),
+])
+def test_a_typo_in_optimize_is_said_before_the_model_is_reached(tmp_path, argv, said):
+    """The policy file and the game are checked before anything model-side (the server's reachability here; the
+    offline model's start-up, the credentials' use): a typo costs what it costs in `eval`."""
+    (tmp_path / "broken.py").write_text("import x(\n")
+    (tmp_path / "notrain.py").write_text("GAME = 'pong'\nclass Policy:\n    def __call__(self, obs):\n        return 0\n")
+    url = f"http://127.0.0.1:{_closed_port()}/v1"
+    done = _cli("optimize", *argv, "--model", "openai/local", "--api-base", url, "--store", "s.duckdb",
+                cwd=tmp_path, env=_env(tmp_path))
+    assert done.returncode == 2, done.stderr
+    (line,) = done.stderr.strip().splitlines()
+    assert said in line and "cannot be reached" not in line, line
+    assert not (tmp_path / "s.duckdb").exists()
+
+
 # ------------------------------------------------------------------------------------------------------ eval
 
 
@@ -290,9 +311,11 @@ def test_eval_labels_its_run_says_its_id_and_speed(tmp_path):
     start = re.fullmatch(rf"run ({SHORT}) 'first-look' started: eval pong_competent.py, 2 episode\(s\); store "
                          r"s.duckdb \(given with --store\)", lines[0])
     assert start and lines[1].startswith(f"run {start.group(1)} 'first-look'  game pong"), lines
-    speed = re.fullmatch(r"mean return \S+(?: \[\S+, \S+\])? over 2 episodes; 300 steps in ([0-9.]+) s \(([0-9,]+) steps/s, "
-                         r"setup and checks included\)", lines[-1])
-    assert speed, lines[-1]
+    # the mean with its interval's level, method and n, or why it has none (the paper's protocol: one game twice)
+    speed = re.fullmatch(r"mean return \S+ (?:\[\S+, \S+\] 95% t, n=2|\(n=2: all equal, no interval\)); 300 steps "
+                         r"in ([0-9.]+) s \(([0-9,]+) steps/s, setup and checks included\)", lines[-2])
+    assert speed, lines[-2]
+    assert lines[-1] == PAPER_PROTOCOL_NOTE, "repeated episodes of one seed's game are said to be one game"
     assert abs(int(speed.group(2).replace(",", "")) - 300 / float(speed.group(1))) <= 0.02 * 300 / float(
         speed.group(1)) + 1
     store = Store(tmp_path / "s.duckdb")

@@ -147,12 +147,14 @@ def run(args: argparse.Namespace) -> int:
     if args.show_prompt and not args.dry_run:
         raise CliError("--show-prompt goes with --dry-run")
     from pipeline.optimizer.config import model_defaults
-    from pipeline.optimizer.loop import plan_resume
 
     store = open_store(args, announce=False)  # the start line names the store and why it is that one
+    start = None
     if args.resume:
         if args.dry_run:
             raise CliError("--dry-run starts a new run; it cannot go with --resume")
+        from pipeline.optimizer.loop import plan_resume
+
         plan = plan_resume(store, args.resume, given)
         short = short_id(store, plan.run_id)
         if plan.nothing_to_do:
@@ -175,6 +177,10 @@ def run(args: argparse.Namespace) -> int:
         from pipeline.optimizer.config import validate_config
 
         validate_config(config)  # a bad setting is one line before any model starts (the offline one takes seconds)
+        if not args.dry_run:  # and so is a bad policy file or game: a typo costs what it costs in `eval`
+            from pipeline.optimizer.task import resolve_start
+
+            start = resolve_start(config)
     if args.dry_run:
         return _dry_run(config, args)
     given_as = {e["api_base"]: f"the api_base of --model {e['model']}" for e in reversed(config.models or [])}
@@ -185,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
             check_reachable(base, given_as="--api-base" if base == config.api_base else given_as[base])
     started = {} if run_id is None else {"run_id": run_id, "short": short}
     try:
-        return _optimize(args, store, config, run_id, started)
+        return _optimize(args, store, config, run_id, started, start)
     except KeyboardInterrupt:
         if "run_id" not in started:
             show("codearcade: interrupted before the run was made; nothing was stored", file=sys.stderr)
@@ -201,9 +207,11 @@ def _resume_command(store, run: str, *more: str) -> str:
     return shlex.join(["codearcade", "optimize", "--resume", run, *more, *store_flag(store)])
 
 
-def _optimize(args: argparse.Namespace, store, config, run_id: str | None, started: dict[str, str]) -> int:
+def _optimize(args: argparse.Namespace, store, config, run_id: str | None, started: dict[str, str],
+              start=None) -> int:
     """Start (or resume) the run, print its start line, run the loop, print its end; ``started`` gets the run's id
-    as soon as it exists (for the interrupt message)."""
+    as soon as it exists (for the interrupt message); ``start``: the new run's starting policy and game, checked
+    before the model started (``pipeline.optimizer.task.resolve_start``)."""
     from pipeline.llm.client import open_client
     from pipeline.optimizer.config import fit_to_model
     from pipeline.optimizer.loop import optimize, start_run
@@ -223,7 +231,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
         rerun = rerun_target(args.rerun)
         resumed = run_id is not None
         if run_id is None:  # made here, so that its id is printed before iteration 0 plays
-            run_id = start_run(config, store, client.label)
+            run_id = start_run(config, store, client.label, start=start)
         started["run_id"] = started["short"] = run_id
         if args.name is not None:
             with store.write() as con:

@@ -27,7 +27,6 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any, Callable, ContextManager
 
 from games import get_game
@@ -42,7 +41,7 @@ from pipeline.optimizer.feedback import FeedbackBands
 from pipeline.optimizer.propose import BudgetExhausted, Proposal, check_wall, propose
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History
-from pipeline.optimizer.task import example_path, task_settings
+from pipeline.optimizer.task import resolve_start, task_settings
 from pipeline.play.runinfo import new_run_id, package_versions
 from pipeline.play.versions import policy_version_row
 from store import Store
@@ -58,7 +57,7 @@ from store.readers import (
     update_failures,
 )
 from store.writer import finish_run, insert_policy_version, insert_run, mark_run_running, merge_run_config
-from tracing.policy_file import PolicyInfo, read_policy_file
+from tracing.policy_file import PolicyInfo
 
 __all__ = ["BudgetExhausted", "optimize", "plan_resume", "run_loop", "start_run", "load_state"]
 
@@ -73,33 +72,17 @@ class OptimizeResult:
     """The held-out audit played when the run ended (``pipeline/optimizer/audit.py``: an ``AuditResult``)."""
 
 
-def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
-    """The starting policy and the game, with one-line errors for bad input."""
-    from pipeline.play.evaluate import resolve_game
-    from pipeline.play.validate import checked_inspect
-
-    if config.policy is None:
-        if config.game is None:
-            raise ValueError("give a policy file or --game (`codearcade games` lists them)")
-        path = example_path(config.game)
-    else:
-        path = Path(config.policy)
-    info = checked_inspect(read_policy_file(path), path.name, workers=config.workers)  # parsed confined first
-    game = resolve_game(info.game, config.game, path.name)
-    if not info.trainable:
-        raise ValueError(f"{path.name}: Policy has no trainable methods; mark some with @trace.bundle(trainable=True)")
-    return info, game
-
-
 def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str = "optimize",
-              extra: dict[str, Any] | None = None, starter: PolicyInfo | None = None) -> str:
+              extra: dict[str, Any] | None = None, starter: PolicyInfo | None = None,
+              start: tuple[PolicyInfo, str] | None = None) -> str:
     """Create the run and its iteration-0 policy version; return the run id.
 
-    The starting policy is ``starter`` if given (a replay), else the file of ``config.policy`` or the scaffold.
+    The starting policy is ``starter`` if given (a replay), else the file of ``config.policy`` or the scaffold
+    (``start``: it and its game, as :func:`resolve_start` gave them already).
     """
     validate_config(config)
     if starter is None:
-        info, game = resolve_start(config)
+        info, game = start or resolve_start(config)
     else:
         info, game = starter, get_game(config.game or starter.game).name
     settings = task_settings(info, game)

@@ -9,10 +9,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from games import get_game
 from pipeline.optimizer.feedback import FeedbackBands
-from tracing.policy_file import PolicyInfo
+from tracing.policy_file import PolicyInfo, read_policy_file
+
+if TYPE_CHECKING:
+    from pipeline.optimizer.config import OptimizeConfig
 
 
 def example_path(game: str) -> Path:
@@ -46,3 +50,20 @@ def task_settings(info: PolicyInfo, game: str) -> TaskSettings:
         feedback=FeedbackBands.from_constant(merged["FEEDBACK"], info.name),
         instruction=str(merged["INSTRUCTION"]),
     )
+
+
+def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
+    """The starting policy and the game, with one-line errors for bad input."""
+    from pipeline.play.validate import checked_inspect, resolve_game  # the confined workers: only when asked
+
+    if config.policy is None:
+        if config.game is None:
+            raise ValueError("give a policy file or --game (`codearcade games` lists them)")
+        path = example_path(config.game)
+    else:
+        path = Path(config.policy)
+    info = checked_inspect(read_policy_file(path), path.name, workers=config.workers)  # parsed confined first
+    game = resolve_game(info.game, config.game, path.name)
+    if not info.trainable:
+        raise ValueError(f"{path.name}: Policy has no trainable methods; mark some with @trace.bundle(trainable=True)")
+    return info, game

@@ -15,21 +15,20 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
-from games import get_game
 from games.base import ONE_LIFE_CONTINUE, one_life_setting
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from pipeline.play.runinfo import episode_id, new_run_id, package_versions
-from pipeline.play.validate import checked_inspect
+from pipeline.play.validate import checked_inspect, resolve_game
 from pipeline.play.verify import checked_outcome
 from pipeline.play.versions import policy_version_row
 from pipeline.play.config import EvalConfig  # noqa: F401  (its home; callers import it from here too)
 from pipeline.settings import check_settings
 from store import Store
 from store.locks import run_lock
-from store.scores import Score, score_episodes
+from store.scores import Score, score_data, score_episodes
 from store.writer import EpisodeWriter, finish_run, insert_policy_version, insert_run
-from tracing.policy_file import PolicyLoadError, read_policy_file
+from tracing.policy_file import read_policy_file
 
 
 @dataclass
@@ -51,8 +50,8 @@ class EvalResult:
             "run_id": self.run_id,
             "game": self.game,
             "policy_version_id": self.policy_version_id,
-            "score": {"mean": score.mean, "low": score.low, "high": score.high, "played": score.played,
-                      "forfeits": len(score.forfeits), "forfeit": score.forfeit, "partial_mean": score.partial},
+            "score": {**score_data(score), "forfeits": len(score.forfeits), "forfeit": score.forfeit,
+                      "partial_mean": score.partial},
             "episodes": [
                 {
                     "episode_id": o.episode["episode_id"],
@@ -65,15 +64,6 @@ class EvalResult:
                 for o in self.outcomes
             ],
         }
-
-
-def resolve_game(declared: str | None, requested: str | None, source: str) -> str:
-    """The game to play, from ``--game`` and the policy's ``GAME``; errors say how to fix a mismatch."""
-    if requested is None and declared is None:
-        raise PolicyLoadError(f"{source} does not declare GAME = '...'; pass --game (`codearcade games` lists them)")
-    if requested is not None and declared is not None and get_game(requested) != get_game(declared):
-        raise PolicyLoadError(f"{source} declares GAME = '{declared}' but --game is '{requested}'; drop one of them")
-    return get_game(requested or declared).name
 
 
 def evaluate(

@@ -38,6 +38,15 @@ MAX_VALIDATION_STEPS = 200
 """Recorded observations a candidate is run on (evenly spread over the rollout)."""
 
 
+def resolve_game(declared: str | None, requested: str | None, source: str) -> str:
+    """The game to play, from ``--game`` and the policy's ``GAME``; errors say how to fix a mismatch."""
+    if requested is None and declared is None:
+        raise PolicyLoadError(f"{source} does not declare GAME = '...'; pass --game (`codearcade games` lists them)")
+    if requested is not None and declared is not None and get_game(requested) != get_game(declared):
+        raise PolicyLoadError(f"{source} declares GAME = '{declared}' but --game is '{requested}'; drop one of them")
+    return get_game(requested or declared).name
+
+
 class CandidateRejected(Exception):
     """A candidate that must not become a policy version; ``str()`` is the reason, cleaned as untrusted text
     (``pipeline/boundary/untrusted.py``: capped, secrets redacted): it quotes the candidate's own exceptions and names."""
