@@ -7,7 +7,9 @@ one grammar resolved in one place (:data:`RUN_MATCHES_SQL`), tried in this order
 2. ``last`` (the newest run), ``last~N`` (the N-th before it: ``last~1`` is the one before ``last``; ``last~``
    alone is ``last~1``) or ``-N`` (the N-th newest: ``-1`` is ``last``, ``-2`` is ``last~1``), by ``created_at``,
    among the runs a person started: runs a command made for its own use (``runs.made_by``: the evaluations
-   ``codearcade compare`` plays of two versions) are not counted;
+   ``codearcade compare`` plays of two versions) are not counted, and a verb that acts only on some kinds of run
+   (``audit``, ``replay``, ``optimize --resume``: optimizations) counts only those, and says so when it passed a
+   newer run of another kind;
 3. a run's label (``runs.name``, given with ``--name`` or by a batch entry), when one run has it;
 4. the start of a run id, in either case, when one run id starts so.
 
@@ -51,7 +53,7 @@ _BODY = r"""
                END AS n FROM ref),
     recent AS (
         SELECT run_id, row_number() OVER (ORDER BY created_at DESC, run_id DESC) - 1 AS n
-        FROM runs WHERE made_by IS NULL),
+        FROM runs WHERE made_by IS NULL AND {kinds}),
     matches AS (
         SELECT r.run_id, 1 AS level, 'id' AS matched FROM runs r, ref WHERE r.run_id = ref.text
         UNION ALL
@@ -63,7 +65,7 @@ _BODY = r"""
         WHERE ref.text <> '' AND starts_with(upper(r.run_id), upper(ref.text)))
     SELECT run_id, matched FROM matches WHERE level = (SELECT min(level) FROM matches)
 """
-RUN_MATCHES_SQL = _BODY.format(ref="$ref")
+RUN_MATCHES_SQL = _BODY.format(ref="$ref", kinds="($kinds IS NULL OR list_contains($kinds, kind))")
 """The runs a reference (parameter ``$ref``) names, at the first level of the grammar that names any: columns
 ``run_id`` and ``matched`` (``id``, ``recency``, ``name`` or ``prefix``). The one home of the grammar: the
 Python resolver runs it, and the SQL macros are made from it."""
@@ -84,7 +86,7 @@ SQL_MACROS: dict[str, tuple[str, str, str]] = {
         "run_matches(ref)",
         "table macro: every run a reference names, with how (id, recency, name, prefix): "
         "FROM run_matches('01JD')",
-        "CREATE TEMP MACRO run_matches(ref) AS TABLE " + _BODY.format(ref="ref"),
+        "CREATE TEMP MACRO run_matches(ref) AS TABLE " + _BODY.format(ref="ref", kinds="TRUE"),
     ),
 }
 """The macros a person's SQL can use: name -> (signature, one line of help, the statement that makes it). The
@@ -141,12 +143,14 @@ def _candidate(row: tuple, short: dict[str, str]) -> str:
     return f"{short.get(run_id, run_id)}{label} ({kind} {game}, {created:%Y-%m-%d %H:%M})"
 
 
-def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None) -> str:
+def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None,
+                   kinds: tuple[str, ...] | None = None) -> str:
     """The run ``text`` names (the grammar in the module docstring); ValueError, one line, saying what there is
-    when it names none or several."""
+    when it names none or several. ``kinds``: by recency (``last``, ...), only runs of these kinds count."""
     ref = text.strip()
     rows = con.execute(f"SELECT m.run_id, m.matched, r.kind, r.game, r.created_at, r.name FROM ({RUN_MATCHES_SQL}) m "
-                       "JOIN runs r USING (run_id) ORDER BY r.created_at DESC, m.run_id DESC", {"ref": ref}).fetchall()
+                       "JOIN runs r USING (run_id) ORDER BY r.created_at DESC, m.run_id DESC",
+                       {"ref": ref, "kinds": list(kinds) if kinds else None}).fetchall()
     where = _where(store)
     if len(rows) == 1:
         return rows[0][0]
@@ -156,9 +160,13 @@ def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None)
             raise ValueError(f"no run {ref or repr(text)}{where}: there are no runs yet; `codearcade eval` or "
                              "`codearcade optimize` makes one")
         if RECENT_FORM.fullmatch(ref):
-            held = (f"{total} runs, last to last~{total - 1} (-1 to -{total})" if total > 1
-                    else "one run, last (-1)")
-            raise ValueError(f"no run {ref}{where}: it holds {held}; `codearcade runs` lists them")
+            if kinds:
+                (total,) = con.execute("SELECT count(*) FROM runs WHERE made_by IS NULL AND list_contains(?, kind)",
+                                       [list(kinds)]).fetchone()
+            kind = f" {' or '.join(kinds)}" if kinds else ""
+            held = (f"{total}{kind} runs, last to last~{total - 1} (-1 to -{total})" if total > 1
+                    else f"one{kind} run, last (-1)" if total else f"no{kind} run")
+            raise ValueError(f"no{kind} run {ref}{where}: it holds {held}; `codearcade runs` lists them")
         names = [r[0] for r in con.execute("SELECT DISTINCT name FROM runs WHERE name IS NOT NULL").fetchall()]
         near = difflib.get_close_matches(ref, ["last", *names], n=1, cutoff=0.6) if ref else []
         hint = f"; did you mean {near[0]}?" if near else "; `codearcade runs` lists the runs"

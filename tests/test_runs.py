@@ -70,6 +70,29 @@ def test_references(four, text, expected):
     assert _resolve(four, text) == RUNS[expected][0]
 
 
+@pytest.mark.parametrize("text, expected", [("last", 1), ("-1", 1), ("last~1", 0), ("-2", 0), ("baseline", 0),
+                                           ("01JDX3K9", 2)])  # by id or label: what it names, whatever its kind
+def test_references_by_recency_count_only_the_kinds_a_verb_acts_on(four, text, expected):
+    with four.read() as con:
+        assert resolve_run_id(con, text, four, kinds=("optimize",)) == RUNS[expected][0]
+        with pytest.raises(ValueError, match=r"no optimize run last~2 .*: it holds 2 optimize runs, last to last~1"):
+            resolve_run_id(con, "last~2", four, kinds=("optimize",))
+
+
+def test_a_verb_that_passes_over_a_newer_run_says_which_it_took(four, capsys):
+    from pipeline.cli.common import resolve_run
+
+    assert resolve_run(four, "last", kinds=("optimize",), verb="audit") == RUNS[1][0]
+    err = capsys.readouterr().err
+    assert re.fullmatch(r"codearcade audit: last is optimize run 01JDX3K2AC\S*, passing over the newer eval run "
+                        r"01JDX3K9\S*\n", err), err  # compare's own evaluation (made_by) is not named
+    assert resolve_run(four, "last~1", kinds=("optimize",), verb="audit") == RUNS[0][0]
+    assert "passing over the newer eval run" in capsys.readouterr().err
+    assert resolve_run(four, "baseline", kinds=("optimize",), verb="audit") == RUNS[0][0]
+    assert capsys.readouterr().err == "", "a run named, not counted back: nothing passed over"
+    assert resolve_run(four, "last") == RUNS[2][0] and capsys.readouterr().err == ""
+
+
 def test_an_ambiguous_prefix_lists_the_candidates_by_their_shortest_unique_prefixes(four):
     with pytest.raises(ValueError) as refused:
         _resolve(four, "01JDX3K2A")
@@ -209,7 +232,7 @@ def test_schema_listing_has_a_line_for_every_table_view_and_macro(four):
     listing = schema_listing(four)
     names = [name for name, _, _ in listing]
     assert names == list(TABLES) + list(VIEWS) + ["run(ref)", "run_matches(ref)", "mean_ci(values)", "iqm_ci(values)",
-                                                  "iqm_ci_strata(lists)", "ci_text(point, low, high)"]
+                                                  "iqm_ci_strata(lists)", "ci_text(ci)", "ci_text(point, low, high)"]
     for name, kind, line in listing:
         assert kind in ("table", "view", "macro", "function") and 20 < len(line) < 160 and "\n" not in line, name
     con = duckdb.connect(str(four.path), read_only=True)  # any DuckDB client sees the same lines

@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
              f"--episodes (the seeds are the games)", file=sys.stderr)
         return EXIT_BAD_INPUT
     store = open_store(args)
-    run_id = resolve_run(store, args.run_id)
+    run_id = resolve_run(store, args.run_id, kinds=("optimize",), verb="audit")
     result = audit_run(store, run_id, episodes=args.episodes, workers=args.workers, on_demand=True, seeds=args.seeds)
     if args.json:
         show_json({"run_id": run_id, "overfit": result.overfit, "audits": result.rows}, default=str)

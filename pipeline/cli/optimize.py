@@ -8,8 +8,8 @@ import sys
 from typing import Callable
 
 from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError, add_name, add_rerun,
-                                 add_settings, add_store, open_store, rerun_target, short_id, shorten_run_ids, show,
-                                 show_json, store_flag)
+                                 add_settings, add_store, open_store, rerun_target, resolve_run, short_id,
+                                 shorten_run_ids, show, show_json, store_flag)
 from pipeline.optimizer.config import FLAG_GROUPS, OptimizeConfig
 from pipeline.settings import declarations
 from viewers.safe_text import terminal_text
@@ -155,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
             raise CliError("--dry-run starts a new run; it cannot go with --resume")
         from pipeline.optimizer.loop import plan_resume
 
-        plan = plan_resume(store, args.resume, given)
+        plan = plan_resume(store, resolve_run(store, args.resume, kinds=("optimize",), verb="optimize --resume"),
+                           given)
         short = short_id(store, plan.run_id)
         if plan.nothing_to_do:
             note = shorten_run_ids(plan.nothing_to_do, {plan.run_id: short})

@@ -28,7 +28,8 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.optimizer.replay import replay
 
     store = open_store(args)
-    report = replay(store, resolve_run(store, args.run_id), log=lambda line: show(line, file=sys.stderr))
+    report = replay(store, resolve_run(store, args.run_id, kinds=("optimize",), verb="replay"),
+                    log=lambda line: show(line, file=sys.stderr))
     if args.json:
         show_json(report.as_dict())
     else:
