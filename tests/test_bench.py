@@ -29,6 +29,9 @@ SMALLEST = {
                                                         "below the read rules:", "tests/policies/pong_competent.py"]),
     "proposal_pool.py": (["--calls", "8", "--latency", "0.3", "--repeats", "1", "--greedy-iterations", "1",
                           "--eval-max-steps", "200"], ["pool / barrier =", "greedy wall / (call + needed episodes) ="]),
+    "calibration.py": (["--replicates", "200", "--iqm-replicates", "10"],
+                       ["coverage of the true mean", "where t's promise ends", "identical policies called different",
+                        "power of Welch's test", "coverage of the true IQM", "| pong | 3 |"]),
     "cascade_steps.py": (["--iterations", "3", "--eval-max-steps", "400", "--screen-steps", "100"],
                          ["steps cheap / baseline =", "same best-so-far curve"]),
 }

@@ -18,7 +18,8 @@ from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
-from store.scores import difference, iqm, score_episodes
+from store.scores import (ALL_EQUAL, IQM_MIN_PER_STRATUM, difference, interval_text, iqm, iqm_interval, mean_interval,
+                          score_episodes)
 from tests.conftest import COMPETENT_PREDICT, COMPETENT_SELECT, json_reply
 
 FAIL_AT_301 = {
@@ -60,29 +61,64 @@ def test_the_rule():
     forfeit = {"return": -7.0, "end_reason": "policy_error", "length": 300,
                "error": "RuntimeError: boom at line 4: `raise RuntimeError('boom')`"}
     clean = score_episodes(played)
-    assert clean.ranked == clean.mean == -19.5 and clean.low == -20.0 and clean.high == -19.0
+    # two episodes a point apart: Student t with 1 degree of freedom, -19.5 ± 12.706 · 0.5
+    assert clean.ranked == clean.mean == -19.5
+    assert clean.low == pytest.approx(-19.5 - 6.353102) and clean.high == pytest.approx(-19.5 + 6.353102)
     assert clean.forfeit is None
     mixed = score_episodes(played + [forfeit])
     assert mixed.ranked is None, "a forfeited assessment has no score to rank"
     assert mixed.mean == -19.5 and mixed.partial == pytest.approx(-46 / 3), "forfeits are named, never averaged in"
-    assert mixed.summary() == "mean return -19.5 [-20, -19] over 2 episodes; 1 forfeit: RuntimeError at step 300"
+    assert mixed.summary() == "mean return -19.5 [-25.9, -13.1] 95% t, n=2; 1 forfeit: RuntimeError at step 300"
     assert mixed.forfeit == "1 of 3 episodes forfeited: RuntimeError at step 300 (policy_error)"
     timeout = score_episodes([{"return": 3.0, "end_reason": "timeout", "length": 12, "error": "the call took 2 s"}])
     assert timeout.mean is None and timeout.summary() == "no episode played out of 1; 1 forfeit: timeout at step 12"
     assert score_episodes([{"return": 5.0, "end_reason": "tampered", "length": 9}]).ranked is None
+    # no interval where there is nothing to compute one from: said, never printed as [x, x]
+    alone = score_episodes(played[:1])
+    assert (alone.low, alone.high) == (None, None)
+    assert alone.summary() == "mean return -20.0 (n=1: too few for an interval)"
+    same = score_episodes([played[0]] * 3)
+    assert (same.low, same.high) == (None, None) and same.mean == -20.0
+    assert same.summary() == "mean return -20.0 (n=3: all equal, no interval)"
+    assert same.interval.reason == ALL_EQUAL and same.interval.method == "t" and same.interval.n == 3
+
+
+def test_every_interval_is_printed_with_its_level_method_and_n():
+    assert interval_text(-20.6667, -21.0, -20.3333, 3, "t") == "-20.7 [-21.0, -20.3] 95% t, n=3"
+    assert interval_text(0.4567, 0.1234, 0.789, 8, "stratified bootstrap") == (
+        "0.457 [0.123, 0.789] 95% stratified bootstrap, n=8"), "normalized scores keep three decimals"
+    assert interval_text(2.0, -1.0, 5.0, (3, 4), "Welch t", signed=True) == "+2.0 [-1.0, +5.0] 95% Welch t, n=3 and 4"
+    assert interval_text(-21.0, None, None, 1, "t") == "-21.0 (n=1: too few for an interval)"
+    assert interval_text(-21.0, None, None, 5, "t") == "-21.0 (n=5: all equal, no interval)"
+    assert interval_text(3.0, 1.0, 5.0, 10, "t", level=0.9) == "3.0 [1.0, 5.0] 90% t, n=10"
+    found = mean_interval([-21, -20, -21])
+    assert found.text() == f"-20.7 [{found.low:.1f}, {found.high:.1f}] 95% t, n=3"
+    assert found.low < -21 < -20 < found.high
 
 
 def test_differences_and_aggregates():
     same = difference([3, 5, -2, 4, 1, 0], [2, 4, 1, -1, 5, 3])
     assert same.significant is False and same.low < 0 < same.high
+    assert same.verdict() == ("A - B = -0.5 [-3.6, +2.6] 95% Welch t, n=6 and 6: no difference beyond the noise "
+                              "(the interval includes 0)")
     apart = difference([14, 11, 17, 12, 9], [-21, -20, -21, -19, -21])
     assert apart.significant is True and apart.low > 20
+    assert "beyond the noise (the interval excludes 0)" in apart.verdict()
     assert difference([1], [2, 3]).significant is None, "one episode cannot say how noisy it is"
-    assert difference([4, 4], [4, 4]).significant is False and difference([4, 4], [3, 3]).significant is True
-    # the interquartile mean of all values, the interval from resampling each stratum on its own
-    point, low, high = iqm([[1, 2, 3, 4], [5, 6, 7, 100]])
-    assert point == pytest.approx(4.5) and low <= point <= high and high < 100
-    assert iqm([[7], [7]]) == (7.0, 7.0, 7.0)
+    assert "too few episodes to tell" in difference([1], [2, 3]).verdict()
+    # every return the same on both sides (the paper's protocol: one game, played again): no noise to measure, so
+    # no call either way; one constant side is fine, the other's spread is the noise
+    for flat in (difference([4, 4], [4, 4]), difference([4, 4], [3, 3])):
+        assert flat.significant is None and flat.reason == ALL_EQUAL and "cannot tell" in flat.verdict()
+    assert difference([4, 4, 4], [1, 1.5, 2]).significant is True
+    # the interquartile mean of all values; its interval (each stratum resampled on its own) only from
+    # IQM_MIN_PER_STRATUM values a stratum, where the bootstrap keeps its level (tests/test_calibration.py)
+    assert iqm([[1, 2, 3, 4], [5, 6, 7, 100]]) == (pytest.approx(4.5), None, None)
+    wide = [[float(i % 9) for i in range(IQM_MIN_PER_STRATUM)],
+            [float(i % 4 + 50) for i in range(IQM_MIN_PER_STRATUM)]]
+    point, low, high = iqm(wide)
+    assert low < point < high
+    assert iqm([[7], [7]]) == (7.0, None, None) and iqm_interval([[7], [7]]).reason == ALL_EQUAL
 
 
 @pytest.mark.slow
