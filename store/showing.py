@@ -12,6 +12,7 @@ import duckdb
 import pyarrow as pa
 
 from store.readers import _rows
+from store.scores import score_episodes
 
 
 def _query(con: duckdb.DuckDBPyConnection, sql: str, params: list[Any] | None = None) -> list[dict[str, Any]]:
@@ -24,7 +25,7 @@ def report_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
     def q(sql: str) -> list[dict[str, Any]]:
         return _query(con, sql, [run_id])
 
-    return {
+    rows = {
         "summary": q("SELECT * FROM run_summary WHERE run_id = ?")[0],
         "curve": q("SELECT * FROM learning_curve WHERE run_id = ? ORDER BY iteration"),
         "code": q("SELECT * FROM code_metrics WHERE run_id = ? ORDER BY iteration"),
@@ -37,10 +38,38 @@ def report_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
                       "ORDER BY iteration, kind, episode_index"),
         "versions": q("SELECT policy_version_id, iteration, produced_by, validation, loc, sloc, complexity, "
                       "max_if_depth, functions FROM policy_versions WHERE run_id = ? ORDER BY iteration"),
-        "audits": q("SELECT role, protocol, iteration, policy_version_id, seeds, score, score_low, score_high, "
-                    "forfeit, tuning_score, overfit FROM audits WHERE run_id = ? ORDER BY role, protocol DESC"),
+        "audits": q("SELECT role, protocol, iteration, policy_version_id, seeds, episode_ids, score, score_low, "
+                    "score_high, forfeit, tuning_score, overfit FROM audits WHERE run_id = ? "
+                    "ORDER BY role, protocol DESC"),
         "calls": llm_call_outcomes(con, run_id),
     }
+    scored = {r["iteration"]: r["episode_ids"] or [] for r in q(
+        """SELECT i.iteration, CASE WHEN json_extract_string(r.config, '$.optimize_protocol') = 'standard'
+                                 THEN k.robust_episode_ids ELSE k.eval_episode_ids END AS episode_ids
+           FROM iterations i JOIN runs r ON r.run_id = i.run_id
+           LEFT JOIN candidates k ON k.run_id = i.run_id AND k.iteration = i.iteration
+                AND k.candidate = coalesce(i.candidate, 0)
+           WHERE i.run_id = ?""")}
+    _rescore(rows["curve"], scored, rows["episodes"])
+    _rescore(rows["audits"], {a["role"] + a["protocol"]: a["episode_ids"] for a in rows["audits"]}, rows["episodes"],
+             key=lambda a: a["role"] + a["protocol"])
+    return rows
+
+
+def _rescore(rows: list[dict[str, Any]], scored: dict[Any, list[str]], episodes: list[dict[str, Any]],
+             key: Any = lambda r: r["iteration"]) -> None:
+    """Give each scored row (an iteration of the learning curve, an audit) the interval of ``store/scores.py``,
+    computed now from the episodes that scored it, and their number: ``score_low``, ``score_high`` (None: no
+    interval) and ``score_n``. A store keeps the interval it was made with, and stores made before issue 37 hold
+    percentile-bootstrap ones; what a report prints is today's rule, labelled as such."""
+    by_id = {e["episode_id"]: e for e in episodes}
+    for row in rows:
+        found = [by_id[i] for i in scored.get(key(row)) or [] if i in by_id]
+        if row.get("score") is None or not found:
+            row["score_n"] = len(found)
+            continue
+        score = score_episodes(found)
+        row["score_low"], row["score_high"], row["score_n"] = score.low, score.high, score.played
 
 
 def llm_call_outcomes(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict[str, Any]]:

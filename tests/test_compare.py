@@ -148,8 +148,8 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted
         assert [p["score"] for p in report["curves"][label]] == scores
     assert report["runs"][0]["best_iteration"] == 1 and report["runs"][1]["best_iteration"] == 0
     assert re.search(r"^-.*offset = \(y - 30\) % 320", report["diff"], re.M), "A's best has the competent code"
-    # each best with its interval (the candidate that scored it), and whether the bests differ beyond the noise:
-    # the difference of the returns of the evaluation episodes that scored them
+    # each best with its interval (store/scores.py's, of the episodes that scored it: the candidate's own), and
+    # whether the bests differ beyond the noise: the difference of the returns of those episodes
     from store.scores import difference
     from viewers.safe_text import markdown_text
 
@@ -246,7 +246,8 @@ def test_the_starter_against_the_competent_policy_differs_beyond_the_noise(store
                 "--store", str(store.path), "--out", str(tmp_path / "cmp")])
     out, err = capsys.readouterr()
     assert code == 0, err
-    assert re.search(r"^  A: mean return \S+(?: \[\S+, \S+\])? over 2 episodes \(seeds 1000000\.\.1000001; returns ", out, re.M)
+    assert re.search(r"^  A: mean return \S+ (?:\[\S+, \S+\] 95% t, n=2|\(n=2: all equal, no interval\)) "
+                     r"\(seeds 1000000\.\.1000001; returns ", out, re.M), "the interval's level, method and n"
     assert re.search(r"^  B: .*\(seeds 1000002\.\.1000003; ", out, re.M)
     assert re.search(r"^  A - B = ", out, re.M) and "first divergent step" not in out
     readme = (tmp_path / "cmp" / "README.md").read_text()
@@ -257,7 +258,8 @@ def test_same_seed_comparison_says_the_paper_protocol_measures_no_noise(store, c
     code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--episodes", 2, "--max-steps", 50,
                              "--store", store.path)
     assert code == 0, err
-    assert "A - B = +0 [+0, +0]: no difference beyond the noise" in out
+    # one game twice on each side: every return the same, so no interval (not [+0, +0]) and no call either way
+    assert "A - B = +0.0 (n=2 and 2: all equal, no interval): cannot tell" in out
     assert "under the paper's protocol every seed is the same game" in out
     code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--audit", "--rerun", "x.rrd",
                              "--store", store.path)

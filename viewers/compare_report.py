@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from store.runs import shortest_prefixes
+from store.scores import MEAN_METHOD, interval_text
 from viewers.report import _md_table
 from viewers.safe_text import markdown_code, markdown_code_block, markdown_text, plot_text, terminal_text
 from viewers.tables import format_table
@@ -68,10 +69,12 @@ def _score(value: Any) -> str:
 
 
 def _best(run: dict[str, Any]) -> str:
-    """A run's best score with its 95% interval, ``12 [10.5, 13]`` (alone when it has none)."""
-    if run["best_score"] is None or run.get("best_low") is None:
+    """A run's best score with its interval, level, method and n, ``12.0 [10.5, 13.5] 95% t, n=3``; the value and
+    why without one (``store.scores.interval_text``)."""
+    if run["best_score"] is None:
         return _score(run["best_score"])
-    return f"{run['best_score']:g} [{run['best_low']:g}, {run['best_high']:g}]"
+    return interval_text(run["best_score"], run.get("best_low"), run.get("best_high"), run["best_episodes"],
+                         MEAN_METHOD)
 
 
 def _best_difference(data: dict[str, Any]) -> str:
@@ -154,7 +157,7 @@ def _score_lines(data: dict[str, Any]) -> list[str]:
     seeds and returns, and the difference's verdict; a line on the protocol when it was the paper's."""
     if not data.get("scores"):
         return []
-    lines = ["scores (mean of the episodes played out, 95% bootstrap interval):"]
+    lines = ["scores (mean of the episodes played out, with its interval):"]
     for label, side in data["scores"].items():
         seeds = side["seeds"]
         where = f"seeds {seeds[0]}..{seeds[-1]}" if len(seeds) > 1 else f"seed {seeds[0]}" if seeds else "no seeds"
@@ -209,7 +212,7 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
                           "seconds"),
                          [(r["label"], markdown_code(r["run_id"]), r["model"], r["status"], r["iterations"], _best(r),
                            r["best_iteration"], r["llm_calls"], r["total_tokens"], r["elapsed_s"]) for r in runs]),
-               "", markdown_text(_best_difference(data)) + " (95% bootstrap intervals, `store/scores.py`)",
+               "", markdown_text(_best_difference(data)) + " (`store/scores.py`)",
                "", "## Best score within the same budget", "",
                "Only budgets both runs spent are matched; `all` is each run's whole spending.", "",
                _md_table(("budget in", "up to", "A best", "B best"), _budget_rows(data)), "",

@@ -22,6 +22,7 @@ from typing import Any, Callable, Sequence
 
 from store import Store
 from store.readers import get_run
+from store.scores import CONFIDENCE, MEAN_METHOD, interval_text
 from store.showing import report_rows
 from store.runs import resolve_run_id
 from viewers.safe_text import (markdown_cell, markdown_code, markdown_code_block, markdown_text, plot_text,
@@ -101,10 +102,13 @@ def scores_figure(data: dict[str, Any]):
         ax.scatter([e["iteration"] for e in evals if e["iteration"] in xs],
                    [e["return"] for e in evals if e["iteration"] in xs],
                    s=12, color="#1f77b4", alpha=0.25, linewidths=0, label="one evaluation episode", zorder=2)
+    # store/scores.py's interval over the episodes that scored each iteration (store/showing.py)
     band = [(r["iteration"], r["score_low"], r["score_high"]) for r in curve if r.get("score_low") is not None]
-    if band and any(low != high for _, low, high in band):
+    if band:
+        counts = "/".join(str(n) for n in sorted({r["score_n"] for r in curve if r.get("score_low") is not None}))
         ax.fill_between([b[0] for b in band], [b[1] for b in band], [b[2] for b in band], color="#1f77b4",
-                        alpha=0.15, linewidth=0, zorder=1, label="95% interval (bootstrap over its episodes)")
+                        alpha=0.15, linewidth=0, zorder=1,
+                        label=f"{CONFIDENCE * 100:g}% {MEAN_METHOD} interval, n={counts} episodes")
     ax.plot(xs, [_nan(r["score"]) for r in curve], "-", color="#1f77b4", linewidth=1.8, zorder=3,
             label=f"score (mean return of {n_eval} evaluation episode{'s' * (n_eval != 1)})")
     ax.step(xs, [_nan(r["best_score"]) for r in curve], where="post", color="#ff7f0e", linestyle="--",
@@ -397,6 +401,13 @@ def _md(value: Any, digits: int = 2) -> str:
     return markdown_cell(value)  # stored text is escaped (an episode's error may hold <script> or a link)
 
 
+def _score_text(row: dict[str, Any]) -> str:
+    """A scored row's score with its interval, level, method and n (``store.scores.interval_text``; the row's
+    ``score_low``/``score_high``/``score_n`` are :func:`store.showing.report_rows`'s, computed by today's rule)."""
+    return interval_text(row["score"], row.get("score_low"), row.get("score_high"), row.get("score_n") or 0,
+                         MEAN_METHOD)
+
+
 def _md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
     lines += ["| " + " | ".join(_md(v) for v in row) + " |" for row in rows]
@@ -447,10 +458,11 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
         if forfeits:
             facts.append(f"{forfeits} candidate(s) forfeited a game (never the best)")
         if summary.get("audit_score") is not None or summary.get("overfit") is not None:
-            held = _md(summary["audit_score"]) if summary["audit_score"] is not None else "forfeit"
-            band = (f" [{_md(summary['audit_low'])}, {_md(summary['audit_high'])}]"
-                    if summary.get("audit_low") is not None and summary["audit_low"] != summary["audit_high"] else "")
-            facts.append(f"held-out audit **{held}**{band} (standard protocol; starter "
+            audited = next((a for a in data.get("audits") or () if a["role"] == "best"
+                            and a["protocol"] == "standard"), None)
+            held = (_score_text(audited) if audited is not None and audited["score"] is not None
+                    else _md(summary["audit_score"]) if summary["audit_score"] is not None else "forfeit")
+            facts.append(f"held-out audit **{held}** (standard protocol; starter "
                          f"{_md(summary['starter_audit_score'])})" + (" · **OVERFIT**: less than half of the gain "
                                                                       "over the starter holds up" if summary["overfit"]
                                                                       else ""))
@@ -481,13 +493,15 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                 status += f" after {r['repairs']} repair{'s' * (r['repairs'] > 1)}"
             score = (r["score"] if not r.get("forfeit") else
                      f"forfeit: {terminal_text(r['forfeit'])} ({_md(r['forfeit_score'])} when it stopped)")
-            if r.get("score_low") is not None and r["score_low"] != r["score_high"]:
-                score = f"{_md(r['score'])} [{_md(r['score_low'])}, {_md(r['score_high'])}]"
+            if r["score"] is not None and r.get("score_n", 0) >= 2:  # one episode: the number alone
+                score = _score_text(r)
             rows.append((r["iteration"], status, score, r["best_score"], r["train_return"], c.get("loc"),
                          c.get("sloc"), c.get("complexity"), c.get("max_if_depth"), r["input_tokens"],
                          r["output_tokens"], r["wall_s"], markdown_code(r["policy_version_id"])))
         out += ["## Iterations", "",
-                "Score: mean evaluation return, with its 95% bootstrap interval over the episodes when they differ; "
+                "Score: mean evaluation return, with its 95% Student-t interval over its n episodes (from two "
+                "episodes; none when they all returned the same, which under the paper's protocol is one game "
+                "played n times); "
                 "an iteration whose version ended a game itself (an error, a time limit) has no score: a forfeit "
                 "(never the best). Train: return of the traced training rollout. Code metrics are "
                 "those of the version evaluated (`code_metrics`); tokens are those of the iteration's LLM calls.", "",
@@ -499,11 +513,11 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                     "under the standard protocol (sticky actions 0.25, up to 30 no-op starts) and the run's own; "
                     "tuning: its score on the seeds the loop selected on. Overfit: less than half of the best's "
                     "gain over the starter holds up (`codearcade audit` plays it again).", "",
-                    _md_table(("version", "iteration", "protocol", "games", "score", "95% interval", "tuning",
-                               "overfit"),
+                    _md_table(("version", "iteration", "protocol", "games", "score (95% interval, method, n)",
+                               "tuning", "overfit"),
                               [(a["role"], a["iteration"], a["protocol"], len(a["seeds"]),
-                                a["score"] if a["score"] is not None else f"forfeit: {terminal_text(a['forfeit'])}",
-                                f"{_md(a['score_low'])} – {_md(a['score_high'])}", a["tuning_score"], a["overfit"])
+                                _score_text(a) if a["score"] is not None
+                                else f"forfeit: {terminal_text(a['forfeit'])}", a["tuning_score"], a["overfit"])
                                for a in data["audits"]]), ""]
         if data["rejected"]:
             out += ["## Rejected candidates", "", _md_table(

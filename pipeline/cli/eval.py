@@ -60,6 +60,12 @@ def _progress_bar(episodes: int, description: str):
     return bar, update, finished
 
 
+PAPER_PROTOCOL_NOTE = ("(the paper's protocol: sticky actions 0, no no-op starts, so every seed is the same game and "
+                       "the episodes are that one game again; the interval measures only the policy's own random "
+                       "draws. --sticky 0.25 --noop-max 30 plays different games)")
+"""What ``eval`` adds under the paper's protocol: repeated episodes of it are one game (``store/scores.py``)."""
+
+
 def run(args: argparse.Namespace) -> int:
     import time
 
@@ -104,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
         # forfeits are named, never averaged in (store/scores.py); the interval is over the episodes played out
         show(f"{result.score.summary()}; {steps:,} steps in {elapsed:.1f} s "
              f"({summary['steps_per_s'] or 0:,.0f} steps/s, setup and checks included)")
+        if result.score.played > 1 and not config.sticky and not config.noop_max:
+            show(PAPER_PROTOCOL_NOTE)
     for e in failed:  # the error is the policy's exception: escape sequences in it must not reach the terminal
         show(f"codearcade: episode {e['episode_id']} ended with {e['end_reason']}: {e['error']}", file=sys.stderr)
     return EXIT_EPISODE_FAILED if failed else EXIT_OK

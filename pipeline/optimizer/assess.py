@@ -71,7 +71,7 @@ class Assessment:
     """With a forfeit: the mean return of the optimized protocol's games, forfeits at their partial return."""
     score_low: float | None = None
     score_high: float | None = None
-    """The 95% bootstrap interval of ``score`` over its episodes (None: fewer than two, or forfeited)."""
+    """The 95% Student-t interval of ``score`` over its episodes (None: fewer than two, all equal, or forfeited)."""
 
 
 @dataclass

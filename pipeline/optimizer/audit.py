@@ -38,7 +38,7 @@ from pipeline.play.runinfo import episode_id
 from pipeline.play.verify import checked_outcome
 from store import Store
 from store.readers import audit_subjects, get_run
-from store.scores import Score, overfit, score_episodes
+from store.scores import MEAN_METHOD, Score, interval_text, overfit, score_episodes
 from store.writer import EpisodeWriter, replace_audits
 
 PROTOCOLS = {"standard": (STANDARD_STICKY, STANDARD_NOOP_MAX), "run": (0.0, 0)}
@@ -86,11 +86,11 @@ def _number(value: float | None) -> str:
 
 
 def _shown(row: dict[str, Any]) -> str:
-    """A score with its 95% interval when it has width, or the forfeit."""
+    """A score with its interval, level, method and n (``store.scores.interval_text``; a score means no game was
+    forfeited, so n is its games), or the forfeit."""
     if row["score"] is None:
         return f"forfeit ({row['forfeit']})"
-    band = row["score_low"] is not None and row["score_low"] != row["score_high"]
-    return _number(row["score"]) + (f" [{_number(row['score_low'])}, {_number(row['score_high'])}]" if band else "")
+    return interval_text(row["score"], row["score_low"], row["score_high"], len(row["seeds"]), MEAN_METHOD)
 
 
 def draw_audit_seeds(n: int) -> list[int]:

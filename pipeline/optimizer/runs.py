@@ -1,9 +1,9 @@
 """``codearcade compare A B`` of two optimization runs: their learning curves side by side, a budget-matched table
 (the best score each run had reached within the same number of LLM calls, thousand tokens and wall seconds;
 only budgets both runs spent are matched, so neither is credited with spending it never made), the unified
-diff of their best versions, each best score with its 95% interval (``candidates.score_low``/``score_high``), and
-whether the two bests differ beyond the noise: ``store.scores.difference`` of the returns of the evaluation
-episodes that scored them.
+diff of their best versions, each best score with its 95% interval (``store.scores.score_episodes`` of the
+episodes that scored it, computed now: a store made before issue 37 holds percentile-bootstrap intervals), and
+whether the two bests differ beyond the noise: ``store.scores.difference`` (Welch's t) of those returns.
 
 Everything is read back from the store (``store/comparisons.py``) and returned as plain data
 (``viewers/compare_report.py`` renders it). It lives beside the optimizer because what it weighs is the
@@ -52,15 +52,17 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
                 raise ValueError(f"run {run_id} is an {run['kind']} run without iterations: compare optimization "
                                  f"runs, or play its policy against another version with {run_id}:best")
             texts.append(policy_text(con, run_id, best["policy_version_id"]))
-            assessed = best_evaluation(con, run_id) or {"score_low": None, "score_high": None, "episodes": []}
-            returns.append(score_episodes(assessed["episodes"]).returns)
+            assessed = best_evaluation(con, run_id) or {"episodes": []}
+            scored = score_episodes(assessed["episodes"])
+            returns.append(scored.returns)
             curves[label] = [_curve_point(row) for row in _cumulative_calls(curve)]
             last = curves[label][-1]
             runs.append({"label": label, "run_id": run_id, "kind": run["kind"], "game": run["game"],
                          "model": run["model"], "status": run["status"], "iterations": len(curve) - 1,
                          "llm_calls": last["llm_calls"], "total_tokens": last["tokens"], "elapsed_s": last["elapsed_s"],
-                         "best_score": best["score"], "best_low": assessed["score_low"],
-                         "best_high": assessed["score_high"], "best_episodes": len(assessed["episodes"]),
+                         "best_score": best["score"], "best_low": scored.low if scored.ranked is not None else None,
+                         "best_high": scored.high if scored.ranked is not None else None,
+                         "best_episodes": len(assessed["episodes"]),
                          "best_iteration": best["iteration"],
                          "best_version_id": best["policy_version_id"]})
     games = {r["game"] for r in runs}

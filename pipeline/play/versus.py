@@ -8,8 +8,8 @@ outputs on the steps around it. Episodes are deterministic under the default pro
 starts), so that step is where their behaviour really parts, not noise.
 
 Beside where the actions part, it says whether the scores differ beyond the noise: each side's score by the one
-rule of ``store/scores.py`` (mean of the episodes played out with its 95% interval, forfeits named) and the
-bootstrap interval of the difference of their returns (``scores.difference``). Under the paper's protocol every
+rule of ``store/scores.py`` (mean of the episodes played out with its 95% t interval, forfeits named) and
+Welch's t interval of the difference of their returns (``scores.difference``). Under the paper's protocol every
 seed is the same game, so that says little; ``--audit`` (``CompareConfig.audit``) plays each side on its own
 audit seeds under the standard protocol instead (sticky 0.25, up to 30 no-op starts), independent draws whose
 difference is the one that means something (and then no divergent step is looked for: the sides play different
@@ -38,7 +38,7 @@ from pipeline.play.validate import checked_inspect
 from store import Store
 from store.comparisons import episode_rows, first_divergent_step, resolve_version
 from store.readers import episode_steps, get_run, policy_text, run_episodes, step_nodes
-from store.scores import difference, score_episodes
+from store.scores import difference, score_data, score_episodes
 from store.views import resolve_run_id
 from tracing.policy_file import PolicyLoadError, read_policy_file
 
@@ -146,10 +146,12 @@ def compare_versions(store: Store, a: str, b: str, config: CompareConfig,
 
 
 def difference_data(a: tuple[float, ...], b: tuple[float, ...]) -> dict[str, Any]:
-    """``store.scores.difference`` of two sets of returns as plain data: A's mean minus B's, its 95% interval,
-    whether that leaves out 0 (None: too few episodes to tell) and the verdict in words."""
+    """``store.scores.difference`` of two sets of returns as plain data: A's mean minus B's, its 95% interval
+    (its level, method and counts beside it; ``reason`` why there is none), whether that leaves out 0 (None: no
+    interval to tell by) and the verdict in words."""
     delta = difference(a, b)
-    return {"delta": delta.delta, "low": delta.low, "high": delta.high, "significant": delta.significant,
+    return {"delta": delta.delta, "low": delta.low, "high": delta.high, "level": delta.level, "method": delta.method,
+            "n": [delta.n_a, delta.n_b], "reason": delta.reason, "significant": delta.significant,
             "verdict": delta.verdict()}
 
 
@@ -167,8 +169,7 @@ def _eval_config(game: str, config: CompareConfig, side: int) -> EvalConfig:
 def _score_data(score, episodes: list[dict[str, Any]]) -> dict[str, Any]:
     """A side's :class:`store.scores.Score` as plain data, with the seeds and returns of its episodes."""
     return {"seeds": [e["seed"] for e in episodes], "returns": [e["return"] for e in episodes],
-            "mean": score.mean, "low": score.low, "high": score.high, "played": score.played,
-            "forfeits": [f.describe() for f in score.forfeits], "summary": score.summary()}
+            **score_data(score), "forfeits": [f.describe() for f in score.forfeits], "summary": score.summary()}
 
 
 def _divergence(con, game: str, ep_a: dict[str, Any], ep_b: dict[str, Any], context: int) -> dict[str, Any]:
