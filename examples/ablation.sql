@@ -1,5 +1,6 @@
 -- The ablation's comparison table: per feedback mode, the best and final scores over the seeds: their means with
--- 95% bootstrap intervals (mean [low, high]: mean_ci and ci_text, which `codearcade sql` provides: docs/schema.md);
+-- 95% Student-t intervals over the `runs` (mean [low, high]: mean_ci and ci_text, which `codearcade sql` provides:
+-- docs/schema.md; the mean alone when the runs' scores are all equal);
 -- then the held-out audit of the runs' best versions (standard protocol, seeds the loop never played) and how many
 -- runs it flagged overfit (docs/optimizer.md).
 --

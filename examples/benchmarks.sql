@@ -6,9 +6,9 @@
 --
 -- Scores are the authors' measure: a run's best evaluation score under their protocol (sticky 0, no no-op starts,
 -- their caps and episode counts: the frontier view's deterministic_score, iteration 0 included), averaged over the
--- runs of a game (seeds) with its 95% bootstrap interval (`mean_best`: mean [low, high], mean_ci and ci_text, which
--- `codearcade sql` provides: docs/schema.md), and their interquartile mean with its interval (`iqm_best`, as
--- rliable recommends for few seeds). `protocol` says what our evaluation episodes were: `lives of one
+-- runs of a game (seeds) with its 95% Student-t interval over the `runs` (`mean_best`: mean [low, high], mean_ci and
+-- ci_text, which `codearcade sql` provides: docs/schema.md; none for one run or all equal), and their interquartile
+-- mean (`iqm_best`, as rliable recommends), whose bootstrap interval needs 30 runs of a game (below: the IQM alone). `protocol` says what our evaluation episodes were: `lives of one
 -- game` (the authors' protocol, `one_life = "continue"`: the follow-up ends an episode at a lost life in Asterix,
 -- Breakout, Q*bert and Seaquest and goes on with the same game in the next), `first lives` (`one_life = true`: the
 -- first life of each episode's own seeded game), `whole games`, or `mixed` across a game's runs. Beside them, the

@@ -1,5 +1,5 @@
--- Strategies compared at equal LLM budgets. Per strategy (means over the seeds, the scores with their 95% bootstrap
--- intervals, mean [low, high]: mean_ci and ci_text, which `codearcade sql` provides: docs/schema.md):
+-- Strategies compared at equal LLM budgets. Per strategy (means over the seeds, the scores with their 95% Student-t
+-- intervals over the `runs`, mean [low, high]: mean_ci and ci_text, which `codearcade sql` provides: docs/schema.md):
 -- the best score reached after 5, 10 and 20 LLM calls (the starting policy's score counts from call 0), the tokens and the wall-clock
 -- minutes the runs spent, and how many candidates they assessed (and how many reused stored episodes).
 WITH runs_of_batch AS (

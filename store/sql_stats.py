@@ -1,18 +1,23 @@
 """Intervals in a person's SQL: scalar functions, backed by ``store/scores.py``, on the connections such SQL runs on.
 
-SQL cannot bootstrap, and the statistics are not to be written twice, so the functions a query uses to print a
-mean or an interquartile mean with its 95% interval are Python functions registered on the connection
-(DuckDB's ``create_function``) that call :func:`store.scores.interval` and :func:`store.scores.iqm` (scipy's
-bootstrap, with the module's fixed random state: the same values give the same interval). They take DuckDB lists,
-so a query aggregates with ``list(...)`` first::
+The statistics are not to be written twice, so the functions a query uses to print a mean or an interquartile
+mean with its 95% interval are Python functions registered on the connection (DuckDB's ``create_function``) that
+call :func:`store.scores.mean_interval` (Student t) and :func:`store.scores.iqm_interval` (rliable's stratified
+bootstrap, with the module's fixed random state, given only from ``IQM_MIN_PER_STRATUM`` values a stratum: the
+same values give the same interval). They take DuckDB lists, so a query aggregates with ``list(...)`` first::
 
     SELECT game, mean_ci(list(best)) AS best FROM per_run GROUP BY game          -- over the seeds of a game
     SELECT iqm_ci_strata(list(scores)) FROM (SELECT game, list(best) AS scores ... GROUP BY game)  -- over games
 
-and ``ci_text(...)`` prints one as ``12.3 [10.1, 14.2]`` (an interval is not symmetric, so no ``±``).
-:data:`SQL_FUNCTIONS` names them with one line each (``codearcade sql --schema``; docs/schema.md);
-:func:`create_sql_functions` makes them on a connection (``store/views.py``: the one ``codearcade sql`` and the
-examples run on). A NULL in a list is left out (a forfeited assessment has no score); an empty list gives NULLs.
+Each gives a struct: the value, ``low`` and ``high`` (NULL without an interval: fewer than two values, all equal,
+or too few for an IQM interval), ``n``, and ``level``, ``method`` and ``text``, the interval as
+:func:`store.scores.interval_text` prints it (``-20.7 [-21.0, -20.3] 95% t, n=3``; without one, the value and
+why). ``ci_text(ci)`` prints such a struct (its ``text``); ``ci_text(point, low, high)`` prints bare numbers as
+``12.3 [10.1, 14.2]``, for intervals from elsewhere (it cannot know their level, method or n: prefer
+``ci_text(ci)``). :data:`SQL_FUNCTIONS` names them with one line each (``codearcade sql --schema``;
+docs/schema.md); :func:`create_sql_functions` makes them on a connection (``store/views.py``: the one
+``codearcade sql`` and the examples run on). A NULL in a list is left out (a forfeited assessment has no score); an
+empty list gives NULLs.
 """
 
 from __future__ import annotations
@@ -26,8 +31,18 @@ _DOUBLE = duckdb.sqltype("DOUBLE")
 _INTEGER = duckdb.sqltype("INTEGER")
 
 
+_VARCHAR = duckdb.sqltype("VARCHAR")
+
+
 def _interval_type(point: str) -> Any:
-    return duckdb.struct_type({point: _DOUBLE, "low": _DOUBLE, "high": _DOUBLE, "n": _INTEGER})
+    return duckdb.struct_type({point: _DOUBLE, "low": _DOUBLE, "high": _DOUBLE, "n": _INTEGER, "level": _DOUBLE,
+                               "method": _VARCHAR, "text": _VARCHAR})
+
+
+def _struct(point: str, found: Any) -> dict[str, Any]:
+    """A :class:`store.scores.Interval` as the struct the SQL functions return (``text``: NULL without a value)."""
+    return {point: found.point, "low": found.low, "high": found.high, "n": found.n, "level": found.level,
+            "method": found.method, "text": found.text() if found.point is not None else None}
 
 
 def _kept(values: list | None) -> list[float]:
@@ -36,55 +51,60 @@ def _kept(values: list | None) -> list[float]:
 
 
 def mean_ci(values: list | None) -> dict[str, Any]:
-    """``{mean, low, high, n}``: the mean of ``values`` with its 95% bootstrap interval (:func:`scores.interval`)."""
-    from store.scores import interval
+    """``{mean, low, high, n, level, method, text}``: the mean of ``values`` with its 95% Student-t interval
+    (:func:`scores.mean_interval`; none for fewer than two values or all equal)."""
+    from store.scores import mean_interval
 
-    kept = _kept(values)
-    low, high = interval(kept)
-    return {"mean": math.fsum(kept) / len(kept) if kept else None, "low": low, "high": high, "n": len(kept)}
+    return _struct("mean", mean_interval(_kept(values)))
 
 
 def iqm_ci(values: list | None) -> dict[str, Any]:
-    """``{iqm, low, high, n}``: the interquartile mean of ``values`` (one stratum, e.g. a game's seeds) with its
-    95% bootstrap interval (:func:`scores.iqm`)."""
+    """``{iqm, low, high, n, level, method, text}``: the interquartile mean of ``values`` (one stratum, e.g. a game's
+    seeds) with its 95% bootstrap interval (:func:`scores.iqm_interval`; none below ``IQM_MIN_PER_STRATUM``)."""
     return iqm_ci_strata([values])
 
 
 def iqm_ci_strata(strata: list | None) -> dict[str, Any]:
-    """``{iqm, low, high, n}``: the interquartile mean of the values of every stratum together (a list per game)
-    with a stratified bootstrap interval (:func:`scores.iqm`: each stratum resampled on its own, as rliable does)."""
-    from store.scores import iqm
+    """``{iqm, low, high, n, level, method, text}``: the interquartile mean of the values of every stratum together
+    (a list per game) with a stratified bootstrap interval (:func:`scores.iqm_interval`: each stratum resampled on
+    its own, as rliable does; none while a stratum holds fewer than ``IQM_MIN_PER_STRATUM`` values)."""
+    from store.scores import iqm_interval
 
-    kept = [_kept(s) for s in strata or ()]
-    point, low, high = iqm(kept)
-    return {"iqm": point, "low": low, "high": high, "n": sum(len(s) for s in kept)}
+    return _struct("iqm", iqm_interval([_kept(s) for s in strata or ()]))
 
 
 _LIST = duckdb.list_type(_DOUBLE)
 SQL_FUNCTIONS: dict[str, tuple[str, str, Callable[..., Any], list[Any], Any]] = {
-    "mean_ci": ("mean_ci(values)", "STRUCT(mean, low, high, n): mean of a list of DOUBLE with its 95% bootstrap "
-                "interval (mean_ci(list(score)))", mean_ci, [_LIST], _interval_type("mean")),
-    "iqm_ci": ("iqm_ci(values)", "STRUCT(iqm, low, high, n): interquartile mean of a list (e.g. over seeds) with its "
-               "95% bootstrap interval", iqm_ci, [_LIST], _interval_type("iqm")),
-    "iqm_ci_strata": ("iqm_ci_strata(lists)", "STRUCT(iqm, low, high, n): IQM over a list of lists (one per game) "
-                      "with a stratified 95% bootstrap interval", iqm_ci_strata, [duckdb.list_type(_LIST)],
-                      _interval_type("iqm")),
+    "mean_ci": ("mean_ci(values)", "STRUCT(mean, low, high, n, level, method, text): mean of a list of DOUBLE "
+                "with its 95% Student-t interval (mean_ci(list(score)))", mean_ci, [_LIST], _interval_type("mean")),
+    "iqm_ci": ("iqm_ci(values)", "STRUCT(iqm, low, high, n, level, method, text): interquartile mean of a list "
+               "(e.g. over seeds) with its 95% bootstrap interval (from 30 values)", iqm_ci, [_LIST],
+               _interval_type("iqm")),
+    "iqm_ci_strata": ("iqm_ci_strata(lists)", "STRUCT(iqm, low, high, n, level, method, text): IQM over a list of "
+                      "lists (one per game) with a stratified 95% bootstrap interval (from 30 values a list)",
+                      iqm_ci_strata, [duckdb.list_type(_LIST)], _interval_type("iqm")),
 }
 """The scipy-backed functions a person's SQL can use: name -> (signature, one line of help, the Python function,
 its parameter types, its return type)."""
 
-CI_TEXT = ("ci_text(point, low, high)", "a value and its interval as text, one decimal: 12.3 [10.1, 14.2] "
-           "(ci_text(c.mean, c.low, c.high))",
+CI_TEXT = ("ci_text(point, low, high)", "bare numbers as text, one decimal: 12.3 [10.1, 14.2] (names no level, "
+           "method or n: prefer ci_text(ci))",
            "CREATE TEMP MACRO ci_text(point, low, high) AS CASE WHEN point IS NULL THEN NULL "
            "WHEN low IS NULL THEN printf('%.1f', point) "
-           "ELSE printf('%.1f [%.1f, %.1f]', point, low, high) END")
-"""The macro that prints a value with its interval (signature, one line of help, the statement that makes it)."""
+           "ELSE printf('%.1f [%.1f, %.1f]', point, low, high) END, "
+           "(ci) AS ci.text")
+"""The macro that prints a value with its interval (signature, one line of help, the statement that makes it,
+with its second form, :data:`CI_TEXT_STRUCT`)."""
+CI_TEXT_STRUCT = ("ci_text(ci)", "a mean_ci / iqm_ci / iqm_ci_strata struct as text, naming level, method and n: "
+                  "-20.7 [-21.0, -20.3] 95% t, n=3 (the value and why, without an interval)")
+"""The macro's second form: one struct in, :func:`store.scores.interval_text`'s line out."""
 
 
 def function_listing() -> list[tuple[str, str, str]]:
-    """(signature, kind, one line) of each function and the ``ci_text`` macro, as the schema listing shows them."""
+    """(signature, kind, one line) of each function and the ``ci_text`` macro's two forms, as the schema listing
+    shows them."""
     return ([(signature, "function", line) for signature, line, *_ in SQL_FUNCTIONS.values()]
-            + [(CI_TEXT[0], "macro", CI_TEXT[1])])
+            + [(CI_TEXT_STRUCT[0], "macro", CI_TEXT_STRUCT[1]), (CI_TEXT[0], "macro", CI_TEXT[1])])
 
 
 def create_sql_functions(con: duckdb.DuckDBPyConnection) -> None:

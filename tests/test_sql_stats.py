@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from store.scores import interval, iqm
+from store.scores import IQM_MIN_PER_STRATUM, iqm, iqm_interval, mean_interval
 from store.views import run_user_query
 
 
@@ -24,24 +24,42 @@ def opened(store):
 def test_mean_and_iqm_intervals_are_store_scores_own(opened):
     values = [3.0, -1.0, 4.0, 1.0, 5.0, -9.0, 2.0, 6.0]
     mean, q = one(opened, f"SELECT mean_ci({values}), iqm_ci({values})")
-    assert (mean["low"], mean["high"]) == interval(values) and mean["mean"] == sum(values) / 8 and mean["n"] == 8
+    t = mean_interval(values)
+    assert mean == {"mean": sum(values) / 8, "low": t.low, "high": t.high, "n": 8, "level": 0.95, "method": "t",
+                    "text": t.text()}
+    assert mean["text"] == "1.4 [-2.6, 5.3] 95% t, n=8", "the level, the method and n, always"
     assert (q["iqm"], q["low"], q["high"]) == iqm([values]) and q["n"] == 8
+    assert q["low"] is None and q["text"] == f"2.5 (n=8: fewer than {IQM_MIN_PER_STRATUM} a stratum, no interval)"
     strata = [[1.0, 2.0, 3.0, 10.0], [-5.0, -4.0, 0.0], [7.0]]
     (s,) = one(opened, f"SELECT iqm_ci_strata({strata})")
     assert (s["iqm"], s["low"], s["high"]) == iqm(strata) and s["n"] == 8
     # from rows: one list per game, aggregated as examples/benchmarks.sql does over seeds
-    (t,) = one(opened, "SELECT iqm_ci_strata(list(v)) FROM (SELECT g, list(x::DOUBLE) AS v FROM "
-                       "(VALUES ('a', 1), ('a', 2), ('a', 3), ('a', 10), ('b', -5), ('b', -4), ('b', 0), ('c', 7)) "
-                       "t(g, x) GROUP BY g)")
-    assert (t["iqm"], t["low"], t["high"]) == iqm(strata)
+    (t2,) = one(opened, "SELECT iqm_ci_strata(list(v)) FROM (SELECT g, list(x::DOUBLE) AS v FROM "
+                        "(VALUES ('a', 1), ('a', 2), ('a', 3), ('a', 10), ('b', -5), ('b', -4), ('b', 0), ('c', 7)) "
+                        "t(g, x) GROUP BY g)")
+    assert (t2["iqm"], t2["low"], t2["high"]) == iqm(strata)
+    # enough values in every stratum: the stratified bootstrap's interval, named as such
+    big = [[float(i % 7) for i in range(IQM_MIN_PER_STRATUM)], [float(i % 5 + 3) for i in range(IQM_MIN_PER_STRATUM)]]
+    (b,) = one(opened, f"SELECT iqm_ci_strata({big})")
+    found = iqm_interval(big)
+    assert (b["iqm"], b["low"], b["high"]) == (found.point, found.low, found.high) and b["low"] < b["iqm"] < b["high"]
+    assert b["text"] == found.text() and b["text"].endswith(f"95% stratified bootstrap, n={2 * IQM_MIN_PER_STRATUM}")
 
 
 def test_nulls_are_left_out_and_the_text_shows_what_there_is(opened):
-    c, empty, lone, text, alone, none = one(opened, """
-        SELECT mean_ci([1.0, NULL, 3.0]), mean_ci([]), mean_ci([2.5]),
+    c, empty, lone, same, text, alone, none = one(opened, """
+        SELECT mean_ci([1.0, NULL, 3.0]), mean_ci([]), mean_ci([2.5]), mean_ci([-21.0, -21.0, -21.0]),
                ci_text(12.34, 10.06, 14.26), ci_text(2.5, NULL, NULL), ci_text(NULL, NULL, NULL)""")
-    low, high = interval([1.0, 3.0])
-    assert c == {"mean": 2.0, "low": low, "high": high, "n": 2}, "a forfeited assessment's NULL score is left out"
-    assert empty == {"mean": None, "low": None, "high": None, "n": 0}
-    assert lone == {"mean": 2.5, "low": None, "high": None, "n": 1}
+    t = mean_interval([1.0, 3.0])
+    assert c == {"mean": 2.0, "low": t.low, "high": t.high, "n": 2, "level": 0.95, "method": "t",
+                 "text": "2.0 [-10.7, 14.7] 95% t, n=2"}, "a forfeited assessment's NULL score is left out"
+    assert empty == {"mean": None, "low": None, "high": None, "n": 0, "level": 0.95, "method": "t", "text": None}
+    assert lone["low"] is None and lone["text"] == "2.5 (n=1: too few for an interval)"
+    assert same["mean"] == -21.0 and same["low"] is None and same["high"] is None, "all equal: not an exact interval"
+    assert same["text"] == "-21.0 (n=3: all equal, no interval)"
     assert (text, alone, none) == ("12.3 [10.1, 14.3]", "2.5", None)
+    # ci_text of the struct prints its text: the level, the method and n, or why there is no interval
+    shown = one(opened, """SELECT ci_text(mean_ci([1.0, 3.0])), ci_text(mean_ci([-21.0, -21.0, -21.0])),
+                                  ci_text(iqm_ci([1.0, 2.0])), ci_text(mean_ci([]))""")
+    assert shown == ("2.0 [-10.7, 14.7] 95% t, n=2", "-21.0 (n=3: all equal, no interval)",
+                     f"1.5 (n=2: fewer than {IQM_MIN_PER_STRATUM} a stratum, no interval)", None)
