@@ -52,6 +52,34 @@ def _is_disk_full(exc: Exception) -> bool:
     return "No space left" in text or "File too large" in text or "Disk quota" in text
 
 
+def _is_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` is a Ctrl-C that DuckDB caught: a SIGINT that arrives while a query runs is consumed by
+    DuckDB's client and raised as ``RuntimeError('Query interrupted')`` (2.0; ``InterruptException`` in others)."""
+    return isinstance(exc, duckdb.InterruptException) or (type(exc) is RuntimeError
+                                                           and str(exc) == "Query interrupted")
+
+
+@contextmanager
+def _ctrl_c_as_itself() -> Iterator[None]:
+    """Give a Ctrl-C that DuckDB turned into an error back as the KeyboardInterrupt it was, so that the command
+    winds down as after any Ctrl-C (the run interrupted, resumable; exit 130) instead of failing with a traceback.
+    The transaction it cut has been rolled back by then."""
+    try:
+        yield
+    except Exception as exc:
+        if _is_interrupt(exc):
+            raise KeyboardInterrupt from None
+        raise
+
+
+def _rollback(con: duckdb.DuckDBPyConnection) -> None:
+    """Roll back the transaction, if one is still open (an interrupted or failed statement may have ended it)."""
+    try:
+        con.execute("ROLLBACK")
+    except duckdb.Error:
+        pass
+
+
 def _first_line(exc: Exception) -> str:
     return str(exc).strip().splitlines()[0][:200]
 
@@ -226,15 +254,15 @@ class Store:
                 con.execute(sql)
                 con.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", [version, name, utcnow()])
                 con.execute("COMMIT")
-            except Exception:
-                con.execute("ROLLBACK")
+            except BaseException:
+                _rollback(con)
                 raise
         con.execute("BEGIN TRANSACTION")  # the game modules' published figures, as they are in this code
         try:
             refresh_published(con)
             con.execute("COMMIT")
-        except Exception:
-            con.execute("ROLLBACK")
+        except BaseException:
+            _rollback(con)
             raise
         self._migrated = True
 
@@ -255,7 +283,7 @@ class Store:
             raise StoreError(f"directory {parent} for the store does not exist; create it or choose another --store")
         if not os.access(parent, os.W_OK) and not self.path.exists():
             raise StoreError(f"cannot create {self.path}: directory {parent} is not writable; choose another --store")
-        with _one_use_at_a_time(self.path):
+        with _one_use_at_a_time(self.path), _ctrl_c_as_itself():
             yield from self._write()
 
     def _write(self) -> Iterator[duckdb.DuckDBPyConnection]:
@@ -268,10 +296,7 @@ class Store:
                 yield con
                 con.execute("COMMIT")
             except BaseException:
-                try:
-                    con.execute("ROLLBACK")
-                except duckdb.Error:
-                    pass  # a failed COMMIT has already ended the transaction
+                _rollback(con)  # a failed COMMIT has already ended the transaction
                 raise
         except duckdb.Error as exc:
             if _is_disk_full(exc):
@@ -293,7 +318,7 @@ class Store:
                      f"{self.path}" if self.location.rule == "user" else f"no store at {self.path}")
             raise StoreError(f"{where}; run `codearcade eval` or `codearcade optimize` first, "
                              "or point --store / CODEARCADE_STORE at an existing one")
-        with _one_use_at_a_time(self.path):
+        with _one_use_at_a_time(self.path), _ctrl_c_as_itself():
             yield from self._read(check)
 
     def _read(self, check: bool) -> Iterator[duckdb.DuckDBPyConnection]:

@@ -195,7 +195,7 @@ def references_by_value(con: duckdb.DuckDBPyConnection, texts: Iterable[str]) ->
         ref = text.strip()
         if not ref or re.fullmatch(r"-[0-9]+", ref):
             continue
-        rows = con.execute(RUN_MATCHES_SQL + " ORDER BY run_id", {"ref": ref}).fetchall()
+        rows = con.execute(RUN_MATCHES_SQL + " ORDER BY run_id", {"ref": ref, "kinds": None}).fetchall()
         if not rows or rows[0][1] == "id" or (rows[0][1] == "prefix" and len(ref) < MIN_HINTED_PREFIX):
             continue
         found.append((text, rows[0][1], [r[0] for r in rows]))

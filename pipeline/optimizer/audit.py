@@ -70,10 +70,10 @@ class AuditResult:
                 continue
             name = "best = starter" if role == "best" and standard["iteration"] == 0 else role
             games = len(set(standard["seeds"]))
-            own_text = "" if own is None else (f", the run's own protocol {_shown(own)} (the tuning game again, not "
-                                               f"held out)")
-            out.append(f"audit  {name} (iteration {standard['iteration']}): held out, on {games} sealed game"
-                       f"{'s' * (games != 1)} of the standard protocol {_shown(standard)}{own_text}; tuning "
+            own_text = "" if own is None else f"; not held out, the run's own protocol (the tuning game again): " \
+                                              f"{_shown(own)}"
+            out.append(f"audit  {name} (iteration {standard['iteration']}): held out, the standard protocol on {games} "
+                       f"sealed game{'s' * (games != 1)}: {_shown(standard)}{own_text}; tuning "
                        f"{_number(standard['tuning_score'])}")
         if self.overfit:
             out.append("audit  OVERFIT: less than half of the best version's gain over the starting policy holds up "
