@@ -592,3 +592,22 @@ def test_run_ids_in_messages_are_shortened_but_episode_ids_are_not():
     text = "run 01JDX3K2AB7Q000000000000A1 failed in 01JDX3K2AB7Q000000000000A1.3.eval.0; see 01JDX3K2AB7Q000000000000B9"
     assert shorten_run_ids(text, short) == ("run 01JDX3K2AB failed in 01JDX3K2AB7Q000000000000A1.3.eval.0; see "
                                             "01JDX3K2AB7Q000000000000B9")
+
+
+def test_long_work_is_never_silent_off_a_terminal():
+    """Off a terminal (a CI log, `| tee`), where a bar would show nothing, playing episodes says so when it starts
+    and as each tenth of them ends (``EpisodeProgress``: eval's bar on a terminal)."""
+    import io
+
+    from pipeline.cli.common import EpisodeProgress
+
+    for total, expected in [(3, 1 + 3), (25, 1 + 10), (1, 1 + 1)]:
+        stream = io.StringIO()
+        progress = EpisodeProgress(total, "audit of 01ABCDEF", stream=stream)
+        for i in range(total):
+            progress.update(i, 50)
+            progress.finished(i, 100)
+        progress.close()
+        lines = stream.getvalue().splitlines()
+        assert len(lines) == expected and lines[0] == f"audit of 01ABCDEF: {total} episode{'s' * (total > 1)} to play"
+        assert lines[-1] == f"audit of 01ABCDEF: {total} of {total} episodes played, {100 * total:,} steps", lines

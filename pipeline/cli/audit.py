@@ -10,8 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_OK, add_run, add_store, open_store, positive_int, resolve_run,
-                                 show, show_json)
+from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_OK, EpisodeProgress, add_run, add_store, open_store,
+                                 positive_int, resolve_run, short_id, show, show_json)
 
 
 def add_parser(verbs) -> None:
@@ -59,7 +59,19 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     store = open_store(args)
     run_id = resolve_run(store, args.run_id, kinds=("optimize",), verb="audit")
-    result = audit_run(store, run_id, episodes=args.episodes, workers=args.workers, on_demand=True, seeds=args.seeds)
+    progress: list[EpisodeProgress] = []
+
+    def playing(total: int) -> None:
+        progress.append(EpisodeProgress(total, f"audit of {short_id(store, run_id)}"))
+
+    try:
+        result = audit_run(store, run_id, episodes=args.episodes, workers=args.workers, on_demand=True,
+                           seeds=args.seeds, on_play=playing,
+                           progress=lambda i, played: progress and progress[0].update(i, played),
+                           on_episode=lambda i, length: progress and progress[0].finished(i, length))
+    finally:
+        for bar in progress:
+            bar.close()
     if args.json:
         show_json({"run_id": run_id, "overfit": result.overfit, "audits": result.rows}, default=str)
     else:

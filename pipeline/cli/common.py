@@ -36,6 +36,56 @@ def show_json(value: Any, *, default: Callable[[Any], Any] | None = None, ensure
     print(terminal_json(json.dumps(value, indent=2, default=default, ensure_ascii=ensure_ascii)))
 
 
+class EpisodeProgress:
+    """Progress of a command that plays episodes, on stderr: a tqdm bar on a terminal (finished episodes, steps
+    played so far: episodes end at unknown lengths, so a bar over ``episodes x max_steps`` would jump); off a
+    terminal (a CI log, ``| tee``), where a bar would be silent, a line when it starts and as each tenth of the
+    episodes finishes, so that a long wait is never silent. ``update`` is the executor's progress callback
+    (episode index, steps played), ``finished`` the per-episode one (index, length)."""
+
+    def __init__(self, episodes: int, description: str, stream: IO[str] | None = None) -> None:
+        from tqdm import tqdm
+
+        self.episodes, self.description = episodes, terminal_text(description)
+        self.stream = stream if stream is not None else sys.stderr
+        self.steps: dict[int, int] = {}
+        self.done = 0
+        self.bar = None
+        if self.stream.isatty():
+            tqdm.monitor_interval = 0  # no monitor thread: episode workers are forked from this process
+            self.bar = tqdm(total=episodes, desc=self.description, unit="episode", dynamic_ncols=True, leave=False,
+                            file=self.stream)
+        else:
+            print(f"{self.description}: {episodes} episode{'s' * (episodes != 1)} to play", file=self.stream,
+                  flush=True)
+
+    def update(self, index: int, played: int) -> None:
+        self.steps[index] = played
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{sum(self.steps.values()):,} steps", refresh=True)
+
+    def finished(self, index: int, length: int) -> None:
+        self.steps[index] = length
+        self.done += 1
+        if self.bar is not None:
+            self.bar.update(1)
+            self.update(index, length)
+        elif self.done * 10 // self.episodes != (self.done - 1) * 10 // self.episodes or self.done == self.episodes:
+            print(f"{self.description}: {self.done} of {self.episodes} episodes played, "
+                  f"{sum(self.steps.values()):,} steps", file=self.stream, flush=True)
+
+    def write(self, line: str) -> None:
+        """A line for people above the bar (or just a line, off a terminal), made terminal-safe."""
+        if self.bar is not None:
+            self.bar.write(terminal_text(line), file=sys.stdout)
+        else:
+            show(line)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 # --------------------------------------------------------------------------------------------------- parsing
 
 

@@ -115,12 +115,14 @@ def check_audit_seeds(seeds: Sequence[int]) -> list[int]:
 
 def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: int | None = None,
               progress: Callable[[int, int], None] | None = None, on_demand: bool = False,
-              seeds: Sequence[int] | None = None) -> AuditResult:
+              seeds: Sequence[int] | None = None, on_play: Callable[[int], None] | None = None,
+              on_episode: Callable[[int, int], None] | None = None) -> AuditResult:
     """Play the audit of ``run_id`` (see the module docstring) and store it; ``episodes`` and ``workers`` default
     to the run's own settings (``on_demand``, ``codearcade audit``: a run that turned its audit off, or was made
     before audits existed, gets the default number of games). ``seeds``: the games to play (an earlier audit's,
     to reproduce it; their number is the number of games), else drawn afresh (:func:`draw_audit_seeds`). A run
-    without iterations has nothing to audit."""
+    without iterations has nothing to audit. ``on_play(n)`` is called before its n episodes play, ``progress(i,
+    steps)`` as episode i plays and ``on_episode(i, length)`` as it ends (the command line's progress)."""
     with store.read() as con:
         run = get_run(con, run_id)
         if run is None:
@@ -159,11 +161,15 @@ def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: i
                     call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s,
                     rng_key=recorded.get("rng_key")))
     outcomes: list[dict[str, Any] | None] = [None] * len(specs)
+    if on_play is not None:
+        on_play(len(specs))
     with EpisodeWriter(store, replace=True) as writer:
         for i, outcome in run_episodes(specs, workers=max(1, workers or config.workers), progress=progress):
             outcome = checked_outcome(specs[i], outcome)
             writer.add(outcome.episode, outcome.steps, outcome.nodes)
             outcomes[i] = outcome.episode
+            if on_episode is not None:
+                on_episode(i, outcome.episode["length"])
     scores: dict[tuple[str, str], Score] = {key: score_episodes(outcomes[i] for i in indices)
                                             for key, indices in groups.items()}
     rows = []
