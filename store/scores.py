@@ -19,12 +19,17 @@ the ``episodes`` table, but it is never averaged into a score as if the game had
 - ``partial``: the mean return of all the episodes, forfeits at their partial return: what the model is told the
   policy had scored when it stopped, kept in ``candidates.forfeit_score``.
 
-``codearcade eval`` prints the mean and names the forfeits beside it (``mean return -19.5 [-25.9, -13.1] 95% t,
-n=2; 1 forfeit: RuntimeError at step 300``). :func:`difference` says whether two sets of returns differ by more
-than the noise (Welch's t: :func:`scipy.stats.ttest_ind` with unequal variances, and its interval of the
-difference of the means), and :func:`iqm` aggregates over games or seeds as rliable recommends: the interquartile
-mean with a stratified bootstrap interval (each stratum resampled on its own: scipy's bootstrap with one sample
-per stratum), given only when every stratum holds at least :data:`IQM_MIN_PER_STRATUM` values.
+**Every reader.** Whatever shows or ranks a score takes it from here: ``eval``'s headline (:meth:`Score.summary`:
+``no score: 5 of 8 episodes forfeited (RuntimeError at step 300 in all 5); the 3 played out averaged 1, not a
+score``) and every ``--json`` (:func:`score_json`, :func:`score_data`: ``score`` null with a forfeit), ``compare``
+of versions and of runs (:func:`compare_scores`: a side that forfeited is not compared; it says why, and a
+sensitivity line counts each forfeit at the game's worst return, :func:`worst_return`), ``report``'s tables and
+figures, the OTLP export, and the SQL views, which hold the same rule (a forfeited set's ``score`` is NULL:
+``candidates``, ``audits``, ``run_summary.best_score`` of an eval run). :func:`difference` says whether two sets
+of returns differ by more than the noise (Welch's t: :func:`scipy.stats.ttest_ind` with unequal variances, and its
+interval of the difference of the means), and :func:`iqm` aggregates over games or seeds as rliable recommends: the
+interquartile mean with a stratified bootstrap interval (each stratum resampled on its own: scipy's bootstrap with
+one sample per stratum), given only when every stratum holds at least :data:`IQM_MIN_PER_STRATUM` values.
 
 **Why these methods.** An interval must keep its promise at the sample sizes people use: 3–10 episodes a
 version, 3–5 seeds a game. Simulated on returns shaped like Atari's (discrete, skewed, bimodal, with ties;
@@ -137,17 +142,45 @@ class Score:
         reason = None if self.low is not None else TOO_FEW if self.played < 2 else ALL_EQUAL
         return Interval(self.mean, self.low, self.high, self.played, MEAN_METHOD, CONFIDENCE, reason)
 
-    def summary(self) -> str:
-        """``mean return -19.5 [-25.9, -13.1] 95% t, n=2; 1 forfeit: RuntimeError at step 300`` for people (n: the
-        episodes played out; without an interval, why: ``mean return -21.0 (n=3: all equal, no interval)``)."""
-        if self.mean is None:
-            text = f"no episode played out of {self.episodes}"
+    def forfeited_text(self, unit: str = "episode") -> str | None:
+        """How many of how many were forfeited and how (None when none was): ``5 of 8 episodes forfeited
+        (RuntimeError at step 300 in all 5)``, ``2 of 4 games forfeited (RuntimeError at step 300, timeout at step
+        12)``: each way it ended once, the first three."""
+        if not self.forfeits:
+            return None
+        ways: dict[str, int] = {}
+        for f in self.forfeits:
+            ways[f.describe()] = ways.get(f.describe(), 0) + 1
+        if len(ways) == 1 and len(self.forfeits) > 1:
+            how = f"{next(iter(ways))} in {'both' if len(self.forfeits) == 2 else f'all {len(self.forfeits)}'}"
         else:
-            text = f"mean return {self.interval.text()}"
+            how = ", ".join(list(ways)[:3]) + (", ..." if len(ways) > 3 else "")
+        return f"{len(self.forfeits)} of {self.episodes} {unit}{'s' * (self.episodes != 1)} forfeited ({how})"
+
+    @property
+    def no_score(self) -> str | None:
+        """Why there is no score (None when there is one): ``no score: 5 of 8 episodes forfeited (RuntimeError at
+        step 300 in all 5)``."""
+        return None if not self.forfeits else f"no score: {self.forfeited_text()}"
+
+    def played_out_text(self) -> str | None:
+        """With forfeits, what the episodes played out averaged, labelled as what it is: ``the 3 played out
+        averaged 1.33, not a score`` (None without forfeits, or when none was played out). The one place a
+        forfeited set's played-out mean is printed: beside "no score", never as one."""
+        if not self.forfeits or self.mean is None:
+            return None
+        return f"the {self.played} played out averaged {round(self.mean, 2):g}, not a score"
+
+    def summary(self) -> str:
+        """The headline of a set of episodes, for people. Its score: ``mean return -20.7 [-21.0, -20.3] 95% t,
+        n=3`` (n: the episodes; without an interval, why: ``mean return -21.0 (n=3: all equal, no interval)``);
+        with any forfeit, none: ``no score: 5 of 8 episodes forfeited (RuntimeError at step 300 in all 5); the 3
+        played out averaged 1.33, not a score``."""
         if self.forfeits:
-            names = ", ".join(f.describe() for f in self.forfeits[:3]) + (", ..." if len(self.forfeits) > 3 else "")
-            text += f"; {len(self.forfeits)} forfeit{'s' * (len(self.forfeits) != 1)}: {names}"
-        return text
+            return "; ".join(t for t in (self.no_score, self.played_out_text()) if t)
+        if self.mean is None:
+            return "no episode"
+        return f"mean return {self.interval.text()}"
 
 
 def score_episodes(episodes: Iterable[Mapping[str, Any]]) -> Score:
@@ -168,11 +201,28 @@ def score_episodes(episodes: Iterable[Mapping[str, Any]]) -> Score:
 
 def score_data(score: Score) -> dict[str, Any]:
     """A score's mean and interval as plain data (``--json``): ``mean``, ``low``, ``high``, ``played`` (n), and the
-    interval's ``level``, ``method``, ``reason`` (why there is none) and ``interval``, the line people read."""
+    interval's ``level``, ``method``, ``reason`` (why there is none) and ``interval``, the line people read. With
+    any forfeit there is no score: ``mean``, ``low``, ``high`` and ``interval`` are None and ``reason`` is
+    ``forfeited`` (:func:`score_json` adds what the episodes played out averaged, labelled as not a score)."""
     found = score.interval
+    if score.forfeits:
+        return {"mean": None, "low": None, "high": None, "played": score.played, "level": found.level,
+                "method": found.method, "reason": "forfeited", "interval": None}
     return {"mean": score.mean, "low": score.low, "high": score.high, "played": score.played, "level": found.level,
             "method": found.method, "reason": found.reason,
             "interval": found.text() if score.mean is not None else None}
+
+
+def score_json(score: Score) -> dict[str, Any]:
+    """A set's score as every ``--json`` gives it, by the rule: ``score``, :func:`score_data` of the ranked score,
+    or **None** with any forfeit; ``no_score``, why there is none (:attr:`Score.no_score`); ``forfeits``, each
+    forfeited episode (``end_reason``, ``step``, ``error``, ``describe``); and with forfeits ``played_out``, the
+    mean and number of the episodes played out, with ``note`` saying it is not a score."""
+    return {"score": None if score.forfeits else score_data(score), "no_score": score.no_score,
+            "forfeits": [{"end_reason": f.end_reason, "step": f.step, "error": f.error, "describe": f.describe()}
+                         for f in score.forfeits],
+            **({"played_out": {"mean": score.mean, "episodes": score.played, "note": "not a score"}}
+               if score.forfeits else {})}
 
 
 def rank_key(score: float | None) -> tuple[bool, float]:
@@ -314,6 +364,112 @@ def difference(a: Sequence[float], b: Sequence[float], confidence: float = CONFI
         return Difference(delta, None, None, len(a), len(b), confidence, reason=ALL_EQUAL)
     low, high = difference_bounds(a, b, confidence)
     return Difference(delta, float(low), float(high), len(a), len(b), confidence)
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """Two sets of episodes compared by the one rule: when both played every episode out, :attr:`difference` says
+    whether they differ beyond the noise; when either forfeited one, there is no score to compare and
+    :meth:`verdict` says so and why (``A forfeited 2 of 4 games: no score to compare``), never which is better.
+    :attr:`sensitivity` (with a worst return) is the difference with every forfeit counted at that return: how
+    much the refusal could hide, printed as a sensitivity check without a verdict."""
+
+    a: Score
+    b: Score
+    labels: tuple[str, str] = ("A", "B")
+    worst: float | None = None
+    worst_source: str | None = None
+    """The return a forfeit is counted at in :attr:`sensitivity`, and where it comes from (the game module's,
+    or the lowest return played out in the comparison)."""
+
+    @property
+    def forfeited(self) -> bool:
+        return bool(self.a.forfeits or self.b.forfeits)
+
+    @property
+    def difference(self) -> Difference | None:
+        """:func:`difference` of the two sets' returns; None when either forfeited (no score to compare)."""
+        return None if self.forfeited else difference(self.a.returns, self.b.returns)
+
+    @property
+    def sensitivity(self) -> Difference | None:
+        """With a forfeit and a worst return: the difference with each forfeit counted at ``worst`` (the played-out
+        returns as they are); None otherwise."""
+        if not self.forfeited or self.worst is None:
+            return None
+        return difference(self.a.returns + (self.worst,) * len(self.a.forfeits),
+                          self.b.returns + (self.worst,) * len(self.b.forfeits))
+
+    @property
+    def significant(self) -> bool | None:
+        """Whether the difference is beyond the noise; None when there is no call to make (a forfeit, too few)."""
+        found = self.difference
+        return None if found is None else found.significant
+
+    def refusal(self) -> str | None:
+        """Why the two cannot be compared: ``A forfeited 2 of 4 games: no score to compare`` (None: they can)."""
+        sides = [(label, s) for label, s in zip(self.labels, (self.a, self.b)) if s.forfeits]
+        if not sides:
+            return None
+        said = " and ".join(f"{label} forfeited {len(s.forfeits)} of {s.episodes} game{'s' * (s.episodes != 1)}"
+                            for label, s in sides)
+        return f"{said}: no score to compare"
+
+    def verdict(self) -> str:
+        """The difference's verdict (:meth:`Difference.verdict`), or the refusal: ``cannot compare: A forfeited 2
+        of 4 games: no score to compare (a forfeit is never scored, so neither side is called better)``."""
+        if self.forfeited:
+            return f"cannot compare: {self.refusal()} (a forfeit is never scored, so neither side is called better)"
+        return self.difference.verdict()
+
+    def sensitivity_text(self) -> str | None:
+        """``sensitivity, not a score: with each forfeit counted at -21 (the game's worst return, games/pong.py),
+        A - B = -4.0 [-9.1, +1.1] 95% Welch t, n=4 and 4``; None without one."""
+        found = self.sensitivity
+        if found is None:
+            return None
+        return (f"sensitivity, not a score: with each forfeit counted at {self.worst:g} ({self.worst_source}), "
+                f"{self.labels[0]} - {self.labels[1]} = {found.interval.text(signed=True)}")
+
+    def data(self) -> dict[str, Any]:
+        """As plain data (``--json``): ``delta``, ``low``, ``high``, ``level``, ``method``, ``n``, ``reason``,
+        ``significant`` (all None when a side forfeited: ``reason`` ``forfeited``), ``verdict``, ``forfeited``
+        (per side with a forfeit: how many of how many) and ``sensitivity`` (None, or its ``worst``, where that
+        comes from, the difference and the line)."""
+        found = self.difference
+        if found is None:
+            base = {"delta": None, "low": None, "high": None, "level": CONFIDENCE, "method": DIFFERENCE_METHOD,
+                    "n": [self.a.played, self.b.played], "reason": "forfeited", "significant": None}
+        else:
+            base = {"delta": found.delta, "low": found.low, "high": found.high, "level": found.level,
+                    "method": found.method, "n": [found.n_a, found.n_b], "reason": found.reason,
+                    "significant": found.significant}
+        shifted = self.sensitivity
+        return {**base, "verdict": self.verdict(),
+                "forfeited": {label: s.forfeited_text("game") for label, s in zip(self.labels, (self.a, self.b))
+                              if s.forfeits} or None,
+                "sensitivity": None if shifted is None else {
+                    "worst": self.worst, "worst_source": self.worst_source, "delta": shifted.delta,
+                    "low": shifted.low, "high": shifted.high, "n": [shifted.n_a, shifted.n_b],
+                    "text": self.sensitivity_text()}}
+
+
+def worst_return(known: float | None, game: str, scores: Sequence[Score]) -> tuple[float | None, str | None]:
+    """The return a forfeit is counted at in a sensitivity check, and where it comes from: the game module's
+    worst return (``known``: ``Game.worst_return``), else the lowest return played out among ``scores`` (said so);
+    (None, None) when neither is there."""
+    if known is not None:
+        return float(known), f"the game's worst return, games/{game}.py"
+    seen = [r for s in scores for r in s.returns]
+    if not seen:
+        return None, None
+    return min(seen), f"the lowest return played out here: games/{game}.py gives no worst return"
+
+
+def compare_scores(a: Score, b: Score, worst: float | None = None, worst_source: str | None = None,
+                   labels: tuple[str, str] = ("A", "B")) -> Comparison:
+    """:class:`Comparison` of two scored sets of episodes (the rule: no verdict when either forfeited)."""
+    return Comparison(a, b, labels, worst, worst_source)
 
 
 def difference_bounds(a: Any, b: Any, confidence: float = CONFIDENCE) -> tuple[Any, Any]:

@@ -68,10 +68,11 @@ def test_the_rule():
     mixed = score_episodes(played + [forfeit])
     assert mixed.ranked is None, "a forfeited assessment has no score to rank"
     assert mixed.mean == -19.5 and mixed.partial == pytest.approx(-46 / 3), "forfeits are named, never averaged in"
-    assert mixed.summary() == "mean return -19.5 [-25.9, -13.1] 95% t, n=2; 1 forfeit: RuntimeError at step 300"
+    assert mixed.summary() == ("no score: 1 of 3 episodes forfeited (RuntimeError at step 300); the 2 played out "
+                               "averaged -19.5, not a score"), "no score, and the played-out mean is labelled so"
     assert mixed.forfeit == "1 of 3 episodes forfeited: RuntimeError at step 300 (policy_error)"
     timeout = score_episodes([{"return": 3.0, "end_reason": "timeout", "length": 12, "error": "the call took 2 s"}])
-    assert timeout.mean is None and timeout.summary() == "no episode played out of 1; 1 forfeit: timeout at step 12"
+    assert timeout.mean is None and timeout.summary() == "no score: 1 of 1 episode forfeited (timeout at step 12)"
     assert score_episodes([{"return": 5.0, "end_reason": "tampered", "length": 9}]).ranked is None
     # no interval where there is nothing to compute one from: said, never printed as [x, x]
     alone = score_episodes(played[:1])

@@ -107,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
         show(f"{'episode':>7}  {'seed':>5}  {'return':>8}  {'length':>6}  end reason")
         for i, e in enumerate(summary["episodes"]):
             show(f"{i:>7}  {e['seed']:>5}  {e['return']:>8.1f}  {e['length']:>6}  {e['end_reason']}")
-        # forfeits are named, never averaged in (store/scores.py); the interval is over the episodes played out
+        # the one rule (store/scores.py): with any forfeit there is no score ("no score: 5 of 8 episodes
+        # forfeited ..."), and the mean of the episodes played out is labelled as not one
         show(f"{result.score.summary()}; {steps:,} steps in {elapsed:.1f} s "
              f"({summary['steps_per_s'] or 0:,.0f} steps/s, setup and checks included)")
         if result.score.played > 1 and not config.sticky and not config.noop_max:

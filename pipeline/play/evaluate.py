@@ -26,7 +26,7 @@ from pipeline.play.config import EvalConfig  # noqa: F401  (its home; callers im
 from pipeline.settings import check_settings
 from store import Store
 from store.locks import run_lock
-from store.scores import Score, score_data, score_episodes
+from store.scores import Score, score_episodes, score_json
 from store.writer import EpisodeWriter, finish_run, insert_policy_version, insert_run
 from tracing.policy_file import read_policy_file
 
@@ -50,8 +50,9 @@ class EvalResult:
             "run_id": self.run_id,
             "game": self.game,
             "policy_version_id": self.policy_version_id,
-            "score": {**score_data(score), "forfeits": len(score.forfeits), "forfeit": score.forfeit,
-                      "partial_mean": score.partial},
+            # by the one rule (store/scores.py): score is null with any forfeit, and the forfeits are listed
+            **score_json(score),
+            "headline": score.summary(),
             "episodes": [
                 {
                     "episode_id": o.episode["episode_id"],
