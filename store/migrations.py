@@ -1069,4 +1069,85 @@ MIGRATIONS.append(
     )
 )
 
+# One rule, every reader (issue 37, item 1): a set of episodes with a forfeit has no score (store/scores.py). An eval
+# run that forfeited an episode has no score in run_summary either: its best_score is NULL (it was the mean of the
+# episodes played out, which ranked a policy that quits when it is losing above one that plays on), and `forfeits`
+# counts the episodes it forfeited. last_score is the latest iteration's score, NULL when that one forfeited (it was
+# the latest score that was not NULL: an earlier iteration's).
+MIGRATIONS.append(
+    (
+        17,
+        "run_summary: an eval run with a forfeited episode has no score (best_score NULL); last_score is the latest "
+        "iteration's, NULL when it forfeited",
+        r"""
+        CREATE OR REPLACE VIEW run_summary AS
+        WITH it AS (
+            SELECT run_id, (count(*) FILTER (WHERE iteration >= 1))::INTEGER AS iterations_done,
+                   max(best_score) AS best_score, arg_max(best_iteration, iteration) AS best_iteration,
+                   arg_max_null(score, iteration) AS last_score
+            FROM iterations GROUP BY run_id
+        ), ep AS (
+            SELECT run_id, count(*)::INTEGER AS episodes, sum(length)::BIGINT AS steps,
+                   avg("return") FILTER (WHERE kind = 'eval' AND end_reason IN ('terminated', 'truncated'))
+                       AS mean_eval_return,
+                   (count(*) FILTER (WHERE kind = 'eval' AND end_reason NOT IN ('terminated', 'truncated')))::INTEGER
+                       AS eval_forfeits
+            FROM episodes GROUP BY run_id
+        ), cand AS (
+            SELECT run_id, (count(*) FILTER (WHERE forfeit IS NOT NULL))::INTEGER AS forfeits,
+                   (count(*) FILTER (WHERE repairs > 0 AND update_status = 'accepted'))::INTEGER AS saved_by_repair
+            FROM candidates GROUP BY run_id
+        ), calls AS (
+            SELECT run_id, count(*)::INTEGER AS llm_calls,
+                   (count(*) FILTER (WHERE purpose = 'repair'))::INTEGER AS repair_calls,
+                   coalesce(sum(input_tokens), 0)::BIGINT AS input_tokens,
+                   coalesce(sum(output_tokens), 0)::BIGINT AS output_tokens,
+                   sum(cost_usd) AS cost_usd
+            FROM llm_calls GROUP BY run_id
+        ), audit AS (
+            SELECT run_id,
+                   any_value(score) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_score,
+                   any_value(score_low) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_low,
+                   any_value(score_high) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_high,
+                   any_value(score) FILTER (WHERE role = 'best' AND protocol = 'run') AS audit_run_score,
+                   any_value(score) FILTER (WHERE role = 'starter' AND protocol = 'standard') AS starter_audit_score,
+                   any_value(overfit) FILTER (WHERE role = 'best' AND protocol = 'standard') AS overfit
+            FROM audits GROUP BY run_id
+        )
+        SELECT r.run_id, r.name, r.created_at, r.finished_at, r.kind, r.game, r.model, r.seed, r.status,
+               json_extract_string(r.config, '$.policy') AS policy,
+               CASE WHEN r.kind <> 'eval' THEN coalesce(json_extract_string(r.config, '$.strategy'), 'greedy')
+               END AS strategy,
+               CASE WHEN r.kind <> 'eval' THEN json_extract_string(r.config, '$.feedback') END AS feedback,
+               json_extract_string(r.config, '$.batch') AS batch,
+               r.made_by,
+               coalesce(it.iterations_done, 0) AS iterations_done,
+               TRY_CAST(json_extract(r.config, '$.iterations') AS INTEGER) AS iterations_planned,
+               CASE WHEN r.kind <> 'eval' THEN it.best_score
+                    WHEN coalesce(ep.eval_forfeits, 0) = 0 THEN ep.mean_eval_return END AS best_score,
+               it.best_iteration, it.last_score,
+               coalesce(ep.episodes, 0) AS episodes, coalesce(ep.steps, 0) AS steps,
+               coalesce(calls.llm_calls, 0) AS llm_calls,
+               coalesce(calls.input_tokens, 0) AS input_tokens,
+               coalesce(calls.output_tokens, 0) AS output_tokens,
+               (coalesce(calls.input_tokens, 0) + coalesce(calls.output_tokens, 0))::BIGINT AS total_tokens,
+               calls.cost_usd,
+               epoch(r.finished_at - r.created_at) AS duration_s,
+               r.error,
+               CASE WHEN r.kind = 'eval' THEN coalesce(ep.eval_forfeits, 0) ELSE coalesce(cand.forfeits, 0)
+               END AS forfeits,
+               audit.audit_score, audit.audit_low, audit.audit_high, audit.audit_run_score,
+               audit.starter_audit_score, audit.overfit,
+               coalesce(calls.repair_calls, 0) AS repair_calls, coalesce(cand.saved_by_repair, 0) AS saved_by_repair
+        FROM runs r
+        LEFT JOIN it ON it.run_id = r.run_id
+        LEFT JOIN ep ON ep.run_id = r.run_id
+        LEFT JOIN cand ON cand.run_id = r.run_id
+        LEFT JOIN calls ON calls.run_id = r.run_id
+        LEFT JOIN audit ON audit.run_id = r.run_id;
+        COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: label, settings, status, best score (NULL: forfeited), forfeits, audit, episodes, tokens, repairs';
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

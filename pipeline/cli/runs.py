@@ -20,7 +20,8 @@ def add_parser(verbs) -> None:
         description="List the runs in the store, newest first: the shortest unique prefix of each id (what every "
         "verb takes, as do last, last~N, -N and a label), label, when, kind, game, starting policy file, "
         "strategy, feedback, seed, batch, model, status, iterations done of those planned, best score (the mean "
-        "return for eval runs), episodes and LLM tokens (view run_summary). The evaluations `codearcade compare` "
+        "return for eval runs; 'no score' where a forfeit leaves none: store/scores.py), forfeits, episodes and "
+        "LLM tokens (view run_summary). The evaluations `codearcade compare` "
         "plays of two versions are left out unless --all.",
     )
     p.add_argument("-n", "--limit", type=positive_int, metavar="N", help="the N newest runs (after the filters)")
@@ -40,6 +41,15 @@ def _policy(row: dict) -> str | None:
         return os.path.basename(row["policy"])
     # no file: the game's scaffold (games/scaffolds/), which a replay starts from as its original did
     return "scaffold" if row["kind"] in ("optimize", "replay") else None
+
+
+def _best(row: dict) -> float | str | None:
+    """The run's best score (an eval run's: its score), or ``no score`` where it has none because of a forfeit (an
+    eval run that forfeited an episode; an optimization whose starter forfeited and nothing played out beat it):
+    the one rule of store/scores.py, read from run_summary, where such a score is NULL."""
+    if row["best_score"] is not None:
+        return round(row["best_score"], 2)
+    return "no score" if row.get("forfeits") else None
 
 
 def _audit(row: dict) -> str | None:
@@ -72,7 +82,7 @@ COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has
     ("status", lambda r: r["status"]),
     ("iterations", lambda r: None if r["kind"] == "eval"
      else f"{r['iterations_done']}/{r['iterations_planned'] or '?'}"),
-    ("best", lambda r: None if r["best_score"] is None else round(r["best_score"], 2)),
+    ("best", lambda r: _best(r)),
     ("forfeits", lambda r: r.get("forfeits") or None),
     ("audit", lambda r: _audit(r)),
     ("episodes", lambda r: r["episodes"]),
