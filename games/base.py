@@ -166,6 +166,10 @@ class Game:
     hot_keys: tuple[str, str | None] = ("Player", "Ball")
     """The observation keys of the player and of the ball (or what stands for it) whose x/y fill the ``steps``
     table's hot columns ``player_x/y`` and ``ball_x/y`` (Freeway's player is its ``Chicken``)."""
+    worst_return: float | None = None
+    """The lowest return a whole game can give (Pong: -21, every point lost; 0 where no reward is negative);
+    None when unknown. ``compare``'s sensitivity line counts a forfeited game at it (``store.scores.worst_return``:
+    without one, the lowest return played out in the comparison, said so)."""
     status: str = "curated"
     """``curated`` (a module with the authors' conventions and a scaffold) or ``generic`` (any OCAtari game)."""
     scaffold: Path | None = None

@@ -43,6 +43,7 @@ GAME = Game(
     ocatari_name="Pong",
     actions=("NOOP", "FIRE", "RIGHT", "LEFT", "RIGHTFIRE", "LEFTFIRE"),
     lives=0,
+    worst_return=-21,  # every point lost
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               published=PUBLISHED),
     colours={"Player": (92, 220, 92), "Ball": (255, 255, 255), "Enemy": (255, 140, 40)},

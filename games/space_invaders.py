@@ -41,6 +41,7 @@ GAME = Game(
     ocatari_name="SpaceInvaders",
     actions=("NOOP", "FIRE", "RIGHT", "LEFT", "RIGHTFIRE", "LEFTFIRE"),
     lives=3,
+    worst_return=0,  # no reward is negative
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               published=PUBLISHED),
     colours={"Player": (92, 220, 92), "Alien": (255, 90, 220), "Shield": (90, 200, 255), "Bullet": (255, 255, 80),

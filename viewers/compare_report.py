@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from store.runs import shortest_prefixes
-from store.scores import MEAN_METHOD, interval_text
+from store.scores import MEAN_METHOD, PLAYED_OUT, interval_text
 from viewers.report import _md_table
 from viewers.safe_text import markdown_code, markdown_code_block, markdown_text, plot_text, terminal_text
 from viewers.tables import format_table
@@ -71,16 +71,20 @@ def _score(value: Any) -> str:
 def _best(run: dict[str, Any]) -> str:
     """A run's best score with its interval, level, method and n, ``12.0 [10.5, 13.5] 95% t, n=3``; the value and
     why without one (``store.scores.interval_text``)."""
-    if run["best_score"] is None:
-        return _score(run["best_score"])
+    if run["best_score"] is None:  # no score: the best (the starter, when every candidate forfeited) forfeited
+        return "no score (forfeited)" if run.get("best_forfeited") else _score(run["best_score"])
     return interval_text(run["best_score"], run.get("best_low"), run.get("best_high"), run["best_episodes"],
                          MEAN_METHOD)
 
 
 def _best_difference(data: dict[str, Any]) -> str:
-    """Whether the two runs' bests differ beyond the noise, in words."""
+    """Whether the two runs' bests differ beyond the noise, in words (or why they cannot be compared: a best that
+    forfeited a game has no score), with the sensitivity line when there is one."""
     counts = " and ".join(f"{r['best_episodes']}" for r in data["runs"])
-    return (f"best versions, over their evaluation episodes ({counts}): {data['difference']['verdict']}")
+    found = data["difference"]
+    sensitivity = (found.get("sensitivity") or {}).get("text")
+    return (f"best versions, over their evaluation episodes ({counts}): {found['verdict']}"
+            + (f"; {sensitivity}" if sensitivity else ""))
 
 
 def _amount(value: float) -> str:
@@ -157,14 +161,25 @@ def _score_lines(data: dict[str, Any]) -> list[str]:
     seeds and returns, and the difference's verdict; a line on the protocol when it was the paper's."""
     if not data.get("scores"):
         return []
-    lines = ["scores (mean of the episodes played out, with its interval):"]
+    lines = ["scores (store/scores.py: the mean return with its interval; no score for a side that forfeited a game):"]
     for label, side in data["scores"].items():
         seeds = side["seeds"]
         where = f"seeds {seeds[0]}..{seeds[-1]}" if len(seeds) > 1 else f"seed {seeds[0]}" if seeds else "no seeds"
-        lines.append(f"  {label}: {side['summary']} ({where}; returns {', '.join(f'{r:g}' for r in side['returns'])})")
-    lines.append(f"  {data['difference']['verdict']}")
+        ends = side.get("end_reasons") or [None] * len(side["returns"])
+        returns = ", ".join(f"{r:g}" if end in (None, *PLAYED_OUT) else "forfeit"
+                            for r, end in zip(side["returns"], ends))
+        lines.append(f"  {label}: {side['summary']} ({where}; returns {returns})")
+    lines += _difference_lines(data["difference"])
     if data.get("protocol") == "paper":
         lines.append(f"  ({PAPER_NOTE})")
+    return lines
+
+
+def _difference_lines(found: dict[str, Any]) -> list[str]:
+    """The verdict (or why there is none: a side forfeited), and the sensitivity line when there is one."""
+    lines = [f"  {found['verdict']}"]
+    if (found.get("sensitivity") or {}).get("text"):
+        lines.append(f"  {found['sensitivity']['text']}")
     return lines
 
 

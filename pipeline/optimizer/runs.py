@@ -3,7 +3,9 @@
 only budgets both runs spent are matched, so neither is credited with spending it never made), the unified
 diff of their best versions, each best score with its 95% interval (``store.scores.score_episodes`` of the
 episodes that scored it, computed now: a store made before issue 37 holds percentile-bootstrap intervals), and
-whether the two bests differ beyond the noise: ``store.scores.difference`` (Welch's t) of those returns.
+whether the two bests differ beyond the noise: ``store.scores.compare_scores`` (Welch's t) of those episodes, by
+the one rule: a best whose assessment forfeited a game (a run whose starter forfeited and nothing beat it) has no
+score, and then there is no verdict, only why, and the sensitivity line.
 
 Everything is read back from the store (``store/comparisons.py``) and returned as plain data
 (``viewers/compare_report.py`` renders it). It lives beside the optimizer because what it weighs is the
@@ -43,7 +45,7 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
     """Learning curves, budget-matched table and best-version diff of two optimization runs."""
     with store.read() as con:
         ids = [resolve_run_id(con, x, store) for x in (a, b)]
-        runs, curves, texts, returns = [], {}, [], []
+        runs, curves, texts, scores = [], {}, [], []
         for label, run_id in zip(LABELS, ids):
             run = get_run(con, run_id)
             curve = learning_curve(con, run_id)
@@ -54,13 +56,15 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
             texts.append(policy_text(con, run_id, best["policy_version_id"]))
             assessed = best_evaluation(con, run_id) or {"episodes": []}
             scored = score_episodes(assessed["episodes"])
-            returns.append(scored.returns)
+            scores.append(scored)
             curves[label] = [_curve_point(row) for row in _cumulative_calls(curve)]
             last = curves[label][-1]
             runs.append({"label": label, "run_id": run_id, "kind": run["kind"], "game": run["game"],
                          "model": run["model"], "status": run["status"], "iterations": len(curve) - 1,
                          "llm_calls": last["llm_calls"], "total_tokens": last["tokens"], "elapsed_s": last["elapsed_s"],
-                         "best_score": best["score"], "best_low": scored.low if scored.ranked is not None else None,
+                         "best_score": None if scored.forfeited else best["score"],
+                         "best_forfeited": scored.forfeited, "best_no_score": scored.no_score,
+                         "best_low": scored.low if scored.ranked is not None else None,
                          "best_high": scored.high if scored.ranked is not None else None,
                          "best_episodes": len(assessed["episodes"]),
                          "best_iteration": best["iteration"],
@@ -69,10 +73,11 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
     if len(games) > 1:
         raise ValueError(f"runs {ids[0]} ({runs[0]['game']}) and {ids[1]} ({runs[1]['game']}) play different games; "
                          "scores of different games do not compare")
-    names = [f"{r['run_id']}:{r['best_version_id']} (best, iteration {r['best_iteration']}, score {r['best_score']:g})"
-             for r in runs]
-    return RunComparison(games.pop(), runs, curves, budget_table(curves), unified_diff(texts[0], texts[1], *names),
-                         difference_data(*returns))
+    names = [f"{r['run_id']}:{r['best_version_id']} (best, iteration {r['best_iteration']}, "
+             + (f"score {r['best_score']:g})" if r["best_score"] is not None else "no score)") for r in runs]
+    game = games.pop()
+    return RunComparison(game, runs, curves, budget_table(curves), unified_diff(texts[0], texts[1], *names),
+                         difference_data(game, *scores))
 
 
 def _cumulative_calls(curve: list[dict[str, Any]]) -> list[dict[str, Any]]:

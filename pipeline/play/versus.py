@@ -38,7 +38,7 @@ from pipeline.play.validate import checked_inspect
 from store import Store
 from store.comparisons import episode_rows, first_divergent_step, resolve_version
 from store.readers import episode_steps, get_run, policy_text, run_episodes, step_nodes
-from store.scores import difference, score_data, score_episodes
+from store.scores import Score, compare_scores, score_data, score_episodes, worst_return
 from store.views import resolve_run_id
 from tracing.policy_file import PolicyLoadError, read_policy_file
 
@@ -141,18 +141,18 @@ def compare_versions(store: Store, a: str, b: str, config: CompareConfig,
                 result.episodes.append(_divergence(con, game, ep_a, ep_b, config.context))
     scores = [score_episodes(episodes) for episodes in played]
     result.scores = {label: _score_data(score, episodes) for label, score, episodes in zip(LABELS, scores, played)}
-    result.difference = difference_data(scores[0].returns, scores[1].returns)
+    result.difference = difference_data(game, *scores)
     return result
 
 
-def difference_data(a: tuple[float, ...], b: tuple[float, ...]) -> dict[str, Any]:
-    """``store.scores.difference`` of two sets of returns as plain data: A's mean minus B's, its 95% interval
-    (its level, method and counts beside it; ``reason`` why there is none), whether that leaves out 0 (None: no
-    interval to tell by) and the verdict in words."""
-    delta = difference(a, b)
-    return {"delta": delta.delta, "low": delta.low, "high": delta.high, "level": delta.level, "method": delta.method,
-            "n": [delta.n_a, delta.n_b], "reason": delta.reason, "significant": delta.significant,
-            "verdict": delta.verdict()}
+def difference_data(game: str, a: Score, b: Score) -> dict[str, Any]:
+    """Two sides' scores compared by the one rule (``store.scores.compare_scores``) as plain data: A's mean minus
+    B's, its 95% interval (level, method and counts beside it; ``reason`` why there is none), whether that leaves
+    out 0 (None: no interval to tell by, or a side forfeited) and the verdict in words; when a side forfeited, no
+    verdict but why (``forfeited``), and ``sensitivity``: the difference with each forfeit counted at the game's
+    worst return (``Game.worst_return``; else the lowest return played out here, and it says so)."""
+    worst, source = worst_return(get_game(game).worst_return, game, (a, b))
+    return compare_scores(a, b, worst, source, LABELS).data()
 
 
 def _eval_config(game: str, config: CompareConfig, side: int) -> EvalConfig:
@@ -167,9 +167,15 @@ def _eval_config(game: str, config: CompareConfig, side: int) -> EvalConfig:
 
 
 def _score_data(score, episodes: list[dict[str, Any]]) -> dict[str, Any]:
-    """A side's :class:`store.scores.Score` as plain data, with the seeds and returns of its episodes."""
+    """A side's :class:`store.scores.Score` as plain data, with the seeds, returns and end reasons of its episodes:
+    ``score`` (None with any forfeit: ``no_score`` says why, and ``mean`` and its interval are None too)."""
     return {"seeds": [e["seed"] for e in episodes], "returns": [e["return"] for e in episodes],
-            **score_data(score), "forfeits": [f.describe() for f in score.forfeits], "summary": score.summary()}
+            "end_reasons": [e["end_reason"] for e in episodes],
+            **score_data(score), "score": score.ranked, "no_score": score.no_score,
+            "forfeits": [f.describe() for f in score.forfeits],
+            **({"played_out": {"mean": score.mean, "episodes": score.played, "note": "not a score"}}
+               if score.forfeits else {}),
+            "summary": score.summary()}
 
 
 def _divergence(con, game: str, ep_a: dict[str, Any], ep_b: dict[str, Any], context: int) -> dict[str, Any]:
