@@ -4,7 +4,8 @@ One trace per run, read from the store (``store/run_trace.py``) and sent with th
 and OTLP exporters, so the run opens in Arize Phoenix, Langfuse, Jaeger, Grafana Tempo or any OTLP receiver
 beside a team's other LLM traces. The span tree::
 
-    optimize pong                         the run (root): game, kind, model, seed, status, error, best score
+    optimize pong                         the run (root): game, kind, model, seed, status, error, best score (an
+                                          eval run: its score, none with a forfeit, and its forfeits)
     ├── iteration 0                       score, best score, update status, policy version, rolled back
     │   ├── train rollout                 return, length, lives lost, end reason (the traced rollout)
     │   └── eval episode 0                the same, per evaluation episode
@@ -58,6 +59,8 @@ from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanE
 from opentelemetry.sdk.trace.id_generator import IdGenerator
 from opentelemetry.sdk.trace.sampling import ALWAYS_ON
 from opentelemetry.trace import SpanKind, Status, StatusCode
+
+from store.scores import score_episodes
 
 PROTOCOLS = ("http/protobuf", "grpc")
 """OTLP transports (the names of ``OTEL_EXPORTER_OTLP_PROTOCOL``)."""
@@ -361,9 +364,11 @@ def plan_spans(rows: dict[str, Any], text_limit: int = DEFAULT_TEXT_LIMIT) -> _P
         root.attributes.update(_attrs(codearcade__best_score=last["best_score"],
                                       codearcade__best_iteration=last["best_iteration"],
                                       codearcade__best_version_id=last["best_version_id"]))
-    elif rows["episodes"]:
-        returns = [e["return"] for e in rows["episodes"] if e["return"] is not None]
-        root.attributes.update(_attrs(codearcade__run__mean_return=sum(returns) / len(returns) if returns else None))
+    elif rows["episodes"]:  # an eval run's score, by the one rule (store/scores.py): none with a forfeit
+        score = score_episodes(e for e in rows["episodes"] if e["kind"] == "eval" and e["return"] is not None)
+        root.attributes.update(_attrs(codearcade__run__mean_return=score.ranked, codearcade__run__score=score.ranked,
+                                      codearcade__run__forfeits=len(score.forfeits),
+                                      codearcade__run__no_score=score.no_score))
     by_iteration = {row["iteration"]: row for row in rows["iterations"]}
     wanted = set(by_iteration) | {c["iteration"] for c in rows["llm_calls"]}
     if run["kind"] != "eval":

@@ -22,7 +22,7 @@ from typing import Any, Callable, Sequence
 
 from store import Store
 from store.readers import get_run
-from store.scores import CONFIDENCE, MEAN_METHOD, interval_text
+from store.scores import CONFIDENCE, MEAN_METHOD, interval_text, is_forfeit, score_episodes
 from store.showing import report_rows
 from store.runs import resolve_run_id
 from viewers.safe_text import (markdown_cell, markdown_code, markdown_code_block, markdown_text, plot_text,
@@ -98,10 +98,11 @@ def scores_figure(data: dict[str, Any]):
     xs = [r["iteration"] for r in curve]
     evals = [e for e in data["episodes"] if e["kind"] == "eval"]
     n_eval = max((sum(1 for e in evals if e["iteration"] == x) for x in xs), default=1)
-    if n_eval > 1:
-        ax.scatter([e["iteration"] for e in evals if e["iteration"] in xs],
-                   [e["return"] for e in evals if e["iteration"] in xs],
-                   s=12, color="#1f77b4", alpha=0.25, linewidths=0, label="one evaluation episode", zorder=2)
+    kept = [e for e in evals if e["iteration"] in xs and not is_forfeit(e["end_reason"])]  # a forfeit: below
+    if n_eval > 1 and kept:
+        ax.scatter([e["iteration"] for e in kept], [e["return"] for e in kept],
+                   s=12, color="#1f77b4", alpha=0.25, linewidths=0, label="one evaluation episode played out",
+                   zorder=2)
     # store/scores.py's interval over the episodes that scored each iteration (store/showing.py)
     band = [(r["iteration"], r["score_low"], r["score_high"]) for r in curve if r.get("score_low") is not None]
     if band:
@@ -113,11 +114,9 @@ def scores_figure(data: dict[str, Any]):
             label=f"score (mean return of {n_eval} evaluation episode{'s' * (n_eval != 1)})")
     ax.step(xs, [_nan(r["best_score"]) for r in curve], where="post", color="#ff7f0e", linestyle="--",
             linewidth=1.6, label="best so far", zorder=3)
-    forfeits = [(r["iteration"], r["forfeit_score"]) for r in curve if r.get("forfeit") and r.get("forfeit_score")
-                is not None]
-    if forfeits:  # drawn where they stopped, apart from the curve: a forfeit has no score (store/scores.py)
-        ax.scatter(*zip(*forfeits), marker="X", s=52, facecolors="none", edgecolors="#d62728", linewidths=1.2,
-                   zorder=4, label="forfeited: return when the policy stopped (no score)")
+    forfeits = [r["iteration"] for r in curve if r.get("forfeit")]
+    if forfeits:  # a forfeit has no score (store/scores.py): a marker on the axes' floor, at no return
+        _forfeit_marks(ax, forfeits, "forfeited a game: no score")
     for status, (marker, colour, label) in STATUS_STYLE.items():
         pts = [(r["iteration"], r["score"]) for r in curve if r["update_status"] == status and r["score"] is not None]
         if pts:
@@ -156,6 +155,9 @@ DECISION_STYLE = {  # candidates.decision -> (marker, colour, label)
 }
 
 
+FORFEIT_STYLE = ("X", "#8c564b", "forfeited a game: no score")
+"""How a candidate that forfeited is drawn on the lineage's lane (marker, colour, label)."""
+
 UNPLAYED_STYLE = {  # how a candidate that was never played is drawn on the "not played" lane: hollow markers
     "screened": ("D", "#9467bd", "not played: screened out"),
     "llm_error": ("^", "#ff7f0e", "not played: LLM call failed"),
@@ -178,24 +180,32 @@ def unplayed_reason(node: dict[str, Any]) -> str | None:
     return "llm_error" if node["update_status"] == "llm_error" else "rejected"
 
 
+def _lane(node: dict[str, Any]) -> str | None:
+    """Why a lineage row is drawn on the lane below every score: :func:`unplayed_reason`, or ``forfeited`` for a
+    candidate that was played but forfeited a game (no score: ``store/scores.py``); None: at its score."""
+    return unplayed_reason(node) or ("forfeited" if node["score"] is None else None)
+
+
 def lineage_figure(data: dict[str, Any]):
     """Every candidate at (iteration, score), an edge to the candidate it improved; the standard-protocol score
     beside each one when the run measured it. None when there is nothing to draw.
 
     Candidates that were never played are drawn hollow on a "not played" lane below every score, with a dotted
-    edge from their parent: at their parent's score they would claim a result they never had."""
-    nodes = [n for n in data.get("lineage") or [] if n["score"] is not None]
+    edge from their parent: at their parent's score they would claim a result they never had. A candidate that
+    forfeited a game has no score and is drawn on that lane too, as a forfeit."""
+    nodes = [n for n in data.get("lineage") or [] if n["score"] is not None or n.get("forfeit")
+             or unplayed_reason(n) is not None]
     if data["run"]["kind"] == "eval" or len(nodes) < 2:
         return None
     fig, (ax,) = _figure(height=4.8)
-    played = [n for n in nodes if unplayed_reason(n) is None]
+    played = [n for n in nodes if _lane(n) is None]
     scores = [n["score"] for n in played] or [0.0]
     low, high = min(scores), max(scores)
     lane = low - 0.22 * max(high - low, 1.0)
     at = {(n["iteration"], n["candidate"]): n for n in nodes}
 
     def y(n: dict[str, Any]) -> float:
-        return n["score"] if unplayed_reason(n) is None else lane
+        return n["score"] if _lane(n) is None else lane
 
     def anchor(n: dict[str, Any] | None) -> dict[str, Any] | None:
         """Where an edge to a child of ``n`` starts: ``n``, or for one never played the played candidate whose
@@ -210,20 +220,22 @@ def lineage_figure(data: dict[str, Any]):
         parent = anchor(at.get((n["parent_iteration"], n["parent_candidate"])))
         if parent is not None:
             ax.plot([parent["iteration"], n["iteration"]], [y(parent), y(n)],
-                    ":" if unplayed_reason(n) else "-", color="#bbbbbb", linewidth=0.9, zorder=1)
+                    ":" if _lane(n) else "-", color="#bbbbbb", linewidth=0.9, zorder=1)
     for decision, (marker, colour, label) in DECISION_STYLE.items():
         pts = [(n["iteration"], n["score"]) for n in played if n["decision"] == decision]
         if pts:
             ax.scatter(*zip(*pts), marker=marker, s=70 if marker == "*" else 36, color=colour, label=label,
                        zorder=3, edgecolors="white", linewidths=0.5)
-    for reason, (marker, colour, label) in UNPLAYED_STYLE.items():
-        pts = [(n["iteration"], lane) for n in nodes if unplayed_reason(n) == reason]
+    for reason, (marker, colour, label) in {**UNPLAYED_STYLE, "forfeited": FORFEIT_STYLE}.items():
+        pts = [(n["iteration"], lane) for n in nodes if _lane(n) == reason]
         if pts:
             ax.scatter(*zip(*pts), marker=marker, s=40, facecolors="none", edgecolors=colour, linewidths=1.2,
                        label=label, zorder=3)
+    forfeited = sum(1 for n in nodes if _lane(n) == "forfeited")
     if len(played) < len(nodes):
         ax.axhline(lane, color="#dddddd", linewidth=6, zorder=0)
-        ax.annotate("not played", (0, lane), xycoords=("axes fraction", "data"), xytext=(4, 5),
+        ax.annotate("not played" if not forfeited else "no score: not played or forfeited", (0, lane),
+                    xycoords=("axes fraction", "data"), xytext=(4, 5),
                     textcoords="offset points", fontsize=8, color="#777777", va="bottom")
     robust = [(n["iteration"], n["standard_score"]) for n in played if n.get("standard_score") is not None]
     if robust:
@@ -238,29 +250,49 @@ def lineage_figure(data: dict[str, Any]):
         bottom, top = ax.get_ylim()
         ax.set_yticks([t for t in ax.get_yticks() if (low + lane) / 2 <= t <= top])
         ax.set_ylim(bottom, top)
-    ax.set_title(_title(data, f"lineage ({strategy}: {len(nodes)} candidates, {len(nodes) - len(played)} not played)"),
-                 fontsize=11)
+    unplayed = len(nodes) - len(played) - forfeited
+    ax.set_title(_title(data, f"lineage ({strategy}: {len(nodes)} candidates, {unplayed} not played"
+                              + (f", {forfeited} forfeited" if forfeited else "") + ")"), fontsize=11)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     return fig
 
 
+def _forfeit_marks(ax, xs: Sequence[float], label: str) -> None:
+    """Forfeits at ``xs``: red crosses on the axes' floor (a height in the axes, not a return: a forfeit has no
+    score, ``store/scores.py``), whatever the y scale."""
+    from matplotlib.transforms import blended_transform_factory
+
+    ax.plot(list(xs), [0.04] * len(xs), linestyle="none", marker="X", markersize=8, markerfacecolor="none",
+            markeredgecolor="#d62728", markeredgewidth=1.3, zorder=5, label=label, clip_on=False,
+            transform=blended_transform_factory(ax.transData, ax.transAxes))
+
+
 def episode_returns_figure(data: dict[str, Any]):
-    """Return per evaluation episode (eval runs), coloured by how it ended, with the mean."""
+    """Return per evaluation episode (eval runs) played out, coloured by how it ended, with the score (the mean of
+    store/scores.py, with its interval); a forfeited episode is a marker, not a bar, and a set with one has no
+    score, so no mean is drawn and the title says so."""
     episodes = [e for e in data["episodes"] if e["kind"] == "eval"]
     if not episodes:
         return None
     fig, (ax,) = _figure()
     xs = list(range(len(episodes)))
-    colours = [END_COLOURS.get(e["end_reason"], "#1f77b4") for e in episodes]
-    bars = ax.bar(xs, [e["return"] for e in episodes], color=colours, width=0.7, zorder=2)
+    score = score_episodes(episodes)
+    played = [(x, e) for x, e in zip(xs, episodes) if not is_forfeit(e["end_reason"])]
+    bars = ax.bar([x for x, _ in played], [e["return"] for _, e in played],
+                  color=[END_COLOURS.get(e["end_reason"], "#1f77b4") for _, e in played], width=0.7, zorder=2)
     if len(xs) <= 30:
         ax.bar_label(bars, fmt="%g", padding=2, fontsize=8)
-    mean = sum(e["return"] for e in episodes) / len(episodes)
-    ax.axhline(mean, color="#ff7f0e", linestyle="--", linewidth=1.5, label=f"mean {mean:.2f}")
+    forfeits = [x for x, e in zip(xs, episodes) if is_forfeit(e["end_reason"])]
+    if forfeits:
+        _forfeit_marks(ax, forfeits, f"forfeited: ended by the policy\n(no return counted), {len(forfeits)} of "
+                                     f"{len(episodes)}")
+    if score.ranked is not None:
+        ax.axhline(score.ranked, color="#ff7f0e", linestyle="--", linewidth=1.5,
+                   label=plot_text(f"score: mean {score.interval.text()}"))
     ax.axhline(0, color="black", linewidth=0.8)
     from matplotlib.patches import Patch
 
-    seen = dict.fromkeys(e["end_reason"] for e in episodes)
+    seen = dict.fromkeys(e["end_reason"] for _, e in played)
     handles = [Patch(color=END_COLOURS.get(r, "#1f77b4"), label=plot_text(f"ended: {r}")) for r in seen]
     # beside the axes, never over a bar
     ax.legend(handles=ax.get_legend_handles_labels()[0] + handles, fontsize=8, loc="upper left",
@@ -270,7 +302,8 @@ def episode_returns_figure(data: dict[str, Any]):
     caps = sorted({e["max_steps"] for e in episodes if e.get("max_steps")})
     ax.set_xlabel("evaluation episode" + (f" (cut off after {caps[0]:,} steps)" if len(caps) == 1 else ""))
     ax.set_ylabel("return (sum of rewards)")
-    ax.set_title(_title(data, "return per episode"), fontsize=11)
+    no_score = f" · no score: {len(forfeits)} of {len(episodes)} forfeited" if score.forfeits else ""
+    ax.set_title(_title(data, "return per episode" + no_score), fontsize=11)
     return fig
 
 
@@ -448,15 +481,21 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
     facts = [f"status **{markdown_text(run['status'])}**"]
     forfeits = summary.get("forfeits") or 0
     if run["kind"] == "eval":
-        played = summary["episodes"] - forfeits
-        facts.append(f"mean return **{_md(summary['best_score'])}** over {played} episode(s) played out")
-        if forfeits:
-            facts.append(f"**{forfeits} forfeited** (ended by the policy; not averaged in)")
+        score = score_episodes(e for e in data["episodes"] if e["kind"] == "eval")
+        if score.forfeits:  # the one rule (store/scores.py): no score, and the played-out mean is not one
+            facts.append(f"**{markdown_text(score.no_score)}**"
+                         + (f" ({markdown_text(score.played_out_text())})" if score.played_out_text() else ""))
+        else:
+            facts.append(f"score **{markdown_text(score.summary())}**")
     else:
         facts.append(f"{summary['iterations_done']} of {_md(summary['iterations_planned'])} iterations")
-        facts.append(f"best score **{_md(summary['best_score'])}** (iteration {_md(summary['best_iteration'])})")
+        if summary["best_score"] is None and forfeits:  # a played-out score beats a forfeit: none played out
+            facts.append("**no score**: every version it assessed forfeited a game")
+        else:
+            facts.append(f"best score **{_md(summary['best_score'])}** (iteration {_md(summary['best_iteration'])})")
         if forfeits:
-            facts.append(f"{forfeits} candidate(s) forfeited a game (never the best)")
+            facts.append(f"{forfeits} candidate(s) forfeited a game"
+                         + (" (never the best)" if summary["best_score"] is not None else ""))
         if summary.get("audit_score") is not None or summary.get("overfit") is not None:
             audited = next((a for a in data.get("audits") or () if a["role"] == "best"
                             and a["protocol"] == "standard"), None)
@@ -491,8 +530,7 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
             status = r["update_status"] + (" ↺ rolled back" if r["rolled_back"] else "")
             if r.get("repairs"):
                 status += f" after {r['repairs']} repair{'s' * (r['repairs'] > 1)}"
-            score = (r["score"] if not r.get("forfeit") else
-                     f"forfeit: {terminal_text(r['forfeit'])} ({_md(r['forfeit_score'])} when it stopped)")
+            score = (r["score"] if not r.get("forfeit") else f"no score: {terminal_text(r['forfeit'])}")
             if r["score"] is not None and r.get("score_n", 0) >= 2:  # one episode: the number alone
                 score = _score_text(r)
             rows.append((r["iteration"], status, score, r["best_score"], r["train_return"], c.get("loc"),
