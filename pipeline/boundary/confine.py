@@ -6,8 +6,9 @@ policy code is loaded, and make the operating system the boundary:
 - ``PR_SET_NO_NEW_PRIVS``: nothing it executes could gain privileges (and it may not execute anything);
 - a network namespace of its own with no interface up (:func:`enter_namespaces`, done once by the
   zygote; every worker inherits it): no network at all, not even 127.0.0.1 or abstract Unix sockets;
-- scratch directories on a small tmpfs in the zygote's own mount namespace (:func:`scratch_tmpfs`): what
-  workers can write is bounded in all, and invisible to (and gone for) the rest of the machine;
+- a scratch directory per worker, a tmpfs of its own bounded in bytes and in inodes (:func:`worker_scratch`),
+  mounted in the zygote's own mount namespace (:func:`scratch_tmpfs`): invisible to the rest of the machine, and
+  gone as a whole when the zygote detaches it (:func:`unmount`), nothing walked;
 - Landlock (ABI probed with ``landlock_create_ruleset(NULL, 0, VERSION)``): reads only what a policy process
   imports from (``pipeline/boundary/view.py``: the standard library, the allowed packages, what its zygote loaded,
   never the emulator, the project's tests, examples or stores); writes only
@@ -287,26 +288,48 @@ def _seccomp(program: bytes) -> None:
 
 CLONE_NEWUSER, CLONE_NEWNS = 0x10000000, 0x00020000
 MS_NOSUID, MS_NODEV, MS_NOEXEC, MS_REC, MS_PRIVATE = 2, 4, 8, 16384, 1 << 18
-SCRATCH_MB = 64
-"""Size of the tmpfs that holds every worker's scratch directory (all workers of a zygote together)."""
+SCRATCH_MB = 16
+"""Bytes of one worker's scratch tmpfs (:func:`worker_scratch`), in MiB: each policy process has its own."""
+SCRATCH_INODES = 2_048
+"""Inodes of one worker's scratch tmpfs (``nr_inodes``): files, directories and links together, its root included.
+Without it a tmpfs gets the kernel's default (half the machine's pages: ~3.1M on a 24 GiB machine), and 300,000 empty
+files in a 64 MiB scratch held ~300 MB of kernel memory (inodes, dentries) that no RSS or address-space limit counts;
+at this cap it is ~2 MB. It bounds a directory's depth too (each level is an inode: the kernel has no depth
+limit of its own for a tmpfs; ``PATH_MAX`` bounds one path, not a chain of ``chdir``s)."""
+BASE_MB, BASE_INODES = 4, 8_192
+"""The zygote's own tmpfs (:func:`scratch_tmpfs`), which holds only the workers' mount points (one inode each,
+removed with the worker) and the minimal root's mount point: workers never write in it."""
 
 
-def scratch_tmpfs(path: str, size_mb: int = SCRATCH_MB) -> None:
-    """Mount a tmpfs of ``size_mb`` over ``path`` in a mount namespace of this process's own (after
-    :func:`enter_namespaces`, which provides the user namespace when not root): what workers write is
-    bounded in all, and gone when this process ends. ``path`` is this process's working directory again."""
+def scratch_tmpfs(path: str, size_mb: int = BASE_MB, inodes: int = BASE_INODES) -> None:
+    """Mount a tmpfs of ``size_mb`` and ``inodes`` over ``path`` in a mount namespace of this process's own (after
+    :func:`enter_namespaces`, which provides the user namespace when not root): it holds each worker's scratch
+    mount point (:func:`worker_scratch`), and it is gone, with every worker's tmpfs, when this process ends.
+    ``path`` is this process's working directory again."""
     if _libc.unshare(ctypes.c_int(CLONE_NEWNS)) != 0:
         err = ctypes.get_errno()
         raise OSError(err, f"unshare(CLONE_NEWNS): {os.strerror(err)}")
     if _libc.mount(b"none", b"/", None, ctypes.c_ulong(MS_REC | MS_PRIVATE), None) != 0:
         err = ctypes.get_errno()
         raise OSError(err, f"mount(/, MS_PRIVATE): {os.strerror(err)}")
-    options = f"size={size_mb}m,mode=0700".encode()
+    options = f"size={size_mb}m,nr_inodes={inodes},mode=0700".encode()
     if _libc.mount(b"tmpfs", os.fsencode(path), b"tmpfs", ctypes.c_ulong(MS_NOSUID | MS_NODEV | MS_NOEXEC),
                    options) != 0:
         err = ctypes.get_errno()
         raise OSError(err, f"mount tmpfs on {path}: {os.strerror(err)}")
     os.chdir(path)
+
+
+def worker_scratch(path: str, size_mb: int = SCRATCH_MB, inodes: int = SCRATCH_INODES) -> None:
+    """Mount a tmpfs of its own over ``path``, a worker's scratch directory (an empty directory on the zygote's
+    tmpfs), in the worker before it is confined: what its policy can write there is bounded in bytes (``size_mb``)
+    and in inodes (``inodes``, hence in depth), and none of it needs walking to be removed: the zygote detaches the
+    mount when the worker has ended (:func:`unmount`) and the kernel frees it whole."""
+    options = f"size={size_mb}m,nr_inodes={inodes},mode=0700".encode()
+    if _libc.mount(b"tmpfs", os.fsencode(path), b"tmpfs", ctypes.c_ulong(MS_NOSUID | MS_NODEV | MS_NOEXEC),
+                   options) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, f"mount a scratch tmpfs on {path}: {os.strerror(err)}")
 
 
 MS_RDONLY, MS_REMOUNT, MS_BIND = 1, 32, 4096
@@ -380,9 +403,75 @@ def minimal_root(read: list[str], writable: list[str], devices: list[str]) -> No
     _mount(None, "/", None, MS_REMOUNT | MS_BIND | MS_RDONLY | MS_NOSUID | MS_NODEV)
 
 
-def unmount(path: str) -> None:
-    """Detach the tmpfs of :func:`scratch_tmpfs` (so that the directory beneath can be removed)."""
-    _libc.umount2(os.fsencode(path), ctypes.c_int(2))  # MNT_DETACH
+MNT_DETACH, UMOUNT_NOFOLLOW = 2, 8
+
+
+def unmount(path: str) -> bool:
+    """Detach the tmpfs mounted on ``path`` (:func:`scratch_tmpfs`, :func:`worker_scratch`) and every mount below it,
+    however full or deep: the kernel frees it when nothing holds it any more. Whether something was detached;
+    never raises."""
+    try:
+        return _libc.umount2(os.fsencode(path), ctypes.c_int(MNT_DETACH | UMOUNT_NOFOLLOW)) == 0
+    except Exception:  # noqa: BLE001 - a path that cannot be encoded: nothing mounted there by us
+        return False
+
+
+def remove_tree(path: str) -> bool:
+    """Remove ``path`` and everything below it, however deep, without recursion and without ever raising (what a
+    policy left behind must not be able to end the process that cleans up: ``shutil.rmtree`` recurses on Python
+    3.11, and a directory ~1,500 levels deep raised ``RecursionError``, which ``ignore_errors`` does not catch).
+    Directories are walked by descriptor (``openat``, never a path longer than one name, symlinks never followed),
+    one directory open at a time; the names of the directories still to visit are held in lists. Whether ``path``
+    is gone. For a scratch without a tmpfs of its own (a weak sandbox); a worker's tmpfs is detached instead."""
+    flags = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
+    try:
+        try:
+            os.unlink(path)  # a file or a link
+            return True
+        except FileNotFoundError:
+            return True
+        except (IsADirectoryError, PermissionError):  # Linux answers EISDIR for a directory
+            pass
+        fd = os.open(path, flags)
+        try:
+            def scan(fd: int) -> list[str]:
+                """Unlink what is not a directory in ``fd``; its subdirectories' names."""
+                subdirectories = []
+                with os.scandir(fd) as entries:
+                    for entry in entries:
+                        if entry.is_dir(follow_symlinks=False):
+                            subdirectories.append(entry.name)
+                        else:
+                            try:
+                                os.unlink(entry.name, dir_fd=fd)
+                            except FileNotFoundError:
+                                pass
+                return subdirectories
+
+            stack = [scan(fd)]  # per level below ``path``: the subdirectories of that level still to remove
+            names: list[str] = []  # the name of each level below ``path`` we are in
+            while stack:
+                if stack[-1]:
+                    name = stack[-1].pop()
+                    child = os.open(name, flags, dir_fd=fd)
+                    os.close(fd)
+                    fd = child
+                    names.append(name)
+                    stack.append(scan(fd))
+                    continue
+                stack.pop()
+                if not names:
+                    break
+                parent = os.open("..", flags, dir_fd=fd)
+                os.close(fd)
+                fd = parent
+                os.rmdir(names.pop(), dir_fd=fd)
+        finally:
+            os.close(fd)
+        os.rmdir(path)
+        return True
+    except Exception:  # noqa: BLE001 - whatever is left stays; the caller goes on
+        return False
 
 
 CLONE_NEWPID, CLONE_NEWIPC = 0x20000000, 0x08000000

@@ -38,7 +38,6 @@ import math
 import os
 import re
 import select
-import shutil
 import signal
 import socket
 import subprocess
@@ -52,7 +51,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, TypeVar
 
 from pipeline.boundary import wire
-from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, weak_sandbox_allowed
+from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, remove_tree, weak_sandbox_allowed
 from pipeline.settings import EpisodeLimits
 
 KILL_GRACE_S = 30.0
@@ -261,7 +260,7 @@ class Zygote:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
-        shutil.rmtree(self.scratch, ignore_errors=True)
+        remove_tree(self.scratch)  # never raises, however deep what a worker left (a weak sandbox's scratch)
 
 
 _zygotes: dict[str, Zygote] = {}

@@ -8,7 +8,9 @@ Unix ``SOCK_SEQPACKET`` socket pair as its only inherited descriptor. Each serve
   only what a policy needs (never the emulator: ``pipeline/boundary/preload.py``), takes new network, IPC and
   pid namespaces (it is pid 1 of its own, the init of every worker: when it ends, the kernel ends them all),
   mounts a small tmpfs over its scratch directory in a mount namespace of its own, probes the features of
-  ``pipeline/boundary/confine.py`` in a throwaway child, and confines every worker before it loads any code.
+  ``pipeline/boundary/confine.py`` in a throwaway child, and confines every worker before it loads any code. Each
+  worker mounts a tmpfs of its own as its scratch directory (``confine.worker_scratch``: bounded in bytes and
+  inodes), which the zygote detaches when the worker has ended: nothing a policy left there is ever walked.
 - ``game``: the game hosts (``pipeline/play/episodes.py``: ``host`` plays one episode, ``game`` the episodes of one
   continued game): the emulator and everything that computes a score. A host whose task is done waits for the
   next (:data:`wire.NEXT`, ``Role.serves_many``) instead of exiting.
@@ -28,7 +30,8 @@ Both say hello with what is missing, then serve:
 - ``{"op": "kill", "id"}``: SIGKILL that worker; ``{"op": "count"}``: how many workers are alive.
 
 Every worker that ends is reported as ``{"kind": "exited", "id", "code"}`` (negative: killed by that signal)
-and its scratch directory removed. When the parent goes away (EOF on the socket) the zygote kills its workers
+and its scratch directory removed (:func:`_forget_scratch`, which cannot raise: the zygote never runs code that what
+a policy left behind can make fail; other episodes depend on it). When the parent goes away (EOF on the socket) the zygote kills its workers
 and exits; workers die with the zygote (PDEATHSIG, and the pid namespace). Each policy worker is a fresh fork: no
 policy or module state survives from one task to the next.
 """
@@ -40,7 +43,6 @@ import importlib
 import json
 import os
 import selectors
-import shutil
 import signal
 import socket
 import sys
@@ -115,9 +117,10 @@ def _read_task(fd: int) -> dict[str, Any]:
 
 
 def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: str, role: Role,
-            strict: bool) -> None:
+            strict: bool, own_scratch: bool = False) -> None:
     """In the forked worker: set up, confine (role ``policy``), run the task; never returns. ``fds[0]`` carries the
-    task and its answer; a host's ``fds[1]`` is its policy process's socket."""
+    task and its answer; a host's ``fds[1]`` is its policy process's socket. ``own_scratch``: mount a tmpfs of its
+    own on its scratch directory (the zygote has a mount namespace of its own); failing that, the task fails."""
     code = 0
     fd = fds[0]
     try:
@@ -135,6 +138,8 @@ def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: 
         os.closerange(low, 1 << 30)  # close_range(2): cheap whatever the bound
         scratch = os.path.join(scratch_base, f"w{int(msg['id'])}")
         os.makedirs(scratch, exist_ok=True)
+        if own_scratch:
+            confine.worker_scratch(scratch)
         os.chdir(scratch)
         os.environ["HOME"] = os.environ["TMPDIR"] = scratch
         devnull = os.open("/dev/null", os.O_RDWR)
@@ -194,8 +199,9 @@ def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: 
 # --------------------------------------------------------------------------------------------- the zygote
 
 
-def _probe(scratch_base: str) -> list[str]:
-    """Apply the full confinement in a throwaway child; the features it could not apply."""
+def _probe(scratch_base: str, own_scratch: bool) -> list[str]:
+    """Apply the full confinement in a throwaway child (a worker's scratch tmpfs first, if ``own_scratch``); the
+    features it could not apply."""
     r, w = os.pipe()
     pid = os.fork()
     if pid == 0:
@@ -203,7 +209,13 @@ def _probe(scratch_base: str) -> list[str]:
             os.close(r)
             scratch = os.path.join(scratch_base, "probe")
             os.makedirs(scratch, exist_ok=True)
-            missing = confine.confine(confine.Limits(write_paths=[scratch], cpu_s=60), strict=False)
+            missing = []
+            if own_scratch:
+                try:
+                    confine.worker_scratch(scratch)
+                except OSError as exc:
+                    missing.append(f"a worker's scratch tmpfs ({exc})")
+            missing += confine.confine(confine.Limits(write_paths=[scratch], cpu_s=60), strict=False)
             os.write(w, json.dumps(missing).encode())
         finally:
             os._exit(0)
@@ -213,7 +225,7 @@ def _probe(scratch_base: str) -> list[str]:
         data += chunk
     os.close(r)
     os.waitpid(pid, 0)
-    shutil.rmtree(os.path.join(scratch_base, "probe"), ignore_errors=True)
+    _forget_scratch(os.path.join(scratch_base, "probe"), own_scratch)
     try:
         return list(json.loads(data))
     except ValueError:
@@ -230,6 +242,7 @@ def main(argv: list[str]) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # no PDEATHSIG here: it follows the parent's *thread* that started us; EOF on the socket is the signal
     missing = confine.enter_namespaces(offline=role.offline)
+    own_scratch = False  # each worker mounts a tmpfs of its own as its scratch (the zygote has its mount namespace)
     if not any(m.startswith("pid namespace") for m in missing):
         pid = os.fork()
         if pid:  # the outer process only waits: the namespace's init (below) ends with it, and everything in it
@@ -254,6 +267,7 @@ def main(argv: list[str]) -> int:
         except OSError as exc:
             missing.append(f"scratch tmpfs ({exc})")
         else:
+            own_scratch = True
             devices = ["/dev/null", "/dev/urandom"]
             read = [p for p in confine.read_paths()[0] if p not in devices]
             try:
@@ -261,7 +275,8 @@ def main(argv: list[str]) -> int:
             except OSError as exc:
                 missing.append(f"minimal filesystem view ({exc})")
             os.chdir(scratch_base)
-        missing += _probe(scratch_base)
+        missing += _probe(scratch_base, own_scratch)
+        own_scratch = own_scratch and not any(m.startswith("a worker's scratch tmpfs") for m in missing)
     strict = not missing
     try:
         _send(ctl, {"kind": "hello", "pid": os.getpid(), "missing": missing})
@@ -299,7 +314,7 @@ def main(argv: list[str]) -> int:
                         if task_id is None:
                             continue
                         by_id.pop(task_id, None)
-                        shutil.rmtree(scratch, ignore_errors=True)
+                        _forget_scratch(scratch, own_scratch)
                         _send(ctl, {"kind": "exited", "id": task_id, "code": os.waitstatus_to_exitcode(status)})
                     continue
                 data, fds, _flags, _addr = socket.recv_fds(ctl, MAX_CONTROL, 2)
@@ -312,7 +327,7 @@ def main(argv: list[str]) -> int:
                     pid = os.fork()
                     if pid == 0:
                         sel.close()
-                        _worker(fds, msg, zygote_pid, scratch_base, role, strict)
+                        _worker(fds, msg, zygote_pid, scratch_base, role, strict, own_scratch)
                     for passed in fds:
                         os.close(passed)
                     children[pid] = (task_id, os.path.join(scratch_base, f"w{task_id}"))
@@ -352,12 +367,34 @@ def main(argv: list[str]) -> int:
         _remove_scratch(scratch_base)
 
 
+def _forget_scratch(scratch: str, own_scratch: bool) -> None:
+    """Remove a worker's scratch directory once the worker has ended; never raises, whatever the worker left there.
+    With ``own_scratch`` the worker's tmpfs is detached whole (two system calls, nothing walked: a directory 1,500
+    levels deep made ``shutil.rmtree`` raise RecursionError here, which ended the zygote and the episodes of every
+    other worker with it) and its empty mount point removed; otherwise the directory is walked without recursion
+    (``confine.remove_tree``)."""
+    try:
+        if own_scratch:
+            confine.unmount(scratch)
+            try:
+                os.rmdir(scratch)
+                return
+            except OSError:
+                pass
+        confine.remove_tree(scratch)
+    except Exception:  # noqa: BLE001 - a scratch left behind costs an inode of the zygote's tmpfs, not an episode
+        pass
+
+
 def _remove_scratch(scratch_base: str) -> None:
-    """Remove the scratch directory (a parent killed with SIGKILL cannot), tmpfs detached first."""
-    if os.path.basename(scratch_base).startswith("codearcade-sandbox-"):
-        os.chdir("/")
-        confine.unmount(scratch_base)
-        shutil.rmtree(scratch_base, ignore_errors=True)
+    """Remove the scratch directory (a parent killed with SIGKILL cannot), tmpfs detached first; never raises."""
+    try:
+        if os.path.basename(scratch_base).startswith("codearcade-sandbox-"):
+            os.chdir("/")
+            confine.unmount(scratch_base)
+            confine.remove_tree(scratch_base)
+    except Exception:  # noqa: BLE001
+        pass
 
 
 if __name__ == "__main__":
