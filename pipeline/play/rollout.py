@@ -143,8 +143,9 @@ class PolicyChannel:
     def start(self) -> None:
         """Load the policy (raises :class:`PolicyFailed`, e.g. for a policy file that does not load)."""
 
-    def go(self, cpu: int | None) -> None:
-        """The episode begins (on ``cpu``, where the host now runs)."""
+    def go(self, cpu: int | None, deadline: float = math.inf) -> None:
+        """The episode begins (on ``cpu``, where the host now runs); its time is up at ``deadline``
+        (``time.perf_counter()``)."""
 
     def act(self, obs: dict[str, Any]) -> int:
         """The policy's legal action for ``obs``; raises :class:`PolicyFailed`."""
@@ -215,20 +216,27 @@ class RemotePolicy(PolicyChannel):
         self.channel = Channel(sock)
         self.spec, self.n_actions = spec, n_actions
         self.limit = (spec.call_time_limit_s or math.inf) + ANSWER_GRACE_S
-        self._timeout: float | None = -1.0  # what the socket was last told (-1: nothing yet)
+        self.deadline = math.inf
+        """When the episode's time is up (``time.perf_counter()``; :meth:`go`): no answer is awaited past it (plus
+        :data:`ANSWER_GRACE_S`), so the host ends the episode itself, its steps kept, before the parent's kill."""
+        self.broken = False
+        """The stream is past use (no whole answer in time, a frame over its limit, the process gone): nothing more
+        is read from it, not even the node rows at the end (what is left of a frame trickled a byte at a time would
+        be read as the next)."""
 
     def _receive(self, timeout: float, what: str) -> tuple[bytes, bytes]:
+        """The next answer, whole within ``timeout`` seconds (the frame's deadline, not each read's)."""
         timeout = None if math.isinf(timeout) else timeout
-        if timeout != self._timeout:  # settimeout costs system calls: only when the wait changes
-            self.channel.sock.settimeout(timeout)
-            self._timeout = timeout
         try:
-            return self.channel.receive(MAX_ANSWER)
+            return self.channel.receive(MAX_ANSWER, within=timeout)
         except TimeoutError:
-            raise PolicyFailed("timeout", f"the policy process did not answer {what} within {timeout:g} s") from None
+            self.broken = True
+            raise PolicyFailed("timeout", f"the policy process did not answer {what} within {timeout:.3g} s") from None
         except EOFError:
+            self.broken = True
             raise PolicyFailed("crashed", f"the policy process ended {what}") from None
         except (OSError, ValueError) as exc:
+            self.broken = True
             raise PolicyFailed("crashed", f"the policy process broke the protocol {what}: {exc}") from None
 
     def _failure(self, payload: bytes, what: str) -> PolicyFailed:
@@ -253,7 +261,8 @@ class RemotePolicy(PolicyChannel):
         raise self._failure(payload, "while loading the policy") if kind == b"J" else \
             PolicyFailed("crashed", "the policy process sent a malformed message while loading the policy")
 
-    def go(self, cpu: int | None) -> None:
+    def go(self, cpu: int | None, deadline: float = math.inf) -> None:
+        self.deadline = deadline
         self.channel.send_json({"op": "go", "cpu": cpu})
 
     def act(self, obs: dict[str, Any]) -> int:
@@ -261,7 +270,11 @@ class RemotePolicy(PolicyChannel):
             self.channel.send(b"O", marshal.dumps(obs))
         except OSError:
             raise PolicyFailed("crashed", "the policy process ended before the step") from None
-        kind, payload = self._receive(self.limit, "at this step")
+        limit, what = self.limit, "at this step"
+        left = self.deadline - time.perf_counter()
+        if left + ANSWER_GRACE_S < limit:  # the episode's time is up first
+            limit, what = max(left, 0.0) + ANSWER_GRACE_S, "at this step (the episode's time limit came first)"
+        kind, payload = self._receive(limit, what)
         if kind == b"a" and len(payload) == ACTION.size:
             (action,) = ACTION.unpack(payload)
             if 0 <= action < self.n_actions:
@@ -278,7 +291,11 @@ class RemotePolicy(PolicyChannel):
         """The node rows as the policy process sent them (an Arrow stream of at most
         :data:`~pipeline.boundary.nodes.MAX_NODE_FRAME` bytes, read and checked by the parent), or None.
         :class:`PolicyFailed` (``policy_error``, a malformed trace) for node rows the episode did not ask for
-        (refused unread) or a node frame over the limit (refused at its header)."""
+        (refused unread) or a node frame over the limit (refused at its header). None at once when the stream is
+        :attr:`broken` (the host timed the process out: waiting for its node rows would only let it hold the
+        host longer)."""
+        if self.broken:
+            return None
         try:
             self.channel.send_json({"op": "end", "more": more})
             kind, payload = self._receive(FINISH_TIMEOUT_S, "at the end")
@@ -290,9 +307,7 @@ class RemotePolicy(PolicyChannel):
         if not self.spec.trace:
             raise PolicyFailed("policy_error", "malformed trace: node rows for an episode that is not traced")
         try:
-            self.channel.sock.settimeout(FINISH_TIMEOUT_S)
-            self._timeout = FINISH_TIMEOUT_S
-            kind, payload = self.channel.receive(MAX_NODE_FRAME)
+            kind, payload = self.channel.receive(MAX_NODE_FRAME, within=FINISH_TIMEOUT_S)
         except ValueError as exc:  # over the limit, refused at the header
             raise PolicyFailed("policy_error", f"malformed trace: {exc}") from None
         except (OSError, EOFError):
@@ -388,9 +403,9 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
         try:
             if spec.rerun:
                 live = _live_recorder(spec, env, steps)
-            policy.go(cpu)
-            lives = info.get("lives", 0)
             deadline = t0 + spec.episode_time_limit_s
+            policy.go(cpu, deadline)
+            lives = info.get("lives", 0)
             for step in range(spec.max_steps):
                 now = time.perf_counter()
                 if now >= deadline:
