@@ -340,7 +340,7 @@ class CallTimer:
         raise PolicyTimeout(self._message)
 
     def arm(self, seconds: float | None, what: str = "policy call") -> None:
-        if seconds and seconds > 0:
+        if seconds and 0 < seconds < float("inf"):  # inf (``--call-time-limit 0``): no limit; setitimer refuses it
             self._message = f"{what} exceeded its time limit of {seconds:g} s"
             signal.setitimer(signal.ITIMER_REAL, seconds, self.REFIRE_S)
 
