@@ -1150,4 +1150,26 @@ MIGRATIONS.append(
     )
 )
 
+# The budgeted bandit (issue 39, item 1): each first call of an ensemble's candidate records why its model was
+# chosen (the estimates the rule compared: pipeline/optimizer/bandit.py); the view reads the JSON into columns.
+MIGRATIONS.append(
+    (
+        18,
+        "llm_calls: model_choice (why an ensemble chose the call's model); view model_choices",
+        r"""
+        ALTER TABLE llm_calls ADD COLUMN model_choice JSON;  -- NULL: one model, a repair turn, or stored before
+        CREATE VIEW model_choices AS
+        SELECT run_id, iteration, coalesce(candidate, 0) AS candidate, call_id, request_model AS model,
+               json_extract_string(model_choice, '$.rule') AS rule,
+               json_extract_string(model_choice, '$.budget') AS budget,
+               json_extract_string(model_choice, '$.why') AS why,
+               TRY_CAST(json_extract(model_choice, '$.level') AS DOUBLE) AS level,
+               TRY_CAST(json_extract(model_choice, '$.pulls_left') AS DOUBLE) AS pulls_left,
+               json_extract(model_choice, '$.models') AS models
+        FROM llm_calls WHERE model_choice IS NOT NULL;
+        COMMENT ON VIEW model_choices IS 'one row per model an ensemble chose: rule, the budget that bound the run, why, and per model the pulls, mean reward, cost per pull and index compared';
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

@@ -139,6 +139,41 @@ def call_models(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, str]:
     return dict(con.execute("SELECT call_id, request_model FROM llm_calls WHERE run_id = ?", [run_id]).fetchall())
 
 
+def bandit_usage(con: duckdb.DuckDBPyConnection, run_id: str, before: int) -> dict[str, Any]:
+    """What the LLM calls of iterations 0 .. ``before``-1 used, as an ensemble's bandit counts it
+    (``pipeline/optimizer/ensemble.py``): ``calls``, (model, tokens, dollars, seconds) of each call in order;
+    ``wall_s``, those iterations' wall time; ``play_s``, the part of iterations 1 .. before-1 not spent waiting
+    for the model. A replay's calls report no usage, so a replay counts its original's (the run it replays, back
+    to the first that is not a replay): it makes the same choices."""
+    source = run_id
+    for _ in range(100):
+        row = con.execute("SELECT kind, json_extract_string(config, '$.replay_of') FROM runs WHERE run_id = ?",
+                          [source]).fetchone()
+        if row is None or row[0] != "replay" or not row[1]:
+            break
+        source = row[1]
+    calls = con.execute(
+        "SELECT request_model, CASE WHEN input_tokens IS NULL AND output_tokens IS NULL THEN NULL "
+        "ELSE coalesce(input_tokens, 0) + coalesce(output_tokens, 0) END, cost_usd, latency_s FROM llm_calls "
+        "WHERE run_id = ? AND iteration < ? ORDER BY iteration, coalesce(candidate, 0), coalesce(repair_turn, 0), "
+        "created_at", [source, before]).fetchall()
+    wall, play = con.execute(
+        "SELECT coalesce(sum(wall_s), 0), coalesce(sum(greatest(wall_s - coalesce(llm_s, 0), 0)) "
+        "FILTER (WHERE iteration > 0), 0) FROM iterations WHERE run_id = ? AND iteration < ?",
+        [source, before]).fetchone()
+    return {"calls": [(m, None if t is None else int(t), d, s) for m, t, d, s in calls], "wall_s": float(wall),
+            "play_s": float(play)}
+
+
+def model_choice_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict[str, Any]]:
+    """Each recorded choice of an ensemble's model in a run, in order: iteration, candidate, the model asked and the
+    stored reason (``choice``, JSON text: ``llm_calls.model_choice``)."""
+    return [{"iteration": it, "candidate": cand, "model": model, "choice": choice} for it, cand, model, choice in
+            con.execute("SELECT iteration, coalesce(candidate, 0), request_model, model_choice FROM llm_calls "
+                        "WHERE run_id = ? AND model_choice IS NOT NULL ORDER BY iteration, 2, created_at",
+                        [run_id]).fetchall()]
+
+
 def stored_replies(con: duckdb.DuckDBPyConnection, run_id: str,
                    iteration: int) -> dict[tuple[str, int], tuple[str, str]]:
     """(call id, reply text) of the first successful call for each (prompt hash, candidate) of one iteration of a

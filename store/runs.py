@@ -27,6 +27,7 @@ runs a person's SQL.
 from __future__ import annotations
 
 import difflib
+import json
 import os
 import re
 import unicodedata
@@ -246,6 +247,9 @@ def list_runs(con: duckdb.DuckDBPyConnection, store_path: str | os.PathLike, gam
     for values in cursor.fetchall():
         stats = dict(zip(columns, values))
         per_model.setdefault(stats.pop("run_id"), []).append(stats)
+    last_choice = dict(con.execute(  # an ensemble's latest reason for a model (llm_calls.model_choice)
+        "SELECT run_id, arg_max(model_choice, (iteration, coalesce(candidate, 0), created_at)) FROM llm_calls "
+        "WHERE model_choice IS NOT NULL GROUP BY run_id").fetchall())
     listed = []
     for row in rows:
         if row["status"] == "running" and not run_is_live(store_path, row["run_id"]):
@@ -253,7 +257,9 @@ def list_runs(con: duckdb.DuckDBPyConnection, store_path: str | os.PathLike, gam
         if status is not None and row["status"] != status:
             continue
         listed.append({"short_id": short[row["run_id"]], **row,
-                       **({"models": per_model[row["run_id"]]} if row["run_id"] in per_model else {})})
+                       **({"models": per_model[row["run_id"]]} if row["run_id"] in per_model else {}),
+                       **({"last_choice": json.loads(last_choice[row["run_id"]])} if row["run_id"] in last_choice
+                          else {})})
         if limit is not None and len(listed) >= limit:
             break
     return listed

@@ -17,8 +17,13 @@ import sys
 
 import pytest
 
-from pipeline.optimizer.ensemble import Pull, choose, model_entries, parse_model_entry, pulls, relative_costs, \
-    split_model_flags
+from types import SimpleNamespace
+
+import numpy as np
+
+from pipeline.optimizer.bandit import FLOOR, CallUsage, binding_budget, costs_per_pull
+from pipeline.optimizer.ensemble import Pull, budget_costs, choose, decide, model_entries, parse_model_entry, pulls, \
+    relative_costs, split_model_flags
 from tests.conftest import ROOT, json_reply, random_policy
 from viewers.tables import money
 
@@ -49,11 +54,11 @@ def _cli(*argv):
     return subprocess.run([EXE, *argv], cwd=ROOT, capture_output=True, text=True, timeout=900, env=_env())
 
 
-def _models(scripted):
+def _models(scripted, bad=BAD):
     good = scripted([{"content": text, "usage": USAGE} for text in LADDER])
-    bad = scripted([{"content": NEVER, "usage": USAGE}])
+    never = scripted([{"content": NEVER, "usage": USAGE}])
     # the bad model is listed first: a bandit's first call goes to it
-    return ["--model", f"{BAD},api_base={bad.api_base}", "--model", f"{GOOD},api_base={good.api_base}"]
+    return ["--model", f"{bad},api_base={never.api_base}", "--model", f"{GOOD},api_base={good.api_base}"]
 
 
 def _choices(store, run_id):
@@ -151,39 +156,213 @@ def test_improvements_are_counted_against_the_parent_by_the_score_rule():
     assert got == [Pull("a", math.inf), Pull("b", 3.0), Pull("a", 0.0), Pull("b", 0.0)]
 
 
+# ------------------------------------------------------------------------------- the budgeted bandit, simulated
+# The rule on simulated histories: the same functions member_picks calls (budget_costs, decide), fed the pulls and the
+# calls' usage a run would have stored. gpt-4o-mini costs 1/16.7 of gpt-4o at litellm's prices (recorded, as a run
+# records them); every call uses 3,000 + 500 tokens.
+
+MINI = {"model": "openai/gpt-4o-mini", "weight": 1.0, "price": [0.15e-6, 0.6e-6]}
+DEAR = {"model": "openai/gpt-4o", "weight": 1.0, "price": [2.5e-6, 10e-6]}
+
+
+def _call_usd(entry) -> float:
+    return 3000 * entry["price"][0] + 500 * entry["price"][1]
+
+
+def _simulate(rule, entries, improves, seed, calls=None, dollars=None, tokens=None, switch=None):
+    """The models a run chooses, call after call, until its budget stops it: ``improves[model]`` is the chance a
+    call of that model improves (by 1 point); from call ``switch`` on, each model improves with the other's
+    chance (two models)."""
+    config = SimpleNamespace(token_budget=4000, max_tokens=1000, max_llm_calls=calls, max_cost_usd=dollars,
+                             max_total_tokens=tokens, max_wall_minutes=None)
+    rng = np.random.default_rng([seed, 39])
+    history, usage, picks, spent = [], [], [], 0.0
+    while calls is None or len(picks) < calls:
+        budget, left, costs, prices = budget_costs(config, entries, history, {"calls": usage, "wall_s": 0.0,
+                                                                              "play_s": 0.0})
+        (choice,) = decide(rule, entries, history, [0], f"sim{seed}", len(picks) + 1, costs, budget=budget,
+                           prices=prices, pulls_left=left)
+        entry = entries[choice.pick]
+        worst = 4000 * entry["price"][0] + 1000 * entry["price"][1]  # what check_budgets holds against --max-cost
+        if dollars is not None and spent + worst > dollars or tokens is not None and len(picks) * 3500 + 5000 > tokens:
+            break
+        model = entry["model"]
+        if switch is not None and len(picks) >= switch:
+            model_odds = improves[next(e["model"] for e in entries if e["model"] != model)]
+        else:
+            model_odds = improves[model]
+        history.append(Pull(model, 1.0 if rng.random() < model_odds else 0.0))
+        usage.append((model, 3500, _call_usd(entry), 2.0))
+        spent += _call_usd(entry)
+        picks.append(model)
+    return picks
+
+
+def _money_share(picks, entry, entries):
+    spend = {e["model"]: picks.count(e["model"]) * _call_usd(e) for e in entries}
+    return spend[entry["model"]] / sum(spend.values())
+
+
+@pytest.mark.parametrize("rule", ["ucb", "thompson"])
+def test_a_cheap_model_that_never_improves_loses_within_a_few_calls_under_a_call_budget(rule):
+    # issue 39: 24 calls, gpt-4o-mini (never improves) beside gpt-4o (always does); the old rule gave gpt-4o 1 and 4
+    # of 24. Either order of the models, 30 seeds each (thompson's draws; ucb's choices do not depend on the seed)
+    shares = []
+    for seed in range(30):
+        for entries in ([MINI, DEAR], [DEAR, MINI]):
+            picks = _simulate(rule, entries, {MINI["model"]: 0.0, DEAR["model"]: 1.0}, seed, calls=24)
+            assert len(picks) == 24 and set(picks[:2]) == {MINI["model"], DEAR["model"]}, "each tried once first"
+            shares.append(picks[6:].count(DEAR["model"]) / 18)
+    assert min(shares) >= 0.75, sorted(shares)[:5]
+    assert np.mean(shares) >= 0.9, np.mean(shares)
+
+
+@pytest.mark.parametrize("rule", ["ucb", "thompson"])
+def test_under_a_cost_budget_the_model_that_never_improves_gets_at_most_a_quarter_of_the_money(rule):
+    # budgets worth 6, 12 and 24 calls of gpt-4o; the cheap model may be tried many times (it costs little), but its
+    # money stays under a quarter
+    for calls_worth in (6, 12, 24):
+        for seed in range(15):
+            picks = _simulate(rule, [MINI, DEAR], {MINI["model"]: 0.0, DEAR["model"]: 1.0}, seed,
+                              dollars=calls_worth * _call_usd(DEAR) + 0.006)
+            share = _money_share(picks, MINI, [MINI, DEAR])
+            assert share <= 0.25, (calls_worth, seed, share, picks)
+
+
+@pytest.mark.parametrize("rule", ["ucb", "thompson"])
+def test_of_two_equally_good_models_the_cheaper_gets_most_calls(rule):
+    # under a cost budget the price is the cost: the cheaper model gets (nearly) every call, whether both always
+    # improve or both half the time
+    for improves in (1.0, 0.5):
+        odds = {MINI["model"]: improves, DEAR["model"]: improves}
+        for seed in range(6):
+            picks = _simulate(rule, [DEAR, MINI], odds, seed, dollars=12 * _call_usd(DEAR) + 0.006)
+            assert picks.count(MINI["model"]) / len(picks) >= 0.75, (improves, seed, picks)
+    # under a call budget the price only breaks near ties (indices within 10%): two models that both always improve
+    # tie, and the cheaper gets most calls (with both improving half the time the draws' noise decides, ~50:50)
+    odds = {MINI["model"]: 1.0, DEAR["model"]: 1.0}
+    shares = [_simulate(rule, [DEAR, MINI], odds, seed, calls=24).count(MINI["model"]) / 24 for seed in range(40)]
+    assert np.mean(shares) >= 0.6 and np.mean(np.array(shares) > 0.5) >= 0.75, shares
+
+
+@pytest.mark.parametrize("rule", ["ucb", "thompson"])
+def test_a_model_that_starts_improving_later_is_noticed(rule):
+    # the floor: a model is tried again while its part of the budget spent is below FLOOR / models (5% each), so a
+    # model that never improved still gets its calls in a long run ...
+    for seed in range(5):
+        picks = _simulate(rule, [MINI, DEAR], {MINI["model"]: 0.0, DEAR["model"]: 1.0}, seed, calls=80)
+        assert picks.count(MINI["model"]) >= FLOOR / 2 * 80, picks
+    # ... and when the improving model stops and the other starts (at call 12), the other takes over
+    later = []
+    for seed in range(20):
+        picks = _simulate(rule, [MINI, DEAR], {MINI["model"]: 0.0, DEAR["model"]: 1.0}, seed, calls=48, switch=12)
+        later.append(picks[24:].count(MINI["model"]) / 24)
+    assert np.median(later) >= 0.5, later
+
+
+def test_the_budget_that_binds_is_the_one_nearest_to_running_out():
+    models = [MINI["model"], DEAR["model"]]
+    calls = [CallUsage(MINI["model"], 3500, 0.00075, 2.0), CallUsage(DEAR["model"], 3500, 0.0125, 9.0)]
+    pulled = {MINI["model"]: 1, DEAR["model"]: 1}
+    # per pull: the reference call counted as one pull, then what the model's calls used
+    assert costs_per_pull("calls", models, calls, pulled, [1.0, 1.0]) == [1.0, 1.0]
+    assert costs_per_pull("tokens", models, calls, pulled, [5000.0, 5000.0]) == [4250.0, 4250.0]
+    assert costs_per_pull("seconds", models, calls, pulled, [5.5, 5.5], overhead=3.0) == [6.75, 10.25]
+    dollars = costs_per_pull("dollars", models, calls, pulled, [0.0012, 0.02])
+    assert dollars[1] / dollars[0] == pytest.approx(16.7, rel=0.01)
+    per_pull = {"calls": [1.0, 1.0], "dollars": dollars}
+    # 10 calls left, or dollars for ~5.5 more at the models' mean cost per pull: the dollars bind; with more money,
+    # the calls
+    assert binding_budget({"calls": 12, "dollars": 0.06}, {"calls": 2, "dollars": 0.013}, per_pull)[0] == "dollars"
+    assert binding_budget({"calls": 12, "dollars": 1.0}, {"calls": 2, "dollars": 0.013}, per_pull)[0] == "calls"
+    assert binding_budget({}, {}, {"calls": [1.0, 1.0]}) == ("calls", None), "none set: calls, unlimited"
+    # through budget_costs as member_picks calls it: under a call budget the price is no cost at all
+    config = SimpleNamespace(token_budget=4000, max_tokens=1000, max_llm_calls=24, max_cost_usd=None,
+                             max_total_tokens=None, max_wall_minutes=None)
+    history = [Pull(MINI["model"], 0.0), Pull(DEAR["model"], 1.0)]
+    usage = {"calls": [(MINI["model"], 3500, 0.00075, 2.0), (DEAR["model"], 3500, 0.0125, 9.0)], "wall_s": 30.0,
+             "play_s": 20.0}
+    budget, left, costs, prices = budget_costs(config, [MINI, DEAR], history, usage)
+    assert (budget, left, costs) == ("calls", 22.0, [1.0, 1.0]) and prices[1] / prices[0] == pytest.approx(16.7, 0.01)
+    config.max_cost_usd = 0.05  # $0.037 left buys ~6 calls: dollars bind
+    budget, left, costs, _ = budget_costs(config, [MINI, DEAR], history, usage)
+    assert budget == "dollars" and left < 22 and costs[1] / costs[0] == pytest.approx(16.7, rel=0.01)
+    # 30 s left; a pull's seconds: its model's latency (the mean one, 5.5 s, as the prior) and 10 s of play
+    config.max_cost_usd, config.max_wall_minutes = None, 1.0
+    budget, left, costs, _ = budget_costs(config, [MINI, DEAR], history, usage)
+    assert budget == "seconds" and left == pytest.approx(30 / 15.5) and costs == [13.75, 17.25]
+
+
+def test_a_choice_records_the_estimates_it_compared():
+    history = [Pull("a", 0.0), Pull("b", 2.0), Pull("b", 1.0)]
+    entries = [{"model": "a"}, {"model": "b"}]
+    for rule in ("ucb", "thompson", "fixed"):
+        (choice,) = decide(rule, entries, history, [0], "k", 4, [1.0, 2.0], budget="tokens", pulls_left=7.5)
+        record = json.loads(json.dumps(choice.record()))
+        assert record["rule"] == rule and record["model"] in ("a", "b")
+        assert [m["model"] for m in record["models"]] == ["a", "b"]
+        assert [m["pulls"] for m in record["models"]] == [1, 2]
+        assert record["models"][1]["mean_improvement"] == 1.5 and record["models"][0]["mean_improvement"] == 0
+        if rule != "fixed":
+            assert record["budget"] == "tokens" and record["pulls_left"] == 7.5 and record["why"] == "index"
+            assert [m["cost"] for m in record["models"]] == [1.0, 2.0]
+            assert record["models"][1]["mean_reward"] > record["models"][0]["mean_reward"]
+            assert all(m["index"] > 0 for m in record["models"])
+    assert decide("ucb", entries, [], [0], "k", 1)[0].record()["why"] == "untried"
+
+
 # ------------------------------------------------------------------------------------------- end to end
 
 
 @pytest.mark.slow
 def test_the_bandit_gives_the_improving_model_most_calls_and_replay_chooses_alike(store, scripted, write_policy):
+    # issue 39's pair: the model that never improves is gpt-4o-mini, 16.7x cheaper; under a call budget its price
+    # buys nothing, and it gets no more than its first call (the old rule, UCB1 per dollar, gave gpt-4o 1 of 24)
     policy = write_policy(STARTER)
-    done = _cli("optimize", str(policy), *_models(scripted), "--model-choice", "ucb", "--iterations", "8", *FAST,
-                "--store", str(store.path))
+    done = _cli("optimize", str(policy), *_models(scripted, bad=MINI["model"]), "--model-choice", "ucb",
+                "--iterations", "8", "--max-llm-calls", "8", *FAST, "--store", str(store.path))
     assert done.returncode == 0, done.stderr
     assert "models " in done.stdout and "$0.0" in done.stdout, "the progress line shows each model's share and spend"
+    bad = MINI["model"]
     (run_id,) = _run_ids(store)
     choices = _choices(store, run_id)
-    assert len(choices) == 8 and choices[:2] == [BAD, GOOD], "each model is tried once first, in order"
-    assert choices.count(GOOD) >= 5, choices
+    assert len(choices) == 8 and choices[:2] == [bad, GOOD], "each model is tried once first, in order"
+    assert choices.count(GOOD) >= 6, choices
     stats = {m: (calls, accepted, improvements) for m, calls, accepted, improvements in store.query(
         "SELECT model, calls, accepted, improvements FROM model_stats WHERE run_id = ?", [run_id])}
-    assert stats[BAD][2] == 0 and stats[GOOD][2] == 4 and stats[GOOD][0] == choices.count(GOOD), stats
+    assert stats[bad][2] == 0 and stats[GOOD][2] == 4 and stats[GOOD][0] == choices.count(GOOD), stats
     assert store.query("SELECT best_score FROM iterations WHERE run_id = ? ORDER BY iteration DESC LIMIT 1",
                        [run_id])[0][0] == 7
     recorded = json.loads(store.query("SELECT config FROM runs")[0][0])
-    assert [e["model"] for e in recorded["models"]] == [BAD, GOOD] and all(e["price"] for e in recorded["models"])
+    assert [e["model"] for e in recorded["models"]] == [bad, GOOD] and all(e["price"] for e in recorded["models"])
+    # each choice's reason is stored: counted in calls (the budget set), each model at one call a pull
+    reasons = store.query("SELECT model, budget, why, models FROM model_choices WHERE run_id = ? "
+                          "ORDER BY iteration, candidate", [run_id])
+    assert [r[0] for r in reasons] == choices and {r[1] for r in reasons} == {"calls"}
+    assert [r[2] for r in reasons[:2]] == ["untried", "untried"] and reasons[2][2] == "index"
+    third = {m["model"]: m for m in json.loads(reasons[2][3])}
+    assert third[GOOD]["cost"] == third[bad]["cost"] == 1 and third[GOOD]["index"] > third[bad]["index"]
+    assert third[GOOD]["mean_improvement"] == 1 and third[bad]["pulls"] == 1, third
     listed = json.loads(_cli("runs", "--json", "--store", str(store.path)).stdout)
-    assert {m["model"]: m["calls"] for m in listed[0]["models"]} == {BAD: choices.count(BAD), GOOD: choices.count(GOOD)}
+    assert {m["model"]: m["calls"] for m in listed[0]["models"]} == {bad: choices.count(bad), GOOD: choices.count(GOOD)}
+    assert listed[0]["last_choice"]["budget"] == "calls" and listed[0]["last_choice"]["model"] == choices[-1]
+    table = _cli("runs", "--store", str(store.path)).stdout
+    assert "choice" in table and "ucb per call: gpt-4o" in table, table
     report = store.path.parent / "report"
     assert _cli("report", run_id, "--store", str(store.path), "--out", str(report)).returncode == 0
-    (row,) = [line for line in (report / "README.md").read_text().splitlines() if line.startswith(f"| {GOOD} |")]
+    readme = (report / "README.md").read_text()
+    (row,) = [line for line in readme.splitlines() if line.startswith(f"| {GOOD} |")]
     spent = choices.count(GOOD) * 0.0125  # a few cents, each cent's part shown (not rounded to 0.06)
     assert f"| {money(spent)} | {money(spent / 4)} |" in row and money(spent) == f"{spent:.3g}", row
+    assert "## Model choices" in readme and "| 3 | 0 | ucb | calls | gpt-4o | largest index |" in readme, readme
 
     again = _cli("replay", run_id, "--store", str(store.path))
     assert again.returncode == 0, again.stderr + again.stdout
     replayed = [r for r in _run_ids(store) if r != run_id]
     assert _choices(store, replayed[0]) == choices, "the replay chose every model as the run did"
+    assert store.query("SELECT models FROM model_choices WHERE run_id = ? ORDER BY iteration", [replayed[0]]) == \
+        store.query("SELECT models FROM model_choices WHERE run_id = ? ORDER BY iteration", [run_id]), \
+        "for the same reasons"
 
 
 @pytest.mark.slow
@@ -216,6 +395,17 @@ def test_the_cost_cap_holds_across_both_models(store, scripted, write_policy):
     choices = _choices(store, run_id)
     assert len(choices) == 3 and set(choices) == {BAD, GOOD}, choices
     assert store.query("SELECT sum(cost_usd) FROM llm_calls")[0][0] <= 0.05
+    # counted in dollars, the one budget set; a replay (whose calls cost nothing) counts its original's spending and
+    # so chooses the same models for the same reasons, then misses the call the budget stopped
+    reasons = store.query("SELECT budget, why, models FROM model_choices WHERE run_id = ? ORDER BY iteration",
+                          [run_id])
+    assert [r[0] for r in reasons] == ["dollars"] * 3 and reasons[2][1] == "index", reasons
+    assert all(m["cost"] > 0.01 for m in json.loads(reasons[2][2])), "a pull's dollars: $0.0125 a call, $0.02 before"
+    _cli("replay", run_id, "--store", str(store.path))
+    (replayed,) = [r for r in _run_ids(store) if r != run_id]
+    assert _choices(store, replayed)[:3] == choices
+    assert store.query("SELECT budget, why, models FROM model_choices WHERE run_id = ? ORDER BY iteration LIMIT 3",
+                       [replayed]) == reasons
 
 
 @pytest.mark.slow

@@ -21,10 +21,11 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from store import Store
-from store.readers import get_run
+from store.readers import get_run, model_choice_rows
 from store.scores import CONFIDENCE, MEAN_METHOD, interval_text, is_forfeit, score_episodes
 from store.showing import report_rows
 from store.runs import resolve_run_id
+from viewers.model_choices import choice_section
 from viewers.safe_text import (markdown_cell, markdown_code, markdown_code_block, markdown_text, plot_text,
                                terminal_text)
 from viewers.tables import money
@@ -47,6 +48,7 @@ def collect(store: Store, run: str) -> dict[str, Any]:
         data: dict[str, Any] = {"run": get_run(con, run_id)}
 
         data.update(report_rows(con, run_id))
+        data["choices"] = model_choice_rows(con, run_id)  # an ensemble's reasons (viewers/model_choices.py)
     data["config"] = json.loads(data["run"]["config"]) if data["run"]["config"] else {}
     data["packages"] = json.loads(data["run"]["package_versions"] or "{}")
     return data
@@ -578,6 +580,7 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                 [(terminal_text(m["model"] or ""), m["calls"], f"{m['share']:.0%}", m["accepted"], m["improvements"],
                   m["gain"], money(m["cost_usd"]), money(m["cost_per_improvement"]), m["mean_latency_s"])
                  for m in data["models"]]), ""]
+            out += choice_section(data.get("choices") or [])
     best_id = None
     if run["kind"] != "eval" and data["curve"]:
         best_id = data["curve"][-1]["best_version_id"]

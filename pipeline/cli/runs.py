@@ -89,7 +89,16 @@ COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has
     ("tokens", lambda r: r["total_tokens"] or None),
     ("repairs", lambda r: _repairs(r)),
     ("models", lambda r: _models(r)),
+    ("choice", lambda r: _choice(r)),
 )
+
+
+def _choice(row: dict) -> str | None:
+    """An ensemble's latest choice of model and why (``llm_calls.model_choice``), ``ucb per call: gpt-4o 0.97 >
+    gpt-4o-mini 0.102``."""
+    from viewers.model_choices import short
+
+    return short(row.get("last_choice"))
 
 
 def _models(row: dict) -> str | None:

@@ -20,29 +20,29 @@ and the candidate). A resumed iteration therefore chooses again exactly what the
   not better, when it was rejected, unchanged, failed or forfeited; a played-out candidate of a forfeited parent
   counts as the largest improvement seen. Its **reward** is the improvement divided by the largest improvement
   any candidate of the run has brought so far (so rewards lie in [0, 1]; all 0 until something improves).
-- A model's **cost** is litellm's price of a reference call (a prompt of ``--token-budget`` tokens and a reply
-  of ``--max-tokens``), relative to the cheapest model of the ensemble; prices are recorded in the run's config
-  when it starts (``models[i].price``), so a later litellm does not change a run's choices. When any model has
-  no price (a local or unknown model), every model costs 1: the bandit then maximises improvement per call.
 - ``fixed``: each call goes to the model furthest below its share of the calls so far (``weight / sum of
   weights``; ties to the first listed): weights 2 and 1 give exactly 2 of every 3 calls to the first.
-- ``ucb`` (UCB1 per dollar): a model not yet pulled first (in order); else the largest
-  ``(mean reward + sqrt(2 ln N / n)) / cost``, with ``n`` the model's pulls and ``N`` all pulls.
-- ``thompson``: each model's reward is drawn from ``Beta(1 + rewards, 1 + pulls - rewards)`` with the call's
-  seeded generator, and the largest ``draw / cost`` wins.
+- ``ucb`` and ``thompson``: the budgeted bandit of ``pipeline/optimizer/bandit.py`` (Budgeted Thompson Sampling,
+  and its Bayes-UCB twin): improvement per unit of the budget that binds the run (calls, dollars, tokens or
+  seconds; :func:`budget_costs`), each model's cost per pull estimated from its reference call (prices recorded
+  in the run's config when it starts, ``models[i].price``, so a later litellm does not change a run's choices)
+  and what its calls of the committed iterations used (``store.readers.bandit_usage``: a replay counts its
+  original's, whose calls cost something).
 
-Within one iteration (best-of-n, beam) the earlier choices count as pulls (``fixed`` and ``ucb``: at the model's
-current mean reward), so an iteration's calls spread over the models as the rule would spread them one at a
-time. Nothing here speaks SQL or calls a model: ``store/readers.py: call_models`` is the one reader.
+Within one iteration (best-of-n, beam) the earlier choices count as pulls at the model's mean reward, and so do a
+proposal pool's calls in flight, so an iteration's calls spread over the models as the rule would spread them one
+at a time. Each choice's reason (the estimates it compared) is recorded with its call (``llm_calls.model_choice``).
+Nothing here speaks SQL or calls a model: ``store/readers.py`` has the readers.
 """
 
 from __future__ import annotations
 
 import math
-import random
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Iterable, Mapping, Sequence
 
+from pipeline.optimizer.bandit import BUDGETS, Arm, CallUsage, Choice, binding_budget, costs_per_pull, fixed_pick, \
+    pick, seeded
 from store.scores import beats
 
 MODEL_CHOICES = ("fixed", "ucb", "thompson")
@@ -229,72 +229,133 @@ def relative_costs(entries: Sequence[Mapping[str, Any]], prompt_tokens: int, rep
     return [c / cheapest for c in costs]
 
 
-def choose(rule: str, entries: Sequence[Mapping[str, Any]], history: Sequence[Pull], candidates: Sequence[int],
-           seed_key: str, iteration: int, costs: Sequence[float] | None = None,
-           in_flight: Sequence[str] = ()) -> list[int]:
-    """The index (in ``entries``) of the model of each of ``candidates`` (an iteration's proposals, in order).
-    ``in_flight``: the models of calls started before these and not yet in ``history`` (the proposal pool's), which
-    count like the iteration's earlier choices."""
+def _arms(entries: Sequence[Mapping[str, Any]], history: Sequence[Pull], costs: Sequence[float],
+          prices: Sequence[float | None]) -> list[Arm]:
+    """Each model's pulls, rewards and mean improvement in ``history``, at its cost per pull and price."""
+    index = {e["model"]: i for i, e in enumerate(entries)}
+    arms = [Arm(e["model"], 0.0, 0.0, float(c), p) for e, c, p in zip(entries, costs, prices)]
+    finite = [p.improvement for p in history if math.isfinite(p.improvement)]
+    largest = max(finite, default=0.0)
+    gains = [0.0] * len(arms)
+    for pull, (model, reward) in zip(history, rewards(history)):
+        if model in index:
+            arm = arms[index[model]]
+            arm.pulls += 1
+            arm.rewards += reward
+            gains[index[model]] += largest if math.isinf(pull.improvement) else pull.improvement
+    for arm, gain in zip(arms, gains):
+        arm.improvement = gain / arm.pulls if arm.pulls else 0.0
+    return arms
+
+
+def decide(rule: str, entries: Sequence[Mapping[str, Any]], history: Sequence[Pull], candidates: Sequence[int],
+           seed_key: str, iteration: int, costs: Sequence[float] | None = None, in_flight: Sequence[str] = (),
+           budget: str = "calls", prices: Sequence[float | None] | None = None,
+           pulls_left: float | None = None) -> list[Choice]:
+    """The model of each of ``candidates`` (an iteration's proposals, in order) with the reason for it.
+    ``costs``: each model's cost per pull in the unit of ``budget``, the budget that binds (default: 1 each, a call
+    budget); ``prices``: each model's dollars per reference call, which break near ties (``pipeline/optimizer/
+    bandit.py``); ``in_flight``: the models of calls started before these and not yet in ``history`` (the proposal
+    pool's). Those, and the iteration's earlier choices, count as pulls at the model's mean reward so far."""
     if rule not in MODEL_CHOICES:
         raise ValueError(f"--model-choice must be one of {', '.join(MODEL_CHOICES)}, not {rule!r}")
-    names = [e["model"] for e in entries]
-    index = {name: i for i, name in enumerate(names)}
-    n = [0.0] * len(names)
-    s = [0.0] * len(names)
-    for model, reward in rewards(history):
+    costs = list(costs) if costs is not None else [1.0] * len(entries)
+    prices = list(prices) if prices is not None else [None] * len(entries)
+    arms = _arms(entries, history, costs, prices)
+    index = {arm.model: i for i, arm in enumerate(arms)}
+
+    def pending(i: int) -> None:  # a pull not played yet, at the model's mean reward
+        arm = arms[i]
+        arm.rewards += arm.mean_reward() if rule != "fixed" else (arm.rewards / arm.pulls if arm.pulls else 0.0)
+        arm.pulls += 1
+
+    for model in in_flight:
         if model in index:
-            n[index[model]] += 1
-            s[index[model]] += reward
-    costs = list(costs) if costs is not None else [1.0] * len(names)
-    for model in in_flight if rule != "thompson" else ():
-        if model in index:  # a pull at the model's mean reward so far, like an earlier choice of the iteration
-            i = index[model]
-            s[i] += s[i] / n[i] if n[i] else 0.0
-            n[i] += 1
+            pending(index[model])
     chosen = []
+    weights = [float(e.get("weight", 1.0)) for e in entries]
     for candidate in candidates:
+        snapshot = [replace(arm) for arm in arms]
         if rule == "fixed":
-            weights = [float(e.get("weight", 1.0)) for e in entries]
-            total, pulled = sum(weights), sum(n)
-            deficit = [w / total * (pulled + 1) - k for w, k in zip(weights, n)]
-            pick = max(range(len(names)), key=lambda i: (deficit[i], -i))
-        elif rule == "ucb":
-            untried = [i for i in range(len(names)) if n[i] == 0]
-            if untried:
-                pick = untried[0]
-            else:
-                pulled = sum(n)
-                ucb = [(s[i] / n[i] + math.sqrt(2 * math.log(pulled) / n[i])) / costs[i] for i in range(len(names))]
-                pick = max(range(len(names)), key=lambda i: (ucb[i], -i))
+            choice = fixed_pick(snapshot, weights)
         else:
-            rng = random.Random(f"{seed_key}:model:{iteration}:{candidate}")
-            draws = [rng.betavariate(1 + s[i], 1 + n[i] - s[i]) / costs[i] for i in range(len(names))]
-            pick = max(range(len(names)), key=lambda i: (draws[i], -i))
-        chosen.append(pick)
-        if rule != "thompson":  # the iteration's earlier choices count as pulls at the model's mean reward
-            mean = s[pick] / n[pick] if n[pick] else 0.0
-            n[pick] += 1
-            s[pick] += mean
+            choice = pick(rule, snapshot, budget, seeded(seed_key, iteration, candidate), pulls_left)
+        chosen.append(choice)
+        pending(choice.pick)
     return chosen
+
+
+def choose(rule: str, entries: Sequence[Mapping[str, Any]], history: Sequence[Pull], candidates: Sequence[int],
+           seed_key: str, iteration: int, costs: Sequence[float] | None = None, in_flight: Sequence[str] = (),
+           **options: Any) -> list[int]:
+    """The index (in ``entries``) of the model of each of ``candidates``: :func:`decide` without the reasons."""
+    return [c.pick for c in decide(rule, entries, history, candidates, seed_key, iteration, costs, in_flight,
+                                   **options)]
+
+
+def reference_prices(entries: Sequence[Mapping[str, Any]], prompt_tokens: int, reply_tokens: int) -> list[float | None]:
+    """Each model's dollars for a reference call (a prompt of ``prompt_tokens``, a reply of ``reply_tokens``) at
+    its recorded price; all None when any model has none (then no price breaks a tie)."""
+    out = []
+    for entry in entries:
+        rates = entry.get("price")
+        if not rates or not (rates[0] or rates[1]):
+            return [None] * len(entries)
+        out.append(prompt_tokens * rates[0] + reply_tokens * rates[1])
+    return out
+
+
+def budget_costs(config, entries: Sequence[Mapping[str, Any]], history: Sequence[Pull],
+                 usage: Mapping[str, Any]) -> tuple[str, float | None, list[float], list[float | None]]:
+    """The budget that binds the run, the pulls it leaves, each model's cost per pull in its unit and each
+    model's price of a reference call, from the committed history's ``usage`` (``store.readers.bandit_usage``)."""
+    models = [e["model"] for e in entries]
+    pulled: dict[str, float] = {}
+    for p in history:
+        pulled[p.model] = pulled.get(p.model, 0.0) + 1
+    prices = reference_prices(entries, config.token_budget, config.max_tokens)
+    calls = [CallUsage(*row) for row in usage["calls"]]
+    limits = {"calls": config.max_llm_calls, "dollars": config.max_cost_usd, "tokens": config.max_total_tokens,
+              "seconds": config.max_wall_minutes * 60 if config.max_wall_minutes is not None else None}
+    played = sum(pulled.values())
+    latency = sum(c.seconds or 0.0 for c in calls)
+    reference = {
+        "calls": [1.0] * len(models),
+        "dollars": [p if p is not None else 1.0 for p in prices],
+        "tokens": [float(config.token_budget + config.max_tokens)] * len(models),
+        "seconds": [latency / played if played else 1.0] * len(models),
+    }
+    overhead = {"seconds": usage["play_s"] / played if played else 0.0}
+    per_pull = {b: costs_per_pull(b, models, calls, pulled, reference[b], overhead.get(b, 0.0))
+                for b in BUDGETS if b == "calls" or limits[b] is not None}
+    spent = {"calls": float(len(calls)), "dollars": sum(c.dollars or 0.0 for c in calls),
+             "tokens": float(sum(c.tokens or 0 for c in calls)), "seconds": usage["wall_s"]}
+    budget, left = binding_budget(limits, spent, per_pull)
+    return budget, left, per_pull[budget], prices
 
 
 def member_picks(store, state, history, iteration: int, candidates: Sequence[int],
                  in_flight: Sequence[str] = ()) -> list[str] | None:
     """The model chosen for each of ``candidates`` (an iteration's proposals, in order) by the run's rule and its
     recorded ``models``, from the committed ``history``; ``in_flight``: the models of the proposal pool's calls
-    started before these and not in ``history``. None for a run of one model."""
+    started before these and not in ``history``. None for a run of one model. The reason of each choice is kept
+    in ``state.model_choices[iteration, candidate]`` until its call is recorded (``llm_calls.model_choice``)."""
     entries = state.config.models
     if not entries:
         return None
-    from store.readers import call_models
+    from store.readers import bandit_usage, call_models
 
     with store.read() as con:
         models = call_models(con, state.run_id)
+        usage = bandit_usage(con, state.run_id, len(history.iterations))
     c = state.config
-    costs = relative_costs(entries, c.token_budget, c.max_tokens)
-    picks = choose(c.model_choice, entries, pulls(history.candidates, models), candidates,
-                   state.rng_key or state.run_id, iteration, costs, in_flight)
-    return [entries[pick]["model"] for pick in picks]
+    history_pulls = pulls(history.candidates, models)
+    budget, left, costs, prices = budget_costs(c, entries, history_pulls, usage)
+    choices = decide(c.model_choice, entries, history_pulls, candidates, state.rng_key or state.run_id, iteration,
+                     costs, in_flight, budget=budget, prices=prices, pulls_left=left)
+    for candidate, choice in zip(candidates, choices):
+        state.model_choices[iteration, candidate] = choice.record()
+    return [entries[choice.pick]["model"] for choice in choices]
 
 
 def choose_members(store, state, history, iteration: int, client, items: Sequence[Any]) -> None:

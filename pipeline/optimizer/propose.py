@@ -123,6 +123,8 @@ class _Pending:
     iteration before it is committed: ``pipeline/optimizer/pool.py``)."""
     client: LLMClient | None = None
     """The model that answers it, when the run has several (``pipeline/optimizer/ensemble.py``); else the run's."""
+    choice: dict | None = None
+    """Why the ensemble chose that model (``llm_calls.model_choice``; a repair turn's is its first call's)."""
 
     def parse(self) -> None:
         reply = self.reply
@@ -167,6 +169,8 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     else:  # chosen by the proposal pool as it started them (pipeline/optimizer/pool.py)
         for item in pending:
             item.client = members.get(item.request.candidate)
+    for item in pending:  # the reasons the ensemble's rule gave, recorded with each first call
+        item.choice = state.model_choices.pop((iteration, item.request.candidate), None)
     reused = [p for p in pending if p.text is not None]
     if reused:
         log(f"iteration {iteration}: reusing {_replies(len(reused))} stored for {'this prompt' if len(pending) == 1 else 'these prompts'}")
@@ -398,6 +402,7 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
             "call_id": item.call_id, "run_id": run_id, "iteration": iteration,
             "candidate": item.request.candidate, "purpose": "repair" if item.turn else "update",
             "repair_of": item.repair_of, "repair_turn": item.turn, "history_iterations": item.basis,
+            "model_choice": json.dumps(item.choice, sort_keys=True) if item.choice is not None else None,
             "operation_name": "chat",
             "provider_name": model.provider, "request_model": model.model,
             "request_temperature": params.get("temperature"),

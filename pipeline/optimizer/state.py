@@ -33,6 +33,9 @@ class RunState:
     pool_bases: dict[tuple[int, int], int] | None = None
     """The proposal pool's recorded bases to start candidates from (``store.readers.pool_bases``): a replay's are
     its original run's; None: the run's own (``--resume``)."""
+    model_choices: dict[tuple[int, int], dict[str, Any]] = field(default_factory=dict, repr=False, compare=False)
+    """An ensemble's reason for each (iteration, candidate) chosen and not yet asked (``ensemble.member_picks``):
+    what its first call's ``llm_calls.model_choice`` records."""
     rerun: str | None = None
     """Live Rerun recordings of this invocation's episodes (``EpisodeSpec.rerun``); an output option, not recorded."""
     waiting: Callable[[int, str], ContextManager[Callable[[str], None] | None]] = lambda it, model: nullcontext()
