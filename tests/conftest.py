@@ -7,6 +7,7 @@ How to run the suite, its quick lane and the full soak: docs/install.md, "Runnin
 from __future__ import annotations
 
 import os
+import re
 import textwrap
 from pathlib import Path
 
@@ -115,6 +116,15 @@ def pong_policy(select_action_body: str, prelude: str = "") -> str:
         + body
         + "\n"
     )
+
+
+PROGRESS_LINE = re.compile(r"\S.*: (\d+ episodes? to play|\d+ of \d+ episodes played, [\d,]+ steps)")
+"""A line of progress off a terminal (``pipeline.cli.common.EpisodeProgress``)."""
+
+
+def said(err: str) -> list[str]:
+    """The lines a command wrote to stderr besides its progress (what it said to the person)."""
+    return [line for line in err.strip().splitlines() if not PROGRESS_LINE.fullmatch(line)]
 
 
 def random_policy(game: str, action: str) -> str:

@@ -611,3 +611,11 @@ def test_long_work_is_never_silent_off_a_terminal():
         lines = stream.getvalue().splitlines()
         assert len(lines) == expected and lines[0] == f"audit of 01ABCDEF: {total} episode{'s' * (total > 1)} to play"
         assert lines[-1] == f"audit of 01ABCDEF: {total} of {total} episodes played, {100 * total:,} steps", lines
+
+
+def test_progress_lines_are_told_apart_from_what_a_command_says():
+    from tests.conftest import said
+
+    err = "eval p.py: 2 episodes to play\neval p.py: 1 of 2 episodes played, 1,234 steps\ncodearcade: error: x\n"
+    assert said(err) == ["codearcade: error: x"]
+    assert said("eval p.py: to play everything\n") == ["eval p.py: to play everything"]

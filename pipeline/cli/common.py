@@ -39,8 +39,9 @@ def show_json(value: Any, *, default: Callable[[Any], Any] | None = None, ensure
 class EpisodeProgress:
     """Progress of a command that plays episodes, on stderr: a tqdm bar on a terminal (finished episodes, steps
     played so far: episodes end at unknown lengths, so a bar over ``episodes x max_steps`` would jump); off a
-    terminal (a CI log, ``| tee``), where a bar would be silent, a line when it starts and as each tenth of the
-    episodes finishes, so that a long wait is never silent. ``update`` is the executor's progress callback
+    terminal (a CI log, ``| tee``), where a bar would be silent, a line when the first episode starts playing and
+    as each tenth of the episodes finishes, so that a long wait is never silent (and a bad input, refused before
+    anything plays, is the only line). ``update`` is the executor's progress callback
     (episode index, steps played), ``finished`` the per-episode one (index, length)."""
 
     def __init__(self, episodes: int, description: str, stream: IO[str] | None = None) -> None:
@@ -51,22 +52,28 @@ class EpisodeProgress:
         self.steps: dict[int, int] = {}
         self.done = 0
         self.bar = None
+        self.announced = False
         if self.stream.isatty():
             tqdm.monitor_interval = 0  # no monitor thread: episode workers are forked from this process
             self.bar = tqdm(total=episodes, desc=self.description, unit="episode", dynamic_ncols=True, leave=False,
                             file=self.stream)
-        else:
-            print(f"{self.description}: {episodes} episode{'s' * (episodes != 1)} to play", file=self.stream,
-                  flush=True)
+
+    def _announce(self) -> None:
+        if self.bar is None and not self.announced:
+            self.announced = True
+            print(f"{self.description}: {self.episodes} episode{'s' * (self.episodes != 1)} to play",
+                  file=self.stream, flush=True)
 
     def update(self, index: int, played: int) -> None:
         self.steps[index] = played
+        self._announce()
         if self.bar is not None:
             self.bar.set_postfix_str(f"{sum(self.steps.values()):,} steps", refresh=True)
 
     def finished(self, index: int, length: int) -> None:
         self.steps[index] = length
         self.done += 1
+        self._announce()
         if self.bar is not None:
             self.bar.update(1)
             self.update(index, length)

@@ -6,8 +6,9 @@ import argparse
 import os
 import sys
 
-from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, FAILED_END_REASONS, add_name, add_rerun, add_settings,
-                                 add_store, open_store, rerun_target, short_id, show, show_json)
+from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, FAILED_END_REASONS, EpisodeProgress, add_name,
+                                 add_rerun, add_settings, add_store, open_store, rerun_target, short_id, show,
+                                 show_json)
 from pipeline.play.config import EvalConfig
 from pipeline.settings import declarations
 
@@ -32,34 +33,6 @@ def add_parser(verbs) -> None:
     p.set_defaults(handler=run)
 
 
-def _progress_bar(episodes: int, description: str):
-    """A tqdm bar that counts finished episodes and shows the steps played so far (episodes end at unknown
-    lengths, so a bar over ``episodes x max_steps`` would jump); the executor's progress callback and the
-    per-episode callback that feed it."""
-    from tqdm import tqdm
-
-    from viewers.safe_text import terminal_text
-
-    tqdm.monitor_interval = 0  # no monitor thread: episode workers are forked from this process
-    bar = tqdm(total=episodes, desc=terminal_text(description), unit="episode", disable=None, dynamic_ncols=True,
-               leave=False)
-    steps: dict[int, int] = {}
-
-    def show_steps() -> None:
-        bar.set_postfix_str(f"{sum(steps.values()):,} steps", refresh=True)
-
-    def update(index: int, played: int) -> None:
-        steps[index] = played
-        show_steps()
-
-    def finished(index: int, length: int) -> None:
-        steps[index] = length
-        bar.update(1)
-        show_steps()
-
-    return bar, update, finished
-
-
 PAPER_PROTOCOL_NOTE = ("(the paper's protocol: sticky actions 0, no no-op starts, so every seed is the same game and "
                        "the episodes are that one game again; the interval measures only the policy's own random "
                        "draws. --sticky 0.25 --noop-max 30 plays different games)")
@@ -70,27 +43,25 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from pipeline.play.evaluate import evaluate
-    from viewers.safe_text import terminal_text
 
     given = {name: getattr(args, name) for name in EVAL_OPTIONS}
     if given["workers"] is None:
         given["workers"] = min(args.episodes, os.cpu_count() or 1)
     config = EvalConfig(**given, rerun=rerun_target(args.rerun))
     store = open_store(args, announce=args.json)  # without --json the start line names the store and why
-    bar, update, finished = _progress_bar(args.episodes, f"eval {os.path.basename(args.policy)}")
+    bar = EpisodeProgress(args.episodes, f"eval {os.path.basename(args.policy)}")
     label = f" '{args.name}'" if args.name else ""
 
     def started(run_id: str) -> None:  # the run's row is stored: its id can be given to other verbs from now on
         if not args.json:
-            # through tqdm, above its bar; made terminal-safe as show() does (the label is the person's text)
-            bar.write(terminal_text(f"run {short_id(store, run_id)}{label} started: eval "
-                                    f"{os.path.basename(args.policy)}, {args.episodes} episode(s); "
-                                    f"{store.location.describe()}"), file=sys.stdout)
+            # above the bar; made terminal-safe as show() does (the label is the person's text)
+            bar.write(f"run {short_id(store, run_id)}{label} started: eval {os.path.basename(args.policy)}, "
+                      f"{args.episodes} episode(s); {store.location.describe()}")
 
     began = time.monotonic()
     try:
-        result = evaluate(args.policy, config, store, progress=update, on_episode=finished, run_name=args.name,
-                          on_start=started)
+        result = evaluate(args.policy, config, store, progress=bar.update, on_episode=bar.finished,
+                          run_name=args.name, on_start=started)
     finally:
         bar.close()
     elapsed = time.monotonic() - began
