@@ -24,7 +24,7 @@ from pipeline.cli import main
 from pipeline.cli.eval import PAPER_PROTOCOL_NOTE
 from store import Store
 from store.locate import user_store_path
-from tests.conftest import COMPETENT_REPLY, ROOT, json_reply
+from tests.conftest import COMPETENT_REPLY, ROOT, json_reply, said
 from tests.scripted_llm import ScriptedModel
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -351,7 +351,8 @@ def test_eval_names_the_store_once(tmp_path):
     assert "store" not in done.stderr, done.stderr
     quiet = _ok(_cli("eval", COMPETENT, "--max-steps", "50", "--json", cwd=sub, env=env))
     assert json.loads(quiet.stdout)["steps"] == 50
-    assert quiet.stderr == f"codearcade: store {tmp_path / 'codearcade.duckdb'} (the nearest in a parent directory)\n"
+    assert said(quiet.stderr) == [f"codearcade: store {tmp_path / 'codearcade.duckdb'} (the nearest in a parent "
+                                  "directory)"], quiet.stderr
 
 
 # -------------------------------------------------------------------------------------------------- parsing
@@ -614,8 +615,6 @@ def test_long_work_is_never_silent_off_a_terminal():
 
 
 def test_progress_lines_are_told_apart_from_what_a_command_says():
-    from tests.conftest import said
-
     err = "eval p.py: 2 episodes to play\neval p.py: 1 of 2 episodes played, 1,234 steps\ncodearcade: error: x\n"
     assert said(err) == ["codearcade: error: x"]
     assert said("eval p.py: to play everything\n") == ["eval p.py: to play everything"]

@@ -114,7 +114,7 @@ def test_an_eval_run_that_forfeited_has_no_score_in_sql_after_the_migration(tmp_
 
 
 def test_the_report_draws_forfeits_as_marks_never_at_their_partial_return():
-    from viewers.report import episode_returns_figure, lineage_figure, scores_figure
+    from viewers.report_figures import episode_returns_figure, lineage_figure, scores_figure
 
     run = {"run_id": "R", "game": "pong", "kind": "optimize", "model": "m", "name": None}
     curve = [{"iteration": i, "score": score, "score_low": None, "score_n": 1, "best_score": -20.0,
@@ -216,7 +216,8 @@ def test_eval_runs_report_and_export_give_the_quitter_no_score(tmp_path, capsys)
     readme = (tmp_path / "report" / "README.md").read_text()
     assert code == 0 and "no score: 5 of 8 episodes forfeited" in readme and "not a score" in readme
     assert "mean return" not in readme.split("## Episodes")[0]
-    from viewers.report import collect, episode_returns_figure
+    from viewers.report import collect
+    from viewers.report_figures import episode_returns_figure
 
     (ax,) = episode_returns_figure(collect(store, quitter_run)).axes
     assert not [line for line in ax.get_lines() if "mean" in line.get_label()]

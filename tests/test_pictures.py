@@ -14,7 +14,8 @@ from pipeline.optimizer.loop import optimize
 from store import Store
 from tests.conftest import COMPETENT_REPLY, EXAMPLES, json_reply
 from viewers import compare_report
-from viewers.report import collect, episode_returns_figure, lineage_figure, tokens_figure, unplayed_reason
+from viewers.report import collect
+from viewers.report_figures import episode_returns_figure, lineage_figure, tokens_figure, unplayed_reason
 
 KEY_ERROR = json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    return obs['Nope']\n"})
 # iteration 1 competent (played), 2 an unusable reply, 3 code that raises on recorded observations: 2 and 3 are

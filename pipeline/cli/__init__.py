@@ -97,9 +97,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         show(f"codearcade: error: cannot use the store ({one_line(exc)[:300]}); it may be damaged: "
              "`codearcade doctor` reports what is left", file=sys.stderr)
         return EXIT_BAD_INPUT
-    finally:  # not interrupted (a caller in this process, such as a test): Ctrl-C as it was
+    finally:
         if signal.getsignal(signal.SIGINT) is _interrupted_once:
-            signal.signal(signal.SIGINT, signal.default_int_handler)
+            if argv is None:  # the command line's own process, about to exit: a Ctrl-C now (the zygotes are
+                # stopped at exit) would only end it by SIGINT, past the exit status it has
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+            else:  # a caller in this process (a test, a script): Ctrl-C as it was
+                signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _store_damage_errors() -> tuple[type[BaseException], ...]:

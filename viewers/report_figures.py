@@ -1,0 +1,393 @@
+"""The figures of ``codearcade report`` (``viewers/report.py``), each a matplotlib figure drawn from the plain data
+:func:`viewers.report.collect` reads: the scores per iteration (``score.png``), the lineage of candidates
+(``lineage.png``), an eval run's episode returns, the code's size and complexity (``code.png``), the tokens
+(``tokens.png``) and the LLM calls over time. Forfeits are drawn as marks, never at a partial return
+(``store/scores.py``); every text from the store passes ``viewers.safe_text.plot_text``. Agg canvas: no display.
+"""
+
+from __future__ import annotations
+
+import textwrap
+from typing import Any, Sequence
+
+from store.scores import CONFIDENCE, MEAN_METHOD, is_forfeit, score_episodes
+from viewers.safe_text import (plot_text)
+
+
+STATUS_STYLE = {  # update_status -> (marker, colour, label)
+    "initial": ("s", "#555555", "starting policy"),
+    "accepted": ("o", "#2ca02c", "new code accepted"),
+    "rejected": ("X", "#d62728", "candidate rejected"),
+    "unchanged": ("o", "#999999", "no change"),
+    "llm_error": ("^", "#ff7f0e", "LLM call failed"),
+}
+END_COLOURS = {"terminated": "#1f77b4", "truncated": "#7f7f7f", "policy_error": "#d62728", "timeout": "#d62728",
+               "crashed": "#d62728"}
+
+
+def _figure(rows: int = 1, height: float = 4.4):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8.5, height), dpi=110, layout="constrained")
+    axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+        ax.spines[["top", "right"]].set_visible(False)
+    return fig, axes
+
+
+def _nan(value: float | None) -> float:
+    """A score for a plot: None (a forfeit: no score) is a gap in the line."""
+    return float("nan") if value is None else value
+
+
+def _integer_x(ax, xs: Sequence[int]) -> None:
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    if xs:
+        ax.set_xlim(min(xs) - 0.5, max(xs) + 0.5)
+
+
+def _title(data: dict[str, Any], what: str) -> str:
+    run = data["run"]
+    model = f", {run['model']}" if run["model"] else ""
+    # wrapped, so a long model name never runs past the image's edge
+    named = f" '{run['name']}'" if run.get("name") else ""
+    return "\n".join(textwrap.wrap(plot_text(f"{run['game']} · {what}"), 90) +
+                     textwrap.wrap(plot_text(f"run {run['run_id']}{named} ({run['kind']}{model})"), 90))
+
+
+def scores_figure(data: dict[str, Any]):
+    """Score per iteration with the best so far (optimize runs); return per episode (eval runs)."""
+    if data["run"]["kind"] == "eval":
+        return episode_returns_figure(data)
+    curve = data["curve"]
+    if not curve:
+        return None
+    fig, (ax,) = _figure()
+    xs = [r["iteration"] for r in curve]
+    evals = [e for e in data["episodes"] if e["kind"] == "eval"]
+    n_eval = max((sum(1 for e in evals if e["iteration"] == x) for x in xs), default=1)
+    kept = [e for e in evals if e["iteration"] in xs and not is_forfeit(e["end_reason"])]  # a forfeit: below
+    if n_eval > 1 and kept:
+        ax.scatter([e["iteration"] for e in kept], [e["return"] for e in kept],
+                   s=12, color="#1f77b4", alpha=0.25, linewidths=0, label="one evaluation episode played out",
+                   zorder=2)
+    # store/scores.py's interval over the episodes that scored each iteration (store/showing.py)
+    band = [(r["iteration"], r["score_low"], r["score_high"]) for r in curve if r.get("score_low") is not None]
+    if band:
+        counts = "/".join(str(n) for n in sorted({r["score_n"] for r in curve if r.get("score_low") is not None}))
+        ax.fill_between([b[0] for b in band], [b[1] for b in band], [b[2] for b in band], color="#1f77b4",
+                        alpha=0.15, linewidth=0, zorder=1,
+                        label=f"{CONFIDENCE * 100:g}% {MEAN_METHOD} interval, n={counts} episodes")
+    ax.plot(xs, [_nan(r["score"]) for r in curve], "-", color="#1f77b4", linewidth=1.8, zorder=3,
+            label=f"score (mean return of {n_eval} evaluation episode{'s' * (n_eval != 1)})")
+    ax.step(xs, [_nan(r["best_score"]) for r in curve], where="post", color="#ff7f0e", linestyle="--",
+            linewidth=1.6, label="best so far", zorder=3)
+    forfeits = [r["iteration"] for r in curve if r.get("forfeit")]
+    if forfeits:  # a forfeit has no score (store/scores.py): a marker on the axes' floor, at no return
+        _forfeit_marks(ax, forfeits, "forfeited a game: no score")
+    for status, (marker, colour, label) in STATUS_STYLE.items():
+        pts = [(r["iteration"], r["score"]) for r in curve if r["update_status"] == status and r["score"] is not None]
+        if pts:
+            ax.scatter(*zip(*pts), marker=marker, s=46, color=colour, label=label, zorder=4,
+                       edgecolors="white", linewidths=0.6)
+    repaired = [(r["iteration"], r["score"]) for r in curve
+                if r.get("repairs") and r["update_status"] == "accepted" and r["score"] is not None]
+    if repaired:  # updates a repair turn saved: without it these iterations would have been rejections
+        ax.scatter(*zip(*repaired), marker="o", s=140, facecolors="none", edgecolors="#2ca02c", linewidths=1.4,
+                   zorder=5, label="accepted after a repair turn (--repairs)")
+    backs = [r["iteration"] for r in curve if r["rolled_back"]]
+    for i, x in enumerate(backs):
+        ax.axvline(x, color="#9467bd", linestyle=":", linewidth=1.2,
+                   label="regression: rolled back" if i == 0 else None)
+    _integer_x(ax, xs)
+    ax.set_xlabel("iteration (0 = starting policy; k = after the k-th LLM update)")
+    ax.set_ylabel("evaluation return")
+    scored = [r for r in curve if r["best_score"] is not None]
+    if scored:
+        best = max(scored, key=lambda r: (r["best_score"], -r["iteration"]))
+        ax.annotate(f"best {best['best_score']:g}\n(iteration {best['best_iteration']})",
+                    (best["best_iteration"], best["best_score"]), textcoords="offset points", xytext=(0, 10),
+                    ha="center", va="bottom", fontsize=8, color="#ff7f0e")
+    ax.margins(y=0.15)
+    ax.set_title(_title(data, "score per iteration"), fontsize=11)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    return fig
+
+
+DECISION_STYLE = {  # candidates.decision -> (marker, colour, label)
+    "best": ("*", "#ff7f0e", "new best"),
+    "kept": ("o", "#1f77b4", "kept"),
+    "discarded": ("o", "#aaaaaa", "discarded"),
+    "rolled_back": ("v", "#9467bd", "regressed: rolled back"),
+    "rejected": ("X", "#d62728", "rejected"),
+}
+
+
+FORFEIT_STYLE = ("X", "#8c564b", "forfeited a game: no score")
+"""How a candidate that forfeited is drawn on the lineage's lane (marker, colour, label)."""
+
+UNPLAYED_STYLE = {  # how a candidate that was never played is drawn on the "not played" lane: hollow markers
+    "screened": ("D", "#9467bd", "not played: screened out"),
+    "llm_error": ("^", "#ff7f0e", "not played: LLM call failed"),
+    "rejected": ("X", "#d62728", "not played: rejected code"),
+}
+
+
+def unplayed_reason(node: dict[str, Any]) -> str | None:
+    """Why a lineage row's score is not its own (a key of :data:`UNPLAYED_STYLE`), or None when its code was played.
+
+    A candidate whose reply was rejected (no usable code, invalid code, screened out by the cascade) or whose LLM
+    call failed is assessed as its parent: the store gives it its parent's version and score, which say nothing
+    of what it proposed. A candidate caught tampering was played (its proposed version is the assessed one)."""
+    if node["update_status"] not in ("rejected", "llm_error"):
+        return None
+    if node["proposed_version_id"] is not None and node["proposed_version_id"] == node["policy_version_id"]:
+        return None
+    if node.get("evaluation") == "screened":
+        return "screened"
+    return "llm_error" if node["update_status"] == "llm_error" else "rejected"
+
+
+def _lane(node: dict[str, Any]) -> str | None:
+    """Why a lineage row is drawn on the lane below every score: :func:`unplayed_reason`, or ``forfeited`` for a
+    candidate that was played but forfeited a game (no score: ``store/scores.py``); None: at its score."""
+    return unplayed_reason(node) or ("forfeited" if node["score"] is None else None)
+
+
+def lineage_figure(data: dict[str, Any]):
+    """Every candidate at (iteration, score), an edge to the candidate it improved; the standard-protocol score
+    beside each one when the run measured it. None when there is nothing to draw.
+
+    Candidates that were never played are drawn hollow on a "not played" lane below every score, with a dotted
+    edge from their parent: at their parent's score they would claim a result they never had. A candidate that
+    forfeited a game has no score and is drawn on that lane too, as a forfeit."""
+    nodes = [n for n in data.get("lineage") or [] if n["score"] is not None or n.get("forfeit")
+             or unplayed_reason(n) is not None]
+    if data["run"]["kind"] == "eval" or len(nodes) < 2:
+        return None
+    fig, (ax,) = _figure(height=4.8)
+    played = [n for n in nodes if _lane(n) is None]
+    scores = [n["score"] for n in played] or [0.0]
+    low, high = min(scores), max(scores)
+    lane = low - 0.22 * max(high - low, 1.0)
+    at = {(n["iteration"], n["candidate"]): n for n in nodes}
+
+    def y(n: dict[str, Any]) -> float:
+        return n["score"] if _lane(n) is None else lane
+
+    def anchor(n: dict[str, Any] | None) -> dict[str, Any] | None:
+        """Where an edge to a child of ``n`` starts: ``n``, or for one never played the played candidate whose
+        code it stands for (its nearest played ancestor: what the child really improved)."""
+        seen = set()
+        while n is not None and unplayed_reason(n) is not None and id(n) not in seen:
+            seen.add(id(n))
+            n = at.get((n["parent_iteration"], n["parent_candidate"]))
+        return n
+
+    for n in nodes:
+        parent = anchor(at.get((n["parent_iteration"], n["parent_candidate"])))
+        if parent is not None:
+            ax.plot([parent["iteration"], n["iteration"]], [y(parent), y(n)],
+                    ":" if _lane(n) else "-", color="#bbbbbb", linewidth=0.9, zorder=1)
+    for decision, (marker, colour, label) in DECISION_STYLE.items():
+        pts = [(n["iteration"], n["score"]) for n in played if n["decision"] == decision]
+        if pts:
+            ax.scatter(*zip(*pts), marker=marker, s=70 if marker == "*" else 36, color=colour, label=label,
+                       zorder=3, edgecolors="white", linewidths=0.5)
+    for reason, (marker, colour, label) in {**UNPLAYED_STYLE, "forfeited": FORFEIT_STYLE}.items():
+        pts = [(n["iteration"], lane) for n in nodes if _lane(n) == reason]
+        if pts:
+            ax.scatter(*zip(*pts), marker=marker, s=40, facecolors="none", edgecolors=colour, linewidths=1.2,
+                       label=label, zorder=3)
+    forfeited = sum(1 for n in nodes if _lane(n) == "forfeited")
+    if len(played) < len(nodes):
+        ax.axhline(lane, color="#dddddd", linewidth=6, zorder=0)
+        ax.annotate("not played" if not forfeited else "no score: not played or forfeited", (0, lane),
+                    xycoords=("axes fraction", "data"), xytext=(4, 5),
+                    textcoords="offset points", fontsize=8, color="#777777", va="bottom")
+    robust = [(n["iteration"], n["standard_score"]) for n in played if n.get("standard_score") is not None]
+    if robust:
+        ax.scatter(*zip(*robust), marker="_", s=60, color="#2ca02c", zorder=2,
+                   label="score under the standard protocol (sticky actions)")
+    _integer_x(ax, [n["iteration"] for n in nodes])
+    strategy = nodes[-1]["strategy"]
+    ax.set_xlabel("iteration (each dot one candidate; lines to the candidate it improved)")
+    ax.set_ylabel("evaluation return")
+    ax.margins(y=0.12)
+    if len(played) < len(nodes):  # no score ticks at the lane: its height is no score
+        bottom, top = ax.get_ylim()
+        ax.set_yticks([t for t in ax.get_yticks() if (low + lane) / 2 <= t <= top])
+        ax.set_ylim(bottom, top)
+    unplayed = len(nodes) - len(played) - forfeited
+    ax.set_title(_title(data, f"lineage ({strategy}: {len(nodes)} candidates, {unplayed} not played"
+                              + (f", {forfeited} forfeited" if forfeited else "") + ")"), fontsize=11)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    return fig
+
+
+def _forfeit_marks(ax, xs: Sequence[float], label: str) -> None:
+    """Forfeits at ``xs``: red crosses on the axes' floor (a height in the axes, not a return: a forfeit has no
+    score, ``store/scores.py``), whatever the y scale."""
+    from matplotlib.transforms import blended_transform_factory
+
+    ax.plot(list(xs), [0.04] * len(xs), linestyle="none", marker="X", markersize=8, markerfacecolor="none",
+            markeredgecolor="#d62728", markeredgewidth=1.3, zorder=5, label=label, clip_on=False,
+            transform=blended_transform_factory(ax.transData, ax.transAxes))
+
+
+def episode_returns_figure(data: dict[str, Any]):
+    """Return per evaluation episode (eval runs) played out, coloured by how it ended, with the score (the mean of
+    store/scores.py, with its interval); a forfeited episode is a marker, not a bar, and a set with one has no
+    score, so no mean is drawn and the title says so."""
+    episodes = [e for e in data["episodes"] if e["kind"] == "eval"]
+    if not episodes:
+        return None
+    fig, (ax,) = _figure()
+    xs = list(range(len(episodes)))
+    score = score_episodes(episodes)
+    played = [(x, e) for x, e in zip(xs, episodes) if not is_forfeit(e["end_reason"])]
+    bars = ax.bar([x for x, _ in played], [e["return"] for _, e in played],
+                  color=[END_COLOURS.get(e["end_reason"], "#1f77b4") for _, e in played], width=0.7, zorder=2)
+    if len(xs) <= 30:
+        ax.bar_label(bars, fmt="%g", padding=2, fontsize=8)
+    forfeits = [x for x, e in zip(xs, episodes) if is_forfeit(e["end_reason"])]
+    if forfeits:
+        _forfeit_marks(ax, forfeits, f"forfeited: ended by the policy\n(no return counted), {len(forfeits)} of "
+                                     f"{len(episodes)}")
+    if score.ranked is not None:
+        ax.axhline(score.ranked, color="#ff7f0e", linestyle="--", linewidth=1.5,
+                   label=plot_text(f"score: mean {score.interval.text()}"))
+    ax.axhline(0, color="black", linewidth=0.8)
+    from matplotlib.patches import Patch
+
+    seen = dict.fromkeys(e["end_reason"] for _, e in played)
+    handles = [Patch(color=END_COLOURS.get(r, "#1f77b4"), label=plot_text(f"ended: {r}")) for r in seen]
+    # beside the axes, never over a bar
+    ax.legend(handles=ax.get_legend_handles_labels()[0] + handles, fontsize=8, loc="upper left",
+              bbox_to_anchor=(1.01, 1.0), frameon=False)
+    ax.set_xticks(xs, [f"{e['episode_index']}\nseed {e['seed']}" for e in episodes] if len(xs) <= 12 else None)
+    _integer_x(ax, xs)
+    caps = sorted({e["max_steps"] for e in episodes if e.get("max_steps")})
+    ax.set_xlabel("evaluation episode" + (f" (cut off after {caps[0]:,} steps)" if len(caps) == 1 else ""))
+    ax.set_ylabel("return (sum of rewards)")
+    no_score = f" · no score: {len(forfeits)} of {len(episodes)} forfeited" if score.forfeits else ""
+    ax.set_title(_title(data, "return per episode" + no_score), fontsize=11)
+    return fig
+
+
+def code_figure(data: dict[str, Any]):
+    """Lines of code and complexity of the version each iteration evaluated."""
+    code = [r for r in data["code"] if r["loc"] is not None]
+    if not code:
+        return None
+    fig, (top, bottom) = _figure(rows=2, height=6.2)
+    xs = [r["iteration"] for r in code]
+    for key, label, style in (("loc", "all lines of the file", "o-"), ("sloc", "source lines", "s-"),
+                              ("trainable_sloc", "source lines, trainable methods", "^-")):
+        top.plot(xs, [r[key] for r in code], style, markersize=4, linewidth=1.5, label=label)
+    top.set_ylabel("lines of code")
+    top.set_title(_title(data, "code size and complexity of the evaluated version"), fontsize=11)
+    for key, label, style in (("complexity", "cyclomatic complexity, Policy class", "o-"),
+                              ("trainable_complexity", "cyclomatic complexity, trainable methods", "^-"),
+                              ("max_if_depth", "max nested-if depth", "s--")):
+        bottom.plot(xs, [r[key] for r in code], style, markersize=4, linewidth=1.5, label=label)
+    bottom.set_ylabel("complexity / depth")
+    for ax in (top, bottom):
+        ax.set_ylim(0, max(max(line.get_ydata()) for line in ax.get_lines()) * 1.3 + 1)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    bottom.set_xlabel("iteration")
+    _integer_x(bottom, xs)
+    return fig
+
+
+def tokens_figure(data: dict[str, Any]):
+    """Input and output tokens of the LLM calls of each iteration, and their running total."""
+    curve = data["curve"]
+    if not curve or not any(r["total_tokens"] for r in curve):
+        return None
+    fig, (ax,) = _figure()
+    xs = [r["iteration"] for r in curve]
+    inputs = [r["input_tokens"] for r in curve]
+    ax.bar(xs, inputs, width=0.7, color="#1f77b4", label="input (prompt) tokens", zorder=2)
+    ax.bar(xs, [r["output_tokens"] for r in curve], bottom=inputs, width=0.7, color="#ff7f0e",
+           label="output (reply) tokens", zorder=2)
+    ax.set_ylabel("tokens in the iteration")
+    ax.set_ylim(0, max(r["total_tokens"] for r in curve) * 1.3)
+    ax.set_xlabel("iteration")
+    _integer_x(ax, xs)
+    right = ax.twinx()
+    right.plot(xs, [r["cumulative_tokens"] for r in curve], "k.-", linewidth=1.2, label="cumulative (right axis)")
+    right.set_ylabel("cumulative tokens")
+    right.set_ylim(0, max(r["cumulative_tokens"] for r in curve) * 1.3)
+    right.spines[["top"]].set_visible(False)
+    handles = ax.get_legend_handles_labels()[0] + right.get_legend_handles_labels()[0]
+    # below the axes, never over a bar (the right axis's labels take the space beside them)
+    fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=3, frameon=False)
+    ax.set_title(_title(data, "LLM tokens per iteration"), fontsize=11)
+    return fig
+
+
+CALL_OUTCOME_STYLE = {  # outcome -> (edge colour, edge line style, label); the fill is the model's colour
+    "accepted": ("#2ca02c", "solid", "accepted"),
+    "rejected": ("#d62728", "solid", "rejected"),
+    "repaired": ("#d62728", "dashed", "rejected, then repaired (the next bar of its candidate)"),
+    "unchanged": ("#999999", "solid", "no change"),
+    "failed": ("#ff7f0e", "dotted", "call failed"),
+}
+
+
+def calls_figure(data: dict[str, Any]):
+    """The run's LLM calls over time: each call a bar from its start to its reply, coloured by model and edged by
+    what came of it (a repair turn hatched), on lanes so that calls in flight together stand apart; below, how
+    many were in flight."""
+    calls = [c for c in data.get("calls") or [] if c["started_at"] is not None]
+    if not calls:
+        return None
+    from matplotlib.patches import Patch
+    from matplotlib.ticker import MaxNLocator
+
+    t0 = min(c["started_at"] for c in calls)
+    spans = [((c["started_at"] - t0).total_seconds(), (c["ended_at"] - t0).total_seconds()) for c in calls]
+    lanes: list[float] = []  # each lane's end: a call takes the first lane free when it starts
+    placed = []
+    for start, end in spans:
+        lane = next((k for k, free_at in enumerate(lanes) if free_at <= start), len(lanes))
+        if lane == len(lanes):
+            lanes.append(end)
+        else:
+            lanes[lane] = end
+        placed.append(lane)
+    models = list(dict.fromkeys(c["request_model"] or "?" for c in calls))
+    palette = ("#1f77b4", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+    colour = {m: palette[i % len(palette)] for i, m in enumerate(models)}
+    fig, (ax, flight) = _figure(rows=2, height=5.4)
+    for c, (start, end), lane in zip(calls, spans, placed):
+        edge, style, _ = CALL_OUTCOME_STYLE.get(c["outcome"], ("#555555", "solid", c["outcome"]))
+        ax.barh(lane, max(end - start, 1e-3), left=start, height=0.7, color=colour[c["request_model"] or "?"],
+                edgecolor=edge, linewidth=1.8, linestyle=style, zorder=2)
+        ax.text(start, lane, f" {c['iteration']}.{c['candidate'] or 0}" + ("r" if c["purpose"] == "repair" else ""),
+                va="center", ha="left", fontsize=6.5, color="white", zorder=3, clip_on=True)
+    ax.set_ylabel("call lane")
+    ax.set_ylim(-0.6, len(lanes) - 0.4)
+    ax.invert_yaxis()
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    edges = sorted({t for span in spans for t in span})
+    in_flight = [sum(1 for start, end in spans if start <= t < end) for t in edges]
+    flight.step(edges, in_flight, where="post", color="#333333", linewidth=1.4)
+    flight.set_ylabel("calls in flight")
+    flight.set_xlabel("seconds since the run's first call")
+    flight.set_ylim(0, max(in_flight, default=1) + 0.5)
+    handles = [Patch(facecolor=colour[m], label=plot_text(m)) for m in models]
+    used = dict.fromkeys(c["outcome"] for c in calls)
+    handles += [Patch(facecolor="white", edgecolor=CALL_OUTCOME_STYLE[o][0], linestyle=CALL_OUTCOME_STYLE[o][1],
+                      linewidth=1.8, label=CALL_OUTCOME_STYLE[o][2]) for o in used if o in CALL_OUTCOME_STYLE]
+    fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=3, frameon=False)
+    ax.set_title(_title(data, "LLM calls over time (label: iteration.candidate, r = repair turn)"), fontsize=11)
+    return fig
+
+
+# ------------------------------------------------------------------------------------------------ markdown
+
