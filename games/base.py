@@ -152,8 +152,9 @@ class Game:
     object_hooks: Mapping[str, ObjectHook] = field(default_factory=dict)
     """Per OCAtari category, how its objects enter the observation (Breakout files its brick runs by row)."""
     detect: Callable[[list, Any], None] | None = None
-    """``detect(objects, ram)`` updates OCAtari's object list from a RAM snapshot instead of OCAtari's own RAM
-    extractor (run with int64 RAM); for a game whose extractor is wrong under numpy 2 (Enduro)."""
+    """``detect(objects, ram)`` updates OCAtari's object list from a RAM snapshot (uint8, as ALE gives it) instead
+    of OCAtari's own RAM extractor (run with int64 RAM); for a game whose extractor is wrong under numpy 2
+    (Enduro) or slow (Breakout: ``games/readers.py``), leaving the objects exactly as OCAtari's would."""
     derive: Callable[[dict, int], None] | None = None
     """``derive(obs, lives)`` adds fields computed from the objects (lanes, nearest enemies, ``lives``) to the
     observation, in place. The store keeps the objects and lives; the same call rebuilds the derived fields
