@@ -8,6 +8,7 @@ nothing heavier than the standard library, so the registry loads in milliseconds
 
 from __future__ import annotations
 
+import secrets
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -23,6 +24,12 @@ AUDIT_SEED_END = 2**31 - 1
 ``[AUDIT_SEED_BASE, AUDIT_SEED_END)``; tuning seeds (those the loop selects on: ``--seed`` and the seeds after it)
 are below it, so the two sets never meet, no prompt ever shows an audit episode, and no policy can know the
 audit's games in advance (they are recorded only with the episodes they produced)."""
+
+
+def draw_audit_seeds(n: int) -> list[int]:
+    """``n`` distinct audit seeds from the OS's entropy: nothing before the audit runs can know them."""
+    return secrets.SystemRandom().sample(range(AUDIT_SEED_BASE, AUDIT_SEED_END), n)
+
 
 ONE_LIFE_CONTINUE = "continue"
 """The ``one_life`` setting (``codearcade eval --one-life-continue``; ``OptimizeConfig.one_life``) that plays the
@@ -154,7 +161,7 @@ class Game:
     detect: Callable[[list, Any], None] | None = None
     """``detect(objects, ram)`` updates OCAtari's object list from a RAM snapshot (uint8, as ALE gives it) instead
     of OCAtari's own RAM extractor (run with int64 RAM); for a game whose extractor is wrong under numpy 2
-    (Enduro) or slow (Breakout: ``games/readers.py``), leaving the objects exactly as OCAtari's would."""
+    (Enduro) or slow (Breakout, Space Invaders: ``games/readers.py``), leaving the objects exactly as OCAtari's would."""
     derive: Callable[[dict, int], None] | None = None
     """``derive(obs, lives)`` adds fields computed from the objects (lanes, nearest enemies, ``lives``) to the
     observation, in place. The store keeps the objects and lives; the same call rebuilds the derived fields

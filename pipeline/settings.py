@@ -127,9 +127,9 @@ def _hints(cls: type) -> dict[str, Any]:
 
 def _base(hint: Any) -> type | tuple[type, ...]:
     if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-        kinds = tuple(a for a in typing.get_args(hint) if a is not type(None))
+        kinds = tuple(typing.get_origin(a) or a for a in typing.get_args(hint) if a is not type(None))
         return kinds[0] if len(kinds) == 1 else kinds
-    return hint
+    return typing.get_origin(hint) or hint  # tuple[int, ...]: a tuple
 
 
 def flag_of(cls: type, name: str) -> str:

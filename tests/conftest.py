@@ -77,6 +77,17 @@ def old_store(path: Path, version: int):
 
 
 @pytest.fixture
+def pinned_audit_seeds(monkeypatch):
+    """``pin(first)``: ``compare --audit``'s sealed draws replaced by the seeds from ``first`` on (A's, then B's),
+    for a test whose assertions need known games; the draws themselves are tested in tests/test_audit.py."""
+    import pipeline.play.versus as versus
+
+    def pin(first: int) -> None:
+        monkeypatch.setattr(versus, "draw_audit_seeds", lambda n: [first + i for i in range(n)])
+    return pin
+
+
+@pytest.fixture
 def write_policy(tmp_path: Path):
     """Write a policy file from (dedented) text and return its path."""
 

@@ -56,9 +56,9 @@ def replay_reply(actions: list[int]) -> str:
     return json_reply({"select_action": select})
 
 
-def _run(store, model) -> tuple[object, dict]:
+def _run(store, model, token_budget: int = 8000) -> tuple[object, dict]:
     config = OptimizeConfig(game="pong", iterations=1, eval_max_steps=STEPS, rollout_steps=40, workers=2,
-                            token_budget=8000, audit_episodes=3, rng_key="audit")
+                            token_budget=token_budget, audit_episodes=3, rng_key="audit")
     result = optimize(config, store, LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05))
     assert result.status == "finished", result.error
     code, out = _cli("runs", "--json", "--store", str(store.path))
@@ -150,3 +150,84 @@ def test_tuning_seeds_stay_below_the_audit_seeds():
     with pytest.raises(ValueError, match="1,000,000"):
         validate_config(OptimizeConfig(game="pong", seed=AUDIT_SEED_BASE - 1, eval_episodes=3))
     validate_config(OptimizeConfig(game="pong", seed=AUDIT_SEED_BASE - 3, eval_episodes=3))
+
+
+# ------------------------------------------------------------------------------------------------ the memoriser
+# A policy that never reads the game: it recognises which recorded game it is in by the first PREFIX observations
+# and replays the competent policy's moves for it. It holds the tuning game and the three games that were the
+# audit's public seeds (AUDIT_SEED_BASE + i under the standard protocol: sticky actions and no-op starts are
+# seeded by the game's seed, so the same moves replay the same game). Against those seeds it would pass; against
+# the sealed audit's games, which no one knew when it was written, it has nothing to replay.
+PREFIX = 30
+PUBLIC = [AUDIT_SEED_BASE + i for i in range(3)]
+SIGNATURE = textwrap.dedent("""\
+    def signature(obs):
+        ball, player, enemy = obs.get("Ball"), obs.get("Player"), obs.get("Enemy")
+        return (ball and (ball["x"], ball["y"]), player and player["y"], enemy and enemy["y"])
+    """)
+
+
+def recorded_games(tmp_path_factory) -> tuple[list[tuple[list, list[int]]], list[float]]:
+    """The competent policy's (first PREFIX observation signatures, moves) on the tuning game and on the public
+    seeds under the standard protocol, read back from the store as the policy saw them; and its public returns."""
+    from games import get_game, list_widths
+    from store import Store
+    from store.readers import episode_steps
+
+    store = Store(tmp_path_factory.mktemp("memorised") / "m.duckdb")
+    competent = str(POLICIES / "pong_competent.py")
+    assert _cli("eval", competent, "--max-steps", str(STEPS), "--store", str(store.path))[0] == 0
+    assert _cli("eval", competent, "--seed", str(PUBLIC[0]), "--episodes", "3", "--sticky", "0.25", "--noop-max",
+                "30", "--max-steps", str(STEPS), "--workers", "2", "--store", str(store.path))[0] == 0
+    namespace: dict = {}
+    exec(SIGNATURE, namespace)
+    games, public_returns = [], []
+    with store.read() as con:
+        episodes = con.execute('SELECT episode_id, seed, "return" FROM episodes ORDER BY sticky, seed').fetchall()
+        for episode_id, seed, ret in episodes:
+            steps = episode_steps(con, episode_id, 0, None, list_widths("pong"), get_game("pong").derive)
+            games.append(([namespace["signature"](s["obs"]) for s in steps[:PREFIX]], [s["action"] for s in steps]))
+            if seed in PUBLIC:
+                public_returns.append(ret)
+    assert [seed for _, seed, _ in episodes] == [0, *PUBLIC]
+    prefixes = [tuple(sigs) for sigs, _ in games]
+    assert len(set(prefixes)) == len(prefixes), "the four games are told apart by their first observations"
+    return games, public_returns
+
+
+def memoriser_reply(games) -> str:
+    signature = textwrap.indent(SIGNATURE.replace("def signature(obs):", "def _signature(obs):"), "    ")
+    games = [(sigs, "".join(map(str, moves))) for sigs, moves in games]  # a digit a move: Pong's are 0-5
+    select = "def select_action(self, predicted_ball_y, obs):\n" + f"    games = {games!r}\n" + signature + \
+        textwrap.indent(textwrap.dedent(f"""\
+            self.t = t = getattr(self, "t", -1) + 1
+            if t == 0:
+                self.alive = list(range(len(games)))
+            if t < {PREFIX}:
+                self.alive = [g for g in self.alive if games[g][0][t] == _signature(obs)]
+            if not self.alive:
+                return 0
+            moves = games[self.alive[0]][1]
+            return int(moves[t]) if t < len(moves) else 0
+            """), "    ")
+    return json_reply({"select_action": select})
+
+
+@pytest.mark.slow
+def test_a_memorised_public_audit_is_caught_by_the_sealed_one(store, scripted, tmp_path_factory):
+    games, public_returns = recorded_games(tmp_path_factory)
+    result, summary = _run(store, scripted([memoriser_reply(games)]), token_budget=40_000)  # room for its tables
+    it0, it1 = result.iterations
+    assert it1.update_status == "accepted" and it1.best_iteration == 1 and it1.score > it0.score, it1.detail
+    # the sealed audit: games nobody knew when the policy was written; the memoriser has nothing to replay
+    sealed = result.audit.row("best", "standard")
+    assert not set(sealed["seeds"]) & set(PUBLIC)
+    assert result.audit.overfit and summary["overfit"] is True, result.audit.rows
+    # the public seeds, replayed on purpose (`audit --seeds`): there it plays the competent policy's games move for
+    # move, and passes: an audit whose games can be known in advance would have been memorised
+    code, out = _cli("audit", "last", "--seeds", ",".join(map(str, PUBLIC)), "--json", "--store", str(store.path))
+    assert code == 0
+    [public] = [row for row in json.loads(out)["audits"] if (row["role"], row["protocol"]) == ("best", "standard")]
+    assert public["seeds"] == PUBLIC
+    assert public["score"] == pytest.approx(sum(public_returns) / 3), "memorised: the competent policy's returns"
+    assert public["overfit"] is False and public["score"] > sealed["score"] + 3, (public, sealed)

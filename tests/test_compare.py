@@ -187,11 +187,20 @@ def test_what_cannot_be_compared_is_said_in_one_line(store, capsys, tmp_path):
 
 
 # ------------------------------------------------------------------------------------ beyond the noise (--audit)
-# Figures (docs/compare.md): the competent policy on audit seeds 1000000..11 against 1000012..23, 1000 steps:
+# Figures (docs/compare.md): the competent policy on audit seeds 1000000..11 against 1000012..23, 1000 steps
+# (compare's sealed draws pinned there):
 # A - B = 0 [-1.17, +1.17]; with 5, 6, 8 or 10 episodes a side the same policy's first seeds happen to lose
 # more (6: -1.67 [-3, -0.33]), so fewer episodes would call it a difference. The scaffold against it on
 # 6 seeds each: -14.8 [-17.2, -12.7].
 AUDIT_STEPS = 1000
+
+
+@pytest.fixture
+def audit_seeds_from_base(pinned_audit_seeds):
+    """The figures above were played on the audit seeds from ``AUDIT_SEED_BASE`` on: pin compare's draws there."""
+    from games.base import AUDIT_SEED_BASE
+
+    pinned_audit_seeds(AUDIT_SEED_BASE)
 
 
 def audit_compare(capsys, store, a, b, episodes: int) -> dict:
@@ -207,7 +216,8 @@ def stored_returns(store, run_id: str) -> list[float]:
 
 
 @pytest.mark.slow
-def test_a_policy_against_itself_on_other_audit_seeds_differs_by_no_more_than_the_noise(store, capsys):
+def test_a_policy_against_itself_on_other_audit_seeds_differs_by_no_more_than_the_noise(store, capsys,
+                                                                                       audit_seeds_from_base):
     from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY
     from store.scores import difference, score_episodes
 
@@ -234,7 +244,8 @@ def test_a_policy_against_itself_on_other_audit_seeds_differs_by_no_more_than_th
 
 
 @pytest.mark.slow
-def test_the_starter_against_the_competent_policy_differs_beyond_the_noise(store, capsys, tmp_path):
+def test_the_starter_against_the_competent_policy_differs_beyond_the_noise(store, capsys, tmp_path,
+                                                                            audit_seeds_from_base):
     from pipeline.cli import main as cli
 
     report = audit_compare(capsys, store, EXAMPLES / "pong.py", COMPETENT, 6)
@@ -252,6 +263,32 @@ def test_the_starter_against_the_competent_policy_differs_beyond_the_noise(store
     assert re.search(r"^  A - B = ", out, re.M) and "first divergent step" not in out
     readme = (tmp_path / "cmp" / "README.md").read_text()
     assert "## Scores" in readme and "- A - B = " in readme
+
+
+def test_compare_audit_draws_sealed_seeds_afresh_for_each_side_and_each_comparison(store, capsys):
+    """No policy can know --audit's games in advance: each comparison draws both sides' seeds afresh over the audit's
+    whole range (not the public AUDIT_SEED_BASE + i), the two sides' disjoint, and the text names the seeds played."""
+    from games.base import AUDIT_SEED_BASE, AUDIT_SEED_END
+
+    played = []
+    for _ in range(2):
+        code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--audit", "--episodes", 2, "--max-steps", 20,
+                                 "--workers", 2, "--rng-key", "sealed", "--store", store.path, "--json")
+        assert code == 0, err
+        report = json.loads(out)
+        sides = [report["scores"][label]["seeds"] for label in "AB"]
+        for side, version in zip(sides, report["versions"]):
+            stored = [r[0] for r in store.query("SELECT seed FROM episodes WHERE run_id = ? ORDER BY episode_index",
+                                                [version["eval_run"]])]
+            assert stored == side and len(side) == 2
+        seeds = sides[0] + sides[1]
+        assert len(set(seeds)) == 4 and all(AUDIT_SEED_BASE <= s < AUDIT_SEED_END for s in seeds), seeds
+        assert not set(seeds) & set(range(AUDIT_SEED_BASE, AUDIT_SEED_BASE + 1000)), "not the old public seeds"
+        played.append(seeds)
+        from viewers.compare_report import text_lines
+        text = "\n".join(text_lines(report))
+        assert f"(seeds {sides[0][0]}, {sides[0][1]}; returns " in text, text
+    assert not set(played[0]) & set(played[1]), "each comparison draws its own games"
 
 
 def test_same_seed_comparison_says_the_paper_protocol_measures_no_noise(store, capsys):

@@ -36,10 +36,12 @@ REWORDED = {
                                        "freeway 2500)"),
     ("optimize", "--model"): ('litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o (OPENAI_API_KEY), gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME or openai/NAME with --api-base (your own server) (default: the offline SmolLM2 server)',
                               'litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o (OPENAI_API_KEY), gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME or openai/NAME with --api-base (your own server) (default: the offline SmolLM2 server); give it several times for an ensemble, each as MODEL[,weight=W][,api_base=URL] (see --model-choice)'),
+    ("compare", "--seed"): ("versions: the first seed (default: 0)",
+                            "versions: the first seed, under the paper's protocol (default: 0; --audit draws its own)"),
 }
 """Help texts that changed on purpose: one flag of two verbs now has one declaration (``EpisodeLimits``);
 --eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them); --model may be
-given several times (an ensemble, issue 32)."""
+given several times (an ensemble, issue 32); compare's --seed says --audit draws its own (issue 37: sealed)."""
 
 ADDED = {"optimize": ("--rng-key", "--audit-episodes", "--repairs", "--model-choice", "--pool"), "eval": ("--rng-key",),
          "compare": ("--audit", "--rng-key")}

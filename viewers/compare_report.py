@@ -153,7 +153,19 @@ def _action(e: dict[str, Any], label: str) -> str:
 
 
 PAPER_NOTE = ("under the paper's protocol every seed is the same game, so the interval measures no noise; --audit "
-              "plays each side on its own audit seeds under the standard protocol")
+              "plays each side on its own sealed audit seeds under the standard protocol")
+
+
+def _seeds_text(seeds: list[int]) -> str:
+    """A side's seeds: a run of consecutive ones as ``first..last`` (the paper's protocol), else each of them (the
+    sealed audit's draws)."""
+    if not seeds:
+        return "no seeds"
+    if len(seeds) == 1:
+        return f"seed {seeds[0]}"
+    if seeds == list(range(seeds[0], seeds[0] + len(seeds))):
+        return f"seeds {seeds[0]}..{seeds[-1]}"
+    return "seeds " + ", ".join(str(s) for s in seeds)
 
 
 def _score_lines(data: dict[str, Any]) -> list[str]:
@@ -164,7 +176,7 @@ def _score_lines(data: dict[str, Any]) -> list[str]:
     lines = ["scores (store/scores.py: the mean return with its interval; no score for a side that forfeited a game):"]
     for label, side in data["scores"].items():
         seeds = side["seeds"]
-        where = f"seeds {seeds[0]}..{seeds[-1]}" if len(seeds) > 1 else f"seed {seeds[0]}" if seeds else "no seeds"
+        where = _seeds_text(seeds)
         ends = side.get("end_reasons") or [None] * len(side["returns"])
         returns = ", ".join(f"{r:g}" if end in (None, *PLAYED_OUT) else "forfeit"
                             for r, end in zip(side["returns"], ends))

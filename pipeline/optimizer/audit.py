@@ -26,11 +26,11 @@ stored run (``codearcade audit RUN``), replacing the run's earlier audit.
 from __future__ import annotations
 
 import json
-import secrets
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
-from games.base import AUDIT_SEED_BASE, AUDIT_SEED_END, ONE_LIFE_CONTINUE, STANDARD_NOOP_MAX, STANDARD_STICKY
+from games.base import (AUDIT_SEED_BASE, AUDIT_SEED_END, ONE_LIFE_CONTINUE, STANDARD_NOOP_MAX, STANDARD_STICKY,
+                        draw_audit_seeds)
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeSpec
@@ -91,11 +91,6 @@ def _shown(row: dict[str, Any]) -> str:
     if row["score"] is None:
         return f"forfeit ({row['forfeit']})"
     return interval_text(row["score"], row["score_low"], row["score_high"], len(row["seeds"]), MEAN_METHOD)
-
-
-def draw_audit_seeds(n: int) -> list[int]:
-    """``n`` distinct audit seeds from the OS's entropy: nothing before the audit runs can know them."""
-    return secrets.SystemRandom().sample(range(AUDIT_SEED_BASE, AUDIT_SEED_END), n)
 
 
 def check_audit_seeds(seeds: Sequence[int]) -> list[int]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from games import GAMES
-from games.base import (AUDIT_SEED_BASE, OBSERVATION_VERSION, STANDARD_NOOP_MAX, STANDARD_STICKY,
+from games.base import (OBSERVATION_VERSION, STANDARD_NOOP_MAX, STANDARD_STICKY,
                         one_life_setting)
 from pipeline.settings import Switch, limit, same_as, setting
 
@@ -27,6 +27,10 @@ class EvalConfig:
     """Steps after which an episode is cut off (reported as ``truncated``; ``EpisodeLimits``)."""
     seed: int = setting(0, "seed of the first episode; episode i uses seed+i (default: %(default)s)")
     """Seed of the first episode; episode i uses ``seed + i`` (``one_life="continue"``: the seed of the one game)."""
+    seeds: tuple[int, ...] | None = setting(None, "the seed of each episode, in place of seed+i", cli=False)
+    """The seed of each episode, one each, in place of ``seed + i`` (None: from ``seed`` on). Not a flag: only
+    ``codearcade compare --audit`` sets them, to the sealed audit seeds it drew for a side; ``episodes`` is then
+    their number."""
     rng_key: str | None = setting(
         None, "key of the policy's own random stream: its random and NumPy generators are seeded from this key and "
         "each game's seed, never with the seed (default: the run's id, which the policy cannot know); give two "
@@ -74,22 +78,23 @@ class CompareConfig:
     """Game both versions play; None takes it from the stored runs or the files' ``GAME``."""
     episodes: int = setting(1, "seeds to play, from --seed on (default: %(default)s)", minimum=1)
     """Seeds to play: ``seed``, ``seed + 1``, ...; each version plays each of them once."""
-    seed: int = setting(0, "the first seed (default: %(default)s)")
-    """The first seed."""
+    seed: int = setting(0, "the first seed, under the paper's protocol (default: %(default)s; --audit draws its own)")
+    """The first seed (the paper's protocol; ``audit`` draws sealed seeds instead)."""
     rng_key: str | None = same_as(EvalConfig, "rng_key")
     """The key of both sides' random stream (None: a new one each time); on a seed, their policies draw alike."""
     max_steps: int = limit("max_steps", help="step cap (default: %(default)s)")
     """Step cap of each episode (``EpisodeLimits``)."""
-    audit: bool = setting(False, f"play each side on its own audit seeds under the standard protocol (sticky "
-                          f"{STANDARD_STICKY}, up to {STANDARD_NOOP_MAX} no-op starts): A on {AUDIT_SEED_BASE}+seed "
-                          "on, B on the next --episodes seeds; the scores then say whether the versions differ beyond "
-                          "the noise (default: both on the same seeds under the paper's protocol, every seed the "
-                          "same game, to find where their actions part)")
-    """Play A on audit seeds ``AUDIT_SEED_BASE + seed + i`` and B on ``AUDIT_SEED_BASE + seed + episodes + i``
-    (``i < episodes``), under the standard protocol (``games.base.STANDARD_STICKY``/``STANDARD_NOOP_MAX``). Under
-    the paper's protocol every seed is the same game, so a difference of scores there measures no noise; here each
-    side's episodes are independent draws and ``store.scores.difference`` of their returns says whether the versions
-    differ. No divergent step is looked for: the two sides play different games."""
+    audit: bool = setting(False, f"play each side on its own audit seeds, drawn now from the OS's entropy, under the "
+                          f"standard protocol (sticky {STANDARD_STICKY}, up to {STANDARD_NOOP_MAX} no-op starts): the "
+                          "scores then say whether the versions differ beyond the noise, on games neither could know "
+                          "in advance (default: both on the same seeds under the paper's protocol, every seed the same "
+                          "game, to find where their actions part)")
+    """Play A and B each on its own ``episodes`` sealed audit seeds (``pipeline.optimizer.audit.draw_audit_seeds``:
+    drawn when the comparison runs, over the whole audit range, recorded only with the episodes they produced), under
+    the standard protocol (``games.base.STANDARD_STICKY``/``STANDARD_NOOP_MAX``). Under the paper's protocol every
+    seed is the same game, so a difference of scores there measures no noise; here each side's episodes are
+    independent draws and ``store.scores.difference`` of their returns says whether the versions differ. No divergent
+    step is looked for: the two sides play different games. ``seed`` is then unused."""
     context: int = setting(3, "steps shown before and after the first divergent step (default: %(default)s)",
                            minimum=0)
     """Steps shown before and after the first divergent step."""

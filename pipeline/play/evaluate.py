@@ -99,7 +99,8 @@ def evaluate(
         EpisodeSpec(
             episode_id=episode_id(run_id, 0, "eval", i), run_id=run_id, game=game, policy_text=text,
             policy_version_id=info.version_id, policy_name=name, iteration=0, kind="eval", index=i,
-            seed=config.seed if one_game else config.seed + i, max_steps=config.max_steps, sticky=config.sticky,
+            seed=config.seed if one_game else config.seeds[i] if config.seeds else config.seed + i,
+            max_steps=config.max_steps, sticky=config.sticky,
             noop_max=config.noop_max, one_life=one_life, observation=config.observation, trace=config.trace,
             trace_lines=config.trace_lines,
             call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s,

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from games import get_game, list_widths
-from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY
+from games.base import STANDARD_NOOP_MAX, STANDARD_STICKY, draw_audit_seeds
 from pipeline.play.config import CompareConfig, EvalConfig
 from pipeline.play.evaluate import evaluate
 from pipeline.play.runinfo import new_run_id
@@ -118,17 +118,20 @@ def compare_versions(store: Store, a: str, b: str, config: CompareConfig,
     game = get_game(games[0]).name
     # one random stream for both sides: on a seed, their policies draw the same numbers
     rng_key = config.rng_key or new_run_id()
+    # --audit: each side's games drawn now, sealed (none of them knowable to either policy in advance), disjoint
+    audit_seeds = draw_audit_seeds(2 * config.episodes) if config.audit else []
     with tempfile.TemporaryDirectory(prefix="codearcade-compare-") as scratch:
         for k, v in enumerate(versions):
-            eval_config = _eval_config(game, config, k)
+            eval_config = _eval_config(game, config, audit_seeds[k * config.episodes:(k + 1) * config.episodes])
             eval_config.rng_key = rng_key
             path = v.path
             if path is None:  # a stored version is played from a file named after where it came from
                 path = os.path.join(scratch, f"{v.source_run}.{v.policy_version_id}.py")
                 Path(path).write_text(v.text)
             if progress is not None:
-                progress(f"playing {v.label} = {v.ref} ({v.policy_version_id}) on {config.episodes} seed(s) from "
-                         f"{eval_config.seed}" + (", standard protocol" if config.audit else ", traced"))
+                progress(f"playing {v.label} = {v.ref} ({v.policy_version_id}) on "
+                         + (f"{config.episodes} sealed audit seed(s), standard protocol" if config.audit else
+                            f"{config.episodes} seed(s) from {eval_config.seed}, traced"))
             # marked as compare's own: `runs` and `last` count the runs a person started, not these
             v.eval_run = evaluate(path, eval_config, store, made_by="compare").run_id
     diff = unified_diff(versions[0].text, versions[1].text, f"A {a} ({versions[0].policy_version_id})",
@@ -155,15 +158,15 @@ def difference_data(game: str, a: Score, b: Score) -> dict[str, Any]:
     return compare_scores(a, b, worst, source, LABELS).data()
 
 
-def _eval_config(game: str, config: CompareConfig, side: int) -> EvalConfig:
-    """How side ``side`` (0: A, 1: B) plays: both on ``seed`` on under the paper's protocol, traced; with
-    ``audit``, each on its own audit seeds under the standard protocol (A's first, then B's)."""
+def _eval_config(game: str, config: CompareConfig, audit_seeds: list[int]) -> EvalConfig:
+    """How one side plays: on ``seed`` on under the paper's protocol, traced; with ``audit``, on its own sealed
+    ``audit_seeds`` under the standard protocol."""
     if not config.audit:
         return EvalConfig(game=game, episodes=config.episodes, max_steps=config.max_steps, seed=config.seed,
                           trace=True, workers=config.workers)
-    return EvalConfig(game=game, episodes=config.episodes, max_steps=config.max_steps,
-                      seed=AUDIT_SEED_BASE + config.seed + side * config.episodes, sticky=STANDARD_STICKY,
-                      noop_max=STANDARD_NOOP_MAX, workers=config.workers)
+    return EvalConfig(game=game, episodes=len(audit_seeds), max_steps=config.max_steps, seed=audit_seeds[0],
+                      seeds=tuple(audit_seeds), sticky=STANDARD_STICKY, noop_max=STANDARD_NOOP_MAX,
+                      workers=config.workers)
 
 
 def _score_data(score, episodes: list[dict[str, Any]]) -> dict[str, Any]:
