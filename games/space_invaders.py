@@ -35,6 +35,14 @@ PUBLISHED = (
     Published("follow-up", "h1", 570.0, horizon=1, trials=4, stderr=0.0),
 )
 
+def detect(objects: list, ram) -> None:
+    """OCAtari's Space Invaders reader, exactly, on the RAM as ints (``games/readers.py``); imported on first use,
+    as the registry imports every game module and must stay light."""
+    from games.readers import detect_space_invaders
+
+    detect_space_invaders(objects, ram)
+
+
 GAME = Game(
     name="space_invaders",
     env_id="SpaceInvadersNoFrameskip-v4",
@@ -47,4 +55,5 @@ GAME = Game(
     colours={"Player": (92, 220, 92), "Alien": (255, 90, 220), "Shield": (90, 200, 255), "Bullet": (255, 255, 80),
              "Satellite": (255, 60, 60)},
     scaffold=SCAFFOLDS / "space_invaders.py",
+    detect=detect,
 )

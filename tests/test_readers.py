@@ -12,7 +12,7 @@ import pytest
 from ocatari.ram import extract_ram_info
 
 from games.envs import make_env
-from games.readers import detect_breakout
+from games.readers import detect_breakout, detect_space_invaders
 
 
 def _state(objects: list) -> list[tuple]:
@@ -20,13 +20,13 @@ def _state(objects: list) -> list[tuple]:
             for o in objects]
 
 
-def _played_rams(seed: int, steps: int) -> list[np.ndarray]:
-    env = make_env("breakout", objects=False)
+def _played_rams(seed: int, steps: int, game: str = "breakout") -> list[np.ndarray]:
+    env = make_env(game, objects=False)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     rams = []
     for _ in range(steps):
-        _, _, terminated, truncated, _ = env.step(int(rng.integers(4)))
+        _, _, terminated, truncated, _ = env.step(int(rng.integers(env.action_space.n)))
         rams.append(env.unwrapped.ale.getRAM().copy())
         if terminated or truncated:
             env.reset(seed=seed)
@@ -34,14 +34,14 @@ def _played_rams(seed: int, steps: int) -> list[np.ndarray]:
     return rams
 
 
-def _compare(rams: list[np.ndarray]) -> int:
+def _compare(rams: list[np.ndarray], game: str = "Breakout", reader=detect_breakout) -> int:
     """Calls on which the two readers' object lists differ (both lists carried from call to call)."""
-    theirs = extract_ram_info.init_objects("Breakout", False)
-    ours = extract_ram_info.init_objects("Breakout", False)
+    theirs = extract_ram_info.init_objects(game, False)
+    ours = extract_ram_info.init_objects(game, False)
     differ = 0
     for ram in rams:
-        extract_ram_info.detect_objects_ram(theirs, ram.astype(np.int64), "Breakout", False)
-        detect_breakout(ours, ram)
+        extract_ram_info.detect_objects_ram(theirs, ram.astype(np.int64), game, False)
+        reader(ours, ram)
         differ += _state(theirs) != _state(ours)
     return differ
 
@@ -89,3 +89,27 @@ def test_a_wall_outside_ocataris_formatting_goes_to_ocataris_reader():
         if objects is theirs:
             expected = outcome
     assert outcome == expected
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_space_invaders_objects_equal_ocataris_on_played_games(seed):
+    """Long enough for aliens to die, bullets to come and go, the satellite to pass and lives to be lost; the
+    NoObjects OCAtari leaves in bullet slots keep the positions it gives them, and so do ours."""
+    rams = _played_rams(seed, 2500, "space_invaders")
+    assert len({tuple(ram[18:24]) for ram in rams}) > 3, "no alien died: the sweep would not cover the bitmap"
+    assert any(ram[30] and ram[30] != 180 for ram in rams), "no satellite passed"
+    assert _compare(rams, "SpaceInvaders", detect_space_invaders) == 0
+
+
+def test_space_invaders_objects_equal_ocataris_on_random_rams():
+    rng = np.random.default_rng(11)
+    played = _played_rams(2, 600, "space_invaders")
+    rams = []
+    for i in range(2000):
+        ram = played[i % len(played)].copy()
+        ram[18:24] = rng.integers(0, 64, 6)  # any set of living aliens
+        for index in rng.choice([16, 26, 28, 30, 81, 82, 83, 84, 85, 87] + list(range(43, 70)), 6):
+            ram[index] = rng.integers(0, 256)  # positions, shields, bullets, the satellite anywhere
+        ram[16] = i % 64  # every height of the alien block, the shields' edge included
+        rams.append(ram)
+    assert _compare(rams, "SpaceInvaders", detect_space_invaders) == 0
