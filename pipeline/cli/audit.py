@@ -58,7 +58,9 @@ def run(args: argparse.Namespace) -> int:
              f"--episodes (the seeds are the games)", file=sys.stderr)
         return EXIT_BAD_INPUT
     store = open_store(args)
-    run_id = resolve_run(store, args.run_id, kinds=("optimize",), verb="audit")
+    run_id = resolve_run(store, args.run_id, kinds=("optimize", "serve"), verb="audit")
+    if _served(store, run_id):
+        return _served_audit(store, run_id, args)
     progress: list[EpisodeProgress] = []
 
     def playing(total: int) -> None:
@@ -79,4 +81,30 @@ def run(args: argparse.Namespace) -> int:
             show(f"run {run_id} has no iteration to audit", file=sys.stderr)
         for line in result.lines():
             show(line)
+    return EXIT_OK
+
+
+def _served(store, run_id: str) -> bool:
+    from store.readers import get_run
+
+    with store.read() as con:
+        return get_run(con, run_id)["kind"] == "serve"
+
+
+def _served_audit(store, run_id: str, args: argparse.Namespace) -> int:
+    """A served run's audit is its finalize (``pipeline/serve/protocol.py``): its validation pool and the held-out
+    pool of the best by validation, shown as stored (``codearcade serve --finalize RUN`` plays them)."""
+    from pipeline.cli.serve import served_lines
+    from pipeline.optimizer.audit import AuditResult
+    from store.readers import audits
+
+    with store.read() as con:
+        rows = audits(con, run_id)
+    if args.json:
+        show_json({"run_id": run_id, "overfit": AuditResult(run_id, rows).overfit, "audits": rows}, default=str)
+    elif not rows:
+        show(f"run {short_id(store, run_id)} is served and not finalized yet: `codearcade serve --finalize "
+             f"{short_id(store, run_id)}` plays its validation and held-out pools", file=sys.stderr)
+    for line in [] if args.json else served_lines(rows):
+        show(line)
     return EXIT_OK

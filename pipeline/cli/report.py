@@ -35,6 +35,12 @@ def reproduce_command(run: dict[str, Any], config: dict[str, Any]) -> str:
 
         parts = ["codearcade", "eval", config.get("policy") or "POLICY.py", "--game", run["game"]]
         return shlex.join(parts + _flags(EvalConfig, config))
+    if run["kind"] == "serve":  # a served run: its own settings, recorded under "serve"
+        from pipeline.serve.config import ServeConfig
+
+        served = config.get("serve") or {}
+        parts = ["codearcade", "serve"] + ([served["policy"]] if served.get("policy") else [])
+        return shlex.join(parts + ["--game", run["game"]] + _flags(ServeConfig, served))
     from pipeline.optimizer.config import OptimizeConfig
 
     parts = ["codearcade", "optimize"] + ([config["policy"]] if config.get("policy") else [])

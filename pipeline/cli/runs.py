@@ -7,7 +7,7 @@ import os
 
 from pipeline.cli.common import EXIT_OK, add_store, open_store, positive_int, show, show_json
 
-KINDS = ("eval", "optimize", "replay")
+KINDS = ("eval", "optimize", "replay", "serve")
 STATUSES = ("running", "finished", "failed", "interrupted", "budget", "diverged")
 """``runs.status`` (store/runs.py's RUN_STATUSES, written out so that ``codearcade --help`` imports no store)."""
 
@@ -40,7 +40,7 @@ def _policy(row: dict) -> str | None:
     if row["policy"]:
         return os.path.basename(row["policy"])
     # no file: the game's scaffold (games/scaffolds/), which a replay starts from as its original did
-    return "scaffold" if row["kind"] in ("optimize", "replay") else None
+    return "scaffold" if row["kind"] in ("optimize", "replay", "serve") else None
 
 
 def _best(row: dict) -> float | str | None:

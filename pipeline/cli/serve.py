@@ -1,0 +1,172 @@
+"""``codearcade serve``: a budgeted rollout server for one run, over plain HTTP+JSON and MCP (``pipeline/serve/``).
+
+Without ``--mcp``, it serves HTTP on 127.0.0.1 (``--port``; 0 picks a free one) and prints where on stderr; with
+``--mcp``, it speaks MCP over stdin/stdout (what Claude Code and Codex CLI start) and prints nothing on stdout but
+the protocol; ``--mcp-port`` serves MCP's streamable HTTP instead. ``--resume RUN`` opens a run a stopped or
+killed server left (its budget as its committed submissions spent); ``--finalize RUN`` ends one (validation and
+held-out pools) and prints the result. When the budget is spent, the run is finalized at once. docs/serve.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from pipeline.cli.common import (EXIT_OK, add_name, add_settings, add_store, open_store, resolve_run, short_id, show,
+                                 show_json)
+from pipeline.serve.config import ServeConfig
+
+
+def add_parser(verbs) -> None:
+    """Add ``serve`` and its arguments to the verbs of the top-level parser."""
+    p = verbs.add_parser(
+        "serve",
+        help="a rollout server for a coding agent: submissions against an episode budget, sealed validation and "
+             "held-out pools (MCP and HTTP)",
+        description="Serve one run to a coding agent (Claude Code, Codex CLI, a script): it reads the task, submits "
+        "policy files for episodes on visible training instances within an episode budget, and reads their feedback "
+        "and its own play in SQL; every submission is a policy version in the store. At the end every submission "
+        "plays a sealed validation pool and the best of them a sealed held-out pool, which only `runs`, `report` and "
+        "`audit` show.",
+        epilog="examples: codearcade serve --game pong --budget 64 --port 8765   |   "
+               "claude mcp add codearcade -- codearcade serve --game pong --mcp   |   "
+               "codearcade serve --finalize last",
+    )
+    add_settings(p, ServeConfig, defaults=True)
+    p.add_argument("--port", type=int, default=None, metavar="N",
+                   help="serve HTTP+JSON on 127.0.0.1:N (0: a free port; default: 0 without --mcp, none with it)")
+    p.add_argument("--mcp", action="store_true", help="speak MCP over stdin and stdout (for an agent that starts "
+                   "the server itself)")
+    p.add_argument("--mcp-port", type=int, default=None, metavar="N",
+                   help="serve MCP's streamable HTTP on 127.0.0.1:N (path /mcp) instead of stdio")
+    p.add_argument("--workspace", default=".", metavar="DIR",
+                   help="the directory whose files a submission may name by path (default: this one)")
+    p.add_argument("--resume", default=None, metavar="RUN", help="serve a served run again (one a stopped or killed "
+                   "server left), its budget as its committed submissions spent")
+    p.add_argument("--finalize", default=None, metavar="RUN", help="end a served run now: play the validation and "
+                   "held-out pools, print the result and exit")
+    p.add_argument("--json", action="store_true", help="with --finalize: print the result as JSON")
+    add_name(p, "the served run")
+    add_store(p)
+    p.set_defaults(handler=run)
+
+
+def _say(text: str) -> None:
+    show(text, file=sys.stderr, flush=True)  # stdout may be the MCP transport
+
+
+def run(args: argparse.Namespace) -> int:
+    from pipeline.serve.protocol import KIND, ServeRun, create_run
+    from store.locks import run_lock
+    from store.writer import finish_run, mark_run_running
+
+    store = open_store(args)
+    if args.finalize is not None:
+        return _finalize(store, resolve_run(store, args.finalize, kinds=(KIND,), verb="serve --finalize"), args)
+    if args.resume is not None:
+        run_id = resolve_run(store, args.resume, kinds=(KIND,), verb="serve --resume")
+    else:
+        config = ServeConfig(**{name: getattr(args, name) for name in ServeConfig.__dataclass_fields__
+                                if hasattr(args, name)})  # a setting without a flag keeps its default
+        run_id = create_run(store, config, name=args.name)
+    with run_lock(store.path, run_id):
+        served = ServeRun(store, run_id, workspace=os.path.abspath(args.workspace),
+                          on_episode=None if args.mcp else _episode_line)
+        if args.resume is not None and not served.finalized:
+            with store.write() as con:
+                mark_run_running(con, run_id)
+        b = served.budget()
+        _say(f"run {short_id(store, run_id)} served: {served.game.name}, budget {b['remaining']} of {b['budget']} "
+             f"episodes left; store {store.path}")
+        try:
+            _serve(served, args)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            if not served.finalized:
+                with store.write() as con:
+                    finish_run(con, run_id, "interrupted")
+                _say(f"run {short_id(store, run_id)} stopped: `codearcade serve --resume {short_id(store, run_id)}` "
+                     f"serves it again, `codearcade serve --finalize {short_id(store, run_id)}` ends it")
+    return EXIT_OK
+
+
+def _episode_line(episode: dict) -> None:
+    _say(f"  submission {episode['iteration']}  instance {episode['episode_index']}  return "
+         f"{episode['return']:g}  {episode['length']} steps  {episode['end_reason']}")
+
+
+def _serve(served, args: argparse.Namespace) -> None:
+    import threading
+
+    from pipeline.serve.http import start_http
+
+    port = args.port if args.port is not None else (None if args.mcp or args.mcp_port is not None else 0)
+    if port is not None:
+        server, _ = start_http(served, port)
+        _say(f"HTTP+JSON on http://127.0.0.1:{server.server_address[1]}/ (POST /task, /submit, /feedback, /budget, "
+             "/sql, /finalize); Ctrl-C stops it")
+    if args.mcp or args.mcp_port is not None:
+        from pipeline.serve.tools import build_server
+
+        mcp = build_server(served)
+        if args.mcp_port is not None:
+            _say(f"MCP (streamable HTTP) on http://127.0.0.1:{args.mcp_port}/mcp")
+            mcp.run("streamable-http", host="127.0.0.1", port=args.mcp_port)
+        else:
+            mcp.run("stdio")  # returns when the agent closes stdin
+        return
+    threading.Event().wait()  # until Ctrl-C or a signal
+
+
+def _finalize(store, run_id: str, args: argparse.Namespace) -> int:
+    from pipeline.serve.protocol import ServeRun
+    from store.locks import run_lock
+    from store.readers import audits
+
+    with run_lock(store.path, run_id):
+        served = ServeRun(store, run_id)
+        if not served.finalized:
+            _say(f"run {short_id(store, run_id)}: playing the validation and held-out pools")
+            served.finalize()
+    with store.read() as con:
+        rows = audits(con, run_id)
+    if args.json:
+        show_json({"run_id": run_id, "audits": rows}, default=str)
+    else:
+        for line in served_lines(rows):
+            show(line)
+    return EXIT_OK
+
+
+def served_lines(rows: list[dict]) -> list[str]:
+    """What a person reads of a served run's finalize (its ``audits`` rows): a line per submission on the validation
+    pool, the best marked, then the held-out pool's line for the best and the starter, and the overfit verdict."""
+    from store.scores import MEAN_METHOD, interval_text
+
+    def shown(r: dict) -> str:
+        if r["score"] is None:
+            return f"forfeit ({r['forfeit']})"
+        return interval_text(r["score"], r["score_low"], r["score_high"], len(r["seeds"]), MEAN_METHOD)
+
+    def training(r: dict) -> str:
+        return "not played" if r["tuning_score"] is None else format(r["tuning_score"], "g")
+
+    best = next((r for r in rows if r["role"] == "best"), None)
+    out = []
+    for r in sorted((r for r in rows if r["protocol"] == "validation"), key=lambda r: r["iteration"]):
+        mark = "  <- best by validation" if best is not None and best["policy_version_id"] == r["policy_version_id"] \
+            else ""
+        out.append(f"validation  submission {r['iteration']}: {shown(r)} on {len(r['seeds'])} sealed games; "
+                   f"training {training(r)}{mark}")
+    for role in ("best", "starter"):
+        r = next((r for r in rows if r["role"] == role), None)
+        if r is not None:
+            name = f"best (submission {r['iteration']})" if role == "best" else "starter"
+            out.append(f"held-out    {name}: {shown(r)} on {len(r['seeds'])} sealed games (standard protocol); "
+                       f"training {training(r)}")
+    if best is not None and best["overfit"]:
+        out.append("held-out    OVERFIT: less than half of the best submission's gain over the starting policy holds "
+                   "up on the held-out games")
+    return out

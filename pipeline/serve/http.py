@@ -1,0 +1,110 @@
+"""``codearcade serve``'s plain HTTP+JSON transport (the standard library's threading server, on 127.0.0.1).
+
+Every operation is ``POST /<operation>`` with a JSON object of its arguments (``GET`` works for those without
+any): ``/task``, ``/submit`` (``instances``, and ``policy``: the file's text, or ``path``: a file of the
+workspace; optional ``parent``), ``/feedback`` (``submission``,
+optional ``instance``, ``steps``), ``/budget``, ``/sql`` (``query``), ``/finalize``. The answer is a JSON object;
+a refused request (it costs nothing) is status 400 with ``{"error": ...}``. Requests are served concurrently:
+the budget is exact however many arrive at once (``protocol.ServeRun``).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import traceback
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
+
+from pipeline.serve.protocol import RequestError, ServeRun
+
+MAX_BODY = 1_000_000
+"""Bytes of a request body read at most (a policy file is at most 200,000 characters)."""
+
+OPERATIONS = {
+    "task": ((), ()),
+    "budget": ((), ()),
+    "submit": (("instances",), ("policy", "path", "parent")),
+    "feedback": (("submission",), ("instance", "steps")),
+    "sql": (("query",), ()),
+    "finalize": ((), ()),
+}
+"""Each operation's required and optional arguments; the same names as the MCP tools' (``tools.py``)."""
+
+
+def call(run: ServeRun, operation: str, arguments: dict[str, Any]) -> dict[str, Any]:
+    """Run one operation with its arguments, checked against :data:`OPERATIONS` (RequestError: refused)."""
+    if operation not in OPERATIONS:
+        raise RequestError(f"no operation {operation!r}; there are {', '.join(OPERATIONS)}")
+    if not isinstance(arguments, dict):
+        raise RequestError("the body must be a JSON object of the operation's arguments")
+    required, optional = OPERATIONS[operation]
+    missing = [name for name in required if name not in arguments]
+    unknown = [name for name in arguments if name not in required + optional]
+    if missing or unknown:
+        raise RequestError(f"{operation}: " + "; ".join(
+            ([f"missing {', '.join(missing)}"] if missing else []) + ([f"unknown {', '.join(unknown)}"] if unknown
+                                                                      else [])))
+    return getattr(run, operation)(**arguments)
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: _Server
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, format: str, *args: Any) -> None:
+        pass  # the store records what matters; stderr stays for the server's own lines
+
+    def do_GET(self) -> None:
+        self._answer({})
+
+    def do_POST(self) -> None:
+        length = int(self.headers.get("Content-Length") or 0)
+        if length > MAX_BODY:
+            self._send(413, {"error": f"the body is {length:,} bytes; at most {MAX_BODY:,}"}, close=True)
+            return
+        body = self.rfile.read(length) if length else b"{}"
+        try:
+            arguments = json.loads(body or b"{}")
+        except (ValueError, UnicodeDecodeError):
+            self._send(400, {"error": "the body is not JSON"})
+            return
+        self._answer(arguments)
+
+    def _answer(self, arguments: Any) -> None:
+        operation = self.path.strip("/").split("?")[0]
+        try:
+            self._send(200, call(self.server.run, operation, arguments))
+        except RequestError as exc:
+            self._send(400 if operation in OPERATIONS else 404, {"error": str(exc)})
+        except Exception as exc:  # noqa: BLE001 - the server goes on; the agent learns the request failed
+            traceback.print_exc()  # the server's own log (stderr): the person sees what went wrong
+            self._send(500, {"error": f"the server failed on this request ({type(exc).__name__}); nothing was "
+                                      "charged"})
+
+    def _send(self, status: int, payload: dict[str, Any], close: bool = False) -> None:
+        data = json.dumps(payload, default=str).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        if close:
+            self.send_header("Connection", "close")
+            self.close_connection = True
+        self.end_headers()
+        self.wfile.write(data)
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+
+    def __init__(self, run: ServeRun, port: int):
+        self.run = run
+        super().__init__(("127.0.0.1", port), _Handler)
+
+
+def start_http(run: ServeRun, port: int = 0) -> tuple[ThreadingHTTPServer, threading.Thread]:
+    """Serve ``run`` on 127.0.0.1:``port`` (0: any free port; ``server.server_address`` says which) in a thread."""
+    server = _Server(run, port)
+    thread = threading.Thread(target=server.serve_forever, name="codearcade-serve-http", daemon=True)
+    thread.start()
+    return server, thread

@@ -1,0 +1,494 @@
+"""The protocol of ``codearcade serve``: one run, an episode budget, visible training instances, sealed pools.
+
+A served run (``runs.kind = 'serve'``) is driven by an agent instead of the prompt loop. What it may do, whatever
+the transport (``http.py``, ``tools.py``), is a method of :class:`ServeRun`:
+
+- ``task``: the game's facts, the policy interface (the starting policy's text and its trainable methods), the
+  budget and the rules;
+- ``submit``: a policy file's text and the training instances to play it on (ids ``0..instances-1``). The text is
+  checked as a policy file given to ``eval`` is (in a confined worker first: ``pipeline/play/validate.py``); a
+  request refused there, or malformed, costs nothing. Otherwise it becomes a policy version of the run (iteration
+  = the submission's number, its parent the submission it names, else the newest one: lineage is data, so
+  ``blame`` names the submission that wrote each line) and its episodes are played by the game host with a
+  confined policy process (``pipeline/play/episodes.py``, as ``eval`` and ``optimize`` play), traced, stored
+  like any run's, and scored by the one rule (``store/scores.py``: a forfeit has no score). Every episode asked
+  for costs one, whatever ends it;
+- ``feedback``: a submission's summary, forfeits and errors, the feedback text the prompt loop would give, and a
+  bounded slice of one episode's steps and node calls chosen as the prompt chooses them
+  (:func:`trace_slice`);
+- ``budget``; ``sql``: read-only SQL over the visible part of the run (``store/serve.py``);
+- ``finalize`` (the budget spent, or ``codearcade serve --finalize RUN``): every accepted submission plays the
+  **validation** pool, and the best by validation, beside the starter, plays the **held-out** pool.
+
+**Instances and pools.** A training instance is a game seed drawn from the OS's entropy when the run is made,
+below the audit's range (``games.base.AUDIT_SEED_BASE``), kept in the run's config and its episodes, and never
+in a response: the agent names instances by id. The validation and held-out pools are drawn at finalize, like
+the sealed audit (``pipeline.optimizer.audit.draw_audit_seeds``), in one draw so they are disjoint, from the
+audit's range so they never meet a training instance; no response carries them or their scores (a person reads
+those in ``runs``, ``report`` and ``audit``). Every game is played under the standard protocol (sticky actions
+0.25, up to 30 no-op starts): under the paper's deterministic one every seed is the same game, and instances
+would be one.
+
+**Where the results are.** Each submission is an ``iterations`` row and a ``candidates`` row (its training
+episodes as the evaluation episodes, its score their score) and a ``feedback`` row; iteration 0 is the starter,
+unplayed. Finalize writes ``audits`` rows: ``role = 'submission N', protocol = 'validation'`` per accepted
+submission, and ``best`` / ``starter`` with protocol ``standard`` for the held-out pool, so ``runs`` and
+``report`` show the held-out score where they show an audit's.
+
+**The budget** is counted in memory under a lock (a submission reserves its episodes before it plays, and gives
+them back only if the server fails to play them), and read back from the store when a run is opened again: a
+killed server's run resumes with what its committed submissions spent.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import threading
+import time
+import traceback
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Callable
+
+import duckdb
+
+from games import get_game
+from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY, recorded_observation
+from pipeline.optimizer.audit import draw_audit_seeds
+from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.feedback import FeedbackBands, compose_feedback
+from pipeline.optimizer.loop import start_run
+# the prompt's own choice of steps and its lines: the feedback shows what a prompt would
+from pipeline.optimizer.prompt import _calls_line, _events, _obs_line, _out_line, _priority
+from pipeline.play.episodes import run_episodes
+from pipeline.play.rollout import EpisodeSpec
+from pipeline.play.runinfo import episode_id
+from pipeline.play.validate import checked_inspect
+from pipeline.play.verify import checked_outcome
+from pipeline.play.versions import policy_version_row
+from pipeline.serve.config import ServeConfig
+from store import Store
+from store.db import utcnow
+from store.readers import episode_steps, get_run, policy_text, step_nodes
+from store.scores import overfit, score_episodes
+from store.serve import served_submissions, submission_episodes, visible_query
+from store.writer import (EpisodeWriter, finish_run, insert_candidate, insert_feedback, insert_iteration,
+                          insert_policy_version, replace_audits)
+from tracing.policy_file import PolicyLoadError
+
+KIND = "serve"
+TRAIN_SEED_LOW = 100_000
+"""Training seeds are drawn from ``TRAIN_SEED_LOW`` to ``AUDIT_SEED_BASE``: six digits, below every sealed seed."""
+MAX_POLICY_CHARS = 200_000
+MAX_FEEDBACK_STEPS = 200
+MAX_SQL_ROWS = 500
+PRODUCED_BY = "agent"
+"""``policy_versions.produced_by`` of a submission."""
+
+
+class RequestError(ValueError):
+    """A request refused before anything plays: it costs nothing, and the message says why."""
+
+
+def create_run(store: Store, config: ServeConfig, name: str | None = None) -> str:
+    """Make a served run (its training instances drawn now) with its starter as iteration 0; return its id."""
+    from store.writer import set_run_name
+
+    opt = OptimizeConfig(game=config.game, policy=config.policy, iterations=0, eval_episodes=1,
+                         audit_episodes=config.heldout_episodes, workers=config.workers,
+                         rollout_steps=config.max_steps, eval_max_steps=config.max_steps,
+                         call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s)
+    seeds = secrets.SystemRandom().sample(range(TRAIN_SEED_LOW, AUDIT_SEED_BASE), config.instances)
+    serve = {**asdict(config), "train_seeds": seeds, "sticky": STANDARD_STICKY, "noop_max": STANDARD_NOOP_MAX}
+    run_id = start_run(opt, store, "agent", kind=KIND, extra={"serve": serve, "strategy": KIND})
+    with store.write() as con:
+        if name is not None:
+            set_run_name(con, run_id, name)
+        starter = con.execute("SELECT starter_version_id FROM runs WHERE run_id = ?", [run_id]).fetchone()[0]
+        now = utcnow()
+        insert_candidate(con, dict(run_id=run_id, iteration=0, candidate=0, strategy=KIND, policy_version_id=starter,
+                                   proposed_version_id=starter, update_status="initial", evaluation="unplayed",
+                                   decision="best", feedback=None))
+        insert_iteration(con, dict(run_id=run_id, iteration=0, candidate=0, policy_version_id=starter,
+                                   update_status="initial", rolled_back=False, best_version_id=starter,
+                                   best_iteration=0, started_at=now, finished_at=now))
+    return run_id
+
+
+class ServeRun:
+    """A served run, open for requests (see the module docstring). Thread-safe: the budget is reserved under a
+    lock, and playing and the store are used by one request at a time."""
+
+    def __init__(self, store: Store, run_id: str, on_episode: Callable[[dict[str, Any]], None] | None = None,
+                 workspace: str | os.PathLike | None = None, finalize_when_spent: bool = True):
+        with store.read() as con:
+            run = get_run(con, run_id)
+            if run is None:
+                raise ValueError(f"no run {run_id} in {store.path}; `codearcade runs` lists the runs")
+            if run["kind"] != KIND:
+                raise ValueError(f"run {run_id} is a{'n' * (run['kind'][0] in 'aeiou')} {run['kind']} run, not a "
+                                 "served one")
+            subs = served_submissions(con, run_id)
+            finalized = con.execute("SELECT count(*) FROM audits WHERE run_id = ?", [run_id]).fetchone()[0] > 0
+        self.store, self.run_id = store, run_id
+        self.record = json.loads(run["config"])
+        self.serve = self.record["serve"]
+        self.game = get_game(run["game"])
+        self.budget_total = int(self.serve["budget"])
+        self.on_episode = on_episode
+        self.workspace = Path(workspace).resolve() if workspace is not None else None
+        self.finalize_when_spent = finalize_when_spent
+        """Finalize the run as the submission that spends the last of the budget ends (its answer then says so)."""
+        self._spent = sum(len(s["eval_episode_ids"] or ()) for s in subs)
+        self._reserved = 0
+        self._next = (subs[-1]["iteration"] + 1) if subs else 1
+        self._latest = subs[-1]["iteration"] if subs else 0
+        self._committed = {0, *(x["iteration"] for x in subs)}
+        self._best: tuple[float, int] | None = max(((s["score"], -s["iteration"]) for s in subs
+                                                    if s["score"] is not None), default=None)
+        self.finalized = finalized
+        self._lock = threading.Lock()
+        self._work = threading.Lock()
+
+    # ------------------------------------------------------------------------------------------- reading
+
+    def budget(self) -> dict[str, Any]:
+        with self._lock:
+            return {"budget": self.budget_total, "spent": self._spent, "in_play": self._reserved,
+                    "remaining": self.budget_total - self._spent - self._reserved, "finalized": self.finalized}
+
+    def task(self) -> dict[str, Any]:
+        """What an agent needs to start: the game, the policy interface, the budget and the rules."""
+        with self._work, self.store.read() as con:
+            starter = policy_text(con, self.run_id, con.execute(
+                "SELECT starter_version_id FROM runs WHERE run_id = ?", [self.run_id]).fetchone()[0])
+        from tracing.policy_file import inspect_policy
+
+        info = inspect_policy(starter, "policy.py")
+        s = self.serve
+        return {
+            "run": self.run_id, "game": self.game.name, "actions": list(self.game.actions),
+            "lives": self.game.lives, "instruction": self.record.get("instruction") or "",
+            "starter_policy": starter, "trainable_methods": [m.name for m in info.trainable],
+            "instances": s["instances"], "per_submission": s["per_submission"], "max_steps": s["max_steps"],
+            "call_time_limit_s": s["call_time_limit_s"], "budget": self.budget(),
+            "rules": [
+                "Submit a whole policy file (class Policy, as the starter) with the training instances to play it on "
+                f"(ids 0..{s['instances'] - 1}, at most {s['per_submission']} per submission, each once).",
+                "Every episode a submission asks for costs one episode of the budget, whatever ends it; a request "
+                "refused before anything plays (malformed, code that does not parse) costs nothing.",
+                "Games are played under the standard protocol: sticky actions 0.25 and up to 30 no-op starts.",
+                "An episode the policy ends itself (an exception, a time or memory limit) is a forfeit: the "
+                "submission then has no score.",
+                "When the budget is spent (or the person finalizes the run), every accepted submission is scored on "
+                "a hidden validation pool, and the best of them on a hidden held-out pool: neither is ever shown.",
+            ],
+        }
+
+    def feedback(self, submission: int, instance: int | None = None, steps: int = 40) -> dict[str, Any]:
+        """A submission's summary, feedback text and a bounded slice of one of its episodes (``instance``: which;
+        default the first), ``steps`` steps chosen as the prompt chooses them."""
+        if not isinstance(submission, int) or isinstance(submission, bool):
+            raise RequestError("submission: give the submission's number (an integer)")
+        if not isinstance(steps, int) or isinstance(steps, bool) or not 0 <= steps <= MAX_FEEDBACK_STEPS:
+            raise RequestError(f"steps: a whole number from 0 to {MAX_FEEDBACK_STEPS}")
+        with self._work, self.store.read() as con:
+            sub = next((s for s in served_submissions(con, self.run_id) if s["iteration"] == submission), None)
+            if sub is None:
+                raise RequestError(f"no submission {submission} (submissions are numbered from 1; "
+                                   f"the newest is {self._latest})")
+            episodes = submission_episodes(con, sub["eval_episode_ids"])
+            text = con.execute("SELECT b.text FROM candidates c JOIN blobs b ON b.hash = c.feedback_hash "
+                               "WHERE c.run_id = ? AND c.iteration = ?", [self.run_id, submission]).fetchone()
+            chosen = next((e for e in episodes if instance is None or e["instance"] == instance), None)
+            if chosen is None:
+                raise RequestError(f"submission {submission} did not play instance {instance}; it played "
+                                   f"{[e['instance'] for e in episodes]}")
+            game = self.game.observing(recorded_observation(self.record))  # read back as the run played it
+            rows = episode_steps(con, chosen["episode_id"], list_widths=game.list_widths, derive=game.derive)
+            nodes = step_nodes(con, chosen["episode_id"])
+        events, shown = trace_slice(rows, nodes, self.game.lives > 0, steps)
+        return {**_summary(sub, episodes), "feedback": text[0] if text else "",
+                "trace": {"instance": chosen["instance"], "length": chosen["length"],
+                          "events": [f"{what} at step {step}" for step, what in events][:100],
+                          "steps": shown}}
+
+    def sql(self, query: str) -> dict[str, Any]:
+        """Read-only SQL over the visible part of the run (``store/serve.py``)."""
+        if not isinstance(query, str) or not query.strip() or len(query) > 20_000:
+            raise RequestError("sql: give one query of at most 20,000 characters")
+        with self._work, self.store.read() as con:
+            try:
+                return visible_query(con, self.run_id, query, MAX_SQL_ROWS)
+            except duckdb.Error as exc:
+                raise RequestError(f"sql: {str(exc).splitlines()[0][:500]}") from None
+
+    # ------------------------------------------------------------------------------------------- submitting
+
+    def submit(self, instances: list[int], policy: str | None = None, parent: int | None = None,
+               path: str | None = None) -> dict[str, Any]:
+        """Play ``policy`` (the file's text, or ``path``: a file of the workspace) on ``instances`` (see the module
+        docstring); the submission's summary and budget."""
+        s = self.serve
+        if (policy is None) == (path is None):
+            raise RequestError("give the policy's text (policy) or a file of the workspace (path), one of them")
+        if path is not None:
+            policy = self._workspace_file(path)
+        if not isinstance(policy, str) or not policy.strip():
+            raise RequestError("policy: give the whole policy file's text")
+        if len(policy) > MAX_POLICY_CHARS:
+            raise RequestError(f"policy: {len(policy):,} characters; at most {MAX_POLICY_CHARS:,}")
+        if not isinstance(instances, list) or not instances or \
+                any(not isinstance(i, int) or isinstance(i, bool) for i in instances):
+            raise RequestError("instances: give a list of training instance ids (integers)")
+        if len(set(instances)) != len(instances):
+            raise RequestError("instances: each instance once (an instance played twice is the same game twice)")
+        outside = [i for i in instances if not 0 <= i < s["instances"]]
+        if outside:
+            raise RequestError(f"instances: {outside[0]} is not an instance; they are 0 to {s['instances'] - 1}")
+        if len(instances) > s["per_submission"]:
+            raise RequestError(f"instances: {len(instances)} asked, at most {s['per_submission']} per submission")
+        if parent is not None and (not isinstance(parent, int) or isinstance(parent, bool) or parent < 0):
+            raise RequestError("parent: a submission's number (0: the starting policy)")
+        try:
+            info = checked_inspect(policy, "policy.py")
+        except (PolicyLoadError, SyntaxError, ValueError) as exc:
+            raise RequestError(f"policy: {str(exc)[:2000]}") from None
+        if info.game is not None and get_game(info.game).name != self.game.name:
+            raise RequestError(f"policy: its GAME is {info.game}, and this run plays {self.game.name}")
+        with self._lock:
+            if self.finalized:
+                raise RequestError("the run is finalized: it takes no more submissions")
+            left = self.budget_total - self._spent - self._reserved
+            if len(instances) > left:
+                raise RequestError(f"budget: {len(instances)} episodes asked, {left} left")
+            if parent is not None and parent not in self._committed:
+                raise RequestError(f"parent: submission {parent} has no result (yet)")
+            iteration, self._next = self._next, self._next + 1
+            self._reserved += len(instances)
+            parent = self._latest if parent is None else parent
+        try:
+            with self._work:
+                result = self._play(iteration, info, policy, instances, parent)
+        except BaseException:
+            with self._lock:
+                self._reserved -= len(instances)
+            raise
+        with self._lock:
+            self._reserved -= len(instances)
+            self._spent += len(instances)
+            self._latest = max(self._latest, iteration)
+            self._committed.add(iteration)
+            spent = self._spent == self.budget_total and not self._reserved and not self.finalized
+        if spent and self.finalize_when_spent:
+            try:
+                self.finalize()
+            except RequestError:  # another request finalized it meanwhile
+                pass
+            except Exception:  # noqa: BLE001 - the submission stands; `codearcade serve --finalize` ends the run
+                traceback.print_exc()
+        return {**result, "budget": self.budget()}
+
+    def _workspace_file(self, path: Any) -> str:
+        """The text of a policy file inside the workspace (the server's ``--workspace``), read within bounds."""
+        if self.workspace is None:
+            raise RequestError("path: this server has no workspace (give the policy's text)")
+        if not isinstance(path, str) or not path or "\0" in path:
+            raise RequestError("path: a file name relative to the workspace")
+        target = (self.workspace / path).resolve()
+        if not target.is_relative_to(self.workspace) or not target.is_file():
+            raise RequestError(f"path: no file {path!r} in the workspace")
+        with open(target, "rb") as f:
+            data = f.read(MAX_POLICY_CHARS * 4 + 1)
+        if len(data) > MAX_POLICY_CHARS * 4:
+            raise RequestError(f"path: the file is larger than {MAX_POLICY_CHARS:,} characters")
+        try:
+            return data.decode("utf-8")
+        except UnicodeDecodeError:
+            raise RequestError("path: the file is not UTF-8 text") from None
+
+    def _play(self, iteration: int, info, text: str, instances: list[int], parent: int) -> dict[str, Any]:
+        s, started, t0 = self.serve, utcnow(), time.monotonic()
+        with self.store.read() as con:
+            parent_row = con.execute("SELECT policy_version_id FROM candidates WHERE run_id = ? AND iteration = ?",
+                                     [self.run_id, parent]).fetchone()
+        specs = [EpisodeSpec(episode_id=episode_id(self.run_id, iteration, "train", i), run_id=self.run_id,
+                             game=self.game.name, policy_text=text, policy_version_id=info.version_id,
+                             iteration=iteration, kind="train", index=i, seed=s["train_seeds"][i],
+                             max_steps=s["max_steps"], sticky=s["sticky"], noop_max=s["noop_max"], trace=True,
+                             call_time_limit_s=s["call_time_limit_s"],
+                             episode_time_limit_s=s["episode_time_limit_s"],
+                             observation=self.record["observation"],
+                             rng_key=self.record.get("rng_key"))
+                 for i in instances]
+        episodes: list[dict[str, Any]] = [{}] * len(specs)
+        with EpisodeWriter(self.store, replace=True) as writer:
+            for i, outcome in run_episodes(specs, workers=max(1, min(s["workers"], len(specs)))):
+                outcome = checked_outcome(specs[i], outcome)
+                writer.add(outcome.episode, outcome.steps, outcome.nodes)
+                episodes[i] = outcome.episode
+                if self.on_episode is not None:
+                    self.on_episode(outcome.episode)
+        score = score_episodes(episodes)
+        ranked = score.ranked
+        if ranked is not None and (self._best is None or (ranked, -iteration) > self._best):
+            self._best = (ranked, -iteration)
+        best_score, best_iteration = (self._best[0], -self._best[1]) if self._best else (None, 0)
+        train = episodes[0]
+        stage, _, feedback = compose_feedback(
+            "staged", FeedbackBands(**self.record["feedback_bands"]), ranked, train["return"], train["length"], [],
+            score.forfeit, score.partial if score.forfeit else None)
+        ids = [e["episode_id"] for e in episodes]
+        row = dict(run_id=self.run_id, iteration=iteration, candidate=0, strategy=KIND, parent_iteration=parent,
+                   parent_candidate=0, parent_version_id=parent_row[0], proposed_version_id=info.version_id,
+                   policy_version_id=info.version_id, update_status="accepted", evaluation="played",
+                   train_episode_id=ids[0], eval_episode_ids=ids, train_return=train["return"], score=ranked,
+                   standard_score=ranked, forfeit=score.forfeit,
+                   forfeit_score=score.partial if score.forfeit else None,
+                   score_low=score.low if ranked is not None else None,
+                   score_high=score.high if ranked is not None else None,
+                   decision="best" if best_iteration == iteration else "kept", feedback=feedback)
+        with self.store.write() as con:
+            best_version = con.execute("SELECT policy_version_id FROM candidates WHERE run_id = ? AND iteration = ?",
+                                       [self.run_id, best_iteration]).fetchone()
+            insert_policy_version(con, policy_version_row(info, self.run_id, iteration, PRODUCED_BY, "accepted",
+                                                          parent_id=parent_row[0]))
+            insert_candidate(con, row)
+            insert_feedback(con, dict(run_id=self.run_id, iteration=iteration, mode="staged", stage=stage,
+                                      score=ranked if ranked is not None else score.partial, text=feedback))
+            insert_iteration(con, dict(
+                run_id=self.run_id, iteration=iteration, candidate=0, policy_version_id=info.version_id,
+                base_version_id=parent_row[0], update_status="accepted", rolled_back=False,
+                train_episode_id=ids[0], eval_episode_ids=ids, train_return=train["return"], score=ranked,
+                best_score=best_score, best_version_id=best_version[0] if best_version else info.version_id,
+                best_iteration=best_iteration, started_at=started, finished_at=utcnow(), llm_s=0.0,
+                train_s=time.monotonic() - t0, eval_s=time.monotonic() - t0, wall_s=time.monotonic() - t0))
+        return {"submission": iteration, "parent": parent, "version": info.version_id[:12],
+                **_summary(row, submission_view(episodes)), "feedback": feedback}
+
+    # ------------------------------------------------------------------------------------------- finalize
+
+    def finalize(self, progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+        """Play every accepted submission on the validation pool and the best by validation (with the starter)
+        on the held-out pool, store both (``audits``) and finish the run. What it returns names no seed and
+        no score of either pool: the agent learns only that the run is finalized."""
+        with self._lock:
+            if self._reserved:
+                raise RequestError(f"{self._reserved} episodes are still playing; finalize when they end")
+            if self.finalized:
+                raise RequestError("the run is finalized already")
+            self.finalized = True
+        try:
+            with self._work:
+                rows = finalize_run(self.store, self.run_id, self.record, progress)
+        except BaseException:
+            with self._lock:
+                self.finalized = False
+            raise
+        return {"finalized": True, "submissions_validated": sum(r["protocol"] == "validation" for r in rows),
+                "note": "the validation and held-out results are sealed: the person who runs the server reads them "
+                        "with `codearcade runs`, `report` and `audit`"}
+
+
+def trace_slice(steps: list[dict[str, Any]], nodes: list[dict[str, Any]], game_has_lives: bool,
+                limit: int) -> tuple[list[tuple[int, str]], list[dict[str, Any]]]:
+    """The prompt's choice of steps (``pipeline/optimizer/prompt.py``): the rollout's events and, in step order, the
+    ``limit`` steps a prompt shows first (the steps before each lost point or life and a policy failure, then the
+    first steps, then the rest spread), each as its observation, calls and outcome lines, as #Inputs, #Others and
+    #Outputs write them."""
+    nodes_by_step: dict[int, list[dict[str, Any]]] = {}
+    for node in nodes:
+        nodes_by_step.setdefault(node["step"], []).append(node)
+    events = _events(steps, game_has_lives)
+    chosen = sorted(_priority(steps, events)[:max(0, limit)])
+    return events, [{"step": steps[i]["step"], "observation": _obs_line(steps[i]),
+                     "calls": _calls_line(steps[i], nodes_by_step), "outcome": _out_line(steps[i])} for i in chosen]
+
+
+def submission_view(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Episode rows as an agent sees them: instance, return, length, lives lost, end, error (no seed)."""
+    return [{"instance": e["episode_index"] if "episode_index" in e else e["instance"], "return": e["return"],
+             "length": e["length"], "lives_lost": e["lives_lost"], "end_reason": e["end_reason"],
+             "error": e.get("error")} for e in episodes]
+
+
+def _summary(sub: dict[str, Any], episodes: list[dict[str, Any]]) -> dict[str, Any]:
+    return {"submission": sub["iteration"], "score": sub["score"],
+            "interval": None if sub["score_low"] is None else [round(sub["score_low"], 3), round(sub["score_high"], 3)],
+            "forfeit": sub["forfeit"], "episodes": submission_view(episodes)}
+
+
+def finalize_run(store: Store, run_id: str, record: dict[str, Any],
+                 progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
+    """The end of a served run (see the module docstring): the ``audits`` rows it wrote."""
+    s = record["serve"]
+    with store.read() as con:
+        subs = [x for x in served_submissions(con, run_id) if x["update_status"] == "accepted"]
+        starter_id = con.execute("SELECT starter_version_id FROM runs WHERE run_id = ?", [run_id]).fetchone()[0]
+        texts = {x["policy_version_id"]: policy_text(con, run_id, x["policy_version_id"]) for x in subs}
+        texts[starter_id] = policy_text(con, run_id, starter_id)
+    n_val, n_held = s["validation_episodes"], s["heldout_episodes"]
+    seeds = draw_audit_seeds(n_val + n_held)  # one draw: the two pools are disjoint
+    validation, heldout = seeds[:n_val], seeds[n_val:]
+    first = {}  # a version submitted twice plays once, as its first submission
+    for x in subs:
+        first.setdefault(x["policy_version_id"], x)
+
+    def spec(version: str, iteration: int, kind: str, tag: str, i: int, seed: int) -> EpisodeSpec:
+        return EpisodeSpec(episode_id=episode_id(run_id, iteration, tag, i), run_id=run_id, game=record["game"],
+                           policy_text=texts[version], policy_version_id=version, iteration=iteration, kind=kind,
+                           index=i, seed=seed, max_steps=s["max_steps"], sticky=s["sticky"], noop_max=s["noop_max"],
+                           call_time_limit_s=s["call_time_limit_s"], episode_time_limit_s=s["episode_time_limit_s"],
+                           observation=record["observation"], rng_key=record.get("rng_key"))
+
+    val_specs = [spec(v, x["iteration"], "validation", "validation", i, seed)
+                 for v, x in first.items() for i, seed in enumerate(validation)]
+    val_scores = _play_scored(store, val_specs, progress)
+    rows = []
+    for v, x in first.items():
+        score, ids = val_scores[v]
+        rows.append(_audit_row(f"submission {x['iteration']}", "validation", v, x["iteration"], validation, ids,
+                               score, x["score"]))
+    ranked = [(val_scores[v][0].ranked, -x["iteration"], v) for v, x in first.items()
+              if val_scores[v][0].ranked is not None]
+    if ranked:
+        _, neg_it, best = max(ranked)
+        subjects = {"best": (best, -neg_it, first[best]["score"]), "starter": (starter_id, 0, None)}
+        held_specs = [spec(v, it, "audit", "audit-standard" if role == "best" else "audit-starter", i, seed)
+                      for role, (v, it, _) in subjects.items() for i, seed in enumerate(heldout)]
+        if best == starter_id:
+            held_specs = held_specs[:n_held]
+        held_scores = _play_scored(store, held_specs, progress)
+        for role, (v, it, tuning) in subjects.items():
+            score, ids = held_scores[v]
+            rows.append(_audit_row(role, "standard", v, it, heldout, ids, score, tuning))
+        best_row, starter_row = rows[-2], rows[-1]
+        best_row["overfit"] = overfit(best_row["tuning_score"], starter_row["tuning_score"], best_row["score"],
+                                      starter_row["score"])
+    with store.write() as con:
+        replace_audits(con, run_id, rows)
+        finish_run(con, run_id, "finished")
+    return rows
+
+
+def _play_scored(store: Store, specs: list[EpisodeSpec], progress) -> dict[str, tuple[Any, list[str]]]:
+    """Play ``specs`` (untraced), store them, and score each version's episodes by the one rule."""
+    by_version: dict[str, list[dict[str, Any]]] = {}
+    with EpisodeWriter(store, replace=True) as writer:
+        for i, outcome in run_episodes(specs, workers=1, progress=progress):
+            outcome = checked_outcome(specs[i], outcome)
+            writer.add(outcome.episode, outcome.steps, outcome.nodes)
+            by_version.setdefault(specs[i].policy_version_id, []).append(outcome.episode)
+    return {v: (score_episodes(eps), [e["episode_id"] for e in sorted(eps, key=lambda e: e["episode_id"])])
+            for v, eps in by_version.items()}
+
+
+def _audit_row(role: str, protocol: str, version: str, iteration: int, seeds: list[int], episode_ids: list[str],
+               score, tuning: float | None) -> dict[str, Any]:
+    ranked = score.ranked
+    return dict(role=role, protocol=protocol, policy_version_id=version, iteration=iteration, seeds=list(seeds),
+                episode_ids=episode_ids, score=ranked, score_low=score.low if ranked is not None else None,
+                score_high=score.high if ranked is not None else None, forfeit=score.forfeit, tuning_score=tuning,
+                overfit=None)

@@ -1,0 +1,72 @@
+"""``codearcade serve``'s MCP transport: the protocol's operations as MCP tools, with the official SDK (``mcp``).
+
+The tools are the HTTP operations (``http.py``) under the same names and arguments: ``task``, ``submit``,
+``feedback``, ``budget``, ``sql``, ``finalize``. Each returns the operation's JSON object as structured content;
+a refused request (it costs nothing) is a tool error whose text says why. Operations run in a worker thread, so
+a submission that plays for a while does not stall the transport. Transports: stdio (what Claude Code and Codex
+CLI start: ``codearcade serve --mcp``) and streamable HTTP on 127.0.0.1 (``--mcp-port``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import anyio
+from mcp.server.mcpserver import MCPServer
+from mcp.server.mcpserver.exceptions import ToolError
+
+from pipeline.serve.protocol import RequestError, ServeRun
+
+INSTRUCTIONS = """A rollout server for one codearcade run. Call `task` first: it gives the game, the starting policy \
+(a Python class whose trainable methods you improve), the budget and the rules. `submit` a whole policy file (its \
+text, or `path`: a file of your workspace) with the training instances to play it on; every episode costs one of \
+the budget. `feedback` shows a submission's episodes, errors and the steps that mattered; `sql` queries your own \
+training play (tables submissions, episodes, steps, nodes). The run is scored at the end on hidden games."""
+
+
+def build_server(run: ServeRun) -> MCPServer:
+    """The MCP server of ``run``: one tool per operation."""
+    server = MCPServer("codearcade", instructions=INSTRUCTIONS, log_level="WARNING")
+
+    async def call(operation: str, **arguments: Any) -> dict[str, Any]:
+        arguments = {k: v for k, v in arguments.items() if v is not None}
+        try:
+            return await anyio.to_thread.run_sync(lambda: getattr(run, operation)(**arguments))
+        except RequestError as exc:
+            raise ToolError(str(exc)) from None
+
+    @server.tool()
+    async def task() -> dict[str, Any]:
+        """The game's facts, the starting policy and its trainable methods, the budget and the rules."""
+        return await call("task")
+
+    @server.tool()
+    async def submit(instances: list[int], policy: str | None = None, path: str | None = None,
+                     parent: int | None = None) -> dict[str, Any]:
+        """Play a whole policy file (``policy``: its text, or ``path``: a file of the workspace) on the training
+        instances ``instances`` (ids); ``parent``: the submission it improves (default: the newest). Each
+        episode costs one of the budget. Returns the episodes' returns, ends and errors, and the score."""
+        return await call("submit", policy=policy, instances=instances, parent=parent, path=path)
+
+    @server.tool()
+    async def feedback(submission: int, instance: int | None = None, steps: int = 40) -> dict[str, Any]:
+        """A submission's summary, its feedback text, and ``steps`` steps of one of its episodes (``instance``;
+        default the first) with every call of a trainable method, the steps before lost points first."""
+        return await call("feedback", submission=submission, instance=instance, steps=steps)
+
+    @server.tool()
+    async def budget() -> dict[str, Any]:
+        """The episode budget: total, spent, playing now, remaining."""
+        return await call("budget")
+
+    @server.tool()
+    async def sql(query: str) -> dict[str, Any]:
+        """Read-only SQL (DuckDB) over your own training play: tables submissions, episodes, steps, nodes."""
+        return await call("sql", query=query)
+
+    @server.tool()
+    async def finalize() -> dict[str, Any]:
+        """End the run: every submission is scored on the hidden validation games, the best on held-out ones."""
+        return await call("finalize")
+
+    return server

@@ -1,0 +1,81 @@
+"""What ``codearcade serve`` reads from the store: a served run's submissions and spent budget, and the visible part
+of the run that the agent's read-only SQL may query.
+
+The visible part is copied into a private in-memory database (:func:`visible_query`) that holds nothing else: the
+agent's SQL cannot reach another run, the run's config (its training seeds), any ``seed`` column, or the
+validation and held-out episodes and scores (episode kinds other than ``train`` are left out), and it runs with
+external access off, so it can read no file either.
+"""
+
+from __future__ import annotations
+
+import threading
+import warnings
+from typing import Any
+
+import duckdb
+
+from store.readers import _rows
+
+_COMMITTED = """(SELECT unnest(eval_episode_ids) FROM candidates WHERE run_id = $run AND iteration >= 1)"""
+"""The training episodes of committed submissions (a killed server may leave a submission's episodes without one)."""
+
+VISIBLE_TABLES = {
+    "submissions": """SELECT c.iteration AS submission, c.policy_version_id, c.parent_iteration AS parent,
+                             c.update_status, len(c.eval_episode_ids) AS episodes, c.score, c.score_low,
+                             c.score_high, c.forfeit, c.created_at
+                      FROM candidates c WHERE c.run_id = $run AND c.iteration >= 1""",
+    "episodes": """SELECT episode_id, iteration AS submission, episode_index AS instance, policy_version_id,
+                          "return", length, lives_lost, end_reason, error, max_steps
+                   FROM episodes WHERE run_id = $run AND kind = 'train' AND episode_id IN """ + _COMMITTED,
+    "steps": """SELECT s.episode_id, s.step, s.action, s.reward, s.score, s.terminated, s.truncated, s.lives,
+                       s.player_x, s.player_y, s.ball_x, s.ball_y, s.objects
+                FROM steps s WHERE s.episode_id IN """ + _COMMITTED,
+    "nodes": """SELECT n.episode_id, n.step, n.call_index, n.function, n.trainable, n.policy_version_id,
+                       n.inputs, n.output, n.exc_type, n.exc_message, n.exc_line, n.duration_us, n.parents
+                FROM nodes n WHERE n.episode_id IN """ + _COMMITTED,
+}
+"""The tables the agent's SQL sees, each a slice of its own run's training play (no seed, no other kind)."""
+
+
+def served_submissions(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict[str, Any]]:
+    """The committed submissions of a served run (iteration >= 1), in order: version, parent, episodes, score,
+    interval, forfeit, training episodes' ids."""
+    return _rows(con.execute(
+        """SELECT iteration, policy_version_id, parent_iteration, parent_version_id, update_status, eval_episode_ids,
+                  score, score_low, score_high, forfeit, train_return
+           FROM candidates WHERE run_id = ? AND iteration >= 1 ORDER BY iteration""", [run_id]))
+
+
+def submission_episodes(con: duckdb.DuckDBPyConnection, episode_ids: list[str]) -> list[dict[str, Any]]:
+    """The visible summary of training episodes (never their seed), in the order given."""
+    rows = {r["episode_id"]: r for r in _rows(con.execute(
+        """SELECT episode_id, episode_index AS instance, "return", length, lives_lost, end_reason, error
+           FROM episodes WHERE list_contains(?, episode_id)""", [list(episode_ids)]))}
+    return [rows[e] for e in episode_ids if e in rows]
+
+
+def visible_query(con: duckdb.DuckDBPyConnection, run_id: str, sql: str, max_rows: int,
+                  time_limit_s: float = 10.0) -> dict[str, Any]:
+    """Run the agent's ``sql`` over the visible part of ``run_id`` (see the module docstring): its columns and at
+    most ``max_rows`` rows (``truncated`` says whether there were more). A query that fails, or runs past
+    ``time_limit_s`` (interrupted), raises ``duckdb.Error`` with DuckDB's message."""
+    mem = duckdb.connect(":memory:", config={"memory_limit": "512MB", "threads": 1, "enable_external_access": False,
+                                             "lock_configuration": True})
+    timer = threading.Timer(time_limit_s, mem.interrupt)  # a query of the agent's may be endless: range(1e15)
+    try:
+        for name, query in VISIBLE_TABLES.items():
+            with warnings.catch_warnings():  # the copy it warns of is the point: the agent's database is its own
+                warnings.simplefilter("ignore", UserWarning)
+                table = con.execute(query, {"run": run_id}).to_arrow_table()
+            mem.register(f"_{name}", table)
+            mem.execute(f"CREATE TABLE {name} AS SELECT * FROM _{name}")
+            mem.unregister(f"_{name}")
+        timer.start()
+        cursor = mem.execute(sql)
+        columns = [d[0] for d in cursor.description or ()]
+        rows = cursor.fetchmany(max_rows + 1)
+        return {"columns": columns, "rows": [list(r) for r in rows[:max_rows]], "truncated": len(rows) > max_rows}
+    finally:
+        timer.cancel()
+        mem.close()

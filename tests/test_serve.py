@@ -1,0 +1,277 @@
+"""``codearcade serve`` through its real protocol: a server process on 127.0.0.1 spoken to over plain HTTP+JSON, and
+the scripted agent of ``examples/serve_agent.py`` over MCP (stdio, the official SDK's client), end to end.
+
+What must hold: the budget is exact under concurrent submissions (a refused or malformed request costs nothing);
+no training, validation or held-out seed appears in any response of a whole run; a submission that attacks is
+contained as in ``eval`` and ``optimize`` (the same boundary) and the server goes on; a killed server's run
+resumes with its budget as its committed submissions spent; the scripted agent improves the Pong starter, and its
+run reads in ``runs``, ``report``, ``audit``, ``blame`` and ``view``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+from store import Store
+from tests.conftest import ROOT, pong_policy
+from tests.faults.test_boundary import ESCAPE
+
+pytestmark = pytest.mark.slow
+
+ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "LITELLM_LOCAL_MODEL_COST_MAP": "True"}
+HTTP_LINE = re.compile(r"HTTP\+JSON on http://127\.0\.0\.1:(\d+)/")
+
+
+class Server:
+    """``codearcade serve`` in a process of its own, its stderr collected by a thread (so it never blocks)."""
+
+    def __init__(self, store: Path, *args: str):
+        self.proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--port", "0", "--store",
+                                      str(store), *args], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE, text=True)
+        self.lines: list[str] = []
+        self.responses: list[str] = []
+        port = None
+        for line in self.proc.stderr:
+            self.lines.append(line)
+            found = HTTP_LINE.search(line)
+            if found:
+                port = int(found.group(1))
+                break
+        assert port is not None, "".join(self.lines)
+        self.url = f"http://127.0.0.1:{port}"
+        threading.Thread(target=lambda: self.lines.extend(self.proc.stderr), daemon=True).start()
+
+    def post(self, operation: str, body: bytes | dict | None = None) -> tuple[int, dict]:
+        data = body if isinstance(body, bytes) else json.dumps(body or {}).encode()
+        request = urllib.request.Request(f"{self.url}/{operation}", data=data, method="POST",
+                                         headers={"Content-Type": "application/json"})
+        try:
+            with urllib.request.urlopen(request, timeout=600) as answer:
+                text, status = answer.read().decode(), answer.status
+        except urllib.error.HTTPError as err:
+            text, status = err.read().decode(), err.code
+        self.responses.append(text)
+        return status, json.loads(text)
+
+    def stop(self, sig: int = signal.SIGINT) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            self.proc.wait(timeout=120)
+
+
+@pytest.fixture
+def servers():
+    started: list[Server] = []
+    yield started
+    for server in started:
+        server.stop(signal.SIGKILL)
+
+
+def _run_id(store: Path) -> str:
+    return Store(store).query("SELECT run_id FROM runs ORDER BY created_at DESC LIMIT 1")[0][0]
+
+
+def _seeds(store: Path, run_id: str) -> set[int]:
+    """Every seed of the run: its training instances (config), its episodes', its validation and held-out pools."""
+    s = Store(store)
+    config = json.loads(s.query("SELECT config FROM runs WHERE run_id = ?", [run_id])[0][0])
+    seeds = set(config["serve"]["train_seeds"])
+    seeds |= {r[0] for r in s.query("SELECT DISTINCT seed FROM episodes WHERE run_id = ?", [run_id])}
+    seeds |= {seed for r in s.query("SELECT seeds FROM audits WHERE run_id = ?", [run_id]) for seed in r[0]}
+    return seeds
+
+
+def _leaks(texts: list[str], seeds: set[int]) -> list[tuple[int, str]]:
+    """Each seed written as a whole number in a response (not inside a longer number or a decimal's digits)."""
+    return [(seed, text[:200]) for seed in seeds for text in texts
+            if re.search(rf"(?<![\d.]){seed}(?![\d.])", text)]
+
+
+def test_a_whole_run_over_http_spends_its_budget_exactly_and_shows_no_seed(tmp_path, servers):
+    store = tmp_path / "s.duckdb"
+    server = Server(store, "--game", "pong", "--budget", "6", "--instances", "8", "--per-submission", "2",
+                    "--max-steps", "120", "--validation-episodes", "2", "--heldout-episodes", "2")
+    servers.append(server)
+    status, task = server.post("task")
+    assert status == 200 and task["budget"]["remaining"] == 6 and task["instances"] == 8
+    starter = task["starter_policy"]
+    # a sweep of malformed requests, sent concurrently with eight one-episode submissions: only six can play
+    malformed = [b"{not json", {"instances": [0]}, {"policy": starter}, {"policy": starter, "instances": []},
+                 {"policy": starter, "instances": [8]}, {"policy": starter, "instances": [-1]},
+                 {"policy": starter, "instances": [1, 1]}, {"policy": starter, "instances": [0, 1, 2]},
+                 {"policy": starter, "instances": ["0"]}, {"policy": starter, "instances": [True]},
+                 {"policy": "def broken(:\n", "instances": [0]}, {"policy": "x = 1\n", "instances": [0]},
+                 {"policy": starter, "instances": [0], "parent": 99}, {"policy": starter, "instances": [0], "x": 1},
+                 {"policy": starter, "path": "policy.py", "instances": [0]}]
+    results: list[tuple[str, int, dict]] = []
+
+    def send(kind: str, operation: str, body) -> None:
+        status, answer = server.post(operation, body)
+        results.append((kind, status, answer))
+
+    threads = [threading.Thread(target=send, args=("submit", "submit", {"policy": starter, "instances": [i]}))
+               for i in range(8)]
+    threads += [threading.Thread(target=send, args=("malformed", "submit", body)) for body in malformed]
+    threads += [threading.Thread(target=send, args=("malformed", "nonsense", {}))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    played = [a for kind, status, a in results if kind == "submit" and status == 200]
+    refused = [a for kind, status, a in results if kind == "submit" and status != 200]
+    assert len(played) == 6, results
+    assert all("budget" in a["error"] for a in refused) and len(refused) == 2
+    assert all(status in (400, 404) for kind, status, _ in results if kind == "malformed"), results
+    assert sorted(a["submission"] for a in played) == [1, 2, 3, 4, 5, 6]
+    status, budget = server.post("budget")
+    assert budget == {"budget": 6, "spent": 6, "in_play": 0, "remaining": 0, "finalized": True}
+    s = Store(store)
+    run_id = _run_id(store)
+    assert s.query("SELECT count(*) FROM episodes WHERE run_id = ? AND kind = 'train'", [run_id])[0][0] == 6
+    assert s.query("SELECT kind, status FROM runs WHERE run_id = ?", [run_id])[0] == ("serve", "finished")
+    roles = {r[0]: r[1] for r in s.query("SELECT role, protocol FROM audits WHERE run_id = ?", [run_id])}
+    assert roles["best"] == "standard" and sum(p == "validation" for p in roles.values()) == 1  # one version
+    # every other read the agent has, each over every submission
+    for n in range(1, 7):
+        status, feedback = server.post("feedback", {"submission": n, "steps": 200})
+        assert status == 200 and feedback["trace"]["steps"], feedback
+    for query in ["SELECT * FROM episodes", "SELECT * FROM submissions", "SELECT * FROM steps LIMIT 400",
+                  "SELECT * FROM nodes LIMIT 400", "SELECT seed FROM episodes", "SELECT * FROM runs",
+                  "SELECT * FROM audits", "SELECT * FROM read_parquet('/etc/passwd')",
+                  f"ATTACH '{store}' AS other", "SELECT count(*) FROM range(1000000000000)"]:
+        server.post("sql", {"query": query})
+    status, rows = server.post("sql", {"query": "SELECT count(*), min(submission) FROM episodes"})
+    assert rows.get("rows") == [[6, 1]], rows  # only this run's training episodes
+    status, again = server.post("submit", {"policy": starter, "instances": [7]})
+    assert status == 400 and "finalized" in again["error"]
+    status, final = server.post("finalize")
+    assert status == 400
+    seeds = _seeds(store, run_id)
+    assert len(seeds) == 8 + 2 + 2
+    assert _leaks(server.responses, seeds) == []
+
+
+ATTACK = ESCAPE + """
+try:
+    os.system('touch {a}')
+except Exception:
+    pass
+try:
+    if os.fork() == 0:
+        fd = os.open('{b}', os.O_WRONLY | os.O_CREAT, 0o644)
+        os._exit(0)
+except Exception:
+    pass
+mods['builtins'].open('{c}', 'w').write('x')
+return 0
+"""
+
+
+def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, servers):
+    store = tmp_path / "s.duckdb"
+    sentinels = [tmp_path / f"escaped-{i}" for i in range(3)]
+    server = Server(store, "--game", "pong", "--budget", "5", "--max-steps", "60", "--call-time-limit", "2")
+    servers.append(server)
+    attack = pong_policy(ATTACK.format(a=sentinels[0], b=sentinels[1], c=sentinels[2]))
+    # caught by the source checks before anything plays: refused, and it costs nothing
+    status, answer = server.post("submit", {"policy": pong_policy(f"open('{sentinels[2]}', 'w')\nreturn 0"),
+                                            "instances": [0]})
+    assert status == 400 and "open" in answer["error"]
+    assert server.post("budget")[1]["spent"] == 0
+    status, answer = server.post("submit", {"policy": attack, "instances": [0, 1]})
+    assert status == 200, answer
+    assert all(e["end_reason"] == "policy_error" for e in answer["episodes"]), answer
+    assert answer["score"] is None and answer["forfeit"]  # a forfeit: never ranked
+    assert answer["budget"]["spent"] == 2  # failures cost their episodes
+    loop = pong_policy("while True:\n    pass")
+    status, answer = server.post("submit", {"policy": loop, "instances": [2]})
+    assert status == 200 and answer["episodes"][0]["end_reason"] == "timeout"
+    status, task = server.post("task")
+    status, answer = server.post("submit", {"policy": task["starter_policy"], "instances": [3]})
+    assert status == 200 and answer["episodes"][0]["end_reason"] == "truncated"
+    assert [p.exists() for p in sentinels] == [False, False, False]
+    status, feedback = server.post("feedback", {"submission": 1})
+    assert feedback["forfeit"] and feedback["trace"]["steps"][-1]["outcome"].endswith("(the policy failed)")
+
+
+def test_a_killed_server_resumes_its_run_with_the_budget_intact(tmp_path, servers):
+    store = tmp_path / "s.duckdb"
+    first = Server(store, "--game", "pong", "--budget", "6", "--max-steps", "100", "--validation-episodes", "1",
+                   "--heldout-episodes", "1")
+    servers.append(first)
+    status, task = first.post("task")
+    assert first.post("submit", {"policy": task["starter_policy"], "instances": [0, 1]})[0] == 200
+    # a submission in flight when the server is killed: whether it committed or not, the budget must agree
+    threading.Thread(target=lambda: first.post("submit", {"policy": task["starter_policy"], "instances": [2, 3]}),
+                     daemon=True).start()
+    first.stop(signal.SIGKILL)
+    run_id = _run_id(store)
+    committed = Store(store).query("SELECT coalesce(sum(len(eval_episode_ids)), 0) FROM candidates WHERE run_id = ? "
+                                   "AND iteration >= 1", [run_id])[0][0]
+    assert committed in (2, 4)
+    # another run on the same store meanwhile: many agents may serve different runs of one store at once
+    other = Server(store, "--game", "pong", "--budget", "1", "--max-steps", "50", "--validation-episodes", "1",
+                   "--heldout-episodes", "1")
+    servers.append(other)
+    second = Server(store, "--resume", run_id)
+    servers.append(second)
+    status, budget = second.post("budget")
+    assert budget["spent"] == committed and budget["remaining"] == 6 - committed
+    status, mine = second.post("sql", {"query": "SELECT count(*) FROM episodes"})
+    assert mine["rows"] == [[committed]]  # a killed submission's episodes are not the agent's
+    statuses = [other.post("submit", {"policy": task["starter_policy"], "instances": [0]})[0]]
+    while (left := second.post("budget")[1]["remaining"]) > 0:
+        status, answer = second.post("submit", {"policy": task["starter_policy"], "instances": list(range(min(2, left)))})
+        assert status == 200, answer
+    assert statuses == [200]
+    s = Store(store)
+    assert s.query("SELECT coalesce(sum(len(eval_episode_ids)), 0) FROM candidates WHERE run_id = ? AND "
+                   "iteration >= 1", [run_id])[0][0] == 6
+    assert s.query("SELECT status FROM runs WHERE run_id = ?", [run_id])[0][0] == "finished"
+    iterations = [r[0] for r in s.query("SELECT iteration FROM iterations WHERE run_id = ? ORDER BY 1", [run_id])]
+    assert iterations == sorted(set(iterations)) and iterations[0] == 0
+
+
+def test_the_scripted_agent_improves_the_pong_starter_over_mcp(tmp_path, capsys):
+    store = tmp_path / "agent.duckdb"
+    done = subprocess.run([sys.executable, "examples/serve_agent.py", "--store", str(store), "--", "--budget", "16",
+                           "--per-submission", "4", "--max-steps", "600", "--validation-episodes", "2",
+                           "--heldout-episodes", "3"], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    run_id = done.stdout.strip().splitlines()[-1].split()[-1]
+    s = Store(store)
+    scores = dict(s.query("SELECT iteration, score FROM candidates WHERE run_id = ? AND iteration >= 1", [run_id]))
+    assert len(scores) == 4 and max(scores.values()) > scores[1] + 5  # submission 1 is the starter
+    audits = {r[0]: r[1] for r in s.query("SELECT role, score FROM audits WHERE run_id = ? AND protocol = 'standard'",
+                                          [run_id])}
+    assert audits["best"] > audits["starter"] + 5  # held out: tracking against a random paddle
+    lineage = s.query("SELECT iteration, parent_id FROM policy_versions WHERE run_id = ? AND produced_by = 'agent' "
+                      "ORDER BY iteration", [run_id])
+    assert all(parent is not None for _, parent in lineage)
+    # it reads like an optimize run
+    assert main(["runs", "--store", str(store), "--json"]) == 0
+    runs = json.loads(capsys.readouterr().out)
+    assert runs[0]["kind"] == "serve" and runs[0]["audit_score"] == audits["best"]
+    assert main(["audit", "last", "--store", str(store)]) == 0
+    said = capsys.readouterr().out
+    assert "<- best by validation" in said and "held-out    best (submission" in said
+    assert main(["blame", "last", "--store", str(store)]) == 0
+    assert "def select_action" in capsys.readouterr().out
+    assert main(["report", "last", "--store", str(store), "--out", str(tmp_path / "report")]) == 0
+    readme = (tmp_path / "report" / "README.md").read_text()
+    assert "serve run" in readme and "validation" in readme and "codearcade serve --game pong" in readme
+    assert main(["view", "last", "--store", str(store), "--save", str(tmp_path / "run.rrd")]) == 0
+    assert (tmp_path / "run.rrd").stat().st_size > 0
