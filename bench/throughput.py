@@ -2,22 +2,28 @@
 
 ``eval`` plays every episode with a game host (the environment, the score, the step log) and a confined policy
 process that sees observations only, one round trip per step (``pipeline/play/episodes.py``). Its scores need no
-replay to be trusted, so what is measured here is ``eval`` as users run it, every default on. Three tables:
+replay to be trusted, so what is measured here is ``eval`` as users run it, every default on, on every curated
+game (``games/`` registry). The headline is ``eval/stepping``: eval, all of it, against bare OCAtari's steps
+alone. Three tables:
 
 1. **Steady state.** For each game the starter policy (``games/scaffolds/``) plays with ``evaluate`` (every
    step written to a real DuckDB store), then again with ``--trace`` (a node per bundled call); OCAtari's own env
    class with its lean settings replays the very same action sequences (the baseline: no policy, no logging).
-   Both sides build their environment once, outside the timings. Targets: eval >= 0.85 x bare, --trace >= 0.70.
-   Bare OCAtari's seeded resets reload the ROM (0.12-0.2 s each); eval's restore the state the ROM was loaded
-   into (``games.envs.reload_from_snapshot``, a few ms). So the table also shows ``eval/stepping``: eval, all of
-   it, against bare OCAtari's steps alone, its resets left out.
+   Both sides build their environment once, outside the timings. Bare OCAtari's seeded resets reload the ROM
+   (0.12-0.2 s each); eval's restore the state the ROM was loaded into (``games.envs.reload_from_snapshot``, a
+   few ms), so the ratios against bare OCAtari's steps alone, its resets left out, are the headline:
+   targets eval/stepping >= 0.85, trace/stepping >= 0.70 (eval/bare and trace/bare, resets counted, beside).
 2. **The round trip.** A policy that returns 0 at once, played by a host with a policy process and, for
    reference, in the parent itself (``--workers 0``): the difference of the time the host waits per step is the
    cost of the process boundary (marshalled observation out, an 8-byte action back, two processes on one core);
    beside it, the observation's size on the wire.
 3. **End to end.** ``codearcade eval`` of the game's competent policy (``tests/policies/``), 4 whole games at the
    authors' cap, as a command (start-up, imports, the zygotes, the store: everything a user waits for), against a
-   Python process that imports OCAtari and replays the same actions.
+   Python process that imports OCAtari and replays the same actions, its start-up counted and its seeded resets
+   not (target >= 0.85).
+
+A ratio that could not be measured (no steps played, a game left out) makes the run exit 1; a target missed is
+printed (``BELOW TARGET``), not failed: how fast the shared cores are at the time is no fault of the code.
 
 The configurations are measured in rotating order, several times; each one's best time counts (noise from other
 tenants of the cores only ever adds time), and the median of the per-repeat ratios is shown beside.
@@ -33,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import marshal
+import math
 import os
 import statistics
 import subprocess
@@ -50,7 +57,7 @@ from games import GAMES, get_game  # noqa: E402
 from pipeline.play.evaluate import EvalConfig, evaluate  # noqa: E402
 from store import Store  # noqa: E402
 
-TARGETS = {"eval": 0.85, "eval --trace": 0.70}
+TARGETS = {"eval": 0.85, "eval --trace": 0.70, "end to end": 0.85}
 END_TO_END_EPISODES = 4
 
 
@@ -109,10 +116,12 @@ def timed_eval(policy: Path, store: Store, episodes: int, trace: bool, workers: 
     return time.perf_counter() - start, result.run_id
 
 
-def steady_state(games: list[str], store: Store, episodes: int, repeats: int) -> list[str]:
-    print(f"{'game':<15} {'steps':>6} {'bare OCAtari':>13} {'eval':>13} {'eval --trace':>13} "
-          f"{'eval/bare':>10} {'trace/bare':>11} {'eval/stepping':>14}   (median of paired ratios)")
-    failures = []
+def steady_state(games: list[str], store: Store, episodes: int, repeats: int) -> tuple[list[str], list[str]]:
+    """The steady-state table; the targets missed and the ratios that could not be measured."""
+    print(f"{'game':<15} {'steps':>6} {'bare stepping':>14} {'eval':>13} {'eval --trace':>13} "
+          f"{'eval/stepping':>14} {'trace/stepping':>15} {'eval/bare':>10} {'trace/bare':>11}   "
+          "(median of paired ratios)")
+    failures, absent = [], []
     for game in games:
         policy = ROOT / "games" / "scaffolds" / f"{game}.py"
         # The paper's protocol is deterministic: every repeat plays these very actions.
@@ -140,22 +149,26 @@ def steady_state(games: list[str], store: Store, episodes: int, repeats: int) ->
             order = order[1:] + order[:1]  # rotate, so that no configuration always runs first
         best = {name: min(times) for name, times in seconds.items()}
         ratios = {name: best["bare"] / best[name] for name in ("eval", "trace")}
-        ratios["stepping"] = min(stepping) / best["eval"]
+        ratios.update({f"{name}/stepping": min(stepping) / best[name] for name in ("eval", "trace")})
         paired = {name: statistics.median(b / x for b, x in zip(seconds["bare"], seconds[name]))
                   for name in ("eval", "trace")}
-        paired["stepping"] = statistics.median(b / x for b, x in zip(stepping, seconds["eval"]))
-        print(f"{game:<15} {steps:>6} {steps / best['bare']:>9.0f} st/s {steps / best['eval']:>9.0f} st/s "
-              f"{steps / best['trace']:>9.0f} st/s {ratios['eval']:>10.2f} {ratios['trace']:>11.2f} "
-              f"{ratios['stepping']:>14.2f}   ({paired['eval']:.2f}, {paired['trace']:.2f}, "
-              f"{paired['stepping']:.2f})", flush=True)
-        for name, label in (("eval", "eval"), ("trace", "eval --trace")):
-            if ratios[name] < TARGETS[label]:
-                failures.append(f"{game}: {label} ratio {ratios[name]:.2f} below target {TARGETS[label]}")
-    print(f"targets: eval/bare >= {TARGETS['eval']}, trace/bare >= {TARGETS['eval --trace']} (best of {repeats} "
-          f"repeats each, interleaved; {episodes} episodes per measurement)")
-    print("eval/stepping: eval against bare OCAtari's steps alone, its resets left out (ALE reloads the ROM in "
-          "each seeded reset, 0.12-0.2 s; eval's restore the loaded state, a few ms)")
-    return failures
+        paired.update({f"{name}/stepping": statistics.median(b / x for b, x in zip(stepping, seconds[name]))
+                       for name in ("eval", "trace")})
+        print(f"{game:<15} {steps:>6} {steps / min(stepping):>9.0f} st/s {steps / best['eval']:>8.0f} st/s "
+              f"{steps / best['trace']:>8.0f} st/s {ratios['eval/stepping']:>14.2f} "
+              f"{ratios['trace/stepping']:>15.2f} {ratios['eval']:>10.2f} {ratios['trace']:>11.2f}   "
+              f"({paired['eval/stepping']:.2f}, {paired['trace/stepping']:.2f}, {paired['eval']:.2f}, "
+              f"{paired['trace']:.2f})", flush=True)
+        for name, label in (("eval/stepping", "eval"), ("trace/stepping", "eval --trace")):
+            if not (steps and math.isfinite(ratios[name]) and ratios[name] > 0):
+                absent.append(f"{game}: no {name} ratio (steps {steps})")
+            elif ratios[name] < TARGETS[label]:
+                failures.append(f"{game}: {name} {ratios[name]:.2f} below target {TARGETS[label]}")
+    print(f"targets: eval/stepping >= {TARGETS['eval']}, trace/stepping >= {TARGETS['eval --trace']} (best of "
+          f"{repeats} repeats each, interleaved; {episodes} episodes per measurement)")
+    print("stepping: bare OCAtari's steps alone, its resets left out (ALE reloads the ROM in each seeded reset, "
+          "0.12-0.2 s; eval's restore the loaded state, a few ms); eval/bare and trace/bare count those resets")
+    return failures, absent
 
 
 IDLE_POLICY = """
@@ -210,14 +223,18 @@ import json, sys, time
 sys.path.insert(0, {root!r})
 from bench.throughput import BareOCAtari
 seeds, actions = json.load(open({path!r}))
-BareOCAtari({game!r}).play(actions, seeds)
+bare = BareOCAtari({game!r})
+bare.play(actions, seeds)
+print(bare.reset_s)
 """
 
 
-def end_to_end(games: list[str], store: Store, tmp: Path, repeats: int) -> None:
-    print(f"\n{'game':<15} {'steps':>6} {'bare process':>13} {'codearcade eval':>16} {'eval/bare':>10}"
+def end_to_end(games: list[str], store: Store, tmp: Path, repeats: int) -> tuple[list[str], list[str]]:
+    """The end-to-end table; the targets missed and the ratios that could not be measured."""
+    print(f"\n{'game':<15} {'steps':>6} {'bare stepping':>14} {'codearcade eval':>16} {'eval/stepping':>14}"
           f"   ({END_TO_END_EPISODES} whole games at the authors' cap, start-up included)")
     exe = str(Path(sys.executable).parent / "codearcade")
+    failures, absent = [], []
     for game in games:
         policy = ROOT / "tests" / "policies" / f"{game}_competent.py"
         cap = get_game(game).task.eval_max_steps
@@ -233,11 +250,22 @@ def end_to_end(games: list[str], store: Store, tmp: Path, repeats: int) -> None:
                         "--store", str(tmp / f"e2e_{game}_{i}.duckdb")]
             for name, cmd in (("bare", bare_cmd), ("eval", eval_cmd))[::1 if i % 2 == 0 else -1]:
                 start = time.perf_counter()
-                subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp)
-                seconds[name].append(time.perf_counter() - start)
+                done = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=tmp,
+                                      text=True)
+                took = time.perf_counter() - start
+                if name == "bare":  # the process, start-up included, its seeded resets (ROM reloads) left out
+                    took -= float(done.stdout.split()[-1])
+                seconds[name].append(took)
         best = {name: min(times) for name, times in seconds.items()}
-        print(f"{game:<15} {steps:>6} {best['bare']:>11.1f} s {best['eval']:>14.1f} s "
-              f"{best['bare'] / best['eval']:>10.2f}", flush=True)
+        ratio = best["bare"] / best["eval"]
+        print(f"{game:<15} {steps:>6} {best['bare']:>12.1f} s {best['eval']:>14.1f} s {ratio:>14.2f}", flush=True)
+        if not (steps and math.isfinite(ratio) and ratio > 0):
+            absent.append(f"{game}: no end-to-end ratio (steps {steps})")
+        elif ratio < TARGETS["end to end"]:
+            failures.append(f"{game}: end-to-end eval/stepping {ratio:.2f} below target {TARGETS['end to end']}")
+    print(f"target: end-to-end eval/stepping >= {TARGETS['end to end']} (the bare process: Python, OCAtari's "
+          "import, the environment and its steps; its seeded resets left out)")
+    return failures, absent
 
 
 def main() -> int:
@@ -253,14 +281,17 @@ def main() -> int:
     for trace in (False, True):  # start the zygotes, and pay what the first traced run alone pays, outside the timings
         evaluate(ROOT / "games" / "scaffolds" / "pong.py", EvalConfig(episodes=1, max_steps=50, trace=trace), store)
 
-    failures = steady_state(args.games, store, args.episodes, args.repeats)
+    failures, absent = steady_state(args.games, store, args.episodes, args.repeats)
     round_trip(args.games, store, tmp, max(1, args.repeats // 2))
     if not args.skip_end_to_end:
-        end_to_end(args.games, store, tmp, max(1, min(3, args.repeats)))
-    for failure in failures:
+        missed, missing = end_to_end(args.games, store, tmp, max(1, min(3, args.repeats)))
+        failures, absent = failures + missed, absent + missing
+    for failure in failures:  # printed, not failed: how fast the shared cores are is no fault of the code
         print("BELOW TARGET:", failure)
+    for reason in absent:
+        print("ABSENT:", reason)
     print(f"\n(load average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
-    return 0
+    return 1 if absent else 0  # a ratio that could not be measured fails the run (tests/test_bench.py)
 
 
 if __name__ == "__main__":
