@@ -180,7 +180,7 @@ return 0
 """
 
 
-def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, servers):
+def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, servers, capsys):
     store = tmp_path / "s.duckdb"
     sentinels = [tmp_path / f"escaped-{i}" for i in range(3)]
     server = Server(store, "--game", "pong", "--budget", "5", "--max-steps", "60", "--call-time-limit", "2")
@@ -205,6 +205,17 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     assert [p.exists() for p in sentinels] == [False, False, False]
     status, feedback = server.post("feedback", {"submission": 1})
     assert feedback["forfeit"] and feedback["trace"]["steps"][-1]["outcome"].endswith("(the policy failed)")
+    # Ctrl-C stops the server (the run interrupted, resumable); the person finalizes it: the attack plays the
+    # validation pool too, contained again, and the forfeiting submissions can never be the best
+    server.stop(signal.SIGINT)
+    assert server.proc.returncode == 0 and "serve --resume" in "".join(server.lines)
+    run_id = _run_id(store)
+    assert Store(store).query("SELECT status FROM runs WHERE run_id = ?", [run_id])[0][0] == "interrupted"
+    assert main(["serve", "--finalize", run_id, "--store", str(store)]) == 0
+    said = capsys.readouterr().out
+    assert "validation  submission 3:" in said and "<- best by validation" in said.split("submission 3:")[1]
+    assert "validation  submission 1: forfeit" in said and "held-out    best (submission 3)" in said
+    assert [p.exists() for p in sentinels] == [False, False, False]
 
 
 def test_a_killed_server_resumes_its_run_with_the_budget_intact(tmp_path, servers):

@@ -23,7 +23,7 @@ the transport (``http.py``, ``tools.py``), is a method of :class:`ServeRun`:
 **Instances and pools.** A training instance is a game seed drawn from the OS's entropy when the run is made,
 below the audit's range (``games.base.AUDIT_SEED_BASE``), kept in the run's config and its episodes, and never
 in a response: the agent names instances by id. The validation and held-out pools are drawn at finalize, like
-the sealed audit (``pipeline.optimizer.audit.draw_audit_seeds``), in one draw so they are disjoint, from the
+the sealed audit (``games.base.draw_audit_seeds``), in one draw so they are disjoint, from the
 audit's range so they never meet a training instance; no response carries them or their scores (a person reads
 those in ``runs``, ``report`` and ``audit``). Every game is played under the standard protocol (sticky actions
 0.25, up to 30 no-op starts): under the paper's deterministic one every seed is the same game, and instances
@@ -55,8 +55,7 @@ from typing import Any, Callable
 import duckdb
 
 from games import get_game
-from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY, recorded_observation
-from pipeline.optimizer.audit import draw_audit_seeds
+from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY, draw_audit_seeds, recorded_observation
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.feedback import FeedbackBands, compose_feedback
 from pipeline.optimizer.loop import start_run
