@@ -112,7 +112,8 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
         else:
             facts.append(f"score **{markdown_text(score.summary())}**")
     else:
-        facts.append(f"{summary['iterations_done']} of {_md(summary['iterations_planned'])} iterations")
+        facts.append(f"{summary['iterations_done']} submissions" if run["kind"] == "serve"  # by a coding agent
+                     else f"{summary['iterations_done']} of {_md(summary['iterations_planned'])} iterations")
         if summary["best_score"] is None and forfeits:  # a played-out score beats a forfeit: none played out
             facts.append("**no score**: every version it assessed forfeited a game")
         else:

@@ -81,6 +81,7 @@ COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has
     ("model", lambda r: r["model"]),
     ("status", lambda r: r["status"]),
     ("iterations", lambda r: None if r["kind"] == "eval"
+     else str(r["iterations_done"]) if r["kind"] == "serve"  # submissions: a served run plans none
      else f"{r['iterations_done']}/{r['iterations_planned'] or '?'}"),
     ("best", lambda r: _best(r)),
     ("forfeits", lambda r: r.get("forfeits") or None),
