@@ -46,11 +46,13 @@ def brick_runs(block, obs: dict, rows: list | None) -> None:
     full row is one Block, x 8, w 144), and their observation appends each Block unchanged to its row's list.
     The row's list appears with its first Block: OCAtari lists Blocks row by row, top to bottom, left to right,
     so the rows follow ``Player`` and ``Ball`` in the order red to blue, and a cleared row is absent."""
-    x, y = (int(v) for v in block._xy)
+    x, y = block._xy
+    x, y = int(x), int(y)  # not a generator expression: two of those per brick run were a quarter of this step
     key = ROWS.get(y)
     if key is None:
         return
-    w, h = (int(v) for v in block.wh)
+    w, h = block.wh
+    w, h = int(w), int(h)
     bricks = obs.get(key)
     if bricks is None:
         bricks = obs[key] = []
