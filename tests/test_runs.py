@@ -93,6 +93,21 @@ def test_a_verb_that_passes_over_a_newer_run_says_which_it_took(four, capsys):
     assert resolve_run(four, "last") == RUNS[2][0] and capsys.readouterr().err == ""
 
 
+@pytest.mark.parametrize("game, code, said", [
+    ("pongg", 2, "did you mean 'pong'?"), ("breakot", 2, "did you mean 'breakout'?"),
+    ("qbert", 0, "no runs match"),  # a real game with no runs here: nothing matches, and that is no error
+    ("pong", 0, "baseline"),
+])
+def test_runs_of_a_misspelt_game_names_the_game_it_may_mean(four, capsys, game, code, said):
+    from pipeline.cli import main
+
+    assert main(["runs", "--game", game, "--store", str(four.path)]) == code
+    out, err = capsys.readouterr()
+    assert said in (err if code else out).lower(), (out, err)
+    if code:
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
 def test_an_ambiguous_prefix_lists_the_candidates_by_their_shortest_unique_prefixes(four):
     with pytest.raises(ValueError) as refused:
         _resolve(four, "01JDX3K2A")

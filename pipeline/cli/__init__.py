@@ -23,14 +23,19 @@ import sys
 import threading
 from typing import Callable, Sequence
 
-from pipeline.cli import (audit, batch, blame, compare, doctor, export, games, new, optimize, replay, report, runs,
-                            serve, sql, view)
-from pipeline.cli import eval as eval_  # the verb's module (the builtin is not used here)
-from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, CodearcadeParser,
-                                 shorten_in_message, show)
+try:  # Ctrl-C while the command starts (its imports take a second or more on a busy machine): nothing has
+    # started that needs stopping or rolling back, so it ends as an interrupted command does, without a traceback
+    from pipeline.cli import (audit, batch, blame, compare, doctor, export, games, new, optimize, replay, report, runs,
+                                sql, view)
+    from pipeline.cli import eval as eval_  # the verb's module (the builtin is not used here)
+    from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, CodearcadeParser,
+                                     shorten_in_message, show)
+except KeyboardInterrupt:
+    sys.stderr.write("codearcade: interrupted\n")
+    raise SystemExit(130) from None
 
-VERBS = (eval_, optimize, serve, audit, batch, doctor, replay, sql, runs, report, blame, games, new, view, export,
-         compare)
+
+VERBS = (eval_, optimize, audit, batch, doctor, replay, sql, runs, report, blame, games, new, view, export, compare)
 """The verbs' modules, in the order ``codearcade --help`` lists them; each adds its parser (``add_parser``), whose
 handler is its ``run(args)``."""
 
@@ -68,8 +73,11 @@ def _interrupted_once(signum: int, frame: object) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:  # Ctrl-C before the verb started anything
+        show("codearcade: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     handler: Callable[[argparse.Namespace], int] = args.handler
     # only where Ctrl-C raises KeyboardInterrupt now (a process started with SIGINT ignored keeps ignoring it)
     if threading.current_thread() is threading.main_thread() and \

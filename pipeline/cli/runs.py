@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from pipeline.cli.common import EXIT_OK, add_store, open_store, positive_int, show, show_json
+from pipeline.cli.common import EXIT_OK, CliError, add_store, open_store, positive_int, show, show_json
 
 KINDS = ("eval", "optimize", "replay", "serve")
 STATUSES = ("running", "finished", "failed", "interrupted", "budget", "diverged")
@@ -123,6 +123,13 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         show_json(runs, default=str)
         return EXIT_OK
+    if not runs and args.game:  # a misspelt game matches nothing: say so, with the name it may have meant
+        from games import UnknownGameError, get_game
+
+        try:
+            get_game(args.game)
+        except UnknownGameError as exc:
+            raise CliError(f"--game: {exc}") from None
     if not runs:
         filtered = args.game or args.kind or args.status
         show(f"no runs{' match' if filtered else ''} in {store.path}"

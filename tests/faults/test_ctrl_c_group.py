@@ -24,7 +24,7 @@ import time
 import pytest
 
 from store import Store
-from tests.conftest import COMPETENT_REPLY, EXAMPLES, ROOT
+from tests.conftest import COMPETENT_REPLY, EXAMPLES, POLICIES, ROOT
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 PRESSES = 3
@@ -33,22 +33,27 @@ SPAN_S = (0.3, 9.0)
 """Where a press may land: from the command's imports to its episodes, writes and (optimize) first LLM call."""
 
 
-def _press(argv: list[str], delay: float, cwd) -> subprocess.CompletedProcess:
+def _press(argv: list[str], delay: float, cwd, sent: int = signal.SIGINT, nohup: bool = False
+           ) -> subprocess.CompletedProcess:
     """Run ``codearcade argv`` as a terminal's shell does (its own process group, Ctrl-C live), press Ctrl-C after
-    ``delay`` seconds (to the group), and return how it ended."""
+    ``delay`` seconds (to the group), and return how it ended. ``nohup``: started with SIGINT ignored, as ``nohup``
+    and CI start commands, and stopped with ``sent`` (SIGTERM) instead."""
+    interrupt = signal.SIG_IGN if nohup else signal.SIG_DFL
     proc = subprocess.Popen([EXE, *argv], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             stdin=subprocess.DEVNULL, process_group=0,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, interrupt))
     try:
         time.sleep(delay)
         if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
+            os.killpg(proc.pid, sent)
         out, err = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    done = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    done.group = proc.pid  # the group it led: what it started is in it
+    return done
 
 
 def _delays(rng: random.Random, presses: int) -> list[float]:
@@ -57,8 +62,33 @@ def _delays(rng: random.Random, presses: int) -> list[float]:
     return [rng.uniform(a, b) for a, b in zip(edges, edges[1:])]
 
 
+def _left_running(group: int) -> list[str]:
+    """The processes of process group ``group`` still alive (zombies aside: they hold nothing), as 'pid name'."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            stat = open(f"/proc/{entry}/stat").read()
+        except OSError:
+            continue
+        name, rest = stat[stat.index("(") + 1:stat.rindex(")")], stat[stat.rindex(")") + 2:].split()
+        if int(rest[2]) == group and rest[0] != "Z":  # fields after the name: state, ppid, pgrp
+            found.append(f"{entry} {name}")
+    return found
+
+
+def _nothing_left(group: int, said: str) -> None:
+    """Every process the command started has ended: its zygotes, game hosts, policy processes and servers."""
+    deadline = time.monotonic() + 60  # generous: the check is that they end, not how fast
+    while (left := _left_running(group)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not left, f"still running after the command ended: {left}\n{said}"
+
+
 def _check(done: subprocess.CompletedProcess, store: Store, cwd) -> None:
     said = f"{done.args}\n{done.stderr[-3000:]}"
+    _nothing_left(done.group, said)
     assert done.returncode in (0, 130), said
     assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr, said
     if done.returncode == 130:
@@ -97,6 +127,98 @@ def test_ctrl_c_to_the_process_group_interrupts_cleanly(verb, tmp_path, scripted
             assert store.query("SELECT status FROM runs") == [("finished",)]
 
 
+@pytest.fixture(scope="module")
+def optimized(tmp_path_factory):
+    """A store holding one finished optimize run (the scripted model's competent reply): what `audit` and `view`
+    act on; each press works on a copy of it."""
+    from tests.scripted_llm import ScriptedModel
+
+    where = tmp_path_factory.mktemp("ctrl-c")
+    store = Store(where / "optimized.duckdb")
+    model = ScriptedModel([COMPETENT_REPLY], where / "model").start()
+    try:
+        made = subprocess.run([EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base",
+                               model.api_base, "--iterations", "1", "--eval-max-steps", "300", "--rollout-steps", "50",
+                               "--audit-episodes", "0", "--rng-key", "ctrl-c", "--store", str(store.path)], cwd=ROOT,
+                              capture_output=True, text=True, timeout=600)
+    finally:
+        model.stop()
+    assert made.returncode == 0, made.stderr[-3000:]
+    return store
+
+
+def _copy(store: Store, path) -> Store:
+    import shutil
+
+    shutil.copyfile(store.path, path)
+    return Store(path)
+
+
+def _verb_argv(verb: str, k: int, tmp_path, optimized: Store, model) -> tuple[list[str], Store]:
+    """The command a press lands on, and its store: each a few seconds of real work (episodes, writes, a server)."""
+    if verb in ("audit", "view"):
+        store = _copy(optimized, tmp_path / f"s{k}.duckdb")
+        argv = (["audit", "last", "--episodes", "3", "--workers", "2"] if verb == "audit" else
+                ["view", "last", "--serve-web"])
+        return [*argv, "--store", str(store.path)], store
+    store = Store(tmp_path / f"s{k}.duckdb")
+    if verb == "compare":
+        return ["compare", str(EXAMPLES / "pong.py"), str(POLICIES / "pong_competent.py"), "--episodes", "2",
+                "--max-steps", "1500", "--store", str(store.path)], store
+    experiments = tmp_path / f"batch{k}.toml"
+    experiments.write_text(textwrap.dedent(f"""
+        name = "ctrl-c-{k}"
+        [defaults]
+        iterations = 1
+        eval_max_steps = 300
+        rollout_steps = 50
+        audit_episodes = 0
+        rng_key = "ctrl-c"
+        model = "{model.model}"
+        api_base = "{model.api_base}"
+        [matrix]
+        game = ["pong", "breakout"]
+        seed = [0, 1]
+    """))
+    return ["batch", str(experiments), "--store", str(store.path)], store
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("verb", ["batch", "audit", "compare", "view"])
+def test_ctrl_c_to_the_process_group_of_the_other_verbs(verb, tmp_path, scripted, optimized, soak):
+    """batch, audit, compare and view --serve-web: the same as eval and optimize, and nothing they started left
+    running (zygotes, game hosts, policy processes, Rerun's server)."""
+    rng = random.Random(f"ctrl-c-{verb}")
+    model = scripted([COMPETENT_REPLY]) if verb == "batch" else None
+    presses = SOAK_PRESSES // 2 if soak else PRESSES
+    for k, delay in enumerate(_delays(rng, presses)):
+        argv, store = _verb_argv(verb, k, tmp_path, optimized, model)
+        done = _press(argv, delay, ROOT)
+        _check(done, store, ROOT)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("verb", ["eval", "batch", "view"])
+def test_a_command_started_with_ctrl_c_ignored_still_stops_on_sigterm(verb, tmp_path, scripted, optimized):
+    """Under nohup or CI a command inherits SIGINT ignored: SIGTERM to its group stops it (and everything it started)
+    without a traceback, and its run is resumable or finished."""
+    model = scripted([COMPETENT_REPLY]) if verb == "batch" else None
+    if verb == "eval":
+        store = Store(tmp_path / "s.duckdb")
+        argv = ["eval", str(EXAMPLES / "breakout.py"), "--episodes", "4", "--max-steps", "2000", "--trace",
+                "--store", str(store.path)]
+    else:
+        argv, store = _verb_argv(verb, 0, tmp_path, optimized, model)
+    done = _press(argv, 4.0, ROOT, sent=signal.SIGTERM, nohup=True)
+    said = f"{done.args}\n{done.stderr[-3000:]}"
+    assert done.returncode in (0, 130, 143, -signal.SIGTERM), said
+    assert "Traceback" not in done.stderr, said
+    _nothing_left(done.group, said)
+    if store.exists():
+        statuses = {status for (status,) in store.query("SELECT status FROM runs")}
+        assert statuses <= {"finished", "interrupted"}, (statuses, said)
+
+
 def test_a_ctrl_c_during_a_query_is_a_keyboard_interrupt_and_its_transaction_is_rolled_back(store):
     """The mechanism, at the moment a press is hardest to hit from outside: a SIGINT while DuckDB runs a query
     reaches the caller as KeyboardInterrupt (not DuckDB's RuntimeError), and the write it cut left nothing. In a
@@ -111,12 +233,14 @@ def test_a_ctrl_c_during_a_query_is_a_keyboard_interrupt_and_its_transaction_is_
         with store.write():  # attached and checked, as a command's store is by the time it plays and writes
             pass
         for phase in ("read", "write"):
+            # pressed while the query runs: the timer starts once the store is open and the write is made (a
+            # loaded machine may take longer than the timer to get there)
             timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
-            timer.start()
             try:
                 with getattr(store, phase)() as con:
                     if phase == "write":
                         insert_run(con, "01CUT", "eval", "pong", {}, "# policy\\n", "v" * 16, {})
+                    timer.start()
                     con.execute("SELECT count(*) FROM range(30000000000) t(i) WHERE i % 7 = 3").fetchall()
                 print(phase, "finished")
             except KeyboardInterrupt:
