@@ -162,6 +162,10 @@ def test_a_whole_run_over_http_spends_its_budget_exactly_and_shows_no_seed(tmp_p
     seeds = _seeds(store, run_id)
     assert len(seeds) == 8 + 2 + 2
     assert _leaks(server.responses, seeds) == []
+    sealed = [r[0] for r in s.query("SELECT episode_id FROM episodes WHERE run_id = ? AND kind <> 'train'", [run_id])]
+    # validation: one version (every submission is the starter's text), 2 games; held out: it is the best and the
+    # starter, so it plays the pool once
+    assert len(sealed) == 2 + 2 and not [e for e in sealed for text in server.responses if e in text]
 
 
 ATTACK = ESCAPE + """

@@ -13,8 +13,8 @@ import argparse
 import os
 import sys
 
-from pipeline.cli.common import (EXIT_OK, add_name, add_settings, add_store, open_store, resolve_run, short_id, show,
-                                 show_json)
+from pipeline.cli.common import (EXIT_OK, add_name, add_rerun, add_settings, add_store, open_store, resolve_run,
+                                 rerun_target, short_id, show, show_json)
 from pipeline.serve.config import ServeConfig
 
 
@@ -48,6 +48,7 @@ def add_parser(verbs) -> None:
                    "held-out pools, print the result and exit")
     p.add_argument("--json", action="store_true", help="with --finalize: print the result as JSON")
     add_name(p, "the served run")
+    add_rerun(p)
     add_store(p)
     p.set_defaults(handler=run)
 
@@ -72,7 +73,10 @@ def run(args: argparse.Namespace) -> int:
         run_id = create_run(store, config, name=args.name)
     with run_lock(store.path, run_id):
         served = ServeRun(store, run_id, workspace=os.path.abspath(args.workspace),
-                          on_episode=None if args.mcp else _episode_line)
+                          on_episode=None if args.mcp else _episode_line, rerun=rerun_target(args.rerun),
+                          on_finalized=lambda: _say(f"run {short_id(store, run_id)} finalized: `codearcade audit "
+                                                    f"{short_id(store, run_id)}` shows its validation and held-out "
+                                                    "scores"))
         if args.resume is not None and not served.finalized:
             with store.write() as con:
                 mark_run_running(con, run_id)

@@ -59,7 +59,13 @@ class _Handler(BaseHTTPRequestHandler):
         self._answer({})
 
     def do_POST(self) -> None:
-        length = int(self.headers.get("Content-Length") or 0)
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            length = -1
+        if length < 0:  # read() of a negative length would wait for the client to close
+            self._send(400, {"error": "Content-Length: a number of bytes"}, close=True)
+            return
         if length > MAX_BODY:
             self._send(413, {"error": f"the body is {length:,} bytes; at most {MAX_BODY:,}"}, close=True)
             return

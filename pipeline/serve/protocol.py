@@ -121,7 +121,8 @@ class ServeRun:
     lock, and playing and the store are used by one request at a time."""
 
     def __init__(self, store: Store, run_id: str, on_episode: Callable[[dict[str, Any]], None] | None = None,
-                 workspace: str | os.PathLike | None = None, finalize_when_spent: bool = True):
+                 workspace: str | os.PathLike | None = None, finalize_when_spent: bool = True,
+                 rerun: str | None = None, on_finalized: Callable[[], None] | None = None):
         with store.read() as con:
             run = get_run(con, run_id)
             if run is None:
@@ -139,6 +140,9 @@ class ServeRun:
         self.on_episode = on_episode
         self.workspace = Path(workspace).resolve() if workspace is not None else None
         self.finalize_when_spent = finalize_when_spent
+        self.rerun = rerun
+        self.on_finalized = on_finalized
+        """Live Rerun recording of each training episode (``EpisodeSpec.rerun``: a directory or a gRPC url)."""
         """Finalize the run as the submission that spends the last of the budget ends (its answer then says so)."""
         self._spent = sum(len(s["eval_episode_ids"] or ()) for s in subs)
         self._reserved = 0
@@ -319,8 +323,8 @@ class ServeRun:
                              max_steps=s["max_steps"], sticky=s["sticky"], noop_max=s["noop_max"], trace=True,
                              call_time_limit_s=s["call_time_limit_s"],
                              episode_time_limit_s=s["episode_time_limit_s"],
-                             observation=self.record["observation"],
-                             rng_key=self.record.get("rng_key"))
+                             observation=self.record["observation"], rng_key=self.record.get("rng_key"),
+                             rerun=self.rerun)
                  for i in instances]
         episodes: list[dict[str, Any]] = [{}] * len(specs)
         with EpisodeWriter(self.store, replace=True) as writer:
@@ -386,6 +390,8 @@ class ServeRun:
             with self._lock:
                 self.finalized = False
             raise
+        if self.on_finalized is not None:
+            self.on_finalized()
         return {"finalized": True, "submissions_validated": sum(r["protocol"] == "validation" for r in rows),
                 "note": "the validation and held-out results are sealed: the person who runs the server reads them "
                         "with `codearcade runs`, `report` and `audit`"}
