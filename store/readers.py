@@ -6,12 +6,16 @@ open. Step slices come back with the observation dict rebuilt exactly as the pol
 
 from __future__ import annotations
 
+import json
+import re
 import statistics
+from dataclasses import dataclass
+from json.decoder import scanstring
 from typing import Any, Callable, Mapping
 
 import duckdb
 
-from tracing.bounded import load_json
+from tracing.bounded import MAX_CHARS, PREVIEW_CHARS, load_json
 from tracing.steps import objects_to_obs
 
 
@@ -46,23 +50,159 @@ def episode_steps(
 
 
 def step_nodes(
-    con: duckdb.DuckDBPyConnection, episode_id: str, start: int = 0, stop: int | None = None
+    con: duckdb.DuckDBPyConnection, episode_id: str, start: int = 0, stop: int | None = None,
+    value_chars: int | None = None,
 ) -> list[dict[str, Any]]:
     """Node calls of steps ``start <= step < stop``, ordered by step and call index; JSON decoded within the bounds
     of ``tracing/bounded.py`` (a value nested too deep or too long comes back cut or as its marker, never an
-    error: a store holding one stays readable and its run resumable)."""
-    rows = _rows(
-        con.execute(
+    error: a store holding one stays readable and its run resumable).
+
+    ``value_chars``: the reader shows at most that many characters of each value (the prompt's width), so it
+    decodes no more (:func:`bounded_value`): SQL hands over a value's whole text only when it is that short (or
+    an object of inputs, split by key), else its first ``value_chars`` characters and its length, which come back
+    as a :class:`JsonHead`. Each row then holds a few kilobytes, whatever the policy stored (issue 38: values of
+    16,000 characters of ``[{},{},…]`` in 2,000 rows decoded whole to 2 GB). None: every value decoded whole."""
+    if value_chars is None:
+        rows = _rows(con.execute(
             """SELECT step, call_index, function, trainable, policy_version_id, inputs, output, exc_type,
                       exc_message, exc_line, exc_source, duration_us, parents
                FROM nodes WHERE episode_id = ? AND step >= ? AND step < ? ORDER BY step, call_index""",
-            [episode_id, start, stop if stop is not None else 2**31 - 1],
-        )
-    )
-    for row in rows:
-        row["inputs"] = load_json(row["inputs"]) if row["inputs"] is not None else None
-        row["output"] = load_json(row["output"]) if row["output"] is not None else None
+            [episode_id, start, stop if stop is not None else 2**31 - 1]))
+        for row in rows:
+            row["inputs"] = load_json(row["inputs"]) if row["inputs"] is not None else None
+            row["output"] = load_json(row["output"]) if row["output"] is not None else None
+        return rows
+    cursor = con.execute(
+        """SELECT step, call_index, function, trainable, policy_version_id,
+                  length(inputs) AS inputs_length,
+                  CASE WHEN length(inputs) <= $chars
+                         OR (length(inputs) <= $max_chars AND starts_with(inputs::VARCHAR, '{')) THEN inputs::VARCHAR
+                       ELSE substr(inputs::VARCHAR, 1, CASE WHEN length(inputs) > $max_chars THEN $preview
+                                                           ELSE $chars END) END AS inputs,
+                  length(output) AS output_length,
+                  CASE WHEN length(output) <= $chars
+                         OR (length(output) <= $max_chars AND starts_with(output::VARCHAR, '{"$truncated": '))
+                       THEN output::VARCHAR
+                       ELSE substr(output::VARCHAR, 1, CASE WHEN length(output) > $max_chars THEN $preview
+                                                           ELSE $chars END) END AS output,
+                  exc_type, exc_message, exc_line, exc_source, duration_us, parents
+           FROM nodes WHERE episode_id = $episode AND step >= $start AND step < $stop ORDER BY step, call_index""",
+        {"episode": episode_id, "start": start, "stop": stop if stop is not None else 2**31 - 1,
+         "chars": value_chars, "max_chars": MAX_CHARS, "preview": PREVIEW_CHARS})
+    names = [d[0] for d in cursor.description]
+    rows = []
+    while batch := cursor.fetchmany(_BATCH_ROWS):  # an object of inputs comes whole (<= MAX_CHARS): a batch at a time
+        for values in batch:
+            row = dict(zip(names, values))
+            row["inputs"] = bounded_value(row["inputs"], row.pop("inputs_length"), value_chars, split=True)
+            row["output"] = bounded_value(row["output"], row.pop("output_length"), value_chars)
+            rows.append(row)
     return rows
+
+
+_BATCH_ROWS = 256
+
+
+@dataclass(frozen=True)
+class JsonHead:
+    """A stored JSON value a reader did not decode: the first characters of its text (``text``, at most what the
+    reader shows) and the whole text's ``length`` in characters. A value the policy's process wrote is compact
+    JSON (``tracing/capture.py``'s ``to_json``), so ``text`` is the start of what ``json.dumps(value,
+    separators=(",", ":"))`` would print."""
+
+    text: str
+    length: int
+
+
+MAX_KEYS = 32
+"""Keys of an object of inputs a bounded reader splits (a method's parameters); one with more comes back as a
+:class:`JsonHead` of the whole object."""
+_SMALL = 32
+"""A container this short is always decoded (``{"$ref":"obs"}``): it costs at most a few hundred bytes."""
+_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
+_SCALAR = re.compile(r"[^,}\s]+")
+_DECODER = json.JSONDecoder()
+_SPACE = re.compile(r"[ \t\n\r]*")
+_MARKER = re.compile(r'\{"\$truncated": \d+, "preview": "[^"\\]*(?:\\.[^"\\]*)*"\}')
+"""The marker ``to_json`` writes for a value too long to store (``json.dumps`` with its default separators, the
+one stored text that is not compact): an int and a string, decoded at the cost of their text."""
+
+
+def bounded_value(text: str | None, length: int | None, chars: int, split: bool = False) -> Any:
+    """A stored node value as a reader that shows ``chars`` characters of it holds it: decoded when its text is
+    that short; the ``$truncated`` marker of ``tracing/bounded.py`` (from a preview) when it is longer than
+    :data:`MAX_CHARS`; else a :class:`JsonHead`. With ``split`` an object (a call's inputs, shown key by key)
+    comes back as a dict of such values, at most ``2 * chars`` characters of its containers decoded in all."""
+    if text is None:
+        return None
+    if length is None:
+        length = len(text)
+    if length > MAX_CHARS:
+        return {"$truncated": length, "preview": text[:PREVIEW_CHARS]}
+    if length <= chars or (len(text) == length and _MARKER.fullmatch(text)):
+        return load_json(text)
+    if split and len(text) == length:
+        items = _object_items(text, chars)
+        if items is not None:
+            return items
+    return JsonHead(text[:chars], length)
+
+
+def _object_items(text: str, chars: int) -> dict[str, Any] | None:
+    """``text`` (a JSON object) as a dict of its keys' values, each held by :func:`bounded_value`; None when it
+    is not an object of at most :data:`MAX_KEYS` keys."""
+    pos = _SPACE.match(text).end()
+    if not text.startswith("{", pos):
+        return None
+    items: dict[str, Any] = {}
+    budget = 2 * chars  # characters of containers decoded: their Python objects cost up to ~24 bytes a character
+    pos = _SPACE.match(text, pos + 1).end()
+    if text.startswith("}", pos):
+        return items
+    try:
+        while True:
+            if len(items) >= MAX_KEYS or not text.startswith('"', pos):
+                return None
+            key, pos = scanstring(text, pos + 1)
+            pos = _SPACE.match(text, pos).end()
+            if not text.startswith(":", pos):
+                return None
+            begin = _SPACE.match(text, pos + 1).end()
+            end = _value_end(text, begin)
+            if end is None:
+                return None
+            span = text[begin:end].rstrip(" \t\n\r")
+            container = span[:1] in ("[", "{")
+            if container and (len(span) <= _SMALL or len(span) <= min(chars, budget)):
+                budget -= len(span)
+                items[key] = load_json(span)
+            elif not container and len(span) <= chars:
+                items[key] = load_json(span)
+            else:
+                items[key] = JsonHead(span[:chars], len(span))
+            if text[end] == "}":
+                return items
+            pos = _SPACE.match(text, end + 1).end()
+    except ValueError:  # a key that is not a JSON string: a store edited by hand
+        return None
+
+
+def _value_end(text: str, pos: int) -> int | None:
+    """Where the JSON value that starts at ``pos`` (inside an object) ends: the index of the ``,`` or ``}`` after
+    it; None for a text that is not JSON there. A list or object is found by the C decoder (one value of at most
+    :data:`MAX_CHARS` characters, let go at once: only its extent is kept); a string by one regular expression."""
+    if text.startswith(("[", "{"), pos):
+        try:
+            end = _DECODER.raw_decode(text, pos)[1]
+        except (ValueError, RecursionError):
+            return None
+    else:
+        match = (_STRING if text.startswith('"', pos) else _SCALAR).match(text, pos)
+        if match is None:
+            return None
+        end = match.end()
+    end = _SPACE.match(text, end).end()
+    return end if text.startswith((",", "}"), end) else None
 
 
 def run_episodes(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict[str, Any]]:

@@ -121,6 +121,9 @@ def _trainable_sources(text: str) -> tuple[tuple[str, str], ...]:
 
 _ROLLOUTS: dict[str, tuple[list[dict[str, Any]], list[dict[str, Any]]]] = {}
 ROLLOUTS_KEPT = 8
+VALUE_CHARS = 300
+"""Characters of each node value the prompt shows (``prompt.py``): all the store is asked for, so a kept rollout
+holds a few kilobytes a call, whatever its policy stored (``store.readers.step_nodes``)."""
 
 
 def _rollout(con: duckdb.DuckDBPyConnection, episode_id: str, game) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
@@ -131,5 +134,5 @@ def _rollout(con: duckdb.DuckDBPyConnection, episode_id: str, game) -> tuple[lis
         while len(_ROLLOUTS) >= ROLLOUTS_KEPT:
             _ROLLOUTS.pop(next(iter(_ROLLOUTS)))
         _ROLLOUTS[episode_id] = (episode_steps(con, episode_id, list_widths=list_widths(game), derive=game.derive),
-                                 step_nodes(con, episode_id))
+                                 step_nodes(con, episode_id, value_chars=VALUE_CHARS))
     return _ROLLOUTS[episode_id]

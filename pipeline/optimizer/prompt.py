@@ -27,14 +27,16 @@ from typing import Any
 from games import get_game
 from pipeline.llm.client import prompt_hash
 from pipeline.llm.tokens import TokenCounter
-from pipeline.optimizer.context import PromptContext
+from pipeline.optimizer.context import VALUE_CHARS, PromptContext
 from pipeline.optimizer.strategies import format_number
+from store.readers import JsonHead
 from tracing.policy_file import TASK_CONSTANTS, PolicyInfo, replace_methods
 from tracing.sandbox import ALLOWED_MODULES
 
 EVENT_WINDOW = 30
 """Steps shown before each lost point/life (about one ball crossing in Pong)."""
-MAX_VALUE_CHARS = 300
+MAX_VALUE_CHARS = VALUE_CHARS
+"""Characters of a node value shown (the context reads no more of it from the store: ``context.VALUE_CHARS``)."""
 
 SYSTEM = """You improve a game-playing policy written in Python. The policy is a class; some of its methods are \
 trainable and you may rewrite them. The request has these sections:
@@ -78,6 +80,8 @@ class Prompt:
 
 
 def _value(value: Any) -> str:
+    if isinstance(value, JsonHead):  # the start of a stored value's compact JSON: what json.dumps would print
+        return value.text if value.length <= MAX_VALUE_CHARS else value.text[:MAX_VALUE_CHARS] + "…"
     if value == {"$ref": "obs"}:
         return "obs"
     if isinstance(value, float):
