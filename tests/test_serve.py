@@ -284,7 +284,9 @@ def test_the_scripted_agent_improves_the_pong_starter_over_mcp(tmp_path, capsys)
     said = capsys.readouterr().out
     assert "<- best by validation" in said and "held-out    best (submission" in said
     assert main(["blame", "last", "--store", str(store)]) == 0
-    assert "def select_action" in capsys.readouterr().out
+    chosen = s.query("SELECT policy_version_id, iteration FROM audits WHERE run_id = ? AND role = 'best'", [run_id])[0]
+    blamed = capsys.readouterr().out  # the best by validation, each line with the submission that wrote it
+    assert f"policy version {chosen[0]} (iteration {chosen[1]}" in blamed and "def select_action" in blamed
     assert main(["report", "last", "--store", str(store), "--out", str(tmp_path / "report")]) == 0
     readme = (tmp_path / "report" / "README.md").read_text()
     assert "serve run" in readme and "validation" in readme and "codearcade serve --game pong" in readme
