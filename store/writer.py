@@ -2,8 +2,9 @@
 time by :class:`EpisodeWriter`).
 
 Every function takes an open read-write connection (``with store.write() as con:``), so a caller groups
-what belongs together into one transaction. Step and node rows arrive as Arrow tables and go in with one
-``INSERT ... BY NAME SELECT`` each, never row by row. Re-playing an episode (resume) writes it with
+what belongs together into one transaction. Step and node rows arrive as Arrow tables and go in with
+``INSERT ... BY NAME SELECT`` (node rows in slices of :data:`NODE_SLICE_BYTES`, so that the cast of their JSON
+holds a bounded amount at once), never row by row. Re-playing an episode (resume) writes it with
 ``replace=True``, which first deletes its earlier rows, so rows are never duplicated.
 """
 
@@ -14,10 +15,12 @@ import json
 import sys
 import time
 from datetime import datetime
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import duckdb
+import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from store.db import Store, utcnow
 from store.lines import write_version_lines
@@ -158,14 +161,34 @@ def write_episode(
         finally:
             con.unregister("incoming_steps")
     if nodes is not None and nodes.num_rows:
-        con.register("incoming_nodes", nodes)
-        try:
-            con.execute(
-                "INSERT INTO nodes BY NAME SELECT ? AS episode_id, ? AS policy_version_id, * FROM incoming_nodes",
-                [episode_id, episode["policy_version_id"]],
-            )
-        finally:
-            con.unregister("incoming_nodes")
+        # in slices of at most NODE_SLICE_BYTES: the JSON cast of ``inputs`` and ``output`` holds several times the
+        # text it parses (9 x for "[{},{},...]"), so one INSERT of a whole episode held that of all of it at once
+        for part in _slices(nodes, NODE_SLICE_BYTES):
+            con.register("incoming_nodes", part)
+            try:
+                con.execute(
+                    "INSERT INTO nodes BY NAME SELECT ? AS episode_id, ? AS policy_version_id, * FROM incoming_nodes",
+                    [episode_id, episode["policy_version_id"]],
+                )
+            finally:
+                con.unregister("incoming_nodes")
+
+
+NODE_SLICE_BYTES = 2 * 2**20
+"""Bytes of node rows one INSERT casts at a time (what the cast holds is a multiple of this, not of the episode)."""
+
+
+def _slices(table: pa.Table, limit: int) -> Iterator[pa.Table]:
+    """``table`` in consecutive slices of at most ``limit`` bytes each (a row larger than that alone)."""
+    sizes = pc.binary_length(table.column("inputs")).fill_null(0).to_numpy() \
+        + pc.binary_length(table.column("output")).fill_null(0).to_numpy() + 64
+    ends = np.cumsum(sizes)
+    start, n = 0, len(sizes)
+    while start < n:
+        before = ends[start - 1] if start else 0
+        stop = max(start + 1, int(np.searchsorted(ends, before + limit, side="right")))
+        yield table.slice(start, stop - start)
+        start = stop
 
 
 class EpisodeWriter:

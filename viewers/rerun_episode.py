@@ -210,6 +210,46 @@ def _numeric(value: Any) -> float | None:
     return None
 
 
+NODE_SLICE_BYTES = 2**20
+"""Bytes of node rows :meth:`EpisodeLogger.nodes` makes Python values of at a time (and of texts it sends at
+once): the host's memory for a recording of node rows is a constant multiple of this and of what it sends."""
+
+
+def node_slices(table: pa.Table, limit: int) -> Iterable[pa.Table]:
+    """``table`` in consecutive slices of about ``limit`` bytes (its values and lines), each ending at the end of a
+    step (a step's calls are read together: the last call's output, the lines of a step's calls joined)."""
+    n = table.num_rows
+    if n == 0:
+        return
+    size = np.full(n, 64, dtype=np.int64)
+    for name in ("inputs", "output", "exc_message", "exc_source"):
+        size += pc.binary_length(table.column(name)).fill_null(0).to_numpy()
+    size += 2 * pc.list_value_length(table.column("lines_run")).fill_null(0).to_numpy() \
+        + 2 * pc.list_value_length(table.column("parents")).fill_null(0).to_numpy()
+    ends = np.cumsum(size)
+    step = table.column("step").to_numpy()
+    last_of_step = np.r_[step[1:] != step[:-1], True]  # rows after which another step begins
+    start = 0
+    while start < n:
+        stop = max(start + 1, int(np.searchsorted(ends, (ends[start - 1] if start else 0) + limit, side="right")))
+        later = np.flatnonzero(last_of_step[stop - 1:])  # the end of the step the slice ends in
+        stop = stop + int(later[0]) if len(later) else n
+        yield table.slice(start, stop - start)
+        start = stop
+
+
+def _spans(texts: Sequence[str], limit: int) -> Iterable[tuple[int, int]]:
+    """(start, stop) of consecutive runs of ``texts`` of about ``limit`` characters each."""
+    start, held = 0, 0
+    for i, text in enumerate(texts):
+        held += len(text)
+        if held >= limit:
+            yield start, i + 1
+            start, held = i + 1, 0
+    if start < len(texts):
+        yield start, len(texts)
+
+
 def _coordinate_axis(name: str) -> str | None:
     """``x``/``y`` when a value named ``name`` is a screen coordinate (``predicted_ball_y``, ``target_x``)."""
     lowered = name.lower()
@@ -240,6 +280,7 @@ class EpisodeLogger:
         self._static_sent = False
         self._policy_text: str | None = None
         self._line_functions: list[str] = []
+        self._method_sources: dict[str, list[str]] | None = None
 
     # -- static parts ------------------------------------------------------------------------------------
 
@@ -272,6 +313,7 @@ class EpisodeLogger:
     def code(self, policy_text: str) -> None:
         """The policy file, as a markdown text document at ``/code``."""
         self._policy_text = policy_text
+        self._method_sources = None
         self.rec.log("/code", rr.TextDocument(markdown_code_block(policy_text, "python"), media_type="text/markdown"),
                      static=True)
 
@@ -363,37 +405,49 @@ class EpisodeLogger:
 
     def nodes(self, table: pa.Table | Mapping[str, Sequence]) -> None:
         """Outputs and exceptions of bundled calls (a ``nodes`` table: step, call_index, function, inputs,
-        output, exc_type, exc_message, exc_line, exc_source, parents; ``inputs``/``output`` JSON text)."""
-        data = table.to_pydict() if isinstance(table, pa.Table) else dict(table)
-        n = len(data.get("step", ()))
-        if n == 0:
-            return
-        steps, calls, functions = data["step"], data["call_index"], data["function"]
-        outputs = [load_json(o) if o is not None else None for o in data["output"]]  # nesting bounded
-        by_step_call = {(steps[i], calls[i]): i for i in range(n)}
-        names = self._name_outputs(data, outputs, by_step_call)
+        output, exc_type, exc_message, exc_line, exc_source, parents; ``inputs``/``output`` JSON text).
 
-        per_function: dict[str, tuple[list[int], list[Any]]] = {}
+        A table is read in slices of about :data:`NODE_SLICE_BYTES` (whole steps), each made Python values and
+        decoded on its own; only what is sent is kept between slices (per function and step, a number or the
+        output's text; line sets as packed bytes), so what the host holds is a constant multiple of what it
+        received, never ``to_pydict()`` of a whole column (64 MB of ``lines_run`` held 1.6 GB that way)."""
+        parts = node_slices(table, NODE_SLICE_BYTES) if isinstance(table, pa.Table) else [dict(table)]
+        per_function: dict[str, tuple[list[int], list[float | None], list[str]]] = {}
         errors: tuple[list[int], list[str]] = ([], [])
-        for i in range(n):
-            fn = functions[i]
-            if data["exc_type"][i] is not None:
-                line = f" at line {data['exc_line'][i]}: `{data['exc_source'][i]}`" if data["exc_line"][i] else ""
-                errors[0].append(steps[i])
-                errors[1].append(f"{fn}: {data['exc_type'][i]}: {data['exc_message'][i]}{line}")
+        names: dict[str, str] = {}
+        lines: dict[str, list[tuple[int, bytes]]] = {}
+        for part in parts:
+            data = part.to_pydict() if isinstance(part, pa.Table) else part
+            n = len(data.get("step", ()))
+            if n == 0:
                 continue
-            s, v = per_function.setdefault(fn, ([], []))
-            if s and s[-1] == steps[i]:  # called again in the same step: the last call's output wins
-                v[-1] = outputs[i]
-            else:
-                s.append(steps[i])
-                v.append(outputs[i])
+            steps, calls, functions = data["step"], data["call_index"], data["function"]
+            outputs = [load_json(o) if o is not None else None for o in data["output"]]  # nesting bounded
+            by_step_call = {(steps[i], calls[i]): i for i in range(n)}
+            for fn, param in self._name_outputs(data, outputs, by_step_call).items():
+                names.setdefault(fn, param)
+            for i in range(n):
+                fn = functions[i]
+                if data["exc_type"][i] is not None:
+                    line = f" at line {data['exc_line'][i]}: `{data['exc_source'][i]}`" if data["exc_line"][i] else ""
+                    errors[0].append(steps[i])
+                    errors[1].append(f"{fn}: {data['exc_type'][i]}: {data['exc_message'][i]}{line}")
+                    continue
+                s, numbers, texts = per_function.setdefault(fn, ([], [], []))
+                value = outputs[i]
+                if s and s[-1] == steps[i]:  # called again in the same step: the last call's output wins
+                    numbers[-1], texts[-1] = _numeric(value), json.dumps(value)
+                else:
+                    s.append(steps[i])
+                    numbers.append(_numeric(value))
+                    texts.append(json.dumps(value))
+            self._collect_lines(data, lines)
+            del data, outputs, by_step_call
 
-        for fn, (s, values) in per_function.items():
+        for fn, (s, numbers, texts) in per_function.items():
             if fn not in self._functions:
                 self._functions.append(fn)
-            numbers = [_numeric(v) for v in values]
-            numeric = all(x is not None or v is None for x, v in zip(numbers, values))
+            numeric = all(x is not None or t == "null" for x, t in zip(numbers, texts))
             path = entity("policy", fn)
             if numeric and fn not in self._text_functions:
                 keep = [k for k, x in enumerate(numbers) if x is not None]
@@ -403,49 +457,71 @@ class EpisodeLogger:
                 self._overlay(fn, names.get(fn, fn), s, numbers)
             else:
                 self._text_functions.add(fn)
-                self.rec.send_columns(path, indexes=[rr.TimeColumn("step", sequence=s)],
-                                      columns=rr.TextLog.columns(text=[json.dumps(v) for v in values],
-                                                                 level=["INFO"] * len(values)))
-        self._lines(data)
+                for at, stop in _spans(texts, NODE_SLICE_BYTES):
+                    self.rec.send_columns(path, indexes=[rr.TimeColumn("step", sequence=s[at:stop])],
+                                          columns=rr.TextLog.columns(text=texts[at:stop],
+                                                                     level=["INFO"] * (stop - at)))
+        self._send_lines(lines)
         if errors[0]:
             self._has_errors = True
             self.rec.send_columns("/policy/errors", indexes=[rr.TimeColumn("step", sequence=errors[0])],
                                   columns=rr.TextLog.columns(text=errors[1], level=["ERROR"] * len(errors[1])))
 
-    def _lines(self, data: Mapping[str, Sequence]) -> None:
-        """``/lines/<function>``: the method's source marked with the lines that ran, one document per run of
-        consecutive steps with the same lines (needs :meth:`code` first, for the sources)."""
+    def _collect_lines(self, data: Mapping[str, Sequence], per_function: dict[str, list[tuple[int, bytes]]]) -> None:
+        """Add the lines that ran of each call in ``data`` (a slice of node rows) to ``per_function``: (step, the
+        line numbers packed as int16 bytes), the lines of calls of one step joined."""
         if self._policy_text is None or not any(x is not None for x in data.get("lines_run") or ()):
             return
-        from tracing.policy_file import PolicyLoadError, inspect_policy
-
-        try:
-            sources = {m.name: m.source.splitlines() for m in inspect_policy(self._policy_text).methods}
-        except PolicyLoadError:
-            return
-        per_function: dict[str, list[tuple[int, tuple[int, ...]]]] = {}
-        for step, fn, lines in zip(data["step"], data["function"], data["lines_run"]):
-            if lines is not None and fn in sources:
+        sources = self._sources()
+        for step, fn, ran in zip(data["step"], data["function"], data["lines_run"]):
+            if ran is not None and fn in sources:
                 calls = per_function.setdefault(fn, [])
+                packed = np.asarray(ran, dtype=np.int16).tobytes()
                 if calls and calls[-1][0] == step:  # called twice in a step: both calls' lines
-                    calls[-1] = (step, tuple(sorted(set(calls[-1][1]) | set(lines))))
+                    both = np.union1d(np.frombuffer(calls[-1][1], np.int16), np.frombuffer(packed, np.int16))
+                    calls[-1] = (step, both.astype(np.int16).tobytes())
                 else:
-                    calls.append((step, tuple(lines)))
+                    calls.append((step, packed))
+
+    def _sources(self) -> dict[str, list[str]]:
+        """The policy's methods' source lines (from :meth:`code`'s text), read once."""
+        if self._method_sources is None:
+            from tracing.policy_file import PolicyLoadError, inspect_policy
+
+            try:
+                self._method_sources = {m.name: m.source.splitlines()
+                                        for m in inspect_policy(self._policy_text).methods}
+            except PolicyLoadError:
+                self._method_sources = {}
+        return self._method_sources
+
+    def _send_lines(self, per_function: Mapping[str, list[tuple[int, bytes]]]) -> None:
+        """``/lines/<function>``: the method's source marked with the lines that ran, one document per run of
+        consecutive steps with the same lines (needs :meth:`code` first, for the sources), sent a few MB of
+        documents at a time."""
+        sources = self._sources() if per_function else {}
         for fn, calls in per_function.items():
             starts = [k for k in range(len(calls)) if k == 0 or calls[k][1] != calls[k - 1][1]]
-            docs = []
+            if fn not in self._line_functions:
+                self._line_functions.append(fn)
+            docs: list[str] = []
+            at: list[int] = []
+            held = 0
             for j, k in enumerate(starts):
                 last = calls[(starts[j + 1] if j + 1 < len(starts) else len(calls)) - 1][0]
-                first, ran = calls[k][0], set(calls[k][1])
+                first, ran = calls[k][0], set(np.frombuffer(calls[k][1], np.int16).tolist())
                 span = f"step {first}" if first == last else f"steps {first}-{last}"
                 body = "\n".join(f"{'▶' if i in ran else ' '} {i:>3}  {text}"
                                   for i, text in enumerate(sources[fn], start=1))
-                docs.append(f"**{markdown_text(fn)}**: ▶ the lines that ran at {span}\n\n{markdown_code_block(body, 'python')}")
-            if fn not in self._line_functions:
-                self._line_functions.append(fn)
-            self.rec.send_columns(entity("lines", fn), indexes=[rr.TimeColumn("step", sequence=[calls[k][0]
-                                                                                               for k in starts])],
-                                  columns=rr.TextDocument.columns(text=docs, media_type=["text/markdown"] * len(docs)))
+                docs.append(f"**{markdown_text(fn)}**: ▶ the lines that ran at {span}\n\n"
+                            f"{markdown_code_block(body, 'python')}")
+                at.append(first)
+                held += len(docs[-1])
+                if held >= NODE_SLICE_BYTES or j + 1 == len(starts):
+                    self.rec.send_columns(entity("lines", fn), indexes=[rr.TimeColumn("step", sequence=at)],
+                                          columns=rr.TextDocument.columns(text=docs,
+                                                                          media_type=["text/markdown"] * len(docs)))
+                    docs, at, held = [], [], 0
 
     def _name_outputs(self, data: Mapping[str, Sequence], outputs: list[Any],
                       by_step_call: Mapping[tuple[int, int], int]) -> dict[str, str]:

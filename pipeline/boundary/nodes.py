@@ -41,14 +41,21 @@ MAX_NODE_FRAME = 64 * 2**20
 """Bytes of one episode's node frame. An honest 4,000-step traced episode sends a few MB (a node's values are
 mostly ``{"$ref": "obs"}`` and scalars); the frame is read whole, held twice while it is joined, so this also
 bounds what a forged one costs the host and the parent."""
+NODE_BYTES_BASE = 2**20
+NODE_BYTES_PER_STEP = 32 * 1024
+"""An episode's byte budget for its node rows: this base and this much a step the policy was asked about, at most
+:data:`MAX_NODE_FRAME` (:func:`node_budget`). An honest traced step sends well under 1 KB (values are mostly
+``{"$ref": "obs"}`` and scalars); a 4,000-step episode's budget is the whole frame."""
 CALLS_PER_METHOD = 64
 """Calls of each bundled method one step may make (helpers called once per object of a frame stay under it)."""
 MIN_CALLS_PER_STEP = 256
 """A step's node rows may be :data:`CALLS_PER_METHOD` x the policy's bundled methods, and never fewer than this."""
 MAX_NODE_ROWS = 2_000_000
 """Node rows of one episode, whatever its length."""
-MAX_VALUE_BYTES = 4 * MAX_CHARS
-"""Bytes of one ``inputs`` or ``output`` text (``to_json`` cuts a value at 20,000 ASCII characters)."""
+MAX_VALUE_BYTES = MAX_CHARS + 1024
+"""UTF-8 bytes of one ``inputs`` or ``output`` text: ``to_json`` cuts a value at 20,000 characters of ASCII JSON
+(non-ASCII text is escaped), so an honest value is that many bytes (and a parameter name's few more); counted in
+bytes, a value of astral characters costs what it says (4 bytes a character: counted in characters, it was 4 x)."""
 MAX_TEXT_BYTES = 16 * 1024
 """Bytes of ``exc_type``, ``exc_message``, ``exc_source`` (the recorder keeps 2,000 characters of a message)."""
 DURATION_SLACK_US = 1_000_000
@@ -86,6 +93,12 @@ def bundled_methods(policy_text: str, policy_name: str) -> dict[str, tuple[bool,
     return {m.name: (m.trainable, m.source.count("\n")) for m in methods}
 
 
+def node_budget(steps: int) -> int:
+    """Bytes of node rows an episode of ``steps`` policy calls may send: on the wire, and so (each stage a
+    constant multiple of it) in memory and in the store."""
+    return min(MAX_NODE_FRAME, NODE_BYTES_BASE + NODE_BYTES_PER_STEP * max(0, steps))
+
+
 def row_limits(methods: int, steps: int) -> tuple[int, int]:
     """(rows per step, rows per episode) allowed to a policy of ``methods`` bundled methods asked ``steps`` times."""
     per_step = max(MIN_CALLS_PER_STEP, CALLS_PER_METHOD * methods)
@@ -99,8 +112,10 @@ def read_nodes(payload: bytes, spec: Any, steps: int, duration_s: float) -> pa.T
 
     if not spec.trace:  # refused unread
         raise MalformedTrace("node rows for an episode that is not traced")
-    if len(payload) > MAX_NODE_FRAME:
-        raise MalformedTrace(f"a node frame of {len(payload):,} bytes (at most {MAX_NODE_FRAME:,})")
+    budget = node_budget(steps)
+    if len(payload) > budget:
+        raise MalformedTrace(f"a node frame of {len(payload):,} bytes, over the episode's budget of {budget:,} "
+                             f"({NODE_BYTES_BASE:,} + {NODE_BYTES_PER_STEP:,} a step)")
     methods = bundled_methods(spec.policy_text, spec.policy_name)
     try:
         nodes = parse_arrow(payload, NODE_SCHEMA, max_rows=row_limits(len(methods), steps)[1])
@@ -183,13 +198,18 @@ def _check_parents(nodes: pa.Table, index: np.ndarray, step: np.ndarray) -> None
     parents = nodes.column("parents").combine_chunks()
     if parents.null_count:
         raise MalformedTrace("parents missing", _first(parents.is_null().to_numpy(zero_copy_only=False), step))
+    # a call has at most as many parents as calls before it (they are distinct and earlier): checked per row
+    # before a value is read, so what follows costs a constant multiple of honest rows, not of the bytes sent
+    many = np.asarray(pc.list_value_length(parents), dtype=np.int64) > index
+    if many.any():
+        raise MalformedTrace("a parent that is not an earlier call of the same step", _first(many, step))
     values = pc.list_flatten(parents)
     if not len(values):
         return
     if values.null_count:
         raise MalformedTrace("a parent that is missing")
     owner = pc.list_parent_indices(parents).to_numpy()
-    value = values.to_numpy().astype(np.int64)
+    value = values.to_numpy()  # int16, as sent: compared at its own width
     bad = (value < 0) | (value >= index[owner])
     rising = np.r_[True, owner[1:] != owner[:-1]] | np.r_[True, value[1:] > value[:-1]]
     bad |= ~rising
@@ -277,14 +297,22 @@ def _check_lines(nodes: pa.Table, spec: Any, methods: dict[str, tuple[bool, int]
     for name in pc.unique(pc.filter(functions, pc.is_valid(lines))).to_pylist():
         count = methods[name][1]
         chosen = pc.filter(lines, pc.equal(functions, name))
+        # a call runs each of its method's lines at most once, in order: more lines than the method has are
+        # refused per row, before the values are read
+        per_call = np.asarray(pc.list_value_length(chosen).fill_null(0), dtype=np.int64)
+        if per_call.size and per_call.max() > count:
+            raise MalformedTrace(f"lines_run of {name} outside its {count} lines")
         flat = pc.list_flatten(chosen)
         if flat.null_count:
             raise MalformedTrace(f"lines_run of {name} with a missing line")
-        values = np.asarray(flat, dtype=np.int64)
-        if values.size and (values.min() < 1 or values.max() > count):
+        if not len(flat):
+            continue
+        low, high = pc.min_max(flat).values()  # at the wire's width (int16): nothing is widened
+        if low.as_py() < 1 or high.as_py() > count:
             raise MalformedTrace(f"lines_run of {name} outside its {count} lines")
-        starts = np.asarray(pc.list_value_length(chosen).fill_null(0), dtype=np.int64).cumsum()[:-1]
-        rising = np.diff(values) > 0
+        values = flat.to_numpy()  # int16, zero-copy
+        rising = values[1:] > values[:-1]
+        starts = per_call.cumsum()[:-1]
         rising[starts[(starts > 0) & (starts < values.size)] - 1] = True  # a new call may start lower
         if not rising.all():
             raise MalformedTrace(f"lines_run of {name} not strictly increasing")

@@ -39,7 +39,9 @@ from tracing.bounded import MAX_DEPTH, bound_json_text
 MESSAGE_LIMIT = 2_000
 """Characters kept of one message (an error, an exception message, a validation reason, a feedback note)."""
 JSON_LIMIT = 16_000
-"""Characters kept of one JSON value (a node's inputs or output: Breakout's observations run to a few KB)."""
+"""UTF-8 bytes kept of one JSON value (a node's inputs or output: Breakout's observations run to a few KB). Bytes,
+not characters: a value of astral characters is held to what it costs the store (4 bytes each), and its escaped
+form (``json.dumps`` of a cut value) to about twice that."""
 MIN_SECRET_CHARS = 8
 """Environment values shorter than this are not treated as secrets."""
 REDACTED = "[redacted]"
@@ -126,14 +128,23 @@ def clean_untrusted_text(text: object, limit: int = MESSAGE_LIMIT) -> str | None
     return f"{head[:limit]}… [cut {len(text) - limit:,} characters]"
 
 
+def utf8_prefix(text: str, limit: int) -> str:
+    """The longest prefix of ``text`` whose UTF-8 encoding is at most ``limit`` bytes."""
+    if len(text) * 4 <= limit:
+        return text
+    return text.encode("utf-8", "replace")[:limit].decode("utf-8", "ignore")
+
+
 def clean_json_text(text: str | None, limit: int = JSON_LIMIT) -> str | None:
-    """A JSON text from a worker, scrubbed, capped and bounded in nesting, and still valid JSON (a cut value
-    becomes a JSON string; a value nested too deep, its marker: ``tracing/bounded.py``)."""
+    """A JSON text from a worker, scrubbed, capped at ``limit`` UTF-8 bytes and bounded in nesting, and still valid
+    JSON (a cut value becomes a JSON string of its first ``limit`` bytes; a value nested too deep, its marker:
+    ``tracing/bounded.py``)."""
     if text is None:
         return None
     if not isinstance(text, str):
         text = str(text)
-    cleaned = scrub_secrets(text) if len(text) <= limit else None
+    head = utf8_prefix(text, limit)
+    cleaned = scrub_secrets(text) if len(head) == len(text) else None
     if cleaned is not None:
         if cleaned == text:
             return bound_json_text(text, limit, MAX_DEPTH)
@@ -142,7 +153,8 @@ def clean_json_text(text: str | None, limit: int = JSON_LIMIT) -> str | None:
             return bound_json_text(cleaned, limit, MAX_DEPTH)
         except (ValueError, RecursionError):
             pass
-    return json.dumps(clean_untrusted_text(text, limit), ensure_ascii=False)
+    cut = f"… [cut {len(text) - len(head):,} characters]" if len(head) < len(text) else ""
+    return json.dumps(f"{clean_untrusted_text(head, limit)}{cut}", ensure_ascii=False)
 
 
 _NODE_TEXT = {"function": 200, "exc_type": 200, "exc_message": MESSAGE_LIMIT, "exc_source": MESSAGE_LIMIT}
@@ -196,7 +208,7 @@ def _suspects(column: pa.ChunkedArray, limit: int, nested: bool = False) -> list
     ``nested``, also a JSON text with more opening brackets than the nesting allowed (only such a one can be
     nested too deep). Found with Arrow's vectorised kernels, so the common case (a traced episode's thousands of
     short, clean values) costs a few milliseconds instead of a Python call per value."""
-    mask = pc.greater(pc.utf8_length(column), limit)
+    mask = pc.greater(pc.binary_length(column), limit)  # UTF-8 bytes: a cap in characters let astral text be 4 x
     if nested:
         openers = pc.add(pc.count_substring(column, "["), pc.count_substring(column, "{"))
         mask = pc.or_(mask, pc.greater(openers, MAX_DEPTH))

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import struct
+from functools import lru_cache
 from typing import Any
 
 HEADER = struct.Struct(">cI")
@@ -132,6 +133,8 @@ def parse_json(payload: bytes) -> dict[str, Any]:
 
 MAX_BATCHES = 64
 """Record batches one Arrow stream may hold (a writer sends one per table; more only make readers copy)."""
+MAX_BATCH_METADATA = 64 * 1024
+"""Bytes of one record batch message's metadata (a table of the protocol's few columns needs about 1 KB)."""
 
 
 def _flat_field(meta: bytes, table: int, index: int) -> int | None:
@@ -145,48 +148,81 @@ def _flat_field(meta: bytes, table: int, index: int) -> int | None:
     return table + offset if offset else None
 
 
-def batch_header(meta: bytes) -> tuple[int, bool]:
-    """(rows, compressed) of a record batch message's metadata (the ``Message`` flatbuffer of Arrow's
-    ``Message.fbs``: its ``header``, a ``RecordBatch``, has ``length`` and ``compression``), read before its body
-    is decoded; BadMessage for metadata that is not one. Reading the body of a compressed batch is what inflates:
-    100 KB of zstd became three 1 GiB strings."""
+def batch_header(meta: bytes) -> tuple[int, bool, int]:
+    """(rows, compressed, bytes its buffers span in all) of a record batch message's metadata (the ``Message``
+    flatbuffer of Arrow's ``Message.fbs``: its ``header``, a ``RecordBatch``, has ``length``, ``buffers`` and
+    ``compression``), read before its body is decoded (reading the body of a compressed batch is what inflates:
+    100 KB of zstd became three 1 GiB strings); BadMessage for
+    metadata that is not one, or that carries key/value metadata (a vector of tables whose offsets may all point
+    at one entry: read many times over, it costs what was never sent)."""
     try:
         root = struct.unpack_from("<I", meta, 0)[0]
+        if _flat_field(meta, root, 4) is not None:  # Message.custom_metadata
+            raise BadMessage("a record batch message with key/value metadata")
         header = _flat_field(meta, root, 2)  # Message.header
         if header is None:
             raise BadMessage("a record batch message without its header")
         batch = header + struct.unpack_from("<I", meta, header)[0]
         length = _flat_field(meta, batch, 0)  # RecordBatch.length
         rows = struct.unpack_from("<q", meta, length)[0] if length is not None else 0
-        return rows, _flat_field(meta, batch, 3) is not None  # RecordBatch.compression
+        buffers = _flat_field(meta, batch, 2)  # RecordBatch.buffers: a vector of Buffer structs (offset, length)
+        spanned = 0
+        if buffers is not None:
+            vector = buffers + struct.unpack_from("<I", meta, buffers)[0]
+            count = struct.unpack_from("<I", meta, vector)[0]
+            if vector + 4 + 16 * count > len(meta):
+                raise BadMessage("a record batch message whose metadata is malformed")
+            for i in range(count):
+                offset, size = struct.unpack_from("<qq", meta, vector + 4 + 16 * i)
+                if offset < 0 or size < 0:
+                    raise BadMessage("a record batch buffer at a negative offset or of a negative size")
+                spanned += size
+        return rows, _flat_field(meta, batch, 3) is not None, spanned  # RecordBatch.compression
     except (struct.error, IndexError):
         raise BadMessage("a record batch message whose metadata is malformed") from None
 
 
+@lru_cache(maxsize=16)
+def schema_message(schema: Any) -> bytes:
+    """The protocol's encapsulated schema message of ``schema``: the exact bytes a writer of this pyarrow begins an
+    IPC stream with (both sides run the same environment)."""
+    return schema.serialize().to_pybytes()
+
+
 def parse_arrow(payload: bytes, schema: Any, max_rows: int | None = None) -> Any:
-    """The table of an Arrow IPC stream, fully validated and of exactly ``schema``, bounded before it is decoded:
-    the schema is compared first, then each message's header is read before its body: only uncompressed record
-    batches (no dictionaries, no compression), at most :data:`MAX_BATCHES` of them and ``max_rows`` rows in all.
-    An uncompressed batch is read in place (its buffers are slices of ``payload``), so the table takes no more
-    memory than the frame it came in."""
+    """The table of an Arrow IPC stream, fully validated and of exactly ``schema``, each stage bounded by the bytes
+    received before it runs:
+
+    - the schema is agreed in advance: the stream must begin with :func:`schema_message`'s bytes, compared byte
+      for byte before anything is decoded (no metadata, no dictionaries, no types the protocol does not name:
+      a schema message is never parsed, so no offsets in it can be followed);
+    - then each message's metadata is read before its body: only uncompressed record batches (no dictionaries,
+      no compression, no key/value metadata, at most :data:`MAX_BATCH_METADATA` bytes), at most
+      :data:`MAX_BATCHES` of them and ``max_rows`` rows in all, whose buffers span no more than the body they
+      lie in (buffers that overlap would let one byte sent be read as many);
+    - an uncompressed batch is read in place (its buffers are slices of ``payload``), so the table takes no more
+      memory than the frame it came in."""
     import pyarrow as pa
 
+    expected = schema_message(schema)
+    if len(payload) < len(expected) or memoryview(payload)[:len(expected)] != expected:
+        raise BadMessage("an Arrow table from the worker does not have the expected schema (compared byte for byte)")
     try:
-        reader = pa.ipc.MessageReader.open_stream(pa.py_buffer(payload))
-        message = reader.read_next_message()
-        if message.type != "schema":
-            raise BadMessage("an Arrow stream that does not begin with its schema")
-        if not pa.ipc.read_schema(message).equals(schema, check_metadata=False):
-            raise BadMessage("an Arrow table from the worker does not have the expected schema")
+        reader = pa.ipc.MessageReader.open_stream(pa.py_buffer(payload).slice(len(expected)))
         batches, rows = [], 0
         for message in reader:
             if message.type != "record batch":
                 raise BadMessage(f"an Arrow {message.type} message in a table of plain columns")
             if len(batches) == MAX_BATCHES:
                 raise BadMessage(f"an Arrow stream of more than {MAX_BATCHES} record batches")
-            count, compressed = batch_header(message.metadata.to_pybytes())
+            if message.metadata.size > MAX_BATCH_METADATA:
+                raise BadMessage(f"a record batch message of {message.metadata.size:,} bytes of metadata")
+            count, compressed, spanned = batch_header(message.metadata.to_pybytes())
             if compressed:
                 raise BadMessage("a compressed Arrow record batch (refused unread: it could inflate to any size)")
+            if spanned > message.body.size:
+                raise BadMessage(f"record batch buffers spanning {spanned:,} bytes of a {message.body.size:,}-byte "
+                                 "body")
             rows += count
             if count < 0 or (max_rows is not None and rows > max_rows):
                 raise BadMessage(f"an Arrow stream of more than {max_rows:,} rows")

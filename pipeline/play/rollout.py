@@ -42,7 +42,7 @@ import pyarrow as pa
 from games import Game, get_game, list_widths
 from games.base import OBSERVATION_VERSION
 from games.envs import discard_env, shared_env
-from pipeline.boundary.nodes import MAX_NODE_FRAME, MalformedTrace, read_nodes
+from pipeline.boundary.nodes import MAX_NODE_FRAME, MalformedTrace, node_budget, read_nodes
 from pipeline.boundary.policy import (ACTION, MAX_ANSWER, Channel, capped_error, coerce_action,
                                      describe_exception)
 from pipeline.play.runinfo import policy_rng_seed
@@ -151,9 +151,10 @@ class PolicyChannel:
         """The policy's legal action for ``obs``; raises :class:`PolicyFailed`."""
         raise NotImplementedError
 
-    def finish(self, more: bool = False) -> Any:
+    def finish(self, more: bool = False, steps: int | None = None) -> Any:
         """The episode is over: the node rows (an Arrow table, the raw Arrow bytes of a remote policy, or None).
-        ``more``: the next episode of the same game follows, played by the same policy (loaded, its state kept)."""
+        ``more``: the next episode of the same game follows, played by the same policy (loaded, its state kept);
+        ``steps``: the policy calls of the episode (its node rows' byte budget: ``nodes.node_budget``)."""
         return None
 
 
@@ -192,7 +193,7 @@ class LocalPolicy(PolicyChannel):
         except BaseException as exc:  # noqa: BLE001 - untrusted code: anything, SystemExit too
             raise PolicyFailed("policy_error", describe_exception(exc)) from None
 
-    def finish(self, more: bool = False) -> Any:
+    def finish(self, more: bool = False, steps: int | None = None) -> Any:
         if self.policy is not None:
             self.timer.__exit__(None, None, None)
             if self.recorder is not None:
@@ -287,9 +288,9 @@ class RemotePolicy(PolicyChannel):
         """Let the policy process go (a game host that plays another episode next must not keep its socket)."""
         self.channel.sock.close()
 
-    def finish(self, more: bool = False) -> bytes | None:
-        """The node rows as the policy process sent them (an Arrow stream of at most
-        :data:`~pipeline.boundary.nodes.MAX_NODE_FRAME` bytes, read and checked by the parent), or None.
+    def finish(self, more: bool = False, steps: int | None = None) -> bytes | None:
+        """The node rows as the policy process sent them (an Arrow stream of at most the episode's byte budget,
+        :func:`~pipeline.boundary.nodes.node_budget` of ``steps``, read and checked by the parent), or None.
         :class:`PolicyFailed` (``policy_error``, a malformed trace) for node rows the episode did not ask for
         (refused unread) or a node frame over the limit (refused at its header). None at once when the stream is
         :attr:`broken` (the host timed the process out: waiting for its node rows would only let it hold the
@@ -307,9 +308,11 @@ class RemotePolicy(PolicyChannel):
         if not self.spec.trace:
             raise PolicyFailed("policy_error", "malformed trace: node rows for an episode that is not traced")
         try:
-            kind, payload = self.channel.receive(MAX_NODE_FRAME, within=FINISH_TIMEOUT_S)
-        except ValueError as exc:  # over the limit, refused at the header
-            raise PolicyFailed("policy_error", f"malformed trace: {exc}") from None
+            budget = MAX_NODE_FRAME if steps is None else node_budget(steps)
+            kind, payload = self.channel.receive(budget, within=FINISH_TIMEOUT_S)
+        except ValueError as exc:  # over the episode's byte budget, refused at the header
+            raise PolicyFailed("policy_error", f"malformed trace: a node frame over the episode's budget ({exc})") \
+                from None
         except (OSError, EOFError):
             return None
         return payload if kind == b"A" else None
@@ -446,7 +449,7 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
             discard_env(env)  # an error inside the loop leaves the environment in an unknown state
             raise
     try:
-        nodes = policy.finish(more=more and end_reason in GAME_END_REASONS)
+        nodes = policy.finish(more=more and end_reason in GAME_END_REASONS, steps=len(steps))
     except PolicyFailed as exc:  # node rows the episode did not ask for, or too many bytes of them
         nodes = None
         if end_reason in GAME_END_REASONS:

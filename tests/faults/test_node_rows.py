@@ -82,7 +82,7 @@ FORGERIES = [
     ("output", "NaN", "at step 0: a node's output is not JSON"),
     ("output", '"\\ud800"', "at step 0: a node's output is not JSON (a lone surrogate)"),
     ("output", "[" * 65 + "]" * 65, "at step 0: a node's output is nested deeper than 64 levels"),
-    ("output", '"' + "y" * 90_000 + '"', "at step 0: a node's output of more than 80,000 bytes"),
+    ("output", '"' + "y" * 90_000 + '"', "at step 0: a node's output of more than 21,024 bytes"),
     ("inputs", None, "at step 0: a node without its inputs"),
     ("exc_type", "KeyError", "at step 0: a node with both an output and an exception"),
     ("exc_line", 10_000, "at step 0: an exception line outside the policy's"),
