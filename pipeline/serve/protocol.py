@@ -110,6 +110,8 @@ def create_run(store: Store, config: ServeConfig, name: str | None = None) -> st
         insert_candidate(con, dict(run_id=run_id, iteration=0, candidate=0, strategy=KIND, policy_version_id=starter,
                                    proposed_version_id=starter, update_status="initial", evaluation="unplayed",
                                    decision="best", feedback=None))
+        insert_feedback(con, dict(run_id=run_id, iteration=0, mode="staged", stage="unplayed", score=None,
+                                  text="The starting policy, not played: submit it to see how it does."))
         insert_iteration(con, dict(run_id=run_id, iteration=0, candidate=0, policy_version_id=starter,
                                    update_status="initial", rolled_back=False, best_version_id=starter,
                                    best_iteration=0, started_at=now, finished_at=now))
@@ -269,12 +271,13 @@ class ServeRun:
                 raise RequestError(f"budget: {len(instances)} episodes asked, {left} left")
             if parent is not None and parent not in self._committed:
                 raise RequestError(f"parent: submission {parent} has no result (yet)")
-            iteration, self._next = self._next, self._next + 1
             self._reserved += len(instances)
             parent = self._latest if parent is None else parent
         try:
-            with self._work:
-                result = self._play(iteration, info, policy, instances, parent)
+            with self._work:  # one submission plays at a time: it takes the next number when it starts, and the
+                # numbers stay dense (an iteration per number) even when a submission fails while it plays
+                result = self._play(self._next, info, policy, instances, parent)
+                self._next += 1
         except BaseException:
             with self._lock:
                 self._reserved -= len(instances)
@@ -282,8 +285,8 @@ class ServeRun:
         with self._lock:
             self._reserved -= len(instances)
             self._spent += len(instances)
-            self._latest = max(self._latest, iteration)
-            self._committed.add(iteration)
+            self._latest = max(self._latest, result["submission"])
+            self._committed.add(result["submission"])
             spent = self._spent == self.budget_total and not self._reserved and not self.finalized
         if spent and self.finalize_when_spent:
             try:
