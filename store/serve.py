@@ -9,6 +9,7 @@ external access off, so it can read no file either.
 
 from __future__ import annotations
 
+import re
 import threading
 import warnings
 from typing import Any
@@ -64,7 +65,9 @@ def visible_query(con: duckdb.DuckDBPyConnection, run_id: str, sql: str, max_row
                                              "lock_configuration": True})
     timer = threading.Timer(time_limit_s, mem.interrupt)  # a query of the agent's may be endless: range(1e15)
     try:
-        for name, query in VISIBLE_TABLES.items():
+        named = [name for name in VISIBLE_TABLES if re.search(rf"\b{name}\b", sql, re.IGNORECASE)]
+        for name, query in ((name, VISIBLE_TABLES[name]) for name in named):  # a run's steps and nodes are big:
+            # only the tables the query names are copied
             with warnings.catch_warnings():  # the copy it warns of is the point: the agent's database is its own
                 warnings.simplefilter("ignore", UserWarning)
                 table = con.execute(query, {"run": run_id}).to_arrow_table()
