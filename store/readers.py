@@ -103,6 +103,30 @@ def step_nodes(
 _BATCH_ROWS = 256
 
 
+def cut_value_sql(column: str, chars: int) -> str:
+    """SQL of a node value's JSON text cut for a reader that shows ``chars`` characters of it: the text itself when
+    it is that short, else the ``$truncated`` marker of ``tracing/bounded.py`` (its length and a preview of
+    :data:`PREVIEW_CHARS`), which decodes to a few kilobytes whatever the value."""
+    return (f"CASE WHEN length({column}) <= {int(chars)} THEN {column}::VARCHAR "
+            f"ELSE json_object('$truncated', length({column}), 'preview', "
+            f"substr({column}::VARCHAR, 1, {PREVIEW_CHARS}))::VARCHAR END")
+
+
+def step_outputs(con: duckdb.DuckDBPyConnection, episode_id: str, start: int, stop: int,
+                 value_chars: int = PREVIEW_CHARS) -> list[dict[str, Any]]:
+    """What each method returned (``output``, decoded) or raised (``exc_type``, ``exc_message``) in steps ``start
+    <= step < stop``, its last call in a step only, in step order: at most one row per method and step, each value
+    cut to ``value_chars`` characters (:func:`cut_value_sql`), however many calls the policy made."""
+    rows = _rows(con.execute(
+        f"""SELECT step, function, exc_type, exc_message, {cut_value_sql('output', value_chars)} AS output
+            FROM nodes WHERE episode_id = ? AND step >= ? AND step < ?
+            QUALIFY row_number() OVER (PARTITION BY step, function ORDER BY call_index DESC) = 1
+            ORDER BY step, call_index""", [episode_id, start, stop]))
+    for row in rows:
+        row["output"] = load_json(row["output"]) if row["output"] is not None else None
+    return rows
+
+
 @dataclass(frozen=True)
 class JsonHead:
     """A stored JSON value a reader did not decode: the first characters of its text (``text``, at most what the

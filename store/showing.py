@@ -11,8 +11,9 @@ from typing import Any
 import duckdb
 import pyarrow as pa
 
-from store.readers import _rows
+from store.readers import _rows, cut_value_sql
 from store.scores import score_episodes
+from tracing.bounded import PREVIEW_CHARS
 
 
 def _query(con: duckdb.DuckDBPyConnection, sql: str, params: list[Any] | None = None) -> list[dict[str, Any]]:
@@ -125,16 +126,28 @@ def episode_list(con: duckdb.DuckDBPyConnection, run_id: str) -> list[tuple[str,
 
 
 def episode_tables(con: duckdb.DuckDBPyConnection, episode_id: str) -> tuple[dict[str, Any], pa.Table, pa.Table]:
-    """An episode's row, and its steps and node calls as Arrow tables in order; KeyError if there is none."""
+    """An episode's row, and its steps and node calls as Arrow tables in order, each node value at most
+    :data:`RECORDED_VALUE_CHARS` characters (else its marker); KeyError if there is none."""
     rows = _query(con, "SELECT * FROM episodes WHERE episode_id = ?", [episode_id])
     if not rows:
         raise KeyError(f"no episode {episode_id}")
     steps = con.sql("SELECT step, action, reward, score, lives, objects FROM steps WHERE episode_id = $1 "
                     "ORDER BY step", params=[episode_id]).to_arrow_table()
-    nodes = con.sql("SELECT step, call_index, function, inputs, output, exc_type, exc_message, exc_line, exc_source, "
-                    "parents, lines_run FROM nodes WHERE episode_id = $1 ORDER BY step, call_index",
+    nodes = con.sql(f"SELECT step, call_index, function, {_shown('inputs')}, {_shown('output')}, exc_type, exc_message, "
+                    "exc_line, exc_source, parents, lines_run FROM nodes WHERE episode_id = $1 ORDER BY step, call_index",
                     params=[episode_id]).to_arrow_table()
     return rows[0], steps, nodes
+
+
+RECORDED_VALUE_CHARS = PREVIEW_CHARS
+"""Characters of a node value a rebuilt recording shows (a line of its text log): a longer value comes as the
+``$truncated`` marker of ``tracing/bounded.py``, its length and a preview, so the recording never holds more of a
+rollout's values than its rows times this, decoded (issue 38: 2,000 values of ``[{},{},…]``)."""
+
+
+def _shown(column: str) -> str:
+    """The SQL of a node value as a rebuilt recording reads it (:data:`RECORDED_VALUE_CHARS`)."""
+    return f"{cut_value_sql(column, RECORDED_VALUE_CHARS)} AS {column}"
 
 
 def lead_in_actions(con: duckdb.DuckDBPyConnection, episode_id: str) -> list[list[int]]:

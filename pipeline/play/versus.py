@@ -37,7 +37,7 @@ from pipeline.play.runinfo import new_run_id
 from pipeline.play.validate import checked_inspect
 from store import Store
 from store.comparisons import episode_rows, first_divergent_step, resolve_version
-from store.readers import episode_steps, get_run, policy_text, run_episodes, step_nodes
+from store.readers import episode_steps, get_run, policy_text, run_episodes, step_outputs
 from store.scores import Score, compare_scores, score_data, score_episodes, worst_return
 from store.views import resolve_run_id
 from tracing.policy_file import PolicyLoadError, read_policy_file
@@ -201,7 +201,7 @@ def _divergence(con, game: str, ep_a: dict[str, Any], ep_b: dict[str, Any], cont
         steps = {r["step"]: r for r in episode_steps(con, episode_id, start, stop, list_widths(game),
                                                      get_game(game).derive)}
         outputs: dict[int, dict[str, Any]] = {}
-        for node in step_nodes(con, episode_id, start, stop):  # a method called twice in a step: the last call
+        for node in step_outputs(con, episode_id, start, stop):  # each method's last call in a step, cut
             outputs.setdefault(node["step"], {})[node["function"]] = (
                 node["output"] if node["exc_type"] is None else f"{node['exc_type']}: {node['exc_message']}")
         sides[label] = (steps, outputs)

@@ -38,6 +38,8 @@ from tracing.capture import to_json
 
 ROOT = Path(__file__).resolve().parents[2]
 ROWS, CHARS = 2_000, 16_000
+FLOOD = "[" + ",".join(["{}"] * ((CHARS - 1) // 3)) + "]"
+"""The attack's value: 16,000 characters of valid JSON that decode to 5,333 dicts."""
 PEAK_BOUND_MB = 600
 """The issue's bound for any trusted process; the unbounded reader peaked far above it (docs/sandbox.md)."""
 GROWTH_BOUND_MB = 150
@@ -82,10 +84,9 @@ def stores(tmp_path_factory):
     run_id = _build(honest)
     forged = folder / "forged.duckdb"
     shutil.copy(honest, forged)
-    value = "[" + ",".join(["{}"] * ((CHARS - 1) // 3)) + "]"
-    inputs = '{"obs":{"$ref":"obs"},"seen":' + value + "}"
+    inputs = '{"obs":{"$ref":"obs"},"seen":' + FLOOD + "}"
     steps = 120
-    _replace_nodes(forged, run_id, [{"step": i % steps, "call_index": i // steps, "inputs": inputs, "output": value}
+    _replace_nodes(forged, run_id, [{"step": i % steps, "call_index": i // steps, "inputs": inputs, "output": FLOOD}
                                     for i in range(ROWS)])
     return honest, forged, run_id
 
@@ -195,3 +196,47 @@ def test_a_sweep_of_honest_values_gives_the_same_prompt(stores, tmp_path):
                          "inputs": to_json(inputs), "output": to_json(_honest_value(rng))})
     _replace_nodes(path, run_id, rows)
     assert _prompts_agree(Store(path), run_id) > 50  # many values long enough to be left undecoded
+
+
+VIEW_READER = PEAK + """
+import json, sys
+from pipeline.cli import main
+code = main(["view", sys.argv[2], "--iteration", "0", "--store", sys.argv[1], "--save", sys.argv[3]])
+print(json.dumps({"peak_kb": peak_kb(), "code": code}))
+"""
+
+
+def test_a_rebuilt_recording_reads_a_slice_of_a_flooded_rollout(stores, tmp_path):
+    """``codearcade view RUN --iteration 0 --save``: the training rollout's recording is rebuilt from the store,
+    each node value cut to a line of text (``store/showing.episode_tables``): the same peak RSS give or take
+    DuckDB's cache of the rows it read, with the forged rows or without."""
+    honest_path, forged_path, run_id = stores
+    honest = _run(VIEW_READER, str(honest_path), run_id, str(tmp_path / "honest.rrd"))
+    forged = _run(VIEW_READER, str(forged_path), run_id, str(tmp_path / "forged.rrd"))
+    assert honest["code"] == forged["code"] == 0 and (tmp_path / "forged.rrd").stat().st_size > 0
+    peak, base = forged["peak_kb"] / 1024, honest["peak_kb"] / 1024
+    assert peak < PEAK_BOUND_MB and peak - base < 100, f"{peak:,.0f} MB with the forged rows, {base:,.0f} MB without"
+
+
+COMPARE_READER = PEAK + """
+import json, sys
+from store import Store
+from store.readers import step_outputs
+with Store(sys.argv[1]).read() as con:
+    (episode_id,) = con.execute("SELECT train_episode_id FROM candidates WHERE run_id = ? AND iteration = 0",
+                                [sys.argv[2]]).fetchall()[0]
+    rows = step_outputs(con, episode_id, 0, 120)
+print(json.dumps({"peak_kb": peak_kb(), "rows": len(rows), "output": rows[0]["output"]}))
+"""
+
+
+def test_compare_reads_each_methods_last_output_cut(stores):
+    """What ``codearcade compare`` shows around a divergence (``store.readers.step_outputs``): one row per method
+    and step, each value at most a marker of its length and a preview, however many calls the policy made."""
+    honest_path, forged_path, run_id = stores
+    honest = _run(COMPARE_READER, str(honest_path), run_id)
+    forged = _run(COMPARE_READER, str(forged_path), run_id)
+    assert forged["rows"] == 120  # 2,000 calls of one method over 120 steps: its last call in each
+    assert forged["output"]["$truncated"] == len(FLOOD) and forged["output"]["preview"].startswith("[{},{},")
+    peak, base = forged["peak_kb"] / 1024, honest["peak_kb"] / 1024
+    assert peak - base < 100, f"{peak:,.0f} MB with the forged rows, {base:,.0f} MB without"
