@@ -171,11 +171,17 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                 _md_table(("iteration", "update", "score", "best", "train", "LOC", "SLOC", "complexity", "if depth",
                            "tokens in", "tokens out", "wall s", "version"), rows), ""]
         if data.get("audits"):
-            out += ["## Held-out audit", "",
+            out += ["## Validation and held-out pools", "",
+                    "The run's finalize (`codearcade serve`): each submission on the sealed validation pool, the "
+                    "best by validation and the starting policy on the sealed held-out pool (seeds from 1,000,000, "
+                    "the standard protocol: sticky actions 0.25, up to 30 no-op starts); tuning: the training "
+                    "score. Overfit: less than half of the best's gain over the starter holds up.", ""] \
+                if run["kind"] == "serve" else ["## Held-out audit", "",
                     "The best version and the starting policy on seeds the loop never played (from 1,000,000), "
                     "under the standard protocol (sticky actions 0.25, up to 30 no-op starts) and the run's own; "
                     "tuning: its score on the seeds the loop selected on. Overfit: less than half of the best's "
-                    "gain over the starter holds up (`codearcade audit` plays it again).", "",
+                    "gain over the starter holds up (`codearcade audit` plays it again).", ""]
+            out += [
                     _md_table(("version", "iteration", "protocol", "games", "score (95% interval, method, n)",
                                "tuning", "overfit"),
                               [(a["role"], a["iteration"], a["protocol"], len(a["seeds"]),
