@@ -161,6 +161,10 @@ def test_a_whole_run_over_http_spends_its_budget_exactly_and_shows_no_seed(tmp_p
     seeds = _seeds(store, run_id)
     assert len(seeds) == 8 + 2 + 2
     assert _leaks(server.responses, seeds) == []
+    # the policies' random streams are keyed by a secret, not by the run id the agent is told (with that key, a
+    # policy's draws would give each game's seed away)
+    key = json.loads(s.query("SELECT config FROM runs WHERE run_id = ?", [run_id])[0][0])["rng_key"]
+    assert key != run_id and run_id in server.responses[0] and not [t for t in server.responses if key in t]
     sealed = [r[0] for r in s.query("SELECT episode_id FROM episodes WHERE run_id = ? AND kind <> 'train'", [run_id])]
     # validation: one version (every submission is the starter's text), 2 games; held out: it is the best and the
     # starter, so it plays the pool once

@@ -98,7 +98,10 @@ def create_run(store: Store, config: ServeConfig, name: str | None = None) -> st
     opt = OptimizeConfig(game=config.game, policy=config.policy, iterations=0, eval_episodes=1,
                          audit_episodes=config.heldout_episodes, workers=config.workers,
                          rollout_steps=config.max_steps, eval_max_steps=config.max_steps,
-                         call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s)
+                         call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s,
+                         # the key of the policies' random streams is secret here, not the run id: the agent knows
+                         # the run id, and a policy's draws (keyed by it and the game's seed) would give the seed away
+                         rng_key=secrets.token_hex(16))
     seeds = secrets.SystemRandom().sample(range(TRAIN_SEED_LOW, AUDIT_SEED_BASE), config.instances)
     serve = {**asdict(config), "train_seeds": seeds, "sticky": STANDARD_STICKY, "noop_max": STANDARD_NOOP_MAX}
     run_id = start_run(opt, store, "agent", kind=KIND, extra={"serve": serve, "strategy": KIND})
