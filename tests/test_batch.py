@@ -201,6 +201,8 @@ def test_anthropic_batch_with_a_token_budget_stops_then_resumes_with_a_larger_on
     env = {k: v for k, v in os.environ.items() if k != "ANTHROPIC_API_KEY"}
     refused = _batch(write(7000), store, env=env)
     assert refused.returncode == 2 and "ANTHROPIC_API_KEY" in refused.stderr and not store.exists()
+    # the way out is said where the model was named: the batch file, not a flag (its api_base is set already)
+    assert "remove model from the batch file" in refused.stderr and "--model" not in refused.stderr, refused.stderr
     env["ANTHROPIC_API_KEY"] = "sk-ant-scripted"
     done = _batch(write(7000), store, "--workers", "2", env=env)
     assert done.returncode == 0, done.stdout + done.stderr

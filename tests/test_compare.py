@@ -95,6 +95,9 @@ def test_two_versions_report_the_first_divergent_step(store, tmp_path, capsys, w
 def test_identical_versions_never_diverge(store, capsys):
     code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--max-steps", 50, "--store", store.path)
     assert code == 0, err
+    # off a terminal, each side's episodes say when they start and end (stderr), never a silent wait
+    for side in "AB":
+        assert f"compare {side}: 1 episode to play" in err and f"compare {side}: 1 of 1 episodes played" in err, err
     assert "the two versions chose the same action at every step" in out and "(the same code)" in out
     # its two eval runs are compare's own: marked so, left out of `runs` and of last
     assert store.query("SELECT kind, made_by FROM runs") == [("eval", "compare")] * 2

@@ -170,8 +170,13 @@ def test_report_of_an_optimize_run(filled, tmp_path, capsys):
 
     store, run_id, _ = filled
     out_dir = tmp_path / "rep"
-    code, out, _ = _run(capsys, "report", run_id[:20], "--store", str(store.path), "--out", str(out_dir))
+    code, out, err = _run(capsys, "report", run_id[:20], "--store", str(store.path), "--out", str(out_dir))
     assert code == 0 and out.strip() == str(out_dir / "README.md")
+    # off a terminal it says each stage as it starts (a long report is never a silent wait), on stderr
+    assert err.splitlines() == ["codearcade report: reading the run from the store",
+                                *(f"codearcade report: drawing {name}" for name in
+                                  ("score.png", "code.png", "tokens.png", "lineage.png", "calls.png")),
+                                "codearcade report: writing README.md"], err
     readme = (out_dir / "README.md").read_text()
     for name in ("score.png", "code.png", "tokens.png"):
         image = matplotlib.image.imread(out_dir / name)

@@ -256,13 +256,17 @@ def _cache_saving(run: dict[str, Any], usage: dict[str, Any], price: Callable[[s
 
 def write_report(store: Store, run: str, out_dir: str | Path | None = None, *,
                  reproduce: Callable[[dict[str, Any], dict[str, Any]], str] | None = None,
-                 price: Callable[[str], Any] | None = None) -> Path:
+                 price: Callable[[str], Any] | None = None, progress: Callable[[str], None] | None = None) -> Path:
     """Write the plots and README.md of ``run`` (an id or unique prefix) into ``out_dir``; return README's path.
 
     What the report cannot know without the pipeline comes in from its caller (viewers never import it):
     ``reproduce(run row, config)``, the command line that starts a run with the same settings, and
     ``price(model)``, the model's rates per token (``input``, ``cached_input``) or None, for what prompt caching
-    saved. Without them, the Reproduce section shows only the queries and the caching line only the tokens."""
+    saved. Without them, the Reproduce section shows only the queries and the caching line only the tokens.
+    ``progress`` gets a line as each stage starts (reading the run, each figure, the Markdown): a long report is
+    never a silent wait."""
+    say = progress or (lambda line: None)
+    say("reading the run from the store")
     data = collect(store, run)
     out = Path(out_dir) if out_dir else Path("reports") / data["run"]["run_id"]
     out.mkdir(parents=True, exist_ok=True)
@@ -276,10 +280,12 @@ def write_report(store: Store, run: str, out_dir: str | Path | None = None, *,
     ):
         if data["run"]["kind"] == "eval" and name != "score.png":
             continue
+        say(f"drawing {name}")
         fig = figure(data)
         if fig is not None:
             fig.savefig(out / name)
             images[name] = caption
     readme = out / "README.md"
+    say("writing README.md")
     readme.write_text(render_markdown(data, images, reproduce, price))
     return readme

@@ -72,7 +72,9 @@ def _batch_display(store):
 def _endpoint_problems(planned) -> list[str]:
     """One line per model whose key is unset, and per ``api_base`` that does not answer, among the runs that
     would start or resume (``pipeline/llm/providers.py``), with how many runs each would stop."""
-    from pipeline.llm.providers import check_credentials, check_reachable
+    from functools import partial
+
+    from pipeline.llm.providers import FIX_IN_BATCH_FILE, check_credentials, check_reachable
 
     found: dict[tuple, str | None] = {}  # each model and each server checked once
     problems: dict[str, int] = {}
@@ -81,11 +83,12 @@ def _endpoint_problems(planned) -> list[str]:
         if item.action == "skip":
             continue
         entries = config.models or ([{"model": config.model, "api_base": config.api_base}] if config.model else [])
-        checks = [(check_credentials, e["model"], e["api_base"]) for e in entries] + \
+        checks = [(partial(check_credentials, other_fixes=FIX_IN_BATCH_FILE), e["model"], e["api_base"])
+                  for e in entries] + \
             [(check_reachable, base) for base in dict.fromkeys([e["api_base"] for e in entries] + [config.api_base])
              if base]
         for check, *values in checks:
-            key = (check.__name__, *values)
+            key = (getattr(check, "func", check).__name__, *values)
             if key not in found:
                 try:
                     check(*values)

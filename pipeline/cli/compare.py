@@ -7,10 +7,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from typing import Callable
+from typing import Any, Callable
 
-from pipeline.cli.common import (EXIT_OK, CliError, add_settings, add_store, open_store, short_ids, shorten_run_ids,
-                                 show, show_json)
+from pipeline.cli.common import (EXIT_OK, CliError, EpisodeProgress, add_settings, add_store, open_store, short_ids,
+                                 shorten_run_ids, show, show_json)
 from pipeline.play.config import CompareConfig
 from pipeline.settings import declarations
 
@@ -62,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     if given["workers"] is None:
         given["workers"] = min(args.episodes, os.cpu_count() or 1)
     config = CompareConfig(**given)
-    result = compare(store, args.a, args.b, config, progress=lambda line: show(line, file=sys.stderr, flush=True))
+    result = compare(store, args.a, args.b, config, progress=lambda line: show(line, file=sys.stderr, flush=True),
+                     episodes_progress=EpisodeProgress)
     data = result.as_dict()
     if args.rerun:
         if data["mode"] != "versions":
@@ -123,9 +124,10 @@ def is_version_ref(text: str, store=None) -> bool:
     return False
 
 
-def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] | None = None):
+def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] | None = None,
+            episodes_progress: Callable[[int, str], Any] | None = None):
     """Compare ``a`` and ``b``: two runs (``pipeline/optimizer/runs.py``), or two versions
-    (``pipeline/play/versus.py``)."""
+    (``pipeline/play/versus.py``; ``progress`` and ``episodes_progress`` say how its episodes go)."""
     from pathlib import Path
 
     from pipeline.optimizer.runs import compare_runs
@@ -138,7 +140,7 @@ def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] 
             raise PolicyLoadError(f"policy file '{ref}' does not exist")
     kinds = [is_version_ref(x, store) for x in (a, b)]
     if all(kinds):
-        return compare_versions(store, a, b, config, progress)
+        return compare_versions(store, a, b, config, progress, episodes_progress)
     if not any(kinds):
         return compare_runs(store, a, b)
     run, other = (a, b) if not kinds[0] else (b, a)

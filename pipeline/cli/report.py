@@ -5,6 +5,7 @@ reproduces the run.
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
 
 from pipeline.cli.common import EXIT_OK, add_run, add_store, open_store, resolve_run, show
@@ -75,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
     from viewers.report import write_report
 
     store = open_store(args)
-    path = write_report(store, resolve_run(store, args.run_id), args.out, reproduce=reproduce_command, price=price)
+    run_id = resolve_run(store, args.run_id)
+    path = write_report(store, run_id, args.out, reproduce=reproduce_command, price=price,
+                        progress=lambda stage: show(f"codearcade report: {stage}", file=sys.stderr, flush=True))
     show(path)
     return EXIT_OK

@@ -70,8 +70,17 @@ def provider_of(model: str) -> str:
     return model.split("/", 1)[0] if "/" in model else ""
 
 
-def check_credentials(model: str, api_base: str | None = None, environ: dict[str, str] | None = None) -> None:
-    """Raise :class:`MissingCredentialsError` naming the variable when ``model``'s key is not set.
+FIX_ON_COMMAND_LINE = ("use --api-base URL for your own server", "leave out --model to use the offline model")
+FIX_IN_BATCH_FILE = ("set api_base to your own server in the batch file",
+                     "remove model from the batch file to use the offline model")
+"""The other ways out of a missing key, said where the model was named (the command line, a batch file): your own
+server (not offered when one is given already), or the offline model."""
+
+
+def check_credentials(model: str, api_base: str | None = None, environ: dict[str, str] | None = None,
+                      other_fixes: tuple[str, str] = FIX_ON_COMMAND_LINE) -> None:
+    """Raise :class:`MissingCredentialsError` naming the variable when ``model``'s key is not set (``other_fixes``:
+    what else would do, said where the model was given).
 
     Answers from :data:`PROVIDER_KEYS` without importing litellm for the providers it lists (so a missing
     key is reported within a second); asks ``litellm.validate_environment`` for any other provider.
@@ -96,8 +105,8 @@ def check_credentials(model: str, api_base: str | None = None, environ: dict[str
         missing = list(result.get("missing_keys") or [])
     either = " or ".join(missing)
     raise MissingCredentialsError(
-        f"{model} needs an API key: set {either} in the environment (e.g. `export {missing[0]}=...`), or use "
-        "--api-base URL for your own server, or leave out --model to use the offline model")
+        f"{model} needs an API key: set {either} in the environment (e.g. `export {missing[0]}=...`), or "
+        + ", or ".join(other_fixes[1:] if api_base else other_fixes))
 
 
 class UnreachableEndpointError(ValueError):

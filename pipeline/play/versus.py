@@ -106,8 +106,12 @@ def load_version(store: Store, label: str, ref: str, workers: int) -> Version:
 
 
 def compare_versions(store: Store, a: str, b: str, config: CompareConfig,
-                     progress: Callable[[str], None] | None = None) -> VersionComparison:
-    """Play both versions on the same seeds (traced, into the store) and report where their actions part."""
+                     progress: Callable[[str], None] | None = None,
+                     episodes_progress: Callable[[int, str], Any] | None = None) -> VersionComparison:
+    """Play both versions on the same seeds (traced, into the store) and report where their actions part.
+    ``progress`` gets a line as each side starts; ``episodes_progress(episodes, description)`` makes the watcher of
+    one side's episodes (``update(index, steps)``, ``finished(index, length)``, ``close()``: the command line's
+    ``EpisodeProgress``)."""
     versions = [load_version(store, label, ref, config.workers) for label, ref in zip(LABELS, (a, b))]
     games = [config.game or v.game for v in versions]
     if any(g is None for g in games):
@@ -133,7 +137,14 @@ def compare_versions(store: Store, a: str, b: str, config: CompareConfig,
                          + (f"{config.episodes} sealed audit seed(s), standard protocol" if config.audit else
                             f"{config.episodes} seed(s) from {eval_config.seed}, traced"))
             # marked as compare's own: `runs` and `last` count the runs a person started, not these
-            v.eval_run = evaluate(path, eval_config, store, made_by="compare").run_id
+            watch = episodes_progress(eval_config.episodes, f"compare {v.label}") if episodes_progress else None
+            try:
+                v.eval_run = evaluate(path, eval_config, store, made_by="compare",
+                                      progress=watch.update if watch else None,
+                                      on_episode=watch.finished if watch else None).run_id
+            finally:
+                if watch is not None:
+                    watch.close()
     diff = unified_diff(versions[0].text, versions[1].text, f"A {a} ({versions[0].policy_version_id})",
                         f"B {b} ({versions[1].policy_version_id})")
     result = VersionComparison(game, versions, diff, protocol="audit" if config.audit else "paper")
