@@ -193,6 +193,11 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     server = Server(store, "--game", "pong", "--budget", "5", "--max-steps", "60", "--call-time-limit", "2")
     servers.append(server)
     attack = pong_policy(ATTACK.format(a=sentinels[0], b=sentinels[1], c=sentinels[2]))
+    # what eval makes of the same file (the path optimize plays too): the server must end its episodes the same way
+    (tmp_path / "attack.py").write_text(attack)
+    assert main(["eval", str(tmp_path / "attack.py"), "--max-steps", "60", "--call-time-limit", "2", "--store",
+                 str(tmp_path / "eval.duckdb"), "--json"]) == 1
+    evaluated = json.loads(capsys.readouterr().out)["episodes"][0]
     # caught by the source checks before anything plays: refused, and it costs nothing
     status, answer = server.post("submit", {"policy": pong_policy(f"open('{sentinels[2]}', 'w')\nreturn 0"),
                                             "instances": [0]})
@@ -200,7 +205,8 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     assert server.post("budget")[1]["spent"] == 0
     status, answer = server.post("submit", {"policy": attack, "instances": [0, 1]})
     assert status == 200, answer
-    assert all(e["end_reason"] == "policy_error" for e in answer["episodes"]), answer
+    assert all(e["end_reason"] == evaluated["end_reason"] == "policy_error" for e in answer["episodes"]), answer
+    assert all(e["error"] == evaluated["error"] for e in answer["episodes"]), (answer, evaluated)
     assert answer["score"] is None and answer["forfeit"]  # a forfeit: never ranked
     assert answer["budget"]["spent"] == 2  # failures cost their episodes
     loop = pong_policy("while True:\n    pass")
