@@ -62,7 +62,8 @@ CHECKS: list[tuple[str, str]] = [
     ("iterations whose episodes are missing", """
         SELECT i.run_id, i.iteration, e.episode_id FROM iterations i,
                unnest(list_prepend(i.train_episode_id, i.eval_episode_ids)) AS e(episode_id)
-        WHERE e.episode_id NOT IN (SELECT episode_id FROM episodes)"""),
+        WHERE e.episode_id IS NOT NULL  -- an iteration that played nothing (a served run's starter)
+          AND e.episode_id NOT IN (SELECT episode_id FROM episodes)"""),
     ("iterations without their candidates", """
         SELECT i.run_id, i.iteration, i.candidate FROM iterations i
         WHERE NOT EXISTS (SELECT 1 FROM candidates c WHERE c.run_id = i.run_id AND c.iteration = i.iteration
@@ -70,7 +71,8 @@ CHECKS: list[tuple[str, str]] = [
     ("candidates whose episodes are missing", """
         SELECT c.run_id, c.iteration, c.candidate, e.episode_id FROM candidates c,
                unnest(list_prepend(c.train_episode_id, c.eval_episode_ids)) AS e(episode_id)
-        WHERE e.episode_id NOT IN (SELECT episode_id FROM episodes)"""),
+        WHERE e.episode_id IS NOT NULL  -- an iteration that played nothing (a served run's starter)
+          AND e.episode_id NOT IN (SELECT episode_id FROM episodes)"""),
     ("audits whose episodes are missing", """
         SELECT a.run_id, a.role, a.protocol, e.episode_id FROM audits a, unnest(a.episode_ids) AS e(episode_id)
         WHERE e.episode_id NOT IN (SELECT episode_id FROM episodes)"""),

@@ -344,3 +344,16 @@ def test_over_mcp_a_refused_request_is_a_tool_error_that_costs_nothing(tmp_path)
     assert seen["budget"]["spent"] == 0 and seen["budget"]["remaining"] == 3
     assert seen["played"]["episodes"][0]["instance"] == 2 and seen["played"]["budget"]["spent"] == 1
     assert seen["sql"]["rows"] == [[2]]
+
+
+def test_a_run_without_submissions_cannot_be_finalized(tmp_path, capsys):
+    from pipeline.serve.config import ServeConfig
+    from pipeline.serve.protocol import RequestError, ServeRun, create_run
+
+    store = Store(tmp_path / "s.duckdb")
+    run_id = create_run(store, ServeConfig(game="pong", budget=2))
+    with pytest.raises(RequestError, match="nothing to finalize"):
+        ServeRun(store, run_id).finalize()
+    assert main(["serve", "--finalize", run_id, "--store", str(store.path)]) == 2
+    assert "nothing to finalize" in capsys.readouterr().err
+    assert not ServeRun(store, run_id).finalized and main(["doctor", "--store", str(store.path)]) == 0

@@ -136,7 +136,8 @@ class ServeRun:
                 raise ValueError(f"run {run_id} is a{'n' * (run['kind'][0] in 'aeiou')} {run['kind']} run, not a "
                                  "served one")
             subs = served_submissions(con, run_id)
-            finalized = con.execute("SELECT count(*) FROM audits WHERE run_id = ?", [run_id]).fetchone()[0] > 0
+            finalized = run["status"] == "finished" or \
+                con.execute("SELECT count(*) FROM audits WHERE run_id = ?", [run_id]).fetchone()[0] > 0
         self.store, self.run_id = store, run_id
         self.record = json.loads(run["config"])
         self.serve = self.record["serve"]
@@ -388,6 +389,8 @@ class ServeRun:
                 raise RequestError(f"{self._reserved} episodes are still playing; finalize when they end")
             if self.finalized:
                 raise RequestError("the run is finalized already")
+            if len(self._committed) == 1:  # the starter alone: there is no submission to score
+                raise RequestError("no submission yet: there is nothing to finalize")
             self.finalized = True
         try:
             with self._work:
