@@ -40,7 +40,6 @@ from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from scipy import stats
 
 BUDGETS = ("calls", "dollars", "tokens", "seconds")
 """The units a choice can be counted in, in the order that breaks a tie between budgets."""
@@ -146,6 +145,8 @@ def pick(rule: str, arms: Sequence[Arm], budget: str = "calls", rng: np.random.G
         tau = spent / max(a.cost for a in arms)
         level = 1.0 - 1.0 / (1.0 + tau)
         a, b = np.array([arm.posterior() for arm in arms]).T
+        from scipy import stats  # here: importing it takes ~1 s, which every command paid (the CLI imports this)
+
         reward = stats.beta.ppf(level, a, b)
     elif rule == "thompson":
         a, b = np.array([arm.posterior() for arm in arms]).T
