@@ -1172,4 +1172,21 @@ MIGRATIONS.append(
     )
 )
 
+# The proposal pool prompts from the freshest state (issue 39, item 2): a candidate's basis is the iterations committed
+# when it starts and the candidates already assessed in iterations not committed yet. Each call records those
+# candidates and when its basis was taken, and each candidate when the pool learnt its assessment, so that --resume
+# and `codearcade replay` rebuild every prompt, and anyone can check that no call left out a candidate assessed
+# before it started. NULL: a call or candidate of the barrier loop, or stored before.
+MIGRATIONS.append(
+    (
+        21,
+        "llm_calls: basis_candidates, basis_at; candidates: assessed_at (the proposal pool's freshest basis)",
+        r"""
+        ALTER TABLE llm_calls ADD COLUMN basis_candidates STRUCT(iteration INTEGER, candidate INTEGER)[];
+        ALTER TABLE llm_calls ADD COLUMN basis_at TIMESTAMP;
+        ALTER TABLE candidates ADD COLUMN assessed_at TIMESTAMP;
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]

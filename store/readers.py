@@ -376,13 +376,27 @@ def replay_replies(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[in
     return replies
 
 
-def pool_bases(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[int, int], int]:
-    """(iteration, candidate) -> how many iterations the prompt of its first call was built from
-    (``llm_calls.history_iterations``): what a proposal pool's resume and replay build each prompt from again."""
+def pool_bases(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[int, int], tuple[int, tuple[tuple[int, int], ...]]]:
+    """(iteration, candidate) -> the basis of its first call: how many iterations its prompt was built from
+    (``llm_calls.history_iterations``) and the candidates assessed but not committed that it was built from too
+    (``basis_candidates``, as (iteration, candidate) pairs; none before migration 21): what a proposal pool's resume
+    and replay build each prompt from again."""
     rows = con.execute(
-        "SELECT iteration, coalesce(candidate, 0), min(history_iterations) FROM llm_calls WHERE run_id = ? "
+        "SELECT iteration, coalesce(candidate, 0), arg_min(history_iterations, created_at), "
+        "arg_min(basis_candidates, created_at) FROM llm_calls WHERE run_id = ? "
         "AND coalesce(repair_turn, 0) = 0 AND history_iterations IS NOT NULL GROUP BY ALL", [run_id]).fetchall()
-    return {(iteration, candidate): basis for iteration, candidate, basis in rows}
+    return {(iteration, candidate): (basis, tuple((r["iteration"], r["candidate"]) for r in fresh or ()))
+            for iteration, candidate, basis, fresh in rows}
+
+
+def first_call_errors(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[int, int], str | None]:
+    """(iteration, candidate) -> the error of its first-turn call (None: a reply is stored), for every candidate
+    that has one (a successful call counts over a failed one): where a replay's record ends."""
+    rows = con.execute(
+        "SELECT iteration, coalesce(candidate, 0), CASE WHEN bool_or(error_type IS NULL) THEN NULL "
+        "ELSE any_value(error_type) END FROM llm_calls WHERE run_id = ? AND coalesce(repair_turn, 0) = 0 "
+        "GROUP BY ALL", [run_id]).fetchall()
+    return {(iteration, candidate): error for iteration, candidate, error in rows}
 
 
 def starter_version_id(con: duckdb.DuckDBPyConnection, run_id: str) -> str:

@@ -27,6 +27,10 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
 - ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
   candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call);
+- ``{"climb": [reply, ...], "marks": [text, ...]}``: a model that improves the code it is given, one rung at a
+  time: the parent's rung is the last ``marks[i]`` found in the prompt's #Variables section (the code being improved;
+  -1 when none is), and the reply is ``climb[rung + 1]`` (the last rung repeats). It answers a prompt one way: a
+  stale prompt gets the reply it got before;
 - ``"latency": [median_s, sigma, seed]`` beside any entry: reply after a seeded log-normal time (by request
   number): a provider's typical latency with a long tail.
 A request with ``"stream": true`` gets the reply as server-sent events (OpenAI chat chunks, with a usage chunk
@@ -144,6 +148,15 @@ def _normalize(protocol: str, body: dict) -> list[dict]:
         return out + [{"role": "user" if c.get("role") == "user" else "assistant", "content": _text(c.get("parts"))}
                       for c in body.get("contents", [])]
     return [{"role": m["role"], "content": _text(m.get("content"))} for m in body.get("messages", [])]
+
+
+def _rung(messages: list[dict], marks: list[str]) -> int:
+    """The last of ``marks`` in the #Variables section (the code being improved) of the last user message; -1."""
+    text = next((m["content"] for m in reversed(messages) if m["role"] == "user"), "")
+    start = text.find("\n#Variables")
+    end = text.find("\n#Constraints", start + 1)
+    code = text[start:end if end > start else len(text)] if start >= 0 else text
+    return max((i for i, mark in enumerate(marks) if mark in code), default=-1)
 
 
 def _cached_prefix(protocol: str, body: dict) -> str:
@@ -326,6 +339,9 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
                 entry = {"content": entry}
             if "pool" in entry:
                 entry = {**entry, "content": random.Random(entry.get("seed", 0) * 100_003 + count).choice(entry["pool"])}
+            if "climb" in entry:
+                entry = {**entry, "content": entry["climb"][min(_rung(messages, entry["marks"]) + 1,
+                                                                 len(entry["climb"]) - 1)]}
             if "sleep" in entry:
                 time.sleep(entry["sleep"])
             if "latency" in entry:

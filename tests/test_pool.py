@@ -41,6 +41,13 @@ def _calls(store, run_id):
                        "FROM llm_calls WHERE run_id = ? ORDER BY created_at", [run_id])
 
 
+def _bases(store, run_id):
+    """Each call's (iteration, candidate, turn, basis iterations, basis candidates, prompt hash, reply hash)."""
+    return store.query("SELECT iteration, candidate, repair_turn, history_iterations, basis_candidates, prompt_hash, "
+                       "reply_hash FROM llm_calls WHERE run_id = ? AND error_type IS NULL ORDER BY created_at",
+                       [run_id])
+
+
 def _outcome(store, run_id):
     """What a run made: per iteration, its chosen version and score, and every candidate's version and score."""
     iterations = store.query("SELECT iteration, policy_version_id, score, best_score FROM iterations WHERE run_id = ? "
@@ -48,6 +55,28 @@ def _outcome(store, run_id):
     candidates = store.query("SELECT iteration, candidate, policy_version_id, score, update_status FROM candidates "
                              "WHERE run_id = ? ORDER BY iteration, candidate", [run_id])
     return iterations, candidates
+
+
+def _check_bases(store, run_id, resumed=False):
+    """No call started from a basis that leaves out a candidate already assessed: every candidate the pool had
+    assessed before a call's basis was taken (``candidates.assessed_at`` < ``llm_calls.basis_at``) is in it, committed
+    (an iteration below ``history_iterations``) or pending (``basis_candidates``); and a basis holds nothing assessed
+    after it was taken (but in a resumed run, whose uncommitted candidates were assessed again after the calls
+    recorded before the kill). Returns the first calls' bases."""
+    assessed = {(i, c): at for i, c, at in store.query(
+        "SELECT iteration, candidate, assessed_at FROM candidates WHERE run_id = ? AND iteration > 0", [run_id])}
+    assert assessed and all(at is not None for at in assessed.values()), "the pool records when it learnt each"
+    calls = store.query("SELECT iteration, candidate, history_iterations, basis_candidates, basis_at FROM llm_calls "
+                        "WHERE run_id = ? AND coalesce(repair_turn, 0) = 0 ORDER BY basis_at", [run_id])
+    for iteration, candidate, committed, fresh, at in calls:
+        assert at is not None and fresh is not None, (iteration, candidate)
+        pending = {(r["iteration"], r["candidate"]) for r in fresh}
+        seen = {key for key in assessed if key[0] < committed} | pending
+        missed = sorted(key for key, done in assessed.items() if done < at and key not in seen)
+        assert not missed, f"the call of candidate {iteration}.{candidate} left out {missed}, assessed before it"
+        assert all((resumed or assessed[key] <= at) and key[0] >= committed for key in pending), \
+            (iteration, candidate, pending)
+    return calls
 
 
 @pytest.mark.slow
@@ -72,6 +101,8 @@ def test_calls_stay_in_flight_across_iterations_and_iterations_commit_in_order(s
                                           [run_id])]
     assert finished == sorted(finished)
     assert "in flight" in result.iterations[1].pool and "playing" in result.iterations[1].pool
+    bases = _check_bases(store, run_id)
+    assert any(fresh for _, _, _, fresh, _ in bases), "some prompts were built from candidates not yet committed"
 
     report = replay(store, run_id)
     assert report.status == "finished" and all(row.matches for row in report.rows), report.as_dict()["iterations"]
@@ -125,8 +156,18 @@ def test_the_time_budget_stops_the_run_before_its_next_call(store, scripted, poo
     assert store.query("SELECT iteration FROM iterations WHERE run_id = ?", [result.run_id]) == [(0,)]
 
 
+KILL_POINTS = {
+    "early": "SELECT count(*) >= 3 AND (SELECT count(*) FROM iterations) <= 2 FROM llm_calls",
+    "mid-way": "SELECT count(*) >= 2 AND (SELECT count(*) BETWEEN 2 AND 3 FROM iterations) FROM llm_calls "
+               "WHERE iteration >= 2",
+}
+"""Where the run is killed: 3 calls recorded and iteration 1 perhaps not committed; or calls of iteration 2 recorded
+with iteration 1 or 2 committed."""
+
+
 @pytest.mark.slow
-def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_scores(store, scripted):
+@pytest.mark.parametrize("kill_at", sorted(KILL_POINTS))
+def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_scores(store, scripted, kill_at):
     model = scripted(SCRIPT)
     command = [EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
                "--strategy", "best-of-n", "--candidates", "4", "--iterations", "4", "--pool", "--eval-max-steps",
@@ -141,22 +182,33 @@ def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_
             return 0
 
     deadline = time.monotonic() + 300
-    while not (count("SELECT count(*) FROM llm_calls WHERE iteration >= 2") >= 2
-               and 2 <= count("SELECT count(*) FROM iterations") <= 3):
+    while not count(KILL_POINTS[kill_at]):
         assert process.poll() is None and time.monotonic() < deadline, process.communicate()
         time.sleep(0.05)
     process.kill()
     process.wait()
     run_id = store.query("SELECT run_id FROM runs")[0][0]
-    before = {(c[0], c[1], c[2]): c[3] for c in _calls(store, run_id)}
+    before = {(c[0], c[1], c[2]): c[3:] for c in _bases(store, run_id)}
     assert count("SELECT count(*) FROM iterations") < 5, "killed before the end"
     committed = [i for (i,) in store.query("SELECT iteration FROM iterations WHERE run_id = ?", [run_id])]
     # replayed as it was left: the iterations it committed replay alike (their candidates' calls are all
-    # recorded); the first it did not is where the replay stops
-    early = replay(store, run_id)
-    rows = {row.iteration: row for row in early.rows}
-    assert all(rows[i].matches for i in committed), early.as_dict()["iterations"]
-    assert early.diverged_at is None or early.diverged_at > max(committed), early.as_dict()
+    # recorded), and the replay says where the record ends, which is no divergence (exit 0)
+    early = subprocess.run([EXE, "replay", run_id, "--store", str(store.path), "--json"], cwd=ROOT,
+                           capture_output=True, text=True, timeout=600)
+    assert early.returncode == 0, early.stdout + early.stderr
+    early = json.loads(early.stdout)
+    rows = {row["iteration"]: row for row in early["iterations"]}
+    assert all(rows[i]["matches"] for i in committed), early["iterations"]
+    recorded = {(i, c) for i, c, turn in before if turn == 0}
+    started = range(max(committed) + 1, max(max(committed) + 1, *(i for i, _ in recorded)) + 1)
+    unrecorded = sum((i, c) not in recorded for i in started for c in range(4))
+    # (the pool may have recorded every call of the iterations it had started: then the replay went on past them)
+    assert early["status"] == ("incomplete" if unrecorded else "finished") and early["diverged_at"] is None, early
+    assert early["record_ends"] == (f"the run stopped after iteration {max(committed)} (interrupted); {unrecorded} "
+                                    f"call{'s' * (unrecorded != 1)} {'were' if unrecorded != 1 else 'was'} never "
+                                    "recorded"), early
+    assert store.query("SELECT status FROM runs WHERE run_id = ?", [early["replay_run_id"]]) == [
+        ("interrupted" if unrecorded else "finished",)]
     done = subprocess.run([EXE, "optimize", "--resume", run_id, "--store", str(store.path), "--json"], cwd=ROOT,
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
@@ -164,10 +216,12 @@ def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_
     counts = store.query("SELECT iteration, count(*) FROM candidates WHERE run_id = ? GROUP BY 1 ORDER BY 1", [run_id])
     assert counts == [(0, 1)] + [(i, 4) for i in range(1, 5)]
     after = _calls(store, run_id)
-    # a candidate whose call was recorded before the kill was started again from the same iterations: its reply was
-    # reused, never asked for twice
+    # a candidate whose call was recorded before the kill was started again from the same basis (iterations and
+    # pending candidates) and sent the same prompt: its reply was reused, never asked for twice
     assert len(after) == len({(c[0], c[1], c[2]) for c in after}), "one call per candidate and turn"
-    assert all({(c[0], c[1], c[2]): c[3] for c in after}[key] == basis for key, basis in before.items())
+    again = {(c[0], c[1], c[2]): c[3:] for c in _bases(store, run_id)}
+    assert all(again[key] == basis for key, basis in before.items()), (before, again)
+    _check_bases(store, run_id, resumed=True)
 
     report = replay(store, run_id)
     assert report.status == "finished" and all(row.matches for row in report.rows), report.as_dict()["iterations"]

@@ -94,6 +94,25 @@ def test_kill_during_llm_call_then_resume(store, scripted):
 
 
 @pytest.mark.slow
+def test_replay_of_a_killed_run_says_where_its_record_ends(store, scripted):
+    """A run killed during iteration 2's call and never resumed: its replay reproduces iteration 1, then meets the
+    call that was never recorded. That is where the record ends, not a divergence: exit 0, and it says so."""
+    model = scripted([COMPETENT_REPLY, {"sleep": 60, "content": COMPETENT_REPLY}])
+    process = _start(model, store)
+    _wait_for(lambda: len(model.requests()) == 2)  # iteration 2's call is hanging
+    process.kill()
+    process.wait()
+    run_id = _run_id(store)
+    done = subprocess.run([EXE, "replay", run_id, "--store", str(store.path)], cwd=ROOT, capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "the run stopped after iteration 1 (interrupted); 1 call was never recorded: replayed up to there, " \
+           "nothing diverged" in done.stdout, done.stdout
+    assert ": incomplete" in done.stdout and "divergence" not in done.stdout, done.stdout
+    assert len(model.requests()) == 2, "a replay never calls the model"
+
+
+@pytest.mark.slow
 def test_kill_during_evaluation_reuses_the_stored_reply(store, scripted):
     model = scripted([COMPETENT_REPLY])
     # One worker and whole games: the evaluation starts after the training rollout is written and plays for

@@ -16,7 +16,8 @@ def add_parser(verbs) -> None:
         help="re-run an optimization from its stored LLM replies and report divergence",
         description="Re-run an optimization run as a new run (kind replay), answering each LLM call with the "
         "reply stored for the same prompt. Reports per iteration whether prompts and scores match the original, "
-        "and stops where they diverge.",
+        "and stops where they diverge (exit 1), or, for a run that stopped before its end, where its record ends "
+        "(exit 0).",
     )
     add_run(p)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -44,4 +45,7 @@ def run(args: argparse.Namespace) -> int:
             show(f"{r.iteration:>9}  {same:<14} {o:>9} {n:>9}")
         if report.diverged_at is not None:
             show(f"first divergence at iteration {report.diverged_at}")
+        elif report.record_ends is not None:  # an unfinished run: replayed as far as it goes, nothing diverged
+            show(f"{report.record_ends}: replayed up to there, nothing diverged" if report.status == "incomplete"
+                 else f"{report.record_ends}: the replay went on past it, nothing diverged")
     return EXIT_OK if report.diverged_at is None else EXIT_EPISODE_FAILED

@@ -12,7 +12,7 @@ from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.feedback import compose_feedback
 from pipeline.optimizer.propose import Proposal
 from pipeline.optimizer.state import RunState
-from pipeline.optimizer.strategies import Assessed, History, decide_starter
+from pipeline.optimizer.strategies import Assessed, History, decide_starter, with_tampering
 from pipeline.play.versions import policy_version_row
 from store import Store
 from store.db import utcnow
@@ -77,15 +77,7 @@ def conclude(store: Store, state: RunState, iteration: int, history: History, pr
     if unknown:  # the starting policy
         with store.read() as con:
             complexity.update(version_complexity(con, state.run_id, unknown))
-    assessed = []
-    for p in proposals:
-        a = assessments[p.candidate]
-        tampered = a.tampered if p.status == "accepted" else None  # pipeline/play/verify.py: caught, never the best
-        notes = [p.note] if p.note else []
-        assessed.append(Assessed(p.candidate, p.parent, p.version_id, "rejected" if tampered else p.status,
-                                 a.score, tampered, notes,
-                                 {"complexity": complexity.get(p.version_id), "eval_length": a.eval_length},
-                                 forfeit=a.forfeit))
+    assessed = [assessed_of(p, assessments[p.candidate], complexity.get(p.version_id)) for p in proposals]
     decision = decide_starter(assessed) if iteration == 0 else state.strategy.decide(history, iteration, assessed)
     if decision.new_best is not None:
         best = assessed[decision.new_best]
@@ -104,6 +96,54 @@ def conclude(store: Store, state: RunState, iteration: int, history: History, pr
                            forfeit=assessments[decision.chosen].forfeit,
                            forfeit_score=assessments[decision.chosen].forfeit_score, models=models,
                            repairs=proposals[decision.chosen].repairs)
+
+
+def assessed_of(p: Proposal, a, complexity: int | None) -> Assessed:
+    """What a strategy decides on for proposal ``p`` played as ``a`` (an ``Assessment``); ``complexity``: its version's."""
+    tampered = a.tampered if p.status == "accepted" else None  # pipeline/play/verify.py: caught, never the best
+    notes = [p.note] if p.note else []
+    return Assessed(p.candidate, p.parent, p.version_id, "rejected" if tampered else p.status, a.score, tampered,
+                    notes, {"complexity": complexity, "eval_length": a.eval_length}, forfeit=a.forfeit)
+
+
+def pending_row(state: RunState, iteration: int, p: Proposal, played, a: Assessed, screen, assessed_at) -> dict:
+    """The history row of a candidate assessed whose iteration is not committed yet (``History.pending``: what the
+    proposal pool plans from): its ``candidates`` row as the commit will write it, but for the decision (``rejected``
+    when it will be, else ``pending``); its feedback is the committed one, since the population strategies' notes on
+    a candidate do not depend on the decision (``with_tampering``)."""
+    row = candidate_row(state, iteration, p, played, a, screen, "rejected" if a.status == "rejected" else "pending",
+                        with_tampering(a), assessed_at)
+    return {k: {**row, **a.behaviour}[k] for k in HISTORY_CANDIDATE_COLUMNS}
+
+
+def provisional(row: dict) -> dict:
+    """A committed candidate's history row as :func:`pending_row` made it before its commit (a basis recorded while
+    it was pending, rebuilt after: ``--resume``, ``replay``)."""
+    return {**row, "decision": "rejected" if row["decision"] == "rejected" else "pending"}
+
+
+def candidate_row(state: RunState, iteration: int, p: Proposal, played, a: Assessed, screen, decision: str,
+                  notes: list[str], assessed_at=None) -> dict:
+    """The ``candidates`` row of proposal ``p``, played as ``played`` (an ``Assessment``), with its feedback text."""
+    c = state.config
+    notes = notes + ([_protocols_note(c, played)] if played.robust_episode_ids else [])
+    text = compose_feedback(c.feedback, state.settings["bands"], a.score, played.train_return, played.train_length,
+                            notes, played.forfeit, played.forfeit_score)[2]
+    return dict(
+        run_id=state.run_id, iteration=iteration, candidate=p.candidate, strategy=c.strategy,
+        parent_iteration=p.parent.iteration if p.parent else None,
+        parent_candidate=p.parent.candidate if p.parent else None, parent_version_id=p.parent_version_id,
+        proposed_version_id=p.proposed_version_id, policy_version_id=a.version_id, llm_call_id=p.call_id,
+        repairs=p.repairs, update_status=a.status,
+        evaluation="screened" if screen is not None and not screen.passed else played.evaluation,
+        train_episode_id=played.train_episode_id, eval_episode_ids=played.eval_episode_ids,
+        robust_episode_ids=played.robust_episode_ids or None, train_return=played.train_return, score=a.score,
+        deterministic_score=played.deterministic_score, standard_score=played.standard_score,
+        forfeit=played.forfeit, forfeit_score=played.forfeit_score, score_low=played.score_low,
+        score_high=played.score_high, screen_episode_id=screen.episode_id if screen is not None else None,
+        screen_score=screen.score if screen is not None else None,
+        screen_bar=screen.bar if screen is not None else None, decision=decision, feedback=text,
+        assessed_at=assessed_at)
 
 
 def _protocols_note(config: OptimizeConfig, a) -> str:
@@ -125,15 +165,14 @@ def _commit(store: Store, state: RunState, iteration: int, history: History, pro
     caught tampering, every candidate with its feedback, the chosen candidate's feedback and the ``iterations``
     row; then ``state.history`` is ``history`` with the rows written (as ``store.readers`` reads them back)."""
     c = state.config
-    texts = {}
-    for p, a in zip(proposals, assessed):
-        played = assessments[p.candidate]
-        notes = decision.notes[p.candidate] + ([_protocols_note(c, played)] if played.robust_episode_ids
-                                               else [])
-        texts[p.candidate] = compose_feedback(c.feedback, state.settings["bands"], a.score, played.train_return,
-                                              played.train_length, notes, played.forfeit, played.forfeit_score)
     chosen = proposals[decision.chosen]
-    chosen_play = assessments[chosen.candidate]
+    played = assessments[chosen.candidate]
+    notes = decision.notes[chosen.candidate] + ([_protocols_note(c, played)] if played.robust_episode_ids else [])
+    stage, stage_score, text = compose_feedback(c.feedback, state.settings["bands"], assessed[decision.chosen].score,
+                                                played.train_return, played.train_length, notes, played.forfeit,
+                                                played.forfeit_score)
+    assessed_at = timing.get("assessed_at")  # the proposal pool's: when it learnt each candidate's assessment
+    chosen_play = played
     with store.write() as con:
         for p in proposals:
             if p.version_row is not None:
@@ -145,27 +184,12 @@ def _commit(store: Store, state: RunState, iteration: int, history: History, pro
                                                           parent_id=assessed[decision.chosen].version_id))
         written = []
         for p, a in zip(proposals, assessed):
-            played = assessments[p.candidate]
             if a.tampered:
                 reject_policy_version(con, state.run_id, iteration, a.version_id, a.tampered)
-            written.append(dict(
-                run_id=state.run_id, iteration=iteration, candidate=p.candidate, strategy=c.strategy,
-                parent_iteration=p.parent.iteration if p.parent else None,
-                parent_candidate=p.parent.candidate if p.parent else None, parent_version_id=p.parent_version_id,
-                proposed_version_id=p.proposed_version_id, policy_version_id=a.version_id, llm_call_id=p.call_id,
-                repairs=p.repairs, update_status=a.status,
-                evaluation="screened" if p.candidate in screens and not screens[p.candidate].passed
-                else played.evaluation, train_episode_id=played.train_episode_id,
-                eval_episode_ids=played.eval_episode_ids, robust_episode_ids=played.robust_episode_ids or None,
-                train_return=played.train_return, score=a.score, deterministic_score=played.deterministic_score,
-                standard_score=played.standard_score, forfeit=played.forfeit, forfeit_score=played.forfeit_score,
-                score_low=played.score_low, score_high=played.score_high,
-                screen_episode_id=screens[p.candidate].episode_id if p.candidate in screens else None,
-                screen_score=screens[p.candidate].score if p.candidate in screens else None,
-                screen_bar=screens[p.candidate].bar if p.candidate in screens else None,
-                decision=decision.decisions[p.candidate], feedback=texts[p.candidate][2]))
+            written.append(candidate_row(state, iteration, p, assessments[p.candidate], a, screens.get(p.candidate),
+                                         decision.decisions[p.candidate], decision.notes[p.candidate],
+                                         (assessed_at or {}).get(p.candidate)))
             insert_candidate(con, written[-1])
-        stage, stage_score, text = texts[chosen.candidate]
         insert_feedback(con, dict(run_id=state.run_id, iteration=iteration, mode=c.feedback, stage=stage,
                                   score=stage_score, text=text))
         insert_iteration(con, iteration_row := dict(

@@ -32,6 +32,7 @@ import json
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Callable
 
 from games import get_game
@@ -121,6 +122,10 @@ class _Pending:
     basis: int = 0
     """How many iterations its prompt was built from (0 .. basis-1; the proposal pool may start a call before the
     iteration before it is committed: ``pipeline/optimizer/pool.py``)."""
+    fresh: tuple = ()
+    """The proposal pool's: the candidates assessed and not yet committed that its prompt was built from too
+    (``History.pending``: refs), and when that basis was taken (``basis_at``)."""
+    basis_at: datetime | None = None
     client: LLMClient | None = None
     """The model that answers it, when the run has several (``pipeline/optimizer/ensemble.py``); else the run's."""
     choice: dict | None = None
@@ -159,7 +164,8 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
                     raise ValueError(str(exc)) from None
             ctx, prompt = built[key]
             item = _Pending(request, prompt, ctx.info.version_id, [(r["step"], r["obs"]) for r in ctx.train_steps],
-                            ctx.info, basis=len(history.iterations))
+                            ctx.info, basis=len(history.iterations), fresh=tuple(history.pending),
+                            basis_at=history.as_of)
             if (prompt.hash, request.candidate) in stored:
                 item.call_id, item.text = stored[prompt.hash, request.candidate]
                 item.parse()
@@ -239,7 +245,8 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
         prompt = Prompt(messages, tokens, item.prompt.budget, item.prompt.steps_shown, item.prompt.memory_shown,
                         item.prompt.token_method)
         repair = _Pending(item.request, prompt, item.context_version, item.observations, item.info, turn=turn,
-                          repair_of=item.call_id, client=item.client, basis=item.basis)  # the same model fixes it
+                          repair_of=item.call_id, client=item.client, basis=item.basis,
+                          fresh=item.fresh, basis_at=item.basis_at)  # the same model fixes it
         if (prompt.hash, item.request.candidate) in stored:  # a resumed iteration: this repair was made before
             repair.call_id, repair.text = stored[prompt.hash, item.request.candidate]
             repair.parse()
@@ -402,6 +409,8 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
             "call_id": item.call_id, "run_id": run_id, "iteration": iteration,
             "candidate": item.request.candidate, "purpose": "repair" if item.turn else "update",
             "repair_of": item.repair_of, "repair_turn": item.turn, "history_iterations": item.basis,
+            "basis_candidates": [{"iteration": r.iteration, "candidate": r.candidate} for r in item.fresh]
+            if item.basis_at is not None else None, "basis_at": item.basis_at,
             "model_choice": json.dumps(item.choice, sort_keys=True) if item.choice is not None else None,
             "operation_name": "chat",
             "provider_name": model.provider, "request_model": model.model,

@@ -5,6 +5,14 @@ each LLM call with the stored reply whose prompt hash matches. Since prompts are
 re-run sends exactly the original prompts; the first prompt the original run never sent is where the two
 diverge (a changed environment, policy code, prompt builder or dependency), and the replay stops there. The
 report lists, per iteration, both prompt hashes and both scores.
+
+A run that stopped before its end (killed and never resumed, stopped by a budget, failed) has a record that ends:
+the replay reproduces it up to there and stops at the first call the original never made (or never got a reply
+to). That is not a divergence: the report says where the record ends ("the run stopped after iteration 2
+(interrupted); 4 calls were never recorded"), its status is ``incomplete``, and the replay run ends with its
+original's status (``interrupted`` for a run whose process died). Iterations past the original's last committed
+one are shown, not compared: the original never decided them (the proposal pool may have recorded every call of
+the iterations it had started: then the replay goes on past the record, and says so).
 """
 
 from __future__ import annotations
@@ -16,7 +24,9 @@ from pipeline.llm.client import EnsembleClient, ReplayClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import load_state, run_loop, start_run
 from store import Store
-from store.readers import blob_text, get_run, iteration_prompts, pool_bases, replay_replies
+from pipeline.optimizer.strategies import make_strategy
+from store.readers import (blob_text, first_call_errors, get_run, iteration_prompts, last_iteration, pool_bases,
+                           replay_replies)
 from store.writer import finish_run
 from tracing.policy_file import inspect_policy
 
@@ -41,11 +51,18 @@ class ReplayReport:
     status: str
     rows: list[ReplayRow] = field(default_factory=list)
     diverged_at: int | None = None
+    record_ends: str | None = None
+    """Where an unfinished original's record ends (then ``status`` is ``incomplete``), or None."""
+    last_iteration: int | None = None
+    """The original's last committed iteration; rows past it are shown, not compared."""
+    unrecorded_calls: int = 0
+    """Calls of the iterations the original had started but not committed that it never recorded."""
 
     def as_dict(self) -> dict:
         return {
             "original_run_id": self.original_run_id, "replay_run_id": self.replay_run_id, "status": self.status,
-            "diverged_at": self.diverged_at,
+            "diverged_at": self.diverged_at, "record_ends": self.record_ends, "last_iteration": self.last_iteration,
+            "unrecorded_calls": self.unrecorded_calls,
             "iterations": [dict(iteration=r.iteration, original_prompt=r.original_prompt,
                                 replay_prompt=r.replay_prompt, original_score=r.original_score,
                                 replay_score=r.replay_score, matches=r.matches) for r in self.rows],
@@ -76,16 +93,52 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
 
     with store.read() as con:
         original, again = iteration_prompts(con, run_id), iteration_prompts(con, new_run)
-    report = ReplayReport(run_id, new_run, result.status)
+        asked, missed = first_call_errors(con, run_id), first_call_errors(con, new_run)
+        ended = last_iteration(con, run_id)
+    last = ended["iteration"] if ended is not None else None
+    report = ReplayReport(run_id, new_run, result.status, last_iteration=last)
     for it in sorted(set(original) | set(again)):
         o_hash, o_score = original.get(it, (None, None))
         r_hash, r_score = again.get(it, (None, None))
         row = ReplayRow(it, o_hash, r_hash, o_score, r_score)
         report.rows.append(row)
-        if report.diverged_at is None and not row.matches:
+        past_the_record = last is not None and it > last and run["status"] != "finished"
+        if report.diverged_at is None and not row.matches and not past_the_record:
             report.diverged_at = it
+    if run["status"] != "finished":  # its record ends where it stopped
+        report.unrecorded_calls = _unrecorded(config, asked, last)
+        s = "s" if report.unrecorded_calls != 1 else ""
+        report.record_ends = (f"the run stopped after iteration {last} ({_status(run['status'])}); "
+                              f"{report.unrecorded_calls} call{s} {'were' if s else 'was'} never recorded")
     if result.error and "ReplayMiss" in result.error:
-        report.status = "diverged"
-        with store.write() as con:
-            finish_run(con, new_run, "diverged", result.error)
+        # a miss on a candidate the original never asked (or never got a reply for) is where its record ends; one
+        # the original asked with another prompt is a divergence
+        misses = [key for key, error in missed.items() if error == "ReplayMiss"]
+        unasked = [key for key in misses if asked.get(key, "none") is not None]
+        if report.record_ends and report.diverged_at is None and misses and len(unasked) == len(misses):
+            report.status = "incomplete"
+            with store.write() as con:
+                finish_run(con, new_run, _status(run["status"]),
+                           f"replayed as far as the original's record goes: {report.record_ends}")
+        else:
+            report.status = "diverged"
+            if report.diverged_at is None:
+                report.diverged_at = min(it for it, _ in misses) if misses else None
+            with store.write() as con:
+                finish_run(con, new_run, "diverged", result.error)
     return report
+
+
+def _status(status: str) -> str:
+    """How the original ended, for its replay: a run still marked running has no process left (it was killed)."""
+    return "interrupted" if status == "running" else status
+
+
+def _unrecorded(config: OptimizeConfig, asked: dict[tuple[int, int], str | None], last: int | None) -> int:
+    """The first calls of the iterations after ``last`` that the original started (up to its last with a recorded
+    reply; at least the next one) that have no reply recorded."""
+    after = (last or 0) + 1
+    started = max([it for (it, _), error in asked.items() if error is None], default=after)
+    width = make_strategy(config).max_proposals
+    return sum(1 for it in range(after, max(after, started) + 1) for j in range(width) if asked.get((it, j), "none")
+               is not None)

@@ -30,9 +30,10 @@ class RunState:
     history: History | None = None
     """The run's completed iterations as stored: read from the store once, then extended by each commit with
     the rows it wrote (``test_strategies.py`` checks it against the store)."""
-    pool_bases: dict[tuple[int, int], int] | None = None
-    """The proposal pool's recorded bases to start candidates from (``store.readers.pool_bases``): a replay's are
-    its original run's; None: the run's own (``--resume``)."""
+    pool_bases: dict[tuple[int, int], tuple[int, tuple[tuple[int, int], ...]]] | None = None
+    """The proposal pool's recorded bases to start candidates from (``store.readers.pool_bases``: the iterations
+    committed and the candidates assessed but not committed that each first call's prompt was built from): a
+    replay's are its original run's; None: the run's own (``--resume``)."""
     model_choices: dict[tuple[int, int], dict[str, Any]] = field(default_factory=dict, repr=False, compare=False)
     """An ensemble's reason for each (iteration, candidate) chosen and not yet asked (``ensemble.member_picks``):
     what its first call's ``llm_calls.model_choice`` records."""

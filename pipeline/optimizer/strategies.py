@@ -91,10 +91,20 @@ class Decision:
 
 @dataclass
 class History:
-    """A run's completed iterations and their candidates, as stored (``store.readers.candidates``)."""
+    """A run's completed iterations and their candidates, as stored (``store.readers.candidates``).
+
+    The proposal pool (``pipeline/optimizer/pool.py``) also plans from a *basis* with ``pending`` candidates: ones
+    already assessed whose iteration is not committed yet. Their rows are the last of ``candidates`` (decision
+    ``pending``, or ``rejected``), memory and beams see them like any other, and :attr:`best` takes one that beats
+    the committed best; ``iterations`` and :attr:`best_score` stay the committed ones, which strategies decide
+    against."""
 
     iterations: list[dict[str, Any]]
     candidates: list[dict[str, Any]]
+    pending: list[Ref] = field(default_factory=list)
+    """Candidates assessed, not yet committed, in (iteration, candidate) order: the last rows of ``candidates``."""
+    as_of: Any = None
+    """When the proposal pool took this basis (a datetime; recorded with the calls made from it)."""
 
     def __post_init__(self) -> None:
         self._by_ref = {Ref(c["iteration"], c["candidate"]): c for c in self.candidates}
@@ -108,10 +118,17 @@ class History:
 
     @property
     def best(self) -> Ref | None:
-        """The candidate that holds the run's best score (the iteration the last row names, its chosen one)."""
+        """The candidate that holds the run's best score (the iteration the last row names, its chosen one); with
+        ``pending`` candidates, the best of them if it beats that (``beats``; the first among equals; never one
+        rejected or caught tampering)."""
         if not self.iterations:
             return None
-        return self.chosen(self.iterations[-1]["best_iteration"])
+        best, score = self.chosen(self.iterations[-1]["best_iteration"]), self.best_score
+        for ref in self.pending:
+            row = self._by_ref[ref]
+            if row["decision"] != "rejected" and beats(row["score"], score, True):
+                best, score = ref, row["score"]
+        return best
 
     @property
     def best_score(self) -> float | None:
@@ -185,7 +202,8 @@ def _rank(assessed: list[Assessed]) -> list[Assessed]:
                                            a.status in ("rejected", "llm_error"), a.candidate))
 
 
-def _with_tampering(a: Assessed) -> list[str]:
+def with_tampering(a: Assessed) -> list[str]:
+    """A candidate's feedback notes, a note that it was caught tampering first (whatever is decided on it)."""
     notes = list(a.notes)
     if a.tampered:
         notes.insert(0, f"Your last suggestion was rejected: {a.tampered}")
@@ -226,7 +244,7 @@ class Greedy:
         (a,) = assessed
         best_score, best = history.best_score, history.best
         best_version = history.candidate(best)["policy_version_id"] if best is not None else None
-        notes = _with_tampering(a)
+        notes = with_tampering(a)
         decision = Decision(chosen=a.candidate, decisions={a.candidate: "kept"}, notes={a.candidate: notes})
         if a.tampered:  # never the best; the next update starts from the best
             decision.decisions[a.candidate] = "rejected"
@@ -260,7 +278,7 @@ def _decide_by_rank(history: History, assessed: list[Assessed], kept: set[str]) 
     if top.tampered is None and history.beaten_by(top.score):
         decision.new_best = top.candidate
     for a in assessed:
-        notes = _with_tampering(a)
+        notes = with_tampering(a)
         if a.tampered or a.status == "rejected":
             verdict = "rejected"
         elif a.candidate == decision.new_best:
