@@ -60,7 +60,8 @@ def step_nodes(
     ``value_chars``: the reader shows at most that many characters of each value (the prompt's width), so it
     decodes no more (:func:`bounded_value`): SQL hands over a value's whole text only when it is that short (or
     an object of inputs, split by key), else its first ``value_chars`` characters and its length, which come back
-    as a :class:`JsonHead`. Each row then holds a few kilobytes, whatever the policy stored (issue 38: values of
+    as a :class:`JsonHead`; and only the columns the prompt shows (step, call index, function, values,
+    exception). Each row then holds a few kilobytes at most, whatever the policy stored (issue 38: values of
     16,000 characters of ``[{},{},…]`` in 2,000 rows decoded whole to 2 GB). None: every value decoded whole."""
     if value_chars is None:
         rows = _rows(con.execute(
@@ -73,8 +74,7 @@ def step_nodes(
             row["output"] = load_json(row["output"]) if row["output"] is not None else None
         return rows
     cursor = con.execute(
-        """SELECT step, call_index, function, trainable, policy_version_id,
-                  length(inputs) AS inputs_length,
+        """SELECT step, call_index, function, length(inputs) AS inputs_length,
                   CASE WHEN length(inputs) <= $chars
                          OR (length(inputs) <= $max_chars AND starts_with(inputs::VARCHAR, '{')) THEN inputs::VARCHAR
                        ELSE substr(inputs::VARCHAR, 1, CASE WHEN length(inputs) > $max_chars THEN $preview
@@ -85,7 +85,7 @@ def step_nodes(
                        THEN output::VARCHAR
                        ELSE substr(output::VARCHAR, 1, CASE WHEN length(output) > $max_chars THEN $preview
                                                            ELSE $chars END) END AS output,
-                  exc_type, exc_message, exc_line, exc_source, duration_us, parents
+                  exc_type, exc_message, exc_line, exc_source
            FROM nodes WHERE episode_id = $episode AND step >= $start AND step < $stop ORDER BY step, call_index""",
         {"episode": episode_id, "start": start, "stop": stop if stop is not None else 2**31 - 1,
          "chars": value_chars, "max_chars": MAX_CHARS, "preview": PREVIEW_CHARS})
@@ -141,8 +141,12 @@ class JsonHead:
 MAX_KEYS = 32
 """Keys of an object of inputs a bounded reader splits (a method's parameters); one with more comes back as a
 :class:`JsonHead` of the whole object."""
-_SMALL = 32
-"""A container this short is always decoded (``{"$ref":"obs"}``): it costs at most a few hundred bytes."""
+HEAD_VALUES = 8
+"""Values of an object of inputs a bounded reader keeps a head of (each ``value_chars`` long) before it keeps one
+head of the whole object instead."""
+SMALL = 32
+"""Characters of a list or object a bounded reader decodes (``{"$ref":"obs"}``, which the prompt shows as ``obs``),
+two of them a row at most; a longer one is a :class:`JsonHead`."""
 _STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
 _SCALAR = re.compile(r"[^,}\s]+")
 _DECODER = json.JSONDecoder()
@@ -153,33 +157,49 @@ one stored text that is not compact): an int and a string, decoded at the cost o
 
 
 def bounded_value(text: str | None, length: int | None, chars: int, split: bool = False) -> Any:
-    """A stored node value as a reader that shows ``chars`` characters of it holds it: decoded when its text is
-    that short; the ``$truncated`` marker of ``tracing/bounded.py`` (from a preview) when it is longer than
-    :data:`MAX_CHARS`; else a :class:`JsonHead`. With ``split`` an object (a call's inputs, shown key by key)
-    comes back as a dict of such values, at most ``2 * chars`` characters of its containers decoded in all."""
+    """A stored node value as a reader that shows ``chars`` characters of it holds it, in a few bytes per character
+    stored whatever the value: a number, string or literal of at most ``chars`` characters decoded; a list or
+    object as a :class:`JsonHead` of its first ``chars`` characters, unless it is tiny (:data:`SMALL`, such as
+    ``{"$ref":"obs"}``) and decoded (a decoded container costs up to ~24 bytes a character: an empty dict for
+    ``{},``); the ``$truncated`` marker of ``tracing/bounded.py`` (from a preview) for a text longer than
+    :data:`MAX_CHARS`. With ``split`` an object (a call's inputs, shown key by key) comes back as a dict of its
+    keys' values held the same way (at most :data:`MAX_KEYS` keys and :data:`HEAD_VALUES` values' worth of heads;
+    else one head of the whole). ``length``: the whole text's (``text`` may be its start)."""
     if text is None:
         return None
     if length is None:
         length = len(text)
     if length > MAX_CHARS:
         return {"$truncated": length, "preview": text[:PREVIEW_CHARS]}
-    if length <= chars or (len(text) == length and _MARKER.fullmatch(text)):
+    whole = len(text) == length
+    if whole and _MARKER.fullmatch(text):
         return load_json(text)
-    if split and len(text) == length:
+    if split and whole:
         items = _object_items(text, chars)
         if items is not None:
             return items
+    return _held(text, length, chars, [2 * SMALL])
+
+
+def _held(text: str, length: int, chars: int, small: list[int]) -> Any:
+    """:func:`bounded_value` of one value; ``small``: the characters of tiny containers the row may still decode."""
+    if text[_SPACE.match(text).end():][:1] in ("[", "{"):
+        if length <= SMALL and len(text) == length and length <= small[0]:
+            small[0] -= length
+            return load_json(text)
+    elif length <= chars and len(text) == length:
+        return load_json(text)
     return JsonHead(text[:chars], length)
 
 
 def _object_items(text: str, chars: int) -> dict[str, Any] | None:
-    """``text`` (a JSON object) as a dict of its keys' values, each held by :func:`bounded_value`; None when it
-    is not an object of at most :data:`MAX_KEYS` keys."""
+    """``text`` (a JSON object) as a dict of its keys' values, each held by :func:`_held`; None when it is not an
+    object, or has more than :data:`MAX_KEYS` keys or :data:`HEAD_VALUES` x ``chars`` characters of heads."""
     pos = _SPACE.match(text).end()
     if not text.startswith("{", pos):
         return None
     items: dict[str, Any] = {}
-    budget = 2 * chars  # characters of containers decoded: their Python objects cost up to ~24 bytes a character
+    small, heads = [2 * SMALL], HEAD_VALUES * chars
     pos = _SPACE.match(text, pos + 1).end()
     if text.startswith("}", pos):
         return items
@@ -196,14 +216,11 @@ def _object_items(text: str, chars: int) -> dict[str, Any] | None:
             if end is None:
                 return None
             span = text[begin:end].rstrip(" \t\n\r")
-            container = span[:1] in ("[", "{")
-            if container and (len(span) <= _SMALL or len(span) <= min(chars, budget)):
-                budget -= len(span)
-                items[key] = load_json(span)
-            elif not container and len(span) <= chars:
-                items[key] = load_json(span)
-            else:
-                items[key] = JsonHead(span[:chars], len(span))
+            value = items[key] = _held(span, len(span), chars, small)
+            if isinstance(value, JsonHead):
+                heads -= len(value.text)
+                if heads < 0:
+                    return None
             if text[end] == "}":
                 return items
             pos = _SPACE.match(text, end + 1).end()
