@@ -9,10 +9,12 @@ plays the starting policy, and then edits the policy from what each submission's
 - points are still lost and the prediction is the ball's current ``y`` (no look-ahead): it rewrites
   ``predict_ball_trajectory`` to extrapolate the ball to the paddle's plane, bouncing off the walls;
 - then, while the budget lasts, it moves the paddle's dead band (``MARGIN``) up or down and keeps whichever
-  scored better on the same training instances (a hill climb on the feedback's scores).
+  scored better on the same training instances (a hill climb on the feedback's scores), until every neighbour of
+  the best has been tried.
 
 Every rewrite is submitted with ``parent`` = the best submission so far, so the run's lineage shows the climb.
-When the budget is spent the server finalizes the run (sealed validation and held-out pools) by itself.
+When the budget is spent the server finalizes the run (sealed validation and held-out pools) by itself; an agent
+that stops earlier calls ``finalize``.
 
     python examples/serve_agent.py --store /tmp/agent.duckdb -- --budget 24 --max-steps 1000
 
@@ -130,19 +132,20 @@ async def agent(serve_args: list[str], log=print) -> str:
                 "% 320" not in best["text"]:
             await submit(_replace(best["text"], {"predict_ball_trajectory": BOUNCING_PREDICT}),
                          "predict_ball_trajectory extrapolates with bounces (points still lost)")
-        step = 2
-        while True:  # hill climb on the dead band while the budget lasts
-            candidate = max(0, margin + step)
-            if "MARGIN = " not in best["text"]:
+        tried = {margin}
+        while "MARGIN = " in best["text"]:  # hill climb on the dead band while the budget lasts
+            candidate = next((margin + d for d in (2, -2, 1, -1) if margin + d >= 0 and margin + d not in tried), None)
+            if candidate is None:  # every neighbour of the best tried: nothing left worth the budget
                 break
+            tried.add(candidate)
             text = best["text"].replace(f"MARGIN = {margin}", f"MARGIN = {candidate}")
             before = best["submission"]
             if await submit(text, f"MARGIN {margin} -> {candidate}") is None:
                 break
             if best["submission"] != before:
                 margin = candidate
-            else:
-                step = -step if step > 0 else step // 2 or 1
+        if not (await call("budget"))["finalized"]:
+            await call("finalize")  # the budget is not spent: end the run here (sealed validation and held-out)
         return task["run"]
 
 

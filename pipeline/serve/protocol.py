@@ -123,7 +123,8 @@ def create_run(store: Store, config: ServeConfig, name: str | None = None) -> st
 
 class ServeRun:
     """A served run, open for requests (see the module docstring). Thread-safe: the budget is reserved under a
-    lock, and playing and the store are used by one request at a time."""
+    lock, one submission plays at a time, and reads (task, feedback, sql) answer while one plays (the store serves
+    a process's threads one at a time)."""
 
     def __init__(self, store: Store, run_id: str, on_episode: Callable[[dict[str, Any]], None] | None = None,
                  workspace: str | os.PathLike | None = None, finalize_when_spent: bool = True,
@@ -170,7 +171,7 @@ class ServeRun:
 
     def task(self) -> dict[str, Any]:
         """What an agent needs to start: the game, the policy interface, the budget and the rules."""
-        with self._work, self.store.read() as con:
+        with self.store.read() as con:  # the store takes one thread at a time; reads need not wait for a play
             starter = policy_text(con, self.run_id, con.execute(
                 "SELECT starter_version_id FROM runs WHERE run_id = ?", [self.run_id]).fetchone()[0])
         from tracing.policy_file import inspect_policy
@@ -203,7 +204,7 @@ class ServeRun:
             raise RequestError("submission: give the submission's number (an integer)")
         if not isinstance(steps, int) or isinstance(steps, bool) or not 0 <= steps <= MAX_FEEDBACK_STEPS:
             raise RequestError(f"steps: a whole number from 0 to {MAX_FEEDBACK_STEPS}")
-        with self._work, self.store.read() as con:
+        with self.store.read() as con:  # the store takes one thread at a time; reads need not wait for a play
             sub = next((s for s in served_submissions(con, self.run_id) if s["iteration"] == submission), None)
             if sub is None:
                 raise RequestError(f"no submission {submission} (submissions are numbered from 1; "
@@ -228,7 +229,7 @@ class ServeRun:
         """Read-only SQL over the visible part of the run (``store/serve.py``)."""
         if not isinstance(query, str) or not query.strip() or len(query) > 20_000:
             raise RequestError("sql: give one query of at most 20,000 characters")
-        with self._work, self.store.read() as con:
+        with self.store.read() as con:  # the store takes one thread at a time; reads need not wait for a play
             try:
                 return visible_query(con, self.run_id, query, MAX_SQL_ROWS)
             except duckdb.Error as exc:
