@@ -240,3 +240,57 @@ def test_compare_reads_each_methods_last_output_cut(stores):
     assert forged["output"]["$truncated"] == len(FLOOD) and forged["output"]["preview"].startswith("[{},{},")
     peak, base = forged["peak_kb"] / 1024, honest["peak_kb"] / 1024
     assert peak - base < 100, f"{peak:,.0f} MB with the forged rows, {base:,.0f} MB without"
+
+
+def _held_bytes(value, seen=None) -> int:
+    """The bytes of Python objects ``value`` holds (sys.getsizeof over its lists, dicts and heads, each once)."""
+    seen = set() if seen is None else seen
+    if id(value) in seen:
+        return 0
+    seen.add(id(value))
+    size = sys.getsizeof(value)
+    if isinstance(value, dict):
+        size += sum(_held_bytes(k, seen) + _held_bytes(v, seen) for k, v in value.items())
+    elif isinstance(value, list):
+        size += sum(_held_bytes(v, seen) for v in value)
+    elif isinstance(value, JsonHead):
+        size += _held_bytes(value.text, seen)
+    return size
+
+
+def _hostile_text(rng: random.Random) -> str:
+    """Valid JSON of at most 20,000 characters shaped to cost the most once decoded: empty containers by the
+    thousand, objects of many keys of tiny lists, whitespace, astral text, long numbers, deep nesting."""
+    empty = rng.choice(["{}", "[]", "[{}]", '""', "0", "{ }", "[ [ ] ]"])
+    sep = rng.choice([",", ", ", ",\n  "])
+    count = rng.choice([10, 99, 100, 101, 1_000, 4_000])
+    kind = rng.randrange(5)
+    if kind == 0:
+        text = "[" + sep.join([empty] * count) + "]"
+    elif kind == 1:
+        text = "{" + sep.join(f'"k{i}":{empty}' for i in range(count)) + "}"
+    elif kind == 2:
+        keys = rng.choice([3, 8, 31, 32, 33])
+        text = "{" + ",".join(f'"a{i}":[' + ",".join(["{}"] * rng.choice([5, 10, 100])) + "]" for i in range(keys)) + "}"
+    elif kind == 3:
+        text = json.dumps("".join(chr(rng.choice([0x1F600, 0x10FFFF, 0x41])) for _ in range(count)), ensure_ascii=False)
+    else:
+        depth = rng.choice([10, 60, 64, 65, 200])
+        text = "[" * depth + "]" * depth
+    text = (" " * rng.choice([0, 1]) + text) if kind != 2 else text
+    return text[:20_000] if len(text) <= 20_000 else '"cut"'
+
+
+def test_a_bounded_value_holds_a_few_bytes_per_character_it_shows_whatever_was_stored():
+    """A sweep of hostile stored texts (valid JSON, at most 20,000 characters): what the prompt's reader keeps
+    of a value, as the call's inputs or as its output, is at most a few kilobytes for the 300 characters it
+    shows (9.5 KB at most here; decoded whole, the same texts hold up to 289 KB each); it never raises."""
+    from store.readers import bounded_value
+
+    rng = random.Random(382)
+    worst = 0
+    for _ in range(600):
+        text = _hostile_text(rng)
+        for split in (False, True):
+            worst = max(worst, _held_bytes(bounded_value(text, len(text), 300, split=split)))
+    assert worst < 16_000, worst
