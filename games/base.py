@@ -174,6 +174,10 @@ class Game:
     hot_keys: tuple[str, str | None] = ("Player", "Ball")
     """The observation keys of the player and of the ball (or what stands for it) whose x/y fill the ``steps``
     table's hot columns ``player_x/y`` and ``ball_x/y`` (Freeway's player is its ``Chicken``)."""
+    action_moves: Mapping[int, str] = field(default_factory=dict)
+    """What an action does on screen where ALE's name says otherwise (Pong's RIGHT moves the paddle up): shown
+    beside the name where actions are printed for people (``compare``), so ``2 RIGHT (up)`` reads as the scaffold
+    and its docstrings say it. The prompt keeps ALE's names, which the scaffolds' docstrings explain."""
     worst_return: float | None = None
     """The lowest return a whole game can give (Pong: -21, every point lost; 0 where no reward is negative);
     None when unknown. ``compare``'s sensitivity line counts a forfeited game at it (``store.scores.worst_return``:

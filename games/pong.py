@@ -42,6 +42,7 @@ GAME = Game(
     env_id="PongNoFrameskip-v4",
     ocatari_name="Pong",
     actions=("NOOP", "FIRE", "RIGHT", "LEFT", "RIGHTFIRE", "LEFTFIRE"),
+    action_moves={2: "up", 3: "down", 4: "up", 5: "down"},  # the paddle moves vertically: ALE names it sideways
     lives=0,
     worst_return=-21,  # every point lost
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,

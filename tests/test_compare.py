@@ -65,6 +65,8 @@ def test_two_versions_report_the_first_divergent_step(store, tmp_path, capsys, w
         for label, actions in (("A", a), ("B", b)):
             side = entry[label]
             assert side["action"] == actions[step]
+            # named as ALE names it, with what it does on screen where that differs: Pong's paddle moves vertically
+            assert side["action_name"] == {0: "NOOP", 1: "FIRE", 2: "RIGHT (up)", 3: "LEFT (down)"}[actions[step]]
             assert side["nodes"]["select_action"] == actions[step], "the node output is the action played"
             assert "predict_ball_trajectory" in side["nodes"] and "Player" in side["obs"]
     assert around[expected - 1]["A"]["obs"] == around[expected - 1]["B"]["obs"], "the same game until they part"

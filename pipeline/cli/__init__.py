@@ -26,7 +26,7 @@ from typing import Callable, Sequence
 try:  # Ctrl-C while the command starts (its imports take a second or more on a busy machine): nothing has
     # started that needs stopping or rolling back, so it ends as an interrupted command does, without a traceback
     from pipeline.cli import (audit, batch, blame, compare, doctor, export, games, new, optimize, replay, report, runs,
-                                sql, view)
+                                serve, sql, view)
     from pipeline.cli import eval as eval_  # the verb's module (the builtin is not used here)
     from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, CodearcadeParser,
                                      shorten_in_message, show)
@@ -35,7 +35,8 @@ except KeyboardInterrupt:
     raise SystemExit(130) from None
 
 
-VERBS = (eval_, optimize, audit, batch, doctor, replay, sql, runs, report, blame, games, new, view, export, compare)
+VERBS = (eval_, optimize, serve, audit, batch, doctor, replay, sql, runs, report, blame, games, new, view, export,
+         compare)
 """The verbs' modules, in the order ``codearcade --help`` lists them; each adds its parser (``add_parser``), whose
 handler is its ``run(args)``."""
 

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from games import get_game, list_widths
-from games.base import STANDARD_NOOP_MAX, STANDARD_STICKY, draw_audit_seeds
+from games.base import STANDARD_NOOP_MAX, STANDARD_STICKY, Game, draw_audit_seeds
 from pipeline.play.config import CompareConfig, EvalConfig
 from pipeline.play.evaluate import evaluate
 from pipeline.play.runinfo import new_run_id
@@ -205,7 +205,7 @@ def _divergence(con, game: str, ep_a: dict[str, Any], ep_b: dict[str, Any], cont
     }
     if step is None:
         return out
-    meanings = get_game(game).actions
+    played = get_game(game)
     start, stop = max(0, step - context), step + context + 1
     sides = {}
     for label, episode_id in zip(LABELS, ids):
@@ -221,7 +221,7 @@ def _divergence(con, game: str, ep_a: dict[str, Any], ep_b: dict[str, Any], cont
         for label, (steps, outputs) in sides.items():
             row = steps.get(s)
             entry[label] = None if row is None else {
-                "action": row["action"], "action_name": _meaning(meanings, row["action"]), "reward": row["reward"],
+                "action": row["action"], "action_name": _meaning(played, row["action"]), "reward": row["reward"],
                 "score": row["score"], "obs": row["obs"], "nodes": outputs.get(s, {})}
         out["around"].append(entry)
     at = next(e for e in out["around"] if e["step"] == step)
@@ -229,7 +229,11 @@ def _divergence(con, game: str, ep_a: dict[str, Any], ep_b: dict[str, Any], cont
     return out
 
 
-def _meaning(meanings: tuple[str, ...], action: int | None) -> str | None:
+def _meaning(game: Game, action: int | None) -> str | None:
+    """An action's name as people read it: ALE's, with what it does on screen where that differs (``RIGHT (up)``)."""
     if action is None:
         return None
-    return meanings[action] if 0 <= action < len(meanings) else f"illegal {action}"
+    if not 0 <= action < len(game.actions):
+        return f"illegal {action}"
+    move = game.action_moves.get(action)
+    return f"{game.actions[action]} ({move})" if move else game.actions[action]
