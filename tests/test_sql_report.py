@@ -188,6 +188,27 @@ def test_report_of_an_optimize_run(filled, tmp_path, capsys):
     assert "`eval_max_steps` | 200" in readme and "openai/scripted" in readme
 
 
+@pytest.mark.parametrize("calls", [1, 2, 3, 7])
+def test_the_calls_figure_counts_lanes_and_calls_in_whole_numbers(calls):
+    """The call lanes and the calls in flight are counts: their axes never tick at 0.5 (a sweep of how many calls
+    overlap, matplotlib's default locator put ticks at 0.5 for small counts)."""
+    from datetime import datetime, timedelta
+
+    from viewers.report_figures import calls_figure
+
+    t0 = datetime(2026, 12, 3, 12)
+    rows = [{"started_at": t0 + timedelta(seconds=i), "ended_at": t0 + timedelta(seconds=i + 5), "iteration": 1,
+             "candidate": i, "purpose": "propose", "outcome": "accepted", "request_model": f"m{i % 2}"}
+            for i in range(calls)]
+    run = {"game": "pong", "run_id": "01RUN", "kind": "optimize", "model": "m0", "name": None}
+    fig = calls_figure({"calls": rows, "run": run})
+    lanes, flight = fig.axes[:2]
+    for ax in (lanes, flight):
+        low, high = ax.get_ylim()
+        ticks = [t for t in ax.get_yticks() if min(low, high) <= t <= max(low, high)]
+        assert ticks and all(float(t).is_integer() for t in ticks), (ax.get_ylabel(), ticks)
+
+
 def test_report_of_an_eval_run_defaults_to_reports_dir(filled, tmp_path, capsys, monkeypatch):
     store, _, eval_id = filled
     monkeypatch.chdir(tmp_path)

@@ -373,13 +373,14 @@ def calls_figure(data: dict[str, Any]):
     ax.set_ylabel("call lane")
     ax.set_ylim(-0.6, len(lanes) - 0.4)
     ax.invert_yaxis()
-    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))  # one lane: tick 0, not 0.15 steps
     edges = sorted({t for span in spans for t in span})
     in_flight = [sum(1 for start, end in spans if start <= t < end) for t in edges]
     flight.step(edges, in_flight, where="post", color="#333333", linewidth=1.4)
     flight.set_ylabel("calls in flight")
     flight.set_xlabel("seconds since the run's first call")
     flight.set_ylim(0, max(in_flight, default=1) + 0.5)
+    flight.yaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))  # a count of calls: no 1.5
     handles = [Patch(facecolor=colour[m], label=plot_text(m)) for m in models]
     used = dict.fromkeys(c["outcome"] for c in calls)
     handles += [Patch(facecolor="white", edgecolor=CALL_OUTCOME_STYLE[o][0], linestyle=CALL_OUTCOME_STYLE[o][1],
