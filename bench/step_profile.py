@@ -158,11 +158,11 @@ def host_episode(game: str, trace: bool, max_steps: int, n: int, cpu: int, timer
                (StepLog, "table", "step record"), (RemotePolicy, "finish", "finish")]
     finish = RemotePolicy.finish
 
-    def untimed_finish(self: RemotePolicy, more: bool = False) -> Any:
+    def untimed_finish(self: RemotePolicy, *args: Any, **kwargs: Any) -> Any:
         # the end's waits (the node rows) are the episode's end, not a step's policy call
         waited = timers.seconds["round trip"]
         try:
-            return finish(self, more)
+            return finish(self, *args, **kwargs)
         finally:
             timers.seconds["round trip"] = waited
 
