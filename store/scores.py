@@ -257,6 +257,12 @@ class Interval:
         return interval_text(self.point, self.low, self.high, self.n, self.method, self.level, self.reason, signed)
 
 
+def score_text(value: float) -> str:
+    """A score or return as people read it beside the others: at most two decimals, no trailing zeros (``66.67``,
+    ``-20.5``, ``3``), where a mean of three games would otherwise print as ``66.6667``."""
+    return f"{round(value, 2) + 0.0:g}"  # + 0.0: -0.004 is 0, not -0
+
+
 def interval_text(point: float | None, low: float | None, high: float | None, n: int | tuple[int, int],
                   method: str, level: float = CONFIDENCE, reason: str | None = None, signed: bool = False) -> str:
     """The one way an interval is printed, naming its level, method and n: ``-20.7 [-21.0, -20.3] 95% t, n=3``.

@@ -214,3 +214,13 @@ def test_a_policy_cannot_read_the_game_seed_from_its_own_generators(store, write
         assert bits != random.Random(seed).getrandbits(62) and state != seed and value != legacy.random_sample()
     assert first[0] != first[1], "each game's stream is its own"
     assert first[0] != again[0] and first[1] != again[1], "the stream is keyed by the run: no table carries over"
+
+
+@pytest.mark.parametrize("value, shown", [(200 / 3, "66.67"), (-62 / 3, "-20.67"), (3.0, "3"), (-21, "-21"),
+                                          (0.125, "0.12"), (1 / 3, "0.33"), (-0.004, "0"), (1234.5, "1234.5")])
+def test_a_score_prints_with_at_most_two_decimals(value, shown):
+    """One number format for scores wherever a line shows them (runs, optimize's iteration lines, batch, the
+    report's figure, the Rerun run view): never 66.6667 beside -20.67."""
+    from store.scores import score_text
+
+    assert score_text(value) == shown

@@ -10,7 +10,7 @@ from __future__ import annotations
 import textwrap
 from typing import Any, Sequence
 
-from store.scores import CONFIDENCE, MEAN_METHOD, is_forfeit, score_episodes
+from store.scores import CONFIDENCE, MEAN_METHOD, is_forfeit, score_episodes, score_text
 from viewers.safe_text import (plot_text)
 
 
@@ -108,7 +108,7 @@ def scores_figure(data: dict[str, Any]):
     scored = [r for r in curve if r["best_score"] is not None]
     if scored:
         best = max(scored, key=lambda r: (r["best_score"], -r["iteration"]))
-        ax.annotate(f"best {best['best_score']:g}\n(iteration {best['best_iteration']})",
+        ax.annotate(f"best {score_text(best['best_score'])}\n(iteration {best['best_iteration']})",
                     (best["best_iteration"], best["best_score"]), textcoords="offset points", xytext=(0, 10),
                     ha="center", va="bottom", fontsize=8, color="#ff7f0e")
     ax.margins(y=0.15)

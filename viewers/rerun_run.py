@@ -38,6 +38,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from store import Store
+from store.scores import score_text
 from store.showing import run_timeline
 from viewers.rerun_episode import new_recording, resolve_recording
 from viewers.safe_text import markdown_code_block
@@ -100,8 +101,8 @@ def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -
             rec.log("/llm/reply", rr.TextDocument(reply, media_type="text/plain"))
         if it["feedback"] is not None:
             rec.log("/feedback", rr.TextDocument(it["feedback"], media_type="text/plain"))
-        score = "-" if it["score"] is None else f"{it['score']:g}"
-        best = "-" if it["best_score"] is None else f"{it['best_score']:g}"
+        score = "-" if it["score"] is None else score_text(it["score"])
+        best = "-" if it["best_score"] is None else score_text(it["best_score"])
         line = (f"iteration {it['iteration']}: update {it['update_status']}, score {score}, best {best} "
                 f"(iteration {it['best_iteration']}), version {it['policy_version_id']}"
                 + (", rolled back" if it["rolled_back"] else ""))

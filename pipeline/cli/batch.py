@@ -9,6 +9,7 @@ import os
 import sys
 
 from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_store, positive_int, short_ids, show
+from store.scores import score_text
 
 
 def add_parser(verbs) -> None:
@@ -58,7 +59,7 @@ def _batch_display(store):
             table.add_column(column)
         for p in progress:
             it = "-" if p.iteration is None else f"{p.iteration}/{p.iterations}"
-            best = "-" if p.best is None else f"{p.best:g}"
+            best = "-" if p.best is None else score_text(p.best)
             table.add_row(*(Text(terminal_text(cell)) for cell in (p.label, p.state, it, best,
                                                                     short.get(p.run_id, p.run_id) or "")))
         counts = {s: sum(1 for p in progress if p.state == s)

@@ -12,6 +12,7 @@ from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_INTERRUPTED, EXIT_OK,
                                  shorten_run_ids, show, show_json, store_flag)
 from pipeline.optimizer.config import FLAG_GROUPS, OptimizeConfig
 from pipeline.settings import declarations
+from store.scores import score_text
 from viewers.safe_text import terminal_text
 
 
@@ -54,12 +55,12 @@ def _print_iteration(item) -> None:
     if item.candidates > 1:
         tokens = f"best of {item.candidates} candidates  " + tokens
     if item.standard_score is not None:
-        tokens = f"standard protocol {item.standard_score:g}  " + tokens
+        tokens = f"standard protocol {score_text(item.standard_score)}  " + tokens
     score = f"{item.score:>8.1f}" if item.score is not None else f"{'forfeit':>8}"
     best = f"{item.best_score:>8.1f}" if item.best_score is not None else f"{'forfeit':>8}"
     forfeit = ""
     if item.forfeit:  # the partial score is what the policy had when it stopped: shown, never taken as its score
-        forfeit = f"  ({terminal_text(item.forfeit)}; {item.forfeit_score:g} when it stopped)"
+        forfeit = f"  ({terminal_text(item.forfeit)}; {score_text(item.forfeit_score)} when it stopped)"
     show(f"iteration {item.iteration:>3}  score {score}  best {best} (it {item.best_iteration})"
          f"  update {item.update_status:<9} {tokens}{back}{note[:160]}{forfeit[:120]}{_model_shares(item.models)}",
          flush=True)

@@ -6,6 +6,7 @@ import argparse
 import os
 
 from pipeline.cli.common import EXIT_OK, CliError, add_store, open_store, positive_int, show, show_json
+from store.scores import score_text
 
 KINDS = ("eval", "optimize", "replay", "serve")
 STATUSES = ("running", "finished", "failed", "interrupted", "budget", "diverged")
@@ -56,7 +57,7 @@ def _audit(row: dict) -> str | None:
     """The best version's held-out score (standard protocol), beside the tuning score: ``11.5 OVERFIT``."""
     if row.get("audit_score") is None and row.get("overfit") is None:
         return None
-    score = "forfeit" if row["audit_score"] is None else f"{round(row['audit_score'], 2):g}"
+    score = "forfeit" if row["audit_score"] is None else score_text(row["audit_score"])
     return score + (" OVERFIT" if row.get("overfit") else "")
 
 
