@@ -51,7 +51,7 @@ def episode_steps(
 
 def step_nodes(
     con: duckdb.DuckDBPyConnection, episode_id: str, start: int = 0, stop: int | None = None,
-    value_chars: int | None = None,
+    value_chars: int | None = None, max_bytes: int | None = None,
 ) -> list[dict[str, Any]]:
     """Node calls of steps ``start <= step < stop``, ordered by step and call index; JSON decoded within the bounds
     of ``tracing/bounded.py`` (a value nested too deep or too long comes back cut or as its marker, never an
@@ -62,7 +62,9 @@ def step_nodes(
     an object of inputs, split by key), else its first ``value_chars`` characters and its length, which come back
     as a :class:`JsonHead`; and only the columns the prompt shows (step, call index, function, values,
     exception). Each row then holds a few kilobytes at most, whatever the policy stored (issue 38: values of
-    16,000 characters of ``[{},{},…]`` in 2,000 rows decoded whole to 2 GB). None: every value decoded whole."""
+    16,000 characters of ``[{},{},…]`` in 2,000 rows decoded whole to 2 GB). None: every value decoded whole.
+    ``max_bytes`` (with ``value_chars``): the rows stop, in step order, once what they hold passes it
+    (:func:`held_bytes`): the slice is bounded in bytes, and so in rows, whatever the policy stored."""
     if value_chars is None:
         rows = _rows(con.execute(
             """SELECT step, call_index, function, trainable, policy_version_id, inputs, output, exc_type,
@@ -91,13 +93,51 @@ def step_nodes(
          "chars": value_chars, "max_chars": MAX_CHARS, "preview": PREVIEW_CHARS})
     names = [d[0] for d in cursor.description]
     rows = []
+    held = 0
     while batch := cursor.fetchmany(_BATCH_ROWS):  # an object of inputs comes whole (<= MAX_CHARS): a batch at a time
         for values in batch:
             row = dict(zip(names, values))
             row["inputs"] = bounded_value(row["inputs"], row.pop("inputs_length"), value_chars, split=True)
             row["output"] = bounded_value(row["output"], row.pop("output_length"), value_chars)
+            held += held_bytes([row])
+            if max_bytes is not None and held > max_bytes:
+                con.abort()  # the rest of the result is never read
+                return rows
             rows.append(row)
     return rows
+
+
+_ROW_BYTES = 800
+"""What a bounded node row holds beside its values' text: its dict, step, call index, function."""
+
+
+def held_bytes(rows: list[dict[str, Any]]) -> int:
+    """An upper estimate of the bytes of Python objects bounded node rows (:func:`step_nodes` with
+    ``value_chars``) hold: 4 bytes a character of text (astral text), ~800 bytes a decoded tiny container."""
+    total = 0
+    for row in rows:
+        total += _ROW_BYTES + sum(4 * len(row[k] or "") for k in ("function", "exc_type", "exc_message", "exc_source"))
+        for value in (row["inputs"], row["output"]):
+            items = value.items() if isinstance(value, dict) and not _is_marker(value) else [(None, value)]
+            for key, item in items:
+                total += (4 * len(key) + 100 if key is not None else 0) + _value_bytes(item)
+    return total
+
+
+def _is_marker(value: dict) -> bool:
+    return "$truncated" in value
+
+
+def _value_bytes(value: Any) -> int:
+    if isinstance(value, JsonHead):
+        return 100 + 4 * len(value.text)
+    if isinstance(value, str):
+        return 50 + 4 * len(value)
+    if isinstance(value, dict) and _is_marker(value):
+        return 200 + 4 * len(str(value.get("preview", "")))
+    if isinstance(value, (dict, list)):
+        return 24 * SMALL
+    return 32
 
 
 _BATCH_ROWS = 256

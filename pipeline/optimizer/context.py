@@ -20,7 +20,8 @@ from games import get_game, list_widths
 from games.base import recorded_observation
 from pipeline.optimizer.strategies import Greedy, History, Ref
 from pipeline.settings import EpisodeLimits
-from store.readers import candidates, episode_steps, episode_summaries, get_run, iterations, policy_texts, step_nodes
+from store.readers import (candidates, episode_steps, episode_summaries, get_run, held_bytes, iterations,
+                           policy_texts, step_nodes)
 from tracing.policy_file import PolicyInfo, inspect_policy
 
 
@@ -119,11 +120,18 @@ def _trainable_sources(text: str) -> tuple[tuple[str, str], ...]:
     return tuple((m.name, m.source) for m in inspect_policy(text, "policy.py").trainable)
 
 
-_ROLLOUTS: dict[str, tuple[list[dict[str, Any]], list[dict[str, Any]]]] = {}
+_ROLLOUTS: dict[str, tuple[list[dict[str, Any]], list[dict[str, Any]], int]] = {}
 ROLLOUTS_KEPT = 8
 VALUE_CHARS = 300
 """Characters of each node value the prompt shows (``prompt.py``): all the store is asked for, so a kept rollout
 holds a few kilobytes a call, whatever its policy stored (``store.readers.step_nodes``)."""
+ROLLOUT_NODE_BYTES = 128 * 2**20
+"""What one rollout's node calls may hold, as ``store.readers.held_bytes`` estimates it (about twice what they
+hold): an honest rollout's are a few MB (1.5 MB for 120 steps of Pong's starter, 800 calls; ~60 MB for a helper
+called for each of Breakout's bricks, 300 steps); the calls past it are not read, and the prompt shows those
+steps without calls."""
+KEPT_NODE_BYTES = 2 * ROLLOUT_NODE_BYTES
+"""What the kept rollouts' node calls may hold together: the oldest go first."""
 
 
 def _rollout(con: duckdb.DuckDBPyConnection, episode_id: str, game) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
@@ -131,8 +139,12 @@ def _rollout(con: duckdb.DuckDBPyConnection, episode_id: str, game) -> tuple[lis
     ULID run id in it), and the same parent's rollout is shown to each of its children, iteration after
     iteration: the last few are kept in memory."""
     if episode_id not in _ROLLOUTS:
-        while len(_ROLLOUTS) >= ROLLOUTS_KEPT:
+        nodes = step_nodes(con, episode_id, value_chars=VALUE_CHARS, max_bytes=ROLLOUT_NODE_BYTES)
+        held = held_bytes(nodes)
+        while _ROLLOUTS and (len(_ROLLOUTS) >= ROLLOUTS_KEPT
+                             or held + sum(kept[2] for kept in _ROLLOUTS.values()) > KEPT_NODE_BYTES):
             _ROLLOUTS.pop(next(iter(_ROLLOUTS)))
-        _ROLLOUTS[episode_id] = (episode_steps(con, episode_id, list_widths=list_widths(game), derive=game.derive),
-                                 step_nodes(con, episode_id, value_chars=VALUE_CHARS))
-    return _ROLLOUTS[episode_id]
+        steps = episode_steps(con, episode_id, list_widths=list_widths(game), derive=game.derive)
+        _ROLLOUTS[episode_id] = (steps, nodes, held)
+    steps, nodes, _ = _ROLLOUTS[episode_id]
+    return steps, nodes

@@ -294,3 +294,20 @@ def test_a_bounded_value_holds_a_few_bytes_per_character_it_shows_whatever_was_s
         for split in (False, True):
             worst = max(worst, _held_bytes(bounded_value(text, len(text), 300, split=split)))
     assert worst < 16_000, worst
+
+
+def test_the_prompt_s_slice_stops_at_its_byte_bound(stores):
+    """``step_nodes(..., max_bytes=)``: the rows stop, in step order, once what they hold passes the bound; the
+    estimate (``held_bytes``) is never below what the rows hold (measured with ``sys.getsizeof``)."""
+    from store.readers import held_bytes
+
+    _, forged_path, run_id = stores
+    with Store(forged_path).read() as con:
+        (episode_id,) = con.execute("SELECT train_episode_id FROM candidates WHERE run_id = ? AND iteration = 0",
+                                    [run_id]).fetchall()[0]
+        whole = step_nodes(con, episode_id, value_chars=300)
+        cut = step_nodes(con, episode_id, value_chars=300, max_bytes=2**20)
+        assert con.execute("SELECT 1").fetchall() == [(1,)]  # the connection goes on after the cut
+    assert len(whole) == ROWS and 0 < len(cut) < ROWS and cut == whole[:len(cut)]
+    assert held_bytes(cut) <= 2**20 < held_bytes(whole[:len(cut) + 1])
+    assert held_bytes(whole) >= _held_bytes(whole)
