@@ -110,7 +110,9 @@ def played_actions(store: Store, run_id: str) -> tuple[list[int], list[list[int]
 
 def timed_eval(policy: Path, store: Store, episodes: int, trace: bool, workers: int = 1,
                max_steps: int = 4000) -> tuple[float, str]:
-    config = EvalConfig(episodes=episodes, trace=trace, workers=workers, max_steps=max_steps)
+    # one random stream for every run: a starter that moves at random plays the same episodes each time, the very
+    # actions the bare replay repeats (each run's own stream made eval and the replay play different games)
+    config = EvalConfig(episodes=episodes, trace=trace, workers=workers, max_steps=max_steps, rng_key="throughput")
     start = time.perf_counter()
     result = evaluate(policy, config, store)
     return time.perf_counter() - start, result.run_id
