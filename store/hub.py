@@ -64,22 +64,33 @@ class Hub:
         ``threads`` sets the instance's thread count (writers take one, leaving the other cores to workers).
         """
         key = os.path.abspath(path)
+        alias = "store_" + hashlib.sha1(key.encode()).hexdigest()[:12]
         with self._lock:
             con = self._instance()
             attachment = self._attached.get(key)
-            if attachment is None:
-                alias = "store_" + hashlib.sha1(key.encode()).hexdigest()[:12]
-                quoted = key.replace("'", "''")
-                options = "READ_ONLY" if read_only else f"ROW_GROUP_SIZE {WRITE_ROW_GROUP_SIZE}"
-                con.execute(f"ATTACH '{quoted}' AS {alias} ({options})")
-                attachment = self._attached[key] = _Attachment(alias, read_only)
-            elif attachment.read_only and not read_only:
+            if attachment is not None and attachment.read_only and not read_only:
                 raise RuntimeError(f"{path} is open read-only in this process: a write cannot nest inside a read")
-            if threads is not None and threads != self._threads:
-                con.execute(f"SET threads = {int(threads)}")
-                self._threads = threads
-            attachment.users += 1
-            cursor = con.cursor()
+            try:
+                if attachment is None:
+                    quoted = key.replace("'", "''")
+                    options = "READ_ONLY" if read_only else f"ROW_GROUP_SIZE {WRITE_ROW_GROUP_SIZE}"
+                    # a release that Ctrl-C cut between forgetting the file and detaching it may have left it
+                    # attached: let it go first (a no-op otherwise)
+                    con.execute(f"DETACH DATABASE IF EXISTS {alias}")
+                    con.execute(f"ATTACH '{quoted}' AS {alias} ({options})")
+                    attachment = self._attached[key] = _Attachment(alias, read_only)
+                if threads is not None and threads != self._threads:
+                    con.execute(f"SET threads = {int(threads)}")
+                    self._threads = threads
+                cursor = con.cursor()
+                attachment.users += 1
+            except BaseException:
+                # Ctrl-C (KeyboardInterrupt) can land between any two of these steps, e.g. after DuckDB attached
+                # the file and before it was recorded here: leave nothing half attached, or the next use (the
+                # command marking its run interrupted) fails with "database ... already exists"
+                if attachment is None or attachment.users == 0:
+                    self._forget(key, alias)
+                raise
         try:
             cursor.execute(f"USE {attachment.alias}")
         except BaseException:
@@ -106,6 +117,17 @@ class Hub:
                 except BaseException:
                     self._close()  # the file may still be attached: closing the instance lets it go for sure
                     raise
+
+    def _forget(self, key: str, alias: str) -> None:
+        """Detach ``alias`` if DuckDB attached it, and forget it here (under the lock)."""
+        self._attached.pop(key, None)
+        if self._con is None:
+            return
+        try:
+            self._con.execute(f"DETACH DATABASE IF EXISTS {alias}")
+        except BaseException:
+            self._close()  # closing the instance lets every file go for sure
+            raise
 
     def _close(self) -> None:
         con, self._con, self._attached = self._con, None, {}

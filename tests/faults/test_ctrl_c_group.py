@@ -219,6 +219,41 @@ def test_a_command_started_with_ctrl_c_ignored_still_stops_on_sigterm(verb, tmp_
         assert statuses <= {"finished", "interrupted"}, (statuses, said)
 
 
+@pytest.mark.parametrize("phase", ["read", "write"])
+def test_a_ctrl_c_while_the_store_opens_leaves_it_usable(store, phase):
+    """A press at a random moment of opening the store (attaching the file to the process's DuckDB instance, in
+    store/hub.py), a hundred times: each is a KeyboardInterrupt, and the store opens again afterwards, as the command
+    marking its run interrupted needs. (A press between DuckDB's ATTACH and the hub's note of it left the file
+    attached unnoted: the next open failed with 'database ... already exists'.)"""
+    script = textwrap.dedent("""
+        import os, random, signal, sys, threading, time
+        from store import Store
+
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        store, phase = Store(sys.argv[1]), sys.argv[2]
+        with store.write():
+            pass
+        rng = random.Random(f"opening-{phase}")
+        caught = 0
+        for _ in range(100):
+            timer = threading.Timer(rng.uniform(0.0, 0.03), os.kill, (os.getpid(), signal.SIGINT))
+            try:
+                timer.start()
+                while True:  # opens and queries until the press lands (a few dozen opens)
+                    with getattr(store, phase)() as con:
+                        con.execute("SELECT count(*) FROM runs").fetchall()
+            except KeyboardInterrupt:
+                caught += 1
+            finally:
+                timer.cancel()
+        with store.write() as con:
+            print(caught, con.execute("SELECT count(*) FROM runs").fetchone()[0])
+    """)
+    done = subprocess.run([sys.executable, "-c", script, str(store.path), phase], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0 and done.stdout.split() == ["100", "0"], done.stdout + done.stderr[-3000:]
+
+
 def test_a_ctrl_c_during_a_query_is_a_keyboard_interrupt_and_its_transaction_is_rolled_back(store):
     """The mechanism, at the moment a press is hardest to hit from outside: a SIGINT while DuckDB runs a query
     reaches the caller as KeyboardInterrupt (not DuckDB's RuntimeError), and the write it cut left nothing. In a
