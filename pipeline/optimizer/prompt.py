@@ -465,3 +465,18 @@ def _out_line(row: dict[str, Any]) -> str:
     if row["action"] is None:
         return f"step {row['step']}: no action (the policy failed)"
     return f"step {row['step']}: action {row['action']}, reward {format_number(row['reward'])}, score {format_number(row['score'])}"
+
+
+def trace_slice(steps: list[dict[str, Any]], nodes: list[dict[str, Any]], game_has_lives: bool,
+                limit: int) -> tuple[list[tuple[int, str]], list[dict[str, Any]]]:
+    """The prompt's choice of steps, for a reader outside the prompt (``codearcade serve``'s feedback): the
+    rollout's events and, in step order, the ``limit`` steps a prompt shows first (the steps before each lost point or life and a policy failure, then the
+    first steps, then the rest spread), each as its observation, calls and outcome lines, as #Inputs, #Others and
+    #Outputs write them."""
+    nodes_by_step: dict[int, list[dict[str, Any]]] = {}
+    for node in nodes:
+        nodes_by_step.setdefault(node["step"], []).append(node)
+    events = _events(steps, game_has_lives)
+    chosen = sorted(_priority(steps, events)[:max(0, limit)])
+    return events, [{"step": steps[i]["step"], "observation": _obs_line(steps[i]),
+                     "calls": _calls_line(steps[i], nodes_by_step), "outcome": _out_line(steps[i])} for i in chosen]

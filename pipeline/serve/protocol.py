@@ -15,7 +15,7 @@ the transport (``http.py``, ``tools.py``), is a method of :class:`ServeRun`:
   for costs one, whatever ends it;
 - ``feedback``: a submission's summary, forfeits and errors, the feedback text the prompt loop would give, and a
   bounded slice of one episode's steps and node calls chosen as the prompt chooses them
-  (:func:`trace_slice`);
+  (``pipeline.optimizer.prompt.trace_slice``);
 - ``budget``; ``sql``: read-only SQL over the visible part of the run (``store/serve.py``);
 - ``finalize`` (the budget spent, or ``codearcade serve --finalize RUN``): every accepted submission plays the
   **validation** pool, and the best by validation, beside the starter, plays the **held-out** pool.
@@ -57,10 +57,10 @@ import duckdb
 from games import get_game
 from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY, draw_audit_seeds, recorded_observation
 from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.context import ROLLOUT_NODE_BYTES, VALUE_CHARS
 from pipeline.optimizer.feedback import FeedbackBands, compose_feedback
 from pipeline.optimizer.loop import start_run
-# the prompt's own choice of steps and its lines: the feedback shows what a prompt would
-from pipeline.optimizer.prompt import _calls_line, _events, _obs_line, _out_line, _priority
+from pipeline.optimizer.prompt import trace_slice  # the prompt's own choice of steps: feedback shows what it would
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeSpec
 from pipeline.play.runinfo import episode_id
@@ -218,7 +218,8 @@ class ServeRun:
                                    f"{[e['instance'] for e in episodes]}")
             game = self.game.observing(recorded_observation(self.record))  # read back as the run played it
             rows = episode_steps(con, chosen["episode_id"], list_widths=game.list_widths, derive=game.derive)
-            nodes = step_nodes(con, chosen["episode_id"])
+            # read as the prompt reads a rollout: each value's head, the rollout's rows within a byte bound
+            nodes = step_nodes(con, chosen["episode_id"], value_chars=VALUE_CHARS, max_bytes=ROLLOUT_NODE_BYTES)
         events, shown = trace_slice(rows, nodes, self.game.lives > 0, steps)
         return {**_summary(sub, episodes), "feedback": text[0] if text else "",
                 "trace": {"instance": chosen["instance"], "length": chosen["length"],
@@ -405,21 +406,6 @@ class ServeRun:
         return {"finalized": True, "submissions_validated": sum(r["protocol"] == "validation" for r in rows),
                 "note": "the validation and held-out results are sealed: the person who runs the server reads them "
                         "with `codearcade runs`, `report` and `audit`"}
-
-
-def trace_slice(steps: list[dict[str, Any]], nodes: list[dict[str, Any]], game_has_lives: bool,
-                limit: int) -> tuple[list[tuple[int, str]], list[dict[str, Any]]]:
-    """The prompt's choice of steps (``pipeline/optimizer/prompt.py``): the rollout's events and, in step order, the
-    ``limit`` steps a prompt shows first (the steps before each lost point or life and a policy failure, then the
-    first steps, then the rest spread), each as its observation, calls and outcome lines, as #Inputs, #Others and
-    #Outputs write them."""
-    nodes_by_step: dict[int, list[dict[str, Any]]] = {}
-    for node in nodes:
-        nodes_by_step.setdefault(node["step"], []).append(node)
-    events = _events(steps, game_has_lives)
-    chosen = sorted(_priority(steps, events)[:max(0, limit)])
-    return events, [{"step": steps[i]["step"], "observation": _obs_line(steps[i]),
-                     "calls": _calls_line(steps[i], nodes_by_step), "outcome": _out_line(steps[i])} for i in chosen]
 
 
 def submission_view(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
