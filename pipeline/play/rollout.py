@@ -41,7 +41,6 @@ import pyarrow as pa
 
 from games import Game, get_game, list_widths
 from games.base import OBSERVATION_VERSION
-from games.envs import discard_env, shared_env
 from pipeline.boundary.nodes import MAX_NODE_FRAME, MalformedTrace, node_budget, read_nodes
 from pipeline.boundary.policy import (ACTION, MAX_ANSWER, Channel, capped_error, coerce_action,
                                      describe_exception)
@@ -347,6 +346,11 @@ def prepare_episode(spec: EpisodeSpec, policy: PolicyChannel | None = None) -> P
     reloads the ROM, ~0.15 s, as long as 150 steps) and have the policy loaded. A staged host
     (``pipeline/boundary/zygote.py``) does this while the previous episode still plays; it then waits for its
     go-ahead. ``policy`` defaults to a :class:`LocalPolicy`."""
+    # imported here, not with this module: the parent of an eval imports it and needs no emulator (gymnasium, ALE and
+    # OCAtari are ~0.6 s of imports); the game zygote imports them when it prepares the environments, before any
+    # host forks
+    from games.envs import discard_env, shared_env
+
     game = get_game(spec.game).observing(spec.observation)
     t0 = time.perf_counter()
     policy = policy if policy is not None else LocalPolicy(spec, game.n_actions)
@@ -369,6 +373,8 @@ def continue_episode(spec: EpisodeSpec, previous: PreparedEpisode) -> PreparedEp
     game or the step cap): the same environment, reset without a seed, which goes on with the game
     (``games.envs.EpisodicLife``: one NOOP, Breakout a FIRE, their rewards dropped), and the same policy, still
     loaded with whatever state it kept."""
+    from games.envs import discard_env
+
     t0 = time.perf_counter()
     env = previous.env
     try:
@@ -446,6 +452,8 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
             else:
                 end_reason = "truncated"
         except BaseException:
+            from games.envs import discard_env
+
             discard_env(env)  # an error inside the loop leaves the environment in an unknown state
             raise
     try:

@@ -38,7 +38,6 @@ import pyarrow.compute as pc
 
 from games import get_game
 from games.base import ONE_LIFE_CONTINUE, one_life_setting
-from games.envs import make_env
 from pipeline.boundary.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from tracing.capture import NODE_SCHEMA
@@ -58,6 +57,8 @@ def _acquire_env(game: str, sticky: float, noop_max: int, one_life: bool | str =
     ``make_env``'s wrappers minus ``ObjectObservation``."""
     key = (get_game(game).name, float(sticky), int(noop_max), one_life_setting(one_life))
     free = _replay_envs.setdefault(key, [])
+    from games.envs import make_env  # here: a command that replays nothing never imports the emulator stack
+
     return key, (free.pop() if free else make_env(key[0], sticky=key[1], noop_max=key[2], one_life=key[3],
                                                   objects=False))
 
