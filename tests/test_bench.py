@@ -19,7 +19,7 @@ SMALLEST = {
                        "4 whole games"]),
     "step_profile.py": (["--games", "pong", "--repeats", "1", "--max-steps", "200"],
                         ["| emulator |", "| round trip |", "| store write |", "| host (untimed) / bare stepping |",
-                         "| game zygote |", "| ROM load |"]),
+                         "| game zygote |", "| ROM load¹ |", "| **a command**"]),
     "parallel_eval.py": (["--episodes", "2", "--repeats", "1"], ["codearcade", "bare OCAtari", "target:"]),
     "store_writes.py": (["--episodes", "2"], ["codearcade (2,048 rows)", "ratio (codearcade / default)"]),
     "prompt_build.py": (["--steps", "5000", "--repeats", "1"], ["prompt 16k", "prompt 4k"]),
