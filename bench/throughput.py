@@ -66,6 +66,7 @@ class BareOCAtari:
     per process), replaying given action sequences."""
 
     def __init__(self, game: str):
+        import games.envs  # noqa: F401  (quiets ALE's banner, as codearcade's own processes do)
         from ocatari.core import OCAtari
         from ocatari.ram.extract_ram_info import detect_objects_ram
 
