@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import pytest
 
@@ -241,14 +242,19 @@ def test_blame_of_a_missing_iteration_names_the_iterations_there_are(filled):
 
 # ------------------------------------------------------------------------------- reading during a writing run
 
-def _poll_counts(store_path: Path, writer: subprocess.Popen, query: str, capsys) -> tuple[list, list[str]]:
-    """Run `codearcade sql` in this process until the writer exits; (counts seen, failures after the first success)."""
+def _poll_counts(store_path: Path, writer: subprocess.Popen, query: str, capsys,
+                 enough: Callable[[list], bool] | None = None, stop: Path | None = None) -> tuple[list, list[str]]:
+    """Run `codearcade sql` in this process until the writer exits; (counts seen, failures after the first success).
+    ``enough(seen)``: once true, the file ``stop`` is made, which tells the writer to finish (so that a slow reader
+    on a busy machine is given as many commits as it needs, not a fixed time)."""
     seen: list[tuple[int, ...]] = []
     failures: list[str] = []
     while writer.poll() is None:
         code, out, err = _run(capsys, "sql", query, "--csv", "--store", str(store_path))
         if code == 0:
             seen.append(tuple(int(x) for x in out.splitlines()[1].split(",")))
+            if enough is not None and stop is not None and enough(seen):
+                stop.touch()
         elif seen or "no store at" not in err:  # before the writer's first commit there is no store yet
             failures.append(err)
     return seen, failures
@@ -285,20 +291,23 @@ def test_queries_while_eval_writes(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_queries_while_a_writer_commits_many_times_a_second(tmp_path, capsys):
-    """A harsher writer: 40 small transactions through Store.write, 50 a second (an evaluation commits about
-    twice a second); every query gets in between them and sees the counts grow."""
-    path = tmp_path / "busy.duckdb"
-    script = ("import sys, time\nfrom store import Store\nfrom store.writer import put_blob\ns = Store(sys.argv[1])\n"
-              "for i in range(40):\n    with s.write() as con:\n        put_blob(con, 'note', f'note {i}')\n"
-              "    time.sleep(0.02)\n")
-    writer = subprocess.Popen([sys.executable, "-c", script, str(path)], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    """A harsher writer: small transactions through Store.write, 50 a second (an evaluation commits about twice a
+    second), until the reader has seen the counts change five times (at most 3,000 commits); every query gets in
+    between them and sees the counts grow, however slow the machine makes the reader."""
+    path, stop = tmp_path / "busy.duckdb", tmp_path / "stop"
+    script = ("import os, sys, time\nfrom store import Store\nfrom store.writer import put_blob\ns = Store(sys.argv[1])\n"
+              "for i in range(3000):\n    if os.path.exists(sys.argv[2]):\n        break\n"
+              "    with s.write() as con:\n        put_blob(con, 'note', f'note {i}')\n    time.sleep(0.02)\n")
+    writer = subprocess.Popen([sys.executable, "-c", script, str(path), str(stop)], cwd=ROOT, stderr=subprocess.PIPE,
+                              text=True)
     try:
-        seen, failures = _poll_counts(path, writer, "SELECT count(*), 0 FROM blobs", capsys)
+        seen, failures = _poll_counts(path, writer, "SELECT count(*), 0 FROM blobs", capsys,
+                                      enough=lambda seen: len(set(seen)) >= 5, stop=stop)
     finally:
         writer.wait(120)
     assert writer.returncode == 0, writer.stderr.read()
     assert not failures, failures[:3]
-    assert seen == sorted(seen) and len(set(seen)) >= 5
+    assert seen == sorted(seen) and len(set(seen)) >= 5, seen[-10:]
 
 
 def test_output_piped_into_head_ends_quietly(tmp_path):

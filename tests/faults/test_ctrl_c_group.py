@@ -267,27 +267,39 @@ def test_a_ctrl_c_during_a_query_is_a_keyboard_interrupt_and_its_transaction_is_
         store = Store(sys.argv[1])
         with store.write():  # attached and checked, as a command's store is by the time it plays and writes
             pass
+        def press(done):  # Ctrl-C, and again each second until the phase ends, as a person would press it
+            while not done.wait(0.3 if not press.count else 1.0):
+                press.count += 1
+                os.kill(os.getpid(), signal.SIGINT)
+
         for phase in ("read", "write"):
-            # pressed while the query runs: the timer starts once the store is open and the write is made (a
-            # loaded machine may take longer than the timer to get there)
-            timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+            # pressed while the query runs: the presses start once the store is open and the write is made (DuckDB
+            # looks for a press between its tasks, which a loaded machine makes long: one press may land late)
+            done, press.count = threading.Event(), 0
+            presser = threading.Thread(target=press, args=(done,))
             try:
                 with getattr(store, phase)() as con:
                     if phase == "write":
                         insert_run(con, "01CUT", "eval", "pong", {}, "# policy\\n", "v" * 16, {})
-                    timer.start()
-                    con.execute("SELECT count(*) FROM range(30000000000) t(i) WHERE i % 7 = 3").fetchall()
+                    presser.start()
+                    # a read runs on DuckDB's worker threads, and DuckDB looks for a press only when it ends (a
+                    # 3e10-row read took 96 s to stop): this read is a few seconds' work; a write (one thread) stops
+                    # at the press
+                    rows = 1_500_000_000 if phase == "read" else 30_000_000_000
+                    con.execute(f"SELECT count(*) FROM range({rows}) t(i) WHERE i % 7 = 3").fetchall()
                 print(phase, "finished")
             except KeyboardInterrupt:
                 print(phase, "KeyboardInterrupt")
             except BaseException as exc:
                 print(phase, type(exc).__name__, exc)
             finally:
-                timer.cancel()
+                done.set()
+                if presser.is_alive():
+                    presser.join()
     """)
     with store.write() as con:
         before = con.execute("SELECT count(*) FROM runs").fetchone()[0]
     done = subprocess.run([sys.executable, "-c", script, str(store.path)], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120)  # uninterrupted, the query would take minutes
+                          timeout=600)  # uninterrupted, the query would take many minutes
     assert done.stdout.splitlines() == ["read KeyboardInterrupt", "write KeyboardInterrupt"], done.stdout + done.stderr
     assert store.query("SELECT count(*) FROM runs") == [(before,)], "the interrupted write left nothing"
