@@ -52,7 +52,7 @@ def _is_disk_full(exc: Exception) -> bool:
     return "No space left" in text or "File too large" in text or "Disk quota" in text
 
 
-def _is_interrupt(exc: BaseException) -> bool:
+def is_ctrl_c(exc: BaseException) -> bool:
     """Whether ``exc`` is a Ctrl-C that DuckDB caught: a SIGINT that arrives while a query runs is consumed by
     DuckDB's client and raised as ``RuntimeError('Query interrupted')`` (2.0; ``InterruptException`` in others)."""
     return isinstance(exc, duckdb.InterruptException) or (type(exc) is RuntimeError
@@ -67,7 +67,7 @@ def _ctrl_c_as_itself() -> Iterator[None]:
     try:
         yield
     except Exception as exc:
-        if _is_interrupt(exc):
+        if is_ctrl_c(exc):
             raise KeyboardInterrupt from None
         raise
 

@@ -306,6 +306,39 @@ def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: in
     episode_workers = max(1, (os.cpu_count() or 1) // max(1, workers))
     running: dict[int, tuple[subprocess.Popen, Any]] = {}
     log_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        _run_queue(queue, running, planned, progress, store, batch, workers, episode_workers, log, display, log_dir,
+                   poll_s, die_with_parent)
+    except KeyboardInterrupt:
+        # Ctrl-C reached the workers too (one process group): each marks its run interrupted and ends; wait for
+        # that, since a worker dies with this process (PDEATHSIG) and would leave its run half marked
+        _wait_for_workers(running, WORKER_WIND_DOWN_S)
+        raise
+    _refresh(store, progress, batch)
+    display(progress)
+    return BatchResult(progress)
+
+
+WORKER_WIND_DOWN_S = 60.0
+"""How long a Ctrl-C'd batch waits for its workers to mark their runs interrupted before it ends (and they with it)."""
+
+
+def _wait_for_workers(running: dict, limit_s: float) -> None:
+    deadline = time.monotonic() + limit_s
+    for proc, out in running.values():
+        try:
+            proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            proc.terminate()
+        except KeyboardInterrupt:  # a second press: stop waiting (the workers die with this process)
+            return
+        finally:
+            out.close()
+
+
+def _run_queue(queue, running, planned, progress, store, batch, workers, episode_workers, log, display, log_dir,
+               poll_s, die_with_parent) -> None:
+    """Start the queued runs as worker slots free up, until every run has ended (``run_local``'s loop)."""
     last_refresh = 0.0
     while queue or running:
         while queue and len(running) < workers:
@@ -336,9 +369,6 @@ def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: in
             display(progress)
             last_refresh = now
         time.sleep(0.2)
-    _refresh(store, progress, batch)
-    display(progress)
-    return BatchResult(progress)
 
 
 # --------------------------------------------------------------------------------------------- ray executor

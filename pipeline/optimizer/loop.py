@@ -45,7 +45,7 @@ from pipeline.optimizer.task import resolve_start, task_settings
 from pipeline.play.runinfo import new_run_id, package_versions
 from pipeline.play.versions import policy_version_row
 from store import Store
-from store.db import Hold, utcnow
+from store.db import Hold, is_ctrl_c, utcnow
 from store.locks import run_lock
 from store.readers import (
     candidates,
@@ -216,6 +216,9 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
     except LLMError as exc:
         status, error = "failed", f"the LLM call failed: {exc}"
     except Exception as exc:
+        if is_ctrl_c(exc):  # DuckDB's own word for a Ctrl-C that reached it past the store's conversion
+            status, error = "interrupted", "interrupted by the user; continue with --resume"
+            raise KeyboardInterrupt from None
         status, error = "failed", f"{type(exc).__name__}: {exc}"
         raise
     finally:

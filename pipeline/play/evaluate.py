@@ -25,6 +25,7 @@ from pipeline.play.versions import policy_version_row
 from pipeline.play.config import EvalConfig  # noqa: F401  (its home; callers import it from here too)
 from pipeline.settings import check_settings
 from store import Store
+from store.db import is_ctrl_c
 from store.locks import run_lock
 from store.scores import Score, score_episodes, score_json
 from store.writer import EpisodeWriter, finish_run, insert_policy_version, insert_run
@@ -141,6 +142,9 @@ def evaluate(
             status, error = "interrupted", "interrupted by the user"
             raise
         except BaseException as exc:
+            if is_ctrl_c(exc):  # DuckDB's own word for a Ctrl-C that reached it past the store's conversion
+                status, error = "interrupted", "interrupted by the user"
+                raise KeyboardInterrupt from None
             status, error = "failed", f"{type(exc).__name__}: {exc}"
             raise
         finally:  # the episodes not yet written and the run's end, in one transaction
