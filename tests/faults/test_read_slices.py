@@ -36,6 +36,9 @@ from store.readers import JsonHead, step_nodes
 from store.writer import write_episode
 from tracing.capture import to_json
 
+# each reader runs in a process of its own on a forged store, its peak memory read: not the quick lane's
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[2]
 ROWS, CHARS = 2_000, 16_000
 FLOOD = "[" + ",".join(["{}"] * ((CHARS - 1) // 3)) + "]"

@@ -29,6 +29,9 @@ from pipeline.boundary.nodes import node_budget
 from tests.fuzz import recipes
 from tests.fuzz.oracle import Server, steps_of
 
+# every example is decoded in a forked child whose peak memory is read: seconds a target, not the quick lane's
+pytestmark = pytest.mark.slow
+
 EXAMPLES = int(os.environ.get("CODEARCADE_FUZZ_EXAMPLES", "25"))
 CORPUS = json.loads((Path(__file__).parent / "corpus.json").read_text())
 """Every attack the fuzzers found (target, recipe, what it did before the fix)."""
