@@ -255,17 +255,23 @@ def test_a_300_mib_failure_frame_is_refused_at_its_header(store, write_policy):
     assert len(episode["error"]) < 300
 
 
+def optimize_with_forged_candidate(forge, store, scripted, tmp_path):
+    """`codearcade optimize --rerun` whose one candidate (the scripted model's reply) sends ``forge`` in its traced
+    rollout, with the peak RSS of the parent and the game hosts: (exit code, stdout, stderr, parent MB, host MB)."""
+    model = scripted([json_reply({"select_action": attack_method(forge)})])
+    return run_measured(
+        ["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--iterations", "1",
+         "--rollout-steps", "5", "--eval-max-steps", "5", "--workers", "1", "--store", str(store.path), "--json",
+         "--rerun", str(tmp_path / "rrd")], cwd=tmp_path,
+        env={"LITELLM_LOCAL_MODEL_COST_MAP": "True", "OPENAI_API_KEY": "sk-test"})
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("forge", [NOT_JSON, BOMB], ids=["output not JSON", "decompression bomb"])
 def test_optimize_goes_on_past_a_candidates_forged_trace(forge, store, scripted, tmp_path):
     """A candidate (an LLM's reply) whose traced rollout sends forged node rows: that rollout is its policy error,
     the run finishes, its other episodes are stored, and the parent and hosts stay small."""
-    model = scripted([json_reply({"select_action": attack_method(forge)})])
-    code, out, err, parent_mb, host_mb = run_measured(
-        ["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--iterations", "1",
-         "--rollout-steps", "5", "--eval-max-steps", "5", "--workers", "1", "--store", str(store.path), "--json",
-         "--rerun", str(tmp_path / "rrd")], cwd=tmp_path,
-        env={"LITELLM_LOCAL_MODEL_COST_MAP": "True", "OPENAI_API_KEY": "sk-test"})
+    code, out, err, parent_mb, host_mb = optimize_with_forged_candidate(forge, store, scripted, tmp_path)
     assert code == 0 and json.loads(out)["status"] == "finished", err[-3000:]
     assert parent_mb < LIMIT_MB and host_mb < LIMIT_MB, (parent_mb, host_mb)
     refused = store.query("SELECT e.episode_id, e.error FROM episodes e WHERE e.traced AND e.iteration = 1")

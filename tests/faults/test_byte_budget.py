@@ -24,15 +24,13 @@ import json
 import pytest
 
 from pipeline.boundary.nodes import node_budget
-from tests.conftest import json_reply
 from tests.faults import test_bounded_frames
 from tests.faults.test_bounded_frames import (
     LIMIT_MB,
     _episode,
     _eval,
     attack,
-    attack_method,
-    run_measured,
+    optimize_with_forged_candidate,
 )
 
 honest_store = test_bounded_frames.honest_store  # the fixture: the store after an honest traced 5-step episode
@@ -142,12 +140,7 @@ def test_each_class_costs_at_most_the_budget(forge, reason, store, write_policy,
 @pytest.mark.slow
 @pytest.mark.parametrize("forge", [SHARED_METADATA, WIDE_LINES], ids=["shared metadata", "widening"])
 def test_optimize_goes_on_past_a_candidate_over_its_budget(forge, store, scripted, tmp_path):
-    model = scripted([json_reply({"select_action": attack_method(forge)})])
-    code, out, err, parent_mb, host_mb = run_measured(
-        ["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--iterations", "1",
-         "--rollout-steps", "5", "--eval-max-steps", "5", "--workers", "1", "--store", str(store.path), "--json",
-         "--rerun", str(tmp_path / "rrd")], cwd=tmp_path,
-        env={"LITELLM_LOCAL_MODEL_COST_MAP": "True", "OPENAI_API_KEY": "sk-test"})
+    code, out, err, parent_mb, host_mb = optimize_with_forged_candidate(forge, store, scripted, tmp_path)
     assert code == 0 and json.loads(out)["status"] == "finished", err[-3000:]
     assert parent_mb < LIMIT_MB and host_mb < LIMIT_MB, (parent_mb, host_mb)
     refused = store.query("SELECT error FROM episodes WHERE traced AND iteration = 1")
