@@ -118,7 +118,7 @@ import json, os, sys
 from pipeline.boundary import preload, zygote
 role = zygote.ROLES["policy"]
 preload.warm(sorted({path.partition(":")[0] for path, _ in role.tasks.values()}), no_emulator=True)
-from pipeline.boundary.confine import read_paths
+from pipeline.boundary.view import read_paths
 seen, files = set(), 0
 for path in read_paths()[0]:
     if not os.path.isdir(path):
@@ -136,7 +136,7 @@ print(files)
 
 
 def granted() -> int:
-    """Files below the paths the policy process's Landlock rules let it read (``confine.read_paths``, computed as
+    """Files below the paths the policy process's Landlock rules let it read (``view.read_paths``, computed as
     the policy zygote computes it: after its preload), counted from outside: what a policy could read if it guessed
     every name (the walk inside finds only what it can list)."""
     done = subprocess.run([sys.executable, "-c", GRANTED], cwd=ROOT, capture_output=True, text=True, check=True)

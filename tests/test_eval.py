@@ -186,7 +186,7 @@ def test_a_worker_whose_parent_died_before_it_asked_for_the_death_signal_ends_at
     marker = tmp_path / "survived"
     script = (
         "import os, sys, time\n"
-        "from pipeline.boundary.confine import die_with_parent\n"
+        "from pipeline.boundary.namespaces import die_with_parent\n"
         "parent = os.getpid()\n"
         "r, w = os.pipe()\n"
         "if os.fork() == 0:\n"

@@ -1,7 +1,8 @@
 """The policy process's file view: the paths it may read, derived from what it runs.
 
 One job: say which files a policy process may read. ``pipeline/boundary/confine.py`` turns the answer into
-Landlock's read rules (what may be opened) and ``minimal_root``'s read-only mounts (what exists at all).
+Landlock's read rules (``landlock.py``: what may be opened) and ``mounts.minimal_root``'s read-only mounts (what
+exists at all).
 
 A policy process reads a file only to import a module: the policy's own text comes over its socket, and every
 module its zygote preloaded (``pipeline/boundary/preload.py``) is in memory already. What it may still import is a

@@ -51,7 +51,8 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, TypeVar
 
 from pipeline.boundary import wire
-from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, remove_tree, weak_sandbox_allowed
+from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, weak_sandbox_allowed
+from pipeline.boundary.mounts import remove_tree
 from pipeline.settings import EpisodeLimits
 
 KILL_GRACE_S = 30.0

@@ -9,7 +9,7 @@ Unix ``SOCK_SEQPACKET`` socket pair as its only inherited descriptor. Each serve
   pid namespaces (it is pid 1 of its own, the init of every worker: when it ends, the kernel ends them all),
   mounts a small tmpfs over its scratch directory in a mount namespace of its own, probes the features of
   ``pipeline/boundary/confine.py`` in a throwaway child, and confines every worker before it loads any code. Each
-  worker mounts a tmpfs of its own as its scratch directory (``confine.worker_scratch``: bounded in bytes and
+  worker mounts a tmpfs of its own as its scratch directory (``mounts.worker_scratch``: bounded in bytes and
   inodes), which the zygote detaches when the worker has ended: nothing a policy left there is ever walked.
 - ``game``: the game hosts (``pipeline/play/episodes.py``: ``host`` plays one episode, ``game`` the episodes of one
   continued game): the emulator and everything that computes a score. A host whose task is done waits for the
@@ -50,7 +50,7 @@ import traceback
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from pipeline.boundary import confine, wire
+from pipeline.boundary import confine, mounts, namespaces, view, wire
 
 MAX_CONTROL = 64 * 1024
 
@@ -129,7 +129,7 @@ def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: 
             signal.signal(sig, signal.SIG_DFL)
         if not role.confined:  # a host outlives its policy process's socket: a write there is an error, not death
             signal.signal(signal.SIGPIPE, signal.SIG_IGN)
-        confine.die_with_parent(zygote_pid)
+        namespaces.die_with_parent(zygote_pid)
         keep = sorted(fds)
         low = 3
         for kept in keep:
@@ -139,7 +139,7 @@ def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: 
         scratch = os.path.join(scratch_base, f"w{int(msg['id'])}")
         os.makedirs(scratch, exist_ok=True)
         if own_scratch:
-            confine.worker_scratch(scratch)
+            mounts.worker_scratch(scratch)
         os.chdir(scratch)
         os.environ["HOME"] = os.environ["TMPDIR"] = scratch
         devnull = os.open("/dev/null", os.O_RDWR)
@@ -212,7 +212,7 @@ def _probe(scratch_base: str, own_scratch: bool) -> list[str]:
             missing = []
             if own_scratch:
                 try:
-                    confine.worker_scratch(scratch)
+                    mounts.worker_scratch(scratch)
                 except OSError as exc:
                     missing.append(f"a worker's scratch tmpfs ({exc})")
             missing += confine.confine(confine.Limits(write_paths=[scratch], cpu_s=60), strict=False)
@@ -241,7 +241,7 @@ def main(argv: list[str]) -> int:
     # the parent manages our lifetime (EOF on the socket); a Ctrl-C meant for it must not end us first
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # no PDEATHSIG here: it follows the parent's *thread* that started us; EOF on the socket is the signal
-    missing = confine.enter_namespaces(offline=role.offline)
+    missing = namespaces.enter_namespaces(offline=role.offline)
     own_scratch = False  # each worker mounts a tmpfs of its own as its scratch (the zygote has its mount namespace)
     if not any(m.startswith("pid namespace") for m in missing):
         pid = os.fork()
@@ -252,7 +252,7 @@ def main(argv: list[str]) -> int:
                     return os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
                 except InterruptedError:
                     continue
-        confine.become_namespace_init()
+        namespaces.become_namespace_init()
     from pipeline.boundary import preload
 
     preload.warm(sorted({path.partition(":")[0] for path, _ in role.tasks.values()}), no_emulator=role.no_emulator)
@@ -261,17 +261,17 @@ def main(argv: list[str]) -> int:
     else:
         # the file view is derived from what this process loaded (pipeline/boundary/view.py): computed here, after
         # the preload, before the probe and the workers, which inherit it (also when there is no minimal root)
-        confine.read_paths()
+        view.read_paths()
         try:
-            confine.scratch_tmpfs(scratch_base)
+            mounts.scratch_tmpfs(scratch_base)
         except OSError as exc:
             missing.append(f"scratch tmpfs ({exc})")
         else:
             own_scratch = True
             devices = ["/dev/null", "/dev/urandom"]
-            read = [p for p in confine.read_paths()[0] if p not in devices]
+            read = [p for p in view.read_paths()[0] if p not in devices]
             try:
-                confine.minimal_root(read, [scratch_base], devices)
+                mounts.minimal_root(read, [scratch_base], devices)
             except OSError as exc:
                 missing.append(f"minimal filesystem view ({exc})")
             os.chdir(scratch_base)
@@ -372,16 +372,16 @@ def _forget_scratch(scratch: str, own_scratch: bool) -> None:
     With ``own_scratch`` the worker's tmpfs is detached whole (two system calls, nothing walked: a directory 1,500
     levels deep made ``shutil.rmtree`` raise RecursionError here, which ended the zygote and the episodes of every
     other worker with it) and its empty mount point removed; otherwise the directory is walked without recursion
-    (``confine.remove_tree``)."""
+    (``mounts.remove_tree``)."""
     try:
         if own_scratch:
-            confine.unmount(scratch)
+            mounts.unmount(scratch)
             try:
                 os.rmdir(scratch)
                 return
             except OSError:
                 pass
-        confine.remove_tree(scratch)
+        mounts.remove_tree(scratch)
     except Exception:  # noqa: BLE001 - a scratch left behind costs an inode of the zygote's tmpfs, not an episode
         pass
 
@@ -391,8 +391,8 @@ def _remove_scratch(scratch_base: str) -> None:
     try:
         if os.path.basename(scratch_base).startswith("codearcade-sandbox-"):
             os.chdir("/")
-            confine.unmount(scratch_base)
-            confine.remove_tree(scratch_base)
+            mounts.unmount(scratch_base)
+            mounts.remove_tree(scratch_base)
     except Exception:  # noqa: BLE001
         pass
 

@@ -293,7 +293,7 @@ def _refresh(store: Store, progress: list[Progress], batch: Batch) -> None:
 def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: int, log: Callable[[str], None],
               display: Callable[[list[Progress]], None], log_dir: Path, poll_s: float = 1.0) -> BatchResult:
     """Run the planned runs in at most ``workers`` processes; see the module docstring."""
-    from pipeline.boundary.confine import die_with_parent
+    from pipeline.boundary.namespaces import die_with_parent
 
     progress = [Progress(p.run.label, iterations=p.run.config.iterations, run_id=p.run_id) for p in planned]
     queue = []

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.boundary import confine
+from pipeline.boundary import mounts
 from pipeline.boundary.policy import Channel
 from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
@@ -167,7 +167,7 @@ def test_files_made_until_the_scratch_is_full_stop_at_its_inode_cap(tmp_path):
     grew_mb = (peak[0] - before) / 1024
     assert grew_mb < 64, f"the kernel's slab grew by {grew_mb:.0f} MB while the {made:,} files existed"
     assert made < 10_000 and why == "ENOSPC", episode["error"]
-    assert made < inodes == confine.SCRATCH_INODES, "the scratch's own tmpfs, full at its cap (df -i)"
+    assert made < inodes == mounts.SCRATCH_INODES, "the scratch's own tmpfs, full at its cap (df -i)"
 
 
 TRICKLE = """
@@ -252,6 +252,6 @@ def test_the_walk_that_cleans_a_weak_sandbox_s_scratch_has_no_depth_limit(tmp_pa
             (Path("f")).write_text("x")
     finally:
         os.chdir(here)
-    assert confine.remove_tree(str(top)) and not top.exists()
+    assert mounts.remove_tree(str(top)) and not top.exists()
     assert (outside / "keep").read_text() == "kept", "links are removed, never followed"
-    assert confine.remove_tree(str(tmp_path / "not-there"))
+    assert mounts.remove_tree(str(tmp_path / "not-there"))
