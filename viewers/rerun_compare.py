@@ -27,7 +27,9 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from store import Store
-from viewers.rerun_episode import STEP_SERIES, game_view, new_recording
+from viewers.rerun_layout import game_view
+from viewers.rerun_recording import new_recording
+from viewers.rerun_steps import STEP_SERIES
 from viewers.rerun_replay import log_stored_episode, read_episode
 from viewers.rerun_sinks import is_grpc_url
 from viewers.safe_text import markdown_code_block

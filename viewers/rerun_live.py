@@ -32,7 +32,10 @@ IMPORT_S = time.perf_counter() - IMPORT_S
 
 from tracing.steps import StepLog  # noqa: E402
 from viewers.frames import FrameEncoder  # noqa: E402
-from viewers.rerun_episode import EpisodeLogger, StepColumns, episode_blueprint, new_recording  # noqa: E402
+from viewers.rerun_episode import EpisodeLogger  # noqa: E402
+from viewers.rerun_layout import episode_blueprint  # noqa: E402
+from viewers.rerun_recording import new_recording  # noqa: E402
+from viewers.rerun_steps import StepColumns  # noqa: E402
 
 FLUSH_EVERY = 250
 """Steps between two sends of the buffered step columns (a viewer sees the episode advance in these chunks)."""

@@ -27,7 +27,9 @@ from store.readers import get_run, policy_text
 from store.showing import episode_tables, lead_in_actions
 from tracing.steps import objects_to_obs
 from viewers.frames import FrameEncoder
-from viewers.rerun_episode import EpisodeLogger, StepColumns, new_recording, resolve_recording
+from viewers.rerun_episode import EpisodeLogger
+from viewers.rerun_recording import new_recording, resolve_recording
+from viewers.rerun_steps import StepColumns
 
 CHUNK_STEPS = 2000
 """Steps per ``send_columns`` chunk when logging a stored episode."""

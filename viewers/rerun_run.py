@@ -40,7 +40,7 @@ import rerun.blueprint as rrb
 from store import Store
 from store.scores import score_text
 from store.showing import run_timeline
-from viewers.rerun_episode import new_recording, resolve_recording
+from viewers.rerun_recording import new_recording, resolve_recording
 from viewers.safe_text import markdown_code_block
 
 

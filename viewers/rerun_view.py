@@ -89,7 +89,7 @@ def view(store: Store, run_id: str, iteration: int | None = None, episode: str |
     if frames_every < 0:
         raise ViewError("--frames-every must be 0 (no frames) or more")
     selection = select(store, run_id, iteration, episode)
-    from viewers.rerun_episode import new_recording  # imports Rerun: only here, never in a process that forks
+    from viewers.rerun_recording import new_recording  # imports Rerun: only here, never in a process that forks
 
     rec = new_recording(selection.recording_id)
     viewer = None
