@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import re
 import signal
 import subprocess
@@ -23,6 +24,8 @@ from pathlib import Path
 
 import pytest
 
+from pipeline.boundary.policy import (MAX_ANSWER, MAX_PRINTED_BYTES, PRINTED_TEXT_BYTES, PrintedText,
+                                     printed_text)
 from pipeline.cli import main
 from store import Store
 from tests.conftest import ROOT, pong_policy
@@ -229,6 +232,81 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     assert "validation  submission 3:" in said and "<- best by validation" in said.split("submission 3:")[1]
     assert "validation  submission 1: forfeit" in said and "held-out    best (submission 3)" in said
     assert [p.exists() for p in sentinels] == [False, False, False]
+
+
+def _peak_rss_mb(pid: int) -> float:
+    """The process's peak resident memory (``VmHWM``), in MB."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(re.search(r"VmHWM:\s+(\d+) kB", status).group(1)) / 1024
+
+
+@pytest.mark.parametrize("printed", [
+    "'MARKER-plain'",  # ASCII
+    "'MARKER-é€😀'",  # every UTF-8 width
+    "'MARKER-\\x01\\x1b[31m'",  # control characters: 6 bytes each as JSON
+])
+def test_a_submission_s_feedback_shows_what_its_policy_printed_within_bounds(tmp_path, servers, printed):
+    # issue 42: the feedback holds the policy's own stdout. A policy that prints a marker finds it in its
+    # feedback, as the submission answers it and as `feedback` reads it back from the store; one that prints 200 MB
+    # an episode (4 MiB a step) gets the first 4 KiB of each episode and a count of the rest, and the server never
+    # holds it
+    store = tmp_path / "s.duckdb"
+    server = Server(store, "--game", "pong", "--budget", "6", "--max-steps", "50", "--per-submission", "2")
+    servers.append(server)
+    marker = pong_policy(f"print({printed})\nreturn 0")
+    status, answer = server.post("submit", {"policy": marker, "instances": [0, 1]})
+    assert status == 200 and [e["end_reason"] for e in answer["episodes"]] == ["truncated"] * 2, answer
+    stored = server.post("feedback", {"submission": 1})[1]["feedback"]
+    for text in (answer["feedback"], stored):
+        assert "#Printed" in text and "instance 0:" in text and "instance 1:" in text, text
+        assert text.count("MARKER-") == 2 * 50, text  # every step's line of both episodes
+        assert "not kept" not in text
+    quiet = server.post("submit", {"policy": pong_policy("return 0"), "instances": [2]})[1]
+    assert "#Printed" not in quiet["feedback"], quiet  # nothing printed, nothing said
+    before = _peak_rss_mb(server.proc.pid)
+    flood = pong_policy("print('MARKER-' + 'x' * 2**22)\nreturn 0")
+    status, answer = server.post("submit", {"policy": flood, "instances": [3, 4]})
+    assert status == 200 and [e["end_reason"] for e in answer["episodes"]] == ["truncated"] * 2, answer
+    after = _peak_rss_mb(server.proc.pid)
+    stored = server.post("feedback", {"submission": 3})[1]["feedback"]
+    for text in (answer["feedback"], stored):
+        printed_part = text.split("#Printed", 1)[1]
+        assert text.count("MARKER-") == 2 and len(printed_part.encode()) < 8_192 + 1_000, len(printed_part)
+        # each episode keeps its first 4 KiB (ASCII: 4,096 characters) and counts the characters past them
+        assert f"{50 * (len('MARKER-') + 2**22 + 1) - 4_096:,} more characters printed, not kept" in text, text
+    # 400 MB printed, and the server held none of it: its peak grew by less than 80 MB (scipy, imported when the
+    # first interval of a score is computed, takes ~60 MB: it may come now)
+    assert after - before < 80, (before, after)
+    assert len(Store(store).query("SELECT text FROM feedback WHERE iteration = 3")[0][0]) < 8_192 + 2_000
+
+
+def test_what_a_policy_prints_is_bounded_on_both_sides_of_the_boundary():
+    # the policy process's side (its sys.stdout): whatever it writes, in pieces of any size and UTF-8 width, it
+    # holds the first 4 KiB, a prefix of what was written, counts the rest, and its done frame fits what the host
+    # reads (a control character is 6 bytes as JSON)
+    rng = random.Random(42)
+    alphabet = ["a", "é", "€", "😀", "\x01", "\ud800", "\n"]
+    for _ in range(300):
+        out = PrintedText()
+        written = "".join(rng.choice(alphabet) * rng.choice([1, 7, 300, 5_000]) for _ in range(rng.randint(0, 12)))
+        cuts = sorted(rng.sample(range(len(written) + 1), min(3, len(written) + 1)))
+        for start, stop in zip([0, *cuts], [*cuts, len(written)]):
+            out.write(written[start:stop])
+        fields = out.take()
+        kept = fields["printed"]
+        assert len(kept.encode("utf-8", "replace")) <= MAX_PRINTED_BYTES
+        assert written.encode("utf-8", "replace").startswith(kept.encode("utf-8", "replace"))
+        assert fields["printed_dropped"] == len(written) - len(kept)
+        done = json.dumps({"kind": "done", "nodes": True, **fields}, allow_nan=False, separators=(",", ":"))
+        assert len(done.encode()) <= MAX_ANSWER
+        assert out.take() == {"printed": "", "printed_dropped": 0}  # each episode afresh
+    # the host's side: a done message forged by a process past the Python layer, already within MAX_ANSWER
+    forged = [{}, {"printed": None}, {"printed": 7}, {"printed": ["x"]}, {"printed": "\x01" * 30_000},
+              {"printed": "😀" * 8_000, "printed_dropped": 10**30}, {"printed": "x", "printed_dropped": True},
+              {"printed": "x", "printed_dropped": -5}, {"printed": "x", "printed_dropped": "many"}]
+    for message in forged:
+        text = printed_text(message)
+        assert text is None or len(text.encode("utf-8", "replace")) <= PRINTED_TEXT_BYTES, message
 
 
 def test_a_killed_server_resumes_its_run_with_the_budget_intact(tmp_path, servers, capsys):

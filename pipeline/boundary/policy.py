@@ -5,17 +5,22 @@ never imported the emulator, OCAtari or gymnasium and cannot read them (``pipeli
 (``pipeline/play/episodes.py``, ``pipeline/play/rollout.py``), a process where no policy code ever runs, holds the environment and drives this one over
 a single socket, one round trip per step:
 
-    host -> policy   J {"op": "start", policy_text, policy_name, seed, trace, trace_lines, call_time_limit_s, n_actions}
+    host -> policy   J {"op": "start", policy_text, policy_name, seed, trace, trace_lines, call_time_limit_s, n_actions,
+                        keep_printed}
     policy -> host   J {"kind": "ready"}  |  J {"kind": "failed", "end_reason": "policy_error", "error": ...}
     host -> policy   J {"op": "go", "cpu": N}       (the host's CPU: the pair shares one core, NOTES.md)
     host -> policy   O <marshal of the observation dict>          (once per step)
     policy -> host   a <8-byte action>  |  J {"kind": "failed", "end_reason": "policy_error"|"timeout", "error"}
     host -> policy   J {"op": "end", "more": bool}
-    policy -> host   J {"kind": "done", "nodes": bool}  [A <Arrow stream of the node rows>]
+    policy -> host   J {"kind": "done", "nodes": bool[, "printed", "printed_dropped"]}  [A <Arrow stream of the node rows>]
 
 With ``"more": true`` (the next episode of a continued game follows: ``one_life="continue"``) the policy stays
 loaded, its state and RNGs as they are, and the exchange goes on from ``go`` for the next episode, its node rows
 recorded afresh (steps numbered from 0).
+
+With ``keep_printed`` the policy's ``sys.stdout`` keeps what it prints (:class:`PrintedText`: the first
+:data:`MAX_PRINTED_BYTES` bytes of each episode, and a count of the characters past them), sent with ``done``;
+otherwise, and whatever it writes to its descriptors, its output goes to ``/dev/null``.
 
 The host trusts nothing that comes back: an action is an int it checks against the game's actions, an error is
 text it caps and cleans, the node rows are checked by the parent (``pipeline/play/episodes.py``). Observations are sent
@@ -26,12 +31,14 @@ from __future__ import annotations
 
 import json
 import marshal
+import io
 import math
 import operator
 import os
 import random
 import socket
 import struct
+import sys
 import time
 from typing import Any, Callable
 
@@ -58,6 +65,62 @@ MAX_ANSWER = 32 * 1024
 """The largest frame the host reads from the policy process before the episode's end (ready, an action, a
 failure): refused at its header, before it is read or decoded. A failure's error of :data:`MAX_ERROR_CHARS`
 characters is at most 12 bytes a character as JSON (an astral character escaped as two ``\\uXXXX``)."""
+MAX_PRINTED_BYTES = 4_096
+"""UTF-8 bytes of what a policy prints that an episode keeps (``keep_printed``). Sent in the ``done`` frame, which
+the host reads within :data:`MAX_ANSWER`: a byte is at most 6 bytes as JSON (a control character as ``\\u00XX``),
+so 4 KiB of the worst text is 24 KiB."""
+
+
+class PrintedText(io.TextIOBase):
+    """The ``sys.stdout`` of a policy process that keeps what the policy prints: the first ``limit`` UTF-8 bytes of
+    an episode's output, and a count of the characters past them (never held: a policy printing 50 MB holds no more
+    than its own strings)."""
+
+    def __init__(self, limit: int = MAX_PRINTED_BYTES) -> None:
+        super().__init__()
+        self.limit = limit
+        self.kept: list[str] = []
+        self.held = 0
+        self.dropped = 0
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, text: str) -> int:
+        if not isinstance(text, str):
+            raise TypeError(f"write() argument must be str, not {type(text).__name__}")
+        room = self.limit - self.held if not self.dropped else 0  # once a character is dropped, keep no later one
+        head = ""
+        if room > 0:  # ``room`` characters are at least ``room`` bytes: cut there, on a character's boundary
+            head = text[:room].encode("utf-8", "replace")[:room].decode("utf-8", "ignore")
+            self.kept.append(head)
+            self.held += len(head.encode("utf-8"))
+        self.dropped += len(text) - len(head)
+        return len(text)
+
+    def take(self) -> dict[str, Any]:
+        """What was printed since the last take, as the ``done`` frame's fields; the buffer starts afresh."""
+        fields = {"printed": "".join(self.kept), "printed_dropped": self.dropped}
+        self.kept, self.held, self.dropped = [], 0, 0
+        return fields
+
+
+PRINTED_TEXT_BYTES = MAX_PRINTED_BYTES + 128
+"""UTF-8 bytes of an episode's printed text as the host passes it on: the kept bytes and the line that counts the
+rest (:func:`printed_text`)."""
+
+
+def printed_text(message: dict[str, Any]) -> str | None:
+    """The host's reading of what a policy printed, from its ``done`` message (untrusted, already bounded by
+    :data:`MAX_ANSWER`): the text cut to :data:`MAX_PRINTED_BYTES` UTF-8 bytes, and a line counting the characters
+    that were not kept; None when the message holds no text."""
+    text, dropped = message.get("printed"), message.get("printed_dropped")
+    if not isinstance(text, str):
+        return None
+    text = text.encode("utf-8", "replace")[:MAX_PRINTED_BYTES].decode("utf-8", "ignore")
+    if isinstance(dropped, int) and not isinstance(dropped, bool) and dropped > 0:
+        text += f"\n… [{min(dropped, 10**15):,} more characters printed, not kept]"
+    return text
 
 
 def capped_error(text: str) -> str:
@@ -184,6 +247,9 @@ class PolicySide:
         self.call_limit = float(start.get("call_time_limit_s") or 0) or math.inf
         self.trace, self.lines = bool(start.get("trace")), bool(start.get("trace_lines", True))
         self.recorder = NodeRecorder(lines=self.lines) if self.trace else None
+        self.printed: PrintedText | None = None
+        if start.get("keep_printed") is True:  # from before the policy loads: a print in its class body counts too
+            sys.stdout = self.printed = PrintedText()
         seed = int(start.get("seed", 0))
         random.seed(seed)
         np.random.seed(seed % 2**32)
@@ -205,7 +271,8 @@ class PolicySide:
             more = self._play()
         while True:
             nodes = self.recorder.table() if self.recorder is not None else None
-            channel.send_json({"kind": "done", "nodes": nodes is not None})
+            channel.send_json({"kind": "done", "nodes": nodes is not None,
+                               **(self.printed.take() if self.printed is not None else {})})
             if nodes is not None:
                 from pipeline.boundary.wire import arrow_frame
 

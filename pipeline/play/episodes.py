@@ -27,6 +27,8 @@ from typing import Any, Callable, Iterable, Iterator
 from games import get_game
 from pipeline.boundary import wire
 from pipeline.boundary.nodes import MalformedTrace, check_nodes, read_nodes
+from pipeline.boundary.policy import PRINTED_TEXT_BYTES
+from pipeline.boundary.untrusted import utf8_prefix
 from pipeline.boundary.wire import MAX_TEXT, BadMessage
 from pipeline.boundary.workers import ProgressCallback, Task, Zygote, run_tasks
 from pipeline.play.rollout import (GAME_END_REASONS, EpisodeOutcome, EpisodeSpec, RemotePolicy, _episode_row,
@@ -56,7 +58,7 @@ def host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | 
         finally:
             policy.close()  # the host may play the next episode, with a new policy process
         nodes = outcome.nodes
-        frames = [wire.json_frame({"kind": "result", "episode": episode_to_json(outcome.episode),
+        frames = [wire.json_frame({"kind": "result", "episode": episode_to_json(outcome.episode, outcome.printed),
                                    "nodes": nodes is not None}), wire.arrow_frame(outcome.steps)]
         if nodes is not None:
             frames.append(wire.raw_arrow_frame(nodes) if isinstance(nodes, bytes) else wire.arrow_frame(nodes))
@@ -81,7 +83,8 @@ def game_host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[i
                                                                                             "n": n})), cpu=cpu)
         finally:
             policy.close()
-        frames = [wire.json_frame({"kind": "result", "episodes": [episode_to_json(o.episode) for o in outcomes],
+        frames = [wire.json_frame({"kind": "result", "episodes": [episode_to_json(o.episode, o.printed)
+                                                                  for o in outcomes],
                                    "nodes": [o.nodes is not None for o in outcomes]})]
         for outcome in outcomes:
             frames.append(wire.arrow_frame(outcome.steps))
@@ -113,8 +116,11 @@ MEASURED = ("game", "started_at", "duration_s", "env_s", "policy_s", "length", "
             "return")
 
 
-def episode_to_json(episode: dict[str, Any]) -> dict[str, Any]:
+def episode_to_json(episode: dict[str, Any], printed: str | None = None) -> dict[str, Any]:
+    """The episode row as the host sends it, with what the policy printed (``EpisodeSpec.keep_printed``)."""
     row = {k: episode[k] for k in MEASURED + ("episode_id",)}
+    if printed is not None:
+        row["printed"] = printed
     if isinstance(row["started_at"], datetime):
         row["started_at"] = row["started_at"].isoformat()
     if isinstance(row["error"], str):
@@ -155,6 +161,9 @@ def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
     error = row.get("error")
     if error is not None and not isinstance(error, str):
         raise BadMessage("the episode's error is not text")
+    printed = row.get("printed") if spec.keep_printed else None
+    if printed is not None and not isinstance(printed, str):
+        raise BadMessage("what the policy printed is not text")
     try:
         started_at = datetime.fromisoformat(row["started_at"]) if row.get("started_at") is not None else None
     except (TypeError, ValueError):
@@ -171,14 +180,16 @@ def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
         raise BadMessage(f"{steps.num_rows} step rows for an episode of length {length}")
     if steps.num_rows and steps.column("step").to_pylist() != list(range(steps.num_rows)):
         raise BadMessage("the step rows are not numbered 0, 1, 2, ...")
+    if printed is not None:
+        printed = utf8_prefix(printed, PRINTED_TEXT_BYTES)
     episode = _episode_row(spec, score=_number(row, "return"), **measured)
     if nodes is not None:
         try:
             nodes = (read_nodes(nodes, spec, steps.num_rows, episode["duration_s"]) if isinstance(nodes, bytes)
                      else check_nodes(nodes, spec, steps.num_rows, episode["duration_s"]) or nodes)
         except MalformedTrace as exc:
-            return EpisodeOutcome(trace_refused(episode, str(exc)), steps, None)
-    return EpisodeOutcome(episode, steps, nodes)
+            return EpisodeOutcome(trace_refused(episode, str(exc)), steps, None, printed)
+    return EpisodeOutcome(episode, steps, nodes, printed)
 
 
 def trace_refused(episode: dict[str, Any], error: str) -> dict[str, Any]:

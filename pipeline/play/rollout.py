@@ -43,7 +43,7 @@ from games import Game, get_game, list_widths
 from games.base import OBSERVATION_VERSION
 from pipeline.boundary.nodes import MAX_NODE_FRAME, MalformedTrace, node_budget, read_nodes
 from pipeline.boundary.policy import (ACTION, MAX_ANSWER, Channel, capped_error, coerce_action,
-                                     describe_exception)
+                                     describe_exception, printed_text)
 from pipeline.play.runinfo import policy_rng_seed
 from pipeline.settings import EpisodeLimits
 from tracing.capture import NodeRecorder
@@ -104,6 +104,9 @@ class EpisodeSpec:
     Rerun is imported only inside the process that plays the episode (``viewers/rerun_live.py``)."""
     rerun_frames_every: int = 4
     """With ``rerun``: log the screen every this many steps (0: no frames)."""
+    keep_printed: bool = False
+    """Keep what the policy prints to its stdout (its first ``policy.MAX_PRINTED_BYTES`` bytes) and return it with
+    the outcome (:attr:`EpisodeOutcome.printed`, never stored with the episode); off: it goes to ``/dev/null``."""
     rng_key: str | None = None
     """The key of the run's random stream for policies (``runinfo.policy_rng_seed``): the policy process's
     generators are seeded from it and the game's seed, never with the game's seed itself. None: a run recorded
@@ -122,6 +125,8 @@ class EpisodeOutcome:
     episode: dict[str, Any]
     steps: pa.Table
     nodes: pa.Table | None = None
+    printed: str | None = None
+    """What the policy printed, when the spec asked (``EpisodeSpec.keep_printed``) and its process said."""
 
     @property
     def end_reason(self) -> str:
@@ -138,6 +143,9 @@ class PolicyFailed(Exception):
 
 class PolicyChannel:
     """How the host asks the policy for actions (see the module docstring)."""
+
+    printed: str | None = None
+    """What the policy printed in the episode :meth:`finish` ended (``EpisodeSpec.keep_printed``), or None."""
 
     def start(self) -> None:
         """Load the policy (raises :class:`PolicyFailed`, e.g. for a policy file that does not load)."""
@@ -254,7 +262,7 @@ class RemotePolicy(PolicyChannel):
         self.channel.send_json({
             "op": "start", "policy_text": spec.policy_text, "policy_name": spec.policy_name, "seed": spec.policy_seed,
             "trace": spec.trace, "trace_lines": spec.trace_lines, "call_time_limit_s": spec.call_time_limit_s,
-            "n_actions": self.n_actions})
+            "n_actions": self.n_actions, "keep_printed": spec.keep_printed})
         kind, payload = self._receive(LOAD_TIMEOUT_S, "while loading the policy")
         if kind == b"J" and payload == b'{"kind":"ready"}':
             return
@@ -294,12 +302,15 @@ class RemotePolicy(PolicyChannel):
         (refused unread) or a node frame over the limit (refused at its header). None at once when the stream is
         :attr:`broken` (the host timed the process out: waiting for its node rows would only let it hold the
         host longer)."""
+        self.printed = None
         if self.broken:
             return None
         try:
             self.channel.send_json({"op": "end", "more": more})
             kind, payload = self._receive(FINISH_TIMEOUT_S, "at the end")
             message = json.loads(payload) if kind == b"J" else None
+            if self.spec.keep_printed and isinstance(message, dict) and message.get("kind") == "done":
+                self.printed = printed_text(message)
             if not isinstance(message, dict) or message.get("kind") != "done" or message.get("nodes") is not True:
                 return None
         except (PolicyFailed, OSError, ValueError, RecursionError):
@@ -479,7 +490,7 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
         spec, game=game.name, started_at=_utc(started_at), duration_s=duration_s, env_s=env_s,
         policy_s=policy_s, length=length, lives_lost=lives_lost, end_reason=end_reason, error=error, score=score,
     )
-    outcome = EpisodeOutcome(episode, step_table, nodes)
+    outcome = EpisodeOutcome(episode, step_table, nodes, policy.printed)
     if live is not None:
         from viewers.rerun_live import finish_recorder
 

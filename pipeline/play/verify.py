@@ -8,7 +8,8 @@ outcome as it arrives (``pipeline/play/evaluate.py``, ``pipeline/optimizer/asses
 
 1. rebuilds the episode row: the fields the parent decided (ids, seed, game, caps, protocol) come from the
    :class:`~pipeline.play.rollout.EpisodeSpec`, the measured ones are type-checked, unknown keys are dropped, and
-   text (the error message) is cleaned (``pipeline/boundary/untrusted.py``: capped, secrets redacted);
+   text (the error message; what the policy printed, when its spec kept it) is cleaned
+   (``pipeline/boundary/untrusted.py``: capped, secrets redacted);
 2. cleans the node table's text columns, and the object names in the step table, the same way;
 3. marks the episode ``verified = true`` when a game host played it (``verified`` NULL with ``--workers 0``,
    where the policy runs in the parent's own process and nothing can be trusted).
@@ -38,6 +39,7 @@ import pyarrow.compute as pc
 
 from games import get_game
 from games.base import ONE_LIFE_CONTINUE, one_life_setting
+from pipeline.boundary.policy import PRINTED_TEXT_BYTES
 from pipeline.boundary.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
 from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
 from tracing.capture import NODE_SCHEMA
@@ -256,7 +258,9 @@ def checked_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome, hosted: bool = T
         row.update(end_reason="crashed", error=why, verified=None, length=0)
         return EpisodeOutcome(row, StepLog().table(), None)
     row.update(verified=True if hosted else None)
-    return EpisodeOutcome(row, steps, nodes)
+    printed = getattr(outcome, "printed", None)
+    return EpisodeOutcome(row, steps, nodes,
+                          clean_untrusted_text(printed, PRINTED_TEXT_BYTES) if isinstance(printed, str) else None)
 
 
 def replay_outcome(spec: EpisodeSpec, row: dict[str, Any], steps: pa.Table) -> str | None:

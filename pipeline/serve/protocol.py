@@ -13,7 +13,9 @@ the transport (``http.py``, ``tools.py``), is a method of :class:`ServeRun`:
   confined policy process (``pipeline/play/episodes.py``, as ``eval`` and ``optimize`` play), traced, stored
   like any run's, and scored by the one rule (``store/scores.py``: a forfeit has no score). Every episode asked
   for costs one, whatever ends it;
-- ``feedback``: a submission's summary, forfeits and errors, the feedback text the prompt loop would give, and a
+- ``feedback``: a submission's summary, forfeits and errors, the feedback text the prompt loop would give (with,
+  under ``#Printed``, what the policy printed to its stdout in each training episode: its first 4 KiB, all of
+  them within :data:`PRINTED_SHOWN_BYTES`), and a
   bounded slice of one episode's steps and node calls chosen as the prompt chooses them
   (``pipeline.optimizer.prompt.trace_slice``);
 - ``budget``; ``sql``: read-only SQL over the visible part of the run (``store/serve.py``);
@@ -56,6 +58,8 @@ import duckdb
 
 from games import get_game
 from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY, draw_audit_seeds, recorded_observation
+from pipeline.boundary.policy import PRINTED_TEXT_BYTES
+from pipeline.boundary.untrusted import utf8_prefix
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.context import ROLLOUT_NODE_BYTES, VALUE_CHARS
 from pipeline.optimizer.feedback import FeedbackBands, compose_feedback
@@ -83,6 +87,9 @@ TRAIN_SEED_LOW = 100_000
 MAX_POLICY_CHARS = 200_000
 MAX_FEEDBACK_STEPS = 200
 MAX_SQL_ROWS = 500
+PRINTED_SHOWN_BYTES = 2 * PRINTED_TEXT_BYTES
+"""UTF-8 bytes of what a submission's policy printed that its feedback shows, its episodes together: two episodes'
+whole (each keeps ``policy.MAX_PRINTED_BYTES`` and a line counting the rest), more share it."""
 PRODUCED_BY = "agent"
 """``policy_versions.produced_by`` of a submission."""
 
@@ -333,14 +340,15 @@ class ServeRun:
                              call_time_limit_s=s["call_time_limit_s"],
                              episode_time_limit_s=s["episode_time_limit_s"],
                              observation=self.record["observation"], rng_key=self.record.get("rng_key"),
-                             rerun=self.rerun)
+                             rerun=self.rerun, keep_printed=True)
                  for i in instances]
         episodes: list[dict[str, Any]] = [{}] * len(specs)
+        printed: list[str | None] = [None] * len(specs)
         with EpisodeWriter(self.store, replace=True) as writer:
             for i, outcome in run_episodes(specs, workers=max(1, min(s["workers"], len(specs)))):
                 outcome = checked_outcome(specs[i], outcome)
                 writer.add(outcome.episode, outcome.steps, outcome.nodes)
-                episodes[i] = outcome.episode
+                episodes[i], printed[i] = outcome.episode, outcome.printed
                 if self.on_episode is not None:
                     self.on_episode(outcome.episode)
         score = score_episodes(episodes)
@@ -352,6 +360,7 @@ class ServeRun:
         stage, _, feedback = compose_feedback(
             "staged", FeedbackBands(**self.record["feedback_bands"]), ranked, train["return"], train["length"], [],
             score.forfeit, score.partial if score.forfeit else None)
+        feedback += printed_section(list(zip(instances, printed)))
         ids = [e["episode_id"] for e in episodes]
         row = dict(run_id=self.run_id, iteration=iteration, candidate=0, strategy=KIND, parent_iteration=parent,
                    parent_candidate=0, parent_version_id=parent_row[0], proposed_version_id=info.version_id,
@@ -406,6 +415,22 @@ class ServeRun:
         return {"finalized": True, "submissions_validated": sum(r["protocol"] == "validation" for r in rows),
                 "note": "the validation and held-out results are sealed: the person who runs the server reads them "
                         "with `codearcade runs`, `report` and `audit`"}
+
+
+def printed_section(printed: list[tuple[int, str | None]]) -> str:
+    """The feedback's section of what the policy printed to its stdout, per training instance (each episode's
+    text as the host kept it: ``EpisodeSpec.keep_printed``), all of them within :data:`PRINTED_SHOWN_BYTES`
+    UTF-8 bytes; empty when it printed nothing."""
+    shown = [(instance, text) for instance, text in printed if text]
+    if not shown:
+        return ""
+    share = PRINTED_SHOWN_BYTES // len(shown)
+    parts = []
+    for instance, text in shown:
+        head = utf8_prefix(text, share)
+        cut = f"\n… [cut: {len(text.encode('utf-8')) - len(head.encode('utf-8')):,} more bytes]" if head != text else ""
+        parts.append(f"instance {instance}:\n{head}{cut}")
+    return "\n\n#Printed (what your policy printed to stdout, per training instance)\n" + "\n\n".join(parts)
 
 
 def submission_view(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
