@@ -29,7 +29,7 @@ from pipeline.boundary.policy import (MAX_ANSWER, MAX_PRINTED_BYTES, PRINTED_TEX
 from pipeline.cli import main
 from store import Store
 from tests.conftest import ROOT, pong_policy
-from tests.faults.test_boundary import ESCAPE
+from tests.faults.test_boundary import ESCAPE, SPAWN
 
 pytestmark = pytest.mark.slow
 
@@ -174,35 +174,28 @@ def test_a_whole_run_over_http_spends_its_budget_exactly_and_shows_no_seed(tmp_p
     assert len(sealed) == 2 + 2 and not [e for e in sealed for text in server.responses if e in text]
 
 
-ATTACK = ESCAPE + """
-try:
-    os.system('touch {a}')
-except Exception:
-    pass
-try:
-    if os.fork() == 0:
-        fd = os.open('{b}', os.O_WRONLY | os.O_CREAT, 0o644)
-        os._exit(0)
-except Exception:
-    pass
-mods['builtins'].open('{c}', 'w').write('x')
+ATTACK = ESCAPE + SPAWN + """
+mods['builtins'].open('{write}', 'w').write('x')
 return 0
 """
+"""The sandbox tests' escape (``tests/faults/test_boundary.py``): three ways to start a process, then a file written
+outside the scratch (the policy's end: a PermissionError)."""
 
 
 def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, servers, capsys):
     store = tmp_path / "s.duckdb"
-    sentinels = [tmp_path / f"escaped-{i}" for i in range(3)]
+    sentinels = [tmp_path / f"escaped-{i}" for i in range(4)]
     server = Server(store, "--game", "pong", "--budget", "5", "--max-steps", "60", "--call-time-limit", "2")
     servers.append(server)
-    attack = pong_policy(ATTACK.format(a=sentinels[0], b=sentinels[1], c=sentinels[2]))
+    attack = pong_policy(ATTACK.format(system=sentinels[0], spawn=sentinels[1], fork=sentinels[2],
+                                       write=sentinels[3]))
     # what eval makes of the same file (the path optimize plays too): the server must end its episodes the same way
     (tmp_path / "attack.py").write_text(attack)
     assert main(["eval", str(tmp_path / "attack.py"), "--max-steps", "60", "--call-time-limit", "2", "--store",
                  str(tmp_path / "eval.duckdb"), "--json"]) == 1
     evaluated = json.loads(capsys.readouterr().out)["episodes"][0]
     # caught by the source checks before anything plays: refused, and it costs nothing
-    status, answer = server.post("submit", {"policy": pong_policy(f"open('{sentinels[2]}', 'w')\nreturn 0"),
+    status, answer = server.post("submit", {"policy": pong_policy(f"open('{sentinels[3]}', 'w')\nreturn 0"),
                                             "instances": [0]})
     assert status == 400 and "open" in answer["error"]
     assert server.post("budget")[1]["spent"] == 0
@@ -218,7 +211,7 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     status, task = server.post("task")
     status, answer = server.post("submit", {"policy": task["starter_policy"], "instances": [3]})
     assert status == 200 and answer["episodes"][0]["end_reason"] == "truncated"
-    assert [p.exists() for p in sentinels] == [False, False, False]
+    assert [p.exists() for p in sentinels] == [False] * 4
     status, feedback = server.post("feedback", {"submission": 1})
     assert feedback["forfeit"] and feedback["trace"]["steps"][-1]["outcome"].endswith("(the policy failed)")
     # Ctrl-C stops the server (the run interrupted, resumable); the person finalizes it: the attack plays the
@@ -231,7 +224,7 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     said = capsys.readouterr().out
     assert "validation  submission 3:" in said and "<- best by validation" in said.split("submission 3:")[1]
     assert "validation  submission 1: forfeit" in said and "held-out    best (submission 3)" in said
-    assert [p.exists() for p in sentinels] == [False, False, False]
+    assert [p.exists() for p in sentinels] == [False] * 4
 
 
 def _peak_rss_mb(pid: int) -> float:

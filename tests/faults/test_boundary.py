@@ -38,6 +38,25 @@ if ex is not None:
 os = mods['os']
 """
 
+SPAWN = """
+try:
+    os.system('touch {system}')
+except Exception:
+    pass
+try:
+    os.posix_spawn('/bin/sh', ['sh', '-c', 'touch {spawn}'], dict(PATH='/bin:/usr/bin'))
+except Exception:
+    pass
+try:
+    if os.fork() == 0:
+        fd = os.open('{fork}', os.O_WRONLY | os.O_CREAT, 0o644)
+        os._exit(0)
+except Exception:
+    pass
+"""
+"""After :data:`ESCAPE`: start a process three ways (``system``, ``posix_spawn``, ``fork``), each of which would
+create its sentinel file (``.format(system=..., spawn=..., fork=...)``); the policy goes on when each is refused."""
+
 
 @pytest.fixture
 def sentinel():
@@ -82,21 +101,7 @@ return 0
 
 def test_a_process_spawned_does_not_run(store, write_policy, sentinel, capsys):
     a, b, c = sentinel
-    path = write_policy(pong_policy(ESCAPE + f"""
-try:
-    os.system('touch {a}')
-except Exception:
-    pass
-try:
-    os.posix_spawn('/bin/sh', ['sh', '-c', 'touch {b}'], dict(PATH='/bin:/usr/bin'))
-except Exception:
-    pass
-try:
-    if os.fork() == 0:
-        fd = os.open('{c}', os.O_WRONLY | os.O_CREAT, 0o644)
-        os._exit(0)
-except Exception:
-    pass
+    path = write_policy(pong_policy(ESCAPE + SPAWN.format(system=a, spawn=b, fork=c) + """
 mods['time'].sleep(0.5)
 return 0
 """))
