@@ -159,7 +159,6 @@ class StepLogger:
         for root in ("/game", "/objects"):
             self.rec.log(root, context, static=True)
 
-
     def steps(self, cols: StepColumns) -> None:
         """Series and object boxes of a chunk of consecutive steps."""
         n = len(cols)
