@@ -58,7 +58,7 @@ import duckdb
 
 from games import get_game
 from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY, draw_audit_seeds, recorded_observation
-from pipeline.boundary.policy import PRINTED_TEXT_BYTES
+from pipeline.boundary.policy import MAX_PRINTED_BYTES, PRINTED_TEXT_BYTES
 from pipeline.boundary.untrusted import utf8_prefix
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.context import ROLLOUT_NODE_BYTES, VALUE_CHARS
@@ -199,6 +199,8 @@ class ServeRun:
                 "Games are played under the standard protocol: sticky actions 0.25 and up to 30 no-op starts.",
                 "An episode the policy ends itself (an exception, a time or memory limit) is a forfeit: the "
                 "submission then has no score.",
+                "What the policy prints to stdout comes back in the submission's feedback (under #Printed): the "
+                f"first {MAX_PRINTED_BYTES // 1024} KiB of each episode.",
                 "When the budget is spent (or the person finalizes the run), every accepted submission is scored on "
                 "a hidden validation pool, and the best of them on a hidden held-out pool: neither is ever shown.",
             ],

@@ -20,8 +20,9 @@ from pipeline.serve.protocol import RequestError, ServeRun
 INSTRUCTIONS = """A rollout server for one codearcade run. Call `task` first: it gives the game, the starting policy \
 (a Python class whose trainable methods you improve), the budget and the rules. `submit` a whole policy file (its \
 text, or `path`: a file of your workspace) with the training instances to play it on; every episode costs one of \
-the budget. `feedback` shows a submission's episodes, errors and the steps that mattered; `sql` queries your own \
-training play (tables submissions, episodes, steps, nodes). The run is scored at the end on hidden games."""
+the budget. `feedback` shows a submission's episodes, errors, what your policy printed and the steps that \
+mattered; `sql` queries your own training play (tables submissions, episodes, steps, nodes). The run is scored at \
+the end on hidden games."""
 
 
 def build_server(run: ServeRun) -> MCPServer:
