@@ -36,6 +36,29 @@ class StoreError(Exception):
     """A store that cannot be used; the message says why and what to do."""
 
 
+class StoreDamaged(StoreError):
+    """A store whose file is damaged (:func:`store_damage`, or cut too short for DuckDB to open it); ``problems``
+    lists what was found, one short sentence each: the doctor reports them as findings."""
+
+    def __init__(self, path: str | os.PathLike, problems: list[str]) -> None:
+        super().__init__(f"{path} is damaged: {'; '.join(problems)}; nothing was written to it "
+                         f"(`codearcade doctor --store {path}` reports what is left)")
+        self.problems = problems
+
+
+def _cut_short(path: str | os.PathLike, text: str) -> str | None:
+    """The problem, when DuckDB's IO error ``text`` is a read past the end of the file at ``path`` (a truncated
+    copy whose catalog lies beyond its end cannot even be opened); None for any other error."""
+    match = re.search(r"attempted to read (\d+) bytes from location (\d+)", text)
+    try:
+        size = os.path.getsize(path)
+    except OSError:
+        return None
+    if match is None or int(match[1]) + int(match[2]) <= size:
+        return None
+    return f"the file is truncated ({size:,} bytes; DuckDB reads {int(match[1]):,} at {int(match[2]):,})"
+
+
 def default_store_path() -> str:
     """The store a command uses without ``--store`` (``store/locate.py``: ``$CODEARCADE_STORE``, the nearest
     ``codearcade.duckdb`` here or in a parent directory, the per-user store)."""
@@ -201,6 +224,9 @@ class Store:
                 if "Permission denied" in text or "Read-only file system" in text:
                     raise StoreError(f"cannot write {self.path}: {text.split('Error: ', 1)[-1]}; "
                                      "choose a writable --store location") from None
+                cut = _cut_short(self.path, text)
+                if cut is not None:
+                    raise StoreDamaged(self.path, [cut]) from None
                 raise StoreError(f"cannot open {self.path}: {text}") from None
             except duckdb.Error as exc:
                 if "version" in str(exc).lower() and "storage" in str(exc).lower():
@@ -234,8 +260,7 @@ class Store:
             return
         problems = store_damage(con, self.path, version)
         if problems:
-            raise StoreError(f"{self.path} is damaged: {'; '.join(problems)}; nothing was written to it "
-                             f"(`codearcade doctor --store {self.path}` reports what is left)")
+            raise StoreDamaged(self.path, problems)
         self._checked = True
 
     def _migrate(self, con: duckdb.DuckDBPyConnection) -> None:

@@ -28,13 +28,26 @@ class _Attachment:
     users: int = 0
 
 
-WRITE_ROW_GROUP_SIZE = 2048
+WRITE_ROW_GROUP_SIZE = 16384
 """Rows per row group of what this process appends (DuckDB's default: 122,880; 2,048 is its minimum).
 
-Every commit's checkpoint rewrites the table's last, partly filled row group. Writing a Space Invaders
-episode (660 steps, 24,000 objects) 120 times to a growing store took ~40 ms a write either way, but with the
-default size the worst writes took 0.85-1 s, with 2,048-row groups 72-116 ms (bench/store_writes.py). Scans
-of the steps table measured the same."""
+Every commit's checkpoint rewrites the table's last, partly filled row group, and packs what it writes into
+blocks of its own: blocks no later checkpoint fills. With 2,048-row groups each grouped write of an evaluation
+left its row groups in blocks 10-40% full: a Pong step cost 107 bytes of file, 256 traced. With 16,384 the last
+row group absorbs the next writes and is rewritten whole, packed: 24 and 43 (with :data:`NEW_STORE_BLOCK_SIZE`;
+bench/store_bytes.py, docs/store.md "Bytes per step"). The price is the rewrite: appending a Space Invaders
+episode 120 times to a growing store, the median write is unchanged (30-75 ms) and the slowest take 0.47-0.87 s,
+as with DuckDB's default size (0.60-0.88 s); 2,048-row groups kept them to 0.07-0.52 s (bench/store_writes.py). The
+writes are the episode writer's, at most one a second, on the parent's side while the episodes play."""
+
+NEW_STORE_BLOCK_SIZE = 65536
+"""Block size of a store file this process creates (DuckDB's default: 256 KiB). A DuckDB file keeps the block size
+it was made with, so an older store keeps its 256 KiB blocks and reads and writes as before.
+
+A file grows by whole blocks, each table claims blocks of its own and each checkpoint's last block per table stays
+partly empty: with 256 KiB blocks an empty store was 1.3 MB (396 KiB now) and the unfilled ends of blocks were
+most of a step's bytes. 16 and 32 KiB blocks made the same evaluation's file larger again than 64 KiB ones (more
+metadata per block); reading was no slower (bench/prompt_build.py on 1M steps)."""
 
 
 class Hub:
@@ -74,6 +87,8 @@ class Hub:
                 if attachment is None:
                     quoted = key.replace("'", "''")
                     options = "READ_ONLY" if read_only else f"ROW_GROUP_SIZE {WRITE_ROW_GROUP_SIZE}"
+                    if not read_only:  # the size of a file made by this ATTACH (an existing file keeps its own)
+                        con.execute(f"SET default_block_size = {int(NEW_STORE_BLOCK_SIZE)}")
                     # a release that Ctrl-C cut between forgetting the file and detaching it may have left it
                     # attached: let it go first (a no-op otherwise)
                     con.execute(f"DETACH DATABASE IF EXISTS {alias}")

@@ -75,3 +75,66 @@ def test_appended_rows_go_into_small_row_groups(tmp_path):
         "GROUP BY row_group_id)")[0][0]
     assert store.query("SELECT count(*) FROM steps") == [(3 * WRITE_ROW_GROUP_SIZE,)]
     assert rows_per_group <= WRITE_ROW_GROUP_SIZE
+
+
+def _pong_like_steps(n: int, seed: int):
+    """``n`` step rows of a three-object observation that moves as Pong's does (deterministic per ``seed``)."""
+    import numpy as np
+
+    from tracing.steps import StepLog
+
+    log, rng = StepLog(), np.random.default_rng(seed)
+    for i in range(n):
+        obs = {"Player": {"x": 140, "y": int(50 + 30 * np.sin(i / 9)), "w": 4, "h": 15, "dx": 0, "dy": 1},
+               "Ball": {"x": i * 3 % 160, "y": i * 5 % 200, "w": 2, "h": 4, "dx": 3, "dy": 5},
+               "Enemy": {"x": 16, "y": int(rng.integers(30, 190)), "w": 4, "h": 15, "dx": 0,
+                         "dy": int(rng.integers(-4, 5))}}
+        log.append(i, obs, int(rng.integers(0, 6)), 0.0, 0.0, False, False, None)
+    return log.table()
+
+
+@pytest.mark.parametrize("steps_per_write", [500, 2000])
+def test_a_store_written_episode_by_episode_stays_small(tmp_path, steps_per_write):
+    """Each write commits and checkpoints, and DuckDB fills the blocks a checkpoint starts only within it: with
+    2,048-row groups and 256 KiB blocks every write left its own partly filled blocks (170 and 147 bytes a step
+    here). codearcade's row groups and block size (store/hub.py) keep it near what the rows compress to."""
+    from store.writer import write_episode
+
+    path = tmp_path / "s.duckdb"
+    store = Store(path)
+
+    def episode(i: int) -> dict:
+        return {"episode_id": f"r.0.eval.{i}", "run_id": "r", "iteration": 0, "kind": "eval", "episode_index": i,
+                "game": "pong", "policy_version_id": "v", "return": 0.0, "length": steps_per_write,
+                "lives_lost": 0, "end_reason": "terminated", "traced": False, "duration_s": 1.0}
+
+    with store.write() as con:  # the first write: every table it touches claims its first blocks
+        write_episode(con, episode(0), _pong_like_steps(steps_per_write, 0), None)
+    before = os.path.getsize(path)
+    writes = 40
+    for i in range(1, writes + 1):
+        with store.write() as con:
+            write_episode(con, episode(i), _pong_like_steps(steps_per_write, i), None)
+    per_step = (os.path.getsize(path) - before) / (writes * steps_per_write)
+    assert per_step <= 60, f"{per_step:.0f} bytes a step"
+
+
+def test_a_new_store_gets_the_small_blocks_and_an_old_one_keeps_its_own(tmp_path):
+    """Block size is fixed when a file is made: a new store gets store.hub.NEW_STORE_BLOCK_SIZE, a store made with
+    DuckDB's default (every store before issue 40) keeps 256 KiB blocks and is read and written as before."""
+    import duckdb
+
+    from store.hub import NEW_STORE_BLOCK_SIZE
+
+    new = Store(tmp_path / "new.duckdb")
+    with new.write():
+        pass
+    assert new.query("SELECT block_size FROM pragma_database_size() WHERE database_name = current_database()") \
+        == [(NEW_STORE_BLOCK_SIZE,)]
+    duckdb.connect(str(tmp_path / "old.duckdb")).close()  # DuckDB's default block size
+    old = Store(tmp_path / "old.duckdb")
+    with old.write() as con:
+        put_blob(con, "note", "written")
+    assert old.query("SELECT block_size FROM pragma_database_size() WHERE database_name = current_database()") \
+        == [(262144,)]
+    assert old.query("SELECT text FROM blobs WHERE kind = 'note'") == [("written",)]

@@ -24,12 +24,17 @@ def add_parser(verbs) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from store.doctor import check_store, table_counts
+    from store.db import StoreDamaged
+    from store.doctor import COUNTED_TABLES, Finding, check_store, table_counts
 
     store = open_store(args)
-    with store.read(check=False) as con:  # a damaged store is the doctor's business: findings, not an error
-        findings = check_store(con, store.path)
-        counts = table_counts(con)
+    try:
+        with store.read(check=False) as con:  # a damaged store is the doctor's business: findings, not an error
+            findings = check_store(con, store.path)
+            counts = table_counts(con)
+    except StoreDamaged as exc:  # too damaged to open (cut short): what is known of it, as a finding
+        findings = [Finding("damaged file", [(problem,) for problem in exc.problems])]
+        counts = dict.fromkeys(COUNTED_TABLES)
     errors = [f for f in findings if not f.warning]
     replayed: list[tuple[str, str | None]] = []
     if args.replay and not errors:

@@ -91,3 +91,20 @@ def test_a_sound_store_passes_the_checks_after_many_writes(sound, tmp_path, caps
         assert main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "30", "--store", str(path)]) == 0
     assert main(["doctor", "--store", str(path)]) == 0
     assert "ok: no damage found" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("kept", [0.02, 0.1, 0.3, 0.5, 0.7, 0.9, 0.97])
+def test_a_store_cut_anywhere_is_reported_truncated(kept, sound, tmp_path, capsys):
+    """Wherever a copy is cut, the doctor finds it truncated (exit 1) and other commands refuse it in one line:
+    a cut that keeps what DuckDB reads to open the file by the used blocks its header counts, one that does not
+    by the read past the end that DuckDB fails with (with 64 KiB blocks the catalog of a small store may lie in
+    its second half)."""
+    data = sound[0].read_bytes()
+    path = tmp_path / "cut.duckdb"
+    path.write_bytes(data[: int(len(data) * kept)])
+    code = main(["doctor", "--store", str(path)])
+    out, err = capsys.readouterr()
+    assert code == 1 and "PROBLEM: damaged file" in out and "truncated" in out, (out, err)
+    assert main(["runs", "--store", str(path)]) == 2
+    out, err = capsys.readouterr()
+    assert len(err.strip().splitlines()) == 1 and "is damaged: the file is truncated" in err, err
