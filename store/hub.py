@@ -28,17 +28,18 @@ class _Attachment:
     users: int = 0
 
 
-WRITE_ROW_GROUP_SIZE = 16384
+WRITE_ROW_GROUP_SIZE = 2048
 """Rows per row group of what this process appends (DuckDB's default: 122,880; 2,048 is its minimum).
 
-Every commit's checkpoint rewrites the table's last, partly filled row group, and packs what it writes into
-blocks of its own: blocks no later checkpoint fills. With 2,048-row groups each grouped write of an evaluation
-left its row groups in blocks 10-40% full: a Pong step cost 107 bytes of file, 256 traced. With 16,384 the last
-row group absorbs the next writes and is rewritten whole, packed: 24 and 43 (with :data:`NEW_STORE_BLOCK_SIZE`;
-bench/store_bytes.py, docs/store.md "Bytes per step"). The price is the rewrite: appending a Space Invaders
-episode 120 times to a growing store, the median write is unchanged (30-75 ms) and the slowest take 0.47-0.87 s,
-as with DuckDB's default size (0.60-0.88 s); 2,048-row groups kept them to 0.07-0.52 s (bench/store_writes.py). The
-writes are the episode writer's, at most one a second, on the parent's side while the episodes play."""
+Every commit's checkpoint rewrites the table's last, partly filled row group. Writing a Space Invaders
+episode (660 steps, 24,000 objects) 120 times to a growing store took ~40 ms a write either way, but with the
+default size the worst writes took 0.85-1 s, with 2,048-row groups 72-116 ms (bench/store_writes.py). Scans
+of the steps table measured the same. Larger groups made a file smaller still (a traced Pong step 43 bytes with
+16,384 rows, ~80 with 2,048; bench/store_bytes.py) but widen what one checkpoint rewrites, and so holds: ten
+episodes of 2,000 node values of 15.6 KB each, written one by one, peaked the writer at 1,047 MB of memory and
+made a 470 MB file with 16,384-row groups, 378 MB and 314 MB with 2,048: what a row group of node rows can hold,
+and a checkpoint rewrite, grows with its rows (2,048 rows of two 16,000-character values: about one episode's
+byte budget)."""
 
 NEW_STORE_BLOCK_SIZE = 65536
 """Block size of a store file this process creates (DuckDB's default: 256 KiB). A DuckDB file keeps the block size

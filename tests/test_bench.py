@@ -21,7 +21,7 @@ SMALLEST = {
                         ["| emulator |", "| round trip |", "| store write |", "| host (untimed) / bare stepping |",
                          "| game zygote |", "| ROM load¹ |", "| **a command**"]),
     "parallel_eval.py": (["--episodes", "2", "--repeats", "1"], ["codearcade", "bare OCAtari", "target:"]),
-    "store_writes.py": (["--episodes", "2"], ["codearcade (16,384 rows)", "ratio (codearcade / default)"]),
+    "store_writes.py": (["--episodes", "2"], ["codearcade (2,048 rows)", "ratio (codearcade / default)"]),
     "store_bytes.py": (["--games", "pong", "--episodes", "1", "--warmup", "1", "--max-steps", "200"],
                        ["bytes/step", "after/before", "targets:", "where the bytes go", "pong            traced",
                         "nodes "]),

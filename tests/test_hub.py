@@ -96,8 +96,8 @@ def _pong_like_steps(n: int, seed: int):
 @pytest.mark.parametrize("steps_per_write", [500, 2000])
 def test_a_store_written_episode_by_episode_stays_small(tmp_path, steps_per_write):
     """Each write commits and checkpoints, and DuckDB fills the blocks a checkpoint starts only within it: with
-    2,048-row groups and 256 KiB blocks every write left its own partly filled blocks (170 and 147 bytes a step
-    here). codearcade's row groups and block size (store/hub.py) keep it near what the rows compress to."""
+    DuckDB's 256 KiB blocks every write left its own partly filled blocks (170 and 147 bytes a step here); the
+    64 KiB blocks of a new store (store.hub.NEW_STORE_BLOCK_SIZE) leave a quarter of that (39 and 37)."""
     from store.writer import write_episode
 
     path = tmp_path / "s.duckdb"
