@@ -4,17 +4,12 @@ The whole job in one place: read and check the policy statically (a broken file 
 policy code itself only ever runs in the workers), check the store (a damaged one is refused before anything
 plays), create a run (kind ``eval``) with its policy version, play the episodes (each by a game host with a
 confined policy process: ``pipeline/play/episodes.py``; the host computes the score, the policy only chooses
-actions), clean what came from policy code (``pipeline/play/verify.py``), write the run and its episodes in a thread
-of their own (:class:`StoreThread`; each episode as it arrives when the parent has a core to itself, else grouped:
-:func:`write_every_s`), and mark the run finished, failed or interrupted in the transaction of the last.
+actions), clean what came from policy code (``pipeline/play/verify.py``), write each episode in its own
+transaction, and mark the run finished, failed or interrupted.
 """
 
 from __future__ import annotations
 
-import math
-import os
-import queue
-import threading
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -73,57 +68,6 @@ class EvalResult:
         }
 
 
-class StoreThread:
-    """An evaluation's store writes (the run's rows, then each episode as it arrives), in order, in a thread of their
-    own: the parent's loop hands the next staged episode its go-ahead while the last one is written. Written in
-    the loop itself, a write (~20-140 ms: attach, insert, commit, checkpoint) held up the go-ahead of an episode
-    that was ready (Asterix: 58 ms between one episode's last step and the next one's first). The run's end is
-    written by the caller after :meth:`close`, so a Ctrl-C (which only the main thread hears) never cuts a write
-    in half: the episodes played are stored, the run marked interrupted."""
-
-    def __init__(self) -> None:
-        self.jobs: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
-        self.error: BaseException | None = None
-        self.thread = threading.Thread(target=self._run, name="codearcade-eval-store", daemon=True)
-        self.thread.start()
-
-    def _run(self) -> None:
-        while (job := self.jobs.get()) is not None:
-            if self.error is None:  # after a failed write nothing more is written here (the caller raises it)
-                try:
-                    job()
-                except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread by check()
-                    self.error = exc
-
-    def submit(self, job: Callable[[], None]) -> None:
-        self.jobs.put(job)
-
-    def check(self) -> None:
-        """Raise, in the caller's thread, what a write raised."""
-        if self.error is not None:
-            error, self.error = self.error, None
-            raise error
-
-    def close(self, check: bool = True) -> None:
-        """Wait for every write submitted (once; again: nothing to wait for); with ``check``, raise what one raised."""
-        if self.thread.is_alive():
-            self.jobs.put(None)
-            self.thread.join()
-        if check:
-            self.check()
-
-
-def write_every_s(workers: int) -> float:
-    """How long the parent lets finished episodes wait before it writes them (``EpisodeWriter.every_s``).
-
-    With a core to itself (fewer pairs than cores; a pair takes turns on one), the parent's store thread
-    (:class:`StoreThread`) writes each episode as it arrives, while the next one plays: what is left for the end, after the last step, is the last episode's rows
-    and the run's end (three 1,000-step Space Invaders episodes written together at the end were 90-130 ms of an
-    evaluation of ~1 s). With every core playing, each write (attach, commit, checkpoint: ~20-30 ms whatever it
-    holds) would take its time from a pair, so writes are grouped, at most one a second."""
-    return 0.0 if 0 < workers < len(os.sched_getaffinity(0)) else 1.0
-
-
 def evaluate(
     policy_path: str | Path,
     config: EvalConfig,
@@ -167,7 +111,7 @@ def evaluate(
         for i in range(config.episodes)
     ]
 
-    def create_run() -> None:  # in the store's thread, while the first episodes play
+    def create_run() -> None:  # runs while the first episodes play
         with store.write() as con:
             insert_run(con, run_id, "eval", game, {**asdict(config), "game": game, "policy": str(policy_path),
                                                    "rng_key": rng_key},
@@ -175,23 +119,8 @@ def evaluate(
                        made_by=made_by)
             insert_policy_version(con, policy_version_row(info, run_id, 0, produced_by="file",
                                                           validation="unvalidated"))
-        run_stored.set()
-
-    run_stored = threading.Event()
-    announced = False
-
-    def announce() -> None:
-        """``on_start``, in this thread, once the run's row is stored (and before anything else is said)."""
-        nonlocal announced
-        if not announced and run_stored.is_set():
-            announced = True
-            if on_start is not None:
-                on_start(run_id)
-
-    def progressed(index: int, steps: int) -> None:
-        announce()
-        if progress is not None:
-            progress(index, steps)
+        if on_start is not None:
+            on_start(run_id)
 
     outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
     status, error = "failed", None
@@ -200,28 +129,14 @@ def evaluate(
             held.enter_context(run_lock(store.path, run_id))
         except OSError:  # a read-only or full directory: the store's own one-line error says so below
             pass
-        writer = EpisodeWriter(store, every_s=write_every_s(config.workers))
-
-        def write(outcome: EpisodeOutcome, last: bool) -> None:  # in the store's thread
-            if last:  # written below with the run's end, one transaction for both
-                writer.every_s = math.inf
-            writer.add(outcome.episode, outcome.steps, outcome.nodes)
-
-        writes = StoreThread()
-        arrived = 0
+        writer = EpisodeWriter(store)
         try:
-            for i, outcome in run_episodes(specs, workers=config.workers, progress=progressed,
-                                           started=lambda: writes.submit(create_run)):
+            for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
                 outcome = checked_outcome(specs[i], outcome, hosted=config.workers > 0)
-                arrived += 1
-                writes.submit(lambda o=outcome, last=arrived == len(specs): write(o, last))
-                writes.check()
-                announce()
+                writer.add(outcome.episode, outcome.steps, outcome.nodes)
                 outcomes[i] = outcome
                 if on_episode is not None:
                     on_episode(i, outcome.episode["length"])
-            writes.close()
-            announce()
             status = "finished"
         except KeyboardInterrupt:
             status, error = "interrupted", "interrupted by the user"
@@ -232,7 +147,6 @@ def evaluate(
                 raise KeyboardInterrupt from None
             status, error = "failed", f"{type(exc).__name__}: {exc}"
             raise
-        finally:  # the episodes not yet written and the run's end, in one transaction, after the thread's writes
-            writes.close(check=False)
+        finally:  # the episodes not yet written and the run's end, in one transaction
             writer.flush(also=lambda con: finish_run(con, run_id, status, error))
     return EvalResult(run_id, game, info.version_id, [o for o in outcomes if o is not None])
