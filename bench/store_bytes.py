@@ -20,7 +20,7 @@ its segments in the file, and the rest of the growth (metadata, the unfilled end
 The steps stored are the same on every run (a pinned random stream, the paper's deterministic protocol). The
 bytes depend a little on speed: how many episodes each grouped write holds depends on how fast they play (one
 write a second at most, ``store.writer.EpisodeWriter``), and each write leaves its own partly filled blocks; two
-runs here gave the same figures to the byte. A measurement that could not be made (no steps stored) makes the run
+runs of the same code moved by up to 30% (docs/benchmarks.md). A measurement that could not be made (no steps stored) makes the run
 exit 1; a target missed is printed (``ABOVE TARGET``), not failed.
 """
 

@@ -35,7 +35,7 @@ Every commit's checkpoint rewrites the table's last, partly filled row group. Wr
 episode (660 steps, 24,000 objects) 120 times to a growing store took ~40 ms a write either way, but with the
 default size the worst writes took 0.85-1 s, with 2,048-row groups 72-116 ms (bench/store_writes.py). Scans
 of the steps table measured the same. Larger groups made a file smaller still (a traced Pong step 43 bytes with
-16,384 rows, ~80 with 2,048; bench/store_bytes.py) but widen what one checkpoint rewrites, and so holds: ten
+16,384 rows, 69-80 with 2,048; bench/store_bytes.py) but widen what one checkpoint rewrites, and so holds: ten
 episodes of 2,000 node values of 15.6 KB each, written one by one, peaked the writer at 1,047 MB of memory and
 made a 470 MB file with 16,384-row groups, 378 MB and 314 MB with 2,048: what a row group of node rows can hold,
 and a checkpoint rewrite, grows with its rows (2,048 rows of two 16,000-character values: about one episode's
