@@ -135,7 +135,8 @@ def main() -> int:
             rate, count, seconds = found[name][-1]
             best, top = curves[name][-1]["per_call"][-1]
             print(f"seed {repeat} {name:<8} {count:>3} candidates in {seconds:6.1f} s = {rate:6.1f} per minute; "
-                  f"best {best:g} (rung {top} of {len(RUNGS) - 1}) ({result.status})", flush=True)
+                  f"best {best:g} (rung {top} of {len(RUNGS) - 1}) ({result.status}"
+                  f"{': ' + result.error if result.error else ''})", flush=True)
 
     print(f"\nbest-of-n, {CANDIDATES} candidates an iteration, {args.calls} calls each, at most {args.in_flight} in "
           f"flight; latency log-normal, median {args.latency:g} s, sigma {args.sigma:g}; median of {args.repeats} "

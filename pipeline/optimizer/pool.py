@@ -50,7 +50,7 @@ from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.assess import Assessment, Screen, assess, screen
 from pipeline.optimizer.conclude import IterationResult, assessed_of, conclude, pending_row, provisional, screen_out
 from pipeline.optimizer.ensemble import member_picks
-from pipeline.optimizer.propose import BudgetExhausted, Proposal, check_wall, propose
+from pipeline.optimizer.propose import BudgetExhausted, Proposal, check_wall, pass_budget_turn, propose
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History, Ref
 from store import Store
@@ -129,17 +129,23 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
     shown = PoolProgress()
     # calls overlap: no "waiting for the model" line per call (each iteration's line says what is in flight)
     waiting, state.waiting = state.waiting, lambda iteration, model: nullcontext()
+    with state.budget_lock:  # the candidates' tickets, in start order (propose.check_budgets)
+        state.budget_turn, state.budget_turns_passed = 0, set()
+    tickets = 0
 
-    def propose_one(item: _Candidate, history: History, member: LLMClient | None) -> None:
+    def propose_one(item: _Candidate, history: History, member: LLMClient | None, ticket: int) -> None:
         try:
             plan = state.strategy.plan(history, item.iteration)
             request = replace(plan[item.candidate % len(plan)], candidate=item.candidate)
             (item.proposal,) = propose(store, state, history, item.iteration, [request], client, counter, log,
-                                       members={item.candidate: member} if member is not None else None)
+                                       members={item.candidate: member} if member is not None else None,
+                                       budget_ticket=ticket)
             item.llm_s = time.monotonic() - item.started
             events.put(("proposed", item, None))
         except BaseException as exc:  # noqa: BLE001 - raised by the coordinator, after the work in flight
             events.put(("proposed", item, exc))
+        finally:
+            pass_budget_turn(state, ticket)
 
     def play(batch: list[_Candidate], known: History) -> None:
         try:
@@ -167,7 +173,7 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
         return rows[ref] if ref in rows else provisional(state.history.candidate(ref))
 
     def start_what_can_start() -> None:
-        nonlocal next_up, stop
+        nonlocal next_up, stop, tickets
         while stop is None and next_up is not None and len(calling) < c.max_concurrent_calls:
             iteration, candidate = next_up
             committed = state.next_iteration
@@ -199,8 +205,9 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
             basis_history = History(history.iterations, history.candidates + [row_of(ref) for ref in fresh],
                                     pending=fresh, as_of=item.started_at)
             calling[iteration, candidate] = item
-            threading.Thread(target=propose_one, args=(item, basis_history, member),
+            threading.Thread(target=propose_one, args=(item, basis_history, member, tickets),
                              name=f"propose-{iteration}.{candidate}", daemon=True).start()
+            tickets += 1
             next_up = next(order, None)
 
     def complexity_of(item: _Candidate) -> int | None:

@@ -144,10 +144,13 @@ class _Pending:
 
 def propose(store: Store, state: "RunState", history: History, iteration: int, requests: list[ProposalRequest],
             client: LLMClient, counter: TokenCounter, log: Callable[[str], None],
-            hold: Hold | None = None, members: dict[int, LLMClient] | None = None) -> list[Proposal]:
+            hold: Hold | None = None, members: dict[int, LLMClient] | None = None,
+            budget_ticket: int | None = None) -> list[Proposal]:
     """The candidates of iteration ``iteration`` for ``requests`` (see the module docstring). ``hold`` (the
     caller's hold on the store) is let go while the model is asked and taken again once it has answered (what
-    follows is short: store the calls, validate, and the caller's commit)."""
+    follows is short: store the calls, validate, and the caller's commit). ``budget_ticket``: the proposal pool's
+    start order of this candidate, in which the first calls are checked against the budgets
+    (:func:`check_budgets`; the caller passes the ticket with :func:`pass_budget_turn` however this ends)."""
     c = state.config
     pending = []
     built: dict[tuple, tuple] = {}  # best-of-n asks N times with the same context: build its prompt once
@@ -183,7 +186,7 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     to_call = [p for p in pending if p.text is None]
     if to_call:
         reservation = check_budgets(store, state, client, [p.prompt for p in to_call],
-                                    [p.client or client for p in to_call])
+                                    [p.client or client for p in to_call], ticket=budget_ticket)
         name_methods = getattr(client, "hold_reply_to_methods", None)  # the offline model's grammar
         if name_methods is not None:
             name_methods([method.name for method in to_call[0].info.trainable])
@@ -440,14 +443,39 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
 
 
 def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: list[Prompt],
-                  models: list[LLMClient] | None = None) -> tuple[int, int, float] | None:
+                  models: list[LLMClient] | None = None, ticket: int | None = None) -> tuple[int, int, float] | None:
     """Raise :class:`BudgetExhausted` if the calls about to be made could take the run past a budget: their
     number, and each counted at its prompt plus a reply of the longest length asked for, priced at litellm's
     rates for the model that makes it (``models``, one per prompt; default: ``client`` for all). The run's
     spending so far is every call's, whichever model made it, and the worst case of the calls other threads have
     in flight (the proposal pool); these calls' worst case is reserved until :func:`release_budget` (after their
     rows are recorded): the reservation, or None without budgets. When only the reservations of calls in flight
-    stand in the way, it waits for them to be recorded (they seldom use their worst case) and looks again."""
+    stand in the way, it waits for them to be recorded (they seldom use their worst case) and looks again.
+    ``ticket`` (the proposal pool): it first waits for the candidates started before it to have checked theirs,
+    so the budget's last calls go to the earliest candidates, whose iterations are committed first."""
+    try:
+        if ticket is not None:
+            with state.budget_lock:
+                state.budget_lock.wait_for(lambda: state.budget_turn >= ticket)
+        return _check_budgets(store, state, client, prompts, models)
+    finally:
+        if ticket is not None:
+            pass_budget_turn(state, ticket)
+
+
+def pass_budget_turn(state: "RunState", ticket: int) -> None:
+    """The pool's candidate ``ticket`` has checked the budgets, or will make no first call (a stored reply, an
+    error before asking): the candidates after it may check theirs. Passing a ticket twice is harmless."""
+    with state.budget_lock:
+        state.budget_turns_passed.add(ticket)
+        while state.budget_turn in state.budget_turns_passed:
+            state.budget_turns_passed.discard(state.budget_turn)
+            state.budget_turn += 1
+        state.budget_lock.notify_all()
+
+
+def _check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: list[Prompt],
+                   models: list[LLMClient] | None) -> tuple[int, int, float] | None:
     c = state.config
     if c.max_cost_usd is None and c.max_total_tokens is None and c.max_llm_calls is None:
         return None

@@ -49,6 +49,12 @@ class RunState:
     in_flight: list[float] = field(default_factory=lambda: [0, 0, 0.0], repr=False, compare=False)
     """The worst case of the calls checked against the budgets and not yet recorded: calls, tokens, USD (the
     proposal pool's threads check theirs while others are in flight: ``propose.check_budgets``)."""
+    budget_turn: int = field(default=0, repr=False, compare=False)
+    """The proposal pool's candidates check the budgets in the order they started (their *ticket*): the next
+    ticket whose check may go. Without the order a candidate started later, whose thread built its prompt faster,
+    could take the last call of the budget from one before it, and leave that one's iteration never committed."""
+    budget_turns_passed: set[int] = field(default_factory=set, repr=False, compare=False)
+    """Tickets past their turn (checked, or ended without a call) that ``budget_turn`` has not reached yet."""
 
     @property
     def strategy(self) -> Strategy:
