@@ -182,6 +182,93 @@ def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():
     assert [z.count() for z in zygotes] == [0, 0], "every host and policy process has exited"
 
 
+def test_kept_hosts_play_the_next_call_as_fresh_ones_and_exit_when_the_block_ends():
+    """Inside ``keep_hosts`` the game hosts idle at the end of a call play the next call's episodes (no host is
+    forked for it) exactly as fresh hosts do; a call on other environments gets fresh hosts (the kept ones go);
+    when the block ends every kept host exits."""
+    from pipeline.boundary import workers
+
+    benign = pong_policy("return random.randrange(6)", prelude="import random\n")
+    specs = [EpisodeSpec(f"e{i}", "r", "pong", benign, "v", index=i, seed=seed, max_steps=60)
+             for i, seed in enumerate((5, 9, 13))]
+    fresh = dict(run_episodes(specs, workers=2))
+    game = workers.zygote("game")
+    with workers.keep_hosts():
+        list(run_episodes(specs[:2], workers=2))
+        assert game.count() == 2, "the two hosts of the first call wait for the next"
+        forks_before = game.next_id
+        kept = dict(run_episodes(specs[1:], workers=2))
+        assert game.next_id == forks_before, "the second call was played by the first call's hosts"
+        assert all(kept[i].steps.equals(fresh[i + 1].steps) for i in range(2)), "a kept host plays as a fresh one"
+        other = [EpisodeSpec("b0", "r", "breakout", random_policy("breakout", "0"), "v", index=0,
+                               max_steps=20)]
+        forks_before = game.next_id
+        [(_, played)] = list(run_episodes(other, workers=1))
+        assert played.end_reason == "truncated" and game.next_id == forks_before + 1, "another game: a fresh host"
+    deadline = time.monotonic() + 10
+    while game.count() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert game.count() == 0, "the kept hosts exited with the block"
+
+
+def test_a_block_of_kept_hosts_ends_without_waiting_for_a_thread_that_plays():
+    """A command that ends while another of its threads holds the zygotes (the proposal pool's, playing) lets its
+    kept hosts go at once: it never waits for that thread's episodes."""
+    import threading
+
+    from pipeline.boundary import workers
+
+    specs = [EpisodeSpec("e0", "r", "pong", pong_policy("return 0"), "v", index=0, max_steps=20)]
+    game = workers.zygote("game")
+    playing, done, how = threading.Event(), threading.Event(), []
+
+    def other_thread() -> None:
+        with workers._ZYGOTE_USE:  # as a thread inside run_tasks holds it
+            playing.set()
+            how.append("released by the block's end" if done.wait(60) else "the block waited for this thread")
+
+    with workers.keep_hosts():
+        list(run_episodes(specs, workers=1))
+        thread = threading.Thread(target=other_thread)
+        thread.start()
+        playing.wait(60)
+    done.set()
+    thread.join()
+    assert how == ["released by the block's end"]
+    deadline = time.monotonic() + 10
+    while game.count() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert game.count() == 0, "the kept host exited with the block"
+
+
+@pytest.mark.parametrize("ending", ["returns", "os._exit"])
+def test_kept_hosts_do_not_outlive_the_process_that_kept_them(ending, tmp_path):
+    """A process that keeps game hosts (as every ``codearcade`` verb does) leaves none behind, whether it ends
+    normally inside the block or dies at once (``os._exit``: no ``finally``, no ``atexit``)."""
+    from tests.faults.test_ctrl_c_group import _nothing_left
+
+    script = (
+        "import os, sys\n"
+        "from pipeline.boundary.workers import keep_hosts, zygote\n"
+        "from pipeline.play.episodes import run_episodes\n"
+        "from pipeline.play.rollout import EpisodeSpec\n"
+        "from tests.conftest import pong_policy\n"
+        "specs = [EpisodeSpec(f'e{i}', 'r', 'pong', pong_policy('return 0'), 'v', index=i, max_steps=20)\n"
+        "         for i in range(2)]\n"
+        "with keep_hosts():\n"
+        "    for _ in range(2):\n"
+        "        list(run_episodes(specs, workers=2))\n"
+        "    print(zygote('game').count(), flush=True)\n"
+        f"    {'os._exit(0)' if ending == 'os._exit' else 'sys.exit(0)'}\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, process_group=0)  # its own group: its zygotes and hosts are in it
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    assert out.split() == ["2"], "two hosts were kept while it ran"
+    _nothing_left(proc.pid, err)
+
+
 def test_a_worker_whose_parent_died_before_it_asked_for_the_death_signal_ends_at_once(tmp_path):
     marker = tmp_path / "survived"
     script = (

@@ -15,6 +15,9 @@ clean state (nothing a policy changes, module attributes included, survives into
 - the **game** zygote's workers are game hosts: the environment, the score, the step log, live recordings. A
   host whose episode is done is handed the next one of the same call (with a new policy process) rather than
   forked again: no policy code runs there, and the fork and teardown cost more than the episode's reset.
+  Inside :func:`keep_hosts` (a command's whole run: ``codearcade`` and a batch's run processes enter it), the
+  hosts idle at the end of one call of :func:`run_tasks` are kept for the next call that plays the same task on
+  the same environments (the optimizer assesses many times), and exit when the block ends.
 
 An episode is a *paired* task: a host and a policy process joined by a socket of their own, one round trip per
 step, pinned to one CPU (a round trip across cores costs tens of microseconds here, on one a few: NOTES.md).
@@ -46,9 +49,10 @@ import tempfile
 import threading
 import time
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, TypeVar
+from typing import Any, Callable, Hashable, Iterable, Iterator, TypeVar
 
 from pipeline.boundary import wire
 from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, weak_sandbox_allowed
@@ -288,6 +292,7 @@ def zygote(role: str = "policy") -> Zygote:
 @atexit.register
 def stop_zygote() -> None:
     """Close this process's zygotes (their workers end with them)."""
+    _KEPT.let_go()
     if _zygotes_pid == os.getpid():
         for zyg in _zygotes.values():
             zyg.close()
@@ -340,6 +345,7 @@ def run_tasks(
     progress: ProgressCallback | None = None,
     started: Callable[[], None] | None = None,
     prepare: Callable[[Zygote], None] | None = None,
+    hosts_key: Hashable | None = None,
 ) -> Iterator[tuple[int, R]]:
     """Run ``task`` on every item in a worker of its own (a paired task: a host and a policy process), at most
     ``workers`` at once; yield ``(index, result)`` as each finishes.
@@ -348,6 +354,8 @@ def run_tasks(
     yields ``failed(item, why, timed_out)`` instead. ``started`` is called once the first workers are running,
     so the caller can do its own set-up meanwhile. ``prepare(zygote)`` may warm the (host's) zygote first.
     ``workers=0`` runs the tasks one after another in this process (no isolation; for debugging).
+    ``hosts_key`` (a paired task): what its hosts were prepared for (the environments ``prepare`` builds); inside
+    :func:`keep_hosts`, the hosts idle at the end are kept for the next call with the same task and key.
     """
     items = list(items)
     if workers <= 0:
@@ -357,15 +365,95 @@ def run_tasks(
             yield i, task.local(item, (lambda n, i=i: progress(i, n)) if progress is not None else (lambda n: None))
         return
     with _ZYGOTE_USE:  # the zygotes serve one caller at a time (the proposal pool's threads share them)
-        yield from _run_tasks(task, items, workers, failed, time_limit_s, progress, started, prepare)
+        yield from _run_tasks(task, items, workers, failed, time_limit_s, progress, started, prepare, hosts_key)
 
 
 _ZYGOTE_USE = threading.RLock()
 """Held by the thread whose tasks the zygotes are running: their requests and answers share one socket each."""
 
 
+@dataclass
+class _KeptHosts:
+    """Game hosts idle at the end of a :func:`run_tasks` call, kept for the next (inside :func:`keep_hosts`).
+    Its own lock, never :data:`_ZYGOTE_USE`: a command that ends while another thread still plays (the proposal
+    pool's) lets its kept hosts go without waiting for that thread."""
+
+    depth: int = 0
+    """How many :func:`keep_hosts` blocks are open: hosts are kept only while one is."""
+    zygote: Zygote | None = None
+    """The game zygote the hosts are workers of (one that died and was started again has none of them)."""
+    key: tuple | None = None
+    """(task name, the call's ``hosts_key``): a host is handed only tasks of the kind it was forked for, on the
+    environments its zygote had built when it forked it."""
+    pid: int = 0
+    hosts: list[tuple[int, socket.socket]] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def take(self, zyg: Zygote, key: tuple) -> list[tuple[int, socket.socket]]:
+        """The hosts kept for a call of ``key`` on ``zyg`` (the others are let go); the caller holds
+        :data:`_ZYGOTE_USE`."""
+        with self.lock:
+            if self.zygote is zyg and self.key == key and self.pid == os.getpid():
+                hosts, self.hosts = self.hosts, []
+                return hosts
+            self._let_go()
+            return []
+
+    def keep(self, zyg: Zygote, key: tuple, hosts: list[tuple[int, socket.socket]]) -> bool:
+        """Keep ``hosts`` for the next call, if a :func:`keep_hosts` block is still open (False: the caller lets them
+        go); the caller holds :data:`_ZYGOTE_USE`."""
+        with self.lock:
+            if self.depth == 0:
+                return False
+            self._let_go()
+            self.zygote, self.key, self.pid, self.hosts = zyg, key, os.getpid(), hosts
+            return True
+
+    def let_go(self) -> None:
+        with self.lock:
+            self._let_go()
+
+    def _let_go(self) -> None:
+        """EOF to each kept host instead of a next task: it exits (a forked copy of this process only closes its
+        copies of the sockets)."""
+        hosts, self.hosts = self.hosts, []
+        # the zygote's record of each is dropped only by a thread that may use the zygote now (its reports are
+        # read under _ZYGOTE_USE); otherwise the record stays, a few bytes, until the zygote's next report on it
+        mine = self.zygote is not None and self.pid == os.getpid() and _ZYGOTE_USE.acquire(blocking=False)
+        try:
+            for task_id, conn in hosts:
+                conn.close()
+                if mine:
+                    self.zygote.forget(task_id)
+        finally:
+            if mine:
+                _ZYGOTE_USE.release()
+        self.zygote = self.key = None
+
+
+_KEPT = _KeptHosts()
+
+
+@contextmanager
+def keep_hosts() -> Iterator[None]:
+    """Keep the game hosts idle at the end of each :func:`run_tasks` call for the next call in the block, instead
+    of letting them exit (the module docstring); when the outermost block ends, they exit. A host runs no policy
+    code: what one episode leaves in it is the environment, reset with the next episode's seed, as between the
+    episodes of one call. Forking a host costs its first episode 11-17 ms before it can start, and ~35 ms of CPU
+    with its copy-on-write faults (docs/benchmarks.md)."""
+    with _KEPT.lock:
+        _KEPT.depth += 1
+    try:
+        yield
+    finally:
+        with _KEPT.lock:
+            _KEPT.depth -= 1
+            if _KEPT.depth == 0:
+                _KEPT._let_go()
+
+
 def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, progress, started,
-               prepare) -> Iterator[tuple[int, Any]]:
+               prepare, hosts_key) -> Iterator[tuple[int, Any]]:
     """:func:`run_tasks` with worker processes (under :data:`_ZYGOTE_USE`)."""
     zyg = zygote("game" if task.paired else "policy")
     policies = zygote("policy") if task.paired else None
@@ -386,10 +474,12 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
             limits["cpu_s"] = int(math.ceil(limit + KILL_GRACE_S + 10))
         return limits
 
-    idle: list[tuple[int, socket.socket]] = []
+    keeping = policies is not None and hosts_key is not None and _KEPT.depth > 0  # re-checked under its lock
+    kept_key = (task.name, hosts_key)
+    idle: list[tuple[int, socket.socket]] = _KEPT.take(zyg, kept_key) if keeping else []
     """Game hosts whose episode is done, ready to play another (task id, socket): a host runs no policy code, so
     it need not be fresh, and handing it the next episode saves the fork and the teardown of a process that holds
-    the whole emulator stack (``zygote.Role.serves_many``)."""
+    the whole emulator stack (``zygote.Role.serves_many``); inside :func:`keep_hosts`, those an earlier call kept."""
 
     def start(staged_: bool) -> _Running:
         i, item = pending.popleft()
@@ -556,9 +646,11 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
             if policies is not None and run.policy_id is not None:
                 policies.kill(run.policy_id)
             settle(run)
-        for task_id, conn in idle:
-            conn.close()  # EOF instead of the next task: the host exits
-            zyg.forget(task_id)
+        # for the next call (keep_hosts); they exit when its block ends
+        if not (keeping and zyg.alive() and _KEPT.keep(zyg, kept_key, idle)):
+            for task_id, conn in idle:
+                conn.close()  # EOF instead of the next task: the host exits
+                zyg.forget(task_id)
 
 
 def run_json_task(name: str, item: dict[str, Any], local: Callable[[dict[str, Any]], dict[str, str | None]],

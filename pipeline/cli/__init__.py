@@ -85,7 +85,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, _interrupted_once)
     try:
-        return handler(args)
+        from pipeline.boundary.workers import keep_hosts
+
+        with keep_hosts():  # a verb that plays several times reuses its game hosts; they exit with the verb
+            return handler(args)
     except BrokenPipeError:  # `codearcade sql ... | head`: the reader has what it wanted; say nothing more
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # so the interpreter's final flush does not fail again

@@ -15,6 +15,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from pipeline.boundary.workers import keep_hosts
 from pipeline.llm.client import open_client
 from pipeline.optimizer.config import OptimizeConfig, fit_to_model
 from pipeline.optimizer.loop import OptimizeResult, optimize, start_run
@@ -39,6 +40,11 @@ def _waiting(iteration: int, model: str):
 
 
 def _run(spec: dict[str, Any], store: Store) -> OptimizeResult:
+    with keep_hosts():  # the run's assessments reuse their game hosts; they exit when it is done
+        return _optimize(spec, store)
+
+
+def _optimize(spec: dict[str, Any], store: Store) -> OptimizeResult:
     config = OptimizeConfig(**spec["config"])
     config.workers = spec.get("episode_workers", config.workers)
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,

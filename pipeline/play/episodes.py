@@ -320,23 +320,24 @@ def run_episodes(
     :func:`~pipeline.boundary.workers.run_tasks`); an episode whose host or policy process dies, misbehaves or hangs
     ends ``crashed`` or ``timeout``."""
     specs = list(specs)
+    # each environment is built once in the game zygote (~0.1-0.2 s each): forked hosts inherit it ready, and a
+    # host kept from an earlier call (workers.keep_hosts) is handed only episodes on the environments it has
+    envs = tuple(sorted({(s.game, s.sticky, s.noop_max, s.one_life, s.observation) for s in specs}, key=str))
 
     def prepare(zyg: Zygote) -> None:
-        # each environment is built once in the game zygote (~0.1-0.2 s each): forked hosts inherit it ready
-        envs = {(s.game, s.sticky, s.noop_max, s.one_life, s.observation) for s in specs}
         try:
-            zyg.send({"op": "prepare", "envs": [list(e) for e in sorted(envs, key=str)]})
+            zyg.send({"op": "prepare", "envs": [list(e) for e in envs]})
         except OSError:
             pass  # the zygote died: every episode is recorded as crashed
 
     if all(spec.continues is None for spec in specs):
         return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
-                         progress=progress, started=started, prepare=prepare)
-    return _run_games(specs, workers, progress, started, prepare)
+                         progress=progress, started=started, prepare=prepare, hosts_key=envs)
+    return _run_games(specs, workers, progress, started, prepare, envs)
 
 
 def _run_games(specs: list[EpisodeSpec], workers: int, progress: ProgressCallback | None,
-               started: Callable[[], None] | None, prepare: Callable[[Zygote], None]
+               started: Callable[[], None] | None, prepare: Callable[[Zygote], None], envs: tuple
                ) -> Iterator[tuple[int, EpisodeOutcome]]:
     """:func:`run_episodes` where some episodes continue others: each game (:func:`games_of`) is one task of
     one host and one policy process (:data:`GAME`), an episode of its own a game of one; its time limit is the
@@ -346,6 +347,6 @@ def _run_games(specs: list[EpisodeSpec], workers: int, progress: ProgressCallbac
     report = None if progress is None else (lambda g, n: progress(games[g][0], n))
     for g, outcomes in run_tasks(GAME, items, workers, _game_failed,
                                  time_limit_s=lambda game: sum(spec.episode_time_limit_s for spec in game),
-                                 progress=report, started=started, prepare=prepare):
+                                 progress=report, started=started, prepare=prepare, hosts_key=envs):
         for i, outcome in zip(games[g], outcomes):
             yield i, outcome
