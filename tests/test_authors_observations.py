@@ -70,6 +70,7 @@ def _compare(game: str, observation: int | None = None) -> tuple[list[str], set[
     return found, covered, step + 1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("game", list(AUTHORS))
 def test_our_observation_is_the_authors_as_decided(game):
     found, covered, steps = _compare(game)

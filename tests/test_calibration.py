@@ -157,6 +157,7 @@ def test_difference_rarely_calls_identical_policies_different(name, n):
     assert decided > 0.95
 
 
+@pytest.mark.slow
 def test_the_iqm_has_no_interval_below_its_minimum_and_covers_at_it():
     minimum = scores.IQM_MIN_PER_STRATUM
     eight = games()

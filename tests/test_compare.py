@@ -270,6 +270,7 @@ def test_the_starter_against_the_competent_policy_differs_beyond_the_noise(store
     assert "## Scores" in readme and "- A - B = " in readme
 
 
+@pytest.mark.slow
 def test_compare_audit_draws_sealed_seeds_afresh_for_each_side_and_each_comparison(store, capsys):
     """No policy can know --audit's games in advance: each comparison draws both sides' seeds afresh over the audit's
     whole range (not the public AUDIT_SEED_BASE + i), the two sides' disjoint, and the text names the seeds played."""

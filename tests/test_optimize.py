@@ -80,6 +80,7 @@ def test_both_reply_formats_and_hostile_candidates(store, scripted):
     assert "illegal action 7" in feedback[6]
 
 
+@pytest.mark.slow
 def test_transient_errors_are_retried_and_fatal_ones_stop_cleanly(store, scripted):
     model = scripted([{"status": 503, "times": 2}, COMPETENT_REPLY, {"status": 401}])
     result = optimize(_config(iterations=3, eval_max_steps=200), store, _client(model))
@@ -106,6 +107,7 @@ def test_rollback_after_a_regression(store, scripted):
     assert "rolled back" in prompt
 
 
+@pytest.mark.slow
 def test_offline_json_shape_of_prompt_sections(store, scripted):
     model = scripted([json_reply({})])
     optimize(_config(iterations=1, eval_max_steps=200, token_budget=4000), store, _client(model))
@@ -127,6 +129,7 @@ def test_bad_options_are_clear():
         optimize(OptimizeConfig(game="pong", feedback="vibes"), Store("/nonexistent/x.duckdb"), None)
 
 
+@pytest.mark.slow
 def test_rollout_only_feedback_for_the_ablation(store, scripted):
     model = scripted([json_reply({})])
     optimize(_config(iterations=1, eval_max_steps=200, feedback="rollout"), store, _client(model))

@@ -255,6 +255,7 @@ def test_a_run_sent_to_phoenix_reads_back_with_its_tree_times_and_tokens(run_and
                 span["attributes"]["codearcade.episode.end_reason"]) == (return_, length, end_reason)
 
 
+@pytest.mark.slow
 def test_exporting_again_over_grpc_sends_the_same_spans(run_and_phoenix, phoenix, capsys):
     store, run_id, _ = run_and_phoenix
     trace_id = f"{trace_id_for(run_id):032x}"
@@ -279,6 +280,7 @@ def _rows(store: Store, run_id: str) -> dict:
         return run_trace_rows(con, run_id)
 
 
+@pytest.mark.slow
 def test_a_killed_run_still_exports_with_ends_from_its_children(run_and_phoenix, tmp_path):
     """A run killed inside its last iteration has no finished_at and no row for that iteration: the iteration
     still gets a span (its LLM call and episodes under it) ending at its last child, and so does the run."""
@@ -300,6 +302,7 @@ def test_a_killed_run_still_exports_with_ends_from_its_children(run_and_phoenix,
     assert root.end_time == max(s.end_time for s in spans) and not root.status.is_ok
 
 
+@pytest.mark.slow
 def test_errors_are_one_line(run_and_phoenix, capsys):
     store, run_id, _ = run_and_phoenix
     code, _, err = _export(capsys, "NOSUCHRUN", "--otlp", "http://127.0.0.1:4318", "--store", str(store.path))
@@ -312,6 +315,7 @@ def test_errors_are_one_line(run_and_phoenix, capsys):
     assert code == 2 and "not an http(s) URL" in err and err.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_a_receiver_that_refuses_is_one_line(run_and_phoenix, phoenix, capsys):
     store, run_id, _ = run_and_phoenix
     code, _, err = _export(capsys, run_id, "--otlp", phoenix.http_url + "/not/otlp", "--store", str(store.path))

@@ -253,6 +253,7 @@ def test_blame_function_carries_matched_lines():
         (1, "c", False), (2, "c", False), (3, "c", False), (4, "c", True)]
 
 
+@pytest.mark.slow
 def test_rerun_recording_shows_the_lines_that_ran_at_every_step(tmp_path, capsys):
     """The live recording of a traced episode holds, per method, its source with ▶ on the lines that ran; at every
     step the latest document (what the viewer shows there) marks exactly that step's ``lines_run``."""

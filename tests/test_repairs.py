@@ -107,6 +107,7 @@ def test_a_failed_repair_call_leaves_the_rejection_and_the_run_goes_on(store, sc
     assert errors == [(1, "repair", "BadRequestError")]
 
 
+@pytest.mark.slow
 def test_a_replay_makes_the_same_repairs(store, scripted):
     model = scripted([RAISES, COMPETENT_REPLY])
     result = optimize(_config(), store, _client(model))
@@ -121,6 +122,7 @@ def test_a_replay_makes_the_same_repairs(store, scripted):
     assert json.loads(store.query("SELECT config FROM runs WHERE run_id = ?", [result.run_id])[0][0])["repairs"] == 1
 
 
+@pytest.mark.slow
 def test_the_report_says_what_repairs_saved_and_draws_the_calls(store, scripted, tmp_path):
     from store.showing import llm_call_outcomes
     from viewers.report import write_report

@@ -62,6 +62,7 @@ def _steps(store: Store, run_id: str) -> int:
                        "AND e.kind <> 'audit'", [run_id])[0][0]
 
 
+@pytest.mark.slow
 def test_greedy_replays_a_run_made_before_strategies_existed(tmp_path):
     """The fixture was written by the loop before it was split into strategy, propose and assess
     (tests/fixtures/make_greedy_run.py): replaying it sends the same prompts and gets the same scores."""

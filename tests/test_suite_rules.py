@@ -8,6 +8,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 from tests.conftest import ROOT
 
 SUITE = textwrap.dedent("""
@@ -32,6 +34,7 @@ def _run(tmp_path, *args: str) -> subprocess.CompletedProcess:
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.slow
 def test_a_test_past_the_ceiling_fails_with_its_time(tmp_path):
     done = _run(tmp_path)
     assert done.returncode == 1, done.stdout
@@ -40,6 +43,7 @@ def test_a_test_past_the_ceiling_fails_with_its_time(tmp_path):
     assert "short" in done.stdout
 
 
+@pytest.mark.slow
 def test_soak_lifts_the_ceiling_and_runs_the_loops_in_full(tmp_path):
     done = _run(tmp_path, "--soak")
     assert done.returncode == 0 and "2 passed" in done.stdout, done.stdout
@@ -55,3 +59,18 @@ def test_the_quick_lane_is_a_marker_of_this_suite():
     assert "tests/test_suite_rules.py::test_the_quick_lane_is_a_marker_of_this_suite" in quick
     assert not any("test_kill_loop" in line or "test_readme_tour.py::test_the_readme_tour" in line for line in quick)
     assert len(quick) > 500
+
+
+def test_the_default_ceiling_stretches_with_the_load_per_core_and_an_explicit_one_does_not(monkeypatch):
+    """On a machine busy with other work the default ceiling grows by the load per core (no test fails because the
+    machine is slow); on one at or below a load of one per core it is the ceiling; a ceiling set in the
+    environment is kept as set."""
+    from tests import conftest
+
+    monkeypatch.setattr(conftest, "CEILING_SCALES_WITH_LOAD", True)
+    monkeypatch.setattr(conftest.os, "cpu_count", lambda: 2)
+    for load, stretch in ((0.3, 1.0), (2.0, 1.0), (3.0, 1.5), (7.0, 3.5)):
+        monkeypatch.setattr(conftest.os, "getloadavg", lambda load=load: (0.0, load, 0.0))
+        assert conftest.ceiling_s() == conftest.CEILING_S * stretch
+    monkeypatch.setattr(conftest, "CEILING_SCALES_WITH_LOAD", False)
+    assert conftest.ceiling_s() == conftest.CEILING_S

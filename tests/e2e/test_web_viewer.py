@@ -31,7 +31,8 @@ CHROMIUM_FLAGS = ["--no-sandbox", "--no-first-run", "--disable-background-networ
 PONG_PLAYFIELD = np.array([144, 72, 17])
 """The colour of Pong's playfield in the ALE palette."""
 
-pytestmark = pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="needs the system Chromium (apt-get install chromium)")
+pytestmark = [pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="needs the system Chromium (apt-get install chromium)"),
+              pytest.mark.slow]
 
 
 def _fraction_of(image: np.ndarray, color: np.ndarray, tolerance: int = 12) -> float:

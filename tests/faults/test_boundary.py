@@ -99,6 +99,7 @@ return 0
     assert not a.exists() and not b.exists()
 
 
+@pytest.mark.slow
 def test_a_process_spawned_does_not_run(store, write_policy, sentinel, capsys):
     a, b, c = sentinel
     path = write_policy(pong_policy(ESCAPE + SPAWN.format(system=a, spawn=b, fork=c) + """
@@ -342,6 +343,7 @@ def test_a_missing_kernel_feature_is_refused_loudly(kernel_lacks_landlock, store
     assert not store.exists() or store.query("SELECT count(*) FROM episodes") == [(0,)], "nothing ran"
 
 
+@pytest.mark.slow
 def test_the_weak_sandbox_is_an_explicit_choice_warned_about(kernel_lacks_landlock, store, capsys, monkeypatch):
     monkeypatch.setenv("CODEARCADE_ALLOW_WEAK_SANDBOX", "1")
     code = main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "5", "--store", str(store.path)])
@@ -375,6 +377,7 @@ raise ValueError(' '.join(seen))
     assert store.query("SELECT count(*) FROM steps")[0][0] == 30 + 1, "earlier rows intact, the failing step added"
 
 
+@pytest.mark.slow
 def test_no_signal_reaches_the_parent(store, write_policy, capsys):
     import signal as signals
 

@@ -228,6 +228,7 @@ def test_a_command_started_with_ctrl_c_ignored_still_stops_on_sigterm(verb, tmp_
         assert statuses <= {"finished", "interrupted"}, (statuses, said)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("phase", ["read", "write"])
 def test_a_ctrl_c_while_the_store_opens_leaves_it_usable(store, phase):
     """A press at a random moment of opening the store (attaching the file to the process's DuckDB instance, in
@@ -263,6 +264,7 @@ def test_a_ctrl_c_while_the_store_opens_leaves_it_usable(store, phase):
     assert done.returncode == 0 and done.stdout.split() == ["100", "0"], done.stdout + done.stderr[-3000:]
 
 
+@pytest.mark.slow
 def test_a_ctrl_c_during_a_query_is_a_keyboard_interrupt_and_its_transaction_is_rolled_back(store):
     """The mechanism, at the moment a press is hardest to hit from outside: a SIGINT while DuckDB runs a query
     reaches the caller as KeyboardInterrupt (not DuckDB's RuntimeError), and the write it cut left nothing. In a

@@ -66,6 +66,7 @@ def test_read_only_directory(tmpfs, capsys):
     assert "store.duckdb" in line and ("writable" in line or "Read-only" in line)
 
 
+@pytest.mark.slow
 def test_full_disk_keeps_what_was_stored(tmpfs, capsys):
     directory = tmpfs("6m")
     path = directory / "store.duckdb"

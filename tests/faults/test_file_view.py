@@ -42,6 +42,7 @@ def project_store():
     path.unlink(missing_ok=True)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", PATHS)
 def test_the_project_s_tests_examples_and_stores_do_not_reach_a_policy(path, tmp_path, scripted, project_store):
     targets = [FIXTURE, EXAMPLE, ROOT / "tests" / "conftest.py", ROOT / "tests" / "policies" / "pong_competent.py",

@@ -64,7 +64,7 @@ def _optimize(tmp_path: Path, scripted, body: str, steps: int = 40):
     return result, store, model
 
 
-PATHS = ["eval", "optimize"]
+PATHS = ["eval", pytest.param("optimize", marks=pytest.mark.slow)]  # the quick lane attacks through eval
 
 
 def _run(path: str, tmp_path: Path, scripted, body: str, steps: int = 40) -> tuple[Store, str, list]:

@@ -134,6 +134,7 @@ def test_a_leaking_policy_file_leaks_nothing_through_eval(canaries, store, tmp_p
     assert outputs == [('"[redacted] [redacted]"',)]
 
 
+@pytest.mark.slow
 def test_a_leaking_policy_leaks_nothing_through_optimize(canaries, store, scripted, tmp_path, capfd):
     path = tmp_path / "leaky.py"
     path.write_text(LEAKY_POLICY)
@@ -203,6 +204,7 @@ def test_resume_honours_the_token_budget_given(store, scripted, tmp_path, capfd)
     assert counted[1] > 2500 >= counted[2], counted
 
 
+@pytest.mark.slow
 def test_a_huge_candidate_that_validates_does_not_end_the_run(store, scripted, capfd):
     # 400 KB of docstring: a valid method, under the reply limit, that no later prompt could show
     huge = ('def select_action(self, predicted_ball_y, obs):\n    """' + "word " * 80_000 + '"""\n'
