@@ -12,6 +12,8 @@ from __future__ import annotations
 import duckdb
 import pyarrow as pa
 
+from store.incoming import insert_arrow
+
 Bundle = dict[str, pa.Table]
 
 RUN_TABLES = ("runs", "policy_versions", "policy_lines", "iterations", "candidates", "feedback", "llm_calls",
@@ -62,9 +64,5 @@ def import_run(con: duckdb.DuckDBPyConnection, bundle: Bundle) -> None:
     for name, table in bundle.items():
         if table.num_rows == 0:
             continue
-        con.register("incoming_rows", table)
-        try:
-            conflict = " ON CONFLICT DO NOTHING" if name == "blobs" else ""
-            con.execute(f"INSERT INTO {name} BY NAME SELECT * FROM incoming_rows{conflict}")
-        finally:
-            con.unregister("incoming_rows")
+        conflict = " ON CONFLICT DO NOTHING" if name == "blobs" else ""
+        insert_arrow(con, "incoming_rows", table, f"INSERT INTO {name} BY NAME SELECT * FROM incoming_rows{conflict}")

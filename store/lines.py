@@ -23,6 +23,7 @@ from typing import Any, Mapping
 import duckdb
 import pyarrow as pa
 
+from store.incoming import insert_arrow
 from store.readers import _rows
 from tracing.blame import blame_version
 
@@ -67,11 +68,8 @@ def write_version_lines(con: duckdb.DuckDBPyConnection, run_id: str, version_id:
                 rows[name].append(value)
     table = pa.table(rows, schema=_LINE_SCHEMA)
     if table.num_rows:
-        con.register("incoming_lines", table)
-        try:
-            con.execute("INSERT OR IGNORE INTO policy_lines BY NAME SELECT * FROM incoming_lines")
-        finally:
-            con.unregister("incoming_lines")
+        insert_arrow(con, "incoming_lines", table,
+                     "INSERT OR IGNORE INTO policy_lines BY NAME SELECT * FROM incoming_lines")
     return table.num_rows
 
 

@@ -23,6 +23,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from store.db import Store, utcnow
+from store.incoming import insert_arrow
 from store.lines import write_version_lines
 from store.runs import check_run_name
 
@@ -155,23 +156,15 @@ def write_episode(
             con.execute(f"DELETE FROM {table} WHERE episode_id = ?", [episode_id])
     _insert(con, "episodes", episode)
     if steps.num_rows:
-        con.register("incoming_steps", steps)
-        try:
-            con.execute("INSERT INTO steps BY NAME SELECT ? AS episode_id, * FROM incoming_steps", [episode_id])
-        finally:
-            con.unregister("incoming_steps")
+        insert_arrow(con, "incoming_steps", steps,
+                     "INSERT INTO steps BY NAME SELECT ? AS episode_id, * FROM incoming_steps", [episode_id])
     if nodes is not None and nodes.num_rows:
         # in slices of at most NODE_SLICE_BYTES: the JSON cast of ``inputs`` and ``output`` holds several times the
         # text it parses (9 x for "[{},{},...]"), so one INSERT of a whole episode held that of all of it at once
         for part in _slices(nodes, NODE_SLICE_BYTES):
-            con.register("incoming_nodes", part)
-            try:
-                con.execute(
-                    "INSERT INTO nodes BY NAME SELECT ? AS episode_id, ? AS policy_version_id, * FROM incoming_nodes",
-                    [episode_id, episode["policy_version_id"]],
-                )
-            finally:
-                con.unregister("incoming_nodes")
+            insert_arrow(con, "incoming_nodes", part,
+                         "INSERT INTO nodes BY NAME SELECT ? AS episode_id, ? AS policy_version_id, * FROM incoming_nodes",
+                         [episode_id, episode["policy_version_id"]])
 
 
 NODE_SLICE_BYTES = 2 * 2**20

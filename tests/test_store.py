@@ -189,3 +189,23 @@ def test_unrelated_duckdb_database_is_refused_and_untouched(tmp_path):
     con = duckdb.connect(str(path), read_only=True)
     assert [r[0] for r in con.execute("SELECT table_name FROM information_schema.tables").fetchall()] == ["sales"]
     con.close()
+
+
+def test_an_insert_that_fails_keeps_its_own_error_and_leaves_the_store_usable(store):
+    """An INSERT from an Arrow table that fails inside a transaction aborts it, and unregistering the table then
+    raises a TransactionException of its own: the insert's error (here a constraint; a Ctrl-C is an interrupted
+    query the same way) must be the one the command sees, and the store must take the same rows afterwards."""
+    import duckdb
+    import pyarrow as pa
+
+    from store.incoming import insert_arrow
+
+    twice = pa.table({"hash": ["h", "h"], "content": ["a", "a"]})
+    with pytest.raises(duckdb.ConstraintException):
+        with store.write() as con:
+            con.execute("CREATE TEMP TABLE unique_blobs (hash VARCHAR PRIMARY KEY, content VARCHAR)")
+            insert_arrow(con, "incoming_rows", twice, "INSERT INTO unique_blobs SELECT * FROM incoming_rows")
+    with store.write() as con:
+        con.execute("CREATE TEMP TABLE unique_blobs (hash VARCHAR PRIMARY KEY, content VARCHAR)")
+        insert_arrow(con, "incoming_rows", twice.slice(0, 1), "INSERT INTO unique_blobs SELECT * FROM incoming_rows")
+        assert con.execute("SELECT count(*) FROM unique_blobs").fetchone() == (1,)
