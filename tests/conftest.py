@@ -1,5 +1,6 @@
 """Shared fixtures: a fresh store per test, the example policies, and a writer of throwaway policy files; and the
-suite's own rules of time: a ceiling per test, and ``--soak`` for the long form of the soak loops.
+suite's own rules of time: a ceiling per test, and ``--soak`` for the long form of the soak loops; and Ctrl-C
+live in the commands the tests start, however the suite itself was started.
 
 How to run the suite, its quick lane and the full soak: docs/install.md, "Running the tests".
 """
@@ -8,6 +9,7 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 import textwrap
 from pathlib import Path
 
@@ -35,6 +37,17 @@ def ceiling_s() -> float:
     if not CEILING_SCALES_WITH_LOAD:
         return CEILING_S
     return CEILING_S * max(1.0, os.getloadavg()[1] / (os.cpu_count() or 1))
+
+
+def pytest_configure(config):
+    """Give SIGINT its handler back if the suite was started with it ignored: a suite started in the background of
+    a script (``cmd &``), under ``nohup ... &`` or by a CI runner that ignores it would pass the ignoring on to every
+    command a test starts, and Python then never turns SIGINT into KeyboardInterrupt, so a server a test stops with
+    Ctrl-C serves on, holding its ports, until the test's time-out (three tests failed so, beside two CPU hogs).
+    A caught signal is reset to its default by ``exec``: the commands start as from a terminal. A test that wants
+    the ignoring (``tests/faults/test_ctrl_c_group.py``, ``nohup=True``) sets it in its child itself."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_addoption(parser):

@@ -220,10 +220,7 @@ def test_ctrl_c_prints_the_resume_command_and_it_continues_the_run(tmp_path):
     with ScriptedModel([{"sleep": 120, "content": COMPETENT_REPLY}, COMPETENT_REPLY], tmp_path / "model") as model:
         proc = subprocess.Popen([EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base",
                                  model.api_base, "--iterations", "1", *FAST, "--store", str(store.path)],
-                                cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                # as from a terminal: a suite started in the background (`cmd &` in a script)
-                                # passes SIGINT on ignored, and Python then never raises KeyboardInterrupt
-                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                                cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         lines = []
         for line in proc.stdout:
             lines.append(line.rstrip("\n"))

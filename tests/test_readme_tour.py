@@ -91,11 +91,10 @@ def test_the_readme_tour_runs_as_printed(tmp_path):
 
 def serve_until_interrupted(words: list[str], cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
     """Run a serving command until it prints its URL and the line that says Ctrl-C stops it, then press Ctrl-C."""
-    # Its own process group with Ctrl-C live, as a terminal's shell starts it: under `nohup` or a CI runner that
-    # ignores SIGINT the child would inherit the ignoring and serve on, holding its ports, after the test.
+    # Its own process group, as a terminal's shell starts it (Ctrl-C is live in it however the suite was started:
+    # tests/conftest.py's pytest_configure)
     proc = subprocess.Popen([EXE, *words[1:]], cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, stdin=subprocess.DEVNULL, process_group=0,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            text=True, stdin=subprocess.DEVNULL, process_group=0)
     try:
         lines = []
         deadline = time.monotonic() + 120
