@@ -55,7 +55,7 @@ from games import get_game  # noqa: E402
 from games import envs  # noqa: E402
 from pipeline.boundary import wire  # noqa: E402
 from pipeline.boundary.policy import ACTION, Channel, coerce_action  # noqa: E402
-from pipeline.boundary.workers import zygote  # noqa: E402
+from pipeline.boundary.zygotes import zygote  # noqa: E402
 from pipeline.play import rollout  # noqa: E402
 from pipeline.play.episodes import episode_from_worker, episode_to_json  # noqa: E402
 from pipeline.play.rollout import EpisodeSpec, RemotePolicy, play_episode, prepare_episode  # noqa: E402
@@ -310,7 +310,7 @@ store = Store({store!r})
 with store.write():  # a new store: its schema and migrations
     pass
 out["store"] = time.perf_counter() - t
-from pipeline.boundary.workers import zygote
+from pipeline.boundary.zygotes import zygote
 t = time.perf_counter()
 zygote("game")
 out["game zygote"] = time.perf_counter() - t

@@ -140,7 +140,7 @@ def test_worker_crash_is_recorded_not_raised():
 def test_a_policy_that_misbehaves_leaves_nothing_in_its_host_for_the_next_episode():
     """The host of a policy that spun past its call limit, and of one that raised, plays the next episode on it
     exactly as a fresh host does: nothing of a hostile episode stays in the host it shared."""
-    from pipeline.boundary import workers
+    from pipeline.boundary import zygotes
 
     hostile = [pong_policy("while True:\n    pass"), pong_policy("raise ValueError('x' * 100000)")]
     benign = pong_policy("return random.randrange(6)", prelude="import random\n")
@@ -148,9 +148,9 @@ def test_a_policy_that_misbehaves_leaves_nothing_in_its_host_for_the_next_episod
         specs = [EpisodeSpec("e0", "r", "pong", text, "v", index=0, max_steps=50, call_time_limit_s=0.3),
                  EpisodeSpec("e1", "r", "pong", benign, "v", index=1, seed=5, max_steps=60),
                  EpisodeSpec("e2", "r", "pong", benign, "v", index=2, seed=9, max_steps=60)]
-        forks_before = workers.zygote("game").next_id
+        forks_before = zygotes.zygote("game").next_id
         together = dict(run_episodes(specs, workers=1))
-        assert workers.zygote("game").next_id - forks_before == 2, "e2 was played by e0's host"
+        assert zygotes.zygote("game").next_id - forks_before == 2, "e2 was played by e0's host"
         assert together[0].end_reason in ("timeout", "policy_error"), together[0].episode
         [(_, alone)] = list(run_episodes([specs[2]], workers=1))
         assert together[2].end_reason == alone.end_reason == "truncated"
@@ -170,31 +170,31 @@ def test_a_host_that_failed_is_not_handed_the_next_episode():
 
 
 def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():
-    from pipeline.boundary import workers
+    from pipeline.boundary import zygotes
 
     specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=5)
              for i in range(2)]
     results = list(run_episodes(specs, workers=2))
     assert sorted(i for i, _ in results) == [0, 1] and all(o.end_reason == "truncated" for _, o in results)
-    zygotes = [workers.zygote("game"), workers.zygote("policy")]
+    both = [zygotes.zygote("game"), zygotes.zygote("policy")]
     deadline = time.monotonic() + 10
-    while any(z.count() for z in zygotes) and time.monotonic() < deadline:
+    while any(z.count() for z in both) and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert [z.count() for z in zygotes] == [0, 0], "every host and policy process has exited"
+    assert [z.count() for z in both] == [0, 0], "every host and policy process has exited"
 
 
 def test_kept_hosts_play_the_next_call_as_fresh_ones_and_exit_when_the_block_ends():
     """Inside ``keep_hosts`` the game hosts idle at the end of a call play the next call's episodes (no host is
     forked for it) exactly as fresh hosts do; a call on other environments gets fresh hosts (the kept ones go);
     when the block ends every kept host exits."""
-    from pipeline.boundary import workers
+    from pipeline.boundary import zygotes
 
     benign = pong_policy("return random.randrange(6)", prelude="import random\n")
     specs = [EpisodeSpec(f"e{i}", "r", "pong", benign, "v", index=i, seed=seed, max_steps=60)
              for i, seed in enumerate((5, 9, 13))]
     fresh = dict(run_episodes(specs, workers=2))
-    game = workers.zygote("game")
-    with workers.keep_hosts():
+    game = zygotes.zygote("game")
+    with zygotes.keep_hosts():
         list(run_episodes(specs[:2], workers=2))
         assert game.count() == 2, "the two hosts of the first call wait for the next"
         forks_before = game.next_id
@@ -217,18 +217,18 @@ def test_a_block_of_kept_hosts_ends_without_waiting_for_a_thread_that_plays():
     kept hosts go at once: it never waits for that thread's episodes."""
     import threading
 
-    from pipeline.boundary import workers
+    from pipeline.boundary import zygotes
 
     specs = [EpisodeSpec("e0", "r", "pong", pong_policy("return 0"), "v", index=0, max_steps=20)]
-    game = workers.zygote("game")
+    game = zygotes.zygote("game")
     playing, done, how = threading.Event(), threading.Event(), []
 
     def other_thread() -> None:
-        with workers._ZYGOTE_USE:  # as a thread inside run_tasks holds it
+        with zygotes.ZYGOTE_USE:  # as a thread inside run_tasks holds it
             playing.set()
             how.append("released by the block's end" if done.wait(60) else "the block waited for this thread")
 
-    with workers.keep_hosts():
+    with zygotes.keep_hosts():
         list(run_episodes(specs, workers=1))
         thread = threading.Thread(target=other_thread)
         thread.start()
@@ -251,7 +251,7 @@ def test_kept_hosts_do_not_outlive_the_process_that_kept_them(ending, tmp_path):
 
     script = (
         "import os, sys\n"
-        "from pipeline.boundary.workers import keep_hosts, zygote\n"
+        "from pipeline.boundary.zygotes import keep_hosts, zygote\n"
         "from pipeline.play.episodes import run_episodes\n"
         "from pipeline.play.rollout import EpisodeSpec\n"
         "from tests.conftest import pong_policy\n"
@@ -317,11 +317,11 @@ def test_console_script(tmp_path):
 def test_a_dead_zygote_costs_only_its_episodes_and_the_next_call_starts_another():
     import signal as signals
 
-    from pipeline.boundary import workers
+    from pipeline.boundary import zygotes
 
     specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=2000)
              for i in range(2)]
-    pid = workers.zygote().proc.pid
+    pid = zygotes.zygote().proc.pid
     killed = []
 
     def progress(i, n):
@@ -332,7 +332,7 @@ def test_a_dead_zygote_costs_only_its_episodes_and_the_next_call_starts_another(
     results = dict(run_episodes(specs, workers=1, progress=progress))
     assert killed and [results[i].end_reason for i in (0, 1)] == ["crashed", "crashed"], results
     [(_, again)] = list(run_episodes(specs[:1], workers=1))
-    assert again.end_reason in ("terminated", "truncated") and workers.zygote().proc.pid != pid
+    assert again.end_reason in ("terminated", "truncated") and zygotes.zygote().proc.pid != pid
 
 
 def test_a_staged_worker_plays_its_episode_as_a_fresh_one_and_its_wait_is_not_its_time():
@@ -359,7 +359,7 @@ def test_a_game_host_plays_each_next_episode_as_a_fresh_host_would(game):
     environment is reset with the episode's seed, the policy process is new): every episode it plays, steps and
     observations, is the one a fresh host plays alone. Breakout also under the standard stochastic protocol, whose
     reset reloads the ROM and draws its no-ops."""
-    from pipeline.boundary import workers
+    from pipeline.boundary import zygotes
 
     n = get_game(game).n_actions
     text = random_policy(game, f"(random.randrange({n}) + len(obs)) % {n}")
@@ -367,9 +367,9 @@ def test_a_game_host_plays_each_next_episode_as_a_fresh_host_would(game):
     for protocol in protocols:
         specs = [EpisodeSpec(f"e{i}", "r", game, text, "v", index=i, seed=11 + i, max_steps=120, **protocol)
                  for i in range(3)]
-        forks_before = workers.zygote("game").next_id
+        forks_before = zygotes.zygote("game").next_id
         together = dict(run_episodes(specs, workers=1))
-        assert workers.zygote("game").next_id - forks_before < len(specs), "hosts were handed the next episode"
+        assert zygotes.zygote("game").next_id - forks_before < len(specs), "hosts were handed the next episode"
         for i, spec in enumerate(specs):
             [(_, alone)] = list(run_episodes([spec], workers=1))
             assert together[i].end_reason == alone.end_reason, (game, protocol, i, together[i].episode)

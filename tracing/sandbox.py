@@ -21,7 +21,7 @@ Policy files and LLM-generated methods are untrusted. This module is the in-proc
 
 What this does not do: it is no security boundary (any allowed module that re-exports ``sys`` or
 ``builtins`` leaks, and it cannot interrupt a long-running C call). The boundary is the operating system:
-policy code runs only in a worker process with no secrets, confined by the kernel (``pipeline/boundary/workers.py``,
+policy code runs only in a worker process with no secrets, confined by the kernel (``pipeline/boundary/zygotes.py``,
 ``pipeline/boundary/zygote.py``, ``pipeline/boundary/confine.py``; see docs/sandbox.md).
 """
 

@@ -1,6 +1,6 @@
 """The zygotes: clean processes that fork one worker per task (``python -m pipeline.boundary.zygote ROLE FD``).
 
-The executor (``pipeline/boundary/workers.py``) starts two, each with a fresh interpreter, an environment
+The parent (``pipeline/boundary/zygotes.py``) starts two, each with a fresh interpreter, an environment
 reduced to an allow-list (no API keys, no store path), its scratch directory as HOME and cwd, and one end of a
 Unix ``SOCK_SEQPACKET`` socket pair as its only inherited descriptor. Each serves one :data:`ROLES` entry:
 

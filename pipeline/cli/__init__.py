@@ -85,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, _interrupted_once)
     try:
-        from pipeline.boundary.workers import keep_hosts
+        from pipeline.boundary.zygotes import keep_hosts
 
         with keep_hosts():  # a verb that plays several times reuses its game hosts; they exit with the verb
             return handler(args)

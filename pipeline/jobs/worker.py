@@ -15,7 +15,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pipeline.boundary.workers import keep_hosts
+from pipeline.boundary.zygotes import keep_hosts
 from pipeline.llm.client import open_client
 from pipeline.optimizer.config import OptimizeConfig, fit_to_model
 from pipeline.optimizer.loop import OptimizeResult, optimize, start_run

@@ -30,7 +30,8 @@ from pipeline.boundary.nodes import MalformedTrace, check_nodes, read_nodes
 from pipeline.boundary.policy import PRINTED_TEXT_BYTES
 from pipeline.boundary.untrusted import utf8_prefix
 from pipeline.boundary.wire import MAX_TEXT, BadMessage
-from pipeline.boundary.workers import ProgressCallback, Task, Zygote, run_tasks
+from pipeline.boundary.workers import ProgressCallback, Task, run_tasks
+from pipeline.boundary.zygotes import Zygote
 from pipeline.play.rollout import (GAME_END_REASONS, EpisodeOutcome, EpisodeSpec, RemotePolicy, _episode_row,
                                    crashed_outcome, play_episode, play_game, prepare_episode, run_episode, run_game)
 
@@ -321,7 +322,7 @@ def run_episodes(
     ends ``crashed`` or ``timeout``."""
     specs = list(specs)
     # each environment is built once in the game zygote (~0.1-0.2 s each): forked hosts inherit it ready, and a
-    # host kept from an earlier call (workers.keep_hosts) is handed only episodes on the environments it has
+    # host kept from an earlier call (zygotes.keep_hosts) is handed only episodes on the environments it has
     envs = tuple(sorted({(s.game, s.sticky, s.noop_max, s.one_life, s.observation) for s in specs}, key=str))
 
     def prepare(zyg: Zygote) -> None:

@@ -318,9 +318,9 @@ def test_a_policy_file_too_deep_for_the_checks_is_refused_in_one_line(verb, body
 @pytest.fixture
 def kernel_lacks_landlock(monkeypatch):
     """The zygote's hello says Landlock is missing (as on a kernel without it); a fresh zygote is started."""
-    from pipeline.boundary import workers
+    from pipeline.boundary import zygotes
 
-    original = workers.Zygote._recv
+    original = zygotes.Zygote._recv
 
     def recv(self, timeout):
         msg = original(self, timeout)
@@ -328,10 +328,10 @@ def kernel_lacks_landlock(monkeypatch):
             msg["missing"] = ["landlock (Landlock is not enabled in this kernel)"]
         return msg
 
-    monkeypatch.setattr(workers.Zygote, "_recv", recv)
-    workers.stop_zygote()
+    monkeypatch.setattr(zygotes.Zygote, "_recv", recv)
+    zygotes.stop_zygote()
     yield
-    workers.stop_zygote()
+    zygotes.stop_zygote()
 
 
 def test_a_missing_kernel_feature_is_refused_loudly(kernel_lacks_landlock, store, capsys, monkeypatch):
