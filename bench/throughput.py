@@ -13,6 +13,9 @@ alone. Three tables:
    (0.12-0.2 s each); eval's restore the state the ROM was loaded into (``games.envs.reload_from_snapshot``, a
    few ms), so the ratios against bare OCAtari's steps alone, its resets left out, are the headline:
    targets eval/stepping >= 0.85, trace/stepping >= 0.70 (eval/bare and trace/bare, resets counted, beside).
+   Beside them, what an evaluation costs around its steps (``fixed``: one episode of one step) and the ratio
+   with that taken out (``per step``): which of the two keeps a game below its target. The game hosts are kept
+   between evaluations (``keep_hosts``, as the optimizer's assessments play) unless ``--fresh-hosts``.
 2. **The round trip.** A policy that returns 0 at once, played by a host with a policy process and, for
    reference, in the parent itself (``--workers 0``): the difference of the time the host waits per step is the
    cost of the process boundary (marshalled observation out, an 8-byte action back, two processes on one core);
@@ -28,7 +31,7 @@ printed (``BELOW TARGET``), not failed: how fast the shared cores are at the tim
 The configurations are measured in rotating order, several times; each one's best time counts (noise from other
 tenants of the cores only ever adds time), and the median of the per-repeat ratios is shown beside.
 
-    .venv/bin/python bench/throughput.py [--games pong breakout] [--episodes 3] [--repeats 7] [--skip-end-to-end]
+    .venv/bin/python bench/throughput.py [--games pong breakout] [--episodes 3] [--repeats 7] [--skip-end-to-end] [--fresh-hosts]
 
 OCAtari's class computes wrong objects for several games under numpy 2 and then overflows; the baseline gets
 the same int64-RAM fix codearcade uses, so both sides do the same extraction work.
@@ -37,6 +40,7 @@ the same int64-RAM fix codearcade uses, so both sides do the same extraction wor
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import marshal
 import math
@@ -54,6 +58,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from games import GAMES, get_game  # noqa: E402
+from pipeline.boundary.zygotes import keep_hosts  # noqa: E402
 from pipeline.play.evaluate import EvalConfig, evaluate  # noqa: E402
 from store import Store  # noqa: E402
 
@@ -119,11 +124,14 @@ def timed_eval(policy: Path, store: Store, episodes: int, trace: bool, workers: 
     return time.perf_counter() - start, result.run_id
 
 
-def steady_state(games: list[str], store: Store, episodes: int, repeats: int) -> tuple[list[str], list[str]]:
-    """The steady-state table; the targets missed and the ratios that could not be measured."""
+def steady_state(games: list[str], store: Store, episodes: int, repeats: int,
+                 fresh_hosts: bool = False) -> tuple[list[str], list[str]]:
+    """The steady-state table; the targets missed and the ratios that could not be measured. ``fresh_hosts``:
+    each evaluation forks its game hosts (as a lone ``codearcade eval``); else they are kept between evaluations
+    (``keep_hosts``, as the optimizer plays), as the bare side builds its environment once."""
     print(f"{'game':<15} {'steps':>6} {'bare stepping':>14} {'eval':>13} {'eval --trace':>13} "
-          f"{'eval/stepping':>14} {'trace/stepping':>15} {'eval/bare':>10} {'trace/bare':>11}   "
-          "(median of paired ratios)")
+          f"{'eval/stepping':>14} {'trace/stepping':>15} {'eval/bare':>10} {'trace/bare':>11} "
+          f"{'fixed':>11} {'per step':>9}   (median of paired ratios)")
     failures, absent = [], []
     for game in games:
         policy = ROOT / "games" / "scaffolds" / f"{game}.py"
@@ -143,6 +151,9 @@ def steady_state(games: list[str], store: Store, episodes: int, repeats: int) ->
             "bare": play_bare,
             "eval": lambda: timed_eval(policy, store, episodes, trace=False)[0],
             "trace": lambda: timed_eval(policy, store, episodes, trace=True)[0],
+            # what an evaluation costs around its steps: one episode of one step (the check, the run's rows, a
+            # pair's start, the last write)
+            "fixed": lambda: timed_eval(policy, store, 1, trace=False, max_steps=1)[0],
         }
         seconds: dict[str, list[float]] = {name: [] for name in measure}
         order = list(measure)
@@ -153,13 +164,16 @@ def steady_state(games: list[str], store: Store, episodes: int, repeats: int) ->
         best = {name: min(times) for name, times in seconds.items()}
         ratios = {name: best["bare"] / best[name] for name in ("eval", "trace")}
         ratios.update({f"{name}/stepping": min(stepping) / best[name] for name in ("eval", "trace")})
+        # per step: eval's time less one evaluation's fixed cost, against the same steps stepped bare
+        per_step = min(stepping) / (best["eval"] - best["fixed"]) if best["eval"] > best["fixed"] else math.nan
         paired = {name: statistics.median(b / x for b, x in zip(seconds["bare"], seconds[name]))
                   for name in ("eval", "trace")}
         paired.update({f"{name}/stepping": statistics.median(b / x for b, x in zip(stepping, seconds[name]))
                        for name in ("eval", "trace")})
         print(f"{game:<15} {steps:>6} {steps / min(stepping):>9.0f} st/s {steps / best['eval']:>8.0f} st/s "
               f"{steps / best['trace']:>8.0f} st/s {ratios['eval/stepping']:>14.2f} "
-              f"{ratios['trace/stepping']:>15.2f} {ratios['eval']:>10.2f} {ratios['trace']:>11.2f}   "
+              f"{ratios['trace/stepping']:>15.2f} {ratios['eval']:>10.2f} {ratios['trace']:>11.2f} "
+              f"{best['fixed'] * 1e3:>8.0f} ms {per_step:>9.2f}   "
               f"({paired['eval/stepping']:.2f}, {paired['trace/stepping']:.2f}, {paired['eval']:.2f}, "
               f"{paired['trace']:.2f})", flush=True)
         for name, label in (("eval/stepping", "eval"), ("trace/stepping", "eval --trace")):
@@ -171,6 +185,11 @@ def steady_state(games: list[str], store: Store, episodes: int, repeats: int) ->
           f"{repeats} repeats each, interleaved; {episodes} episodes per measurement)")
     print("stepping: bare OCAtari's steps alone, its resets left out (ALE reloads the ROM in each seeded reset, "
           "0.12-0.2 s; eval's restore the loaded state, a few ms); eval/bare and trace/bare count those resets")
+    print("fixed: an evaluation of one 1-step episode (its check, run rows, a pair's start, the last write); per "
+          "step: bare stepping against eval less that fixed cost (what a step costs once an evaluation runs)")
+    print("game hosts: " + ("forked for each evaluation, as one `codearcade eval` does" if fresh_hosts else
+                            "kept between evaluations (zygotes.keep_hosts), as the optimizer's evaluations and any "
+                            "verb that evaluates more than once play"))
     return failures, absent
 
 
@@ -277,6 +296,9 @@ def main() -> int:
     parser.add_argument("--episodes", type=int, default=3, help="episodes per steady-state measurement (default: 3)")
     parser.add_argument("--repeats", type=int, default=7, help="measurements per configuration (best taken)")
     parser.add_argument("--skip-end-to-end", action="store_true", help="only the steady state and the round trip")
+    parser.add_argument("--fresh-hosts", action="store_true",
+                        help="steady state: fork the game hosts for each evaluation, as a lone `codearcade eval` "
+                             "does (default: kept between evaluations, as the optimizer plays)")
     args = parser.parse_args()
 
     tmp = Path(tempfile.mkdtemp(prefix="codearcade-bench-"))
@@ -284,7 +306,8 @@ def main() -> int:
     for trace in (False, True):  # start the zygotes, and pay what the first traced run alone pays, outside the timings
         evaluate(ROOT / "games" / "scaffolds" / "pong.py", EvalConfig(episodes=1, max_steps=50, trace=trace), store)
 
-    failures, absent = steady_state(args.games, store, args.episodes, args.repeats)
+    with contextlib.nullcontext() if args.fresh_hosts else keep_hosts():
+        failures, absent = steady_state(args.games, store, args.episodes, args.repeats, args.fresh_hosts)
     round_trip(args.games, store, tmp, max(1, args.repeats // 2))
     if not args.skip_end_to_end:
         missed, missing = end_to_end(args.games, store, tmp, max(1, min(3, args.repeats)))

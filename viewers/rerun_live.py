@@ -2,12 +2,9 @@
 
 ``run_episode`` (``pipeline/play/rollout.py``) creates a :class:`LiveEpisodeRecorder` when ``EpisodeSpec.rerun`` is
 set: a directory (the recording goes to ``DIR/<episode_id>.rrd``) or a ``rerun+http://…/proxy`` URL (a
-viewer started by ``--rerun spawn``, or any Rerun gRPC server). Rerun is imported here, in the worker, never
-in the main process: the SDK starts Rust threads, and the main process forks the workers.
-
-The worker's audit hook (``pipeline/boundary/workers.py``) refuses Python-level file writes and socket connects;
-Rerun opens its file and its gRPC connection in Rust, which the hook does not see, so nothing needs to be
-opened in advance and the hook stays as it is.
+viewer started by ``--rerun spawn``, or any Rerun gRPC server). Rerun is imported here, in the game host that
+plays the episode (``pipeline/play/episodes.py``; no policy code runs there, and it keeps the machine's network),
+never in the game zygote that forks the hosts: the SDK starts Rust threads, which a fork does not carry over.
 
 Cost: per step only a frame every ``rerun_frames_every`` steps (an indexed PNG, ``viewers/frames.py``); the
 steps themselves are read from the episode's :class:`~tracing.steps.StepLog` (which records them anyway)
