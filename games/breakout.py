@@ -62,9 +62,9 @@ def brick_runs(block, obs: dict, rows: list | None) -> None:
 
 
 def detect(objects: list, ram) -> None:
-    """OCAtari's Breakout reader, exactly, with arrays (``games/readers.py``: ~6 µs a step against ~90); imported
-    on first use, as the registry imports every game module and must stay light."""
-    from games.readers import detect_breakout
+    """OCAtari's Breakout reader, exactly, with arrays (``games/readers/breakout.py``: ~6 µs a step against
+    ~90); imported on first use, as the registry imports every game module and must stay light."""
+    from games.readers.breakout import detect_breakout
 
     detect_breakout(objects, ram)
 

@@ -36,9 +36,9 @@ PUBLISHED = (
 )
 
 def detect(objects: list, ram) -> None:
-    """OCAtari's Space Invaders reader, exactly, on the RAM as ints (``games/readers.py``); imported on first use,
-    as the registry imports every game module and must stay light."""
-    from games.readers import detect_space_invaders
+    """OCAtari's Space Invaders reader, exactly, on the RAM as ints (``games/readers/space_invaders.py``);
+    imported on first use, as the registry imports every game module and must stay light."""
+    from games.readers.space_invaders import detect_space_invaders
 
     detect_space_invaders(objects, ram)
 

@@ -1,4 +1,4 @@
-"""games/readers.py: OCAtari's RAM readers redone with arrays leave OCAtari's object list exactly as OCAtari's own.
+"""games/readers/: OCAtari's RAM readers redone with arrays leave OCAtari's object list exactly as OCAtari's own.
 
 Compared object by object (class, position, size, colour, previous position, visibility) after every call, on the
 RAMs of played games (random actions, several seeds, lives lost, bricks broken) and on RAMs whose wall bytes are
@@ -11,52 +11,22 @@ import numpy as np
 import pytest
 from ocatari.ram import extract_ram_info
 
-from games.envs import make_env
-from games.readers import detect_breakout, detect_space_invaders
-
-
-def _state(objects: list) -> list[tuple]:
-    return [(o.__class__.__name__, o._xy, o.wh, None if o.rgb is None else tuple(o.rgb), o._prev_xy, o._visible)
-            for o in objects]
-
-
-def _played_rams(seed: int, steps: int, game: str = "breakout") -> list[np.ndarray]:
-    env = make_env(game, objects=False)
-    rng = np.random.default_rng(seed)
-    env.reset(seed=seed)
-    rams = []
-    for _ in range(steps):
-        _, _, terminated, truncated, _ = env.step(int(rng.integers(env.action_space.n)))
-        rams.append(env.unwrapped.ale.getRAM().copy())
-        if terminated or truncated:
-            env.reset(seed=seed)
-    env.close()
-    return rams
-
-
-def _compare(rams: list[np.ndarray], game: str = "Breakout", reader=detect_breakout) -> int:
-    """Calls on which the two readers' object lists differ (both lists carried from call to call)."""
-    theirs = extract_ram_info.init_objects(game, False)
-    ours = extract_ram_info.init_objects(game, False)
-    differ = 0
-    for ram in rams:
-        extract_ram_info.detect_objects_ram(theirs, ram.astype(np.int64), game, False)
-        reader(ours, ram)
-        differ += _state(theirs) != _state(ours)
-    return differ
+from games.readers.breakout import detect_breakout
+from games.readers.space_invaders import detect_space_invaders
+from tests.reader_equality import calls_that_differ, object_state, played_rams
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_breakout_objects_equal_ocataris_on_played_games(seed):
-    rams = _played_rams(seed, 1500)
+    rams = played_rams(seed, 1500)
     walls = {ram[:36].tobytes() for ram in rams}
     assert len(walls) > 3, "the games broke no brick: the sweep would not cover a changing wall"
-    assert _compare(rams) == 0
+    assert calls_that_differ(rams, "Breakout", detect_breakout) == 0
 
 
 def test_breakout_objects_equal_ocataris_on_random_walls():
     rng = np.random.default_rng(7)
-    played = _played_rams(3, 400)
+    played = played_rams(3, 400)
     rams = []
     for i in range(3000):
         ram = played[i % len(played)].copy()
@@ -70,11 +40,11 @@ def test_breakout_objects_equal_ocataris_on_random_walls():
         rams.append(ram)
         if i % 7 == 0:
             rams.append(ram.copy())  # the same wall twice in a row: the reader's shortcut
-    assert _compare(rams) == 0
+    assert calls_that_differ(rams, "Breakout", detect_breakout) == 0
 
 
 def test_a_wall_outside_ocataris_formatting_goes_to_ocataris_reader():
-    ram = _played_rams(0, 5)[-1]
+    ram = played_rams(0, 5)[-1]
     ram[2] = 200  # formatted on 8 characters where OCAtari expects 6: its own reader decides what that means
     theirs = extract_ram_info.init_objects("Breakout", False)
     ours = extract_ram_info.init_objects("Breakout", False)
@@ -83,7 +53,7 @@ def test_a_wall_outside_ocataris_formatting_goes_to_ocataris_reader():
                             (detect_breakout, ours)):
         try:
             reader(objects, ram)
-            outcome = _state(objects)
+            outcome = object_state(objects)
         except Exception as exc:  # noqa: BLE001 - whatever OCAtari does, ours does the same
             outcome = type(exc).__name__
         if objects is theirs:
@@ -95,15 +65,15 @@ def test_a_wall_outside_ocataris_formatting_goes_to_ocataris_reader():
 def test_space_invaders_objects_equal_ocataris_on_played_games(seed):
     """Long enough for aliens to die, bullets to come and go, the satellite to pass and lives to be lost; the
     NoObjects OCAtari leaves in bullet slots keep the positions it gives them, and so do ours."""
-    rams = _played_rams(seed, 2500, "space_invaders")
+    rams = played_rams(seed, 2500, "space_invaders")
     assert len({tuple(ram[18:24]) for ram in rams}) > 3, "no alien died: the sweep would not cover the bitmap"
     assert any(ram[30] and ram[30] != 180 for ram in rams), "no satellite passed"
-    assert _compare(rams, "SpaceInvaders", detect_space_invaders) == 0
+    assert calls_that_differ(rams, "SpaceInvaders", detect_space_invaders) == 0
 
 
 def test_space_invaders_objects_equal_ocataris_on_random_rams():
     rng = np.random.default_rng(11)
-    played = _played_rams(2, 600, "space_invaders")
+    played = played_rams(2, 600, "space_invaders")
     rams = []
     for i in range(2000):
         ram = played[i % len(played)].copy()
@@ -112,4 +82,4 @@ def test_space_invaders_objects_equal_ocataris_on_random_rams():
             ram[index] = rng.integers(0, 256)  # positions, shields, bullets, the satellite anywhere
         ram[16] = i % 64  # every height of the alien block, the shields' edge included
         rams.append(ram)
-    assert _compare(rams, "SpaceInvaders", detect_space_invaders) == 0
+    assert calls_that_differ(rams, "SpaceInvaders", detect_space_invaders) == 0

@@ -1,0 +1,15 @@
+"""OCAtari's RAM readers redone where they are slow: the same objects, at a fraction of the cost.
+
+One module per game, each with one function that is that game's ``Game.detect`` (imported by the game's module on
+first use): ``detect_<game>(objects, ram)`` leaves OCAtari's object list exactly as
+``extract_ram_info.detect_objects_ram(objects, ram.astype(np.int64), name, False)`` would (the same classes in the
+same slots, the same positions, sizes, colours, previous positions and visibility), with ``ram`` as ALE gives it
+(uint8). Bare OCAtari pays its readers every step, so they are the one place where ``eval`` can win time back
+against it (docs/benchmarks.md, issue 40).
+
+- :mod:`games.readers.breakout`: a gather of RAM bits and runs from the bitmap's edges (~100 µs a step -> ~8).
+- :mod:`games.readers.space_invaders`: OCAtari's reader line for line on the RAM as Python ints (~41 -> ~29).
+
+tests/test_readers.py (and a ``tests/test_readers_<game>.py`` per later game) compares each with OCAtari's on
+played and random RAMs, object list against object list (``tests/reader_equality.py``).
+"""
