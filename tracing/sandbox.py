@@ -326,6 +326,7 @@ class CallTimer:
 
     def __init__(self) -> None:
         self._message = "policy call exceeded its time limit"
+        self._armed_for: tuple[float, str] | None = None
         self._previous: Any = None
 
     def __enter__(self) -> "CallTimer":
@@ -341,7 +342,9 @@ class CallTimer:
 
     def arm(self, seconds: float | None, what: str = "policy call") -> None:
         if seconds and 0 < seconds < float("inf"):  # inf (``--call-time-limit 0``): no limit; setitimer refuses it
-            self._message = f"{what} exceeded its time limit of {seconds:g} s"
+            if self._armed_for != (seconds, what):  # the same limit every step: its message is made once
+                self._armed_for = (seconds, what)
+                self._message = f"{what} exceeded its time limit of {seconds:g} s"
             signal.setitimer(signal.ITIMER_REAL, seconds, self.REFIRE_S)
 
     def disarm(self) -> None:

@@ -159,6 +159,10 @@ class Channel:
     def __init__(self, sock: socket.socket) -> None:
         self.sock = sock
         self.buffer = bytearray()
+        """Bytes read past the last frame returned (a frame begun, or the next one's start)."""
+        self._chunk = bytearray(RECEIVE_CHUNK)
+        self._chunk_view = memoryview(self._chunk)
+        """Where each read lands: one buffer for the channel's life, not a new 64 KiB ``bytes`` per read."""
         self._timeout: float | None = -1.0
         """What the socket's timeout was last set to (-1: not set here)."""
 
@@ -183,6 +187,17 @@ class Channel:
         buffer = self.buffer
         self._wait(within)  # the first read may take it all (the same value every step: no system call)
         deadline = None if within is None else time.monotonic() + within
+        if not buffer:  # the usual case, every step: nothing left over, and one read brings the whole frame
+            read = self.sock.recv_into(self._chunk)
+            if not read:
+                raise EOFError
+            if read >= HEADER.size:
+                kind, size = HEADER.unpack_from(self._chunk)
+                if size > limit:
+                    raise ValueError(f"a frame of {size} bytes is over the limit of {limit}")
+                if read == HEADER.size + size:
+                    return kind, bytes(self._chunk_view[HEADER.size:read])
+            buffer += self._chunk_view[:read]  # part of a frame, or more than one: the general path below
         while True:
             if len(buffer) >= HEADER.size:
                 kind, size = HEADER.unpack_from(buffer)
@@ -197,10 +212,10 @@ class Channel:
                     return kind, self._rest_of(size, deadline)
             if deadline is not None and buffer:  # a frame begun: the next read waits for what is left of it
                 self._left(deadline)
-            chunk = self.sock.recv(RECEIVE_CHUNK)
-            if not chunk:
+            read = self.sock.recv_into(self._chunk)
+            if not read:
                 raise EOFError
-            buffer += chunk
+            buffer += self._chunk_view[:read]
 
     def _left(self, deadline: float) -> None:
         """Wait for the next read only until ``deadline``; TimeoutError if it has passed."""
@@ -285,6 +300,7 @@ class PolicySide:
     def _play(self) -> bool:
         """One episode's exchange; whether the host asked for more (the next episode of the same game)."""
         channel, policy, recorder, n_actions = self.channel, self.policy, self.recorder, self.n_actions
+        send_answer, answers = channel.sock.sendall, action_frames(n_actions)
         step, failed = -1, False
         with CallTimer() as timer, (recorder if recorder is not None else _nothing()):
             while True:
@@ -303,7 +319,7 @@ class PolicySide:
                     recorder.begin_step(step, obs)
                 try:
                     action = timer.call(self.call_limit, policy, obs)
-                    channel.send(b"a", ACTION.pack(coerce_action(action, n_actions)))
+                    send_answer(answers[coerce_action(action, n_actions)])
                     continue
                 except PolicyTimeout as exc:
                     end_reason, error = "timeout", _describe(exc)
@@ -313,6 +329,11 @@ class PolicySide:
                     end_reason, error = "policy_error", _describe(exc)
                 failed = True
                 channel.send_json({"kind": "failed", "end_reason": end_reason, "error": error})
+
+
+def action_frames(n_actions: int) -> list[bytes]:
+    """The ``a`` frame of each legal action, made once an episode instead of packed every step."""
+    return [HEADER.pack(b"a", ACTION.size) + ACTION.pack(index) for index in range(n_actions)]
 
 
 def _describe(exc: BaseException) -> str:
