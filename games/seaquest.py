@@ -125,6 +125,21 @@ def derive_v1(obs: dict, lives: int) -> None:
     """Observation version 1: :func:`derive` with the surface patrol before the missiles."""
     derive(obs, lives, ENEMY_TYPES_V1)
 
+
+_READER: list = []
+"""``games.readers.seaquest.detect_seaquest`` once imported (an import statement per call cost ~0.5 µs)."""
+
+
+def detect(objects: list, ram) -> None:
+    """OCAtari's Seaquest reader, exactly, slot by slot on the RAM as ints (``games/readers/seaquest.py``: ~5 µs a
+    step against ~24); imported on first use, as the registry imports every game module and must stay light."""
+    if not _READER:
+        from games.readers.seaquest import detect_seaquest
+
+        _READER.append(detect_seaquest)
+    _READER[0](objects, ram)
+
+
 # The authors' published best scores (PAPER.md; mean over trials ± standard error): their follow-up's aggregate
 # (results/aggregated/all_games_aggregate.csv, the last optimization step)
 PUBLISHED = (
@@ -146,6 +161,7 @@ GAME = Game(
     colours={"Player": (187, 187, 53), "Shark": (92, 186, 92), "Submarine": (170, 170, 170),
              "SurfaceSubmarine": (214, 214, 214), "EnemyMissile": (228, 111, 111), "Diver": (66, 72, 200),
              "PlayerMissile": (187, 187, 53), "OxygenBar": (214, 214, 214), "CollectedDiver": (24, 26, 167)},
+    detect=detect,
     derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "seaquest.py",
