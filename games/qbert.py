@@ -11,8 +11,8 @@ Observation (the authors' ``trace_envs/qbert.py`` with full boxes): cubes are le
 garbage: while Q*bert falls or is between lives the extractor reports y = RAM[33] - 52 (-52..-35), and a
 GreenBall can come with x up to 319 (stale RAM). OCAtari 2.2.1 declares ``RedBall`` but never creates one: red
 balls are not reported. Its extractor keeps state in module globals (one Q*bert object list per process;
-``init_objects`` resets it) and leaves absent objects ``None``; with int64 RAM its objects are right (no
-``detect``).
+``init_objects`` resets it) and leaves absent objects ``None``; with int64 RAM its objects are right, and
+:func:`detect` gives them exactly, faster (``games/readers/qbert.py``).
 """
 
 from games.base import SCAFFOLDS, Game, Published, Task
@@ -96,6 +96,15 @@ def _numbered(obs: dict, category: str) -> list[dict]:
     return items
 
 
+def detect(objects: list, ram) -> None:
+    """OCAtari's Q*bert reader, exactly (its state in its module's globals included), on ints
+    (``games/readers/qbert.py``); imported on first use, as the registry imports every game module and must stay
+    light."""
+    from games.readers.qbert import detect_qbert
+
+    detect_qbert(objects, ram)
+
+
 def derive(obs: dict, lives: int, friendly_types: tuple[str, ...] = FRIENDLY_TYPES) -> None:
     """The authors' observation, in place: ``Player`` (absent while falling or between lives); ``Enemies``:
     {x, y, w, h, dx, dy, type}, type Coily, PurpleBall or RedBall (in that order); ``Friendlies``: the same for
@@ -159,6 +168,7 @@ GAME = Game(
     colours={"Player": (181, 83, 40), "Coily": (146, 70, 192), "PurpleBall": (200, 72, 200),
              "RedBall": (228, 60, 60), "GreenBall": (50, 200, 50), "Sam": (100, 230, 100), "Disk": (84, 138, 210)},
     object_hooks={"Cube": drop},
+    detect=detect,
     derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "qbert.py",
