@@ -8,7 +8,8 @@ Observation (the authors' ``trace_envs/freeway.py``): OCAtari reports two chicke
 1, x=44) is ours and enters the observation, as ``Chicken`` (:func:`chicken`). A car's dx is its speed: the
 jump of about +-159 px on the step it wraps around the screen edge is folded back into [-80, 80) before it is
 stored (:func:`car`). :func:`derive` groups ``Car0 .. Car9`` into ``Cars`` (lane 1 at the top to lane 10).
-OCAtari's RAM extractor is right with int64 RAM (a car at RAM x 0 is at x=-3; numpy 1 wrapped it to 253).
+OCAtari's RAM extractor is right with int64 RAM (a car at RAM x 0 is at x=-3; numpy 1 wrapped it to 253); :func:`detect`
+gives its objects exactly, faster (``games/readers/freeway.py``).
 A game lasts 2,048 agent steps under any policy.
 """
 
@@ -108,6 +109,14 @@ def derive(obs: dict, lives: int) -> None:
     obs["Cars"] = cars
 
 
+def detect(objects: list, ram) -> None:
+    """OCAtari's Freeway reader, exactly, on ints (``games/readers/freeway.py``); imported on first use, as the
+    registry imports every game module and must stay light."""
+    from games.readers.freeway import detect_freeway
+
+    detect_freeway(objects, ram)
+
+
 def derive_space(space) -> None:
     """The Gymnasium space of the observation :func:`chicken`, :func:`car` and :func:`derive` make, from the
     generic one (``games.spaces``)."""
@@ -152,6 +161,7 @@ GAME = Game(
               published=PUBLISHED),
     colours={"Chicken": (252, 252, 84), "Car": (167, 26, 26)},
     object_hooks={"Chicken": chicken, "Car": car},
+    detect=detect,
     derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "freeway.py",

@@ -12,7 +12,9 @@ against it (docs/benchmarks.md, issue 40).
 - :mod:`games.readers.seaquest`: each slot visited once, its empty slots' NoObjects kept (~24 -> ~5.5).
 - :mod:`games.readers.asterix`: OCAtari's reader on ints, keeping the ~24 objects it makes anew a step (~15 -> ~4).
 - :mod:`games.readers.qbert`: OCAtari's reader on ints, its loops as tables, its state in its globals (~10 -> ~2.7).
+- :mod:`games.readers.freeway`: OCAtari's reader on ints, its setters' one assignment written out (~5.5 -> ~1.8).
+- :mod:`games.readers.pong`: OCAtari's reader on ints, keeping the NoObjects it makes anew a step (~3.2 -> ~1.0).
 
-tests/test_readers.py (and a ``tests/test_readers_<game>.py`` per later game) compares each with OCAtari's on
+tests/test_readers.py (Breakout, Space Invaders) and ``tests/test_readers_<game>.py`` compare each with OCAtari's on
 played and random RAMs, object list against object list (``tests/reader_equality.py``).
 """
