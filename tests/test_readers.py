@@ -3,14 +3,21 @@
 Compared object by object (class, position, size, colour, previous position, visibility) after every call, on the
 RAMs of played games (random actions, several seeds, lives lost, bricks broken) and on RAMs whose wall bytes are
 random or have single bits flipped, one call after another on the same object lists, as an episode makes them.
+Space Invaders' reader redoes nothing whose bytes stand: its sweeps hold one alien bitmap for runs of calls while
+the other bytes change or stand, give it any bytes (OCAtari's exceptions compared too), alternate two object lists,
+and go through the environment itself.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 from ocatari.ram import extract_ram_info
 
+from games import get_game
+from games.envs import ObjectObservation, make_env
 from games.readers.breakout import detect_breakout
 from games.readers.space_invaders import detect_space_invaders
 from tests.reader_equality import calls_that_differ, object_state, played_rams
@@ -83,3 +90,155 @@ def test_space_invaders_objects_equal_ocataris_on_random_rams():
         ram[16] = i % 64  # every height of the alien block, the shields' edge included
         rams.append(ram)
     assert calls_that_differ(rams, "SpaceInvaders", detect_space_invaders) == 0
+
+
+SPACE_INVADERS_READ = [16, *range(18, 24), 26, 28, 30, *range(43, 70), 81, 82, 83, 84, 85, 87]
+"""Every RAM byte OCAtari's Space Invaders reader reads (without its HUD)."""
+
+
+def space_invaders_outcomes_that_differ(rams: list[np.ndarray], lists: int = 1) -> int:
+    """Calls after which OCAtari's reader and ours differ, in the exception they raise (its type) or the object
+    list they leave, with ``lists`` object lists used in turn (each carried from call to call, as an episode
+    carries it; the reader's memory of the previous call belongs to one list)."""
+    theirs = [extract_ram_info.init_objects("SpaceInvaders", False) for _ in range(lists)]
+    ours = [extract_ram_info.init_objects("SpaceInvaders", False) for _ in range(lists)]
+    differ = 0
+    for n, ram in enumerate(rams):
+        outcomes = []
+        for reader, objects in ((lambda o, r: extract_ram_info.detect_objects_ram(o, r.astype(np.int64),
+                                                                                  "SpaceInvaders", False),
+                                 theirs[n % lists]),
+                                (detect_space_invaders, ours[n % lists])):
+            try:
+                reader(objects, ram)
+                raised = None
+            except Exception as exc:  # noqa: BLE001 - whatever OCAtari does, ours does the same
+                raised = type(exc).__name__
+            outcomes.append((raised, object_state(objects)))
+        differ += outcomes[0] != outcomes[1]
+    return differ
+
+
+def space_invaders_runs(seed: int, calls: int, out_of_range: float = 0.0) -> list[np.ndarray]:
+    """RAMs in runs that hold one alien bitmap (random, a full wave, none, one alien more or less than the last,
+    one alien alone) while the game's played RAMs go on under it (lives lost included) and the other bytes the
+    reader reads change or stand: the block still or moving down to the shields, shields hit, emptied or
+    untouched, bombs and the player's bullet anywhere (their bottom edge included), the satellite there or not;
+    now and then the same RAM twice. With ``out_of_range``, that share of the bitmaps has bytes >= 64 (never
+    seen in play: OCAtari's formatting raises)."""
+    rng = np.random.default_rng(seed)
+    played = played_rams(seed, 700, "space_invaders")
+    rams = []
+    bitmap = played[0][18:24].copy()
+    ram = played[0].copy()
+    at = 0
+    while len(rams) < calls:
+        kind = rng.integers(0, 6)
+        if rng.random() < out_of_range:
+            bitmap = rng.integers(0, 256, 6).astype(np.uint8)
+        elif kind == 0:
+            bitmap = rng.integers(0, 64, 6).astype(np.uint8)
+        elif kind == 1:
+            bitmap = np.full(6, 63, dtype=np.uint8)  # a full wave: OCAtari shows the shields again
+        elif kind == 2:
+            bitmap = np.zeros(6, dtype=np.uint8)
+        elif kind == 3:  # one alien killed, or back
+            bitmap = bitmap.copy()
+            bitmap[rng.integers(0, 6)] ^= np.uint8(1 << int(rng.integers(0, 6)))
+        elif kind == 4:
+            bitmap = np.zeros(6, dtype=np.uint8)
+            bitmap[rng.integers(0, 6)] = 1 << int(rng.integers(0, 6))
+        else:
+            bitmap = bitmap.copy()  # the same bitmap again, after a run of it
+        for _ in range(int(rng.integers(1, 12))):
+            before = ram
+            ram = played[at % len(played)].copy()
+            at += 1
+            ram[18:24] = bitmap
+            change = rng.random(6)
+            if change[0] < 0.4:  # the block stands (or, from the game's RAM, moves as played)
+                ram[[16, 26]] = before[[16, 26]]
+            elif change[0] < 0.7:  # anywhere, down to the shields' height and beyond
+                ram[16] = rng.integers(0, 256) if rng.random() < 0.3 else rng.integers(0, 64)
+                ram[26] = rng.integers(0, 256)
+            if change[1] < 0.4:
+                ram[43:70] = before[43:70]
+            elif change[1] < 0.7:
+                ram[43:70] = rng.integers(0, 256, 27) * (rng.random(27) < 0.5)
+                ram[43 + 9 * rng.integers(0, 3):][:9] = 0  # a shield shot away
+            if change[2] < 0.5:  # bombs and bullet: on screen, at the bottom edge (y 186..193), off, anything
+                ram[[81, 82, 85]] = rng.choice([0, 5, 9, 50, 91, 92, 93, 94, 95, 96, 200, 255], 3)
+                ram[[83, 84, 87]] = rng.integers(0, 256, 3)
+            if change[3] < 0.3:
+                ram[30] = rng.choice([0, 180, 1, 179, 181, 255, int(rng.integers(0, 256))])
+            if change[4] < 0.2:
+                ram[28] = rng.integers(0, 256)
+            rams.append(ram)
+            if change[5] < 0.1:
+                rams.append(ram.copy())
+    return rams
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_space_invaders_objects_equal_ocataris_while_the_bitmap_stands(seed):
+    """The reader re-derives the alien slots only when the bitmap or the object list changes, places the aliens
+    only when the block moved, writes the shields only when their bytes changed: runs of one bitmap while
+    everything else changes or stands, bitmaps changing after runs, on one object list and on two in turn."""
+    rams = space_invaders_runs(seed, 3000)
+    stacked = np.array(rams)
+    runs = np.flatnonzero((stacked[1:, 18:24] != stacked[:-1, 18:24]).any(axis=1))
+    assert 200 < len(runs) < len(rams) / 3, "the bitmap should change after runs of calls, not every call"
+    assert (stacked[:, 18:24] == 63).all(axis=1).any() and (stacked[:, 18:24] == 0).all(axis=1).any()
+    assert (2 * stacked[:, 16].astype(int) + 18 * 5 >= 116).sum() > 100, "the block never reached the shields"
+    assert len(set(stacked[:, 73].tolist())) >= 3, "no life was lost"
+    assert space_invaders_outcomes_that_differ(rams) == 0
+    assert space_invaders_outcomes_that_differ(rams, lists=2) == 0
+
+
+def test_space_invaders_objects_equal_ocataris_on_any_bytes():
+    """Every byte the reader reads random, bitmaps with bytes >= 64 among them (OCAtari raises there, leaving
+    its list half-updated; the next calls go on from that list), and runs of them."""
+    rng = np.random.default_rng(19)
+    played = played_rams(5, 300, "space_invaders")
+    rams = []
+    for i in range(3000):
+        ram = played[i % len(played)].copy()
+        ram[SPACE_INVADERS_READ] = rng.integers(0, 256, len(SPACE_INVADERS_READ))
+        if rng.random() < 0.8:
+            ram[18:24] = rng.integers(0, 64, 6)
+        rams.append(ram)
+    rams += space_invaders_runs(6, 2000, out_of_range=0.2)
+    assert sum(ram[18:24].max() >= 64 for ram in rams) > 300
+    assert space_invaders_outcomes_that_differ(rams) == 0
+    assert space_invaders_outcomes_that_differ(rams, lists=2) == 0
+
+
+def test_space_invaders_observations_equal_ocataris_through_the_environment():
+    """The environment sets every slot's previous position after its first observation (NoObjects included):
+    the satellite's NoObject kept from then on would differ from the new one OCAtari puts there."""
+    game = get_game("space_invaders")
+    ours, theirs = make_env(game), make_env(dataclasses.replace(game, detect=None))
+    rng = np.random.default_rng(5)
+    differ = steps = 0
+    for _ in range(2):  # two games: two first observations, on new object lists
+        observations = ours.reset(seed=3)[0], theirs.reset(seed=3)[0]
+        while True:
+            differ += observations[0] != observations[1]
+            differ += object_state(env_objects(ours)) != object_state(env_objects(theirs))
+            action = int(rng.integers(ours.action_space.n))
+            (mine, _, terminated, truncated, _), (their, *_) = ours.step(action), theirs.step(action)
+            observations = mine, their
+            steps += 1
+            if terminated or truncated:
+                break
+    ours.close()
+    theirs.close()
+    assert steps > 600
+    assert differ == 0
+
+
+def env_objects(env) -> list:
+    """OCAtari's object list the environment keeps (``games.envs.ObjectObservation``)."""
+    while not isinstance(env, ObjectObservation):
+        env = env.env
+    return env._objects

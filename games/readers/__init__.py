@@ -8,7 +8,7 @@ same slots, the same positions, sizes, colours, previous positions and visibilit
 against it (docs/benchmarks.md, issue 40).
 
 - :mod:`games.readers.breakout`: a gather of RAM bits and runs from the bitmap's edges (~100 µs a step -> ~8).
-- :mod:`games.readers.space_invaders`: OCAtari's reader line for line on the RAM as Python ints (~41 -> ~29).
+- :mod:`games.readers.space_invaders`: aliens re-derived when their bitmap changes, moved when they move (~46 -> ~2.2).
 - :mod:`games.readers.seaquest`: each slot visited once, its empty slots' NoObjects kept (~24 -> ~5.5).
 - :mod:`games.readers.asterix`: OCAtari's reader on ints, keeping the ~24 objects it makes anew a step (~15 -> ~4).
 - :mod:`games.readers.qbert`: OCAtari's reader on ints, its loops as tables, its state in its globals (~10 -> ~2.7).
