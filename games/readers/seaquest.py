@@ -40,20 +40,20 @@ from ocatari.ram.seaquest import (
 )
 
 _EAST, _WEST = Orientation.E, Orientation.W
-
-
-def _no_object(o):
-    """``o`` when it is a ``NoObject`` in a fresh one's state (see the module docstring), else a fresh one."""
-    if o.__class__ is NoObject and o._prev_xy is None:
-        return o
-    return NoObject()
+_ENEMY_SLOTS = tuple((lane, 4 >> j, lane * 3 + j + 1, lane * 3 + j + 13, 16 * j, 141 - lane * 24)
+                     for lane in range(4) for j in range(3))
+"""Per enemy slot, left to right in each lane, bottom lane first: its lane, the lane's formation bit that fills it
+(OCAtari's ``(formation // 2 ** (2 - j)) % 2``), its shark and submarine slots, its x offset and its y."""
+_DIVER_SLOTS = tuple((74 - i, 3 - i, 25 + i, 29 + i, 141 - (3 - i) * 24) for i in range(4))
+"""Per diver / missile slot pair, bottom lane first: the RAM byte of its x, its lane, its two slots, a diver's y."""
 
 
 def detect_seaquest(objects: list, ram: np.ndarray) -> None:
     """``extract_ram_info.detect_objects_ram(objects, ram.astype(np.int64), "Seaquest", False)``, exactly (see the
     module docstring); ``ram`` as ALE gives it (uint8)."""
     r = ram.tolist()
-    # ``o.__class__ is not NoObject and o._visible`` is ``bool(o)`` (GameObject.__bool__) without a Python call
+    # ``o.__class__ is not NoObject and o._visible`` is ``bool(o)`` (GameObject.__bool__) without a Python call;
+    # ``o.__class__ is not NoObject or o._prev_xy is not None``: ``o`` is not a NoObject as fresh as OCAtari's
 
     # the player (slot 0): the object there moves and turns, then is replaced if it should (dis)appear
     player = objects[0]
@@ -67,75 +67,57 @@ def detect_seaquest(objects: list, ram: np.ndarray) -> None:
     elif player.__class__ is NoObject or not player._visible:
         objects[0] = Player()
 
-    # enemies: four lanes of three slots, sharks in slots 1-12, submarines in 13-24
-    for lane in range(4):
-        submarines = 3 < r[89 + lane] % 8 < 7
-        formation = r[36 + lane]
-        left = r[30 + lane]
-        y = 141 - lane * 24
-        for j in range(3):
-            shark_slot = lane * 3 + j + 1
-            sub_slot = shark_slot + 12
-            x = (left + 16 * j) % 256
-            if (formation >> (2 - j)) & 1 and x <= 165:  # x >= 0 >= -5 always
-                if submarines:
-                    enemy, other = objects[sub_slot], objects[shark_slot]
-                    if enemy.__class__ is Submarine:
-                        if enemy._visible:
-                            enemy._prev_xy = enemy._xy
-                    else:
-                        enemy = objects[sub_slot] = Submarine()
-                    enemy._xy = x, y
-                else:
-                    enemy, other = objects[shark_slot], objects[sub_slot]
-                    if enemy.__class__ is Shark:
-                        if enemy._visible:
-                            enemy._prev_xy = enemy._xy
-                    else:
-                        enemy = objects[shark_slot] = Shark()
-                    enemy._xy = x, y + r[93] - 4
-                if other.__class__ is not NoObject and other._visible:  # left where it was (OCAtari's quirk)
-                    other._prev_xy = other._xy
-            else:  # both slots empty (the commonest case: the check of _no_object inlined)
-                o = objects[shark_slot]
-                if o.__class__ is not NoObject or o._prev_xy is not None:
-                    objects[shark_slot] = NoObject()
-                o = objects[sub_slot]
-                if o.__class__ is not NoObject or o._prev_xy is not None:
-                    objects[sub_slot] = NoObject()
+    # enemies: four lanes of three slots, sharks in slots 1-12, submarines in 13-24 (_ENEMY_SLOTS)
+    bob = r[93] - 4  # sharks float up and down around their lane
+    for lane, bit, shark_slot, sub_slot, dx, y in _ENEMY_SLOTS:
+        x = (r[30 + lane] + dx) % 256
+        if r[36 + lane] & bit and x <= 165:  # x >= 0 >= -5 always
+            if 3 < r[89 + lane] % 8 < 7:  # a lane of submarines
+                kind, slot, other = Submarine, sub_slot, objects[shark_slot]
+            else:
+                kind, slot, other, y = Shark, shark_slot, objects[sub_slot], y + bob
+            enemy = objects[slot]
+            if enemy.__class__ is kind:
+                if enemy._visible:
+                    enemy._prev_xy = enemy._xy
+            else:
+                enemy = objects[slot] = kind()
+            enemy._xy = x, y
+            if other.__class__ is not NoObject and other._visible:  # left where it was (OCAtari's quirk)
+                other._prev_xy = other._xy
+        else:  # both slots empty
+            o = objects[shark_slot]
+            if o.__class__ is not NoObject or o._prev_xy is not None:
+                objects[shark_slot] = NoObject()
+            o = objects[sub_slot]
+            if o.__class__ is not NoObject or o._prev_xy is not None:
+                objects[sub_slot] = NoObject()
 
-    # divers (slots 25-28) and enemy missiles (29-32) share a byte per lane, bottom lane first
-    for i in range(4):
-        lane = 3 - i
-        x = r[74 - i]
-        on_screen = 0 < x < 160
-        if 3 < r[89 + lane] % 8 < 7:  # the lane has submarines: a missile
-            if on_screen:
-                missile = objects[29 + i]
-                if missile.__class__ is EnemyMissile:
-                    if missile._visible:
-                        missile._prev_xy = missile._xy
-                else:
-                    missile = objects[29 + i] = EnemyMissile()
-                missile._xy = x + 3, 145 - lane * 24
-                objects[25 + i] = _no_object(objects[25 + i])
-            else:
-                objects[29 + i] = _no_object(objects[29 + i])
-                stale = objects[25 + i]
-                if stale.__class__ is not NoObject and stale._visible:
-                    stale._prev_xy = stale._xy
-        elif on_screen:
-            diver = objects[25 + i]
-            if diver.__class__ is Diver:
-                if diver._visible:
-                    diver._prev_xy = diver._xy
-            else:
-                diver = objects[25 + i] = Diver()
-            diver._xy = x, 141 - lane * 24
-            objects[29 + i] = _no_object(objects[29 + i])
+    # divers (slots 25-28) and enemy missiles (29-32) share a byte per lane, bottom lane first: the lane's
+    # submarines' missile, or its diver; the slot of the other kind empties when this one is on screen, and keeps
+    # what it holds, where it was, when not (OCAtari's quirk)
+    for byte, lane, diver_slot, missile_slot, y in _DIVER_SLOTS:
+        x = r[byte]
+        if 3 < r[89 + lane] % 8 < 7:
+            kind, slot, other_slot, x, y = EnemyMissile, missile_slot, diver_slot, x + 3, y + 4
         else:
-            objects[25 + i] = _no_object(objects[25 + i])
-            stale = objects[29 + i]
+            kind, slot, other_slot = Diver, diver_slot, missile_slot
+        if 0 < r[byte] < 160:
+            item = objects[slot]
+            if item.__class__ is kind:
+                if item._visible:
+                    item._prev_xy = item._xy
+            else:
+                item = objects[slot] = kind()
+            item._xy = x, y
+            o = objects[other_slot]
+            if o.__class__ is not NoObject or o._prev_xy is not None:
+                objects[other_slot] = NoObject()
+        else:
+            o = objects[slot]
+            if o.__class__ is not NoObject or o._prev_xy is not None:
+                objects[slot] = NoObject()
+            stale = objects[other_slot]
             if stale.__class__ is not NoObject and stale._visible:
                 stale._prev_xy = stale._xy
 
@@ -147,8 +129,8 @@ def detect_seaquest(objects: list, ram: np.ndarray) -> None:
         elif patrol._visible:
             patrol._prev_xy = patrol._xy
         patrol._xy = r[118], 45
-    else:
-        objects[33] = _no_object(patrol)
+    elif patrol.__class__ is not NoObject or patrol._prev_xy is not None:
+        objects[33] = NoObject()
 
     # the player's torpedo (slot 34)
     torpedo = objects[34]
@@ -158,8 +140,8 @@ def detect_seaquest(objects: list, ram: np.ndarray) -> None:
         elif torpedo._visible:
             torpedo._prev_xy = torpedo._xy
         torpedo._xy = r[103], r[97] + 40
-    else:
-        objects[34] = _no_object(torpedo)
+    elif torpedo.__class__ is not NoObject or torpedo._prev_xy is not None:
+        objects[34] = NoObject()
 
     # the oxygen bar (slot 35): a ValueObject, whose previous value is saved with its position
     bar = objects[35]
@@ -186,5 +168,5 @@ def detect_seaquest(objects: list, ram: np.ndarray) -> None:
             else:
                 icon = objects[36 + i] = CollectedDiver()
                 icon._xy = 58 + i * 8, 178
-        else:
-            objects[36 + i] = _no_object(icon)
+        elif icon.__class__ is not NoObject or icon._prev_xy is not None:
+            objects[36 + i] = NoObject()
