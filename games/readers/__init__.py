@@ -9,7 +9,7 @@ against it (docs/benchmarks.md, issue 40).
 
 - :mod:`games.readers.breakout`: a gather of RAM bits and runs from the bitmap's edges (~100 µs a step -> ~8).
 - :mod:`games.readers.space_invaders`: aliens re-derived when their bitmap changes, moved when they move (~46 -> ~2.2).
-- :mod:`games.readers.seaquest`: each slot visited once, its empty slots' NoObjects kept (~24 -> ~5.5).
+- :mod:`games.readers.seaquest`: each slot visited once, on ints, its empty slots' NoObjects kept (~26 -> ~4).
 - :mod:`games.readers.asterix`: OCAtari's reader on ints, keeping the ~24 objects it makes anew a step (~15 -> ~4).
 - :mod:`games.readers.qbert`: OCAtari's reader on ints, its loops as tables, its state in its globals (~10 -> ~2.7).
 - :mod:`games.readers.freeway`: OCAtari's reader on ints, its setters' one assignment written out (~5.5 -> ~1.8).
