@@ -36,8 +36,9 @@ PUBLISHED = (
 )
 
 def detect(objects: list, ram) -> None:
-    """OCAtari's Space Invaders reader, exactly, on the RAM as ints (``games/readers/space_invaders.py``);
-    imported on first use, as the registry imports every game module and must stay light."""
+    """OCAtari's Space Invaders reader, exactly, its 36 alien slots redone only when the aliens alive change
+    (``games/readers/space_invaders.py``); imported on first use, as the registry imports every game module and must
+    stay light."""
     from games.readers.space_invaders import detect_space_invaders
 
     detect_space_invaders(objects, ram)
