@@ -48,6 +48,18 @@ _DIVER_SLOTS = tuple((74 - i, 3 - i, 25 + i, 29 + i, 141 - (3 - i) * 24) for i i
 """Per diver / missile slot pair, bottom lane first: the RAM byte of its x, its lane, its two slots, a diver's y."""
 
 
+def _place(objects: list, slot: int, kind: type, x: int, y: int) -> None:
+    """OCAtari's ``obj = objects[slot]; if type(obj) is not kind: obj = kind()``, then ``obj.xy = x, y`` (with the
+    previous position saved first when ``obj`` was there and present)."""
+    obj = objects[slot]
+    if obj.__class__ is kind:
+        if obj._visible:
+            obj._prev_xy = obj._xy
+    else:
+        obj = objects[slot] = kind()
+    obj._xy = x, y
+
+
 def detect_seaquest(objects: list, ram: np.ndarray) -> None:
     """``extract_ram_info.detect_objects_ram(objects, ram.astype(np.int64), "Seaquest", False)``, exactly (see the
     module docstring); ``ram`` as ALE gives it (uint8)."""
@@ -76,13 +88,7 @@ def detect_seaquest(objects: list, ram: np.ndarray) -> None:
                 kind, slot, other = Submarine, sub_slot, objects[shark_slot]
             else:
                 kind, slot, other, y = Shark, shark_slot, objects[sub_slot], y + bob
-            enemy = objects[slot]
-            if enemy.__class__ is kind:
-                if enemy._visible:
-                    enemy._prev_xy = enemy._xy
-            else:
-                enemy = objects[slot] = kind()
-            enemy._xy = x, y
+            _place(objects, slot, kind, x, y)
             if other.__class__ is not NoObject and other._visible:  # left where it was (OCAtari's quirk)
                 other._prev_xy = other._xy
         else:  # both slots empty
@@ -103,13 +109,7 @@ def detect_seaquest(objects: list, ram: np.ndarray) -> None:
         else:
             kind, slot, other_slot = Diver, diver_slot, missile_slot
         if 0 < r[byte] < 160:
-            item = objects[slot]
-            if item.__class__ is kind:
-                if item._visible:
-                    item._prev_xy = item._xy
-            else:
-                item = objects[slot] = kind()
-            item._xy = x, y
+            _place(objects, slot, kind, x, y)
             o = objects[other_slot]
             if o.__class__ is not NoObject or o._prev_xy is not None:
                 objects[other_slot] = NoObject()
