@@ -2,17 +2,20 @@
 
 Each ``tests/test_readers*.py`` plays real games (random actions, lives lost) and perturbs their RAMs, then runs
 OCAtari's own reader and the game's reader from ``games/readers/`` on the same RAMs, each on its own object list
-carried from call to call as an episode carries it, and counts the calls after which the two lists differ.
+carried from call to call as an episode carries it, and counts the calls after which the two lists differ
+(:func:`calls_that_differ`); and plays the game's environment with either reader (:func:`played_through_env`).
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from ocatari.ram import extract_ram_info
 
-from games.envs import make_env
+from games.base import Game
+from games.envs import ObjectObservation, make_env
 
 
 def object_state(objects: list) -> list[tuple]:
@@ -47,3 +50,38 @@ def calls_that_differ(rams: list[np.ndarray], game: str, reader: Callable[[list,
         reader(ours, ram)
         differ += object_state(theirs) != object_state(ours)
     return differ
+
+
+def env_objects(env) -> list:
+    """OCAtari's object list the environment keeps (``games.envs.ObjectObservation``)."""
+    while not isinstance(env, ObjectObservation):
+        env = env.env
+    return env._objects
+
+
+def played_through_env(game: Game, seeds: Sequence[int] = (3, 3), max_steps: int = 1_000_000, sticky: float = 0.0,
+                       state: Callable[[list], Any] = object_state,
+                       choose: Callable[[dict], int] | None = None) -> list[tuple]:
+    """Each step's observation and object-list ``state`` as the environment of ``game`` makes them, over one game
+    per seed (each reset's first observation gives every slot a previous position, NoObjects included: what a reader
+    that keeps its NoObjects must notice), each to its end or ``max_steps``. The actions are ``choose(observation)``,
+    or random from a fixed stream (the same for both sides as long as their observations are). One environment at a
+    time: a reader whose state is its module's (OCAtari's Q*bert) would share it between two.
+
+    ``played_through_env(game) == played_through_env(dataclasses.replace(game, detect=None))``: the game's reader
+    and OCAtari's give the same observations and object lists at every step."""
+    env = make_env(game, sticky=sticky)
+    rng = np.random.default_rng(5)
+    played = []
+    try:
+        for seed in seeds:
+            observation = env.reset(seed=seed)[0]
+            for _ in range(max_steps):
+                played.append((observation, state(env_objects(env))))
+                action = choose(observation) if choose is not None else int(rng.integers(env.action_space.n))
+                observation, _, terminated, truncated, _ = env.step(action)
+                if terminated or truncated:
+                    break
+    finally:
+        env.close()
+    return played

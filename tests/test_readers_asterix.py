@@ -15,9 +15,12 @@ import numpy as np
 import pytest
 
 from games import get_game
-from games.envs import ObjectObservation, make_env
 from games.readers.asterix import detect_asterix
-from tests.reader_equality import calls_that_differ, object_state, played_rams
+from tests.reader_equality import (
+    calls_that_differ,
+    played_rams,
+    played_through_env,
+)
 
 LANES = np.arange(8)
 READ = [39, 41, 54, 71, *range(11, 19), *range(29, 37), *range(42, 50), *range(73, 81)]
@@ -64,28 +67,6 @@ def test_asterix_observations_equal_ocataris_through_the_environment():
     """The environment sets every slot's previous position after its first observation (NoObjects included):
     a NoObject kept from then on would differ from the new one OCAtari puts there."""
     game = get_game("asterix")
-    ours, theirs = make_env(game), make_env(dataclasses.replace(game, detect=None))
-    rng = np.random.default_rng(5)
-    differ = steps = 0
-    for _ in range(3):  # three games: three first observations
-        observations = ours.reset(seed=3)[0], theirs.reset(seed=3)[0]
-        while True:
-            differ += observations[0] != observations[1]
-            differ += object_state(objects_of(ours)) != object_state(objects_of(theirs))
-            action = int(rng.integers(ours.action_space.n))
-            (mine, _, terminated, truncated, _), (their, *_) = ours.step(action), theirs.step(action)
-            observations = mine, their
-            steps += 1
-            if terminated or truncated:
-                break
-    ours.close()
-    theirs.close()
-    assert steps > 300
-    assert differ == 0
+    ours, theirs = (played_through_env(spec, seeds=(3, 3, 3)) for spec in (game, dataclasses.replace(game, detect=None)))
+    assert len(theirs) > 300 and ours == theirs
 
-
-def objects_of(env) -> list:
-    """OCAtari's object list the environment keeps (``games.envs.ObjectObservation``)."""
-    while not isinstance(env, ObjectObservation):
-        env = env.env
-    return env._objects

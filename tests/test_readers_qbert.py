@@ -19,9 +19,8 @@ import pytest
 from ocatari.ram import extract_ram_info, qbert
 
 from games import get_game
-from games.envs import ObjectObservation, make_env
 from games.readers.qbert import detect_qbert
-from tests.reader_equality import object_state, played_rams
+from tests.reader_equality import object_state, played_rams, played_through_env
 
 GLOBALS = ("coil_prev_x", "coil_prev_y", "last_i", "purple_i", "green_i", "last_74", "last_lives", "last_105",
            "last_103")
@@ -132,27 +131,7 @@ def test_qbert_observations_equal_ocataris_through_the_environment():
     """The environment sets every object's previous position after its first observation; one environment at a
     time, as OCAtari's state is its module's."""
     game = get_game("qbert")
-    played = []
-    for spec in (game, dataclasses.replace(game, detect=None)):
-        env = make_env(spec)
-        rng = np.random.default_rng(5)
-        states = []
-        for _ in range(3):  # three games: three first observations
-            observation = env.reset(seed=3)[0]
-            while True:
-                states.append((observation, slots(objects_of(env))))
-                observation, _, terminated, truncated, _ = env.step(int(rng.integers(env.action_space.n)))
-                if terminated or truncated:
-                    break
-        env.close()
-        played.append(states)
-    ours, theirs = played
-    assert len(theirs) > 1000
-    assert sum(a != b for a, b in zip(ours, theirs)) == 0 and len(ours) == len(theirs)
+    ours, theirs = (played_through_env(spec, seeds=(3, 3, 3), state=slots)
+                    for spec in (game, dataclasses.replace(game, detect=None)))
+    assert len(theirs) > 1000 and ours == theirs
 
-
-def objects_of(env) -> list:
-    """OCAtari's object list the environment keeps (``games.envs.ObjectObservation``)."""
-    while not isinstance(env, ObjectObservation):
-        env = env.env
-    return env._objects
