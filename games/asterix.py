@@ -12,6 +12,8 @@ but their environment never computes): :func:`derive` turns the generic ``Enemy0
 with int64 RAM; :func:`detect` gives its objects exactly, faster (``games/readers/asterix.py``).
 """
 
+from operator import itemgetter
+
 from games.base import SCAFFOLDS, Game, Published, Task, pop_numbered
 
 INSTRUCTION = (
@@ -64,6 +66,12 @@ def nearest_first(item: dict) -> int:
     return item["dist"]
 
 
+_BY_DIST = itemgetter("dist")
+""":func:`nearest_first` in C: the sort of every step calls it for every item."""
+_LANES_OF_MASK = tuple(tuple(lane for lane in range(len(LANE_Y)) if mask >> lane & 1) for mask in range(256))
+"""The lanes of each 8-bit lane mask, in order (``derive`` gathers lanes as bits rather than in sets it sorts)."""
+
+
 def derive(obs: dict, lives: int) -> None:
     """The authors' observation, in place: ``Player`` gains ``lane``; ``Enemies``, ``Consumables``, ``Rewards``
     are lists of {x, y, w, h, dx, dy, type, lane, dist} sorted by Manhattan distance to the player (nearest first,
@@ -71,26 +79,36 @@ def derive(obs: dict, lives: int) -> None:
     with an item and no enemy) are sorted lane lists, always present; ``lives``."""
     player = obs.get("Player")
     if player is not None:
-        player["lane"] = _lane(player["y"])
         px, py = player["x"], player["y"]
+        player["lane"] = _lane(py)
     else:
         px, py = PLAYER_HOME
-    enemy_lanes: set[int] = set()
-    item_lanes: set[int] = set()
+    enemy_mask = item_mask = 0
     for category, key in GROUPS:
         items = pop_numbered(obs, category)
         if not items:
             continue
-        lanes = enemy_lanes if category == "Enemy" else item_lanes
+        mask = 0
         for item in items:
+            x, y = item["x"], item["y"]
+            lane = (y - 18) // 16  # _lane, written out: it runs for every item of every step
+            if lane < 0:
+                lane = 0
+            elif lane > 7:
+                lane = 7
             item["type"] = category
-            item["lane"] = _lane(item["y"])
-            item["dist"] = abs(item["x"] - px) + abs(item["y"] - py)
-            lanes.add(item["lane"])
-        items.sort(key=nearest_first)  # stable: ties keep the slot order
+            item["lane"] = lane
+            item["dist"] = abs(x - px) + abs(y - py)
+            mask |= 1 << lane
+        if category == "Enemy":
+            enemy_mask |= mask
+        else:
+            item_mask |= mask
+        if len(items) > 1:
+            items.sort(key=_BY_DIST)  # stable: ties keep the slot order
         obs[key] = items
-    obs["enemy_lanes"] = sorted(enemy_lanes)
-    obs["safe_collectible_lanes"] = sorted(item_lanes - enemy_lanes)
+    obs["enemy_lanes"] = list(_LANES_OF_MASK[enemy_mask])
+    obs["safe_collectible_lanes"] = list(_LANES_OF_MASK[item_mask & ~enemy_mask])
     obs["lives"] = int(lives)
 
 

@@ -129,7 +129,8 @@ class Task:
 
 ObjectHook = Callable[[Any, dict, "list | None"], None]
 """``hook(ocatari_object, obs, rows)``: put one object of its category into the observation (and its step-log
-rows into ``rows`` when given) instead of the generic ``{x, y, w, h, dx, dy}`` entry."""
+rows into ``rows`` when given) instead of the generic ``{x, y, w, h, dx, dy}`` entry. ``None`` in its place leaves
+the category's objects out (Q*bert's cubes)."""
 
 
 @dataclass(frozen=True)
@@ -156,8 +157,9 @@ class Game:
     list_widths: Mapping[str, int] = field(default_factory=dict)
     """Observation keys that are always present as lists of equal-width items, with that width (Breakout's
     8-pixel bricks under observation version 1); the step log stores runs of adjacent items as one object."""
-    object_hooks: Mapping[str, ObjectHook] = field(default_factory=dict)
-    """Per OCAtari category, how its objects enter the observation (Breakout files its brick runs by row)."""
+    object_hooks: Mapping[str, ObjectHook | None] = field(default_factory=dict)
+    """Per OCAtari category, how its objects enter the observation (Breakout files its brick runs by row), or
+    ``None``: they do not (Q*bert's cubes)."""
     detect: Callable[[list, Any], None] | None = None
     """``detect(objects, ram)`` updates OCAtari's object list from a RAM snapshot (uint8, as ALE gives it) instead
     of OCAtari's own RAM extractor (run with int64 RAM); for a game whose extractor is wrong under numpy 2
@@ -214,13 +216,33 @@ class Game:
         return len(self.actions)
 
 
+NUMBERED_KEYS_MADE = 64
+"""Numbered keys made at once per category (``Alien0`` .. ``Alien63``); further ones are made when asked."""
+_NUMBERED_KEYS: dict[str, tuple[str, ...]] = {}
+
+
+def numbered_keys(category: str) -> tuple[str, ...]:
+    """``(category0, category1, ...)``, the first :data:`NUMBERED_KEYS_MADE` keys of a multi-slot category, made once
+    per process: the observation is built and taken apart every step, an f-string per object added up."""
+    keys = _NUMBERED_KEYS.get(category)
+    if keys is None:
+        keys = _NUMBERED_KEYS[category] = tuple(f"{category}{i}" for i in range(NUMBERED_KEYS_MADE))
+    return keys
+
+
 def pop_numbered(obs: dict, category: str) -> list[dict]:
     """Remove ``category0, category1, ...`` (a multi-slot category's objects, numbered densely in OCAtari's slot
     order by the generic observation) from ``obs`` and return them in that order; a helper for ``derive``."""
     items = []
-    i = 0
+    pop = obs.pop
+    for key in numbered_keys(category):
+        item = pop(key, None)
+        if item is None:
+            return items
+        items.append(item)
+    i = len(items)
     while True:
-        item = obs.pop(f"{category}{i}", None)
+        item = pop(f"{category}{i}", None)
         if item is None:
             return items
         items.append(item)

@@ -47,12 +47,13 @@ def brick_runs(block, obs: dict, rows: list | None) -> None:
     The row's list appears with its first Block: OCAtari lists Blocks row by row, top to bottom, left to right,
     so the rows follow ``Player`` and ``Ball`` in the order red to blue, and a cleared row is absent."""
     x, y = block._xy
-    x, y = int(x), int(y)  # not a generator expression: two of those per brick run were a quarter of this step
+    w, h = block.wh
+    # int() only what is not an int already (games.envs.objects_to_dict's rule): the reader gives ints
+    if not (x.__class__ is int and y.__class__ is int and w.__class__ is int and h.__class__ is int):
+        x, y, w, h = int(x), int(y), int(w), int(h)
     key = ROWS.get(y)
     if key is None:
         return
-    w, h = block.wh
-    w, h = int(w), int(h)
     bricks = obs.get(key)
     if bricks is None:
         bricks = obs[key] = []

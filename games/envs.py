@@ -44,7 +44,7 @@ from ocatari.ram import game_objects as ram_objects
 from ocatari.vision import game_objects as vision_objects
 
 from games import GAMES, Game, get_game
-from games.base import ONE_LIFE_CONTINUE, one_life_setting
+from games.base import ONE_LIFE_CONTINUE, numbered_keys, one_life_setting
 from games.spaces import observation_space as game_observation_space
 
 Observation = dict[str, Any]
@@ -74,6 +74,7 @@ class ObjectObservation(gym.Wrapper):
         self._numbered = {category for category, count in max_objects.items() if count > 1}
         self.metadata = {**env.metadata, "render_modes": ["rgb_array"]}  # "human": gymnasium's HumanRendering
         self._objects: list = []
+        self._plan = ObservationPlan(None, self._numbered)
         self.object_rows: list[tuple] = []
         """The last observation as step-log rows (``tracing.steps.StepLog.observe(obs, rows)``), made with it."""
 
@@ -105,69 +106,115 @@ class ObjectObservation(gym.Wrapper):
             for o in self._objects:
                 if o is not None:
                     o._prev_xy = o._xy
-        self.object_rows = []
-        obs = objects_to_dict(self._objects, self._numbered, self.game.list_widths, self.game.object_hooks,
-                              rows=self.object_rows)
-        if self.game.derive is not None:
-            self.game.derive(obs, self.env.unwrapped.ale.lives())
+        game = self.game
+        plan = self._plan
+        if plan.game is not game:  # the first observation, or a game swapped in since (bench/step_profile.py)
+            plan = self._plan = ObservationPlan.of(game, self._numbered)
+        self.object_rows = rows = []
+        obs = objects_to_dict(self._objects, plan, rows)
+        if game.derive is not None:
+            game.derive(obs, self.env.unwrapped.ale.lives())
         return obs
 
 
-_NO_OBJECT_CLASSES = (ram_objects.NoObject, vision_objects.NoObject)
+_NO_OBJECT_CLASSES = (ram_objects.NoObject, vision_objects.NoObject, type(None))  # some extractors leave slots None
+_SKIP = ()
 
 
-def objects_to_dict(objects: list, numbered: set[str], lists: Mapping[str, int] | None = None,
-                    hooks: Mapping[str, Callable] | None = None, rows: list[tuple] | None = None) -> Observation:
+class ObservationPlan:
+    """How each OCAtari class enters one environment's observation, decided on its first object and kept.
+
+    :func:`objects_to_dict` runs every step for every object: what does not change within a game (a class's
+    category, whether it is numbered, its keys ``Alien0, Alien1, ...``, its hook) is looked up once per class
+    here, not once per object. A plan belongs to one :class:`Game` (its ``list_widths`` and ``object_hooks``) and
+    that game's numbered categories (those with several OCAtari slots).
+    """
+
+    def __init__(self, game: Game | None, numbered: set[str], lists: Mapping[str, int] | None = None,
+                 hooks: Mapping[str, Callable | None] | None = None) -> None:
+        self.game = game
+        self.numbered = frozenset(numbered)
+        self.lists = tuple(lists or ())
+        self.hooks = dict(hooks or {})
+        self.counts = dict.fromkeys(self.numbered, 0)
+        """Each numbered category's objects so far: copied at the start of every observation."""
+        self.entries: dict[type, tuple] = dict.fromkeys(_NO_OBJECT_CLASSES, _SKIP)
+        """Per class: ``_SKIP``, or ``(hook, None, None)``, ``(key, category, None)`` (one slot) or
+        ``(None, category, keys)`` (numbered)."""
+
+    @classmethod
+    def of(cls, game: Game, numbered: set[str]) -> "ObservationPlan":
+        """The plan of ``game``'s observation as it builds it (``list_widths``, ``object_hooks``)."""
+        return cls(game, numbered, game.list_widths, game.object_hooks)
+
+    def entry(self, cls: type) -> tuple:
+        """The entry of ``cls`` (see :attr:`entries`), made on its first object."""
+        entry = self.entries.get(cls)
+        if entry is None:
+            category = cls.__name__
+            if category in self.hooks:
+                hook = self.hooks[category]
+                entry = _SKIP if hook is None else (hook, None, None)  # None: the category is left out
+            elif category in self.numbered:
+                entry = (None, category, numbered_keys(category))
+            else:
+                entry = (category, category, None)
+            self.entries[cls] = entry
+        return entry
+
+
+def objects_to_dict(objects: list, plan: ObservationPlan, rows: list[tuple] | None = None) -> Observation:
     """Convert OCAtari's padded object list into the observation dict (``NoObject`` and invisible slots skipped).
 
-    ``lists`` are the keys that are always present as lists (``Game.list_widths``); ``hooks`` put the objects
-    of their category into the dict themselves (``Game.object_hooks``: Breakout files its brick runs by row). With
-    ``rows``, also append the observation's rows for the step log (``tracing.steps.OBJECT_TYPE`` order),
-    made from the same values in the same pass: what ``StepLog.observe`` would otherwise make by walking the
-    dict again.
+    ``plan`` (:class:`ObservationPlan`) holds the keys that are always present as lists (``Game.list_widths``), the
+    hooks that put the objects of their category into the dict themselves (``Game.object_hooks``: Breakout files
+    its brick runs by row) and the numbered categories. With ``rows``, also append the observation's rows for the
+    step log (``tracing.steps.OBJECT_TYPE`` order), made from the same values in the same pass: what
+    ``StepLog.observe`` would otherwise make by walking the dict again.
 
     This runs every step, so it reads OCAtari's fields directly instead of through its property chain
-    (``o.dx`` alone goes through three properties); the values are the same.
+    (``o.dx`` alone goes through three properties); the values are the same. A value that is not a Python int
+    (OCAtari's own readers give NumPy ints; ``games/readers/`` give ints) goes through ``int()``: a class test
+    per value costs a fifth of an ``int()`` call.
     """
-    obs: Observation = {key: [] for key in lists} if lists else {}
-    counts: dict[str, int] = {}
+    obs: Observation = {key: [] for key in plan.lists} if plan.lists else {}
+    entries = plan.entries
+    counts = plan.counts.copy()
     for o in objects:
-        cls = o.__class__
-        if cls in _NO_OBJECT_CLASSES or o is None or not o._visible:  # some extractors leave empty slots None
+        try:
+            entry = entries[o.__class__]
+        except KeyError:  # the first object of its class
+            entry = plan.entry(o.__class__)
+        if entry is _SKIP or not o._visible:
             continue
-        category = cls.__name__
-        if hooks and category in hooks:
-            hooks[category](o, obs, rows)
+        key, category, keys = entry
+        if category is None:  # a hook
+            key(o, obs, rows)
             continue
         x, y = o._xy
         w, h = o.wh
-        x, y, w, h = int(x), int(y), int(w), int(h)
         prev = o._prev_xy
         if prev is None:
+            if not (x.__class__ is int and y.__class__ is int and w.__class__ is int and h.__class__ is int):
+                x, y, w, h = int(x), int(y), int(w), int(h)
             dx = dy = 0
         else:
-            dx, dy = x - int(prev[0]), y - int(prev[1])
-        if category in numbered:
-            n = counts.get(category, 0)
+            px, py = prev
+            if not (x.__class__ is int and y.__class__ is int and w.__class__ is int and h.__class__ is int
+                    and px.__class__ is int and py.__class__ is int):
+                x, y, w, h, px, py = int(x), int(y), int(w), int(h), int(px), int(py)
+            dx, dy = x - px, y - py
+        if keys is not None:
+            n = counts[category]
             counts[category] = n + 1
-            key = _numbered_key(category, n)
-        else:
-            key = category
+            try:
+                key = keys[n]
+            except IndexError:
+                key = f"{category}{n}"
         obs[key] = {"x": x, "y": y, "w": w, "h": h, "dx": dx, "dy": dy}
         if rows is not None:
             rows.append((key, None, category, x, y, w, h, dx, dy))
     return obs
-
-
-_NUMBERED_KEYS: dict[tuple[str, int], str] = {}
-
-
-def _numbered_key(category: str, n: int) -> str:
-    """``Alien3``, built once (an f-string every object of every step adds up)."""
-    key = _NUMBERED_KEYS.get((category, n))
-    if key is None:
-        key = _NUMBERED_KEYS[(category, n)] = f"{category}{n}"
-    return key
 
 
 class AutoFire(gym.Wrapper):

@@ -13,7 +13,9 @@ gives its objects exactly, faster (``games/readers/freeway.py``).
 A game lasts 2,048 agent steps under any policy.
 """
 
-from games.base import SCAFFOLDS, Game, Published, Task, pop_numbered
+from operator import itemgetter
+
+from games.base import SCAFFOLDS, Game, Published, Task, numbered_keys, pop_numbered
 
 INSTRUCTION = (
     "In Freeway, you guide a chicken from the bottom of the screen (y~187) to the top (y~0), crossing 10 lanes of traffic. "
@@ -56,39 +58,48 @@ SPEED_FOLD = 80
 
 
 def _box(o) -> tuple[int, int, int, int, int, int]:
+    """x, y, w, h, dx, dy of an OCAtari object as ints (``games.envs.objects_to_dict``'s rule: ``int()`` only what is
+    not already an int)."""
     x, y = o._xy
     w, h = o.wh
-    x, y, w, h = int(x), int(y), int(w), int(h)
     prev = o._prev_xy
-    dx, dy = (0, 0) if prev is None else (x - int(prev[0]), y - int(prev[1]))
-    return x, y, w, h, dx, dy
+    if prev is None:
+        px, py = x, y
+    else:
+        px, py = prev
+    if not (x.__class__ is int and y.__class__ is int and w.__class__ is int and h.__class__ is int
+            and px.__class__ is int and py.__class__ is int):
+        x, y, w, h = int(x), int(y), int(w), int(h)
+        px, py = (x, y) if prev is None else (int(px), int(py))
+    return x, y, w, h, x - px, y - py
 
 
 def chicken(o, obs: dict, rows: list | None) -> None:
     """Only player 1's chicken (the left one) enters the observation, as ``Chicken``."""
-    x, y, w, h, dx, dy = _box(o)
-    if x >= PLAYER_ONE_MAX_X:
+    x = o._xy[0]
+    if x >= PLAYER_ONE_MAX_X:  # player 2's (x 108): nothing else of it is needed
         return
+    x, y, w, h, dx, dy = _box(o)
     obs["Chicken"] = {"x": x, "y": y, "w": w, "h": h, "dx": dx, "dy": dy}
     if rows is not None:
         rows.append(("Chicken", None, "Chicken", x, y, w, h, dx, dy))
 
 
-_CAR_KEYS = tuple(f"Car{n}" for n in range(16))
-
-
-def _car_key(n: int) -> str:
-    return _CAR_KEYS[n] if n < len(_CAR_KEYS) else f"Car{n}"
+_CAR_KEYS = numbered_keys("Car")
 
 
 def car(o, obs: dict, rows: list | None) -> None:
     """A car as ``Car<n>`` (n = its slot, lane n+1), with the screen wrap folded out of its dx."""
     x, y, w, h, dx, dy = _box(o)
     dx = ((dx + SPEED_FOLD) % (2 * SPEED_FOLD)) - SPEED_FOLD
-    n = 0
-    while _car_key(n) in obs:  # the next free number (every step, for every car: no scan of all keys)
-        n += 1
-    key = _car_key(n)
+    # the next free number: the cars numbered so far are Car0 .. Car<n-1>, and the observation holds at most the
+    # chicken besides them; a guess from its size, checked, else a scan from 0
+    n = len(obs) - 1 if "Chicken" in obs else len(obs)
+    if not (0 <= n < len(_CAR_KEYS) and _CAR_KEYS[n] not in obs and (n == 0 or _CAR_KEYS[n - 1] in obs)):
+        n = 0
+        while (_CAR_KEYS[n] if n < len(_CAR_KEYS) else f"Car{n}") in obs:
+            n += 1
+    key = _CAR_KEYS[n] if n < len(_CAR_KEYS) else f"Car{n}"
     obs[key] = {"x": x, "y": y, "w": w, "h": h, "dx": dx, "dy": dy}
     if rows is not None:
         rows.append((key, None, "Car", x, y, w, h, dx, dy))
@@ -99,13 +110,18 @@ def top_first(car: dict) -> int:
     return car["y"]
 
 
+_BY_Y = itemgetter("y")
+""":func:`top_first` in C: the sort of every step calls it for every car."""
+
+
 def derive(obs: dict, lives: int) -> None:
     """The authors' observation, in place: ``Cars``, the cars sorted by y (lane 1, top, first), each
     {x, y, w, h, dx, dy, lane} with lane 1-10, always present. No ``lives``: Freeway has none."""
     cars = pop_numbered(obs, "Car")
-    cars.sort(key=top_first)  # stable
+    cars.sort(key=_BY_Y)  # stable
     for c in cars:
-        c["lane"] = _lane(c["y"])
+        y = c["y"]
+        c["lane"] = _LANE_OF_Y[y] if 0 <= y < 256 else _nearest_lane(y)
     obs["Cars"] = cars
 
 
@@ -136,10 +152,6 @@ def _nearest_lane(y: int) -> int:
 
 _LANE_OF_Y = tuple(_nearest_lane(y) for y in range(256))
 """:func:`_nearest_lane` of every y a car can have, looked up every step instead of computed."""
-
-
-def _lane(y: int) -> int:
-    return _LANE_OF_Y[y] if 0 <= y < 256 else _nearest_lane(y)
 
 
 # The authors' published best scores (PAPER.md; mean over trials ± standard error): their follow-up's aggregate

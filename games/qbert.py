@@ -4,18 +4,18 @@ Everything codearcade knows about the game: environment, actions, the authors' t
 ameliakuang/LLM-Game-Playing-Agents), the observation and Rerun colours. The policy scaffold is
 ``games/scaffolds/qbert.py``.
 
-Observation (the authors' ``trace_envs/qbert.py`` with full boxes): cubes are left out, as the authors do (the
-``Cube`` hook drops them before they are stored: OCAtari gives their fixed corners, not their colours; see
-:data:`CUBES`). :func:`derive` groups the rest into ``Enemies`` (Coily, PurpleBall, RedBall), ``Friendlies``
-(GreenBall, Sam: OCAtari's slot order, as the authors list them) and ``Disks`` and drops OCAtari's off-screen
-garbage: while Q*bert falls or is between lives the extractor reports y = RAM[33] - 52 (-52..-35), and a
-GreenBall can come with x up to 319 (stale RAM). OCAtari 2.2.1 declares ``RedBall`` but never creates one: red
+Observation (the authors' ``trace_envs/qbert.py`` with full boxes): cubes are left out, as the authors do
+(``object_hooks`` maps ``Cube`` to ``None``: they are dropped before they are stored, as OCAtari gives their fixed
+corners, not their colours; see :data:`CUBES`). :func:`derive` groups the rest into ``Enemies`` (Coily, PurpleBall,
+RedBall), ``Friendlies`` (GreenBall, Sam: OCAtari's slot order, as the authors list them) and ``Disks`` and drops
+OCAtari's off-screen garbage: while Q*bert falls or is between lives the extractor reports y = RAM[33] - 52 (-52..-35),
+and a GreenBall can come with x up to 319 (stale RAM). OCAtari 2.2.1 declares ``RedBall`` but never creates one: red
 balls are not reported. Its extractor keeps state in module globals (one Q*bert object list per process;
 ``init_objects`` resets it) and leaves absent objects ``None``; with int64 RAM its objects are right, and
 :func:`detect` gives them exactly, faster (``games/readers/qbert.py``).
 """
 
-from games.base import SCAFFOLDS, Game, Published, Task
+from games.base import SCAFFOLDS, Game, Published, Task, numbered_keys, pop_numbered
 
 INSTRUCTION = (
     "In Q*bert, you control Q*bert hopping on an isometric pyramid of cubes. "
@@ -77,23 +77,8 @@ def by_type(item: dict) -> int:
     return _TYPE_ORDER[item["type"]]
 
 
-def drop(o, obs: dict, rows: list | None) -> None:
-    """Cubes do not enter the observation (the authors skip them)."""
-
-
 def _on_screen(box: dict) -> bool:
     return 0 <= box["x"] < SCREEN_W and 0 <= box["y"] < SCREEN_H
-
-
-def _numbered(obs: dict, category: str) -> list[dict]:
-    """``category`` (one slot) or ``category0, category1, ...``, popped from ``obs``."""
-    single = obs.pop(category, None)
-    items = [] if single is None else [single]
-    i = 0
-    while f"{category}{i}" in obs:
-        items.append(obs.pop(f"{category}{i}"))
-        i += 1
-    return items
 
 
 def detect(objects: list, ram) -> None:
@@ -105,6 +90,16 @@ def detect(objects: list, ram) -> None:
     detect_qbert(objects, ram)
 
 
+def _groups(friendly_types: tuple[str, ...]) -> tuple:
+    """:data:`GROUPS` with these friendlies, each category with its first numbered key: ``((key, typed,
+    ((category, category0), ...)), ...)``."""
+    return tuple((key, key != "Disks", tuple((category, numbered_keys(category)[0]) for category in types))
+                 for key, types in (("Enemies", ENEMY_TYPES), ("Friendlies", friendly_types), ("Disks", ("Disk",))))
+
+
+_GROUPS = {FRIENDLY_TYPES: _groups(FRIENDLY_TYPES), FRIENDLY_TYPES_V1: _groups(FRIENDLY_TYPES_V1)}
+
+
 def derive(obs: dict, lives: int, friendly_types: tuple[str, ...] = FRIENDLY_TYPES) -> None:
     """The authors' observation, in place: ``Player`` (absent while falling or between lives); ``Enemies``:
     {x, y, w, h, dx, dy, type}, type Coily, PurpleBall or RedBall (in that order); ``Friendlies``: the same for
@@ -113,12 +108,19 @@ def derive(obs: dict, lives: int, friendly_types: tuple[str, ...] = FRIENDLY_TYP
     player = obs.get("Player")
     if player is not None and not _on_screen(player):
         del obs["Player"]
-    for key, types in (("Enemies", ENEMY_TYPES), ("Friendlies", friendly_types), ("Disks", ("Disk",))):
+    groups = _GROUPS.get(friendly_types) or _groups(friendly_types)
+    pop = obs.pop
+    for key, typed, categories in groups:
         items = []
-        for category in types:
-            for item in _numbered(obs, category):
-                if _on_screen(item):
-                    if key != "Disks":
+        for category, first in categories:
+            # a category's objects are ``category`` (one slot) or ``category0, category1, ...``
+            single = pop(category, None)
+            found = [single] if single is not None else []
+            if first in obs:
+                found += pop_numbered(obs, category)
+            for item in found:
+                if 0 <= item["x"] < SCREEN_W and 0 <= item["y"] < SCREEN_H:  # _on_screen, written out
+                    if typed:
                         item["type"] = category
                     items.append(item)
         if items:
@@ -167,7 +169,7 @@ GAME = Game(
               published=PUBLISHED),
     colours={"Player": (181, 83, 40), "Coily": (146, 70, 192), "PurpleBall": (200, 72, 200),
              "RedBall": (228, 60, 60), "GreenBall": (50, 200, 50), "Sam": (100, 230, 100), "Disk": (84, 138, 210)},
-    object_hooks={"Cube": drop},
+    object_hooks={"Cube": None},  # cubes do not enter the observation (the authors skip them)
     detect=detect,
     derive=derive,
     derive_space=derive_space,

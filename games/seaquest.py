@@ -16,7 +16,7 @@ faces (RAM[86]) is not an object and is not in the observation. With int64 RAM t
 under numpy 2 raises OverflowError).
 """
 
-from games.base import SCAFFOLDS, Game, Published, Task, pop_numbered
+from games.base import SCAFFOLDS, Game, Published, Task, numbered_keys, pop_numbered
 
 INSTRUCTION = (
     "In Seaquest, you pilot a submarine rescuing divers and fighting enemies underwater. "
@@ -73,7 +73,7 @@ MULTI_SLOT = frozenset({"Shark", "Submarine", "Diver", "EnemyMissile", "Collecte
 
 def _take(obs: dict, category: str) -> list[dict]:
     if category in MULTI_SLOT:
-        return pop_numbered(obs, category)
+        return pop_numbered(obs, category) if numbered_keys(category)[0] in obs else []
     item = obs.pop(category, None)
     return [] if item is None else [item]
 
@@ -83,24 +83,39 @@ def by_type(item: dict) -> int:
     return _TYPE_ORDER[item["type"]]
 
 
+def _takes(types: tuple[str, ...]) -> tuple[tuple[str, str | None], ...]:
+    """Each category with its first numbered key, or None for a one-slot category (what :func:`_take` looks up)."""
+    return tuple((category, numbered_keys(category)[0] if category in MULTI_SLOT else None) for category in types)
+
+
+_ENEMY_TAKES = {ENEMY_TYPES: _takes(ENEMY_TYPES), ENEMY_TYPES_V1: _takes(ENEMY_TYPES_V1)}
+
+
 def derive(obs: dict, lives: int, enemy_types: tuple[str, ...] = ENEMY_TYPES) -> None:
     """The authors' observation, in place: ``Enemies``: {x, y, w, h, dx, dy, type}, type Shark, Submarine,
     EnemyMissile or SurfaceSubmarine (in that order: :data:`ENEMY_TYPES`); ``Divers``: {x, y, w, h, dx, dy};
     each list absent when empty; ``lives``; ours: ``oxygen`` (0-63, 63 full) and ``divers_collected`` (0-6)."""
     enemies = []
-    for category in enemy_types:
-        for item in _take(obs, category):
-            item["type"] = category
-            enemies.append(item)
+    pop = obs.pop
+    for category, first in _ENEMY_TAKES.get(enemy_types) or _takes(enemy_types):  # _take, written out
+        if first is None:
+            item = pop(category, None)
+            if item is not None:
+                item["type"] = category
+                enemies.append(item)
+        elif first in obs:
+            for item in pop_numbered(obs, category):
+                item["type"] = category
+                enemies.append(item)
     if enemies:
         obs["Enemies"] = enemies
     divers = _take(obs, "Diver")
     if divers:
         obs["Divers"] = divers
-    _take(obs, "PlayerMissile")
-    bar = _take(obs, "OxygenBar")
+    pop("PlayerMissile", None)
+    bar = pop("OxygenBar", None)
     obs["lives"] = int(lives)
-    obs["oxygen"] = bar[0]["w"] if bar else 0
+    obs["oxygen"] = 0 if bar is None else bar["w"]
     obs["divers_collected"] = len(_take(obs, "CollectedDiver"))
 
 
