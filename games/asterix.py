@@ -9,12 +9,12 @@ Observation (the authors' ``trace_envs/asterix.py``, with full boxes and the fie
 but their environment never computes): :func:`derive` turns the generic ``Enemy0``, ``Consumable0``,
 ``Reward0``, ... into the lists ``Enemies``, ``Consumables``, ``Rewards`` (nearest first) and adds ``lane``,
 ``dist``, ``type``, ``enemy_lanes``, ``safe_collectible_lanes`` and ``lives``. OCAtari's RAM extractor is right
-with int64 RAM; :func:`detect` gives its objects exactly, faster (``games/readers/asterix.py``).
+with int64 RAM; its ``detect`` gives its objects exactly, faster (``games/readers/asterix.py``).
 """
 
 from operator import itemgetter
 
-from games.base import SCAFFOLDS, Game, Published, Task, pop_numbered
+from games.base import SCAFFOLDS, Game, Published, Task, fast_reader, pop_numbered
 
 INSTRUCTION = (
     "In Asterix, you control a player across 8 horizontal lanes (lane 0-7) to collect items and avoid enemies. "
@@ -112,15 +112,6 @@ def derive(obs: dict, lives: int) -> None:
     obs["lives"] = int(lives)
 
 
-def detect(objects: list, ram) -> None:
-    """OCAtari's Asterix reader, exactly, without the ~24 objects it makes anew every step
-    (``games/readers/asterix.py``); imported on first use, as the registry imports every game module and must stay
-    light."""
-    from games.readers.asterix import detect_asterix
-
-    detect_asterix(objects, ram)
-
-
 def derive_space(space) -> None:
     """The Gymnasium space of :func:`derive`'s observation, from the generic one (``games.spaces``)."""
     from games.spaces import DISTANCE, LIVES, ListOf, OneOf, ints, with_fields
@@ -155,7 +146,7 @@ GAME = Game(
               published=PUBLISHED),
     colours={"Player": (187, 187, 53), "Enemy": (228, 111, 111), "Consumable": (84, 160, 197),
              "Reward": (252, 188, 116)},
-    detect=detect,
+    detect=fast_reader("asterix"),
     derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "asterix.py",

@@ -8,6 +8,7 @@ nothing heavier than the standard library, so the registry loads in milliseconds
 
 from __future__ import annotations
 
+import importlib
 import secrets
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -247,3 +248,19 @@ def pop_numbered(obs: dict, category: str) -> list[dict]:
             return items
         items.append(item)
         i += 1
+
+
+def fast_reader(name: str) -> Callable[[list, Any], None]:
+    """The ``Game.detect`` of a game whose OCAtari reader is redone in ``games/readers/<name>.py``: its
+    ``detect_<name>(objects, ram)``, which leaves OCAtari's object list exactly as OCAtari's own reader would, faster.
+    Imported on the first call, not with the game's module (the registry imports every game module and must stay
+    light), and kept: an import statement in every call cost ~0.5 µs a step."""
+    loaded: list[Callable[[list, Any], None]] = []
+
+    def detect(objects: list, ram: Any) -> None:
+        if not loaded:
+            loaded.append(getattr(importlib.import_module(f"games.readers.{name}"), f"detect_{name}"))
+        loaded[0](objects, ram)
+
+    detect.__qualname__ = detect.__name__ = f"detect_{name}"
+    return detect

@@ -9,9 +9,10 @@ Observation (the authors' ``breakout_training.py`` / ``trace_envs/breakout.py``,
 ``Block`` objects, each a run of adjacent bricks (:func:`brick_runs`), and ``lives``. Runs stored before this
 convention (observation version 1) split the runs into 8-pixel bricks (:func:`split_bricks`) and replay so.
 The environment presses FIRE after reset and after each lost life (``games.envs.AutoFire``).
+Its ``detect`` gives OCAtari's objects exactly, faster (``games/readers/breakout.py``).
 """
 
-from games.base import SCAFFOLDS, Game, Published, Task
+from games.base import SCAFFOLDS, Game, Published, Task, fast_reader
 
 ROLLOUT_STEPS = 300      # traced training rollout shown to the optimizer (paper: 300 for Breakout)
 EVAL_MAX_STEPS = 4000
@@ -60,14 +61,6 @@ def brick_runs(block, obs: dict, rows: list | None) -> None:
     if rows is not None:
         rows.append((key, len(bricks), key, x, y, w, h, 0, 0))
     bricks.append({"x": x, "y": y, "w": w, "h": h, "dx": 0, "dy": 0})
-
-
-def detect(objects: list, ram) -> None:
-    """OCAtari's Breakout reader, exactly, with arrays (``games/readers/breakout.py``: ~6 µs a step against
-    ~90); imported on first use, as the registry imports every game module and must stay light."""
-    from games.readers.breakout import detect_breakout
-
-    detect_breakout(objects, ram)
 
 
 def derive(obs: dict, lives: int) -> None:
@@ -127,7 +120,7 @@ GAME = Game(
              "YB": (230, 220, 60), "GB": (120, 230, 90), "AB": (60, 220, 220), "BB": (90, 120, 255)},
     fire_on_life_loss=True,
     object_hooks={"Block": brick_runs},
-    detect=detect,
+    detect=fast_reader("breakout"),
     derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "breakout.py",

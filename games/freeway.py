@@ -15,7 +15,7 @@ A game lasts 2,048 agent steps under any policy.
 
 from operator import itemgetter
 
-from games.base import SCAFFOLDS, Game, Published, Task, numbered_keys, pop_numbered
+from games.base import SCAFFOLDS, Game, Published, Task, fast_reader, numbered_keys, pop_numbered
 
 INSTRUCTION = (
     "In Freeway, you guide a chicken from the bottom of the screen (y~187) to the top (y~0), crossing 10 lanes of traffic. "
@@ -125,14 +125,6 @@ def derive(obs: dict, lives: int) -> None:
     obs["Cars"] = cars
 
 
-def detect(objects: list, ram) -> None:
-    """OCAtari's Freeway reader, exactly, on ints (``games/readers/freeway.py``); imported on first use, as the
-    registry imports every game module and must stay light."""
-    from games.readers.freeway import detect_freeway
-
-    detect_freeway(objects, ram)
-
-
 def derive_space(space) -> None:
     """The Gymnasium space of the observation :func:`chicken`, :func:`car` and :func:`derive` make, from the
     generic one (``games.spaces``)."""
@@ -173,7 +165,7 @@ GAME = Game(
               published=PUBLISHED),
     colours={"Chicken": (252, 252, 84), "Car": (167, 26, 26)},
     object_hooks={"Chicken": chicken, "Car": car},
-    detect=detect,
+    detect=fast_reader("freeway"),
     derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "freeway.py",

@@ -2,11 +2,11 @@
 
 Everything codearcade knows about the game: environment, actions, the paper's task (training horizon,
 evaluation cap, staged feedback bands, instruction), observation hooks and Rerun colours. The policy
-scaffold is ``games/scaffolds/pong.py``. :func:`detect` gives OCAtari's objects exactly, faster
+scaffold is ``games/scaffolds/pong.py``. its ``detect`` gives OCAtari's objects exactly, faster
 (``games/readers/pong.py``).
 """
 
-from games.base import SCAFFOLDS, Game, Published, Task
+from games.base import SCAFFOLDS, Game, Published, Task, fast_reader
 
 ROLLOUT_STEPS = 400      # traced training rollout shown to the optimizer (paper: 400 for Pong)
 EVAL_MAX_STEPS = 4000    # evaluation cap (paper: ~4000)
@@ -31,14 +31,6 @@ INSTRUCTION = (
 )
 
 
-def detect(objects: list, ram) -> None:
-    """OCAtari's Pong reader, exactly, on ints (``games/readers/pong.py``); imported on first use, as the registry
-    imports every game module and must stay light."""
-    from games.readers.pong import detect_pong
-
-    detect_pong(objects, ram)
-
-
 # The authors' published best scores (PAPER.md; mean over trials ± standard error): the paper's Table 1 and
 # their follow-up's aggregate (results/aggregated/all_games_aggregate.csv, the last optimization step)
 PUBLISHED = (
@@ -58,6 +50,6 @@ GAME = Game(
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               published=PUBLISHED),
     colours={"Player": (92, 220, 92), "Ball": (255, 255, 255), "Enemy": (255, 140, 40)},
-    detect=detect,
+    detect=fast_reader("pong"),
     scaffold=SCAFFOLDS / "pong.py",
 )

@@ -12,10 +12,10 @@ OCAtari's off-screen garbage: while Q*bert falls or is between lives the extract
 and a GreenBall can come with x up to 319 (stale RAM). OCAtari 2.2.1 declares ``RedBall`` but never creates one: red
 balls are not reported. Its extractor keeps state in module globals (one Q*bert object list per process;
 ``init_objects`` resets it) and leaves absent objects ``None``; with int64 RAM its objects are right, and
-:func:`detect` gives them exactly, faster (``games/readers/qbert.py``).
+its ``detect`` gives them exactly, faster (``games/readers/qbert.py``).
 """
 
-from games.base import SCAFFOLDS, Game, Published, Task, numbered_keys, pop_numbered
+from games.base import SCAFFOLDS, Game, Published, Task, fast_reader, numbered_keys, pop_numbered
 
 INSTRUCTION = (
     "In Q*bert, you control Q*bert hopping on an isometric pyramid of cubes. "
@@ -79,15 +79,6 @@ def by_type(item: dict) -> int:
 
 def _on_screen(box: dict) -> bool:
     return 0 <= box["x"] < SCREEN_W and 0 <= box["y"] < SCREEN_H
-
-
-def detect(objects: list, ram) -> None:
-    """OCAtari's Q*bert reader, exactly (its state in its module's globals included), on ints
-    (``games/readers/qbert.py``); imported on first use, as the registry imports every game module and must stay
-    light."""
-    from games.readers.qbert import detect_qbert
-
-    detect_qbert(objects, ram)
 
 
 def _groups(friendly_types: tuple[str, ...]) -> tuple:
@@ -170,7 +161,7 @@ GAME = Game(
     colours={"Player": (181, 83, 40), "Coily": (146, 70, 192), "PurpleBall": (200, 72, 200),
              "RedBall": (228, 60, 60), "GreenBall": (50, 200, 50), "Sam": (100, 230, 100), "Disk": (84, 138, 210)},
     object_hooks={"Cube": None},  # cubes do not enter the observation (the authors skip them)
-    detect=detect,
+    detect=fast_reader("qbert"),
     derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "qbert.py",

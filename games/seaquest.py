@@ -14,9 +14,10 @@ policy to surface before the oxygen runs out. OCAtari 2.2.1 names the surface pa
 authors' fork lists no such class, so their filter drops it; ours counts it as an enemy). The direction the sub
 faces (RAM[86]) is not an object and is not in the observation. With int64 RAM the extractor is right (uint8
 under numpy 2 raises OverflowError).
+Its ``detect`` gives OCAtari's objects exactly, faster (``games/readers/seaquest.py``).
 """
 
-from games.base import SCAFFOLDS, Game, Published, Task, numbered_keys, pop_numbered
+from games.base import SCAFFOLDS, Game, Published, Task, fast_reader, numbered_keys, pop_numbered
 
 INSTRUCTION = (
     "In Seaquest, you pilot a submarine rescuing divers and fighting enemies underwater. "
@@ -141,21 +142,6 @@ def derive_v1(obs: dict, lives: int) -> None:
     derive(obs, lives, ENEMY_TYPES_V1)
 
 
-_READER: list = []
-"""``games.readers.seaquest.detect_seaquest`` once imported (an import statement per call cost ~0.5 µs)."""
-
-
-def detect(objects: list, ram) -> None:
-    """OCAtari's Seaquest reader, exactly, slot by slot on the RAM as ints (``games/readers/seaquest.py``: ~9 µs a
-    step of an episode against ~34); imported on first use, as the registry imports every game module and must
-    stay light."""
-    if not _READER:
-        from games.readers.seaquest import detect_seaquest
-
-        _READER.append(detect_seaquest)
-    _READER[0](objects, ram)
-
-
 # The authors' published best scores (PAPER.md; mean over trials ± standard error): their follow-up's aggregate
 # (results/aggregated/all_games_aggregate.csv, the last optimization step)
 PUBLISHED = (
@@ -177,7 +163,7 @@ GAME = Game(
     colours={"Player": (187, 187, 53), "Shark": (92, 186, 92), "Submarine": (170, 170, 170),
              "SurfaceSubmarine": (214, 214, 214), "EnemyMissile": (228, 111, 111), "Diver": (66, 72, 200),
              "PlayerMissile": (187, 187, 53), "OxygenBar": (214, 214, 214), "CollectedDiver": (24, 26, 167)},
-    detect=detect,
+    detect=fast_reader("seaquest"),
     derive=derive,
     derive_space=derive_space,
     scaffold=SCAFFOLDS / "seaquest.py",

@@ -3,9 +3,10 @@
 Everything codearcade knows about the game: environment, actions, the paper's task (training horizon,
 evaluation cap, staged feedback bands, instruction), observation hooks and Rerun colours. The policy
 scaffold is ``games/scaffolds/space_invaders.py``.
+Its ``detect`` gives OCAtari's objects exactly, faster (``games/readers/space_invaders.py``).
 """
 
-from games.base import SCAFFOLDS, Game, Published, Task
+from games.base import SCAFFOLDS, Game, Published, Task, fast_reader
 
 ROLLOUT_STEPS = 15       # traced training rollout shown to the optimizer (paper: 15; observations are large)
 EVAL_MAX_STEPS = 4000
@@ -35,14 +36,6 @@ PUBLISHED = (
     Published("follow-up", "h1", 570.0, horizon=1, trials=4, stderr=0.0),
 )
 
-def detect(objects: list, ram) -> None:
-    """OCAtari's Space Invaders reader, exactly, its 36 alien slots redone only when the aliens alive change
-    (``games/readers/space_invaders.py``); imported on first use, as the registry imports every game module and must
-    stay light."""
-    from games.readers.space_invaders import detect_space_invaders
-
-    detect_space_invaders(objects, ram)
-
 
 GAME = Game(
     name="space_invaders",
@@ -56,5 +49,5 @@ GAME = Game(
     colours={"Player": (92, 220, 92), "Alien": (255, 90, 220), "Shield": (90, 200, 255), "Bullet": (255, 255, 80),
              "Satellite": (255, 60, 60)},
     scaffold=SCAFFOLDS / "space_invaders.py",
-    detect=detect,
+    detect=fast_reader("space_invaders"),
 )
