@@ -180,7 +180,7 @@ def steady_state(games: list[str], store: Store, episodes: int, repeats: int,
             if not (steps and math.isfinite(ratios[name]) and ratios[name] > 0):
                 absent.append(f"{game}: no {name} ratio (steps {steps})")
             elif ratios[name] < TARGETS[label]:
-                failures.append(f"{game}: {name} {ratios[name]:.2f} below target {TARGETS[label]}")
+                failures.append(f"{game}: {name} {ratios[name]:.3f} below target {TARGETS[label]}")
     print(f"targets: eval/stepping >= {TARGETS['eval']}, trace/stepping >= {TARGETS['eval --trace']} (best of "
           f"{repeats} repeats each, interleaved; {episodes} episodes per measurement)")
     print("stepping: bare OCAtari's steps alone, its resets left out (ALE reloads the ROM in each seeded reset, "
@@ -284,7 +284,7 @@ def end_to_end(games: list[str], store: Store, tmp: Path, repeats: int) -> tuple
         if not (steps and math.isfinite(ratio) and ratio > 0):
             absent.append(f"{game}: no end-to-end ratio (steps {steps})")
         elif ratio < TARGETS["end to end"]:
-            failures.append(f"{game}: end-to-end eval/stepping {ratio:.2f} below target {TARGETS['end to end']}")
+            failures.append(f"{game}: end-to-end eval/stepping {ratio:.3f} below target {TARGETS['end to end']}")
     print(f"target: end-to-end eval/stepping >= {TARGETS['end to end']} (the bare process: Python, OCAtari's "
           "import, the environment and its steps; its seeded resets left out)")
     return failures, absent
