@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from ocatari.ram.game_objects import NoObject
 
+from games.readers import empty_slot
+
 _ASTERIX: tuple = ()
 """OCAtari's Asterix classes (Reward, Enemy, Consumable), imported on first use."""
 
@@ -30,13 +32,6 @@ def _fresh(objects: list, slot: int, cls: type):
         return obj
     obj = objects[slot] = cls()
     return obj
-
-
-def _empty(objects: list, slot: int) -> None:
-    """``objects[slot] = NoObject()``, keeping a NoObject still equal to a new one."""
-    obj = objects[slot]
-    if obj.__class__ is not NoObject or obj._prev_xy is not None:
-        objects[slot] = NoObject()
 
 
 def detect_asterix(objects: list, ram: np.ndarray) -> None:
@@ -63,12 +58,12 @@ def detect_asterix(objects: list, ram: np.ndarray) -> None:
         y = 26 + i * 16
         # OCAtari tests the Reward's slot (1 + i) as it was when the call began: no earlier lane writes there
         if r[18 - i] == 11:
-            _empty(objects, 1 + i)
+            empty_slot(objects, 1 + i)
         elif r[73 + i]:
             if objects[1 + i].__class__ is not Reward:
                 objects[1 + i] = rew = Reward()
-                _empty(objects, 9 + i)
-                _empty(objects, 17 + i)
+                empty_slot(objects, 9 + i)
+                empty_slot(objects, 17 + i)
             else:
                 rew = objects[1 + i]
             rew._xy = r[42 + i], y
@@ -76,15 +71,15 @@ def detect_asterix(objects: list, ram: np.ndarray) -> None:
             if isinstance(objects[1 + i], Enemy):  # never, in OCAtari's own lists: kept, as it is written
                 en = objects[1 + i]
             else:
-                _empty(objects, 1 + i)
+                empty_slot(objects, 1 + i)
                 en = _fresh(objects, 9 + i, Enemy)
-                _empty(objects, 17 + i)
+                empty_slot(objects, 17 + i)
             en._xy = r[42 + i], y
         else:
             if objects[1 + i].__class__ is Consumable:  # never either
                 instance = objects[1 + i]
             else:
-                _empty(objects, 1 + i)
-                _empty(objects, 9 + i)
+                empty_slot(objects, 1 + i)
+                empty_slot(objects, 9 + i)
                 instance = _fresh(objects, 17 + i, Consumable)
             instance._xy = r[42 + i] + 1, y + 1

@@ -14,15 +14,10 @@ from __future__ import annotations
 import numpy as np
 from ocatari.ram.game_objects import NoObject
 
+from games.readers import empty_slot
+
 _PONG: tuple = ()
 """OCAtari's Pong classes (Ball, Enemy), imported on first use."""
-
-
-def _empty(objects: list, slot: int) -> None:
-    """``objects[slot] = NoObject()``, keeping a NoObject still equal to a new one."""
-    obj = objects[slot]
-    if obj.__class__ is not NoObject or obj._prev_xy is not None:
-        objects[slot] = NoObject()
 
 
 def detect_pong(objects: list, ram: np.ndarray) -> None:
@@ -45,7 +40,7 @@ def detect_pong(objects: list, ram: np.ndarray) -> None:
             ball = objects[1] = Ball()
         ball._xy = ball_x - 49, ball_y - 14  # the xy setter's int() of ints is a no-op
     else:
-        _empty(objects, 1)
+        empty_slot(objects, 1)
     if enemy_y > 33:  # OCAtari's test is ``> 18 and > 33``
         if not (enemy.__class__ is not NoObject and enemy._visible):
             enemy = objects[2] = Enemy()
@@ -59,7 +54,7 @@ def detect_pong(objects: list, ram: np.ndarray) -> None:
             enemy._xy = 16, enemy_y - 15
             enemy.wh = 4, 15
     else:
-        _empty(objects, 2)
+        empty_slot(objects, 2)
     if player_y > 13:  # otherwise no player (its slot keeps the paddle where it was)
         if player_y < 47:
             player._xy = 140, 34
