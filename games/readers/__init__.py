@@ -4,8 +4,8 @@ One module per game (and :func:`empty_slot`, which they share), each with one fu
 ``Game.detect`` (``games.base.fast_reader``, imported on first use): ``detect_<game>(objects, ram)`` leaves
 OCAtari's object list exactly as ``extract_ram_info.detect_objects_ram(objects, ram.astype(np.int64), name, False)``
 would (the same classes in the same slots, the same positions, sizes, colours, previous positions and visibility),
-with ``ram`` as ALE gives it (uint8). Bare OCAtari pays its readers every step, so they are the one place where ``eval`` can win time back
-against it (docs/benchmarks.md, issue 40).
+with ``ram`` as ALE gives it (uint8). Bare OCAtari pays its readers every step, so they are the one place where
+``eval`` can win time back against it (docs/benchmarks.md, issue 40).
 
 - :mod:`games.readers.breakout`: a gather of RAM bits and runs from the bitmap's edges (~100 µs a step -> ~8).
 - :mod:`games.readers.space_invaders`: aliens re-derived when their bitmap changes, moved when they move (~46 -> ~2.2).
