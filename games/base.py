@@ -164,7 +164,8 @@ class Game:
     detect: Callable[[list, Any], None] | None = None
     """``detect(objects, ram)`` updates OCAtari's object list from a RAM snapshot (uint8, as ALE gives it) instead
     of OCAtari's own RAM extractor (run with int64 RAM); for a game whose extractor is wrong under numpy 2
-    (Enduro) or slow (Breakout, Space Invaders: ``games/readers/``), leaving the objects exactly as OCAtari's would."""
+    (Enduro) or slow (every other curated game: :func:`fast_reader`, ``games/readers/``), leaving the objects exactly
+    as OCAtari's would."""
     derive: Callable[[dict, int], None] | None = None
     """``derive(obs, lives)`` adds fields computed from the objects (lanes, nearest enemies, ``lives``) to the
     observation, in place. The store keeps the objects and lives; the same call rebuilds the derived fields
