@@ -12,8 +12,8 @@ The policy reaches its own process's objects (``typing.sys.modules``: ``pipeline
   grew by 156 MB);
 - a 300 MiB failure frame (the host decoded it: 2.8 GB).
 
-Each must leave the parent and the game host under 600 MB (peaks measured: the parent's own ``ru_maxrss``, the
-hosts' ``VmHWM`` sampled from ``/proc``), the episode a recorded policy error (never a crash of a trusted
+Each must leave the parent and the game host under 600 MB (peaks measured: the parent's own ``VmHWM``, the
+hosts' sampled from ``/proc``), the episode a recorded policy error (never a crash of a trusted
 process, never a failed run), and the store without its rows.
 """
 
@@ -115,12 +115,16 @@ def attack_method(forge: str) -> str:
 
 
 DRIVER = """
-import resource, sys
+import sys
 from pipeline.cli import main
 try:
     code = main(sys.argv[1:])
 finally:
-    print('PEAK_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
+    # VmHWM: this process's own peak since exec. Not ru_maxrss: a child starts from the size of the process that
+    # spawned it (Linux keeps the old image's peak across exec), and a pytest worker grown to 631 MB by earlier
+    # tests failed every measurement here
+    peak = next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM:'))
+    print('PEAK_KB', peak, file=sys.stderr)
 sys.exit(code)
 """
 

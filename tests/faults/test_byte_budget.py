@@ -12,7 +12,7 @@ Each attack passed the shape checks before and made the trusted side pay far mor
   caps are in UTF-8 bytes, and the node rows of an episode within its budget;
 - **parsed on write**: ``[{},{},…]`` values (the write path's JSON cast took +718 MB).
 
-Each must leave the ``codearcade`` process and the game host under 600 MB (peaks: ``ru_maxrss``, ``VmHWM``), the
+Each must leave the ``codearcade`` process and the game host under 600 MB (peaks: each one's ``VmHWM``), the
 episode an accepted one or a recorded policy error, and the store no larger than an honest episode's plus the
 budget. A value that fits the budget is accepted and stored whole.
 """
