@@ -4,7 +4,8 @@ A 20-iteration Pong run against a scripted model that takes ``--delay`` seconds 
 answers with a seeded choice from candidate policies of mixed quality (tests/scripted_llm.py), through litellm
 over real HTTP, into a real store. From the store, per iteration:
 
-- LLM: the wall time of the iteration's calls (``llm_calls.latency_s``; the longest one when they overlap);
+- LLM: the wall time during which at least one call was in flight (``llm_calls``: each ran for ``latency_s``
+  up to ``created_at``): calls made at once count once, a repair turn after its proposal adds its own time;
 - environment: the time playing its episodes, verification included (``iterations.eval_s``; 0 when every
   candidate reused stored episodes);
 - overhead: the rest of the iterations' wall time — reading the store, building the prompt, parsing, validating
@@ -19,6 +20,7 @@ happens between two iterations counts too). It prints each part's share of it; t
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import tempfile
@@ -39,6 +41,18 @@ from tests.test_strategies import POOL  # noqa: E402
 TARGET = 0.05
 
 
+def waiting_on_calls(calls: list[tuple[int, float, float]]) -> float:
+    """Seconds during which at least one LLM call was in flight, from ``(iteration, start, end)`` rows: calls made
+    at once count once (the longest), calls made one after the other (a repair turn after its proposal) add up."""
+    spans = sorted((start, end) for _, start, end in calls)
+    total, reach = 0.0, -math.inf
+    for start, end in spans:
+        if end > reach:
+            total += end - max(start, reach)
+            reach = end
+    return total
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--iterations", type=int, default=20)
@@ -57,15 +71,15 @@ def main() -> int:
         started = time.monotonic()
         result = optimize(config, store, client)
         total = time.monotonic() - started
-    rows = store.query(
-        """SELECT i.iteration, i.wall_s, i.eval_s,
-                  coalesce((SELECT max(c.latency_s) FROM llm_calls c WHERE c.run_id = i.run_id
-                            AND c.iteration = i.iteration), 0) AS llm
-           FROM iterations i WHERE i.run_id = ? AND i.iteration > 0 ORDER BY i.iteration""", [result.run_id])
+    rows = store.query("SELECT iteration, eval_s FROM iterations WHERE run_id = ? AND iteration > 0 "
+                       "ORDER BY iteration", [result.run_id])
     (wall,) = store.query("SELECT epoch(max(finished_at) - min(started_at)) FROM iterations "
                           "WHERE run_id = ? AND iteration > 0", [result.run_id])[0]
-    env = sum(r[2] for r in rows)
-    llm = sum(r[3] for r in rows)
+    # a call's row is stored when it ends (created_at): it ran over [created_at - latency_s, created_at]
+    calls = store.query("SELECT iteration, epoch(created_at) - latency_s, epoch(created_at) FROM llm_calls "
+                        "WHERE run_id = ? AND iteration > 0 AND latency_s IS NOT NULL", [result.run_id])
+    env = sum(r[1] or 0.0 for r in rows)
+    llm = waiting_on_calls(calls)
     overhead = wall - env - llm
     cached = store.query("SELECT count(*) FROM candidates WHERE run_id = ? AND evaluation = 'cached'",
                          [result.run_id])[0][0]
@@ -76,10 +90,10 @@ def main() -> int:
     for name, seconds in (("LLM calls", llm), ("environment", env), ("overhead", overhead)):
         print(f"{name:<12} {seconds:>8.1f} {seconds / wall:>7.1%}")
     print(f"{'iterations':<12} {wall:>8.1f} {1:>7.0%}")
-    calls = store.query("SELECT count(*) FROM llm_calls WHERE run_id = ? AND iteration > 0", [result.run_id])[0][0]
     phase = store.query("SELECT avg(llm_s) FROM iterations WHERE run_id = ? AND iteration > 0", [result.run_id])[0][0]
-    print(f"{calls / len(rows):.1f} proposals per iteration, requested at once: the proposal phase (prompts, calls, "
-          f"validation) took {phase:.2f} s per iteration = {phase / args.delay:.2f} x one call's {args.delay:g} s")
+    print(f"{len(calls) / len(rows):.1f} calls per iteration (its proposals at once, a repair turn after its "
+          f"proposal), {llm / len(rows):.2f} s of them in flight: the proposal phase (prompts, calls, validation) "
+          f"took {phase:.2f} s per iteration = {phase / args.delay:.2f} x one call's {args.delay:g} s")
     share = overhead / wall
     print(f"overhead per iteration: {overhead / len(rows) * 1000:.0f} ms; overhead / wall = {share:.3f} "
           f"(target < {TARGET}) -> {'OK' if share < TARGET else 'ABOVE TARGET'}")
