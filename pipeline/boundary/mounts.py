@@ -6,13 +6,17 @@ small tmpfs (:func:`scratch_tmpfs`) and pivots into a root that holds only what 
 not cover, finds nothing else); each worker mounts a tmpfs of its own as its scratch directory, bounded in bytes
 and inodes (:func:`worker_scratch`), which the zygote detaches whole when the worker ends (:func:`unmount`), nothing
 walked; a scratch without a tmpfs (a weak sandbox) is removed by an iterative walk (:func:`remove_tree`) that cannot
-raise.
+raise. A zygote removes its scratch directory when it ends; those of zygotes killed with their parent, a whole
+process group at once, are swept by the next process that starts one (:func:`sweep_stale_scratch`).
 """
 
 from __future__ import annotations
 
 import ctypes
 import os
+import stat
+import tempfile
+import time
 
 from pipeline.boundary.libc import libc
 
@@ -26,6 +30,11 @@ Without it a tmpfs gets the kernel's default (half the machine's pages: ~3.1M on
 files in a 64 MiB scratch held ~300 MB of kernel memory (inodes, dentries) that no RSS or address-space limit counts;
 at this cap it is ~2 MB. It bounds a directory's depth too (each level is an inode: the kernel has no depth
 limit of its own for a tmpfs; ``PATH_MAX`` bounds one path, not a chain of ``chdir``s)."""
+SCRATCH_PREFIX = "codearcade-sandbox-"
+"""The name of each zygote's scratch directory in the temporary directory begins with this."""
+STALE_AFTER_S = 3_600.0
+"""A scratch directory no process works in is swept once nothing has touched it for this long (a zygote's is
+touched by every worker it forks)."""
 BASE_MB, BASE_INODES = 4, 8_192
 """The zygote's own tmpfs (:func:`scratch_tmpfs`), which holds only the workers' mount points (one inode each,
 removed with the worker) and the minimal root's mount point: workers never write in it."""
@@ -202,3 +211,43 @@ def remove_tree(path: str) -> bool:
         return True
     except Exception:  # noqa: BLE001 - whatever is left stays; the caller goes on
         return False
+
+
+def sweep_stale_scratch(base: str | None = None, older_than_s: float = STALE_AFTER_S) -> list[str]:
+    """Remove the zygote scratch directories in ``base`` (the temporary directory) that a zygote could not remove
+    itself (killed with its parent, a whole process group at once): this user's, untouched for ``older_than_s``,
+    and no process's working directory or below it (a zygote runs in its scratch, each worker in a folder of it).
+    Never raises; the paths removed."""
+    base = base or tempfile.gettempdir()
+    now, uid = time.time(), os.getuid()
+    try:
+        candidates = []
+        with os.scandir(base) as entries:
+            for entry in entries:
+                if not entry.name.startswith(SCRATCH_PREFIX):
+                    continue
+                info = entry.stat(follow_symlinks=False)
+                if stat.S_ISDIR(info.st_mode) and info.st_uid == uid and now - info.st_mtime > older_than_s:
+                    candidates.append(os.path.realpath(entry.path))
+        if not candidates:
+            return []
+        in_use = _working_directories()
+        removed = []
+        for path in candidates:
+            if not any(cwd == path or cwd.startswith(path + os.sep) for cwd in in_use) and remove_tree(path):
+                removed.append(path)
+        return removed
+    except OSError:
+        return []
+
+
+def _working_directories() -> set[str]:
+    """The working directory of every process this one can see and read (its own user's at least)."""
+    found = set()
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            try:
+                found.add(os.readlink(f"/proc/{name}/cwd").removesuffix(" (deleted)"))
+            except OSError:  # gone meanwhile, or another user's
+                pass
+    return found

@@ -43,7 +43,7 @@ from typing import Any, Iterator
 
 from pipeline.boundary import wire
 from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, weak_sandbox_allowed
-from pipeline.boundary.mounts import remove_tree
+from pipeline.boundary.mounts import SCRATCH_PREFIX, remove_tree, sweep_stale_scratch
 
 START_TIMEOUT_S = 180.0
 """How long the zygote may take to import the environment stack and say hello."""
@@ -77,7 +77,7 @@ class Zygote:
 
     def __init__(self, role: str = "policy") -> None:
         self.role = role
-        self.scratch = tempfile.mkdtemp(prefix="codearcade-sandbox-")
+        self.scratch = tempfile.mkdtemp(prefix=SCRATCH_PREFIX)
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self.ctl = ours
         self.log_path = os.path.join(self.scratch, "zygote.log")
@@ -263,6 +263,8 @@ def zygote(role: str = "policy") -> Zygote:
             existing.close()
             existing = None
         if existing is None:
+            if not _zygotes:  # the first of this process: sweep what zygotes killed with their parents left
+                sweep_stale_scratch()
             existing = _zygotes[role] = Zygote(role)
         return existing
 

@@ -14,6 +14,8 @@ import json
 import os
 import re
 import socket
+import subprocess
+import sys
 import textwrap
 import threading
 import time
@@ -255,3 +257,58 @@ def test_the_walk_that_cleans_a_weak_sandbox_s_scratch_has_no_depth_limit(tmp_pa
     assert mounts.remove_tree(str(top)) and not top.exists()
     assert (outside / "keep").read_text() == "kept", "links are removed, never followed"
     assert mounts.remove_tree(str(tmp_path / "not-there"))
+
+
+def _aged(path: Path, hours: float = 2.0) -> Path:
+    old = time.time() - hours * 3600
+    os.utime(path, (old, old))
+    return path
+
+
+def test_scratch_left_by_zygotes_killed_with_their_parent_is_swept_and_nothing_else(tmp_path):
+    """A zygote removes its scratch when it ends; one killed with its parent (a whole process group at once) cannot.
+    The next process's first zygote sweeps those: this user's, untouched for an hour, no process working in them;
+    never one in use, a fresh one, a link, another name or another user's."""
+    prefix = mounts.SCRATCH_PREFIX
+    stale = []
+    for i in range(3):
+        folder = tmp_path / f"{prefix}dead{i}"
+        (folder / "w7" / "d").mkdir(parents=True)
+        (folder / "zygote.log").write_text("log")
+        stale.append(_aged(folder))
+    fresh = tmp_path / f"{prefix}fresh"
+    fresh.mkdir()
+    busy = tmp_path / f"{prefix}busy"
+    (busy / "w3").mkdir(parents=True)
+    _aged(busy)
+    other_name = tmp_path / "someone-else-sandbox"
+    other_name.mkdir()
+    _aged(other_name)
+    target = tmp_path / "kept"
+    target.mkdir()
+    (target / "file").write_text("kept")
+    link = tmp_path / f"{prefix}link"
+    link.symlink_to(target)
+    theirs = [tmp_path / f"{prefix}theirs"] if os.getuid() == 0 else []  # root can make another user's
+    for folder in theirs:
+        folder.mkdir()
+        os.chown(folder, 65534, 65534)
+        _aged(folder)
+    worker = subprocess.Popen(["sleep", "60"], cwd=busy / "w3")  # a worker of a live zygote works below it
+    try:
+        # the first zygote of a process sweeps; its own scratch is made, then removed at its end
+        code = subprocess.run([sys.executable, "-c", "from pipeline.boundary.zygotes import zygote; zygote('policy')"],
+                              cwd=Path(__file__).resolve().parents[2], env={**os.environ, "TMPDIR": str(tmp_path)},
+                              timeout=120).returncode
+        assert code == 0
+        assert not any(folder.exists() for folder in stale)
+        assert busy.exists() and fresh.exists() and other_name.exists() and link.is_symlink()
+        assert (target / "file").read_text() == "kept", "a link is never followed"
+        assert all(folder.exists() for folder in theirs)
+        left = sorted(p.name for p in tmp_path.iterdir())  # the zygote's own scratch is gone with it
+        assert left == sorted([busy.name, fresh.name, other_name.name, link.name, target.name]
+                              + [folder.name for folder in theirs]), left
+    finally:
+        worker.kill()
+        worker.wait()
+    assert mounts.sweep_stale_scratch(str(tmp_path)) == [str(busy)], "once no process works there, it goes too"
