@@ -291,6 +291,13 @@ class Store:
             raise
         self._migrated = True
 
+    def make_ready(self) -> None:
+        """Create or upgrade the store and refuse a damaged one (:class:`StoreError`), unless this object has done
+        so already: what a command checks before it plays anything."""
+        if not self._migrated:
+            with self.write():
+                pass
+
     def hold(self) -> "Hold":
         """A :class:`Hold` on this store (not yet taken): see there."""
         return Hold(self)
@@ -395,9 +402,7 @@ class Hold:
 
     def take(self) -> None:
         if self._cursor is None:
-            if not self.store._migrated:
-                with self.store.write():  # creates and migrates the store on first use
-                    pass
+            self.store.make_ready()  # creates and migrates the store on first use
             self._cursor = self.store._open(read_only=False)
             self.store._held = True
 

@@ -22,11 +22,12 @@ Both say hello with what is missing, then serve:
 - ``{"op": "prepare", "envs": [[game, sticky, noop_max, one_life, observation], ...]}`` (``game``): build those environments
   once (hosts inherit them built);
 - ``{"op": "run", "id", "task", "limits", "staged"}`` with one or two sockets passed alongside (SCM_RIGHTS): fork
-  a worker that reads its task as a JSON frame from the first socket, sends stdout/stderr to /dev/null, confines
-  itself (role ``policy``: :func:`pipeline.boundary.confine.confine`), prepares (a host resets its environment and
-  has its policy process, on the second socket, load the policy), waits for a go-ahead (``G`` and the CPU to run
-  on) if ``staged`` (the executor sets up the next episode while the current one plays), runs the task and writes
-  its answer as frames (``pipeline/boundary/wire.py``); answered with ``{"kind": "started", "id", "pid"}``;
+  a worker that sends stdout/stderr to /dev/null, confines itself (role ``policy``:
+  :func:`pipeline.boundary.confine.confine`), reads its task as a JSON frame from the first socket, prepares (a
+  host has its policy process, on the second socket, load the policy while it resets its environment), waits for
+  a go-ahead (``G`` and the CPU to run on) if ``staged`` (the executor sets up the next episode while the current
+  one plays), runs the task and writes its answer as frames (``pipeline/boundary/wire.py``); answered with
+  ``{"kind": "started", "id", "pid"}``;
 - ``{"op": "kill", "id"}``: SIGKILL that worker; ``{"op": "count"}``: how many workers are alive.
 
 Every worker that ends is reported as ``{"kind": "exited", "id", "code"}`` (negative: killed by that signal)
@@ -146,11 +147,12 @@ def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: 
         for target in (0, 1, 2):
             os.dup2(devnull, target)
         os.close(devnull)
-        item = _read_task(fd)
-        if role.confined:
+        if role.confined:  # before the task is read: its text (a policy's) is parsed confined, and a policy worker
+            # confines itself while its host still resets the environment
             limits = confine.Limits(**msg["limits"])
             limits.write_paths = [scratch]  # nothing else, ever: recordings are written by the game host
             confine.confine(limits, strict=strict)
+        item = _read_task(fd)
         extra_fd = fds[1] if len(fds) > 1 else None
         anywhere = os.sched_getaffinity(0)
         while True:
@@ -389,7 +391,7 @@ def _forget_scratch(scratch: str, own_scratch: bool) -> None:
 def _remove_scratch(scratch_base: str) -> None:
     """Remove the scratch directory (a parent killed with SIGKILL cannot), tmpfs detached first; never raises."""
     try:
-        if os.path.basename(scratch_base).startswith("codearcade-sandbox-"):
+        if os.path.basename(scratch_base).startswith(mounts.SCRATCH_PREFIX):
             os.chdir("/")
             mounts.unmount(scratch_base)
             mounts.remove_tree(scratch_base)

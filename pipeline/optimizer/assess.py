@@ -107,11 +107,14 @@ def episode_specs(state: "RunState", iteration: int, candidate: int, text: str, 
 def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, str],
            progress: Callable[[int, int], None] | None = None,
            texts: dict[str, str] | None = None,
-           before_play: Callable[[], None] = lambda: None) -> tuple[dict[int, Assessment], AssessTimes]:
+           before_play: Callable[[], None] = lambda: None,
+           after_play: Callable[[], None] = lambda: None) -> tuple[dict[int, Assessment], AssessTimes]:
     """Assess ``versions`` (candidate → version id) of iteration ``iteration``: an :class:`Assessment` per
     candidate, and how long the playing took. ``texts``: the policy files of versions not stored yet (this
     iteration's new ones); the others are read from the store. ``before_play`` is called before any episode
-    is played (the optimizer lets go of its hold on the store: playing takes a while)."""
+    is played (the optimizer lets go of its hold on the store: playing takes a while), ``after_play`` once the
+    last has ended, before the last of them are written (the optimizer takes its hold again: that write shares
+    its attachment, and the file is checkpointed once, when the hold is let go, not twice)."""
     owner: dict[str, int] = {}  # version -> the candidate whose episodes stand for it in this iteration
     for candidate, version in sorted(versions.items()):
         owner.setdefault(version, candidate)
@@ -126,7 +129,7 @@ def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, 
     times = AssessTimes()
     if to_play:
         before_play()
-        found.update(_play(store, state, iteration, to_play, progress, times, texts or {}))
+        found.update(_play(store, state, iteration, to_play, progress, times, texts or {}, after_play))
     return {candidate: found[version] for candidate, version in versions.items()}, times
 
 
@@ -202,7 +205,7 @@ def _cached(version: str, row: dict) -> Assessment:
 
 def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[int, str]],
           progress: Callable[[int, int], None] | None, times: AssessTimes,
-          texts: dict[str, str]) -> dict[str, Assessment]:
+          texts: dict[str, str], after_play: Callable[[], None]) -> dict[str, Assessment]:
     specs: list[EpisodeSpec] = []
     groups: list[tuple[str, list[int]]] = []  # version -> indices of its specs (train first)
     missing = {version for _, version in to_play if version not in texts}
@@ -225,6 +228,7 @@ def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[i
             if not trains and not times.train_s:
                 times.train_s = time.monotonic() - started
                 writer.flush()  # the training rollouts are stored before the evaluations go on
+        after_play()
     times.eval_s = time.monotonic() - started
     found = {}
     for version, indices in groups:

@@ -168,8 +168,8 @@ def _run_iteration(store, state, iteration, client, counter, log, progress, hold
         screen_out(proposals, screens)
     assessments, times = assess(store, state, iteration, {p.candidate: p.version_id for p in proposals}, progress,
                                 texts={p.version_id: p.text for p in proposals if p.text is not None},
-                                before_play=hold.release)
-    hold.take()
+                                before_play=hold.release, after_play=hold.take)
+    hold.take()  # (taken already if episodes were played)
     return conclude(store, state, iteration, history, proposals, assessments, screens,
                     timing=dict(started_at=started_at, llm_s=llm_s, train_s=times.train_s, eval_s=times.eval_s, t0=t0))
 

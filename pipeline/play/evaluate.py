@@ -91,8 +91,7 @@ def evaluate(
     info = checked_inspect(text, name, workers=config.workers)  # parsed in a confined worker first
     game = resolve_game(info.game, config.game, name)
 
-    with store.write():  # creates or upgrades the store, and refuses a damaged one, before anything plays
-        pass
+    store.make_ready()  # creates or upgrades the store, and refuses a damaged one, before anything plays
     run_id = new_run_id()
     rng_key = config.rng_key or run_id  # the policy's random stream (EpisodeSpec.rng_key)
     one_game = one_life == ONE_LIFE_CONTINUE  # the authors' protocol: the episodes are the lives of one game

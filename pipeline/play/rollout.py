@@ -147,8 +147,13 @@ class PolicyChannel:
     printed: str | None = None
     """What the policy printed in the episode :meth:`finish` ended (``EpisodeSpec.keep_printed``), or None."""
 
+    def begin_loading(self) -> None:
+        """Have the policy start loading, so that it loads while the host resets its environment (a policy process
+        is another process); :meth:`start` then waits for it."""
+
     def start(self) -> None:
-        """Load the policy (raises :class:`PolicyFailed`, e.g. for a policy file that does not load)."""
+        """Load the policy, or wait until it is loaded (raises :class:`PolicyFailed`, e.g. for a policy file that
+        does not load)."""
 
     def go(self, cpu: int | None, deadline: float = math.inf) -> None:
         """The episode begins (on ``cpu``, where the host now runs); its time is up at ``deadline``
@@ -224,6 +229,8 @@ class RemotePolicy(PolicyChannel):
         self.channel = Channel(sock)
         self.spec, self.n_actions = spec, n_actions
         self.limit = (spec.call_time_limit_s or math.inf) + ANSWER_GRACE_S
+        self.loading = False
+        """The start message is sent (:meth:`begin_loading`)."""
         self.deadline = math.inf
         """When the episode's time is up (``time.perf_counter()``; :meth:`go`): no answer is awaited past it (plus
         :data:`ANSWER_GRACE_S`), so the host ends the episode itself, its steps kept, before the parent's kill."""
@@ -257,12 +264,17 @@ class RemotePolicy(PolicyChannel):
             return PolicyFailed("crashed", f"the policy process sent a malformed message {what}")
         return PolicyFailed(reason, capped_error(error))
 
-    def start(self) -> None:
+    def begin_loading(self) -> None:
         spec = self.spec
         self.channel.send_json({
             "op": "start", "policy_text": spec.policy_text, "policy_name": spec.policy_name, "seed": spec.policy_seed,
             "trace": spec.trace, "trace_lines": spec.trace_lines, "call_time_limit_s": spec.call_time_limit_s,
             "n_actions": self.n_actions, "keep_printed": spec.keep_printed})
+        self.loading = True
+
+    def start(self) -> None:
+        if not self.loading:
+            self.begin_loading()
         kind, payload = self._receive(LOAD_TIMEOUT_S, "while loading the policy")
         if kind == b"J" and payload == b'{"kind":"ready"}':
             return
@@ -366,6 +378,7 @@ def prepare_episode(spec: EpisodeSpec, policy: PolicyChannel | None = None) -> P
     t0 = time.perf_counter()
     policy = policy if policy is not None else LocalPolicy(spec, game.n_actions)
     env = shared_env(game, sticky=spec.sticky, noop_max=spec.noop_max, one_life=spec.one_life)
+    policy.begin_loading()  # a policy process loads it while the environment resets here
     try:
         obs, info = env.reset(seed=spec.seed)
     except BaseException:
