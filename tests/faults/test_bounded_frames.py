@@ -31,6 +31,7 @@ import pytest
 
 from store import Store
 from tests.conftest import ROOT, json_reply, pong_policy
+from tests.faults.test_read_slices import PEAK
 
 LIMIT_MB = 600
 
@@ -114,17 +115,13 @@ def attack_method(forge: str) -> str:
         "    " + line for line in body.strip("\n").splitlines()) + "\n"
 
 
-DRIVER = """
+DRIVER = PEAK + """
 import sys
 from pipeline.cli import main
 try:
     code = main(sys.argv[1:])
 finally:
-    # VmHWM: this process's own peak since exec. Not ru_maxrss: a child starts from the size of the process that
-    # spawned it (Linux keeps the old image's peak across exec), and a pytest worker grown to 631 MB by earlier
-    # tests failed every measurement here
-    peak = next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM:'))
-    print('PEAK_KB', peak, file=sys.stderr)
+    print('PEAK_KB', peak_kb(), file=sys.stderr)  # its own peak (ru_maxrss read 631 MB: the pytest worker's)
 sys.exit(code)
 """
 
