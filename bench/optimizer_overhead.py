@@ -41,12 +41,11 @@ from tests.test_strategies import POOL  # noqa: E402
 TARGET = 0.05
 
 
-def waiting_on_calls(calls: list[tuple[int, float, float]]) -> float:
-    """Seconds during which at least one LLM call was in flight, from ``(iteration, start, end)`` rows: calls made
-    at once count once (the longest), calls made one after the other (a repair turn after its proposal) add up."""
-    spans = sorted((start, end) for _, start, end in calls)
+def waiting_on_calls(calls: list[tuple[float, float]]) -> float:
+    """Seconds during which at least one LLM call was in flight, from ``(start, end)`` rows: calls made at once
+    count once (the longest), calls made one after the other (a repair turn after its proposal) add up."""
     total, reach = 0.0, -math.inf
-    for start, end in spans:
+    for start, end in sorted(calls):
         if end > reach:
             total += end - max(start, reach)
             reach = end
@@ -76,7 +75,7 @@ def main() -> int:
     (wall,) = store.query("SELECT epoch(max(finished_at) - min(started_at)) FROM iterations "
                           "WHERE run_id = ? AND iteration > 0", [result.run_id])[0]
     # a call's row is stored when it ends (created_at): it ran over [created_at - latency_s, created_at]
-    calls = store.query("SELECT iteration, epoch(created_at) - latency_s, epoch(created_at) FROM llm_calls "
+    calls = store.query("SELECT epoch(created_at) - latency_s, epoch(created_at) FROM llm_calls "
                         "WHERE run_id = ? AND iteration > 0 AND latency_s IS NOT NULL", [result.run_id])
     env = sum(r[1] or 0.0 for r in rows)
     llm = waiting_on_calls(calls)
