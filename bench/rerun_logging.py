@@ -29,7 +29,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from games import GAMES  # noqa: E402
-from pipeline.play.rollout import EpisodeSpec, run_episode  # noqa: E402
+from pipeline.play.rollout import run_episode  # noqa: E402
+from pipeline.play.spec import EpisodeSpec  # noqa: E402
 
 TARGET = 0.25
 POLICIES = {"pong": ROOT / "tests" / "policies" / "pong_competent.py"}

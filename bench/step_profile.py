@@ -1,7 +1,7 @@
 """Where the microseconds of an ``eval`` step go: the game host, the policy process and the parent, per stage.
 
 The host is this very process (the same code a forked game host runs: ``pipeline/play/rollout.py``'s
-``prepare_episode`` and ``play_episode`` with a :class:`~pipeline.play.rollout.RemotePolicy`), its policy process a
+``prepare_episode`` and ``play_episode`` with a :class:`~pipeline.play.channels.RemotePolicy`), its policy process a
 real confined one from the policy zygote, the pair pinned to one CPU as ``eval`` pins them. Each stage's functions
 are wrapped with a timer for the run (a wrapper costs ~0.3 µs a call; the untimed total is printed beside):
 
@@ -56,9 +56,11 @@ from games import envs  # noqa: E402
 from pipeline.boundary import wire  # noqa: E402
 from pipeline.boundary.policy import ACTION, Channel, coerce_action  # noqa: E402
 from pipeline.boundary.zygotes import zygote  # noqa: E402
-from pipeline.play import rollout  # noqa: E402
+from pipeline.play import channels  # noqa: E402
 from pipeline.play.episodes import episode_from_worker, episode_to_json  # noqa: E402
-from pipeline.play.rollout import EpisodeSpec, RemotePolicy, play_episode, prepare_episode  # noqa: E402
+from pipeline.play.channels import RemotePolicy  # noqa: E402
+from pipeline.play.rollout import play_episode, prepare_episode  # noqa: E402
+from pipeline.play.spec import EpisodeSpec  # noqa: E402
 from store import Store  # noqa: E402
 from store.writer import write_episode  # noqa: E402
 from tracing.capture import NodeRecorder  # noqa: E402
@@ -167,15 +169,15 @@ def host_episode(game: str, trace: bool, max_steps: int, n: int, cpu: int, timer
             timers.seconds["round trip"] = waited
 
     RemotePolicy.finish = untimed_finish
-    saved_marshal = rollout.marshal
-    rollout.marshal = marshal_shim
+    saved_marshal = channels.marshal
+    channels.marshal = marshal_shim
     try:
         with timers.patched(patches):
             start = time.perf_counter()
             outcome = play_episode(prepared, cpu=cpu)
             played = time.perf_counter() - start
     finally:
-        rollout.marshal = saved_marshal
+        channels.marshal = saved_marshal
         RemotePolicy.finish = finish
         observer.game = game_spec
         policy.close()

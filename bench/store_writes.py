@@ -27,7 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import store.hub as hub  # noqa: E402
-from pipeline.play.rollout import EpisodeSpec, run_episode  # noqa: E402
+from pipeline.play.rollout import run_episode  # noqa: E402
+from pipeline.play.spec import EpisodeSpec  # noqa: E402
 from store import Store  # noqa: E402
 from store.writer import write_episode  # noqa: E402
 

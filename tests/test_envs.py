@@ -214,7 +214,8 @@ def test_a_reset_from_the_loaded_snapshot_is_a_rom_load_byte_for_byte(game):
 
 @pytest.mark.parametrize("protocol", [dict(), dict(sticky=0.25, noop_max=30)])
 def test_a_reused_environment_plays_episodes_like_a_fresh_one(protocol):
-    from pipeline.play.rollout import EpisodeSpec, run_episode
+    from pipeline.play.rollout import run_episode
+    from pipeline.play.spec import EpisodeSpec
 
     text = (Path(__file__).resolve().parents[1] / "games" / "scaffolds" / "space_invaders.py").read_text()
     specs = [EpisodeSpec(f"e{seed}", "r", "space_invaders", text, "v", seed=seed, max_steps=150, **protocol)

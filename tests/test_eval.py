@@ -13,7 +13,7 @@ import pytest
 from games import GAMES, get_game
 from pipeline.cli import main
 from pipeline.play.episodes import run_episodes
-from pipeline.play.rollout import EpisodeSpec
+from pipeline.play.spec import EpisodeSpec
 from tests.conftest import EXAMPLES, POLICIES, ROOT, pong_policy, random_policy, said
 
 BUNDLED_CALLS_PER_STEP = {"pong": 2, "breakout": 3, "space_invaders": 3}
@@ -253,7 +253,7 @@ def test_kept_hosts_do_not_outlive_the_process_that_kept_them(ending, tmp_path):
         "import os, sys\n"
         "from pipeline.boundary.zygotes import keep_hosts, zygote\n"
         "from pipeline.play.episodes import run_episodes\n"
-        "from pipeline.play.rollout import EpisodeSpec\n"
+        "from pipeline.play.spec import EpisodeSpec\n"
         "from tests.conftest import pong_policy\n"
         "specs = [EpisodeSpec(f'e{i}', 'r', 'pong', pong_policy('return 0'), 'v', index=i, max_steps=20)\n"
         "         for i in range(2)]\n"

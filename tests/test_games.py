@@ -154,7 +154,8 @@ def test_a_game_added_from_outside_the_package_plays_through_eval(tmp_path):
 
 
 def test_hot_columns_follow_each_games_player():
-    from pipeline.play.rollout import EpisodeSpec, run_episode
+    from pipeline.play.rollout import run_episode
+    from pipeline.play.spec import EpisodeSpec
 
     policy = (ROOT / "tests" / "policies" / "freeway_competent.py").read_text()
     outcome = run_episode(EpisodeSpec(episode_id="e", run_id="r", game="freeway", policy_text=policy,

@@ -22,7 +22,7 @@ import pytest
 from games import get_game
 from games.envs import ObjectObservation
 from pipeline.cli import main
-from pipeline.play.rollout import EpisodeSpec
+from pipeline.play.spec import EpisodeSpec
 from pipeline.play.verify import replay_outcome, replay_run
 from store.readers import episode_steps, replay_material
 from store.showing import lead_in_actions

@@ -18,7 +18,8 @@ from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
 from pipeline.boundary.nodes import MalformedTrace, check_nodes
-from pipeline.play.rollout import EpisodeSpec, run_episode
+from pipeline.play.rollout import run_episode
+from pipeline.play.spec import EpisodeSpec
 from store import Store
 from tests.conftest import json_reply, pong_policy
 from tracing.blame import blame_function

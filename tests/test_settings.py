@@ -130,7 +130,7 @@ def test_episode_limits_are_one_declaration():
     """eval, optimize, compare, the candidate checks and the episode specs all take their limits' defaults from
     EpisodeLimits: change one there and every one of them follows."""
     from pipeline.boundary.confine import Limits
-    from pipeline.play.rollout import EpisodeSpec
+    from pipeline.play.spec import EpisodeSpec
     from pipeline.play.validate import RuntimeCheck
 
     limits = EpisodeLimits()

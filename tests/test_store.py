@@ -12,7 +12,8 @@ import duckdb
 import pytest
 
 from games import list_widths
-from pipeline.play.rollout import EpisodeSpec, run_episode
+from pipeline.play.rollout import run_episode
+from pipeline.play.spec import EpisodeSpec
 from store import Store, StoreError
 from store.migrations import LATEST, MIGRATIONS
 from store.readers import episode_steps, run_episodes, step_nodes

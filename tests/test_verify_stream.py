@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import random
 
-from pipeline.play.rollout import EpisodeSpec
+from pipeline.play.spec import EpisodeSpec
 from pipeline.play.verify import Replay, replay_actions
 
 

@@ -8,7 +8,8 @@ import pytest
 
 from pipeline.boundary import wire
 from pipeline.play import episodes
-from pipeline.play.rollout import EpisodeSpec, run_episode
+from pipeline.play.rollout import run_episode
+from pipeline.play.spec import EpisodeSpec
 from tests.conftest import pong_policy
 from tracing.capture import NODE_SCHEMA
 from tracing.steps import STEP_SCHEMA

@@ -35,8 +35,9 @@ from typing import Callable
 from games.base import ONE_LIFE_CONTINUE, STANDARD_NOOP_MAX, STANDARD_STICKY
 from pipeline.optimizer.state import RunState
 from pipeline.play.episodes import run_episodes
-from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
+from pipeline.play.rollout import EpisodeOutcome
 from pipeline.play.runinfo import episode_id
+from pipeline.play.spec import EpisodeSpec
 from pipeline.play.verify import TAMPERED, checked_outcome, tampering
 from store import Store
 from store.readers import earlier_screen, policy_text, reusable_assessment, score_at_step

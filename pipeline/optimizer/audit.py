@@ -33,8 +33,8 @@ from games.base import (AUDIT_SEED_BASE, AUDIT_SEED_END, ONE_LIFE_CONTINUE, STAN
                         draw_audit_seeds)
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.play.episodes import run_episodes
-from pipeline.play.rollout import EpisodeSpec
 from pipeline.play.runinfo import episode_id
+from pipeline.play.spec import EpisodeSpec
 from pipeline.play.verify import checked_outcome
 from store import Store
 from store.readers import audit_subjects, get_run

@@ -32,8 +32,10 @@ from pipeline.boundary.untrusted import utf8_prefix
 from pipeline.boundary.wire import MAX_TEXT, BadMessage
 from pipeline.boundary.workers import ProgressCallback, Task, run_tasks
 from pipeline.boundary.zygotes import Zygote
-from pipeline.play.rollout import (GAME_END_REASONS, EpisodeOutcome, EpisodeSpec, RemotePolicy, _episode_row,
-                                   crashed_outcome, play_episode, play_game, prepare_episode, run_episode, run_game)
+from pipeline.play.channels import RemotePolicy
+from pipeline.play.rollout import (GAME_END_REASONS, EpisodeOutcome, _episode_row, crashed_outcome, play_episode,
+                                   play_game, prepare_episode, run_episode, run_game)
+from pipeline.play.spec import EpisodeSpec
 
 WORKER_END_REASONS = frozenset({"terminated", "truncated", "policy_error", "timeout", "crashed"})
 """End reasons a host may report (``crashed``: its policy process died or broke the protocol, the steps before

@@ -17,8 +17,9 @@ from typing import Callable
 
 from games.base import ONE_LIFE_CONTINUE, one_life_setting
 from pipeline.play.episodes import run_episodes
-from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
+from pipeline.play.rollout import EpisodeOutcome
 from pipeline.play.runinfo import episode_id, new_run_id, package_versions
+from pipeline.play.spec import EpisodeSpec
 from pipeline.play.validate import checked_inspect, resolve_game
 from pipeline.play.verify import checked_outcome
 from pipeline.play.versions import policy_version_row

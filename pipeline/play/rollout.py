@@ -3,11 +3,8 @@
 This is the trusted side of an episode (DESIGN.md, "the game host and the policy process"). The emulator,
 OCAtari's objects, the game's observation builder, rewards, lives, the protocols, the step log and live Rerun
 recordings all live in the process that runs :func:`play_episode`, where no policy code ever runs; the policy
-answers each observation through a :class:`PolicyChannel`:
-
-- :class:`RemotePolicy`: a confined policy process (``pipeline/boundary/policy.py``), one round trip per step
-  over a socket; the normal case (``pipeline/play/episodes.py`` starts the host and the policy process as a pair);
-- :class:`LocalPolicy`: the policy loaded in this very process (``--workers 0``: debugging, no isolation at all).
+answers each observation through a :class:`~pipeline.play.channels.PolicyChannel` (``pipeline/play/channels.py``:
+a confined policy process, the normal case, or the policy in this very process with ``--workers 0``).
 
 Every reward, score, life and step is therefore computed where the policy cannot reach: scores are right by
 construction, and nothing is replayed to trust them. :func:`run_episode` is a pure function of an
@@ -25,11 +22,7 @@ NULL: its observation is what the policy failed on, and its nodes show where.
 
 from __future__ import annotations
 
-import json
-import marshal
-import math
 import random
-import socket
 import sys
 import time
 from dataclasses import dataclass
@@ -40,82 +33,13 @@ import numpy as np
 import pyarrow as pa
 
 from games import Game, get_game, list_widths
-from games.base import OBSERVATION_VERSION
-from pipeline.boundary.nodes import MAX_NODE_FRAME, MalformedTrace, node_budget, read_nodes
-from pipeline.boundary.policy import (ACTION, MAX_ANSWER, Channel, capped_error, coerce_action,
-                                     describe_exception, printed_text)
-from pipeline.play.runinfo import policy_rng_seed
-from pipeline.settings import EpisodeLimits
-from tracing.capture import NodeRecorder
-from tracing.policy_file import PolicyLoadError, load_policy
-from tracing.sandbox import CallTimer, PolicyTimeout
+from pipeline.boundary.nodes import MalformedTrace, read_nodes
+from pipeline.play.channels import LocalPolicy, PolicyChannel, PolicyFailed
+from pipeline.play.spec import EpisodeSpec
 from tracing.steps import StepLog
 
 PROGRESS_EVERY = 250
 """Steps between progress callbacks."""
-ANSWER_GRACE_S = 1.0
-"""How long past its call limit the host waits for the policy process's answer (its own timer reports a slow
-call at the limit; this catches one that defeated the timer or hangs in C)."""
-LOAD_TIMEOUT_S = 60.0
-"""How long the policy process may take to load the policy."""
-FINISH_TIMEOUT_S = 30.0
-"""How long the policy process may take to send its node rows at the end."""
-
-
-@dataclass
-class EpisodeSpec:
-    """Everything needed to play one episode; every field a primitive, so that it crosses to a worker as JSON."""
-
-    episode_id: str
-    run_id: str
-    game: str
-    policy_text: str
-    policy_version_id: str
-    policy_name: str = "policy.py"
-    iteration: int = 0
-    kind: str = "eval"
-    """``eval`` (evaluation episode) or ``train`` (traced training rollout of the optimizer)."""
-    index: int = 0
-    seed: int = 0
-    max_steps: int = EpisodeLimits.max_steps
-    sticky: float = 0.0
-    noop_max: int = 0
-    one_life: bool | str = False
-    """End the episode at a lost life: ``True``, the first life of the game reset from ``seed``
-    (``games.envs.OneLife``); ``"continue"``, the authors' protocol exactly (``games.envs.EpisodicLife``)."""
-    continues: str | None = None
-    """The episode whose game this one goes on with (``one_life="continue"``): it is played right after that one,
-    by the same game host and policy process, from where it ended (one NOOP, Breakout a FIRE); None: it starts
-    from ``reset(seed)``. ``seed`` is then the seed of the game."""
-    observation: int = OBSERVATION_VERSION
-    """The version of the observation conventions the run plays (``games.base.OBSERVATION_VERSION``)."""
-    trace: bool = False
-    """Record a node for every call of a bundled method (slower; steps are always recorded)."""
-    trace_lines: bool = True
-    """With ``trace``: record in each node the lines of the method that ran (``nodes.lines_run``)."""
-    call_time_limit_s: float = EpisodeLimits.call_time_limit_s
-    """Limit for one policy call, ``policy(obs)``, including every bundled method it calls."""
-    episode_time_limit_s: float = EpisodeLimits.episode_time_limit_s
-    """Wall-clock limit for the whole episode."""
-    memory_limit_mb: int | None = EpisodeLimits.memory_limit_mb
-    """Extra address space a worker process may take beyond what it had at start (None: unlimited)."""
-    rerun: str | None = None
-    """Live Rerun recording: a directory (``DIR/<episode_id>.rrd``) or a ``rerun+http://…/proxy`` URL; None: off.
-    Rerun is imported only inside the process that plays the episode (``viewers/rerun_live.py``)."""
-    rerun_frames_every: int = 4
-    """With ``rerun``: log the screen every this many steps (0: no frames)."""
-    keep_printed: bool = False
-    """Keep what the policy prints to its stdout (its first ``policy.MAX_PRINTED_BYTES`` bytes) and return it with
-    the outcome (:attr:`EpisodeOutcome.printed`, never stored with the episode); off: it goes to ``/dev/null``."""
-    rng_key: str | None = None
-    """The key of the run's random stream for policies (``runinfo.policy_rng_seed``): the policy process's
-    generators are seeded from it and the game's seed, never with the game's seed itself. None: a run recorded
-    before the key existed, whose policies' generators were seeded with the game's seed (kept, so it replays)."""
-
-    @property
-    def policy_seed(self) -> int:
-        """The seed of the policy's ``random`` and NumPy generators in this episode."""
-        return policy_rng_seed(self.rng_key, self.seed) if self.rng_key else self.seed
 
 
 @dataclass
@@ -131,213 +55,6 @@ class EpisodeOutcome:
     @property
     def end_reason(self) -> str:
         return self.episode["end_reason"]
-
-
-class PolicyFailed(Exception):
-    """The policy could not give an action: ``end_reason`` (``policy_error``, ``timeout``, ``crashed``) and why."""
-
-    def __init__(self, end_reason: str, error: str):
-        super().__init__(error)
-        self.end_reason, self.error = end_reason, error
-
-
-class PolicyChannel:
-    """How the host asks the policy for actions (see the module docstring)."""
-
-    printed: str | None = None
-    """What the policy printed in the episode :meth:`finish` ended (``EpisodeSpec.keep_printed``), or None."""
-
-    def begin_loading(self) -> None:
-        """Have the policy start loading, so that it loads while the host resets its environment (a policy process
-        is another process); :meth:`start` then waits for it."""
-
-    def start(self) -> None:
-        """Load the policy, or wait until it is loaded (raises :class:`PolicyFailed`, e.g. for a policy file that
-        does not load)."""
-
-    def go(self, cpu: int | None, deadline: float = math.inf) -> None:
-        """The episode begins (on ``cpu``, where the host now runs); its time is up at ``deadline``
-        (``time.perf_counter()``)."""
-
-    def act(self, obs: dict[str, Any]) -> int:
-        """The policy's legal action for ``obs``; raises :class:`PolicyFailed`."""
-        raise NotImplementedError
-
-    def finish(self, more: bool = False, steps: int | None = None) -> Any:
-        """The episode is over: the node rows (an Arrow table, the raw Arrow bytes of a remote policy, or None).
-        ``more``: the next episode of the same game follows, played by the same policy (loaded, its state kept);
-        ``steps``: the policy calls of the episode (its node rows' byte budget: ``nodes.node_budget``)."""
-        return None
-
-
-class LocalPolicy(PolicyChannel):
-    """The policy in this process (``--workers 0``: for debugging; no isolation at all)."""
-
-    def __init__(self, spec: "EpisodeSpec", n_actions: int) -> None:
-        self.spec, self.n_actions = spec, n_actions
-        self.recorder = NodeRecorder(lines=spec.trace_lines) if spec.trace else None
-        self.timer = CallTimer()
-        self.policy: Any = None
-
-    def start(self) -> None:
-        random.seed(self.spec.policy_seed)
-        np.random.seed(self.spec.policy_seed % 2**32)
-        try:
-            self.policy = load_policy(self.spec.policy_text, self.spec.policy_name).policy
-        except PolicyLoadError as exc:
-            raise PolicyFailed("policy_error", str(exc)) from None
-        self.timer.__enter__()
-        if self.recorder is not None:
-            self.recorder.__enter__()
-        self.step = -1
-
-    def act(self, obs: dict[str, Any]) -> int:
-        self.step += 1
-        if self.recorder is not None:
-            self.recorder.begin_step(self.step, obs)
-        try:
-            return coerce_action(self.timer.call(self.spec.call_time_limit_s or math.inf, self.policy, obs),
-                                 self.n_actions)
-        except PolicyTimeout as exc:
-            raise PolicyFailed("timeout", describe_exception(exc)) from None
-        except KeyboardInterrupt:
-            raise
-        except BaseException as exc:  # noqa: BLE001 - untrusted code: anything, SystemExit too
-            raise PolicyFailed("policy_error", describe_exception(exc)) from None
-
-    def finish(self, more: bool = False, steps: int | None = None) -> Any:
-        if self.policy is not None:
-            self.timer.__exit__(None, None, None)
-            if self.recorder is not None:
-                self.recorder.__exit__(None, None, None)
-        nodes = self.recorder.table() if self.recorder is not None else None
-        if more and self.policy is not None:  # the next episode: a new node log, the same policy object
-            self.timer.__enter__()
-            if self.recorder is not None:
-                self.recorder = NodeRecorder(lines=self.spec.trace_lines).__enter__()
-            self.step = -1
-        return nodes
-
-
-class RemotePolicy(PolicyChannel):
-    """The host's end of a confined policy process (``pipeline/boundary/policy.py``): one frame out and one back
-    per step. Every answer is checked here: an action is a legal int, an error is capped text; a process that
-    does not answer within its call limit (plus :data:`ANSWER_GRACE_S`), that sends anything else, or that dies,
-    ends the episode (``timeout`` / ``crashed``) with the steps played so far."""
-
-    def __init__(self, sock: socket.socket, spec: "EpisodeSpec", n_actions: int) -> None:
-        self.channel = Channel(sock)
-        self.spec, self.n_actions = spec, n_actions
-        self.limit = (spec.call_time_limit_s or math.inf) + ANSWER_GRACE_S
-        self.loading = False
-        """The start message is sent (:meth:`begin_loading`)."""
-        self.deadline = math.inf
-        """When the episode's time is up (``time.perf_counter()``; :meth:`go`): no answer is awaited past it (plus
-        :data:`ANSWER_GRACE_S`), so the host ends the episode itself, its steps kept, before the parent's kill."""
-        self.broken = False
-        """The stream is past use (no whole answer in time, a frame over its limit, the process gone): nothing more
-        is read from it, not even the node rows at the end (what is left of a frame trickled a byte at a time would
-        be read as the next)."""
-
-    def _receive(self, timeout: float, what: str) -> tuple[bytes, bytes]:
-        """The next answer, whole within ``timeout`` seconds (the frame's deadline, not each read's)."""
-        timeout = None if math.isinf(timeout) else timeout
-        try:
-            return self.channel.receive(MAX_ANSWER, within=timeout)
-        except TimeoutError:
-            self.broken = True
-            raise PolicyFailed("timeout", f"the policy process did not answer {what} within {timeout:.3g} s") from None
-        except EOFError:
-            self.broken = True
-            raise PolicyFailed("crashed", f"the policy process ended {what}") from None
-        except (OSError, ValueError) as exc:
-            self.broken = True
-            raise PolicyFailed("crashed", f"the policy process broke the protocol {what}: {exc}") from None
-
-    def _failure(self, payload: bytes, what: str) -> PolicyFailed:
-        try:
-            message = json.loads(payload)
-            reason, error = message["end_reason"], message["error"]
-        except (ValueError, KeyError, TypeError, RecursionError):
-            return PolicyFailed("crashed", f"the policy process sent a malformed message {what}")
-        if message.get("kind") != "failed" or reason not in ("policy_error", "timeout") or not isinstance(error, str):
-            return PolicyFailed("crashed", f"the policy process sent a malformed message {what}")
-        return PolicyFailed(reason, capped_error(error))
-
-    def begin_loading(self) -> None:
-        spec = self.spec
-        self.channel.send_json({
-            "op": "start", "policy_text": spec.policy_text, "policy_name": spec.policy_name, "seed": spec.policy_seed,
-            "trace": spec.trace, "trace_lines": spec.trace_lines, "call_time_limit_s": spec.call_time_limit_s,
-            "n_actions": self.n_actions, "keep_printed": spec.keep_printed})
-        self.loading = True
-
-    def start(self) -> None:
-        if not self.loading:
-            self.begin_loading()
-        kind, payload = self._receive(LOAD_TIMEOUT_S, "while loading the policy")
-        if kind == b"J" and payload == b'{"kind":"ready"}':
-            return
-        raise self._failure(payload, "while loading the policy") if kind == b"J" else \
-            PolicyFailed("crashed", "the policy process sent a malformed message while loading the policy")
-
-    def go(self, cpu: int | None, deadline: float = math.inf) -> None:
-        self.deadline = deadline
-        self.channel.send_json({"op": "go", "cpu": cpu})
-
-    def act(self, obs: dict[str, Any]) -> int:
-        try:
-            self.channel.send(b"O", marshal.dumps(obs))
-        except OSError:
-            raise PolicyFailed("crashed", "the policy process ended before the step") from None
-        limit, what = self.limit, "at this step"
-        left = self.deadline - time.perf_counter()
-        if left + ANSWER_GRACE_S < limit:  # the episode's time is up first
-            limit, what = max(left, 0.0) + ANSWER_GRACE_S, "at this step (the episode's time limit came first)"
-        kind, payload = self._receive(limit, what)
-        if kind == b"a" and len(payload) == ACTION.size:
-            (action,) = ACTION.unpack(payload)
-            if 0 <= action < self.n_actions:
-                return action
-            raise PolicyFailed("crashed", f"the policy process sent an illegal action {action}")
-        raise self._failure(payload, "at this step") if kind == b"J" else \
-            PolicyFailed("crashed", "the policy process sent a frame of an unknown kind")
-
-    def close(self) -> None:
-        """Let the policy process go (a game host that plays another episode next must not keep its socket)."""
-        self.channel.sock.close()
-
-    def finish(self, more: bool = False, steps: int | None = None) -> bytes | None:
-        """The node rows as the policy process sent them (an Arrow stream of at most the episode's byte budget,
-        :func:`~pipeline.boundary.nodes.node_budget` of ``steps``, read and checked by the parent), or None.
-        :class:`PolicyFailed` (``policy_error``, a malformed trace) for node rows the episode did not ask for
-        (refused unread) or a node frame over the limit (refused at its header). None at once when the stream is
-        :attr:`broken` (the host timed the process out: waiting for its node rows would only let it hold the
-        host longer)."""
-        self.printed = None
-        if self.broken:
-            return None
-        try:
-            self.channel.send_json({"op": "end", "more": more})
-            kind, payload = self._receive(FINISH_TIMEOUT_S, "at the end")
-            message = json.loads(payload) if kind == b"J" else None
-            if self.spec.keep_printed and isinstance(message, dict) and message.get("kind") == "done":
-                self.printed = printed_text(message)
-            if not isinstance(message, dict) or message.get("kind") != "done" or message.get("nodes") is not True:
-                return None
-        except (PolicyFailed, OSError, ValueError, RecursionError):
-            return None  # the steps are the host's: an episode without its node rows is still an episode
-        if not self.spec.trace:
-            raise PolicyFailed("policy_error", "malformed trace: node rows for an episode that is not traced")
-        try:
-            budget = MAX_NODE_FRAME if steps is None else node_budget(steps)
-            kind, payload = self.channel.receive(budget, within=FINISH_TIMEOUT_S)
-        except ValueError as exc:  # over the episode's byte budget, refused at the header
-            raise PolicyFailed("policy_error", f"malformed trace: a node frame over the episode's budget ({exc})") \
-                from None
-        except (OSError, EOFError):
-            return None
-        return payload if kind == b"A" else None
 
 
 def _report(steps: StepLog, reported: int, length: int, progress: Callable[[int], None] | None) -> int:

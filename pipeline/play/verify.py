@@ -7,7 +7,7 @@ the error a policy raised, and the node rows its process recorded. :func:`checke
 outcome as it arrives (``pipeline/play/evaluate.py``, ``pipeline/optimizer/assess.py``), before it is stored:
 
 1. rebuilds the episode row: the fields the parent decided (ids, seed, game, caps, protocol) come from the
-   :class:`~pipeline.play.rollout.EpisodeSpec`, the measured ones are type-checked, unknown keys are dropped, and
+   :class:`~pipeline.play.spec.EpisodeSpec`, the measured ones are type-checked, unknown keys are dropped, and
    text (the error message; what the policy printed, when its spec kept it) is cleaned
    (``pipeline/boundary/untrusted.py``: capped, secrets redacted);
 2. cleans the node table's text columns, and the object names in the step table, the same way;
@@ -41,7 +41,8 @@ from games import get_game
 from games.base import ONE_LIFE_CONTINUE, one_life_setting
 from pipeline.boundary.policy import PRINTED_TEXT_BYTES
 from pipeline.boundary.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
-from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec
+from pipeline.play.rollout import EpisodeOutcome
+from pipeline.play.spec import EpisodeSpec
 from tracing.capture import NODE_SCHEMA
 from tracing.steps import STEP_SCHEMA, StepLog
 

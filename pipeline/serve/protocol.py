@@ -66,8 +66,8 @@ from pipeline.optimizer.feedback import FeedbackBands, compose_feedback
 from pipeline.optimizer.loop import start_run
 from pipeline.optimizer.prompt import trace_slice  # the prompt's own choice of steps: feedback shows what it would
 from pipeline.play.episodes import run_episodes
-from pipeline.play.rollout import EpisodeSpec
 from pipeline.play.runinfo import episode_id
+from pipeline.play.spec import EpisodeSpec
 from pipeline.play.validate import checked_inspect
 from pipeline.play.verify import checked_outcome
 from pipeline.play.versions import policy_version_row

@@ -13,7 +13,8 @@ import pytest
 from pipeline.boundary import wire
 from pipeline.boundary.nodes import MalformedTrace, read_nodes
 from pipeline.play import episodes
-from pipeline.play.rollout import EpisodeSpec, run_episode
+from pipeline.play.rollout import run_episode
+from pipeline.play.spec import EpisodeSpec
 from store.writer import EpisodeWriter
 from tests.conftest import ROOT, pong_policy
 

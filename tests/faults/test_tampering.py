@@ -20,7 +20,8 @@ from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
 from pipeline.play.episodes import run_episodes
-from pipeline.play.rollout import EpisodeOutcome, EpisodeSpec, run_episode
+from pipeline.play.rollout import EpisodeOutcome, run_episode
+from pipeline.play.spec import EpisodeSpec
 from pipeline.play.verify import checked_outcome, replay_outcome
 from tests.conftest import json_reply, pong_policy, random_policy
 

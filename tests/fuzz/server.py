@@ -20,7 +20,7 @@ Targets (each the code that receives the bytes in a run):
   DuckDB store;
 - ``rerun``: the game host's ``--rerun`` path: ``nodes.read_nodes`` then ``viewers.rerun_live``'s recorder
   logging the rows into an ``.rrd`` file;
-- ``failure``: the host's reading of a policy process's failure frame (``rollout.RemotePolicy._failure``).
+- ``failure``: the host's reading of a policy process's failure frame (``channels.RemotePolicy._failure``).
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def _steps_table(n: int):
 
 class Targets:
     def __init__(self, policy_text: str, workdir: str):
-        from pipeline.play.rollout import EpisodeSpec
+        from pipeline.play.spec import EpisodeSpec
         from store.db import Store
 
         self.workdir = workdir
@@ -130,7 +130,7 @@ class Targets:
         return "accepted", f"{table.num_rows} rows recorded"
 
     def failure(self, payload: bytes, steps: int) -> tuple[str, str]:
-        from pipeline.play.rollout import RemotePolicy
+        from pipeline.play.channels import RemotePolicy
 
         failed = RemotePolicy._failure(None, payload, "at this step")
         outcome = "refused" if failed.end_reason == "crashed" else "accepted"
