@@ -38,7 +38,6 @@ FINISH_TIMEOUT_S = 30.0
 """How long the policy process may take to send its node rows at the end."""
 
 
-
 class PolicyFailed(Exception):
     """The policy could not give an action: ``end_reason`` (``policy_error``, ``timeout``, ``crashed``) and why."""
 
