@@ -14,7 +14,9 @@ alone. Three tables:
    few ms), so the ratios against bare OCAtari's steps alone, its resets left out, are the headline:
    targets eval/stepping >= 0.85, trace/stepping >= 0.70 (eval/bare and trace/bare, resets counted, beside).
    Beside them, what an evaluation costs around its steps (``fixed``: one episode of one step) and the ratio
-   with that taken out (``per step``): which of the two keeps a game below its target. The game hosts are kept
+   with that taken out (``per step``): which of the two keeps a game below its target; and ``ends``, the same
+   cost read from the fastest evaluation itself (its episode rows say when the first host began preparing and
+   when the last step ended): the time before, then the time after (the last write). The game hosts are kept
    between evaluations (``keep_hosts``, as the optimizer's assessments play) unless ``--fresh-hosts``.
 2. **The round trip.** A policy that returns 0 at once, played by a host with a policy process and, for
    reference, in the parent itself (``--workers 0``): the difference of the time the host waits per step is the
@@ -115,13 +117,23 @@ def played_actions(store: Store, run_id: str) -> tuple[list[int], list[list[int]
 
 
 def timed_eval(policy: Path, store: Store, episodes: int, trace: bool, workers: int = 1,
-               max_steps: int = 4000) -> tuple[float, str]:
+               max_steps: int = 4000) -> tuple[float, str, float]:
+    """Seconds ``evaluate`` took, the run's id, and when it was called (``time.time()``)."""
     # one random stream for every run: a starter that moves at random plays the same episodes each time, the very
     # actions the bare replay repeats (each run's own stream made eval and the replay play different games)
     config = EvalConfig(episodes=episodes, trace=trace, workers=workers, max_steps=max_steps, rng_key="throughput")
-    start = time.perf_counter()
+    began, start = time.time(), time.perf_counter()
     result = evaluate(policy, config, store)
-    return time.perf_counter() - start, result.run_id
+    return time.perf_counter() - start, result.run_id, began
+
+
+def evaluation_ends(store: Store, run_id: str, began: float, seconds: float) -> tuple[float, float]:
+    """Seconds of an evaluation before its first episode's preparation began and after its last step ended, from
+    its episode rows (``started_at`` is when a host began preparing, ``duration_s`` runs to its last step; the
+    hosts' clock is this process's): what it costs around its episodes, measured in the evaluation itself."""
+    (first, last), = store.query("SELECT min(epoch(started_at)), max(epoch(started_at) + duration_s) FROM episodes "
+                                 "WHERE run_id = ?", [run_id])
+    return first - began, began + seconds - last
 
 
 def steady_state(games: list[str], store: Store, episodes: int, repeats: int,
@@ -131,12 +143,12 @@ def steady_state(games: list[str], store: Store, episodes: int, repeats: int,
     (``keep_hosts``, as the optimizer plays), as the bare side builds its environment once."""
     print(f"{'game':<15} {'steps':>6} {'bare stepping':>14} {'eval':>13} {'eval --trace':>13} "
           f"{'eval/stepping':>14} {'trace/stepping':>15} {'eval/bare':>10} {'trace/bare':>11} "
-          f"{'fixed':>11} {'per step':>9}   (median of paired ratios)")
+          f"{'fixed':>11} {'per step':>9} {'ends':>13}   (median of paired ratios)")
     failures, absent = [], []
     for game in games:
         policy = ROOT / "games" / "scaffolds" / f"{game}.py"
         # The paper's protocol is deterministic: every repeat plays these very actions.
-        _, run_id = timed_eval(policy, store, episodes, trace=False)
+        _, run_id, _ = timed_eval(policy, store, episodes, trace=False)
         seeds, actions = played_actions(store, run_id)
         steps = sum(len(a) for a in actions)
         bare = BareOCAtari(game)
@@ -147,9 +159,15 @@ def steady_state(games: list[str], store: Store, episodes: int, repeats: int,
             stepping.append(seconds - bare.reset_s)
             return seconds
 
+        evals: list[tuple[float, str, float]] = []
+
+        def play_eval() -> float:
+            evals.append(timed_eval(policy, store, episodes, trace=False))
+            return evals[-1][0]
+
         measure = {
             "bare": play_bare,
-            "eval": lambda: timed_eval(policy, store, episodes, trace=False)[0],
+            "eval": play_eval,
             "trace": lambda: timed_eval(policy, store, episodes, trace=True)[0],
             # what an evaluation costs around its steps: one episode of one step (the check, the run's rows, a
             # pair's start, the last write)
@@ -166,6 +184,8 @@ def steady_state(games: list[str], store: Store, episodes: int, repeats: int,
         ratios.update({f"{name}/stepping": min(stepping) / best[name] for name in ("eval", "trace")})
         # per step: eval's time less one evaluation's fixed cost, against the same steps stepped bare
         per_step = min(stepping) / (best["eval"] - best["fixed"]) if best["eval"] > best["fixed"] else math.nan
+        fastest_s, fastest_run, fastest_began = min(evals)
+        head, tail = evaluation_ends(store, fastest_run, fastest_began, fastest_s)
         paired = {name: statistics.median(b / x for b, x in zip(seconds["bare"], seconds[name]))
                   for name in ("eval", "trace")}
         paired.update({f"{name}/stepping": statistics.median(b / x for b, x in zip(stepping, seconds[name]))
@@ -173,7 +193,7 @@ def steady_state(games: list[str], store: Store, episodes: int, repeats: int,
         print(f"{game:<15} {steps:>6} {steps / min(stepping):>9.0f} st/s {steps / best['eval']:>8.0f} st/s "
               f"{steps / best['trace']:>8.0f} st/s {ratios['eval/stepping']:>14.2f} "
               f"{ratios['trace/stepping']:>15.2f} {ratios['eval']:>10.2f} {ratios['trace']:>11.2f} "
-              f"{best['fixed'] * 1e3:>8.0f} ms {per_step:>9.2f}   "
+              f"{best['fixed'] * 1e3:>8.0f} ms {per_step:>9.2f} {head * 1e3:>5.0f} +{tail * 1e3:>3.0f} ms   "
               f"({paired['eval/stepping']:.2f}, {paired['trace/stepping']:.2f}, {paired['eval']:.2f}, "
               f"{paired['trace']:.2f})", flush=True)
         for name, label in (("eval/stepping", "eval"), ("trace/stepping", "eval --trace")):
@@ -186,7 +206,9 @@ def steady_state(games: list[str], store: Store, episodes: int, repeats: int,
     print("stepping: bare OCAtari's steps alone, its resets left out (ALE reloads the ROM in each seeded reset, "
           "0.12-0.2 s; eval's restore the loaded state, a few ms); eval/bare and trace/bare count those resets")
     print("fixed: an evaluation of one 1-step episode (its check, run rows, a pair's start, the last write); per "
-          "step: bare stepping against eval less that fixed cost (what a step costs once an evaluation runs)")
+          "step: bare stepping against eval less that fixed cost (what a step costs once an evaluation runs); ends: "
+          "the fastest evaluation's own time before its first episode's preparation began + after its last step "
+          "(the parent's checks and the hand-off to a host; the outcome's checks and the last write)")
     print("game hosts: " + ("forked for each evaluation, as one `codearcade eval` does" if fresh_hosts else
                             "kept between evaluations (zygotes.keep_hosts), as the optimizer's evaluations and any "
                             "verb that evaluates more than once play"))
@@ -231,7 +253,7 @@ def round_trip(games: list[str], store: Store, tmp: Path, repeats: int) -> None:
         waits: dict[int, list[float]] = {1: [], 0: []}
         for _ in range(repeats):
             for workers in (1, 0):
-                _, run_id = timed_eval(policy, store, 1, trace=False, workers=workers, max_steps=2000)
+                _, run_id, _ = timed_eval(policy, store, 1, trace=False, workers=workers, max_steps=2000)
                 (policy_s, length), = store.query("SELECT policy_s, length FROM episodes WHERE run_id = ?", [run_id])
                 waits[workers].append(policy_s / max(length, 1) * 1e6)
         pair, local = min(waits[1]), min(waits[0])
@@ -260,7 +282,7 @@ def end_to_end(games: list[str], store: Store, tmp: Path, repeats: int) -> tuple
     for game in games:
         policy = ROOT / "tests" / "policies" / f"{game}_competent.py"
         cap = get_game(game).task.eval_max_steps
-        _, run_id = timed_eval(policy, store, END_TO_END_EPISODES, trace=False, max_steps=cap)
+        _, run_id, _ = timed_eval(policy, store, END_TO_END_EPISODES, trace=False, max_steps=cap)
         seeds, actions = played_actions(store, run_id)
         steps = sum(len(a) for a in actions)
         recorded = tmp / f"actions_{game}.json"

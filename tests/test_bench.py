@@ -16,7 +16,7 @@ from tests.conftest import ROOT
 SMALLEST = {
     "throughput.py": (["--games", "pong", "--episodes", "1", "--repeats", "1"],
                       ["eval/stepping", "trace/stepping", "eval/bare", "pong", "targets:", "round trip", "obs bytes",
-                       "4 whole games"]),
+                       "4 whole games", "ends: "]),
     "step_profile.py": (["--games", "pong", "--repeats", "1", "--max-steps", "200"],
                         ["| emulator |", "| round trip |", "| store write |", "| host (untimed) / bare stepping |",
                          "| game zygote |", "| ROM load¹ |", "| **a command**"]),
