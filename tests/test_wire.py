@@ -191,3 +191,88 @@ def test_the_policy_channel_reads_small_and_large_frames_whole_and_caps_them():
         channel.receive(99_999)
     policy.close()
     host.close()
+
+
+def _handed_over():
+    """A host's and a policy process's channel (in this process) after the go-ahead: (host, policy, the socket's
+    ends, the go-ahead's payload as the policy read it)."""
+    import socket
+
+    from pipeline.boundary.policy import Channel
+
+    host_end, policy_end = socket.socketpair()
+    host, policy = Channel(host_end, timed=True), Channel(policy_end, pipes_from_host=True)
+    host.send_handing_over({"op": "go", "cpu": None}, within=5)
+    kind, payload = policy.receive(wire.MAX_JSON)
+    return host, policy, (host_end, policy_end), (kind, payload)
+
+
+def test_the_go_ahead_hands_the_policy_process_two_pipes_and_every_frame_after_it_goes_over_them():
+    import os
+    import stat
+
+    host, policy, (host_end, policy_end), go = _handed_over()
+    assert go == (b"J", b'{"op":"go","cpu":null}')
+    assert host.piped and policy.piped
+    ends = [host.read_fd, host.write_fd, policy.read_fd, policy.write_fd]
+    assert all(stat.S_ISFIFO(os.fstat(fd).st_mode) for fd in ends) and len(set(ends)) == 4
+    assert host_end.fileno() == policy_end.fileno() == -1, "the socket is let go at the hand-over"
+    frames = _frames_for_pieces() + [wire.raw_arrow_frame(b"x" * 3 * 2**20), wire.json_frame({"kind": "done"})]
+    import threading
+
+    sender = threading.Thread(target=lambda: [policy.write_all(frame) for frame in frames])
+    sender.start()
+    got = [host.receive(wire.MAX_ARROW, within=10) for _ in frames]
+    sender.join()
+    assert got == [(frame[:1], frame[wire.HEADER.size:]) for frame in frames]
+    host.send(b"O", b"obs" * 1000, within=5)
+    assert policy.receive(wire.MAX_ARROW) == (b"O", b"obs" * 1000)
+    with pytest.raises(TimeoutError):  # nothing more was sent
+        host.receive(wire.MAX_JSON, within=0.2)
+    host.close()
+    policy.close()
+
+
+def test_the_host_reads_the_end_of_the_pipe_when_the_policy_process_is_gone_and_leaks_no_descriptor():
+    import os
+
+    host, policy, _, _ = _handed_over()
+    held = [host.read_fd, host.write_fd]
+    policy.close()  # as when the policy process dies: no other process holds its ends
+    with pytest.raises(EOFError):
+        host.receive(wire.MAX_JSON, within=5)
+    with pytest.raises(OSError):  # EPIPE: SIGPIPE is ignored in a host, as in this process
+        host.send(b"O", b"obs", within=5)
+    host.close()  # a kept host plays another episode next, with another policy process
+    for fd in held:
+        with pytest.raises(OSError):
+            os.fstat(fd)
+
+
+def test_a_host_never_waits_past_its_deadline_on_a_policy_process_that_stops_reading():
+    import time
+
+    host, policy, _, _ = _handed_over()
+    t0 = time.monotonic()
+    with pytest.raises(TimeoutError):  # the pipe fills: 64 KiB, then nothing is read
+        for _ in range(1_000):
+            host.send(b"O", b"o" * 8_000, within=0.3)
+    assert time.monotonic() - t0 < 2
+    host.close()
+    policy.close()
+
+
+def test_an_end_before_any_go_ahead_is_read_on_the_socket():
+    import socket
+
+    from pipeline.boundary.policy import Channel
+
+    host_end, policy_end = socket.socketpair()
+    host, policy = Channel(host_end, timed=True), Channel(policy_end, pipes_from_host=True)
+    host.send_json({"op": "end", "more": False}, within=5)
+    assert policy.receive(wire.MAX_JSON) == (b"J", b'{"op":"end","more":false}')
+    assert not policy.piped
+    policy.send_json({"kind": "done", "nodes": False})
+    assert host.receive(wire.MAX_JSON, within=5) == (b"J", b'{"kind":"done","nodes":false}')
+    host.close()
+    policy.close()

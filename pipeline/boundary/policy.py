@@ -2,13 +2,14 @@
 
 Policy code runs here, in a confined worker forked from the policy zygote (``pipeline/boundary/zygote.py``), a process that
 never imported the emulator, OCAtari or gymnasium and cannot read them (``pipeline/boundary/confine.py``). The game host
-(``pipeline/play/episodes.py``, ``pipeline/play/rollout.py``), a process where no policy code ever runs, holds the environment and drives this one over
-a single socket, one round trip per step:
+(``pipeline/play/episodes.py``, ``pipeline/play/rollout.py``), a process where no policy code ever runs, holds the environment and drives this one, one round trip per step: over the socket the pair was given
+until the go-ahead, which hands the policy process two pipes, and over them from then on (:class:`Channel`):
 
     host -> policy   J {"op": "start", policy_text, policy_name, seed, trace, trace_lines, call_time_limit_s, n_actions,
                         keep_printed}
     policy -> host   J {"kind": "ready"}  |  J {"kind": "failed", "end_reason": "policy_error", "error": ...}
-    host -> policy   J {"op": "go", "cpu": N}       (the host's CPU: the pair shares one core, NOTES.md)
+    host -> policy   J {"op": "go", "cpu": N}       (the host's CPU: the pair shares one core, NOTES.md; the first
+                                                   go-ahead brings the pipes, passed beside it)
     host -> policy   O <marshal of the observation dict>          (once per step)
     policy -> host   a <8-byte action>  |  J {"kind": "failed", "end_reason": "policy_error"|"timeout", "error"}
     host -> policy   J {"op": "end", "more": bool}
@@ -29,13 +30,15 @@ with ``marshal`` because they come from the trusted host; nothing the policy sen
 
 from __future__ import annotations
 
+import array
+import io
 import json
 import marshal
-import io
 import math
 import operator
 import os
 import random
+import select
 import socket
 import struct
 import sys
@@ -154,29 +157,116 @@ def describe_exception(exc: BaseException) -> str:
 
 
 class Channel:
-    """Frames over one blocking stream socket (both ends of the host <-> policy connection use it)."""
+    """Frames between a game host and its policy process (both ends use it).
 
-    def __init__(self, sock: socket.socket) -> None:
-        self.sock = sock
+    The connection begins on the socket the pair was given (the policy's start, its ready or its failure). With the
+    episode's go-ahead the host hands the policy process two pipes (:meth:`send_handing_over`, the pipes' ends passed
+    with that frame), and every frame after it goes over them: a pipe's write and read cost about half of a Unix
+    stream socket's here (a socket's buffers are allocated and charged to the memory cgroup for every message;
+    a round trip between two processes on one CPU: ~5 µs against ~9, docs/benchmarks.md), and the exchange is one
+    frame each way per step.
+
+    A ``timed`` end (the host's) never blocks past a frame's deadline: its descriptors are non-blocking and it waits
+    in ``poll``; the policy process's end blocks (its host ends the episode, or its parent kills it).
+    """
+
+    def __init__(self, sock: socket.socket, timed: bool = False, pipes_from_host: bool = False) -> None:
+        self.sock: socket.socket | None = sock
+        self.read_fd = self.write_fd = sock.fileno()
+        self.timed = timed
+        if timed:
+            sock.setblocking(False)
+        self.piped = False
+        """Whether the frames go over the pipes (after the go-ahead) rather than the socket."""
+        self._awaiting_pipes = pipes_from_host
+        """The policy process's end, before the go-ahead: its reads take the pipes the host passes with it."""
         self.buffer = bytearray()
         """Bytes read past the last frame returned (a frame begun, or the next one's start)."""
         self._chunk = bytearray(RECEIVE_CHUNK)
         self._chunk_view = memoryview(self._chunk)
         """Where each read lands: one buffer for the channel's life, not a new 64 KiB ``bytes`` per read."""
-        self._timeout: float | None = -1.0
-        """What the socket's timeout was last set to (-1: not set here)."""
+        self._readable = select.poll()
+        self._readable.register(self.read_fd, select.POLLIN)
+        self._writable = select.poll()
+        self._writable.register(self.write_fd, select.POLLOUT)
 
-    def _wait(self, timeout: float | None) -> None:
-        """The socket's timeout for the next read (``settimeout`` costs a system call: only when it changes)."""
-        if timeout != self._timeout:
-            self.sock.settimeout(timeout)
-            self._timeout = timeout
+    def _use(self, read_fd: int, write_fd: int) -> None:
+        """Go on over ``read_fd`` and ``write_fd`` (the pipes), the socket closed."""
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+        self.read_fd, self.write_fd, self.piped = read_fd, write_fd, True
+        if self.timed:
+            os.set_blocking(read_fd, False)
+            os.set_blocking(write_fd, False)
+        self._readable = select.poll()
+        self._readable.register(read_fd, select.POLLIN)
+        self._writable = select.poll()
+        self._writable.register(write_fd, select.POLLOUT)
 
-    def send(self, kind: bytes, payload: bytes) -> None:
-        self.sock.sendall(HEADER.pack(kind, len(payload)) + payload)
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+        elif self.piped:
+            for fd in (self.read_fd, self.write_fd):
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+            self.piped = False
+        self.read_fd = self.write_fd = -1
 
-    def send_json(self, obj: Any) -> None:
-        self.send(b"J", json.dumps(obj, allow_nan=False, separators=(",", ":")).encode())
+    @staticmethod
+    def _wait(poller: select.poll, deadline: float | None) -> None:
+        """Wait until ``poller``'s descriptor is ready, at most until ``deadline`` (``time.monotonic()``; None: as
+        long as it takes, as for an infinite one); TimeoutError past it."""
+        if deadline is None or deadline == math.inf:
+            poller.poll()
+            return
+        left = deadline - time.monotonic()
+        if left <= 0 or not poller.poll(math.ceil(left * 1000)):
+            raise TimeoutError("the frame did not pass whole in time")
+
+    def write_all(self, data: bytes, within: float | None = None) -> None:
+        """Write ``data`` whole; a timed end waits at most ``within`` seconds for room (TimeoutError)."""
+        view = memoryview(data)
+        deadline = None
+        while True:
+            try:
+                view = view[os.write(self.write_fd, view):]
+            except BlockingIOError:
+                pass
+            if not view:
+                return
+            if deadline is None and within is not None:
+                deadline = time.monotonic() + within
+            self._wait(self._writable, deadline)
+
+    def send(self, kind: bytes, payload: bytes, within: float | None = None) -> None:
+        self.write_all(HEADER.pack(kind, len(payload)) + payload, within)
+
+    def send_json(self, obj: Any, within: float | None = None) -> None:
+        self.write_all(_json_frame(obj), within)
+
+    def send_handing_over(self, obj: Any, within: float) -> None:
+        """The host's end: send ``obj`` (the go-ahead) on the socket with the policy process's ends of two new pipes,
+        then go on over the pipes (see the class docstring)."""
+        frame = _json_frame(obj)
+        to_policy_r, to_policy_w = os.pipe2(os.O_CLOEXEC)
+        to_host_r, to_host_w = os.pipe2(os.O_CLOEXEC)
+        try:
+            self._wait(self._writable, time.monotonic() + within)
+            if socket.send_fds(self.sock, [frame], [to_policy_r, to_host_w]) != len(frame):
+                raise OSError("the go-ahead was not sent whole")
+        except BaseException:
+            for fd in (to_policy_w, to_host_r):
+                os.close(fd)
+            raise
+        finally:
+            os.close(to_policy_r)  # the policy process holds them now: when it ends, the host reads EOF
+            os.close(to_host_w)
+        self._use(to_host_r, to_policy_w)
 
     def receive(self, limit: int, within: float | None = None) -> tuple[bytes, bytes]:
         """The next frame (kind, payload); EOFError when the other end is gone, ValueError for a frame over
@@ -184,25 +274,22 @@ class Channel:
         takes); past them ``TimeoutError``. It is the frame's deadline, not each read's: a policy process that
         trickles a frame a byte at a time held a host with a 1 s call limit for 34 s when each read had 2 s of its
         own (the episode then ended by the parent's kill, its steps lost)."""
+        if self._awaiting_pipes:
+            return self._receive_taking_pipes(limit)
         buffer = self.buffer
-        self._wait(within)  # the first read may take it all (the same value every step: no system call)
         deadline = None if within is None else time.monotonic() + within
         if not buffer:  # the usual case, every step: nothing left over, and one read brings the whole frame
-            read = self.sock.recv_into(self._chunk)
+            read = self._read(deadline)
             if not read:
                 raise EOFError
             if read >= HEADER.size:
-                kind, size = HEADER.unpack_from(self._chunk)
-                if size > limit:
-                    raise ValueError(f"a frame of {size} bytes is over the limit of {limit}")
+                kind, size = _header(self._chunk, limit)
                 if read == HEADER.size + size:
                     return kind, bytes(self._chunk_view[HEADER.size:read])
             buffer += self._chunk_view[:read]  # part of a frame, or more than one: the general path below
         while True:
             if len(buffer) >= HEADER.size:
-                kind, size = HEADER.unpack_from(buffer)
-                if size > limit:
-                    raise ValueError(f"a frame of {size} bytes is over the limit of {limit}")
+                kind, size = _header(buffer, limit)
                 end = HEADER.size + size
                 if len(buffer) >= end:
                     payload = bytes(buffer[HEADER.size:end])
@@ -210,37 +297,100 @@ class Channel:
                     return kind, payload
                 if size > RECEIVE_CHUNK:
                     return kind, self._rest_of(size, deadline)
-            if deadline is not None and buffer:  # a frame begun: the next read waits for what is left of it
-                self._left(deadline)
-            read = self.sock.recv_into(self._chunk)
+            read = self._read(deadline)
             if not read:
                 raise EOFError
             buffer += self._chunk_view[:read]
 
-    def _left(self, deadline: float) -> None:
-        """Wait for the next read only until ``deadline``; TimeoutError if it has passed."""
-        left = deadline - time.monotonic()
-        if left <= 0:
-            raise TimeoutError("the frame did not arrive whole in time")
-        self._wait(left)
+    def _read(self, deadline: float | None) -> int:
+        """Read what has come (at most a chunk) into the chunk; 0 at the end of the stream."""
+        if deadline is not None:
+            self._wait(self._readable, deadline)
+        while True:
+            try:
+                return os.readv(self.read_fd, [self._chunk])
+            except BlockingIOError:  # a timed end with no deadline, or woken for nothing
+                self._wait(self._readable, deadline)
 
     def _rest_of(self, size: int, deadline: float | None = None) -> bytes:
         """The payload of a large frame (the node rows at the end of an episode) whose header and first bytes are
         in the buffer: the rest read in pieces of up to :data:`LARGE_PIECE` and joined once (growing the buffer
-        piece by piece copied it over and over: 4 ms for 2 MB, against 0.4), all by ``deadline``."""
+        piece by piece copied it over and over: 4 ms for 2 MB, against 0.4), all by ``deadline``. A piece's
+        memory is taken as its bytes arrive, never the whole frame's at its header's word."""
         buffer = self.buffer
         pieces = [bytes(buffer[HEADER.size:])]
         del buffer[:]
         have = len(pieces[0])
         while have < size:
             if deadline is not None:
-                self._left(deadline)
-            piece = self.sock.recv(min(size - have, LARGE_PIECE), socket.MSG_WAITALL)
+                self._wait(self._readable, deadline)
+            try:
+                piece = os.read(self.read_fd, min(size - have, LARGE_PIECE))
+            except BlockingIOError:
+                self._wait(self._readable, deadline)
+                continue
             if not piece:
                 raise EOFError
             pieces.append(piece)
             have += len(piece)
         return b"".join(pieces)
+
+    def _receive_taking_pipes(self, limit: int) -> tuple[bytes, bytes]:
+        """The policy process's end before the go-ahead: the next frame (a go-ahead, or an end before any), read
+        with the descriptors passed beside it; the pipes that come with the go-ahead carry every frame after it."""
+        buffer, passed = self.buffer, []
+        try:
+            while True:
+                if len(buffer) >= HEADER.size:
+                    kind, size = _header(buffer, limit)
+                    end = HEADER.size + size
+                    if len(buffer) >= end:
+                        break
+                read, ancillary, flags, _ = self.sock.recvmsg_into([self._chunk], PASSED_PIPES_SPACE)
+                passed += passed_descriptors(ancillary)
+                if flags & socket.MSG_CTRUNC:
+                    raise ValueError("descriptors passed with a frame were lost")
+                if not read:
+                    raise EOFError
+                buffer += self._chunk_view[:read]
+            payload = bytes(buffer[HEADER.size:end])
+            del buffer[:end]
+            if passed:
+                if len(passed) != 2 or buffer:
+                    raise ValueError("the go-ahead came with other than two pipes, or with more after it")
+                self._awaiting_pipes = False
+                self._use(*passed)
+                passed = []
+            return kind, payload
+        finally:
+            for fd in passed:
+                os.close(fd)
+
+
+def _header(data: bytes | bytearray, limit: int) -> tuple[bytes, int]:
+    """The kind and payload size of the frame ``data`` begins with; ValueError for a payload over ``limit``."""
+    kind, size = HEADER.unpack_from(data)
+    if size > limit:
+        raise ValueError(f"a frame of {size} bytes is over the limit of {limit}")
+    return kind, size
+
+
+PASSED_PIPES_SPACE = socket.CMSG_SPACE(2 * array.array("i").itemsize)
+"""Room for the two descriptors of the go-ahead (one more would set ``MSG_CTRUNC``)."""
+
+
+def passed_descriptors(ancillary: list[tuple[int, int, bytes]]) -> list[int]:
+    """The descriptors an ``SCM_RIGHTS`` message brought (``recvmsg``'s ancillary data)."""
+    fds = array.array("i")
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
+            fds.frombytes(data[:len(data) - len(data) % fds.itemsize])
+    return list(fds)
+
+
+def _json_frame(obj: Any) -> bytes:
+    payload = json.dumps(obj, allow_nan=False, separators=(",", ":")).encode()
+    return HEADER.pack(b"J", len(payload)) + payload
 
 
 def policy_task(start: dict[str, Any], fd: int, _extra_fd: int | None) -> Callable[[int | None], None]:
@@ -249,7 +399,7 @@ def policy_task(start: dict[str, Any], fd: int, _extra_fd: int | None) -> Callab
     host resets its environment), then serve the host's observations."""
     if start.get("op") != "start":
         raise ValueError("the host's first message is not a start")
-    side = PolicySide(Channel(socket.socket(fileno=fd)), start)
+    side = PolicySide(Channel(socket.socket(fileno=fd), pipes_from_host=True), start)
     return lambda cpu: side.serve()
 
 
@@ -291,7 +441,7 @@ class PolicySide:
             if nodes is not None:
                 from pipeline.boundary.wire import arrow_frame
 
-                channel.sock.sendall(arrow_frame(nodes))
+                channel.write_all(arrow_frame(nodes))
             if not more:
                 return
             self.recorder = NodeRecorder(lines=self.lines) if self.trace else None
@@ -300,7 +450,7 @@ class PolicySide:
     def _play(self) -> bool:
         """One episode's exchange; whether the host asked for more (the next episode of the same game)."""
         channel, policy, recorder, n_actions = self.channel, self.policy, self.recorder, self.n_actions
-        send_answer, answers = channel.sock.sendall, action_frames(n_actions)
+        send_answer, answers = channel.write_all, action_frames(n_actions)
         step, failed = -1, False
         with CallTimer() as timer, (recorder if recorder is not None else _nothing()):
             while True:

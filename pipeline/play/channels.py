@@ -1,7 +1,7 @@
 """The host's ends of a policy: how the game host asks for an action (``pipeline/play/rollout.py`` plays the episode).
 
 - :class:`RemotePolicy`: a confined policy process (``pipeline/boundary/policy.py``), one round trip per step
-  over a socket; the normal case (``pipeline/play/episodes.py`` starts the host and the policy process as a pair).
+  (over two pipes once the episode begins); the normal case (``pipeline/play/episodes.py`` starts the host and the policy process as a pair).
   Every byte it answers is bounded and checked here before it is believed: an action is a legal int, an error is
   capped text, node rows stay bytes for the parent to read within the episode's budget.
 - :class:`LocalPolicy`: the policy loaded in this very process (``--workers 0``: debugging, no isolation at all).
@@ -131,7 +131,7 @@ class RemotePolicy(PolicyChannel):
     ends the episode (``timeout`` / ``crashed``) with the steps played so far."""
 
     def __init__(self, sock: socket.socket, spec: EpisodeSpec, n_actions: int) -> None:
-        self.channel = Channel(sock)
+        self.channel = Channel(sock, timed=True)
         self.spec, self.n_actions = spec, n_actions
         self.limit = (spec.call_time_limit_s or math.inf) + ANSWER_GRACE_S
         self.loading = False
@@ -171,10 +171,14 @@ class RemotePolicy(PolicyChannel):
 
     def begin_loading(self) -> None:
         spec = self.spec
-        self.channel.send_json({
-            "op": "start", "policy_text": spec.policy_text, "policy_name": spec.policy_name, "seed": spec.policy_seed,
-            "trace": spec.trace, "trace_lines": spec.trace_lines, "call_time_limit_s": spec.call_time_limit_s,
-            "n_actions": self.n_actions, "keep_printed": spec.keep_printed})
+        try:
+            self.channel.send_json({
+                "op": "start", "policy_text": spec.policy_text, "policy_name": spec.policy_name,
+                "seed": spec.policy_seed, "trace": spec.trace, "trace_lines": spec.trace_lines,
+                "call_time_limit_s": spec.call_time_limit_s, "n_actions": self.n_actions,
+                "keep_printed": spec.keep_printed}, within=LOAD_TIMEOUT_S)
+        except OSError:
+            pass  # a policy process already gone: its EOF is the answer :meth:`start` reads
         self.loading = True
 
     def start(self) -> None:
@@ -188,11 +192,18 @@ class RemotePolicy(PolicyChannel):
 
     def go(self, cpu: int | None, deadline: float = math.inf) -> None:
         self.deadline = deadline
-        self.channel.send_json({"op": "go", "cpu": cpu})
+        go = {"op": "go", "cpu": cpu}
+        try:
+            if self.channel.piped:  # the next episode of a continued game
+                self.channel.send_json(go, within=self.limit)
+            else:  # the first: it hands the policy process the pipes the episode's frames go over
+                self.channel.send_handing_over(go, within=self.limit)
+        except OSError:
+            pass  # a policy process gone: the first step reads its EOF
 
     def act(self, obs: dict[str, Any]) -> int:
         try:
-            self.channel.send(b"O", marshal.dumps(obs))
+            self.channel.send(b"O", marshal.dumps(obs), self.limit)
         except OSError:
             raise PolicyFailed("crashed", "the policy process ended before the step") from None
         limit, what = self.limit, "at this step"
@@ -210,7 +221,7 @@ class RemotePolicy(PolicyChannel):
 
     def close(self) -> None:
         """Let the policy process go (a game host that plays another episode next must not keep its socket)."""
-        self.channel.sock.close()
+        self.channel.close()
 
     def finish(self, more: bool = False, steps: int | None = None) -> bytes | None:
         """The node rows as the policy process sent them (an Arrow stream of at most the episode's byte budget,
@@ -223,7 +234,7 @@ class RemotePolicy(PolicyChannel):
         if self.broken:
             return None
         try:
-            self.channel.send_json({"op": "end", "more": more})
+            self.channel.send_json({"op": "end", "more": more}, within=FINISH_TIMEOUT_S)
             kind, payload = self._receive(FINISH_TIMEOUT_S, "at the end")
             message = json.loads(payload) if kind == b"J" else None
             if self.spec.keep_printed and isinstance(message, dict) and message.get("kind") == "done":

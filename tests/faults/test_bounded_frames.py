@@ -98,7 +98,7 @@ for side in gc.get_objects():
     if type(side).__name__ == 'PolicySide':
         channel = side.channel
         text = b'{"kind":"failed","end_reason":"policy_error","error":"' + b'x' * (300 * 2**20) + b'"}'
-        channel.sock.sendall(mods['struct'].pack('>cI', b'J', len(text)) + text)
+        channel.write_all(mods['struct'].pack('>cI', b'J', len(text)) + text)
 return 0
 """
 

@@ -179,9 +179,10 @@ if len(STEP) <= 10:
 signal, stat, time = mods['signal'], mods['stat'], mods['time']
 signal.signal(signal.SIGALRM, signal.SIG_IGN)  # the policy process's own timer cannot stop it
 fds = []
-for n in range(64):
+for n in range(64):  # the pipe its answers go over: the one FIFO it may write to
     try:
-        if stat.S_ISSOCK(os.fstat(n).st_mode):
+        if stat.S_ISFIFO(os.fstat(n).st_mode):
+            os.write(n, b'')  # refused on the pipe it reads from
             fds.append(n)
     except OSError:
         pass
