@@ -14,7 +14,7 @@ are wrapped with a timer for the run (a wrapper costs ~0.3 µs a call; the untim
   runs inside the host's ``send`` (the wake-up switches to it at once): send and wait are one stage. The policy
   process's own part of it (decoding the observation, the call, node capture, encoding the action) is measured
   below, replayed in this process on the observations of the run; the rest is the boundary itself (two
-  wake-ups and context switches, the socket's system calls);
+  wake-ups and context switches, the pipes' system calls);
 - **action**: the answer checked;
 - **step record**: ``StepLog.observe`` / ``outcome`` and, at the end, the Arrow table, per step;
 - **loop**: the rest of the host's loop (timers, lives, the time limit);
@@ -65,12 +65,12 @@ from store import Store  # noqa: E402
 from store.writer import write_episode  # noqa: E402
 from tracing.capture import NodeRecorder  # noqa: E402
 from tracing.policy_file import load_policy  # noqa: E402
-from tracing.sandbox import CallTimer  # noqa: E402
+from tracing.sandbox import EpisodeTimer  # noqa: E402
 from tracing.steps import STEP_SCHEMA, StepLog  # noqa: E402
 
 HOST_STAGES = ("emulator", "object extraction", "observation build", "env wrappers", "frame", "round trip",
                "action", "step record", "loop")
-POLICY_STAGES = ("decode observation", "policy", "node capture", "encode action", "boundary (wake-ups, socket)")
+POLICY_STAGES = ("decode observation", "policy", "node capture", "encode action", "boundary (wake-ups, pipes)")
 PARENT_STAGES = ("decode + check rows", "store write")
 DEFAULT_GAMES = ("pong", "breakout", "space_invaders")
 
@@ -205,7 +205,7 @@ def host_stages(timers: Timers, played: float, steps: int) -> dict[str, float]:
 
 def policy_side(game: str, trace: bool, observations: list[bytes]) -> dict[str, float]:
     """µs per step of the policy process's own work, replayed here on the observations the host sent: what a
-    ``PolicySide`` does between receiving a frame and sending the answer (the socket left out)."""
+    ``PolicySide`` does between receiving a frame and sending the answer (the pipes left out)."""
     spec = _spec(game, trace, len(observations), 0)
     n_actions = get_game(game).n_actions
     clock = time.perf_counter
@@ -220,19 +220,19 @@ def policy_side(game: str, trace: bool, observations: list[bytes]) -> dict[str, 
     import numpy as np
     random.seed(spec.policy_seed)
     np.random.seed(spec.policy_seed % 2**32)
-    with CallTimer() as timer:
+    with EpisodeTimer(spec.call_time_limit_s) as timer:
         start = clock()
         for obs in decoded:
-            actions.append(timer.call(spec.call_time_limit_s, loaded, obs))
+            actions.append(timer.call(loaded, obs))
         out["policy"] = clock() - start
     if trace:
         random.seed(spec.policy_seed)
         np.random.seed(spec.policy_seed % 2**32)
-        with CallTimer() as timer, NodeRecorder(lines=spec.trace_lines) as recorder:
+        with EpisodeTimer(spec.call_time_limit_s) as timer, NodeRecorder(lines=spec.trace_lines) as recorder:
             start = clock()
             for step, obs in enumerate(decoded):
                 recorder.begin_step(step, obs)
-                timer.call(spec.call_time_limit_s, loaded, obs)
+                timer.call(loaded, obs)
             wire.arrow_frame(recorder.table())
             out["node capture"] = clock() - start - out["policy"]
     start = clock()
@@ -295,7 +295,7 @@ def profile(game: str, trace: bool, repeats: int, max_steps: int, store: Store, 
     best = {k: min(v) for k, v in host.items()}
     own = {k: min(v) for k, v in side.items()}
     own.setdefault("node capture", 0.0)
-    own["boundary (wake-ups, socket)"] = best["round trip"] - sum(own.values())
+    own["boundary (wake-ups, pipes)"] = best["round trip"] - sum(own.values())
     return best, own, {k: min(v) for k, v in parent.items()}, min(untimed), min(bare_us), steps
 
 

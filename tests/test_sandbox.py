@@ -7,7 +7,7 @@ import time
 import pytest
 
 from tracing.policy_file import PolicyLoadError, load_policy
-from tracing.sandbox import PolicyCodeError, PolicyTimeout, check_source, time_limit
+from tracing.sandbox import EpisodeTimer, PolicyCodeError, PolicyTimeout, check_source, time_limit
 
 REFUSED = [
     ("import os", "import of 'os'"),
@@ -81,6 +81,65 @@ def test_time_limit_interrupts_a_loop_even_if_it_catches_exception():
                 except Exception:
                     pass
     assert time.monotonic() - start < 2
+
+
+def _spin_for(seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+
+
+@pytest.mark.parametrize("limit", [0.02, 0.1, 0.5])
+def test_an_episode_timer_stops_a_call_within_a_tick_of_its_limit_and_again_if_it_is_swallowed(limit):
+    timer = EpisodeTimer(limit)
+    stops: list[float] = []
+
+    def swallowing(_obs):  # catches the first interruption and goes on
+        start = time.monotonic()
+        try:
+            _spin_for(60)
+        except PolicyTimeout:
+            stops.append(time.monotonic() - start)
+        _spin_for(60)
+
+    with timer:
+        start = time.monotonic()
+        with pytest.raises(PolicyTimeout, match=f"time limit of {limit:g} s"):
+            timer.call(swallowing, None)
+        second = time.monotonic() - start
+    (first,) = stops
+    assert limit <= first < limit + timer.tick + 1.0, (first, timer.tick)  # slack for a busy machine
+    assert first < second < first + timer.tick + 1.0, "interrupted again at the next tick"
+
+
+def test_an_episode_timer_lets_calls_under_its_limit_and_the_waits_between_them_run():
+    import os
+    import threading
+
+    limit = 0.01  # a tick every millisecond
+    timer = EpisodeTimer(limit)
+    read_end, write_end = os.pipe()
+    feeder = threading.Timer(0.3, lambda: os.write(write_end, b"obs"))
+    with timer:
+        answers = [timer.call(lambda obs: (_spin_for(limit / 4), obs)[1], step) for step in range(400)]
+        feeder.start()
+        waited = os.read(read_end, 3)  # a blocking read between calls: ~300 ticks interrupt it, and it resumes
+        answers.append(timer.call(lambda obs: obs, 400))
+    feeder.join()
+    os.close(read_end)
+    os.close(write_end)
+    assert answers == list(range(401)) and waited == b"obs"
+
+
+def test_an_episode_timer_without_a_limit_sets_no_timer():
+    import signal
+
+    before = signal.getsignal(signal.SIGALRM)
+    for seconds in (None, 0, float("inf")):
+        with EpisodeTimer(seconds) as timer:
+            assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0)
+            assert timer.call(lambda obs: obs + 1, 1) == 2
+    assert signal.getsignal(signal.SIGALRM) is before
 
 
 def test_policy_without_policy_class_at_runtime():

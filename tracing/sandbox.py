@@ -17,7 +17,8 @@ Policy files and LLM-generated methods are untrusted. This module is the in-proc
   is installed or imported: a real Trace beside codearcade is neither shadowed nor used, and the rest of
   Trace (``opto.optimizers``, ``opto.utils``, ...) is refused like any other module.
 - :class:`CallTimer` / :func:`time_limit` interrupt a call that runs too long with :class:`PolicyTimeout`
-  (SIGALRM; main thread).
+  (SIGALRM; main thread); :class:`EpisodeTimer` does it for every call of an episode in a process with no other
+  thread (the policy process), with one interval timer instead of two system calls a call.
 
 What this does not do: it is no security boundary (any allowed module that re-exports ``sys`` or
 ``builtins`` leaks, and it cannot interrupt a long-running C call). The boundary is the operating system:
@@ -30,6 +31,7 @@ from __future__ import annotations
 import ast
 import builtins
 import signal
+import time
 import types
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator
@@ -357,6 +359,48 @@ class CallTimer:
             return policy(obs)
         finally:
             self.disarm()
+
+
+class EpisodeTimer:
+    """The call limit of every policy call of an episode, for a process whose only thread is the one that calls the
+    policy (the policy process: its seccomp filter refuses threads). :class:`CallTimer` arms and disarms a timer
+    around each call, two ``setitimer`` system calls a step; this one starts one interval timer for the episode,
+    ticking every :data:`CallTimer.REFIRE_S` (a tenth of the limit if that is less), and each tick raises
+    :class:`PolicyTimeout` if a call has run past the limit: a call is stopped within a tick of its limit, and code
+    that swallows one interruption is interrupted again at the next tick, as with :class:`CallTimer`. Between
+    calls a tick does nothing (a blocking read it interrupts is resumed)."""
+
+    def __init__(self, seconds: float | None, what: str = "policy call") -> None:
+        self.limit = seconds if seconds and 0 < seconds < float("inf") else None
+        self.tick = min(CallTimer.REFIRE_S, self.limit / 10) if self.limit else None
+        self._message = f"{what} exceeded its time limit of {seconds:g} s" if self.limit else ""
+        self._since: float | None = None
+        """When the call under way began (``time.monotonic()``); None between calls."""
+        self._previous: Any = None
+
+    def __enter__(self) -> "EpisodeTimer":
+        if self.limit is not None:
+            self._previous = signal.signal(signal.SIGALRM, self._tick)
+            signal.setitimer(signal.ITIMER_REAL, self.tick, self.tick)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.limit is not None:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, self._previous)
+
+    def _tick(self, signum: int, frame: Any) -> None:
+        since = self._since
+        if since is not None and time.monotonic() - since >= self.limit:
+            raise PolicyTimeout(self._message)
+
+    def call(self, policy: Callable[[Any], Any], obs: Any) -> Any:
+        """``policy(obs)`` under the episode's limit: the one policy call of a step."""
+        self._since = time.monotonic()
+        try:
+            return policy(obs)
+        finally:
+            self._since = None
 
 
 @contextmanager

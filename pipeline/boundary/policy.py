@@ -50,7 +50,7 @@ import numpy.random  # noqa: F401  (numpy loads it on first use: imported here, 
 
 from tracing.capture import NodeRecorder, failing_policy_line
 from tracing.policy_file import PolicyLoadError, load_policy
-from tracing.sandbox import CallTimer, PolicyTimeout
+from tracing.sandbox import EpisodeTimer, PolicyTimeout
 
 ACTION = struct.Struct("<q")
 """The payload of an ``a`` frame: the action, as a signed 64-bit int (the host checks its range)."""
@@ -230,18 +230,20 @@ class Channel:
 
     def write_all(self, data: bytes, within: float | None = None) -> None:
         """Write ``data`` whole; a timed end waits at most ``within`` seconds for room (TimeoutError)."""
-        view = memoryview(data)
-        deadline = None
-        while True:
+        try:
+            written = os.write(self.write_fd, data)
+        except BlockingIOError:
+            written = 0
+        if written == len(data):  # the usual case, every step: the pipe had room for the frame
+            return
+        view = memoryview(data)[written:]
+        deadline = None if within is None else time.monotonic() + within
+        while view:
+            self._wait(self._writable, deadline)
             try:
                 view = view[os.write(self.write_fd, view):]
             except BlockingIOError:
                 pass
-            if not view:
-                return
-            if deadline is None and within is not None:
-                deadline = time.monotonic() + within
-            self._wait(self._writable, deadline)
 
     def send(self, kind: bytes, payload: bytes, within: float | None = None) -> None:
         self.write_all(HEADER.pack(kind, len(payload)) + payload, within)
@@ -279,7 +281,12 @@ class Channel:
         buffer = self.buffer
         deadline = None if within is None else time.monotonic() + within
         if not buffer:  # the usual case, every step: nothing left over, and one read brings the whole frame
-            read = self._read(deadline)
+            if within is not None and within != math.inf and not self._readable.poll(math.ceil(within * 1000)):
+                raise TimeoutError("the frame did not pass whole in time")
+            try:
+                read = os.readv(self.read_fd, [self._chunk])
+            except BlockingIOError:  # a timed end with no deadline, or woken for nothing
+                read = self._read(deadline)
             if not read:
                 raise EOFError
             if read >= HEADER.size:
@@ -452,7 +459,7 @@ class PolicySide:
         channel, policy, recorder, n_actions = self.channel, self.policy, self.recorder, self.n_actions
         send_answer, answers = channel.write_all, action_frames(n_actions)
         step, failed = -1, False
-        with CallTimer() as timer, (recorder if recorder is not None else _nothing()):
+        with EpisodeTimer(self.call_limit) as timer, (recorder if recorder is not None else _nothing()):
             while True:
                 kind, payload = channel.receive(MAX_OBSERVATION)
                 if kind == b"J":
@@ -468,7 +475,7 @@ class PolicySide:
                 if recorder is not None:
                     recorder.begin_step(step, obs)
                 try:
-                    action = timer.call(self.call_limit, policy, obs)
+                    action = timer.call(policy, obs)
                     send_answer(answers[coerce_action(action, n_actions)])
                     continue
                 except PolicyTimeout as exc:
