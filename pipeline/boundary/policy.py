@@ -1,9 +1,11 @@
 """The policy process's side of an episode: observations in, actions out, and nothing else within reach.
 
-Policy code runs here, in a confined worker forked from the policy zygote (``pipeline/boundary/zygote.py``), a process that
-never imported the emulator, OCAtari or gymnasium and cannot read them (``pipeline/boundary/confine.py``). The game host
-(``pipeline/play/episodes.py``, ``pipeline/play/rollout.py``), a process where no policy code ever runs, holds the environment and drives this one, one round trip per step: over the socket the pair was given
-until the go-ahead, which hands the policy process two pipes, and over them from then on (:class:`Channel`):
+Policy code runs here, in a confined worker forked from the policy zygote (``pipeline/boundary/zygote.py``), a
+process that never imported the emulator, OCAtari or gymnasium and cannot read them
+(``pipeline/boundary/confine.py``). The game host (``pipeline/play/episodes.py``, ``pipeline/play/rollout.py``), a
+process where no policy code ever runs, holds the environment and drives this one, one round trip per step: over
+the socket the pair was given until the go-ahead, which hands the policy process two pipes, and over them from
+then on (:class:`Channel`):
 
     host -> policy   J {"op": "start", policy_text, policy_name, seed, trace, trace_lines, call_time_limit_s, n_actions,
                         keep_printed}

@@ -1,7 +1,8 @@
 """The host's ends of a policy: how the game host asks for an action (``pipeline/play/rollout.py`` plays the episode).
 
 - :class:`RemotePolicy`: a confined policy process (``pipeline/boundary/policy.py``), one round trip per step
-  (over two pipes once the episode begins); the normal case (``pipeline/play/episodes.py`` starts the host and the policy process as a pair).
+  (over two pipes once the episode begins); the normal case (``pipeline/play/episodes.py`` starts the host and
+  the policy process as a pair).
   Every byte it answers is bounded and checked here before it is believed: an action is a legal int, an error is
   capped text, node rows stay bytes for the parent to read within the episode's budget.
 - :class:`LocalPolicy`: the policy loaded in this very process (``--workers 0``: debugging, no isolation at all).
