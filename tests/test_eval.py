@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -181,6 +182,29 @@ def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():
     while any(z.count() for z in both) and time.monotonic() < deadline:
         time.sleep(0.01)
     assert [z.count() for z in both] == [0, 0], "every host and policy process has exited"
+
+
+def test_the_zygotes_start_no_numeric_thread_pool():
+    """A game host plays on one core beside its policy process, and a policy process may not start threads: the
+    zygotes they fork from start no BLAS or OpenMP pool (the game zygote's OpenBLAS pools spun ~100-175 ms of CPU
+    after it started, until its first fork shut them down). Their threads as they have said hello, from /proc: the
+    main one and at most jemalloc's background thread."""
+    from pipeline.boundary.zygotes import Zygote
+
+    def tree(pid: int) -> list[int]:
+        children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+        return [pid] + [p for child in children for p in tree(int(child))]
+
+    for role in ("game", "policy"):
+        zygote = Zygote(role)  # a fresh one: before it forks anything
+        try:
+            for pid in tree(zygote.proc.pid):
+                names = sorted(Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()
+                               for tid in os.listdir(f"/proc/{pid}/task"))
+                others = [name for name in names if name != "jemalloc_bg_thd"]
+                assert len(others) == 1, f"{role} zygote process {pid} runs threads {names}"
+        finally:
+            zygote.close()
 
 
 def test_kept_hosts_play_the_next_call_as_fresh_ones_and_exit_when_the_block_ends():

@@ -55,7 +55,9 @@ _SECRET_ENV = re.compile(r"(KEY|TOKEN|SECRET|PASSWORD|PASSWD|CREDENTIAL|AUTH|COO
 
 
 SINGLE_THREADED = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-"""A policy process may not start threads (seccomp): numeric libraries must not try."""
+"""Both zygotes' numeric libraries start no thread pool: a policy process may not start threads (seccomp), and a
+game host plays on one core beside its policy process, where a pool's threads would only spin (the game zygote's
+OpenBLAS pools, numpy's and scipy's, spun ~175 ms of CPU as it started, beside the command's own start)."""
 
 
 def worker_environment(home: str, role: str = "policy") -> dict[str, str]:
@@ -64,8 +66,7 @@ def worker_environment(home: str, role: str = "policy") -> dict[str, str]:
     paths = [str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
     env.update(HOME=home, TMPDIR=home, PYTHONPATH=os.pathsep.join(dict.fromkeys(paths)),
                PYTHONDONTWRITEBYTECODE="1")
-    if role == "policy":
-        env.update(SINGLE_THREADED)
+    env.update(SINGLE_THREADED)
     if weak_sandbox_allowed():
         env[WEAK_ENV] = "1"
     return env
