@@ -343,8 +343,10 @@ def test_a_dead_zygote_costs_only_its_episodes_and_the_next_call_starts_another(
 
     from pipeline.boundary import zygotes
 
-    specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=2000)
-             for i in range(2)]
+    # a policy slow enough (~0.3-1 ms a step) that the first episode is still playing when the kill, at its first
+    # progress report (step 250), reaches it on a busy machine: at ~0.2 ms a step it had ended 0.1 s later
+    slow = pong_policy("sum(range(20_000))\nreturn 0")
+    specs = [EpisodeSpec(f"e{i}", "r", "pong", slow, "v", index=i, max_steps=2000) for i in range(2)]
     pid = zygotes.zygote().proc.pid
     killed = []
 

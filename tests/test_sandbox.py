@@ -116,14 +116,14 @@ def test_an_episode_timer_lets_calls_under_its_limit_and_the_waits_between_them_
     import os
     import threading
 
-    limit = 0.01  # a tick every millisecond
+    limit = 0.5  # a tick every 50 ms; each call ~1 ms (far under the limit even on a busy machine), 400 of them
     timer = EpisodeTimer(limit)
     read_end, write_end = os.pipe()
-    feeder = threading.Timer(0.3, lambda: os.write(write_end, b"obs"))
+    feeder = threading.Timer(1.5, lambda: os.write(write_end, b"obs"))
     with timer:
-        answers = [timer.call(lambda obs: (_spin_for(limit / 4), obs)[1], step) for step in range(400)]
+        answers = [timer.call(lambda obs: (_spin_for(0.001), obs)[1], step) for step in range(400)]
         feeder.start()
-        waited = os.read(read_end, 3)  # a blocking read between calls: ~300 ticks interrupt it, and it resumes
+        waited = os.read(read_end, 3)  # a blocking read between calls, three limits long: ~30 ticks interrupt it
         answers.append(timer.call(lambda obs: obs, 400))
     feeder.join()
     os.close(read_end)
