@@ -50,6 +50,7 @@ from typing import Any, Callable
 import numpy as np
 import numpy.random  # noqa: F401  (numpy loads it on first use: imported here, the zygote holds it for every worker)
 
+from pipeline.boundary.wire import json_frame
 from tracing.capture import NodeRecorder, failing_policy_line
 from tracing.policy_file import PolicyLoadError, load_policy
 from tracing.sandbox import EpisodeTimer, PolicyTimeout
@@ -251,12 +252,12 @@ class Channel:
         self.write_all(HEADER.pack(kind, len(payload)) + payload, within)
 
     def send_json(self, obj: Any, within: float | None = None) -> None:
-        self.write_all(_json_frame(obj), within)
+        self.write_all(json_frame(obj), within)
 
     def send_handing_over(self, obj: Any, within: float) -> None:
         """The host's end: send ``obj`` (the go-ahead) on the socket with the policy process's ends of two new pipes,
         then go on over the pipes (see the class docstring)."""
-        frame = _json_frame(obj)
+        frame = json_frame(obj)
         to_policy_r, to_policy_w = os.pipe2(os.O_CLOEXEC)
         to_host_r, to_host_w = os.pipe2(os.O_CLOEXEC)
         try:
@@ -395,11 +396,6 @@ def passed_descriptors(ancillary: list[tuple[int, int, bytes]]) -> list[int]:
         if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
             fds.frombytes(data[:len(data) - len(data) % fds.itemsize])
     return list(fds)
-
-
-def _json_frame(obj: Any) -> bytes:
-    payload = json.dumps(obj, allow_nan=False, separators=(",", ":")).encode()
-    return HEADER.pack(b"J", len(payload)) + payload
 
 
 def policy_task(start: dict[str, Any], fd: int, _extra_fd: int | None) -> Callable[[int | None], None]:

@@ -60,7 +60,7 @@ game host plays on one core beside its policy process, where a pool's threads wo
 OpenBLAS pools, numpy's and scipy's, spun ~175 ms of CPU as it started, beside the command's own start)."""
 
 
-def worker_environment(home: str, role: str = "policy") -> dict[str, str]:
+def worker_environment(home: str) -> dict[str, str]:
     """A zygote's whole environment: an allow-list of harmless variables, never a secret."""
     env = {k: v for k, v in os.environ.items() if _ALLOWED_ENV.match(k) and not _SECRET_ENV.search(k)}
     paths = [str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
@@ -85,7 +85,7 @@ class Zygote:
         with open(self.log_path, "wb") as log:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "pipeline.boundary.zygote", role, str(theirs.fileno())],
-                env=worker_environment(self.scratch, role), cwd=self.scratch, pass_fds=[theirs.fileno()],
+                env=worker_environment(self.scratch), cwd=self.scratch, pass_fds=[theirs.fileno()],
                 stdin=subprocess.DEVNULL, stdout=log, stderr=log)
         theirs.close()
         self.events: dict[int, dict[str, Any]] = {}
