@@ -330,7 +330,16 @@ def test_one_life_optimization_ends_every_episode_at_the_first_lost_life(store, 
     assert result.status == "finished", result.error
     episodes = store.query("SELECT kind, lives_lost, end_reason, length FROM episodes WHERE run_id = ?",
                            [result.run_id])
-    broken = [e for e in episodes if not (e[1] == 1 and e[2] == "terminated" and e[3] < 3000)]  # kind, lost, end, length
-    assert episodes and not broken, broken
+    # kind, lives lost, end, length. The loop's own episodes (the paper's protocol, pinned) lose their first ball.
+    # The audit's are on sealed seeds under sticky actions, where the starter can leave the ball unserved for the
+    # whole cap (CI saw one such game): then no life is lost and the cap ends it. No episode plays on past a loss.
+    loop_episodes = [e for e in episodes if e[0] != "audit"]
+    broken = [e for e in loop_episodes if not (e[1] == 1 and e[2] == "terminated" and e[3] < 3000)]
+    assert loop_episodes and not broken, broken
+    audit = [e for e in episodes if e[0] == "audit"]
+    played_on = [e for e in audit if not ((e[1] == 1 and e[2] == "terminated" and e[3] < 3000)
+                                          or (e[1] == 0 and e[2] == "truncated" and e[3] == 3000))]
+    assert audit and not played_on, played_on
+    assert any(e[1] == 1 for e in audit), audit
     assert store.query("SELECT json_extract(config, '$.one_life') FROM runs WHERE run_id = ?",
                        [result.run_id])[0][0] == "true"
