@@ -8,7 +8,8 @@ Observation (the authors' ``breakout_training.py`` / ``trace_envs/breakout.py``,
 ``Ball`` (absent while no ball is in play), the brick rows ``RB OB YB GB AB BB`` as lists of OCAtari's
 ``Block`` objects, each a run of adjacent bricks (:func:`brick_runs`), and ``lives``. Runs stored before this
 convention (observation version 1) split the runs into 8-pixel bricks (:func:`split_bricks`) and replay so.
-The environment presses FIRE after reset and after each lost life (``games.envs.AutoFire``).
+The environment presses FIRE after reset and after each lost life, and again while no ball has been in play for
+a while (:func:`ball_in_play`; under sticky actions a press can be lost: ``games.envs.AutoFire``).
 Its ``detect`` gives OCAtari's objects exactly, faster (``games/readers/breakout.py``).
 """
 
@@ -40,6 +41,17 @@ ROWS = {57: "RB", 63: "OB", 69: "YB", 75: "GB", 81: "AB", 87: "BB"}
 BRICK_WIDTH = 8
 WALL_WIDTH = 144
 """Each row is 18 bricks of 8 px (x 8 .. 151)."""
+
+
+BALL_Y = 101
+"""The RAM byte of the ball's height; OCAtari's reader shows no ball when it is 0 or the ball is below the
+paddle."""
+
+
+def ball_in_play(ram) -> bool:
+    """Whether a ball is in play in this RAM (uint8, as ALE gives it), by OCAtari's rule for showing ``Ball``."""
+    y = int(ram[BALL_Y])  # an int: no uint8 wrap-around
+    return y != 0 and y + 9 <= 196
 
 
 def brick_runs(block, obs: dict, rows: list | None) -> None:
@@ -119,6 +131,7 @@ GAME = Game(
     colours={"Player": (92, 220, 92), "Ball": (255, 255, 255), "RB": (255, 80, 80), "OB": (255, 150, 60),
              "YB": (230, 220, 60), "GB": (120, 230, 90), "AB": (60, 220, 220), "BB": (90, 120, 255)},
     fire_on_life_loss=True,
+    ball_in_play=ball_in_play,
     object_hooks={"Block": brick_runs},
     detect=fast_reader("breakout"),
     derive=derive,

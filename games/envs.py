@@ -4,7 +4,7 @@
 paper's protocol; ``sticky=0.25, noop_max=30`` gives the standard stochastic Atari protocol) and wraps it:
 
 - :class:`NoopReset` takes a random number of NOOPs after reset (standard protocol only);
-- :class:`AutoFire` presses FIRE after reset and after every lost life (Breakout);
+- :class:`AutoFire` presses FIRE after reset, after every lost life and when a press was lost (Breakout);
 - :class:`OneLife` ends the episode at the first lost life (``one_life=True``: the first life of a seeded game);
 - :class:`EpisodicLife` is the authors' one-life protocol exactly (``one_life="continue"``): an episode ends at
   a lost life and the next ``reset()`` goes on with the same game (see its docstring);
@@ -218,17 +218,28 @@ def objects_to_dict(objects: list, plan: ObservationPlan, rows: list[tuple] | No
 
 
 class AutoFire(gym.Wrapper):
-    """Press FIRE after reset and after each lost life, so the ball is always launched (Breakout).
+    """Press FIRE after reset and after each lost life, so the ball is always launched (Breakout); and, given
+    ``ball_in_play(ram)``, again whenever no ball has been in play for :attr:`SERVE_AGAIN_AFTER` steps.
 
-    The extra FIRE step is part of the agent's step that lost the life: its reward is added and its
-    observation returned, so step counts stay the agent's own.
+    Under sticky actions ALE can repeat the previous action on all four frames of the FIRE step, and the press is
+    lost: the game then waits for a serve that never comes, and the episode stalls to its step cap (1 game in 60
+    of Breakout's starter under the standard protocol, 2026-12-05). In play a ball is out for at most 7 steps (a
+    lost ball to the next serve's ball on screen), so the deterministic protocol never reaches the second press
+    and plays exactly as before.
+
+    Each extra FIRE step is part of the agent's step that needed it: its reward is added and its observation
+    returned, so step counts stay the agent's own.
     """
 
     FIRE = 1
+    SERVE_AGAIN_AFTER = 30
+    """Agent steps without a ball in play after which FIRE is pressed again (4x the longest wait seen in play)."""
 
-    def __init__(self, env: gym.Env):
+    def __init__(self, env: gym.Env, ball_in_play: Callable[[Any], bool] | None = None):
         super().__init__(env)
         self._lives = 0
+        self._ball_in_play = ball_in_play
+        self._without_ball = 0
 
     def reset(self, **kwargs):
         self.env.reset(**kwargs)
@@ -236,15 +247,21 @@ class AutoFire(gym.Wrapper):
         if terminated or truncated:  # cannot happen on a fresh game; reset again rather than start dead
             obs, info = self.env.reset(**kwargs)
         self._lives = info.get("lives", 0)
+        self._without_ball = 0
         return obs, info
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
         lives = info.get("lives", 0)
-        if lives < self._lives and not (terminated or truncated):
+        fire = lives < self._lives
+        if self._ball_in_play is not None and not fire:
+            self._without_ball = 0 if self._ball_in_play(obs) else self._without_ball + 1
+            fire = self._without_ball >= self.SERVE_AGAIN_AFTER
+        if fire and not (terminated or truncated):
             obs, extra, terminated, truncated, info = self.env.step(self.FIRE)
             reward += extra
             lives = info.get("lives", 0)
+            self._without_ball = 0
         self._lives = lives
         return obs, reward, terminated, truncated, info
 
@@ -396,7 +413,7 @@ def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: b
         env = NoopReset(env, noop_max)
     episodic = one_life == ONE_LIFE_CONTINUE
     if spec.fire_on_life_loss and not episodic:
-        env = AutoFire(env)
+        env = AutoFire(env, spec.ball_in_play)
     if one_life is True:
         env = OneLife(env)
     if objects:

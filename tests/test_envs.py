@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import gymnasium as gym
 import pytest
 
 from games import GAMES, UnknownGameError, get_game
 from games.breakout import ROWS as BREAKOUT_ROWS
-from games.envs import make_env
+from games.breakout import ball_in_play
+from games.envs import AutoFire, make_env
 from games.spaces import observation_space
 
 FIELDS = {"x", "y", "w", "h", "dx", "dy"}
@@ -133,6 +135,72 @@ def test_breakout_fires_at_start_and_after_a_lost_life():
     for i in lost_at:
         if lives[i] > 0:
             assert any("Ball" in obs for obs in seen[i : i + 3]), "relaunched after the lost life"
+
+
+def _longest_without_ball(env, seeds, steps: int) -> tuple[int, int, int]:
+    """NOOP-only Breakout games from ``seeds`` (RAM observations): the longest run of steps without a ball in
+    play, the serves seen (a ball in play after none) and the games that ended."""
+    longest = serves = ended = 0
+    for seed in seeds:
+        ram, _ = env.reset(seed=seed)
+        without, had = 0, False
+        for _ in range(steps):
+            ram, _, terminated, truncated, _ = env.step(0)
+            if ball_in_play(ram):
+                serves += not had
+                had, without = True, 0
+            else:
+                had, without = False, without + 1
+                longest = max(longest, without)
+            if terminated or truncated:
+                ended += 1
+                break
+    return longest, serves, ended
+
+
+def test_breakout_serves_again_when_sticky_actions_swallow_the_fire():
+    """Under sticky actions ALE can repeat the previous action on all four frames of the FIRE step; the game then
+    waits for a serve forever (before: 4 of 40 NOOP games of the standard protocol stalled, ~2% of serves, and
+    an audit episode of CI's stalled at its cap). Swept over 40 seeds: no ball is ever out for long, and every
+    game ends."""
+    env = make_env("breakout", sticky=0.25, noop_max=30, objects=False)
+    longest, serves, ended = _longest_without_ball(env, range(40), 800)
+    env.close()
+    assert serves >= 150 and ended == 40, (serves, ended)
+    assert longest <= AutoFire.SERVE_AGAIN_AFTER + 7, longest
+
+
+class _FirstFireLost(gym.Wrapper):
+    """The raw game with its first FIRE turned into a NOOP: what sticky actions do to an unlucky press."""
+
+    def __init__(self, env):
+        super().__init__(env)
+        self.lost = False
+
+    def step(self, action):
+        if action == AutoFire.FIRE and not self.lost:
+            self.lost, action = True, 0
+        return self.env.step(action)
+
+
+def test_a_lost_press_is_pressed_again_after_the_wait_and_never_in_play():
+    """The mechanism on its own: the serve's press lost, the ball comes SERVE_AGAIN_AFTER steps later; in the
+    paper's protocol, where no press is lost, no ball is out longer than 7 steps (so no second press ever changes
+    its play)."""
+    raw = gym.make("BreakoutNoFrameskip-v4", obs_type="ram", frameskip=4, repeat_action_probability=0.0,
+                   full_action_space=False)
+    env = AutoFire(_FirstFireLost(raw), ball_in_play)
+    ram, _ = env.reset(seed=0)
+    waited = 0
+    while not ball_in_play(ram):
+        ram, *_ = env.step(0)
+        waited += 1
+    assert AutoFire.SERVE_AGAIN_AFTER <= waited <= AutoFire.SERVE_AGAIN_AFTER + 7, waited
+    env.close()
+    paper = make_env("breakout", objects=False)
+    longest, serves, ended = _longest_without_ball(paper, [0], 2000)
+    paper.close()
+    assert serves == 5 and ended == 1 and longest <= 7, (longest, serves, ended)
 
 
 def test_space_invaders_numbering_and_bullet_direction():

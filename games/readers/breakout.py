@@ -24,6 +24,8 @@ import numpy as np
 from ocatari.ram import breakout as _ocatari
 from ocatari.ram.game_objects import NoObject
 
+from games.breakout import BALL_Y, ball_in_play
+
 Ball, Block = _ocatari.Ball, _ocatari.Block
 ROWS, COLUMNS = 6, 18
 WALL_BYTES = 36
@@ -72,12 +74,11 @@ def detect_breakout(objects: list, ram: np.ndarray) -> None:
     for obj in objects:  # OCAtari saves every present object's position first
         if obj.__class__ is not NoObject and obj._visible:
             obj._prev_xy = obj._xy
-    paddle, ball_x, ball_y = int(ram[72]), int(ram[99]), int(ram[101])  # ints: no uint8 wrap-around
-    objects[0].xy = paddle - 47, 189
-    if ball_y + 9 <= 196 and ball_y != 0:  # else no ball
+    objects[0].xy = int(ram[72]) - 47, 189  # ints: no uint8 wrap-around
+    if ball_in_play(ram):  # else no ball
         if type(objects[1]) is NoObject:
             objects[1] = Ball()
-        objects[1].xy = ball_x - 49, ball_y + 9
+        objects[1].xy = int(ram[99]) - 49, int(ram[BALL_Y]) + 9
     else:
         objects[1] = NoObject()
     if same:  # the slots hold this wall: OCAtari's walk only updates each run's Block in place
