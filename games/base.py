@@ -155,7 +155,7 @@ class Game:
     """Press FIRE after reset and after each lost life (Breakout does not relaunch the ball by itself)."""
     ball_in_play: Callable[[Any], bool] | None = None
     """``ball_in_play(ram)`` (with ``fire_on_life_loss``): whether a ball is in play, so that FIRE is pressed again
-    when none has been for a while (``games.envs.AutoFire``: sticky actions can swallow a press)."""
+    when none has been for a while (``games.envs.ServeAgain``: sticky actions can swallow a press)."""
     colours: Mapping[str, tuple[int, int, int]] = field(default_factory=dict)
     """RGB of each object category's boxes in Rerun recordings (others get a colour from their name)."""
     list_widths: Mapping[str, int] = field(default_factory=dict)

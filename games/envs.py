@@ -4,7 +4,8 @@
 paper's protocol; ``sticky=0.25, noop_max=30`` gives the standard stochastic Atari protocol) and wraps it:
 
 - :class:`NoopReset` takes a random number of NOOPs after reset (standard protocol only);
-- :class:`AutoFire` presses FIRE after reset, after every lost life and when a press was lost (Breakout);
+- :class:`AutoFire` presses FIRE after reset and after every lost life (Breakout);
+- :class:`ServeAgain` presses it again when sticky actions swallowed the press (no ball in play for 30 steps);
 - :class:`OneLife` ends the episode at the first lost life (``one_life=True``: the first life of a seeded game);
 - :class:`EpisodicLife` is the authors' one-life protocol exactly (``one_life="continue"``): an episode ends at
   a lost life and the next ``reset()`` goes on with the same game (see its docstring);
@@ -218,28 +219,17 @@ def objects_to_dict(objects: list, plan: ObservationPlan, rows: list[tuple] | No
 
 
 class AutoFire(gym.Wrapper):
-    """Press FIRE after reset and after each lost life, so the ball is always launched (Breakout); and, given
-    ``ball_in_play(ram)``, again whenever no ball has been in play for :attr:`SERVE_AGAIN_AFTER` steps.
+    """Press FIRE after reset and after each lost life, so the ball is always launched (Breakout).
 
-    Under sticky actions ALE can repeat the previous action on all four frames of the FIRE step, and the press is
-    lost: the game then waits for a serve that never comes, and the episode stalls to its step cap (1 game in 60
-    of Breakout's starter under the standard protocol, 2026-12-05). In play a ball is out for at most 7 steps (a
-    lost ball to the next serve's ball on screen), so the deterministic protocol never reaches the second press
-    and plays exactly as before.
-
-    Each extra FIRE step is part of the agent's step that needed it: its reward is added and its observation
-    returned, so step counts stay the agent's own.
+    The extra FIRE step is part of the agent's step that lost the life: its reward is added and its
+    observation returned, so step counts stay the agent's own.
     """
 
     FIRE = 1
-    SERVE_AGAIN_AFTER = 30
-    """Agent steps without a ball in play after which FIRE is pressed again (4x the longest wait seen in play)."""
 
-    def __init__(self, env: gym.Env, ball_in_play: Callable[[Any], bool] | None = None):
+    def __init__(self, env: gym.Env):
         super().__init__(env)
         self._lives = 0
-        self._ball_in_play = ball_in_play
-        self._without_ball = 0
 
     def reset(self, **kwargs):
         self.env.reset(**kwargs)
@@ -247,23 +237,54 @@ class AutoFire(gym.Wrapper):
         if terminated or truncated:  # cannot happen on a fresh game; reset again rather than start dead
             obs, info = self.env.reset(**kwargs)
         self._lives = info.get("lives", 0)
-        self._without_ball = 0
         return obs, info
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
         lives = info.get("lives", 0)
-        fire = lives < self._lives
-        if self._ball_in_play is not None and not fire:
-            self._without_ball = 0 if self._ball_in_play(obs) else self._without_ball + 1
-            fire = self._without_ball >= self.SERVE_AGAIN_AFTER
-        if fire and not (terminated or truncated):
+        if lives < self._lives and not (terminated or truncated):
             obs, extra, terminated, truncated, info = self.env.step(self.FIRE)
             reward += extra
             lives = info.get("lives", 0)
-            self._without_ball = 0
         self._lives = lives
         return obs, reward, terminated, truncated, info
+
+
+class ServeAgain(gym.Wrapper):
+    """Press FIRE again when no ball has been in play for :attr:`AFTER` steps (Breakout, ``Game.ball_in_play``
+    on the RAM observation), under whichever wrapper pressed the first.
+
+    Under sticky actions ALE can repeat the previous action on all four frames of the FIRE step, and the press is
+    lost: the game then waits for a serve that never comes, and the episode stalls to its step cap (4 of 40
+    NOOP games of the standard protocol, ~2% of serves; an audit episode of a CI run, 2026-12-05). In play a
+    ball is out for at most 7 steps (a lost ball to the next serve's ball on screen), so the paper's protocol,
+    where no press is lost, never reaches this press and plays exactly as before.
+
+    The extra FIRE step is part of the agent's step that waited too long: its reward is added and its
+    observation returned, so step counts stay the agent's own.
+    """
+
+    FIRE = 1
+    AFTER = 30
+    """Steps without a ball in play after which FIRE is pressed again (4x the longest wait seen in play)."""
+
+    def __init__(self, env: gym.Env, ball_in_play: Callable[[Any], bool]):
+        super().__init__(env)
+        self._ball_in_play = ball_in_play
+        self._without_ball = 0
+
+    def reset(self, **kwargs):
+        self._without_ball = 0
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        ram, reward, terminated, truncated, info = self.env.step(action)
+        self._without_ball = 0 if self._ball_in_play(ram) else self._without_ball + 1
+        if self._without_ball >= self.AFTER and not (terminated or truncated):
+            ram, extra, terminated, truncated, info = self.env.step(self.FIRE)
+            reward += extra
+            self._without_ball = 0
+        return ram, reward, terminated, truncated, info
 
 
 class OneLife(gym.Wrapper):
@@ -310,7 +331,8 @@ class EpisodicLife(gym.Wrapper):
       a fresh environment's).
     - ``fire`` (Breakout): every reset then presses FIRE, its reward dropped too (their ``FireResetEnv`` phase;
       a real reset if it ended the game). Breakout is built without :class:`AutoFire` under this protocol: their
-      step that loses a life presses nothing more.
+      step that loses a life presses nothing more (:class:`ServeAgain` stays: it presses only where sticky
+      actions lost a press, which their protocol, sticky 0, never does).
 
     It wraps :class:`ObjectObservation` (when built with objects), so that the NOOP and FIRE are ordinary steps of
     the object extraction, as in their OCAtari environment: the first observation of a continued episode is that
@@ -411,9 +433,11 @@ def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: b
         reload_from_snapshot(env.unwrapped)
     if noop_max:
         env = NoopReset(env, noop_max)
+    if spec.ball_in_play is not None:
+        env = ServeAgain(env, spec.ball_in_play)
     episodic = one_life == ONE_LIFE_CONTINUE
     if spec.fire_on_life_loss and not episodic:
-        env = AutoFire(env, spec.ball_in_play)
+        env = AutoFire(env)
     if one_life is True:
         env = OneLife(env)
     if objects:
