@@ -398,7 +398,8 @@ class NoopReset(gym.Wrapper):
 
 
 def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: bool = False,
-             one_life: bool | str = False, observation: int | None = None, objects: bool = True) -> gym.Env:
+             one_life: bool | str = False, observation: int | None = None, objects: bool = True,
+             serve_again: bool = True) -> gym.Env:
     """Build the wrapped environment for ``game``; see the module docstring for the observation format.
 
     ``one_life=True`` ends each episode at the first lost life (:class:`OneLife`); ``one_life="continue"``
@@ -410,6 +411,9 @@ def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: b
 
     ``observation`` is the version of the observation conventions (``games.base.OBSERVATION_VERSION``; None:
     today's, or the one ``game`` already builds when it is a :meth:`Game.observing` of another).
+
+    ``serve_again=False`` leaves out :class:`ServeAgain`, as every game was played before 2026-12-05: a replay of
+    a game stored then whose serve sticky actions swallowed (``pipeline/play/verify.py``).
 
     ``render=True`` keeps the RGB frame available through ``env.unwrapped.ale.getScreenRGB()`` (it always is;
     the flag only asks ALE for ``rgb_array`` rendering for viewers that call ``env.render()``).
@@ -433,7 +437,7 @@ def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: b
         reload_from_snapshot(env.unwrapped)
     if noop_max:
         env = NoopReset(env, noop_max)
-    if spec.ball_in_play is not None:
+    if spec.ball_in_play is not None and serve_again:
         env = ServeAgain(env, spec.ball_in_play)
     episodic = one_life == ONE_LIFE_CONTINUE
     if spec.fire_on_life_loss and not episodic:

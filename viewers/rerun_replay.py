@@ -85,15 +85,27 @@ def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int, observat
     """Replay the stored actions; PNG frames of every ``every``-th step, and the check against stored objects
     (both built with the run's ``observation`` version). An episode that ``continues`` a game is replayed after
     ``lead_in``, the actions of the episodes before it, each followed by the reset that goes on with the game."""
+    if every <= 0 or steps.num_rows == 0:
+        return [], [], ReplayCheck()
+    game = get_game(episode["game"]).observing(observation)
+    replayed = _replay(game, episode, steps, every, lead_in, serve_again=True)
+    if not replayed[2].faithful and game.ball_in_play is not None and float(episode.get("sticky") or 0.0) > 0:
+        # stored before games.envs.ServeAgain (2026-12-05), a game whose serve sticky actions swallowed went on
+        # without a ball: replayed in the environment of then, if that is the one it was played in
+        before = _replay(game, episode, steps, every, lead_in, serve_again=False)
+        if before[2].faithful:
+            return before
+    return replayed
+
+
+def _replay(game: Any, episode: dict[str, Any], steps: pa.Table, every: int, lead_in: list[list[int]],
+            serve_again: bool) -> tuple[list[int], list[bytes], ReplayCheck]:
     check = ReplayCheck()
     frame_steps: list[int] = []
     pngs: list[bytes] = []
-    if every <= 0 or steps.num_rows == 0:
-        return frame_steps, pngs, check
-    game = get_game(episode["game"]).observing(observation)
     widths = list_widths(game)
     env = make_env(game, sticky=float(episode.get("sticky") or 0.0), noop_max=int(episode.get("noop_max") or 0),
-                   one_life=ONE_LIFE_CONTINUE if episode.get("continues") else False)
+                   one_life=ONE_LIFE_CONTINUE if episode.get("continues") else False, serve_again=serve_again)
     try:
         obs, _ = env.reset(seed=int(episode["seed"]))
         for actions in lead_in if episode.get("continues") else ():

@@ -22,7 +22,9 @@ draws come from the environment's RNG seeded by ``reset(seed=...)``), built from
 extraction, and compares per step the reward, the cumulative score, the terminated/truncated flags and the
 lives, then the return, the length and the lives lost; the first disagreement, or None. An episode that
 ``continues`` another (the authors' one-life protocol, ``one_life = "continue"``) is replayed after it, in its
-environment, from where its replay ended (:meth:`Replay.after`). Runs stored before the
+environment, from where its replay ended (:meth:`Replay.after`). A Breakout game under sticky actions that does
+not replay in today's environment is replayed again without ``games.envs.ServeAgain``: stored before it existed,
+a game whose serve was swallowed went on without a ball. Runs stored before the
 game host (when the policy process held the emulator and every episode was replayed as it arrived) keep their
 ``verified`` flags, and end reason ``tampered`` for an episode whose replay disagreed.
 """
@@ -51,19 +53,19 @@ END_REASONS = ("terminated", "truncated", "policy_error", "timeout", "crashed")
 FAILURE_END_REASONS = ("policy_error", "timeout", "crashed")
 TAMPERED = "tampered"
 
-_replay_envs: dict[tuple[str, float, int, bool | str], list[Any]] = {}
+_replay_envs: dict[tuple[str, float, int, bool | str, bool], list[Any]] = {}
 
 
-def _acquire_env(game: str, sticky: float, noop_max: int, one_life: bool | str = False):
+def _acquire_env(game: str, sticky: float, noop_max: int, one_life: bool | str = False, serve_again: bool = True):
     """A raw-ALE environment (no object extraction) for one replay, from a pool per setting in this process
     (replays of episodes that play at the same time each need their own) and never handed to policy code:
-    ``make_env``'s wrappers minus ``ObjectObservation``."""
-    key = (get_game(game).name, float(sticky), int(noop_max), one_life_setting(one_life))
+    ``make_env``'s wrappers minus ``ObjectObservation`` (and minus ``ServeAgain`` when not ``serve_again``)."""
+    key = (get_game(game).name, float(sticky), int(noop_max), one_life_setting(one_life), serve_again)
     free = _replay_envs.setdefault(key, [])
     from games.envs import make_env  # here: a command that replays nothing never imports the emulator stack
 
     return key, (free.pop() if free else make_env(key[0], sticky=key[1], noop_max=key[2], one_life=key[3],
-                                                  objects=False))
+                                                  objects=False, serve_again=serve_again))
 
 
 class Replay:
@@ -73,9 +75,9 @@ class Replay:
     the episode this one continues, whose environment it takes over and resets without a seed (the game goes
     on: ``games.envs.EpisodicLife``)."""
 
-    def __init__(self, spec: EpisodeSpec, after: "Replay | None" = None):
+    def __init__(self, spec: EpisodeSpec, after: "Replay | None" = None, serve_again: bool = True):
         if after is None:
-            self._key, self._env = _acquire_env(spec.game, spec.sticky, spec.noop_max, spec.one_life)
+            self._key, self._env = _acquire_env(spec.game, spec.sticky, spec.noop_max, spec.one_life, serve_again)
             _, info = self._env.reset(seed=spec.seed)
         else:
             self._key, self._env = after._key, after._env
@@ -131,14 +133,15 @@ class Replay:
         return math.fsum(self.rewards)
 
 
-def replay_actions(spec: EpisodeSpec, actions: list[int], replay: Replay | None = None) -> Replay:
+def replay_actions(spec: EpisodeSpec, actions: list[int], replay: Replay | None = None,
+                   serve_again: bool = True) -> Replay:
     """Replay ``actions`` from ``spec``'s reset in this process (no policy code): continuing ``replay`` when its
     actions so far are a prefix of ``actions`` (fed while the episode played), else from the start."""
     if replay is not None and replay.actions != actions[:len(replay.actions)]:
         replay.release()  # what was reported while playing is not what the episode recorded: start again
         replay = None
     if replay is None:
-        replay = Replay(spec)
+        replay = Replay(spec, serve_again=serve_again)
     replay.feed(actions[len(replay.actions):])
     replay.release()
     return replay
@@ -270,8 +273,13 @@ def replay_outcome(spec: EpisodeSpec, row: dict[str, Any], steps: pa.Table) -> s
     actions, why = _recorded_actions(spec, steps)
     if why is not None:
         return why
-    replay = replay_actions(spec, actions)
-    return _compare(dict(row), steps, replay, len(actions))
+    why = _compare(dict(row), steps, replay_actions(spec, actions), len(actions))
+    if why is not None and spec.sticky > 0 and get_game(spec.game).ball_in_play is not None:
+        # stored before games.envs.ServeAgain (2026-12-05), a game whose serve sticky actions swallowed went on
+        # without a ball: it replays as it was played in the environment of then
+        if _compare(dict(row), steps, replay_actions(spec, actions, serve_again=False), len(actions)) is None:
+            return None
+    return why
 
 
 def _tampered(row: dict[str, Any], steps: pa.Table | None, nodes: pa.Table | None, replay: Replay,
