@@ -34,7 +34,11 @@ as int64 gives the numpy-1 results (../shared/NOTES.md).
 
 from __future__ import annotations
 
+import copy
+import dis
 import importlib
+import types
+import weakref
 from typing import Any, Callable, Mapping
 
 import ale_py
@@ -57,6 +61,23 @@ for _game in GAMES.values():  # import the extractors once (worker processes for
     importlib.import_module(f"ocatari.ram.{_game.ocatari_name.lower()}")
 
 
+def written_globals(module: types.ModuleType) -> tuple[str, ...]:
+    """The globals ``module``'s own functions assign (``global x`` then ``x = ...``): the state an OCAtari extractor
+    keeps between calls (Q*bert's Coily and balls; Assault, Boxing, Pitfall, ... have theirs)."""
+    names: set[str] = set()
+    pending = [value.__code__ for value in vars(module).values()
+               if isinstance(value, types.FunctionType) and value.__module__ == module.__name__]
+    while pending:
+        code = pending.pop()
+        names.update(i.argval for i in dis.get_instructions(code) if i.opname in ("STORE_GLOBAL", "DELETE_GLOBAL"))
+        pending.extend(const for const in code.co_consts if isinstance(const, types.CodeType))
+    return tuple(sorted(names))
+
+
+_READER_HOLDERS: dict[str, "weakref.ref[ObjectObservation]"] = {}
+"""Per OCAtari extractor module, the environment whose state its globals hold now."""
+
+
 class ObjectObservation(gym.Wrapper):
     """Turn an ALE env's observations into the paper's object dicts (see the module docstring).
 
@@ -65,12 +86,24 @@ class ObjectObservation(gym.Wrapper):
     :class:`games.spaces.ObjectDict` (keys that come and go, lists, derived fields), built when first asked for:
     codearcade never asks, Gymnasium's checkers and RL code do. The frame stays available through
     ``env.unwrapped.ale.getScreenRGB()`` (``render()`` with ``render_mode="rgb_array"``).
+
+    Some OCAtari extractors keep state between calls in their module's globals (:func:`written_globals`), one set
+    per process: two environments of such a game stepped in turn (``gymnasium.vector.SyncVectorEnv``, or by hand)
+    read each other's state, and Q*bert's enemies came and went. Each environment keeps its own: the one about to
+    read takes the globals over, saving those of the environment that held them (a copy, only when the holder
+    changes; one environment alone never copies).
     """
 
     def __init__(self, env: gym.Env, game: Game):
         super().__init__(env)
         self.game = game
-        importlib.import_module(f"ocatari.ram.{game.ocatari_name.lower()}")  # generic games: on first use
+        # generic games: their extractor imported on first use
+        self._reader = importlib.import_module(f"ocatari.ram.{game.ocatari_name.lower()}")
+        self._reader_globals = written_globals(self._reader)
+        self._reader_state: tuple | None = None
+        """The reader's globals as this environment left them when another took them over."""
+        self._as_holder = weakref.ref(self)
+        """What :data:`_READER_HOLDERS` holds while this environment holds its reader's globals."""
         max_objects = extract_ram_info.get_max_objects(game.ocatari_name, False)
         self._numbered = {category for category, count in max_objects.items() if count > 1}
         self.metadata = {**env.metadata, "render_modes": ["rgb_array"]}  # "human": gymnasium's HumanRendering
@@ -91,6 +124,8 @@ class ObjectObservation(gym.Wrapper):
 
     def reset(self, **kwargs):
         ram, info = self.env.reset(**kwargs)
+        if self._reader_globals and _READER_HOLDERS.get(self._reader.__name__) is not self._as_holder:
+            self._hold_reader()  # before init_objects resets them: the holder's state is saved first
         self._objects = extract_ram_info.init_objects(self.game.ocatari_name, False)
         return self._observe(ram, first=True), info
 
@@ -98,7 +133,21 @@ class ObjectObservation(gym.Wrapper):
         ram, reward, terminated, truncated, info = self.env.step(action)
         return self._observe(ram), reward, terminated, truncated, info
 
+    def _hold_reader(self) -> None:
+        """Make the reader module's globals this environment's (see the class docstring)."""
+        module, names = self._reader, self._reader_globals
+        held = _READER_HOLDERS.get(module.__name__)
+        holder = held() if held is not None else None
+        if holder is not None and holder is not self:
+            holder._reader_state = copy.deepcopy(tuple(getattr(module, name, None) for name in names))
+        if self._reader_state is not None:
+            for name, value in zip(names, self._reader_state):
+                setattr(module, name, value)
+        _READER_HOLDERS[module.__name__] = self._as_holder
+
     def _observe(self, ram: np.ndarray, first: bool = False) -> Observation:
+        if self._reader_globals and _READER_HOLDERS.get(self._reader.__name__) is not self._as_holder:
+            self._hold_reader()
         if self.game.detect is not None:
             self.game.detect(self._objects, ram)
         else:  # int64: OCAtari's extractors do arithmetic on the RAM bytes, which wraps around under numpy 2

@@ -10,8 +10,8 @@ corners, not their colours; see :data:`CUBES`). :func:`derive` groups the rest i
 RedBall), ``Friendlies`` (GreenBall, Sam: OCAtari's slot order, as the authors list them) and ``Disks`` and drops
 OCAtari's off-screen garbage: while Q*bert falls or is between lives the extractor reports y = RAM[33] - 52 (-52..-35),
 and a GreenBall can come with x up to 319 (stale RAM). OCAtari 2.2.1 declares ``RedBall`` but never creates one: red
-balls are not reported. Its extractor keeps state in module globals (one Q*bert object list per process;
-``init_objects`` resets it) and leaves absent objects ``None``; with int64 RAM its objects are right, and
+balls are not reported. Its extractor keeps state in module globals (``init_objects`` resets it; each
+environment keeps its own copy: ``games.envs.ObjectObservation``) and leaves absent objects ``None``; with int64 RAM its objects are right, and
 its ``detect`` gives them exactly, faster (``games/readers/qbert.py``).
 """
 

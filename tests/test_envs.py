@@ -10,7 +10,7 @@ import pytest
 from games import GAMES, UnknownGameError, get_game
 from games.breakout import ROWS as BREAKOUT_ROWS
 from games.breakout import ball_in_play
-from games.envs import AutoFire, ServeAgain, make_env
+from games.envs import AutoFire, ServeAgain, make_env, written_globals
 from games.spaces import observation_space
 
 FIELDS = {"x", "y", "w", "h", "dx", "dy"}
@@ -295,3 +295,62 @@ def test_a_reused_environment_plays_episodes_like_a_fresh_one(protocol):
     first, other, again = (run_episode(s).steps for s in specs)
     assert first.equals(again), "the same seed after another episode on the shared environment"
     assert not first.equals(other) or not protocol
+
+
+def _observations(env, seed: int, actions) -> list:
+    obs, _ = env.reset(seed=seed)
+    seen = [obs]
+    for action in actions:
+        obs, _, terminated, truncated, _ = env.step(action)
+        seen.append(obs)
+        if terminated or truncated:
+            break
+    return seen
+
+
+@pytest.mark.parametrize("game", sorted(GAMES))
+def test_two_environments_of_a_game_stepped_in_turn_see_what_each_sees_alone(game):
+    """Some OCAtari extractors keep state in their module's globals (Q*bert's: an enemy of the other game came and
+    went): every game's two environments stepped in turn, 400 random actions each, observe exactly what each
+    observes alone."""
+    import random
+
+    n = get_game(game).n_actions
+    plays = [(seed, [random.Random(seed * 7 + k).randrange(n) for k in range(400)]) for seed in (0, 1)]
+    alone = [_observations(make_env(game), seed, actions) for seed, actions in plays]
+    envs = [make_env(game) for _ in plays]
+    together = [[env.reset(seed=seed)[0]] for env, (seed, _) in zip(envs, plays)]
+    done = [False, False]
+    for step in range(400):
+        for k, (env, (_, actions)) in enumerate(zip(envs, plays)):
+            if not done[k]:
+                obs, _, terminated, truncated, _ = env.step(actions[step])
+                together[k].append(obs)
+                done[k] = terminated or truncated
+    for k in range(2):
+        first = next((i for i, (a, b) in enumerate(zip(together[k], alone[k])) if a != b), None)
+        assert len(together[k]) == len(alone[k]) and first is None, (k, first)
+
+
+def test_qbert_in_a_gymnasium_vector_env_sees_what_it_sees_alone():
+    """The same through ``gymnasium.vector.SyncVectorEnv`` (its environments stepped in turn, as RL code runs them)."""
+    import random
+
+    from ocatari.ram import qbert
+
+    assert {"coil_prev_x", "purple_i", "green_i"} <= set(written_globals(qbert))
+    plays = [[random.Random(99).randrange(6) for _ in range(400)], [random.Random(1234).randrange(6) for _ in range(400)]]
+    vector = gym.vector.SyncVectorEnv([lambda: gym.make("codearcade/Qbert-v0")] * 2)
+    obs, _ = vector.reset(seed=[0, 0])
+    seen, done = [[obs[0]], [obs[1]]], [False, False]
+    for a, b in zip(*plays):
+        obs, _, terminated, truncated, _ = vector.step([a, b])
+        for k in (0, 1):
+            if not done[k]:
+                seen[k].append(obs[k])
+                done[k] = bool(terminated[k] or truncated[k])
+    vector.close()
+    for k in (0, 1):
+        alone = _observations(gym.make("codearcade/Qbert-v0"), 0, plays[k])
+        first = next((i for i, (a, b) in enumerate(zip(seen[k], alone)) if a != b), None)
+        assert first is None, (k, first)
