@@ -151,15 +151,21 @@ def check_settings(config: Any) -> None:
             raise ValueError(f"{label} must be one of {', '.join(map(str, declared.choices))}, not {value!r}")
         low, high = declared.minimum, declared.maximum
         if low is not None and high is not None and not low <= value <= high:
-            raise ValueError(f"{label} must be within [{low:g}, {high:g}], got {value:g}")
+            raise ValueError(f"{label} must be within [{_shown(low)}, {_shown(high)}], got {_shown(value)}")
         if low is not None and value < low:
-            raise ValueError(f"{label} must be {'0 or more' if low == 0 else f'at least {low:g}'}, got {value:g}")
+            least = "0 or more" if low == 0 else f"at least {_shown(low)}"
+            raise ValueError(f"{label} must be {least}, got {_shown(value)}")
         if high is not None and value > high:
-            raise ValueError(f"{label} must be at most {high:g}, got {value:g}")
+            raise ValueError(f"{label} must be at most {_shown(high)}, got {_shown(value)}")
         if declared.above is not None and value <= declared.above:
-            raise ValueError(f"{label} must be above {declared.above:g}, got {value:g}")
+            raise ValueError(f"{label} must be above {_shown(declared.above)}, got {_shown(value)}")
         if declared.check is not None:
             declared.check(value)
+
+
+def _shown(number: float) -> str:
+    """A bound or a value in a message: an int in full (a seed's bound is 2**62), else as ``:g`` writes it."""
+    return str(number) if isinstance(number, int) else f"{number:g}"
 
 
 def _check_type(label: str, value: Any, kind: type | tuple[type, ...]) -> None:
@@ -196,7 +202,8 @@ class EpisodeLimits:
     """The limits an episode is played under; their defaults are written here and nowhere else."""
 
     max_steps: int = setting(4000, "cut an episode off after this many steps, reported as truncated (default: "
-                             "%(default)s, the paper's)", minimum=1)
+                             "%(default)s, the paper's)", minimum=1,
+                             maximum=2**31 - 1)  # the store's episode length is an INTEGER
     """Steps after which an episode is cut off (reported as ``truncated``); the paper's cap is 4000."""
     call_time_limit_s: float = setting(1.0, "time limit of one policy call (default: %(default)s)", flag="--call-time-limit",
                                        metavar="SECONDS")

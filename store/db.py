@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import random
 import re
+import sys
 import threading
 import time
 from contextlib import contextmanager
@@ -112,6 +113,8 @@ def _is_lock_error(exc: Exception) -> bool:
     return "Could not set lock" in text or "Conflicting lock" in text
 
 
+LOCK_NOTICE_AFTER_S = 3.0
+"""How long a command waits on a store another process holds before it says so (once) on stderr."""
 HEADER_BYTES = 3 * 4096
 """A DuckDB file's main header and its two database headers, before the first block."""
 
@@ -202,8 +205,10 @@ class Store:
         # Writes are small batches: one thread leaves the other core to the episode workers.
         threads = (os.cpu_count() or 1) if read_only else 1
         timeout = self.lock_timeout_s if read_only else self.write_lock_timeout_s
-        deadline = time.monotonic() + timeout
+        began = time.monotonic()
+        deadline = began + timeout
         delay = 0.01
+        told = False
         while True:
             try:
                 return HUB.open(self.path, read_only=read_only, threads=threads)
@@ -218,6 +223,11 @@ class Store:
                         raise StoreError(f"{self.path} stayed locked by another process for "
                                          f"{timeout:g} s (held by {holder}); wait for it or use "
                                          "another --store") from None
+                    if not told and time.monotonic() - began >= LOCK_NOTICE_AFTER_S:
+                        told = True  # a person waiting on a silent command: say what it waits for, once
+                        holder = text.split("Conflicting lock is held in", 1)[-1].split(". See also")[0].strip()
+                        print(f"codearcade: {self.path} is locked by another process ({holder}); waiting up to "
+                              f"{timeout:g} s for it (Ctrl-C stops)", file=sys.stderr, flush=True)
                     time.sleep(delay * (0.5 + random.random()))
                     delay = min(delay * 2, 0.25)
                     continue
@@ -229,6 +239,9 @@ class Store:
                     raise StoreDamaged(self.path, [cut]) from None
                 raise StoreError(f"cannot open {self.path}: {text}") from None
             except duckdb.Error as exc:
+                if "Corrupt database file" in str(exc):  # a block whose checksum does not match
+                    raise StoreDamaged(self.path, [f"a block is corrupt ({str(exc).split('Error: ', 1)[-1]})"]) \
+                        from None
                 if "version" in str(exc).lower() and "storage" in str(exc).lower():
                     raise StoreError(f"{self.path} was written by an incompatible DuckDB: {exc}") from None
                 raise

@@ -49,6 +49,8 @@ class Result:
     columns: list[str]
     types: list[str]
     rows: list[tuple]
+    total: int | None = None
+    """The rows the query gave, where only the first of them were kept (``rows``); None: ``rows`` are all."""
 
 
 def one_line(exc: BaseException) -> str:
@@ -58,11 +60,23 @@ def one_line(exc: BaseException) -> str:
     return " ".join(kept) or type(exc).__name__
 
 
-def _result(cursor: duckdb.DuckDBPyConnection) -> Result:
-    """Every row of an executed statement, with its column names and types (none for SET, a silent PRAGMA)."""
+FETCH_BATCH_ROWS = 10_000
+"""Rows fetched at a time where only the first are kept: memory stays that of a batch, however many rows come."""
+
+
+def _result(cursor: duckdb.DuckDBPyConnection, keep: int | None = None) -> Result:
+    """The rows of an executed statement, with its column names and types (none for SET, a silent PRAGMA): all of
+    them, or the first ``keep`` and the count of all (those after them fetched a batch at a time and let go)."""
     if cursor.description is None:
         return Result([], [], [])
-    return Result([d[0] for d in cursor.description], [str(d[1]) for d in cursor.description], cursor.fetchall())
+    columns, types = [d[0] for d in cursor.description], [str(d[1]) for d in cursor.description]
+    if keep is None:
+        return Result(columns, types, cursor.fetchall())
+    rows = cursor.fetchmany(keep) if keep else []
+    total = len(rows)
+    while batch := cursor.fetchmany(FETCH_BATCH_ROWS):
+        total += len(batch)
+    return Result(columns, types, rows, total)
 
 
 def run_query(store: Store, sql: str, params: list[Any] | None = None) -> Result:
@@ -143,7 +157,7 @@ def bind_params(sql: str, values: Sequence[str]) -> list[str] | dict[str, str]:
     return named
 
 
-def run_user_query(store: Store, sql: str, params: Sequence[str] | None = None) -> Result:
+def run_user_query(store: Store, sql: str, params: Sequence[str] | None = None, keep: int | None = None) -> Result:
     """Run a person's SQL (``codearcade sql``) so that it can only read the store.
 
     One statement of a reading type (:func:`check_user_sql`), on a connection of its own that opens the store
@@ -152,14 +166,17 @@ def run_user_query(store: Store, sql: str, params: Sequence[str] | None = None) 
     statement cannot turn any of it back on. ``params`` are the ``--param`` texts (:func:`bind_params`); the
     macros of ``store/runs.py`` are there (``WHERE run_id = run('last')``). The store is opened (and migrated)
     first through :meth:`Store.read`, which gives the usual one-line errors for a missing, foreign or locked file.
+    ``keep``: only the first rows are wanted (``--max-rows``); the others are counted, not held.
     """
     bound = bind_params(sql, list(params or []))
     with store.read():
         pass
     con = _user_connection(store)
     try:
-        return _result(con.execute(sql, bound))
+        return _result(con.execute(sql, bound), keep)
     except duckdb.Error as exc:
+        if "Corrupt database file" in str(exc):
+            raise  # not the query's fault: the store's damage, as every command reports it
         raise QueryError(one_line(exc)) from None
     finally:
         con.close()

@@ -43,6 +43,10 @@ REWORDED = {
 --eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them); --model may be
 given several times (an ensemble, issue 32); compare's --seed says --audit draws its own (issue 37: sealed)."""
 
+RETYPED = {("eval", "--seed"): ("int", "non_negative_int")}
+"""Flags whose value is checked by argparse now (2026-12-05: a negative seed reached Gymnasium's refusal mid-run
+and was stored as a crashed episode)."""
+
 ADDED = {"optimize": ("--rng-key", "--audit-episodes", "--repairs", "--model-choice", "--pool"), "eval": ("--rng-key",),
          "compare": ("--audit", "--rng-key")}
 """Flags added on purpose since the snapshot (issue 33: the policies' random stream, the held-out audit, compare
@@ -84,6 +88,9 @@ def test_the_flags_are_todays(verb):
         flag = (old["flags"] or [old["dest"]])[0]
         if verb == "eval" and old["dest"] in ("call_time_limit", "episode_time_limit"):
             old = {**old, "dest": old["dest"] + "_s"}  # eval's handler reads the config's field names now
+        if (verb, flag) in RETYPED:
+            assert (old["type"], new["type"]) == RETYPED[verb, flag]
+            old = {**old, "type": new["type"]}
         if (verb, flag) in REWORDED:
             assert (old["help"], new["help"]) == REWORDED[verb, flag]
             old = {**old, "help": new["help"]}

@@ -104,9 +104,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         show(f"codearcade: error: {shorten_in_message(str(exc), args)}", multiline=isinstance(exc, LocalModelError),
              file=sys.stderr)
         return EXIT_BAD_INPUT
-    except _store_damage_errors() as exc:  # a store damaged beyond what the checks on opening see
+    except OSError as exc:
+        if exc.filename is None:  # not a path the person gave (a socket, a pipe): not theirs to fix
+            raise
+        # a path that cannot be made or written: report --out, view --save, new, a batch's log, ...
+        show(f"codearcade: error: {exc.filename}: {exc.strerror or exc}; give another path", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as exc:
+        if not _store_damage(exc):
+            raise
         from store.views import one_line
 
+        # a store damaged beyond what the checks on opening see
         show(f"codearcade: error: cannot use the store ({one_line(exc)[:300]}); it may be damaged: "
              "`codearcade doctor` reports what is left", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -119,7 +128,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-def _store_damage_errors() -> tuple[type[BaseException], ...]:
+def _store_damage(exc: BaseException) -> bool:
+    """Whether DuckDB raised ``exc`` on reading a damaged store file: an IO, serialization or internal error, or a
+    block whose checksum does not match (a plain ``duckdb.Error``)."""
     import duckdb
 
-    return (duckdb.IOException, duckdb.SerializationException, duckdb.InternalException)
+    return isinstance(exc, (duckdb.IOException, duckdb.SerializationException, duckdb.InternalException)) or (
+        isinstance(exc, duckdb.Error) and "Corrupt database file" in str(exc))

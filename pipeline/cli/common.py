@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import errno
 import json
+import os
 import re
 import sys
 from typing import IO, Any, Callable, Iterable, Sequence
@@ -206,6 +208,23 @@ def add_rerun(p: argparse.ArgumentParser) -> None:
                    help="live Rerun recordings: DIR writes DIR/<episode_id>.rrd per episode (and DIR/<run_id>.rrd "
                    "for optimize), spawn streams to a Rerun viewer on 127.0.0.1 (started if none runs), "
                    "a rerun+http://HOST:PORT/proxy url streams there; off (default) records nothing")
+
+
+def check_output(path: str | os.PathLike, directory: bool = False) -> None:
+    """OSError (with the path: the command's one-line error) unless a command could write ``path`` later: a file,
+    or with ``directory`` a folder it makes if need be. Said before the work, not after it; nothing is made."""
+    path = os.path.abspath(path)
+    if os.path.isdir(path) and not directory:
+        raise OSError(errno.EISDIR, os.strerror(errno.EISDIR), path)
+    if os.path.lexists(path) and directory and not os.path.isdir(path):
+        raise OSError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), path)
+    existing = path if os.path.lexists(path) and directory else os.path.dirname(path)
+    while not os.path.lexists(existing):  # the nearest existing folder above: it must be one, and writable
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        raise OSError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), path)
+    if not os.access(existing, os.W_OK | os.X_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+        raise OSError(errno.EACCES, os.strerror(errno.EACCES), path)
 
 
 def open_store(args: argparse.Namespace, announce: bool = True):

@@ -9,8 +9,8 @@ import os
 import sys
 from typing import Any, Callable
 
-from pipeline.cli.common import (EXIT_OK, CliError, EpisodeProgress, add_settings, add_store, open_store, short_ids,
-                                 shorten_run_ids, show, show_json)
+from pipeline.cli.common import (EXIT_OK, CliError, EpisodeProgress, add_settings, add_store, check_output,
+                                 open_store, short_ids, shorten_run_ids, show, show_json)
 from pipeline.play.config import CompareConfig
 from pipeline.settings import declarations
 
@@ -57,6 +57,8 @@ def run(args: argparse.Namespace) -> int:
     if args.rerun and args.audit:
         raise CliError("--rerun shows the episodes of one seed on both sides; with --audit each side plays its own "
                        "seeds: leave one of them out")
+    if args.out:  # both sides play before the report is written: a folder it cannot make is said first
+        check_output(args.out, directory=True)
     store = open_store(args)
     given = {name: getattr(args, name) for name in declarations(CompareConfig)}
     if given["workers"] is None:

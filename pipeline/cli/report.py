@@ -8,7 +8,7 @@ import argparse
 import sys
 from typing import Any
 
-from pipeline.cli.common import EXIT_OK, add_run, add_store, open_store, resolve_run, show
+from pipeline.cli.common import EXIT_OK, add_run, add_store, check_output, open_store, resolve_run, show
 
 
 def add_parser(verbs) -> None:
@@ -75,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.llm.providers import price
     from viewers.report import write_report
 
+    if args.out:
+        check_output(args.out, directory=True)
     store = open_store(args)
     run_id = resolve_run(store, args.run_id)
     path = write_report(store, run_id, args.out, reproduce=reproduce_command, price=price,

@@ -13,8 +13,8 @@ import argparse
 import os
 import sys
 
-from pipeline.cli.common import (EXIT_OK, add_name, add_rerun, add_settings, add_store, open_store, resolve_run,
-                                 rerun_target, short_id, show, show_json)
+from pipeline.cli.common import (EXIT_OK, CliError, add_name, add_rerun, add_settings, add_store, open_store,
+                                 rerun_target, resolve_run, short_id, show, show_json)
 from pipeline.serve.config import ServeConfig
 
 
@@ -34,11 +34,11 @@ def add_parser(verbs) -> None:
                "codearcade serve --finalize last",
     )
     add_settings(p, ServeConfig, defaults=True)
-    p.add_argument("--port", type=int, default=None, metavar="N",
+    p.add_argument("--port", type=_port, default=None, metavar="N",
                    help="serve HTTP+JSON on 127.0.0.1:N (0: a free port; default: 0 without --mcp, none with it)")
     p.add_argument("--mcp", action="store_true", help="speak MCP over stdin and stdout (for an agent that starts "
                    "the server itself)")
-    p.add_argument("--mcp-port", type=int, default=None, metavar="N",
+    p.add_argument("--mcp-port", type=_port, default=None, metavar="N",
                    help="serve MCP's streamable HTTP on 127.0.0.1:N (path /mcp) instead of stdio")
     p.add_argument("--workspace", default=".", metavar="DIR",
                    help="the directory whose files a submission may name by path (default: this one)")
@@ -57,11 +57,40 @@ def _say(text: str) -> None:
     show(text, file=sys.stderr, flush=True)  # stdout may be the MCP transport
 
 
+def _port(text: str) -> int:
+    """A ``--port`` value: a TCP port number (0: a free one)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a port number is 0-65535, not {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"a port number is 0-65535, not {port}")
+    return port
+
+
+def _check_ports_free(args: argparse.Namespace) -> None:
+    """CliError for a port another process listens on, before a run is made or opened for it."""
+    import socket
+
+    for flag, port in (("--port", args.port), ("--mcp-port", args.mcp_port)):
+        if not port:
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the HTTP server binds it
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError as exc:
+                raise CliError(f"{flag} {port}: 127.0.0.1:{port} cannot be served ({exc.strerror}); give another "
+                               f"port, or 0 for a free one") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from pipeline.serve.protocol import KIND, ServeRun, create_run
     from store.locks import run_lock
     from store.writer import finish_run, mark_run_running
 
+    if args.finalize is None:
+        _check_ports_free(args)
     store = open_store(args)
     if args.finalize is not None:
         return _finalize(store, resolve_run(store, args.finalize, kinds=(KIND,), verb="serve --finalize"), args)

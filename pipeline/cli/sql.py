@@ -59,7 +59,9 @@ def run(args: argparse.Namespace) -> int:
     if not query.strip():
         raise CliError("empty query; give a SQL statement, e.g. codearcade sql \"SELECT * FROM run_summary\"")
     store = open_store(args)
-    result = run_user_query(store, query, args.param)  # read-only for real; every row fetched, the file let go
+    # read-only for real; the file let go. A table shows --max-rows rows: the rest are counted, not held
+    keep = args.max_rows if args.max_rows and not (args.json or args.csv) else None
+    result = run_user_query(store, query, args.param, keep)
     _print(args, result, args.max_width)
     if not result.rows and result.columns:
         for line in _why_no_rows(store, query, args.param):
@@ -102,6 +104,7 @@ def _print(args: argparse.Namespace, result, max_width: int) -> None:
     elif result.columns:
         shown = result.rows[: args.max_rows] if args.max_rows else result.rows
         show(format_table(result.columns, shown, max_width), multiline=True)  # each cell made terminal-safe
-        more = len(result.rows) - len(shown)
-        show(f"({len(result.rows)} row{'s' * (len(result.rows) != 1)}"
+        total = len(result.rows) if result.total is None else result.total
+        more = total - len(shown)
+        show(f"({total} row{'s' * (total != 1)}"
              + (f", {more} not shown: use --max-rows 0, --csv or --json)" if more else ")"))

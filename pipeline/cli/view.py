@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import (EXIT_OK, CliError, add_run, add_store, non_negative_int, open_store, resolve_run,
-                                 short_id, show)
+from pipeline.cli.common import (EXIT_OK, CliError, add_run, add_store, check_output, non_negative_int, open_store,
+                                 resolve_run, short_id, show)
 
 
 def add_parser(verbs) -> None:
@@ -41,6 +41,8 @@ def run(args: argparse.Namespace) -> int:
     from viewers.rerun_sinks import ViewerError
     from viewers.rerun_view import view
 
+    if args.save:  # the recording comes after the replay: a path it cannot be written to is said first
+        check_output(args.save)
     store = open_store(args)
     run_id = resolve_run(store, args.run_id)
 

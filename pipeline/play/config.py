@@ -25,7 +25,8 @@ class EvalConfig:
     """Number of evaluation episodes."""
     max_steps: int = limit("max_steps")
     """Steps after which an episode is cut off (reported as ``truncated``; ``EpisodeLimits``)."""
-    seed: int = setting(0, "seed of the first episode; episode i uses seed+i (default: %(default)s)")
+    seed: int = setting(0, "seed of the first episode; episode i uses seed+i (default: %(default)s)", minimum=0,
+                        maximum=2**62)  # Gymnasium refuses a negative seed; the store's seed is a BIGINT
     """Seed of the first episode; episode i uses ``seed + i`` (``one_life="continue"``: the seed of the one game)."""
     seeds: tuple[int, ...] | None = setting(None, "the seed of each episode, in place of seed+i", cli=False)
     """The seed of each episode, one each, in place of ``seed + i`` (None: from ``seed`` on). Not a flag: only

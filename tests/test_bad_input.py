@@ -1,0 +1,173 @@
+"""Bad input that reached a traceback, a hang or a gigabyte before 2026-12-05, each answered now in one line with
+exit status 2, leaving nothing behind: output paths that cannot be written (every verb that writes one), eval's
+seed and step cap past what the store holds, `serve` on a port it cannot have, a store with a corrupt block, a
+locked store (said while waiting, not after minutes of silence), and `sql --max-rows` holding only its rows."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+from store import Store, StoreError
+from store.db import HEADER_BYTES, LOCK_NOTICE_AFTER_S
+from tests.conftest import ROOT
+
+STARTER = ROOT / "games" / "scaffolds" / "pong.py"
+
+
+def _run(capsys, *argv) -> tuple[int, str, str]:
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse's own errors
+        code = exc.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _one_line_error(code: int, err: str) -> str:
+    """The error line of a refused command: exit 2, no traceback."""
+    assert code == 2 and "Traceback" not in err, err
+    return err.strip().splitlines()[-1]
+
+
+@pytest.fixture(scope="module")
+def played(tmp_path_factory) -> Path:
+    """A store holding one short Pong evaluation."""
+    path = tmp_path_factory.mktemp("played") / "s.duckdb"
+    assert main(["eval", str(STARTER), "--episodes", "1", "--max-steps", "30", "--store", str(path)]) == 0
+    return path
+
+
+def test_an_output_path_that_cannot_be_written_is_one_line_and_leaves_nothing(played, tmp_path, capsys):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    a_dir = tmp_path / "a_dir"
+    a_dir.mkdir()
+    under_a_file = a_file / "sub"
+    cases = [
+        ("report", "last", "--out", under_a_file, "--store", played),
+        ("compare", STARTER, STARTER, "--episodes", "1", "--max-steps", "5", "--out", under_a_file, "--store", played),
+        ("view", "last", "--save", a_file / "x.rrd", "--store", played),
+        ("view", "last", "--save", a_dir, "--store", played),
+        ("new", under_a_file / "policy.py", "--game", "pong"),
+        ("eval", STARTER, "--episodes", "1", "--max-steps", "5", "--rerun", under_a_file, "--store", played),
+    ]
+    runs_before = Store(played).query("SELECT count(*) FROM runs")[0][0]
+    for argv in cases:
+        line = _one_line_error(*_run(capsys, *argv)[::2])
+        assert "give another path" in line and ("a_file" in line or "a_dir" in line), (argv, line)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_dir", "a_file"] and not list(a_dir.iterdir())
+    assert Store(played).query("SELECT count(*) FROM runs")[0][0] == runs_before, "no run was started"
+    # the check that the path can be written leaves no empty file where the command then fails for another reason
+    code, _, err = _run(capsys, "view", "no-such-run", "--save", tmp_path / "y.rrd", "--store", played)
+    assert code == 2 and not (tmp_path / "y.rrd").exists(), err
+
+
+@pytest.mark.parametrize("flag, value", [("--seed", -1), ("--seed", 10**23), ("--max-steps", 10**23),
+                                         ("--max-steps", 2**31)])
+def test_eval_refuses_a_seed_or_a_cap_the_store_cannot_hold_before_it_starts_a_run(tmp_path, capsys, flag, value):
+    path = tmp_path / "s.duckdb"
+    line = _one_line_error(*_run(capsys, "eval", STARTER, "--episodes", "1", flag, value, "--store", path)[::2])
+    assert flag in line, line
+    assert not path.exists() or Store(path).query("SELECT count(*) FROM runs")[0][0] == 0
+
+
+def test_serve_refuses_a_port_out_of_range_or_taken_before_it_makes_a_run(tmp_path, capsys):
+    path = tmp_path / "s.duckdb"
+    for port in ("-1", "65536", "http"):
+        code, _, err = _run(capsys, "serve", "--game", "pong", "--port", port, "--store", path)
+        assert code == 2 and "a port number is 0-65535" in err, err
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        for flag in ("--port", "--mcp-port"):
+            line = _one_line_error(*_run(capsys, "serve", "--game", "pong", flag, port, "--store", path)[::2])
+            assert f"{flag} {port}" in line and "give another port" in line, line
+    assert not path.exists(), "no serve run was made for a server that could not start"
+
+
+@pytest.mark.parametrize("where", ["header", "first block", "steps"])
+def test_a_store_with_a_corrupt_block_is_one_line_everywhere_and_a_finding_for_the_doctor(played, tmp_path, capsys,
+                                                                                         where):
+    path = tmp_path / "s.duckdb"
+    data = bytearray(played.read_bytes())
+    if where == "steps":  # a block of the steps table's data, where DuckDB placed it
+        size, block = Store(played).query("SELECT (SELECT block_size FROM pragma_database_size() WHERE database_name = current_database()), "
+                                          "min(block_id) "
+                                          "FROM pragma_storage_info('steps') WHERE persistent AND block_id >= 0")[0]
+        at = HEADER_BYTES + block * size
+    else:
+        at = {"header": 4096, "first block": HEADER_BYTES}[where]
+    data[at:at + 512] = os.urandom(512)
+    path.write_bytes(bytes(data))
+    damaged = 0
+    for argv in (("runs",), ("sql", "SELECT count(DISTINCT step || episode_id) FROM steps"), ("report", "last")):
+        code, out, err = _run(capsys, *argv, "--store", path)
+        if code == 0:  # the damage is in a block this command does not read
+            continue
+        line = _one_line_error(code, err)
+        assert "damaged" in line and "codearcade doctor" in line, line
+        damaged += 1
+    code, out, err = _run(capsys, "doctor", "--store", path)
+    assert code == 1 and "Traceback" not in out + err and "corrupt" in (out + err).lower(), out + err
+    assert damaged, "every case breaks a block that some command reads"
+
+
+def test_a_locked_store_is_said_while_the_command_waits(played, tmp_path, capfd):
+    """Another process holds the file: a writer waits for it (a run must not fail for someone's long query), and
+    says so after LOCK_NOTICE_AFTER_S rather than staying silent for up to ten minutes."""
+    path = tmp_path / "s.duckdb"
+    path.write_bytes(played.read_bytes())
+    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+        import duckdb, sys, time
+        con = duckdb.connect({str(path)!r})
+        print("held", flush=True)
+        time.sleep(60)
+    """)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        store = Store(path, lock_timeout_s=LOCK_NOTICE_AFTER_S + 1.5, write_lock_timeout_s=LOCK_NOTICE_AFTER_S + 1.5)
+        began = time.monotonic()
+        with pytest.raises(StoreError, match="stayed locked by another process"):
+            with store.write():
+                pass
+        waited = time.monotonic() - began
+    finally:
+        holder.kill()
+        holder.wait()
+    err = capfd.readouterr().err
+    assert waited >= LOCK_NOTICE_AFTER_S and err.count("is locked by another process") == 1, err
+    assert f"PID {holder.pid}" in err and "waiting up to" in err, err
+
+
+def test_sql_max_rows_holds_only_the_rows_it_shows(played, capsys):
+    """`--max-rows 3` of three million rows: their count is said, and the query's rows are not held (peak memory of
+    the same query kept whole, in the same kind of process, as the baseline)."""
+    code, out, _ = _run(capsys, "sql", "SELECT range AS n FROM range(3000000)", "--max-rows", "3", "--store", played)
+    assert code == 0 and "(3000000 rows, 2999997 not shown" in out, out
+
+    def peak_mb(keep: int | None) -> float:
+        script = textwrap.dedent(f"""
+            from store import Store
+            from store.views import run_user_query
+            result = run_user_query(Store({str(played)!r}), "SELECT range AS n FROM range(3000000)", [], {keep!r})
+            assert (result.total or len(result.rows)) == 3000000
+            # VmHWM, this process's own peak (getrusage's counts a forking parent's too, carried across exec)
+            print(next(line.split()[1] for line in open("/proc/self/status") if line.startswith("VmHWM:")))
+        """)
+        done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                              env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
+        assert done.returncode == 0, done.stderr
+        return float(done.stdout.split()[-1]) / 1024
+
+    shown, whole = peak_mb(3), peak_mb(None)
+    assert whole - shown > 100, (shown, whole)  # 3M rows held: ~200 MB here
