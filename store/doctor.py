@@ -112,7 +112,11 @@ def check_store(con: duckdb.DuckDBPyConnection, store_path) -> list[Finding]:
     from store.views import one_line
 
     findings = []
-    version = con.execute("SELECT coalesce(max(version), 0) FROM schema_migrations").fetchone()[0]
+    try:
+        version = con.execute("SELECT coalesce(max(version), 0) FROM schema_migrations").fetchone()[0]
+    except duckdb.CatalogException:  # a DuckDB file, but no store: not one table of ours in it
+        return [Finding("not a codearcade store", [("the file holds no schema_migrations table: another program's "
+                                                    "DuckDB file, or an empty one",)])]
     damage = store_damage(con, store_path, version)
     if damage:
         findings.append(Finding("damaged file", [(problem,) for problem in damage]))

@@ -171,3 +171,24 @@ def test_sql_max_rows_holds_only_the_rows_it_shows(played, capsys):
 
     shown, whole = peak_mb(3), peak_mb(None)
     assert whole - shown > 100, (shown, whole)  # 3M rows held: ~200 MB here
+
+
+def test_the_doctor_says_an_empty_duckdb_file_is_no_store_and_leaves_it_as_it_was(tmp_path, capsys):
+    import duckdb
+
+    path = tmp_path / "other.duckdb"
+    duckdb.connect(str(path)).close()
+    before = path.read_bytes()
+    code, out, err = _run(capsys, "doctor", "--store", path)
+    assert code == 1 and "Traceback" not in out + err and "not a codearcade store" in out, out + err
+    assert path.read_bytes() == before
+
+
+def test_a_batch_naming_a_missing_policy_file_is_refused_before_any_run(tmp_path, capsys):
+    batch = tmp_path / "b.toml"
+    batch.write_text(f'name = "t"\nstore = "{tmp_path / "s.duckdb"}"\n[defaults]\ngame = "pong"\npolicy = "nope.py"\n'
+                     '[matrix]\nseed = [0, 1]\n')
+    for dry in ((), ("--dry-run",)):
+        line = _one_line_error(*_run(capsys, "batch", batch, *dry)[::2])
+        assert "nope.py does not exist" in line, line
+    assert not (tmp_path / "s.duckdb").exists()

@@ -207,6 +207,9 @@ def load_experiments(path: str | os.PathLike) -> Batch:
         if settings.get("policy"):
             policy = Path(settings["policy"])
             settings["policy"] = str(policy if policy.is_absolute() else (path.parent / policy).resolve())
+            if not Path(settings["policy"]).is_file():  # said now, not when its run starts (and fails to resume)
+                raise ExperimentError(f"{path.name}: policy file {settings['policy']} does not exist (a relative "
+                                      "path is read from the batch file's folder)")
         if not settings.get("game") and not settings.get("policy"):
             raise ExperimentError(f"{path.name}: every run needs a game or a policy (add game = ... to [defaults])")
         try:
