@@ -292,6 +292,13 @@ class Store:
                 con.execute(sql)
                 con.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", [version, name, utcnow()])
                 con.execute("COMMIT")
+            except duckdb.CatalogException as exc:
+                _rollback(con)
+                if "already exists" not in str(exc):
+                    raise
+                # the tables of a migration the file does not list: its schema_migrations was emptied or edited
+                raise StoreDamaged(self.path, [f"schema_migrations lists version {current}, but the tables of "
+                                               f"migration {version} ({name}) are there already"]) from None
             except BaseException:
                 _rollback(con)
                 raise

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import duckdb
 
 from store.locks import run_is_live
+from store.migrations import MIGRATIONS
 
 CHECKS: list[tuple[str, str]] = [
     ("orphan rows: run missing", """
@@ -117,6 +118,13 @@ def check_store(con: duckdb.DuckDBPyConnection, store_path) -> list[Finding]:
     except duckdb.CatalogException:  # a DuckDB file, but no store: not one table of ours in it
         return [Finding("not a codearcade store", [("the file holds no schema_migrations table: another program's "
                                                     "DuckDB file, or an empty one",)])]
+    listed = [v for (v,) in con.execute("SELECT version FROM schema_migrations ORDER BY version").fetchall()]
+    tables = con.execute("SELECT count(*) FROM information_schema.tables WHERE table_catalog = current_database() "
+                         "AND table_name <> 'schema_migrations'").fetchone()[0]
+    known = [v for v, _, _ in MIGRATIONS]  # an older store lists the first of them, a newer codearcade's more
+    if (listed != known[:len(listed)] and max(listed) <= known[-1]) or (not listed and tables):
+        findings.append(Finding("schema_migrations", [(f"lists versions {listed or 'none'} for a file that holds "
+                                                       f"{tables} other tables: emptied or edited",)]))
     damage = store_damage(con, store_path, version)
     if damage:
         findings.append(Finding("damaged file", [(problem,) for problem in damage]))

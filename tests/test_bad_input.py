@@ -192,3 +192,22 @@ def test_a_batch_naming_a_missing_policy_file_is_refused_before_any_run(tmp_path
         line = _one_line_error(*_run(capsys, "batch", batch, *dry)[::2])
         assert "nope.py does not exist" in line, line
     assert not (tmp_path / "s.duckdb").exists()
+
+
+def test_an_emptied_migration_table_is_damage_for_every_command_and_the_doctor(played, tmp_path, capsys):
+    """Its tables there but schema_migrations emptied: the commands tried to create the first migration's tables
+    again (a traceback) and the doctor said ok."""
+    import duckdb
+
+    path = tmp_path / "s.duckdb"
+    path.write_bytes(played.read_bytes())
+    con = duckdb.connect(str(path))
+    con.execute("DELETE FROM schema_migrations")
+    con.close()
+    for argv in (("runs",), ("eval", STARTER, "--episodes", "1", "--max-steps", "5")):
+        line = _one_line_error(*_run(capsys, *argv, "--store", path)[::2])
+        assert "is damaged: schema_migrations lists version 0" in line, line
+    code, out, err = _run(capsys, "doctor", "--store", path)
+    assert code == 1 and "PROBLEM: schema_migrations" in out and "Traceback" not in out + err, out + err
+    code, out, err = _run(capsys, "doctor", "--store", played)
+    assert code == 0 and "ok: no damage found" in out, out + err
