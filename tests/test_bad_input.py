@@ -211,3 +211,9 @@ def test_an_emptied_migration_table_is_damage_for_every_command_and_the_doctor(p
     assert code == 1 and "PROBLEM: schema_migrations" in out and "Traceback" not in out + err, out + err
     code, out, err = _run(capsys, "doctor", "--store", played)
     assert code == 0 and "ok: no damage found" in out, out + err
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "nan", "inf"])
+def test_export_names_its_timeout_flag_when_the_value_is_no_time(played, capsys, value):
+    code, _, err = _run(capsys, "export", "last", "--timeout", value, "--store", played)
+    assert code == 2 and "--timeout: must be a number of seconds above 0" in err, err

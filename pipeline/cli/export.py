@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.cli.common import (EXIT_OK, CliError, add_run, add_store, non_negative_int, open_store, resolve_run,
-                                 short_id, show, show_json)
+from pipeline.cli.common import (EXIT_OK, CliError, add_run, add_store, non_negative_int, open_store, positive_seconds,
+                                 resolve_run, short_id, show, show_json)
 
 
 def add_parser(verbs) -> None:
@@ -35,7 +35,7 @@ def add_parser(verbs) -> None:
     p.add_argument("--max-text-chars", type=non_negative_int, default=None, metavar="N",
                    help="characters kept of each prompt message, reply and feedback text (default: 32000; 0 sends "
                    "no texts, only numbers and names)")
-    p.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
+    p.add_argument("--timeout", type=positive_seconds, default=10.0, metavar="SECONDS",
                    help="per request, retries included (default: 10)")
     p.add_argument("--json", action="store_true", help="print what was sent as JSON")
     add_store(p)
