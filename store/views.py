@@ -116,7 +116,9 @@ def check_user_sql(sql: str) -> None:
         raise QueryError(f"one statement per call, got {len(statements)}; run them one by one")
     kind = statements[0].type
     if kind not in USER_STATEMENT_TYPES:
-        name = str(kind).rsplit(".", 1)[-1].replace("_STATEMENT", "")
+        words = statements[0].query.split()  # INSTALL is DuckDB's LOAD type: name what the person wrote
+        name = words[0].upper() if words and words[0].isalpha() else str(kind).rsplit(".", 1)[-1].replace(
+            "_STATEMENT", "")
         raise QueryError(f"codearcade sql is read-only: {name} statements are refused; use SELECT (WITH, FROM, "
                          "VALUES, SHOW, DESCRIBE, SUMMARIZE), EXPLAIN, PRAGMA or CALL")
 

@@ -217,3 +217,10 @@ def test_an_emptied_migration_table_is_damage_for_every_command_and_the_doctor(p
 def test_export_names_its_timeout_flag_when_the_value_is_no_time(played, capsys, value):
     code, _, err = _run(capsys, "export", "last", "--timeout", value, "--store", played)
     assert code == 2 and "--timeout: must be a number of seconds above 0" in err, err
+
+
+@pytest.mark.parametrize("statement, named", [("INSTALL httpfs", "INSTALL"), ("load httpfs", "LOAD"),
+                                              ("  DELETE FROM runs", "DELETE"), ("-- a note\nDROP TABLE runs", "DROP")])
+def test_sql_refuses_a_statement_by_the_name_it_was_written_with(played, capsys, statement, named):
+    line = _one_line_error(*_run(capsys, "sql", statement, "--store", played)[::2])
+    assert f"read-only: {named} statements are refused" in line, line
