@@ -29,7 +29,7 @@ import duckdb
 
 from store.hub import HUB
 from store.locate import DEFAULT_STORE, StoreLocation, locate_store  # noqa: F401 (DEFAULT_STORE: re-exported)
-from store.migrations import LATEST, MIGRATIONS
+from store.migrations import LATEST, MIGRATIONS, SCHEMA_MIGRATIONS_TABLE
 from store.published import refresh_published
 
 
@@ -280,10 +280,7 @@ class Store:
         current = self._check_version(con)
         self._refuse_damage(con, current)  # never append to, nor migrate, a damaged store
         if current == 0:
-            con.execute(
-                "CREATE TABLE IF NOT EXISTS schema_migrations "
-                "(version INTEGER PRIMARY KEY, name VARCHAR NOT NULL, applied_at TIMESTAMP NOT NULL)"
-            )
+            con.execute(SCHEMA_MIGRATIONS_TABLE)
         for version, name, sql in MIGRATIONS:
             if version <= current:
                 continue

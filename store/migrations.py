@@ -1190,3 +1190,7 @@ MIGRATIONS.append(
 )
 
 LATEST = MIGRATIONS[-1][0]
+
+SCHEMA_MIGRATIONS_TABLE = ("CREATE TABLE IF NOT EXISTS schema_migrations "
+                           "(version INTEGER PRIMARY KEY, name VARCHAR NOT NULL, applied_at TIMESTAMP NOT NULL)")
+"""The table that lists the migrations a store has had, made before the first of them."""

@@ -224,3 +224,17 @@ def test_export_names_its_timeout_flag_when_the_value_is_no_time(played, capsys,
 def test_sql_refuses_a_statement_by_the_name_it_was_written_with(played, capsys, statement, named):
     line = _one_line_error(*_run(capsys, "sql", statement, "--store", played)[::2])
     assert f"read-only: {named} statements are refused" in line, line
+
+
+def test_the_doctor_names_a_column_a_table_lost(played, tmp_path, capsys):
+    """The columns each table must have are DuckDB's own answer for the store's migrations applied to an empty
+    database; a store edited by hand (a dropped column) was 'a check that could not run'."""
+    import duckdb
+
+    path = tmp_path / "s.duckdb"
+    path.write_bytes(played.read_bytes())
+    con = duckdb.connect(str(path))
+    con.execute("ALTER TABLE episodes DROP COLUMN env_s")
+    con.close()
+    code, out, err = _run(capsys, "doctor", "--store", path)
+    assert code == 1 and "PROBLEM: columns missing: 1 — episodes.env_s" in out, out + err
