@@ -179,6 +179,9 @@ def run_user_query(store: Store, sql: str, params: Sequence[str] | None = None, 
     except duckdb.Error as exc:
         if "Corrupt database file" in str(exc):
             raise  # not the query's fault: the store's damage, as every command reports it
+        if "attached in read-only mode" in str(exc):  # a write inside a SELECT (WITH x AS (DELETE ...) ...)
+            raise QueryError("codearcade sql is read-only: the query writes to the store (a DELETE, INSERT or "
+                             "UPDATE inside it); nothing was changed") from None
         raise QueryError(one_line(exc)) from None
     finally:
         con.close()

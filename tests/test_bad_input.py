@@ -238,3 +238,11 @@ def test_the_doctor_names_a_column_a_table_lost(played, tmp_path, capsys):
     con.close()
     code, out, err = _run(capsys, "doctor", "--store", path)
     assert code == 1 and "PROBLEM: columns missing: 1 — episodes.env_s" in out, out + err
+
+
+def test_sql_says_a_select_that_writes_is_refused_and_changes_nothing(played, capsys):
+    runs = Store(played).query("SELECT count(*) FROM runs")[0][0]
+    line = _one_line_error(*_run(capsys, "sql", "WITH gone AS (DELETE FROM runs RETURNING *) SELECT * FROM gone",
+                                 "--store", played)[::2])
+    assert "read-only: the query writes to the store" in line, line
+    assert Store(played).query("SELECT count(*) FROM runs")[0][0] == runs
