@@ -134,6 +134,7 @@ def test_a_whole_run_over_http_spends_its_budget_exactly_and_shows_no_seed(tmp_p
         t.start()
     for t in threads:
         t.join()
+    assert len(results) == len(threads), "every request was answered (none reset)"
     played = [a for kind, status, a in results if kind == "submit" and status == 200]
     refused = [a for kind, status, a in results if kind == "submit" and status != 200]
     assert len(played) == 6, results

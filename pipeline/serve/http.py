@@ -102,6 +102,10 @@ class _Handler(BaseHTTPRequestHandler):
 
 class _Server(ThreadingHTTPServer):
     daemon_threads = True
+    request_queue_size = 128
+    """Connections the kernel holds until they are accepted (socketserver's default is 5): an agent may send many
+    requests at once, and on a busy machine the accepting thread lags; past the queue a connection was reset
+    (one of 24 concurrent requests in a CI run of tests/test_serve.py)."""
 
     def __init__(self, run: ServeRun, port: int):
         self.run = run
