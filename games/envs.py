@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 import dis
+import functools
 import importlib
 import types
 import weakref
@@ -61,6 +62,7 @@ for _game in GAMES.values():  # import the extractors once (worker processes for
     importlib.import_module(f"ocatari.ram.{_game.ocatari_name.lower()}")
 
 
+@functools.cache  # ~2 ms of bytecode a module: once per process, not once per environment
 def written_globals(module: types.ModuleType) -> tuple[str, ...]:
     """The globals ``module``'s own functions assign (``global x`` then ``x = ...``): the state an OCAtari extractor
     keeps between calls (Q*bert's Coily and balls; Assault, Boxing, Pitfall, ... have theirs)."""
@@ -334,6 +336,13 @@ class ServeAgain(gym.Wrapper):
             reward += extra
             self._without_ball = 0
         return ram, reward, terminated, truncated, info
+
+
+def may_predate_serve_again(game: Game, sticky: float) -> bool:
+    """Whether a stored game of ``game`` under ``sticky`` may have been played before :class:`ServeAgain` existed
+    (2026-12-05) and play differently today: a serve swallowed then went on without a ball. A replay that
+    disagrees tries ``make_env(..., serve_again=False)`` for it (``pipeline/play/verify.py``, the viewer's frames)."""
+    return game.ball_in_play is not None and sticky > 0
 
 
 class OneLife(gym.Wrapper):

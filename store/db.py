@@ -108,6 +108,17 @@ def _first_line(exc: Exception) -> str:
     return str(exc).strip().splitlines()[0][:200]
 
 
+def is_corrupt_block(exc: BaseException) -> bool:
+    """Whether DuckDB raised ``exc`` for a block of the file whose checksum does not match (a plain ``duckdb.Error``,
+    on opening or in any query that reads the block): the store's damage, never the query's fault."""
+    return isinstance(exc, duckdb.Error) and "Corrupt database file" in str(exc)
+
+
+def _lock_holder(text: str) -> str:
+    """The process DuckDB's lock error ``text`` says holds the file (its path and PID)."""
+    return text.split("Conflicting lock is held in", 1)[-1].split(". See also")[0].strip()
+
+
 def _is_lock_error(exc: Exception) -> bool:
     text = str(exc)
     return "Could not set lock" in text or "Conflicting lock" in text
@@ -219,15 +230,13 @@ class Store:
                                      "give another --store path") from None
                 if _is_lock_error(exc):
                     if time.monotonic() >= deadline:
-                        holder = text.split("Conflicting lock is held in", 1)[-1].split(". See also")[0].strip()
                         raise StoreError(f"{self.path} stayed locked by another process for "
-                                         f"{timeout:g} s (held by {holder}); wait for it or use "
+                                         f"{timeout:g} s (held by {_lock_holder(text)}); wait for it or use "
                                          "another --store") from None
                     if not told and time.monotonic() - began >= LOCK_NOTICE_AFTER_S:
                         told = True  # a person waiting on a silent command: say what it waits for, once
-                        holder = text.split("Conflicting lock is held in", 1)[-1].split(". See also")[0].strip()
-                        print(f"codearcade: {self.path} is locked by another process ({holder}); waiting up to "
-                              f"{timeout:g} s for it (Ctrl-C stops)", file=sys.stderr, flush=True)
+                        print(f"codearcade: {self.path} is locked by another process ({_lock_holder(text)}); "
+                              f"waiting up to {timeout:g} s for it (Ctrl-C stops)", file=sys.stderr, flush=True)
                     time.sleep(delay * (0.5 + random.random()))
                     delay = min(delay * 2, 0.25)
                     continue
@@ -239,7 +248,7 @@ class Store:
                     raise StoreDamaged(self.path, [cut]) from None
                 raise StoreError(f"cannot open {self.path}: {text}") from None
             except duckdb.Error as exc:
-                if "Corrupt database file" in str(exc):  # a block whose checksum does not match
+                if is_corrupt_block(exc):
                     raise StoreDamaged(self.path, [f"a block is corrupt ({str(exc).split('Error: ', 1)[-1]})"]) \
                         from None
                 if "version" in str(exc).lower() and "storage" in str(exc).lower():

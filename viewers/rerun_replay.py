@@ -21,7 +21,7 @@ import rerun as rr
 
 from games import get_game, list_widths
 from games.base import ONE_LIFE_CONTINUE, OBSERVATION_VERSION, recorded_observation
-from games.envs import make_env
+from games.envs import make_env, may_predate_serve_again
 from store import Store
 from store.readers import get_run, policy_text
 from store.showing import episode_tables, lead_in_actions
@@ -89,9 +89,7 @@ def replay_frames(episode: dict[str, Any], steps: pa.Table, every: int, observat
         return [], [], ReplayCheck()
     game = get_game(episode["game"]).observing(observation)
     replayed = _replay(game, episode, steps, every, lead_in, serve_again=True)
-    if not replayed[2].faithful and game.ball_in_play is not None and float(episode.get("sticky") or 0.0) > 0:
-        # stored before games.envs.ServeAgain (2026-12-05), a game whose serve sticky actions swallowed went on
-        # without a ball: replayed in the environment of then, if that is the one it was played in
+    if not replayed[2].faithful and may_predate_serve_again(game, float(episode.get("sticky") or 0.0)):
         before = _replay(game, episode, steps, every, lead_in, serve_again=False)
         if before[2].faithful:
             return before

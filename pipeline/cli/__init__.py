@@ -133,5 +133,7 @@ def _store_damage(exc: BaseException) -> bool:
     block whose checksum does not match (a plain ``duckdb.Error``)."""
     import duckdb
 
-    return isinstance(exc, (duckdb.IOException, duckdb.SerializationException, duckdb.InternalException)) or (
-        isinstance(exc, duckdb.Error) and "Corrupt database file" in str(exc))
+    from store.db import is_corrupt_block
+
+    return isinstance(exc, (duckdb.IOException, duckdb.SerializationException, duckdb.InternalException)) or \
+        is_corrupt_block(exc)

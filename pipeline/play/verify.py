@@ -274,9 +274,9 @@ def replay_outcome(spec: EpisodeSpec, row: dict[str, Any], steps: pa.Table) -> s
     if why is not None:
         return why
     why = _compare(dict(row), steps, replay_actions(spec, actions), len(actions))
-    if why is not None and spec.sticky > 0 and get_game(spec.game).ball_in_play is not None:
-        # stored before games.envs.ServeAgain (2026-12-05), a game whose serve sticky actions swallowed went on
-        # without a ball: it replays as it was played in the environment of then
+    from games.envs import may_predate_serve_again  # here: as _acquire_env, the emulator stack on first use
+
+    if why is not None and may_predate_serve_again(get_game(spec.game), spec.sticky):
         if _compare(dict(row), steps, replay_actions(spec, actions, serve_again=False), len(actions)) is None:
             return None
     return why
