@@ -123,6 +123,17 @@ def expected_columns(version: int) -> frozenset[tuple[str, str]]:
         con.close()
 
 
+def missing_columns(con: duckdb.DuckDBPyConnection, version: int) -> list[str]:
+    """``table.column`` of each column the store's migrations 1..``version`` made that it no longer has (dropped or
+    renamed by hand), sorted; empty when none is (or when the catalog cannot even be described)."""
+    try:
+        present = set(con.execute("SELECT table_name, column_name FROM information_schema.columns "
+                                  "WHERE table_catalog = current_database()").fetchall())
+    except duckdb.Error:  # a view whose table lost a column may not even describe itself
+        return []
+    return [f"{table}.{column}" for table, column in sorted(expected_columns(version) - present)] if present else []
+
+
 def check_store(con: duckdb.DuckDBPyConnection, store_path) -> list[Finding]:
     """Every problem found, errors first; an empty list means the store is sound. A damaged file (a table
     missing, truncated, unreadable blocks) gives findings too, never an exception."""
@@ -142,14 +153,9 @@ def check_store(con: duckdb.DuckDBPyConnection, store_path) -> list[Finding]:
     if (listed != known[:len(listed)] and max(listed) <= known[-1]) or (not listed and tables):
         findings.append(Finding("schema_migrations", [(f"lists versions {listed or 'none'} for a file that holds "
                                                        f"{tables} other tables: emptied or edited",)]))
-    try:
-        present = set(con.execute("SELECT table_name, column_name FROM information_schema.columns "
-                                  "WHERE table_catalog = current_database()").fetchall())
-    except duckdb.Error:  # a view whose table lost a column may not even describe itself
-        present = set()
-    missing = sorted(expected_columns(version) - present) if present else []
+    missing = missing_columns(con, version)
     if missing:
-        findings.append(Finding("columns missing", [(f"{table}.{column}",) for table, column in missing]))
+        findings.append(Finding("columns missing", [(name,) for name in missing]))
     damage = store_damage(con, store_path, version)
     if damage:
         findings.append(Finding("damaged file", [(problem,) for problem in damage]))

@@ -71,6 +71,13 @@ def test_an_output_path_that_cannot_be_written_is_one_line_and_leaves_nothing(pl
     assert code == 2 and not (tmp_path / "y.rrd").exists(), err
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full (a device whose every write fails: disk full)")
+def test_a_recording_on_a_full_disk_is_one_line_naming_the_file(played, capsys):
+    """Rerun's own RuntimeError ('Failed to write: No space left on device (os error 28)') was the traceback."""
+    line = _one_line_error(*_run(capsys, "view", "last", "--save", "/dev/full", "--store", played)[::2])
+    assert "/dev/full: No space left on device; give another path" in line, line
+
+
 @pytest.mark.parametrize("flag, value", [("--seed", -1), ("--seed", 10**23), ("--max-steps", 10**23),
                                          ("--max-steps", 2**31)])
 def test_eval_refuses_a_seed_or_a_cap_the_store_cannot_hold_before_it_starts_a_run(tmp_path, capsys, flag, value):
@@ -246,3 +253,32 @@ def test_sql_says_a_select_that_writes_is_refused_and_changes_nothing(played, ca
                                  "--store", played)[::2])
     assert "read-only: the query writes to the store" in line, line
     assert Store(played).query("SELECT count(*) FROM runs")[0][0] == runs
+
+
+@pytest.mark.parametrize("table, column", [("episodes", "return"), ("runs", "status"), ("steps", "reward")])
+def test_a_column_dropped_by_hand_is_named_by_every_command_that_reads_it(played, tmp_path, capsys, table, column):
+    """Before, each command but the doctor stopped on DuckDB's binder error (a traceback). The doctor's column
+    check runs once the error is seen: what the query missed is named, and the doctor pointed to."""
+    import duckdb
+
+    path = tmp_path / "s.duckdb"
+    path.write_bytes(played.read_bytes())
+    con = duckdb.connect(str(path))
+    con.execute(f'ALTER TABLE {table} DROP COLUMN "{column}"')
+    con.close()
+    failed = 0
+    for argv in (("runs",), ("report", "last", "--out", tmp_path / "r.html"),
+                 ("eval", STARTER, "--episodes", "1", "--max-steps", "5")):
+        code, _, err = _run(capsys, *argv, "--store", path)
+        if code == 0:  # a command that never reads the column has nothing to say
+            continue
+        failed += 1
+        line = _one_line_error(code, err)
+        assert f"the store lacks columns its schema made ({table}.{column})" in line, line
+        assert "`codearcade doctor`" in line, line
+    assert failed, "no command read the dropped column"
+
+
+def test_a_query_naming_a_column_that_never_was_is_the_query_s_error_not_damage(played, capsys):
+    code, _, err = _run(capsys, "sql", "SELECT no_such_column FROM runs", "--store", played)
+    assert code != 0 and "no_such_column" in err and "lacks columns" not in err, err

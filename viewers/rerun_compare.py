@@ -28,7 +28,7 @@ import rerun.blueprint as rrb
 
 from store import Store
 from viewers.rerun_layout import game_view
-from viewers.rerun_recording import new_recording
+from viewers.rerun_recording import new_recording, save_to
 from viewers.rerun_steps import STEP_SERIES
 from viewers.rerun_replay import log_stored_episode, read_episode
 from viewers.rerun_sinks import is_grpc_url
@@ -98,7 +98,7 @@ def write(store: Store, episodes: dict[str, str], to: str, divergent_step: int |
     if is_grpc_url(to):
         rec.connect_grpc(to, default_blueprint=blueprint)
     else:
-        rec.save(to, default_blueprint=blueprint)
+        save_to(rec, to, default_blueprint=blueprint)
     notes = []
     try:
         for side in SIDES:

@@ -31,7 +31,7 @@ from tracing.steps import StepLog  # noqa: E402
 from viewers.frames import FrameEncoder  # noqa: E402
 from viewers.rerun_episode import EpisodeLogger  # noqa: E402
 from viewers.rerun_layout import episode_blueprint  # noqa: E402
-from viewers.rerun_recording import new_recording  # noqa: E402
+from viewers.rerun_recording import new_recording, save_to  # noqa: E402
 from viewers.rerun_steps import StepColumns  # noqa: E402
 
 FLUSH_EVERY = 250
@@ -78,7 +78,7 @@ class LiveEpisodeRecorder:
         if is_url(target):
             self.rec.connect_grpc(target, default_blueprint=blueprint)
         else:
-            self.rec.save(os.path.join(target, f"{spec.episode_id}.rrd"), default_blueprint=blueprint)
+            save_to(self.rec, os.path.join(target, f"{spec.episode_id}.rrd"), default_blueprint=blueprint)
         self.logger = EpisodeLogger(self.rec, traced=spec.trace,
                                     frames_every=self.frames_every if self.encoder is not None else 0)
         self.logger.code(spec.policy_text)

@@ -10,6 +10,10 @@ one (:func:`resolve_recording`), as Rerun's own functions do.
 
 from __future__ import annotations
 
+import errno
+import os
+import re
+
 import rerun as rr
 
 APPLICATION_ID = "codearcade"
@@ -32,6 +36,21 @@ def new_recording(recording_id: str, name: str | None = None) -> rr.RecordingStr
     rec.set_log_tick_enabled(False)
     rec.send_recording_name(name or recording_id)
     return rec
+
+
+def save_to(recording: rr.RecordingStream, path: str | os.PathLike, **options) -> None:
+    """``recording.save(path, **options)``, with Rerun's failure to write the file (a ``RuntimeError`` whose text
+    ends in ``(os error N)``: a full disk, a read-only file system) raised as the ``OSError`` it is, naming
+    ``path``, so that the command says which file could not be written instead of showing Rerun's traceback."""
+    try:
+        recording.save(os.fspath(path), **options)
+    except RuntimeError as exc:
+        code = re.search(r"\(os error (\d+)\)", str(exc))
+        if code is None:
+            raise
+        number = int(code.group(1))
+        raise OSError(number, os.strerror(number) if number in errno.errorcode else str(exc), os.fspath(path)) \
+            from None
 
 
 def entity(*parts: str) -> str:

@@ -89,7 +89,7 @@ def view(store: Store, run_id: str, iteration: int | None = None, episode: str |
     if frames_every < 0:
         raise ViewError("--frames-every must be 0 (no frames) or more")
     selection = select(store, run_id, iteration, episode)
-    from viewers.rerun_recording import new_recording  # imports Rerun: only here, never in a process that forks
+    from viewers.rerun_recording import new_recording, save_to  # imports Rerun: only here, never in a process that forks
 
     rec = new_recording(selection.recording_id)
     viewer = None
@@ -102,7 +102,7 @@ def view(store: Store, run_id: str, iteration: int | None = None, episode: str |
         rec.connect_grpc(connect)
     else:
         save = save or f"{selection.recording_id}.rrd"
-        rec.save(save)
+        save_to(rec, save)
     try:
         if selection.episode_id is None:
             from viewers.rerun_run import log_run, read_run

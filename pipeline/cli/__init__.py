@@ -111,6 +111,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         show(f"codearcade: error: {exc.filename}: {exc.strerror or exc}; give another path", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Exception as exc:
+        missing = _columns_gone(exc, args)
+        if missing:
+            more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+            show(f"codearcade: error: the store lacks columns its schema made ({', '.join(missing[:3])}{more}): it was "
+                 "changed by hand or is damaged; `codearcade doctor` reports what is left", file=sys.stderr)
+            return EXIT_BAD_INPUT
         if not _store_damage(exc):
             raise
         from store.views import one_line
@@ -126,6 +132,28 @@ def main(argv: Sequence[str] | None = None) -> int:
                 signal.signal(signal.SIGINT, signal.SIG_IGN)
             else:  # a caller in this process (a test, a script): Ctrl-C as it was
                 signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def _columns_gone(exc: BaseException, args: argparse.Namespace) -> list[str]:
+    """For DuckDB's error on a name it cannot bind: the columns of the command's store that its schema made and
+    that are gone (``store.doctor.missing_columns``: a column dropped by hand fails whichever query reads it, with
+    DuckDB's binder error); empty when none is, or when the store cannot be looked at, so the error stays as it is.
+    Looked at only on this failure: knowing the columns to expect costs ~70 ms."""
+    import duckdb
+
+    if not isinstance(exc, (duckdb.BinderException, duckdb.CatalogException)) or not hasattr(args, "store"):
+        return []
+    from pipeline.cli.common import open_store
+    from store.doctor import missing_columns
+    from store.migrations import LATEST
+
+    try:
+        store = open_store(args, announce=False)
+        with store.read(check=False) as con:
+            version = con.execute("SELECT coalesce(max(version), 0) FROM schema_migrations").fetchone()[0]
+            return missing_columns(con, min(version, LATEST))
+    except Exception:  # noqa: BLE001 - no store, or one that cannot be read: the original error is the one to show
+        return []
 
 
 def _store_damage(exc: BaseException) -> bool:
