@@ -24,7 +24,7 @@ from games.base import Game, Task, normalize_name
 
 __all__ = ["Game", "Task", "GAMES", "UnknownGameError", "get_game", "curated_games", "list_widths", "normalize_name"]
 
-_NOT_GAMES = frozenset({"base", "envs", "generic", "readers", "scaffolding", "spaces"})
+_NOT_GAMES = frozenset({"base", "envs", "generic", "readers", "scaffolding", "spaces", "wrappers"})
 """Modules of this package that are machinery, not games."""
 
 GAME_MODULES_VARIABLE = "CODEARCADE_GAME_MODULES"

@@ -35,8 +35,8 @@ def draw_audit_seeds(n: int) -> list[int]:
 ONE_LIFE_CONTINUE = "continue"
 """The ``one_life`` setting (``codearcade eval --one-life-continue``; ``OptimizeConfig.one_life``) that plays the
 authors' one-life protocol exactly: the evaluation episodes of a run are the lives of one game, each continuing
-where the one before ended (``games.envs.EpisodicLife``). The other values: ``False``, whole games (the paper's);
-``True`` (``--one-life``), each episode the *first* life of a game reset from its own seed (``games.envs.OneLife``)."""
+where the one before ended (``games.wrappers.EpisodicLife``). The other values: ``False``, whole games (the paper's);
+``True`` (``--one-life``), each episode the *first* life of a game reset from its own seed (``games.wrappers.OneLife``)."""
 ONE_LIFE_SETTINGS = (False, True, ONE_LIFE_CONTINUE)
 
 
@@ -122,8 +122,8 @@ class Task:
     """The authors' follow-up ends an episode at every lost life (their ``trace_envs/<game>.py`` implement
     baselines' ``EpisodicLifeEnv``) and goes on with the same game in the next: a "1 x 4,000" evaluation is the
     first life of a game, "3 x 20,000" lives 1-3 of one game. codearcade plays whole games unless asked for
-    theirs: ``--one-life-continue`` exactly (``games.envs.EpisodicLife``), ``--one-life`` the first life of each
-    of N seeded games (``games.envs.OneLife``)."""
+    theirs: ``--one-life-continue`` exactly (``games.wrappers.EpisodicLife``), ``--one-life`` the first life of each
+    of N seeded games (``games.wrappers.OneLife``)."""
     published: tuple[Published, ...] = ()
     """The authors' published scores for the game (``examples/benchmarks.sql`` sets a batch's beside them)."""
 
@@ -155,7 +155,7 @@ class Game:
     """Press FIRE after reset and after each lost life (Breakout does not relaunch the ball by itself)."""
     ball_in_play: Callable[[Any], bool] | None = None
     """``ball_in_play(ram)`` (with ``fire_on_life_loss``): whether a ball is in play, so that FIRE is pressed again
-    when none has been for a while (``games.envs.ServeAgain``: sticky actions can swallow a press)."""
+    when none has been for a while (``games.wrappers.ServeAgain``: sticky actions can swallow a press)."""
     colours: Mapping[str, tuple[int, int, int]] = field(default_factory=dict)
     """RGB of each object category's boxes in Rerun recordings (others get a colour from their name)."""
     list_widths: Mapping[str, int] = field(default_factory=dict)

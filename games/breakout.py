@@ -9,7 +9,7 @@ Observation (the authors' ``breakout_training.py`` / ``trace_envs/breakout.py``,
 ``Block`` objects, each a run of adjacent bricks (:func:`brick_runs`), and ``lives``. Runs stored before this
 convention (observation version 1) split the runs into 8-pixel bricks (:func:`split_bricks`) and replay so.
 The environment presses FIRE after reset and after each lost life, and again while no ball has been in play for
-a while (:func:`ball_in_play`; under sticky actions a press can be lost: ``games.envs.ServeAgain``).
+a while (:func:`ball_in_play`; under sticky actions a press can be lost: ``games.wrappers.ServeAgain``).
 Its ``detect`` gives OCAtari's objects exactly, faster (``games/readers/breakout.py``).
 """
 

@@ -10,7 +10,8 @@ import pytest
 from games import GAMES, UnknownGameError, get_game
 from games.breakout import ROWS as BREAKOUT_ROWS
 from games.breakout import ball_in_play
-from games.envs import AutoFire, ServeAgain, make_env, written_globals
+from games.envs import make_env, written_globals
+from games.wrappers import AutoFire, ServeAgain
 from games.spaces import observation_space
 
 FIELDS = {"x", "y", "w", "h", "dx", "dy"}

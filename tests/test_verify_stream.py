@@ -42,11 +42,11 @@ def test_a_report_that_differs_from_the_recorded_actions_is_replayed_again():
 
 
 def test_a_game_stored_before_the_second_serve_still_replays_as_stored(tmp_path, monkeypatch, capsys):
-    """A Breakout game stored before ``games.envs.ServeAgain`` (2026-12-05) whose serve sticky actions swallowed
+    """A Breakout game stored before ``games.wrappers.ServeAgain`` (2026-12-05) whose serve sticky actions swallowed
     went on without a ball; today's environment serves it again at step 30, so its recorded actions play another
     game. ``doctor --replay`` and the viewer's frames replay it in the environment it was played in, and only
     there: a reward changed in it is still caught."""
-    from games.envs import ServeAgain
+    from games.wrappers import ServeAgain
     from pipeline.cli import main
     from pipeline.play.verify import replay_run
     from store import Store

@@ -21,7 +21,8 @@ import rerun as rr
 
 from games import get_game, list_widths
 from games.base import ONE_LIFE_CONTINUE, OBSERVATION_VERSION, recorded_observation
-from games.envs import make_env, may_predate_serve_again
+from games.envs import make_env
+from games.wrappers import may_predate_serve_again
 from store import Store
 from store.readers import get_run, policy_text
 from store.showing import episode_tables, lead_in_actions

@@ -197,7 +197,7 @@ class OptimizeConfig:
     """The authors' protocol for Asterix, Breakout, Q*bert and Seaquest (``Task.one_life_episodes``): every
     episode, training rollouts included, ends at a lost life. ``"continue"`` (``--one-life-continue``) is theirs
     exactly: the evaluation episodes of an assessment are the lives of one game from ``seed``, each going on where
-    the one before ended (``games.envs.EpisodicLife``; the training rollout is that game's first life, the
+    the one before ended (``games.wrappers.EpisodicLife``; the training rollout is that game's first life, the
     ``robust`` episodes each the first life of its own game); ``True`` (``--one-life``): every episode the first
     life of its own seeded game. Off: whole games (the paper's)."""
     observation: int = setting(

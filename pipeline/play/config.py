@@ -54,8 +54,8 @@ class EvalConfig:
                "ended")))
     """End each episode at a lost life, as the authors' follow-up evaluates Asterix, Breakout, Q*bert and Seaquest
     (``Task.one_life_episodes``): ``"continue"`` (``--one-life-continue``) exactly as theirs, the episodes the
-    lives of one game from ``seed``, each going on where the one before ended (``games.envs.EpisodicLife``);
-    ``True`` (``--one-life``) the first life of each episode's own seeded game (``games.envs.OneLife``).
+    lives of one game from ``seed``, each going on where the one before ended (``games.wrappers.EpisodicLife``);
+    ``True`` (``--one-life``) the first life of each episode's own seeded game (``games.wrappers.OneLife``).
     Off: whole games (the paper's)."""
     observation: int = setting(OBSERVATION_VERSION, "the version of the observation conventions", cli=False)
     """The version of the observation conventions (``games.base.OBSERVATION_VERSION``), recorded in the run."""

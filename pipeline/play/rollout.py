@@ -112,7 +112,7 @@ def prepare_episode(spec: EpisodeSpec, policy: PolicyChannel | None = None) -> P
 def continue_episode(spec: EpisodeSpec, previous: PreparedEpisode) -> PreparedEpisode:
     """The next episode of a continued game (``spec.continues``, after ``previous`` was played to its end by the
     game or the step cap): the same environment, reset without a seed, which goes on with the game
-    (``games.envs.EpisodicLife``: one NOOP, Breakout a FIRE, their rewards dropped), and the same policy, still
+    (``games.wrappers.EpisodicLife``: one NOOP, Breakout a FIRE, their rewards dropped), and the same policy, still
     loaded with whatever state it kept."""
     from games.envs import discard_env
 

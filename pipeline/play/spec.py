@@ -31,7 +31,7 @@ class EpisodeSpec:
     noop_max: int = 0
     one_life: bool | str = False
     """End the episode at a lost life: ``True``, the first life of the game reset from ``seed``
-    (``games.envs.OneLife``); ``"continue"``, the authors' protocol exactly (``games.envs.EpisodicLife``)."""
+    (``games.wrappers.OneLife``); ``"continue"``, the authors' protocol exactly (``games.wrappers.EpisodicLife``)."""
     continues: str | None = None
     """The episode whose game this one goes on with (``one_life="continue"``): it is played right after that one,
     by the same game host and policy process, from where it ended (one NOOP, Breakout a FIRE); None: it starts

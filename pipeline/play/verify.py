@@ -23,7 +23,7 @@ extraction, and compares per step the reward, the cumulative score, the terminat
 lives, then the return, the length and the lives lost; the first disagreement, or None. An episode that
 ``continues`` another (the authors' one-life protocol, ``one_life = "continue"``) is replayed after it, in its
 environment, from where its replay ended (:meth:`Replay.after`). A Breakout game under sticky actions that does
-not replay in today's environment is replayed again without ``games.envs.ServeAgain``: stored before it existed,
+not replay in today's environment is replayed again without ``games.wrappers.ServeAgain``: stored before it existed,
 a game whose serve was swallowed went on without a ball. Runs stored before the
 game host (when the policy process held the emulator and every episode was replayed as it arrived) keep their
 ``verified`` flags, and end reason ``tampered`` for an episode whose replay disagreed.
@@ -73,7 +73,7 @@ class Replay:
     the step). Actions can be fed as they are played (:meth:`feed`, from a worker's progress reports), so that
     by the time the episode ends only its last few hundred steps are left to replay. ``after``: the replay of
     the episode this one continues, whose environment it takes over and resets without a seed (the game goes
-    on: ``games.envs.EpisodicLife``)."""
+    on: ``games.wrappers.EpisodicLife``)."""
 
     def __init__(self, spec: EpisodeSpec, after: "Replay | None" = None, serve_again: bool = True):
         if after is None:
@@ -274,7 +274,7 @@ def replay_outcome(spec: EpisodeSpec, row: dict[str, Any], steps: pa.Table) -> s
     if why is not None:
         return why
     why = _compare(dict(row), steps, replay_actions(spec, actions), len(actions))
-    from games.envs import may_predate_serve_again  # here: as _acquire_env, the emulator stack on first use
+    from games.wrappers import may_predate_serve_again  # here: as _acquire_env, the emulator stack on first use
 
     if why is not None and may_predate_serve_again(get_game(spec.game), spec.sticky):
         if _compare(dict(row), steps, replay_actions(spec, actions, serve_again=False), len(actions)) is None:
