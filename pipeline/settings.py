@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import types
 import typing
 from dataclasses import dataclass
@@ -147,6 +148,8 @@ def check_settings(config: Any) -> None:
             continue
         label = declared.label(name)
         _check_type(label, value, value_type(config, name))
+        if isinstance(value, float) and not math.isfinite(value):  # nan passes every bound; neither goes in JSON
+            raise ValueError(f"{label} must be a finite number, got {value:g}")
         if declared.choices is not None and value not in declared.choices:
             raise ValueError(f"{label} must be one of {', '.join(map(str, declared.choices))}, not {value!r}")
         low, high = declared.minimum, declared.maximum
@@ -205,11 +208,11 @@ class EpisodeLimits:
                              "%(default)s, the paper's)", minimum=1,
                              maximum=2**31 - 1)  # the store's episode length is an INTEGER
     """Steps after which an episode is cut off (reported as ``truncated``); the paper's cap is 4000."""
-    call_time_limit_s: float = setting(1.0, "time limit of one policy call (default: %(default)s)", flag="--call-time-limit",
-                                       metavar="SECONDS")
+    call_time_limit_s: float = setting(1.0, "time limit of one policy call, 0 for none (default: %(default)s)",
+                                       flag="--call-time-limit", metavar="SECONDS", minimum=0)
     """Limit for one policy call, ``policy(obs)``, including every bundled method it calls (0: none)."""
     episode_time_limit_s: float = setting(900.0, "wall-clock limit of one episode (default: %(default)s)",
-                                          flag="--episode-time-limit", metavar="SECONDS")
+                                          flag="--episode-time-limit", metavar="SECONDS", above=0)
     """Wall-clock limit of one whole episode."""
     memory_limit_mb: int | None = setting(4096, "address space a worker may take beyond what it had at start, in "
                                           "MB (default: %(default)s)", cli=False)

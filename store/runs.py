@@ -224,6 +224,12 @@ RUN_STATUSES = ("running", "finished", "failed", "interrupted", "budget", "diver
 """The statuses ``runs.status`` holds (docs/schema.md says what each means)."""
 
 
+def shown_status(store_path: str | os.PathLike, run_id: str, status: str) -> str:
+    """A run's status as a person is shown it (``runs``, ``report``, ``compare``): a ``running`` run that no live
+    process holds (``store/locks.py``) was killed, and is ``interrupted``, as ``doctor`` says too."""
+    return "interrupted" if status == "running" and not run_is_live(store_path, run_id) else status
+
+
 def list_runs(con: duckdb.DuckDBPyConnection, store_path: str | os.PathLike, game: str | None = None,
               kind: str | None = None, status: str | None = None, limit: int | None = None,
               everything: bool = False) -> list[dict[str, Any]]:
@@ -252,8 +258,7 @@ def list_runs(con: duckdb.DuckDBPyConnection, store_path: str | os.PathLike, gam
         "WHERE model_choice IS NOT NULL GROUP BY run_id").fetchall())
     listed = []
     for row in rows:
-        if row["status"] == "running" and not run_is_live(store_path, row["run_id"]):
-            row["status"] = "interrupted"  # killed: no process holds its lock (`doctor` says the same)
+        row["status"] = shown_status(store_path, row["run_id"], row["status"])
         if status is not None and row["status"] != status:
             continue
         listed.append({"short_id": short[row["run_id"]], **row,

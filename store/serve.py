@@ -9,6 +9,9 @@ external access off, so it can read no file either.
 
 from __future__ import annotations
 
+import decimal
+import json
+import math
 import re
 import threading
 import warnings
@@ -17,6 +20,7 @@ from typing import Any
 import duckdb
 
 from store.readers import _rows
+from store.views import QueryError, check_user_sql
 
 _COMMITTED = """(SELECT unnest(eval_episode_ids) FROM candidates WHERE run_id = $run AND iteration >= 1)"""
 """The training episodes of committed submissions (a killed server may leave a submission's episodes without one)."""
@@ -56,11 +60,14 @@ def submission_episodes(con: duckdb.DuckDBPyConnection, episode_ids: list[str]) 
     return [rows[e] for e in episode_ids if e in rows]
 
 
-def visible_query(con: duckdb.DuckDBPyConnection, run_id: str, sql: str, max_rows: int,
+def visible_query(con: duckdb.DuckDBPyConnection, run_id: str, sql: str, max_rows: int, max_bytes: int,
                   time_limit_s: float = 10.0) -> dict[str, Any]:
-    """Run the agent's ``sql`` over the visible part of ``run_id`` (see the module docstring): its columns and at
-    most ``max_rows`` rows (``truncated`` says whether there were more). A query that fails, or runs past
-    ``time_limit_s`` (interrupted), raises ``duckdb.Error`` with DuckDB's message."""
+    """Run the agent's ``sql`` over the visible part of ``run_id`` (see the module docstring): its columns and the
+    first rows, at most ``max_rows`` of them and at most ``max_bytes`` of JSON (``truncated`` says whether rows were
+    left out; ``note`` why, when it was their size), every value one standard JSON holds (NaN and the infinities as
+    null). A statement that is not a query, or one that runs past ``time_limit_s``, raises :class:`QueryError`; a
+    query DuckDB refuses, ``duckdb.Error`` with its message."""
+    check_user_sql(sql, refuser="sql")  # the copy is the agent's own, but a DELETE that answers "Count: 3" misleads
     mem = duckdb.connect(":memory:", config={"memory_limit": "512MB", "threads": 1, "enable_external_access": False,
                                              "lock_configuration": True})
     timer = threading.Timer(time_limit_s, mem.interrupt)  # a query of the agent's may be endless: range(1e15)
@@ -75,10 +82,43 @@ def visible_query(con: duckdb.DuckDBPyConnection, run_id: str, sql: str, max_row
             mem.execute(f"CREATE TABLE {name} AS SELECT * FROM _{name}")
             mem.unregister(f"_{name}")
         timer.start()
-        cursor = mem.execute(sql)
-        columns = [d[0] for d in cursor.description or ()]
-        rows = cursor.fetchmany(max_rows + 1)
-        return {"columns": columns, "rows": [list(r) for r in rows[:max_rows]], "truncated": len(rows) > max_rows}
+        try:
+            cursor = mem.execute(sql)
+            columns = [d[0] for d in cursor.description or ()]
+            rows: list[list[Any]] = []
+            size, note = 0, None
+            while True:  # row by row: what is held is the rows kept and one more, never the whole result
+                row = cursor.fetchone()
+                if row is None or len(rows) == max_rows:
+                    break
+                row = [_json_value(value) for value in row]
+                # its texts' lengths first: a value of 100 MB is not encoded only to learn that it does not fit
+                texts = sum(len(v) for v in row if isinstance(v, (str, bytes)))
+                # + 2: the ", " between rows in the answer's list
+                size += 2 + (texts if size + texts > max_bytes else len(json.dumps(row, default=str)))
+                if size > max_bytes:
+                    note = f"rows past {max_bytes:,} bytes of JSON left out: ask for fewer or shorter values"
+                    break
+                rows.append(row)
+        except duckdb.InterruptException:
+            raise QueryError(f"the query ran past its limit of {time_limit_s:g} s: ask for less (a LIMIT, fewer "
+                             "rows or columns)") from None
+        return {"columns": columns, "rows": rows, "truncated": row is not None,
+                **({"note": note} if note is not None else {})}
     finally:
         timer.cancel()
         mem.close()
+
+
+def _json_value(value: Any) -> Any:
+    """``value`` as standard JSON holds it: a float that is not finite as None, a DECIMAL (DuckDB's type of a
+    literal such as 1.5) as a number, inside lists and structs too."""
+    if isinstance(value, decimal.Decimal):
+        value = float(value)
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, (list, tuple)):
+        return [_json_value(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _json_value(v) for k, v in value.items()}
+    return value

@@ -104,8 +104,9 @@ USER_CONFIG = {
 """The DuckDB configuration of the connection user SQL runs on (then ``lock_configuration`` is set)."""
 
 
-def check_user_sql(sql: str) -> None:
-    """:class:`QueryError` unless ``sql`` is exactly one statement of a type in :data:`USER_STATEMENT_TYPES`."""
+def check_user_sql(sql: str, refuser: str = "codearcade sql") -> None:
+    """:class:`QueryError` unless ``sql`` is exactly one statement of a type in :data:`USER_STATEMENT_TYPES`;
+    ``refuser`` names what refuses it in the message."""
     try:
         statements = duckdb.extract_statements(sql)
     except duckdb.Error as exc:
@@ -119,7 +120,7 @@ def check_user_sql(sql: str) -> None:
         words = statements[0].query.split()  # INSTALL is DuckDB's LOAD type: name what the person wrote
         name = words[0].upper() if words and words[0].isalpha() else str(kind).rsplit(".", 1)[-1].replace(
             "_STATEMENT", "")
-        raise QueryError(f"codearcade sql is read-only: {name} statements are refused; use SELECT (WITH, FROM, "
+        raise QueryError(f"{refuser} is read-only: {name} statements are refused; use SELECT (WITH, FROM, "
                          "VALUES, SHOW, DESCRIBE, SUMMARIZE), EXPLAIN, PRAGMA or CALL")
 
 

@@ -79,7 +79,9 @@ def test_a_recording_on_a_full_disk_is_one_line_naming_the_file(played, capsys):
 
 
 @pytest.mark.parametrize("flag, value", [("--seed", -1), ("--seed", 10**23), ("--max-steps", 10**23),
-                                         ("--max-steps", 2**31)])
+                                         ("--max-steps", 2**31), ("--call-time-limit", "nan"),
+                                         ("--call-time-limit", "inf"), ("--call-time-limit", "-1"),
+                                         ("--episode-time-limit", "0"), ("--episode-time-limit", "-inf")])
 def test_eval_refuses_a_seed_or_a_cap_the_store_cannot_hold_before_it_starts_a_run(tmp_path, capsys, flag, value):
     path = tmp_path / "s.duckdb"
     line = _one_line_error(*_run(capsys, "eval", STARTER, "--episodes", "1", flag, value, "--store", path)[::2])
@@ -99,6 +101,23 @@ def test_serve_refuses_a_port_out_of_range_or_taken_before_it_makes_a_run(tmp_pa
         for flag in ("--port", "--mcp-port"):
             line = _one_line_error(*_run(capsys, "serve", "--game", "pong", flag, port, "--store", path)[::2])
             assert f"{flag} {port}" in line and "give another port" in line, line
+    assert not path.exists(), "no serve run was made for a server that could not start"
+
+
+def test_serve_refuses_a_limit_a_workspace_or_a_recording_it_cannot_use_before_it_makes_a_run(tmp_path, capsys):
+    """A nan call limit answered every submit with a 500 (a negative one forfeited every episode); a missing
+    workspace refused every submission by path later; a --rerun it cannot write left a junk run behind."""
+    path = tmp_path / "s.duckdb"
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    cases = [(("--call-time-limit", "nan"), "--call-time-limit must be a finite number"),
+             (("--call-time-limit", "-1"), "--call-time-limit must be 0 or more"),
+             (("--workspace", tmp_path / "none"), "no such directory"),
+             (("--workspace", a_file), "not a directory"),
+             (("--rerun", a_file / "sub"), "a_file")]
+    for flags, said in cases:
+        line = _one_line_error(*_run(capsys, "serve", "--game", "pong", "--port", "0", *flags, "--store", path)[::2])
+        assert said in line, (flags, line)
     assert not path.exists(), "no serve run was made for a server that could not start"
 
 

@@ -226,6 +226,11 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     said = capsys.readouterr().out
     assert "validation  submission 3:" in said and "<- best by validation" in said.split("submission 3:")[1]
     assert "validation  submission 1: forfeit" in said and "held-out    best (submission 3)" in said
+    lines = {line.split(":")[0]: line for line in said.splitlines()}
+    # submission 1 played its training and forfeited it; the starter never plays training (it said "not played"
+    # for both)
+    assert lines["validation  submission 1"].endswith("training forfeited"), said
+    assert lines["held-out    starter"].endswith("training not played"), said
     assert [p.exists() for p in sentinels] == [False] * 4
 
 
@@ -435,3 +440,50 @@ def test_a_run_without_submissions_cannot_be_finalized(tmp_path, capsys):
     assert main(["serve", "--finalize", run_id, "--store", str(store.path)]) == 2
     assert "nothing to finalize" in capsys.readouterr().err
     assert not ServeRun(store, run_id).finalized and main(["doctor", "--store", str(store.path)]) == 0
+
+
+@pytest.fixture(scope="module")
+def any_store(tmp_path_factory) -> Path:
+    """A store holding one short evaluation (the agent's SQL reads only its own copies of a run's tables)."""
+    path = tmp_path_factory.mktemp("sql") / "s.duckdb"
+    assert main(["eval", str(ROOT / "games" / "scaffolds" / "pong.py"), "--episodes", "1", "--max-steps", "10",
+                 "--store", str(path)]) == 0
+    return path
+
+
+@pytest.mark.parametrize("value_chars, rows", [(10, 3), (10, 5_000), (900, 2_000), (40_000, 30), (3_000_000, 3)])
+def test_the_agents_sql_answer_is_bounded_in_rows_and_bytes_and_a_prefix_of_the_result(any_store, value_chars,
+                                                                                          rows):
+    """A query of 5 x 100 MB values answered 500 MB and held the server at 1.4 GB. Now each answer is a prefix
+    of the result, at most MAX rows and bytes of JSON, and says when it left rows out."""
+    from store.serve import visible_query
+
+    max_rows, max_bytes = 500, 100_000
+    sql = f"SELECT i, repeat('x', {value_chars}) AS v FROM range({rows}) t(i) ORDER BY i"
+    with Store(any_store).read() as con:
+        answer = visible_query(con, "no-run", sql, max_rows, max_bytes)
+    shown = answer["rows"]
+    assert [r[0] for r in shown] == list(range(len(shown))), "the first rows, in order"
+    assert len(shown) <= max_rows and len(json.dumps(shown, allow_nan=False)) <= max_bytes
+    fits = min(rows, max_rows, max_bytes // (value_chars + 20))  # ~20 bytes of JSON around each value
+    assert len(shown) >= fits * 0.9, (len(shown), fits)
+    assert answer["truncated"] == (len(shown) < rows)
+    assert ("note" in answer) == (len(shown) < min(rows, max_rows)), answer.get("note")
+
+
+def test_the_agents_sql_is_standard_json_refuses_writes_and_names_its_time_limit(any_store):
+    from store.serve import visible_query
+    from store.views import QueryError
+
+    with Store(any_store).read() as con:
+        answer = visible_query(con, "no-run", "SELECT 'nan'::DOUBLE, 'inf'::DOUBLE, ['-inf'::DOUBLE, 1.5], 2.0",
+                               500, 100_000)
+        assert answer["rows"] == [[None, None, [None, 1.5], 2.0]]
+        json.dumps(answer, allow_nan=False)  # what a strict JSON parser takes
+        for statement in ("DELETE FROM episodes", "UPDATE episodes SET length = 0", "CREATE TABLE t (i INT)",
+                          "INSERT INTO submissions VALUES (1)", "SET threads = 8"):
+            with pytest.raises(QueryError, match="sql is read-only"):
+                visible_query(con, "no-run", statement, 500, 100_000)
+        with pytest.raises(QueryError, match="ran past its limit of 0.5 s"):
+            visible_query(con, "no-run", "SELECT count(*) FROM range(1000000000000000)", 500, 100_000,
+                          time_limit_s=0.5)

@@ -28,9 +28,10 @@ from tests.conftest import ROOT
 BEFORE = json.loads((ROOT / "tests" / "fixtures" / "settings_before.json").read_text())
 
 REWORDED = {
-    ("optimize", "--call-time-limit"): ("per policy call (default: 1)", "time limit of one policy call (default: 1)"),
+    ("optimize", "--call-time-limit"): ("per policy call (default: 1)",
+                                        "time limit of one policy call, 0 for none (default: 1)"),
     ("eval", "--call-time-limit"): ("time limit of one policy call (default: 1.0)",
-                                    "time limit of one policy call (default: 1)"),
+                                    "time limit of one policy call, 0 for none (default: 1)"),
     ("optimize", "--eval-max-steps"): ("evaluation cap (default: the task's, 4000)",
                                        "evaluation cap (default: the game's, 4000; asterix 20000; enduro 5000; "
                                        "freeway 2500)"),
@@ -40,7 +41,8 @@ REWORDED = {
                             "versions: the first seed, under the paper's protocol (default: 0; --audit draws its own)"),
 }
 """Help texts that changed on purpose: one flag of two verbs now has one declaration (``EpisodeLimits``);
---eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them); --model may be
+--call-time-limit says what 0 means, now that a negative
+limit is refused (2026-12-05: it forfeited every episode); --eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them); --model may be
 given several times (an ensemble, issue 32); compare's --seed says --audit draws its own (issue 37: sealed)."""
 
 RETYPED = {("eval", "--seed"): ("int", "non_negative_int")}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -218,6 +219,28 @@ def test_report_of_an_eval_run_defaults_to_reports_dir(filled, tmp_path, capsys,
     assert code == 0 and sorted(p.name for p in out_dir.iterdir()) == ["README.md", "score.png"]
     readme = (out_dir / "README.md").read_text()
     assert "## Episodes" in readme and readme.count("| truncated |") + readme.count("| terminated |") == 3
+
+
+def test_a_killed_run_is_reported_interrupted_and_a_live_one_running(filled, tmp_path, capsys):
+    """``runs`` and ``doctor`` said a killed run (status ``running``, no process holding its lock) was interrupted;
+    ``report`` said it was running."""
+    import duckdb
+
+    from store.locks import run_lock
+
+    store, opt_id, eval_id = filled
+    copy = tmp_path / "s.duckdb"
+    copy.write_bytes(store.path.read_bytes())
+    con = duckdb.connect(str(copy))
+    con.execute("UPDATE runs SET status = 'running', finished_at = NULL")  # as a kill -9 leaves them
+    con.close()
+    for run_id in (opt_id, eval_id):
+        for live, shown in ((False, "interrupted"), (True, "running")):
+            with run_lock(copy, run_id) if live else contextlib.nullcontext():
+                code, _, err = _run(capsys, "report", run_id, "--out", str(tmp_path / run_id), "--store", str(copy))
+                assert code == 0, err
+                readme = (tmp_path / run_id / "README.md").read_text()
+                assert f"status **{shown}**" in readme, (run_id, live, readme[:400])
 
 
 def test_report_of_an_unknown_or_ambiguous_run(filled, capsys):

@@ -23,7 +23,7 @@ from store import Store
 from store.readers import get_run, model_choice_rows
 from store.scores import MEAN_METHOD, interval_text, score_episodes
 from store.showing import report_rows
-from store.runs import resolve_run_id
+from store.runs import resolve_run_id, shown_status
 from viewers.model_choices import choice_section
 from viewers.report_figures import calls_figure, code_figure, lineage_figure, scores_figure, tokens_figure
 from viewers.safe_text import (markdown_cell, markdown_code, markdown_code_block, markdown_text, terminal_text)
@@ -34,6 +34,7 @@ def collect(store: Store, run: str) -> dict[str, Any]:
     with store.read() as con:
         run_id = resolve_run_id(con, run, store)
         data: dict[str, Any] = {"run": get_run(con, run_id)}
+        data["run"]["status"] = shown_status(store.path, run_id, data["run"].get("status"))
 
         data.update(report_rows(con, run_id))
         data["choices"] = model_choice_rows(con, run_id)  # an ensemble's reasons (viewers/model_choices.py)

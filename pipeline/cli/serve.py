@@ -89,8 +89,14 @@ def run(args: argparse.Namespace) -> int:
     from store.locks import run_lock
     from store.writer import finish_run, mark_run_running
 
-    if args.finalize is None:
+    rerun = workspace = None
+    if args.finalize is None:  # every flag checked before a run is made or opened: a refusal leaves no run behind
         _check_ports_free(args)
+        workspace = os.path.abspath(args.workspace)
+        if not os.path.isdir(workspace):
+            what = "not a directory" if os.path.exists(workspace) else "no such directory"
+            raise CliError(f"--workspace {args.workspace}: {what}; give the directory whose files submissions name")
+        rerun = rerun_target(args.rerun)
     store = open_store(args)
     if args.finalize is not None:
         return _finalize(store, resolve_run(store, args.finalize, kinds=(KIND,), verb="serve --finalize"), args)
@@ -101,8 +107,7 @@ def run(args: argparse.Namespace) -> int:
                                 if hasattr(args, name)})  # a setting without a flag keeps its default
         run_id = create_run(store, config, name=args.name)
     with run_lock(store.path, run_id):
-        served = ServeRun(store, run_id, workspace=os.path.abspath(args.workspace),
-                          on_episode=None if args.mcp else _episode_line, rerun=rerun_target(args.rerun),
+        served = ServeRun(store, run_id, workspace=workspace, on_episode=None if args.mcp else _episode_line, rerun=rerun,
                           on_finalized=lambda: _say(f"run {short_id(store, run_id)} finalized: `codearcade audit "
                                                     f"{short_id(store, run_id)}` shows its validation and held-out "
                                                     "scores"))
@@ -184,7 +189,10 @@ def served_lines(rows: list[dict]) -> list[str]:
         return interval_text(r["score"], r["score_low"], r["score_high"], len(r["seeds"]), MEAN_METHOD)
 
     def training(r: dict) -> str:
-        return "not played" if r["tuning_score"] is None else format(r["tuning_score"], "g")
+        if r["tuning_score"] is not None:
+            return format(r["tuning_score"], "g")
+        # every submission played its training instances: no score there is a forfeit; the starter never plays
+        return "not played" if r["role"] == "starter" else "forfeited"
 
     best = next((r for r in rows if r["role"] == "best"), None)
     out = []

@@ -21,6 +21,7 @@ from pipeline.play.versus import LABELS, difference_data, unified_diff
 from store import Store
 from store.comparisons import best_evaluation, best_version, learning_curve
 from store.readers import get_run, policy_text
+from store.runs import shown_status
 from store.scores import score_episodes
 from store.views import resolve_run_id
 
@@ -60,7 +61,8 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
             curves[label] = [_curve_point(row) for row in _cumulative_calls(curve)]
             last = curves[label][-1]
             runs.append({"label": label, "run_id": run_id, "kind": run["kind"], "game": run["game"],
-                         "model": run["model"], "status": run["status"], "iterations": len(curve) - 1,
+                         "model": run["model"], "status": shown_status(store.path, run_id, run["status"]),
+                         "iterations": len(curve) - 1,
                          "llm_calls": last["llm_calls"], "total_tokens": last["tokens"], "elapsed_s": last["elapsed_s"],
                          "best_score": None if scored.forfeited else best["score"],
                          "best_forfeited": scored.forfeited, "best_no_score": scored.no_score,

@@ -77,6 +77,7 @@ from store.db import utcnow
 from store.readers import episode_steps, get_run, policy_text, step_nodes
 from store.scores import overfit, score_episodes
 from store.serve import served_submissions, submission_episodes, visible_query
+from store.views import QueryError
 from store.writer import (EpisodeWriter, finish_run, insert_candidate, insert_feedback, insert_iteration,
                           insert_policy_version, replace_audits)
 from tracing.policy_file import PolicyLoadError
@@ -87,6 +88,8 @@ TRAIN_SEED_LOW = 100_000
 MAX_POLICY_CHARS = 200_000
 MAX_FEEDBACK_STEPS = 200
 MAX_SQL_ROWS = 500
+MAX_SQL_BYTES = 1_000_000
+"""The most JSON an answer of the agent's SQL holds (its rows past that are left out, and it says so)."""
 PRINTED_SHOWN_BYTES = 2 * PRINTED_TEXT_BYTES
 """UTF-8 bytes of what a submission's policy printed that its feedback shows, its episodes together: two episodes'
 whole (each keeps ``policy.MAX_PRINTED_BYTES`` and a line counting the rest), more share it."""
@@ -241,8 +244,8 @@ class ServeRun:
             raise RequestError("sql: give one query of at most 20,000 characters")
         with self.store.read() as con:  # the store takes one thread at a time; reads need not wait for a play
             try:
-                return visible_query(con, self.run_id, query, MAX_SQL_ROWS)
-            except duckdb.Error as exc:
+                return visible_query(con, self.run_id, query, MAX_SQL_ROWS, MAX_SQL_BYTES)
+            except (duckdb.Error, QueryError) as exc:
                 raise RequestError(f"sql: {str(exc).splitlines()[0][:500]}") from None
 
     # ------------------------------------------------------------------------------------------- submitting
