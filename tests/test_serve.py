@@ -487,3 +487,68 @@ def test_the_agents_sql_is_standard_json_refuses_writes_and_names_its_time_limit
         with pytest.raises(QueryError, match="ran past its limit of 0.5 s"):
             visible_query(con, "no-run", "SELECT count(*) FROM range(1000000000000000)", 500, 100_000,
                           time_limit_s=0.5)
+
+
+def _raw(port: int, request: bytes, wait_s: float = 5.0) -> bytes:
+    """What the server answers to ``request`` written as it is, until it closes the connection or ``wait_s`` pass."""
+    import socket
+
+    with socket.create_connection(("127.0.0.1", port), timeout=wait_s) as s:
+        s.sendall(request)
+        got = b""
+        try:
+            while chunk := s.recv(65536):
+                got += chunk
+        except TimeoutError:
+            pass
+        return got
+
+
+def test_the_http_transport_answers_every_request_in_json_and_lets_go_of_stalled_or_gone_clients(tmp_path,
+                                                                                                 monkeypatch,
+                                                                                                 capfd):
+    """A chunked body was taken for an empty one ('missing instances'), the standard library's own refusals came
+    as HTML pages, a client that announced a body and sent 2 bytes held its connection for good, and a client
+    that hung up put a traceback on the server's stderr."""
+    import socket
+
+    from pipeline.serve import http
+    from pipeline.serve.config import ServeConfig
+    from pipeline.serve.protocol import ServeRun, create_run
+
+    assert http._Handler.timeout == http.REQUEST_TIMEOUT_S <= 60  # then shortened, so that the test need not wait
+    monkeypatch.setattr(http._Handler, "timeout", 1.0)
+    store = Store(tmp_path / "s.duckdb")
+    run = ServeRun(store, create_run(store, ServeConfig(game="pong", budget=2)))
+    server, thread = http.start_http(run)
+    port = server.server_address[1]
+    try:
+        body = b'{"instances": [0], "path": "policy.py"}'
+        answers = {
+            "chunked": _raw(port, b"POST /submit HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n"
+                                  + f"{len(body):x}\r\n".encode() + body + b"\r\n0\r\n\r\n"),
+            "PUT": _raw(port, b"PUT /budget HTTP/1.1\r\nHost: x\r\nContent-Length: 0\r\n\r\n"),
+            "garbage": _raw(port, b"GARBAGE\x01 / NONSENSE/9\r\n\r\n"),
+            "stalled": _raw(port, b"POST /budget HTTP/1.1\r\nHost: x\r\nContent-Length: 100\r\n\r\n{}"),
+        }
+        for name, answer in answers.items():
+            head, _, payload = answer.partition(b"\r\n\r\n")
+            if name == "stalled":  # closed by the server once its timeout passed (no answer is owed)
+                assert answer == b"" or head.startswith(b"HTTP/1.1 4"), answer
+                continue
+            assert head.startswith(b"HTTP/1.1 4") or head.startswith(b"HTTP/1.1 5"), (name, answer)
+            assert b"application/json" in head and "error" in json.loads(payload), (name, answer)
+        assert b" 411 " in answers["chunked"].split(b"\r\n")[0]
+        for _ in range(3):  # a client that asks and hangs up at once
+            with socket.create_connection(("127.0.0.1", port)) as s:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")  # RST
+                s.sendall(b"POST /sql HTTP/1.1\r\nHost: x\r\nContent-Length: 40\r\n\r\n"
+                          b'{"query": "SELECT * FROM range(500)"}   ')
+        status, budget = 0, None
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/budget", timeout=10) as answer:
+            status, budget = answer.status, json.loads(answer.read())
+        assert status == 200 and budget["spent"] == 0, "the server goes on"
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert "Traceback" not in capfd.readouterr().err

@@ -10,7 +10,9 @@ the budget is exact however many arrive at once (``protocol.ServeRun``).
 
 from __future__ import annotations
 
+import html
 import json
+import sys
 import threading
 import traceback
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -48,17 +50,34 @@ def call(run: ServeRun, operation: str, arguments: dict[str, Any]) -> dict[str, 
     return getattr(run, operation)(**arguments)
 
 
+REQUEST_TIMEOUT_S = 30.0
+"""Seconds a connection may keep the server waiting for the rest of a request (a body announced and never sent,
+an idle keep-alive connection), after which it is closed; a submission that plays for minutes is not waiting."""
+
+
 class _Handler(BaseHTTPRequestHandler):
     server: _Server
     protocol_version = "HTTP/1.1"
+    timeout = REQUEST_TIMEOUT_S
 
     def log_message(self, format: str, *args: Any) -> None:
         pass  # the store records what matters; stderr stays for the server's own lines
+
+    def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
+        """The standard library's own refusals (a request line it cannot parse, a method without a handler, a
+        header too long) as every other answer: ``{"error": ...}`` in JSON, not an HTML page."""
+        short, _ = self.responses.get(code, ("error", ""))
+        if getattr(self, "request_version", "HTTP/0.9") == "HTTP/0.9":  # a request line it could not read: the
+            self.request_version = self.protocol_version  # answer still gets its status line and headers
+        self._send(code, {"error": html.unescape(message or short)}, close=True)
 
     def do_GET(self) -> None:
         self._answer({})
 
     def do_POST(self) -> None:
+        if self.headers.get("Transfer-Encoding") is not None:  # chunked: the body would be taken for empty
+            self._send(411, {"error": "send the body with a Content-Length (not Transfer-Encoding)"}, close=True)
+            return
         try:
             length = int(self.headers.get("Content-Length") or 0)
         except ValueError:
@@ -85,19 +104,22 @@ class _Handler(BaseHTTPRequestHandler):
             self._send(400 if operation in OPERATIONS else 404, {"error": str(exc)})
         except Exception as exc:  # noqa: BLE001 - the server goes on; the agent learns the request failed
             traceback.print_exc()  # the server's own log (stderr): the person sees what went wrong
-            self._send(500, {"error": f"the server failed on this request ({type(exc).__name__}); nothing was "
-                                      "charged"})
+            self._send(500, {"error": f"the server failed on this request ({type(exc).__name__}); `budget` says "
+                                      "what is spent"})
 
     def _send(self, status: int, payload: dict[str, Any], close: bool = False) -> None:
         data = json.dumps(payload, default=str).encode()
-        self.send_response(status)
-        self.send_header("Content-Type", "application/json")
-        self.send_header("Content-Length", str(len(data)))
-        if close:
-            self.send_header("Connection", "close")
+        try:
+            self.send_response(status)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            if close:
+                self.send_header("Connection", "close")
+                self.close_connection = True
+            self.end_headers()
+            self.wfile.write(data)
+        except (BrokenPipeError, ConnectionResetError):  # the client hung up before its answer: nothing to say
             self.close_connection = True
-        self.end_headers()
-        self.wfile.write(data)
 
 
 class _Server(ThreadingHTTPServer):
@@ -110,6 +132,12 @@ class _Server(ThreadingHTTPServer):
     def __init__(self, run: ServeRun, port: int):
         self.run = run
         super().__init__(("127.0.0.1", port), _Handler)
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A client that hung up mid-request is its own business (socketserver printed a traceback for it)."""
+        if isinstance(sys.exc_info()[1], ConnectionError):
+            return
+        super().handle_error(request, client_address)
 
 
 def start_http(run: ServeRun, port: int = 0) -> tuple[ThreadingHTTPServer, threading.Thread]:
