@@ -5,6 +5,7 @@ locked store (said while waiting, not after minutes of silence), and `sql --max-
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
@@ -220,6 +221,30 @@ def test_a_batch_naming_a_missing_policy_file_is_refused_before_any_run(tmp_path
     assert not (tmp_path / "s.duckdb").exists()
 
 
+@pytest.mark.parametrize("text, said", [("def broken(:\n", "syntax error"), ("x = 1\n", "Policy"),
+                                        (None, "no trainable methods")])
+def test_a_batch_naming_a_policy_that_cannot_start_a_run_is_refused_before_any_run(tmp_path, capsys, text, said):
+    """It passed --dry-run; the run then failed on starting, and rerunning the batch (its way to resume) could
+    never mend it."""
+    policy = tmp_path / "p.py"
+    policy.write_text(text if text is not None else STARTER.read_text().replace("trainable=True", "trainable=False"))
+    batch = tmp_path / "b.toml"
+    batch.write_text(f'name = "t"\nstore = "{tmp_path / "s.duckdb"}"\n[defaults]\npolicy = "p.py"\n'
+                     '[matrix]\nseed = [0, 1]\n')
+    for dry in ((), ("--dry-run",)):
+        line = _one_line_error(*_run(capsys, "batch", batch, *dry)[::2])
+        assert "b.toml: p.py" in line and said in line, line
+    assert not (tmp_path / "s.duckdb").exists()
+
+
+def test_a_batch_log_that_takes_no_appending_is_one_line(tmp_path, capsys):
+    batch = tmp_path / "b.toml"
+    batch.write_text(f'name = "t"\nstore = "{tmp_path / "s.duckdb"}"\n[defaults]\ngame = "pong"\n'
+                     '[matrix]\nseed = [0]\n')
+    line = _one_line_error(*_run(capsys, "batch", batch, "--log", "/proc/version")[::2])
+    assert "--log /proc/version: Invalid argument; give another path" in line, line
+
+
 def test_an_emptied_migration_table_is_damage_for_every_command_and_the_doctor(played, tmp_path, capsys):
     """Its tables there but schema_migrations emptied: the commands tried to create the first migration's tables
     again (a traceback) and the doctor said ok."""
@@ -301,3 +326,16 @@ def test_a_column_dropped_by_hand_is_named_by_every_command_that_reads_it(played
 def test_a_query_naming_a_column_that_never_was_is_the_query_s_error_not_damage(played, capsys):
     code, _, err = _run(capsys, "sql", "SELECT no_such_column FROM runs", "--store", played)
     assert code != 0 and "no_such_column" in err and "lacks columns" not in err, err
+
+
+def test_a_dry_run_of_a_starting_policy_that_forfeits_says_so(tmp_path, capsys):
+    """It was a TypeError (a forfeit has no score to format)."""
+    policy = tmp_path / "raises.py"
+    policy.write_text(STARTER.read_text().replace("        predicted_ball_y = self.predict_ball_trajectory(obs)",
+                                                  "        raise RuntimeError('boom')"))
+    flags = ("--dry-run", "--eval-max-steps", "50", "--rollout-steps", "50", "--store", tmp_path / "s.duckdb")
+    code, out, err = _run(capsys, "optimize", policy, *flags)
+    assert code == 0 and "starting policy forfeited (" in out and "RuntimeError" in out, out + err
+    code, out, err = _run(capsys, "optimize", policy, *flags, "--json")
+    report = json.loads(out)
+    assert code == 0 and report["starter_score"] is None and "RuntimeError" in report["starter_forfeit"], report

@@ -253,6 +253,16 @@ def test_a_run_whose_every_update_failed_is_not_a_success(store, scripted):
     assert status == "failed" and "every LLM call failed" in error and "scripted error 503" in error
     attempts = store.query("SELECT attempts, error_type FROM llm_calls")
     assert attempts == [(4, "ServiceUnavailableError")], "transient errors are retried (3 retries) and recorded"
+    # its one iteration is played: the way on is more iterations, which the hint says (a plain --resume played
+    # nothing, failed again and said to resume again)
+    assert f"--resume {run_id[:8]}" in done.stderr.replace(run_id, run_id[:8]) and "--iterations 2" in done.stderr, \
+        done.stderr
+    again = _cli("optimize", "--resume", run_id, "--store", str(store.path), env=_env(OPENAI_API_KEY="sk-scripted"))
+    assert again.returncode == 2 and "after playing all 1 of its iterations" in again.stderr, again.stderr
+    assert "give --iterations N (more than 1)" in again.stderr and len(model.requests()) == 4
+    more = _cli("optimize", "--resume", run_id, "--iterations", "2", "--store", str(store.path),
+                env=_env(OPENAI_API_KEY="sk-scripted"))
+    assert store.query("SELECT count(*) FROM iterations WHERE run_id = ?", [run_id])[0][0] == 3, more.stderr
 
 
 @pytest.mark.slow

@@ -343,3 +343,23 @@ def test_output_piped_into_head_ends_quietly(tmp_path):
                           "exit ${PIPESTATUS[0]}", shell=True, executable="/bin/bash", cwd=ROOT, capture_output=True,
                           text=True, timeout=120)
     assert done.stdout == "range\n" and done.stderr == "" and done.returncode == 0, done.stderr[-500:]
+
+
+def test_replay_refuses_a_run_still_running_and_audit_one_without_iterations(filled, tmp_path, capsys):
+    """A replay of a live run stopped where its record then ended and stored itself as 'interrupted'; an audit of
+    a run with nothing to audit said so and exited 0."""
+    from pipeline.optimizer.config import OptimizeConfig
+    from pipeline.optimizer.loop import start_run
+    from store.locks import run_lock
+
+    store, opt_id, _ = filled
+    copy = Store(tmp_path / "s.duckdb")
+    copy.path.write_bytes(store.path.read_bytes())
+    runs_before = copy.query("SELECT count(*) FROM runs")[0][0]
+    with run_lock(copy.path, opt_id):
+        code, _, err = _run(capsys, "replay", opt_id, "--store", str(copy.path))
+    assert code == 2 and "is still running: replay it once it has finished or stopped" in err, err
+    assert copy.query("SELECT count(*) FROM runs")[0][0] == runs_before, "no replay run was made"
+    empty = start_run(OptimizeConfig(game="pong", iterations=1), copy, "scripted")
+    code, out, err = _run(capsys, "audit", empty, "--json", "--store", str(copy.path))
+    assert code == 2 and "has no iteration to audit" in err and out == "", out + err

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_OK, EpisodeProgress, add_run, add_store, open_store,
+from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_OK, CliError, EpisodeProgress, add_run, add_store, open_store,
                                  positive_int, resolve_run, short_id, show, show_json)
 
 
@@ -61,6 +61,11 @@ def run(args: argparse.Namespace) -> int:
     run_id = resolve_run(store, args.run_id, kinds=("optimize", "serve"), verb="audit")
     if _served(store, run_id):
         return _served_audit(store, run_id, args)
+    from store.locks import run_is_live
+
+    if run_is_live(store.path, run_id):
+        show(f"codearcade: run {short_id(store, run_id)} is still running: this audits its best version so far",
+             file=sys.stderr)
     progress: list[EpisodeProgress] = []
 
     def playing(total: int) -> None:
@@ -74,11 +79,12 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for bar in progress:
             bar.close()
+    if not result.rows:
+        raise CliError(f"run {short_id(store, run_id)} has no iteration to audit: it stopped before its starting "
+                       "policy was assessed")
     if args.json:
         show_json({"run_id": run_id, "overfit": result.overfit, "audits": result.rows}, default=str)
     else:
-        if not result.rows:
-            show(f"run {run_id} has no iteration to audit", file=sys.stderr)
         for line in result.lines():
             show(line)
     return EXIT_OK

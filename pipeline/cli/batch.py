@@ -133,7 +133,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(problems[0] + (f"; and {len(problems) - 1} more problem(s): `codearcade batch "
                                       f"{args.experiments} --dry-run` lists them" if len(problems) > 1 else ""))
     log_path = Path(args.log) if args.log else store.path.with_name(f"{store.path.name}.{batch.name}.log")
-    log_file = open(log_path, "a")
+    try:
+        log_file = open(log_path, "a")
+    except OSError as exc:  # past check_output: a file that takes no appending (/proc/...) says EINVAL, unnamed
+        raise CliError(f"--log {log_path}: {exc.strerror or exc}; give another path") from None
     display, stop = _batch_display(store)
     quiet = sys.stdout.isatty()
 

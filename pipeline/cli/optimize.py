@@ -271,8 +271,10 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
              f"`{_resume_command(store, short, '--max-...')}`", file=sys.stderr)
         return EXIT_OK
     if result.status != "finished":
+        played_all = any(i.iteration >= config.iterations for i in result.iterations)
+        more = ("--iterations", str(config.iterations + max(1, config.iterations // 2))) if played_all else ()
         show(f"codearcade: run {short} {result.status}: {error}; fix the cause, then continue it "
-             f"with `{_resume_command(store, short)}`", file=sys.stderr)
+             f"with `{_resume_command(store, short, *more)}`", file=sys.stderr)
         return EXIT_EPISODE_FAILED
     return EXIT_OK
 

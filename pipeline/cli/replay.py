@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, add_run, add_store, open_store, resolve_run, short_ids,
-                                 show, show_json)
+from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_run, add_store, open_store, resolve_run,
+                                 short_ids, show, show_json)
 
 
 def add_parser(verbs) -> None:
@@ -28,9 +28,14 @@ def add_parser(verbs) -> None:
 def run(args: argparse.Namespace) -> int:
     from pipeline.optimizer.replay import replay
 
+    from store.locks import run_is_live
+
     store = open_store(args)
-    report = replay(store, resolve_run(store, args.run_id, kinds=("optimize",), verb="replay"),
-                    log=lambda line: show(line, file=sys.stderr))
+    run_id = resolve_run(store, args.run_id, kinds=("optimize",), verb="replay")
+    if run_is_live(store.path, run_id):  # its record still grows: a replay would stop where it is now, "interrupted"
+        raise CliError(f"run {short_ids(store).get(run_id, run_id)} is still running: replay it once it has "
+                       "finished or stopped")
+    report = replay(store, run_id, log=lambda line: show(line, file=sys.stderr))
     if args.json:
         show_json(report.as_dict())
     else:

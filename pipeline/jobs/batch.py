@@ -203,6 +203,7 @@ def load_experiments(path: str | os.PathLike) -> Batch:
 
     kept: list[tuple[dict[str, Any], str | None]] = []
     runs, seen = [], set()
+    problems: dict[str, str | None] = {}  # each policy file checked once
     for settings, given in zip(points, given_names):
         if settings.get("policy"):
             policy = Path(settings["policy"])
@@ -210,6 +211,11 @@ def load_experiments(path: str | os.PathLike) -> Batch:
             if not Path(settings["policy"]).is_file():  # said now, not when its run starts (and fails to resume)
                 raise ExperimentError(f"{path.name}: policy file {settings['policy']} does not exist (a relative "
                                       "path is read from the batch file's folder)")
+            if settings["policy"] not in problems:
+                problems[settings["policy"]] = _policy_problem(settings["policy"])
+            problem = problems[settings["policy"]]
+            if problem is not None:  # as optimize checks it before its run starts (which no resume would mend)
+                raise ExperimentError(f"{path.name}: {problem}")
         if not settings.get("game") and not settings.get("policy"):
             raise ExperimentError(f"{path.name}: every run needs a game or a policy (add game = ... to [defaults])")
         try:
@@ -229,6 +235,19 @@ def load_experiments(path: str | os.PathLike) -> Batch:
     for run, label in zip(runs, _run_names(name, kept, list(matrix))):
         run.name = label
     return Batch(name, path, data.get("store"), runs)
+
+
+def _policy_problem(policy: str) -> str | None:
+    """Why the policy file at ``policy`` cannot start a run (it does not parse, has no Policy class or no
+    trainable method: ``resolve_start``'s checks, in a confined worker), or None."""
+    from pipeline.optimizer.task import resolve_start
+    from tracing.policy_file import PolicyLoadError
+
+    try:
+        resolve_start(OptimizeConfig(policy=policy))
+    except (PolicyLoadError, ValueError) as exc:
+        return str(exc).splitlines()[0]
+    return None
 
 
 def plan(batch: Batch, store: Store) -> list[PlannedRun]:

@@ -42,12 +42,14 @@ class Estimate:
     max_tokens: int
     prompt: Prompt
     price: Price | None
-    starter_score: float
+    starter_score: float | None
+    """The starting policy's score; None when it forfeited (``starter_forfeit`` says what ended its game)."""
     mix: list[tuple[str, float, Price | None]] | None = None
     """An ensemble's models: (model, expected share of the calls, its price); ``price`` is then their blend, and
     the most a call can cost is at the dearest model's price."""
     repair_calls: int = 0
     """The most repair turns the run can make (``--repairs`` for every update, within a call budget)."""
+    starter_forfeit: str | None = None
     repair_tokens: int = 0
     """The longest a repair conversation may be (``propose.repair_limit``)."""
 
@@ -70,7 +72,8 @@ class Estimate:
     def as_dict(self, include_prompt: bool = False) -> dict[str, Any]:
         out: dict[str, Any] = {
             "model": self.model, "iterations": self.iterations, "token_budget": self.token_budget,
-            "max_tokens": self.max_tokens, "starter_score": self.starter_score, "repair_calls": self.repair_calls,
+            "max_tokens": self.max_tokens, "starter_score": self.starter_score,
+            "starter_forfeit": self.starter_forfeit, "repair_calls": self.repair_calls,
             "prompt_tokens": self.prompt.tokens, "token_count_method": self.prompt.token_method,
             "steps_shown": len(self.prompt.steps_shown), "priced": self.price is not None,
             "update_cost_usd": None if self.price is None else {
@@ -88,7 +91,9 @@ class Estimate:
         return out
 
     def lines(self) -> list[str]:
-        out = [f"dry run for {self.model}: starting policy scored {self.starter_score:g}",
+        scored = f"scored {self.starter_score:g}" if self.starter_score is not None else \
+            f"forfeited ({self.starter_forfeit or 'no score'}): the loop would start from a policy that scores nothing"
+        out = [f"dry run for {self.model}: starting policy {scored}",
                f"first prompt: {self.prompt.tokens:,} tokens of a {self.token_budget:,}-token budget "
                f"({len(self.prompt.steps_shown)} rollout steps shown; {self.prompt.token_method})"]
         for name, share, rates in self.mix or ():
@@ -141,10 +146,11 @@ def estimate_run(config: OptimizeConfig, progress_log: Callable[[str], None] = l
         found = Estimate(model, calls, config.token_budget, config.max_tokens, prompt,
                          price(config.model) if config.model else None, first.score)
     found.repair_calls, found.repair_tokens = repairs, repair_limit(config)
+    found.starter_forfeit = first.forfeit
     return found
 
 
-def _ensemble_estimate(config: OptimizeConfig, calls: int, prompt: Prompt, starter_score: float) -> Estimate:
+def _ensemble_estimate(config: OptimizeConfig, calls: int, prompt: Prompt, starter_score: float | None) -> Estimate:
     """An ensemble's estimate: each model's expected share of the calls (``fixed``: its weight's; a bandit
     learns its shares, so each model is taken at an equal share), the blended price, and the dearest model's
     for the most a call can cost. A model litellm cannot price leaves the mix unpriced (tokens only)."""
