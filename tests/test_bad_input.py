@@ -339,3 +339,22 @@ def test_a_dry_run_of_a_starting_policy_that_forfeits_says_so(tmp_path, capsys):
     code, out, err = _run(capsys, "optimize", policy, *flags, "--json")
     report = json.loads(out)
     assert code == 0 and report["starter_score"] is None and "RuntimeError" in report["starter_forfeit"], report
+
+
+def test_a_model_whose_server_is_implied_is_checked_before_the_run_starts(tmp_path, capsys, monkeypatch):
+    """`--model ollama_chat/NAME` alone calls litellm's default server (or $OLLAMA_API_BASE): with none there it
+    played iteration 0 and then failed on a refused connection; hosted_vllm/NAME without a URL the same."""
+    with socket.socket() as free:  # a port nothing listens on
+        free.bind(("127.0.0.1", 0))
+        closed = free.getsockname()[1]
+    monkeypatch.setenv("OLLAMA_API_BASE", f"http://127.0.0.1:{closed}")
+    monkeypatch.delenv("HOSTED_VLLM_API_BASE", raising=False)
+    path = tmp_path / "s.duckdb"
+    for model, said in (("ollama_chat/llama3", f"$OLLAMA_API_BASE (the server of --model ollama_chat/llama3) "
+                                               f"http://127.0.0.1:{closed} cannot be reached"),
+                        ("ollama/llama3", "cannot be reached (connection refused"),
+                        ("hosted_vllm/x", "--model hosted_vllm/x needs its server's URL: give --api-base URL")):
+        line = _one_line_error(*_run(capsys, "optimize", "--game", "pong", "--model", model, "--iterations", "1",
+                                     "--store", path)[::2])
+        assert said in line, (model, line)
+    assert not path.exists(), "no run was made"

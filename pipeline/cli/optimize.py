@@ -185,12 +185,16 @@ def run(args: argparse.Namespace) -> int:
             start = resolve_start(config)
     if args.dry_run:
         return _dry_run(config, args)
-    given_as = {e["api_base"]: f"the api_base of --model {e['model']}" for e in reversed(config.models or [])}
-    for base in dict.fromkeys([e["api_base"] for e in config.models or []] + [config.api_base]):
-        if base:  # a server that does not answer: one line now, not a failed call after iteration 0
-            from pipeline.llm.providers import check_reachable
+    from pipeline.llm.providers import check_reachable, implied_server
 
-            check_reachable(base, given_as="--api-base" if base == config.api_base else given_as[base])
+    servers = {config.api_base: "--api-base"} if config.api_base else {}  # each server the run calls: as named
+    for entry in config.models or [{"model": config.model, "api_base": config.api_base}]:
+        if entry["api_base"]:
+            servers.setdefault(entry["api_base"], f"the api_base of --model {entry['model']}")
+        elif entry["model"] and (implied := implied_server(entry["model"])) is not None:
+            servers.setdefault(*implied)  # --model ollama_chat/NAME alone: litellm's own default server
+    for base, named in servers.items():  # a server that does not answer: one line now, not a failed call after
+        check_reachable(base, given_as=named)  # iteration 0
     started = {} if run_id is None else {"run_id": run_id, "short": short}
     try:
         return _optimize(args, store, config, run_id, started, start)

@@ -147,6 +147,30 @@ def check_reachable(api_base: str, timeout_s: float = 3.0, given_as: str = "--ap
                                    f"start the server there, or give the URL it listens on ({example})")
 
 
+IMPLIED_SERVERS = {"ollama": ("OLLAMA_API_BASE", "http://localhost:11434"),
+                   "ollama_chat": ("OLLAMA_API_BASE", "http://localhost:11434"),
+                   "hosted_vllm": ("HOSTED_VLLM_API_BASE", None)}
+"""Providers of a server of the user's own that litellm finds without ``--api-base``: the variable it reads, then
+its default (None: it has none)."""
+
+
+def implied_server(model: str, environ: dict[str, str] | None = None) -> tuple[str, str] | None:
+    """The server litellm calls for ``model`` given no ``--api-base``, and how the person named it (for
+    :func:`check_reachable`'s message), when the provider is one of :data:`IMPLIED_SERVERS`; else None.
+    :class:`UnreachableEndpointError` when there is none (``hosted_vllm/NAME`` needs a URL)."""
+    environ = os.environ if environ is None else environ
+    provider = provider_of(model)
+    if provider not in IMPLIED_SERVERS:
+        return None
+    variable, default = IMPLIED_SERVERS[provider]
+    if environ.get(variable):
+        return environ[variable], f"${variable} (the server of --model {model})"
+    if default is None:
+        raise UnreachableEndpointError(f"--model {model} needs its server's URL: give --api-base URL (e.g. "
+                                       f"http://127.0.0.1:8000/v1) or set {variable}")
+    return default, f"the server of --model {model} (litellm's default; --api-base or ${variable} names another)"
+
+
 REPLY_SCHEMA_NAME = "policy_update"
 
 REPLY_SCHEMA: dict[str, Any] = {
