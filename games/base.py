@@ -36,7 +36,8 @@ ONE_LIFE_CONTINUE = "continue"
 """The ``one_life`` setting (``codearcade eval --one-life-continue``; ``OptimizeConfig.one_life``) that plays the
 authors' one-life protocol exactly: the evaluation episodes of a run are the lives of one game, each continuing
 where the one before ended (``games.wrappers.EpisodicLife``). The other values: ``False``, whole games (the paper's);
-``True`` (``--one-life``), each episode the *first* life of a game reset from its own seed (``games.wrappers.OneLife``)."""
+``True`` (``--one-life``), each episode the *first* life of a game reset from its own seed
+(``games.wrappers.OneLife``)."""
 ONE_LIFE_SETTINGS = (False, True, ONE_LIFE_CONTINUE)
 
 

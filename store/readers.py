@@ -433,6 +433,17 @@ def replay_replies(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[in
     return replies
 
 
+def replay_errors(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[int, str, int], tuple[str, str, int]]:
+    """(error type, message, attempts) of the first call of each (iteration, prompt hash, candidate) of a run that
+    no call ever got a reply for: what ``codearcade replay`` answers such a call with (the error again)."""
+    rows = con.execute(
+        "SELECT c.iteration, c.prompt_hash, coalesce(c.candidate, 0), arg_min(c.error_type, c.created_at), "
+        "arg_min(coalesce(c.error_message, ''), c.created_at), arg_min(c.attempts, c.created_at) FROM llm_calls c "
+        "WHERE c.run_id = ? GROUP BY ALL HAVING bool_and(c.error_type IS NOT NULL)", [run_id]).fetchall()
+    return {(iteration, digest, candidate): (error, message, attempts)
+            for iteration, digest, candidate, error, message, attempts in rows}
+
+
 def pool_bases(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[int, int], tuple[int, tuple[tuple[int, int], ...]]]:
     """(iteration, candidate) -> the basis of its first call: how many iterations its prompt was built from
     (``llm_calls.history_iterations``) and the candidates assessed but not committed that it was built from too

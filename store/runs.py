@@ -220,6 +220,11 @@ def check_run_name(name: str) -> str:
 # -------------------------------------------------------------------------------------------------- listing
 
 
+def kind_phrase(kind: str) -> str:
+    """``an eval run``, ``a replay run``: a run's kind in a sentence."""
+    return f"{'an' if kind[:1] in 'aeiou' else 'a'} {kind} run"
+
+
 RUN_STATUSES = ("running", "finished", "failed", "interrupted", "budget", "diverged")
 """The statuses ``runs.status`` holds (docs/schema.md says what each means)."""
 

@@ -263,6 +263,13 @@ def test_a_run_whose_every_update_failed_is_not_a_success(store, scripted):
     more = _cli("optimize", "--resume", run_id, "--iterations", "2", "--store", str(store.path),
                 env=_env(OPENAI_API_KEY="sk-scripted"))
     assert store.query("SELECT count(*) FROM iterations WHERE run_id = ?", [run_id])[0][0] == 3, more.stderr
+    # the replay answers each call with what the run got, its errors too: nothing diverged (it stopped at the
+    # first failed call, "first divergence at iteration 1")
+    replayed = _cli("replay", run_id, "--json", "--store", str(store.path))
+    report = json.loads(replayed.stdout)
+    assert replayed.returncode == 0 and report["diverged_at"] is None and report["record_ends"] is None, \
+        replayed.stdout + replayed.stderr
+    assert [r["matches"] for r in report["iterations"]] == [True, True, True], report
 
 
 @pytest.mark.slow

@@ -44,7 +44,8 @@ def run(args: argparse.Namespace) -> int:
              f"{short.get(report.replay_run_id, report.replay_run_id)}: {report.status}")
         show(f"{'iteration':>9}  {'prompt':<14} {'original':>9} {'replay':>9}")
         for r in report.rows:
-            same = "same" if r.original_prompt == r.replay_prompt else "DIFFERENT"
+            same = "same" if r.original_prompt == r.replay_prompt else "not recorded" if r.original_prompt is None \
+                else "not replayed" if r.replay_prompt is None else "DIFFERENT"
             o = "-" if r.original_score is None else f"{r.original_score:.1f}"
             n = "-" if r.replay_score is None else f"{r.replay_score:.1f}"
             show(f"{r.iteration:>9}  {same:<14} {o:>9} {n:>9}")

@@ -107,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
                                 if hasattr(args, name)})  # a setting without a flag keeps its default
         run_id = create_run(store, config, name=args.name)
     with run_lock(store.path, run_id):
-        served = ServeRun(store, run_id, workspace=workspace, on_episode=None if args.mcp else _episode_line, rerun=rerun,
+        served = ServeRun(store, run_id, workspace=workspace, on_episode=None if args.mcp else _episode_line,
+                          rerun=rerun,
                           on_finalized=lambda: _say(f"run {short_id(store, run_id)} finalized: `codearcade audit "
                                                     f"{short_id(store, run_id)}` shows its validation and held-out "
                                                     "scores"))

@@ -302,13 +302,16 @@ class LiteLLMClient:
 
 
 class ReplayClient:
-    """Answers with replies stored for a run, by (iteration, prompt hash, candidate); a prompt never seen raises a
-    fatal LLMError."""
+    """Answers with replies stored for a run, by (iteration, prompt hash, candidate); a call the run only ever got
+    an error for raises that error again (fatal as it was: :data:`FATAL`); a prompt never seen raises a fatal
+    LLMError (``ReplayMiss``)."""
 
     provider = "replay"
 
-    def __init__(self, replies: dict[tuple[int, str, int], str], model: str):
+    def __init__(self, replies: dict[tuple[int, str, int], str], model: str,
+                 errors: dict[tuple[int, str, int], tuple[str, str, int]] | None = None):
         self.replies = replies
+        self.errors = errors or {}
         self.model = model
         self.label = model
 
@@ -318,6 +321,9 @@ class ReplayClient:
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
                  candidate: int = 0, iteration: int | None = None) -> LLMReply:
         key = (iteration, prompt_hash(messages), candidate)
+        if key not in self.replies and key in self.errors:
+            error_type, message, attempts = self.errors[key]
+            raise LLMError(error_type, message, attempts, fatal=error_type in FATAL)
         if key not in self.replies:
             raise LLMError("ReplayMiss", f"no stored reply for prompt {key[1][:12]} (iteration {iteration}, "
                            f"candidate {candidate})", 1, fatal=True)

@@ -45,6 +45,7 @@ from pipeline.optimizer.task import resolve_start, task_settings
 from pipeline.play.runinfo import new_run_id, package_versions
 from pipeline.play.versions import policy_version_row
 from store import Store
+from store.runs import kind_phrase
 from store.db import Hold, is_ctrl_c, utcnow
 from store.locks import run_lock
 from store.readers import (
@@ -208,7 +209,7 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
         else:
             result.audit = _audit(store, state, log, progress, hold)
     except KeyboardInterrupt:
-        status, error = "interrupted", "interrupted by the user; continue with --resume"
+        status, error = "interrupted", f"interrupted by the user; {_go_on(client)}"
         raise
     except BudgetExhausted as exc:
         status, error = "budget", f"{exc}; continue with a larger budget and --resume"
@@ -217,7 +218,7 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
         status, error = "failed", f"the LLM call failed: {exc}"
     except Exception as exc:
         if is_ctrl_c(exc):  # DuckDB's own word for a Ctrl-C that reached it past the store's conversion
-            status, error = "interrupted", "interrupted by the user; continue with --resume"
+            status, error = "interrupted", f"interrupted by the user; {_go_on(client)}"
             raise KeyboardInterrupt from None
         status, error = "failed", f"{type(exc).__name__}: {exc}"
         raise
@@ -235,6 +236,13 @@ def _report(result: OptimizeResult, item: IterationResult, on_iteration) -> None
     result.iterations.append(item)
     if on_iteration is not None:
         on_iteration(item)
+
+
+def _go_on(client: LLMClient | None) -> str:
+    """How an interrupted run goes on: ``--resume``, or, for a replay (whose client answers from the record), the
+    original replayed again (a replay run cannot be resumed)."""
+    replaying = getattr(client, "provider", None) == "replay"
+    return "replay the original run again" if replaying else "continue with --resume"
 
 
 def _audit(store: Store, state: RunState, log: Callable[[str], None], progress, hold: Hold):
@@ -288,7 +296,7 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
         row = get_run(con, run_id)
         done = iteration_count(con, run_id)
     if row["kind"] != "optimize":
-        raise ValueError(f"run {run_id} is an {row['kind']} run: only optimization runs can be resumed "
+        raise ValueError(f"run {run_id} is {kind_phrase(row['kind'])}: only optimization runs can be resumed "
                          f"({'evaluate the policy again with codearcade eval' if row['kind'] == 'eval' else 'replay the original run again'})")
     fixed = sorted(k for k in given if k not in RESUME_OVERRIDES)
     if fixed:

@@ -24,9 +24,10 @@ from pipeline.llm.client import EnsembleClient, ReplayClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import load_state, run_loop, start_run
 from store import Store
+from store.runs import kind_phrase
 from pipeline.optimizer.strategies import make_strategy
 from store.readers import (blob_text, first_call_errors, get_run, iteration_prompts, last_iteration, pool_bases,
-                           replay_replies)
+                           replay_errors, replay_replies)
 from store.writer import finish_run
 from tracing.policy_file import inspect_policy
 
@@ -75,15 +76,16 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
         if run is None:
             raise ValueError(f"no run {run_id} in {store.path}; `codearcade runs` lists the runs")
         if run["kind"] not in ("optimize", "replay"):
-            raise ValueError(f"run {run_id} is an {run['kind']} run; only optimize runs can be replayed")
+            raise ValueError(f"run {run_id} is {kind_phrase(run['kind'])}; only optimize runs can be "
+                             "replayed")
         starter = inspect_policy(blob_text(con, run["starter_policy_hash"]), "policy.py")
-        replies = replay_replies(con, run_id)
+        replies, errors = replay_replies(con, run_id), replay_errors(con, run_id)
         bases = pool_bases(con, run_id)
     recorded = json.loads(run["config"])
     config = OptimizeConfig.from_record(recorded)
-    client = ReplayClient(replies, model=run["model"] or "replay")
+    client = ReplayClient(replies, model=run["model"] or "replay", errors=errors)
     if config.models:  # an ensemble: each call is answered as the model the rule chooses again
-        client = EnsembleClient([ReplayClient(replies, model=e["model"]) for e in config.models])
+        client = EnsembleClient([ReplayClient(replies, model=e["model"], errors=errors) for e in config.models])
         client.label = run["model"]  # its first model counts the prompts' tokens, as in the original
     new_run = start_run(config, store, client.label, kind="replay", extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
     state = load_state(store, new_run)
@@ -105,7 +107,8 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
         past_the_record = last is not None and it > last and run["status"] != "finished"
         if report.diverged_at is None and not row.matches and not past_the_record:
             report.diverged_at = it
-    if run["status"] != "finished":  # its record ends where it stopped
+    if run["status"] != "finished" and (last is None or last < config.iterations):  # its record ends where it
+        # stopped (a run that failed after its last iteration, every update's call failed, has a whole record)
         report.unrecorded_calls = _unrecorded(config, asked, last)
         s = "s" if report.unrecorded_calls != 1 else ""
         report.record_ends = (f"the run stopped after iteration {last} ({_status(run['status'])}); "

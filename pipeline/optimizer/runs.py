@@ -21,7 +21,7 @@ from pipeline.play.versus import LABELS, difference_data, unified_diff
 from store import Store
 from store.comparisons import best_evaluation, best_version, learning_curve
 from store.readers import get_run, policy_text
-from store.runs import shown_status
+from store.runs import kind_phrase, shown_status
 from store.scores import score_episodes
 from store.views import resolve_run_id
 
@@ -52,7 +52,7 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
             curve = learning_curve(con, run_id)
             best = best_version(con, run_id)
             if not curve or best is None:
-                raise ValueError(f"run {run_id} is an {run['kind']} run without iterations: compare optimization "
+                raise ValueError(f"run {run_id} is {kind_phrase(run['kind'])} without iterations: compare optimization "
                                  f"runs, or play its policy against another version with {run_id}:best")
             texts.append(policy_text(con, run_id, best["policy_version_id"]))
             assessed = best_evaluation(con, run_id) or {"episodes": []}
