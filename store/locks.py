@@ -36,7 +36,7 @@ def run_lock(store_path: str | os.PathLike, run_id: str) -> Iterator[None]:
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "another process"
             raise RunBusyError(f"run {run_id} is being worked on by process {holder}; wait for it to finish "
-                               "(or stop it) before resuming") from None
+                               "(or stop it) first") from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, str(os.getpid()).encode(), 0)
         yield

@@ -358,3 +358,10 @@ def test_a_model_whose_server_is_implied_is_checked_before_the_run_starts(tmp_pa
                                      "--store", path)[::2])
         assert said in line, (model, line)
     assert not path.exists(), "no run was made"
+
+
+@pytest.mark.parametrize("url", ["http://[::1", "http://localhost:99999", "ftp://host:4318", "localhost:4318"])
+def test_export_names_a_receiver_url_it_cannot_use(played, capsys, url):
+    """A broken IPv6 literal or port was urllib's bare 'Invalid IPv6 URL' / 'Port out of range'."""
+    line = _one_line_error(*_run(capsys, "export", "last", "--otlp", url, "--store", played)[::2])
+    assert f"--otlp {url!r} is not an http(s) URL; give the receiver's address" in line, line

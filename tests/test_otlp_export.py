@@ -320,7 +320,7 @@ def test_a_receiver_that_refuses_is_one_line(run_and_phoenix, phoenix, capsys):
     store, run_id, _ = run_and_phoenix
     code, _, err = _export(capsys, run_id, "--otlp", phoenix.http_url + "/not/otlp", "--store", str(store.path))
     assert code == 2 and err.count("\n") == 1, err
-    assert f"{phoenix.http_url}/not/otlp/v1/traces refused the spans" in err and "--protocol grpc" in err
+    assert f"{phoenix.http_url}/not/otlp/v1/traces did not take the spans" in err and "--protocol grpc" in err
 
 
 @pytest.mark.slow

@@ -231,6 +231,11 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     # for both)
     assert lines["validation  submission 1"].endswith("training forfeited"), said
     assert lines["held-out    starter"].endswith("training not played"), said
+    # a finalized run is not served again (it served a budget of 0 that refused every submission)
+    assert main(["serve", "--resume", run_id, "--port", "0", "--store", str(store)]) == 2
+    assert "is finalized: `codearcade audit" in capsys.readouterr().err
+    assert main(["serve", "--game", "pong", "--json", "--store", str(store)]) == 2
+    assert "--json goes with --finalize" in capsys.readouterr().err
     assert [p.exists() for p in sentinels] == [False] * 4
 
 

@@ -449,8 +449,12 @@ def build_spans(rows: dict[str, Any], service_name: str = "codearcade", text_lim
 def otlp_endpoint(url: str, protocol: str) -> str:
     """The exporter's endpoint for ``--otlp URL``: for http/protobuf, ``/v1/traces`` is appended unless the
     path already ends with it (as ``OTEL_EXPORTER_OTLP_ENDPOINT`` is read); gRPC takes the URL as given."""
-    parts = urlsplit(url.strip())
-    if parts.scheme not in ("http", "https") or not parts.hostname:
+    try:
+        parts = urlsplit(url.strip())
+        parts.port  # noqa: B018 - parsed here: a bad port or a broken [IPv6] literal raises ValueError
+    except ValueError:
+        parts = None
+    if parts is None or parts.scheme not in ("http", "https") or not parts.hostname:
         raise ExportError(f"--otlp {url!r} is not an http(s) URL; give the receiver's address, e.g. "
                           "http://127.0.0.1:4318 (OTLP/HTTP) or http://127.0.0.1:4317 with --protocol grpc")
     if protocol == "grpc":
@@ -529,7 +533,7 @@ def send_spans(spans, endpoint: str, protocol: str, timeout_s: float, headers: d
                             "or try --protocol grpc" if protocol != "grpc" else
                             "check that the URL is the receiver's OTLP/gRPC address (often port 4317) or try "
                             "--protocol http/protobuf")
-                    raise ExportError(f"the OTLP receiver at {endpoint} refused the spans ({first} of {len(spans)} "
+                    raise ExportError(f"the OTLP receiver at {endpoint} did not take the spans ({first} of {len(spans)} "
                                       f"sent): {why}; {hint}")
     finally:
         exporter.shutdown()

@@ -52,7 +52,8 @@ class ReplayCheck:
         if self.steps_compared == 0:
             return "no frames replayed"
         if self.faithful:
-            return f"replayed frames match the stored objects on all {self.steps_compared} steps"
+            steps = "the one step" if self.steps_compared == 1 else f"all {self.steps_compared} steps"
+            return f"replayed frames match the stored objects on {steps}"
         return (f"replayed objects differ from the stored ones on {self.mismatched_steps} of {self.steps_compared} "
                 f"steps (first at step {self.first_mismatch}): the frames after it may not show what was played")
 

@@ -89,6 +89,8 @@ def run(args: argparse.Namespace) -> int:
     from store.locks import run_lock
     from store.writer import finish_run, mark_run_running
 
+    if args.json and args.finalize is None:
+        raise CliError("--json goes with --finalize (a server's answers are JSON already)")
     rerun = workspace = None
     if args.finalize is None:  # every flag checked before a run is made or opened: a refusal leaves no run behind
         _check_ports_free(args)
@@ -112,7 +114,10 @@ def run(args: argparse.Namespace) -> int:
                           on_finalized=lambda: _say(f"run {short_id(store, run_id)} finalized: `codearcade audit "
                                                     f"{short_id(store, run_id)}` shows its validation and held-out "
                                                     "scores"))
-        if args.resume is not None and not served.finalized:
+        if args.resume is not None and served.finalized:  # it would serve a budget of 0 and refuse every submit
+            raise CliError(f"run {short_id(store, run_id)} is finalized: `codearcade audit {short_id(store, run_id)}` "
+                           "shows its result; serve a new run to go on")
+        if args.resume is not None:
             with store.write() as con:
                 mark_run_running(con, run_id)
         b = served.budget()

@@ -219,8 +219,8 @@ class ServeRun:
         with self.store.read() as con:  # the store takes one thread at a time; reads need not wait for a play
             sub = next((s for s in served_submissions(con, self.run_id) if s["iteration"] == submission), None)
             if sub is None:
-                raise RequestError(f"no submission {submission} (submissions are numbered from 1; "
-                                   f"the newest is {self._latest})")
+                newest = f"the newest is {self._latest}" if self._latest else "none is made yet"
+                raise RequestError(f"no submission {submission} (submissions are numbered from 1; {newest})")
             episodes = submission_episodes(con, sub["eval_episode_ids"])
             text = con.execute("SELECT b.text FROM candidates c JOIN blobs b ON b.hash = c.feedback_hash "
                                "WHERE c.run_id = ? AND c.iteration = ?", [self.run_id, submission]).fetchone()
