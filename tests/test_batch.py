@@ -61,6 +61,8 @@ def test_experiment_file_errors_are_one_line(tmp_path):
         ("[defaults]\ngame = 'pong'\n", "no runs"),
         ("[matrix\n", "not valid TOML"),
         ("[matrx]\ngame = ['pong']\n", "did you mean 'matrix'"),
+        ("[defaults]\ngame = 'pong'\n[[run]]\nname = 'a'\n[[run]]\nname = 'a'\nseed = 1\n",
+         "[[run]] #2: name 'a' is the name of [[run]] #1 too"),
     ]:
         bad.write_text(text)
         with pytest.raises(ExperimentError) as err:
@@ -116,6 +118,30 @@ def test_local_batch_then_kill_and_rerun(tmp_path, store, scripted):
 
     again = _batch(path, store, "--dry-run")
     assert again.stdout.count("skip") == 4, "a finished batch has nothing left to do"
+
+
+@pytest.mark.slow
+def test_a_batch_stopped_by_ctrl_c_says_how_to_resume_and_leaves_no_process(tmp_path, store, scripted):
+    """It said only 'codearcade: interrupted'."""
+    model = scripted([COMPETENT_REPLY])
+    path = _experiments(tmp_path, model, iterations=2, audit_episodes=0)
+    process = subprocess.Popen([EXE, "batch", str(path), "--store", str(store.path), "--workers", "2"], cwd=ROOT,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and process.poll() is None:
+        try:
+            if store.query("SELECT count(*) FROM iterations")[0][0] >= 1:
+                break
+        except Exception:
+            pass
+        time.sleep(0.2)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130, err
+    assert "rerun the same command to resume them" in err and "Traceback" not in err, err
+    time.sleep(1.0)
+    leftover = subprocess.run(["pgrep", "-f", f"pipeline.jobs.worker.*{store.path}"], capture_output=True, text=True)
+    assert leftover.stdout.strip() == "", "the run processes stopped with the batch"
 
 
 @pytest.mark.slow

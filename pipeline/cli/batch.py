@@ -8,7 +8,8 @@ import argparse
 import os
 import sys
 
-from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_store, positive_int, short_ids, show
+from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError, add_store, positive_int,
+                                 short_ids, show)
 from store.scores import score_text
 
 
@@ -158,6 +159,12 @@ def run(args: argparse.Namespace) -> int:
             workers = args.workers or (os.cpu_count() or 1)
             result = run_local(batch, store, planned, workers, log, display,
                                log_dir=log_path.with_name(log_path.name + ".runs"))
+    except KeyboardInterrupt:
+        stop()
+        log(f"batch {batch.name} interrupted")
+        show("codearcade: interrupted: the runs are stored up to their last whole iterations; rerun the same command "
+             "to resume them", file=sys.stderr, flush=True)
+        raise
     finally:
         stop()
     failed = result.failed

@@ -151,6 +151,8 @@ def run(args: argparse.Namespace) -> int:
 
     store = open_store(args, announce=False)  # the start line names the store and why it is that one
     start = None
+    if args.resume is not None and not args.resume.strip():
+        raise CliError("--resume: give the run to continue (`codearcade runs` lists them)")
     if args.resume:
         if args.dry_run:
             raise CliError("--dry-run starts a new run; it cannot go with --resume")

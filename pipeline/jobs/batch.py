@@ -185,6 +185,7 @@ def load_experiments(path: str | os.PathLike) -> Batch:
         for combo in itertools.product(*(matrix[k] for k in keys)):
             points.append({**defaults, **dict(zip(keys, combo))})
     given_names: list[str | None] = [None] * len(points)
+    named: dict[str, int] = {}  # each [[run]] name given: its entry's number
     for i, entry in enumerate(explicit):
         if not isinstance(entry, dict):
             raise ExperimentError(f"{path.name}: 'run' must be an array of tables: [[run]]")
@@ -195,6 +196,10 @@ def load_experiments(path: str | os.PathLike) -> Batch:
                 check_run_name(str(label))
             except ValueError as exc:
                 raise ExperimentError(f"{path.name} [[run]] #{i + 1}: name: {exc}") from None
+            if str(label) in named:  # two runs under one name: every command would find it ambiguous
+                raise ExperimentError(f"{path.name} [[run]] #{i + 1}: name {str(label)!r} is the name of [[run]] "
+                                      f"#{named[str(label)]} too; give each its own")
+            named[str(label)] = i + 1
         _check_settings(entry, f"{path.name} [[run]] #{i + 1}")
         points.append({**defaults, **entry})
         given_names.append(None if label is None else str(label))
