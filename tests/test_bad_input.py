@@ -365,3 +365,10 @@ def test_export_names_a_receiver_url_it_cannot_use(played, capsys, url):
     """A broken IPv6 literal or port was urllib's bare 'Invalid IPv6 URL' / 'Port out of range'."""
     line = _one_line_error(*_run(capsys, "export", "last", "--otlp", url, "--store", played)[::2])
     assert f"--otlp {url!r} is not an http(s) URL; give the receiver's address" in line, line
+
+
+def test_an_empty_resume_is_an_error_not_a_new_run(tmp_path, capsys):
+    path = tmp_path / "s.duckdb"
+    line = _one_line_error(*_run(capsys, "optimize", "--resume", "", "--game", "pong", "--store", path)[::2])
+    assert "--resume: give the run to continue" in line, line
+    assert not path.exists()
