@@ -363,3 +363,19 @@ def test_replay_refuses_a_run_still_running_and_audit_one_without_iterations(fil
     empty = start_run(OptimizeConfig(game="pong", iterations=1), copy, "scripted")
     code, out, err = _run(capsys, "audit", empty, "--json", "--store", str(copy.path))
     assert code == 2 and "has no iteration to audit" in err and out == "", out + err
+
+
+def test_resume_takes_the_runs_own_settings_given_again_and_refuses_changed_ones(filled):
+    """A resume named with the run's own command line (``--game pong`` again) was refused as a change."""
+    from pipeline.optimizer.loop import plan_resume
+
+    store, opt_id, _ = filled
+    recorded = json.loads(store.query("SELECT config FROM runs WHERE run_id = ?", [opt_id])[0][0])
+    assert recorded["game"] == "pong"
+    for given in ({"game": "pong"}, {"game": "pong", "seed": recorded["seed"]}, {"iterations": 5, "game": "pong"}):
+        plan = plan_resume(store, opt_id, dict(given))
+        assert plan.config.game == "pong" and plan.config.iterations == given.get("iterations", 2), given
+    for given, flag in (({"game": "breakout"}, "--game"), ({"seed": recorded["seed"] + 1}, "--seed"),
+                        ({"policy": str(EXAMPLES / "pong.py")}, "policy")):
+        with pytest.raises(ValueError, match=f"{flag} cannot change when resuming"):
+            plan_resume(store, opt_id, dict(given))

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, ContextManager
 
@@ -298,13 +299,21 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
     if row["kind"] != "optimize":
         raise ValueError(f"run {run_id} is {kind_phrase(row['kind'])}: only optimization runs can be resumed "
                          f"({'evaluate the policy again with codearcade eval' if row['kind'] == 'eval' else 'replay the original run again'})")
-    fixed = sorted(k for k in given if k not in RESUME_OVERRIDES)
+    recorded = json.loads(row["config"])
+    config = OptimizeConfig.from_record(recorded)
+
+    def same(key: str) -> bool:  # the run's own value, given again (its command line repeated with --resume)
+        mine, theirs = getattr(config, key, None), given[key]
+        if key == "policy" and mine is not None and theirs is not None:
+            return Path(mine).resolve() == Path(theirs).resolve()
+        return mine == theirs
+
+    fixed = sorted(k for k in given if k not in RESUME_OVERRIDES and not same(k))
     if fixed:
         flags = ", ".join(flag_of(OptimizeConfig, k) for k in fixed)
         raise ValueError(f"{flags} cannot change when resuming run {run_id}: they are part of its settings "
                          "(start a new run instead)")
-    recorded = json.loads(row["config"])
-    config = OptimizeConfig.from_record(recorded)
+    given = {k: v for k, v in given.items() if k in RESUME_OVERRIDES}
     if config.model == f"openai/{MODEL_ALIAS}" and not config.api_base or row["model"] == OFFLINE_MODEL_LABEL:
         config.model = None  # the offline model (runs made before its name was recorded as asked for)
     if given.get("iterations") is not None and given["iterations"] < config.iterations:
