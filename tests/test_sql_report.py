@@ -363,6 +363,10 @@ def test_replay_refuses_a_run_still_running_and_audit_one_without_iterations(fil
     empty = start_run(OptimizeConfig(game="pong", iterations=1), copy, "scripted")
     code, out, err = _run(capsys, "audit", empty, "--json", "--store", str(copy.path))
     assert code == 2 and "has no iteration to audit" in err and out == "", out + err
+    none_planned = start_run(OptimizeConfig(game="pong", iterations=0), copy, "scripted")
+    code, out, _ = _run(capsys, "runs", "--store", str(copy.path))
+    row = next(line for line in out.splitlines() if line.startswith(none_planned[:8]))
+    assert " 0/0 " in f" {row} " and " 0/1 " in out, out  # planned 0 was shown as "?"
 
 
 def test_resume_takes_the_runs_own_settings_given_again_and_refuses_changed_ones(filled):

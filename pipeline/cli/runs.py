@@ -83,7 +83,7 @@ COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has
     ("status", lambda r: r["status"]),
     ("iterations", lambda r: None if r["kind"] == "eval"
      else str(r["iterations_done"]) if r["kind"] == "serve"  # submissions: a served run plans none
-     else f"{r['iterations_done']}/{r['iterations_planned'] or '?'}"),
+     else f"{r['iterations_done']}/{'?' if r['iterations_planned'] is None else r['iterations_planned']}"),
     ("best", lambda r: _best(r)),
     ("forfeits", lambda r: r.get("forfeits") or None),
     ("audit", lambda r: _audit(r)),
