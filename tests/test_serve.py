@@ -236,6 +236,9 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     assert "is finalized: `codearcade audit" in capsys.readouterr().err
     assert main(["serve", "--game", "pong", "--json", "--store", str(store)]) == 2
     assert "--json goes with --finalize" in capsys.readouterr().err
+    assert main(["report", run_id, "--out", str(tmp_path / "report"), "--store", str(store)]) == 0
+    readme = (tmp_path / "report" / "README.md").read_text()
+    assert "a served run draws its training games anew" in readme and "plays the same episodes" not in readme
     assert [p.exists() for p in sentinels] == [False] * 4
 
 

@@ -232,8 +232,10 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
     query = ("SELECT episode_index, seed, return, length, end_reason FROM episodes WHERE run_id = '{}' "
              "ORDER BY episode_index" if run["kind"] == "eval" else
              "SELECT * FROM learning_curve WHERE run_id = '{}' ORDER BY iteration").format(run["run_id"])
-    out += ["## Reproduce", "", "The command that made this run (a new run with the same settings; with a "
-            "deterministic policy and model it plays the same episodes), and the queries behind this report:", "",
+    same = ("a served run draws its training games anew, so only its settings repeat" if run["kind"] == "serve"
+            else "with a deterministic policy and model it plays the same episodes")
+    out += ["## Reproduce", "", f"The command that made this run (a new run with the same settings; {same}), and "
+            "the queries behind this report:", "",
             markdown_code_block("\n".join([*([reproduce(run, data["config"])] if reproduce is not None else []),
                                             f"codearcade report {run['run_id']}", f'codearcade sql "{query}"']),
                                 "bash"), ""]
