@@ -328,9 +328,11 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
         return ResumePlan(run_id, config, row["status"], nothing_to_do=(
             f"run {run_id} is finished ({done - 1} of {config.iterations} iterations); nothing to do. "
             f"Give --iterations N (more than {config.iterations}) to extend it"))
-    if done >= config.iterations + 1:  # failed after its last iteration (every update's LLM call failed): a
-        # resume plays the iterations still to play, and there are none, so it would only fail again
-        raise ValueError(f"run {run_id} {row['status']} after playing all {config.iterations} of its iterations"
+    if done >= config.iterations + 1 and row["status"] == "failed" and _all_updates_failed(store, run_id):
+        # every update's LLM call failed, and all its iterations are played: a resume plays the iterations still
+        # to play, and there are none, so it would only fail again (a killed or budget-stopped run that played
+        # them all is resumed to its end: its audit, its status)
+        raise ValueError(f"run {run_id} failed after playing all {config.iterations} of its iterations"
                          f"{': ' + row['error'] if row['error'] else ''}; give --iterations N (more than "
                          f"{config.iterations}) to play more")
     return ResumePlan(run_id, config, row["status"])
