@@ -87,7 +87,8 @@ def visible_query(con: duckdb.DuckDBPyConnection, run_id: str, sql: str, max_row
             columns = [d[0] for d in cursor.description or ()]
             rows: list[list[Any]] = []
             size, note = 0, None
-            while True:  # row by row: what is held is the rows kept and one more, never the whole result
+            while True:  # row by row: the answer holds only the rows it keeps (DuckDB itself still builds 2,048
+                # rows at a time, values included: docs/serve.md)
                 row = cursor.fetchone()
                 if row is None or len(rows) == max_rows:
                     break

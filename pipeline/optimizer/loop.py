@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any, Callable, ContextManager
 
 from games import get_game
@@ -46,7 +46,6 @@ from pipeline.optimizer.task import resolve_start, task_settings
 from pipeline.play.runinfo import new_run_id, package_versions
 from pipeline.play.versions import policy_version_row
 from store import Store
-from store.runs import kind_phrase
 from store.db import Hold, is_ctrl_c, utcnow
 from store.locks import run_lock
 from store.readers import (
@@ -58,6 +57,7 @@ from store.readers import (
     starter_version_id,
     update_failures,
 )
+from store.runs import kind_phrase
 from store.writer import finish_run, insert_policy_version, insert_run, mark_run_running, merge_run_config
 from tracing.policy_file import PolicyInfo
 

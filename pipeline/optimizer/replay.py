@@ -23,11 +23,11 @@ from dataclasses import dataclass, field
 from pipeline.llm.client import EnsembleClient, ReplayClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import load_state, run_loop, start_run
-from store import Store
-from store.runs import kind_phrase
 from pipeline.optimizer.strategies import make_strategy
+from store import Store
 from store.readers import (blob_text, first_call_errors, get_run, iteration_prompts, last_iteration, pool_bases,
                            replay_errors, replay_replies)
+from store.runs import kind_phrase
 from store.writer import finish_run
 from tracing.policy_file import inspect_policy
 
