@@ -358,7 +358,11 @@ def test_replay_refuses_a_run_still_running_and_audit_one_without_iterations(fil
     runs_before = copy.query("SELECT count(*) FROM runs")[0][0]
     with run_lock(copy.path, opt_id):
         code, _, err = _run(capsys, "replay", opt_id, "--store", str(copy.path))
-    assert code == 2 and "is still running: replay it once it has finished or stopped" in err, err
+        assert code == 2 and "is still running: replay it once it has finished or stopped" in err, err
+        code, out, err = _run(capsys, "optimize", "--resume", opt_id, "--iterations", "3", "--store",
+                              str(copy.path))
+        assert code == 2 and "is being worked on by another process" in err and "resumed" not in out + err, \
+            out + err
     assert copy.query("SELECT count(*) FROM runs")[0][0] == runs_before, "no replay run was made"
     empty = start_run(OptimizeConfig(game="pong", iterations=1), copy, "scripted")
     code, out, err = _run(capsys, "audit", empty, "--json", "--store", str(copy.path))

@@ -161,6 +161,11 @@ def run(args: argparse.Namespace) -> int:
         plan = plan_resume(store, resolve_run(store, args.resume, kinds=("optimize",), verb="optimize --resume"),
                            given)
         short = short_id(store, plan.run_id)
+        from store.locks import run_is_live
+
+        if run_is_live(store.path, plan.run_id):  # said now: its start line read "resumed" before the refusal
+            raise CliError(f"run {short} is being worked on by another process; wait for it to finish (or stop "
+                           "it) first")
         if plan.nothing_to_do:
             note = shorten_run_ids(plan.nothing_to_do, {plan.run_id: short})
             if args.json:
