@@ -45,6 +45,19 @@ def _batch(path, store, *extra, **kwargs):
                           capture_output=True, text=True, timeout=900, **kwargs)
 
 
+def _wait_for_iterations(store, process, n: int, timeout_s: float = 300) -> None:
+    """Until the batch ``process`` has stored ``n`` iterations (the store may not exist or be held meanwhile), or
+    it ended, or ``timeout_s`` passed."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and process.poll() is None:
+        try:
+            if store.query("SELECT count(*) FROM iterations")[0][0] >= n:
+                return
+        except Exception:
+            pass
+        time.sleep(0.2)
+
+
 def _rows(store):
     return sorted(store.query(
         """SELECT r.game, json_extract(r.config, '$.seed')::INT, i.iteration, i.policy_version_id, i.score,
@@ -85,14 +98,7 @@ def test_local_batch_then_kill_and_rerun(tmp_path, store, scripted):
     path = _experiments(tmp_path, model, iterations=2, audit_episodes=0)
     process = subprocess.Popen([EXE, "batch", str(path), "--store", str(store.path), "--workers", "2"], cwd=ROOT,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline:
-        try:
-            if store.query("SELECT count(*) FROM iterations")[0][0] >= 2:
-                break
-        except Exception:
-            pass
-        time.sleep(0.2)
+    _wait_for_iterations(store, process, 2)
     process.send_signal(signal.SIGKILL)
     process.wait()
     time.sleep(1.0)
@@ -127,14 +133,7 @@ def test_a_batch_stopped_by_ctrl_c_says_how_to_resume_and_leaves_no_process(tmp_
     path = _experiments(tmp_path, model, iterations=2, audit_episodes=0)
     process = subprocess.Popen([EXE, "batch", str(path), "--store", str(store.path), "--workers", "2"], cwd=ROOT,
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and process.poll() is None:
-        try:
-            if store.query("SELECT count(*) FROM iterations")[0][0] >= 1:
-                break
-        except Exception:
-            pass
-        time.sleep(0.2)
+    _wait_for_iterations(store, process, 1)
     process.send_signal(signal.SIGINT)
     _, err = process.communicate(timeout=120)
     assert process.returncode == 130, err

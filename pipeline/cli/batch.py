@@ -8,8 +8,7 @@ import argparse
 import os
 import sys
 
-from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError, add_store, positive_int,
-                                 short_ids, show)
+from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_store, positive_int, short_ids, show
 from store.scores import score_text
 
 
@@ -159,8 +158,8 @@ def run(args: argparse.Namespace) -> int:
             workers = args.workers or (os.cpu_count() or 1)
             result = run_local(batch, store, planned, workers, log, display,
                                log_dir=log_path.with_name(log_path.name + ".runs"))
-    except KeyboardInterrupt:
-        stop()
+    except KeyboardInterrupt:  # the command's own handler then says "interrupted" and exits 130
+        stop()  # the live table first, so that the lines below print under it (stopping twice is a no-op)
         log(f"batch {batch.name} interrupted")
         show("codearcade: interrupted: the runs are stored up to their last whole iterations; rerun the same command "
              "to resume them", file=sys.stderr, flush=True)
