@@ -93,23 +93,46 @@ def test_kill_during_llm_call_then_resume(store, scripted):
     assert json.loads(done.stdout)["status"] == "finished"
 
 
+KILL_WINDOWS = {
+    # where the run is killed: (the script, the extra flags, when to kill, what the replay says)
+    "during iteration 0": ([COMPETENT_REPLY], ("--workers", "1", "--eval-max-steps", "4000"),
+                           lambda store, model: _count(store, "SELECT count(*) FROM episodes") >= 1
+                           and _count(store, "SELECT count(*) FROM iterations") == 0,
+                           "the run stopped during iteration 0 (interrupted); 1 call was never recorded"),
+    "after iteration 1's reply": ([COMPETENT_REPLY], ("--workers", "1", "--eval-max-steps", "4000"),
+                                  lambda store, model: _count(store, "SELECT count(*) FROM episodes WHERE iteration = 1 "
+                                                                     "AND kind = 'train'") == 1
+                                  and _count(store, "SELECT count(*) FROM iterations WHERE iteration = 1") == 0,
+                                  "the run stopped after iteration 0 (interrupted); 1 call was never recorded"),
+    "during iteration 2's call": ([COMPETENT_REPLY, {"sleep": 60, "content": COMPETENT_REPLY}], (),
+                                  lambda store, model: len(model.requests()) == 2,
+                                  "the run stopped after iteration 1 (interrupted); 1 call was never recorded"),
+}
+
+
 @pytest.mark.slow
-def test_replay_of_a_killed_run_says_where_its_record_ends(store, scripted):
-    """A run killed during iteration 2's call and never resumed: its replay reproduces iteration 1, then meets the
-    call that was never recorded. That is where the record ends, not a divergence: exit 0, and it says so."""
-    model = scripted([COMPETENT_REPLY, {"sleep": 60, "content": COMPETENT_REPLY}])
-    process = _start(model, store)
-    _wait_for(lambda: len(model.requests()) == 2)  # iteration 2's call is hanging
+@pytest.mark.parametrize("window", KILL_WINDOWS)
+def test_replay_of_a_killed_run_says_where_its_record_ends(store, scripted, window):
+    """A run killed and never resumed: its replay reproduces what it committed, then meets the call that was never
+    recorded. That is where the record ends, not a divergence: exit 0, and it says so; the replay run is stored as
+    interrupted, like its original. Before iteration 0's commit there is nothing to compare (it said "first
+    divergence at iteration 0"); after a reply whose iteration was never committed, the next iteration's call is
+    the one never made (it said "0 calls were never recorded")."""
+    script, extra, ready, says = KILL_WINDOWS[window]
+    model = scripted(script)
+    process = _start(model, store, *extra)
+    _wait_for(lambda: ready(store, model))
     process.kill()
     process.wait()
     run_id = _run_id(store)
+    asked = len(model.requests())
     done = subprocess.run([EXE, "replay", run_id, "--store", str(store.path)], cwd=ROOT, capture_output=True,
                           text=True, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert "the run stopped after iteration 1 (interrupted); 1 call was never recorded: replayed up to there, " \
-           "nothing diverged" in done.stdout, done.stdout
+    assert f"{says}: replayed up to there, nothing diverged" in done.stdout, done.stdout
     assert ": incomplete" in done.stdout and "divergence" not in done.stdout, done.stdout
-    assert len(model.requests()) == 2, "a replay never calls the model"
+    assert len(model.requests()) == asked, "a replay never calls the model"
+    assert store.query("SELECT status FROM runs WHERE kind = 'replay'") == [("interrupted",)]
 
 
 @pytest.mark.slow

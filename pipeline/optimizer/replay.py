@@ -104,14 +104,16 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
         r_hash, r_score = again.get(it, (None, None))
         row = ReplayRow(it, o_hash, r_hash, o_score, r_score)
         report.rows.append(row)
-        past_the_record = last is not None and it > last and run["status"] != "finished"
+        # a run killed before it committed iteration 0 has no record to compare with at all
+        past_the_record = run["status"] != "finished" and (last is None or it > last)
         if report.diverged_at is None and not row.matches and not past_the_record:
             report.diverged_at = it
     if run["status"] != "finished" and (last is None or last < config.iterations):  # its record ends where it
         # stopped (a run that failed after its last iteration, every update's call failed, has a whole record)
         report.unrecorded_calls = _unrecorded(config, asked, last)
         s = "s" if report.unrecorded_calls != 1 else ""
-        report.record_ends = (f"the run stopped after iteration {last} ({_status(run['status'])}); "
+        stopped = f"after iteration {last}" if last is not None else "during iteration 0"
+        report.record_ends = (f"the run stopped {stopped} ({_status(run['status'])}); "
                               f"{report.unrecorded_calls} call{s} {'were' if s else 'was'} never recorded")
     if result.error and "ReplayMiss" in result.error:
         # a miss on a candidate the original never asked (or never got a reply for) is where its record ends; one
@@ -138,10 +140,16 @@ def _status(status: str) -> str:
 
 
 def _unrecorded(config: OptimizeConfig, asked: dict[tuple[int, int], str | None], last: int | None) -> int:
-    """The first calls of the iterations after ``last`` that the original started (up to its last with a recorded
-    reply; at least the next one) that have no reply recorded."""
-    after = (last or 0) + 1
-    started = max([it for (it, _), error in asked.items() if error is None], default=after)
+    """The first-turn calls without a recorded reply of the iterations after ``last`` up to where a replay stops:
+    the last iteration with a recorded reply if one of its calls has none, else the one after it (its calls were
+    never made: a run killed after an iteration's reply, before its commit, stops the replay at the next), at
+    least the iteration after ``last`` and at most the run's last."""
+    after = (last if last is not None else 0) + 1  # iteration 0 calls no model
     width = make_strategy(config).max_proposals
-    return sum(1 for it in range(after, max(after, started) + 1) for j in range(width) if asked.get((it, j), "none")
-               is not None)
+
+    def unreplied(iteration: int) -> int:
+        return sum(1 for j in range(width) if asked.get((iteration, j), "none") is not None)
+
+    started = max([it for (it, _), error in asked.items() if error is None], default=after - 1)
+    end = min(started if started >= after and unreplied(started) else started + 1, config.iterations)
+    return sum(unreplied(it) for it in range(after, end + 1))
