@@ -20,8 +20,8 @@ from games import get_game, list_widths
 from games.base import recorded_observation
 from pipeline.optimizer.strategies import Greedy, History, Ref
 from pipeline.settings import EpisodeLimits
-from store.readers import (candidates, episode_steps, episode_summaries, get_run, held_bytes, iterations,
-                           policy_texts, step_nodes)
+from store.held_values import held_bytes
+from store.readers import candidates, episode_steps, episode_summaries, get_run, iterations, policy_texts, step_nodes
 from tracing.policy_file import PolicyInfo, inspect_policy
 
 
@@ -126,7 +126,7 @@ VALUE_CHARS = 300
 """Characters of each node value the prompt shows (``prompt.py``): all the store is asked for, so a kept rollout
 holds a few kilobytes a call, whatever its policy stored (``store.readers.step_nodes``)."""
 ROLLOUT_NODE_BYTES = 128 * 2**20
-"""What one rollout's node calls may hold, as ``store.readers.held_bytes`` estimates it (about twice what they
+"""What one rollout's node calls may hold, as ``store.held_values.held_bytes`` estimates it (about twice what they
 hold): an honest rollout's are a few MB (1.5 MB for 120 steps of Pong's starter, 800 calls; ~60 MB for a helper
 called for each of Breakout's bricks, 300 steps); the calls past it are not read, and the prompt shows those
 steps without calls."""

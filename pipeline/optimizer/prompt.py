@@ -29,7 +29,7 @@ from pipeline.llm.client import prompt_hash
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.context import VALUE_CHARS, PromptContext
 from pipeline.optimizer.strategies import format_number
-from store.readers import JsonHead
+from store.held_values import JsonHead
 from tracing.policy_file import TASK_CONSTANTS, PolicyInfo, replace_methods
 from tracing.sandbox import ALLOWED_MODULES
 

@@ -101,51 +101,41 @@ def _json_candidates(text: str) -> list[tuple[str, tuple[str, ...]]]:
     return candidates
 
 
+_JSON_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*(?P<closed>")?', re.DOTALL)
+"""A JSON string from its opening quote: to its closing quote, or to the end of a text cut off inside it."""
+
+
+def _outside_strings(text: str) -> tuple[list[tuple[int, int]], bool]:
+    """The (start, end) of each stretch of ``text`` outside JSON strings, in order, and whether ``text`` ends inside
+    a string. Outside a string every quote opens one, so one scan of the quotes finds them all."""
+    spans, pos, in_string = [], 0, False
+    for match in _JSON_STRING.finditer(text):
+        spans.append((pos, match.start()))
+        pos, in_string = match.end(), match["closed"] is None
+    spans.append((pos, len(text)))
+    return spans, in_string
+
+
 def _string_state_at_end(text: str) -> tuple[bool, list[str]]:
     """Whether ``text`` ends inside a JSON string, and the brackets still open at its end (in order)."""
-    in_string = escaped = False
+    spans, in_string = _outside_strings(text)
     stack: list[str] = []
-    for char in text:
-        if in_string:
-            if escaped:
-                escaped = False
-            elif char == "\\":
-                escaped = True
-            elif char == '"':
-                in_string = False
-        elif char == '"':
-            in_string = True
-        elif char in "{[":
-            stack.append(char)
-        elif char in "}]":
-            if stack:
+    for start, stop in spans:
+        for char in text[start:stop]:
+            if char in "{[":
+                stack.append(char)
+            elif char in "}]" and stack:
                 stack.pop()
     return in_string, stack
 
 
 def _without_trailing_commas(text: str) -> str:
     """``text`` with each comma that directly precedes ``}`` or ``]`` outside a string removed."""
+    spans, _ = _outside_strings(text)
     out: list[str] = []
-    in_string = escaped = False
-    i = 0
-    while i < len(text):
-        char = text[i]
-        if in_string:
-            if escaped:
-                escaped = False
-            elif char == "\\":
-                escaped = True
-            elif char == '"':
-                in_string = False
-        elif char == '"':
-            in_string = True
-        elif char == ",":
-            match = _TRAILING_COMMA.match(text, i)
-            if match:
-                i += 1  # drop the comma, keep what follows
-                continue
-        out.append(char)
-        i += 1
+    for (start, stop), (next_start, _) in zip(spans, spans[1:] + [(len(text), len(text))]):
+        out.append(_TRAILING_COMMA.sub(r"\1", text[start:stop]))
+        out.append(text[stop:next_start])  # the string after this stretch, as it is
     return "".join(out)
 
 

@@ -32,7 +32,8 @@ from pipeline.optimizer.context import read_context
 from pipeline.optimizer.loop import load_state, run_loop, start_run
 from pipeline.optimizer.prompt import build_prompt
 from store import Store
-from store.readers import JsonHead, step_nodes
+from store.held_values import JsonHead
+from store.readers import step_nodes
 from store.writer import write_episode
 from tracing.capture import to_json
 
@@ -288,7 +289,7 @@ def test_a_bounded_value_holds_a_few_bytes_per_character_it_shows_whatever_was_s
     """A sweep of hostile stored texts (valid JSON, at most 20,000 characters): what the prompt's reader keeps
     of a value, as the call's inputs or as its output, is at most a few kilobytes for the 300 characters it
     shows (9.5 KB at most here; decoded whole, the same texts hold up to 289 KB each); it never raises."""
-    from store.readers import bounded_value
+    from store.held_values import bounded_value
 
     rng = random.Random(382)
     worst = 0
@@ -302,7 +303,7 @@ def test_a_bounded_value_holds_a_few_bytes_per_character_it_shows_whatever_was_s
 def test_the_prompt_s_slice_stops_at_its_byte_bound(stores):
     """``step_nodes(..., max_bytes=)``: the rows stop, in step order, once what they hold passes the bound; the
     estimate (``held_bytes``) is never below what the rows hold (measured with ``sys.getsizeof``)."""
-    from store.readers import held_bytes
+    from store.held_values import held_bytes
 
     _, forged_path, run_id = stores
     with Store(forged_path).read() as con:
