@@ -6,8 +6,9 @@
 --
 -- Scores are the authors' measure: a run's best evaluation score under their protocol (sticky 0, no no-op starts,
 -- their caps and episode counts: the frontier view's deterministic_score, iteration 0 included), averaged over the
--- runs of a game (seeds) with its 95% Student-t interval over the `runs` (`mean_best`: mean [low, high], mean_ci and
--- ci_text, which `codearcade sql` provides: docs/schema.md; none for one run or all equal), and their interquartile
+-- runs of a game (seeds) with its 95% Student-t interval over the `runs` (`mean_best`: mean_ci and ci_text, which
+-- `codearcade sql` provides: docs/schema.md; none for one run or all equal; `no score` when a run has none: its audit
+-- forfeited a game, say), and their interquartile
 -- mean (`iqm_best`, as rliable recommends), whose bootstrap interval needs 30 runs of a game (below: the IQM alone). `protocol` says what our evaluation episodes were: `lives of one
 -- game` (the authors' protocol, `one_life = "continue"`: the follow-up ends an episode at a lost life in Asterix,
 -- Breakout, Q*bert and Seaquest and goes on with the same game in the next), `first lives` (`one_life = true`: the
@@ -42,8 +43,7 @@ WITH batch_runs AS (
     FROM published_scores GROUP BY game
 )
 SELECT coalesce(o.game, t.game) AS game, o.protocol, o.horizon, o.runs, o.iterations, o.best,
-       ci_text(o.m.mean, o.m.low, o.m.high) AS mean_best, ci_text(o.q.iqm, o.q.low, o.q.high) AS iqm_best,
-       ci_text(o.a.mean, o.a.low, o.a.high) AS audit, o.overfit,
+       ci_text(o.m) AS mean_best, ci_text(o.q) AS iqm_best, ci_text(o.a) AS audit, o.overfit,
        (SELECT p.score FROM published_scores p WHERE p.game = o.game AND p.horizon = o.horizon
         AND p.setting <> 'paper' ORDER BY p.setting LIMIT 1) AS theirs,
        (SELECT p.stderr FROM published_scores p WHERE p.game = o.game AND p.horizon = o.horizon

@@ -1,5 +1,6 @@
 -- Strategies compared at equal LLM budgets. Per strategy (means over the seeds, the scores with their 95% Student-t
--- intervals over the `runs`, mean [low, high]: mean_ci and ci_text, which `codearcade sql` provides: docs/schema.md):
+-- intervals over the `runs`: mean_ci and ci_text, which `codearcade sql` provides: docs/schema.md; `no score` where a
+-- run had none yet: every candidate it had assessed forfeited a game):
 -- the best score reached after 5, 10 and 20 LLM calls (the starting policy's score counts from call 0), the tokens and the wall-clock
 -- minutes the runs spent, and how many candidates they assessed (and how many reused stored episodes).
 WITH runs_of_batch AS (
@@ -29,8 +30,7 @@ WITH runs_of_batch AS (
     FROM per_run p JOIN llm_usage u USING (run_id)
     GROUP BY p.strategy
 )
-SELECT strategy, runs, ci_text(at_5.mean, at_5.low, at_5.high) AS best_after_5_calls,
-       ci_text(at_10.mean, at_10.low, at_10.high) AS best_after_10_calls,
-       ci_text(at_20.mean, at_20.low, at_20.high) AS best_after_20_calls, max_best, calls, tokens, wall_minutes,
+SELECT strategy, runs, ci_text(at_5) AS best_after_5_calls, ci_text(at_10) AS best_after_10_calls,
+       ci_text(at_20) AS best_after_20_calls, max_best, calls, tokens, wall_minutes,
        candidates, cached_assessments
 FROM per_strategy ORDER BY at_20.mean DESC NULLS LAST;

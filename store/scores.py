@@ -268,17 +268,22 @@ def interval_text(point: float | None, low: float | None, high: float | None, n:
     """The one way an interval is printed, naming its level, method and n: ``-20.7 [-21.0, -20.3] 95% t, n=3``.
     Without an interval (``low`` None) the value alone and why: ``-21.0 (n=3: all equal, no interval)``; the reason
     defaults to :data:`TOO_FEW` (fewer than two values on a side) or :data:`ALL_EQUAL`. One decimal (three for
-    values under 1 in size: normalized scores); ``signed`` puts a sign on each number (a difference)."""
+    values under 1 in size: normalized scores; up to three where a value that is not zero would print as zero, all
+    the numbers of a line alike); ``signed`` puts a sign on each number (a difference)."""
     counts = n if isinstance(n, tuple) else (n,)
     shown_n = "n=" + " and ".join(str(c) for c in counts)
     if point is None or (isinstance(point, float) and math.isnan(point)):
         return f"none ({shown_n})"
     numbers = [x for x in (point, low, high) if x is not None]
     digits = 1 if max(abs(x) for x in numbers) >= 1 or all(x == 0 for x in numbers) else 3
+    for more in range(digits, 4):  # a bound near zero is printed on its side of it: [-1.64, -0.04], not [-1.6, -0.0]
+        if not any(x != 0 and round(x, more) == 0 for x in numbers):
+            digits = more
+            break
     sign = "+" if signed else ""
 
     def number(x: float) -> str:
-        return f"{x:{sign}.{digits}f}"
+        return f"{round(x, digits) + 0.0:{sign}.{digits}f}"  # + 0.0: a value that rounds to zero is 0, never -0
 
     if low is None or high is None:
         why = reason or (TOO_FEW if min(counts) < 2 else ALL_EQUAL)

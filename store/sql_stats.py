@@ -10,13 +10,16 @@ same values give the same interval). They take DuckDB lists, so a query aggregat
     SELECT iqm_ci_strata(list(scores)) FROM (SELECT game, list(best) AS scores ... GROUP BY game)  -- over games
 
 Each gives a struct: the value, ``low`` and ``high`` (NULL without an interval: fewer than two values, all equal,
-or too few for an IQM interval), ``n``, and ``level``, ``method`` and ``text``, the interval as
+or too few for an IQM interval), ``n``, ``missing``, and ``level``, ``method`` and ``text``, the interval as
 :func:`store.scores.interval_text` prints it (``-20.7 [-21.0, -20.3] 95% t, n=3``; without one, the value and
 why). ``ci_text(ci)`` prints such a struct (its ``text``); ``ci_text(point, low, high)`` prints bare numbers as
 ``12.3 [10.1, 14.2]``, for intervals from elsewhere (it cannot know their level, method or n: prefer
 ``ci_text(ci)``). :data:`SQL_FUNCTIONS` names them with one line each (``codearcade sql --schema``;
 docs/schema.md); :func:`create_sql_functions` makes them on a connection (``store/views.py``: the one
-``codearcade sql`` and the examples run on). A NULL in a list is left out (a forfeited assessment has no score); an
+``codearcade sql`` and the examples run on). A list holding a NULL (or NaN) has no value, as a set of games with a
+forfeit has no score (``store/scores.py``): the struct's value and bounds are NULL, ``missing`` counts the NULLs and
+``text`` says so (``no score: 1 of 3 values NULL``); a query that means to leave them out says so
+(``list(x) FILTER (WHERE x IS NOT NULL)``), so a seed whose every version forfeited never silently lifts a mean. An
 empty list gives NULLs.
 """
 
@@ -35,63 +38,79 @@ _VARCHAR = duckdb.sqltype("VARCHAR")
 
 
 def _interval_type(point: str) -> Any:
-    return duckdb.struct_type({point: _DOUBLE, "low": _DOUBLE, "high": _DOUBLE, "n": _INTEGER, "level": _DOUBLE,
-                               "method": _VARCHAR, "text": _VARCHAR})
+    return duckdb.struct_type({point: _DOUBLE, "low": _DOUBLE, "high": _DOUBLE, "n": _INTEGER, "missing": _INTEGER,
+                               "level": _DOUBLE, "method": _VARCHAR, "text": _VARCHAR})
 
 
-def _struct(point: str, found: Any) -> dict[str, Any]:
-    """A :class:`store.scores.Interval` as the struct the SQL functions return (``text``: NULL without a value)."""
-    return {point: found.point, "low": found.low, "high": found.high, "n": found.n, "level": found.level,
-            "method": found.method, "text": found.text() if found.point is not None else None}
+def _struct(point: str, found: Any, missing: int = 0) -> dict[str, Any]:
+    """A :class:`store.scores.Interval` as the struct the SQL functions return (``text``: NULL without a value);
+    with ``missing`` NULLs among the values, no value at all, and the text says why."""
+    if missing:
+        return {point: None, "low": None, "high": None, "n": found.n + missing, "missing": missing,
+                "level": found.level, "method": found.method,
+                "text": f"no score: {missing} of {found.n + missing} values NULL"}
+    return {point: found.point, "low": found.low, "high": found.high, "n": found.n, "missing": 0,
+            "level": found.level, "method": found.method, "text": found.text() if found.point is not None else None}
 
 
-def _kept(values: list | None) -> list[float]:
-    """The values of a DuckDB list as floats, NULLs (and NaN) left out."""
-    return [float(v) for v in values or () if v is not None and not math.isnan(v)]
+def _kept(values: list | None) -> tuple[list[float], int]:
+    """The values of a DuckDB list as floats, and how many were NULL (or NaN): left out of ``kept``."""
+    kept = [float(v) for v in values or () if v is not None and not math.isnan(v)]
+    return kept, len(values or ()) - len(kept)
 
 
 def mean_ci(values: list | None) -> dict[str, Any]:
-    """``{mean, low, high, n, level, method, text}``: the mean of ``values`` with its 95% Student-t interval
-    (:func:`scores.mean_interval`; none for fewer than two values or all equal)."""
+    """``{mean, low, high, n, missing, level, method, text}``: the mean of ``values`` with its 95% Student-t interval
+    (:func:`scores.mean_interval`; none for fewer than two values or all equal; no mean with a NULL among them)."""
     from store.scores import mean_interval
 
-    return _struct("mean", mean_interval(_kept(values)))
+    kept, missing = _kept(values)
+    return _struct("mean", mean_interval(kept), missing)
 
 
 def iqm_ci(values: list | None) -> dict[str, Any]:
-    """``{iqm, low, high, n, level, method, text}``: the interquartile mean of ``values`` (one stratum, e.g. a game's
-    seeds) with its 95% bootstrap interval (:func:`scores.iqm_interval`; none below ``IQM_MIN_PER_STRATUM``)."""
+    """``{iqm, low, high, n, missing, level, method, text}``: the interquartile mean of ``values`` (one stratum,
+    e.g. a game's seeds) with its 95% bootstrap interval (:func:`scores.iqm_interval`; none below
+    ``IQM_MIN_PER_STRATUM``)."""
     return iqm_ci_strata([values])
 
 
 def iqm_ci_strata(strata: list | None) -> dict[str, Any]:
-    """``{iqm, low, high, n, level, method, text}``: the interquartile mean of the values of every stratum together
-    (a list per game) with a stratified bootstrap interval (:func:`scores.iqm_interval`: each stratum resampled on
-    its own, as rliable does; none while a stratum holds fewer than ``IQM_MIN_PER_STRATUM`` values)."""
+    """``{iqm, low, high, n, missing, level, method, text}``: the interquartile mean of the values of every
+    stratum together (a list per game) with a stratified bootstrap interval (:func:`scores.iqm_interval`: each
+    stratum resampled on its own, as rliable does; none while a stratum holds fewer than ``IQM_MIN_PER_STRATUM``
+    values)."""
     from store.scores import iqm_interval
 
-    return _struct("iqm", iqm_interval([_kept(s) for s in strata or ()]))
+    kept = [_kept(s) for s in strata or ()]
+    return _struct("iqm", iqm_interval([values for values, _ in kept]), sum(missing for _, missing in kept))
 
 
 _LIST = duckdb.list_type(_DOUBLE)
 SQL_FUNCTIONS: dict[str, tuple[str, str, Callable[..., Any], list[Any], Any]] = {
-    "mean_ci": ("mean_ci(values)", "STRUCT(mean, low, high, n, level, method, text): mean of a list of DOUBLE "
-                "with its 95% Student-t interval (mean_ci(list(score)))", mean_ci, [_LIST], _interval_type("mean")),
-    "iqm_ci": ("iqm_ci(values)", "STRUCT(iqm, low, high, n, level, method, text): interquartile mean of a list "
-               "(e.g. over seeds) with its 95% bootstrap interval (from 30 values)", iqm_ci, [_LIST],
+    "mean_ci": ("mean_ci(values)", "STRUCT(mean, low, high, n, missing, level, method, text): mean of a list of "
+                "DOUBLE with its 95% Student-t interval (mean_ci(list(score))); none with a NULL in it", mean_ci,
+                [_LIST], _interval_type("mean")),
+    "iqm_ci": ("iqm_ci(values)", "STRUCT(iqm, low, high, n, missing, level, method, text): interquartile mean of a "
+               "list (e.g. over seeds) with its 95% bootstrap interval (from 30 values)", iqm_ci, [_LIST],
                _interval_type("iqm")),
-    "iqm_ci_strata": ("iqm_ci_strata(lists)", "STRUCT(iqm, low, high, n, level, method, text): IQM over a list of "
-                      "lists (one per game) with a stratified 95% bootstrap interval (from 30 values a list)",
+    "iqm_ci_strata": ("iqm_ci_strata(lists)", "STRUCT(iqm, low, high, n, missing, level, method, text): IQM over a "
+                      "list of lists (one per game) with a stratified 95% bootstrap interval (from 30 values a list)",
                       iqm_ci_strata, [duckdb.list_type(_LIST)], _interval_type("iqm")),
 }
 """The scipy-backed functions a person's SQL can use: name -> (signature, one line of help, the Python function,
 its parameter types, its return type)."""
 
-CI_TEXT = ("ci_text(point, low, high)", "bare numbers as text, one decimal: 12.3 [10.1, 14.2] (names no level, "
-           "method or n: prefer ci_text(ci))",
+CI_TEXT = ("ci_text(point, low, high)", "bare numbers as text, one decimal: 12.3 [10.1, 14.2] (two where a value "
+           "that is not zero would print as 0.0; names no level, method or n: prefer ci_text(ci))",
+           # + 0.0: never "-0.0"; two decimals where a value that is not zero would print as 0.0
            "CREATE TEMP MACRO ci_text(point, low, high) AS CASE WHEN point IS NULL THEN NULL "
-           "WHEN low IS NULL THEN printf('%.1f', point) "
-           "ELSE printf('%.1f [%.1f, %.1f]', point, low, high) END, "
+           "WHEN low IS NULL THEN CASE WHEN point <> 0 AND round(point, 1) = 0 "
+           "THEN printf('%.2f', round(point, 2) + 0.0) ELSE printf('%.1f', round(point, 1) + 0.0) END "
+           "WHEN (point <> 0 AND round(point, 1) = 0) OR (low <> 0 AND round(low, 1) = 0) "
+           "OR (high <> 0 AND round(high, 1) = 0) "
+           "THEN printf('%.2f [%.2f, %.2f]', round(point, 2) + 0.0, round(low, 2) + 0.0, round(high, 2) + 0.0) "
+           "ELSE printf('%.1f [%.1f, %.1f]', round(point, 1) + 0.0, round(low, 1) + 0.0, round(high, 1) + 0.0) END, "
            "(ci) AS ci.text")
 """The macro that prints a value with its interval (signature, one line of help, the statement that makes it,
 with its second form, :data:`CI_TEXT_STRUCT`)."""

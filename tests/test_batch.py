@@ -184,11 +184,12 @@ def test_ablation_example_and_its_sql(tmp_path, store, scripted):
                                "JOIN runs r USING (run_id) WHERE s.audit_score IS NOT NULL GROUP BY 1"))
     assert audited == {"rollout": 3, "staged": 3}, "every run has its held-out audit"
     assert all(r[6] is not None and r[7] <= 3 for r in rows), "the audit and its overfit count beside the scores"
-    for feedback, _, mean_best, max_best, _, _, _, _ in rows:  # mean [low, high] over the three seeds
+    for feedback, _, mean_best, max_best, _, _, _, _ in rows:  # mean [low, high] over the three seeds, with n
         bests = [b for (b,) in store.query(
             "SELECT max(i.score) FROM runs r JOIN iterations i USING (run_id) WHERE json_extract_string(r.config, "
             "'$.feedback') = ? GROUP BY r.run_id", [feedback])]
-        shown = re.fullmatch(r"(\S+)(?: \[(\S+), (\S+)\])?", mean_best)
+        shown = re.fullmatch(r"(\S+)(?: \[(\S+), (\S+)\] 95% t, n=3| \(n=3: all equal, no interval\))", mean_best)
+        assert shown, mean_best
         mean = float(shown.group(1))
         assert mean == round(sum(bests) / 3, 1) and max_best == max(bests), (mean_best, bests)
         if len(set(bests)) == 1:  # all equal: no interval to print (store/scores.py), the mean alone

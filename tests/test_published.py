@@ -13,6 +13,7 @@ import pytest
 
 from games import GAMES
 from store.published import published_rows, refresh_published
+from store.scores import mean_interval
 from tests.conftest import COMPETENT_REPLY, ROOT
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -80,11 +81,14 @@ def test_benchmarks_sql_over_a_real_short_batch(tmp_path, store, scripted):
         row = table[game]
         assert row["runs"] == 1 and row["iterations"] == 1 and row["horizon"] == horizon
         # one run: the mean has no interval yet (ci_text prints it alone), the IQM is the one value
-        assert row["best"] == best[game] and row["mean_best"] == row["iqm_best"] == f"{best[game]:.1f}"
+        assert row["best"] == best[game]
+        assert row["mean_best"] == row["iqm_best"] == mean_interval([best[game]]).text(), row
         assert row["protocol"] == protocol and row["theirs"] == theirs
         audit = store.query("SELECT s.audit_score FROM run_summary s JOIN runs r USING (run_id) WHERE r.game = ?",
                             [game])[0][0]
-        assert audit is not None and row["audit"] == f"{audit:.1f}" and row["overfit"] in (0, 1), row
+        assert audit is not None and row["audit"] == mean_interval([audit]).text(), row
+        assert row["audit"].endswith(" (n=1: too few for an interval)"), row
+        assert row["overfit"] in (0, 1), row
     starter = store.query("SELECT i.score FROM runs r JOIN iterations i USING (run_id) "
                           "WHERE r.game = 'pong' AND i.iteration = 0")[0][0]
     assert table["pong"]["best"] > starter, "the best is the accepted competent policy's, not the starter's"

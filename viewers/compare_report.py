@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from store.runs import shortest_prefixes
-from store.scores import MEAN_METHOD, PLAYED_OUT, interval_text
+from store.scores import MEAN_METHOD, PLAYED_OUT, interval_text, score_text
 from viewers.report import _md_table
 from viewers.safe_text import markdown_code, markdown_code_block, markdown_text, plot_text, terminal_text
 from viewers.tables import format_table
@@ -65,7 +65,7 @@ def curves_figure(data: dict[str, Any]):
 
 
 def _score(value: Any) -> str:
-    return "-" if value is None else f"{value:g}"
+    return "-" if value is None else score_text(value)
 
 
 def _best(run: dict[str, Any]) -> str:
@@ -88,8 +88,9 @@ def _best_difference(data: dict[str, Any]) -> str:
 
 
 def _amount(value: float) -> str:
-    """A budget for people: whole numbers as such, others to one decimal."""
-    return f"{value:g}" if float(value).is_integer() else f"{value:.1f}"
+    """A budget for people: whole numbers as such, others to at most two decimals (3.08 and 3.12 wall seconds are
+    two rows, not two of 3.1)."""
+    return f"{value:g}" if float(value).is_integer() else f"{round(value, 2):g}"
 
 
 def _budget_rows(data: dict[str, Any]) -> list[tuple]:
@@ -152,8 +153,9 @@ def _action(e: dict[str, Any], label: str) -> str:
     return "no action (its policy failed)" if at["action"] is None else f"{at['action']} {at['action_name']}"
 
 
-PAPER_NOTE = ("under the paper's protocol every seed is the same game, so the interval measures no noise; --audit "
-              "plays each side on its own sealed audit seeds under the standard protocol")
+PAPER_NOTE = ("under the paper's protocol every seed is the same game, so the interval measures only the policies' "
+              "own random draws, not how games vary; --audit plays each side on its own sealed audit seeds under the "
+              "standard protocol")
 
 
 def _seeds_text(seeds: list[int]) -> str:
