@@ -88,14 +88,14 @@ def iqm_ci_strata(strata: list | None) -> dict[str, Any]:
 
 _LIST = duckdb.list_type(_DOUBLE)
 SQL_FUNCTIONS: dict[str, tuple[str, str, Callable[..., Any], list[Any], Any]] = {
-    "mean_ci": ("mean_ci(values)", "STRUCT(mean, low, high, n, missing, level, method, text): mean of a list of "
-                "DOUBLE with its 95% Student-t interval (mean_ci(list(score))); none with a NULL in it", mean_ci,
-                [_LIST], _interval_type("mean")),
+    "mean_ci": ("mean_ci(values)", "STRUCT(mean, low, high, n, missing, level, method, text): mean of a DOUBLE "
+                "list with its 95% Student-t interval; none with a NULL in it", mean_ci, [_LIST],
+                _interval_type("mean")),
     "iqm_ci": ("iqm_ci(values)", "STRUCT(iqm, low, high, n, missing, level, method, text): interquartile mean of a "
                "list (e.g. over seeds) with its 95% bootstrap interval (from 30 values)", iqm_ci, [_LIST],
                _interval_type("iqm")),
     "iqm_ci_strata": ("iqm_ci_strata(lists)", "STRUCT(iqm, low, high, n, missing, level, method, text): IQM over a "
-                      "list of lists (one per game) with a stratified 95% bootstrap interval (from 30 values a list)",
+                      "list of lists (one per game), stratified 95% bootstrap interval (from 30 values a list)",
                       iqm_ci_strata, [duckdb.list_type(_LIST)], _interval_type("iqm")),
 }
 """The scipy-backed functions a person's SQL can use: name -> (signature, one line of help, the Python function,

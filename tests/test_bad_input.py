@@ -372,3 +372,49 @@ def test_an_empty_resume_is_an_error_not_a_new_run(tmp_path, capsys):
     line = _one_line_error(*_run(capsys, "optimize", "--resume", "", "--game", "pong", "--store", path)[::2])
     assert "--resume: give the run to continue" in line, line
     assert not path.exists()
+
+
+@pytest.mark.parametrize("filler", ["0\n", "0,\n", "# a comment\n"])
+def test_a_policy_file_past_the_largest_a_policy_holds_is_one_line_before_anything_parses_it(tmp_path, capsys,
+                                                                                             filler):
+    """A megabyte of statements after the starter held ~820 MB in `eval`'s own process (parsed there after its
+    worker vetted it) and ~1.1 GB in `optimize`'s: refused at MAX_POLICY_CHARS, read no further than that, and
+    nothing is stored. Just under the limit still plays."""
+    from tracing.policy_file import MAX_POLICY_CHARS
+
+    base = STARTER.read_text()
+    big = tmp_path / "big.py"
+    big.write_text(base + filler * (MAX_POLICY_CHARS // len(filler) + 1))
+    store = tmp_path / "s.duckdb"
+    for verb in (["eval", big, "--max-steps", "30"], ["optimize", big, "--dry-run"]):
+        line = _one_line_error(*_run(capsys, *verb, "--store", store)[:3:2])
+        assert f"longer than {MAX_POLICY_CHARS:,} characters" in line, line
+    assert not store.exists() or not Store(store).query("SELECT count(*) FROM runs")[0][0]
+    fits = tmp_path / "fits.py"
+    fits.write_text(base + "# x\n" * ((MAX_POLICY_CHARS - len(base)) // 4 - 10))
+    assert main(["eval", str(fits), "--max-steps", "30", "--store", str(store)]) == 0
+
+
+def test_new_from_a_script_of_many_statements_reads_it_in_one_pass(tmp_path, capsys):
+    """`new --from SCRIPT` split the whole script again for each top-level statement (ast.get_source_segment):
+    20,000 of them took 47 s. Counted by what it asks of the splitter: the text split once."""
+    import ast
+
+    script = tmp_path / "script.py"
+    script.write_text('GAME = "pong"\nimport tracing as trace\nimport math\nclass Policy(trace.Module):\n'
+                      '    def select_action(self, obs):\n        return 0\n' + "0\n" * 20_000)
+    splits = []
+    original = ast._splitlines_no_ff
+
+    def counted(*args, **kwargs):
+        splits.append(1)
+        return original(*args, **kwargs)
+
+    ast._splitlines_no_ff = counted
+    try:
+        code, out, err = _run(capsys, "new", tmp_path / "policy.py", "--from", script)
+    finally:
+        ast._splitlines_no_ff = original
+    assert code == 0, err
+    assert len(splits) <= 1, f"the script was split {len(splits)} times"
+    assert "import math" in (tmp_path / "policy.py").read_text()

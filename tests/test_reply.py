@@ -153,3 +153,58 @@ def test_old_stores_keep_their_refusals_as_unusable(tmp_path):
     assert [r[2] for r in rows] == ["unusable" if refused else None for _, refused, _ in rows]
     assert any(refused for _, refused, _ in rows)
     assert old.query("SELECT score FROM published_scores WHERE game = 'pong' AND setting = 'paper'") == [(21.0,)]
+
+
+PATHOLOGICAL_REPLIES = {
+    "backticks": lambda n: "`" * n,  # 12 minutes of one regular expression at a million
+    "a fence, then letters": lambda n: "```" + "a" * n,
+    "many fences": lambda n: "```a" * (n // 4),
+    "an open string": lambda n: '{"suggestion": "' + "x" * n,
+    "braces": lambda n: "{" * n,
+    "brackets in the JSON": lambda n: '{"suggestion": ' + "[" * n,
+    "quotes": lambda n: '"' * n,
+    "backslashes": lambda n: '{"a": "' + "\\" * n,
+    "object starts": lambda n: '{"' * (n // 2),
+    "trailing commas": lambda n: '{"suggestion": {"f": "x"' + ", " * (n // 2),
+    "a code block of statements": lambda n: "```python\n" + "a\n" * (n // 2) + "```",  # ~1 KB of tree a character
+    "bare code": lambda n: "def f():\n" + "    a\n" * (n // 6),
+    "an f-string": lambda n: '```python\nX = f"' + "{1}" * (n // 3) + '"\n```',  # quadratic in CPython's parser
+    "code in the JSON": lambda n: '{"suggestion": {"select_action": "' + "a\\n" * (n // 3) + '"}}',
+}
+
+
+@pytest.mark.parametrize("shape", PATHOLOGICAL_REPLIES)
+def test_reading_any_reply_up_to_the_limit_costs_a_bounded_parse(shape, monkeypatch):
+    """A reply is read in the optimizer's own process (after its store is let go), so what reading costs must be
+    bounded whatever the model sent: each shape at sizes up to :data:`MAX_REPLY_CHARS`. The oracle is what the
+    reader hands Python's parser (each piece at most a policy's :data:`MAX_POLICY_CHARS`: its tree, ~1 KB a
+    character, is what this process holds; all of them at most twice the reply and a literal per place the JSON may
+    start, each at most REPAIR_MAX_CHARS), and the CPU time of the whole
+    read, within a budget 4-5 times the costliest case here (an f-string just under the limit: ~2 s)."""
+    import ast
+    import time
+
+    from pipeline.optimizer.reply import MAX_OBJECT_STARTS, MAX_REPLY_CHARS, REPAIR_MAX_CHARS
+    from tracing.policy_file import MAX_POLICY_CHARS
+
+    parse = ast.parse
+    parsed: list[int] = []
+
+    def counted(source, *args, **kwargs):
+        parsed.append(len(source))
+        return parse(source, *args, **kwargs)
+
+    monkeypatch.setattr(ast, "parse", counted)
+    for size in (50_000, MAX_POLICY_CHARS - 1_000, MAX_REPLY_CHARS - 100):
+        text = PATHOLOGICAL_REPLIES[shape](size)
+        parsed.clear()
+        began = time.process_time()
+        try:
+            read_reply(text)
+        except ReplyParseError:
+            pass
+        spent = time.process_time() - began
+        assert all(n <= MAX_POLICY_CHARS for n in parsed), (size, max(parsed))
+        # the code twice at most, and each place that may start the JSON as a Python literal once
+        assert sum(parsed) <= 2 * len(text) + (MAX_OBJECT_STARTS + 1) * REPAIR_MAX_CHARS, (size, sum(parsed))
+        assert spent < 10, f"{shape} of {len(text):,} characters took {spent:.1f} s of CPU to read"

@@ -10,6 +10,7 @@ run reads in ``runs``, ``report``, ``audit``, ``blame`` and ``view``.
 
 from __future__ import annotations
 
+import concurrent.futures
 import http.client
 import json
 import os
@@ -246,6 +247,46 @@ def _peak_rss_mb(pid: int) -> float:
     """The process's peak resident memory (``VmHWM``), in MB."""
     status = Path(f"/proc/{pid}/status").read_text()
     return int(re.search(r"VmHWM:\s+(\d+) kB", status).group(1)) / 1024
+
+
+def _peak_rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1024
+
+
+def test_concurrent_large_submissions_are_parsed_one_at_a_time_and_a_closed_run_parses_none(tmp_path, servers):
+    """Policy text is parsed in the server too, once a worker has vetted it (~1 KB of parse tree a character of
+    degenerate code), and a text vetted before skips the worker. Eight concurrent submissions of one 190,000
+    character text (refused for their GAME: they cost nothing and come as often as an agent likes) held their
+    parse trees at once; parsed one at a time the server's peak grows by about one. A submission the budget cannot
+    take is refused before its text is parsed."""
+    store = tmp_path / "s.duckdb"
+    server = Server(store, "--game", "pong", "--budget", "1", "--max-steps", "30")
+    servers.append(server)
+    filler = "0,\n" * 63_000  # a statement per line: the costliest text per character to parse
+    policy = pong_policy("return 0").replace('GAME = "pong"', 'GAME = "breakout"') + filler
+    assert 180_000 < len(policy) < 200_000
+    assert server.post("submit", {"policy": policy, "instances": [0]})[0] == 400  # vetted once: then each
+    # request of the same text skips the worker and goes straight to the server's own parse
+    policies = [policy] * 8
+    before = _peak_rss_mb(server.proc.pid)
+    with concurrent.futures.ThreadPoolExecutor(8) as pool:
+        answers = list(pool.map(lambda p: server.post("submit", {"policy": p, "instances": [0]}), policies))
+    assert all(status == 400 and "GAME is breakout" in answer["error"] for status, answer in answers), \
+        [(status, str(answer)[:300]) for status, answer in answers]
+    grown = _peak_rss_mb(server.proc.pid) - before
+    assert grown < 400, f"the server's peak grew by {grown:.0f} MB for eight submissions"
+    status, task = server.post("task")
+    status, answer = server.post("submit", {"policy": task["starter_policy"], "instances": [0]})
+    assert status == 200 and answer["budget"]["spent"] == 1, answer
+    before = _peak_rss_mb(server.proc.pid)
+    spent = [pong_policy("return 1") + filler] * 4
+    with concurrent.futures.ThreadPoolExecutor(4) as pool:
+        answers = list(pool.map(lambda p: server.post("submit", {"policy": p, "instances": [1]}), spent))
+    assert all(status == 400 and answer["error"] in ("budget: 1 episodes asked, 0 left",
+                                                     "the run is finalized: it takes no more submissions")
+               for status, answer in answers), answers
+    assert _peak_rss_mb(server.proc.pid) - before < 50, "refused before its text was parsed"
 
 
 @pytest.mark.parametrize("printed", [

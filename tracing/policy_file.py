@@ -24,6 +24,7 @@ from __future__ import annotations
 import ast
 import hashlib
 import linecache
+import re
 import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +40,11 @@ TASK_CONSTANTS = ("GAME", "ROLLOUT_STEPS", "EVAL_MAX_STEPS", "FEEDBACK", "INSTRU
 
 LOAD_TIME_LIMIT_S = 5.0
 """Module-level code and ``Policy()`` together must finish within this (a file that loops is refused)."""
+MAX_POLICY_CHARS = 200_000
+"""The longest policy file (and candidate, and code in a reply) this tool reads, ~20 times the paper's longest.
+Parsing Python holds up to ~1 KB a character of degenerate code (``0\n`` repeated) and an f-string of ``{1}`` takes
+time quadratic in its length, and the trusted processes parse what a worker has vetted: a megabyte held ~1 GB in
+them; at this size ~200 MB and a few seconds at most."""
 
 
 class PolicyLoadError(Exception):
@@ -111,9 +117,18 @@ def read_policy_file(path: str | Path) -> str:
     if p.is_dir():
         raise PolicyLoadError(f"'{path}' is a directory; give a Python file that defines class Policy")
     try:
-        return p.read_text(encoding="utf-8")
+        with p.open("rb") as f:  # no more than a policy may hold is read (4 bytes a character at most)
+            data = f.read(4 * MAX_POLICY_CHARS + 1)
+        text = data.decode("utf-8")
     except UnicodeDecodeError:
-        raise PolicyLoadError(f"policy file '{path}' is not UTF-8 text") from None
+        if len(data) > 4 * MAX_POLICY_CHARS:
+            text = ""  # cut mid-character: too long in any case
+        else:
+            raise PolicyLoadError(f"policy file '{path}' is not UTF-8 text") from None
+    if len(data) > 4 * MAX_POLICY_CHARS or len(text) > MAX_POLICY_CHARS:
+        raise PolicyLoadError(f"policy file '{path}' is longer than {MAX_POLICY_CHARS:,} characters, the most a "
+                              "policy holds")
+    return text
 
 
 def _bundle_flags(decorators: list[ast.expr]) -> bool | None:
@@ -134,6 +149,8 @@ def inspect_policy(text: str, name: str = "policy.py") -> PolicyInfo:
     """Check a policy file without running it: sandbox rules, a top-level ``Policy`` class, literal task
     constants and the bundled methods of ``Policy``. Raises :class:`PolicyLoadError` with a one-line reason."""
     filename = f"<policy {name}>"
+    if len(text) > MAX_POLICY_CHARS:
+        raise PolicyLoadError(f"{name}: {len(text):,} characters; a policy file holds at most {MAX_POLICY_CHARS:,}")
     try:
         tree = check_source(text, filename)
     except PolicyCodeError as exc:
@@ -248,6 +265,25 @@ def _statement_names(node: ast.stmt) -> list[str]:
     return [t.id for target in targets for t in ast.walk(target) if isinstance(t, ast.Name)]
 
 
+_LINE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n)|[^\r\n]+$")
+
+
+def _source_lines(text: str) -> list[str]:
+    """``text``'s lines with their ends, as the parser numbers them (``\n``, ``\r\n`` or ``\r`` ends a line; a
+    form feed does not, as it does for ``str.splitlines``)."""
+    return _LINE.findall(text)
+
+
+def _segment(lines: list[str], node: ast.AST) -> str:
+    """``ast.get_source_segment`` of ``node`` from lines split once (it splits the whole text again at each call:
+    a script of 20,000 statements took 47 s). Column offsets are in UTF-8 bytes."""
+    first, last = node.lineno - 1, node.end_lineno - 1
+    if first == last:
+        return lines[first].encode()[node.col_offset:node.end_col_offset].decode()
+    return (lines[first].encode()[node.col_offset:].decode() + "".join(lines[first + 1:last])
+            + lines[last].encode()[:node.end_col_offset].decode())
+
+
 def policy_from_script(text: str, name: str = "script.py", game: str | None = None) -> ExtractedPolicy:
     """The policy file inside a Trace training script (or any module that defines ``class Policy``), found
     without running anything: the imports policy code may make, ``Policy`` and the top-level definitions it uses,
@@ -277,12 +313,12 @@ def policy_from_script(text: str, name: str = "script.py", game: str | None = No
         wanted.add(id(node))
         used = {n.id for n in ast.walk(node) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
         pending.extend(definitions[u] for u in used if u in definitions)
-    lines = text.splitlines(True)
+    lines = _source_lines(text)
     parts, kept, dropped = [], [], []
     imports_end = 0
     for node in tree.body:
-        segment = ast.get_source_segment(text, node) or ""
         if isinstance(node, (ast.Import, ast.ImportFrom)):
+            segment = _segment(lines, node)
             try:
                 check_source(segment)
             except PolicyCodeError:

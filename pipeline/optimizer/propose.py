@@ -289,12 +289,12 @@ def _ask(store: Store, state: "RunState", iteration: int, client: LLMClient, ite
     requests are on their way, and taken again for the recording."""
     try:
         _complete_all(state, iteration, client, items, meanwhile=hold.release if hold is not None else None)
-        if hold is not None:
-            hold.take()
-        for item in items:
+        for item in items:  # before the store is taken back: other processes may read it while a reply is read
             if item.reply is not None:
                 item.text = item.reply.text
                 item.parse()
+        if hold is not None:
+            hold.take()
         record_calls(store, state.run_id, iteration, client, items)
     finally:
         release_budget(state, reservation)

@@ -35,6 +35,8 @@ import textwrap
 from dataclasses import dataclass
 from itertools import islice
 
+from tracing.policy_file import MAX_POLICY_CHARS
+
 MAX_REPLY_CHARS = 1_000_000
 MAX_NESTING = 3
 """How many levels below the top an answer nested under invented keys is looked for."""
@@ -49,7 +51,10 @@ reply schema, as is; ``parsed``, a reply in a format the prompt asks for, as is 
 ```python blocks); ``repaired``, read only after recovering a near-miss (:attr:`Reading.repairs` says which);
 ``unusable``, nothing could be read (``llm_calls.parse_error`` says why)."""
 
-_FENCE = re.compile(r"```[ \t]*([A-Za-z0-9_+-]*)[^\n]*\n(.*?)(?:```|\Z)", re.DOTALL)
+_FENCE = re.compile(r"```[ \t]*+([A-Za-z0-9_+-]*+)[^\n`]*+\n(.*?)(?:```|\Z)", re.DOTALL)
+"""A fenced code block: its language and its body (to the closing fence, or the end of a reply cut off). Nothing is
+given back once taken and an info string holds no backtick (CommonMark's rule), so each fence costs the length of
+its own line: with ``[^\n]*`` a line of 999,000 backticks took each fence to the end of the line, 12 minutes."""
 _KEY_PREFIXES = ("__code:", "code:", "__code_", "__")
 _TRACE_VARIABLE = re.compile(r"code\d*")
 _TRAILING_COMMA = re.compile(r",(\s*[}\]])")
@@ -213,10 +218,21 @@ def _method_name(key: str) -> str:
     return key
 
 
+def _parsed(code: str) -> ast.Module:
+    """``ast.parse`` of code from a reply (this process parses it: see :data:`MAX_POLICY_CHARS`); a piece longer
+    than a policy may be is refused unparsed (:class:`ReplyParseError`)."""
+    if len(code) > MAX_POLICY_CHARS:
+        raise ReplyParseError(f"the reply's code is {len(code):,} characters long, more than a whole policy may hold "
+                              f"({MAX_POLICY_CHARS:,})")
+    return ast.parse(code)
+
+
 def _def_name(source: str) -> str | None:
     """The name of the one function ``source`` defines (dedented), or None."""
     try:
-        tree = ast.parse(textwrap.dedent(source))
+        tree = _parsed(textwrap.dedent(source))
+    except ReplyParseError:
+        raise
     except (SyntaxError, ValueError, RecursionError, MemoryError):
         match = re.match(r"\s*(?:async\s+)?def\s+([A-Za-z_]\w*)\s*\(", source)
         return match.group(1) if match else None
@@ -273,14 +289,17 @@ def _from_json(text: str) -> tuple[dict[str, str], tuple[str, ...]] | None:
 # --- code ---------------------------------------------------------------------------------------------------
 
 
-def _defs_in_code(code: str) -> dict[str, str] | None:
-    """Each function ``code`` defines at its top level or in a class, by name; None if it does not parse or
-    defines none."""
-    code = textwrap.dedent(code)
-    try:
-        tree = ast.parse(code)
-    except (SyntaxError, ValueError, RecursionError, MemoryError):
-        return None
+def _defs_in_code(code: str, tree: ast.Module | None = None) -> dict[str, str] | None:
+    """Each function ``code`` (dedented, or parsed already as ``tree``) defines at its top level or in a class, by
+    name; None if it does not parse or defines none."""
+    if tree is None:
+        code = textwrap.dedent(code)
+        try:
+            tree = _parsed(code)
+        except ReplyParseError:
+            raise
+        except (SyntaxError, ValueError, RecursionError, MemoryError):
+            return None
     lines = code.splitlines(True)
     nodes = []
     for node in tree.body:
@@ -304,11 +323,13 @@ def _from_code_blocks(text: str) -> dict[str, str] | None:
     for body in blocks:
         body = textwrap.dedent(body)
         try:
-            ast.parse(body)
+            tree = _parsed(body)
+        except ReplyParseError:
+            raise
         except (SyntaxError, ValueError, RecursionError, MemoryError) as exc:
             errors.append(f"a code block does not parse ({type(exc).__name__}: {getattr(exc, 'msg', exc)})")
             continue
-        parsed.update(_defs_in_code(body) or {})
+        parsed.update(_defs_in_code(body, tree) or {})
     if parsed:
         return parsed
     if errors:

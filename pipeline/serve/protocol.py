@@ -80,12 +80,11 @@ from store.serve import served_submissions, submission_episodes, visible_query
 from store.views import QueryError
 from store.writer import (EpisodeWriter, finish_run, insert_candidate, insert_feedback, insert_iteration,
                           insert_policy_version, replace_audits)
-from tracing.policy_file import PolicyLoadError
+from tracing.policy_file import MAX_POLICY_CHARS, PolicyLoadError
 
 KIND = "serve"
 TRAIN_SEED_LOW = 100_000
 """Training seeds are drawn from ``TRAIN_SEED_LOW`` to ``AUDIT_SEED_BASE``: six digits, below every sealed seed."""
-MAX_POLICY_CHARS = 200_000
 MAX_FEEDBACK_STEPS = 200
 MAX_SQL_ROWS = 500
 MAX_SQL_BYTES = 1_000_000
@@ -171,6 +170,7 @@ class ServeRun:
         self.finalized = finalized
         self._lock = threading.Lock()
         self._work = threading.Lock()
+        self._parsing = threading.Lock()
 
     # ------------------------------------------------------------------------------------------- reading
 
@@ -250,6 +250,15 @@ class ServeRun:
 
     # ------------------------------------------------------------------------------------------- submitting
 
+    def _refuse_if_closed(self, episodes: int) -> None:
+        """RequestError if the run takes no more submissions, or not one of ``episodes`` episodes (under
+        ``_lock``)."""
+        if self.finalized:
+            raise RequestError("the run is finalized: it takes no more submissions")
+        left = self.budget_total - self._spent - self._reserved
+        if episodes > left:
+            raise RequestError(f"budget: {episodes} episodes asked, {left} left")
+
     def submit(self, instances: list[int], policy: str | None = None, parent: int | None = None,
                path: str | None = None) -> dict[str, Any]:
         """Play ``policy`` (the file's text, or ``path``: a file of the workspace) on ``instances`` (see the module
@@ -275,18 +284,18 @@ class ServeRun:
             raise RequestError(f"instances: {len(instances)} asked, at most {s['per_submission']} per submission")
         if parent is not None and (not isinstance(parent, int) or isinstance(parent, bool) or parent < 0):
             raise RequestError("parent: a submission's number (0: the starting policy)")
+        with self._lock:  # refused before its text is parsed, which costs this process ~1 KB a character
+            self._refuse_if_closed(len(instances))
         try:
-            info = checked_inspect(policy, "policy.py")
+            with self._parsing:  # one at a time: concurrent submissions' parse trees would add up (32 of 200,000
+                # characters held 2 GB)
+                info = checked_inspect(policy, "policy.py")
         except (PolicyLoadError, SyntaxError, ValueError) as exc:
             raise RequestError(f"policy: {str(exc)[:2000]}") from None
         if info.game is not None and get_game(info.game).name != self.game.name:
             raise RequestError(f"policy: its GAME is {info.game}, and this run plays {self.game.name}")
         with self._lock:
-            if self.finalized:
-                raise RequestError("the run is finalized: it takes no more submissions")
-            left = self.budget_total - self._spent - self._reserved
-            if len(instances) > left:
-                raise RequestError(f"budget: {len(instances)} episodes asked, {left} left")
+            self._refuse_if_closed(len(instances))
             if parent is not None and parent not in self._committed:
                 raise RequestError(f"parent: submission {parent} has no result (yet)")
             self._reserved += len(instances)
