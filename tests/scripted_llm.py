@@ -24,6 +24,8 @@ forked along). The script is a JSON list consumed one entry per request (the las
   the error's text);
 - ``{"sleep": seconds, "content": ...}``: reply late (to exercise time-outs);
 - ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
+- ``"repeat": n`` beside ``content``: the content n times over (a huge reply from a small script); ``"gzip": true``:
+  the body gzip-compressed (``Content-Encoding: gzip``) whatever the request accepts;
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
 - ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
   candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call);
@@ -42,6 +44,7 @@ tests can read what the loop sent.
 
 from __future__ import annotations
 
+import gzip
 import hashlib
 import json
 import random
@@ -354,7 +357,7 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             if "raw" in entry:
                 self._send(200, entry["raw"].encode("latin-1"))
                 return
-            content = entry.get("content", "")
+            content = entry.get("content", "") * entry.get("repeat", 1)
             if entry.get("echo_prompt"):
                 digest = hashlib.sha256(json.dumps(messages, sort_keys=True).encode()).hexdigest()
                 content = f"prompt {digest}"
@@ -365,7 +368,7 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             if request.get("stream"):
                 self._stream(_sse_events(protocol, body, request))
                 return
-            self._send(200, json.dumps(body).encode())
+            self._send(200, json.dumps(body).encode(), gzipped=entry.get("gzip", False))
 
         def _stream(self, events: list[tuple[str | None, str]]):
             self.send_response(200)
@@ -377,9 +380,12 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
                 self.wfile.flush()
             self.close_connection = True
 
-        def _send(self, status: int, body: bytes):
+        def _send(self, status: int, body: bytes, gzipped: bool = False):
             self.send_response(status)
             self.send_header("Content-Type", "application/json")
+            if gzipped:  # whatever the request accepts, as a hostile endpoint would
+                body = gzip.compress(body, 9)
+                self.send_header("Content-Encoding", "gzip")
             self.send_header("Content-Length", str(len(body)))
             self.end_headers()
             self.wfile.write(body)

@@ -404,3 +404,51 @@ def test_waiting_line_shows_time_and_streamed_tokens():
     assert "iteration 3: waiting for anthropic/claude-sonnet-4-5 ... 1 s" in shown
     assert "receiving: 3 tokens (24 characters)" in shown
     assert shown.endswith("\r\033[K"), "the line is cleared when the reply is in"
+
+
+_ASK_ONCE = """
+import json, sys
+sys.path.insert(0, sys.argv[3])
+from pipeline.llm.client import LiteLLMClient, LLMError
+client = LiteLLMClient(sys.argv[1], api_base=sys.argv[2], api_key="sk-test", retries=0, backoff_s=0.01,
+                       structured=False)
+try:
+    answer = {"text": client.complete([{"role": "user", "content": "hi"}]).text[:100]}
+except LLMError as exc:
+    answer = {"error_type": exc.error_type, "message": exc.message}
+with open("/proc/self/status") as f:
+    answer["peak_mb"] = next(int(l.split()[1]) for l in f if l.startswith("VmHWM:")) / 1024
+print(json.dumps(answer))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("provider", ["openai", "anthropic", "ollama_chat", "gemini"])
+def test_an_endpoint_s_answer_is_read_within_its_byte_limit_compressed_or_not(scripted, provider):
+    """litellm reads a whole HTTP answer, and inflates a gzip one, before codearcade sees a reply: 416 KB of gzip
+    that inflates to 200 MB held ~1.9 GB in optimize's process. Through each provider's real adapter (the OpenAI
+    SDK's httpx2, litellm's own httpx handler), against a server that compresses whatever it is asked: a small
+    gzip answer is read as ever; one that inflates to 4 times MAX_ANSWER_BYTES, or a plain answer that long, is a
+    failed call that says why, read no further than the limit (the child's peak RSS, against the small answer's)."""
+    from pipeline.llm.capped import MAX_ANSWER_BYTES
+
+    filler = "def a(): pass\n"
+    repeat = 4 * MAX_ANSWER_BYTES // len(filler)
+    model = scripted([{"content": "small and compressed", "gzip": True},
+                      {"content": filler, "repeat": repeat, "gzip": True},
+                      {"content": filler, "repeat": repeat}])
+    name, base = model.route(provider)
+
+    def ask() -> dict:
+        done = subprocess.run([sys.executable, "-c", _ASK_ONCE, name, base, str(ROOT)], capture_output=True,
+                              text=True, timeout=300, env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    small = ask()
+    assert small.get("text") == "small and compressed", small
+    for how in ("gzip", "plain"):
+        answer = ask()
+        assert answer.get("error_type") == "AnswerTooLarge", (how, answer)
+        assert f"passed {MAX_ANSWER_BYTES:,} bytes" in answer["message"] and "asked at" in answer["message"], answer
+        assert answer["peak_mb"] < small["peak_mb"] + 4 * MAX_ANSWER_BYTES / 2**20, (how, answer, small)

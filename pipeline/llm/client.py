@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
+from pipeline.llm.capped import capped, too_large
 from pipeline.llm.providers import LOCAL_SERVER_PROVIDERS, OFFLINE_CHARS_PER_TOKEN, OFFLINE_REASONING_CHARS, \
     ReplyLimits, reply_format, reply_schema, with_cache_breakpoint
 from pipeline.llm.providers import request_params as provider_request_params
@@ -235,10 +236,16 @@ class LiteLLMClient:
         while True:
             attempt += 1
             try:
-                response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
-                if params.get("stream"):
-                    response = self._collect(response, sent, on_text)
+                with capped():  # the answer is read, and inflated, within MAX_ANSWER_BYTES
+                    response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
+                    if params.get("stream"):
+                        response = self._collect(response, sent, on_text)
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
+                large = too_large(exc)
+                if large is not None:  # not retried: the same endpoint would send the same again
+                    message = str(large) + (f" (asked at {_without_credentials(self.api_base)})" if self.api_base
+                                            else "")
+                    raise LLMError("AnswerTooLarge", message, attempt, False, time.monotonic() - start) from None
                 name = _error_name(exc)
                 if self.structured and _refuses_reply_format(name, exc):
                     # a server that does not take the reply schema: ask again without it (not a retry), and

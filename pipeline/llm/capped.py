@@ -1,0 +1,148 @@
+"""The bytes an LLM endpoint's answer may hold, bounded while it is read, compressed or not.
+
+litellm reads a provider's whole HTTP answer (and inflates a gzip one) before codearcade sees the reply: an
+endpoint that answered 200 MB, or 416 KB of gzip that inflates to it, held ~1.9 GB in ``optimize``'s process,
+whatever ``--max-tokens`` asked for. While :func:`capped` is active in a thread, every response that thread reads
+through ``httpx`` (litellm's own handler: Anthropic, Ollama, Gemini, ...) or ``httpx2`` (the OpenAI SDK's) is
+decoded by :class:`CappedDecoder`: identity, gzip or deflate, inflated a slice at a time, and
+:class:`AnswerTooLarge` raised as soon as the answer passes the limit, raw or inflated (any other encoding is
+refused: a provider asked by httpx for gzip or deflate sends one of those). Outside :func:`capped` the libraries
+decode as they always do.
+
+The hook is the response's ``_get_content_decoder``, the one place both libraries choose how to decode a body;
+``tests/test_providers.py`` checks it against real servers speaking the OpenAI and Anthropic protocols.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import importlib
+import zlib
+from typing import Iterator
+
+MAX_ANSWER_BYTES = 16 * 2**20
+"""The most an LLM endpoint's answer may hold, inflated: a reply of ``MAX_REPLY_CHARS`` (1,000,000 characters) in
+JSON with every character escaped, or a stream of ~100,000 tokens, each its own event."""
+
+_LIMIT: contextvars.ContextVar[int | None] = contextvars.ContextVar("codearcade_answer_limit", default=None)
+
+
+class AnswerTooLarge(Exception):
+    """An endpoint's answer past :data:`MAX_ANSWER_BYTES` (or in an encoding this module does not inflate)."""
+
+
+class CappedDecoder:
+    """Decodes one response body (identity, gzip or deflate) and counts what it has read and made."""
+
+    def __init__(self, encodings: list[str], limit: int) -> None:
+        encodings = [e.strip().lower() for e in encodings if e.strip().lower() not in ("", "identity")]
+        if len(encodings) > 1 or (encodings and encodings[0] not in ("gzip", "x-gzip", "deflate")):
+            raise AnswerTooLarge(f"the endpoint answered with content encoding {', '.join(encodings)!r}, which "
+                                 "codearcade does not read")
+        self.limit = limit
+        self.raw = self.made = 0
+        # 47: a gzip or zlib header, whichever the body has (servers send both for "deflate")
+        self.inflater = zlib.decompressobj(47) if encodings else None
+
+    def _count(self, made: int) -> None:
+        self.made += made
+        if self.made > self.limit or self.raw > self.limit:
+            raise AnswerTooLarge(f"the endpoint's answer passed {self.limit:,} bytes"
+                                 + (f" (from {self.raw:,} compressed)" if self.inflater is not None else "")
+                                 + ": no reply is that long; is --api-base an LLM endpoint?")
+
+    def chunks(self, data: bytes) -> Iterator[bytes]:
+        self.raw += len(data)
+        if self.inflater is None:
+            self._count(len(data))
+            yield data
+            return
+        while data:
+            try:
+                out = self.inflater.decompress(data, 1 << 16)  # a slice at a time: a bomb never inflates whole
+            except zlib.error as exc:
+                raise AnswerTooLarge(f"the endpoint's compressed answer is broken ({exc})") from None
+            self._count(len(out))
+            yield out
+            data = self.inflater.unconsumed_tail
+
+    def rest(self) -> bytes:
+        if self.inflater is None:
+            return b""
+        out = self.inflater.flush()
+        self._count(len(out))
+        return out
+
+
+class _BytesDecoder:
+    """``httpx``'s decoder interface: ``decode`` and ``flush`` return bytes."""
+
+    def __init__(self, capped: CappedDecoder) -> None:
+        self.capped = capped
+
+    def decode(self, data: bytes) -> bytes:
+        return b"".join(self.capped.chunks(data))
+
+    def flush(self) -> bytes:
+        return self.capped.rest()
+
+
+class _ChunksDecoder:
+    """``httpx2``'s decoder interface: ``decode`` and ``flush`` return iterables of bytes."""
+
+    def __init__(self, capped: CappedDecoder) -> None:
+        self.capped = capped
+
+    def decode(self, data: bytes) -> Iterator[bytes]:
+        return self.capped.chunks(data)
+
+    def flush(self) -> list[bytes]:
+        return [self.capped.rest()]
+
+
+def _install(module_name: str, adapter: type) -> None:
+    """Wrap ``module_name``'s ``Response._get_content_decoder`` (once): capped while :func:`capped` is active."""
+    try:
+        response = importlib.import_module(module_name).Response
+    except ImportError:
+        return
+    original = response._get_content_decoder
+    if getattr(original, "_codearcade_capped", False):
+        return
+
+    def decoder(self):  # noqa: ANN001 - the library's Response
+        limit = _LIMIT.get()
+        if limit is None:
+            return original(self)
+        if not hasattr(self, "_decoder"):
+            self._decoder = adapter(CappedDecoder(self.headers.get_list("content-encoding", split_commas=True),
+                                                  limit))
+        return self._decoder
+
+    decoder._codearcade_capped = True
+    response._get_content_decoder = decoder
+
+
+@contextlib.contextmanager
+def capped(limit: int = MAX_ANSWER_BYTES) -> Iterator[None]:
+    """Within the block, every HTTP answer this thread reads through httpx or httpx2 holds at most ``limit``
+    bytes (see the module docstring)."""
+    _install("httpx", _BytesDecoder)
+    _install("httpx2", _ChunksDecoder)
+    token = _LIMIT.set(limit)
+    try:
+        yield
+    finally:
+        _LIMIT.reset(token)
+
+
+def too_large(exc: BaseException) -> AnswerTooLarge | None:
+    """The :class:`AnswerTooLarge` behind ``exc`` (a library may wrap it as a connection error), or None."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, AnswerTooLarge):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
