@@ -25,7 +25,8 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``{"sleep": seconds, "content": ...}``: reply late (to exercise time-outs);
 - ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
 - ``"repeat": n`` beside ``content``: the content n times over (a huge reply from a small script); ``"gzip": true``:
-  the body gzip-compressed (``Content-Encoding: gzip``) whatever the request accepts;
+  the body gzip-compressed (``Content-Encoding: gzip``) whatever the request accepts; ``"extra_dicts": n``: a field
+  of n empty objects beside the reply; ``"empty_events": n``: n events of ``{}`` after a stream's first;
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
 - ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
   candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call);
@@ -365,8 +366,11 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             input_tokens = usage.get("input", sum(len(m["content"].split()) for m in messages))
             output_tokens = usage.get("output", len(content.split()))
             body = _reply_body(protocol, request, content, count, input_tokens, output_tokens, cache)
+            if entry.get("extra_dicts"):  # a field no reply needs, costly to parse: [{}, {}, ...]
+                body["x"] = [{}] * entry["extra_dicts"]
             if request.get("stream"):
-                self._stream(_sse_events(protocol, body, request))
+                events = _sse_events(protocol, body, request)
+                self._stream(events[:1] + [(None, "{}")] * entry.get("empty_events", 0) + events[1:])
                 return
             self._send(200, json.dumps(body).encode(), gzipped=entry.get("gzip", False))
 

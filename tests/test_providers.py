@@ -411,7 +411,7 @@ import json, sys
 sys.path.insert(0, sys.argv[3])
 from pipeline.llm.client import LiteLLMClient, LLMError
 client = LiteLLMClient(sys.argv[1], api_base=sys.argv[2], api_key="sk-test", retries=0, backoff_s=0.01,
-                       structured=False)
+                       structured=False, stream=len(sys.argv) > 4)
 try:
     answer = {"text": client.complete([{"role": "user", "content": "hi"}]).text[:100]}
 except LLMError as exc:
@@ -452,3 +452,36 @@ def test_an_endpoint_s_answer_is_read_within_its_byte_limit_compressed_or_not(sc
         assert answer.get("error_type") == "AnswerTooLarge", (how, answer)
         assert f"passed {MAX_ANSWER_BYTES:,} bytes" in answer["message"] and "asked at" in answer["message"], answer
         assert answer["peak_mb"] < small["peak_mb"] + 4 * MAX_ANSWER_BYTES / 2**20, (how, answer, small)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("provider", ["openai", "anthropic"])
+def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events(scripted, provider):
+    """Bytes alone do not bound a parse: 16 KB of gzip inflating to 5.5 million `{}` (16 MB, inside the byte
+    limit) held ~1 GB a call, and 300,000 empty stream events (6 KB of gzip) took 115 s and 830 MB. A JSON answer
+    holds at most MAX_ANSWER_ELEMENTS elements and a stream at most max_events() events (litellm reads past empty
+    ones without a chunk: they are counted as they arrive): past them the call fails
+    saying why, its child's peak near a small answer's; an honest stream still reads."""
+    from pipeline.llm.capped import MAX_ANSWER_ELEMENTS
+
+    model = scripted([{"content": "a small reply"}, {"content": "a small reply"},
+                      {"content": "a small reply", "extra_dicts": 2 * MAX_ANSWER_ELEMENTS, "gzip": True},
+                      {"content": "a small reply", "empty_events": 80_000}])
+    name, base = model.route(provider)
+
+    def ask(*stream: str) -> dict:
+        done = subprocess.run([sys.executable, "-c", _ASK_ONCE, name, base, str(ROOT), *stream], capture_output=True,
+                              text=True, timeout=300, env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    small, streamed = ask(), ask("stream")
+    assert small.get("text") == streamed.get("text") == "a small reply", (small, streamed)
+    elements = ask()
+    assert elements.get("error_type") == "AnswerTooLarge", elements
+    assert f"more than {MAX_ANSWER_ELEMENTS:,} JSON elements" in elements["message"], elements
+    assert elements["peak_mb"] < small["peak_mb"] + 150, (elements, small)
+    events = ask("stream")
+    assert events.get("error_type") == "AnswerTooLarge" and "stream passed 20,000 events" in events["message"], \
+        events
+    assert events["peak_mb"] < streamed["peak_mb"] + 150, (events, streamed)

@@ -6,8 +6,11 @@ whatever ``--max-tokens`` asked for. While :func:`capped` is active in a thread,
 through ``httpx`` (litellm's own handler: Anthropic, Ollama, Gemini, ...) or ``httpx2`` (the OpenAI SDK's) is
 decoded by :class:`CappedDecoder`: identity, gzip or deflate, inflated a slice at a time, and
 :class:`AnswerTooLarge` raised as soon as the answer passes the limit, raw or inflated (any other encoding is
-refused: a provider asked by httpx for gzip or deflate sends one of those). Outside :func:`capped` the libraries
-decode as they always do.
+refused: a provider asked by httpx for gzip or deflate sends one of those), or a JSON answer holds more elements
+than a reply could (:data:`MAX_ANSWER_ELEMENTS`: what its parse holds depends on those, not on bytes), or an
+event stream more events than its reply could take (each costs litellm ~0.4 ms and a few KB, an empty one too:
+300,000 of ``{}``, 6 KB of gzip, took 115 s and 830 MB). Outside :func:`capped` the libraries decode as they
+always do.
 
 The hook is the response's ``_get_content_decoder``, the one place both libraries choose how to decode a body;
 ``tests/test_providers.py`` checks it against real servers speaking the OpenAI and Anthropic protocols.
@@ -24,8 +27,15 @@ from typing import Iterator
 MAX_ANSWER_BYTES = 16 * 2**20
 """The most an LLM endpoint's answer may hold, inflated: a reply of ``MAX_REPLY_CHARS`` (1,000,000 characters) in
 JSON with every character escaped, or a stream of ~100,000 tokens, each its own event."""
+MAX_ANSWER_ELEMENTS = 250_000
+"""The most ``{``, ``[`` and ``,`` a JSON answer (not an event stream: each of its events is parsed on its own,
+and ``LiteLLMClient`` counts them) may hold. A reply's own text is one JSON string, whose code has a few per cent
+of them; ``[{},{},…]`` in 16 KB of gzip (16 MB inflated) was 5.5 million dicts, ~1 GB a call, the SDK's models
+built from it included. At this count the parse holds ~100 MB at most."""
 
-_LIMIT: contextvars.ContextVar[int | None] = contextvars.ContextVar("codearcade_answer_limit", default=None)
+_LIMIT: contextvars.ContextVar[tuple[int, int] | None] = contextvars.ContextVar("codearcade_answer_limit",
+                                                                                 default=None)
+"""While :func:`capped` is active: (the bytes, the events of a stream) an answer may hold."""
 
 
 class AnswerTooLarge(Exception):
@@ -35,27 +45,42 @@ class AnswerTooLarge(Exception):
 class CappedDecoder:
     """Decodes one response body (identity, gzip or deflate) and counts what it has read and made."""
 
-    def __init__(self, encodings: list[str], limit: int) -> None:
+    def __init__(self, encodings: list[str], limit: int, elements: int | None = MAX_ANSWER_ELEMENTS,
+                 events: int | None = None) -> None:
         encodings = [e.strip().lower() for e in encodings if e.strip().lower() not in ("", "identity")]
         if len(encodings) > 1 or (encodings and encodings[0] not in ("gzip", "x-gzip", "deflate")):
             raise AnswerTooLarge(f"the endpoint answered with content encoding {', '.join(encodings)!r}, which "
                                  "codearcade does not read")
         self.limit = limit
-        self.raw = self.made = 0
+        self.elements = elements
+        """How many ``{``, ``[`` and ``,`` the answer may hold (None: an event stream, counted by events)."""
+        self.events = events
+        """How many events (``data:`` lines) an event stream may hold (litellm reads past empty ones unseen)."""
+        self.raw = self.made = self.seen_elements = self.seen_events = 0
         # 47: a gzip or zlib header, whichever the body has (servers send both for "deflate")
         self.inflater = zlib.decompressobj(47) if encodings else None
 
-    def _count(self, made: int) -> None:
-        self.made += made
+    def _count(self, out: bytes) -> None:
+        self.made += len(out)
         if self.made > self.limit or self.raw > self.limit:
             raise AnswerTooLarge(f"the endpoint's answer passed {self.limit:,} bytes"
                                  + (f" (from {self.raw:,} compressed)" if self.inflater is not None else "")
                                  + ": no reply is that long; is --api-base an LLM endpoint?")
+        if self.elements is not None:
+            self.seen_elements += out.count(b"{") + out.count(b"[") + out.count(b",")
+            if self.seen_elements > self.elements:
+                raise AnswerTooLarge(f"the endpoint's answer holds more than {self.elements:,} JSON elements: no "
+                                     "reply has that many; is --api-base an LLM endpoint?")
+        if self.events is not None:
+            self.seen_events += out.count(b"data:")  # a field name split across two reads is not counted: one
+            if self.seen_events > self.events:
+                raise AnswerTooLarge(f"the endpoint's stream passed {self.events:,} events: no reply of the "
+                                     "tokens asked for takes that many; is --api-base an LLM endpoint?")
 
     def chunks(self, data: bytes) -> Iterator[bytes]:
         self.raw += len(data)
         if self.inflater is None:
-            self._count(len(data))
+            self._count(data)
             yield data
             return
         while data:
@@ -63,7 +88,7 @@ class CappedDecoder:
                 out = self.inflater.decompress(data, 1 << 16)  # a slice at a time: a bomb never inflates whole
             except zlib.error as exc:
                 raise AnswerTooLarge(f"the endpoint's compressed answer is broken ({exc})") from None
-            self._count(len(out))
+            self._count(out)
             yield out
             data = self.inflater.unconsumed_tail
 
@@ -71,7 +96,7 @@ class CappedDecoder:
         if self.inflater is None:
             return b""
         out = self.inflater.flush()
-        self._count(len(out))
+        self._count(out)
         return out
 
 
@@ -112,12 +137,15 @@ def _install(module_name: str, adapter: type) -> None:
         return
 
     def decoder(self):  # noqa: ANN001 - the library's Response
-        limit = _LIMIT.get()
-        if limit is None:
+        limits = _LIMIT.get()
+        if limits is None:
             return original(self)
         if not hasattr(self, "_decoder"):
+            limit, events = limits
+            stream = "text/event-stream" in self.headers.get("content-type", "").lower()
             self._decoder = adapter(CappedDecoder(self.headers.get_list("content-encoding", split_commas=True),
-                                                  limit))
+                                                  limit, None if stream else MAX_ANSWER_ELEMENTS,
+                                                  events if stream else None))
         return self._decoder
 
     decoder._codearcade_capped = True
@@ -125,12 +153,12 @@ def _install(module_name: str, adapter: type) -> None:
 
 
 @contextlib.contextmanager
-def capped(limit: int = MAX_ANSWER_BYTES) -> Iterator[None]:
+def capped(limit: int = MAX_ANSWER_BYTES, events: int = 20_000) -> Iterator[None]:
     """Within the block, every HTTP answer this thread reads through httpx or httpx2 holds at most ``limit``
-    bytes (see the module docstring)."""
+    bytes, and an event stream at most ``events`` events (see the module docstring)."""
     _install("httpx", _BytesDecoder)
     _install("httpx2", _ChunksDecoder)
-    token = _LIMIT.set(limit)
+    token = _LIMIT.set((limit, events))
     try:
         yield
     finally:

@@ -236,10 +236,10 @@ class LiteLLMClient:
         while True:
             attempt += 1
             try:
-                with capped():  # the answer is read, and inflated, within MAX_ANSWER_BYTES
+                with capped(events=self.max_events()):  # read, and inflated, within MAX_ANSWER_BYTES
                     response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
                     if params.get("stream"):
-                        response = self._collect(response, sent, on_text)
+                        response = self._collect(response, sent, on_text, time.monotonic())
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
                 large = too_large(exc)
                 if large is not None:  # not retried: the same endpoint would send the same again
@@ -265,12 +265,20 @@ class LiteLLMClient:
                 continue
             return self._reply(response, attempt, time.monotonic() - start)
 
-    def _collect(self, chunks: Any, sent: list[dict[str, Any]], on_text: Callable[[str], None] | None) -> Any:
-        """A streamed reply, read to its end (pieces of text to ``on_text``) and built into one response."""
+    def _collect(self, chunks: Any, sent: list[dict[str, Any]], on_text: Callable[[str], None] | None,
+                 began: float) -> Any:
+        """A streamed reply, read to its end (pieces of text to ``on_text``) and built into one response, no longer
+        than the call's time limit in all (httpx's is per read: an endpoint that sent an event just inside it would
+        never be let go; how many events it may send, :func:`capped` counts)."""
         received = []
         for chunk in chunks:
-            received.append(chunk)
-            for choice in getattr(chunk, "choices", None) or []:
+            if time.monotonic() - began > self.timeout_s:
+                raise self.litellm.Timeout(f"the stream went on past the call's time limit of {self.timeout_s:g} s",
+                                           self.model, self.provider)
+            choices = getattr(chunk, "choices", None) or []
+            if choices or getattr(chunk, "usage", None) is not None:  # an empty event adds nothing to the reply
+                received.append(chunk)
+            for choice in choices:
                 piece = getattr(getattr(choice, "delta", None), "content", None)
                 if piece and on_text is not None:
                     on_text(piece)
@@ -278,6 +286,11 @@ class LiteLLMClient:
         if response is None:
             raise self.litellm.APIError(500, "the stream ended without a reply", self.provider, self.model)
         return response
+
+    def max_events(self) -> int:
+        """The events a streamed answer may hold (``pipeline.llm.capped``): four a token of ``max_tokens``
+        (providers send a token or less an event, and some events carry none), at least 20,000."""
+        return max(20_000, 4 * self.max_tokens)
 
     def _reply(self, response: Any, attempts: int, latency_s: float) -> LLMReply:
         choice = response.choices[0] if response.choices else None
