@@ -205,9 +205,12 @@ def test_resume_honours_the_token_budget_given(store, scripted, tmp_path, capfd)
 
 
 @pytest.mark.slow
-def test_a_huge_candidate_that_validates_does_not_end_the_run(store, scripted, capfd):
-    # 400 KB of docstring: a valid method, under the reply limit, that no later prompt could show
-    huge = ('def select_action(self, predicted_ball_y, obs):\n    """' + "word " * 80_000 + '"""\n'
+@pytest.mark.parametrize("words, why", [
+    (36_000, "keep the methods short"),  # 180 KB of docstring: a valid method no later prompt could show
+    (80_000, "a policy file holds at most 200,000"),  # 400 KB: longer than any policy (MAX_POLICY_CHARS)
+])
+def test_a_huge_candidate_that_validates_does_not_end_the_run(store, scripted, capfd, words, why):
+    huge = ('def select_action(self, predicted_ball_y, obs):\n    """' + "word " * words + '"""\n'
             '    return 0\n')
     model = scripted([json_reply({"select_action": huge})])
     code = main(["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
@@ -217,6 +220,6 @@ def test_a_huge_candidate_that_validates_does_not_end_the_run(store, scripted, c
     assert code == 0, err[-2000:]
     rows = store.query("SELECT update_status FROM iterations WHERE iteration > 0 ORDER BY iteration")
     assert rows == [("rejected",), ("rejected",)]
-    assert "keep the methods short" in store.query("SELECT text FROM feedback WHERE iteration = 1")[0][0]
+    assert why in store.query("SELECT text FROM feedback WHERE iteration = 1")[0][0]
     assert all(t <= 8000 for (t,) in store.query("SELECT prompt_tokens_counted FROM llm_calls"))
-    assert store.query("SELECT DISTINCT purpose FROM llm_calls") == [("update",)], "a 400 KB reply is not sent back"
+    assert store.query("SELECT DISTINCT purpose FROM llm_calls") == [("update",)], "a huge reply is not sent back"
