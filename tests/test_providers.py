@@ -485,3 +485,42 @@ def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events
     assert events.get("error_type") == "AnswerTooLarge" and "stream passed 20,000 events" in events["message"], \
         events
     assert events["peak_mb"] < streamed["peak_mb"] + 150, (events, streamed)
+
+
+def test_the_capped_decoder_inflates_as_zlib_does_in_any_split_and_stops_at_each_limit():
+    """pipeline.llm.capped's decoder, without a server: gzip, deflate (zlib) and identity bodies split at random
+    points decode to exactly the body; each limit (bytes raw or inflated, JSON elements, server-sent events or
+    JSON lines) stops it once passed, never before; an encoding it does not inflate is refused."""
+    import gzip
+    import random
+    import zlib
+
+    from pipeline.llm.capped import AnswerTooLarge, CappedDecoder
+
+    rng = random.Random(11)
+    for _ in range(200):
+        body = bytes(rng.choice(b'{}[],"ab \n') for _ in range(rng.randint(0, 5000)))
+        encoding, packed = rng.choice([("gzip", gzip.compress(body)), ("deflate", zlib.compress(body)),
+                                       ("identity", body)])
+        cuts = sorted(rng.sample(range(len(packed) + 1), min(4, len(packed) + 1)))
+        pieces = [packed[a:b] for a, b in zip([0] + cuts, cuts + [len(packed)])]
+        decoder = CappedDecoder([encoding], 10**9, None)
+        assert b"".join(b"".join(decoder.chunks(p)) for p in pieces) + decoder.rest() == body
+        elements = body.count(b"{") + body.count(b"[") + body.count(b",")
+        for limit in (elements, elements - 1):
+            decoder = CappedDecoder([encoding], 10**9, limit)
+            try:
+                b"".join(b"".join(decoder.chunks(p)) for p in pieces) + decoder.rest()
+                passed = False
+            except AnswerTooLarge:
+                passed = True
+            assert passed == (elements > limit >= 0), (elements, limit)
+    for mark, event in ((b"data:", b"data: {}\n\n"), (b"\n", b'{"done": false}\n')):
+        decoder = CappedDecoder([], 10**9, None, 3, mark)
+        assert list(decoder.chunks(event * 3))
+        with pytest.raises(AnswerTooLarge, match="stream passed 3 events"):
+            list(decoder.chunks(event))
+    with pytest.raises(AnswerTooLarge, match="passed 1,000 bytes"):
+        list(CappedDecoder(["gzip"], 1000).chunks(gzip.compress(b" " * 10**6)))
+    with pytest.raises(AnswerTooLarge, match="content encoding 'br'"):
+        CappedDecoder(["br"], 1000)

@@ -46,7 +46,7 @@ class CappedDecoder:
     """Decodes one response body (identity, gzip or deflate) and counts what it has read and made."""
 
     def __init__(self, encodings: list[str], limit: int, elements: int | None = MAX_ANSWER_ELEMENTS,
-                 events: int | None = None) -> None:
+                 events: int | None = None, event_mark: bytes = b"data:") -> None:
         encodings = [e.strip().lower() for e in encodings if e.strip().lower() not in ("", "identity")]
         if len(encodings) > 1 or (encodings and encodings[0] not in ("gzip", "x-gzip", "deflate")):
             raise AnswerTooLarge(f"the endpoint answered with content encoding {', '.join(encodings)!r}, which "
@@ -56,6 +56,8 @@ class CappedDecoder:
         """How many ``{``, ``[`` and ``,`` the answer may hold (None: an event stream, counted by events)."""
         self.events = events
         """How many events (``data:`` lines) an event stream may hold (litellm reads past empty ones unseen)."""
+        self.event_mark = event_mark
+        """What each event holds once: ``data:`` (server-sent events), a line end (Ollama's JSON lines)."""
         self.raw = self.made = self.seen_elements = self.seen_events = 0
         # 47: a gzip or zlib header, whichever the body has (servers send both for "deflate")
         self.inflater = zlib.decompressobj(47) if encodings else None
@@ -72,7 +74,7 @@ class CappedDecoder:
                 raise AnswerTooLarge(f"the endpoint's answer holds more than {self.elements:,} JSON elements: no "
                                      "reply has that many; is --api-base an LLM endpoint?")
         if self.events is not None:
-            self.seen_events += out.count(b"data:")  # a field name split across two reads is not counted: one
+            self.seen_events += out.count(self.event_mark)  # a mark split across two reads is not counted: one
             if self.seen_events > self.events:
                 raise AnswerTooLarge(f"the endpoint's stream passed {self.events:,} events: no reply of the "
                                      "tokens asked for takes that many; is --api-base an LLM endpoint?")
@@ -142,10 +144,11 @@ def _install(module_name: str, adapter: type) -> None:
             return original(self)
         if not hasattr(self, "_decoder"):
             limit, events = limits
-            stream = "text/event-stream" in self.headers.get("content-type", "").lower()
+            kind = self.headers.get("content-type", "").lower()
+            mark = b"data:" if "event-stream" in kind else b"\n" if "ndjson" in kind or "jsonl" in kind else None
             self._decoder = adapter(CappedDecoder(self.headers.get_list("content-encoding", split_commas=True),
-                                                  limit, None if stream else MAX_ANSWER_ELEMENTS,
-                                                  events if stream else None))
+                                                  limit, None if mark else MAX_ANSWER_ELEMENTS,
+                                                  events if mark else None, mark or b"data:"))
         return self._decoder
 
     decoder._codearcade_capped = True
