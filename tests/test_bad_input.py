@@ -418,3 +418,6 @@ def test_new_from_a_script_of_many_statements_reads_it_in_one_pass(tmp_path, cap
     assert code == 0, err
     assert len(splits) <= 1, f"the script was split {len(splits)} times"
     assert "import math" in (tmp_path / "policy.py").read_text()
+    script.write_text(script.read_text() + "0\n" * 100_000)  # past MAX_POLICY_CHARS: said of a script
+    line = _one_line_error(*_run(capsys, "new", tmp_path / "other.py", "--from", script)[::2])
+    assert f"script '{script}' is longer than 200,000 characters" in line and "a file of their own" in line, line

@@ -109,11 +109,13 @@ class LoadedPolicy:
         return self.info.version_id
 
 
-def read_policy_file(path: str | Path) -> str:
-    """The text of a policy file, with errors that say what to do."""
+def read_policy_file(path: str | Path, kind: str = "policy file") -> str:
+    """The text of a policy file (or of another ``kind`` of file a policy comes from: a Trace script), with errors
+    that say what to do. None is read past :data:`MAX_POLICY_CHARS`: its parse would cost this process ~1 KB a
+    character."""
     p = Path(path)
     if not p.exists():
-        raise PolicyLoadError(f"policy file '{path}' does not exist")
+        raise PolicyLoadError(f"{kind} '{path}' does not exist")
     if p.is_dir():
         raise PolicyLoadError(f"'{path}' is a directory; give a Python file that defines class Policy")
     try:
@@ -124,10 +126,11 @@ def read_policy_file(path: str | Path) -> str:
         if len(data) > 4 * MAX_POLICY_CHARS:
             text = ""  # cut mid-character: too long in any case
         else:
-            raise PolicyLoadError(f"policy file '{path}' is not UTF-8 text") from None
+            raise PolicyLoadError(f"{kind} '{path}' is not UTF-8 text") from None
     if len(data) > 4 * MAX_POLICY_CHARS or len(text) > MAX_POLICY_CHARS:
-        raise PolicyLoadError(f"policy file '{path}' is longer than {MAX_POLICY_CHARS:,} characters, the most a "
-                              "policy holds")
+        advice = "the most a policy holds" if kind == "policy file" else \
+            "the most codearcade reads: put class Policy and what it uses in a file of their own"
+        raise PolicyLoadError(f"{kind} '{path}' is longer than {MAX_POLICY_CHARS:,} characters, {advice}")
     return text
 
 

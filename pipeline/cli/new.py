@@ -61,7 +61,7 @@ def _from_script(args: argparse.Namespace, path) -> int:
     if source.resolve() == path.resolve():
         raise CliError(f"--from {source} is the file to write; name another POLICY.py")
     game = get_game(args.game).name if args.game is not None else None
-    extracted = policy_from_script(read_policy_file(source), source.name, game=game)
+    extracted = policy_from_script(read_policy_file(source, "script"), source.name, game=game)
     info = inspect_policy(extracted.text, path.name)
     if info.game is None:
         raise CliError(f"{source} declares no GAME; say which game it plays with --game G")
