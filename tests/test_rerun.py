@@ -216,3 +216,45 @@ def test_rerun_off_means_no_target(value):
     from viewers.rerun_sinks import resolve_live_target
 
     assert resolve_live_target(value) is None
+
+
+@pytest.mark.slow
+def test_a_served_viewer_ends_with_the_view_that_started_it_however_it_ends(store, tmp_path, capsys):
+    """`view --serve-web` starts `rerun --serve-web` in a session of its own (a terminal's Ctrl-C is the view's to
+    handle). Killed with SIGKILL, the view could not stop it: the server stayed, holding its two ports, found twice
+    after CI runs. It now ends with the view (PR_SET_PDEATHSIG), checked by its process, which must not exist."""
+    import os
+    import re
+    import signal
+    import time
+
+    code = main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "30", "--store", str(store.path), "--json"])
+    run_id = json.loads(capsys.readouterr().out)["run_id"]
+    assert code == 0
+    view = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "view", run_id, "--serve-web", "--store",
+                             str(store.path)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            cwd=ROOT)
+    try:
+        for line in view.stdout:
+            if re.search(r"open http://127\.0\.0\.1:", line):
+                break
+        with open(f"/proc/{view.pid}/task/{view.pid}/children") as f:
+            children = [int(pid) for pid in f.read().split()]
+        servers = [pid for pid in children if b"--serve-web" in open(f"/proc/{pid}/cmdline", "rb").read()]
+        assert len(servers) == 1, children
+        view.send_signal(signal.SIGKILL)
+        view.wait(30)
+        deadline = time.monotonic() + 30
+        while os.path.exists(f"/proc/{servers[0]}") and time.monotonic() < deadline:
+            try:  # reaped by init once it ends; until then a zombie counts as ended
+                if open(f"/proc/{servers[0]}/stat").read().split(")")[-1].split()[0] == "Z":
+                    break
+            except FileNotFoundError:
+                break
+            time.sleep(0.1)
+        alive = os.path.exists(f"/proc/{servers[0]}") and \
+            open(f"/proc/{servers[0]}/stat").read().split(")")[-1].split()[0] != "Z"
+        assert not alive, "the served viewer outlived the view that started it"
+    finally:
+        if view.poll() is None:
+            view.kill()

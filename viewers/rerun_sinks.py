@@ -13,9 +13,12 @@ are the ``rerun`` executable shipped in the rerun-sdk wheel, started as subproce
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import importlib.util
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -127,16 +130,33 @@ class WebViewer:
         self.stop()
 
 
+_LIBC = ctypes.CDLL(None, use_errno=True) if sys.platform.startswith("linux") else None
+"""Opened here, not in a child between fork and exec, where opening a library may wait on a lock another thread held."""
+PR_SET_PDEATHSIG = 1
+
+
+def _ends_with(parent_pid: int) -> None:
+    """In a served viewer's child, before it runs rerun: SIGTERM once the process that started it ends, however it
+    ends (its own session keeps a terminal's Ctrl-C from it, so only this stops it: a ``view --serve-web`` killed
+    with SIGKILL left its server behind, holding two ports). Gone already: end at once."""
+    if _LIBC is not None:
+        _LIBC.prctl(ctypes.c_int(PR_SET_PDEATHSIG), ctypes.c_ulong(signal.SIGTERM), ctypes.c_ulong(0),
+                    ctypes.c_ulong(0), ctypes.c_ulong(0))
+    if os.getppid() != parent_pid:
+        os._exit(1)
+
+
 def start_web_viewer(grpc_port: int | None = None, web_port: int | None = None,
                      server_memory_limit: str = "1GiB", timeout_s: float = 30.0) -> WebViewer:
-    """Start the web viewer and its gRPC server on 127.0.0.1 (free ports near Rerun's defaults)."""
+    """Start the web viewer and its gRPC server on 127.0.0.1 (free ports near Rerun's defaults); it ends with this
+    process at the latest (the thread that starts it: this one)."""
     grpc_port = grpc_port or free_port(DEFAULT_VIEWER_PORT)
     web_port = web_port or free_port(DEFAULT_WEB_PORT)
     process = subprocess.Popen(
         [rerun_executable(), "--serve-web", "--bind", LOOPBACK, "--port", str(grpc_port),
          "--web-viewer-port", str(web_port), "--server-memory-limit", server_memory_limit],
         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_quiet_env(),
-        start_new_session=True,
+        start_new_session=True, preexec_fn=functools.partial(_ends_with, os.getpid()),
     )
     viewer = WebViewer(process, grpc_port, web_port)
     try:
