@@ -218,22 +218,22 @@ def _method_name(key: str) -> str:
     return key
 
 
-def _parsed(code: str) -> ast.Module:
-    """``ast.parse`` of code from a reply (this process parses it: see :data:`MAX_POLICY_CHARS`); a piece longer
-    than a policy may be is refused unparsed (:class:`ReplyParseError`)."""
+def _parsed(code: str) -> tuple[ast.Module | None, str | None]:
+    """``ast.parse`` of code from a reply (this process parses it: see :data:`MAX_POLICY_CHARS`): its tree, or None
+    and why it does not parse. A piece longer than a policy may be is refused unparsed (:class:`ReplyParseError`)."""
     if len(code) > MAX_POLICY_CHARS:
         raise ReplyParseError(f"the reply's code is {len(code):,} characters long, more than a whole policy may hold "
                               f"({MAX_POLICY_CHARS:,})")
-    return ast.parse(code)
+    try:
+        return ast.parse(code), None
+    except (SyntaxError, ValueError, RecursionError, MemoryError) as exc:
+        return None, f"{type(exc).__name__}: {getattr(exc, 'msg', exc)}"
 
 
 def _def_name(source: str) -> str | None:
     """The name of the one function ``source`` defines (dedented), or None."""
-    try:
-        tree = _parsed(textwrap.dedent(source))
-    except ReplyParseError:
-        raise
-    except (SyntaxError, ValueError, RecursionError, MemoryError):
+    tree, _ = _parsed(textwrap.dedent(source))
+    if tree is None:
         match = re.match(r"\s*(?:async\s+)?def\s+([A-Za-z_]\w*)\s*\(", source)
         return match.group(1) if match else None
     defs = [n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
@@ -294,11 +294,8 @@ def _defs_in_code(code: str, tree: ast.Module | None = None) -> dict[str, str] |
     name; None if it does not parse or defines none."""
     if tree is None:
         code = textwrap.dedent(code)
-        try:
-            tree = _parsed(code)
-        except ReplyParseError:
-            raise
-        except (SyntaxError, ValueError, RecursionError, MemoryError):
+        tree, _ = _parsed(code)
+        if tree is None:
             return None
     lines = code.splitlines(True)
     nodes = []
@@ -322,12 +319,9 @@ def _from_code_blocks(text: str) -> dict[str, str] | None:
     errors = []
     for body in blocks:
         body = textwrap.dedent(body)
-        try:
-            tree = _parsed(body)
-        except ReplyParseError:
-            raise
-        except (SyntaxError, ValueError, RecursionError, MemoryError) as exc:
-            errors.append(f"a code block does not parse ({type(exc).__name__}: {getattr(exc, 'msg', exc)})")
+        tree, error = _parsed(body)
+        if tree is None:
+            errors.append(f"a code block does not parse ({error})")
             continue
         parsed.update(_defs_in_code(body, tree) or {})
     if parsed:
