@@ -77,10 +77,21 @@ def _is_disk_full(exc: Exception) -> bool:
 
 
 def is_ctrl_c(exc: BaseException) -> bool:
-    """Whether ``exc`` is a Ctrl-C that DuckDB caught: a SIGINT that arrives while a query runs is consumed by
-    DuckDB's client and raised as ``RuntimeError('Query interrupted')`` (2.0; ``InterruptException`` in others)."""
-    return isinstance(exc, duckdb.InterruptException) or (type(exc) is RuntimeError
-                                                           and str(exc) == "Query interrupted")
+    """Whether ``exc`` is a Ctrl-C that DuckDB caught. Two shapes: a SIGINT that arrives while a query runs is
+    consumed by DuckDB's client and raised as ``RuntimeError('Query interrupted')`` (2.0; ``InterruptException`` in
+    others); one that lands while DuckDB is calling Python (reading a registered Arrow table's schema, a Python
+    function) is wrapped in the error DuckDB raises for that call, its text ending in the Python error's name:
+    ``Invalid Input Error: reading the schema of the object registered as 'x' failed: KeyboardInterrupt:``."""
+    if isinstance(exc, duckdb.InterruptException):
+        return True
+    if type(exc) is RuntimeError:
+        return str(exc) == "Query interrupted"
+    return isinstance(exc, duckdb.Error) and _WRAPPED_CTRL_C.search(str(exc)) is not None
+
+
+_WRAPPED_CTRL_C = re.compile(r"(?:^|: )KeyboardInterrupt:?\s*\Z")
+"""The end of the text of a DuckDB error that wraps a KeyboardInterrupt raised in the Python it called (anchored at
+the end: a message that merely mentions the word, a stored value's, is not a Ctrl-C)."""
 
 
 @contextmanager

@@ -210,3 +210,38 @@ def test_an_insert_that_fails_keeps_its_own_error_and_leaves_the_store_usable(st
         con.execute("CREATE TEMP TABLE unique_blobs (hash VARCHAR PRIMARY KEY, content VARCHAR)")
         insert_arrow(con, "incoming_rows", twice.slice(0, 1), "INSERT INTO unique_blobs SELECT * FROM incoming_rows")
         assert con.execute("SELECT count(*) FROM unique_blobs").fetchone() == (1,)
+
+
+class _PressedWhileRead:
+    """An Arrow stream that Ctrl-C interrupts as DuckDB reads it: DuckDB calls into Python for the schema, the
+    KeyboardInterrupt is raised there, and DuckDB wraps it in an error of its own."""
+
+    def __arrow_c_stream__(self, requested_schema=None):
+        raise KeyboardInterrupt
+
+
+def _python_function_pressed(x: int) -> int:
+    raise KeyboardInterrupt
+
+
+@pytest.mark.parametrize("where", ["registering an Arrow table", "a Python function in a query"])
+def test_a_ctrl_c_while_duckdb_calls_python_is_a_ctrl_c_and_rolls_the_write_back(store, where):
+    """A Ctrl-C can land while DuckDB is inside Python it called (a CI run pressed Ctrl-C while an evaluation's
+    steps were being registered): DuckDB raises it as ``InvalidInputException ... failed: KeyboardInterrupt:``.
+    The store gives it back as the KeyboardInterrupt it was, so the command winds down as after any Ctrl-C (exit
+    130, the run interrupted), and the transaction it cut leaves nothing behind. An error that merely mentions the
+    word is still the error it is."""
+    with store.write():
+        pass
+    with pytest.raises(KeyboardInterrupt):
+        with store.write() as con:
+            con.execute("INSERT INTO blobs (hash, kind, text, chars) VALUES ('before', 'prompt', 'x', 1)")
+            if where == "registering an Arrow table":
+                con.register("incoming_steps", _PressedWhileRead())
+            else:
+                con.create_function("pressed", _python_function_pressed, ["BIGINT"], "BIGINT")
+                con.execute("SELECT pressed(1)").fetchall()
+    assert store.query("SELECT count(*) FROM blobs WHERE hash = 'before'") == [(0,)], "rolled back"
+    with pytest.raises(duckdb.ConversionException):
+        with store.write() as con:
+            con.execute("SELECT 'failed: KeyboardInterrupt:'::INTEGER")
