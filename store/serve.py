@@ -4,21 +4,27 @@ of the run that the agent's read-only SQL may query.
 The visible part is copied into a private in-memory database (:func:`visible_query`) that holds nothing else: the
 agent's SQL cannot reach another run, the run's config (its training seeds), any ``seed`` column, or the
 validation and held-out episodes and scores (episode kinds other than ``train`` are left out), and it runs with
-external access off, so it can read no file either.
+external access off, so it can read no file either. It runs in a process of its own with its memory capped
+(``store/agent_sql.py``), so what a query builds is never the server's.
 """
 
 from __future__ import annotations
 
-import decimal
 import json
-import math
+import os
 import re
-import threading
+import subprocess
+import sys
+import tempfile
 import warnings
+from pathlib import Path
 from typing import Any
 
 import duckdb
+import pyarrow as pa
 
+from store import agent_sql
+from store.db import Store
 from store.readers import _rows
 from store.views import QueryError, check_user_sql
 
@@ -60,81 +66,76 @@ def submission_episodes(con: duckdb.DuckDBPyConnection, episode_ids: list[str]) 
     return [rows[e] for e in episode_ids if e in rows]
 
 
-def visible_query(con: duckdb.DuckDBPyConnection, run_id: str, sql: str, max_rows: int, max_bytes: int,
-                  time_limit_s: float = 10.0) -> dict[str, Any]:
+QUERY_MEMORY_MB = 512
+"""What one query of the agent's may make DuckDB build, beside the tables it reads and the process's own start."""
+PROCESS_BASE_MB = 400
+"""The query process's data segment before it reads anything: Python, DuckDB and pyarrow loaded, a connection
+(~200-340 MB measured here)."""
+START_S = 20.0
+"""The query process's start and its tables' load, beyond the query's own time limit, before it is killed."""
+
+
+def visible_query(store: Store, run_id: str, sql: str, max_rows: int, max_bytes: int,
+                  time_limit_s: float = 10.0, memory_mb: int = QUERY_MEMORY_MB) -> dict[str, Any]:
     """Run the agent's ``sql`` over the visible part of ``run_id`` (see the module docstring): its columns and the
     first rows, at most ``max_rows`` of them and at most ``max_bytes`` of JSON (``truncated`` says whether rows were
     left out; ``note`` why, when it was their size), every value one standard JSON holds (NaN and the infinities as
-    null). A statement that is not a query, or one that runs past ``time_limit_s``, raises :class:`QueryError`; a
-    query DuckDB refuses, ``duckdb.Error`` with its message."""
+    null). :class:`QueryError` for a statement that is not a query, one that runs past ``time_limit_s`` or needs more
+    than ``memory_mb`` (beside the tables it reads), and one that DuckDB refuses, with DuckDB's message.
+
+    The query runs in a process of its own (``store/agent_sql.py``), its memory capped: what it makes DuckDB build
+    costs that process, not the caller. The tables the query names are copied into it as Arrow files, with the
+    store held for the copy only (a query of 10 s does not keep a submission from being stored)."""
     check_user_sql(sql, refuser="sql")  # the copy is the agent's own, but a DELETE that answers "Count: 3" misleads
-    mem = duckdb.connect(":memory:", config={"memory_limit": "512MB", "threads": 1, "enable_external_access": False,
-                                             "lock_configuration": True})
-    timer = threading.Timer(time_limit_s, mem.interrupt)  # a query of the agent's may be endless: range(1e15)
-    try:
-        named = [name for name in VISIBLE_TABLES if re.search(rf"\b{name}\b", sql, re.IGNORECASE)]
-        for name, query in ((name, VISIBLE_TABLES[name]) for name in named):  # a run's steps and nodes are big:
-            # only the tables the query names are copied
-            with warnings.catch_warnings():  # the copy it warns of is the point: the agent's database is its own
-                warnings.simplefilter("ignore", UserWarning)
-                table = con.execute(query, {"run": run_id}).to_arrow_table()
-            mem.register(f"_{name}", table)
-            mem.execute(f"CREATE TABLE {name} AS SELECT * FROM _{name}")
-            mem.unregister(f"_{name}")
-        timer.start()
+    with tempfile.TemporaryDirectory(prefix="codearcade-sql-") as directory:
+        work = Path(directory)
+        held = 0
+        with store.read() as con:
+            for name in (name for name in VISIBLE_TABLES if re.search(rf"\b{name}\b", sql, re.IGNORECASE)):
+                # a run's steps and nodes are big: only the tables the query names are copied
+                with warnings.catch_warnings():  # the copy it warns of is the point: the agent's database is its own
+                    warnings.simplefilter("ignore", UserWarning)
+                    table = con.execute(VISIBLE_TABLES[name], {"run": run_id}).to_arrow_table()
+                with pa.OSFile(str(work / f"{name}{agent_sql.TABLE_SUFFIX}"), "wb") as sink, \
+                        pa.ipc.new_file(sink, table.schema) as writer:
+                    writer.write_table(table)
+                held += table.nbytes
+                del table
+        cap_mb = memory_mb + 2 * held // 2**20 + PROCESS_BASE_MB  # the tables twice: mapped, then DuckDB's copy
+        (work / agent_sql.QUERY_FILE).write_text(json.dumps({
+            "sql": sql, "max_rows": max_rows, "max_bytes": max_bytes, "time_limit_s": time_limit_s,
+            "memory_mb": cap_mb}))
+        return _answer_of(work, time_limit_s, cap_mb, max_bytes)
+
+
+def _answer_of(work: Path, time_limit_s: float, cap_mb: int, max_bytes: int) -> dict[str, Any]:
+    """Start the query process on ``work`` and read its answer within a byte bound (it is what DuckDB made of the
+    agent's query: read as untrusted, like any reply)."""
+    boot = f"import sys; sys.path.insert(0, {str(ROOT)!r}); from store.agent_sql import main; main(sys.argv[1])"
+    with open(work / "stderr.txt", "wb") as stderr:
         try:
-            relation = mem.sql(sql)
-            columns = list(relation.columns) if relation is not None else []
-            # row by row, as Arrow first: a row's values become Python objects only once their Arrow size says its
-            # JSON could fit (one row of 8 million structs was 65 MB of Arrow and 6 GB as Python objects). DuckDB
-            # itself still builds 2,048 rows at a time, values included (docs/serve.md).
-            reader = relation.to_arrow_reader(1) if relation is not None else iter(())
-            rows: list[list[Any]] = []
-            size, note, more = 0, None, False
-            for batch in reader:
-                if batch.num_rows == 0:
-                    continue
-                if len(rows) == max_rows:
-                    more = True
-                    break
-                if batch.nbytes > ARROW_BYTES_PER_JSON_BYTE * (max_bytes - size):
-                    more, note = True, TOO_LONG.format(max_bytes)
-                    break
-                row = [_json_value(value) for value in (batch.column(i)[0].as_py() for i in range(batch.num_columns))]
-                # its texts' lengths first: a value of 100 MB is not encoded only to learn that it does not fit
-                texts = sum(len(v) for v in row if isinstance(v, (str, bytes)))
-                # + 2: the ", " between rows in the answer's list
-                size += 2 + (texts if size + texts > max_bytes else len(json.dumps(row, default=str)))
-                if size > max_bytes:
-                    more, note = True, TOO_LONG.format(max_bytes)
-                    break
-                rows.append(row)
-        except duckdb.InterruptException:
-            raise QueryError(f"the query ran past its limit of {time_limit_s:g} s: ask for less (a LIMIT, fewer "
-                             "rows or columns)") from None
-        return {"columns": columns, "rows": rows, "truncated": more,
-                **({"note": note} if note is not None else {})}
-    finally:
-        timer.cancel()
-        mem.close()
+            done = subprocess.run([sys.executable, "-I", "-c", boot, str(work)], stdin=subprocess.DEVNULL,
+                                  stdout=subprocess.DEVNULL, stderr=stderr, timeout=time_limit_s + START_S)
+        except subprocess.TimeoutExpired:  # run() has killed it
+            raise QueryError(f"the query ran past its limit of {time_limit_s:g} s: ask for less (a LIMIT, fewer rows "
+                             "or columns)") from None
+    answer = work / agent_sql.ANSWER_FILE
+    if not answer.exists():
+        with open(work / "stderr.txt", "rb") as said:
+            said.seek(max(0, os.path.getsize(work / "stderr.txt") - 600))
+            tail = said.read().decode(errors="replace").strip().splitlines()[-1:] or [""]
+        how = f"signal {-done.returncode}" if done.returncode < 0 else f"exit status {done.returncode}"
+        raise QueryError(f"the query's process ended without an answer ({how}: {tail[0][:200]}); its process may "
+                         f"have {cap_mb:,} MB, the tables it reads included: ask for less")
+    if answer.stat().st_size > ANSWER_SLACK * max_bytes + 2**16:
+        raise QueryError("the query's answer was larger than its bound; ask for less")
+    result = json.loads(answer.read_bytes())
+    if "answer" in result:
+        return result["answer"]
+    raise QueryError(str(result.get("refused") or result.get("error"))[:2000])
 
 
-TOO_LONG = "rows past {:,} bytes of JSON left out: ask for fewer or shorter values"
-ARROW_BYTES_PER_JSON_BYTE = 16
-"""A row's Arrow bytes per byte of its JSON, at most: a list of 16-byte integers takes 8 for ``0,`` (2 bytes of
-JSON), one of 8-byte ones 4; text about 1. A row whose Arrow bytes pass this times what is left of the answer could
-not fit in it, and is never made into Python objects."""
-
-
-def _json_value(value: Any) -> Any:
-    """``value`` as standard JSON holds it: a float that is not finite as None, a DECIMAL (DuckDB's type of a
-    literal such as 1.5) as a number, inside lists and structs too."""
-    if isinstance(value, decimal.Decimal):
-        value = float(value)
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, (list, tuple)):
-        return [_json_value(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _json_value(v) for k, v in value.items()}
-    return value
+ANSWER_SLACK = 2
+"""The answer file's bytes per byte of ``max_bytes``: its rows are within ``max_bytes`` of JSON, the columns'
+names and the escapes of what :func:`json.dumps` writes beside them."""
+ROOT = Path(__file__).resolve().parents[1]

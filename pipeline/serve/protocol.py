@@ -242,11 +242,10 @@ class ServeRun:
         """Read-only SQL over the visible part of the run (``store/serve.py``)."""
         if not isinstance(query, str) or not query.strip() or len(query) > 20_000:
             raise RequestError("sql: give one query of at most 20,000 characters")
-        with self.store.read() as con:  # the store takes one thread at a time; reads need not wait for a play
-            try:
-                return visible_query(con, self.run_id, query, MAX_SQL_ROWS, MAX_SQL_BYTES)
-            except (duckdb.Error, QueryError) as exc:
-                raise RequestError(f"sql: {str(exc).splitlines()[0][:500]}") from None
+        try:
+            return visible_query(self.store, self.run_id, query, MAX_SQL_ROWS, MAX_SQL_BYTES)
+        except (duckdb.Error, QueryError) as exc:
+            raise RequestError(f"sql: {str(exc).splitlines()[0][:500]}") from None
 
     # ------------------------------------------------------------------------------------------- submitting
 
