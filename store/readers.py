@@ -7,7 +7,7 @@ open. Step slices come back with the observation dict rebuilt exactly as the pol
 from __future__ import annotations
 
 import statistics
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
 import duckdb
 
@@ -153,6 +153,18 @@ def blob_text(con: duckdb.DuckDBPyConnection, digest: str) -> str | None:
     return row[0] if row else None
 
 
+def blob_starts(con: duckdb.DuckDBPyConnection, digests: Iterable[str | None], chars: int) -> dict[str, tuple[str, int]]:
+    """(the first ``chars`` characters, the whole length) of each blob of ``digests`` there is, read one blob at a
+    time: DuckDB builds a whole text to cut it, so one query over a run's replies (up to 16 MiB each) held them all
+    at once."""
+    starts: dict[str, tuple[str, int]] = {}
+    for digest in dict.fromkeys(d for d in digests if d is not None):
+        row = con.execute("SELECT left(text, ?), length(text) FROM blobs WHERE hash = ?", [chars, digest]).fetchone()
+        if row is not None:
+            starts[digest] = row
+    return starts
+
+
 def policy_text(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) -> str:
     """The whole policy file of a version used or considered in a run."""
     row = con.execute(
@@ -265,16 +277,17 @@ def first_call_models(con: duckdb.DuckDBPyConnection, run_id: str, before: int) 
 
 
 def replay_replies(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[tuple[int, str, int], str]:
-    """The reply of the first successful call for each (iteration, prompt hash, candidate) of a run: what
-    ``codearcade replay`` answers with (the proposal pool may send one prompt in two iterations, each with its own
-    reply)."""
+    """The hash of the reply (its blob) of the first successful call for each (iteration, prompt hash, candidate) of
+    a run: what ``codearcade replay`` answers with (the proposal pool may send one prompt in two iterations, each
+    with its own reply). Hashes, not texts: a run's replies together may be far larger than one (up to 16 MiB
+    each), so the replay reads each text when it is asked for (:func:`blob_text`)."""
     rows = con.execute(
-        "SELECT c.iteration, c.prompt_hash, coalesce(c.candidate, 0), b.text FROM llm_calls c "
+        "SELECT c.iteration, c.prompt_hash, coalesce(c.candidate, 0), c.reply_hash FROM llm_calls c "
         "JOIN blobs b ON b.hash = c.reply_hash WHERE c.run_id = ? AND c.error_type IS NULL ORDER BY c.created_at",
         [run_id]).fetchall()
     replies: dict[tuple[int, str, int], str] = {}
-    for iteration, digest, candidate, text in rows:
-        replies.setdefault((iteration, digest, candidate), text)
+    for iteration, digest, candidate, reply_hash in rows:
+        replies.setdefault((iteration, digest, candidate), reply_hash)
     return replies
 
 

@@ -11,15 +11,18 @@ from typing import Any
 
 import duckdb
 
-from store.readers import _rows
+from store.readers import _rows, blob_starts
 
 
-def run_trace_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
+def run_trace_rows(con: duckdb.DuckDBPyConnection, run_id: str, reply_chars: int = 2**31 - 1) -> dict[str, Any]:
     """``run`` (the runs row), ``iterations``, ``llm_calls``, ``episodes`` and ``feedback`` of ``run_id``.
 
     KeyError if the run does not exist. ``llm_calls`` rows carry ``prompt_text`` (the stored JSON of the
-    messages) and ``reply_text`` (NULL when the call failed); ``iterations`` rows carry ``rejection`` (the
-    reason from the ``rejected_candidates`` view, NULL unless the update was rejected).
+    messages), ``reply_text`` (NULL when the call failed), its first ``reply_chars`` characters, and
+    ``reply_length``, the whole reply's: a run's replies together may be far larger than what a trace keeps of them
+    (up to 16 MiB each; thirty of 12.9 million characters held the exporter at 1.3 GB when read whole);
+    ``iterations`` rows carry ``rejection`` (the reason from the ``rejected_candidates`` view, NULL unless the
+    update was rejected).
     """
     runs = _rows(con.execute(
         """SELECT run_id, created_at, finished_at, kind, game, model, seed, status, error, starter_version_id,
@@ -45,10 +48,12 @@ def run_trace_rows(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any
                   c.response_id, c.finish_reasons, c.input_tokens, c.output_tokens, c.cached_input_tokens,
                   c.cache_creation_input_tokens, c.prompt_tokens_counted, c.cost_usd, c.attempts, c.error_type,
                   c.error_message, c.parse_error, c.replayed, c.prompt_hash, c.repair_of, c.repair_turn,
-                  p.text AS prompt_text,
-                  r.text AS reply_text
-           FROM llm_calls c LEFT JOIN blobs p ON p.hash = c.prompt_hash LEFT JOIN blobs r ON r.hash = c.reply_hash
+                  p.text AS prompt_text, c.reply_hash
+           FROM llm_calls c LEFT JOIN blobs p ON p.hash = c.prompt_hash
            WHERE c.run_id = ? ORDER BY c.iteration, c.created_at, c.call_id""", [run_id]))
+    replies = blob_starts(con, (call["reply_hash"] for call in llm_calls), reply_chars)
+    for call in llm_calls:
+        call["reply_text"], call["reply_length"] = replies.get(call.pop("reply_hash"), (None, None))
     episodes = _rows(con.execute(
         """SELECT episode_id, iteration, kind, episode_index, seed, policy_version_id, return, length, lives_lost,
                   end_reason, error, max_steps, traced, verified, started_at, duration_s, env_s, policy_s

@@ -11,7 +11,7 @@ from typing import Any
 import duckdb
 import pyarrow as pa
 
-from store.readers import _rows, cut_value_sql
+from store.readers import _rows, blob_starts, cut_value_sql
 from store.scores import score_episodes
 from tracing.bounded import PREVIEW_CHARS
 
@@ -91,9 +91,16 @@ def llm_call_outcomes(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict[
         WHERE c.run_id = ? ORDER BY started_at, c.call_id""", [run_id])
 
 
+RECORDED_TEXT_CHARS = 200_000
+"""Characters of an iteration's reply and feedback a run recording shows (``reply_length`` and
+``feedback_length`` say how long the whole is): a reply may be up to 16 MiB, and thirty iterations of a 12.9
+million-character one held `view` at 1.9 GB when each was read and shown whole."""
+
+
 def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
     """A run recording's data: the run row, its iterations (joined with the evaluated version and its code, the
-    LLM call with its prompt and reply, the feedback) and its lineage."""
+    LLM call with its prompt and the first :data:`RECORDED_TEXT_CHARS` of its reply, the feedback) and its
+    lineage."""
     runs = _query(con, "SELECT run_id, kind, game, model, seed, status, config, created_at, error FROM runs "
                       "WHERE run_id = ?", [run_id])
     if not runs:
@@ -103,7 +110,8 @@ def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
                i.best_iteration, i.train_return, i.wall_s,
                v.loc, v.complexity, v.max_if_depth, code.text AS code,
                c.input_tokens, c.output_tokens, c.prompt_tokens_counted, c.cost_usd, c.latency_s, c.error_type,
-               c.error_message, c.parse_error, p.text AS prompt, r.text AS reply, f.text AS feedback
+               c.error_message, c.parse_error, p.text AS prompt, c.reply_hash, left(f.text, $2) AS feedback,
+               length(f.text) AS feedback_length
         FROM iterations i
         LEFT JOIN (SELECT DISTINCT ON (policy_version_id) policy_version_id, loc, complexity, max_if_depth,
                           source_hash FROM policy_versions WHERE run_id = $1) v
@@ -111,9 +119,11 @@ def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
         LEFT JOIN blobs code ON code.hash = v.source_hash
         LEFT JOIN llm_calls c ON c.call_id = i.llm_call_id
         LEFT JOIN blobs p ON p.hash = c.prompt_hash
-        LEFT JOIN blobs r ON r.hash = c.reply_hash
         LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
-        WHERE i.run_id = $1 ORDER BY i.iteration""", [run_id])
+        WHERE i.run_id = $1 ORDER BY i.iteration""", [run_id, RECORDED_TEXT_CHARS])
+    replies = blob_starts(con, (it["reply_hash"] for it in iterations), RECORDED_TEXT_CHARS)
+    for it in iterations:
+        it["reply"], it["reply_length"] = replies.get(it.pop("reply_hash"), (None, None))
     lineage = _query(con, "SELECT iteration, candidate, parent_iteration, parent_candidate, score, decision, "
                          "update_status FROM lineage WHERE run_id = ? ORDER BY iteration, candidate", [run_id])
     return {"run": runs[0], "iterations": iterations, "lineage": lineage}

@@ -113,7 +113,7 @@ def export_run(store, run_id: str, url: str, protocol: str = "http/protobuf", ti
     endpoint = otlp_endpoint(url, protocol)
     with store.read() as con:
         try:
-            rows = run_trace_rows(con, run_id)
+            rows = run_trace_rows(con, run_id, reply_chars=text_limit + 1)  # + 1: a cut reply says it was cut
         except KeyError:
             raise ExportError(f"no run {run_id} in {store.path}; `codearcade runs` lists the runs") from None
     spans = build_spans(rows, service_name=service_name, text_limit=text_limit)
@@ -193,9 +193,12 @@ def _attrs(**values: Any) -> dict[str, Any]:
     return out
 
 
-def _cap(text: str, limit: int) -> str:
-    if len(text) > limit:
-        return text[:limit] + f"… [cut {len(text) - limit} characters]"
+def _cap(text: str, limit: int, length: int | None = None) -> str:
+    """``text`` within ``limit`` characters, a cut one ending in a marker; ``length``: the whole text's, where
+    ``text`` is already its start (a reply, cut where it is read)."""
+    length = len(text) if length is None else length
+    if length > limit:
+        return text[:limit] + f"… [cut {length - limit} characters]"
     return text
 
 
@@ -231,7 +234,8 @@ def _content_attributes(call: dict[str, Any], text_limit: int) -> dict[str, str]
     if call["reply_text"] is not None:
         finish = (call["finish_reasons"] or ["stop"])[0]
         out["gen_ai.output.messages"] = json.dumps(
-            [{"role": "assistant", "parts": [{"type": "text", "content": _cap(call["reply_text"], text_limit)}],
+            [{"role": "assistant", "parts": [{"type": "text", "content": _cap(call["reply_text"], text_limit,
+                                                                       call.get("reply_length"))}],
               "finish_reason": finish}])
     return out
 

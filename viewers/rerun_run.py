@@ -92,7 +92,7 @@ def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -
             rec.log("/code", rr.TextDocument(markdown_code_block(it["code"], "python"), media_type="text/markdown"))
         if it["prompt"] is not None:
             rec.log("/llm/prompt", rr.TextDocument(prompt_text(it["prompt"]), media_type="text/plain"))
-        reply = it["reply"]
+        reply = _whole_or_cut(it["reply"], it["reply_length"], "reply")
         if reply is None and it["error_type"]:
             reply = f"(the call failed: {it['error_type']}: {it['error_message']})"
         if reply is not None:
@@ -100,7 +100,8 @@ def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -
                 reply = f"(not usable: {it['parse_error']})\n\n{reply}"
             rec.log("/llm/reply", rr.TextDocument(reply, media_type="text/plain"))
         if it["feedback"] is not None:
-            rec.log("/feedback", rr.TextDocument(it["feedback"], media_type="text/plain"))
+            rec.log("/feedback", rr.TextDocument(_whole_or_cut(it["feedback"], it["feedback_length"], "feedback"),
+                                                 media_type="text/plain"))
         score = "-" if it["score"] is None else score_text(it["score"])
         best = "-" if it["best_score"] is None else score_text(it["best_score"])
         line = (f"iteration {it['iteration']}: update {it['update_status']}, score {score}, best {best} "
@@ -115,6 +116,15 @@ def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -
 
 LINEAGE_COLOURS = {"best": (255, 127, 14), "kept": (31, 119, 180), "discarded": (170, 170, 170),
                    "rolled_back": (148, 103, 189), "rejected": (214, 39, 40)}
+
+
+def _whole_or_cut(text: str | None, length: int | None, what: str) -> str | None:
+    """A stored text as a recording shows it: whole, or its start (``store/showing.py`` reads no more) and how much
+    was left out."""
+    if text is None or length is None or length <= len(text):
+        return text
+    return (f"{text}\n\n[... the {what} goes on for {length - len(text):,} more characters: "
+            f"{length:,} in all; `codearcade sql` reads the whole]")
 
 
 def _log_lineage(rec: rr.RecordingStream, lineage: list[dict[str, Any]], iteration: int) -> None:

@@ -16,7 +16,7 @@ import os
 import re
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Mapping, Protocol
 
 from pipeline.llm.capped import capped, too_large
 from pipeline.llm.providers import LOCAL_SERVER_PROVIDERS, OFFLINE_CHARS_PER_TOKEN, OFFLINE_REASONING_CHARS, \
@@ -328,7 +328,7 @@ class ReplayClient:
 
     provider = "replay"
 
-    def __init__(self, replies: dict[tuple[int, str, int], str], model: str,
+    def __init__(self, replies: Mapping[tuple[int, str, int], str], model: str,
                  errors: dict[tuple[int, str, int], tuple[str, str, int]] | None = None):
         self.replies = replies
         self.errors = errors or {}

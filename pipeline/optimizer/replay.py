@@ -18,7 +18,9 @@ the iterations it had started: then the replay goes on past the record, and says
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Iterator
 
 from pipeline.llm.client import EnsembleClient, ReplayClient
 from pipeline.optimizer.config import OptimizeConfig
@@ -70,6 +72,32 @@ class ReplayReport:
         }
 
 
+class StoredReplies(Mapping):
+    """A run's replies by (iteration, prompt hash, candidate), each text read from the store when the replay asks
+    for it: a run's replies together may be far larger than one (up to 16 MiB each: thirty iterations of a 12.9
+    million-character reply held 1.7 GB when they were read at once), and the loop needs one at a time."""
+
+    def __init__(self, store: Store, hashes: dict[tuple[int, str, int], str]):
+        self.store = store
+        self.hashes = hashes
+
+    def __getitem__(self, key: tuple[int, str, int]) -> str:
+        with self.store.read() as con:
+            text = blob_text(con, self.hashes[key])
+        if text is None:
+            raise KeyError(key)
+        return text
+
+    def __contains__(self, key: object) -> bool:
+        return key in self.hashes
+
+    def __iter__(self) -> Iterator[tuple[int, str, int]]:
+        return iter(self.hashes)
+
+    def __len__(self) -> int:
+        return len(self.hashes)
+
+
 def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
     with store.read() as con:
         run = get_run(con, run_id)
@@ -79,7 +107,7 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
             raise ValueError(f"run {run_id} is {kind_phrase(run['kind'])}; only optimize runs can be "
                              "replayed")
         starter = inspect_policy(blob_text(con, run["starter_policy_hash"]), "policy.py")
-        replies, errors = replay_replies(con, run_id), replay_errors(con, run_id)
+        replies, errors = StoredReplies(store, replay_replies(con, run_id)), replay_errors(con, run_id)
         bases = pool_bases(con, run_id)
     recorded = json.loads(run["config"])
     config = OptimizeConfig.from_record(recorded)
