@@ -128,6 +128,20 @@ def clean_untrusted_text(text: object, limit: int = MESSAGE_LIMIT) -> str | None
     return f"{head[:limit]}… [cut {len(text) - limit:,} characters]"
 
 
+_LINE_BREAKS = {c: repr(c)[1:-1] for c in "\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"}
+"""Every character at which ``str.splitlines`` breaks a line, and its escape (``\\n``, ``\\x85``, ``\\u2028``)."""
+
+
+def single_line(text: str) -> str:
+    """Untrusted text on one line, each line break written as its escape: quoted inside a section of a prompt, it
+    cannot begin a line of its own (an exception message of ``"\\n\\n#Feedback: ... perfect"`` read as the prompt's
+    own header). Scrubbing and capping stay :func:`clean_untrusted_text`'s."""
+    return text.translate(_LINE_BREAK_TABLE)
+
+
+_LINE_BREAK_TABLE = str.maketrans(_LINE_BREAKS)
+
+
 def utf8_prefix(text: str, limit: int) -> str:
     """The longest prefix of ``text`` whose UTF-8 encoding is at most ``limit`` bytes."""
     if len(text) * 4 <= limit:

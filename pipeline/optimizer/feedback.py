@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from pipeline.boundary.untrusted import clean_untrusted_text
+from pipeline.boundary.untrusted import clean_untrusted_text, single_line
 from pipeline.optimizer.config import FEEDBACK_MODES  # the choices of the ``feedback`` setting, declared there
 
 
@@ -80,5 +80,6 @@ def compose_feedback(
     else:
         raise ValueError(f"unknown feedback mode '{mode}'; use one of {', '.join(FEEDBACK_MODES)}")
     if notes:  # notes quote rejected code's errors and LLM errors: untrusted text, capped and scrubbed
-        text += "\n" + "\n".join(clean_untrusted_text(note) for note in notes)
+        # one line each: a note's quoted error cannot begin a line that reads as the prompt's own header
+        text += "\n" + "\n".join(single_line(clean_untrusted_text(note)) for note in notes)
     return stage, score, text

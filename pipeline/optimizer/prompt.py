@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from games import get_game
+from pipeline.boundary.untrusted import single_line
 from pipeline.llm.client import prompt_hash
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.context import VALUE_CHARS, PromptContext
@@ -147,9 +148,9 @@ def _render_call(node: dict[str, Any]) -> str:
     else:  # a marker for inputs too deep or too long (tracing/bounded.py), or a store edited by hand
         args = _value(inputs)
     head = f"{node['function']}({args})"
-    if node["exc_type"]:
-        line = f" at line {node['exc_line']}: {node['exc_source']}" if node["exc_source"] else ""
-        return f"{head} raised {node['exc_type']}: {node['exc_message']}{line}"
+    if node["exc_type"]:  # the exception's texts are the policy's: one line each, so no line of theirs is a header
+        line = f" at line {node['exc_line']}: {single_line(node['exc_source'])}" if node["exc_source"] else ""
+        return f"{head} raised {single_line(node['exc_type'])}: {single_line(node['exc_message'] or '')}{line}"
     return f"{head} -> {_value(node['output'])}"
 
 
@@ -313,11 +314,11 @@ def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prom
     inputs_head = (f"Training rollout of the current policy: {ep['length']} steps, return {format_number(ep['return'])}, "
                    f"ended: {ep['end_reason']}. Events: {event_text}.")
     if ep.get("error"):
-        inputs_head += f"\nThe policy failed: {ep['error']}"
+        inputs_head += f"\nThe policy failed: {single_line(ep['error'])}"
     evals = ctx.eval_episodes
     outputs_tail = "Evaluation games: " + "; ".join(
         f"return {format_number(e['return'])} in {e['length']} steps ({e['end_reason']}"
-        + (f": {e['error']}" if e.get("error") else "") + ")" for e in evals
+        + (f": {single_line(e['error'])}" if e.get("error") else "") + ")" for e in evals
     ) if evals else "Evaluation games: none."
 
     variables = "\n\n".join(f"(code) {m.name}:\n```python\n{m.source.rstrip()}\n```" for m in ctx.info.trainable)
