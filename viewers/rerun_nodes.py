@@ -150,6 +150,7 @@ class NodeLogger:
                     texts.append(json.dumps(value))
             self._collect_lines(data, lines)
             del data, outputs, by_step_call
+            self._send_errors(errors)  # a slice's at a time: a policy's caught exceptions may be most of its rows
 
         for fn, (s, numbers, texts) in per_function.items():
             if fn not in self.functions:
@@ -169,10 +170,18 @@ class NodeLogger:
                                           columns=rr.TextLog.columns(text=texts[at:stop],
                                                                      level=["INFO"] * (stop - at)))
         self._send_lines(lines)
-        if errors[0]:
+
+    def _send_errors(self, errors: tuple[list[int], list[str]]) -> None:
+        """Log the exceptions of ``errors`` (steps, texts) under ``/policy/errors`` in spans of at most
+        :data:`NODE_SLICE_BYTES`, and empty it."""
+        steps, texts = errors
+        if steps:
             self.has_errors = True
-            self.rec.send_columns("/policy/errors", indexes=[rr.TimeColumn("step", sequence=errors[0])],
-                                  columns=rr.TextLog.columns(text=errors[1], level=["ERROR"] * len(errors[1])))
+            for at, stop in _spans(texts, NODE_SLICE_BYTES):
+                self.rec.send_columns("/policy/errors", indexes=[rr.TimeColumn("step", sequence=steps[at:stop])],
+                                      columns=rr.TextLog.columns(text=texts[at:stop], level=["ERROR"] * (stop - at)))
+        steps.clear()
+        texts.clear()
 
     def _collect_lines(self, data: Mapping[str, Sequence], per_function: dict[str, list[tuple[int, bytes]]]) -> None:
         """Add the lines that ran of each call in ``data`` (a slice of node rows) to ``per_function``: (step, the
