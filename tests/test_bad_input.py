@@ -421,3 +421,20 @@ def test_new_from_a_script_of_many_statements_reads_it_in_one_pass(tmp_path, cap
     script.write_text(script.read_text() + "0\n" * 100_000)  # past MAX_POLICY_CHARS: said of a script
     line = _one_line_error(*_run(capsys, "new", tmp_path / "other.py", "--from", script)[::2])
     assert f"script '{script}' is longer than 200,000 characters" in line and "a file of their own" in line, line
+
+
+@pytest.mark.parametrize("saved", ["crlf", "cr", "bom", "bom+crlf"])
+def test_a_policy_file_saved_on_windows_plays_as_the_same_version(tmp_path, capsys, saved):
+    """A policy file with ``\\r\\n`` line ends (or old Mac ``\\r``, or a UTF-8 byte-order mark, as Notepad writes)
+    is a file Python runs: it was refused as "the static check of the code crashed (unexpected indent)", since
+    a method's source cut from it could not be dedented. It now plays, as the very version its ``\\n`` copy is."""
+    source = (ROOT / "games" / "scaffolds" / "pong.py").read_text()
+    text = source.replace("\n", "\r\n" if "crlf" in saved else "\r" if saved == "cr" else "\n")
+    path = tmp_path / "windows.py"
+    path.write_bytes((b"\xef\xbb\xbf" if "bom" in saved else b"") + text.encode())
+    (tmp_path / "unix.py").write_text(source)
+    store = str(tmp_path / "s.duckdb")
+    for played in (path, tmp_path / "unix.py"):
+        assert main(["eval", str(played), "--max-steps", "5", "--store", store]) == 0, capsys.readouterr().err
+    versions = Store(Path(store)).query("SELECT DISTINCT policy_version_id FROM episodes")
+    assert len(versions) == 1, versions

@@ -121,7 +121,7 @@ def read_policy_file(path: str | Path, kind: str = "policy file") -> str:
     try:
         with p.open("rb") as f:  # no more than a policy may hold is read (4 bytes a character at most)
             data = f.read(4 * MAX_POLICY_CHARS + 1)
-        text = data.decode("utf-8")
+        text = data.decode("utf-8-sig")  # a byte-order mark (Windows editors write one) is no character of it
     except UnicodeDecodeError:
         if len(data) > 4 * MAX_POLICY_CHARS:
             text = ""  # cut mid-character: too long in any case
@@ -131,7 +131,14 @@ def read_policy_file(path: str | Path, kind: str = "policy file") -> str:
         advice = "the most a policy holds" if kind == "policy file" else \
             "the most codearcade reads: put class Policy and what it uses in a file of their own"
         raise PolicyLoadError(f"{kind} '{path}' is longer than {MAX_POLICY_CHARS:,} characters, {advice}")
-    return text
+    return python_newlines(text)
+
+
+def python_newlines(text: str) -> str:
+    """``text`` with its line ends as Python reads a source file: ``\r\n`` and ``\r`` as ``\n``. A file saved
+    on Windows ends its lines with ``\r\n``; kept, a method's source taken from it could not be dedented and parsed
+    on its own ("unexpected indent")."""
+    return text.replace("\r\n", "\n").replace("\r", "\n") if "\r" in text else text
 
 
 def _bundle_flags(decorators: list[ast.expr]) -> bool | None:

@@ -80,7 +80,7 @@ from store.serve import served_submissions, submission_episodes, visible_query
 from store.views import QueryError
 from store.writer import (EpisodeWriter, finish_run, insert_candidate, insert_feedback, insert_iteration,
                           insert_policy_version, replace_audits)
-from tracing.policy_file import MAX_POLICY_CHARS, PolicyLoadError
+from tracing.policy_file import MAX_POLICY_CHARS, PolicyLoadError, python_newlines
 
 KIND = "serve"
 TRAIN_SEED_LOW = 100_000
@@ -269,6 +269,7 @@ class ServeRun:
             policy = self._workspace_file(path)
         if not isinstance(policy, str) or not policy.strip():
             raise RequestError("policy: give the whole policy file's text")
+        policy = python_newlines(policy)  # a file written on Windows: its methods are parsed on their own
         if len(policy) > MAX_POLICY_CHARS:
             raise RequestError(f"policy: {len(policy):,} characters; at most {MAX_POLICY_CHARS:,}")
         if not isinstance(instances, list) or not instances or \
@@ -337,7 +338,7 @@ class ServeRun:
         if len(data) > MAX_POLICY_CHARS * 4:
             raise RequestError(f"path: the file is larger than {MAX_POLICY_CHARS:,} characters")
         try:
-            return data.decode("utf-8")
+            return data.decode("utf-8-sig")  # a byte-order mark is no character of the file
         except UnicodeDecodeError:
             raise RequestError("path: the file is not UTF-8 text") from None
 
