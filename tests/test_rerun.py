@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import subprocess
 import sys
 from collections import Counter
@@ -216,6 +217,24 @@ def test_rerun_off_means_no_target(value):
     from viewers.rerun_sinks import resolve_live_target
 
     assert resolve_live_target(value) is None
+
+
+@pytest.mark.parametrize("value, said", [
+    ("http://127.0.0.1:9876", "starts rerun+http://"), ("htp://x", "starts rerun+http://"),
+    ("grpc://127.0.0.1:9876", "starts rerun+http://"), ("Spawn", "did you mean spawn?"),
+    (" spawn", "did you mean spawn?"), ("{tmp}/missing/recordings", "missing does not exist"),
+])
+def test_a_rerun_value_that_is_no_directory_meant_is_refused_and_makes_none(tmp_path, monkeypatch, value, said):
+    """``--rerun`` takes spawn, off, a viewer's rerun+http:// address or a directory: a URL of another scheme or a
+    keyword misspelt made folders (``./http:/127.0.0.1:9876/<episode>.rrd``), silently, as did a directory whose
+    parent is missing. Each is refused now, with what to give, and no folder appears."""
+    from viewers.rerun_sinks import ViewerError, resolve_live_target
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ViewerError, match=re.escape(said)):
+        resolve_live_target(value.format(tmp=tmp_path))
+    assert list(tmp_path.iterdir()) == []
+    assert resolve_live_target(str(tmp_path / "recordings")) == str(tmp_path / "recordings")  # a directory: made
 
 
 @pytest.mark.slow

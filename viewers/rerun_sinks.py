@@ -17,6 +17,7 @@ import ctypes
 import functools
 import importlib.util
 import os
+import re
 import shutil
 import signal
 import socket
@@ -206,10 +207,18 @@ def resolve_live_target(value: str | None) -> str | None:
         if address.hostname in (LOOPBACK, "localhost") and address.port and not port_open(address.port):
             raise ViewerError(f"--rerun {value}: nothing listens there; start a viewer first (or use spawn or DIR)")
         return value
+    if re.match(r"[A-Za-z][A-Za-z0-9+.-]*://", value):  # a URL of another kind: never a folder named "http:"
+        raise ViewerError(f"--rerun {value}: a viewer's address starts rerun+http:// (e.g. "
+                          f"rerun+http://127.0.0.1:9876/proxy); or give spawn, off or a directory for .rrd files")
+    if value.strip().lower() == "spawn":  # "Spawn", " spawn": a word meant, not a directory
+        raise ViewerError(f"--rerun {value!r}: did you mean spawn? (a directory of that name: ./{value.strip()})")
     path = Path(value).expanduser().resolve()
     if path.exists() and not path.is_dir():
         raise ViewerError(f"--rerun {value}: not a directory (give a directory for the .rrd files, spawn or off)")
-    path.mkdir(parents=True, exist_ok=True)
+    if not path.parent.is_dir():
+        raise ViewerError(f"--rerun {value}: {path.parent} does not exist; create it, or give another directory "
+                          "(spawn, off)")
+    path.mkdir(exist_ok=True)
     return str(path)
 
 
