@@ -335,3 +335,16 @@ def test_the_gymnasium_environment_continues_the_game_on_reset():
     assert all(p[3] for p in played) and played[3][2] == played[0][2], "after the game over, the same new game"
     obs, info = env.reset(seed=0)
     assert info["lives"] == 3, "a seed starts a new game wherever the last one was"
+
+
+def test_eval_does_not_call_the_lives_of_one_game_that_game_again(store, capsys):
+    """Under the paper's protocol eval notes that repeated episodes are one game again, and its interval only the
+    policy's own draws; under --one-life-continue the episodes are the lives of one game, and no such note is
+    printed (a reviewer saw it after three lives returning 3,400, 32,300 and 6,800)."""
+    from pipeline.cli.eval import PAPER_PROTOCOL_NOTE
+
+    code = main(["eval", str(EXAMPLES / "breakout.py"), "--one-life-continue", "--episodes", "2", "--max-steps",
+                 "60", "--store", str(store.path)])
+    out = capsys.readouterr().out
+    assert code == 0 and "2 episode" in out, out
+    assert PAPER_PROTOCOL_NOTE not in out

@@ -96,7 +96,7 @@ def test_a_verb_that_passes_over_a_newer_run_says_which_it_took(four, capsys):
 @pytest.mark.parametrize("game, code, said", [
     ("pongg", 2, "did you mean 'pong'?"), ("breakot", 2, "did you mean 'breakout'?"),
     ("qbert", 0, "no runs match"),  # a real game with no runs here: nothing matches, and that is no error
-    ("pong", 0, "baseline"),
+    ("pong", 0, "baseline"), ("PONG", 0, "baseline"), (" Breakout ", 0, "01jdx3k9"),  # spelt as eval takes it
 ])
 def test_runs_of_a_misspelt_game_names_the_game_it_may_mean(four, capsys, game, code, said):
     from pipeline.cli import main

@@ -82,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
         # forfeited ..."), and the mean of the episodes played out is labelled as not one
         show(f"{result.score.summary()}; {steps:,} steps in {elapsed:.1f} s "
              f"({summary['steps_per_s'] or 0:,.0f} steps/s, setup and checks included)")
-        if result.score.played > 1 and not config.sticky and not config.noop_max:
+        # (not under --one-life-continue: its episodes are the lives of one game, not that game again)
+        if result.score.played > 1 and not config.sticky and not config.noop_max and config.one_life != "continue":
             show(PAPER_PROTOCOL_NOTE)
     for e in failed:  # the error is the policy's exception: escape sequences in it must not reach the terminal
         show(f"codearcade: episode {e['episode_id']} ended with {e['end_reason']}: {e['error']}", file=sys.stderr)

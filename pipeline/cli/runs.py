@@ -118,8 +118,16 @@ def run(args: argparse.Namespace) -> int:
     from viewers.tables import format_table
 
     store = open_store(args)
+    game = args.game
+    if game is not None:  # spelt as eval takes it (space-invaders, SpaceInvaders): the name runs are stored under
+        from games import UnknownGameError, get_game
+
+        try:
+            game = get_game(game).name
+        except UnknownGameError:
+            pass  # a game no longer known may still have runs; none found is said below
     with store.read() as con:
-        runs = list_runs(con, store.path, game=args.game, kind=args.kind, status=args.status, limit=args.limit,
+        runs = list_runs(con, store.path, game=game, kind=args.kind, status=args.status, limit=args.limit,
                          everything=args.everything)
     if args.json:
         show_json(runs, default=str)
