@@ -82,7 +82,8 @@ def test_a_recording_on_a_full_disk_is_one_line_naming_the_file(played, capsys):
 @pytest.mark.parametrize("flag, value", [("--seed", -1), ("--seed", 10**23), ("--max-steps", 10**23),
                                          ("--max-steps", 2**31), ("--call-time-limit", "nan"),
                                          ("--call-time-limit", "inf"), ("--call-time-limit", "-1"),
-                                         ("--episode-time-limit", "0"), ("--episode-time-limit", "-inf")])
+                                         ("--episode-time-limit", "0"), ("--episode-time-limit", "-inf"),
+                                         ("--episodes", 99_999_999_999), ("--episodes", 0)])
 def test_eval_refuses_a_seed_or_a_cap_the_store_cannot_hold_before_it_starts_a_run(tmp_path, capsys, flag, value):
     path = tmp_path / "s.duckdb"
     line = _one_line_error(*_run(capsys, "eval", STARTER, "--episodes", "1", flag, value, "--store", path)[::2])

@@ -13,6 +13,10 @@ from games.base import (OBSERVATION_VERSION, STANDARD_NOOP_MAX, STANDARD_STICKY,
                         one_life_setting)
 from pipeline.settings import Switch, limit, same_as, setting
 
+MAX_EPISODES = 100_000
+"""The most episodes one command plays (eval, compare): each is planned before the first plays, so a typo of
+99,999,999,999 held gigabytes before anything started (100,000 short Pong games are about a day on two cores)."""
+
 
 @dataclass
 class EvalConfig:
@@ -21,7 +25,7 @@ class EvalConfig:
     game: str | None = setting(None, f"game to play: {', '.join(GAMES)}, or any game OCAtari reads (`codearcade "
                                "games` lists them) (default: the file's GAME)")
     """Game to play; None takes the policy file's ``GAME``. Both given and different is an error."""
-    episodes: int = setting(1, "evaluation episodes (default: %(default)s)", minimum=1)
+    episodes: int = setting(1, "evaluation episodes (default: %(default)s)", minimum=1, maximum=MAX_EPISODES)
     """Number of evaluation episodes."""
     max_steps: int = limit("max_steps")
     """Steps after which an episode is cut off (reported as ``truncated``; ``EpisodeLimits``)."""
@@ -77,7 +81,7 @@ class CompareConfig:
 
     game: str | None = setting(None, "the game both play (default: their runs' or files' GAME)")
     """Game both versions play; None takes it from the stored runs or the files' ``GAME``."""
-    episodes: int = setting(1, "seeds to play, from --seed on (default: %(default)s)", minimum=1)
+    episodes: int = setting(1, "seeds to play, from --seed on (default: %(default)s)", minimum=1, maximum=MAX_EPISODES)
     """Seeds to play: ``seed``, ``seed + 1``, ...; each version plays each of them once."""
     seed: int = setting(0, "the first seed, under the paper's protocol (default: %(default)s; --audit draws its own)")
     """The first seed (the paper's protocol; ``audit`` draws sealed seeds instead)."""
