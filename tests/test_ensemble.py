@@ -358,6 +358,10 @@ def test_the_bandit_gives_the_improving_model_most_calls_and_replay_chooses_alik
 
     again = _cli("replay", run_id, "--store", str(store.path))
     assert again.returncode == 0, again.stderr + again.stdout
+    progress = [line for line in again.stderr.splitlines() if line.startswith("replayed iteration")]
+    total = 8  # the run's --iterations
+    assert [line.split(":")[0] for line in progress] == [f"replayed iteration {i} of {total}" for i in
+                                                          range(total + 1)], again.stderr  # a line as each ends
     replayed = [r for r in _run_ids(store) if r != run_id]
     assert _choices(store, replayed[0]) == choices, "the replay chose every model as the run did"
     assert store.query("SELECT models FROM model_choices WHERE run_id = ? ORDER BY iteration", [replayed[0]]) == \

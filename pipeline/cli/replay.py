@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 
 from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_run, add_store, open_store, resolve_run,
@@ -27,15 +28,24 @@ def add_parser(verbs) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from pipeline.optimizer.replay import replay
-
     from store.locks import run_is_live
+    from store.readers import get_run
+    from store.scores import score_text
 
     store = open_store(args)
     run_id = resolve_run(store, args.run_id, kinds=("optimize",), verb="replay")
     if run_is_live(store.path, run_id):  # its record still grows: a replay would stop where it is now, "interrupted"
         raise CliError(f"run {short_ids(store).get(run_id, run_id)} is still running: replay it once it has "
                        "finished or stopped")
-    report = replay(store, run_id, log=lambda line: show(line, file=sys.stderr))
+    with store.read() as con:
+        iterations = json.loads(get_run(con, run_id)["config"]).get("iterations")
+
+    def replayed(item) -> None:  # progress: a long run replays for minutes (its episodes are played again)
+        score = "forfeit" if item.score is None else score_text(item.score)
+        show(f"replayed iteration {item.iteration} of {iterations}: score {score}, update {item.update_status}",
+             file=sys.stderr, flush=True)
+
+    report = replay(store, run_id, log=lambda line: show(line, file=sys.stderr), on_iteration=replayed)
     if args.json:
         show_json(report.as_dict())
     else:

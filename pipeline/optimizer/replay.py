@@ -98,7 +98,8 @@ class StoredReplies(Mapping):
         return len(self.hashes)
 
 
-def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
+def replay(store: Store, run_id: str, log=lambda s: None, on_iteration=None) -> ReplayReport:
+    """Replay ``run_id`` (the module docstring); ``on_iteration(IterationResult)`` after each iteration replayed."""
     with store.read() as con:
         run = get_run(con, run_id)
         if run is None:
@@ -119,7 +120,7 @@ def replay(store: Store, run_id: str, log=lambda s: None) -> ReplayReport:
     state = load_state(store, new_run)
     state.pool_bases = bases  # the proposal pool starts each candidate from the iterations its original saw
     state.config.audit_episodes = 0  # a replay checks that the loop reproduces; its audit is `codearcade audit`
-    result = run_loop(store, state, client, log)
+    result = run_loop(store, state, client, log, on_iteration)
 
     with store.read() as con:
         original, again = iteration_prompts(con, run_id), iteration_prompts(con, new_run)
