@@ -472,6 +472,9 @@ def test_a_query_that_finds_nothing_by_a_short_id_says_how_to_name_the_run(four,
     assert rows == [] and len(said) == 1 and "'baseline' is run 01JDX3K2AB's label" in said[0]
     rows, said = sql("SELECT kind FROM runs WHERE run_id = 'last'")
     assert len(said) == 1 and "'last' names run 01JDX3K9 only through run(): write run('last')" in said[0]
+    rows, said = sql("SELECT iteration FROM learning_curve WHERE run_id = run('last')")  # after an eval: its run
+    assert rows == [] and said == ["codearcade: note: no rows; run('last') is eval run 01JDX3K9 (breakout): last "
+                                   "counts runs of every kind"]
     rows, said = sql("SELECT kind FROM runs WHERE run_id = '01JDX3K2A'")
     assert len(said) == 1 and "'01JDX3K2A' is the start of 2 run ids" in said[0] and "run_matches(" in said[0]
     # nothing to say: a whole id, a value inside run(...) (no rows for another reason), too short a prefix, a

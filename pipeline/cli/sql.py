@@ -4,6 +4,7 @@ there is to query."""
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 
 from pipeline.cli.common import EXIT_OK, CliError, add_store, non_negative_int, open_store, short_ids, show, show_json
@@ -91,6 +92,30 @@ def _why_no_rows(store, query: str, params: list[str]) -> list[str]:
                 "name": f"run {run}'s label, not its id", "recency": f"names run {run} only through run()"}[how]
         notes.append(f"codearcade: note: no rows; {quoted} {'' if how == 'recency' else 'is '}{what}: write "
                      f"run({quoted}) where a run id goes, e.g. WHERE run_id = run({quoted})")
+    notes += _runs_named(store, query, short)
+    return notes
+
+
+_RUN_CALL = re.compile(r"\brun\(\s*'((?:[^']|'')*)'\s*\)", re.IGNORECASE)
+
+
+def _runs_named(store, query: str, short: dict[str, str]) -> list[str]:
+    """For a query that found nothing: which run each ``run('...')`` in it names, with its kind and game. ``last``
+    is the newest run of any kind: after an ``eval``, ``run('last')`` is that evaluation, which ``learning_curve``
+    and the other views of optimizations hold no rows of."""
+    from store.readers import get_run
+    from store.runs import RECENT_FORM, resolve_run_id
+
+    notes = []
+    refs = [m.group(1).replace("''", "'") for m in _RUN_CALL.finditer(query)]
+    with store.read() as con:
+        for ref in dict.fromkeys(r for r in refs if RECENT_FORM.fullmatch(r.strip())):  # an id or label: as meant
+            try:
+                run = get_run(con, resolve_run_id(con, ref, store))
+            except ValueError:
+                continue  # the query itself said why (run() raises the same error)
+            notes.append(f"codearcade: note: no rows; run('{ref}') is {run['kind']} run {short.get(run['run_id'])} "
+                         f"({run['game']}): last counts runs of every kind")
     return notes
 
 
