@@ -301,6 +301,9 @@ class Store:
         self._refuse_damage(con, current)  # never append to, nor migrate, a damaged store
         if current == 0:
             con.execute(SCHEMA_MIGRATIONS_TABLE)
+        elif current < LATEST:  # the file changes for good, whatever verb opened it: say so, once
+            print(f"codearcade: upgrading {self.path} from schema version {current} to {LATEST}; an older "
+                  "codearcade will refuse it from now on", file=sys.stderr, flush=True)
         for version, name, sql in MIGRATIONS:
             if version <= current:
                 continue

@@ -222,7 +222,7 @@ def test_rerun_off_means_no_target(value):
 @pytest.mark.parametrize("value, said", [
     ("http://127.0.0.1:9876", "starts rerun+http://"), ("htp://x", "starts rerun+http://"),
     ("grpc://127.0.0.1:9876", "starts rerun+http://"), ("Spawn", "did you mean spawn?"),
-    (" spawn", "did you mean spawn?"), ("{tmp}/missing/recordings", "missing does not exist"),
+    (" spawn", "did you mean spawn?"), ("{tmp}/missing/recordings", "missing does not exist; give another path"),
 ])
 def test_a_rerun_value_that_is_no_directory_meant_is_refused_and_makes_none(tmp_path, monkeypatch, value, said):
     """``--rerun`` takes spawn, off, a viewer's rerun+http:// address or a directory: a URL of another scheme or a

@@ -245,3 +245,24 @@ def test_a_ctrl_c_while_duckdb_calls_python_is_a_ctrl_c_and_rolls_the_write_back
     with pytest.raises(duckdb.ConversionException):
         with store.write() as con:
             con.execute("SELECT 'failed: KeyboardInterrupt:'::INTEGER")
+
+
+def test_a_store_upgraded_by_any_verb_says_so_once(tmp_path, capsys):
+    """Opening an older store upgrades it for good (an older codearcade then refuses it), even from a verb that
+    only reads (`runs`): a reviewer saw the file change with nothing said. One line on stderr says it, the first
+    time only; a new store is made without a word."""
+    import gzip
+    import shutil
+
+    path = tmp_path / "old.duckdb"
+    with gzip.open(ROOT / "tests" / "fixtures" / "greedy_run.duckdb.gz") as packed, open(path, "wb") as out:
+        shutil.copyfileobj(packed, out)
+    runs = [sys.executable, "-m", "pipeline.cli", "runs", "--store", str(path)]
+    first, again = (subprocess.run(runs, cwd=ROOT, capture_output=True, text=True, timeout=120) for _ in range(2))
+    assert first.returncode == again.returncode == 0, first.stderr
+    said = [line for line in first.stderr.splitlines() if "upgrading" in line]
+    assert len(said) == 1 and f"to {LATEST}" in said[0] and "older codearcade will refuse" in said[0], first.stderr
+    assert "upgrading" not in again.stderr
+    with Store(tmp_path / "new.duckdb").write():
+        pass
+    assert capsys.readouterr().err == ""

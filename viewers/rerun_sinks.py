@@ -216,8 +216,9 @@ def resolve_live_target(value: str | None) -> str | None:
     if path.exists() and not path.is_dir():
         raise ViewerError(f"--rerun {value}: not a directory (give a directory for the .rrd files, spawn or off)")
     if not path.parent.is_dir():
-        raise ViewerError(f"--rerun {value}: {path.parent} does not exist; create it, or give another directory "
-                          "(spawn, off)")
+        what = "is not a directory" if path.parent.exists() else "does not exist"
+        raise ViewerError(f"--rerun {value}: {path.parent} {what}; give another path (a directory for the .rrd "
+                          "files, spawn or off)")
     path.mkdir(exist_ok=True)
     return str(path)
 
