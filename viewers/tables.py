@@ -113,11 +113,17 @@ def format_table(columns: Sequence[str], rows: Sequence[Sequence[Any]], max_widt
 
 
 def write_csv(stream: IO[str], columns: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
-    """RFC 4180 CSV with a header row; NULL is an empty field, newlines inside fields are kept (quoted)."""
+    """RFC 4180 CSV with a header row; NULL is an empty field, newlines inside fields are kept (quoted). Written to
+    a terminal, each field is made safe for it (``terminal_text``: a policy's error may hold escape sequences);
+    to a file or a pipe, it is the data as stored."""
+    safe = stream.isatty() if hasattr(stream, "isatty") else False
     writer = csv.writer(stream, lineterminator="\n")
-    writer.writerow(columns)
-    for row in rows:
-        writer.writerow(["" if v is None else cell_text(v) for v in row])
+    # a field holding a lone \r is quoted only where \r ends lines: such a row is written with every field quoted
+    quoted = csv.writer(stream, lineterminator="\n", quoting=csv.QUOTE_ALL)
+    for cells in ([str(c) for c in columns], *(["" if v is None else cell_text(v) for v in row] for row in rows)):
+        if safe:
+            cells = [terminal_text(c, multiline=True) for c in cells]
+        (quoted if any("\r" in c for c in cells) else writer).writerow(cells)
 
 
 def records(columns: Sequence[str], types: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[dict[str, Any]]:

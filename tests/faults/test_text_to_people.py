@@ -220,3 +220,24 @@ def test_compare_shows_and_writes_stored_text_safely(tmp_path):
     readme = write_report(data, tmp_path / "cmp").read_text(encoding="utf-8")
     assert UNSAFE.search(readme) is None
     _assert_no_markup(readme, set())
+
+
+def test_csv_on_a_terminal_is_made_safe_and_into_a_file_is_the_data():
+    """``sql --csv`` printed a policy's error as stored: to a terminal, with its escapes (the table mode cleaned
+    them). On a terminal each field is made safe now; into a pipe or a file it is still the data, byte for byte,
+    read back as one field (a lone carriage return in it was left unquoted, and split the row in two)."""
+    import csv
+    import io
+
+    from viewers.tables import write_csv
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    rows = [[ESCAPES + MARKUP, 1], [None, "plain"]]
+    shown, piped = Terminal(), io.StringIO()
+    write_csv(shown, ["error", "n"], rows)
+    write_csv(piped, ["error", "n"], rows)
+    assert UNSAFE.search(shown.getvalue().replace("\n", "")) is None and "all episodes verified OK" in shown.getvalue()
+    assert list(csv.reader(io.StringIO(piped.getvalue(), newline="")))[1][0] == ESCAPES + MARKUP
