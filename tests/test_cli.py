@@ -619,3 +619,12 @@ def test_progress_lines_are_told_apart_from_what_a_command_says():
     err = "eval p.py: 2 episodes to play\neval p.py: 1 of 2 episodes played, 1,234 steps\ncodearcade: error: x\n"
     assert said(err) == ["codearcade: error: x"]
     assert said("eval p.py: to play everything\n") == ["eval p.py: to play everything"]
+
+
+def test_version_says_the_installed_version(capsys):
+    """``codearcade --version`` (it was "unknown flag"): the version a run records of itself."""
+    from importlib import metadata
+
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0 and capsys.readouterr().out.strip() == f"codearcade {metadata.version('codearcade')}"

@@ -48,11 +48,22 @@ def build_parser() -> argparse.ArgumentParser:
         "every step and call in a DuckDB store.",
         epilog="Run `codearcade VERB --help` for a verb's options.",
     )
+    parser.add_argument("--version", action="version", version=f"codearcade {_version()}")
     verbs = parser.add_subparsers(dest="verb", metavar="VERB")
     verbs.required = True
     for verb in VERBS:
         verb.add_parser(verbs)
     return parser
+
+
+def _version() -> str:
+    """The installed codearcade's version (what a run records in ``runs.package_versions``)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("codearcade")
+    except metadata.PackageNotFoundError:  # run from a checkout that was never installed
+        return "(not installed)"
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
