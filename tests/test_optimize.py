@@ -162,3 +162,24 @@ def test_offline_default_model_runs_the_loop(tmp_path):
     call = Store(store_path).query("SELECT request_model, provider_name, input_tokens, output_tokens, error_type "
                                    "FROM llm_calls")
     assert call[0][0] == "openai/smollm2-135m-instruct" and call[0][2] > 0 and call[0][4] is None
+
+
+@pytest.mark.parametrize("game", ["pong", "breakout", "space_invaders"])
+def test_a_budget_no_prompt_fits_is_refused_before_anything_plays(store, scripted, game):
+    """``--token-budget 500`` was found too small only after iteration 0 had played (minutes at the authors'
+    caps), and the run was left failed. The prompt's fixed part (code, instructions, documentation) is counted
+    first now: a budget below it is refused with the tokens it needs, before a run is made; a budget that fits it
+    is what the loop's own check counts the same way (``smallest_prompt_tokens`` is a lower bound of it)."""
+    from pipeline.llm.tokens import TokenCounter
+    from pipeline.optimizer.prompt import PromptBudgetError, smallest_prompt_tokens
+    from pipeline.optimizer.task import resolve_start, task_settings
+
+    model = scripted([COMPETENT_REPLY])
+    config = _config(game=game, token_budget=500, iterations=1)
+    with pytest.raises(PromptBudgetError, match=r"alone need (\d+) tokens, more than the budget of 500") as refused:
+        optimize(config, store, _client(model))
+    assert not store.exists() or store.query("SELECT count(*) FROM runs") == [(0,)], "no run was made"
+    assert model.requests() == []
+    info, name = resolve_start(config)
+    need = smallest_prompt_tokens(name, task_settings(info, name).instruction, info, TokenCounter(model.model), 1.0)
+    assert f"need {need} tokens" in str(refused.value)

@@ -40,6 +40,7 @@ from pipeline.optimizer.config import RESUME_OVERRIDES, OptimizeConfig, validate
 from pipeline.settings import flag_of
 from pipeline.optimizer.feedback import FeedbackBands
 from pipeline.optimizer.propose import BudgetExhausted, Proposal, check_wall, propose
+from pipeline.optimizer.prompt import PromptBudgetError, smallest_prompt_tokens
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History
 from pipeline.optimizer.task import resolve_start, task_settings
@@ -352,7 +353,18 @@ def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: st
     the stored ones (and are recorded), the rest is the run's own.
     """
     validate_config(config)
-    run_id = resume or start_run(config, store, client.label, extra=tags)
+    start = None
+    if not resume:
+        start = resolve_start(config)
+        if client is not None and config.iterations:  # a budget no prompt fits: said before iteration 0 plays
+            info, game = start
+            need = smallest_prompt_tokens(game, task_settings(info, game).instruction, info,
+                                          TokenCounter(client.model), config.call_time_limit_s)
+            if need > config.token_budget:
+                raise PromptBudgetError(f"the policy code and instructions alone need {need} tokens, more than the "
+                                        f"budget of {config.token_budget}; raise --token-budget (a rollout and "
+                                        "feedback need more)")
+    run_id = resume or start_run(config, store, client.label, extra=tags, start=start)
     state = load_state(store, run_id)
     state.rerun = rerun
     if waiting is not None:

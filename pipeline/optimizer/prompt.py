@@ -300,6 +300,19 @@ def _unit_lines(unit: list[int], steps: list[dict[str, Any]],
 # ---------------------------------------------------------------------------------------------- building
 
 
+def smallest_prompt_tokens(game: str, instruction: str, info: PolicyInfo, counter: TokenCounter,
+                           call_time_limit_s: float) -> int:
+    """The tokens of a prompt for ``info`` before anything has played: its code, instructions and documentation,
+    an empty rollout, no feedback and no memory. Every prompt of a run that starts from ``info`` needs at least
+    these (what an iteration adds only adds to them), so a budget below them can be refused before iteration 0
+    plays for minutes."""
+    empty = PromptContext(game=game, instruction=instruction, info=info,
+                          train_episode={"length": 0, "return": 0.0, "end_reason": "truncated", "error": None},
+                          train_steps=[], train_nodes=[], eval_episodes=[], feedback="",
+                          call_time_limit_s=call_time_limit_s)
+    return build_prompt(empty, 2**31, counter).tokens
+
+
 def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prompt:
     """Assemble the prompt for ``ctx`` within ``budget`` tokens (see the module docstring)."""
     game = get_game(ctx.game)
