@@ -246,6 +246,18 @@ def test_a_batch_log_that_takes_no_appending_is_one_line(tmp_path, capsys):
     assert "--log /proc/version: Invalid argument; give another path" in line, line
 
 
+@pytest.mark.parametrize("dry_run", [True, False])
+def test_a_batch_whose_store_folder_is_missing_says_so_dry_run_or_not(tmp_path, capsys, dry_run):
+    """An experiment file's store in a folder that does not exist: --dry-run said "1 runs into ..." and exit 0, and
+    the real run blamed a --log the person never gave. Both now name the store's folder, and make nothing."""
+    batch = tmp_path / "b.toml"
+    batch.write_text(f'name = "t"\nstore = "{tmp_path / "nodir" / "s.duckdb"}"\n[defaults]\ngame = "pong"\n'
+                     '[matrix]\nseed = [0]\n')
+    line = _one_line_error(*_run(capsys, "batch", batch, *(["--dry-run"] if dry_run else []))[::2])
+    assert f"directory {tmp_path / 'nodir'} does not exist" in line and "--log" not in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.toml"]
+
+
 def test_an_emptied_migration_table_is_damage_for_every_command_and_the_doctor(played, tmp_path, capsys):
     """Its tables there but schema_migrations emptied: the commands tried to create the first migration's tables
     again (a traceback) and the doctor said ok."""

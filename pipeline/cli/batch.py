@@ -117,6 +117,10 @@ def run(args: argparse.Namespace) -> int:
     if location.surprising:
         show(f"codearcade: {location.describe()}", file=sys.stderr, flush=True)
     store = Store(location)
+    if not store.path.parent.is_dir():  # said first, for --dry-run too (the log file beside it failed to open)
+        where = "experiment file's store" if location.rule == "experiment" else "store"
+        raise CliError(f"the {where} {store.path}: directory {store.path.parent} does not exist; create it or "
+                       "choose another store")
     planned = plan(batch, store)
     problems = _endpoint_problems(planned)
     if args.dry_run:
