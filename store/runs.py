@@ -217,6 +217,11 @@ def check_run_name(name: str) -> str:
     return name
 
 
+def runs_named(con: duckdb.DuckDBPyConnection, name: str) -> list[str]:
+    """The ids of the runs labelled ``name``, oldest first."""
+    return [r for (r,) in con.execute("SELECT run_id FROM runs WHERE name = ? ORDER BY created_at", [name]).fetchall()]
+
+
 # -------------------------------------------------------------------------------------------------- listing
 
 

@@ -628,3 +628,16 @@ def test_version_says_the_installed_version(capsys):
     with pytest.raises(SystemExit) as done:
         main(["--version"])
     assert done.value.code == 0 and capsys.readouterr().out.strip() == f"codearcade {metadata.version('codearcade')}"
+
+
+def test_a_second_run_under_a_label_is_made_with_a_warning(tmp_path, capsys):
+    """``eval --name dup`` twice: both ran silently, and ``report dup`` then said "2 runs are named 'dup'". The
+    second run is still made (a batch's reruns share their labels), with a warning naming the first."""
+    store = str(tmp_path / "s.duckdb")
+    policy = str(ROOT / "games" / "scaffolds" / "pong.py")
+    code, _, first = _in_process(capsys, "eval", policy, "--max-steps", "5", "--name", "dup", "--store", store)
+    assert code == 0 and "warning" not in first
+    code, _, second = _in_process(capsys, "eval", policy, "--max-steps", "5", "--name", "dup", "--store", store)
+    (earlier,) = [r for (r,) in Store(Path(store)).query("SELECT run_id FROM runs ORDER BY created_at LIMIT 1")]
+    assert code == 0 and "codearcade: warning: run " in second and "is named 'dup' too" in second, second
+    assert earlier[:8] in second

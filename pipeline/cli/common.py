@@ -331,6 +331,22 @@ def run_name(text: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def warn_if_named(store, name: str | None, run_id: str | None = None) -> None:
+    """A warning on stderr when runs other than ``run_id`` already carry the label ``name``: a run is made under it
+    all the same (a batch's reruns share their labels), but every verb given the label will ask which."""
+    if name is None or not store.exists():
+        return
+    from store.runs import runs_named
+
+    with store.read() as con:
+        others = [r for r in runs_named(con, name) if r != run_id]
+    if others:
+        short = short_ids(store)
+        listed = ", ".join(short.get(r, r) for r in others[:3]) + (" ..." if len(others) > 3 else "")
+        show(f"codearcade: warning: run {listed} is named {name!r} too; a verb given {name!r} will ask for an id",
+             file=sys.stderr)
+
+
 def add_name(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--name", type=run_name, metavar="LABEL",
                    help=f"a label for the {what}: every verb then takes LABEL for it, as for its id "

@@ -8,7 +8,7 @@ import sys
 
 from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, FAILED_END_REASONS, EpisodeProgress, add_name,
                                  add_rerun, add_settings, add_store, open_store, rerun_target, short_id, show,
-                                 show_json)
+                                 show_json, warn_if_named)
 from pipeline.play.config import EvalConfig
 from pipeline.settings import declarations
 
@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
         given["workers"] = min(args.episodes, os.cpu_count() or 1)
     config = EvalConfig(**given, rerun=rerun_target(args.rerun))
     store = open_store(args, announce=args.json)  # without --json the start line names the store and why
+    warn_if_named(store, args.name)
     bar = EpisodeProgress(args.episodes, f"eval {os.path.basename(args.policy)}")
     label = f" '{args.name}'" if args.name else ""
 

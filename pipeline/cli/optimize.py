@@ -9,7 +9,7 @@ from typing import Callable
 
 from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError, add_name, add_rerun,
                                  add_settings, add_store, open_store, rerun_target, resolve_run, short_id,
-                                 shorten_run_ids, show, show_json, store_flag)
+                                 shorten_run_ids, show, show_json, store_flag, warn_if_named)
 from pipeline.optimizer.config import FLAG_GROUPS, OptimizeConfig
 from pipeline.settings import declarations
 from store.scores import score_text
@@ -247,6 +247,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
             run_id = start_run(config, store, client.label, start=start)
         started["run_id"] = started["short"] = run_id
         if args.name is not None:
+            warn_if_named(store, args.name, run_id)
             with store.write() as con:
                 set_run_name(con, run_id, args.name)
         started["short"] = short = short_id(store, run_id)

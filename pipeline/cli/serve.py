@@ -14,7 +14,7 @@ import os
 import sys
 
 from pipeline.cli.common import (EXIT_OK, CliError, add_name, add_rerun, add_settings, add_store, open_store,
-                                 rerun_target, resolve_run, short_id, show, show_json)
+                                 rerun_target, resolve_run, short_id, show, show_json, warn_if_named)
 from pipeline.serve.config import ServeConfig
 
 
@@ -107,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         config = ServeConfig(**{name: getattr(args, name) for name in ServeConfig.__dataclass_fields__
                                 if hasattr(args, name)})  # a setting without a flag keeps its default
+        warn_if_named(store, args.name)
         run_id = create_run(store, config, name=args.name)
     with run_lock(store.path, run_id):
         served = ServeRun(store, run_id, workspace=workspace, on_episode=None if args.mcp else _episode_line,
