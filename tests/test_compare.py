@@ -171,6 +171,18 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted
     png = (tmp_path / "cmp" / "curves.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 20_000
     assert "![learning curves" in (tmp_path / "cmp" / "README.md").read_text()
+    # runs whose scores measure different things (a step cap of 800 against 50) are compared with a warning
+    assert report["cautions"] == [] and "warning" not in err
+    with store.write() as con:
+        con.execute("UPDATE runs SET config = json_merge_patch(config, '{\"eval_max_steps\": 50}') WHERE run_id = ?",
+                    [ids[1]])
+    code, out, err = run_cli(capsys, "compare", ids[0], ids[1], "--out", tmp_path / "cmp2", "--store", store.path,
+                             "--json")
+    assert code == 0 and json.loads(out)["cautions"] == [
+        "the runs differ in the evaluation's step cap (eval_max_steps: A 800, B 50): their scores measure different "
+        "things"]
+    assert "codearcade: warning: the runs differ in the evaluation's step cap" in err
+    assert "**Caution:** the runs differ in the evaluation" in (tmp_path / "cmp2" / "README.md").read_text()
 
 
 def test_what_cannot_be_compared_is_said_in_one_line(store, capsys, tmp_path):

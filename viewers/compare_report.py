@@ -242,6 +242,7 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
                          [(r["label"], markdown_code(r["run_id"]), r["model"], r["status"], r["iterations"], _best(r),
                            r["best_iteration"], r["llm_calls"], r["total_tokens"], r["elapsed_s"]) for r in runs]),
                "", markdown_text(_best_difference(data)) + " (`store/scores.py`)",
+               *(f"\n**Caution:** {markdown_text(c)}." for c in data.get("cautions", ())),
                "", "## Best score within the same budget", "",
                "Only budgets both runs spent are matched; `all` is each run's whole spending.", "",
                _md_table(("budget in", "up to", "A best", "B best"), _budget_rows(data)), "",

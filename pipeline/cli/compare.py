@@ -67,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
     result = compare(store, args.a, args.b, config, progress=lambda line: show(line, file=sys.stderr, flush=True),
                      episodes_progress=EpisodeProgress)
     data = result.as_dict()
+    for caution in data.get("cautions", ()):  # said first, and on stderr: --json's reader sees it in the data
+        show(f"codearcade: warning: {caution}", file=sys.stderr)
     if args.rerun:
         if data["mode"] != "versions":
             raise CliError("--rerun shows two played episodes: it goes with two versions (files or RUN:VERSION)")

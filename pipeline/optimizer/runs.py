@@ -14,6 +14,7 @@ optimizer's spending; two policy versions are played against each other by ``pip
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,17 +37,31 @@ class RunComparison:
     difference: dict[str, Any]
     """A's best minus B's best (mean returns of the episodes that scored them) with its 95% interval, whether that
     leaves out 0, and the verdict in words."""
+    cautions: list[str]
+    """The settings that change what a score is (:data:`SCORE_SETTINGS`) where the two runs differ, in words."""
 
     def as_dict(self) -> dict[str, Any]:
         return {"mode": "runs", "game": self.game, "runs": self.runs, "curves": self.curves,
-                "budgets": self.budgets, "diff": self.diff, "difference": self.difference}
+                "budgets": self.budgets, "diff": self.diff, "difference": self.difference, "cautions": self.cautions}
+
+
+SCORE_SETTINGS = {"eval_max_steps": "the evaluation's step cap", "eval_episodes": "the evaluation games per score",
+                  "one_life": "the one-life protocol", "optimize_protocol": "the protocol scored",
+                  "robust_episodes": "the standard-protocol games per score", "observation": "the observation"}
+"""Settings of a run that change what its scores are: two runs that differ in one score different things."""
+
+
+def _cautions(configs: list[dict[str, Any]]) -> list[str]:
+    return [f"the runs differ in {what} ({name}: A {configs[0].get(name)!r}, B {configs[1].get(name)!r}): their "
+            "scores measure different things" for name, what in SCORE_SETTINGS.items()
+            if configs[0].get(name) != configs[1].get(name)]
 
 
 def compare_runs(store: Store, a: str, b: str) -> RunComparison:
     """Learning curves, budget-matched table and best-version diff of two optimization runs."""
     with store.read() as con:
         ids = [resolve_run_id(con, x, store) for x in (a, b)]
-        runs, curves, texts, scores = [], {}, [], []
+        runs, curves, texts, scores, configs = [], {}, [], [], []
         for label, run_id in zip(LABELS, ids):
             run = get_run(con, run_id)
             curve = learning_curve(con, run_id)
@@ -55,6 +70,7 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
                 raise ValueError(f"run {run_id} is {kind_phrase(run['kind'])} without iterations: compare optimization "
                                  f"runs, or play its policy against another version with {run_id}:best")
             texts.append(policy_text(con, run_id, best["policy_version_id"]))
+            configs.append(json.loads(run["config"]))
             assessed = best_evaluation(con, run_id) or {"episodes": []}
             scored = score_episodes(assessed["episodes"])
             scores.append(scored)
@@ -79,7 +95,7 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
              + (f"score {r['best_score']:g})" if r["best_score"] is not None else "no score)") for r in runs]
     game = games.pop()
     return RunComparison(game, runs, curves, budget_table(curves), unified_diff(texts[0], texts[1], *names),
-                         difference_data(game, *scores))
+                         difference_data(game, *scores), _cautions(configs))
 
 
 def _cumulative_calls(curve: list[dict[str, Any]]) -> list[dict[str, Any]]:
