@@ -433,3 +433,11 @@ def test_every_policy_file_of_the_authors_repository_loads_and_plays():
         loaded.append(path)
     print(f"{len(loaded)} policy files of the authors' repository loaded and played: {', '.join(loaded)}")
     assert len(loaded) == len(AUTHORS_FILES) >= 11
+
+
+def test_an_exception_without_a_message_is_described_without_an_empty_one():
+    """``MemoryError()`` and the like say nothing: the episode's error read ``MemoryError:  at line 5``."""
+    from pipeline.boundary.policy import describe_exception
+
+    assert describe_exception(MemoryError()) == "MemoryError"
+    assert describe_exception(ValueError("bad")) == "ValueError: bad"

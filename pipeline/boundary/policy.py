@@ -156,7 +156,8 @@ def describe_exception(exc: BaseException) -> str:
     """One line: the exception, and the innermost line of policy code it came from."""
     line, text = failing_policy_line(exc)
     where = f" at line {line}: `{text}`" if line and text else (f" at line {line}" if line else "")
-    return f"{type(exc).__name__}: {exc}{where}"
+    said = str(exc)
+    return f"{type(exc).__name__}: {said}{where}" if said else f"{type(exc).__name__}{where}"  # MemoryError() says ""
 
 
 class Channel:
