@@ -225,6 +225,9 @@ class Store:
         """A connection to the store from the process's DuckDB instance (``store/hub.py``); give it back with
         ``HUB.release``. Retries while another process holds the file."""
         # Writes are small batches: one thread leaves the other core to the episode workers.
+        if self.path.is_dir():
+            raise StoreError(f"{self.path} is a directory, not a store file; give a file, e.g. --store "
+                             f"{self.path / DEFAULT_STORE}")
         threads = (os.cpu_count() or 1) if read_only else 1
         timeout = self.lock_timeout_s if read_only else self.write_lock_timeout_s
         began = time.monotonic()

@@ -451,3 +451,13 @@ def test_a_policy_file_saved_on_windows_plays_as_the_same_version(tmp_path, caps
         assert main(["eval", str(played), "--max-steps", "5", "--store", store]) == 0, capsys.readouterr().err
     versions = Store(Path(store)).query("SELECT DISTINCT policy_version_id FROM episodes")
     assert len(versions) == 1, versions
+
+
+@pytest.mark.parametrize("verb", [("runs",), ("sql", "SELECT 1"), ("eval", str(STARTER), "--max-steps", "5")])
+def test_a_directory_given_as_the_store_is_named_as_one(tmp_path, capsys, verb):
+    """``--store DIR`` was DuckDB's raw 'IO Error: Could not read from file ...: Is a directory'; it now says what
+    to give, and leaves the directory as it was."""
+    line = _one_line_error(*_run(capsys, *verb, "--store", tmp_path)[::2])
+    assert f"{tmp_path} is a directory, not a store file; give a file, e.g. --store {tmp_path}/codearcade.duckdb" \
+        in line, line
+    assert list(tmp_path.iterdir()) == []
