@@ -641,3 +641,14 @@ def test_a_second_run_under_a_label_is_made_with_a_warning(tmp_path, capsys):
     (earlier,) = [r for (r,) in Store(Path(store)).query("SELECT run_id FROM runs ORDER BY created_at LIMIT 1")]
     assert code == 0 and "codearcade: warning: run " in second and "is named 'dup' too" in second, second
     assert earlier[:8] in second
+
+
+def test_a_failed_optimize_says_its_error_once_with_how_to_continue(tmp_path, capsys, scripted):
+    """A run the model's 401 stopped printed its error twice, on stdout's last line and in stderr's advice; once
+    now, where the advice is (stderr), and stdout still ends with the run's status."""
+    model = scripted([{"status": 401}])
+    code, out, err = _in_process(capsys, "optimize", "--game", "pong", "--model", model.model, "--api-base",
+                                 model.api_base, "--iterations", "1", "--eval-max-steps", "50", "--rollout-steps",
+                                 "20", "--workers", "1", "--store", tmp_path / "s.duckdb")
+    assert code == 1 and out.strip().splitlines()[-1].endswith(" failed"), out
+    assert (out + err).count("invalid api key") == 1 and "continue it with `codearcade optimize --resume" in err, err

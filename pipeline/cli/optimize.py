@@ -275,7 +275,9 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
                            for i in result.iterations],
         })
     else:
-        show(f"run {short} {result.status}" + (f": {error}" if error else ""))
+        # a run that did not finish has its error said once, on stderr below, with how to continue it
+        said_below = result.status not in ("finished", "budget")
+        show(f"run {short} {result.status}" + (f": {error}" if error and not said_below else ""))
         for line in result.audit.lines() if result.audit is not None else []:
             show(line)
     if result.status == "budget":
