@@ -648,3 +648,24 @@ def test_what_the_agents_query_builds_is_never_the_servers(any_store, query):
         assert answer["refused"].startswith("the query needed more memory than its process may have"), answer
     else:
         assert answer["rows"] <= 1, answer
+
+
+def test_a_workspace_file_is_read_as_every_policy_file_is(tmp_path):
+    """A submission by ``path`` reads its file as ``eval`` reads one: within MAX_POLICY_CHARS, UTF-8 (a byte-order
+    mark skipped), line ends as Python reads them; a refusal names the file as the agent named it."""
+    from pipeline.serve.config import ServeConfig
+    from pipeline.serve.protocol import RequestError, ServeRun, create_run
+
+    store = Store(tmp_path / "s.duckdb")
+    workspace = tmp_path / "workspace"
+    workspace.mkdir()
+    served = ServeRun(store, create_run(store, ServeConfig(game="pong", budget=2)), workspace=workspace)
+    (workspace / "windows.py").write_bytes(b"\xef\xbb\xbfclass Policy:\r\n    pass\r\n")
+    assert served._workspace_file("windows.py") == "class Policy:\n    pass\n"
+    (workspace / "latin1.py").write_bytes(b"# caf\xe9\n")
+    with pytest.raises(RequestError, match=r"^path: workspace file 'latin1.py' is not UTF-8 text$"):
+        served._workspace_file("latin1.py")
+    (workspace / "long.py").write_text("#" * 200_001)
+    with pytest.raises(RequestError, match=r"^path: workspace file 'long.py' is longer than 200,000 characters"):
+        served._workspace_file("long.py")
+    assert str(workspace) not in str(pytest.raises(RequestError, served._workspace_file, "long.py").value)

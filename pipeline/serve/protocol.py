@@ -80,7 +80,7 @@ from store.serve import served_submissions, submission_episodes, visible_query
 from store.views import QueryError
 from store.writer import (EpisodeWriter, finish_run, insert_candidate, insert_feedback, insert_iteration,
                           insert_policy_version, replace_audits)
-from tracing.policy_file import MAX_POLICY_CHARS, PolicyLoadError, python_newlines
+from tracing.policy_file import MAX_POLICY_CHARS, PolicyLoadError, python_newlines, read_policy_file
 
 KIND = "serve"
 TRAIN_SEED_LOW = 100_000
@@ -333,14 +333,10 @@ class ServeRun:
         target = (self.workspace / path).resolve()
         if not target.is_relative_to(self.workspace) or not target.is_file():
             raise RequestError(f"path: no file {path!r} in the workspace")
-        with open(target, "rb") as f:
-            data = f.read(MAX_POLICY_CHARS * 4 + 1)
-        if len(data) > MAX_POLICY_CHARS * 4:
-            raise RequestError(f"path: the file is larger than {MAX_POLICY_CHARS:,} characters")
-        try:
-            return data.decode("utf-8-sig")  # a byte-order mark is no character of the file
-        except UnicodeDecodeError:
-            raise RequestError("path: the file is not UTF-8 text") from None
+        try:  # read as every policy file is: within MAX_POLICY_CHARS, UTF-8, line ends as Python reads them
+            return read_policy_file(target, kind="workspace file")
+        except PolicyLoadError as exc:  # named as the agent named it, not by the server's own path
+            raise RequestError(f"path: {str(exc).replace(str(target), path)}") from None
 
     def _play(self, iteration: int, info, text: str, instances: list[int], parent: int) -> dict[str, Any]:
         s, started, t0 = self.serve, utcnow(), time.monotonic()
