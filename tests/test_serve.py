@@ -20,6 +20,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -42,10 +43,10 @@ HTTP_LINE = re.compile(r"HTTP\+JSON on http://127\.0\.0\.1:(\d+)/")
 class Server:
     """``codearcade serve`` in a process of its own, its stderr collected by a thread (so it never blocks)."""
 
-    def __init__(self, store: Path, *args: str):
+    def __init__(self, store: Path, *args: str, own_group: bool = False):
         self.proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--port", "0", "--store",
                                       str(store), *args], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, text=True)
+                                     stderr=subprocess.PIPE, text=True, process_group=0 if own_group else None)
         self.lines: list[str] = []
         self.responses: list[str] = []
         port = None
@@ -669,3 +670,42 @@ def test_a_workspace_file_is_read_as_every_policy_file_is(tmp_path):
     with pytest.raises(RequestError, match=r"^path: workspace file 'long.py' is longer than 200,000 characters"):
         served._workspace_file("long.py")
     assert str(workspace) not in str(pytest.raises(RequestError, served._workspace_file, "long.py").value)
+
+
+@pytest.mark.parametrize("after_s", [0.5, 2.0, 4.0])
+def test_ctrl_c_while_a_submission_plays_gives_it_back(tmp_path, after_s):
+    """Ctrl-C at a terminal reaches the server and its workers (the whole process group) while a submission plays:
+    the handler's thread went on under the stopping server, printed tracebacks (a closed zygote socket, a dict
+    changed during iteration at exit), and the submission was stored as forfeited games, charged to the budget.
+    Now the server gives it back: the agent's answer says so (never a 500), nothing is charged, no traceback; a
+    submission that finished before the press keeps its result and its cost."""
+    from pipeline.serve.protocol import ServeRun
+    from tests.conftest import POLICIES
+
+    store = tmp_path / "s.duckdb"
+    server = Server(store, "--game", "pong", "--max-steps", "1500", "--workers", "2", "--budget", "8",
+                    own_group=True)
+    answer: dict = {}
+
+    def submit() -> None:
+        try:
+            answer["got"] = server.post("submit", {"policy": (POLICIES / "pong_competent.py").read_text(),
+                                                   "instances": [0, 1, 2, 3]})
+        except OSError as exc:  # the server ended before it answered
+            answer["lost"] = exc
+
+    asking = threading.Thread(target=submit, daemon=True)
+    asking.start()
+    time.sleep(after_s)
+    os.killpg(server.proc.pid, signal.SIGINT)
+    server.proc.wait(timeout=180)
+    asking.join(timeout=60)
+    said = "".join(server.lines)
+    assert server.proc.returncode == 0 and "Traceback" not in said and "Exception ignored" not in said, said
+    status = answer["got"][0] if "got" in answer else None
+    assert status in (200, 400, 503, None), answer
+    run_id = _run_id(store)
+    assert ServeRun(Store(store), run_id).budget()["spent"] == (4 if status == 200 else 0), (answer, said)
+    doctor = subprocess.run([sys.executable, "-m", "pipeline.cli", "doctor", "--store", str(store), "--json"],
+                            cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
+    assert json.loads(doctor.stdout)["ok"], doctor.stdout

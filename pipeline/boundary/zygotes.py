@@ -274,10 +274,11 @@ def zygote(role: str = "policy") -> Zygote:
 def stop_zygote() -> None:
     """Close this process's zygotes (their workers end with them)."""
     KEPT.let_go()
-    if _zygotes_pid == os.getpid():
-        for zyg in _zygotes.values():
-            zyg.close()
-    _zygotes.clear()
+    with _lock:  # a thread still starting one (a server's request at exit) must not change the dict mid-loop
+        closing = list(_zygotes.values()) if _zygotes_pid == os.getpid() else []
+        _zygotes.clear()
+    for zyg in closing:
+        zyg.close()
 
 
 ZYGOTE_USE = threading.RLock()

@@ -129,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             pass
         finally:
+            served.stop()  # a submission playing now is given back, before the run is marked and the zygotes go
             if not served.finalized:
                 with store.write() as con:
                     finish_run(con, run_id, "interrupted")

@@ -103,6 +103,9 @@ class _Handler(BaseHTTPRequestHandler):
         except RequestError as exc:
             self._send(400 if operation in OPERATIONS else 404, {"error": str(exc)})
         except Exception as exc:  # noqa: BLE001 - the server goes on; the agent learns the request failed
+            if self.server.run.stopping.is_set():  # what the server's own stop broke under a request: no fault
+                self._send(503, {"error": "the server is stopping"})
+                return
             traceback.print_exc()  # the server's own log (stderr): the person sees what went wrong
             self._send(500, {"error": f"the server failed on this request ({type(exc).__name__}); `budget` says "
                                       "what is spent"})

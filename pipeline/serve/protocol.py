@@ -171,6 +171,8 @@ class ServeRun:
         self._lock = threading.Lock()
         self._work = threading.Lock()
         self._parsing = threading.Lock()
+        self.stopping = threading.Event()
+        """Set when the server stops (:meth:`stop`): a submission playing then is neither stored nor charged."""
 
     # ------------------------------------------------------------------------------------------- reading
 
@@ -249,9 +251,19 @@ class ServeRun:
 
     # ------------------------------------------------------------------------------------------- submitting
 
+    def stop(self, wait_s: float = 60.0) -> None:
+        """Take no more submissions, and wait up to ``wait_s`` for one that is playing to end. Its episodes ended
+        with the server (a Ctrl-C reaches its workers too), not with its policy: it is not stored, and costs
+        nothing (it was saved as forfeited games and charged to the budget)."""
+        self.stopping.set()
+        if self._work.acquire(timeout=wait_s):
+            self._work.release()
+
     def _refuse_if_closed(self, episodes: int) -> None:
         """RequestError if the run takes no more submissions, or not one of ``episodes`` episodes (under
         ``_lock``)."""
+        if self.stopping.is_set():
+            raise RequestError("the server is stopping: nothing was played, and it cost nothing")
         if self.finalized:
             raise RequestError("the run is finalized: it takes no more submissions")
         left = self.budget_total - self._spent - self._reserved
@@ -361,6 +373,9 @@ class ServeRun:
                 episodes[i], printed[i] = outcome.episode, outcome.printed
                 if self.on_episode is not None:
                     self.on_episode(outcome.episode)
+        if self.stopping.is_set():  # the server stopped under it: its games ended with the server, not the policy
+            raise RequestError("the server stopped while this submission played: it is not stored and cost "
+                               "nothing; submit it again when the run is served again")
         score = score_episodes(episodes)
         ranked = score.ranked
         if ranked is not None and (self._best is None or (ranked, -iteration) > self._best):
