@@ -25,7 +25,7 @@ from typing import Any, Sequence
 
 import duckdb
 
-from store.db import Store, StoreError, is_corrupt_block
+from store.db import Store, StoreError, is_corrupt_block, is_ctrl_c
 from store.runs import SQL_MACROS, create_sql_macros, references_by_value, resolve_run_id  # noqa: F401 (resolve_run_id: for callers)
 from store.sql_stats import create_sql_functions, function_listing
 
@@ -177,7 +177,11 @@ def run_user_query(store: Store, sql: str, params: Sequence[str] | None = None, 
     con = _user_connection(store)
     try:
         return _result(con.execute(sql, bound), keep)
-    except duckdb.Error as exc:
+    except Exception as exc:
+        if is_ctrl_c(exc):  # on a connection of its own, outside Store.read(): given back as itself here
+            raise KeyboardInterrupt from None
+        if not isinstance(exc, duckdb.Error):
+            raise
         if is_corrupt_block(exc):
             raise  # not the query's fault: the store's damage, as every command reports it
         if "attached in read-only mode" in str(exc):  # a write inside a SELECT (WITH x AS (DELETE ...) ...)

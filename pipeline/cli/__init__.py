@@ -81,10 +81,23 @@ def _interrupted_once(signum: int, frame: object) -> None:
     interrupted, the zygotes and their processes are stopped): a second press would break that off with a
     traceback and leave processes behind. ``kill -9`` still ends it at once."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    PRESSED.set()
     raise KeyboardInterrupt
 
 
+PRESSED = threading.Event()
+"""Set by a Ctrl-C. A library may wrap the KeyboardInterrupt it raised in an error of its own (DuckDB's "Query
+interrupted" or its error of a Python function in a query, pydantic's SchemaError while litellm builds a model):
+whatever error then ends the command is the Ctrl-C's, and the command ends as interrupted (130), not with it."""
+
+
+def _interrupted() -> int:
+    show("codearcade: interrupted", file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    PRESSED.clear()  # this command's presses only (tests run many commands in one process)
     try:
         args = build_parser().parse_args(argv)
     except KeyboardInterrupt:  # Ctrl-C before the verb started anything
@@ -105,10 +118,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())  # so the interpreter's final flush does not fail again
         return EXIT_OK
     except KeyboardInterrupt:
-        show("codearcade: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _interrupted()
     except _user_errors() as exc:  # the message may quote a policy file, a stored text or an LLM's reply
         from pipeline.llm.local import LocalModelError
+
+        if PRESSED.is_set():
+            return _interrupted()
 
         # one line (but the offline model's failure ends with its server's log), its run ids as the person types
         # them: shortest unique prefixes
@@ -116,12 +131,16 @@ def main(argv: Sequence[str] | None = None) -> int:
              file=sys.stderr)
         return EXIT_BAD_INPUT
     except OSError as exc:
+        if PRESSED.is_set():
+            return _interrupted()
         if exc.filename is None:  # not a path the person gave (a socket, a pipe): not theirs to fix
             raise
         # a path that cannot be made or written: report --out, view --save, new, a batch's log, ...
         show(f"codearcade: error: {exc.filename}: {exc.strerror or exc}; give another path", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Exception as exc:
+        if PRESSED.is_set():
+            return _interrupted()
         missing = _columns_gone(exc, args)
         if missing:
             more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""

@@ -314,3 +314,49 @@ def test_a_ctrl_c_during_a_query_is_a_keyboard_interrupt_and_its_transaction_is_
                           timeout=600)  # uninterrupted, the query would take many minutes
     assert done.stdout.splitlines() == ["read KeyboardInterrupt", "write KeyboardInterrupt"], done.stdout + done.stderr
     assert store.query("SELECT count(*) FROM runs") == [(before,)], "the interrupted write left nothing"
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_a_persons_query_ends_it_as_interrupted(store):
+    """``codearcade sql`` runs a person's query on a connection of its own, outside ``Store.read()``, so DuckDB's
+    "Query interrupted" reached the command as a traceback and exit 1 (7 of 7 presses). It ends as interrupted now
+    (130), at any of three moments of a long query."""
+    with store.write():
+        pass
+    for delay in (1.0, 2.5, 4.0):
+        done = _press(["sql", "SELECT count(*) FROM range(30000000000) t(i) WHERE i % 7 = 3", "--store",
+                       str(store.path)], delay, ROOT)
+        said = f"{done.args}\n{done.stderr[-3000:]}"
+        assert done.returncode == 130 and "Traceback" not in done.stderr, said
+        assert done.stderr.strip().splitlines()[-1] == "codearcade: interrupted", said
+
+
+def test_a_ctrl_c_a_library_wrapped_in_its_own_error_ends_the_command_as_interrupted():
+    """Libraries catch the KeyboardInterrupt a press raises inside them and raise an error of their own: pydantic's
+    SchemaError while litellm builds a model (seen once in a soak of optimize), DuckDB's error of a Python function
+    in a query. Whatever error ends a command after a press is the press's: exit 130, "interrupted", no traceback.
+    Without a press, the same error is the command's error as ever."""
+    script = textwrap.dedent("""
+        import os, signal, sys
+        from pipeline import cli
+        from pipeline.cli import runs
+
+        def wrapped(args):
+            try:
+                if sys.argv[1] == "pressed":
+                    os.kill(os.getpid(), signal.SIGINT)
+                    signal.pause()
+            except KeyboardInterrupt as exc:
+                raise RuntimeError("Error building validator: KeyboardInterrupt") from exc
+            raise RuntimeError("a failure of its own")
+
+        runs.run = wrapped
+        sys.exit(cli.main(["runs"]))
+    """)
+    for case in ("pressed", "not pressed"):
+        done = subprocess.run([sys.executable, "-c", script, case], cwd=ROOT, capture_output=True, text=True,
+                              timeout=120)
+        if case == "pressed":
+            assert done.returncode == 130 and done.stderr.strip() == "codearcade: interrupted", done.stderr
+        else:
+            assert done.returncode == 1 and "RuntimeError: a failure of its own" in done.stderr, done.stderr
