@@ -49,7 +49,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from games import get_game
-from pipeline.jobs.worker import BUDGET_EXIT, run_remote
+from pipeline.jobs.worker import BUDGET_EXIT, INTERRUPTED_EXIT, run_remote
 from pipeline.optimizer.config import OptimizeConfig, model_defaults, validate_config
 from pipeline.optimizer.ensemble import split_model_flags
 from pipeline.settings import declarations
@@ -385,7 +385,8 @@ def _run_queue(queue, running, planned, progress, store, batch, workers, episode
                 continue
             out.close()
             del running[i]
-            progress[i].state = {0: "finished", BUDGET_EXIT: "budget"}.get(code, "failed")
+            progress[i].state = {0: "finished", BUDGET_EXIT: "budget", INTERRUPTED_EXIT: "interrupted"}.get(code,
+                                                                                                       "failed")
             if code != 0:
                 tail = (log_dir / f"{planned[i].run.key}.log").read_text(errors="replace").strip().splitlines()
                 progress[i].note = tail[-1][:200] if tail else f"exit code {code}"

@@ -9,19 +9,28 @@ private store seeded with the run's earlier rows and returns all of them for the
 from __future__ import annotations
 
 import json
-from contextlib import contextmanager
 import sys
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from pipeline.boundary.zygotes import keep_hosts
-from pipeline.llm.client import open_client
-from pipeline.optimizer.config import OptimizeConfig, fit_to_model
-from pipeline.optimizer.loop import OptimizeResult, optimize, start_run
-from store import Store
-from store.writer import set_run_name
-from viewers.safe_text import terminal_text
+INTERRUPTED_EXIT = 130
+"""Exit code of a batch run process stopped by a Ctrl-C (its run is interrupted, resumable)."""
+
+try:  # a Ctrl-C to the batch's process group reaches its runs too, also while they import
+    from pipeline.boundary.zygotes import keep_hosts
+    from pipeline.llm.client import open_client
+    from pipeline.optimizer.config import OptimizeConfig, fit_to_model
+    from pipeline.optimizer.loop import OptimizeResult, optimize, start_run
+    from store import Store
+    from store.writer import set_run_name
+    from viewers.safe_text import terminal_text
+except KeyboardInterrupt:
+    if __name__ != "__main__":
+        raise
+    sys.stderr.write("interrupted\n")  # the run's log says so in a line, as the batch's terminal does
+    raise SystemExit(INTERRUPTED_EXIT) from None
 
 BUDGET_EXIT = 3
 """Exit code of a batch run process whose run stopped at its budget (not a failure)."""
@@ -92,4 +101,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # the run is marked interrupted already (the loop did); a line, not a traceback
+        _say("interrupted")
+        sys.exit(INTERRUPTED_EXIT)

@@ -204,6 +204,10 @@ def test_ctrl_c_to_the_process_group_of_the_other_verbs(verb, tmp_path, scripted
         argv, store = _verb_argv(verb, k, tmp_path, optimized, model)
         done = _press(argv, delay, ROOT)
         _check(done, store, ROOT)
+        # a batch's runs get the press too: each run's log says "interrupted" in a line, never a traceback (7 of 11
+        # presses left one in every running run's log, from its imports or its episodes)
+        for log in tmp_path.glob(f"s{k}.duckdb.*.log.runs/*.log"):
+            assert "Traceback" not in log.read_text(errors="replace"), (log, log.read_text(errors="replace")[-2000:])
 
 
 @pytest.mark.slow
