@@ -95,6 +95,50 @@ the end: a message that merely mentions the word, a stored value's, is not a Ctr
 
 
 @contextmanager
+def interrupted_by_ctrl_c(con: duckdb.DuckDBPyConnection) -> Iterator[None]:
+    """While the block runs a query on ``con`` in the main thread: a Ctrl-C interrupts the query at once.
+
+    Python runs a signal's handler only when the main thread runs Python code; DuckDB looks for one between its
+    own steps, but while its threads call a Python function of the query's (``mean_ci`` over many rows) a press
+    waited for the query's end, minutes later, and then had been ignored (the command ignores a second press
+    while it winds down). The C-level handler also writes the signal's number to the wakeup file descriptor at
+    once: a thread that watches it interrupts the query (``con.interrupt()``), and the press then ends it as any
+    other (``is_ctrl_c``)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    import select
+    import signal
+
+    read_end, write_end = os.pipe()
+    os.set_blocking(write_end, False)
+    try:
+        before = signal.set_wakeup_fd(write_end, warn_on_full_buffer=False)
+    except ValueError:  # not the main interpreter's main thread after all
+        os.close(read_end)
+        os.close(write_end)
+        yield
+        return
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.is_set():
+            if select.select([read_end], [], [], 0.1)[0] and signal.SIGINT in os.read(read_end, 64):
+                con.interrupt()
+
+    watcher = threading.Thread(target=watch, name="ctrl-c watcher", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        done.set()
+        watcher.join()
+        signal.set_wakeup_fd(before)
+        os.close(read_end)
+        os.close(write_end)
+
+
+@contextmanager
 def _ctrl_c_as_itself() -> Iterator[None]:
     """Give a Ctrl-C that DuckDB turned into an error back as the KeyboardInterrupt it was, so that the command
     winds down as after any Ctrl-C (the run interrupted, resumable; exit 130) instead of failing with a traceback.

@@ -25,7 +25,7 @@ from typing import Any, Sequence
 
 import duckdb
 
-from store.db import Store, StoreError, is_corrupt_block, is_ctrl_c
+from store.db import Store, StoreError, interrupted_by_ctrl_c, is_corrupt_block, is_ctrl_c
 from store.runs import SQL_MACROS, create_sql_macros, references_by_value, resolve_run_id  # noqa: F401 (resolve_run_id: for callers)
 from store.sql_stats import create_sql_functions, function_listing
 
@@ -176,7 +176,8 @@ def run_user_query(store: Store, sql: str, params: Sequence[str] | None = None, 
         pass
     con = _user_connection(store)
     try:
-        return _result(con.execute(sql, bound), keep)
+        with interrupted_by_ctrl_c(con):  # a press stops even a query whose Python functions hold DuckDB's threads
+            return _result(con.execute(sql, bound), keep)
     except Exception as exc:
         if is_ctrl_c(exc):  # on a connection of its own, outside Store.read(): given back as itself here
             raise KeyboardInterrupt from None
