@@ -58,6 +58,26 @@ def served_submissions(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict
            FROM candidates WHERE run_id = ? AND iteration >= 1 ORDER BY iteration""", [run_id]))
 
 
+def submission_version(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> str | None:
+    """The policy version of a served run's submission (0: the starting policy), None if it has none."""
+    row = con.execute("SELECT policy_version_id FROM candidates WHERE run_id = ? AND iteration = ?",
+                      [run_id, iteration]).fetchone()
+    return row[0] if row else None
+
+
+def submission_feedback(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> str:
+    """The feedback text of a served run's submission ("" if it has none)."""
+    row = con.execute("SELECT b.text FROM candidates c JOIN blobs b ON b.hash = c.feedback_hash "
+                      "WHERE c.run_id = ? AND c.iteration = ?", [run_id, iteration]).fetchone()
+    return row[0] if row else ""
+
+
+def is_finalized(con: duckdb.DuckDBPyConnection, run_id: str, status: str) -> bool:
+    """Whether a served run is finalized: finished, or audited (a finalize killed before the run's end)."""
+    return status == "finished" or \
+        con.execute("SELECT count(*) FROM audits WHERE run_id = ?", [run_id]).fetchone()[0] > 0
+
+
 def submission_episodes(con: duckdb.DuckDBPyConnection, episode_ids: list[str]) -> list[dict[str, Any]]:
     """The visible summary of training episodes (never their seed), in the order given."""
     rows = {r["episode_id"]: r for r in _rows(con.execute(

@@ -76,7 +76,8 @@ from store import Store
 from store.db import utcnow
 from store.readers import episode_steps, get_run, policy_text, step_nodes
 from store.scores import overfit, score_episodes
-from store.serve import served_submissions, submission_episodes, visible_query
+from store.serve import (is_finalized, served_submissions, submission_episodes, submission_feedback,
+                         submission_version, visible_query)
 from store.views import QueryError
 from store.writer import (EpisodeWriter, finish_run, insert_candidate, insert_feedback, insert_iteration,
                           insert_policy_version, replace_audits)
@@ -117,7 +118,7 @@ def create_run(store: Store, config: ServeConfig, name: str | None = None) -> st
     with store.write() as con:
         if name is not None:
             set_run_name(con, run_id, name)
-        starter = con.execute("SELECT starter_version_id FROM runs WHERE run_id = ?", [run_id]).fetchone()[0]
+        starter = get_run(con, run_id)["starter_version_id"]
         now = utcnow()
         insert_candidate(con, dict(run_id=run_id, iteration=0, candidate=0, strategy=KIND, policy_version_id=starter,
                                    proposed_version_id=starter, update_status="initial", evaluation="unplayed",
@@ -146,8 +147,7 @@ class ServeRun:
                 raise ValueError(f"run {run_id} is a{'n' * (run['kind'][0] in 'aeiou')} {run['kind']} run, not a "
                                  "served one")
             subs = served_submissions(con, run_id)
-            finalized = run["status"] == "finished" or \
-                con.execute("SELECT count(*) FROM audits WHERE run_id = ?", [run_id]).fetchone()[0] > 0
+            finalized = is_finalized(con, run_id, run["status"])
         self.store, self.run_id = store, run_id
         self.record = json.loads(run["config"])
         self.serve = self.record["serve"]
@@ -184,8 +184,7 @@ class ServeRun:
     def task(self) -> dict[str, Any]:
         """What an agent needs to start: the game, the policy interface, the budget and the rules."""
         with self.store.read() as con:  # the store takes one thread at a time; reads need not wait for a play
-            starter = policy_text(con, self.run_id, con.execute(
-                "SELECT starter_version_id FROM runs WHERE run_id = ?", [self.run_id]).fetchone()[0])
+            starter = policy_text(con, self.run_id, get_run(con, self.run_id)["starter_version_id"])
         from tracing.policy_file import inspect_policy
 
         info = inspect_policy(starter, "policy.py")
@@ -224,8 +223,7 @@ class ServeRun:
                 newest = f"the newest is {self._latest}" if self._latest else "none is made yet"
                 raise RequestError(f"no submission {submission} (submissions are numbered from 1; {newest})")
             episodes = submission_episodes(con, sub["eval_episode_ids"])
-            text = con.execute("SELECT b.text FROM candidates c JOIN blobs b ON b.hash = c.feedback_hash "
-                               "WHERE c.run_id = ? AND c.iteration = ?", [self.run_id, submission]).fetchone()
+            text = submission_feedback(con, self.run_id, submission)
             chosen = next((e for e in episodes if instance is None or e["instance"] == instance), None)
             if chosen is None:
                 raise RequestError(f"submission {submission} did not play instance {instance}; it played "
@@ -235,7 +233,7 @@ class ServeRun:
             # read as the prompt reads a rollout: each value's head, the rollout's rows within a byte bound
             nodes = step_nodes(con, chosen["episode_id"], value_chars=VALUE_CHARS, max_bytes=ROLLOUT_NODE_BYTES)
         events, shown = trace_slice(rows, nodes, self.game.lives > 0, steps)
-        return {**_summary(sub, episodes), "feedback": text[0] if text else "",
+        return {**_summary(sub, episodes), "feedback": text,
                 "trace": {"instance": chosen["instance"], "length": chosen["length"],
                           "events": [f"{what} at step {step}" for step, what in events][:100],
                           "steps": shown}}
@@ -353,8 +351,7 @@ class ServeRun:
     def _play(self, iteration: int, info, text: str, instances: list[int], parent: int) -> dict[str, Any]:
         s, started, t0 = self.serve, utcnow(), time.monotonic()
         with self.store.read() as con:
-            parent_row = con.execute("SELECT policy_version_id FROM candidates WHERE run_id = ? AND iteration = ?",
-                                     [self.run_id, parent]).fetchone()
+            parent_version = submission_version(con, self.run_id, parent)
         specs = [EpisodeSpec(episode_id=episode_id(self.run_id, iteration, "train", i), run_id=self.run_id,
                              game=self.game.name, policy_text=text, policy_version_id=info.version_id,
                              iteration=iteration, kind="train", index=i, seed=s["train_seeds"][i],
@@ -388,7 +385,7 @@ class ServeRun:
         feedback += printed_section(list(zip(instances, printed)))
         ids = [e["episode_id"] for e in episodes]
         row = dict(run_id=self.run_id, iteration=iteration, candidate=0, strategy=KIND, parent_iteration=parent,
-                   parent_candidate=0, parent_version_id=parent_row[0], proposed_version_id=info.version_id,
+                   parent_candidate=0, parent_version_id=parent_version, proposed_version_id=info.version_id,
                    policy_version_id=info.version_id, update_status="accepted", evaluation="played",
                    train_episode_id=ids[0], eval_episode_ids=ids, train_return=train["return"], score=ranked,
                    standard_score=ranked, forfeit=score.forfeit,
@@ -397,18 +394,17 @@ class ServeRun:
                    score_high=score.high if ranked is not None else None,
                    decision="best" if best_iteration == iteration else "kept", feedback=feedback)
         with self.store.write() as con:
-            best_version = con.execute("SELECT policy_version_id FROM candidates WHERE run_id = ? AND iteration = ?",
-                                       [self.run_id, best_iteration]).fetchone()
+            best_version = submission_version(con, self.run_id, best_iteration)
             insert_policy_version(con, policy_version_row(info, self.run_id, iteration, PRODUCED_BY, "accepted",
-                                                          parent_id=parent_row[0]))
+                                                          parent_id=parent_version))
             insert_candidate(con, row)
             insert_feedback(con, dict(run_id=self.run_id, iteration=iteration, mode="staged", stage=stage,
                                       score=ranked if ranked is not None else score.partial, text=feedback))
             insert_iteration(con, dict(
                 run_id=self.run_id, iteration=iteration, candidate=0, policy_version_id=info.version_id,
-                base_version_id=parent_row[0], update_status="accepted", rolled_back=False,
+                base_version_id=parent_version, update_status="accepted", rolled_back=False,
                 train_episode_id=ids[0], eval_episode_ids=ids, train_return=train["return"], score=ranked,
-                best_score=best_score, best_version_id=best_version[0] if best_version else info.version_id,
+                best_score=best_score, best_version_id=best_version or info.version_id,
                 best_iteration=best_iteration, started_at=started, finished_at=utcnow(), llm_s=0.0,
                 train_s=time.monotonic() - t0, eval_s=time.monotonic() - t0, wall_s=time.monotonic() - t0))
         return {"submission": iteration, "parent": parent, "version": info.version_id[:12],
@@ -477,7 +473,7 @@ def finalize_run(store: Store, run_id: str, record: dict[str, Any],
     s = record["serve"]
     with store.read() as con:
         subs = [x for x in served_submissions(con, run_id) if x["update_status"] == "accepted"]
-        starter_id = con.execute("SELECT starter_version_id FROM runs WHERE run_id = ?", [run_id]).fetchone()[0]
+        starter_id = get_run(con, run_id)["starter_version_id"]
         texts = {x["policy_version_id"]: policy_text(con, run_id, x["policy_version_id"]) for x in subs}
         texts[starter_id] = policy_text(con, run_id, starter_id)
     n_val, n_held = s["validation_episodes"], s["heldout_episodes"]
