@@ -498,7 +498,8 @@ class Hold:
         if cursor is not None:
             self.store._held = False
             try:
-                HUB.release(self.store.path, cursor)  # the checkpoint: a full disk fails here
+                with _ctrl_c_as_itself():  # a press during the checkpoint is a Ctrl-C, not a failure of the run
+                    HUB.release(self.store.path, cursor)  # the checkpoint: a full disk fails here
             except duckdb.Error as exc:
                 if not _is_disk_full(exc):
                     raise

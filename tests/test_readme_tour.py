@@ -10,11 +10,13 @@ cannot write code), in a project whose ``games/`` and ``tests/`` are the reposit
 from __future__ import annotations
 
 import os
+import queue
 import re
 import shlex
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -95,19 +97,38 @@ def serve_until_interrupted(words: list[str], cwd: Path, env: dict[str, str]) ->
     # tests/conftest.py's pytest_configure)
     proc = subprocess.Popen([EXE, *words[1:]], cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, stdin=subprocess.DEVNULL, process_group=0)
-    try:
-        lines = []
-        deadline = time.monotonic() + 120
+    lines: queue.Queue = queue.Queue()
+
+    def read_lines() -> None:  # in a thread: the wait for a line below has a deadline, a read does not
         for line in proc.stdout:
-            lines.append(line)
-            if "Ctrl-C" in line or time.monotonic() > deadline:
+            lines.put(line)
+        lines.put(None)
+
+    threading.Thread(target=read_lines, daemon=True).start()
+    said = []
+    try:
+        deadline = time.monotonic() + 120
+        while not (said and (said[-1] is None or "Ctrl-C" in said[-1])):
+            try:  # the line that says how to stop it, within two minutes (a blocking read waited for ever)
+                said.append(lines.get(timeout=max(0.0, deadline - time.monotonic())))
+            except queue.Empty:
                 break
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C at a terminal does: the whole group
-        rest, err = proc.communicate(timeout=120)
+        try:
+            proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            raise AssertionError(f"{words} still ran 120 s after Ctrl-C; it had said {said!r}, and on stderr "
+                                 f"{proc.stderr.read()!r}") from None
+        err = proc.stderr.read()
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    out = "".join(lines) + rest
+    while said[-1:] != [None]:  # the rest of what it printed, up to the end of its output
+        said.append(lines.get(timeout=30))
+    lines_said = [line for line in said if line is not None]
+    out = "".join(lines_said)
     assert proc.returncode in (0, 130), out + err
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)

@@ -277,3 +277,60 @@ def test_a_served_viewer_ends_with_the_view_that_started_it_however_it_ends(stor
     finally:
         if view.poll() is None:
             view.kill()
+
+
+_ONE_SERVER = """
+import json, sys, time
+from viewers.rerun_sinks import start_web_viewer
+
+time.sleep(max(0.0, float(sys.argv[1]) - time.time()))  # all start at the same moment, as two terminals may
+with start_web_viewer() as viewer:
+    print(json.dumps({"grpc": viewer.grpc_port, "web": viewer.web_port, "server": viewer.process.pid}), flush=True)
+    sys.stdin.read()  # serving until the test closes stdin
+"""
+
+
+@pytest.mark.slow
+def test_views_started_together_each_serve_their_own_viewer():
+    """Two `view --serve-web` started at once chose the same free ports near Rerun's defaults; the server that lost
+    the race exited (the view failed, 3 of 4 times) or, had the other's port answered first, the view would have
+    fed and shown the other's recording. Each now gets ports its own server listens on, checked against the
+    kernel's table of listening sockets (``ss``'s source), for three at once, twice."""
+    import time
+
+    for _ in range(2):
+        at = time.time() + 3.0
+        views = [subprocess.Popen([sys.executable, "-c", _ONE_SERVER, str(at)], cwd=ROOT, stdin=subprocess.PIPE,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(3)]
+        try:
+            started = []
+            for view in views:
+                line = view.stdout.readline()
+                assert line, view.stderr.read()
+                started.append(json.loads(line))
+            ports = [viewer[kind] for viewer in started for kind in ("grpc", "web")]
+            assert len(set(ports)) == len(ports), started
+            for viewer in started:
+                for kind in ("grpc", "web"):
+                    assert _listening_process(viewer[kind]) == viewer["server"], (kind, viewer)
+        finally:
+            for view in views:
+                view.stdin.close()
+                view.wait(30)
+
+
+def _listening_process(port: int) -> int | None:
+    """The process that listens on TCP ``port``, found by its socket's inode among every process's descriptors."""
+    import os
+    from pathlib import Path
+
+    inodes = {row.split()[9] for row in Path("/proc/net/tcp").read_text().splitlines()[1:]
+              if row.split()[3] == "0A" and int(row.split()[1].rsplit(":", 1)[1], 16) == port}
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            links = [os.readlink(f"/proc/{pid}/fd/{fd}") for fd in os.listdir(f"/proc/{pid}/fd")]
+            if any(link.startswith("socket:[") and link[len("socket:["):-1] in inodes for link in links):
+                return int(pid)
+        except OSError:
+            continue
+    return None

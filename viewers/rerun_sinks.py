@@ -82,15 +82,41 @@ def free_port(preferred: int | None = None) -> int:
 
 
 def _wait_for_port(process: subprocess.Popen, port: int, timeout_s: float, what: str) -> None:
+    """Until ``process`` itself listens on 127.0.0.1:``port`` (another process listening there is not it: two
+    ``view --serve-web`` started together chose the same free ports, and the one whose server lost the race
+    went on to feed and show the other's)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if process.poll() is not None:
-            raise ViewerError(f"{what} exited with code {process.returncode} before listening on port {port}")
-        if port_open(port):
+            raise PortTaken(f"{what} exited with code {process.returncode} before listening on port {port}")
+        if _listens(process.pid, port):
             return
         time.sleep(0.05)
     process.kill()
     raise ViewerError(f"{what} did not listen on 127.0.0.1:{port} within {timeout_s:g} s")
+
+
+class PortTaken(ViewerError):
+    """The server exited before listening: most often because another process took its port meanwhile."""
+
+
+def _listens(pid: int, port: int) -> bool:
+    """Whether process ``pid`` listens on TCP ``port`` of 127.0.0.1. On Linux its own sockets are matched against
+    the kernel's table of listening sockets; elsewhere, whether anything answers there."""
+    try:
+        table = Path("/proc/net/tcp").read_text().splitlines()[1:]
+    except OSError:  # no /proc: not Linux
+        return port_open(port)
+    try:
+        sockets = {os.readlink(f"/proc/{pid}/fd/{fd}") for fd in os.listdir(f"/proc/{pid}/fd")}
+    except OSError:  # it has just exited (the caller sees that next)
+        return False
+    for row in table:
+        fields = row.split()  # sl local_address rem_address st tx:rx tr:when retrnsmt uid timeout inode ...
+        address, state, inode = fields[1], fields[3], fields[9]
+        if state == "0A" and int(address.rsplit(":", 1)[1], 16) == port and f"socket:[{inode}]" in sockets:
+            return True
+    return False
 
 
 def _quiet_env() -> dict[str, str]:
@@ -150,9 +176,24 @@ def _ends_with(parent_pid: int) -> None:
 def start_web_viewer(grpc_port: int | None = None, web_port: int | None = None,
                      server_memory_limit: str = "1GiB", timeout_s: float = 30.0) -> WebViewer:
     """Start the web viewer and its gRPC server on 127.0.0.1 (free ports near Rerun's defaults); it ends with this
-    process at the latest (the thread that starts it: this one)."""
-    grpc_port = grpc_port or free_port(DEFAULT_VIEWER_PORT)
-    web_port = web_port or free_port(DEFAULT_WEB_PORT)
+    process at the latest (the thread that starts it: this one). A port another process took between the choice
+    and the server's start (two views started at once) is chosen again, by the OS."""
+    for attempt in range(_PORT_ATTEMPTS):
+        preferred = attempt == 0
+        try:
+            return _start_web_viewer(grpc_port or free_port(DEFAULT_VIEWER_PORT if preferred else None),
+                                     web_port or free_port(DEFAULT_WEB_PORT if preferred else None),
+                                     server_memory_limit, timeout_s)
+        except PortTaken:
+            if (grpc_port and web_port) or attempt == _PORT_ATTEMPTS - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
+_PORT_ATTEMPTS = 4
+
+
+def _start_web_viewer(grpc_port: int, web_port: int, server_memory_limit: str, timeout_s: float) -> WebViewer:
     process = subprocess.Popen(
         [rerun_executable(), "--serve-web", "--bind", LOOPBACK, "--port", str(grpc_port),
          "--web-viewer-port", str(web_port), "--server-memory-limit", server_memory_limit],

@@ -129,9 +129,9 @@ def view(store: Store, run_id: str, iteration: int | None = None, episode: str |
         out(f"saved {Path(save).resolve()} (recording {selection.recording_id})")
     elif viewer is not None:
         out(f"serving the Rerun web viewer on 127.0.0.1: open {viewer.url}")
-        out("press Ctrl-C to stop")
         previous = signal.signal(signal.SIGTERM, _interrupt)
-        try:
+        try:  # the server stops however this ends, a press right after the line below included
+            out("press Ctrl-C to stop")
             if wait is not None:
                 wait()
             else:

@@ -106,3 +106,10 @@ if __name__ == "__main__":
     except KeyboardInterrupt:  # the run is marked interrupted already (the loop did); a line, not a traceback
         _say("interrupted")
         sys.exit(INTERRUPTED_EXIT)
+    except Exception as exc:
+        from store.db import is_ctrl_c
+
+        if not is_ctrl_c(exc):  # DuckDB's word for a press that reached it outside the store's conversion
+            raise
+        _say("interrupted")
+        sys.exit(INTERRUPTED_EXIT)
