@@ -10,6 +10,7 @@ optimizer (or a person) to improve.
 from __future__ import annotations
 
 import random
+import re
 import textwrap
 from dataclasses import dataclass, field
 
@@ -62,11 +63,20 @@ def survey(game: Game, steps: int = SURVEY_STEPS, seed: int = 0) -> dict[str, Ca
     return dict(sorted(seen.items()))
 
 
-def scaffold_text(game: str | Game, steps: int = SURVEY_STEPS) -> str:
-    """The text of a policy file for ``game``: the curated scaffold, or one written from a survey."""
+_PLAIN_NAME = re.compile(r"[\w./+-]+")
+"""A file name that reads the same inside a docstring and at a shell prompt."""
+
+
+def scaffold_text(game: str | Game, steps: int = SURVEY_STEPS, path: str | None = None) -> str:
+    """The text of a policy file for ``game``: the curated scaffold, or one written from a survey. ``path``: the
+    file's name as the person typed it, which the commands in its docstring then name (the copy of a curated
+    scaffold named its original, a surveyed one ``THIS_FILE``); a name that could not sit in a docstring as it is
+    (quotes, backslashes, a line break) leaves them naming ``POLICY.py``."""
     spec = get_game(game)
+    named = path if path is not None and _PLAIN_NAME.fullmatch(path) else "POLICY.py"
     if spec.scaffold is not None:
-        return spec.scaffold.read_text()
+        text = spec.scaffold.read_text()
+        return text if path is None else text.replace(f"games/scaffolds/{spec.scaffold.name}", named)
     categories = survey(spec, steps)
     lines = []
     for category, s in categories.items():
@@ -80,7 +90,7 @@ def scaffold_text(game: str | Game, steps: int = SURVEY_STEPS) -> str:
     title = spec.env_id.split("NoFrameskip")[0]
     return f'''"""{title}: a policy scaffold written by `codearcade new` from {steps} random steps of the game.
 
-Improve it with ``codearcade optimize THIS_FILE``; evaluate it with ``codearcade eval THIS_FILE``.
+Improve it with ``codearcade optimize {named}``; evaluate it with ``codearcade eval {named}``.
 """
 
 import random

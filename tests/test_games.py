@@ -7,6 +7,7 @@ import ast
 import json
 import os
 import re
+import shlex
 import subprocess
 import sys
 import textwrap
@@ -72,6 +73,7 @@ def test_generic_game_scaffold_from_new_evaluates_and_stores_steps(tmp_path, gam
     assert made.returncode == 0, made.stderr
     text = policy.read_text()
     assert f'GAME = "{game}"' in text and "@trace.bundle(trainable=True)" in text and "Player" in text
+    assert f"``codearcade eval {policy}``" in text, "its docstring's commands name the file"
     store = tmp_path / "s.duckdb"
     done = _cli("eval", str(policy), "--max-steps", "300", "--trace", "--json", "--store", str(store))
     assert done.returncode == 0, done.stderr
@@ -83,6 +85,22 @@ def test_generic_game_scaffold_from_new_evaluates_and_stores_steps(tmp_path, gam
     assert s.query("SELECT count(*) FROM steps WHERE len(objects) > 0")[0][0] > steps // 2
     again = _cli("new", str(policy), "--game", game)
     assert again.returncode == 2 and "--force" in again.stderr
+
+
+def test_a_new_scaffold_names_its_own_file(tmp_path, capsys):
+    """A copy of a curated scaffold named its original (`codearcade eval games/scaffolds/pong.py`), a surveyed one
+    `THIS_FILE`: the commands in a new file's docstring name the file, and a name that cannot sit in a docstring
+    (a quote) names POLICY.py there and is shell-quoted in the line that says what to do next."""
+    from pipeline.cli import main
+
+    for name, named in (("my pong.py", "POLICY.py"), ("my_pong.py", None), ('we"ird.py', "POLICY.py")):
+        policy = tmp_path / name
+        assert main(["new", str(policy), "--game", "pong"]) == 0
+        said = capsys.readouterr().out
+        text = policy.read_text()
+        compile(text, name, "exec")
+        assert f"``codearcade eval {named or policy}``" in text and "games/scaffolds" not in text, text[:400]
+        assert shlex.split(said.split("evaluate it with `")[1].split("`")[0]) == ["codearcade", "eval", str(policy)]
 
 
 @pytest.mark.slow

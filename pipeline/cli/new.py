@@ -29,6 +29,7 @@ def add_parser(verbs) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import shlex
     from pathlib import Path
 
     from games import get_game
@@ -44,9 +45,10 @@ def run(args: argparse.Namespace) -> int:
     game = get_game(args.game)
     if game.scaffold is None:
         show(f"surveying {game.name}: {SURVEY_STEPS} random steps...", file=sys.stderr, flush=True)
-    path.write_text(scaffold_text(game))
-    show(f"wrote {path} ({game.status} game {game.name}); evaluate it with `codearcade eval {path}`, improve it "
-         f"with `codearcade optimize {path}`")
+    path.write_text(scaffold_text(game, path=str(path)))
+    typed = shlex.quote(str(path))  # as a shell reads it back
+    show(f"wrote {path} ({game.status} game {game.name}); evaluate it with `codearcade eval {typed}`, improve it "
+         f"with `codearcade optimize {typed}`")
     return EXIT_OK
 
 
