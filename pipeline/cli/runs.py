@@ -76,8 +76,10 @@ COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has
     ("game", lambda r: r["game"]),
     ("policy", _policy),
     ("strategy", lambda r: r["strategy"]),
-    ("feedback", lambda r: r["feedback"]),
-    ("seed", lambda r: r["seed"]),
+    # a served run's agent reads what it asks for, on instances drawn in secret: the loop's feedback and seed
+    # settings, stored with its config, are not what it ran with
+    ("feedback", lambda r: None if r["kind"] == "serve" else r["feedback"]),
+    ("seed", lambda r: None if r["kind"] == "serve" else r["seed"]),
     ("batch", lambda r: r["batch"]),
     ("model", lambda r: r["model"]),
     ("status", lambda r: r["status"]),
