@@ -74,6 +74,32 @@ def test_sql_table_csv_and_json_agree(filled, capsys):
     assert records[0]["started_at"] == rows[0][4].isoformat()
 
 
+def test_sql_csv_reads_back_every_float_and_a_table_writes_whole_numbers_out(tmp_path, capsys):
+    """CSV is for programs: a float there was cut to six digits (-0.666667 for a stored -0.6666666666666666) and
+    a sum in the millions came out as -9.3e+06. Over doubles of every size and sign, each CSV field reads back
+    as the stored double; a table cell is within six significant digits of it, and a whole-number part of up to
+    15 figures is written out, not in scientific notation."""
+    import random
+
+    rng = random.Random(7)
+    values = [-2 / 3, -9.3e6, 1e15 - 1, 0.1 + 0.2, 5e-324, -1.7976931348623157e308, 0.0, 2.0]
+    values += [rng.choice((-1, 1)) * rng.random() * 10.0 ** rng.randint(-12, 20) for _ in range(120)]
+    query = "SELECT v FROM (VALUES " + ", ".join(f"({v!r}::DOUBLE, {i})" for i, v in enumerate(values)) + \
+        ") t(v, i) ORDER BY i"
+    store = tmp_path / "s.duckdb"
+    with Store(store).write():  # an empty store
+        pass
+    code, out, err = _run(capsys, "sql", query, "--csv", "--max-rows", "1000", "--store", str(store))
+    assert code == 0, err
+    assert [float(row[0]) for row in list(csv.reader(io.StringIO(out)))[1:]] == values
+    code, out, err = _run(capsys, "sql", query, "--max-rows", "1000", "--store", str(store))
+    cells = [line.strip() for line in out.splitlines()[2:2 + len(values)]]
+    for value, cell in zip(values, cells):
+        assert float(cell) == pytest.approx(value, rel=5e-6, abs=0), (value, cell)
+        if 1 <= abs(value) < 1e15:
+            assert "e" not in cell, (value, cell)
+
+
 def test_sql_json_embeds_json_columns_and_nulls(filled, capsys):
     store, run_id, _ = filled
     code, out, _ = _run(capsys, "sql", f"SELECT config, model, finished_at, NULL AS nothing, [1, 2] AS l, "

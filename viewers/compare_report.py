@@ -83,14 +83,24 @@ def _best_difference(data: dict[str, Any]) -> str:
     counts = " and ".join(f"{r['best_episodes']}" for r in data["runs"])
     found = data["difference"]
     sensitivity = (found.get("sensitivity") or {}).get("text")
+    notes = [BEST_NOTE] + ([RUNS_PAPER_NOTE] if any(r.get("best_protocol") == "deterministic" for r in data["runs"])
+                           else [])
     return (f"best versions, over their evaluation episodes ({counts}): {found['verdict']}"
-            + (f"; {sensitivity}" if sensitivity else ""))
+            + (f"; {sensitivity}" if sensitivity else "") + "".join(f" ({note})" for note in notes))
+
+
+BEST_NOTE = ("each best is its run's highest score, picked on the episodes that scored it, which flatters it, the "
+             "more so the more versions a run tried; `codearcade audit RUN` plays each best on sealed held-out games")
+RUNS_PAPER_NOTE = ("under the paper's protocol each episode replays the same game, so the interval measures only the "
+                   "policies' own random draws; `codearcade compare A:best B:best --audit` plays both on sealed audit "
+                   "seeds under the standard protocol")
 
 
 def _amount(value: float) -> str:
-    """A budget for people: whole numbers as such, others to at most two decimals (3.08 and 3.12 wall seconds are
-    two rows, not two of 3.1)."""
-    return f"{value:g}" if float(value).is_integer() else f"{round(value, 2):g}"
+    """A budget for people, as ``budget_table`` rounded it (three decimals), without trailing zeros: two budgets
+    are two rows however close (3.08 and 3.12 wall seconds, 0.007 and 0.013 thousand tokens; to two decimals the
+    latter both read 0.01)."""
+    return f"{value:.3f}".rstrip("0").rstrip(".")
 
 
 def _budget_rows(data: dict[str, Any]) -> list[tuple]:

@@ -68,14 +68,21 @@ def money(value: float | None) -> str:
     return f"{value:.2g}" if abs(value) < 0.01 else f"{value:.3g}"
 
 
-def cell_text(value: Any, null: str = "NULL") -> str:
-    """A value as the one-line text of a table cell or CSV field."""
+def cell_text(value: Any, null: str = "NULL", exact: bool = False) -> str:
+    """A value as the one-line text of a table cell or, ``exact``, of a CSV field. A float in a cell: six
+    significant digits, a whole number of up to 15 figures written out (-9300000, not -9.3e+06); in a field,
+    every digit (the shortest text that reads back as the same float: a program gets what was stored)."""
     if value is None:
         return null
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, float):
-        return f"{value:.6g}" if math.isfinite(value) else str(value)
+        if exact or not math.isfinite(value):
+            return repr(value)
+        shown = f"{value:.6g}"
+        if "e" in shown and 1 <= abs(value) < 1e15:
+            return f"{value:.0f}"  # 6 significant digits of a number of 7 to 15 figures: the whole number
+        return shown
     if isinstance(value, dt.datetime):
         return value.isoformat(sep=" ")
     if isinstance(value, (dict, list, tuple)):
@@ -120,7 +127,7 @@ def write_csv(stream: IO[str], columns: Sequence[str], rows: Sequence[Sequence[A
     writer = csv.writer(stream, lineterminator="\n")
     # a field holding a lone \r is quoted only where \r ends lines: such a row is written with every field quoted
     quoted = csv.writer(stream, lineterminator="\n", quoting=csv.QUOTE_ALL)
-    for cells in ([str(c) for c in columns], *(["" if v is None else cell_text(v) for v in row] for row in rows)):
+    for cells in ([str(c) for c in columns], *(["" if v is None else cell_text(v, exact=True) for v in row] for row in rows)):
         if safe:
             cells = [terminal_text(c, multiline=True) for c in cells]
         (quoted if any("\r" in c for c in cells) else writer).writerow(cells)

@@ -85,6 +85,8 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
                          "best_low": scored.low if scored.ranked is not None else None,
                          "best_high": scored.high if scored.ranked is not None else None,
                          "best_episodes": len(assessed["episodes"]),
+                         # the protocol of those episodes: the paper's replays one game (optimize_protocol)
+                         "best_protocol": configs[-1].get("optimize_protocol") or "deterministic",
                          "best_iteration": best["iteration"],
                          "best_version_id": best["policy_version_id"]})
     games = {r["game"] for r in runs}
