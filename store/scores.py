@@ -27,7 +27,8 @@ sensitivity line counts each forfeit at the game's worst return, :func:`worst_re
 figures, the OTLP export, and the SQL views, which hold the same rule (a forfeited set's ``score`` is NULL:
 ``candidates``, ``audits``, ``run_summary.best_score`` of an eval run). :func:`difference` says whether two sets
 of returns differ by more than the noise (Welch's t: :func:`scipy.stats.ttest_ind` with unequal variances, and its
-interval of the difference of the means), and :func:`iqm` aggregates over games or seeds as rliable recommends: the
+interval of the difference of the means; :func:`paired_difference` for two sets played seed by seed with the
+same random draws: the paired t of their differences), and :func:`iqm` aggregates over games or seeds as rliable recommends: the
 interquartile mean with a stratified bootstrap interval (each stratum resampled on its own: scipy's bootstrap with
 one sample per stratum), given only when every stratum holds at least :data:`IQM_MIN_PER_STRATUM` values.
 
@@ -67,6 +68,9 @@ MEAN_METHOD = "t"
 """One set of episodes' mean: a Student-t interval (:func:`scipy.stats.ttest_1samp`)."""
 DIFFERENCE_METHOD = "Welch t"
 """Two sets' difference of means: Welch's t (:func:`scipy.stats.ttest_ind`, ``equal_var=False``)."""
+PAIRED_METHOD = "paired t"
+"""Two sets played on the same seeds with the same random draws, episode by episode: the t interval of the mean of
+their differences (:func:`scipy.stats.ttest_rel`)."""
 IQM_METHOD = "stratified bootstrap"
 """The interquartile mean over strata (games, seeds): rliable's stratified percentile bootstrap."""
 IQM_MIN_PER_STRATUM = 30
@@ -74,6 +78,7 @@ IQM_MIN_PER_STRATUM = 30
 Atari-like returns (tests/test_calibration.py), so the IQM is given without one."""
 TOO_FEW = "too few for an interval"
 ALL_EQUAL = "all equal, no interval"
+SAME_DIFFERENCE = "the same difference on every seed, no interval"
 """Why there is no interval: fewer than two values (on a side), or no spread among them."""
 
 
@@ -357,6 +362,9 @@ class Difference:
             if self.reason == ALL_EQUAL:
                 return (f"{band}: cannot tell: every episode of each side returned the same, so there is no noise "
                         "to measure it against")
+            if self.reason == SAME_DIFFERENCE:
+                return (f"{band}: cannot tell: on every seed the two sides' returns differed by the same amount, so "
+                        "there is no noise to measure it against")
             return f"{band}: too few episodes to tell (need at least 2 played out on each side)"
         if self.significant:
             return f"{band}: a difference beyond the noise (the interval excludes 0)"
@@ -377,6 +385,26 @@ def difference(a: Sequence[float], b: Sequence[float], confidence: float = CONFI
     return Difference(delta, float(low), float(high), len(a), len(b), confidence)
 
 
+def paired_difference(a: Sequence[float], b: Sequence[float], confidence: float = CONFIDENCE) -> Difference:
+    """The mean of ``a[i] - b[i]`` for two sets played pair by pair (episode ``i`` of each on the same seed, drawing
+    the same random numbers), with the t interval of that mean (:func:`paired_difference_bounds`): what the two
+    games of a pair share drops out of the noise. No interval with fewer than two pairs, or when every pair
+    differs by the same amount (two copies of one policy: 0 on every seed)."""
+    a, b = [float(x) for x in a], [float(x) for x in b]
+    if len(a) != len(b):
+        raise ValueError(f"pairs need as many episodes on each side ({len(a)} and {len(b)})")
+    differences = [x - y for x, y in zip(a, b)]
+    delta = math.fsum(differences) / len(differences) if differences else math.nan
+    if len(differences) < 2:
+        return Difference(delta, None, None, len(a), len(b), confidence, PAIRED_METHOD, TOO_FEW)
+    if min(a) == max(a) and min(b) == max(b):  # the more telling reason: nothing varied at all
+        return Difference(delta, None, None, len(a), len(b), confidence, PAIRED_METHOD, ALL_EQUAL)
+    if min(differences) == max(differences):
+        return Difference(delta, None, None, len(a), len(b), confidence, PAIRED_METHOD, SAME_DIFFERENCE)
+    low, high = paired_difference_bounds(a, b, confidence)
+    return Difference(delta, float(low), float(high), len(a), len(b), confidence, PAIRED_METHOD)
+
+
 @dataclass(frozen=True)
 class Comparison:
     """Two sets of episodes compared by the one rule: when both played every episode out, :attr:`difference` says
@@ -392,6 +420,9 @@ class Comparison:
     worst_source: str | None = None
     """The return a forfeit is counted at in :attr:`sensitivity`, and where it comes from (the game module's,
     or the lowest return played out in the comparison)."""
+    paired: bool = False
+    """Whether episode ``i`` of each side was played on the same seed with the same random draws: the difference
+    is then :func:`paired_difference` (the sensitivity line, whose forfeits break the pairs, stays Welch's)."""
 
     @property
     def forfeited(self) -> bool:
@@ -400,7 +431,11 @@ class Comparison:
     @property
     def difference(self) -> Difference | None:
         """:func:`difference` of the two sets' returns; None when either forfeited (no score to compare)."""
-        return None if self.forfeited else difference(self.a.returns, self.b.returns)
+        if self.forfeited:
+            return None
+        if self.paired:
+            return paired_difference(self.a.returns, self.b.returns)
+        return difference(self.a.returns, self.b.returns)
 
     @property
     def sensitivity(self) -> Difference | None:
@@ -478,9 +513,10 @@ def worst_return(known: float | None, game: str, scores: Sequence[Score]) -> tup
 
 
 def compare_scores(a: Score, b: Score, worst: float | None = None, worst_source: str | None = None,
-                   labels: tuple[str, str] = ("A", "B")) -> Comparison:
-    """:class:`Comparison` of two scored sets of episodes (the rule: no verdict when either forfeited)."""
-    return Comparison(a, b, labels, worst, worst_source)
+                   labels: tuple[str, str] = ("A", "B"), paired: bool = False) -> Comparison:
+    """:class:`Comparison` of two scored sets of episodes (the rule: no verdict when either forfeited); ``paired``:
+    played pair by pair (:attr:`Comparison.paired`)."""
+    return Comparison(a, b, labels, worst, worst_source, paired)
 
 
 def difference_bounds(a: Any, b: Any, confidence: float = CONFIDENCE) -> tuple[Any, Any]:
@@ -499,6 +535,25 @@ def difference_bounds(a: Any, b: Any, confidence: float = CONFIDENCE) -> tuple[A
         warnings.simplefilter("ignore", RuntimeWarning)  # scipy warns of an all-equal side; one is fine
         found = stats.ttest_ind(x, y, axis=-1, equal_var=False).confidence_interval(confidence)
     flat = (x.min(axis=-1) == x.max(axis=-1)) & (y.min(axis=-1) == y.max(axis=-1))
+    return np.where(flat, np.nan, found.low), np.where(flat, np.nan, found.high)
+
+
+def paired_difference_bounds(a: Any, b: Any, confidence: float = CONFIDENCE) -> tuple[Any, Any]:
+    """(low, high) of the t interval of the mean of ``a - b``, pair by pair along the last axis (scipy's
+    ``ttest_rel(a, b).confidence_interval``), NaN where there is none (fewer than two pairs, or every pair
+    differing by the same amount). Arrays in, arrays out, like :func:`difference_bounds`."""
+    import numpy as np
+    from scipy import stats
+
+    x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if x.shape[-1] < 2:
+        nothing = np.full(np.broadcast_shapes(x.shape[:-1], y.shape[:-1]), np.nan)
+        return nothing, nothing
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # scipy warns of differences that are all the same
+        found = stats.ttest_rel(x, y, axis=-1).confidence_interval(confidence)
+    d = x - y
+    flat = d.min(axis=-1) == d.max(axis=-1)
     return np.where(flat, np.nan, found.low), np.where(flat, np.nan, found.high)
 
 

@@ -13,7 +13,7 @@ import re
 import pytest
 
 from pipeline.cli import main
-from tests.conftest import COMPETENT_REPLY, EXAMPLES, POLICIES
+from tests.conftest import COMPETENT_REPLY, EXAMPLES, POLICIES, ROOT
 from tests.test_rerun import column, dump
 
 COMPETENT = POLICIES / "pong_competent.py"
@@ -192,6 +192,37 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted
         "things"]
     assert "codearcade: warning: the runs differ in the evaluation's step cap" in err
     assert "**Caution:** the runs differ in the evaluation" in (tmp_path / "cmp2" / "README.md").read_text()
+
+
+def test_versions_on_the_same_seeds_are_compared_pair_by_pair(store, capsys, tmp_path):
+    """Under the paper's protocol both sides play the same seeds with one random stream, yet their difference was
+    Welch's, as if the games were independent: a copy of the random scaffold against itself, 0 on every seed,
+    read +0.0 [-13.7, +13.7]. It is now the paired t of the per-seed differences: no interval for the copy (the
+    same difference on every seed), and for two policies scipy's ``ttest_rel`` of the stored returns."""
+    from scipy import stats
+
+    from store.scores import PAIRED_METHOD, SAME_DIFFERENCE
+
+    scaffold = ROOT / "games" / "scaffolds" / "pong.py"
+    copy = tmp_path / "copy.py"
+    copy.write_text(scaffold.read_text())
+    found = {}
+    for name, other in (("copy", copy), ("competent", COMPETENT)):
+        code, out, err = run_cli(capsys, "compare", scaffold, other, "--episodes", 3, "--max-steps", 400,
+                                 "--store", store.path, "--json")
+        assert code == 0, err
+        found[name] = json.loads(out)
+    copy_difference = found["copy"]["difference"]
+    assert copy_difference["method"] == PAIRED_METHOD and copy_difference["reason"] == SAME_DIFFERENCE
+    assert copy_difference["delta"] == 0 and copy_difference["low"] is None and "cannot tell" in \
+        copy_difference["verdict"]
+    returns = [[r[0] for r in store.query("SELECT return FROM episodes WHERE run_id = ? AND kind = 'eval' "
+                                          "ORDER BY episode_index", [v["eval_run"]])]
+               for v in found["competent"]["versions"]]
+    expected = stats.ttest_rel(*returns).confidence_interval()
+    paired = found["competent"]["difference"]
+    assert paired["method"] == PAIRED_METHOD and paired["n"] == [3, 3]
+    assert (paired["low"], paired["high"]) == pytest.approx((expected.low, expected.high))
 
 
 def test_what_cannot_be_compared_is_said_in_one_line(store, capsys, tmp_path):

@@ -155,18 +155,22 @@ def compare_versions(store: Store, a: str, b: str, config: CompareConfig,
                 result.episodes.append(_divergence(con, game, ep_a, ep_b, config.context))
     scores = [score_episodes(episodes) for episodes in played]
     result.scores = {label: _score_data(score, episodes) for label, score, episodes in zip(LABELS, scores, played)}
-    result.difference = difference_data(game, *scores)
+    # the paper's protocol plays both sides on the same seeds with one random stream: seed by seed, a pair
+    paired = not config.audit and [e["seed"] for e in played[0]] == [e["seed"] for e in played[1]]
+    result.difference = difference_data(game, *scores, paired=paired)
     return result
 
 
-def difference_data(game: str, a: Score, b: Score) -> dict[str, Any]:
+def difference_data(game: str, a: Score, b: Score, paired: bool = False) -> dict[str, Any]:
     """Two sides' scores compared by the one rule (``store.scores.compare_scores``) as plain data: A's mean minus
     B's, its 95% interval (level, method and counts beside it; ``reason`` why there is none), whether that leaves
     out 0 (None: no interval to tell by, or a side forfeited) and the verdict in words; when a side forfeited, no
     verdict but why (``forfeited``), and ``sensitivity``: the difference with each forfeit counted at the game's
-    worst return (``Game.worst_return``; else the lowest return played out here, and it says so)."""
+    worst return (``Game.worst_return``; else the lowest return played out here, and it says so). ``paired``: the
+    sides played the same seeds in the same order with the same random draws (their difference is then the
+    paired one, ``store.scores.paired_difference``)."""
     worst, source = worst_return(get_game(game).worst_return, game, (a, b))
-    return compare_scores(a, b, worst, source, LABELS).data()
+    return compare_scores(a, b, worst, source, LABELS, paired).data()
 
 
 def _eval_config(game: str, config: CompareConfig, audit_seeds: list[int]) -> EvalConfig:
