@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Protocol
 
+from pipeline.boundary.untrusted import REDACTED, scrub_secrets
 from pipeline.llm.capped import capped, too_large
 from pipeline.llm.providers import LOCAL_SERVER_PROVIDERS, OFFLINE_CHARS_PER_TOKEN, OFFLINE_REASONING_CHARS, \
     ReplyLimits, reply_format, reply_schema, with_cache_breakpoint
@@ -140,12 +141,31 @@ def _without_credentials(url: str) -> str:
 
 
 def _usage_number(usage: Any, *path: str) -> int | None:
+    """A token count the endpoint reported, as the store's INTEGER column holds it; None for anything else (a
+    count of 2^31 or 10^20, a negative or non-finite one, a string): the endpoint's word is not trusted, and a
+    count it got wrong is unknown, not the end of the run (the insert failed, with a traceback)."""
     value = usage
     for name in path:
         value = value.get(name) if isinstance(value, dict) else getattr(value, name, None)
         if value is None:
             return None
-    return int(value) if isinstance(value, (int, float)) else None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= _MAX_COUNT:
+        return None  # NaN fails the range check too
+    return int(value)
+
+
+_MAX_COUNT = 2 ** 31 - 1
+REPORTED_TEXT_LIMIT = 200
+"""The characters kept of a name or id an endpoint reports (its model, the response's id, a finish reason)."""
+
+
+def _reported_text(value: Any) -> str | None:
+    """A name or id the endpoint reported, as the store can hold it: a string, lone surrogates and NULs replaced
+    (a JSON ``\\ud800`` in a response's id failed the insert, ending the run with a traceback), at most
+    :data:`REPORTED_TEXT_LIMIT` characters; anything else None."""
+    if not isinstance(value, str):
+        return None
+    return value.encode("utf-8", "replace").decode("utf-8").replace("\x00", "\ufffd")[:REPORTED_TEXT_LIMIT]
 
 
 class LiteLLMClient:
@@ -256,7 +276,8 @@ class LiteLLMClient:
                     continue
                 fatal = name in FATAL
                 if fatal or retried >= self.retries:
-                    message = describe_error(exc)
+                    # the endpoint's text may quote the key it was sent: it is stored, printed and prompted
+                    message = self._without_key(describe_error(exc))
                     if self.api_base:  # "Connection error.", "Error code: 404": the provider's text has no URL
                         message += f" (asked at {_without_credentials(self.api_base)})"
                     raise LLMError(name, message, attempt, fatal, time.monotonic() - start) from None
@@ -264,6 +285,12 @@ class LiteLLMClient:
                 time.sleep(self.backoff_s * 2 ** (retried - 1))
                 continue
             return self._reply(response, attempt, time.monotonic() - start)
+
+    def _without_key(self, text: str) -> str:
+        """``text`` with this client's key and any secret of the environment or key-shaped string redacted."""
+        if self.api_key and len(self.api_key) >= 8:
+            text = text.replace(self.api_key, REDACTED)
+        return scrub_secrets(text)
 
     def _collect(self, chunks: Any, sent: list[dict[str, Any]], on_text: Callable[[str], None] | None,
                  began: float) -> Any:
@@ -307,9 +334,10 @@ class LiteLLMClient:
             cost = None
         return LLMReply(
             text=text,
-            response_model=getattr(response, "model", None),
-            response_id=getattr(response, "id", None),
-            finish_reasons=[c.finish_reason for c in response.choices if getattr(c, "finish_reason", None)],
+            response_model=_reported_text(getattr(response, "model", None)),
+            response_id=_reported_text(getattr(response, "id", None)),
+            finish_reasons=[reason for reason in (_reported_text(getattr(c, "finish_reason", None))
+                                                  for c in response.choices) if reason],
             input_tokens=_usage_number(usage, "prompt_tokens"),
             output_tokens=_usage_number(usage, "completion_tokens"),
             cached_input_tokens=_usage_number(usage, "prompt_tokens_details", "cached_tokens"),

@@ -107,3 +107,81 @@ def test_deeply_nested_json_is_our_error():
         parse_reply(deep)
     except ReplyParseError:
         pass
+
+
+def _completion_body(**fields) -> dict:
+    """An OpenAI chat completion carrying the competent reply, with ``fields`` in place of its metadata."""
+    from tests.conftest import COMPETENT_REPLY
+
+    body = {"id": "chatcmpl-1", "object": "chat.completion", "created": 0, "model": "scripted",
+            "choices": [{"index": 0, "message": {"role": "assistant", "content": COMPETENT_REPLY},
+                         "finish_reason": "stop"}],
+            "usage": {"prompt_tokens": 10, "completion_tokens": 10, "total_tokens": 20}}
+    for name, value in fields.items():
+        if name == "finish_reason":
+            body["choices"][0]["finish_reason"] = value
+        elif name in ("prompt_tokens", "completion_tokens"):
+            body["usage"][name] = value
+        else:
+            body[name] = value
+    return body
+
+
+HOSTILE_METADATA = [
+    {"prompt_tokens": 2 ** 31}, {"completion_tokens": 10 ** 20}, {"prompt_tokens": -5},
+    {"prompt_tokens": "many"}, {"completion_tokens": 1e300}, {"id": "\ud800"}, {"model": "m\ud800\x00"},
+    {"id": "x" * 100_000}, {"model": ["a", "list"]}, {"finish_reason": "\udcff" * 3},
+]
+
+
+def test_an_endpoint_s_word_about_its_reply_is_not_trusted(store, scripted):
+    """The reply's metadata (token counts, model, id, finish reasons) went into the store as sent: a count of
+    2^31 or 10^20 failed the INTEGER column and a lone surrogate in the id failed the insert, ending the run with
+    a traceback, the reply unrecorded, so --resume asked again and failed again. Each hostile field is now stored
+    as unknown (a count) or made storable (a text, cut at REPORTED_TEXT_LIMIT), and each reply is used."""
+    from pipeline.llm.client import REPORTED_TEXT_LIMIT
+
+    model = scripted([{"raw": json.dumps(_completion_body(**fields))} for fields in HOSTILE_METADATA])
+    client = LiteLLMClient(model.model, api_base=model.api_base, retries=0)
+    config = OptimizeConfig(game="pong", iterations=len(HOSTILE_METADATA), eval_max_steps=60, rollout_steps=30,
+                            workers=1, repairs=0)
+    result = optimize(config, store, client)
+    assert result.status == "finished", result.error
+    calls = store.query("SELECT input_tokens, output_tokens, response_id, response_model, finish_reasons, "
+                        "error_type FROM llm_calls ORDER BY iteration")
+    assert len(calls) == len(HOSTILE_METADATA), calls
+    # litellm's own reading refuses a few (a count that is a string or 1e300): a failed call, stored as one
+    assert sum(call[5] is None for call in calls) >= 7, calls
+    for fields, (inputs, outputs, response_id, response_model, reasons, failed) in zip(HOSTILE_METADATA, calls):
+        if failed is not None:
+            continue
+        counts = {"prompt_tokens": inputs, "completion_tokens": outputs}
+        for name, value in fields.items():
+            if name in counts:
+                assert counts[name] is None, (fields, counts)
+        for text in (response_id, response_model, *(reasons or [])):
+            assert text is None or (len(text) <= REPORTED_TEXT_LIMIT and "\x00" not in text), (fields, text)
+    assert store.query("SELECT count(*) FROM iterations WHERE update_status = 'accepted'") == [(1,)], \
+        "the competent reply was taken (later ones change nothing)"
+
+
+@pytest.mark.parametrize("status", [400, 500])
+def test_a_key_an_endpoint_quotes_back_is_stored_and_said_nowhere(store, scripted, monkeypatch, capsys, status):
+    """An endpoint's error text may quote the key it was sent. llm_calls.error_message was scrubbed, but the run's
+    error (a 400 ends the run) and the printed lines (a 500 is an iteration's failed call) showed it. Checked by
+    effect: the key's bytes are nowhere in the store's file, and nowhere in what the command printed."""
+    from pipeline.cli import main
+
+    key = "sk-codearcade-canary-7f3a9c2e5b1d"
+    monkeypatch.setenv("OPENAI_API_KEY", key)
+    model = scripted([{"status": status, "message": f"Incorrect API key provided: {key}. Check it.", "times": 99}])
+    code = main(["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--iterations",
+                 "1", "--eval-max-steps", "60", "--rollout-steps", "30", "--store", str(store.path)])
+    said = capsys.readouterr()
+    assert code != 0 or status == 500
+    assert "Incorrect API key provided" in said.out + said.err, said  # the endpoint's text is shown ...
+    assert key not in said.out + said.err  # ... without the key
+    errors = store.query("SELECT error FROM runs") + store.query("SELECT error_message FROM llm_calls")
+    assert errors and all(key not in (text or "") for (text,) in errors), errors
+    for path in (p for p in store.path.parent.glob(store.path.name + "*") if p.is_file()):  # and a WAL beside it
+        assert key.encode() not in path.read_bytes(), path
