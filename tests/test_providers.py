@@ -524,3 +524,56 @@ def test_the_capped_decoder_inflates_as_zlib_does_in_any_split_and_stops_at_each
         list(CappedDecoder(["gzip"], 1000).chunks(gzip.compress(b" " * 10**6)))
     with pytest.raises(AnswerTooLarge, match="content encoding 'br'"):
         CappedDecoder(["br"], 1000)
+
+
+@pytest.mark.parametrize("stream", [False, True])
+def test_an_endpoint_that_trickles_its_answer_is_given_up_on_at_the_call_s_time_limit(stream):
+    """httpx's time limit is per read: an endpoint that sends its answer a byte at a time, each just inside it,
+    held a call (and `optimize`, past its --max-wall) for as long as it liked; 480 s and on, measured. The call
+    now ends at its time limit in all, whole answer or stream, and says so."""
+    import socket
+    import threading
+    import time
+
+    from pipeline.llm.client import CALL_TIME_GRACE_S, LiteLLMClient, LLMError
+
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    stop = threading.Event()
+
+    def trickle() -> None:  # a whole answer's headers at once, then its body a byte every 0.2 s
+        while not stop.is_set():
+            try:
+                conn, _ = listener.accept()
+            except OSError:
+                return
+            conn.recv(65536)
+            body = json.dumps({"id": "x", "object": "chat.completion", "created": 0, "model": "m", "choices": [
+                {"index": 0, "message": {"role": "assistant", "content": "y" * 400}, "finish_reason": "stop"}]})
+            conn.sendall(f"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {len(body)}\r\n"
+                         "\r\n".encode())
+            for byte in body.encode():
+                if stop.wait(0.2):
+                    break
+                try:
+                    conn.send(bytes([byte]))
+                except OSError:
+                    break
+            conn.close()
+
+    server = threading.Thread(target=trickle, daemon=True)
+    server.start()
+    try:
+        client = LiteLLMClient("openai/trickle", api_base=f"http://127.0.0.1:{listener.getsockname()[1]}/v1",
+                               api_key="none", retries=0, timeout_s=2, stream=stream, structured=False)
+        began = time.monotonic()
+        with pytest.raises(LLMError) as raised:
+            client.complete([{"role": "user", "content": "hello"}])
+        took = time.monotonic() - began
+    finally:
+        stop.set()
+        listener.close()
+    # the answer would have taken 100 s and more; the limit is 2 s, then the grace for httpx's own word
+    assert took < 2 + CALL_TIME_GRACE_S + 20, took
+    assert raised.value.error_type == "Timeout" and "time limit of 2 s" in raised.value.message, raised.value

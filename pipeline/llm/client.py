@@ -10,10 +10,12 @@ prompt hash: resuming and ``codearcade replay`` never pay for a call twice.
 
 from __future__ import annotations
 
+import contextvars
 import hashlib
 import json
 import os
 import re
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Protocol
@@ -154,6 +156,9 @@ def _usage_number(usage: Any, *path: str) -> int | None:
     return int(value)
 
 
+CALL_TIME_GRACE_S = 5.0
+"""Past a call's time limit, how long its answer is still waited for before it is given up on: httpx's own error
+for an endpoint that sent nothing in that time comes first, and says so in its words."""
 _MAX_COUNT = 2 ** 31 - 1
 REPORTED_TEXT_LIMIT = 200
 """The characters kept of a name or id an endpoint reports (its model, the response's id, a finish reason)."""
@@ -256,10 +261,7 @@ class LiteLLMClient:
         while True:
             attempt += 1
             try:
-                with capped(events=self.max_events()):  # read, and inflated, within MAX_ANSWER_BYTES
-                    response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
-                    if params.get("stream"):
-                        response = self._collect(response, sent, on_text, time.monotonic())
+                response = self._within_time_limit(lambda: self._answer(sent, params, extra, on_text))
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
                 large = too_large(exc)
                 if large is not None:  # not retried: the same endpoint would send the same again
@@ -285,6 +287,41 @@ class LiteLLMClient:
                 time.sleep(self.backoff_s * 2 ** (retried - 1))
                 continue
             return self._reply(response, attempt, time.monotonic() - start)
+
+    def _answer(self, sent: list[dict[str, Any]], params: dict[str, Any], extra: dict[str, Any],
+                on_text: Callable[[str], None] | None) -> Any:
+        """One request and its whole answer (a stream read to its end), read and inflated within
+        ``MAX_ANSWER_BYTES``."""
+        with capped(events=self.max_events()):
+            response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
+            if params.get("stream"):
+                response = self._collect(response, sent, on_text, time.monotonic())
+        return response
+
+    def _within_time_limit(self, call: Callable[[], Any]) -> Any:
+        """``call()``'s result, given up on once the call's time limit (and a few seconds for httpx's own word on
+        a silent endpoint) has passed in all: httpx's limit is per read, so an endpoint that sent a byte just
+        inside it held ``optimize`` for as long as it liked (480 s and on, with a 30 s ``--max-wall``). The call
+        runs in a thread of its own, with this thread's context (:func:`capped`'s limits); one given up on is
+        left to end with its connection, still held to those limits."""
+        outcome: dict[str, Any] = {}
+        context = contextvars.copy_context()
+
+        def run() -> None:
+            try:
+                outcome["response"] = context.run(call)
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread as it was raised
+                outcome["error"] = exc
+
+        worker = threading.Thread(target=run, name="codearcade-llm-call", daemon=True)
+        worker.start()
+        worker.join(self.timeout_s + CALL_TIME_GRACE_S)
+        if worker.is_alive():
+            raise self.litellm.Timeout(f"no whole answer within the call's time limit of {self.timeout_s:g} s",
+                                       self.model, self.provider)
+        if "error" in outcome:
+            raise outcome["error"]
+        return outcome["response"]
 
     def _without_key(self, text: str) -> str:
         """``text`` with this client's key and any secret of the environment or key-shaped string redacted."""
