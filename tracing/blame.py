@@ -1,9 +1,9 @@
 """Line origins of policy versions, carried from version to version like ``git blame``.
 
 Every line of a version's trainable methods has an origin: the version that introduced it. A line of a new
-version that the diff against its parent version (the same method's source; :mod:`difflib`, no junk
-heuristic) matches to a parent line keeps that line's origin; every other line (added or changed) has the
-new version as its origin. A method the parent lacks is all new. Lines are compared as written, trailing
+version that the diff against its parent version (the same method's source; ``tracing/line_diff.py``: difflib's
+matcher without its junk heuristic, at a bounded cost for long ones) matches to a parent line keeps that line's
+origin; every other line (added or changed) has the new version as its origin. A method the parent lacks is all new. Lines are compared as written, trailing
 whitespace aside: a re-indented line is a changed line, as in git.
 
 Origins are opaque here (the store passes its own ``(version, iteration, produced_by)`` records); the line
@@ -12,10 +12,10 @@ texts and numbers are those of the method's stored source (``tracing/lines.py``)
 
 from __future__ import annotations
 
-import difflib
 from dataclasses import dataclass
 from typing import Generic, Mapping, Sequence, TypeVar
 
+from tracing.line_diff import matching_lines
 from tracing.lines import executable_lines
 
 Origin = TypeVar("Origin")
@@ -43,10 +43,8 @@ def blame_function(source: str, parent: Sequence[tuple[str, Origin]] | None, new
     origins: list[Origin] = [new_origin] * len(lines)
     if parent:
         old = [text.rstrip() for text, _ in parent]
-        matcher = difflib.SequenceMatcher(None, old, [text.rstrip() for text in lines], autojunk=False)
-        for block in matcher.get_matching_blocks():
-            for k in range(block.size):
-                origins[block.b + k] = parent[block.a + k][1]
+        for i, j in matching_lines(old, [text.rstrip() for text in lines]):
+            origins[j] = parent[i][1]
     runnable = set(executable_lines(source))
     return [BlamedLine(i + 1, text, i + 1 in runnable, origins[i]) for i, text in enumerate(lines)]
 
