@@ -34,7 +34,7 @@ ANSWER_GRACE_S = 1.0
 """How long past its call limit the host waits for the policy process's answer (its own timer reports a slow
 call at the limit; this catches one that defeated the timer or hangs in C)."""
 LOAD_TIMEOUT_S = 60.0
-"""How long the policy process may take to load the policy."""
+"""How long the policy process may take to load the policy (less where the episode's own limit is less)."""
 FINISH_TIMEOUT_S = 30.0
 """How long the policy process may take to send its node rows at the end."""
 
@@ -185,7 +185,9 @@ class RemotePolicy(PolicyChannel):
     def start(self) -> None:
         if not self.loading:
             self.begin_loading()
-        kind, payload = self._receive(LOAD_TIMEOUT_S, "while loading the policy")
+        # the load counts toward the episode's time (rollout.play_episode): never waited on past the episode's limit
+        kind, payload = self._receive(min(LOAD_TIMEOUT_S, self.spec.episode_time_limit_s + ANSWER_GRACE_S),
+                                      "while loading the policy")
         if kind == b"J" and payload == b'{"kind":"ready"}':
             return
         raise self._failure(payload, "while loading the policy") if kind == b"J" else \

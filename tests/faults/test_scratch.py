@@ -211,6 +211,22 @@ def test_a_frame_trickled_byte_by_byte_times_out_at_the_call_limit_and_keeps_its
     assert wall < 30, wall
 
 
+@pytest.mark.slow
+def test_a_policy_that_never_finishes_loading_ends_at_the_episode_s_limit(tmp_path):
+    """The host waited for a policy to load for 60 s whatever the episode's limit, so one that looped at import,
+    its timer ignored, held a 15 s episode until the parent's kill (45.8 s). The load counts toward the episode's
+    time, and is waited on no longer than its limit (+1 s): the episode ends `timeout`, saying so, at once."""
+    policy = _policy("pass").replace('GAME = "pong"', 'GAME = "pong"\n'
+                                     'signal = typing.sys.modules["signal"]\n'
+                                     'signal.signal(signal.SIGALRM, signal.SIG_IGN)\n'
+                                     'while True:\n    pass\n')
+    _, summary, store, wall = _eval(tmp_path, policy, "--max-steps", "50", "--call-time-limit", "1",
+                                    "--episode-time-limit", "4")
+    (episode,) = summary["episodes"]
+    assert episode["end_reason"] == "timeout" and "while loading the policy within 5 s" in episode["error"], episode
+    assert wall < 25, f"the episode's limit is 4 s; the parent's kill would have come at 34 s: {wall:.1f} s"
+
+
 def test_a_frame_has_one_deadline_not_one_per_read():
     host, policy = socket.socketpair()
 
