@@ -48,6 +48,7 @@ from __future__ import annotations
 import gzip
 import hashlib
 import json
+import os
 import random
 import re
 import socket
@@ -91,19 +92,24 @@ class ScriptedModel:
         return f"{provider}/{name}", bases[provider]
 
     def start(self) -> "ScriptedModel":
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            self.port = s.getsockname()[1]
-        self.process = subprocess.Popen([sys.executable, __file__, str(self.script_path), str(self.log_path),
-                                         str(self.port)], stderr=subprocess.PIPE)
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
-            try:
-                urllib.request.urlopen(f"http://127.0.0.1:{self.port}/health", timeout=1).read()
-                return self
-            except OSError:
-                time.sleep(0.05)
-        self.stop()
+        for _ in range(5):  # a port another process took between its choice and the bind: choose again
+            with socket.socket() as s:
+                s.bind(("127.0.0.1", 0))
+                self.port = s.getsockname()[1]
+            self.process = subprocess.Popen([sys.executable, __file__, str(self.script_path), str(self.log_path),
+                                             str(self.port)], stderr=subprocess.PIPE)
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and self.process.poll() is None:
+                try:
+                    answer = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{self.port}/health",
+                                                               timeout=1).read())
+                except (OSError, ValueError):
+                    time.sleep(0.05)
+                    continue
+                if answer.get("pid") == self.process.pid:
+                    return self
+                break  # another process's server on the port
+            self.stop()
         raise RuntimeError("the scripted model server did not start")
 
     def stop(self) -> None:
@@ -317,7 +323,10 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             pass
 
         def do_GET(self):
-            body = json.dumps({"status": "ok", "data": [{"id": "scripted", "object": "model"}]}).encode()
+            # its pid: the test that started it knows the server that answers is its own (a port taken between
+            # its choice and this server's bind would be answered by another)
+            body = json.dumps({"status": "ok", "pid": os.getpid(),
+                               "data": [{"id": "scripted", "object": "model"}]}).encode()
             self._send(200, body)
 
         def do_POST(self):
