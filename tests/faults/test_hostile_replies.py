@@ -7,6 +7,8 @@ The parser's contract: whatever the text, ``parse_reply`` returns ``{name: sourc
 from __future__ import annotations
 
 import json
+import logging
+import warnings
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -145,7 +147,15 @@ def test_an_endpoint_s_word_about_its_reply_is_not_trusted(store, scripted):
     client = LiteLLMClient(model.model, api_base=model.api_base, retries=0)
     config = OptimizeConfig(game="pong", iterations=len(HOSTILE_METADATA), eval_max_steps=60, rollout_steps=30,
                             workers=1, repairs=0)
-    result = optimize(config, store, client)
+    # pydantic's warnings and litellm's log quote the hostile values, lone surrogates included, which pytest-xdist
+    # cannot send from its worker (the worker crashed): not recorded here
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        logging.disable(logging.CRITICAL)
+        try:
+            result = optimize(config, store, client)
+        finally:
+            logging.disable(logging.NOTSET)
     assert result.status == "finished", result.error
     calls = store.query("SELECT input_tokens, output_tokens, response_id, response_model, finish_reasons, "
                         "error_type FROM llm_calls ORDER BY iteration")
