@@ -712,3 +712,91 @@ def test_ctrl_c_while_a_submission_plays_gives_it_back(tmp_path, after_s):
     doctor = subprocess.run([sys.executable, "-m", "pipeline.cli", "doctor", "--store", str(store), "--json"],
                             cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
     assert json.loads(doctor.stdout)["ok"], doctor.stdout
+
+
+def test_the_http_transport_refuses_pages_and_rebound_names_and_bounds_what_clients_hold(tmp_path, monkeypatch,
+                                                                                         capfd):
+    """A reviewer's hostile agent and web page: `GET /finalize` from an <img> finalized the run, a page's POST with
+    a foreign Origin or Host got answers, 2,000 held connections took the server to 3.7 GB, a request trickled a
+    byte every 10 s was served after 70 s, 200,000 `[` got a traceback and no answer, and a submission whose GAME
+    held escape sequences put them raw on the server's terminal. Each now by its effect: the run not finalized and
+    nothing spent, the 503 of the connection past the cap at once, the trickled connection closed at its deadline,
+    a JSON 400, and no ESC byte on stderr."""
+    import socket
+    import time
+
+    from pipeline.serve import http
+    from pipeline.serve.config import ServeConfig
+    from pipeline.serve.protocol import ServeRun, create_run
+
+    monkeypatch.setattr(http._Handler, "timeout", 1.0)  # the whole request's deadline, shortened for the test
+    monkeypatch.setattr(http, "MAX_CONNECTIONS", 3)
+    store = Store(tmp_path / "s.duckdb")
+    run = ServeRun(store, create_run(store, ServeConfig(game="pong", budget=2)))
+    server, thread = http.start_http(run)
+    port = server.server_address[1]
+
+    def status(answer: bytes) -> int:
+        return int(answer.split(b" ", 2)[1]) if answer.startswith(b"HTTP/1.1 ") else 0
+
+    try:
+        here = f"Host: 127.0.0.1:{port}\r\n".encode()
+        answers = {
+            "GET /finalize": _raw(port, b"GET /finalize HTTP/1.1\r\n" + here + b"Referer: http://evil.example/\r\n\r\n"),
+            "foreign Host": _raw(port, b"POST /budget HTTP/1.1\r\nHost: evil.example\r\nContent-Length: 2\r\n\r\n{}"),
+            "foreign Origin": _raw(port, b"POST /finalize HTTP/1.1\r\n" + here + b"Origin: http://evil.example\r\n"
+                                   b"Content-Type: text/plain\r\nContent-Length: 2\r\n\r\n{}"),
+            "deep JSON": _raw(port, b"POST /budget HTTP/1.1\r\n" + here + b"Content-Length: 200000\r\n\r\n"
+                              + b"[" * 200_000),
+        }
+        assert {name: status(answer) for name, answer in answers.items()} == {
+            "GET /finalize": 405, "foreign Host": 403, "foreign Origin": 403, "deep JSON": 400}, answers
+        assert all("error" in json.loads(answer.partition(b"\r\n\r\n")[2]) for answer in answers.values())
+        assert not run.finalized and run.budget()["spent"] == 0
+        # the connections past the cap: 503 at once, and the server serves again once they are gone
+        held = [socket.create_connection(("127.0.0.1", port)) for _ in range(3)]
+        began = time.monotonic()
+        assert status(_raw(port, b"GET /budget HTTP/1.1\r\n" + here + b"\r\n")) == 503
+        assert time.monotonic() - began < 5
+        for connection in held:
+            connection.close()
+        # a request trickled a byte at a time: closed at its deadline (1 s here), not served at its end
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as trickled:
+            began, closed_after = time.monotonic(), None
+            for byte in b"POST /budget HTTP/1.1\r\nContent-Length: 2\r\n\r\n{}":
+                try:
+                    trickled.send(bytes([byte]))
+                except OSError:
+                    closed_after = time.monotonic() - began
+                    break
+                time.sleep(0.3)
+                trickled.setblocking(False)
+                try:
+                    if trickled.recv(1) == b"":
+                        closed_after = time.monotonic() - began
+                        break
+                except BlockingIOError:
+                    pass
+                finally:
+                    trickled.setblocking(True)
+            assert closed_after is not None and closed_after < 8, closed_after  # sent whole, it takes 14 s
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/budget", timeout=10) as answer:
+            assert answer.status == 200
+        # an agent's text in a failure the server prints: made safe for the terminal
+        scaffold = (ROOT / "games" / "scaffolds" / "pong.py").read_text()
+        hostile = scaffold.replace('GAME = "pong"', 'GAME = "\\x1b]0;PWNED\\x07\\x1b[2Jnope"')
+        data = json.dumps({"instances": [0], "policy": hostile}).encode()
+        answer = _raw(port, b"POST /submit HTTP/1.1\r\n" + here + f"Content-Length: {len(data)}\r\n\r\n".encode()
+                      + data, wait_s=60)
+        assert status(answer) == 400 and "nope" in json.loads(answer.partition(b"\r\n\r\n")[2])["error"], answer
+        path = json.dumps({"instances": [0], "path": "\ud800/x"}).encode()  # a lone surrogate: no file's name
+        answer = _raw(port, b"POST /submit HTTP/1.1\r\n" + here + f"Content-Length: {len(path)}\r\n\r\n".encode()
+                      + path)
+        assert status(answer) == 400, answer
+        monkeypatch.setattr(run, "budget", lambda: (_ for _ in ()).throw(RuntimeError("\x1b]0;PWNED\x07\x1b[2J")))
+        assert status(_raw(port, b"POST /budget HTTP/1.1\r\n" + here + b"Content-Length: 2\r\n\r\n{}")) == 500
+    finally:
+        server.shutdown()
+        server.server_close()
+    err = capfd.readouterr().err
+    assert "RuntimeError" in err and "\x1b" not in err and "\x07" not in err, err[-2000:]

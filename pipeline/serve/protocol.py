@@ -47,6 +47,7 @@ from __future__ import annotations
 import json
 import os
 import secrets
+import sys
 import threading
 import time
 import traceback
@@ -56,7 +57,7 @@ from typing import Any, Callable
 
 import duckdb
 
-from games import get_game
+from games import UnknownGameError, get_game
 from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY, draw_audit_seeds, recorded_observation
 from pipeline.boundary.policy import MAX_PRINTED_BYTES, PRINTED_TEXT_BYTES
 from pipeline.boundary.untrusted import utf8_prefix
@@ -82,12 +83,17 @@ from store.views import QueryError
 from store.writer import (EpisodeWriter, finish_run, insert_candidate, insert_feedback, insert_iteration,
                           insert_policy_version, replace_audits)
 from tracing.policy_file import MAX_POLICY_CHARS, PolicyLoadError, python_newlines, read_policy_file
+from viewers.safe_text import terminal_text
 
 KIND = "serve"
 TRAIN_SEED_LOW = 100_000
 """Training seeds are drawn from ``TRAIN_SEED_LOW`` to ``AUDIT_SEED_BASE``: six digits, below every sealed seed."""
 MAX_FEEDBACK_STEPS = 200
 MAX_SQL_ROWS = 500
+SQL_AT_ONCE = 2
+"""The agent's queries run at once, each in a process of its own capped in memory (``store/agent_sql.py``): 16 at
+once held 6.3 GB between them. One more waits for a turn, up to :data:`SQL_WAIT_S`, and is refused past it."""
+SQL_WAIT_S = 30.0
 MAX_SQL_BYTES = 1_000_000
 """The most JSON an answer of the agent's SQL holds (its rows past that are left out, and it says so)."""
 PRINTED_SHOWN_BYTES = 2 * PRINTED_TEXT_BYTES
@@ -171,6 +177,7 @@ class ServeRun:
         self._lock = threading.Lock()
         self._work = threading.Lock()
         self._parsing = threading.Lock()
+        self._queries = threading.BoundedSemaphore(SQL_AT_ONCE)
         self.stopping = threading.Event()
         """Set when the server stops (:meth:`stop`): a submission playing then is neither stored nor charged."""
 
@@ -242,10 +249,15 @@ class ServeRun:
         """Read-only SQL over the visible part of the run (``store/serve.py``)."""
         if not isinstance(query, str) or not query.strip() or len(query) > 20_000:
             raise RequestError("sql: give one query of at most 20,000 characters")
+        if not self._queries.acquire(timeout=SQL_WAIT_S):
+            raise RequestError(f"sql: {SQL_AT_ONCE} queries were running for {SQL_WAIT_S:g} s; ask again when one "
+                               "has answered")
         try:
             return visible_query(self.store, self.run_id, query, MAX_SQL_ROWS, MAX_SQL_BYTES)
         except (duckdb.Error, QueryError) as exc:
             raise RequestError(f"sql: {str(exc).splitlines()[0][:500]}") from None
+        finally:
+            self._queries.release()
 
     # ------------------------------------------------------------------------------------------- submitting
 
@@ -302,7 +314,11 @@ class ServeRun:
                 info = checked_inspect(policy, "policy.py")
         except (PolicyLoadError, SyntaxError, ValueError) as exc:
             raise RequestError(f"policy: {str(exc)[:2000]}") from None
-        if info.game is not None and get_game(info.game).name != self.game.name:
+        try:  # a GAME no game has: refused like any other mistake (it ended in a traceback quoting its text)
+            game = get_game(info.game) if info.game is not None else self.game
+        except UnknownGameError as exc:
+            raise RequestError(f"policy: {str(exc)[:2000]}") from None
+        if game.name != self.game.name:
             raise RequestError(f"policy: its GAME is {info.game}, and this run plays {self.game.name}")
         with self._lock:
             self._refuse_if_closed(len(instances))
@@ -331,7 +347,7 @@ class ServeRun:
             except RequestError:  # another request finalized it meanwhile
                 pass
             except Exception:  # noqa: BLE001 - the submission stands; `codearcade serve --finalize` ends the run
-                traceback.print_exc()
+                sys.stderr.write(terminal_text(traceback.format_exc(), multiline=True) + "\n")
         return {**result, "budget": self.budget()}
 
     def _workspace_file(self, path: Any) -> str:
@@ -340,7 +356,10 @@ class ServeRun:
             raise RequestError("path: this server has no workspace (give the policy's text)")
         if not isinstance(path, str) or not path or "\0" in path:
             raise RequestError("path: a file name relative to the workspace")
-        target = (self.workspace / path).resolve()
+        try:
+            target = (self.workspace / path).resolve()
+        except (OSError, ValueError, UnicodeError):  # a lone surrogate cannot name a file (nor can a name too long)
+            raise RequestError("path: a file name relative to the workspace") from None
         if not target.is_relative_to(self.workspace) or not target.is_file():
             raise RequestError(f"path: no file {path!r} in the workspace")
         try:  # read as every policy file is: within MAX_POLICY_CHARS, UTF-8, line ends as Python reads them
