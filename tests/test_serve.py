@@ -714,6 +714,43 @@ def test_ctrl_c_while_a_submission_plays_gives_it_back(tmp_path, after_s):
     assert json.loads(doctor.stdout)["ok"], doctor.stdout
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("during", ["a submission", "finalize"])
+def test_ctrl_c_stops_the_server_at_once_and_a_cut_finalize_leaves_the_run_open(tmp_path, during):
+    """A reviewer's Ctrl-C while 8 games of a submission played: games the zygote started after the press played
+    to their end, and the server stopped a minute later (its wait's own limit). While the run was being finalized:
+    the validation game playing then was stored `crashed` (the press reached its worker), the submission read as
+    forfeited, and the run as finished. Now no game starts after the press, the server stops in seconds, and a cut
+    finalize audits nothing and leaves the run open (interrupted), to be finalized later."""
+    from tests.conftest import POLICIES
+
+    store = tmp_path / "s.duckdb"
+    server = Server(store, "--game", "pong", "--max-steps", "3000", "--workers", "2", "--budget", "12",
+                    "--validation-episodes", "6", "--heldout-episodes", "2", own_group=True)
+    # ~3 ms a step: 8 games of 3,000 steps on 2 workers play for a minute and more
+    policy = (POLICIES / "pong_competent.py").read_text().replace(
+        '        player = obs.get("Player")\n', '        sum(range(30_000))\n        player = obs.get("Player")\n', 1)
+    if during == "finalize":
+        assert server.post("submit", {"policy": policy, "instances": [0]})[0] == 200
+    asking = threading.Thread(target=lambda: server.post(*(("finalize", {}) if during == "finalize" else
+                                                           ("submit", {"policy": policy,
+                                                                       "instances": list(range(8))}))),
+                              daemon=True)
+    asking.start()
+    time.sleep(3.0)
+    pressed = time.monotonic()
+    os.killpg(server.proc.pid, signal.SIGINT)
+    server.proc.wait(timeout=180)
+    stopped_in = time.monotonic() - pressed
+    said = "".join(server.lines)
+    assert server.proc.returncode == 0 and "Traceback" not in said, said
+    assert stopped_in < 30, f"the server stopped {stopped_in:.0f} s after Ctrl-C"  # it waited 60 s
+    s = Store(store)
+    (status,) = s.query("SELECT status FROM runs")[0]
+    assert status == "interrupted", said
+    assert s.query("SELECT count(*) FROM audits") == [(0,)], "a cut finalize audits nothing"
+
+
 def test_the_http_transport_refuses_pages_and_rebound_names_and_bounds_what_clients_hold(tmp_path, monkeypatch,
                                                                                          capfd):
     """A reviewer's hostile agent and web page: `GET /finalize` from an <img> finalized the run, a page's POST with

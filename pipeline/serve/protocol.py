@@ -107,6 +107,11 @@ class RequestError(ValueError):
     """A request refused before anything plays: it costs nothing, and the message says why."""
 
 
+class Stopped(Exception):
+    """The server stopped while this request played: its games ended with the server, not with their policies, so
+    nothing of what they showed is kept (a finalize is not: the run stays open)."""
+
+
 def create_run(store: Store, config: ServeConfig, name: str | None = None) -> str:
     """Make a served run (its training instances drawn now) with its starter as iteration 0; return its id."""
     from store.writer import set_run_name
@@ -384,6 +389,8 @@ class ServeRun:
         printed: list[str | None] = [None] * len(specs)
         with EpisodeWriter(self.store, replace=True) as writer:
             for i, outcome in run_episodes(specs, workers=max(1, min(s["workers"], len(specs)))):
+                if self.stopping.is_set():  # no more games start (closing the episodes ends those playing): the
+                    break  # submission is given back below, and the server stops at once, not a minute later
                 outcome = checked_outcome(specs[i], outcome)
                 writer.add(outcome.episode, outcome.steps, outcome.nodes)
                 episodes[i], printed[i] = outcome.episode, outcome.printed
@@ -443,13 +450,13 @@ class ServeRun:
             if len(self._committed) == 1:  # the starter alone: there is no submission to score
                 raise RequestError("no submission yet: there is nothing to finalize")
             self.finalized = True
-        try:
-            with self._work:
-                rows = finalize_run(self.store, self.run_id, self.record, progress)
-        except BaseException:
-            with self._lock:
-                self.finalized = False
-            raise
+        with self._work:
+            try:
+                rows = finalize_run(self.store, self.run_id, self.record, progress, self.stopping)
+            except BaseException:
+                with self._lock:  # before the work is let go: a stopping server reads it next
+                    self.finalized = False
+                raise
         if self.on_finalized is not None:
             self.on_finalized()
         return {"finalized": True, "submissions_validated": sum(r["protocol"] == "validation" for r in rows),
@@ -487,8 +494,19 @@ def _summary(sub: dict[str, Any], episodes: list[dict[str, Any]]) -> dict[str, A
 
 
 def finalize_run(store: Store, run_id: str, record: dict[str, Any],
-                 progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
-    """The end of a served run (see the module docstring): the ``audits`` rows it wrote."""
+                 progress: Callable[[int, int], None] | None = None,
+                 stopping: threading.Event | None = None) -> list[dict[str, Any]]:
+    """The end of a served run (see the module docstring): the ``audits`` rows it wrote. ``stopping``: set when
+    the server stops; games played then ended with it (a Ctrl-C reaches their workers), and a validation game
+    stored as crashed made a submission read as forfeited and the run finished: :class:`Stopped` instead, the
+    run left open, nothing audited."""
+
+    def played(scores):
+        if stopping is not None and stopping.is_set():
+            raise Stopped("the server stopped while the run was being finalized: nothing was audited, and "
+                          "`codearcade serve --finalize RUN` finalizes it")
+        return scores
+
     s = record["serve"]
     with store.read() as con:
         subs = [x for x in served_submissions(con, run_id) if x["update_status"] == "accepted"]
@@ -511,7 +529,7 @@ def finalize_run(store: Store, run_id: str, record: dict[str, Any],
 
     val_specs = [spec(v, x["iteration"], "validation", "validation", i, seed)
                  for v, x in first.items() for i, seed in enumerate(validation)]
-    val_scores = _play_scored(store, val_specs, progress)
+    val_scores = played(_play_scored(store, val_specs, progress, stopping))
     rows = []
     for v, x in first.items():
         score, ids = val_scores[v]
@@ -526,7 +544,7 @@ def finalize_run(store: Store, run_id: str, record: dict[str, Any],
                       for role, (v, it, _) in subjects.items() for i, seed in enumerate(heldout)]
         if best == starter_id:
             held_specs = held_specs[:n_held]
-        held_scores = _play_scored(store, held_specs, progress)
+        held_scores = played(_play_scored(store, held_specs, progress, stopping))
         for role, (v, it, tuning) in subjects.items():
             score, ids = held_scores[v]
             rows.append(_audit_row(role, "standard", v, it, heldout, ids, score, tuning))
@@ -539,11 +557,15 @@ def finalize_run(store: Store, run_id: str, record: dict[str, Any],
     return rows
 
 
-def _play_scored(store: Store, specs: list[EpisodeSpec], progress) -> dict[str, tuple[Any, list[str]]]:
-    """Play ``specs`` (untraced), store them, and score each version's episodes by the one rule."""
+def _play_scored(store: Store, specs: list[EpisodeSpec], progress,
+                 stopping: threading.Event | None = None) -> dict[str, tuple[Any, list[str]]]:
+    """Play ``specs`` (untraced), store them, and score each version's episodes by the one rule; no more once
+    ``stopping`` is set (the caller then keeps nothing of them)."""
     by_version: dict[str, list[dict[str, Any]]] = {}
     with EpisodeWriter(store, replace=True) as writer:
         for i, outcome in run_episodes(specs, workers=1, progress=progress):
+            if stopping is not None and stopping.is_set():
+                break
             outcome = checked_outcome(specs[i], outcome)
             writer.add(outcome.episode, outcome.steps, outcome.nodes)
             by_version.setdefault(specs[i].policy_version_id, []).append(outcome.episode)

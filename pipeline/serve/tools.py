@@ -9,6 +9,8 @@ CLI start: ``codearcade serve --mcp``) and streamable HTTP on 127.0.0.1 (``--mcp
 
 from __future__ import annotations
 
+import sys
+import traceback
 from typing import Any
 
 import anyio
@@ -16,6 +18,7 @@ from mcp.server.mcpserver import MCPServer
 from mcp.server.mcpserver.exceptions import ToolError
 
 from pipeline.serve.protocol import RequestError, ServeRun
+from viewers.safe_text import terminal_text
 
 INSTRUCTIONS = """A rollout server for one codearcade run. Call `task` first: it gives the game, the starting policy \
 (a Python class whose trainable methods you improve), the budget and the rules. `submit` a whole policy file (its \
@@ -35,6 +38,13 @@ def build_server(run: ServeRun) -> MCPServer:
             return await anyio.to_thread.run_sync(lambda: getattr(run, operation)(**arguments))
         except RequestError as exc:
             raise ToolError(str(exc)) from None
+        except Exception as exc:  # noqa: BLE001 - the server goes on; the agent learns the request failed
+            if run.stopping.is_set():  # what the server's own stop broke under the request: no fault
+                raise ToolError("the server is stopping: nothing of this request was kept") from None
+            # printed here, made safe for the terminal (the SDK's own traceback printed an agent's escape bytes raw)
+            sys.stderr.write(terminal_text(traceback.format_exc(), multiline=True) + "\n")
+            raise ToolError(f"the server failed on this request ({type(exc).__name__}); `budget` says what is "
+                            "spent") from None
 
     @server.tool()
     async def task() -> dict[str, Any]:
