@@ -837,3 +837,41 @@ def test_the_http_transport_refuses_pages_and_rebound_names_and_bounds_what_clie
         server.server_close()
     err = capfd.readouterr().err
     assert "RuntimeError" in err and "\x1b" not in err and "\x07" not in err, err[-2000:]
+
+
+def test_over_mcp_stdio_a_message_past_its_limit_is_dropped_as_it_arrives(tmp_path):
+    """The MCP SDK reads a stdio line whole: 600 MB without a newline took a reviewer's `serve --mcp` to 2.5 GB.
+    A line past MAX_MESSAGE_BYTES is now dropped as it arrives: 256 MB of one leave the server's peak memory
+    within 64 MB of where it was, and the next message is answered."""
+    from pipeline.serve.tools import MAX_MESSAGE_BYTES
+
+    serve = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--mcp", "--game", "pong", "--budget",
+                              "2", "--store", str(tmp_path / "m.duckdb")], cwd=ROOT, env=ENV, stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+
+    def ask(number: int) -> dict:
+        serve.stdin.write(json.dumps({"jsonrpc": "2.0", "id": number, "method": "initialize", "params": {
+            "protocolVersion": "2025-06-18", "capabilities": {},
+            "clientInfo": {"name": "test", "version": "1"}}}).encode() + b"\n")
+        serve.stdin.flush()
+        return json.loads(serve.stdout.readline())
+
+    def peak_mb() -> float:
+        status = Path(f"/proc/{serve.pid}/status").read_text()
+        return int(re.search(r"VmHWM:\s+(\d+) kB", status)[1]) / 1024
+
+    try:
+        assert ask(1)["id"] == 1
+        before = peak_mb()
+        chunk = b"x" * 2**20
+        serve.stdin.write(b'{"jsonrpc": "2.0", "id": 2, "method": "ping", "params": {"pad": "')
+        for _ in range(256):
+            serve.stdin.write(chunk)
+        serve.stdin.write(b'"}}\n')
+        serve.stdin.flush()
+        assert ask(3)["id"] == 3, "the server reads on"
+        assert 256 * 2**20 > MAX_MESSAGE_BYTES
+        assert peak_mb() - before < 64, f"the server's peak rose from {before:.0f} MB to {peak_mb():.0f} MB"
+    finally:
+        serve.stdin.close()
+        serve.wait(timeout=60)

@@ -154,13 +154,14 @@ def _serve(served, args: argparse.Namespace) -> None:
         _say(f"HTTP+JSON on http://127.0.0.1:{server.server_address[1]}/ (POST /task, /submit, /feedback, /budget, "
              "/sql, /finalize); Ctrl-C stops it")
     if args.mcp or args.mcp_port is not None:
-        from pipeline.serve.tools import build_server
+        from pipeline.serve.tools import bound_stdin_lines, build_server
 
         mcp = build_server(served)
         if args.mcp_port is not None:
             _say(f"MCP (streamable HTTP) on http://127.0.0.1:{args.mcp_port}/mcp")
             mcp.run("streamable-http", host="127.0.0.1", port=args.mcp_port)
         else:
+            bound_stdin_lines()  # the SDK reads a message whole, however long
             mcp.run("stdio")  # returns when the agent closes stdin
         return
     threading.Event().wait()  # until Ctrl-C or a signal

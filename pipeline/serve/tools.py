@@ -9,7 +9,9 @@ CLI start: ``codearcade serve --mcp``) and streamable HTTP on 127.0.0.1 (``--mcp
 
 from __future__ import annotations
 
+import os
 import sys
+import threading
 import traceback
 from typing import Any
 
@@ -81,3 +83,46 @@ def build_server(run: ServeRun) -> MCPServer:
         return await call("finalize")
 
     return server
+
+
+MAX_MESSAGE_BYTES = 4 * 2**20
+"""The longest line (one JSON-RPC message) read from the agent over stdio: a policy file's 200,000 characters,
+each escaped as JSON may (``\\uXXXX``), and the rest of its request. The MCP SDK reads a line whole, however long:
+600 MB without a newline took ``serve`` to 2.5 GB."""
+
+
+def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> threading.Thread:
+    """Put a pipe in place of fd 0, fed by a thread that copies the agent's lines to it, each at most ``limit``
+    bytes: a longer one is dropped as it arrives (never held) and replaced by a line that is not JSON-RPC, which
+    the SDK sets aside. The SDK then reads fd 0 as ever; at the agent's EOF, the pipe ends too."""
+    source = os.dup(0)
+    read_end, write_end = os.pipe()
+    os.dup2(read_end, 0)
+    os.close(read_end)
+
+    def relay() -> None:
+        line, dropping = bytearray(), False
+        try:
+            while chunk := os.read(source, 65536):
+                while chunk:
+                    end = chunk.find(b"\n")
+                    piece, chunk = (chunk, b"") if end < 0 else (chunk[:end + 1], chunk[end + 1:])
+                    if not dropping:
+                        line += piece
+                        if len(line) > limit:  # past the limit: let it go, and the rest of it as it comes
+                            line.clear()
+                            dropping = True
+                    if end >= 0:
+                        os.write(write_end, b'"a message longer than the server reads"\n' if dropping else line)
+                        line.clear()
+                        dropping = False
+        except OSError:  # the SDK's end was closed: it is done reading
+            pass
+        finally:
+            os.close(write_end)
+            os.close(source)
+
+    thread = threading.Thread(target=relay, name="codearcade-mcp-stdin", daemon=True)
+    thread.start()
+    return thread
+
