@@ -28,9 +28,10 @@ figures, the OTLP export, and the SQL views, which hold the same rule (a forfeit
 ``candidates``, ``audits``, ``run_summary.best_score`` of an eval run). :func:`difference` says whether two sets
 of returns differ by more than the noise (Welch's t: :func:`scipy.stats.ttest_ind` with unequal variances, and its
 interval of the difference of the means; :func:`paired_difference` for two sets played seed by seed with the
-same random draws: the paired t of their differences), and :func:`iqm` aggregates over games or seeds as rliable recommends: the
-interquartile mean with a stratified bootstrap interval (each stratum resampled on its own: scipy's bootstrap with
-one sample per stratum), given only when every stratum holds at least :data:`IQM_MIN_PER_STRATUM` values.
+same random draws: the paired t of their differences), and :func:`iqm` aggregates over games or seeds as rliable
+recommends: the interquartile mean with a stratified bootstrap interval (each stratum resampled on its own:
+scipy's bootstrap with one sample per stratum), given only when every stratum holds at least
+:data:`IQM_MIN_PER_STRATUM` values.
 
 **Why these methods.** An interval must keep its promise at the sample sizes people use: 3–10 episodes a
 version, 3–5 seeds a game. Simulated on returns shaped like Atari's (discrete, skewed, bimodal, with ties;

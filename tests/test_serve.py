@@ -779,7 +779,8 @@ def test_the_http_transport_refuses_pages_and_rebound_names_and_bounds_what_clie
     try:
         here = f"Host: 127.0.0.1:{port}\r\n".encode()
         answers = {
-            "GET /finalize": _raw(port, b"GET /finalize HTTP/1.1\r\n" + here + b"Referer: http://evil.example/\r\n\r\n"),
+            "GET /finalize": _raw(port, b"GET /finalize HTTP/1.1\r\n" + here
+                                  + b"Referer: http://evil.example/\r\n\r\n"),
             "foreign Host": _raw(port, b"POST /budget HTTP/1.1\r\nHost: evil.example\r\nContent-Length: 2\r\n\r\n{}"),
             "foreign Origin": _raw(port, b"POST /finalize HTTP/1.1\r\n" + here + b"Origin: http://evil.example\r\n"
                                    b"Content-Type: text/plain\r\nContent-Length: 2\r\n\r\n{}"),

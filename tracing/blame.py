@@ -3,8 +3,8 @@
 Every line of a version's trainable methods has an origin: the version that introduced it. A line of a new
 version that the diff against its parent version (the same method's source; ``tracing/line_diff.py``: difflib's
 matcher without its junk heuristic, at a bounded cost for long ones) matches to a parent line keeps that line's
-origin; every other line (added or changed) has the new version as its origin. A method the parent lacks is all new. Lines are compared as written, trailing
-whitespace aside: a re-indented line is a changed line, as in git.
+origin; every other line (added or changed) has the new version as its origin. A method the parent lacks is all
+new. Lines are compared as written, trailing whitespace aside: a re-indented line is a changed line, as in git.
 
 Origins are opaque here (the store passes its own ``(version, iteration, produced_by)`` records); the line
 texts and numbers are those of the method's stored source (``tracing/lines.py``).

@@ -127,7 +127,8 @@ def write_csv(stream: IO[str], columns: Sequence[str], rows: Sequence[Sequence[A
     writer = csv.writer(stream, lineterminator="\n")
     # a field holding a lone \r is quoted only where \r ends lines: such a row is written with every field quoted
     quoted = csv.writer(stream, lineterminator="\n", quoting=csv.QUOTE_ALL)
-    for cells in ([str(c) for c in columns], *(["" if v is None else cell_text(v, exact=True) for v in row] for row in rows)):
+    fields = (["" if v is None else cell_text(v, exact=True) for v in row] for row in rows)
+    for cells in ([str(c) for c in columns], *fields):
         if safe:
             cells = [terminal_text(c, multiline=True) for c in cells]
         (quoted if any("\r" in c for c in cells) else writer).writerow(cells)

@@ -1,8 +1,8 @@
 """``codearcade serve``'s plain HTTP+JSON transport (the standard library's threading server, on 127.0.0.1).
 
 Every operation is ``POST /<operation>`` with a JSON object of its arguments (``GET`` works for the two that only
-read: ``/task`` and ``/budget``): ``/task``, ``/submit`` (``instances``, and ``policy``: the file's text, or ``path``: a file of the
-workspace; optional ``parent``), ``/feedback`` (``submission``,
+read: ``/task`` and ``/budget``): ``/task``, ``/submit`` (``instances``, and ``policy``: the file's text, or
+``path``: a file of the workspace; optional ``parent``), ``/feedback`` (``submission``,
 optional ``instance``, ``steps``), ``/budget``, ``/sql`` (``query``), ``/finalize``. The answer is a JSON object;
 a refused request (it costs nothing) is status 400 with ``{"error": ...}``. Requests are served concurrently:
 the budget is exact however many arrive at once (``protocol.ServeRun``).
