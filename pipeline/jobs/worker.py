@@ -8,17 +8,19 @@ private store seeded with the run's earlier rows and returns all of them for the
 
 from __future__ import annotations
 
-import json
 import sys
-import tempfile
-from contextlib import contextmanager
-from pathlib import Path
-from typing import Any
 
 INTERRUPTED_EXIT = 130
 """Exit code of a batch run process stopped by a Ctrl-C (its run is interrupted, resumable)."""
 
-try:  # a Ctrl-C to the batch's process group reaches its runs too, also while they import
+try:  # a Ctrl-C to the batch's process group reaches its runs too, also while they import (the standard
+    # library's modules too: a press landed in `import tempfile`, and the run's log held a traceback)
+    import json
+    import tempfile
+    from contextlib import contextmanager
+    from pathlib import Path
+    from typing import Any
+
     from pipeline.boundary.zygotes import keep_hosts
     from pipeline.llm.client import open_client
     from pipeline.optimizer.config import OptimizeConfig, fit_to_model
