@@ -272,13 +272,24 @@ def zygote(role: str = "policy") -> Zygote:
 
 @atexit.register
 def stop_zygote() -> None:
-    """Close this process's zygotes (their workers end with them)."""
-    KEPT.let_go()
-    with _lock:  # a thread still starting one (a server's request at exit) must not change the dict mid-loop
-        closing = list(_zygotes.values()) if _zygotes_pid == os.getpid() else []
-        _zygotes.clear()
-    for zyg in closing:
-        zyg.close()
+    """Close this process's zygotes (their workers end with them). A Ctrl-C that lands meanwhile kills what is left
+    instead of waiting for it: the process is ending anyway (a batch's run pressed as it finished printed
+    "Exception ignored" and a traceback into its log, from the wait for its zygote)."""
+    mine = _zygotes_pid == os.getpid()
+    closing = list(_zygotes.values()) if mine else []
+    try:
+        KEPT.let_go()
+        with _lock:  # a thread still starting one (a server's request at exit) must not change the dict mid-loop
+            closing = list(_zygotes.values()) if mine else []
+            _zygotes.clear()
+        for zyg in closing:
+            zyg.close()
+    except KeyboardInterrupt:
+        for zyg in closing:
+            try:
+                zyg.proc.kill()
+            except OSError:
+                pass
 
 
 ZYGOTE_USE = threading.RLock()

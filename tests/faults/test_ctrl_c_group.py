@@ -368,3 +368,27 @@ def test_a_ctrl_c_a_library_wrapped_in_its_own_error_ends_the_command_as_interru
             assert done.returncode == 130 and done.stderr.strip() == "codearcade: interrupted", done.stderr
         else:
             assert done.returncode == 1 and "RuntimeError: a failure of its own" in done.stderr, done.stderr
+
+
+def test_a_ctrl_c_while_the_zygotes_close_at_exit_kills_them_without_a_traceback(monkeypatch):
+    """A batch's run pressed as it ended: the press landed in the atexit handler's wait for its zygote, and the run's
+    log got "Exception ignored" and a traceback (a CI run). The handler now kills what is left, and says nothing."""
+    import os
+
+    from pipeline.boundary import zygotes
+
+    killed = []
+
+    class Pressed:  # a zygote whose close is cut by a press
+        class proc:
+            @staticmethod
+            def kill():
+                killed.append(True)
+
+        def close(self):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(zygotes, "_zygotes", {"policy": Pressed(), "game": Pressed()})
+    monkeypatch.setattr(zygotes, "_zygotes_pid", os.getpid())
+    zygotes.stop_zygote()  # returns, not raises
+    assert killed == [True, True]
