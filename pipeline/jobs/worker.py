@@ -13,6 +13,18 @@ import sys
 INTERRUPTED_EXIT = 130
 """Exit code of a batch run process stopped by a Ctrl-C (its run is interrupted, resumable)."""
 
+
+def _quiet_after_ctrl_c(unraisable) -> None:
+    """A press that lands in an exit handler or a finalizer, as the run ends, is the press it answers with its line
+    ``interrupted`` (or one that came as it finished): nothing more to say, where Python printed "Exception
+    ignored" and a traceback into the run's log."""
+    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        sys.__unraisablehook__(unraisable)
+
+
+if __name__ == "__main__":
+    sys.unraisablehook = _quiet_after_ctrl_c
+
 try:  # a Ctrl-C to the batch's process group reaches its runs too, also while they import (the standard
     # library's modules too: a press landed in `import tempfile`, and the run's log held a traceback)
     import json

@@ -392,3 +392,20 @@ def test_a_ctrl_c_while_the_zygotes_close_at_exit_kills_them_without_a_traceback
     monkeypatch.setattr(zygotes, "_zygotes_pid", os.getpid())
     zygotes.stop_zygote()  # returns, not raises
     assert killed == [True, True]
+
+
+def test_a_batch_run_says_nothing_of_a_press_that_lands_in_its_exit_handlers():
+    """Whatever exit handler or finalizer a press lands in as a batch's run ends, the run's log gets no "Exception
+    ignored" and traceback: the worker, run as a program, passes such a KeyboardInterrupt over (its line
+    ``interrupted`` said it). Checked by an exit handler that raises it, registered before the worker runs."""
+    program = ("import atexit, runpy, sys\n"
+               "def pressed():\n    raise KeyboardInterrupt\n"
+               "atexit.register(pressed)\n"
+               "sys.argv = ['worker', '{}']\n"
+               "try:\n    runpy.run_module('pipeline.jobs.worker', run_name='__main__')\n"
+               "except BaseException:\n    pass\n")
+    done = subprocess.run([sys.executable, "-c", program], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert "Exception ignored" not in done.stderr and "KeyboardInterrupt" not in done.stderr, done.stderr
+    bare = subprocess.run([sys.executable, "-c", program.replace("pipeline.jobs.worker", "json.tool")], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert "Exception ignored" in bare.stderr, "without the worker's hook Python prints it"
