@@ -1,7 +1,7 @@
 """Calibration of the intervals codearcade prints: coverage, false positives and power at 2-10 episodes.
 
 The return distributions of tests/test_calibration.py (Pong-like clustered, Breakout-like skewed counts, a bimodal
-mixture, many ties), with the project's own functions (``store.scores``) beside the percentile bootstrap it
+mixture, many ties), with the project's own functions (``store.statistics``) beside the percentile bootstrap it
 printed before issue 37:
 
 1. coverage of the true mean by one version's 95% interval (share of the intervals given; all-equal samples
@@ -32,7 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from store import scores  # noqa: E402
+from store import statistics  # noqa: E402
 from tests.test_calibration import (SHAPES, covers, draw, games, mixture, old_percentile_difference,  # noqa: E402
                                     old_percentile_mean, true_iqm, true_mean)
 
@@ -47,7 +47,7 @@ def coverage_table(replicates: int) -> list[str]:
     for index, (name, shape) in enumerate(SHAPES.items()):
         for n in (2, 3, 5, 10):
             samples = draw(shape, (replicates, n), (n, index))
-            t_cov, given = covers(*scores.mean_bounds(samples), true_mean(shape))
+            t_cov, given = covers(*statistics.mean_bounds(samples), true_mean(shape))
             varying = samples.min(axis=1) != samples.max(axis=1)
             old = np.full((2, replicates), np.nan)
             old[:, varying] = old_percentile_mean(samples[varying])
@@ -69,7 +69,7 @@ def limits_table(replicates: int) -> list[str]:
               _table(court, stats.norm.pdf(court, -15, 4) + stats.norm.pdf(court, 15, 4))}
     rows = ["| shape | n = 3 | n = 5 | n = 10 |", "|---|---|---|---|"]
     for index, (name, shape) in enumerate(beyond.items()):
-        cells = [covers(*scores.mean_bounds(draw(shape, (replicates, n), (n, index, 31))), true_mean(shape))[0]
+        cells = [covers(*statistics.mean_bounds(draw(shape, (replicates, n), (n, index, 31))), true_mean(shape))[0]
                  for n in (3, 5, 10)]
         rows.append(f"| {name} | " + " | ".join(_pct(c) for c in cells) + " |")
     return rows
@@ -81,7 +81,7 @@ def false_positive_table(replicates: int) -> list[str]:
         for n in (2, 3, 4, 6, 10):
             a = draw(shape, (replicates, n), (n, index, 1))
             b = draw(shape, (replicates, n), (n, index, 2))
-            low, high = scores.difference_bounds(a, b)
+            low, high = statistics.difference_bounds(a, b)
             decided = ~np.isnan(low)
             welch = float(np.mean((low[decided] > 0) | (high[decided] < 0)))
             varying = (a.min(axis=1) != a.max(axis=1)) | (b.min(axis=1) != b.max(axis=1))
@@ -93,7 +93,7 @@ def false_positive_table(replicates: int) -> list[str]:
 def _iqm_cover(strata_draws: list[np.ndarray], truth: float, n: int) -> float:
     bounds = []
     for r in range(strata_draws[0].shape[0]):
-        found = scores.iqm_interval([d[r] for d in strata_draws], resamples=999, minimum=0)
+        found = statistics.iqm_interval([d[r] for d in strata_draws], resamples=999, minimum=0)
         bounds.append((np.nan, np.nan) if found.low is None else (found.low, found.high))
     low, high = np.array(bounds).T
     return covers(low, high, truth)[0]
@@ -123,7 +123,7 @@ def power_table(replicates: int) -> list[str]:
             found = None
             for steps in range(1, 161):  # a shift of B by 0.05 sd at a time
                 shift = steps * 0.05 * sd
-                low, high = scores.difference_bounds(a, b + shift)
+                low, high = statistics.difference_bounds(a, b + shift)
                 power = float(np.mean(np.nan_to_num(high, nan=1.0) < 0))
                 if power >= 0.8:
                     found = shift

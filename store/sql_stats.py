@@ -2,7 +2,7 @@
 
 The statistics are not to be written twice, so the functions a query uses to print a mean or an interquartile
 mean with its 95% interval are Python functions registered on the connection (DuckDB's ``create_function``) that
-call :func:`store.scores.mean_interval` (Student t) and :func:`store.scores.iqm_interval` (rliable's stratified
+call :func:`store.statistics.mean_interval` (Student t) and :func:`store.statistics.iqm_interval` (rliable's stratified
 bootstrap, with the module's fixed random state, given only from ``IQM_MIN_PER_STRATUM`` values a stratum: the
 same values give the same interval). They take DuckDB lists, so a query aggregates with ``list(...)`` first::
 
@@ -11,7 +11,7 @@ same values give the same interval). They take DuckDB lists, so a query aggregat
 
 Each gives a struct: the value, ``low`` and ``high`` (NULL without an interval: fewer than two values, all equal,
 or too few for an IQM interval), ``n``, ``missing``, and ``level``, ``method`` and ``text``, the interval as
-:func:`store.scores.interval_text` prints it (``-20.7 [-21.0, -20.3] 95% t, n=3``; without one, the value and
+:func:`store.statistics.interval_text` prints it (``-20.7 [-21.0, -20.3] 95% t, n=3``; without one, the value and
 why). ``ci_text(ci)`` prints such a struct (its ``text``); ``ci_text(point, low, high)`` prints bare numbers as
 ``12.3 [10.1, 14.2]``, for intervals from elsewhere (it cannot know their level, method or n: prefer
 ``ci_text(ci)``). :data:`SQL_FUNCTIONS` names them with one line each (``codearcade sql --schema``;
@@ -43,7 +43,7 @@ def _interval_type(point: str) -> Any:
 
 
 def _struct(point: str, found: Any, missing: int = 0) -> dict[str, Any]:
-    """A :class:`store.scores.Interval` as the struct the SQL functions return (``text``: NULL without a value);
+    """A :class:`store.statistics.Interval` as the struct the SQL functions return (``text``: NULL without a value);
     with ``missing`` NULLs among the values, no value at all, and the text says why."""
     if missing:
         return {point: None, "low": None, "high": None, "n": found.n + missing, "missing": missing,
@@ -61,8 +61,8 @@ def _kept(values: list | None) -> tuple[list[float], int]:
 
 def mean_ci(values: list | None) -> dict[str, Any]:
     """``{mean, low, high, n, missing, level, method, text}``: the mean of ``values`` with its 95% Student-t interval
-    (:func:`scores.mean_interval`; none for fewer than two values or all equal; no mean with a NULL among them)."""
-    from store.scores import mean_interval
+    (:func:`store.statistics.mean_interval`; none for fewer than two values or all equal; no mean with a NULL among them)."""
+    from store.statistics import mean_interval
 
     kept, missing = _kept(values)
     return _struct("mean", mean_interval(kept), missing)
@@ -70,17 +70,17 @@ def mean_ci(values: list | None) -> dict[str, Any]:
 
 def iqm_ci(values: list | None) -> dict[str, Any]:
     """``{iqm, low, high, n, missing, level, method, text}``: the interquartile mean of ``values`` (one stratum,
-    e.g. a game's seeds) with its 95% bootstrap interval (:func:`scores.iqm_interval`; none below
+    e.g. a game's seeds) with its 95% bootstrap interval (:func:`store.statistics.iqm_interval`; none below
     ``IQM_MIN_PER_STRATUM``)."""
     return iqm_ci_strata([values])
 
 
 def iqm_ci_strata(strata: list | None) -> dict[str, Any]:
     """``{iqm, low, high, n, missing, level, method, text}``: the interquartile mean of the values of every
-    stratum together (a list per game) with a stratified bootstrap interval (:func:`scores.iqm_interval`: each
+    stratum together (a list per game) with a stratified bootstrap interval (:func:`store.statistics.iqm_interval`: each
     stratum resampled on its own, as rliable does; none while a stratum holds fewer than ``IQM_MIN_PER_STRATUM``
     values)."""
-    from store.scores import iqm_interval
+    from store.statistics import iqm_interval
 
     kept = [_kept(s) for s in strata or ()]
     return _struct("iqm", iqm_interval([values for values, _ in kept]), sum(missing for _, missing in kept))
@@ -116,7 +116,7 @@ CI_TEXT = ("ci_text(point, low, high)", "bare numbers as text, one decimal: 12.3
 with its second form, :data:`CI_TEXT_STRUCT`)."""
 CI_TEXT_STRUCT = ("ci_text(ci)", "a mean_ci / iqm_ci / iqm_ci_strata struct as text, naming level, method and n: "
                   "-20.7 [-21.0, -20.3] 95% t, n=3 (the value and why, without an interval)")
-"""The macro's second form: one struct in, :func:`store.scores.interval_text`'s line out."""
+"""The macro's second form: one struct in, :func:`store.statistics.interval_text`'s line out."""
 
 
 def function_listing() -> list[tuple[str, str, str]]:

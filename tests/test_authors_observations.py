@@ -10,8 +10,6 @@ the comparison covers them.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
 from games import get_game

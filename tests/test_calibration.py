@@ -10,7 +10,7 @@ numbers (so the true mean and the true interquartile mean are known exactly, not
 - ``ties``: a few values, most of them tied (20-24, 42% on 22), as in Freeway.
 
 For each shape, sample size and method, a few thousand samples are drawn with a fixed NumPy seed and the
-project's own functions (``store.scores``) are asked for their interval. The checks, the promise of issue 37:
+project's own functions (``store.statistics``) are asked for their interval. The checks, the promise of issue 37:
 
 - one version's mean (Student t): covers the true mean at least 93% of the times it gives an interval, at
   n = 3, 5 and 10 (an interval is not given for all-equal returns: those samples are left out, and counted);
@@ -27,13 +27,13 @@ false-positive checks here and must fall below them (``test_the_checks_catch_the
 from __future__ import annotations
 
 import warnings
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 import pytest
 from scipy import stats
 
-from store import scores
+from store import statistics
 
 LEVEL = 0.93
 """The least coverage a printed 95% interval may have here."""
@@ -121,7 +121,7 @@ def called_different(low: np.ndarray, high: np.ndarray) -> tuple[float, float]:
 def project_iqm(strata: list[np.ndarray]) -> tuple[float, float]:
     """The IQM's interval with 999 resamples (the project draws 4,999: a little wider, never narrower on average),
     to keep this file's time bounded; NaN for none."""
-    found = scores.iqm_interval(strata, resamples=999)
+    found = statistics.iqm_interval(strata, resamples=999)
     return (np.nan, np.nan) if found.low is None else (found.low, found.high)
 
 
@@ -133,9 +133,9 @@ def project_iqm(strata: list[np.ndarray]) -> tuple[float, float]:
 def test_the_mean_interval_covers_the_true_mean(name, n):
     shape = SHAPES[name]
     samples = draw(shape, (REPLICATES, n), (n, list(SHAPES).index(name)))
-    low, high = scores.mean_bounds(samples)
+    low, high = statistics.mean_bounds(samples)
     for i in range(0, REPLICATES, REPLICATES // 20):  # what a Score prints is this, one sample at a time
-        one = scores.mean_interval(samples[i])
+        one = statistics.mean_interval(samples[i])
         assert (one.low, one.high) == ((None, None) if np.isnan(low[i]) else (low[i], high[i]))
     covered, given = covers(low, high, true_mean(shape))
     assert covered >= LEVEL, f"{name}, n={n}: the mean's 95% interval covers the true mean {covered:.1%}"
@@ -148,9 +148,9 @@ def test_difference_rarely_calls_identical_policies_different(name, n):
     shape = SHAPES[name]
     a = draw(shape, (REPLICATES, n), (n, list(SHAPES).index(name), 1))
     b = draw(shape, (REPLICATES, n), (n, list(SHAPES).index(name), 2))
-    low, high = scores.difference_bounds(a, b)
+    low, high = statistics.difference_bounds(a, b)
     for i in range(0, REPLICATES, REPLICATES // 20):  # what compare prints is this, one pair at a time
-        one = scores.difference(a[i], b[i])
+        one = statistics.difference(a[i], b[i])
         assert (one.low, one.high) == ((None, None) if np.isnan(low[i]) else (low[i], high[i]))
     rate, decided = called_different(low, high)
     assert rate <= FALSE_POSITIVES, f"{name}, {n} a side: identical policies called different {rate:.1%}"
@@ -170,25 +170,25 @@ def test_the_paired_difference_rarely_calls_identical_policies_different(name, n
     game = draw(shape, (REPLICATES, n), (n, index, 5))  # the seed's game, common to both sides of a pair
     a = game + draw(shape, (REPLICATES, n), (n, index, 6)) / 4
     b = game + draw(shape, (REPLICATES, n), (n, index, 7)) / 4
-    low, high = scores.paired_difference_bounds(a, b)
+    low, high = statistics.paired_difference_bounds(a, b)
     for i in range(0, REPLICATES, REPLICATES // 20):  # what compare prints is this, one pair of sides at a time
-        one = scores.paired_difference(a[i], b[i])
+        one = statistics.paired_difference(a[i], b[i])
         assert (one.low, one.high) == ((None, None) if np.isnan(low[i]) else (low[i], high[i]))
     rate, decided = called_different(low, high)
     assert rate <= FALSE_POSITIVES, f"{name}, {n} pairs: identical policies called different {rate:.1%}"
     assert decided > 0.85
     shifted = b + 0.75 * float(np.std(b - a))  # a real difference of 3/4 of the pairs' own spread
-    paired_power = called_different(*scores.paired_difference_bounds(shifted, a))[0]
-    welch_power = called_different(*scores.difference_bounds(shifted, a))[0]
+    paired_power = called_different(*statistics.paired_difference_bounds(shifted, a))[0]
+    welch_power = called_different(*statistics.difference_bounds(shifted, a))[0]
     assert paired_power > welch_power, (paired_power, welch_power)
 
 
 def test_the_iqm_has_no_interval_below_its_minimum_and_covers_at_it():
-    minimum = scores.IQM_MIN_PER_STRATUM
+    minimum = statistics.IQM_MIN_PER_STRATUM
     eight = games()
     for n in (3, 5, 10):  # 8 games with n seeds each, as aggregates are made: the IQM alone, and why
         strata = [draw(g, (n,), (n, i, 3)) for i, g in enumerate(eight)]
-        found = scores.iqm_interval(strata)
+        found = statistics.iqm_interval(strata)
         assert found.low is None and f"fewer than {minimum}" in found.reason, found
         assert found.text().startswith(f"{found.point:.3f} (n={8 * n}: fewer than {minimum} a stratum")
     # at the minimum: over eight games of different levels (stratified), and over one game's seeds
@@ -213,7 +213,7 @@ def old_percentile_mean(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         found = stats.bootstrap((samples,), np.mean, axis=1, vectorized=True, n_resamples=999, method="percentile",
-                                random_state=np.random.default_rng(scores.SEED)).confidence_interval
+                                random_state=np.random.default_rng(statistics.SEED)).confidence_interval
     return found.low, found.high
 
 
@@ -222,7 +222,7 @@ def old_percentile_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         warnings.simplefilter("ignore")
         found = stats.bootstrap((a, b), lambda x, y, axis: x.mean(axis) - y.mean(axis), axis=1, vectorized=True,
                                 paired=False, n_resamples=999, method="percentile",
-                                random_state=np.random.default_rng(scores.SEED)).confidence_interval
+                                random_state=np.random.default_rng(statistics.SEED)).confidence_interval
     return (found.low > 0) | (found.high < 0)
 
 

@@ -155,7 +155,7 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted
     assert re.search(r"^-.*offset = \(y - 30\) % 320", report["diff"], re.M), "A's best has the competent code"
     # each best with its interval (store/scores.py's, of the episodes that scored it: the candidate's own), and
     # whether the bests differ beyond the noise: the difference of the returns of those episodes
-    from store.scores import difference
+    from store.statistics import difference
     from viewers.safe_text import markdown_text
 
     returns = []
@@ -201,7 +201,7 @@ def test_versions_on_the_same_seeds_are_compared_pair_by_pair(store, capsys, tmp
     same difference on every seed), and for two policies scipy's ``ttest_rel`` of the stored returns."""
     from scipy import stats
 
-    from store.scores import PAIRED_METHOD, SAME_DIFFERENCE
+    from store.statistics import PAIRED_METHOD, SAME_DIFFERENCE
 
     scaffold = ROOT / "games" / "scaffolds" / "pong.py"
     copy = tmp_path / "copy.py"
@@ -281,7 +281,8 @@ def stored_returns(store, run_id: str) -> list[float]:
 def test_a_policy_against_itself_on_other_audit_seeds_differs_by_no_more_than_the_noise(store, capsys,
                                                                                        audit_seeds_from_base):
     from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY
-    from store.scores import difference, score_episodes
+    from store.scores import score_episodes
+    from store.statistics import difference
 
     report = audit_compare(capsys, store, COMPETENT, COMPETENT, 12)
     assert report["protocol"] == "audit" and report["episodes"] == [], "different games: no divergent step"

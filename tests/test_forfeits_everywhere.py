@@ -20,7 +20,8 @@ import pytest
 
 from pipeline.cli import main
 from store import Store
-from store.scores import compare_scores, difference, score_data, score_episodes, score_json, worst_return
+from store.scores import compare_scores, score_data, score_episodes, score_json, worst_return
+from store.statistics import difference
 from tests.conftest import POLICIES, old_store
 
 QUITTER = POLICIES / "pong_quitter.py"

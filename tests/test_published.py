@@ -13,7 +13,7 @@ import pytest
 
 from games import GAMES
 from store.published import published_rows, refresh_published
-from store.scores import mean_interval
+from store.statistics import mean_interval
 from tests.conftest import COMPETENT_REPLY, ROOT
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")

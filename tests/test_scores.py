@@ -18,8 +18,8 @@ from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
-from store.scores import (ALL_EQUAL, IQM_MIN_PER_STRATUM, difference, interval_text, iqm, iqm_interval, mean_interval,
-                          score_episodes)
+from store.scores import score_episodes
+from store.statistics import ALL_EQUAL, IQM_MIN_PER_STRATUM, difference, interval_text, iqm, iqm_interval, mean_interval
 from tests.conftest import COMPETENT_PREDICT, COMPETENT_SELECT, json_reply
 
 FAIL_AT_301 = {

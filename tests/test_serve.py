@@ -250,11 +250,6 @@ def _peak_rss_mb(pid: int) -> float:
     return int(re.search(r"VmHWM:\s+(\d+) kB", status).group(1)) / 1024
 
 
-def _peak_rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1024
-
-
 def test_concurrent_large_submissions_are_parsed_one_at_a_time_and_a_closed_run_parses_none(tmp_path, servers):
     """Policy text is parsed in the server too, once a worker has vetted it (~1 KB of parse tree a character of
     degenerate code), and a text vetted before skips the worker. Eight concurrent submissions of one 190,000
@@ -857,13 +852,9 @@ def test_over_mcp_stdio_a_message_past_its_limit_is_dropped_as_it_arrives(tmp_pa
         serve.stdin.flush()
         return json.loads(serve.stdout.readline())
 
-    def peak_mb() -> float:
-        status = Path(f"/proc/{serve.pid}/status").read_text()
-        return int(re.search(r"VmHWM:\s+(\d+) kB", status)[1]) / 1024
-
     try:
         assert ask(1)["id"] == 1
-        before = peak_mb()
+        before = _peak_rss_mb(serve.pid)
         chunk = b"x" * 2**20
         serve.stdin.write(b'{"jsonrpc": "2.0", "id": 2, "method": "ping", "params": {"pad": "')
         for _ in range(256):
@@ -872,7 +863,8 @@ def test_over_mcp_stdio_a_message_past_its_limit_is_dropped_as_it_arrives(tmp_pa
         serve.stdin.flush()
         assert ask(3)["id"] == 3, "the server reads on"
         assert 256 * 2**20 > MAX_MESSAGE_BYTES
-        assert peak_mb() - before < 64, f"the server's peak rose from {before:.0f} MB to {peak_mb():.0f} MB"
+        peak = _peak_rss_mb(serve.pid)
+        assert peak - before < 64, f"the server's peak rose from {before:.0f} MB to {peak:.0f} MB"
     finally:
         serve.stdin.close()
         serve.wait(timeout=60)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from store.scores import IQM_MIN_PER_STRATUM, iqm, iqm_interval, mean_interval
+from store.statistics import IQM_MIN_PER_STRATUM, iqm, iqm_interval, mean_interval
 from store.views import run_user_query
 
 
@@ -83,7 +83,7 @@ def test_a_bound_near_zero_prints_on_its_side_of_zero_and_never_as_minus_zero(op
     import random
     import re
 
-    from store.scores import interval_text
+    from store.statistics import interval_text
 
     rng = random.Random(5)
     cases = []

@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from store.runs import shortest_prefixes
-from store.scores import MEAN_METHOD, PLAYED_OUT, interval_text, score_text
+from store.scores import PLAYED_OUT, score_text
+from store.statistics import MEAN_METHOD, interval_text
 from viewers.report import _md_table
 from viewers.safe_text import markdown_code, markdown_code_block, markdown_text, plot_text, terminal_text
 from viewers.tables import format_table
@@ -70,7 +71,7 @@ def _score(value: Any) -> str:
 
 def _best(run: dict[str, Any]) -> str:
     """A run's best score with its interval, level, method and n, ``12.0 [10.5, 13.5] 95% t, n=3``; the value and
-    why without one (``store.scores.interval_text``)."""
+    why without one (``store.statistics.interval_text``)."""
     if run["best_score"] is None:  # no score: the best (the starter, when every candidate forfeited) forfeited
         return "no score (forfeited)" if run.get("best_forfeited") else _score(run["best_score"])
     return interval_text(run["best_score"], run.get("best_low"), run.get("best_high"), run["best_episodes"],

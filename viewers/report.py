@@ -21,7 +21,8 @@ from typing import Any, Callable, Sequence
 
 from store import Store
 from store.readers import get_run, model_choice_rows
-from store.scores import MEAN_METHOD, interval_text, score_episodes
+from store.scores import score_episodes
+from store.statistics import MEAN_METHOD, interval_text
 from store.showing import report_rows
 from store.runs import resolve_run_id, shown_status
 from viewers.model_choices import choice_section
@@ -60,7 +61,7 @@ def _md(value: Any, digits: int = 2) -> str:
 
 
 def _score_text(row: dict[str, Any]) -> str:
-    """A scored row's score with its interval, level, method and n (``store.scores.interval_text``; the row's
+    """A scored row's score with its interval, level, method and n (``store.statistics.interval_text``; the row's
     ``score_low``/``score_high``/``score_n`` are :func:`store.showing.report_rows`'s, computed by today's rule)."""
     return interval_text(row["score"], row.get("score_low"), row.get("score_high"), row.get("score_n") or 0,
                          MEAN_METHOD)

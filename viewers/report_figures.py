@@ -10,7 +10,8 @@ from __future__ import annotations
 import textwrap
 from typing import Any, Sequence
 
-from store.scores import CONFIDENCE, MEAN_METHOD, is_forfeit, score_episodes, score_text
+from store.scores import is_forfeit, score_episodes, score_text
+from store.statistics import CONFIDENCE, MEAN_METHOD
 from viewers.safe_text import (plot_text)
 
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import html
 import re
+import sys
 
 # ECMA-48 escape sequences, 7-bit (ESC ...) and 8-bit (C1): removed whole, so no fragment ("[2J") is left over.
 _ESCAPE_SEQUENCE = re.compile(
@@ -71,6 +72,16 @@ def terminal_text(text: object, multiline: bool = False) -> str:
     text = _ESCAPE_SEQUENCE.sub("", text)
     text = text.replace("\r\n", "\n").replace("\u2028", "\n").replace("\u2029", "\n").translate(_DROPPED)
     return text if multiline else text.replace("\n", "\\n")
+
+
+def print_failure(heading: str = "") -> None:
+    """The exception being handled, with its traceback, on stderr, made safe for the terminal first: a server's
+    failure may quote what an untrusted client sent. ``heading``: a line before it."""
+    import traceback  # only where something failed
+
+    text = traceback.format_exc()
+    sys.stderr.write(terminal_text(f"{heading}\n{text}" if heading else text, multiline=True) + "\n")
+    sys.stderr.flush()
 
 
 def plot_text(text: object) -> str:

@@ -26,8 +26,9 @@ def add_parser(verbs) -> None:
         "files, or RUN:VERSION for a version stored in a run: a version id, a unique prefix of one, or 'best'): "
         "both play the same seeds, traced, into the store (two eval runs, which `codearcade runs` and last leave "
         "out), and the report names the first step where their actions differ, with both sides' observations "
-        "and node outputs around it. Both also say whether the scores differ beyond the noise (95% intervals, "
-        "Welch's t for the difference: store/scores.py); --audit plays each version on its own audit seeds under "
+        "and node outputs around it. Both also say whether the scores differ beyond the noise (95% intervals: "
+        "the paired t of the per-seed differences where both played the same seeds with the same draws, Welch's "
+        "t otherwise; store/statistics.py); --audit plays each version on its own audit seeds under "
         "the standard protocol, which is what that needs.",
         epilog="examples: codearcade compare last~1 last --out cmp/   |   codearcade compare pong_a.py pong_b.py "
         "--max-steps 600 --rerun side_by_side.rrd   |   codearcade compare pong_a.py pong_b.py --audit --episodes 6 "

@@ -190,7 +190,7 @@ def _finalize(store, run_id: str, args: argparse.Namespace) -> int:
 def served_lines(rows: list[dict]) -> list[str]:
     """What a person reads of a served run's finalize (its ``audits`` rows): a line per submission on the validation
     pool, the best marked, then the held-out pool's line for the best and the starter, and the overfit verdict."""
-    from store.scores import MEAN_METHOD, interval_text
+    from store.statistics import MEAN_METHOD, interval_text
 
     def shown(r: dict) -> str:
         if r["score"] is None:

@@ -38,7 +38,8 @@ from pipeline.play.spec import EpisodeSpec
 from pipeline.play.verify import checked_outcome
 from store import Store
 from store.readers import audit_subjects, get_run
-from store.scores import MEAN_METHOD, Score, interval_text, overfit, score_episodes
+from store.scores import Score, overfit, score_episodes
+from store.statistics import MEAN_METHOD, interval_text
 from store.writer import EpisodeWriter, replace_audits
 
 PROTOCOLS = {"standard": (STANDARD_STICKY, STANDARD_NOOP_MAX), "run": (0.0, 0)}
@@ -86,7 +87,7 @@ def _number(value: float | None) -> str:
 
 
 def _shown(row: dict[str, Any]) -> str:
-    """A score with its interval, level, method and n (``store.scores.interval_text``; a score means no game was
+    """A score with its interval, level, method and n (``store.statistics.interval_text``; a score means no game was
     forfeited, so n is its games), or the forfeit."""
     if row["score"] is None:
         return f"forfeit ({row['forfeit']})"

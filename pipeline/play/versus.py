@@ -9,7 +9,7 @@ starts), so that step is where their behaviour really parts, not noise.
 
 Beside where the actions part, it says whether the scores differ beyond the noise: each side's score by the one
 rule of ``store/scores.py`` (mean of the episodes played out with its 95% t interval, forfeits named) and
-Welch's t interval of the difference of their returns (``scores.difference``). Under the paper's protocol every
+Welch's t interval of the difference of their returns (``store.statistics.difference``). Under the paper's protocol every
 seed is the same game, so that says little; ``--audit`` (``CompareConfig.audit``) plays each side on its own
 audit seeds under the standard protocol instead (sticky 0.25, up to 30 no-op starts), independent draws whose
 difference is the one that means something (and then no divergent step is looked for: the sides play different
@@ -169,7 +169,7 @@ def difference_data(game: str, a: Score, b: Score, paired: bool = False) -> dict
     verdict but why (``forfeited``), and ``sensitivity``: the difference with each forfeit counted at the game's
     worst return (``Game.worst_return``; else the lowest return played out here, and it says so). ``paired``: the
     sides played the same seeds in the same order with the same random draws (their difference is then the
-    paired one, ``store.scores.paired_difference``)."""
+    paired one, ``store.statistics.paired_difference``)."""
     worst, source = worst_return(get_game(game).worst_return, game, (a, b))
     return compare_scores(a, b, worst, source, LABELS, paired).data()
 

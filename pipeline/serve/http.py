@@ -27,12 +27,11 @@ import socket
 import sys
 import threading
 import time
-import traceback
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
 from pipeline.serve.protocol import RequestError, ServeRun
-from viewers.safe_text import terminal_text
+from viewers.safe_text import print_failure
 
 MAX_BODY = 1_000_000
 """Bytes of a request body read at most (a policy file is at most 200,000 characters)."""
@@ -90,12 +89,6 @@ class _DeadlineReader(io.RawIOBase):
             raise TimeoutError("the request did not arrive whole in time")
         self.sock.settimeout(left)
         return self.sock.recv_into(buffer)
-
-
-def _say_failure(text: str) -> None:
-    """A failure on the server's terminal (stderr), made safe for it: it may quote what an agent sent."""
-    sys.stderr.write(terminal_text(text, multiline=True) + "\n")
-    sys.stderr.flush()
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -181,7 +174,7 @@ class _Handler(BaseHTTPRequestHandler):
             if self.server.run.stopping.is_set():  # what the server's own stop broke under a request: no fault
                 self._send(503, {"error": "the server is stopping"})
                 return
-            _say_failure(traceback.format_exc())  # the server's own log (stderr): the person sees what went wrong
+            print_failure()  # the server's own log (stderr): the person sees what went wrong
             self._send(500, {"error": f"the server failed on this request ({type(exc).__name__}); `budget` says "
                                       "what is spent"})
 
@@ -241,7 +234,7 @@ class _Server(ThreadingHTTPServer):
         other failure is printed safe for the terminal."""
         if isinstance(sys.exc_info()[1], ConnectionError):
             return
-        _say_failure(f"codearcade serve: a request failed:\n{traceback.format_exc()}")
+        print_failure("codearcade serve: a request failed:")
 
 
 def start_http(run: ServeRun, port: int = 0) -> tuple[ThreadingHTTPServer, threading.Thread]:

@@ -47,10 +47,8 @@ from __future__ import annotations
 import json
 import os
 import secrets
-import sys
 import threading
 import time
-import traceback
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Callable
@@ -83,7 +81,7 @@ from store.views import QueryError
 from store.writer import (EpisodeWriter, finish_run, insert_candidate, insert_feedback, insert_iteration,
                           insert_policy_version, replace_audits)
 from tracing.policy_file import MAX_POLICY_CHARS, PolicyLoadError, python_newlines, read_policy_file
-from viewers.safe_text import terminal_text
+from viewers.safe_text import print_failure
 
 KIND = "serve"
 TRAIN_SEED_LOW = 100_000
@@ -352,7 +350,7 @@ class ServeRun:
             except RequestError:  # another request finalized it meanwhile
                 pass
             except Exception:  # noqa: BLE001 - the submission stands; `codearcade serve --finalize` ends the run
-                sys.stderr.write(terminal_text(traceback.format_exc(), multiline=True) + "\n")
+                print_failure()
         return {**result, "budget": self.budget()}
 
     def _workspace_file(self, path: Any) -> str:

@@ -10,9 +10,7 @@ CLI start: ``codearcade serve --mcp``) and streamable HTTP on 127.0.0.1 (``--mcp
 from __future__ import annotations
 
 import os
-import sys
 import threading
-import traceback
 from typing import Any
 
 import anyio
@@ -20,7 +18,7 @@ from mcp.server.mcpserver import MCPServer
 from mcp.server.mcpserver.exceptions import ToolError
 
 from pipeline.serve.protocol import RequestError, ServeRun
-from viewers.safe_text import terminal_text
+from viewers.safe_text import print_failure
 
 INSTRUCTIONS = """A rollout server for one codearcade run. Call `task` first: it gives the game, the starting policy \
 (a Python class whose trainable methods you improve), the budget and the rules. `submit` a whole policy file (its \
@@ -44,7 +42,7 @@ def build_server(run: ServeRun) -> MCPServer:
             if run.stopping.is_set():  # what the server's own stop broke under the request: no fault
                 raise ToolError("the server is stopping: nothing of this request was kept") from None
             # printed here, made safe for the terminal (the SDK's own traceback printed an agent's escape bytes raw)
-            sys.stderr.write(terminal_text(traceback.format_exc(), multiline=True) + "\n")
+            print_failure()
             raise ToolError(f"the server failed on this request ({type(exc).__name__}); `budget` says what is "
                             "spent") from None
 

@@ -26,7 +26,7 @@ from pipeline.cli import main
 from store import Store
 from tests.conftest import ROOT, random_policy
 from tests.faults.test_boundary import _store_text
-from tests.faults.test_outside_attacker import LEAK, PATHS, PRELUDE, _eval, _run
+from tests.faults.test_outside_attacker import PATHS, _eval, _run
 
 FIXTURE = ROOT / "tests" / "fixtures" / "greedy_run.duckdb.gz"
 EXAMPLE = ROOT / "examples" / "ablation.toml"

@@ -19,7 +19,6 @@ from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
-from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome, run_episode
 from pipeline.play.spec import EpisodeSpec
 from pipeline.play.verify import checked_outcome, replay_outcome
