@@ -577,3 +577,27 @@ def test_an_endpoint_that_trickles_its_answer_is_given_up_on_at_the_call_s_time_
     # the answer would have taken 100 s and more; the limit is 2 s, then the grace for httpx's own word
     assert took < 2 + CALL_TIME_GRACE_S + 20, took
     assert raised.value.error_type == "Timeout" and "time limit of 2 s" in raised.value.message, raised.value
+
+
+def test_a_call_is_given_up_on_at_its_deadline_and_no_retry_starts_after_it(tmp_path):
+    """The run's time budget (``deadline``) ends a call in flight, however long the call's own limit, and no
+    retry of a failed call starts past it: an endpoint slow to answer, and one that fails at once."""
+    from pipeline.llm.client import OUT_OF_TIME, LiteLLMClient, LLMError
+    from tests.scripted_llm import ScriptedModel
+
+    for script, deadline_s, slow in (([{"sleep": 120, "content": "late"}], 2.0, True),
+                                     ([{"status": 503, "times": 100}], 1.5, False)):
+        with ScriptedModel(script, tmp_path / f"model-{slow}") as model:
+            client = LiteLLMClient(model.model, api_base=model.api_base, retries=1000, backoff_s=0.2,
+                                   timeout_s=300, structured=False)
+            began = time.monotonic()
+            with pytest.raises(LLMError) as raised:
+                client.complete([{"role": "user", "content": "hello"}], deadline=began + deadline_s)
+            took = time.monotonic() - began
+            asked = len(model.raw_requests())
+        assert raised.value.error_type == OUT_OF_TIME, raised.value
+        assert took < deadline_s + 10, took  # the slow answer came after 120 s; the retries were 1,000
+        if slow:
+            assert asked == 1
+        else:  # retried until the deadline, then no more: waits of 0.2, 0.4, 0.8 s ... within 1.5 s
+            assert 2 <= asked <= 4, asked

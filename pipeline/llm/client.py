@@ -94,6 +94,10 @@ class LLMError(Exception):
         self.latency_s = latency_s
 
 
+class _OutOfTime(Exception):
+    """A call's deadline passed while it was in flight (:meth:`LiteLLMClient._within_time_limit`)."""
+
+
 class LLMClient(Protocol):
     model: str
     provider: str
@@ -101,10 +105,11 @@ class LLMClient(Protocol):
     def request_params(self) -> dict[str, Any]: ...
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0, iteration: int | None = None) -> LLMReply:
+                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None) -> LLMReply:
         """The reply to ``messages``; ``on_text`` gets streamed text; ``candidate`` and ``iteration``: which
         proposal this is (a replay answers with that proposal's stored reply: the proposal pool may ask the same
-        prompt in two iterations)."""
+        prompt in two iterations); ``deadline``: a ``time.monotonic()`` past which no reply is waited for (an
+        :class:`LLMError` of type :data:`OUT_OF_TIME`)."""
 
 
 def _error_name(exc: BaseException) -> str:
@@ -155,6 +160,10 @@ def _usage_number(usage: Any, *path: str) -> int | None:
         return None  # NaN fails the range check too
     return int(value)
 
+
+OUT_OF_TIME = "OutOfTime"
+"""The error type of a call given up on at its ``deadline``: the run's time budget (``--max-wall``) ran out while it
+was in flight, or before a retry. Never retried; the optimizer ends the run as a spent budget."""
 
 CALL_TIME_GRACE_S = 5.0
 """Past a call's time limit, how long its answer is still waited for before it is given up on: httpx's own error
@@ -249,9 +258,10 @@ class LiteLLMClient:
                 **self._params["response_format"]["json_schema"], "schema": reply_schema(self.reply_limits, methods)}}
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0, iteration: int | None = None) -> LLMReply:
+                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None) -> LLMReply:
         """One reply, retried as the class docstring says; with streaming on, ``on_text`` gets each piece of
-        text as it arrives (a retry starts the text again)."""
+        text as it arrives (a retry starts the text again). Past ``deadline`` (``time.monotonic()``) the call is
+        given up on, and no retry starts: an :class:`LLMError` of type :data:`OUT_OF_TIME`."""
         params = self.request_params()
         extra = {"api_key": self.api_key} if self.api_key else ({"api_key": "none"} if self.api_base and
                                                                self.provider in LOCAL_SERVER_PROVIDERS else {})
@@ -260,8 +270,15 @@ class LiteLLMClient:
         attempt = retried = 0
         while True:
             attempt += 1
+            if deadline is not None and time.monotonic() >= deadline:
+                raise LLMError(OUT_OF_TIME, "the run's time budget ran out before this call could be made"
+                               + (f" again (after {attempt - 1} attempts)" if attempt > 1 else ""),
+                               attempt - 1, True, time.monotonic() - start)
             try:
-                response = self._within_time_limit(lambda: self._answer(sent, params, extra, on_text))
+                response = self._within_time_limit(lambda: self._answer(sent, params, extra, on_text), deadline)
+            except _OutOfTime:
+                raise LLMError(OUT_OF_TIME, f"the call was given up on after {time.monotonic() - start:.0f} s, at the "
+                               "run's deadline", attempt, True, time.monotonic() - start) from None
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
                 large = too_large(exc)
                 if large is not None:  # not retried: the same endpoint would send the same again
@@ -284,7 +301,8 @@ class LiteLLMClient:
                         message += f" (asked at {_without_credentials(self.api_base)})"
                     raise LLMError(name, message, attempt, fatal, time.monotonic() - start) from None
                 retried += 1
-                time.sleep(self.backoff_s * 2 ** (retried - 1))
+                pause = self.backoff_s * 2 ** (retried - 1)
+                time.sleep(pause if deadline is None else max(0.0, min(pause, deadline - time.monotonic())))
                 continue
             return self._reply(response, attempt, time.monotonic() - start)
 
@@ -298,12 +316,13 @@ class LiteLLMClient:
                 response = self._collect(response, sent, on_text, time.monotonic())
         return response
 
-    def _within_time_limit(self, call: Callable[[], Any]) -> Any:
+    def _within_time_limit(self, call: Callable[[], Any], deadline: float | None = None) -> Any:
         """``call()``'s result, given up on once the call's time limit (and a few seconds for httpx's own word on
         a silent endpoint) has passed in all: httpx's limit is per read, so an endpoint that sent a byte just
         inside it held ``optimize`` for as long as it liked (480 s and on, with a 30 s ``--max-wall``). The call
         runs in a thread of its own, with this thread's context (:func:`capped`'s limits); one given up on is
-        left to end with its connection, still held to those limits."""
+        left to end with its connection, still held to those limits. Given up on at ``deadline`` too, if that
+        comes first (:class:`_OutOfTime`)."""
         outcome: dict[str, Any] = {}
         context = contextvars.copy_context()
 
@@ -315,7 +334,11 @@ class LiteLLMClient:
 
         worker = threading.Thread(target=run, name="codearcade-llm-call", daemon=True)
         worker.start()
-        worker.join(self.timeout_s + CALL_TIME_GRACE_S)
+        wait_s = self.timeout_s + CALL_TIME_GRACE_S
+        cut = deadline is not None and deadline - time.monotonic() < wait_s
+        worker.join(max(0.0, deadline - time.monotonic()) if cut else wait_s)
+        if worker.is_alive() and cut:
+            raise _OutOfTime
         if worker.is_alive():
             raise self.litellm.Timeout(f"no whole answer within the call's time limit of {self.timeout_s:g} s",
                                        self.model, self.provider)
@@ -404,8 +427,8 @@ class ReplayClient:
         return {"model": self.model, "replay": True}
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0, iteration: int | None = None) -> LLMReply:
-        key = (iteration, prompt_hash(messages), candidate)
+                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None) -> LLMReply:
+        key = (iteration, prompt_hash(messages), candidate)  # a stored reply takes no time: no deadline to keep
         if key not in self.replies and key in self.errors:
             error_type, message, attempts = self.errors[key]
             raise LLMError(error_type, message, attempts, fatal=error_type in FATAL)
@@ -435,8 +458,8 @@ class EnsembleClient:
         return next(iter(self.members.values())).request_params()
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0, iteration: int | None = None) -> LLMReply:
-        return next(iter(self.members.values())).complete(messages, on_text, candidate, iteration)
+                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None) -> LLMReply:
+        return next(iter(self.members.values())).complete(messages, on_text, candidate, iteration, deadline)
 
 
 OFFLINE_MODEL_LABEL = "offline:smollm2-135m-instruct"

@@ -145,7 +145,8 @@ class OptimizeConfig:
     max_wall_minutes: float | None = setting(
         None, "wall-clock time of the run's iterations", flag="--max-wall", metavar="MINUTES", above=0, budget=True)
     """Stop (status ``budget``) before an iteration that, lasting as long as the last one, would take the run's
-    wall time (the sum of its iterations) past this many minutes."""
+    wall time (the sum of its iterations) past this many minutes; an LLM call in flight when that time runs out
+    is given up on (``llm_calls.error_type`` ``OutOfTime``)."""
     strategy: str = setting(
         "greedy", "greedy: the paper's loop, one proposal from the last version, rollback after a regression "
         "(default); best-of-n: N proposals from the best version, keep the best; beam: expand the --beam-width best "

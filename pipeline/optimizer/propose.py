@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import datetime
@@ -37,7 +38,7 @@ from typing import Callable
 
 from games import get_game
 from pipeline.boundary.untrusted import clean_untrusted_text
-from pipeline.llm.client import LLMClient, LLMError, LLMReply, canonical_messages
+from pipeline.llm.client import OUT_OF_TIME, LLMClient, LLMError, LLMReply, canonical_messages
 from pipeline.llm.providers import price
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.context import context_for
@@ -191,6 +192,7 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
         if name_methods is not None:
             name_methods([method.name for method in to_call[0].info.trainable])
         _ask(store, state, iteration, client, to_call, reservation, hold)
+        _out_of_time(state, to_call)
         failed = [p for p in to_call if p.error is not None]
         fatal = next((p.error for p in failed if p.error.fatal), None)
         if len(failed) == len(pending):
@@ -210,6 +212,15 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
         proposals = _repair_turn(store, state, iteration, turn, pending, proposals, stored, client, counter, log,
                                  hold)
     return proposals
+
+
+def _out_of_time(state: "RunState", asked: list[_Pending]) -> None:
+    """End the run as a spent time budget when a call of ``asked`` was given up on at the run's deadline (its
+    row is recorded, with the error; a ``--resume`` with more time asks again)."""
+    cut = next((p.error for p in asked if p.error is not None and p.error.error_type == OUT_OF_TIME), None)
+    if cut is not None:
+        raise BudgetExhausted(f"time budget: --max-wall {state.config.max_wall_minutes:g} min ran out while the "
+                              f"model was asked ({cut.message})")
 
 
 def repair_messages(item: _Pending, error: str) -> list[dict[str, str]]:
@@ -266,6 +277,7 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
         log(f"iteration {iteration}: repair turn {turn} of {state.config.repairs} for the rejected "
             f"{'reply' if len(to_call) == 1 else 'replies'} of candidate{'' if len(to_call) == 1 else 's'} {who}")
         _ask(store, state, iteration, client, to_call, reservation, hold)
+        _out_of_time(state, to_call)
     made = {i: r for i, r in repairs.items() if r.error is None}  # a failed repair leaves the rejection standing
     for i, r in repairs.items():
         if r.error is not None:
@@ -312,7 +324,8 @@ def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: l
     def complete(item: _Pending, on_text) -> None:
         try:
             item.reply = (item.client or client).complete(item.prompt.messages, on_text=on_text,
-                                                          candidate=item.request.candidate, iteration=iteration)
+                                                          candidate=item.request.candidate, iteration=iteration,
+                                                          deadline=state.wall_deadline)
         except LLMError as exc:
             item.error = exc
 
@@ -542,6 +555,7 @@ def check_wall(store: Store, state: "RunState", *, ahead: bool = False, uncommit
     with store.read() as con:
         spent = run_spending(con, state.run_id)
     taken = spent["wall_s"] + uncommitted_s
+    state.wall_deadline = time.monotonic() + limit * 60 - taken  # a call in flight then is given up on
     if ahead and taken + spent["last_wall_s"] > limit * 60:
         raise BudgetExhausted(
             f"time budget: the run has taken {taken / 60:.1f} min and its last iteration "

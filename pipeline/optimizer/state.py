@@ -25,6 +25,9 @@ class RunState:
     best_iteration: int = 0
     best_version_id: str | None = None
     llm_failures: int = 0
+    wall_deadline: float | None = None
+    """When the run's time budget (``--max-wall``) runs out, on ``time.monotonic()``'s clock, as last worked out by
+    ``propose.check_wall``: an LLM call still in flight then is given up on. None without a time budget."""
     rng_key: str | None = None
     """The key of the run's random stream for policies (``EpisodeSpec.rng_key``; None: a run recorded before it)."""
     history: History | None = None
