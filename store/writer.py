@@ -173,8 +173,7 @@ def write_episodes(
         return
     ids = [episode["episode_id"] for episode, _, _ in episodes]
     if replace:
-        for table in ("nodes", "steps", "episodes"):
-            con.execute(f"DELETE FROM {table} WHERE list_contains(?, episode_id)", [ids])
+        delete_episodes(con, ids)
     _insert_rows(con, "episodes", [episode for episode, _, _ in episodes])
     played = [(episode_id, steps) for episode_id, (_, steps, _) in zip(ids, episodes) if steps.num_rows]
     if played and all(steps.schema.equals(played[0][1].schema) for _, steps in played):
@@ -194,6 +193,12 @@ def write_episodes(
                 insert_arrow(con, "incoming_nodes", part,
                              "INSERT INTO nodes BY NAME SELECT ? AS episode_id, ? AS policy_version_id, * "
                              "FROM incoming_nodes", [episode["episode_id"], episode["policy_version_id"]])
+
+
+def delete_episodes(con: duckdb.DuckDBPyConnection, episode_ids: list[str]) -> None:
+    """Delete the episodes ``episode_ids`` with their steps and nodes (a scan of each table)."""
+    for table in ("nodes", "steps", "episodes"):
+        con.execute(f"DELETE FROM {table} WHERE list_contains(?, episode_id)", [episode_ids])
 
 
 NODE_SLICE_BYTES = 2 * 2**20

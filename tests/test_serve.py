@@ -490,6 +490,26 @@ def test_a_run_without_submissions_cannot_be_finalized(tmp_path, capsys):
     assert not ServeRun(store, run_id).finalized and main(["doctor", "--store", str(store.path)]) == 0
 
 
+def test_a_submission_given_back_takes_the_games_it_finished_with_it(tmp_path):
+    """A submission the server's stop cut is given back: "it is not stored and cost nothing". Yet the games it had
+    finished before the stop were in the store (written as they ended), counted by ``runs`` and read by SQL, with
+    no submission naming them. The stop here comes as the first game ends, so the second never starts."""
+    from pipeline.serve.config import ServeConfig
+    from pipeline.serve.protocol import RequestError, ServeRun, create_run
+
+    store = Store(tmp_path / "s.duckdb")
+    run_id = create_run(store, ServeConfig(game="pong", budget=4, max_steps=200))
+    served = ServeRun(store, run_id)
+    served.on_episode = lambda episode: served.stopping.set()
+    with pytest.raises(RequestError, match="stopped while this submission played: it is not stored"):
+        served.submit(instances=[0, 1], policy=(ROOT / "games" / "scaffolds" / "pong.py").read_text())
+    left = store.query("SELECT count(*) FROM episodes WHERE run_id = ? AND iteration > 0", [run_id])[0][0]
+    steps = store.query("SELECT count(*) FROM steps s JOIN episodes e USING (episode_id) "
+                        "WHERE e.run_id = ? AND e.iteration > 0", [run_id])[0][0]
+    assert (left, steps) == (0, 0)
+    assert ServeRun(store, run_id).budget()["spent"] == 0
+
+
 @pytest.fixture(scope="module")
 def any_store(tmp_path_factory) -> Path:
     """A store holding one short evaluation (the agent's SQL reads only its own copies of a run's tables)."""

@@ -78,8 +78,8 @@ from store.scores import overfit, score_episodes
 from store.serve import (is_finalized, served_submissions, submission_episodes, submission_feedback,
                          submission_version, visible_query)
 from store.views import QueryError
-from store.writer import (EpisodeWriter, finish_run, insert_candidate, insert_feedback, insert_iteration,
-                          insert_policy_version, replace_audits)
+from store.writer import (EpisodeWriter, delete_episodes, finish_run, insert_candidate, insert_feedback,
+                          insert_iteration, insert_policy_version, replace_audits)
 from tracing.policy_file import MAX_POLICY_CHARS, PolicyLoadError, python_newlines, read_policy_file
 from viewers.safe_text import print_failure
 
@@ -395,6 +395,11 @@ class ServeRun:
                 if self.on_episode is not None:
                     self.on_episode(outcome.episode)
         if self.stopping.is_set():  # the server stopped under it: its games ended with the server, not the policy
+            try:  # the games it finished before the stop were written as they ended: they go with it
+                with self.store.write() as con:
+                    delete_episodes(con, [spec.episode_id for spec in specs])
+            except duckdb.Error:  # a store interrupted by the stop itself: they stay, named by no submission
+                pass
             raise RequestError("the server stopped while this submission played: it is not stored and cost "
                                "nothing; submit it again when the run is served again")
         score = score_episodes(episodes)
