@@ -1189,6 +1189,18 @@ MIGRATIONS.append(
     )
 )
 
+# Budgets by construction: a reply whose endpoint reported no usable token count (none, negative, past the INTEGER
+# column) is charged its worst case (our count of the prompt, a reply of max_tokens, at litellm's price), and says so.
+MIGRATIONS.append(
+    (
+        22,
+        "llm_calls: usage_estimated (tokens and cost charged at the worst case: the endpoint reported no usable count)",
+        r"""
+        ALTER TABLE llm_calls ADD COLUMN usage_estimated BOOLEAN;  -- NULL: reported by the endpoint, or stored before
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]
 
 SCHEMA_MIGRATIONS_TABLE = ("CREATE TABLE IF NOT EXISTS schema_migrations "

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextvars
 import hashlib
 import json
+import math
 import os
 import re
 import threading
@@ -164,6 +165,11 @@ def _usage_number(usage: Any, *path: str) -> int | None:
 OUT_OF_TIME = "OutOfTime"
 """The error type of a call given up on at its ``deadline``: the run's time budget (``--max-wall``) ran out while it
 was in flight, or before a retry. Never retried; the optimizer ends the run as a spent budget."""
+
+def _is_cost(value: Any) -> bool:
+    """Whether litellm's price of a reply is one: a positive, finite number (0 is what it says of no usage)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < math.inf
+
 
 CALL_TIME_GRACE_S = 5.0
 """Past a call's time limit, how long its answer is still waited for before it is given up on: httpx's own error
@@ -388,6 +394,10 @@ class LiteLLMClient:
             # its arguments are the reply
             text = getattr(message.tool_calls[0].function, "arguments", None) or ""
         usage = getattr(response, "usage", None)
+        inputs, outputs = _usage_number(usage, "prompt_tokens"), _usage_number(usage, "completion_tokens")
+        # litellm fills a usage the endpoint left out with zeros; no prompt is 0 tokens, nor a reply with text
+        inputs = None if inputs == 0 else inputs
+        outputs = None if outputs == 0 and text else outputs
         try:
             cost = self.litellm.completion_cost(completion_response=response)
         except Exception:  # unknown models have no price
@@ -398,11 +408,13 @@ class LiteLLMClient:
             response_id=_reported_text(getattr(response, "id", None)),
             finish_reasons=[reason for reason in (_reported_text(getattr(c, "finish_reason", None))
                                                   for c in response.choices) if reason],
-            input_tokens=_usage_number(usage, "prompt_tokens"),
-            output_tokens=_usage_number(usage, "completion_tokens"),
+            input_tokens=inputs,
+            output_tokens=outputs,
             cached_input_tokens=_usage_number(usage, "prompt_tokens_details", "cached_tokens"),
             cache_creation_input_tokens=_usage_number(usage, "cache_creation_input_tokens"),
-            cost_usd=cost or None,
+            # litellm prices the usage as reported: of counts not trusted (a negative one made a negative cost,
+            # which gave the budget room) there is no cost; the optimizer charges such a call its worst case
+            cost_usd=cost if inputs is not None and outputs is not None and _is_cost(cost) else None,
             latency_s=latency_s,
             attempts=attempts,
             structured=self.structured,

@@ -410,6 +410,19 @@ def _validate_all(state: "RunState", iteration: int, items: list[_Pending], coun
     return proposals
 
 
+def _worst_case_usage(model: str, reply: LLMReply, prompt_tokens: int, max_tokens: int | None) -> dict:
+    """What a reply whose endpoint reported no usable token count is charged (``usage_estimated``): the budgets
+    read the store, and such a call counted as nothing let a run pass ``--max-total-tokens`` and ``--max-cost``
+    call after call. The worst case, as the budgets reserve it before a call: our own count of the prompt, a reply
+    of the request's ``max_tokens`` (hidden reasoning included), at litellm's price (none without one); a count the
+    endpoint did report stays as it is."""
+    inputs = reply.input_tokens if reply.input_tokens is not None else prompt_tokens
+    outputs = reply.output_tokens if reply.output_tokens is not None else max_tokens
+    rates = price(model) if outputs is not None else None
+    return {"input_tokens": inputs, "output_tokens": outputs, "usage_estimated": True,
+            "cost_usd": rates.cost(inputs, outputs) if rates is not None else None}
+
+
 def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, items: list[_Pending]) -> None:
     """Write the ``llm_calls`` rows of an iteration's calls (failed ones too) with what each reply parsed into,
     in one transaction and in candidate order (the store does not depend on which reply came first); each item
@@ -442,7 +455,10 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
             row.update(response_model=reply.response_model, response_id=reply.response_id,
                        finish_reasons=reply.finish_reasons, input_tokens=reply.input_tokens,
                        output_tokens=reply.output_tokens, cached_input_tokens=reply.cached_input_tokens,
-                       cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd)
+                       cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd,
+                       usage_estimated=None if reply.replayed else False)
+            if not reply.replayed and (reply.input_tokens is None or reply.output_tokens is None):
+                row.update(_worst_case_usage(model.model, reply, item.prompt.tokens, row["request_max_tokens"]))
         if error is not None:
             row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
         if reply is not None:

@@ -139,8 +139,9 @@ HOSTILE_METADATA = [
 def test_an_endpoint_s_word_about_its_reply_is_not_trusted(store, scripted):
     """The reply's metadata (token counts, model, id, finish reasons) went into the store as sent: a count of
     2^31 or 10^20 failed the INTEGER column and a lone surrogate in the id failed the insert, ending the run with
-    a traceback, the reply unrecorded, so --resume asked again and failed again. Each hostile field is now stored
-    as unknown (a count) or made storable (a text, cut at REPORTED_TEXT_LIMIT), and each reply is used."""
+    a traceback, the reply unrecorded, so --resume asked again and failed again. Each hostile count is now charged
+    at the call's worst case (``usage_estimated``), each text made storable (cut at REPORTED_TEXT_LIMIT), and each
+    reply is used."""
     from pipeline.llm.client import REPORTED_TEXT_LIMIT
 
     model = scripted([{"raw": json.dumps(_completion_body(**fields))} for fields in HOSTILE_METADATA])
@@ -158,21 +159,72 @@ def test_an_endpoint_s_word_about_its_reply_is_not_trusted(store, scripted):
             logging.disable(logging.NOTSET)
     assert result.status == "finished", result.error
     calls = store.query("SELECT input_tokens, output_tokens, response_id, response_model, finish_reasons, "
-                        "error_type FROM llm_calls ORDER BY iteration")
+                        "error_type, usage_estimated, prompt_tokens_counted, request_max_tokens, cost_usd "
+                        "FROM llm_calls ORDER BY iteration")
     assert len(calls) == len(HOSTILE_METADATA), calls
     # litellm's own reading refuses a few (a count that is a string or 1e300): a failed call, stored as one
     assert sum(call[5] is None for call in calls) >= 7, calls
-    for fields, (inputs, outputs, response_id, response_model, reasons, failed) in zip(HOSTILE_METADATA, calls):
+    for fields, call in zip(HOSTILE_METADATA, calls):
+        inputs, outputs, response_id, response_model, reasons, failed, estimated, counted, most, cost = call
         if failed is not None:
             continue
-        counts = {"prompt_tokens": inputs, "completion_tokens": outputs}
-        for name, value in fields.items():
-            if name in counts:
-                assert counts[name] is None, (fields, counts)
+        # a count not trusted is charged at the worst case (what the budgets reserve), and the row says so
+        worst = {"prompt_tokens": counted, "completion_tokens": most}
+        hostile = [name for name in fields if name in worst]
+        assert estimated is bool(hostile), (fields, call)
+        for name in hostile:
+            assert {"prompt_tokens": inputs, "completion_tokens": outputs}[name] == worst[name], (fields, call)
+        assert cost is None or cost >= 0, (fields, call)
         for text in (response_id, response_model, *(reasons or [])):
             assert text is None or (len(text) <= REPORTED_TEXT_LIMIT and "\x00" not in text), (fields, text)
     assert store.query("SELECT count(*) FROM iterations WHERE update_status = 'accepted'") == [(1,)], \
         "the competent reply was taken (later ones change nothing)"
+
+
+UNTRUSTED_USAGE = {"no usage": None, "negative": {"prompt_tokens": -1, "completion_tokens": -1},
+                   "past the column": {"prompt_tokens": 2 ** 31, "completion_tokens": 10 ** 20}}
+
+
+@pytest.mark.parametrize("budget", ["tokens", "cost"])
+@pytest.mark.parametrize("usage", list(UNTRUSTED_USAGE))
+def test_a_reply_without_a_usable_count_is_charged_its_worst_case(store, scripted, usage, budget):
+    """A reply whose endpoint reported no token count, or one not trusted, was charged nothing: ``--max-total-tokens``
+    and ``--max-cost`` never stopped the run (6 calls of ~7,000 prompt tokens each under a 25,000 budget), and a
+    negative count made a negative cost, which gave the budget room. Each such call is now charged its worst case,
+    as the budgets reserve it before the call (our count of the prompt, a reply of --max-tokens, at litellm's
+    price): the oracle is the run's spending in the store, which never passes the budget, and the calls made,
+    which are at most what the budget holds at one worst case each."""
+    from pipeline.llm.providers import price
+
+    body = _completion_body()
+    if UNTRUSTED_USAGE[usage] is None:
+        del body["usage"]
+    else:
+        body["usage"].update(UNTRUSTED_USAGE[usage])
+    model = scripted([{"raw": json.dumps(body)}])
+    name = "openai/gpt-4o-mini"  # a model litellm has a price for, served by the scripted endpoint
+    token_budget, max_tokens = 3000, 500
+    client = LiteLLMClient(name, api_base=model.api_base, retries=0, max_tokens=max_tokens)
+    worst_tokens = token_budget + max_tokens
+    rates = price(name)
+    limits = ({"max_total_tokens": int(2.5 * worst_tokens)} if budget == "tokens" else
+              {"max_cost_usd": 2.5 * rates.cost(token_budget, max_tokens)})
+    config = OptimizeConfig(game="pong", model=name, api_base=model.api_base, iterations=6, eval_max_steps=60,
+                            rollout_steps=30, workers=1, repairs=0, token_budget=token_budget, max_tokens=max_tokens,
+                            audit_episodes=0, **limits)
+    result = optimize(config, store, client)
+    assert result.status == "budget", (result.status, result.error)
+    calls = store.query("SELECT input_tokens, output_tokens, cost_usd, usage_estimated, prompt_tokens_counted "
+                        "FROM llm_calls")
+    asked = len(model.raw_requests())
+    assert asked == len(calls) <= 2, (asked, calls)  # 2.5 worst cases hold two calls, not six
+    for inputs, outputs, cost, estimated, counted in calls:
+        assert estimated and inputs == counted and outputs == max_tokens, calls
+        assert cost == pytest.approx(rates.cost(counted, max_tokens)), calls
+    spent_tokens = sum(i + o for i, o, *_ in calls)
+    spent_cost = sum(c for _, _, c, *_ in calls)
+    assert spent_tokens <= limits.get("max_total_tokens", spent_tokens)
+    assert spent_cost <= limits.get("max_cost_usd", spent_cost)
 
 
 @pytest.mark.parametrize("status", [400, 500])
