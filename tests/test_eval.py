@@ -138,6 +138,29 @@ def test_worker_crash_is_recorded_not_raised():
     assert index == 0 and outcome.end_reason == "crashed" and "unknown game" in outcome.episode["error"]
 
 
+def test_a_progress_callback_s_own_error_is_the_caller_s_not_the_worker_s():
+    """The progress callback runs in the loop that reads the workers' messages: its error (a progress line written
+    to a closed stderr) was taken for a malformed message from the worker, and the episode recorded as crashed.
+    It is the caller's error, raised to the caller, and every process of the call is ended."""
+    from pipeline.boundary import zygotes
+
+    class Unwritable(Exception):
+        pass
+
+    def progress(index: int, played: int) -> None:
+        raise Unwritable("the progress line could not be written")
+
+    specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, max_steps=400)
+             for i in range(2)]
+    with pytest.raises(Unwritable):
+        list(run_episodes(specs, workers=2, progress=progress))
+    both = [zygotes.zygote("game"), zygotes.zygote("policy")]
+    deadline = time.monotonic() + 10
+    while any(z.count() for z in both) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert [z.count() for z in both] == [0, 0], "every host and policy process has exited"
+
+
 def test_a_policy_that_misbehaves_leaves_nothing_in_its_host_for_the_next_episode():
     """The host of a policy that spun past its call limit, and of one that raised, plays the next episode on it
     exactly as a fresh host does: nothing of a hostile episode stays in the host it shared."""

@@ -371,6 +371,22 @@ def test_output_piped_into_head_ends_quietly(tmp_path):
     assert done.stdout == "range\n" and done.stderr == "" and done.returncode == 0, done.stderr[-500:]
 
 
+def test_a_reader_of_stderr_that_goes_away_ends_nothing(tmp_path):
+    """`codearcade eval ... 2>&1 >/dev/null | head -1`: the progress lines' reader leaves after the first. The next
+    progress line's BrokenPipeError ended the good run as failed (raised in the episodes' message loop, it was taken
+    for a worker's malformed message, and one episode was stored crashed), and the command still exited 0. Now a
+    line that cannot be written is dropped: the run is finished, its episodes played out, exit 0."""
+    store = tmp_path / "s.duckdb"
+    exe = os.path.join(os.path.dirname(sys.executable), "codearcade")
+    done = subprocess.run(f"'{exe}' eval games/scaffolds/pong.py --episodes 6 --workers 1 --max-steps 300 "
+                          f"--store '{store}' 2>&1 >/dev/null | head -1; exit ${{PIPESTATUS[0]}}", shell=True,
+                          executable="/bin/bash", cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, (done.stdout, done.stderr[-500:])
+    assert done.stdout.count("\n") == 1 and "episodes to play" in done.stdout, done.stdout
+    assert Store(store).query("SELECT status, error FROM runs") == [("finished", None)]
+    assert Store(store).query("SELECT DISTINCT end_reason FROM episodes") == [("truncated",)]
+
+
 def test_replay_refuses_a_run_still_running_and_audit_one_without_iterations(filled, tmp_path, capsys):
     """A replay of a live run stopped where its record then ended and stored itself as 'interrupted'; an audit of
     a run with nothing to audit said so and exited 0."""

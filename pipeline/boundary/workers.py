@@ -65,6 +65,10 @@ class Task:
     """For a paired task: (result, the policy process's exit code when asked) -> result."""
 
 
+class _CallerFailed(Exception):
+    """The caller's progress callback raised (its ``__cause__``): its error, not a message the worker got wrong."""
+
+
 @dataclass
 class _Running:
     index: int
@@ -228,7 +232,10 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
                 msg = wire.parse_message(payload)  # kind and fields checked
                 if msg["kind"] == "progress":
                     if progress is not None:
-                        progress(run.index, msg["n"])
+                        try:
+                            progress(run.index, msg["n"])
+                        except Exception as exc:  # noqa: BLE001 - the caller's own failure, raised as it is below
+                            raise _CallerFailed from exc
                     continue
                 if msg["kind"] == "error":
                     return failed(run.item, f"worker failed: {msg['error']}", False)
@@ -272,6 +279,8 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
                     continue
                 try:
                     result = handle(run, run.reader.feed(data))
+                except _CallerFailed as exc:  # not the worker's doing: the caller hears its own error
+                    raise exc.__cause__ from None
                 except Exception as exc:  # noqa: BLE001 - whatever a worker sends, this process goes on
                     if not isinstance(exc, wire.BadMessage):
                         exc = f"{type(exc).__name__}: {str(exc)[:300]}"

@@ -21,7 +21,7 @@ import os
 import signal
 import sys
 import threading
-from typing import Callable, Sequence
+from typing import IO, Any, Callable, Sequence
 
 try:  # Ctrl-C while the command starts (its imports take a second or more on a busy machine): nothing has
     # started that needs stopping or rolling back, so it ends as an interrupted command does, without a traceback
@@ -30,6 +30,7 @@ try:  # Ctrl-C while the command starts (its imports take a second or more on a 
     from pipeline.cli import eval as eval_  # the verb's module (the builtin is not used here)
     from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, CodearcadeParser,
                                      shorten_in_message, show)
+    from pipeline.stopping import stop_on_signals, stop_once
 except KeyboardInterrupt:
     sys.stderr.write("codearcade: interrupted\n")
     raise SystemExit(130) from None
@@ -77,12 +78,45 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 
 def _interrupted_once(signum: int, frame: object) -> None:
-    """Ctrl-C: raise KeyboardInterrupt once, then ignore Ctrl-C while the command winds down (the run is marked
-    interrupted, the zygotes and their processes are stopped): a second press would break that off with a
-    traceback and leave processes behind. ``kill -9`` still ends it at once."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    """Ctrl-C, or SIGTERM (``pipeline/stopping.py``): raise KeyboardInterrupt once, then ignore both while the
+    command winds down (the run is marked interrupted, the zygotes and their processes are stopped)."""
     PRESSED.set()
-    raise KeyboardInterrupt
+    stop_once(signum, frame)
+
+
+class _StderrThatMayClose:
+    """The command's stderr, whose reader may go away (``codearcade eval ... 2>&1 | head -1``): progress lines and
+    notices are for people, so one it cannot take is dropped and the job goes on. A progress line's BrokenPipeError
+    had ended a good run as failed (raised in the episodes' message loop, it was taken for a worker's malformed
+    message). Once the reader is gone, fd 2 points at /dev/null, for the processes this one starts too."""
+
+    def __init__(self, stream: IO[str]) -> None:
+        self._stream = stream
+        self._gone = False
+
+    def _went(self) -> None:
+        self._gone = True
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self._stream.fileno())
+        os.close(devnull)
+
+    def write(self, text: str) -> int:
+        if not self._gone:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._went()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self._gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._went()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
 
 
 PRESSED = threading.Event()
@@ -104,10 +138,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         show("codearcade: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     handler: Callable[[argparse.Namespace], int] = args.handler
-    # only where Ctrl-C raises KeyboardInterrupt now (a process started with SIGINT ignored keeps ignoring it)
-    if threading.current_thread() is threading.main_thread() and \
-            signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, _interrupted_once)
+    if argv is None and not isinstance(sys.stderr, _StderrThatMayClose) and sys.stderr is not None:
+        sys.stderr = _StderrThatMayClose(sys.stderr)  # the command line's own process
+    installed = stop_on_signals(_interrupted_once)
     try:
         from pipeline.boundary.zygotes import keep_hosts
 
@@ -156,12 +189,12 @@ def main(argv: Sequence[str] | None = None) -> int:
              "`codearcade doctor` reports what is left", file=sys.stderr)
         return EXIT_BAD_INPUT
     finally:
-        if signal.getsignal(signal.SIGINT) is _interrupted_once:
+        for signum in installed:
             if argv is None:  # the command line's own process, about to exit: a Ctrl-C now (the zygotes are
-                # stopped at exit) would only end it by SIGINT, past the exit status it has
-                signal.signal(signal.SIGINT, signal.SIG_IGN)
-            else:  # a caller in this process (a test, a script): Ctrl-C as it was
-                signal.signal(signal.SIGINT, signal.default_int_handler)
+                # stopped at exit) would only end it by the signal, past the exit status it has
+                signal.signal(signum, signal.SIG_IGN)
+            else:  # a caller in this process (a test, a script): the signal as it was
+                signal.signal(signum, signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL)
 
 
 def _columns_gone(exc: BaseException, args: argparse.Namespace) -> list[str]:

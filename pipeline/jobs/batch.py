@@ -40,6 +40,7 @@ import hashlib
 import itertools
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -53,6 +54,7 @@ from pipeline.jobs.worker import BUDGET_EXIT, INTERRUPTED_EXIT, run_remote
 from pipeline.optimizer.config import OptimizeConfig, model_defaults, validate_config
 from pipeline.optimizer.ensemble import split_model_flags
 from pipeline.settings import declarations
+from pipeline.stopping import Terminated
 from store import Store
 from store.readers import batch_progress, batch_runs
 from store.runs import check_run_name
@@ -336,9 +338,16 @@ def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: in
     try:
         _run_queue(queue, running, planned, progress, store, batch, workers, episode_workers, log, display, log_dir,
                    poll_s, die_with_parent)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
         # Ctrl-C reached the workers too (one process group): each marks its run interrupted and ends; wait for
-        # that, since a worker dies with this process (PDEATHSIG) and would leave its run half marked
+        # that, since a worker dies with this process (PDEATHSIG) and would leave its run half marked. A SIGTERM
+        # may have reached this process alone: the workers are told (one that heard it already ignores it)
+        if isinstance(stop, Terminated):
+            for proc, _ in running.values():
+                try:
+                    proc.send_signal(signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
         _wait_for_workers(running, WORKER_WIND_DOWN_S)
         raise
     _refresh(store, progress, batch)

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import sys
 
+from pipeline.stopping import stop_on_signals
+
 INTERRUPTED_EXIT = 130
 """Exit code of a batch run process stopped by a Ctrl-C (its run is interrupted, resumable)."""
 
@@ -24,6 +26,9 @@ def _quiet_after_ctrl_c(unraisable) -> None:
 
 if __name__ == "__main__":
     sys.unraisablehook = _quiet_after_ctrl_c
+    # a Ctrl-C, or SIGTERM (to the batch's process group, or from the batch itself when a SIGTERM stopped it
+    # alone), once: the run is marked interrupted, and another while it winds down is ignored
+    stop_on_signals()
 
 try:  # a Ctrl-C to the batch's process group reaches its runs too, also while they import (the standard
     # library's modules too: a press landed in `import tempfile`, and the run's log held a traceback)
