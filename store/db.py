@@ -215,14 +215,32 @@ def store_damage(con: duckdb.DuckDBPyConnection, path: str | os.PathLike, versio
         problems.append(f"{', '.join(missing)} missing")
     wal = Path(f"{path}.wal")
     if not wal.exists():  # a WAL not yet checkpointed may hold blocks the file does not have yet
-        row = con.execute("SELECT block_size, used_blocks FROM pragma_database_size() "
+        row = con.execute("SELECT block_size, used_blocks, total_blocks FROM pragma_database_size() "
                           "WHERE database_name = current_database()").fetchone()
-        if row is not None:  # used blocks (free ones at the end may have been cut off by DuckDB itself)
-            needed = HEADER_BYTES + int(row[0]) * int(row[1])
+        if row is not None:
+            block, used, total = (int(x) for x in row)
             size = os.path.getsize(path)
+            needed = HEADER_BYTES + block * used
+            if size >= needed and size < HEADER_BYTES + block * total:
+                # blocks past the file's end: free ones DuckDB cut off itself, or a cut file whose used blocks were
+                # not all at its front (one sat at block 40 of a file of 34 used): where the tables' data lies
+                needed = HEADER_BYTES + block * (_last_data_block(con) + 1)
             if size < needed:
                 problems.append(f"the file is truncated ({size:,} bytes, its used blocks need at least {needed:,})")
     return problems
+
+
+def _last_data_block(con: duckdb.DuckDBPyConnection) -> int:
+    """The highest block that holds a segment of a table of the open store (-1: none); a scan of each table's
+    storage layout, so only where the file is shorter than DuckDB's count of its blocks."""
+    last = -1
+    for (table,) in con.execute("SELECT table_name FROM duckdb_tables() WHERE database_name = current_database() "
+                                "AND schema_name = 'main'").fetchall():
+        found = con.execute("SELECT max(block_id) FROM pragma_storage_info(?) WHERE block_id >= 0",
+                            [table]).fetchone()[0]
+        if found is not None:
+            last = max(last, int(found))
+    return last
 
 
 _USE_LOCKS: dict[str, threading.RLock] = {}

@@ -108,3 +108,37 @@ def test_a_store_cut_anywhere_is_reported_truncated(kept, sound, tmp_path, capsy
     assert main(["runs", "--store", str(path)]) == 2
     out, err = capsys.readouterr()
     assert len(err.strip().splitlines()) == 1 and "is damaged: the file is truncated" in err, err
+
+
+def test_a_cut_store_whose_data_lies_past_its_used_blocks_is_refused(tmp_path, capsys):
+    """The check compared the file's length with the used blocks DuckDB counts, as if they were at its front. A
+    store that has freed blocks in its middle (here a big table made and dropped between two evaluations; over
+    time, rows deleted and rewritten) holds data further out, and a copy cut past its used blocks but before that
+    data passed the check: DuckDB then failed on its read past the end, or, where what was cut lay in a table the
+    command did not read, the command appended to the file and left it worse (a failed checkpoint and a WAL beside
+    it: found by hand on a store of 45 blocks cut at 34). The check now finds the cut, before DuckDB reads
+    anything, wherever between the two it is; nothing is written to the file."""
+    path = tmp_path / "s.duckdb"
+    assert main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "20", "--store", str(path)]) == 0
+    with duckdb.connect(str(path)) as con:  # blocks in the middle, freed once the data after them is written
+        con.execute("CREATE TABLE filler AS SELECT range AS x, md5(range::VARCHAR) AS y FROM range(300000)")
+    assert main(["eval", str(EXAMPLES / "pong.py"), "--episodes", "2", "--max-steps", "1500", "--store",
+                 str(path)]) == 0
+    with duckdb.connect(str(path)) as con:
+        con.execute("DROP TABLE filler")
+        con.execute("CHECKPOINT")
+        block, used, total = con.execute("SELECT block_size, used_blocks, total_blocks FROM pragma_database_size() "
+                                         "WHERE database_name = current_database()").fetchone()
+    capsys.readouterr()
+    data = path.read_bytes()
+    header = 3 * 4096
+    assert total > used + 4, (used, total)  # the freed blocks are in the middle: DuckDB did not cut them off
+    for cut in (header + block * used, header + block * (used + total) // 2, len(data) - block):
+        path.write_bytes(data[:cut])
+        assert main(["eval", str(EXAMPLES / "pong.py"), "--max-steps", "20", "--store", str(path)]) == 2
+        out, err = capsys.readouterr()
+        if cut < len(data) - block:  # found by the check, before DuckDB reads what is gone
+            assert "is damaged: the file is truncated" in err, (cut, out, err)
+        else:  # the catalog's own blocks at the end: DuckDB's read of them fails first, said as damage
+            assert err.startswith("codearcade: error: ") and "damaged" in err, (cut, out, err)
+        assert path.read_bytes() == data[:cut] and not (tmp_path / "s.duckdb.wal").exists(), cut
