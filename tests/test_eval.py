@@ -138,6 +138,29 @@ def test_worker_crash_is_recorded_not_raised():
     assert index == 0 and outcome.end_reason == "crashed" and "unknown game" in outcome.episode["error"]
 
 
+def test_a_policy_file_near_its_size_cap_plays():
+    """A policy file near MAX_POLICY_CHARS whose task, as JSON, about filled the socket that carries it to its game
+    host (~205-220 KB here: 1,500 trainable methods with docstrings did it) left no room behind it for the
+    go-ahead, which was dropped: the episode waited out its time limit with no step played and ended as the
+    policy's timeout. Swept across the sizes around the socket's buffer, first pairs and staged ones alike."""
+    from tracing.policy_file import MAX_POLICY_CHARS
+
+    base = pong_policy("return 0")
+    plain, quoted = "#" + "a" * 98 + "\n", "#" + '"' * 98 + "\n"  # 100 characters; 101 and 199 as JSON
+    texts = []
+    for target in range(200_000, 260_001, 4_000):  # the task's JSON size, around the 212,992-byte buffer
+        lines = (MAX_POLICY_CHARS - 200 - len(base)) // 100
+        quotes = max(0, min(lines, (target - len(base) - 101 * lines) // 98))
+        texts.append(base + quoted * quotes + plain * (lines - quotes))
+    assert max(len(t) for t in texts) <= MAX_POLICY_CHARS
+    ends = {}
+    for i, text in enumerate(texts):  # each the first pair of its call, sent its go-ahead right behind its task
+        specs = [EpisodeSpec(f"e{i}.{j}", "r", "pong", text, "v", index=j, max_steps=5, episode_time_limit_s=8)
+                 for j in range(2)]  # and a pair staged behind it
+        ends[len(json.dumps(text))] = [outcome.end_reason for _, outcome in sorted(run_episodes(specs, workers=1))]
+    assert all(reasons == ["truncated"] * 2 for reasons in ends.values()), ends
+
+
 def test_a_progress_callback_s_own_error_is_the_caller_s_not_the_worker_s():
     """The progress callback runs in the loop that reads the workers' messages: its error (a progress line written
     to a closed stderr) was taken for a malformed message from the worker, and the episode recorded as crashed.

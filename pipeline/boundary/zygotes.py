@@ -45,6 +45,8 @@ from pipeline.boundary import wire
 from pipeline.boundary.confine import SandboxUnavailable, WEAK_ENV, weak_sandbox_allowed
 from pipeline.boundary.mounts import SCRATCH_PREFIX, remove_tree, sweep_stale_scratch
 
+GO_TIMEOUT_S = 30.0
+"""How long the parent waits for room to send a staged worker its go-ahead (behind a large task it is reading)."""
 START_TIMEOUT_S = 180.0
 """How long the zygote may take to import the environment stack and say hello."""
 
@@ -193,12 +195,24 @@ class Zygote:
             conn.setblocking(False)
 
     @staticmethod
-    def go(conn: socket.socket, cpu: int | None = None) -> None:
-        """Let a staged worker run its task, on ``cpu`` if given (a worker that died meanwhile is seen at its EOF)."""
-        try:
-            conn.send(wire.GO.pack(b"G", -1 if cpu is None else cpu))
-        except OSError:
-            pass
+    def go(conn: socket.socket, cpu: int | None = None, within_s: float = GO_TIMEOUT_S) -> None:
+        """Let a staged worker run its task, on ``cpu`` if given (a worker that died meanwhile is seen at its EOF).
+        The go-ahead waits for room behind the task, which the worker may not have read yet: a task that filled
+        the socket's buffer (a policy file near its size cap, as JSON) left no room, the go-ahead was dropped, and
+        the episode waited out its time limit with no step played. A worker that does not read its task within
+        ``within_s`` is ended by that limit."""
+        frame = memoryview(wire.GO.pack(b"G", -1 if cpu is None else cpu))
+        deadline = time.monotonic() + within_s
+        while frame:
+            try:
+                frame = frame[conn.send(frame):]
+            except BlockingIOError:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return
+                select.select([], [conn], [], left)
+            except OSError:
+                return
 
     def kill(self, task_id: int) -> None:
         try:
