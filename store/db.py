@@ -439,6 +439,10 @@ class Store:
             if _is_disk_full(exc):
                 raise StoreError(f"cannot write {self.path}: the disk is full ({_first_line(exc)}); free space "
                                  "and run the command again: what was stored before is intact") from None
+            if "Permission denied" in str(exc):  # the commit makes the WAL beside the file: its folder's rights
+                raise StoreError(f"cannot write {self.path}: DuckDB writes {self.path.name}.wal beside it, and "
+                                 f"{self.path.parent} is not writable ({_first_line(exc)}); make the folder "
+                                 "writable or choose another --store: what was stored before is intact") from None
             raise
         finally:
             try:

@@ -142,3 +142,30 @@ def test_a_cut_store_whose_data_lies_past_its_used_blocks_is_refused(tmp_path, c
         else:  # the catalog's own blocks at the end: DuckDB's read of them fails first, said as damage
             assert err.startswith("codearcade: error: ") and "damaged" in err, (cut, out, err)
         assert path.read_bytes() == data[:cut] and not (tmp_path / "s.duckdb.wal").exists(), cut
+
+
+@pytest.mark.skipif(shutil.which("setpriv") is None or os.geteuid() != 0, reason="needs root and setpriv")
+def test_a_store_in_a_folder_it_cannot_write_is_refused_in_one_line(sound, tmp_path):
+    """A store file that may be written, in a folder that may not: the commit creates the WAL beside the file and
+    failed with DuckDB's traceback (exit 1). One line now names the folder; the file is as it was. Run as root
+    without the capabilities that pass over file rights (as a user who does not own the folder)."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / "locked"
+    folder.mkdir()
+    path = folder / "s.duckdb"
+    shutil.copy(sound[0], path)
+    before = path.read_bytes()
+    folder.chmod(0o555)
+    try:
+        exe = os.path.join(os.path.dirname(sys.executable), "codearcade")
+        done = subprocess.run(["setpriv", "--bounding-set", "-dac_override,-dac_read_search,-fowner", "--", exe,
+                               "eval", str(EXAMPLES / "pong.py"), "--max-steps", "20", "--store", str(path)],
+                              capture_output=True, text=True, timeout=300)
+    finally:
+        folder.chmod(0o755)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert done.stderr.strip().splitlines()[-1].startswith(f"codearcade: error: cannot write {path}"), done.stderr
+    assert str(folder) in done.stderr and "is not writable" in done.stderr
+    assert path.read_bytes() == before and not (folder / "s.duckdb.wal").exists()
