@@ -461,3 +461,21 @@ def test_a_directory_given_as_the_store_is_named_as_one(tmp_path, capsys, verb):
     assert f"{tmp_path} is a directory, not a store file; give a file, e.g. --store {tmp_path}/codearcade.duckdb" \
         in line, line
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv", [
+    [b"eval", b"pol\xff.py"], [b"sql", b"SELECT '\xff'"], [b"runs", b"--game", b"\xff"], [b"blame", b"\xff"],
+    [b"new", b"new\xff.py", b"--game", b"pong"], [b"runs", b"--store", b"st\xff.duckdb"]],
+    ids=["eval", "sql", "runs", "blame", "new", "store"])
+def test_an_argument_that_is_not_utf8_is_refused_in_one_line(argv, tmp_path):
+    """Bytes on the command line that are not UTF-8 reached DuckDB (ConversionException, InvalidInputException),
+    sqlglot (TypeError) and file names (`new` wrote 'new\\ufffd.py' instead), as tracebacks. Each is now refused
+    at parsing, in one line that shows the byte, before anything is made."""
+    exe = os.path.join(os.path.dirname(sys.executable), "codearcade").encode()
+    store = os.fsencode(tmp_path / "s.duckdb")
+    extra = [] if b"--store" in argv else [b"--store", store]
+    done = subprocess.run([exe, *argv, *extra], cwd=tmp_path, capture_output=True, timeout=120)
+    err = done.stderr.decode("utf-8", "replace")
+    assert done.returncode == 2 and "Traceback" not in err, err[-2000:]
+    assert len(err.strip().splitlines()) == 1 and "is not UTF-8 text" in err and "\\xff" in err, err
+    assert sorted(os.listdir(tmp_path)) == [], "nothing was made"

@@ -98,6 +98,10 @@ class EpisodeProgress:
 # --------------------------------------------------------------------------------------------------- parsing
 
 
+_NOT_UTF8 = re.compile("[\udc80-\udcff]")
+"""What a command line's byte that is not UTF-8 becomes in Python (``surrogateescape``)."""
+
+
 class CodearcadeParser(argparse.ArgumentParser):
     """The parser of ``codearcade`` and of every verb (``add_subparsers`` makes each verb's parser of its parent's
     class): a mistake on the command line is one line on stderr, ``codearcade eval: unknown flag --epsiodes; did
@@ -106,6 +110,12 @@ class CodearcadeParser(argparse.ArgumentParser):
     def parse_known_args(self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None):
         # kept for error(): argparse reports a missing argument before the flags it did not know
         self._given = list(sys.argv[1:] if args is None else args)
+        for given in self._given:  # bytes that are not UTF-8 (Python keeps them as lone surrogates): the store,
+            # the printed lines and the file names codearcade writes hold text, and failed on them with tracebacks
+            if isinstance(given, str) and _NOT_UTF8.search(given):
+                shown = given.encode("utf-8", "surrogateescape").decode("ascii", "backslashreplace")
+                self.error(f"argument '{terminal_text(shown)}' is not UTF-8 text: give it in UTF-8 (a file of that "
+                           "name: rename it)")
         return super().parse_known_args(args, namespace)
 
     def parse_args(self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None):
