@@ -286,17 +286,22 @@ def test_an_ensemble_in_the_pool_shares_its_calls_by_weight_and_replays_alike(st
     assert store.query(query, [report.replay_run_id]) == chosen, "the replay chose the same model for every call"
 
 
+@pytest.mark.parametrize("turn", ["first call", "repair turn"])
 @pytest.mark.parametrize("pool", [False, True])
-def test_a_call_in_flight_when_the_time_budget_runs_out_is_given_up_on(store, scripted, pool):
+def test_a_call_in_flight_when_the_time_budget_runs_out_is_given_up_on(store, scripted, pool, turn):
     """``--max-wall`` stopped the loop only before a call: a model that answered after 300 s held the run 300 s
-    past its time budget, an attempt at a time (up to 4 with retries). The call in flight is now given up on when
-    the run's time runs out; it is recorded (``OutOfTime``) and the run ends ``budget``, saying why. The budget is
-    set from the starter's own iteration, so that iteration 1 starts (the barrier loop's rule: one as long as the
-    last would fit) however long this machine took to play it."""
+    past its time budget, an attempt at a time (up to 4 with retries), and repair turns were made past it. The
+    call in flight, first or repair, is now given up on when the run's time runs out; it is recorded
+    (``OutOfTime``) and the run ends ``budget``, saying why. The budget is set from the starter's own iteration,
+    so that iteration 1 starts (the barrier loop's rule: one as long as the last would fit) however long this
+    machine took to play it."""
     from pipeline.optimizer.loop import plan_resume
+    from tests.test_repairs import RAISES
 
-    model = scripted([{"sleep": 300, "content": "never read"}])
-    first = optimize(_config(pool=pool, iterations=0, candidates=2), store, _client(model))
+    late = {"sleep": 300, "content": "never read"}
+    model = scripted([late] if turn == "first call" else [RAISES, late])  # a rejected reply, then its repair
+    first = optimize(_config(pool=pool, iterations=0, candidates=2 if turn == "first call" else 1), store,
+                     _client(model))
     assert first.status == "finished", first.error
     (wall,), = store.query("SELECT sum(wall_s) FROM iterations WHERE run_id = ?", [first.run_id])
     limit_s = 2 * wall + 6.0  # 6 s left for iteration 1 after a starter's iteration as long as iteration 0
@@ -306,7 +311,9 @@ def test_a_call_in_flight_when_the_time_budget_runs_out_is_given_up_on(store, sc
     took = time.monotonic() - began
     assert result.status == "budget" and "ran out while the model was asked" in result.error, result.error
     assert model.raw_requests(), "iteration 1 asked the model"
-    cut = store.query("SELECT error_type, latency_s FROM llm_calls WHERE run_id = ?", [first.run_id])
+    cut = store.query("SELECT error_type, repair_turn FROM llm_calls WHERE run_id = ? AND error_type IS NOT NULL",
+                      [first.run_id])
     assert cut and {error for error, _ in cut} == {"OutOfTime"}, cut
+    assert {repair for _, repair in cut} == ({0} if turn == "first call" else {1}), cut
     # the deadline is limit_s - wall after the resume began; the model's answer would have come after 300 s
     assert took < limit_s - wall + 60, (took, limit_s, wall)

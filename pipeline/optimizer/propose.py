@@ -266,6 +266,10 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
             repair.parse()
         repairs[i] = repair
     to_call = [r for r in repairs.values() if r.text is None]
+    if to_call and state.wall_deadline is not None and time.monotonic() >= state.wall_deadline:
+        log(f"iteration {iteration}: no repair turn (time budget: --max-wall {state.config.max_wall_minutes:g} min "
+            "has run out)")
+        return proposals
     if to_call:
         try:
             reservation = check_budgets(store, state, client, [r.prompt for r in to_call],
@@ -430,6 +434,8 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
     calls = []
     canonical: dict[int, str] = {}  # best-of-n: N calls share one prompt
     for item in items:
+        if item.error is not None and item.error.error_type == OUT_OF_TIME and not item.error.attempts:
+            continue  # never made: the run's time had run out before it (not a call, nor counted as one)
         item.call_id = new_run_id()
         reply, error = item.reply, item.error
         model = item.client or client
