@@ -167,18 +167,23 @@ def check_store(con: duckdb.DuckDBPyConnection, store_path) -> list[Finding]:
             continue
         if rows:
             findings.append(Finding(name, rows))
-    stale = []
+    stale: dict[str, list[tuple[str]]] = {}  # by how each kind goes on
     try:
-        running = con.execute("SELECT run_id FROM runs WHERE status = 'running'").fetchall()
+        running = con.execute("SELECT run_id, kind FROM runs WHERE status = 'running'").fetchall()
     except duckdb.Error:
         running = []
-    for (run_id,) in running:
+    for run_id, kind in running:
         if not run_is_live(store_path, run_id):
-            stale.append((run_id,))
-    if stale:
-        findings.append(Finding("runs interrupted (no process is working on them; finish with --resume)", stale,
-                                warning=True))
+            stale.setdefault(GOING_ON.get(kind, GOING_ON["eval"]), []).append((run_id,))
+    for going_on, runs in stale.items():
+        findings.append(Finding(f"runs interrupted (no process is working on them; {going_on})", runs, warning=True))
     return findings
+
+
+GOING_ON = {"optimize": "finish with `codearcade optimize --resume RUN`",
+            "serve": "serve again with `codearcade serve --resume RUN`",
+            "eval": "an evaluation is not resumed: evaluate the policy again"}
+"""What to do with an interrupted run of each kind (a replay and a comparison's evaluations: as an evaluation)."""
 
 
 COUNTED_TABLES = ("runs", "iterations", "episodes", "steps", "nodes", "llm_calls")

@@ -91,6 +91,18 @@ def test_eval_refuses_a_seed_or_a_cap_the_store_cannot_hold_before_it_starts_a_r
     assert not path.exists() or Store(path).query("SELECT count(*) FROM runs")[0][0] == 0
 
 
+@pytest.mark.parametrize("flag, value", [("--temperature", "-1"), ("--temperature", "5"),
+                                         ("--iterations", 10**11)])
+def test_optimize_refuses_a_temperature_or_iterations_out_of_range_before_it_starts_a_run(tmp_path, capsys, flag,
+                                                                                        value):
+    """A temperature of -1 or 5 ran the loop (providers take 0-2); 10^11 iterations made a run whose planned count
+    the views could not read (shown as '?')."""
+    path = tmp_path / "s.duckdb"
+    line = _one_line_error(*_run(capsys, "optimize", "--game", "pong", flag, value, "--store", path)[::2])
+    assert flag in line and "must be within" in line, line
+    assert not path.exists() or Store(path).query("SELECT count(*) FROM runs")[0][0] == 0
+
+
 def test_serve_refuses_a_port_out_of_range_or_taken_before_it_makes_a_run(tmp_path, capsys):
     path = tmp_path / "s.duckdb"
     for port in ("-1", "65536", "http"):
@@ -479,3 +491,28 @@ def test_an_argument_that_is_not_utf8_is_refused_in_one_line(argv, tmp_path):
     assert done.returncode == 2 and "Traceback" not in err, err[-2000:]
     assert len(err.strip().splitlines()) == 1 and "is not UTF-8 text" in err and "\\xff" in err, err
     assert sorted(os.listdir(tmp_path)) == [], "nothing was made"
+
+
+def test_the_doctor_says_how_each_kind_of_interrupted_run_goes_on(played, tmp_path, capsys):
+    """The doctor told every run left 'running' by a killed process to "finish with --resume", though only an
+    optimization is resumed that way (`optimize --resume` refuses an evaluation) and a served run by `serve
+    --resume`. Each kind is named with what to do."""
+    import duckdb
+    import shutil
+
+    path = tmp_path / "s.duckdb"
+    shutil.copy(played, path)
+    with duckdb.connect(str(path)) as con:
+        (run_id,) = con.execute("SELECT run_id FROM runs").fetchone()
+        con.execute("UPDATE runs SET status = 'running'")
+        for kind in ("optimize", "serve"):
+            con.execute(f"INSERT INTO runs BY NAME SELECT * REPLACE ('{kind}{run_id[len(kind):]}' AS run_id, "
+                        f"'{kind}' AS kind) FROM runs WHERE run_id = ?", [run_id])
+    capsys.readouterr()
+    main(["doctor", "--store", str(path)])
+    out = capsys.readouterr().out
+    said = {line for line in out.splitlines() if "runs interrupted" in line}
+    assert any("codearcade optimize --resume RUN" in line for line in said), out
+    assert any("codearcade serve --resume RUN" in line for line in said), out
+    assert any("evaluate the policy again" in line for line in said), out
+    assert "finish with --resume)" not in out

@@ -44,6 +44,9 @@ FLAG_GROUPS = {
 ``budgets``), with the line that introduces each."""
 
 
+MAX_ITERATIONS = 100_000
+"""The most iterations a run may plan (the views read the planned count as an INTEGER; no run comes near)."""
+
 @dataclass
 class OptimizeConfig:
     """Options of an optimization run (the flags of ``codearcade optimize``, the keys of a batch file)."""
@@ -80,7 +83,7 @@ class OptimizeConfig:
     bandit, ``ucb`` or ``thompson``."""
     iterations: int = setting(
         20, "LLM updates after evaluating the starting policy (default: 20; with --resume, a larger number extends "
-        "the run)", minimum=0, resumable=True, run_key="always")
+        "the run)", minimum=0, maximum=MAX_ITERATIONS, resumable=True, run_key="always")
     """Optimization iterations (LLM updates) after the evaluation of the starting policy (paper: 20)."""
     memory: int = setting(5, "earlier iterations in the prompt (default: 5)", minimum=0, run_key="always")
     """Earlier iterations shown in the prompt (paper: 5)."""
@@ -111,7 +114,8 @@ class OptimizeConfig:
     """The key of the policies' random stream (``pipeline/play/runinfo.py``, ``policy_rng_seed``); None: the run's
     id. A run records the key it used; runs recorded before the key existed seeded policies with the game's seed."""
     temperature: float = setting(
-        0.0, "LLM temperature (default: 0; not sent to models that take none)", run_key="always")
+        0.0, "LLM temperature, 0 to 2 (default: 0; not sent to models that take none)", minimum=0.0, maximum=2.0,
+        run_key="always")
     """Sampling temperature of the LLM."""
     max_tokens: int = setting(
         MAX_TOKENS, f"longest reply (default: {MAX_TOKENS}; {OFFLINE_MAX_TOKENS} with the offline model)", minimum=1,
