@@ -516,3 +516,16 @@ def test_the_doctor_says_how_each_kind_of_interrupted_run_goes_on(played, tmp_pa
     assert any("codearcade serve --resume RUN" in line for line in said), out
     assert any("evaluate the policy again" in line for line in said), out
     assert "finish with --resume)" not in out
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["compare", STARTER, STARTER, "--audit", "--seed", "5"], "--audit draws sealed seeds for each side"),
+    (["serve", "--game", "pong", "--mcp", "--mcp-port", "5"], "not allowed with argument --mcp"),
+], ids=["compare --audit --seed", "serve --mcp --mcp-port"])
+def test_options_that_cannot_go_together_are_refused_before_anything_plays(argv, said, tmp_path, capsys):
+    """Given together, one of the two was silently left out (compare's --seed under --audit, serve's stdio MCP
+    beside --mcp-port)."""
+    path = tmp_path / "s.duckdb"
+    code, _, err = _run(capsys, *argv, "--store", path)
+    assert code == 2 and said in err and len(err.strip().splitlines()) == 1, err
+    assert not path.exists()

@@ -89,9 +89,10 @@ def plot_text(text: object) -> str:
     return terminal_text(text).replace("$", "\\$")
 
 
-# Markdown's link, image, code, emphasis, heading and table punctuation; and, so that no raw "javascript:" or
-# "onerror=" is left even as inert text, a colon or equals sign glued to a word ("step: 16", "a = 1" stay as written)
-_MARKDOWN_PUNCTUATION = re.compile(r"[\\`*_\[\](){}#|!~]|(?<=\w):(?=\S)|(?<=\w)=")
+# Markdown's link, image, code, emphasis, heading and table punctuation, and GitHub's math delimiter ($); and, so that
+# no raw "javascript:" or "onerror=" is left even as inert text, a colon or equals sign glued to a word ("step: 16",
+# "a = 1" stay as written)
+_MARKDOWN_PUNCTUATION = re.compile(r"[\\`*_\[\](){}#|!~$]|(?<=\w):(?=\S)|(?<=\w)=")
 
 
 def markdown_text(text: object) -> str:

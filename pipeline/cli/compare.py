@@ -58,8 +58,13 @@ def run(args: argparse.Namespace) -> int:
     if args.rerun and args.audit:
         raise CliError("--rerun shows the episodes of one seed on both sides; with --audit each side plays its own "
                        "seeds: leave one of them out")
+    if args.seed and args.audit:
+        raise CliError(f"--seed {args.seed} chooses the seeds both sides play under the paper's protocol; --audit "
+                       "draws sealed seeds for each side: leave one of them out")
     if args.out:  # both sides play before the report is written: a folder it cannot make is said first
         check_output(args.out, directory=True)
+    if args.rerun and args.rerun.endswith(".rrd"):  # likewise the recording's file
+        check_output(args.rerun)
     store = open_store(args)
     given = {name: getattr(args, name) for name in declarations(CompareConfig)}
     if given["workers"] is None:
@@ -165,6 +170,8 @@ def _compare_recording(store, data: dict, target: str) -> str:
     env = dict(os.environ)
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     to = target if target.startswith(("rerun://", "rerun+http")) else str(Path(target).resolve())
+    if to != target:  # a file: its folder is made, as --out's is (check_output said before the play that it can be)
+        Path(to).parent.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile("w", suffix=".diff") as diff:
         diff.write(data["diff"])
         diff.flush()

@@ -36,10 +36,11 @@ def add_parser(verbs) -> None:
     add_settings(p, ServeConfig, defaults=True)
     p.add_argument("--port", type=_port, default=None, metavar="N",
                    help="serve HTTP+JSON on 127.0.0.1:N (0: a free port; default: 0 without --mcp, none with it)")
-    p.add_argument("--mcp", action="store_true", help="speak MCP over stdin and stdout (for an agent that starts "
-                   "the server itself)")
-    p.add_argument("--mcp-port", type=_port, default=None, metavar="N",
-                   help="serve MCP's streamable HTTP on 127.0.0.1:N (path /mcp) instead of stdio")
+    mcp = p.add_mutually_exclusive_group()
+    mcp.add_argument("--mcp", action="store_true", help="speak MCP over stdin and stdout (for an agent that starts "
+                     "the server itself)")
+    mcp.add_argument("--mcp-port", type=_port, default=None, metavar="N",
+                     help="serve MCP's streamable HTTP on 127.0.0.1:N (path /mcp) instead of stdio")
     p.add_argument("--workspace", default=".", metavar="DIR",
                    help="the directory whose files a submission may name by path (default: this one)")
     p.add_argument("--resume", default=None, metavar="RUN", help="serve a served run again (one a stopped or killed "
@@ -47,7 +48,7 @@ def add_parser(verbs) -> None:
     p.add_argument("--finalize", default=None, metavar="RUN", help="end a served run now: play the validation and "
                    "held-out pools, print the result and exit")
     p.add_argument("--json", action="store_true", help="with --finalize: print the result as JSON")
-    add_name(p, "the served run")
+    add_name(p, "served run")
     add_rerun(p)
     add_store(p)
     p.set_defaults(handler=run)

@@ -21,7 +21,9 @@ def add_parser(verbs) -> None:
         "recording is saved to a file (default ./<recording id>.rrd).",
     )
     add_run(p)
-    p.add_argument("--iteration", type=non_negative_int, metavar="I", help="optimizer iteration (default: 0)")
+    p.add_argument("--iteration", type=non_negative_int, metavar="I",
+                   help="optimizer iteration (with --episode; alone: its training rollout; default: the run's "
+                   "recording, or with --episode, iteration 0)")
     p.add_argument("--episode", metavar="E",
                    help="evaluation episode index within the iteration, 'train' for its training rollout, or an episode id")
     sink = p.add_mutually_exclusive_group()
