@@ -317,3 +317,33 @@ def test_a_call_in_flight_when_the_time_budget_runs_out_is_given_up_on(store, sc
     assert {repair for _, repair in cut} == ({0} if turn == "first call" else {1}), cut
     # the deadline is limit_s - wall after the resume began; the model's answer would have come after 300 s
     assert took < limit_s - wall + 60, (took, limit_s, wall)
+
+
+HANGS_AT_STEP_400 = json.dumps({"reasoning": "scripted", "suggestion": {"select_action": (
+    "def select_action(self, predicted_ball_y, obs):\n"
+    "    self.calls = self.calls + 1 if hasattr(self, 'calls') else 1\n"
+    "    while self.calls > 400:\n"
+    "        pass\n"
+    "    return 0\n")}})
+"""A candidate that passes its checks (a few hundred recorded observations) and then hangs in its game."""
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_games_still_playing_when_the_time_budget_runs_out_are_stopped(store, scripted, pool):
+    """With no call limit (``--call-time-limit 0``), a candidate that hangs in a game held the run until the
+    episode's own limit, 15 minutes, under a 1-minute ``--max-wall``. The games still playing when the time runs
+    out are stopped, none of them scored or committed, and the run ends ``budget``, saying so."""
+    from pipeline.optimizer.loop import plan_resume
+
+    model = scripted([HANGS_AT_STEP_400])
+    first = optimize(_config(pool=pool, iterations=0, candidates=1, call_time_limit_s=0.0), store, _client(model))
+    assert first.status == "finished", first.error
+    (wall,), = store.query("SELECT sum(wall_s) FROM iterations WHERE run_id = ?", [first.run_id])
+    limit_s = 2 * wall + 8.0
+    plan = plan_resume(store, first.run_id, {"iterations": 1, "max_wall_minutes": limit_s / 60})
+    began = time.monotonic()
+    result = optimize(plan.config, store, _client(model), resume=first.run_id)
+    took = time.monotonic() - began
+    assert result.status == "budget" and "games played" in result.error, (result.status, result.error)
+    assert store.query("SELECT max(iteration) FROM iterations WHERE run_id = ?", [first.run_id]) == [(0,)]
+    assert took < limit_s - wall + 60, (took, limit_s, wall)  # the episode's own limit is 900 s

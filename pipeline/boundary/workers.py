@@ -65,6 +65,10 @@ class Task:
     """For a paired task: (result, the policy process's exit code when asked) -> result."""
 
 
+class DeadlinePassed(Exception):
+    """The caller's deadline passed while tasks ran (:func:`run_tasks`): those running were ended, none yielded."""
+
+
 class _CallerFailed(Exception):
     """The caller's progress callback raised (its ``__cause__``): its error, not a message the worker got wrong."""
 
@@ -94,6 +98,7 @@ def run_tasks(
     started: Callable[[], None] | None = None,
     prepare: Callable[[Zygote], None] | None = None,
     hosts_key: Hashable | None = None,
+    deadline: float | None = None,
 ) -> Iterator[tuple[int, R]]:
     """Run ``task`` on every item in a worker of its own (a paired task: a host and a policy process), at most
     ``workers`` at once; yield ``(index, result)`` as each finishes.
@@ -104,6 +109,8 @@ def run_tasks(
     ``workers=0`` runs the tasks one after another in this process (no isolation; for debugging).
     ``hosts_key`` (a paired task): what its hosts were prepared for (the environments ``prepare`` builds); inside
     :func:`keep_hosts`, the hosts idle at the end are kept for the next call with the same task and key.
+    ``deadline`` (``time.monotonic()``): past it the workers still running are ended and :class:`DeadlinePassed`
+    is raised (what they would have played is nobody's fault, so none of it is a result).
     """
     items = list(items)
     if workers <= 0:
@@ -113,12 +120,13 @@ def run_tasks(
             yield i, task.local(item, (lambda n, i=i: progress(i, n)) if progress is not None else (lambda n: None))
         return
     with ZYGOTE_USE:  # the zygotes serve one caller at a time (the proposal pool's threads share them)
-        yield from _run_tasks(task, items, workers, failed, time_limit_s, progress, started, prepare, hosts_key)
+        yield from _run_tasks(task, items, workers, failed, time_limit_s, progress, started, prepare, hosts_key,
+                              deadline)
 
 
 
 def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, progress, started,
-               prepare, hosts_key) -> Iterator[tuple[int, Any]]:
+               prepare, hosts_key, deadline: float | None = None) -> Iterator[tuple[int, Any]]:
     """:func:`run_tasks` with worker processes (under :data:`ZYGOTE_USE`)."""
     zyg = zygote("game" if task.paired else "policy")
     policies = zygote("policy") if task.paired else None
@@ -293,6 +301,8 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
                     done(run)
                     finished.append((run.index, result))
             now = time.monotonic()
+            if deadline is not None and now > deadline and (busy or pending or staged):
+                raise DeadlinePassed(f"{len(busy)} task(s) still running and {len(pending) + len(staged)} to start")
             for run in list(busy.values()):
                 limit = time_limit_s(run.item)
                 if limit is not None and now - run.begun > limit + KILL_GRACE_S:

@@ -29,10 +29,13 @@ from __future__ import annotations
 
 import statistics
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterator
 
 from games.base import ONE_LIFE_CONTINUE, STANDARD_NOOP_MAX, STANDARD_STICKY
+from pipeline.boundary.workers import DeadlinePassed
+from pipeline.optimizer.propose import BudgetExhausted
 from pipeline.optimizer.state import RunState
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome
@@ -186,8 +189,9 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
     if not specs:
         return found
     before_play()
-    with EpisodeWriter(store, replace=True) as writer:
-        for i, outcome in run_episodes(specs, workers=max(1, c.workers), progress=progress):
+    with EpisodeWriter(store, replace=True) as writer, _within_the_time_budget(state, iteration):
+        for i, outcome in run_episodes(specs, workers=max(1, c.workers), progress=progress,
+                                       deadline=state.wall_deadline):
             outcome = checked_outcome(specs[i], outcome)
             writer.add(outcome.episode, outcome.steps, outcome.nodes)
             candidate, bar = owners[i]
@@ -195,6 +199,19 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
                                       tampered=outcome.episode["end_reason"] == TAMPERED,
                                       forfeit=score_episodes([outcome.episode]).forfeit)
     return found
+
+
+@contextmanager
+def _within_the_time_budget(state: "RunState", iteration: int) -> Iterator[None]:
+    """Games that pass the run's time budget (``--max-wall``) are stopped there and the run ends ``budget``: a
+    candidate that hung (its call limit off) held the run until its episodes' time limit, 15 minutes each. Being
+    stopped is not the candidate's doing, so nothing of the iteration is scored or committed; ``--resume`` with
+    more time plays it again."""
+    try:
+        yield
+    except DeadlinePassed:
+        raise BudgetExhausted(f"time budget: --max-wall {state.config.max_wall_minutes:g} min ran out while "
+                              f"iteration {iteration}'s games played (stopped there: none of them counts)") from None
 
 
 def _cached(version: str, row: dict) -> Assessment:
@@ -220,8 +237,9 @@ def _play(store: Store, state: "RunState", iteration: int, to_play: list[tuple[i
     outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
     started = time.monotonic()
     trains = {indices[0] for _, indices in groups}
-    with EpisodeWriter(store, replace=True) as writer:
-        for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress):
+    with EpisodeWriter(store, replace=True) as writer, _within_the_time_budget(state, iteration):
+        for i, outcome in run_episodes(specs, workers=max(1, state.config.workers), progress=progress,
+                                       deadline=state.wall_deadline):
             outcome = checked_outcome(specs[i], outcome)
             writer.add(outcome.episode, outcome.steps, outcome.nodes)
             outcomes[i] = outcome

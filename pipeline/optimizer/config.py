@@ -150,7 +150,8 @@ class OptimizeConfig:
         None, "wall-clock time of the run's iterations", flag="--max-wall", metavar="MINUTES", above=0, budget=True)
     """Stop (status ``budget``) before an iteration that, lasting as long as the last one, would take the run's
     wall time (the sum of its iterations) past this many minutes; an LLM call in flight when that time runs out
-    is given up on (``llm_calls.error_type`` ``OutOfTime``)."""
+    is given up on (``llm_calls.error_type`` ``OutOfTime``), and games still playing are stopped (their iteration
+    is not committed)."""
     strategy: str = setting(
         "greedy", "greedy: the paper's loop, one proposal from the last version, rollback after a regression "
         "(default); best-of-n: N proposals from the best version, keep the best; beam: expand the --beam-width best "

@@ -318,10 +318,12 @@ def run_episodes(
     workers: int = 1,
     progress: ProgressCallback | None = None,
     started: Callable[[], None] | None = None,
+    deadline: float | None = None,
 ) -> Iterator[tuple[int, EpisodeOutcome]]:
     """Play ``specs``, each by a game host with a confined policy process (see
     :func:`~pipeline.boundary.workers.run_tasks`); an episode whose host or policy process dies, misbehaves or hangs
-    ends ``crashed`` or ``timeout``."""
+    ends ``crashed`` or ``timeout``. Past ``deadline`` (``time.monotonic()``) the episodes playing are ended and
+    :class:`~pipeline.boundary.workers.DeadlinePassed` raised."""
     specs = list(specs)
     # each environment is built once in the game zygote (~0.1-0.2 s each): forked hosts inherit it ready, and a
     # host kept from an earlier call (zygotes.keep_hosts) is handed only episodes on the environments it has
@@ -335,13 +337,13 @@ def run_episodes(
 
     if all(spec.continues is None for spec in specs):
         return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
-                         progress=progress, started=started, prepare=prepare, hosts_key=envs)
-    return _run_games(specs, workers, progress, started, prepare, envs)
+                         progress=progress, started=started, prepare=prepare, hosts_key=envs, deadline=deadline)
+    return _run_games(specs, workers, progress, started, prepare, envs, deadline)
 
 
 def _run_games(specs: list[EpisodeSpec], workers: int, progress: ProgressCallback | None,
-               started: Callable[[], None] | None, prepare: Callable[[Zygote], None], envs: tuple
-               ) -> Iterator[tuple[int, EpisodeOutcome]]:
+               started: Callable[[], None] | None, prepare: Callable[[Zygote], None], envs: tuple,
+               deadline: float | None = None) -> Iterator[tuple[int, EpisodeOutcome]]:
     """:func:`run_episodes` where some episodes continue others: each game (:func:`games_of`) is one task of
     one host and one policy process (:data:`GAME`), an episode of its own a game of one; its time limit is the
     sum of its episodes'. Progress is reported under the index of the game's first episode."""
@@ -350,6 +352,7 @@ def _run_games(specs: list[EpisodeSpec], workers: int, progress: ProgressCallbac
     report = None if progress is None else (lambda g, n: progress(games[g][0], n))
     for g, outcomes in run_tasks(GAME, items, workers, _game_failed,
                                  time_limit_s=lambda game: sum(spec.episode_time_limit_s for spec in game),
-                                 progress=report, started=started, prepare=prepare, hosts_key=envs):
+                                 progress=report, started=started, prepare=prepare, hosts_key=envs,
+                                 deadline=deadline):
         for i, outcome in zip(games[g], outcomes):
             yield i, outcome
