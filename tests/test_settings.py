@@ -39,11 +39,14 @@ REWORDED = {
                               'litellm model: anthropic/claude-sonnet-4-5 (ANTHROPIC_API_KEY), openai/gpt-4o (OPENAI_API_KEY), gemini/..., mistral/..., ollama_chat/NAME (a local Ollama), hosted_vllm/NAME or openai/NAME with --api-base (your own server) (default: the offline SmolLM2 server); give it several times for an ensemble, each as MODEL[,weight=W][,api_base=URL] (see --model-choice)'),
     ("compare", "--seed"): ("versions: the first seed (default: 0)",
                             "versions: the first seed, under the paper's protocol (default: 0; --audit draws its own)"),
+    ("optimize", "--temperature"): ("LLM temperature (default: 0; not sent to models that take none)",
+                                    "LLM temperature, 0 to 2 (default: 0; not sent to models that take none)"),
 }
 """Help texts that changed on purpose: one flag of two verbs now has one declaration (``EpisodeLimits``);
 --call-time-limit says what 0 means, now that a negative
 limit is refused (2026-12-05: it forfeited every episode); --eval-max-steps names the games' own caps, read from their modules (it said 4000 for all of them); --model may be
-given several times (an ensemble, issue 32); compare's --seed says --audit draws its own (issue 37: sealed)."""
+given several times (an ensemble, issue 32); compare's --seed says --audit draws its own (issue 37: sealed);
+--temperature names its range, now held to it (2026-12-05: -1 and 5 ran the loop)."""
 
 RETYPED = {("eval", "--seed"): ("int", "non_negative_int")}
 """Flags whose value is checked by argparse now (2026-12-05: a negative seed reached Gymnasium's refusal mid-run
