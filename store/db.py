@@ -364,9 +364,11 @@ class Store:
     def _migrate(self, con: duckdb.DuckDBPyConnection) -> None:
         current = self._check_version(con)
         self._refuse_damage(con, current)  # never append to, nor migrate, a damaged store
-        if current == 0:
-            con.execute(SCHEMA_MIGRATIONS_TABLE)
-        elif current < LATEST:  # the file changes for good, whatever verb opened it: say so, once
+        if current == 0:  # a new store is made whole or not at all: a disk that filled up half-way left one of
+            # version 2, which the next command "upgraded", saying so
+            self._create(con)
+            return
+        if current < LATEST:  # the file changes for good, whatever verb opened it: say so, once
             print(f"codearcade: upgrading {self.path} from schema version {current} to {LATEST}; an older "
                   "codearcade will refuse it from now on", file=sys.stderr, flush=True)
         for version, name, sql in MIGRATIONS:
@@ -389,6 +391,21 @@ class Store:
                 raise
         con.execute("BEGIN TRANSACTION")  # the game modules' published figures, as they are in this code
         try:
+            refresh_published(con)
+            con.execute("COMMIT")
+        except BaseException:
+            _rollback(con)
+            raise
+        self._migrated = True
+
+    def _create(self, con: duckdb.DuckDBPyConnection) -> None:
+        """Every migration, and the published figures, in one transaction (a failure leaves no schema at all)."""
+        con.execute("BEGIN TRANSACTION")
+        try:
+            con.execute(SCHEMA_MIGRATIONS_TABLE)
+            for version, name, sql in MIGRATIONS:
+                con.execute(sql)
+                con.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", [version, name, utcnow()])
             refresh_published(con)
             con.execute("COMMIT")
         except BaseException:

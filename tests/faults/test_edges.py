@@ -100,3 +100,32 @@ def test_resume_of_a_run_that_does_not_exist(store, capsys):
     code = main(["optimize", "--resume", "01NOSUCHRUN", "--store", str(store.path)])
     _, err = capsys.readouterr()
     assert code == 2 and "no run 01NOSUCHRUN" in _one_line(err)
+
+
+@pytest.mark.parametrize("free_kb", [40, 120, 260])
+def test_a_store_made_on_a_full_disk_is_made_whole_or_not_at_all(tmpfs, capsys, free_kb):
+    """A new store whose disk filled up while its schema was made was left at schema version 2 (each migration
+    committed on its own), and the next command, once there was room, "upgraded" it from version 2. The schema is
+    now made in one transaction: after the one-line error, the next command finds no schema or the whole of it,
+    never part, and says nothing of an upgrade."""
+    directory = tmpfs("3m")
+    filler = directory / "filler"
+    with open(filler, "wb") as f:  # all but free_kb of the disk
+        try:
+            f.write(b"\0" * (3 * 2**20 - free_kb * 1024))
+        except OSError:
+            pass
+    path = directory / "s.duckdb"
+    code, _, err = _eval(capsys, path)
+    assert code == 2 and "the disk is full" in _one_line(err), err
+    filler.unlink()
+    if path.exists():
+        assert main(["runs", "--store", str(path)]) in (0, 2)
+        _, err = capsys.readouterr()
+        assert "upgrading" not in err, err
+    code, _, err = _eval(capsys, path)
+    assert code == 0 and "upgrading" not in err, err
+    from store.migrations import MIGRATIONS
+
+    assert [v for (v,) in Store(path).query("SELECT version FROM schema_migrations ORDER BY version")] == \
+        [m[0] for m in MIGRATIONS]
