@@ -376,16 +376,8 @@ class Store:
                 continue
             con.execute("BEGIN TRANSACTION")
             try:
-                con.execute(sql)
-                con.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", [version, name, utcnow()])
+                self._apply(con, current, version, name, sql)
                 con.execute("COMMIT")
-            except duckdb.CatalogException as exc:
-                _rollback(con)
-                if "already exists" not in str(exc):
-                    raise
-                # the tables of a migration the file does not list: its schema_migrations was emptied or edited
-                raise StoreDamaged(self.path, [f"schema_migrations lists version {current}, but the tables of "
-                                               f"migration {version} ({name}) are there already"]) from None
             except BaseException:
                 _rollback(con)
                 raise
@@ -404,14 +396,26 @@ class Store:
         try:
             con.execute(SCHEMA_MIGRATIONS_TABLE)
             for version, name, sql in MIGRATIONS:
-                con.execute(sql)
-                con.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", [version, name, utcnow()])
+                self._apply(con, 0, version, name, sql)
             refresh_published(con)
             con.execute("COMMIT")
         except BaseException:
             _rollback(con)
             raise
         self._migrated = True
+
+    def _apply(self, con: duckdb.DuckDBPyConnection, current: int, version: int, name: str, sql: str) -> None:
+        """Run migration ``version`` and record it, in the transaction open on ``con``."""
+        try:
+            con.execute(sql)
+        except duckdb.CatalogException as exc:
+            if "already exists" not in str(exc):
+                raise
+            # the tables of a migration the file does not list: its schema_migrations was emptied or edited
+            _rollback(con)
+            raise StoreDamaged(self.path, [f"schema_migrations lists version {current}, but the tables of "
+                                           f"migration {version} ({name}) are there already"]) from None
+        con.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", [version, name, utcnow()])
 
     def make_ready(self) -> None:
         """Create or upgrade the store and refuse a damaged one (:class:`StoreError`), unless this object has done
