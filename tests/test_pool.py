@@ -102,6 +102,10 @@ def test_calls_stay_in_flight_across_iterations_and_iterations_commit_in_order(s
                                           [run_id])]
     assert finished == sorted(finished)
     assert "in flight" in result.iterations[1].pool and "playing" in result.iterations[1].pool
+    # the last iteration's line says what was in flight once its games were played: nothing (it said "4 candidates
+    # playing", the state before the event that completed it)
+    assert result.iterations[-1].pool == ("pool: 0 calls in flight, 0 candidates playing (0 episodes), 0 waiting "
+                                          "to play"), result.iterations[-1].pool
     bases = _check_bases(store, run_id)
     assert any(fresh for _, _, _, fresh, _ in bases), "some prompts were built from candidates not yet committed"
 

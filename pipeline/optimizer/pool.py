@@ -126,7 +126,6 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
     failed_at: int | None = None  # the first iteration with a call that failed
     player_failed = False
     last_commit = time.monotonic()
-    shown = PoolProgress()
     # calls overlap: no "waiting for the model" line per call (each iteration's line says what is in flight)
     waiting, state.waiting = state.waiting, lambda iteration, model: nullcontext()
     with state.budget_lock:  # the candidates' tickets, in start order (propose.check_budgets)
@@ -251,7 +250,8 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
             for j in range(per_iteration):  # committed: from here on state.history has them
                 rows.pop(Ref(iteration, j), None)
             last_commit = time.monotonic()
-            result.pool = shown.line()  # what was in flight when it was committed
+            # what was in flight when it was committed (the event that completed it handled)
+            result.pool = PoolProgress(len(calling), len(playing), len(playing) * episodes_each, len(ready)).line()
             if on_iteration is not None:
                 on_iteration(result)
 
@@ -288,7 +288,6 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
                 known = History(state.history.iterations,  # the parents to screen against, pending ones too
                                 state.history.candidates + [rows[ref] for ref in sorted(rows)])
                 threading.Thread(target=play, args=(list(playing), known), name="play", daemon=True).start()
-            shown = PoolProgress(len(calling), len(playing), len(playing) * episodes_each, len(ready))
             if not calling and not playing and not ready and (next_up is None or stop is not None):
                 break
             handle(*events.get())
