@@ -68,7 +68,7 @@ from viewers.rerun_layout import episode_blueprint
 from viewers.rerun_nodes import NodeLogger
 from viewers.rerun_recording import resolve_recording
 from viewers.rerun_steps import StepColumns, StepLogger
-from viewers.safe_text import markdown_code_block
+from viewers.safe_text import markdown_code_block, plain_text
 
 
 class EpisodeLogger:
@@ -106,8 +106,8 @@ class EpisodeLogger:
             self._has_errors = True
             last = int(episode.get("length") or 0)
             self.rec.set_time("step", sequence=last)
-            self.rec.log("/policy/errors", rr.TextLog(f"episode ended ({episode.get('end_reason')}): "
-                                                      f"{episode['error']}", level=rr.TextLogLevel.ERROR))
+            self.rec.log("/policy/errors", rr.TextLog(plain_text(f"episode ended ({episode.get('end_reason')}): "
+                                                                 f"{episode['error']}"), level=rr.TextLogLevel.ERROR))
             self.rec.reset_time()
 
     # -- per-step and per-call data ----------------------------------------------------------------------
@@ -137,6 +137,8 @@ class EpisodeLogger:
 
 
 def _property_value(value: Any) -> Any:
-    if isinstance(value, (bool, int, float, str)):
+    """A recording property's value: a number as it is, anything else as plain text (an episode's error quotes the
+    policy)."""
+    if isinstance(value, (bool, int, float)):
         return value
-    return str(value)
+    return plain_text(value)

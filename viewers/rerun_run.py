@@ -41,7 +41,7 @@ from store import Store
 from store.scores import score_text
 from store.showing import run_timeline
 from viewers.rerun_recording import new_recording, resolve_recording
-from viewers.safe_text import markdown_code_block
+from viewers.safe_text import markdown_code_block, plain_text
 
 
 def read_run(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
@@ -91,17 +91,17 @@ def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -
         if it["code"] is not None:
             rec.log("/code", rr.TextDocument(markdown_code_block(it["code"], "python"), media_type="text/markdown"))
         if it["prompt"] is not None:
-            rec.log("/llm/prompt", rr.TextDocument(prompt_text(it["prompt"]), media_type="text/plain"))
+            rec.log("/llm/prompt", rr.TextDocument(plain_text(prompt_text(it["prompt"])), media_type="text/plain"))
         reply = _whole_or_cut(it["reply"], it["reply_length"], "reply")
         if reply is None and it["error_type"]:
             reply = f"(the call failed: {it['error_type']}: {it['error_message']})"
         if reply is not None:
             if it["parse_error"]:
                 reply = f"(not usable: {it['parse_error']})\n\n{reply}"
-            rec.log("/llm/reply", rr.TextDocument(reply, media_type="text/plain"))
+            rec.log("/llm/reply", rr.TextDocument(plain_text(reply), media_type="text/plain"))
         if it["feedback"] is not None:
-            rec.log("/feedback", rr.TextDocument(_whole_or_cut(it["feedback"], it["feedback_length"], "feedback"),
-                                                 media_type="text/plain"))
+            rec.log("/feedback", rr.TextDocument(
+                plain_text(_whole_or_cut(it["feedback"], it["feedback_length"], "feedback")), media_type="text/plain"))
         score = "-" if it["score"] is None else score_text(it["score"])
         best = "-" if it["best_score"] is None else score_text(it["best_score"])
         line = (f"iteration {it['iteration']}: update {it['update_status']}, score {score}, best {best} "

@@ -84,6 +84,13 @@ def print_failure(heading: str = "") -> None:
     sys.stderr.flush()
 
 
+def plain_text(text: object) -> str:
+    """Untrusted ``text`` shown as plain text in a viewer (Rerun's text documents and logs): its lines kept, and no
+    escape sequence, control or bidi character (the viewer shows them as they are: a right-to-left override
+    reorders what a person reads)."""
+    return terminal_text(text, multiline=True)
+
+
 def plot_text(text: object) -> str:
     """Untrusted ``text`` in a matplotlib title, label or legend: one line, no control characters, ``$`` escaped."""
     return terminal_text(text).replace("$", "\\$")

@@ -197,6 +197,18 @@ def test_no_escape_reaches_the_terminal_and_no_markup_the_report(evil_policy, st
         assert UNSAFE.search(readme) is None
         _assert_no_markup(readme, {p.name for p in out.glob("*.png")})
     assert "all episodes verified OK" in readme  # the rejection reason is there, as text
+    # Rerun's plain-text documents and logs (the prompt, the reply, the feedback, a policy's error) carried the
+    # escapes and bidi overrides as they are; its Markdown ones were made safe already
+    recordings = []
+    for run in (eval_run, optimize_run):
+        recordings.append(tmp_path / f"{run}.rrd")
+        _cli("view", run, "--save", str(recordings[-1]), *s)
+    from tests.test_rerun import dump
+
+    for path, content in dump(*recordings).items():
+        text = json.dumps(content, ensure_ascii=False)
+        found = UNSAFE.search(text)
+        assert found is None, (path, text[max(found.start() - 80, 0):found.end() + 20])
 
     # the store keeps what the policy wrote (only the display changed)
     assert any(ESCAPES in e for (e,) in store.query("SELECT error FROM episodes WHERE error IS NOT NULL"))
