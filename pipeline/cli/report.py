@@ -29,23 +29,39 @@ def add_parser(verbs) -> None:
 def reproduce_command(run: dict[str, Any], config: dict[str, Any]) -> str:
     """The ``codearcade`` command line that starts a run with ``run``'s settings (defaults left out): each
     setting's flag as its declaration names it (``pipeline/settings.py``)."""
-    import shlex
 
     if run["kind"] == "eval":
         from pipeline.play.config import EvalConfig
 
         parts = ["codearcade", "eval", config.get("policy") or "POLICY.py", "--game", run["game"]]
-        return shlex.join(parts + _flags(EvalConfig, config))
+        return _shell_line(parts + _flags(EvalConfig, config))
     if run["kind"] == "serve":  # a served run: its own settings, recorded under "serve"
         from pipeline.serve.config import ServeConfig
 
         served = config.get("serve") or {}
         parts = ["codearcade", "serve"] + ([served["policy"]] if served.get("policy") else [])
-        return shlex.join(parts + ["--game", run["game"]] + _flags(ServeConfig, served))
+        return _shell_line(parts + ["--game", run["game"]] + _flags(ServeConfig, served))
     from pipeline.optimizer.config import OptimizeConfig
 
     parts = ["codearcade", "optimize"] + ([config["policy"]] if config.get("policy") else [])
-    return shlex.join(parts + ["--game", run["game"]] + _flags(OptimizeConfig, config))
+    return _shell_line(parts + ["--game", run["game"]] + _flags(OptimizeConfig, config))
+
+
+def _shell_line(words: list[str]) -> str:
+    """``words`` as bash reads them back: each quoted as ``shlex`` does, but a word holding a character that is not
+    printable (a control, a bidi override: a file's name may hold them) as ANSI-C ``$'...'`` with that character as
+    an escape, so that the line names the same file and shows nothing a terminal or a report would act on."""
+    import shlex
+
+    def word(text: str) -> str:
+        if text.isprintable():
+            return shlex.quote(text)
+        return "$'" + "".join(
+            "\\\\" if c == "\\" else "\\'" if c == "'" else c if c.isprintable() else
+            f"\\x{ord(c):02x}" if ord(c) < 0x80 else f"\\u{ord(c):04x}" if ord(c) < 0x10000 else f"\\U{ord(c):08x}"
+            for c in text) + "'"
+
+    return " ".join(word(w) for w in words)
 
 
 def _flags(config_class: type, config: dict[str, Any]) -> list[str]:

@@ -255,3 +255,27 @@ def test_csv_on_a_terminal_is_made_safe_and_into_a_file_is_the_data():
     write_csv(piped, ["error", "n"], rows)
     assert UNSAFE.search(shown.getvalue().replace("\n", "")) is None and "all episodes verified OK" in shown.getvalue()
     assert list(csv.reader(io.StringIO(piped.getvalue(), newline="")))[1][0] == ESCAPES + MARKUP
+
+
+def test_a_reproduce_command_names_the_same_file_and_shows_nothing_raw():
+    """A report's "Reproduce" command was printed in a code block that drops controls, so for a policy file whose
+    name held an escape or a bidi override it named another file. Each word is now quoted for bash, a word with a
+    character that is not printable as ANSI-C $'...' escapes: bash reads back the very words (random words of every
+    kind of character, read back by bash itself), and the line holds nothing a terminal acts on."""
+    import random
+    import subprocess
+
+    from pipeline.cli.report import _shell_line
+
+    rng = random.Random(7)
+    alphabet = ["a", "Z", "0", " ", "'", '"', "\\", "$", "`", "!", "*", "\n", "\t", "\x1b", "\x07", "\x01",
+                "\x7f", "\x85", "\x9b", "\u202e", "\u2028", "\ufeff", "é", "日", "\U0001F600", "\U000E0001"]
+    cases = [["codearcade", "eval", "".join(rng.choice(alphabet) for _ in range(rng.randint(1, 12))), "--game", "pong"]
+             for _ in range(60)]
+    cases.append(["codearcade", "eval", "plain.py"])
+    script = "\n".join("python3 -c 'import sys, json; print(json.dumps(sys.argv[1:]))' " + _shell_line(words)
+                       for words in cases)
+    assert all(UNSAFE.search(_shell_line(words)) is None for words in cases)
+    done = subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert [json.loads(line) for line in done.stdout.splitlines()] == cases
