@@ -3,7 +3,8 @@
 One job: build the filter (:func:`seccomp_program`, x86_64) and install it (:func:`install`). Refused with EPERM:
 ``execve``/``execveat``, ``fork``/``vfork``, ``clone`` (``clone3`` answers ENOSYS so glibc falls back to
 ``clone``): no processes and no threads; socket creation, ``ptrace``, ``process_vm_*``, ``mknod``,
-``mount``/``unshare``/``setns`` and friends, ``io_uring``, ``bpf``, uid changes, host IPC and memfds; the calls
+``mount``/``unshare``/``setns`` and friends, ``io_uring``, ``bpf``, uid changes, host IPC and memfds, and the
+kernel buffers no limit counts (``socketpair``, ``setsockopt``, ``fcntl(F_SETPIPE_SZ)``); the calls
 that name a process (``kill``/``tgkill``, scheduling, priorities, ``prlimit64``) unless they name the caller
 itself; changing the parent-death signal. ``pipeline/boundary/confine.py`` applies it with the other layers.
 """
@@ -51,8 +52,14 @@ DENIED_SYSCALLS = {
     "memfd_create": 319, "memfd_secret": 447,
     # watching files other processes touch
     "inotify_init": 253, "inotify_init1": 294, "fanotify_init": 300,
+    # kernel memory no limit of the process counts: a socket pair's buffers (raised by setsockopt, and passed to
+    # itself in flight past the open-file limit: one policy process held 4.6 GB that way); the process is given
+    # the one socket it needs
+    "socketpair": 53, "setsockopt": 54,
 }
-SYS_CLONE, SYS_CLONE3, SYS_KILL, SYS_TGKILL, SYS_PRCTL = 56, 435, 62, 234, 157
+SYS_CLONE, SYS_CLONE3, SYS_KILL, SYS_TGKILL, SYS_PRCTL, SYS_FCNTL = 56, 435, 62, 234, 157, 72
+F_SETPIPE_SZ = 1031
+"""``fcntl``'s command that grows a pipe's buffer (to 1 MiB and more as root): kernel memory, refused."""
 SELF_ONLY_SYSCALLS = {
     # name: (number, index of the argument that names the target process); allowed only when that argument is
     # 0 (the caller) or the caller's own pid: the family of calls that act on a process by its pid
@@ -143,6 +150,11 @@ def seccomp_program(own_pid: int) -> bytes:
         p.jeq(own_pid, "allow", "deny")
         p.label(f"after{nr}")
         p.ld(0)
+    p.jeq(SYS_FCNTL, 0, "after_fcntl")
+    p.ld(arg(1))
+    p.jeq(F_SETPIPE_SZ, "deny", "allow")
+    p.label("after_fcntl")
+    p.ld(0)
     p.jeq(SYS_PRCTL, 0, "allow")
     p.ld(arg(0))
     p.jeq(PR_SET_PDEATHSIG_OPTION, "deny", "allow")  # the parent-death signal stays as the zygote set it

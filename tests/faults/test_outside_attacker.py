@@ -475,3 +475,59 @@ print(len(before), len(descendants()))
     before, after = map(int, done.stdout.split())
     assert before >= 5, f"the run had only {before} processes: it did not get as far as playing"
     assert after == 0, f"{after} process(es) of the run outlived it"
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_kernel_buffers_no_limit_counts_stay_small(path, tmp_path, scripted):
+    """Socket pairs' buffers, raised with setsockopt and passed to the process itself in flight past its open-file
+    limit, let one policy process hold 4.6 GB of kernel memory that its address-space limit does not count (the
+    machine's MemAvailable fell by as much until the episode ended); a pipe's buffer grows to 1 MiB and more with
+    fcntl(F_SETPIPE_SZ). The policy fills all it can and reports what the kernel took: socketpair, setsockopt and
+    F_SETPIPE_SZ are refused, and what is left (pipes at their default 64 KiB, 256 descriptors) stays under 16 MiB."""
+    body = """
+so = mods['socket']
+fcntl = import_module('fcntl')
+held, queued, refused = [], 0, []
+chunk = b'x' * 65536
+for i in range(120):
+    try:
+        a, b = so.socketpair(so.AF_UNIX, so.SOCK_STREAM)
+    except OSError as e:
+        refused.append('socketpair')
+        break
+    held += [a, b]
+    for s in (a, b):
+        try:
+            s.setsockopt(so.SOL_SOCKET, so.SO_SNDBUF, 4 * 2**20)
+        except OSError:
+            refused.append('setsockopt')
+        s.setblocking(False)
+        while True:
+            try:
+                queued += s.send(chunk)
+            except OSError:
+                break
+for i in range(120):
+    try:
+        r, w = os.pipe()
+    except OSError:
+        break
+    held += [r, w]
+    try:
+        fcntl.fcntl(w, 1031, 2**20)
+    except OSError:
+        refused.append('F_SETPIPE_SZ')
+    os.set_blocking(w, False)
+    while True:
+        try:
+            queued += os.write(w, chunk)
+        except OSError:
+            break
+raise ValueError('QUEUED %d MiB, refused %s' % (queued >> 20, sorted(set(refused))))
+"""
+    store, printed, _ = _run(path, tmp_path, scripted, body, steps=3, call_time_limit_s=60.0)
+    errors = [e for (e,) in store.query("SELECT error FROM episodes WHERE error LIKE '%QUEUED%'")]
+    assert errors, printed[-2000:]
+    queued = int(errors[0].split("QUEUED ", 1)[1].split(" MiB")[0])
+    assert queued < 16, errors[0]
+    assert "'F_SETPIPE_SZ'" in errors[0] and "'socketpair'" in errors[0], errors[0]
