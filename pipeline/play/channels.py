@@ -36,7 +36,9 @@ call at the limit; this catches one that defeated the timer or hangs in C)."""
 LOAD_TIMEOUT_S = 60.0
 """How long the policy process may take to load the policy (less where the episode's own limit is less)."""
 FINISH_TIMEOUT_S = 30.0
-"""How long the policy process may take to send its node rows at the end."""
+"""How long the policy process may take to send its node rows at the end, at most: never past the episode's own
+time limit and :data:`ANSWER_GRACE_S` (a policy process that held its ``done`` back held its host 25 s an episode
+past a 3 s limit, or, holding it longer, had the host killed and the steps it had played lost)."""
 
 
 class PolicyFailed(Exception):
@@ -236,9 +238,14 @@ class RemotePolicy(PolicyChannel):
         self.printed = None
         if self.broken:
             return None
+        until = min(time.perf_counter() + FINISH_TIMEOUT_S, self.deadline + ANSWER_GRACE_S)
+
+        def left() -> float:
+            return max(until - time.perf_counter(), 0.0)
+
         try:
-            self.channel.send_json({"op": "end", "more": more}, within=FINISH_TIMEOUT_S)
-            kind, payload = self._receive(FINISH_TIMEOUT_S, "at the end")
+            self.channel.send_json({"op": "end", "more": more}, within=left())
+            kind, payload = self._receive(left(), "at the end")
             message = json.loads(payload) if kind == b"J" else None
             if self.spec.keep_printed and isinstance(message, dict) and message.get("kind") == "done":
                 self.printed = printed_text(message)
@@ -250,7 +257,7 @@ class RemotePolicy(PolicyChannel):
             raise PolicyFailed("policy_error", "malformed trace: node rows for an episode that is not traced")
         try:
             budget = MAX_NODE_FRAME if steps is None else node_budget(steps)
-            kind, payload = self.channel.receive(budget, within=FINISH_TIMEOUT_S)
+            kind, payload = self.channel.receive(budget, within=left())
         except ValueError as exc:  # over the episode's byte budget, refused at the header
             raise PolicyFailed("policy_error", f"malformed trace: a node frame over the episode's budget ({exc})") \
                 from None

@@ -531,3 +531,36 @@ raise ValueError('QUEUED %d MiB, refused %s' % (queued >> 20, sorted(set(refused
     queued = int(errors[0].split("QUEUED ", 1)[1].split(" MiB")[0])
     assert queued < 16, errors[0]
     assert "'F_SETPIPE_SZ'" in errors[0] and "'socketpair'" in errors[0], errors[0]
+
+
+@pytest.mark.parametrize("trace", [False, True], ids=["untraced", "traced"])
+def test_a_policy_that_holds_back_its_end_holds_its_host_no_longer_than_its_episode(tmp_path, trace):
+    """The end of an episode (the policy process's `done`, and its node rows) was waited for 30 s whatever the
+    episode's time limit: a policy that held them back held its host 25 s an episode past a 3 s limit, or, holding
+    both back, had the host killed and the steps it had played lost (stored as a timeout of length 0). The end is
+    now waited for until the episode's limit (and a second's grace): the steps stand, and the episodes end in time."""
+    body = """
+pol = mods['pipeline.boundary.policy']
+if not getattr(pol, '_patched', False):
+    pol._patched = True
+    send_json, write_all = pol.Channel.send_json, pol.Channel.write_all
+    def slow_done(self, obj, within=None):
+        if isinstance(obj, dict) and obj.get('kind') == 'done':
+            mods['time'].sleep(29.0)
+        return send_json(self, obj, within)
+    def slow_rows(self, data, within=None):
+        if data[:1] == b'A':
+            mods['time'].sleep(29.0)
+        return write_all(self, data, within)
+    pol.Channel.send_json = slow_done
+    pol.Channel.write_all = slow_rows
+return 0
+"""
+    began = time.monotonic()
+    code, summary, printed, store = _eval(tmp_path, body, "--episodes", "2", "--workers", "1",
+                                          "--episode-time-limit", "3", *(["--trace"] if trace else []), steps=20)
+    took = time.monotonic() - began
+    ends = store.query("SELECT end_reason, length, duration_s FROM episodes ORDER BY episode_index")
+    assert [(reason, length) for reason, length, _ in ends] == [("truncated", 20)] * 2, (ends, printed[-2000:])
+    assert all(duration < 3 + 3 for _, _, duration in ends), ends
+    assert took < 2 * (3 + 3) + 20, took  # was ~56 s untraced (25 s an episode), ~70 s traced
