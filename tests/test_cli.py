@@ -652,3 +652,12 @@ def test_a_failed_optimize_says_its_error_once_with_how_to_continue(tmp_path, ca
                                  "20", "--workers", "1", "--store", tmp_path / "s.duckdb")
     assert code == 1 and out.strip().splitlines()[-1].endswith(" failed"), out
     assert (out + err).count("invalid api key") == 1 and "continue it with `codearcade optimize --resume" in err, err
+
+
+def test_help_as_a_verb_shows_the_help(capsys):
+    """`codearcade help` answered "unknown verb 'help'; did you mean eval?"; `help [VERB]` is `[VERB] --help`."""
+    for argv, usage in ((["help"], "usage: codearcade [-h]"), (["help", "optimize"], "usage: codearcade optimize")):
+        with pytest.raises(SystemExit) as ended:
+            main(argv)
+        out = capsys.readouterr().out
+        assert ended.value.code == 0 and out.startswith(usage), out[:200]

@@ -132,8 +132,11 @@ def _interrupted() -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     PRESSED.clear()  # this command's presses only (tests run many commands in one process)
+    given = list(sys.argv[1:] if argv is None else argv)
+    if given[:1] == ["help"] and len(given) <= 2:  # `codearcade help [VERB]`, as git and pip take it
+        given = [*given[1:], "--help"]
     try:
-        args = build_parser().parse_args(argv)
+        args = build_parser().parse_args(given)
     except KeyboardInterrupt:  # Ctrl-C before the verb started anything
         show("codearcade: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
