@@ -76,6 +76,15 @@ def test_experiment_file_errors_are_one_line(tmp_path):
         ("[matrx]\ngame = ['pong']\n", "did you mean 'matrix'"),
         ("[defaults]\ngame = 'pong'\n[[run]]\nname = 'a'\n[[run]]\nname = 'a'\nseed = 1\n",
          "[[run]] #2: name 'a' is the name of [[run]] #1 too"),
+        # each of these ended in a traceback, or passed --dry-run and failed when run, or was dropped unsaid
+        ("matrix = 5\n", "'matrix' must be a table"),
+        ("defaults = 5\n[matrix]\ngame = ['pong']\n", "'defaults' must be a table"),
+        ("[defaults]\ngame = 'pong'\nseed = 1979-05-27\n", "seed = datetime.date(1979, 5, 27): give a number"),
+        ("name = 'x/y'\n[defaults]\ngame = 'pong'\n", "no '/'"),
+        ("[defaults]\ngame = 'pong'\n[[run]]\nname = 'alpha'\n[[run]]\nname = 'beta'\n",
+         "('beta') has the same settings as pong ('alpha')"),
+        ("name = 'lab'\n[defaults]\ngame = 'pong'\n[matrix]\nseed = [0, 1]\n[[run]]\nname = 'lab:pong,seed=1'\n"
+         "memory = 3\n", "name 'lab:pong,seed=1' is a matrix entry's label too"),
     ]:
         bad.write_text(text)
         with pytest.raises(ExperimentError) as err:
@@ -242,3 +251,26 @@ def test_anthropic_batch_with_a_token_budget_stops_then_resumes_with_a_larger_on
     assert store.query("SELECT status, count(*) FROM runs GROUP BY status") == [("finished", 2)]
     rows = store.query("SELECT run_id, iteration, count(*) FROM iterations GROUP BY ALL HAVING count(*) > 1")
     assert rows == [] and store.query("SELECT count(*) FROM iterations")[0][0] == 8
+
+
+def test_one_batch_is_run_by_one_command_at_a_time(tmp_path, store, scripted):
+    """The same batch started twice at once on one store: each command planned the runs and started them all, two
+    runs per entry under the same key and label (which `examples/ablation.sql` then counted twice). The second
+    command now says who runs the batch and starts nothing; the first's runs are the batch's only ones."""
+    model = scripted([{"sleep": 2, "content": COMPETENT_REPLY}])
+    path = _experiments(tmp_path, model, iterations=1, seeds=(0,), audit_episodes=0)
+    first = subprocess.Popen([EXE, "batch", str(path), "--store", str(store.path), "--workers", "1"], cwd=ROOT,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for_iterations(store, first, 1)
+        assert first.poll() is None, "the first batch is still running"
+        second = _batch(path, store, "--workers", "1")
+        assert second.returncode == 2 and f"is being run on {store.path} by process {first.pid}" in second.stderr, \
+            second.stderr
+        assert first.wait(timeout=600) == 0, first.stderr.read()
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    keys = store.query("SELECT json_extract_string(config, '$.batch_key') FROM runs WHERE kind = 'optimize'")
+    assert len(keys) == 2 and len(set(keys)) == 2, keys

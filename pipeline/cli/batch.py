@@ -5,8 +5,11 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import sys
+from contextlib import ExitStack, contextmanager
+from typing import Iterator
 
 from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_store, positive_int, short_ids, show
 from store.scores import score_text
@@ -102,12 +105,10 @@ def _endpoint_problems(planned) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from datetime import datetime
     from pathlib import Path
 
-    from pipeline.jobs.batch import load_experiments, plan, run_local, run_ray
+    from pipeline.jobs.batch import load_experiments, plan
     from store import Store, StoreLocation, locate_store
-    from viewers.safe_text import terminal_text
 
     batch = load_experiments(args.experiments)
     if args.store or not batch.store:
@@ -136,6 +137,34 @@ def run(args: argparse.Namespace) -> int:
     if problems:  # a missing key or a server that does not answer stops the batch before any run starts
         raise CliError(problems[0] + (f"; and {len(problems) - 1} more problem(s): `codearcade batch "
                                       f"{args.experiments} --dry-run` lists them" if len(problems) > 1 else ""))
+    with _only_runner(store, batch.name):
+        return _run(args, batch, store, plan(batch, store))  # planned again, now that no one else runs it
+
+
+@contextmanager
+def _only_runner(store, name: str) -> Iterator[None]:
+    """Hold the batch's lock beside the store for the block (``store/locks.py``), or say who holds it: two
+    commands running one batch at once both planned its runs, and each started them all (two runs per entry)."""
+    from store.locks import RunBusyError, run_lock
+
+    with ExitStack() as held:
+        try:
+            held.enter_context(run_lock(store.path, "batch-" + hashlib.sha256(name.encode()).hexdigest()[:16]))
+        except RunBusyError as exc:
+            holder = str(exc).split("by process ", 1)[-1].split(";", 1)[0]
+            raise CliError(f"batch {name} is being run on {store.path} by process {holder}; wait for it to end "
+                           "(or stop it), then run the same command again to go on") from None
+        yield
+
+
+def _run(args: argparse.Namespace, batch, store, planned) -> int:
+    """The batch run for real (``run``, once it holds the batch's lock)."""
+    from datetime import datetime
+    from pathlib import Path
+
+    from pipeline.jobs.batch import run_local, run_ray
+    from viewers.safe_text import terminal_text
+
     log_path = Path(args.log) if args.log else store.path.with_name(f"{store.path.name}.{batch.name}.log")
     try:
         log_file = open(log_path, "a")

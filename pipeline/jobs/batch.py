@@ -113,11 +113,21 @@ def _check_settings(settings: dict[str, Any], where: str) -> None:
         if key not in RUN_KEYS:
             raise ExperimentError(f"{where}: unknown setting '{key}'{_suggest(key, RUN_KEYS)}; "
                                   f"known: {', '.join(RUN_KEYS)}")
+        if not _plain_value(value):  # a TOML date or time, or a table: no setting takes one
+            raise ExperimentError(f"{where}: {key} = {value!r}: give a number, a string, true/false or a list "
+                                  "of them")
     if "game" in settings and settings["game"] is not None:
         try:
             get_game(str(settings["game"]))
         except ValueError as exc:
             raise ExperimentError(f"{where}: {exc}") from None
+
+
+def _plain_value(value: Any) -> bool:
+    """Whether ``value`` is what a setting can take from TOML: a number, string, boolean, or a list of them."""
+    if isinstance(value, list):
+        return all(_plain_value(v) for v in value)
+    return isinstance(value, (str, int, float, bool))
 
 
 def _run_key(name: str, config: OptimizeConfig) -> str:
@@ -170,6 +180,16 @@ def load_experiments(path: str | os.PathLike) -> Batch:
             raise ExperimentError(f"{path.name}: unknown key '{key}'{_suggest(key, TOP_LEVEL_KEYS)}; "
                                   f"known: {', '.join(TOP_LEVEL_KEYS)}")
     name = str(data.get("name") or path.stem)
+    try:  # the batch's name names its log file beside the store, and its runs' labels
+        check_run_name(name)
+    except ValueError as exc:
+        raise ExperimentError(f"{path.name}: name: {exc}") from None
+    if "/" in name or name.startswith("."):
+        raise ExperimentError(f"{path.name}: name {name!r}: a batch's name names its log file, so no '/' and no "
+                              "leading '.'")
+    for table in ("defaults", "matrix"):
+        if not isinstance(data.get(table, {}), dict):
+            raise ExperimentError(f"{path.name}: '{table}' must be a table: [{table}] with a setting per line")
     defaults = dict(data.get("defaults", {}))
     _check_settings(defaults, f"{path.name} [defaults]")
     matrix = {k: (v if isinstance(v, list) else [v]) for k, v in dict(data.get("matrix", {})).items()}
@@ -209,7 +229,8 @@ def load_experiments(path: str | os.PathLike) -> Batch:
         raise ExperimentError(f"{path.name}: no runs: add a [matrix] or [[run]] tables")
 
     kept: list[tuple[dict[str, Any], str | None]] = []
-    runs, seen = [], set()
+    runs: list[BatchRun] = []
+    seen: dict[str, str] = {}  # each run's key: the entry that has it
     problems: dict[str, str | None] = {}  # each policy file checked once
     for settings, given in zip(points, given_names):
         if settings.get("policy"):
@@ -234,12 +255,19 @@ def load_experiments(path: str | os.PathLike) -> Batch:
             validate_config(config)
         except ValueError as exc:
             raise ExperimentError(f"{path.name}: {_label(settings, list(matrix))}: {exc}") from None
-        if key in seen:
-            continue
-        seen.add(key)
+        if key in seen:  # one run would stand for both: the second was dropped without a word
+            raise ExperimentError(f"{path.name}: {_label(settings, list(matrix))}"
+                                  f"{f' ({given!r})' if given else ''} has the same settings as "
+                                  f"{seen[key]}: give it a setting of its own, or leave it out")
+        seen[key] = _label(settings, list(matrix)) + (f" ({given!r})" if given else "")
         runs.append(BatchRun(key, _label(settings, list(matrix)), config))
         kept.append((settings, given))
-    for run, label in zip(runs, _run_names(name, kept, list(matrix))):
+    labels = _run_names(name, kept, list(matrix))
+    for given, label in zip((g for _, g in kept), labels):
+        if given is not None and labels.count(label) > 1:  # a [[run]] name that a matrix entry's label has too
+            raise ExperimentError(f"{path.name}: name {given!r} is a matrix entry's label too: give the [[run]] "
+                                  "another name")
+    for run, label in zip(runs, labels):
         run.name = label
     return Batch(name, path, data.get("store"), runs)
 
