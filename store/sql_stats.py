@@ -61,7 +61,8 @@ def _kept(values: list | None) -> tuple[list[float], int]:
 
 def mean_ci(values: list | None) -> dict[str, Any]:
     """``{mean, low, high, n, missing, level, method, text}``: the mean of ``values`` with its 95% Student-t interval
-    (:func:`store.statistics.mean_interval`; none for fewer than two values or all equal; no mean with a NULL among them)."""
+    (:func:`store.statistics.mean_interval`; none for fewer than two values or all equal; no mean with a NULL
+    among them)."""
     from store.statistics import mean_interval
 
     kept, missing = _kept(values)

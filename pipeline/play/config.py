@@ -98,9 +98,9 @@ class CompareConfig:
     drawn when the comparison runs, over the whole audit range, recorded only with the episodes they produced), under
     the standard protocol (``games.base.STANDARD_STICKY``/``STANDARD_NOOP_MAX``). Under the paper's protocol every
     seed is the same game, so a difference of scores there measures only the policies' own random draws; here each
-    side's episodes are
-    independent draws and ``store.statistics.difference`` of their returns says whether the versions differ. No divergent
-    step is looked for: the two sides play different games. ``seed`` is then unused."""
+    side's episodes are independent draws and ``store.statistics.difference`` of their returns says whether the
+    versions differ. No divergent step is looked for: the two sides play different games. ``seed`` is then
+    unused."""
     context: int = setting(3, "steps shown before and after the first divergent step (default: %(default)s)",
                            minimum=0)
     """Steps shown before and after the first divergent step."""

@@ -8,9 +8,10 @@ outputs on the steps around it. Episodes are deterministic under the default pro
 starts), so that step is where their behaviour really parts, not noise.
 
 Beside where the actions part, it says whether the scores differ beyond the noise: each side's score by the one
-rule of ``store/scores.py`` (mean of the episodes played out with its 95% t interval, forfeits named) and
-Welch's t interval of the difference of their returns (``store.statistics.difference``). Under the paper's protocol every
-seed is the same game, so that says little; ``--audit`` (``CompareConfig.audit``) plays each side on its own
+rule of ``store/scores.py`` (mean of the episodes played out with its 95% t interval, forfeits named) and the
+interval of the difference of their returns (seed by seed, the paired t: ``store.statistics.paired_difference``;
+with ``--audit``, Welch's t: ``store.statistics.difference``). Under the paper's protocol every seed is the same
+game, so that says little; ``--audit`` (``CompareConfig.audit``) plays each side on its own
 audit seeds under the standard protocol instead (sticky 0.25, up to 30 no-op starts), independent draws whose
 difference is the one that means something (and then no divergent step is looked for: the sides play different
 games).

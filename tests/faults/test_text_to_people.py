@@ -168,7 +168,8 @@ def test_markdown_escapes_and_fences():
     assert [tag for tag, _ in _rendered_tags(block)] == ["pre", "code"]  # the whole block stays one code block
     assert [tag for tag, _ in _rendered_tags(markdown_code("a `` b | <img src=x>"))] == ["p", "code"]
     # GitHub renders $...$ as math: a policy's text is never typeset (its $ escaped, as \$ reads as a $)
-    assert markdown_text("cost $x^2$ and $$\\color{red}{y}$$") == "cost \\$x^2\\$ and \\$\\$\\\\color\\{red\\}\\{y\\}\\$\\$"
+    assert markdown_text("cost $x^2$ and $$\\color{red}{y}$$") == \
+        "cost \\$x^2\\$ and \\$\\$\\\\color\\{red\\}\\{y\\}\\$\\$"
 
 
 @pytest.mark.slow
