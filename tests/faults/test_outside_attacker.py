@@ -526,7 +526,9 @@ for i in range(120):
 raise ValueError('QUEUED %d MiB, refused %s' % (queued >> 20, sorted(set(refused))))
 """
     store, printed, _ = _run(path, tmp_path, scripted, body, steps=3, call_time_limit_s=60.0)
-    errors = [e for (e,) in store.query("SELECT error FROM episodes WHERE error LIKE '%QUEUED%'")]
+    # a policy file's game, or an LLM's candidate's check (its confined worker, before it plays)
+    errors = [e for (e,) in store.query("SELECT error FROM episodes WHERE error LIKE '%QUEUED%' UNION ALL "
+                                        "SELECT reason FROM rejected_candidates WHERE reason LIKE '%QUEUED%'")]
     assert errors, printed[-2000:]
     queued = int(errors[0].split("QUEUED ", 1)[1].split(" MiB")[0])
     assert queued < 16, errors[0]
