@@ -151,6 +151,18 @@ def _ctrl_c_as_itself() -> Iterator[None]:
         raise
 
 
+@contextmanager
+def _transaction(con: duckdb.DuckDBPyConnection) -> Iterator[None]:
+    """The block in one transaction: committed at its end, rolled back if it raises."""
+    con.execute("BEGIN TRANSACTION")
+    try:
+        yield
+        con.execute("COMMIT")
+    except BaseException:
+        _rollback(con)
+        raise
+
+
 def _rollback(con: duckdb.DuckDBPyConnection) -> None:
     """Roll back the transaction, if one is still open (an interrupted or failed statement may have ended it)."""
     try:
@@ -374,34 +386,19 @@ class Store:
         for version, name, sql in MIGRATIONS:
             if version <= current:
                 continue
-            con.execute("BEGIN TRANSACTION")
-            try:
+            with _transaction(con):
                 self._apply(con, current, version, name, sql)
-                con.execute("COMMIT")
-            except BaseException:
-                _rollback(con)
-                raise
-        con.execute("BEGIN TRANSACTION")  # the game modules' published figures, as they are in this code
-        try:
+        with _transaction(con):  # the game modules' published figures, as they are in this code
             refresh_published(con)
-            con.execute("COMMIT")
-        except BaseException:
-            _rollback(con)
-            raise
         self._migrated = True
 
     def _create(self, con: duckdb.DuckDBPyConnection) -> None:
         """Every migration, and the published figures, in one transaction (a failure leaves no schema at all)."""
-        con.execute("BEGIN TRANSACTION")
-        try:
+        with _transaction(con):
             con.execute(SCHEMA_MIGRATIONS_TABLE)
             for version, name, sql in MIGRATIONS:
                 self._apply(con, 0, version, name, sql)
             refresh_published(con)
-            con.execute("COMMIT")
-        except BaseException:
-            _rollback(con)
-            raise
         self._migrated = True
 
     def _apply(self, con: duckdb.DuckDBPyConnection, current: int, version: int, name: str, sql: str) -> None:
