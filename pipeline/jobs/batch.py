@@ -113,9 +113,9 @@ def _check_settings(settings: dict[str, Any], where: str) -> None:
         if key not in RUN_KEYS:
             raise ExperimentError(f"{where}: unknown setting '{key}'{_suggest(key, RUN_KEYS)}; "
                                   f"known: {', '.join(RUN_KEYS)}")
-        if not _plain_value(value):  # a TOML date or time, or a table: no setting takes one
-            raise ExperimentError(f"{where}: {key} = {value!r}: give a number, a string, true/false or a list "
-                                  "of them")
+        if not _plain_value(value):  # a TOML date or time: no setting takes one
+            raise ExperimentError(f"{where}: {key} = {value!r}: give a number, a string, true/false, or a list or "
+                                  "table of them")
     if "game" in settings and settings["game"] is not None:
         try:
             get_game(str(settings["game"]))
@@ -124,9 +124,12 @@ def _check_settings(settings: dict[str, Any], where: str) -> None:
 
 
 def _plain_value(value: Any) -> bool:
-    """Whether ``value`` is what a setting can take from TOML: a number, string, boolean, or a list of them."""
+    """Whether ``value`` is what a setting can take from TOML: a number, string, boolean, or a list or table of
+    them (an ensemble's ``models``), never a date or a time."""
     if isinstance(value, list):
         return all(_plain_value(v) for v in value)
+    if isinstance(value, dict):
+        return all(_plain_value(v) for v in value.values())
     return isinstance(value, (str, int, float, bool))
 
 
@@ -180,13 +183,9 @@ def load_experiments(path: str | os.PathLike) -> Batch:
             raise ExperimentError(f"{path.name}: unknown key '{key}'{_suggest(key, TOP_LEVEL_KEYS)}; "
                                   f"known: {', '.join(TOP_LEVEL_KEYS)}")
     name = str(data.get("name") or path.stem)
-    try:  # the batch's name names its log file beside the store, and its runs' labels
-        check_run_name(name)
-    except ValueError as exc:
-        raise ExperimentError(f"{path.name}: name: {exc}") from None
-    if "/" in name or name.startswith("."):
-        raise ExperimentError(f"{path.name}: name {name!r}: a batch's name names its log file, so no '/' and no "
-                              "leading '.'")
+    if "/" in name or name.startswith(".") or not name.isprintable():  # it names the batch's log file
+        raise ExperimentError(f"{path.name}: name {name!r}: a batch's name names its log file beside the store, so "
+                              "no '/', no leading '.' and no control characters")
     for table in ("defaults", "matrix"):
         if not isinstance(data.get(table, {}), dict):
             raise ExperimentError(f"{path.name}: '{table}' must be a table: [{table}] with a setting per line")
