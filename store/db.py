@@ -408,8 +408,8 @@ class Store:
         except duckdb.CatalogException as exc:
             if "already exists" not in str(exc):
                 raise
-            # the tables of a migration the file does not list: its schema_migrations was emptied or edited
-            _rollback(con)
+            # the tables of a migration the file does not list: its schema_migrations was emptied or edited (the
+            # caller's transaction is rolled back)
             raise StoreDamaged(self.path, [f"schema_migrations lists version {current}, but the tables of "
                                            f"migration {version} ({name}) are there already"]) from None
         con.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", [version, name, utcnow()])

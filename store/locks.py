@@ -16,7 +16,11 @@ from typing import Iterator
 
 
 class RunBusyError(RuntimeError):
-    """Another live process is working on the run."""
+    """Another live process is working on the run: ``holder`` (its pid, as its lock file says)."""
+
+    def __init__(self, message: str, holder: str) -> None:
+        super().__init__(message)
+        self.holder = holder
 
 
 def lock_path(store_path: str | os.PathLike, run_id: str) -> Path:
@@ -36,7 +40,7 @@ def run_lock(store_path: str | os.PathLike, run_id: str) -> Iterator[None]:
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "another process"
             raise RunBusyError(f"run {run_id} is being worked on by process {holder}; wait for it to finish "
-                               "(or stop it) first") from None
+                               "(or stop it) first", holder) from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, str(os.getpid()).encode(), 0)
         yield

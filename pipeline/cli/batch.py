@@ -151,8 +151,7 @@ def _only_runner(store, name: str) -> Iterator[None]:
         try:
             held.enter_context(run_lock(store.path, "batch-" + hashlib.sha256(name.encode()).hexdigest()[:16]))
         except RunBusyError as exc:
-            holder = str(exc).split("by process ", 1)[-1].split(";", 1)[0]
-            raise CliError(f"batch {name} is being run on {store.path} by process {holder}; wait for it to end "
+            raise CliError(f"batch {name} is being run on {store.path} by process {exc.holder}; wait for it to end "
                            "(or stop it), then run the same command again to go on") from None
         yield
 
