@@ -509,4 +509,5 @@ def test_an_evaluation_holds_no_episode_s_rows_once_written(tmp_path):
         return int(done.stderr.strip().splitlines()[-1]) / 1024
 
     few, many = peak_mb(3), peak_mb(12)
-    assert many - few < 60, (few, many)  # nine more episodes held their rows: 230 MB more, measured
+    # nine more episodes held their rows: 230 MB more, measured; held no more: +0-69 MB across runs on busy cores
+    assert many - few < 120, (few, many)
