@@ -11,18 +11,58 @@ from __future__ import annotations
 
 import signal
 import threading
-from typing import Callable
+from contextlib import contextmanager
+from typing import Callable, Iterator
 
 
 class Terminated(KeyboardInterrupt):
     """The KeyboardInterrupt of a SIGTERM: it may have reached this process alone."""
 
 
+_uninterrupted = 0
+"""How many :func:`uninterrupted` blocks the main thread is in."""
+_held: int | None = None
+"""The signal that arrived in one, raised as the outermost ends."""
+
+
 def stop_once(signum: int, frame: object) -> None:
-    """The handler of both signals: ignore both from now on, and raise the interrupt."""
+    """The handler of both signals: ignore both from now on, and raise the interrupt (held, in an
+    :func:`uninterrupted` block, until it ends)."""
+    global _held
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if _uninterrupted:
+        _held = signum
+        return
+    _raise(signum)
+
+
+def _raise(signum: int) -> None:
     raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+@contextmanager
+def uninterrupted() -> Iterator[None]:
+    """Run the block to its end: a Ctrl-C or SIGTERM that arrives meanwhile is raised as it ends (where
+    :func:`stop_once` handles them). For the write that ends a run: a press that landed in it rolled it back, and a
+    run whose games had all been played and stored was left 'running' for good. A block that raises keeps its own
+    error (the signal still stops the command: both are ignored from then on)."""
+    global _uninterrupted, _held
+    if threading.current_thread() is not threading.main_thread():  # signals are raised in the main thread only
+        yield
+        return
+    _uninterrupted += 1
+    try:
+        yield
+    except BaseException:
+        _uninterrupted -= 1
+        if not _uninterrupted:
+            _held = None
+        raise
+    _uninterrupted -= 1
+    if not _uninterrupted and _held is not None:
+        signum, _held = _held, None
+        _raise(signum)
 
 
 def stop_on_signals(handler: Callable[[int, object], None] = stop_once) -> list[int]:

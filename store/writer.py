@@ -319,6 +319,12 @@ def reject_policy_version(con: duckdb.DuckDBPyConnection, run_id: str, iteration
                 "AND iteration = ? AND policy_version_id = ?", [reason, run_id, iteration, version_id])
 
 
+def end_run_left_running(con: duckdb.DuckDBPyConnection, run_id: str, status: str, error: str | None) -> None:
+    """End a run whose row still says 'running' (its loop never took it over); one ended already is left as it is."""
+    con.execute("UPDATE runs SET status = ?, finished_at = ?, error = ? WHERE run_id = ? AND status = 'running'",
+                [status, utcnow(), error, run_id])
+
+
 def mark_run_running(con: duckdb.DuckDBPyConnection, run_id: str) -> None:
     con.execute("UPDATE runs SET status = 'running', finished_at = NULL, error = NULL WHERE run_id = ?", [run_id])
 

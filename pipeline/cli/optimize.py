@@ -227,7 +227,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
     before the model started (``pipeline.optimizer.task.resolve_start``)."""
     from pipeline.llm.client import open_client
     from pipeline.optimizer.config import fit_to_model
-    from pipeline.optimizer.loop import optimize, start_run
+    from pipeline.optimizer.loop import end_if_cut_short, optimize, start_run
     from store.readers import get_run
     from store.writer import set_run_name
 
@@ -236,7 +236,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
     offline = config.model is None
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
                                       config.seed, stream=args.stream, models=config.models)
-    recordings = None
+    recordings, created = None, None
     try:
         fit_to_model(config, cap)
         for name in getattr(client, "dropped", ()):
@@ -244,7 +244,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
         rerun = rerun_target(args.rerun)
         resumed = run_id is not None
         if run_id is None:  # made here, so that its id is printed before iteration 0 plays
-            run_id = start_run(config, store, client.label, start=start)
+            run_id = created = start_run(config, store, client.label, start=start)
         started["run_id"] = started["short"] = run_id
         if args.name is not None:
             warn_if_named(store, args.name, run_id)
@@ -259,6 +259,10 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
         on_iteration, recordings = _run_recordings(store, rerun, None if args.json else _print_iteration)
         result = optimize(config, store, client, resume=run_id, on_iteration=on_iteration,
                           log=lambda line: show(line, file=sys.stderr), rerun=rerun, waiting=_llm_waiting())
+    except BaseException as exc:
+        if created is not None:  # stopped before the loop took the new run over: ended as the loop ends it
+            end_if_cut_short(store, created, exc, client)
+        raise
     finally:
         if server is not None:
             server.stop()

@@ -41,7 +41,7 @@ try:  # a Ctrl-C to the batch's process group reaches its runs too, also while t
     from pipeline.boundary.zygotes import keep_hosts
     from pipeline.llm.client import open_client
     from pipeline.optimizer.config import OptimizeConfig, fit_to_model
-    from pipeline.optimizer.loop import OptimizeResult, optimize, start_run
+    from pipeline.optimizer.loop import OptimizeResult, end_if_cut_short, optimize, start_run
     from store import Store
     from store.writer import set_run_name
     from viewers.safe_text import terminal_text
@@ -78,9 +78,10 @@ def _optimize(spec: dict[str, Any], store: Store) -> OptimizeResult:
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
                                       config.seed, models=config.models)
     fit_to_model(config, cap)
+    created = None
     try:
-        run_id = spec.get("resume") or start_run(config, store, client.label,
-                                                 extra={"batch": spec["batch"], "batch_key": spec["batch_key"]})
+        run_id = spec.get("resume") or (created := start_run(config, store, client.label, extra={
+            "batch": spec["batch"], "batch_key": spec["batch_key"]}))
         if spec.get("name"):  # the entry's label (pipeline/jobs/batch.py), given again when the run resumes
             with store.write() as con:
                 set_run_name(con, run_id, spec["name"])
@@ -88,6 +89,10 @@ def _optimize(spec: dict[str, Any], store: Store) -> OptimizeResult:
                         log=_say,
                         on_iteration=lambda item: _say(f"iteration {item.iteration}: score {_shown(item.score)} "
                                                        f"best {_shown(item.best_score)} {item.update_status}"))
+    except BaseException as exc:
+        if created is not None:  # stopped before the loop took the new run over: ended as the loop ends it
+            end_if_cut_short(store, created, exc, client)
+        raise
     finally:
         if server is not None:
             server.stop()

@@ -38,6 +38,7 @@ from pipeline.optimizer.conclude import IterationResult, conclude, screen_out
 from pipeline.optimizer.pool import run_pool
 from pipeline.optimizer.config import RESUME_OVERRIDES, OptimizeConfig, validate_config
 from pipeline.settings import flag_of
+from pipeline.stopping import uninterrupted
 from pipeline.optimizer.feedback import FeedbackBands
 from pipeline.optimizer.propose import BudgetExhausted, Proposal, check_wall, propose
 from pipeline.optimizer.prompt import PromptBudgetError, smallest_prompt_tokens
@@ -59,10 +60,17 @@ from store.readers import (
     update_failures,
 )
 from store.runs import kind_phrase
-from store.writer import finish_run, insert_policy_version, insert_run, mark_run_running, merge_run_config
+from store.writer import (
+    end_run_left_running,
+    finish_run,
+    insert_policy_version,
+    insert_run,
+    mark_run_running,
+    merge_run_config,
+)
 from tracing.policy_file import PolicyInfo
 
-__all__ = ["BudgetExhausted", "optimize", "plan_resume", "run_loop", "start_run", "load_state"]
+__all__ = ["BudgetExhausted", "end_if_cut_short", "optimize", "plan_resume", "run_loop", "start_run", "load_state"]
 
 
 @dataclass
@@ -101,6 +109,26 @@ def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str =
                    model=model_name, seed=config.seed)
         insert_policy_version(con, policy_version_row(info, run_id, 0, produced_by="initial", validation="accepted"))
     return run_id
+
+
+def end_if_cut_short(store: Store, run_id: str, exc: BaseException, client: LLMClient | None = None) -> None:
+    """End the new run ``run_id`` that ``exc`` stopped before its loop took it over, as the loop would have: a
+    Ctrl-C or SIGTERM as interrupted (resumable), anything else as failed.
+
+    :func:`start_run` writes the run as 'running'; what a command does next (its start line, its name, its Rerun
+    recordings, loading the state, taking the run's lock) is outside the loop, and a stop there left the row
+    'running' for good (shown interrupted only while no process holds it). Call it from the ``except`` of the code
+    that started the run, and only for a run it started: a resumed one may be another live process's. A run the
+    loop ended is left as it is. Never raises: a store that cannot be written is ``exc``'s story to tell."""
+    if isinstance(exc, KeyboardInterrupt) or is_ctrl_c(exc):
+        status, error = "interrupted", f"interrupted by the user; {_go_on(client)}"
+    else:
+        status, error = "failed", f"{type(exc).__name__}: {exc}"
+    try:
+        with uninterrupted(), store.write() as con:
+            end_run_left_running(con, run_id, status, error)
+    except Exception:  # noqa: BLE001 - the store's own failure; the caller re-raises exc, which says what happened
+        pass
 
 
 def _priced(models: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -227,7 +255,7 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
     finally:
         result.status, result.error = status, error
         try:
-            with store.write() as con:
+            with uninterrupted(), store.write() as con:  # a press here had left a finished run 'running'
                 finish_run(con, state.run_id, status, error)
         finally:
             hold.release()
@@ -364,18 +392,30 @@ def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: st
                 raise PromptBudgetError(f"the policy code and instructions alone need {need} tokens, more than the "
                                         f"budget of {config.token_budget}; raise --token-budget (a rollout and "
                                         "feedback need more)")
-    run_id = resume or start_run(config, store, client.label, extra=tags, start=start)
+    if resume:
+        return _continue(config, store, client, resume, log, on_iteration, progress, rerun, waiting, resumed=True)
+    run_id = start_run(config, store, client.label, extra=tags, start=start)
+    try:
+        return _continue(config, store, client, run_id, log, on_iteration, progress, rerun, waiting)
+    except BaseException as exc:
+        end_if_cut_short(store, run_id, exc, client)
+        raise
+
+
+def _continue(config, store, client, run_id, log, on_iteration, progress, rerun, waiting,
+              resumed: bool = False) -> OptimizeResult:
+    """Run the loop on the run ``run_id``; a resumed one's settings that ``config`` changes are recorded first."""
     state = load_state(store, run_id)
     state.rerun = rerun
     if waiting is not None:
         state.waiting = waiting
-    if resume:
-        changed = {k: getattr(config, k) for k in RESUME_OVERRIDES if getattr(config, k) != getattr(state.config, k)}
-        if changed.get("models"):
-            changed["models"] = _priced(changed["models"])
-        if changed:
-            for key, value in changed.items():
-                setattr(state.config, key, value)
-            with store.write() as con:
-                merge_run_config(con, run_id, changed)
+    changed = {k: getattr(config, k) for k in RESUME_OVERRIDES
+               if resumed and getattr(config, k) != getattr(state.config, k)}
+    if changed.get("models"):
+        changed["models"] = _priced(changed["models"])
+    if changed:
+        for key, value in changed.items():
+            setattr(state.config, key, value)
+        with store.write() as con:
+            merge_run_config(con, run_id, changed)
     return run_loop(store, state, client, log, on_iteration, progress)

@@ -24,7 +24,7 @@ from typing import Iterator
 
 from pipeline.llm.client import EnsembleClient, ReplayClient
 from pipeline.optimizer.config import OptimizeConfig
-from pipeline.optimizer.loop import load_state, run_loop, start_run
+from pipeline.optimizer.loop import end_if_cut_short, load_state, run_loop, start_run
 from pipeline.optimizer.strategies import make_strategy
 from store import Store
 from store.readers import (blob_text, first_call_errors, get_run, iteration_prompts, last_iteration, pool_bases,
@@ -117,10 +117,14 @@ def replay(store: Store, run_id: str, log=lambda s: None, on_iteration=None) -> 
         client = EnsembleClient([ReplayClient(replies, model=e["model"], errors=errors) for e in config.models])
         client.label = run["model"]  # its first model counts the prompts' tokens, as in the original
     new_run = start_run(config, store, client.label, kind="replay", extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
-    state = load_state(store, new_run)
-    state.pool_bases = bases  # the proposal pool starts each candidate from the iterations its original saw
-    state.config.audit_episodes = 0  # a replay checks that the loop reproduces; its audit is `codearcade audit`
-    result = run_loop(store, state, client, log, on_iteration)
+    try:
+        state = load_state(store, new_run)
+        state.pool_bases = bases  # the proposal pool starts each candidate from the iterations its original saw
+        state.config.audit_episodes = 0  # a replay checks that the loop reproduces; its audit is `codearcade audit`
+        result = run_loop(store, state, client, log, on_iteration)
+    except BaseException as exc:
+        end_if_cut_short(store, new_run, exc, client)
+        raise
 
     with store.read() as con:
         original, again = iteration_prompts(con, run_id), iteration_prompts(con, new_run)

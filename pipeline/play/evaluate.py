@@ -25,6 +25,7 @@ from pipeline.play.verify import checked_outcome
 from pipeline.play.versions import policy_version_row
 from pipeline.play.config import EvalConfig  # noqa: F401  (its home; callers import it from here too)
 from pipeline.settings import check_settings
+from pipeline.stopping import uninterrupted
 from store import Store
 from store.db import is_ctrl_c
 from store.locks import run_lock
@@ -150,6 +151,8 @@ def evaluate(
                 raise KeyboardInterrupt from None
             status, error = "failed", f"{type(exc).__name__}: {exc}"
             raise
-        finally:  # the episodes not yet written and the run's end, in one transaction
-            writer.flush(also=lambda con: finish_run(con, run_id, status, error))
+        finally:  # the episodes not yet written and the run's end, in one transaction (a press in it had rolled
+            # it back: a run whose games were all played left 'running')
+            with uninterrupted():
+                writer.flush(also=lambda con: finish_run(con, run_id, status, error))
     return EvalResult(run_id, game, info.version_id, [o for o in outcomes if o is not None])

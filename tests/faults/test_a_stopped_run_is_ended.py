@@ -1,0 +1,163 @@
+"""A stopped run is ended in the store itself: stopped before its loop took it over, or as it was being ended.
+
+``start_run`` writes a new run as 'running'; the loop marks it finished, failed or interrupted when it ends. What a
+command does in between (print the run's start line, name it, open its Rerun recordings, load its state, take its
+lock) was outside both: a SIGTERM there (CI saw one, 4 s into `optimize`, on a loaded machine) left the row
+'running' for good, shown interrupted only while no process held the run. Each way a run is started (the CLI, a
+batch's run, the Python API, a replay) is stopped here at each step of that stretch, by a Ctrl-C, a SIGTERM and an
+error, and its row read back: interrupted (resumable) or failed, never 'running'.
+
+The write that ends a run (its status, an evaluation's last episodes) could itself be cut: a Ctrl-C (CI's
+soak of presses to `compare`) that landed in it rolled it back, and a run whose games were all played was left
+'running'. That write now runs to its end and the press is raised after it (``pipeline.stopping.uninterrupted``).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from dataclasses import asdict
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.stopping import Terminated
+from store import Store
+from tests.conftest import COMPETENT_REPLY, POLICIES
+
+STOPS = {"a Ctrl-C": (KeyboardInterrupt, "interrupted"), "a SIGTERM": (Terminated, "interrupted"),
+         "an error": (OSError, "failed")}
+"""What stops the command, and the status its run must be left with."""
+
+STEPS = [("pipeline.cli.optimize", "_run_recordings"), ("pipeline.optimizer.loop", "load_state"),
+         ("pipeline.optimizer.loop", "run_lock"), ("pipeline.optimizer.loop", "TokenCounter")]
+"""Where between the run's creation and its loop the stop lands (each, the first thing that step calls)."""
+
+
+def _stop_at(monkeypatch, module: str, name: str, stop: type[BaseException]) -> None:
+    def stopped(*args, **kwargs):
+        raise stop("stopped here by the test")
+
+    monkeypatch.setattr(f"{module}.{name}", stopped)
+
+
+def _rows(store: Store) -> list[tuple[str, str, str | None]]:
+    return store.query("SELECT kind, status, error FROM runs ORDER BY created_at")
+
+
+def _check(rows, kind: str, status: str) -> None:
+    assert [(k, s) for k, s, _ in rows] == [(kind, status)], rows
+    error = rows[0][2]
+    assert error and (("interrupted by the user" in error) if status == "interrupted" else "OSError" in error), rows
+
+
+@pytest.mark.parametrize("stop", STOPS, ids=list(STOPS))
+@pytest.mark.parametrize("step", STEPS, ids=[name for _, name in STEPS])
+def test_optimize_stopped_before_its_loop_leaves_no_run_running(step, stop, tmp_path, scripted, monkeypatch):
+    model = scripted([COMPETENT_REPLY])
+    store = Store(tmp_path / "s.duckdb")
+    raised, status = STOPS[stop]
+    _stop_at(monkeypatch, *step, raised)
+    argv = ["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--iterations", "1",
+            "--eval-max-steps", "100", "--rollout-steps", "20", "--audit-episodes", "0", "--store", str(store.path)]
+    if raised is OSError:
+        with pytest.raises(OSError, match="stopped here by the test"):
+            main(argv)
+    else:
+        assert main(argv) == 130
+    _check(_rows(store), "optimize", status)
+    assert model.requests() == [], "the loop never started: no call was made"
+
+
+@pytest.mark.parametrize("stop", STOPS, ids=list(STOPS))
+@pytest.mark.parametrize("way", ["a batch's run", "the Python API", "a replay"])
+def test_every_way_of_starting_a_run_ends_it_when_stopped_before_its_loop(way, stop, tmp_path, scripted, monkeypatch):
+    from pipeline.jobs.worker import _optimize
+    from pipeline.llm.client import open_client
+    from pipeline.optimizer.config import OptimizeConfig
+    from pipeline.optimizer.loop import optimize, start_run
+    from pipeline.optimizer.replay import replay
+
+    model = scripted([COMPETENT_REPLY])
+    store = Store(tmp_path / "s.duckdb")
+    config = OptimizeConfig(game="pong", model=model.model, api_base=model.api_base, iterations=1,
+                            eval_max_steps=100, rollout_steps=20, audit_episodes=0)
+    original = start_run(config, store, model.model) if way == "a replay" else None
+    raised, status = STOPS[stop]
+    _stop_at(monkeypatch, "pipeline.optimizer.replay" if way == "a replay" else "pipeline.optimizer.loop", "load_state",
+             raised)
+    with pytest.raises(raised, match="stopped here by the test"):
+        if way == "a batch's run":
+            _optimize({"config": asdict(config), "batch": "b", "batch_key": "k"}, store)
+        elif way == "the Python API":
+            client, server, _ = open_client(model.model, model.api_base, 0.0, 256, None)
+            optimize(config, store, client)
+        else:
+            replay(store, original)
+    rows = _rows(store)
+    if way == "a replay":  # the original, as it was; the replay run ended
+        assert rows[0][:2] == ("optimize", "running"), rows
+        rows = rows[1:]
+    _check(rows, {"a replay": "replay"}.get(way, "optimize"), status)
+
+
+@pytest.mark.parametrize("sent", [signal.SIGINT, signal.SIGTERM], ids=["a Ctrl-C", "a SIGTERM"])
+@pytest.mark.parametrize("verb", ["eval", "optimize"])
+def test_a_stop_that_lands_in_the_write_that_ends_a_run_waits_for_it(verb, sent, tmp_path, scripted, monkeypatch):
+    module = "pipeline.play.evaluate" if verb == "eval" else "pipeline.optimizer.loop"
+    ending = getattr(__import__(module, fromlist=["finish_run"]), "finish_run")
+    landed = []
+
+    def stopped_while_ending(*args, **kwargs):
+        landed.append(True)
+        os.kill(os.getpid(), sent)  # its handler runs at the next line of Python: in the transaction
+        return ending(*args, **kwargs)
+
+    monkeypatch.setattr(f"{module}.finish_run", stopped_while_ending)
+    store = Store(tmp_path / "s.duckdb")
+    if verb == "eval":
+        argv = ["eval", str(POLICIES / "pong_competent.py"), "--episodes", "2", "--max-steps", "60"]
+    else:
+        model = scripted([COMPETENT_REPLY])
+        argv = ["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--iterations",
+                "0", "--eval-max-steps", "60", "--audit-episodes", "0"]
+    assert main([*argv, "--store", str(store.path)]) == 130, "the press still stops the command"
+    assert landed == [True]
+    assert store.query("SELECT kind, status FROM runs") == [(verb, "finished")]
+    assert store.query("SELECT count(*) FROM episodes WHERE kind = 'eval'") == [(2 if verb == "eval" else 1,)]
+
+
+def test_uninterrupted_holds_a_stop_to_the_end_of_the_outermost_block_and_no_further():
+    from pipeline.stopping import stop_once, uninterrupted
+
+    before = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+
+    def install() -> None:
+        for signum in before:
+            signal.signal(signum, stop_once)
+
+    try:
+        for signum, raised in [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated)]:
+            install()
+            done = []
+            with pytest.raises(raised) as stop:
+                with uninterrupted():
+                    with uninterrupted():
+                        os.kill(os.getpid(), signum)
+                        done.append("inner")
+                    done.append("outer")
+            assert done == ["inner", "outer"] and type(stop.value) is raised
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN, "a second press is ignored while it winds down"
+            with uninterrupted():  # nothing held over
+                pass
+        # a block that fails keeps its error, and the stop is not raised later by another block
+        install()
+        with pytest.raises(ValueError, match="its own"):
+            with uninterrupted():
+                os.kill(os.getpid(), signal.SIGINT)
+                raise ValueError("its own")
+        with uninterrupted():
+            pass
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
