@@ -296,7 +296,15 @@ def insert_candidate(con: duckdb.DuckDBPyConnection, row: dict[str, Any]) -> Non
 
 
 def replace_audits(con: duckdb.DuckDBPyConnection, run_id: str, rows: list[dict[str, Any]]) -> None:
-    """The run's ``audits`` rows, replacing those of an earlier audit of the run."""
+    """The run's ``audits`` rows, replacing those of an earlier audit of the run, and its audit episodes that the
+    rows do not list (an earlier audit of more games, or of a best version since superseded): what is left of
+    ``kind = 'audit'`` is this audit's games, as its rows say."""
+    listed = [episode for row in rows for episode in row["episode_ids"]]
+    earlier = [episode for (episode,) in con.execute(
+        "SELECT episode_id FROM episodes WHERE run_id = ? AND kind = 'audit' AND NOT list_contains(?, episode_id)",
+        [run_id, listed]).fetchall()]
+    if earlier:
+        delete_episodes(con, earlier)
     con.execute("DELETE FROM audits WHERE run_id = ?", [run_id])
     for row in rows:
         _insert(con, "audits", {"created_at": utcnow(), **row, "run_id": run_id})

@@ -112,6 +112,21 @@ def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
     code, out = _cli("audit", "last", "--seeds", ",".join(map(str, seeds)), "--json", "--store", str(store.path))
     assert code == 0 and json.loads(out)["audits"][0]["seeds"] == seeds
     assert _audit_returns(store) == returns and len(returns) == 16  # 2 versions x 2 protocols x 4 games
+    # one seed once a game: a seed twice (the form of a --one-life-continue run's audit) is refused for this run
+    code = main(["audit", "last", "--seeds", f"{seeds[0]},{seeds[0]}", "--store", str(store.path)])
+    assert code == 2 and _audit_returns(store) == returns
+    # an audit of fewer games replaces the earlier one's games too: what kind 'audit' holds is what audits lists
+    for games in (2, 1, 3):
+        code, out = _cli("audit", "last", "--episodes", str(games), "--json", "--store", str(store.path))
+        assert code == 0, out
+        listed = store.query("SELECT list_sort(flatten(list(episode_ids))) FROM audits")[0][0]
+        kept = [episode for (episode,) in store.query("SELECT episode_id FROM episodes WHERE kind = 'audit' "
+                                                      "ORDER BY 1")]
+        assert kept == listed and len(kept) == 4 * games, (games, kept)
+        assert store.query("SELECT count(*) FROM steps WHERE episode_id NOT IN (SELECT episode_id FROM episodes)"
+                           ) == [(0,)], "no steps of a game gone"
+        [summary] = json.loads(_cli("runs", "--json", "--store", str(store.path))[1])
+        assert summary["episodes"] == store.query("SELECT count(*) FROM episodes")[0][0], summary
     assert _cli("doctor", "--store", str(store.path))[0] == 0
     with store.write() as con:  # an audit whose games are gone is damage the doctor names
         con.execute("DELETE FROM steps WHERE episode_id IN (SELECT unnest(episode_ids) FROM audits LIMIT 1)")
@@ -126,7 +141,7 @@ def _audit_returns(store) -> list[tuple]:
 
 
 def test_audit_seeds_given_by_hand_are_checked(store, capsys):
-    for seeds, fragment in [("5", "5 is not an audit seed"), ("1000001,1000001", "each seed once"),
+    for seeds, fragment in [("5", "5 is not an audit seed"), ("1000001,1000002,1000001", "each seed once"),
                             ("1e6", "not a list of whole numbers"), (str(AUDIT_SEED_END), "is not an audit seed")]:
         with pytest.raises(SystemExit) as exit_:
             main(["audit", "last", "--seeds", seeds, "--store", str(store.path)])

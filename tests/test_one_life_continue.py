@@ -297,6 +297,19 @@ def test_the_optimizer_evaluates_the_lives_of_one_game(store, scripted):
     assert [a[3] for a in audit] == [None, audit[0][0], audit[1][0]]
     assert [a[4] for a in audit] == [0, audit[0][5], audit[0][5] + audit[1][5]]
     assert all(why is None for _, why in replay_run(store, result.run_id))
+    # `audit --seeds` with the seeds its audits rows list (the one game's seed once a life) plays it again as it
+    # was: it was refused ("each seed once"), and one seed given once replaced the audit by one life (n=1)
+    stored = store.query("SELECT role, protocol, seeds, score, score_low, score_high FROM audits ORDER BY ALL")
+    games = store.query('SELECT episode_id, seed, "return", length FROM episodes WHERE kind = \'audit\' ORDER BY 1')
+    seeds = ",".join(map(str, stored[0][2]))
+    assert len(stored[0][2]) == 3
+    assert main(["audit", result.run_id, "--seeds", seeds, "--store", str(store.path)]) == 0
+    assert store.query("SELECT role, protocol, seeds, score, score_low, score_high FROM audits ORDER BY ALL") == stored
+    assert store.query('SELECT episode_id, seed, "return", length FROM episodes WHERE kind = \'audit\' '
+                       "ORDER BY 1") == games
+    other = f"{stored[0][2][0]},{stored[0][2][0] + 1}"  # two games: not this run's audit
+    assert main(["audit", result.run_id, "--seeds", other, "--store", str(store.path)]) == 2
+    assert store.query("SELECT role, protocol, seeds, score, score_low, score_high FROM audits ORDER BY ALL") == stored
 
 
 def test_experiment_files_take_the_protocol_and_the_benchmarks_use_it_where_the_authors_did(tmp_path):

@@ -44,7 +44,7 @@ def _seeds(text: str) -> list[int]:
     from pipeline.optimizer.audit import check_audit_seeds
 
     try:
-        return check_audit_seeds(int(part) for part in text.split(",") if part.strip())
+        return check_audit_seeds((int(part) for part in text.split(",") if part.strip()), one_game=None)
     except ValueError as err:
         message = str(err) if "--seeds" in str(err) else f"{text!r} is not a list of whole numbers"
         raise argparse.ArgumentTypeError(message.removeprefix("--seeds: ")) from None

@@ -94,9 +94,11 @@ def _shown(row: dict[str, Any]) -> str:
     return interval_text(row["score"], row["score_low"], row["score_high"], len(row["seeds"]), MEAN_METHOD)
 
 
-def check_audit_seeds(seeds: Sequence[int]) -> list[int]:
-    """The seeds ``codearcade audit --seeds`` replays, checked: distinct, each in the audit's range (a seed
-    below it may be a tuning seed, and those games are not held out). ValueError with one line."""
+def check_audit_seeds(seeds: Sequence[int], one_game: bool | None = False) -> list[int]:
+    """The seeds ``codearcade audit --seeds`` replays, checked: each in the audit's range (a seed below it may be
+    a tuning seed, and those games are not held out), and distinct, but for a ``--one-life-continue`` run
+    (``one_game``), whose audit is the lives of one game, one seed a life as its audits row lists them (None: not
+    known yet, as the command line is read). ValueError with one line."""
     seeds = list(seeds)
     if not seeds:
         raise ValueError("--seeds needs at least one seed")
@@ -104,7 +106,11 @@ def check_audit_seeds(seeds: Sequence[int]) -> list[int]:
     if outside:
         raise ValueError(f"--seeds: {outside[0]} is not an audit seed (they are from {AUDIT_SEED_BASE:,} to "
                          f"{AUDIT_SEED_END - 1:,}; an audit's seeds are in its audits rows and its episodes)")
-    if len(set(seeds)) != len(seeds):
+    distinct = len(set(seeds))
+    if one_game and distinct > 1:
+        raise ValueError("--seeds: the run plays --one-life-continue, so its audit is one game, its lives on one "
+                         "seed: give that seed once a life, as its audits row lists it (1234567,1234567,1234567)")
+    if not one_game and distinct != len(seeds) and (one_game is False or distinct > 1):
         raise ValueError("--seeds: each seed once (a seed twice is the same game twice)")
     return seeds
 
@@ -128,15 +134,15 @@ def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: i
         raise ValueError(f"run {run_id} is an eval run: only optimization runs have a best version to audit")
     recorded = json.loads(run["config"])
     config = OptimizeConfig.from_record(recorded)
+    one_game = config.one_life == ONE_LIFE_CONTINUE  # the run's episodes are the lives of one game: so the audit's
     if seeds is not None:
-        seeds = check_audit_seeds(seeds)
+        seeds = check_audit_seeds(seeds, one_game)
         n = len(seeds)
     else:
         n = episodes if episodes is not None else (config.audit_episodes or (OptimizeConfig.audit_episodes
                                                                               if on_demand else 0))
     if n < 1 or not subjects:
         return AuditResult(run_id, [])
-    one_game = config.one_life == ONE_LIFE_CONTINUE  # the run's episodes are the lives of one game: so the audit's
     if seeds is None:
         seeds = draw_audit_seeds(1 if one_game else n)
     specs: list[EpisodeSpec] = []
