@@ -502,10 +502,10 @@ def iteration_prompts(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[int, 
 # ---------------------------------------------------------------------------------------------- batches
 
 
-def batch_runs(con: duckdb.DuckDBPyConnection, batch: str) -> list[tuple[str, str, str]]:
-    """(batch key, run id, status) of every run of the batch ``batch``, oldest first."""
+def batch_runs(con: duckdb.DuckDBPyConnection, batch: str) -> list[tuple[str, str, str, str | None]]:
+    """(batch key, run id, status, name) of every run of the batch ``batch``, oldest first."""
     return con.execute(
-        "SELECT json_extract_string(config, '$.batch_key'), run_id, status FROM runs "
+        "SELECT json_extract_string(config, '$.batch_key'), run_id, status, name FROM runs "
         "WHERE json_extract_string(config, '$.batch') = ? ORDER BY created_at", [batch]).fetchall()
 
 

@@ -274,3 +274,47 @@ def test_one_batch_is_run_by_one_command_at_a_time(tmp_path, store, scripted):
             first.wait()
     keys = store.query("SELECT json_extract_string(config, '$.batch_key') FROM runs WHERE kind = 'optimize'")
     assert len(keys) == 2 and len(set(keys)) == 2, keys
+
+
+@pytest.mark.slow
+def test_a_finished_run_whose_label_changed_is_renamed_without_being_run_again(tmp_path, store, scripted):
+    """A [[run]] name edited after its run finished reached the store only if the run ever resumed (a finished
+    run is skipped): `runs` kept showing the old label. Each way a label changes (a name edited, a name taken away:
+    the batch's default label; one entry changed, the other not) is applied in one write, said in the log and in
+    --dry-run, and nothing is played again."""
+    model = scripted([COMPETENT_REPLY])
+    path = tmp_path / "labels.toml"
+
+    def write(first: str | None, second: str | None) -> None:
+        named = [f"name = '{n}'\n" if n else "" for n in (first, second)]
+        path.write_text(f"name = 'labels'\n[defaults]\niterations = 0\neval_max_steps = 60\naudit_episodes = 0\n"
+                        f"model = '{model.model}'\napi_base = '{model.api_base}'\n"
+                        f"[[run]]\ngame = 'pong'\n{named[0]}[[run]]\ngame = 'breakout'\n{named[1]}")
+
+    def names() -> dict[str, str | None]:
+        return dict(store.query("SELECT game, name FROM runs"))
+
+    write("alpha", "beta")
+    assert _batch(path, store).returncode == 0
+    assert names() == {"pong": "alpha", "breakout": "beta"}
+    episodes = store.query("SELECT count(*) FROM episodes")[0][0]
+    for first, second, expected in [("gamma", "beta", {"pong": "gamma", "breakout": "beta"}),
+                                    (None, "delta", {"pong": "labels:pong", "breakout": "delta"}),
+                                    (None, "delta", {"pong": "labels:pong", "breakout": "delta"})]:
+        before = names()
+        write(first, second)
+        dry = _batch(path, store, "--dry-run")
+        assert dry.returncode == 0, dry.stderr
+        changed = {game for game in expected if expected[game] != before[game]}
+        for game in ("pong", "breakout"):
+            line = next(line for line in dry.stdout.splitlines() if f" {game}" in line)
+            assert line.split()[0] == "skip", dry.stdout
+            assert (f"named {before[game]!r} now" in line) == (game in changed), dry.stdout
+        assert names() == before, "a dry run changes nothing"
+        done = _batch(path, store)
+        assert done.returncode == 0, done.stderr
+        assert names() == expected
+        log = store.path.with_name(f"{store.path.name}.labels.log").read_text().split(" batch labels: ")[-1]
+        assert log.count("renamed run") == len(changed), log
+    assert store.query("SELECT count(*) FROM runs")[0][0] == 2, "nothing was started again"
+    assert store.query("SELECT count(*) FROM episodes")[0][0] == episodes, "nothing was played again"

@@ -129,8 +129,10 @@ def run(args: argparse.Namespace) -> int:
         show(f"batch {batch.name}: {len(planned)} runs into {store.path}")
         for p in planned:
             name = f"  [{p.run.name}]" if p.run.name else ""
+            renamed = f", named {p.stored_name!r} now" if p.renamed and p.stored_name else \
+                (", unnamed now" if p.renamed else "")
             show(f"  {p.action:<6} {p.run.label}{name}"
-                 + (f"  (run {short.get(p.run_id, p.run_id)}, {p.status})" if p.run_id else ""))
+                 + (f"  (run {short.get(p.run_id, p.run_id)}, {p.status}{renamed})" if p.run_id else ""))
         for line in problems:  # what would stop the batch: said now, before it is run for real
             show(f"codearcade: warning: {line}", file=sys.stderr)
         return EXIT_OK
@@ -161,7 +163,7 @@ def _run(args: argparse.Namespace, batch, store, planned) -> int:
     from datetime import datetime
     from pathlib import Path
 
-    from pipeline.jobs.batch import run_local, run_ray
+    from pipeline.jobs.batch import rename_finished, run_local, run_ray
     from viewers.safe_text import terminal_text
 
     log_path = Path(args.log) if args.log else store.path.with_name(f"{store.path.name}.{batch.name}.log")
@@ -184,6 +186,7 @@ def _run(args: argparse.Namespace, batch, store, planned) -> int:
     log(f"batch {batch.name}: {len(planned)} runs ({sum(p.action == 'skip' for p in planned)} finished already), "
         f"executor {args.executor}, store {store.path}")
     try:
+        rename_finished(store, planned, log)
         if args.executor == "ray":
             result = run_ray(batch, store, planned, args.address, log, display)
         else:

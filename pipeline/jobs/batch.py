@@ -58,6 +58,7 @@ from pipeline.stopping import Terminated
 from store import Store
 from store.readers import batch_progress, batch_runs
 from store.runs import check_run_name
+from store.writer import set_run_name
 
 TOP_LEVEL_KEYS = ("name", "store", "defaults", "matrix", "run")
 RUN_KEYS = tuple(declarations(OptimizeConfig))
@@ -101,6 +102,14 @@ class PlannedRun:
     action: str  # start | resume | skip
     run_id: str | None = None
     status: str | None = None
+    stored_name: str | None = None
+    """The run's name in the store (a run found there): a finished run whose entry's label changed is renamed."""
+
+    @property
+    def renamed(self) -> bool:
+        """A finished run whose label in the experiment file is not its name in the store: it is given the label
+        without being run again (a run that resumes is given it as it starts)."""
+        return self.action == "skip" and self.run.name is not None and self.run.name != self.stored_name
 
 
 def _suggest(key: str, known: tuple[str, ...]) -> str:
@@ -286,20 +295,33 @@ def _policy_problem(policy: str) -> str | None:
 
 def plan(batch: Batch, store: Store) -> list[PlannedRun]:
     """What running the batch would do now: skip finished runs, resume started ones, start the rest."""
-    found: dict[str, tuple[str, str]] = {}
+    found: dict[str, tuple[str, str, str | None]] = {}
     if store.exists():
         with store.read() as con:
             rows = batch_runs(con, batch.name)
-        for key, run_id, status in rows:
-            found[key] = (run_id, status)  # the latest run of a key wins
+        for key, run_id, status, name in rows:
+            found[key] = (run_id, status, name)  # the latest run of a key wins
     planned = []
     for run in batch.runs:
         if run.key not in found:
             planned.append(PlannedRun(run, "start"))
         else:
-            run_id, status = found[run.key]
-            planned.append(PlannedRun(run, "skip" if status == "finished" else "resume", run_id, status))
+            run_id, status, name = found[run.key]
+            planned.append(PlannedRun(run, "skip" if status == "finished" else "resume", run_id, status, name))
     return planned
+
+
+def rename_finished(store: Store, planned: list[PlannedRun], log: Callable[[str], None]) -> None:
+    """Give the finished runs whose entry's label changed (a ``[[run]]`` name edited) that label, in one
+    transaction: they are not run again, so the label reached the store only if one ever resumed."""
+    renamed = [p for p in planned if p.renamed]
+    if not renamed:
+        return
+    with store.write() as con:
+        for p in renamed:
+            set_run_name(con, p.run_id, p.run.name)
+    for p in renamed:
+        log(f"renamed run {p.run_id} {p.run.name!r}" + (f" (was {p.stored_name!r})" if p.stored_name else ""))
 
 
 # ------------------------------------------------------------------------------------------- local executor
