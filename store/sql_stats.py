@@ -102,17 +102,9 @@ SQL_FUNCTIONS: dict[str, tuple[str, str, Callable[..., Any], list[Any], Any]] = 
 """The scipy-backed functions a person's SQL can use: name -> (signature, one line of help, the Python function,
 its parameter types, its return type)."""
 
-CI_TEXT = ("ci_text(point, low, high)", "bare numbers as text, one decimal: 12.3 [10.1, 14.2] (two where a value "
-           "that is not zero would print as 0.0; names no level, method or n: prefer ci_text(ci))",
-           # + 0.0: never "-0.0"; two decimals where a value that is not zero would print as 0.0
-           "CREATE TEMP MACRO ci_text(point, low, high) AS CASE WHEN point IS NULL THEN NULL "
-           "WHEN low IS NULL THEN CASE WHEN point <> 0 AND round(point, 1) = 0 "
-           "THEN printf('%.2f', round(point, 2) + 0.0) ELSE printf('%.1f', round(point, 1) + 0.0) END "
-           "WHEN (point <> 0 AND round(point, 1) = 0) OR (low <> 0 AND round(low, 1) = 0) "
-           "OR (high <> 0 AND round(high, 1) = 0) "
-           "THEN printf('%.2f [%.2f, %.2f]', round(point, 2) + 0.0, round(low, 2) + 0.0, round(high, 2) + 0.0) "
-           "ELSE printf('%.1f [%.1f, %.1f]', round(point, 1) + 0.0, round(low, 1) + 0.0, round(high, 1) + 0.0) END, "
-           "(ci) AS ci.text")
+CI_TEXT = ("ci_text(point, low, high)", "bare numbers as text, to the digits of every interval the tool prints: "
+           "12.3 [10.1, 14.2], 0.004 [-0.001, 0.020] (names no level, method or n: prefer ci_text(ci))",
+           "CREATE TEMP MACRO ci_text(point, low, high) AS _ci_bounds_text(point, low, high), (ci) AS ci.text")
 """The macro that prints a value with its interval (signature, one line of help, the statement that makes it,
 with its second form, :data:`CI_TEXT_STRUCT`)."""
 CI_TEXT_STRUCT = ("ci_text(ci)", "a mean_ci / iqm_ci / iqm_ci_strata struct as text, naming level, method and n: "
@@ -127,9 +119,21 @@ def function_listing() -> list[tuple[str, str, str]]:
             + [(CI_TEXT_STRUCT[0], "macro", CI_TEXT_STRUCT[1]), (CI_TEXT[0], "macro", CI_TEXT[1])])
 
 
+def _ci_bounds_text(point: float | None, low: float | None, high: float | None) -> str | None:
+    """The numbers of ``ci_text(point, low, high)``: :func:`store.statistics.bounds_text`'s (one rule of digits:
+    the macro's own, two decimals, printed [-0.001, 0.02] as [0.00, 0.02]), NULL without a value."""
+    from store.statistics import bounds_text
+
+    if point is None or math.isnan(point):
+        return None
+    return bounds_text(point, *((low, high) if low is not None and high is not None else ()))
+
+
 def create_sql_functions(con: duckdb.DuckDBPyConnection) -> None:
     """Make :data:`SQL_FUNCTIONS` and ``ci_text`` on ``con`` (they live as long as the connection; a read-only one
     may have them). Before ``lock_configuration``, like the macros."""
     for name, (_, _, function, parameters, returns) in SQL_FUNCTIONS.items():
         con.create_function(name, function, parameters, returns, null_handling="special", side_effects=False)
+    con.create_function("_ci_bounds_text", _ci_bounds_text, ["DOUBLE"] * 3, "VARCHAR", null_handling="special",
+                        side_effects=False)
     con.execute(CI_TEXT[2])

@@ -86,6 +86,17 @@ def interval_text(point: float | None, low: float | None, high: float | None, n:
     shown_n = "n=" + " and ".join(str(c) for c in counts)
     if point is None or (isinstance(point, float) and math.isnan(point)):
         return f"none ({shown_n})"
+    numbers = bounds_text(point, low, high, signed)
+    if low is None or high is None:
+        why = reason or (TOO_FEW if min(counts) < 2 else ALL_EQUAL)
+        return f"{numbers} ({shown_n}: {why})"
+    return f"{numbers} {level * 100:g}% {method}, {shown_n}"
+
+
+def bounds_text(point: float, low: float | None = None, high: float | None = None, signed: bool = False) -> str:
+    """The numbers of :func:`interval_text`, ``12.3 [10.1, 14.3]`` (the value alone without both bounds), to its
+    digits: one (three for values under 1 in size; up to three where a value that is not zero would print as zero,
+    all the numbers alike); ``signed``: a sign on each."""
     numbers = [x for x in (point, low, high) if x is not None]
     digits = 1 if max(abs(x) for x in numbers) >= 1 or all(x == 0 for x in numbers) else 3
     for more in range(digits, 4):  # a bound near zero is printed on its side of it: [-1.64, -0.04], not [-1.6, -0.0]
@@ -98,9 +109,8 @@ def interval_text(point: float | None, low: float | None, high: float | None, n:
         return f"{round(x, digits) + 0.0:{sign}.{digits}f}"  # + 0.0: a value that rounds to zero is 0, never -0
 
     if low is None or high is None:
-        why = reason or (TOO_FEW if min(counts) < 2 else ALL_EQUAL)
-        return f"{number(point)} ({shown_n}: {why})"
-    return f"{number(point)} [{number(low)}, {number(high)}] {level * 100:g}% {method}, {shown_n}"
+        return number(point)
+    return f"{number(point)} [{number(low)}, {number(high)}]"
 
 
 def mean_interval(values: Sequence[float], confidence: float = CONFIDENCE) -> Interval:

@@ -379,3 +379,31 @@ def test_two_budgets_of_a_run_comparison_are_two_rows_however_close():
     texts = {_amount(b): b for b in budgets}
     assert len(texts) == len(budgets)
     assert all(float(text) == budget and not text.endswith((".", "0.0")) for text, budget in texts.items())
+
+
+def test_the_runs_table_never_cuts_a_best_score_s_interval():
+    """The runs table clipped its cells at 32 characters: ``-1.0 (n=3: all equal, no interv…``, ``1385.0 [1310.4,
+    1459.6] 95% t, …`` lost the n the interval names. Over scores of every size and every kind of interval, the
+    printed table holds each run's best exactly as ``interval_text`` writes it."""
+    import random
+
+    from viewers.compare_report import _best, text_lines
+
+    rng = random.Random(5)
+    for _ in range(200):
+        runs = []
+        for label in "AB":
+            point = round(rng.choice([-1, 1]) * rng.random() * 10.0 ** rng.randint(-3, 6), rng.randint(0, 4))
+            spread = abs(point) * rng.random() if rng.random() < 0.7 else None
+            n = rng.choice([1, 2, 3, 30, 1000])
+            runs.append({"label": label, "run_id": "01" + "X" * 24, "model": "openai/" + "m" * rng.randint(1, 60),
+                         "status": "finished", "iterations": 3, "best_score": point,
+                         "best_low": None if spread is None else point - spread,
+                         "best_high": None if spread is None else point + spread, "best_episodes": n,
+                         "best_iteration": 2, "llm_calls": 3, "total_tokens": 9000, "elapsed_s": 12.0})
+        budgets = [{"unit": "LLM calls", "budget": 3, "A": runs[0]["best_score"], "B": runs[1]["best_score"]}]
+        data = {"mode": "runs", "runs": runs, "difference": {"verdict": "no verdict"}, "budgets": budgets,
+                "diff": None}
+        table = text_lines(data)[0]
+        for run in runs:
+            assert _best(run) in table, (_best(run), table)

@@ -429,3 +429,29 @@ def test_resume_takes_the_runs_own_settings_given_again_and_refuses_changed_ones
                         ({"policy": str(EXAMPLES / "pong.py")}, "policy")):
         with pytest.raises(ValueError, match=f"{flag} cannot change when resuming"):
             plan_resume(store, opt_id, dict(given))
+
+
+def test_the_report_headline_gives_each_side_of_the_audit_its_score_or_its_forfeit(filled):
+    """The headline's held-out audit: the best's score and the starter's, each with its interval or the word
+    forfeit (a starter that forfeited its audit showed as "–", read as not audited), for each side that forfeits."""
+    from viewers.report import collect, render_markdown
+
+    store, run_id, _ = filled
+    data = collect(store, run_id)
+    assert {(a["role"], a["protocol"]) for a in data["audits"]} >= {("best", "standard"), ("starter", "standard")}
+    for best_forfeits in (False, True):
+        for starter_forfeits in (False, True):
+            audits = [{**a, "score": None, "forfeit": "RuntimeError at step 251 (policy_error)"}
+                      if a["protocol"] == "standard" and {"best": best_forfeits, "starter": starter_forfeits}[a["role"]]
+                      else a for a in data["audits"]]
+            best = next(a for a in audits if a["role"] == "best" and a["protocol"] == "standard")
+            summary = {**data["summary"], "audit_score": best["score"], "overfit": None}
+            headline = next(line for line in render_markdown({**data, "audits": audits, "summary": summary},
+                                                             {}).splitlines() if "held-out audit" in line)
+            said = headline.split("held-out audit ")[1]
+            assert said.startswith("**forfeit**" if best_forfeits else "**"), headline
+            if not best_forfeits:
+                assert "n=" in said.split("(standard protocol")[0], headline
+            starter = said.split("starter ")[1]
+            assert starter.startswith("forfeit)") if starter_forfeits else "n=" in starter, headline
+            assert "–" not in said, headline

@@ -100,3 +100,29 @@ def test_a_bound_near_zero_prints_on_its_side_of_zero_and_never_as_minus_zero(op
         for value, printed in zip((point, low, high), shown):
             if abs(value) >= 0.005:
                 assert printed != 0 and (printed < 0) == (value < 0), (value, text)
+
+
+def test_ci_text_of_bare_numbers_prints_them_as_every_interval_is_printed(opened):
+    """``ci_text(point, low, high)`` had its own digits (two decimals at most): ``ci_text(0.004, -0.001, 0.02)``
+    printed ``0.00 [0.00, 0.02]``, an interval that includes zero shown as one that starts at it. Over values of
+    every size and sign, it prints the numbers ``interval_text`` prints, and none that is not zero as zero."""
+    import random
+    import re
+
+    from store.statistics import interval_text
+
+    rng = random.Random(11)
+    cases = []
+    for _ in range(300):
+        scale = 10.0 ** rng.randint(-4, 5)
+        point = rng.uniform(-1, 1) * scale
+        cases.append((point, point - rng.uniform(0, 1) * scale, point + rng.uniform(0, 1) * scale))
+    values = ", ".join(f"({i}, {p!r}::DOUBLE, {lo!r}::DOUBLE, {hi!r}::DOUBLE)" for i, (p, lo, hi) in enumerate(cases))
+    texts = [text for (text,) in run_user_query(
+        opened, f"SELECT ci_text(p, lo, hi) FROM (VALUES {values}) t(i, p, lo, hi) ORDER BY i").rows]
+    for (point, low, high), text in zip(cases, texts, strict=True):
+        assert interval_text(point, low, high, 3, "t") == f"{text} 95% t, n=3", (point, low, high)
+        for value, printed in zip((point, low, high), re.findall(r"-?\d+\.\d+", text)):
+            if abs(value) >= 0.0005:
+                assert float(printed) != 0 and (float(printed) < 0) == (value < 0), (value, text)
+    assert one(opened, "SELECT ci_text(0.004, -0.001, 0.02)") == ("0.004 [-0.001, 0.020]",)

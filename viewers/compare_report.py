@@ -217,7 +217,7 @@ def text_lines(data: dict[str, Any]) -> list[str]:
                                "tokens", "seconds"),
                               [(r["label"], r["run_id"], r["model"], r["status"], r["iterations"], _best(r),
                                 r["best_iteration"], r["llm_calls"], r["total_tokens"], round(r["elapsed_s"], 1))
-                               for r in runs], max_width=32, null="-"),
+                               for r in runs], max_width=32, null="-", whole=("best",)),
                  terminal_text(_best_difference(data)),
                  "", "best score reached within the same budget:",
                  format_table(("budget in", "up to", "A best", "B best"), _budget_rows(data), max_width=40, null="-"),

@@ -67,6 +67,13 @@ def _score_text(row: dict[str, Any]) -> str:
                          MEAN_METHOD)
 
 
+def _audit_text(row: dict[str, Any] | None) -> str:
+    """A side of the held-out audit in the headline: its score with its interval, or why it has none."""
+    if row is None:
+        return "not audited"
+    return _score_text(row) if row["score"] is not None else "forfeit"
+
+
 def _md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
     lines += ["| " + " | ".join(_md(v) for v in row) + " |" for row in rows]
@@ -123,15 +130,12 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
         if forfeits:
             facts.append(f"{forfeits} candidate(s) forfeited a game"
                          + (" (never the best)" if summary["best_score"] is not None else ""))
-        if summary.get("audit_score") is not None or summary.get("overfit") is not None:
-            audited = next((a for a in data.get("audits") or () if a["role"] == "best"
-                            and a["protocol"] == "standard"), None)
-            held = (_score_text(audited) if audited is not None and audited["score"] is not None
-                    else _md(summary["audit_score"]) if summary["audit_score"] is not None else "forfeit")
-            facts.append(f"held-out audit **{held}** (standard protocol; starter "
-                         f"{_md(summary['starter_audit_score'])})" + (" · **OVERFIT**: less than half of the gain "
-                                                                      "over the starter holds up" if summary["overfit"]
-                                                                      else ""))
+        audited = {a["role"]: a for a in data.get("audits") or () if a["protocol"] == "standard"}
+        if "best" in audited:  # each side's score, or "forfeit": a starter that forfeited its audit showed as "–"
+            best, starter = (_audit_text(audited.get(role)) for role in ("best", "starter"))
+            facts.append(f"held-out audit **{best}** (standard protocol; starter {starter})"
+                         + (" · **OVERFIT**: less than half of the gain over the starter holds up"
+                            if summary["overfit"] else ""))
         facts.append(f"{summary['total_tokens']:,} LLM tokens")
         if summary.get("repair_calls"):
             saved = summary.get("saved_by_repair") or 0

@@ -102,10 +102,12 @@ def _clip(text: str, width: int) -> str:
 
 
 def format_table(columns: Sequence[str], rows: Sequence[Sequence[Any]], max_width: int = DEFAULT_MAX_WIDTH,
-                 null: str = "NULL") -> str:
-    """Rows as an aligned text table (numbers right-aligned); cells wider than ``max_width`` end in "…"; every cell
-    and name is made terminal-safe (``viewers/safe_text.py``: one line, no escape sequences)."""
-    texts = [[_clip(cell_text(v, null), max_width) for v in row] for row in rows]
+                 null: str = "NULL", whole: Sequence[str] = ()) -> str:
+    """Rows as an aligned text table (numbers right-aligned); cells wider than ``max_width`` end in "…", but those
+    of the columns named in ``whole`` (a score with its interval: cut, it lost the n it names); every cell and name
+    is made terminal-safe (``viewers/safe_text.py``: one line, no escape sequences)."""
+    limits = [0 if c in whole else max_width for c in columns]
+    texts = [[_clip(cell_text(v, null), limit) for v, limit in zip(row, limits)] for row in rows]
     headers = [_clip(str(c), 0) for c in columns]  # names are never cut
     widths = [max([len(h)] + [len(r[i]) for r in texts]) for i, h in enumerate(headers)]
     numeric = [bool(rows) and all(_is_number(r[i]) or r[i] is None for r in rows) for i in range(len(columns))]
