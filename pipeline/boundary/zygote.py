@@ -118,16 +118,18 @@ def _read_task(fd: int) -> dict[str, Any]:
 
 
 def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: str, role: Role,
-            strict: bool, own_scratch: bool = False) -> None:
+            strict: bool, own_scratch: bool = False, interrupt: Any = signal.SIG_DFL) -> None:
     """In the forked worker: set up, confine (role ``policy``), run the task; never returns. ``fds[0]`` carries the
     task and its answer; a host's ``fds[1]`` is its policy process's socket. ``own_scratch``: mount a tmpfs of its
-    own on its scratch directory (the zygote has a mount namespace of its own); failing that, the task fails."""
+    own on its scratch directory (the zygote has a mount namespace of its own); failing that, the task fails.
+    ``interrupt``: its SIGINT, the command's (ignored where the command ignores it)."""
     code = 0
     fd = fds[0]
     try:
         signal.set_wakeup_fd(-1)
         for sig in (signal.SIGCHLD, signal.SIGTERM, signal.SIGINT, signal.SIGPIPE):
             signal.signal(sig, signal.SIG_DFL)
+        signal.signal(signal.SIGINT, interrupt)
         if not role.confined:  # a host outlives its policy process's socket: a write there is an error, not death
             signal.signal(signal.SIGPIPE, signal.SIG_IGN)
         namespaces.die_with_parent(zygote_pid)
@@ -240,6 +242,10 @@ def main(argv: list[str]) -> int:
     fd = argv[1]
     ctl = socket.socket(fileno=int(fd))
     scratch_base = os.getcwd()
+    # a command started with Ctrl-C ignored (nohup, CI, `cmd &` in a script) goes on through a Ctrl-C to its group:
+    # so must its workers, or its games ended as the policies' crashes (forfeits, stored for good); where it takes
+    # Ctrl-C (a handler, reset to the default by exec), a worker dies of it, as the command winds its games down
+    interrupt = signal.SIG_IGN if signal.getsignal(signal.SIGINT) is signal.SIG_IGN else signal.SIG_DFL
     # the parent manages our lifetime (EOF on the socket); a Ctrl-C meant for it must not end us first
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # no PDEATHSIG here: it follows the parent's *thread* that started us; EOF on the socket is the signal
@@ -329,7 +335,7 @@ def main(argv: list[str]) -> int:
                     pid = os.fork()
                     if pid == 0:
                         sel.close()
-                        _worker(fds, msg, zygote_pid, scratch_base, role, strict, own_scratch)
+                        _worker(fds, msg, zygote_pid, scratch_base, role, strict, own_scratch, interrupt)
                     for passed in fds:
                         os.close(passed)
                     children[pid] = (task_id, os.path.join(scratch_base, f"w{task_id}"))

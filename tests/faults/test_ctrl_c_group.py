@@ -419,3 +419,31 @@ def test_a_batch_run_says_nothing_of_a_press_that_lands_in_its_exit_handlers():
     bare = subprocess.run([sys.executable, "-c", program.replace("pipeline.jobs.worker", "json.tool")], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
     assert "Exception ignored" in bare.stderr, "without the worker's hook Python prints it"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("verb", ["eval", "optimize"])
+def test_a_command_that_ignores_ctrl_c_plays_through_one_to_its_group(verb, tmp_path, scripted):
+    """A command started with Ctrl-C ignored (nohup, CI, ``codearcade eval p.py &`` in a script) goes on through a
+    Ctrl-C to its process group, and so do the processes it started: its game hosts and policy processes died of
+    it, and their games were stored as the policies' crashes, forfeits for good (``no score``, exit 1; an
+    optimize run's audit a forfeit). Presses at moments drawn across the command's span: it ends as it would have
+    without them, every game played out."""
+    rng = random.Random(f"ignored-{verb}")
+    model = scripted([COMPETENT_REPLY] * 4) if verb == "optimize" else None
+    for k, delay in enumerate(_delays(rng, PRESSES)):
+        store = Store(tmp_path / f"s{k}.duckdb")
+        if verb == "eval":
+            argv = ["eval", str(POLICIES / "pong_competent.py"), "--episodes", "3", "--max-steps", "3000", "--store",
+                    str(store.path)]
+        else:
+            argv = ["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+                    "--iterations", "1", "--eval-max-steps", "1500", "--rollout-steps", "100", "--audit-episodes",
+                    "1", "--store", str(store.path)]
+        done = _press(argv, delay, ROOT, sent=signal.SIGINT, nohup=True)
+        said = f"{done.args} pressed at {delay:.1f} s\n{done.stderr[-3000:]}"
+        _nothing_left(done.group, said)
+        assert done.returncode == 0, said
+        assert _statuses(store) == {"finished"}, said
+        ended = store.query("SELECT end_reason, count(*) FROM episodes GROUP BY ALL ORDER BY ALL")
+        assert {reason for reason, _ in ended} <= {"truncated", "terminated"}, (ended, said)
