@@ -16,6 +16,7 @@ import json
 import os
 import random
 import re
+import shlex
 import signal
 import subprocess
 import sys
@@ -186,7 +187,7 @@ return 0
 outside the scratch (the policy's end: a PermissionError)."""
 
 
-def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, servers, capsys):
+def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, servers, capsys, monkeypatch):
     store = tmp_path / "s.duckdb"
     sentinels = [tmp_path / f"escaped-{i}" for i in range(4)]
     server = Server(store, "--game", "pong", "--budget", "5", "--max-steps", "60", "--call-time-limit", "2")
@@ -224,7 +225,15 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     assert server.proc.returncode == 0 and "serve --resume" in "".join(server.lines)
     run_id = _run_id(store)
     assert Store(store).query("SELECT status FROM runs WHERE run_id = ?", [run_id])[0][0] == "interrupted"
-    assert main(["serve", "--finalize", run_id, "--store", str(store)]) == 0
+    # the commands it printed run as printed, from anywhere: they name the store given (they left it out, and
+    # found no run in the per-user store)
+    printed = re.findall(r"`(codearcade serve [^`]*)`", "".join(server.lines))
+    assert [shlex.split(c)[2] for c in printed] == ["--resume", "--finalize"], server.lines
+    assert all(shlex.split(c)[-2:] == ["--store", os.path.abspath(store)] for c in printed), printed
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert main(shlex.split(printed[1])[1:]) == 0
     said = capsys.readouterr().out
     assert "validation  submission 3:" in said and "<- best by validation" in said.split("submission 3:")[1]
     assert "validation  submission 1: forfeit" in said and "held-out    best (submission 3)" in said
@@ -235,7 +244,8 @@ def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, s
     assert lines["held-out    starter"].endswith("training not played"), said
     # a finalized run is not served again (it served a budget of 0 that refused every submission)
     assert main(["serve", "--resume", run_id, "--port", "0", "--store", str(store)]) == 2
-    assert "is finalized: `codearcade audit" in capsys.readouterr().err
+    (audit,) = re.findall(r"is finalized: `(codearcade audit [^`]*)`", capsys.readouterr().err)
+    assert main(shlex.split(audit)[1:]) == 0 and "<- best by validation" in capsys.readouterr().out
     assert main(["serve", "--game", "pong", "--json", "--store", str(store)]) == 2
     assert "--json goes with --finalize" in capsys.readouterr().err
     assert main(["report", run_id, "--out", str(tmp_path / "report"), "--store", str(store)]) == 0
@@ -475,6 +485,37 @@ def test_over_mcp_a_refused_request_is_a_tool_error_that_costs_nothing(tmp_path)
     assert seen["budget"]["spent"] == 0 and seen["budget"]["remaining"] == 3
     assert seen["played"]["episodes"][0]["instance"] == 2 and seen["played"]["budget"]["spent"] == 1
     assert seen["sql"]["rows"] == [[2]]
+
+
+def test_over_mcp_streamable_http_on_a_free_port_the_port_said_is_the_port_served(tmp_path):
+    """``serve --mcp-port 0`` (what a busy port's error suggests) said ``http://127.0.0.1:0/mcp`` and served on a
+    port it never named. The URL it says now is where an MCP client reaches the run's tools; Ctrl-C stops it."""
+    import asyncio
+
+    from mcp import Client
+
+    serve = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--game", "pong", "--mcp-port", "0",
+                              "--budget", "2", "--store", str(tmp_path / "m.duckdb")], cwd=ROOT, env=ENV,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        said = []
+        for line in serve.stderr:
+            said.append(line)
+            if "MCP (streamable HTTP) on" in line:
+                break
+        (url,) = re.findall(r"(http://127\.0\.0\.1:\d+/mcp)", "".join(said))
+        assert not url.endswith(":0/mcp"), said
+
+        async def session() -> dict:
+            async with Client(url, read_timeout_seconds=120) as client:
+                return (await client.call_tool("task", {})).structured_content
+
+        task = asyncio.run(session())
+        assert task["game"] == "pong" and task["budget"]["remaining"] == 2, task
+    finally:
+        serve.send_signal(signal.SIGINT)
+        serve.wait(timeout=120)
+    assert serve.returncode == 0
 
 
 def test_a_run_without_submissions_cannot_be_finalized(tmp_path, capsys):

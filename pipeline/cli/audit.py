@@ -10,8 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_OK, CliError, EpisodeProgress, add_run, add_store, open_store,
-                                 positive_int, resolve_run, short_id, show, show_json)
+from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_OK, CliError, EpisodeProgress, add_run, add_store, command_text,
+                                 open_store, positive_int, resolve_run, short_id, show, show_json)
 
 
 def add_parser(verbs) -> None:
@@ -109,8 +109,9 @@ def _served_audit(store, run_id: str, args: argparse.Namespace) -> int:
     if args.json:
         show_json({"run_id": run_id, "overfit": AuditResult(run_id, rows).overfit, "audits": rows}, default=str)
     elif not rows:
-        show(f"run {short_id(store, run_id)} is served and not finalized yet: `codearcade serve --finalize "
-             f"{short_id(store, run_id)}` plays its validation and held-out pools", file=sys.stderr)
+        show(f"run {short_id(store, run_id)} is served and not finalized yet: "
+             f"`{command_text(store, 'serve', '--finalize', short_id(store, run_id))}` plays its validation and "
+             "held-out pools", file=sys.stderr)
     for line in [] if args.json else served_lines(rows):
         show(line)
     return EXIT_OK

@@ -259,6 +259,15 @@ def store_flag(store) -> list[str]:
     return ["--store", os.path.abspath(store.path)] if store.location.rule == "option" else []
 
 
+def command_text(store, *words: str) -> str:
+    """A command for the person to run, as a shell takes it, with the ``--store`` it needs (:func:`store_flag`):
+    ``codearcade serve --resume 01M9 --store /abs/s.duckdb`` (without it, one printed after ``--store`` was given
+    looked in another store: "no run 01M9")."""
+    import shlex
+
+    return shlex.join(["codearcade", *words, *store_flag(store)])
+
+
 # ------------------------------------------------------------------------------------------------------ runs
 
 

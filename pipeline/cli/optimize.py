@@ -9,7 +9,7 @@ from typing import Callable
 
 from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError, add_name, add_rerun,
                                  add_settings, add_store, open_store, rerun_target, resolve_run, short_id,
-                                 shorten_run_ids, show, show_json, store_flag, warn_if_named)
+                                 command_text, shorten_run_ids, show, show_json, warn_if_named)
 from pipeline.optimizer.config import FLAG_GROUPS, OptimizeConfig
 from pipeline.settings import declarations
 from store.scores import score_text
@@ -215,9 +215,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _resume_command(store, run: str, *more: str) -> str:
-    import shlex
-
-    return shlex.join(["codearcade", "optimize", "--resume", run, *more, *store_flag(store)])
+    return command_text(store, "optimize", "--resume", run, *more)
 
 
 def _optimize(args: argparse.Namespace, store, config, run_id: str | None, started: dict[str, str],

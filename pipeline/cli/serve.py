@@ -13,8 +13,8 @@ import argparse
 import os
 import sys
 
-from pipeline.cli.common import (EXIT_OK, CliError, add_name, add_rerun, add_settings, add_store, open_store,
-                                 rerun_target, resolve_run, short_id, show, show_json, warn_if_named)
+from pipeline.cli.common import (EXIT_OK, CliError, add_name, add_rerun, add_settings, add_store, command_text,
+                                 open_store, rerun_target, resolve_run, short_id, show, show_json, warn_if_named)
 from pipeline.serve.config import ServeConfig
 
 
@@ -113,12 +113,13 @@ def run(args: argparse.Namespace) -> int:
     with run_lock(store.path, run_id):
         served = ServeRun(store, run_id, workspace=workspace, on_episode=None if args.mcp else _episode_line,
                           rerun=rerun,
-                          on_finalized=lambda: _say(f"run {short_id(store, run_id)} finalized: `codearcade audit "
-                                                    f"{short_id(store, run_id)}` shows its validation and held-out "
-                                                    "scores"))
+                          on_finalized=lambda: _say(f"run {short_id(store, run_id)} finalized: "
+                                                    f"`{command_text(store, 'audit', short_id(store, run_id))}` "
+                                                    "shows its validation and held-out scores"))
         if args.resume is not None and served.finalized:  # it would serve a budget of 0 and refuse every submit
-            raise CliError(f"run {short_id(store, run_id)} is finalized: `codearcade audit {short_id(store, run_id)}` "
-                           "shows its result; serve a new run to go on")
+            raise CliError(f"run {short_id(store, run_id)} is finalized: "
+                           f"`{command_text(store, 'audit', short_id(store, run_id))}` shows its result; serve a new "
+                           "run to go on")
         if args.resume is not None:
             with store.write() as con:
                 mark_run_running(con, run_id)
@@ -134,8 +135,9 @@ def run(args: argparse.Namespace) -> int:
             if not served.finalized:
                 with store.write() as con:
                     finish_run(con, run_id, "interrupted")
-                _say(f"run {short_id(store, run_id)} stopped: `codearcade serve --resume {short_id(store, run_id)}` "
-                     f"serves it again, `codearcade serve --finalize {short_id(store, run_id)}` ends it")
+                short = short_id(store, run_id)
+                _say(f"run {short} stopped: `{command_text(store, 'serve', '--resume', short)}` serves it again, "
+                     f"`{command_text(store, 'serve', '--finalize', short)}` ends it")
     return EXIT_OK
 
 
@@ -155,12 +157,12 @@ def _serve(served, args: argparse.Namespace) -> None:
         _say(f"HTTP+JSON on http://127.0.0.1:{server.server_address[1]}/ (POST /task, /submit, /feedback, /budget, "
              "/sql, /finalize); Ctrl-C stops it")
     if args.mcp or args.mcp_port is not None:
-        from pipeline.serve.tools import bound_stdin_lines, build_server
+        from pipeline.serve.tools import bound_stdin_lines, build_server, serve_streamable_http
 
         mcp = build_server(served)
         if args.mcp_port is not None:
-            _say(f"MCP (streamable HTTP) on http://127.0.0.1:{args.mcp_port}/mcp")
-            mcp.run("streamable-http", host="127.0.0.1", port=args.mcp_port)
+            serve_streamable_http(mcp, args.mcp_port,
+                                  lambda port: _say(f"MCP (streamable HTTP) on http://127.0.0.1:{port}/mcp"))
         else:
             bound_stdin_lines()  # the SDK reads a message whole, however long
             mcp.run("stdio")  # returns when the agent closes stdin

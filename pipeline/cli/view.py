@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli.common import (EXIT_OK, CliError, add_run, add_store, check_output, non_negative_int, open_store,
-                                 resolve_run, short_id, show)
+from pipeline.cli.common import (EXIT_OK, CliError, add_run, add_store, check_output, command_text, non_negative_int,
+                                 open_store, resolve_run, short_id, show)
 
 
 def add_parser(verbs) -> None:
@@ -79,7 +79,7 @@ def _reused(store, run_id: str, ref: str, iteration: int, episode: str | None) -
         last = last_iteration(con, run_id)
     if last is not None and iteration > last["iteration"]:
         raise CliError(f"run {short_id(store, run_id)} has iterations 0..{last['iteration']}, no iteration "
-                       f"{iteration}; `codearcade report {ref}` shows them")
+                       f"{iteration}; `{command_text(store, 'report', ref)}` shows them")
     if not reused:
         return None
     first = reused[0]

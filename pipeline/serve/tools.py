@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import threading
-from typing import Any
+from typing import Any, Callable
 
 import anyio
 from mcp.server.mcpserver import MCPServer
@@ -124,3 +124,19 @@ def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> threading.Thread:
     thread.start()
     return thread
 
+
+
+def serve_streamable_http(server: MCPServer, port: int, listening: Callable[[int], None]) -> None:
+    """Serve ``server`` over streamable HTTP on 127.0.0.1:``port`` (0: a free one) until Ctrl-C, as the SDK's own
+    ``run("streamable-http")`` does, but on a socket bound here, so that ``listening`` gets the port really served
+    (given 0, the SDK's server printed port 0) before the first request can come."""
+    import socket
+
+    import uvicorn
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", port))
+    app = server.streamable_http_app(host="127.0.0.1")
+    listening(sock.getsockname()[1])
+    uvicorn.Server(uvicorn.Config(app, log_level=server.settings.log_level.lower())).run(sockets=[sock])
