@@ -518,6 +518,78 @@ def test_over_mcp_streamable_http_on_a_free_port_the_port_said_is_the_port_serve
     assert serve.returncode == 0
 
 
+@pytest.mark.slow
+def test_over_mcp_streamable_http_idle_and_trickling_connections_are_bounded_and_closed(tmp_path):
+    """uvicorn's defaults held every connection that sent nothing, or headers promising a body never sent: 1,100
+    took ``serve --mcp-port`` down (out of file descriptors, under ``ulimit -n 1024``), 4,000 held 400 MB. Now the
+    HTTP transport's bounds hold there too: past MAX_CONNECTIONS a connection is closed as it opens, one that has
+    not sent a whole request within REQUEST_TIMEOUT_S is closed, and then an MCP client is served."""
+    import asyncio
+    import socket
+
+    from mcp import Client
+
+    from pipeline.serve.http import MAX_CONNECTIONS, REQUEST_TIMEOUT_S
+
+    serve = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--game", "pong", "--mcp-port", "0",
+                              "--budget", "2", "--store", str(tmp_path / "m.duckdb")], cwd=ROOT, env=ENV,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    held: list[socket.socket] = []
+    try:
+        said = []
+        for line in serve.stderr:
+            said.append(line)
+            if "MCP (streamable HTTP) on" in line:
+                break
+        (url,) = re.findall(r"(http://127\.0\.0\.1:\d+/mcp)", "".join(said))
+        port = int(url.split(":")[2].split("/")[0])
+        fds = len(os.listdir(f"/proc/{serve.pid}/fd"))
+        for k in range(6 * MAX_CONNECTIONS):
+            conn = socket.create_connection(("127.0.0.1", port), timeout=30)
+            if k % 2:  # a request whose body never comes
+                conn.sendall(b"POST /mcp HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 100000\r\n\r\n{")
+            held.append(conn)
+        time.sleep(2)
+        assert len(os.listdir(f"/proc/{serve.pid}/fd")) <= fds + MAX_CONNECTIONS + 8, "connections past the bound"
+        started = time.monotonic()
+        for conn in held:  # each is closed by the server: at once past the bound, else at the deadline
+            conn.settimeout(max(1.0, REQUEST_TIMEOUT_S + 20 - (time.monotonic() - started)))
+            try:
+                assert conn.recv(65536) == b"", "closed by the server, unanswered"
+            except ConnectionResetError:  # closed past the bound with our bytes unread
+                pass
+        assert time.monotonic() - started < REQUEST_TIMEOUT_S + 20
+
+        async def session() -> dict:
+            async with Client(url, read_timeout_seconds=120) as client:
+                return (await client.call_tool("budget", {})).structured_content
+
+        assert asyncio.run(session())["remaining"] == 2
+        # sessions are bounded too (the SDK's 10,000 held 366 MB, and the port against every other client)
+        from pipeline.serve.tools import MAX_SESSIONS
+
+        def initialize() -> int:
+            body = json.dumps({"jsonrpc": "2.0", "id": 1, "method": "initialize", "params": {
+                "protocolVersion": "2025-06-18", "capabilities": {}, "clientInfo": {"name": "t", "version": "1"}}})
+            request = urllib.request.Request(url, data=body.encode(), method="POST", headers={
+                "Content-Type": "application/json", "Accept": "application/json, text/event-stream"})
+            try:
+                with urllib.request.urlopen(request, timeout=60) as answer:
+                    return answer.status
+            except urllib.error.HTTPError as refused:
+                return refused.code
+
+        answers = [initialize() for _ in range(MAX_SESSIONS + 4)]
+        assert answers.count(200) <= MAX_SESSIONS and answers[-1] == 503, answers
+        assert serve.poll() is None, "the server is up"
+    finally:
+        for conn in held:
+            conn.close()
+        serve.send_signal(signal.SIGINT)
+        serve.wait(timeout=120)
+    assert serve.returncode == 0
+
+
 def test_a_run_without_submissions_cannot_be_finalized(tmp_path, capsys):
     from pipeline.serve.config import ServeConfig
     from pipeline.serve.protocol import RequestError, ServeRun, create_run

@@ -126,10 +126,19 @@ def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> threading.Thread:
 
 
 
+MAX_SESSIONS = 16
+"""MCP sessions open at once over ``--mcp-port`` (an agent uses one; the SDK's default of 10,000, each ~37 KB, let
+a client hold the port against every other for its 30-minute idle timeout)."""
+SESSION_IDLE_TIMEOUT_S = 600.0
+"""Seconds an MCP session may go unused before it is closed."""
+
+
 def serve_streamable_http(server: MCPServer, port: int, listening: Callable[[int], None]) -> None:
     """Serve ``server`` over streamable HTTP on 127.0.0.1:``port`` (0: a free one) until Ctrl-C, as the SDK's own
     ``run("streamable-http")`` does, but on a socket bound here, so that ``listening`` gets the port really served
-    (given 0, the SDK's server printed port 0) before the first request can come."""
+    (given 0, the SDK's server printed port 0) before the first request can come, and within the HTTP transport's
+    bounds (``http.py``: connections at once, a whole request within its time), which uvicorn's defaults lack:
+    1,100 connections that sent nothing were held for good, and the server died out of file descriptors."""
     import socket
 
     import uvicorn
@@ -137,6 +146,46 @@ def serve_streamable_http(server: MCPServer, port: int, listening: Callable[[int
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind(("127.0.0.1", port))
-    app = server.streamable_http_app(host="127.0.0.1")
+    sock.listen(128)  # connections made once the URL is said wait in the backlog, not refused, until uvicorn runs
+    app = server.streamable_http_app(host="127.0.0.1", max_sessions=MAX_SESSIONS,
+                                     session_idle_timeout=SESSION_IDLE_TIMEOUT_S)
     listening(sock.getsockname()[1])
-    uvicorn.Server(uvicorn.Config(app, log_level=server.settings.log_level.lower())).run(sockets=[sock])
+    uvicorn.Server(uvicorn.Config(app, http=_bounded_h11(), log_level=server.settings.log_level.lower(),
+                                  timeout_keep_alive=5)).run(sockets=[sock])
+
+
+def _bounded_h11() -> type:
+    """uvicorn's HTTP/1.1 protocol with the bounds of ``http.py``: past ``MAX_CONNECTIONS`` a connection is closed
+    as it opens; a connection that has not sent a whole request ``REQUEST_TIMEOUT_S`` after it opened (or after its
+    last answer) is closed, unless an answer is under way (an event stream may run for long)."""
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    from pipeline.serve.http import MAX_CONNECTIONS, REQUEST_TIMEOUT_S
+
+    class BoundedH11(H11Protocol):
+        _deadline: Any = None
+
+        def connection_made(self, transport) -> None:
+            super().connection_made(transport)
+            if len(self.connections) > MAX_CONNECTIONS:
+                transport.close()
+                return
+            self._deadline = self.loop.call_later(REQUEST_TIMEOUT_S, self._past_deadline)
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            if self._deadline is not None:
+                self._deadline.cancel()
+            self._deadline = self.loop.call_later(REQUEST_TIMEOUT_S, self._past_deadline)
+
+        def connection_lost(self, exc) -> None:
+            if self._deadline is not None:
+                self._deadline.cancel()
+            super().connection_lost(exc)
+
+        def _past_deadline(self) -> None:
+            waiting = self.cycle is None or self.cycle.response_complete or self.cycle.more_body
+            if waiting and not self.transport.is_closing():
+                self.transport.close()
+
+    return BoundedH11
