@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import signal
 import threading
+import time
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
@@ -23,14 +24,17 @@ _uninterrupted = 0
 """How many :func:`uninterrupted` blocks the main thread is in."""
 _held: int | None = None
 """The signal that arrived in one, raised as the outermost ends."""
+_stopped: int | None = None
+"""The signal that stopped the command (in this process), once one has."""
 
 
 def stop_once(signum: int, frame: object) -> None:
     """The handler of both signals: ignore both from now on, and raise the interrupt (held, in an
     :func:`uninterrupted` block, until it ends)."""
-    global _held
+    global _held, _stopped
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _stopped = signum
     if _uninterrupted:
         _held = signum
         return
@@ -39,6 +43,25 @@ def stop_once(signum: int, frame: object) -> None:
 
 def _raise(signum: int) -> None:
     raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def stop_pending() -> bool:
+    """Whether a Ctrl-C or SIGTERM has stopped the command: its interrupt may have been swallowed where Python
+    ignores exceptions (an at-fork hook, a finalizer: "Exception ignored in ..."), and the signals are ignored from
+    then on, so a wait for ever must look (``view --serve-web`` waited for good after a press landed in a fork)."""
+    return _stopped is not None
+
+
+def wait_for_stop(done: Callable[[float], bool] | None = None) -> None:
+    """Wait until a Ctrl-C or SIGTERM stops the command (raised as :func:`stop_once` raises it, the one a swallowed
+    handler raised too), or until ``done(timeout)``, a wait of at most ``timeout`` seconds, says it is over."""
+    while True:
+        if _stopped is not None:
+            _raise(_stopped)
+        if done is None:
+            time.sleep(0.25)
+        elif done(0.25):
+            return
 
 
 @contextmanager
@@ -69,8 +92,10 @@ def stop_on_signals(handler: Callable[[int, object], None] = stop_once) -> list[
     """Install ``handler`` (in the main thread only) for SIGINT where it raises KeyboardInterrupt now (a process
     started with it ignored, under ``nohup`` or CI, keeps ignoring it) and for SIGTERM where it has its default;
     the signals it was installed for."""
+    global _stopped
     if threading.current_thread() is not threading.main_thread():
         return []
+    _stopped = None  # a command of its own (tests run many in one process)
     installed = []
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, handler)

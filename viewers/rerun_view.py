@@ -10,6 +10,7 @@ episode of an eval run. Where it goes: a file (``--save``, default ``./<recordin
 from __future__ import annotations
 
 import signal
+import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -80,11 +81,14 @@ def select(store: Store, run_id: str, iteration: int | None = None, episode: str
 def view(store: Store, run_id: str, iteration: int | None = None, episode: str | None = None,
          save: str | None = None, connect: str | None = None, spawn: bool = False, serve_web: bool = False,
          frames_every: int = 4, out: Callable[[str], None] = print, warn: Callable[[str], None] = print,
-         wait: Callable[[], None] | None = None, run_label: str | None = None) -> Selection:
+         wait: Callable[[], None] | None = None, run_label: str | None = None,
+         waiting: Callable[[Callable[[float], bool]], None] | None = None) -> Selection:
     """Rebuild the selected recording and send it to one sink (see the module docstring). ``run_label``: the run
     as the lines given to ``out`` name it (the command line's shortest unique prefix; the id by default).
 
-    With ``serve_web`` it serves until interrupted (or until ``wait`` returns, for tests), then stops the server.
+    With ``serve_web`` it serves until interrupted (or until ``wait`` returns, for tests), then stops the server;
+    ``waiting(done)`` is the command's wait, until a stop or ``done(timeout)`` (the server ended); a Ctrl-C ends it
+    as it ends every command (it was taken as the end of the serving: exit 0).
     """
     if frames_every < 0:
         raise ViewError("--frames-every must be 0 (no frames) or more")
@@ -134,16 +138,25 @@ def view(store: Store, run_id: str, iteration: int | None = None, episode: str |
             out("press Ctrl-C to stop")
             if wait is not None:
                 wait()
+            elif waiting is not None:  # the command's own wait, which also sees a press Python swallowed
+                waiting(lambda timeout: _ended(viewer.process, timeout))
             else:
                 viewer.process.wait()
-        except KeyboardInterrupt:
-            pass
         finally:
             signal.signal(signal.SIGTERM, previous)
             viewer.stop()
     else:
         out(f"sent recording {selection.recording_id} to the viewer")
     return selection
+
+
+def _ended(process: subprocess.Popen, timeout: float) -> bool:
+    """Whether ``process`` ended within ``timeout`` seconds."""
+    try:
+        process.wait(timeout=timeout)
+        return True
+    except subprocess.TimeoutExpired:
+        return False
 
 
 def _interrupt(signum, frame) -> None:

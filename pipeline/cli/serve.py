@@ -147,9 +147,8 @@ def _episode_line(episode: dict) -> None:
 
 
 def _serve(served, args: argparse.Namespace) -> None:
-    import threading
-
     from pipeline.serve.http import start_http
+    from pipeline.stopping import wait_for_stop
 
     port = args.port if args.port is not None else (None if args.mcp or args.mcp_port is not None else 0)
     if port is not None:
@@ -167,7 +166,7 @@ def _serve(served, args: argparse.Namespace) -> None:
             bound_stdin_lines()  # the SDK reads a message whole, however long
             mcp.run("stdio")  # returns when the agent closes stdin
         return
-    threading.Event().wait()  # until Ctrl-C or a signal
+    wait_for_stop()  # until Ctrl-C or SIGTERM (also one that landed where Python swallows it)
 
 
 def _finalize(store, run_id: str, args: argparse.Namespace) -> int:

@@ -40,6 +40,7 @@ def add_parser(verbs) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pipeline.stopping import wait_for_stop
     from viewers.rerun_sinks import ViewerError
     from viewers.rerun_view import view
 
@@ -58,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         view(store, run_id, iteration=args.iteration, episode=episode, save=args.save,
              connect=args.connect, spawn=args.spawn, serve_web=args.serve_web, frames_every=args.frames_every,
-             out=out, warn=lambda line: show(line, file=sys.stderr), run_label=short_id(store, run_id))
+             out=out, warn=lambda line: show(line, file=sys.stderr), run_label=short_id(store, run_id),
+             waiting=wait_for_stop)
     except ViewerError as exc:
         raise CliError(str(exc)) from None
     return EXIT_OK

@@ -161,3 +161,45 @@ def test_uninterrupted_holds_a_stop_to_the_end_of_the_outermost_block_and_no_fur
     finally:
         for signum, handler in before.items():
             signal.signal(signum, handler)
+
+
+def test_a_press_python_swallows_in_a_fork_still_ends_a_wait_for_ever():
+    """A Ctrl-C whose handler ran in an at-fork hook (``store.hub``'s, as ``view --serve-web`` started Rerun's
+    server) raised its KeyboardInterrupt there, where Python prints "Exception ignored" and goes on; the signals
+    were ignored from then on, and the command served for good (a soak of presses hung it). ``wait_for_stop``
+    raises the stop all the same, at once."""
+    import subprocess
+    import sys
+    import textwrap
+
+    program = textwrap.dedent("""
+        import os, signal, sys, time
+        from pipeline.stopping import stop_on_signals, stop_once, wait_for_stop
+
+        stop_on_signals(stop_once)
+        armed = [True]
+
+        def before():
+            if armed.pop() if armed else False:
+                os.kill(os.getpid(), signal.SIGINT)
+                sum(range(1000))  # the handler runs here, in the hook: its interrupt is swallowed
+
+        os.register_at_fork(before=before)
+        pid = os.fork()
+        if pid == 0:
+            os._exit(0)
+        os.waitpid(pid, 0)
+        print("went on past the press", flush=True)
+        started = time.monotonic()
+        try:
+            wait_for_stop(lambda timeout: time.monotonic() - started > 20)
+        except KeyboardInterrupt:
+            print("stopped after %.1f s" % (time.monotonic() - started), flush=True)
+            sys.exit(130)
+        sys.exit(1)
+    """)
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=120,
+                          cwd=str(POLICIES.parents[1]))
+    assert done.returncode == 130, done.stdout + done.stderr
+    assert "went on past the press" in done.stdout and "Exception ignored" in done.stderr
+    assert float(done.stdout.split("stopped after ")[1].split()[0]) < 2
