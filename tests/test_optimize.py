@@ -183,3 +183,38 @@ def test_a_budget_no_prompt_fits_is_refused_before_anything_plays(store, scripte
     info, name = resolve_start(config)
     need = smallest_prompt_tokens(name, task_settings(info, name).instruction, info, TokenCounter(model.model), 1.0)
     assert f"need {need} tokens" in str(refused.value)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("budget, given", [("--max-llm-calls", "1"), ("--max-total-tokens", "9000"),
+                                           ("--max-wall", "0.0001")])
+def test_a_run_stopped_by_a_budget_says_a_command_that_goes_on_with_a_larger_one(budget, given, tmp_path, scripted,
+                                                                                  capsys, monkeypatch):
+    """The line said ``codearcade optimize --resume RUN --max-... --store S``: pasted, the parser refused
+    ``--max-...`` and suggested --max-wall, whatever budget had stopped the run. It names the budget now, twice
+    what was spent, and runs as printed, from anywhere."""
+    import re
+    import shlex
+
+    from pipeline.cli import main
+    from store import Store
+
+    model = scripted([COMPETENT_REPLY] * 6)
+    store = Store(tmp_path / "s.duckdb")
+    code = main(["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--iterations",
+                 "3", "--eval-max-steps", "200", "--rollout-steps", "40", "--audit-episodes", "0", "--repairs", "0",
+                 budget, given, "--store", str(store.path)])
+    err = capsys.readouterr().err
+    assert code == 0 and store.query("SELECT status FROM runs") == [("budget",)], err
+    (command,) = re.findall(r"continue it with a larger one: `([^`]*)`", err)
+    words = shlex.split(command)
+    doubled = f"{float(given) * 2:g}" if "." in given else str(int(given) * 2)
+    assert words[2:6] == ["--resume", words[3], budget, doubled] and words[-2:] == ["--store", str(store.path)], words
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert main(words[1:]) == 0, capsys.readouterr().err
+    setting = {"--max-llm-calls": "max_llm_calls", "--max-total-tokens": "max_total_tokens",
+               "--max-wall": "max_wall_minutes"}[budget]
+    assert store.query(f"SELECT status IN ('budget', 'finished'), config->>'$.{setting}' FROM runs") == [
+        (True, doubled if "." not in given else str(float(doubled)))]

@@ -11,7 +11,7 @@ from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_INTERRUPTED, EXIT_OK,
                                  add_settings, add_store, open_store, rerun_target, resolve_run, short_id,
                                  command_text, shorten_run_ids, show, show_json, warn_if_named)
 from pipeline.optimizer.config import FLAG_GROUPS, OptimizeConfig
-from pipeline.settings import declarations
+from pipeline.settings import declarations, flag_of
 from store.scores import score_text
 from viewers.safe_text import terminal_text
 
@@ -214,6 +214,15 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_INTERRUPTED
 
 
+def _larger_budget(config, setting: str | None) -> tuple[str, ...]:
+    """The flag and a value twice the spent one of the budget ``setting`` that stopped a run (its command runs as
+    printed; it said ``--max-...``, which the parser refused); none where a larger one would not help."""
+    spent = getattr(config, setting) if setting is not None else None
+    if spent is None:
+        return ()
+    return flag_of(OptimizeConfig, setting), f"{spent * 2:g}" if isinstance(spent, float) else str(spent * 2)
+
+
 def _resume_command(store, run: str, *more: str) -> str:
     return command_text(store, "optimize", "--resume", run, *more)
 
@@ -284,7 +293,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
             show(line)
     if result.status == "budget":
         show(f"codearcade: run {short} stopped by its budget; continue it with a larger one: "
-             f"`{_resume_command(store, short, '--max-...')}`", file=sys.stderr)
+             f"`{_resume_command(store, short, *_larger_budget(config, result.budget))}`", file=sys.stderr)
         return EXIT_OK
     if result.status != "finished":
         played_all = any(i.iteration >= config.iterations for i in result.iterations)

@@ -211,7 +211,8 @@ def _within_the_time_budget(state: "RunState", iteration: int) -> Iterator[None]
         yield
     except DeadlinePassed:
         raise BudgetExhausted(f"time budget: --max-wall {state.config.max_wall_minutes:g} min ran out while "
-                              f"iteration {iteration}'s games played (stopped there: none of them counts)") from None
+                              f"iteration {iteration}'s games played (stopped there: none of them counts)",
+                              "max_wall_minutes") from None
 
 
 def _cached(version: str, row: dict) -> Assessment:

@@ -81,6 +81,9 @@ class OptimizeResult:
     error: str | None = None
     audit: Any = None
     """The held-out audit played when the run ended (``pipeline/optimizer/audit.py``: an ``AuditResult``)."""
+    budget: str | None = None
+    """The setting of the budget that stopped the run (status ``budget``: ``max_llm_calls``, ...; None where a
+    larger one would not help)."""
 
 
 def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str = "optimize",
@@ -243,6 +246,7 @@ def _iterate(store, state, client, log, on_iteration, progress) -> OptimizeResul
         raise
     except BudgetExhausted as exc:
         status, error = "budget", f"{exc}; continue with a larger budget and --resume"
+        result.budget = exc.setting
         result.audit = _audit(store, state, log, progress, hold)
     except LLMError as exc:
         status, error = "failed", f"the LLM call failed: {exc}"

@@ -70,7 +70,13 @@ def repair_limit(config) -> int:
 
 
 class BudgetExhausted(Exception):
-    """The next step would exceed one of the run's budgets; the run stops with status ``budget``."""
+    """The next step would exceed one of the run's budgets; the run stops with status ``budget``. ``setting``: the
+    budget's (``max_llm_calls``, ...), for the command that goes on with a larger one; None where a larger one
+    would not help."""
+
+    def __init__(self, message: str, setting: str | None = None) -> None:
+        super().__init__(message)
+        self.setting = setting
 
 
 @dataclass
@@ -220,7 +226,7 @@ def _out_of_time(state: "RunState", asked: list[_Pending]) -> None:
     cut = next((p.error for p in asked if p.error is not None and p.error.error_type == OUT_OF_TIME), None)
     if cut is not None:
         raise BudgetExhausted(f"time budget: --max-wall {state.config.max_wall_minutes:g} min ran out while the "
-                              f"model was asked ({cut.message})")
+                              f"model was asked ({cut.message})", "max_wall_minutes")
 
 
 def repair_messages(item: _Pending, error: str) -> list[dict[str, str]]:
@@ -526,18 +532,19 @@ def _check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: 
             worst += rates.cost(p.tokens, c.max_tokens)
     calls = "the next call" if len(prompts) == 1 else f"the next {len(prompts)} calls"
 
-    def refusal(spent: dict, flying_calls: int, flying_tokens: int, flying_cost: float) -> str | None:
+    def refusal(spent: dict, flying_calls: int, flying_tokens: int, flying_cost: float) -> BudgetExhausted | None:
         flying = f" ({flying_calls} more call{'s' * (flying_calls != 1)} in flight)" if flying_calls else ""
         if c.max_llm_calls is not None and spent["calls"] + flying_calls + len(prompts) > c.max_llm_calls:
-            return (f"call budget: {spent['calls']} LLM calls made{flying}, {calls} would go over "
-                    f"--max-llm-calls {c.max_llm_calls}")
+            return BudgetExhausted(f"call budget: {spent['calls']} LLM calls made{flying}, {calls} would go over "
+                                   f"--max-llm-calls {c.max_llm_calls}", "max_llm_calls")
         if c.max_total_tokens is not None and spent["tokens"] + flying_tokens + worst_tokens > c.max_total_tokens:
-            return (f"token budget: {spent['tokens']:,} tokens used{flying}, {calls} may use up to {worst_tokens:,} "
-                    f"(prompt {prompt_tokens:,} + reply up to {c.max_tokens * len(prompts):,}), over "
-                    f"--max-total-tokens {c.max_total_tokens:,}")
+            return BudgetExhausted(f"token budget: {spent['tokens']:,} tokens used{flying}, {calls} may use up to "
+                                   f"{worst_tokens:,} (prompt {prompt_tokens:,} + reply up to "
+                                   f"{c.max_tokens * len(prompts):,}), over --max-total-tokens "
+                                   f"{c.max_total_tokens:,}", "max_total_tokens")
         if c.max_cost_usd is not None and spent["cost_usd"] + flying_cost + worst > c.max_cost_usd:
-            return (f"cost budget: ${spent['cost_usd']:.4f} spent{flying}, {calls} may cost up to ${worst:.4f}, "
-                    f"over --max-cost ${c.max_cost_usd:g}")
+            return BudgetExhausted(f"cost budget: ${spent['cost_usd']:.4f} spent{flying}, {calls} may cost up to "
+                                   f"${worst:.4f}, over --max-cost ${c.max_cost_usd:g}", "max_cost_usd")
         return None
 
     with state.budget_lock:
@@ -552,7 +559,7 @@ def _check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: 
                 # for one to be recorded and look again
                 state.budget_lock.wait()
                 continue
-            raise BudgetExhausted(why)
+            raise why
         reservation = (len(prompts), worst_tokens, worst)
         state.in_flight = [a + b for a, b in zip(state.in_flight, reservation)]
         return reservation
@@ -581,6 +588,7 @@ def check_wall(store: Store, state: "RunState", *, ahead: bool = False, uncommit
     if ahead and taken + spent["last_wall_s"] > limit * 60:
         raise BudgetExhausted(
             f"time budget: the run has taken {taken / 60:.1f} min and its last iteration "
-            f"{spent['last_wall_s'] / 60:.1f} min, over --max-wall {limit:g} min")
+            f"{spent['last_wall_s'] / 60:.1f} min, over --max-wall {limit:g} min", "max_wall_minutes")
     if taken > limit * 60:
-        raise BudgetExhausted(f"time budget: the run has taken {taken / 60:.1f} min, over --max-wall {limit:g} min")
+        raise BudgetExhausted(f"time budget: the run has taken {taken / 60:.1f} min, over --max-wall {limit:g} min",
+                              "max_wall_minutes")
