@@ -148,6 +148,9 @@ def check_settings(config: Any) -> None:
             continue
         label = declared.label(name)
         _check_type(label, value, value_type(config, name))
+        if isinstance(value, str) and not value.strip() and value != f.default:  # `--model "$UNSET"`: it is not
+            # the setting left out (the offline model ran)
+            raise ValueError(f"{label} is empty: give a value, or leave {label} out for its default")
         if isinstance(value, float) and not math.isfinite(value):  # nan passes every bound; neither goes in JSON
             raise ValueError(f"{label} must be a finite number, got {value:g}")
         if declared.choices is not None and value not in declared.choices:

@@ -102,8 +102,8 @@ SQL_FUNCTIONS: dict[str, tuple[str, str, Callable[..., Any], list[Any], Any]] = 
 """The scipy-backed functions a person's SQL can use: name -> (signature, one line of help, the Python function,
 its parameter types, its return type)."""
 
-CI_TEXT = ("ci_text(point, low, high)", "bare numbers as text, to the digits of every interval the tool prints: "
-           "12.3 [10.1, 14.2], 0.004 [-0.001, 0.020] (names no level, method or n: prefer ci_text(ci))",
+CI_TEXT = ("ci_text(point, low, high)", "bare numbers as text, as every interval is printed: 12.3 [10.1, 14.2], "
+           "0.004 [-0.001, 0.020] (names no level, method or n: prefer ci_text(ci))",
            "CREATE TEMP MACRO ci_text(point, low, high) AS _ci_bounds_text(point, low, high), (ci) AS ci.text")
 """The macro that prints a value with its interval (signature, one line of help, the statement that makes it,
 with its second form, :data:`CI_TEXT_STRUCT`)."""

@@ -521,7 +521,9 @@ def test_the_doctor_says_how_each_kind_of_interrupted_run_goes_on(played, tmp_pa
 @pytest.mark.parametrize("argv, said", [
     (["compare", STARTER, STARTER, "--audit", "--seed", "5"], "--audit draws sealed seeds for each side"),
     (["serve", "--game", "pong", "--mcp", "--mcp-port", "5"], "not allowed with argument --mcp"),
-], ids=["compare --audit --seed", "serve --mcp --mcp-port"])
+    (["batch", ROOT / "examples" / "benchmarks.toml", "--address", "ray://10.0.0.1:10001"],
+     "--address is a Ray cluster's: it goes with --executor ray"),
+], ids=["compare --audit --seed", "serve --mcp --mcp-port", "batch --address without ray"])
 def test_options_that_cannot_go_together_are_refused_before_anything_plays(argv, said, tmp_path, capsys):
     """Given together, one of the two was silently left out (compare's --seed under --audit, serve's stdio MCP
     beside --mcp-port)."""
@@ -529,3 +531,36 @@ def test_options_that_cannot_go_together_are_refused_before_anything_plays(argv,
     code, _, err = _run(capsys, *argv, "--store", path)
     assert code == 2 and said in err and len(err.strip().splitlines()) == 1, err
     assert not path.exists()
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["eval", STARTER, "--max-steps", "20", "--store", ""], "--store: an empty path"),
+    (["runs", "--store", " "], "--store: an empty path"),
+    (["eval", "", "--max-steps", "20"], "path is empty"),
+    (["optimize", "--game", "pong", "--model", "", "--iterations", "0"], "--model is empty"),
+    (["optimize", "--game", "pong", "--api-base", "", "--iterations", "0"], "--api-base is empty"),
+    (["optimize", "--game", "pong", "--rng-key", " ", "--iterations", "0"], "--rng-key is empty"),
+], ids=["eval --store ''", "runs --store ' '", "eval ''", "--model ''", "--api-base ''", "--rng-key ' '"])
+def test_an_empty_value_is_refused_not_taken_for_the_flag_left_out(argv, said, tmp_path, capsys, monkeypatch):
+    """``--store "$UNSET"`` wrote the run into the per-user store; ``--model ''`` started the offline model;
+    ``eval ''`` read the current directory ("is a directory"). Each is one line, and nothing is made anywhere."""
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("CODEARCADE_STORE", raising=False)
+    code, _, err = _run(capsys, *argv)
+    assert said in _one_line_error(code, err), err
+    assert list(tmp_path.iterdir()) == [], "nothing made: no store, here or per user"
+
+
+def test_new_given_a_folder_names_the_file_to_give(tmp_path, capsys):
+    """``new DIR`` said "DIR exists; pass --force to overwrite it", and with --force "DIR: Is a directory": it now
+    says, with or without --force, that a file is wanted, and the folder is left as it was."""
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    (folder / "kept.txt").write_text("kept")
+    for force in ([], ["--force"]):
+        code, _, err = _run(capsys, "new", folder, "--game", "pong", *force)
+        assert f"{folder} is a folder; give the policy file's path: {folder / 'policy.py'}" in _one_line_error(code,
+                                                                                                             err)
+    assert [p.name for p in folder.iterdir()] == ["kept.txt"]
+    assert _run(capsys, "new", folder / "policy.py", "--game", "pong")[0] == 0

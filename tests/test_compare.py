@@ -192,6 +192,15 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted
         "things"]
     assert "codearcade: warning: the runs differ in the evaluation's step cap" in err
     assert "**Caution:** the runs differ in the evaluation" in (tmp_path / "cmp2" / "README.md").read_text()
+    # `last` and `last~1` count the runs with iterations, as every other verb counts its kind: a newer eval run
+    # is passed over, and said (it was taken for `last`: "an eval run without iterations")
+    assert run_cli(capsys, "eval", EXAMPLES / "pong.py", "--episodes", 1, "--max-steps", 30, "--store",
+                   store.path)[0] == 0
+    code, out, err = run_cli(capsys, "compare", "last~1", "last", "--out", tmp_path / "cmp3", "--store", store.path,
+                             "--json")
+    assert code == 0, err
+    assert [r["run_id"] for r in json.loads(out)["runs"]] == ids
+    assert "compare: last is optimize or replay or serve run" in err and "passing over the newer eval run" in err
 
 
 def test_versions_on_the_same_seeds_are_compared_pair_by_pair(store, capsys, tmp_path):

@@ -48,9 +48,11 @@ limit is refused (2026-12-05: it forfeited every episode); --eval-max-steps name
 given several times (an ensemble, issue 32); compare's --seed says --audit draws its own (issue 37: sealed);
 --temperature names its range, now held to it (2026-12-05: -1 and 5 ran the loop)."""
 
-RETYPED = {("eval", "--seed"): ("int", "non_negative_int")}
+RETYPED = {("eval", "--seed"): ("int", "non_negative_int"),
+           **{(verb, "--store"): (None, "_store_path") for verb in ("optimize", "eval", "compare")}}
 """Flags whose value is checked by argparse now (2026-12-05: a negative seed reached Gymnasium's refusal mid-run
-and was stored as a crashed episode)."""
+and was stored as a crashed episode; an empty --store was taken for none, and the run went to the per-user
+store)."""
 
 ADDED = {"optimize": ("--rng-key", "--audit-episodes", "--repairs", "--model-choice", "--pool"), "eval": ("--rng-key",),
          "compare": ("--audit", "--rng-key")}

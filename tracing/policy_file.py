@@ -113,6 +113,8 @@ def read_policy_file(path: str | Path, kind: str = "policy file") -> str:
     """The text of a policy file (or of another ``kind`` of file a policy comes from: a Trace script), with errors
     that say what to do. None is read past :data:`MAX_POLICY_CHARS`: its parse would cost this process ~1 KB a
     character."""
+    if not str(path).strip():  # Path('') is '.', the current directory ("is a directory")
+        raise PolicyLoadError(f"the {kind}'s path is empty; give a Python file that defines class Policy")
     p = Path(path)
     if not p.exists():
         raise PolicyLoadError(f"{kind} '{path}' does not exist")

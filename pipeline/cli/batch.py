@@ -110,6 +110,9 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.jobs.batch import load_experiments, plan
     from store import Store, StoreLocation, locate_store
 
+    if args.address is not None and args.executor != "ray":  # it ran locally, the address left unused
+        raise CliError("--address is a Ray cluster's: it goes with --executor ray")
+
     batch = load_experiments(args.experiments)
     if args.store or not batch.store:
         location = locate_store(args.store)

@@ -210,7 +210,16 @@ STORE_HELP = ("the DuckDB store; without it: $CODEARCADE_STORE, else the nearest
 
 
 def add_store(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--store", default=None, metavar="PATH", help=STORE_HELP)
+    p.add_argument("--store", default=None, type=_store_path, metavar="PATH", help=STORE_HELP)
+
+
+def _store_path(text: str) -> str:
+    """--store's value: an empty one (``--store "$UNSET"``) is refused, not taken for no --store (the run went to
+    the per-user store)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path: give the store's file, or leave --store out for the store "
+                                         "found from here")
+    return text
 
 
 def add_rerun(p: argparse.ArgumentParser) -> None:

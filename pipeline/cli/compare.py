@@ -10,7 +10,7 @@ import sys
 from typing import Any, Callable
 
 from pipeline.cli.common import (EXIT_OK, CliError, EpisodeProgress, add_settings, add_store, check_output,
-                                 open_store, short_ids, shorten_run_ids, show, show_json)
+                                 open_store, resolve_run, short_ids, shorten_run_ids, show, show_json)
 from pipeline.play.config import CompareConfig
 from pipeline.settings import declarations
 
@@ -134,6 +134,10 @@ def is_version_ref(text: str, store=None) -> bool:
     return False
 
 
+COMPARED_KINDS = ("optimize", "replay", "serve")
+"""The kinds of run ``compare A B`` compares: those with iterations (an eval run's policy is a version to play)."""
+
+
 def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] | None = None,
             episodes_progress: Callable[[int, str], Any] | None = None):
     """Compare ``a`` and ``b``: two runs (``pipeline/optimizer/runs.py``), or two versions
@@ -151,8 +155,8 @@ def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] 
     kinds = [is_version_ref(x, store) for x in (a, b)]
     if all(kinds):
         return compare_versions(store, a, b, config, progress, episodes_progress)
-    if not any(kinds):
-        return compare_runs(store, a, b)
+    if not any(kinds):  # `last` and `last~1` count the runs that have iterations, as the other verbs count theirs
+        return compare_runs(store, *(resolve_run(store, ref, kinds=COMPARED_KINDS, verb="compare") for ref in (a, b)))
     run, other = (a, b) if not kinds[0] else (b, a)
     raise ValueError(f"{other!r} is a policy version but {run!r} is not (no such file): compare two runs "
                      f"(two run ids) or two versions (policy files or RUN:VERSION, e.g. {run}:best)")

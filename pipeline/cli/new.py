@@ -36,6 +36,8 @@ def run(args: argparse.Namespace) -> int:
     from games.scaffolding import SURVEY_STEPS, scaffold_text
 
     path = Path(args.policy)
+    if path.is_dir():  # --force cannot write over a folder: said first (it advised --force, which then failed)
+        raise CliError(f"{path} is a folder; give the policy file's path: {path / 'policy.py'}")
     if path.exists() and not args.force:
         raise CliError(f"{path} exists; pass --force to overwrite it")
     if args.source is not None:
