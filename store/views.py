@@ -108,6 +108,10 @@ def check_user_sql(sql: str, refuser: str = "codearcade sql") -> None:
     """:class:`QueryError` unless ``sql`` is exactly one statement of a type in :data:`USER_STATEMENT_TYPES`;
     ``refuser`` names what refuses it in the message."""
     try:
+        sql.encode("utf-8")
+    except UnicodeEncodeError as exc:  # a lone surrogate ("\ud800" in JSON): DuckDB's parser raised TypeError
+        raise QueryError(f"the query is not valid Unicode (character {exc.start + 1} is a lone surrogate)") from None
+    try:
         statements = duckdb.extract_statements(sql)
     except duckdb.Error as exc:
         raise QueryError(one_line(exc)) from None

@@ -669,6 +669,10 @@ def test_the_agents_sql_is_standard_json_refuses_writes_and_names_its_time_limit
                       time_limit_s=0.5)
     with pytest.raises(QueryError, match="Could not convert string 'x' to UUID"):
         visible_query(store, "no-run", "SELECT 'x'::UUID", 500, 100_000)
+    # a lone surrogate (JSON's "\ud800"): DuckDB's parser raised TypeError, a 500 and a traceback on the terminal
+    for query in ("SELECT '\ud800'", "\udfff", "SELECT 1 -- \ud83d"):
+        with pytest.raises(QueryError, match="not valid Unicode"):
+            visible_query(store, "no-run", query, 500, 100_000)
 
 
 def _raw(port: int, request: bytes, wait_s: float = 5.0) -> bytes:
@@ -914,9 +918,15 @@ def test_the_http_transport_refuses_pages_and_rebound_names_and_bounds_what_clie
                                    b"Content-Type: text/plain\r\nContent-Length: 2\r\n\r\n{}"),
             "deep JSON": _raw(port, b"POST /budget HTTP/1.1\r\n" + here + b"Content-Length: 200000\r\n\r\n"
                               + b"[" * 200_000),
+            # a foreign one second: the check read the first
+            "second Host": _raw(port, b"POST /finalize HTTP/1.1\r\n" + here + b"Host: evil.example\r\n"
+                                b"Content-Length: 2\r\n\r\n{}"),
+            "second Origin": _raw(port, b"POST /finalize HTTP/1.1\r\n" + here + f"Origin: http://127.0.0.1:{port}"
+                                  "\r\nOrigin: http://evil.example\r\nContent-Length: 2\r\n\r\n{}".encode()),
         }
         assert {name: status(answer) for name, answer in answers.items()} == {
-            "GET /finalize": 405, "foreign Host": 403, "foreign Origin": 403, "deep JSON": 400}, answers
+            "GET /finalize": 405, "foreign Host": 403, "foreign Origin": 403, "deep JSON": 400, "second Host": 403,
+            "second Origin": 403}, answers
         assert all("error" in json.loads(answer.partition(b"\r\n\r\n")[2]) for answer in answers.values())
         assert not run.finalized and run.budget()["spent"] == 0
         # the connections past the cap: 503 at once, and the server serves again once they are gone
@@ -959,6 +969,10 @@ def test_the_http_transport_refuses_pages_and_rebound_names_and_bounds_what_clie
         answer = _raw(port, b"POST /submit HTTP/1.1\r\n" + here + f"Content-Length: {len(path)}\r\n\r\n".encode()
                       + path)
         assert status(answer) == 400, answer
+        query = json.dumps({"query": "SELECT '\ud800'"}).encode()
+        answer = _raw(port, b"POST /sql HTTP/1.1\r\n" + here + f"Content-Length: {len(query)}\r\n\r\n".encode()
+                      + query)
+        assert status(answer) == 400 and "not valid Unicode" in answer.decode(), answer
         monkeypatch.setattr(run, "budget", lambda: (_ for _ in ()).throw(RuntimeError("\x1b]0;PWNED\x07\x1b[2J")))
         assert status(_raw(port, b"POST /budget HTTP/1.1\r\n" + here + b"Content-Length: 2\r\n\r\n{}")) == 500
     finally:

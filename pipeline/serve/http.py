@@ -115,6 +115,9 @@ class _Handler(BaseHTTPRequestHandler):
         """Why this request is not the agent's own (a page's, or a rebound name's), or None."""
         port = self.server.server_address[1]
         here = {f"{name}:{port}" for name in ("127.0.0.1", "localhost", "[::1]")} | {"127.0.0.1", "localhost", "[::1]"}
+        for name in ("Host", "Origin"):  # two: the check below read the first, a server behind it may read the other
+            if len(self.headers.get_all(name) or ()) > 1:
+                return f"a request with one {name} header at most"
         host = self.headers.get("Host")
         if host is not None and host.strip().lower() not in here:
             return f"this server answers requests to 127.0.0.1:{port}, not to {host.strip()[:80]!r}"
