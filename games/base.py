@@ -221,6 +221,14 @@ class Game:
     def n_actions(self) -> int:
         return len(self.actions)
 
+    def check_one_life(self, one_life: bool | str) -> None:
+        """ValueError in one line when ``one_life`` (a :func:`one_life_setting`) asks this game for lives it does
+        not have: Pong's ``--one-life-continue`` played whole games past their step cap as "lives"."""
+        if one_life and not self.lives:
+            flag = "--one-life-continue" if one_life == ONE_LIFE_CONTINUE else "--one-life"
+            raise ValueError(f"{self.name} has no lives: {flag} (one_life) plays a game's lives as its episodes; "
+                             "leave it out for this game")
+
 
 NUMBERED_KEYS_MADE = 64
 """Numbered keys made at once per category (``Alien0`` .. ``Alien63``); further ones are made when asked."""

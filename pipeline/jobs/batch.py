@@ -50,6 +50,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from games import get_game
+from games.base import one_life_setting
 from pipeline.jobs.worker import BUDGET_EXIT, INTERRUPTED_EXIT, run_remote
 from pipeline.optimizer.config import OptimizeConfig, model_defaults, validate_config
 from pipeline.optimizer.ensemble import split_model_flags
@@ -254,6 +255,11 @@ def load_experiments(path: str | os.PathLike) -> Batch:
                 raise ExperimentError(f"{path.name}: {problem}")
         if not settings.get("game") and not settings.get("policy"):
             raise ExperimentError(f"{path.name}: every run needs a game or a policy (add game = ... to [defaults])")
+        if settings.get("game") and settings.get("one_life"):  # a policy file's own GAME: checked as its run starts
+            try:
+                get_game(str(settings["game"])).check_one_life(one_life_setting(settings["one_life"]))
+            except ValueError as exc:
+                raise ExperimentError(f"{path.name}: {_label(settings, list(matrix))}: {exc}") from None
         try:
             # the key is the entry's settings', before the model's defaults (a function of them): an experiment
             # file keeps its keys

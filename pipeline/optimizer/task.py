@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from games import get_game
+from games.base import one_life_setting
 from pipeline.optimizer.feedback import FeedbackBands
 from tracing.policy_file import PolicyInfo, read_policy_file
 
@@ -64,6 +65,7 @@ def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:
         path = Path(config.policy)
     info = checked_inspect(read_policy_file(path), path.name, workers=config.workers)  # parsed confined first
     game = resolve_game(info.game, config.game, path.name)
+    get_game(game).check_one_life(one_life_setting(config.one_life))
     if not info.trainable:
         raise ValueError(f"{path.name}: Policy has no trainable methods; mark some with @trace.bundle(trainable=True)")
     return info, game

@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
+from games import get_game
 from games.base import ONE_LIFE_CONTINUE, one_life_setting
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome
@@ -93,6 +94,7 @@ def evaluate(
     name = Path(policy_path).name
     info = checked_inspect(text, name, workers=config.workers)  # parsed in a confined worker first
     game = resolve_game(info.game, config.game, name)
+    get_game(game).check_one_life(one_life)
 
     store.make_ready()  # creates or upgrades the store, and refuses a damaged one, before anything plays
     run_id = new_run_id()
