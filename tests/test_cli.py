@@ -615,6 +615,46 @@ def test_long_work_is_never_silent_off_a_terminal():
         assert lines[-1] == f"audit of 01ABCDEF: {total} of {total} episodes played, {100 * total:,} steps", lines
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_off_a_terminal_no_stretch_of_play_is_longer_than_a_minute_without_a_line(seed):
+    """A tenth of 100,000 short episodes took 5 minutes, one 15-minute episode was a tenth of ten: off a terminal
+    the wait was silent that long. Over schedules of every shape (many short episodes, a few long ones, updates
+    at random moments, on a clock of the test's), no stretch of play goes past QUIET_LINE_S (plus the gap to the
+    next callback) without a line, and a brisk run still says a line a tenth."""
+    import io
+    import random
+
+    from pipeline.cli.common import QUIET_LINE_S, EpisodeProgress
+
+    rng = random.Random(seed)
+    now = [0.0]
+    episodes = rng.choice([1, 3, 10, 1000, 100_000])
+    stream = io.StringIO()
+    stamps: list[float] = []
+
+    class Stamped(io.StringIO):
+        def write(self, text: str) -> int:
+            stamps.extend(now[0] for _ in range(text.count("\n")))
+            return stream.write(text)
+
+    progress = EpisodeProgress(episodes, "eval p.py", stream=Stamped(), clock=lambda: now[0])
+    gaps = []
+    per_episode = rng.choice([0.01, 1.0, 30.0, 900.0]) / max(1, episodes // 1000)
+    for i in range(min(episodes, 20_000)):
+        for played in range(1, rng.randint(1, 4)):
+            gap = rng.uniform(0, min(per_episode, 5.0))
+            gaps.append(gap)
+            now[0] += gap
+            progress.update(i, played * 100)
+        now[0] += rng.uniform(0, per_episode)
+        progress.finished(i, 400)
+    lines = stream.getvalue().splitlines()
+    assert lines[0] == f"eval p.py: {episodes} episode{'s' * (episodes > 1)} to play"
+    silences = [b - a for a, b in zip([0.0, *stamps], [*stamps, now[0]])]
+    assert max(silences) <= QUIET_LINE_S + max(per_episode, max(gaps, default=0)) + 1e-6, (max(silences), per_episode)
+    assert len(lines) <= 1 + 10 + now[0] / QUIET_LINE_S + 1, "a line a tenth, and one a quiet minute: no more"
+
+
 def test_progress_lines_are_told_apart_from_what_a_command_says():
     err = "eval p.py: 2 episodes to play\neval p.py: 1 of 2 episodes played, 1,234 steps\ncodearcade: error: x\n"
     assert said(err) == ["codearcade: error: x"]

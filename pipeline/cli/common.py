@@ -13,6 +13,7 @@ import json
 import os
 import re
 import sys
+import time
 from typing import IO, Any, Callable, Iterable, Sequence
 
 from viewers.safe_text import terminal_json, terminal_text
@@ -38,17 +39,25 @@ def show_json(value: Any, *, default: Callable[[Any], Any] | None = None, ensure
     print(terminal_json(json.dumps(value, indent=2, default=default, ensure_ascii=ensure_ascii)))
 
 
+QUIET_LINE_S = 60.0
+"""Off a terminal, the longest an episode-playing command goes without a progress line while it plays."""
+
+
 class EpisodeProgress:
     """Progress of a command that plays episodes, on stderr: a tqdm bar on a terminal (finished episodes, steps
     played so far: episodes end at unknown lengths, so a bar over ``episodes x max_steps`` would jump); off a
-    terminal (a CI log, ``| tee``), where a bar would be silent, a line when the first episode starts playing and
-    as each tenth of the episodes finishes, so that a long wait is never silent (and a bad input, refused before
-    anything plays, is the only line). ``update`` is the executor's progress callback
+    terminal (a CI log, ``| tee``), where a bar would be silent, a line when the first episode starts playing, as
+    each tenth of the episodes finishes and whenever :data:`QUIET_LINE_S` passed without one (a tenth of 100,000
+    short episodes took 5 minutes, one long episode as long), so that a long wait is never silent (and a bad
+    input, refused before anything plays, is the only line). ``update`` is the executor's progress callback
     (episode index, steps played), ``finished`` the per-episode one (index, length)."""
 
-    def __init__(self, episodes: int, description: str, stream: IO[str] | None = None) -> None:
+    def __init__(self, episodes: int, description: str, stream: IO[str] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         from tqdm import tqdm
 
+        self.clock = clock
+        self.said_at = clock()
         self.episodes, self.description = episodes, terminal_text(description)
         self.stream = stream if stream is not None else sys.stderr
         self.steps: dict[int, int] = {}
@@ -65,12 +74,15 @@ class EpisodeProgress:
             self.announced = True
             print(f"{self.description}: {self.episodes} episode{'s' * (self.episodes != 1)} to play",
                   file=self.stream, flush=True)
+            self.said_at = self.clock()
 
     def update(self, index: int, played: int) -> None:
         self.steps[index] = played
         self._announce()
         if self.bar is not None:
             self.bar.set_postfix_str(f"{sum(self.steps.values()):,} steps", refresh=True)
+        elif self.clock() - self.said_at >= QUIET_LINE_S:
+            self._line()
 
     def finished(self, index: int, length: int) -> None:
         self.steps[index] = length
@@ -79,9 +91,14 @@ class EpisodeProgress:
         if self.bar is not None:
             self.bar.update(1)
             self.update(index, length)
-        elif self.done * 10 // self.episodes != (self.done - 1) * 10 // self.episodes or self.done == self.episodes:
-            print(f"{self.description}: {self.done} of {self.episodes} episodes played, "
-                  f"{sum(self.steps.values()):,} steps", file=self.stream, flush=True)
+        elif (self.done * 10 // self.episodes != (self.done - 1) * 10 // self.episodes or self.done == self.episodes
+              or self.clock() - self.said_at >= QUIET_LINE_S):
+            self._line()
+
+    def _line(self) -> None:
+        print(f"{self.description}: {self.done} of {self.episodes} episodes played, "
+              f"{sum(self.steps.values()):,} steps", file=self.stream, flush=True)
+        self.said_at = self.clock()
 
     def write(self, line: str) -> None:
         """A line for people above the bar (or just a line, off a terminal), made terminal-safe."""
