@@ -589,3 +589,24 @@ def test_lives_are_asked_only_of_games_that_have_them(tmp_path, capsys):
         said = _one_line_error(code, err)
         assert "has no lives" in said and ("pong" in said or "enduro" in said or "freeway" in said), said
         assert not store.exists()
+
+
+def test_a_value_its_type_refuses_is_said_one_way_whatever_the_flag_s_type(capsys):
+    """``--call-time-limit abc`` said argparse's "invalid float value: 'abc'" where ``--episodes abc`` said "give a
+    whole number, got 'abc'": every flag that takes a number says it in the project's words."""
+    from pipeline.cli import build_parser
+
+    parser = build_parser()
+    verbs = parser._subparsers._group_actions[0].choices
+    checked = 0
+    for verb, sub in verbs.items():
+        for action in sub._actions:
+            if action.type not in (int, float) or not action.option_strings:
+                continue
+            code, _, err = _run(capsys, verb, *(["x.py"] if verb in ("eval", "new") else []),
+                                action.option_strings[0], "abc")
+            said = _one_line_error(code, err)
+            assert "invalid" not in said and f"give a {'whole ' * (action.type is int)}number, got 'abc'" in said, \
+                (verb, action.option_strings, said)
+            checked += 1
+    assert checked >= 5

@@ -119,6 +119,12 @@ _NOT_UTF8 = re.compile("[\udc80-\udcff]")
 """What a command line's byte that is not UTF-8 becomes in Python (``surrogateescape``)."""
 
 
+_ARGPARSE_TYPE_ERROR = re.compile(r"invalid (float|int) value: ('.*')$", re.S)
+"""argparse's own words for a value its type refused (``invalid float value: 'abc'``), said as the project's
+types say it (``give a whole number, got 'abc'``): one wording for the same mistake, whatever the flag's type."""
+_TYPE_WORDS = {"float": "a number", "int": "a whole number"}
+
+
 class CodearcadeParser(argparse.ArgumentParser):
     """The parser of ``codearcade`` and of every verb (``add_subparsers`` makes each verb's parser of its parent's
     class): a mistake on the command line is one line on stderr, ``codearcade eval: unknown flag --epsiodes; did
@@ -189,7 +195,8 @@ class CodearcadeParser(argparse.ArgumentParser):
         if typo and "required" in message:  # `report --lsat`: the typo, not the RUN it kept from being read
             message = self._flag_message(typo[0])
         else:
-            message = self._nearest_choice(message)
+            message = _ARGPARSE_TYPE_ERROR.sub(lambda m: f"give {_TYPE_WORDS[m[1]]}, got {m[2]}",
+                                               self._nearest_choice(message))
         if not message.startswith(("unknown flag", "unknown verb", "unexpected argument")) and \
                 "did you mean" not in message and "choose from" not in message:
             message += f" (`{self.prog} --help` shows the usage)"
