@@ -487,6 +487,25 @@ def test_over_mcp_a_refused_request_is_a_tool_error_that_costs_nothing(tmp_path)
     assert seen["sql"]["rows"] == [[2]]
 
 
+def _mcp_over_http(tmp_path) -> tuple[subprocess.Popen, str]:
+    """``serve --mcp-port 0`` with a budget of 2 episodes, and the URL it says it serves once it says it (the
+    process is the caller's to stop)."""
+    serve = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--game", "pong", "--mcp-port", "0",
+                              "--budget", "2", "--store", str(tmp_path / "m.duckdb")], cwd=ROOT, env=ENV,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    said = []
+    for line in serve.stderr:
+        said.append(line)
+        if "MCP (streamable HTTP) on" in line:
+            break
+    found = re.findall(r"(http://127\.0\.0\.1:\d+/mcp)", "".join(said))
+    if len(found) != 1:
+        serve.kill()
+        serve.wait()
+        raise AssertionError(said)
+    return serve, found[0]
+
+
 def test_over_mcp_streamable_http_on_a_free_port_the_port_said_is_the_port_served(tmp_path):
     """``serve --mcp-port 0`` (what a busy port's error suggests) said ``http://127.0.0.1:0/mcp`` and served on a
     port it never named. The URL it says now is where an MCP client reaches the run's tools; Ctrl-C stops it."""
@@ -494,17 +513,9 @@ def test_over_mcp_streamable_http_on_a_free_port_the_port_said_is_the_port_serve
 
     from mcp import Client
 
-    serve = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--game", "pong", "--mcp-port", "0",
-                              "--budget", "2", "--store", str(tmp_path / "m.duckdb")], cwd=ROOT, env=ENV,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    serve, url = _mcp_over_http(tmp_path)
     try:
-        said = []
-        for line in serve.stderr:
-            said.append(line)
-            if "MCP (streamable HTTP) on" in line:
-                break
-        (url,) = re.findall(r"(http://127\.0\.0\.1:\d+/mcp)", "".join(said))
-        assert not url.endswith(":0/mcp"), said
+        assert not url.endswith(":0/mcp"), url
 
         async def session() -> dict:
             async with Client(url, read_timeout_seconds=120) as client:
@@ -531,17 +542,9 @@ def test_over_mcp_streamable_http_idle_and_trickling_connections_are_bounded_and
 
     from pipeline.serve.http import MAX_CONNECTIONS, REQUEST_TIMEOUT_S
 
-    serve = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--game", "pong", "--mcp-port", "0",
-                              "--budget", "2", "--store", str(tmp_path / "m.duckdb")], cwd=ROOT, env=ENV,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    serve, url = _mcp_over_http(tmp_path)
     held: list[socket.socket] = []
     try:
-        said = []
-        for line in serve.stderr:
-            said.append(line)
-            if "MCP (streamable HTTP) on" in line:
-                break
-        (url,) = re.findall(r"(http://127\.0\.0\.1:\d+/mcp)", "".join(said))
         port = int(url.split(":")[2].split("/")[0])
         fds = len(os.listdir(f"/proc/{serve.pid}/fd"))
         for k in range(6 * MAX_CONNECTIONS):
