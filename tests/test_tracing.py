@@ -148,12 +148,39 @@ def test_task_settings_come_from_the_game_module_unless_the_file_overrides_them(
         ("class Policy(:\n", "syntax error"),
         ("x = 1\n", "no class named 'Policy'"),
         ("from random import _os\nclass Policy: pass\n", "private name"),
+        # bundled methods the trace could not attribute: they played untraced and forfeited every traced game
+        ("import opto.trace as trace\nclass Base(trace.Module):\n    @trace.bundle(trainable=True)\n"
+         "    def predict(self, obs):\n        return 0\nclass Mid(Base):\n    pass\nclass Policy(Mid):\n"
+         "    def __call__(self, obs):\n        return self.predict(obs)\n",
+         "bad.py:4: Base.predict is bundled in a base class of Policy"),
+        ("import opto.trace as trace\nTRAIN = True\nclass Policy(trace.Module):\n    @trace.bundle(trainable=TRAIN)\n"
+         "    def act(self, obs):\n        return 0\n", "bad.py:5: write @trace.bundle(trainable=True)"),
+        ("import opto.trace as trace\nclass Policy(trace.Module):\n    @trace.bundle(True)\n"
+         "    def act(self, obs):\n        return 0\n", "bad.py:4: write @trace.bundle(trainable=True)"),
+        ("import tracing as trace\nclass Policy(trace.Module):\n    @trace.bundle(trainable=1)\n"
+         "    def act(self, obs):\n        return 0\n", "bad.py:4: write @trace.bundle(trainable=True)"),
     ],
 )
 def test_inspect_policy_errors_are_one_line(text, fragment):
     with pytest.raises(PolicyLoadError) as err:
         inspect_policy(text, "bad.py")
     assert fragment in str(err.value) and "\n" not in str(err.value) and "bad.py" in str(err.value)
+
+
+def test_a_policy_s_own_dataclasses_take_typed_fields():
+    """``@dataclass`` with a typed field failed to load ("'NoneType' object has no attribute '__dict__'"): the
+    policy's annotations are strings (the loader's ``from __future__ import annotations``), which dataclasses
+    resolves through the class's module, and the policy had none in ``sys.modules``."""
+    text = pong_policy("self.memory.calls += 1\nreturn 0").replace(
+        "@trace.model\nclass Policy", "from dataclasses import dataclass, field\n\n\n@dataclass\nclass Memory:\n"
+        "    calls: int = 0\n    seen: list = field(default_factory=list)\n\n\n@trace.model\nclass Policy").replace(
+        "    def __call__", "    def __init__(self):\n        self.memory = Memory()\n\n    def __call__")
+    loaded = load_policy(text, "dc.py")
+    # Trace's own bundle takes a description first: with the flag a keyword, it is not refused
+    assert [m.trainable for m in inspect_policy(text.replace("@trace.bundle(trainable=True)\n    def select_action",
+                                                             '@trace.bundle("acts", trainable=True)\n    def '
+                                                             "select_action"), "d.py").methods] == [True, True]
+    assert loaded.policy.memory.calls == 0 and loaded.policy.memory.seen == []
 
 
 def test_load_policy_reports_errors_in_constructor():

@@ -25,7 +25,9 @@ import ast
 import hashlib
 import linecache
 import re
+import sys
 import textwrap
+import types
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -143,6 +145,45 @@ def python_newlines(text: str) -> str:
     return text.replace("\r\n", "\n").replace("\r", "\n") if "\r" in text else text
 
 
+def _bundle_call(decorators: list[ast.expr]) -> ast.expr | None:
+    """The ``bundle(...)``/``trace.bundle(...)`` decorator among ``decorators``, or None."""
+    for d in decorators:
+        target = d.func if isinstance(d, ast.Call) else d
+        if (target.attr if isinstance(target, ast.Attribute) else getattr(target, "id", None)) == "bundle":
+            return d
+    return None
+
+
+def _check_bundles(tree: ast.Module, policy_class: ast.ClassDef, name: str) -> None:
+    """PolicyLoadError for bundled methods the trace cannot attribute: the trace records the calls of the bundled
+    methods of class ``Policy`` itself, each trainable or not as its text says. A bundled method of a base class
+    of Policy, or a trainable flag that is not written ``True`` or ``False``, played untraced and forfeited every
+    traced game ("malformed trace"), and the optimizer never saw the method."""
+    for node in policy_class.body:
+        bundle = _bundle_call(node.decorator_list) if isinstance(node, ast.FunctionDef) else None
+        flags = [kw.value for kw in bundle.keywords if kw.arg == "trainable"] if isinstance(bundle, ast.Call) else []
+        literal = all(isinstance(flag, ast.Constant) and isinstance(flag.value, bool) for flag in flags)
+        # a value given by position is trainable to tracing.bundle and a description to Trace's own bundle: the
+        # flag must then be a keyword too
+        if isinstance(bundle, ast.Call) and (not literal or (bundle.args and not flags)):
+            raise PolicyLoadError(f"{name}:{node.lineno}: write @trace.bundle(trainable=True) or "
+                                  f"@trace.bundle(trainable=False) on {node.name}: the trace reads the flag from the "
+                                  "text")
+    classes = {node.name: node for node in tree.body if isinstance(node, ast.ClassDef)}
+    seen, bases = set(), [b.id for b in policy_class.bases if isinstance(b, ast.Name)]
+    while bases:
+        base = classes.get(bases.pop())
+        if base is None or base.name in seen or base.name == "Policy":
+            continue
+        seen.add(base.name)
+        for node in base.body:
+            if isinstance(node, ast.FunctionDef) and _bundle_call(node.decorator_list) is not None:
+                raise PolicyLoadError(f"{name}:{node.lineno}: {base.name}.{node.name} is bundled in a base class of "
+                                      "Policy: the trace records the bundled methods of class Policy itself; define "
+                                      "it in Policy")
+        bases += [b.id for b in base.bases if isinstance(b, ast.Name)]
+
+
 def _bundle_flags(decorators: list[ast.expr]) -> bool | None:
     """None if no decorator is ``bundle(...)``/``trace.bundle(...)``; else whether it says trainable=True."""
     for d in decorators:
@@ -184,6 +225,7 @@ def inspect_policy(text: str, name: str = "policy.py") -> PolicyInfo:
                     pass  # computed constants are the policy's business, not the task's
     if policy_class is None:
         raise PolicyLoadError(f"{name}: no class named 'Policy' (define `class Policy(trace.Module)`)")
+    _check_bundles(tree, policy_class, name)
     lines = text.splitlines(True)
     methods = []
     for node in policy_class.body:
@@ -205,7 +247,12 @@ def load_policy(text: str, name: str = "policy.py", time_limit_s: float = LOAD_T
     filename = f"<policy {name}>"
     code = compile(text, filename, "exec")
     linecache.cache[filename] = (len(text), None, text.splitlines(True), filename)
-    namespace: dict[str, Any] = {"__name__": "policy", "__builtins__": safe_builtins(trace_api)}
+    module = types.ModuleType("policy")
+    namespace: dict[str, Any] = module.__dict__
+    namespace["__builtins__"] = safe_builtins(trace_api)
+    # the policy's own module, as an import makes one: dataclasses resolves a class's annotations (strings under
+    # this module's `from __future__ import annotations`) through it, and `@dataclass` with a typed field failed
+    sys.modules["policy"] = module
     try:
         with time_limit(time_limit_s, "loading the policy"):
             exec(code, namespace)
