@@ -99,6 +99,11 @@ def node_budget(steps: int) -> int:
     return min(MAX_NODE_FRAME, NODE_BYTES_BASE + NODE_BYTES_PER_STEP * max(0, steps))
 
 
+TOO_MANY_CALLS = "call a helper that is not bundled in a loop, and bundle the method that runs the loop"
+"""What to do about more calls of bundled methods a step than a trace records (a policy that calls a bundled
+method per grid cell plays untraced, and forfeits its traced games)."""
+
+
 def row_limits(methods: int, steps: int) -> tuple[int, int]:
     """(rows per step, rows per episode) allowed to a policy of ``methods`` bundled methods asked ``steps`` times."""
     per_step = max(MIN_CALLS_PER_STEP, CALLS_PER_METHOD * methods)
@@ -117,10 +122,13 @@ def read_nodes(payload: bytes, spec: Any, steps: int, duration_s: float) -> pa.T
         raise MalformedTrace(f"a node frame of {len(payload):,} bytes, over the episode's budget of {budget:,} "
                              f"({NODE_BYTES_BASE:,} + {NODE_BYTES_PER_STEP:,} a step)")
     methods = bundled_methods(spec.policy_text, spec.policy_name)
+    per_step, per_episode = row_limits(len(methods), steps)
     try:
-        nodes = parse_arrow(payload, NODE_SCHEMA, max_rows=row_limits(len(methods), steps)[1])
+        nodes = parse_arrow(payload, NODE_SCHEMA, max_rows=per_episode)
     except BadMessage as exc:
-        raise MalformedTrace(str(exc)) from None
+        more = (f" (a traced episode records at most {per_step:,} calls of bundled methods a step: {TOO_MANY_CALLS})"
+                if "rows" in str(exc) else "")
+        raise MalformedTrace(f"{exc}{more}") from None
     check_nodes(nodes, spec, steps, duration_s, methods)
     return nodes
 
@@ -159,7 +167,8 @@ def check_nodes(nodes: pa.Table, spec: Any, steps: int, duration_s: float,
                              "policy calls")
     counts = np.bincount(step, minlength=steps)
     if counts.max() > per_step:
-        raise MalformedTrace(f"{int(counts.max()):,} calls in one step (at most {per_step:,})", int(counts.argmax()))
+        raise MalformedTrace(f"{int(counts.max()):,} calls of bundled methods in one step (at most {per_step:,}: "
+                             f"{TOO_MANY_CALLS})", int(counts.argmax()))
     index = _ints(nodes, "call_index").astype(np.int64)
     order = np.lexsort((index, step))
     sorted_step = step[order]

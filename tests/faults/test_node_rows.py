@@ -109,12 +109,14 @@ def test_too_many_rows_are_refused_before_they_are_read(honest):
     spec, outcome = honest
     steps = outcome.steps.num_rows
     many = pa.concat_tables([outcome.nodes] * (256 * steps // outcome.nodes.num_rows + 1)).combine_chunks()
-    with pytest.raises(MalformedTrace, match=f"more than {256 * steps:,} rows"):
+    with pytest.raises(MalformedTrace, match=f"more than {256 * steps:,} rows \\(a traced episode records at most "
+                                             "256 calls of bundled methods a step: call a helper that is not"):
         _read(spec, outcome, many)
     one_step = outcome.nodes.filter(pc.equal(outcome.nodes.column("step"), 0))
     crowded = pa.concat_tables([one_step] * 200).combine_chunks()  # 200 times step 0's calls, in step 0
     calls = 200 * one_step.num_rows
-    with pytest.raises(MalformedTrace, match=f"at step 0: {calls} calls in one step \\(at most 256\\)"):
+    with pytest.raises(MalformedTrace, match=f"at step 0: {calls} calls of bundled methods in one step \\(at most 256: "
+                                             "call a helper that is not bundled in a loop"):
         _read(spec, outcome, crowded)
 
 
