@@ -12,6 +12,7 @@ import json
 import os
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -351,6 +352,42 @@ def test_new_from_a_training_script_keeps_the_policy_and_what_it_uses(store, cap
 
     assert methods(text) == methods(twin)
     assert _eval(capsys, store, written)["return"] == _eval(capsys, store, TRACE_TWIN)["return"]
+
+
+def test_new_from_keeps_every_binding_of_a_name_and_each_import_it_may_make(store, capsys, tmp_path):
+    """The last binding of a name alone was kept (``SPEED = SPEED * 2``: a NameError at load; ``THRESH += 10``
+    dropped, the policy ran on 5), and an import statement with one name policy code may not import was dropped
+    whole (``import opto.trace as trace, os.path``: no ``trace``). Written, the policy plays as the script's."""
+    script = tmp_path / "train.py"
+    script.write_text(textwrap.dedent("""\
+        import opto.trace as trace, os.path
+        from math import floor, sqrt
+
+        SPEED = 2
+        SPEED = SPEED * 2
+        THRESH = 5
+        THRESH += 10
+        UNUSED = os.path.join("a", "b")
+
+        class Policy(trace.Module):
+            def __call__(self, obs):
+                return self.select_action(obs)
+
+            @trace.bundle(trainable=True)
+            def select_action(self, obs):
+                if (SPEED, THRESH, floor(sqrt(16))) != (4, 15, 4):
+                    raise ValueError(f"the script's values are lost: {SPEED}, {THRESH}")
+                return 0
+        """))
+    written = tmp_path / "policy.py"
+    code, out, err = run_cli(capsys, "new", written, "--from", script, "--game", "pong")
+    assert code == 0 and "left out 1 import(s)" in out, out + err
+    text = written.read_text()
+    assert "import opto.trace as trace\nfrom math import floor, sqrt\n" in text and "os.path" not in text, text
+    assert "SPEED = SPEED * 2" in text and "THRESH += 10" in text and "UNUSED" not in text
+    code, out, err = run_cli(capsys, "eval", written, "--max-steps", "3", "--store", store.path)
+    assert code == 0, err
+    assert store.query("SELECT end_reason FROM episodes") == [("truncated",)]
 
 
 def test_new_from_refuses_what_it_cannot_take_and_writes_nothing(capsys, tmp_path):

@@ -317,10 +317,11 @@ class ExtractedPolicy:
 
 
 def _statement_names(node: ast.stmt) -> list[str]:
-    """The names a top-level definition binds (a def, a class, an assignment to plain names)."""
+    """The names a top-level definition binds (a def, a class, an assignment to plain names, ``+=`` and kin)."""
     if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
         return [node.name]
-    targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+    targets = node.targets if isinstance(node, ast.Assign) else \
+        [node.target] if isinstance(node, (ast.AnnAssign, ast.AugAssign)) else []
     return [t.id for target in targets for t in ast.walk(target) if isinstance(t, ast.Name)]
 
 
@@ -357,39 +358,49 @@ def policy_from_script(text: str, name: str = "script.py", game: str | None = No
     except (RecursionError, MemoryError, ValueError) as exc:
         raise PolicyLoadError(f"{name}: the code cannot be read ({type(exc).__name__}: too large, too deeply "
                               "nested or not text)") from None
-    definitions: dict[str, ast.stmt] = {}
-    for node in tree.body:
+    definitions: dict[str, list[ast.stmt]] = {}  # every statement that binds a name, in order: `SPEED = 2` and
+    for node in tree.body:  # `SPEED = SPEED * 2` (or `SPEED += 2`) both, where the last alone failed or lost one
         for bound in _statement_names(node):
-            definitions[bound] = node  # the last binding wins, as when the module runs
-    if not isinstance(definitions.get("Policy"), ast.ClassDef):
+            definitions.setdefault(bound, []).append(node)
+    if not isinstance((definitions.get("Policy") or [None])[-1], ast.ClassDef):
         raise PolicyLoadError(f"{name}: no class named 'Policy' to take (a policy is `class Policy(trace.Module)`)")
     wanted: set[int] = set()
-    pending = [definitions["Policy"], *(definitions[c] for c in TASK_CONSTANTS if c in definitions)]
+    pending = [*definitions["Policy"][-1:], *(node for c in TASK_CONSTANTS for node in definitions.get(c, ()))]
     while pending:
         node = pending.pop()
         if id(node) in wanted:
             continue
         wanted.add(id(node))
         used = {n.id for n in ast.walk(node) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
-        pending.extend(definitions[u] for u in used if u in definitions)
+        pending.extend(bound for u in used for bound in definitions.get(u, ()))
     lines = _source_lines(text)
     parts, kept, dropped = [], [], []
     imports_end = 0
     for node in tree.body:
         if isinstance(node, (ast.Import, ast.ImportFrom)):
-            segment = _segment(lines, node)
+            # each name on its own: `import opto.trace as trace, os.path` keeps trace (the statement was dropped
+            # whole, and the policy had no `trace`)
             try:
-                check_source(segment)
+                check_source(_segment(lines, node))
+                names = [node]
             except PolicyCodeError:
-                dropped.append(segment)
-                continue
-            parts.append(segment + "\n")
-            imports_end = len(parts)
+                names = [node] if len(node.names) == 1 else [
+                    ast.Import(names=[a]) if isinstance(node, ast.Import) else
+                    ast.ImportFrom(module=node.module, names=[a], level=node.level) for a in node.names]
+            for one in names:
+                segment = _segment(lines, node) if one is node else ast.unparse(one)
+                try:
+                    check_source(segment)
+                except PolicyCodeError:
+                    dropped.append(segment)
+                    continue
+                parts.append(segment + "\n")
+                imports_end = len(parts)
         elif id(node) in wanted:
             first = min([node.lineno] + [d.lineno for d in getattr(node, "decorator_list", [])])
             parts.append("\n\n" + "".join(lines[first - 1: node.end_lineno]).rstrip("\n") + "\n")
             kept.extend(n for n in _statement_names(node) if n != "Policy")
-    declared = definitions.get("GAME")
+    declared = (definitions.get("GAME") or [None])[-1]
     if game is not None and declared is not None:
         try:
             stated = ast.literal_eval(declared.value) if isinstance(declared, ast.Assign) else None
