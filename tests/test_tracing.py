@@ -183,6 +183,17 @@ def test_a_policy_s_own_dataclasses_take_typed_fields():
     assert loaded.policy.memory.calls == 0 and loaded.policy.memory.seen == []
 
 
+def test_a_bundled_lambda_is_refused_with_what_to_write():
+    """A lambda under the bundle decorator said "RuntimeError: Error calling __set_name__ on 'BundledMethod'
+    instance": the error of the bundle itself, wrapped by Python, said nothing of what to fix."""
+    text = pong_policy("return 0") + "\n    act = trace.bundle(trainable=True)(lambda self, obs: 0)\n"
+    line = text.count("\n")
+    with pytest.raises(PolicyLoadError) as err:
+        load_policy(text, "lam.py")
+    assert str(err.value).startswith(f"lam.py:{line}: cannot find the source of Policy.<lambda>: bundle a method "
+                                     "written with `def`"), str(err.value)
+
+
 def test_load_policy_reports_errors_in_constructor():
     text = pong_policy("return 0").replace("    def __call__", "    def __init__(self):\n        1 / 0\n\n    def __call__")
     with pytest.raises(PolicyLoadError) as err:

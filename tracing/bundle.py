@@ -130,7 +130,9 @@ def method_block(fn: Callable) -> tuple[str, int]:
     for name, first, start, end in _functions("".join(lines)):
         if name == fn.__name__ and code.co_firstlineno in (first, start):
             return _normalize("".join(lines[start - 1 : end])), start
-    raise PolicyCodeError(f"cannot find the source of {fn.__qualname__}", code.co_filename)
+    raise PolicyCodeError(f"cannot find the source of {fn.__qualname__}: bundle a method written with `def` in "
+                          "the class, under the bundle decorator (not a lambda, nor a function another decorator "
+                          "made)", code.co_filename, code.co_firstlineno)
 
 
 @functools.lru_cache(maxsize=16)

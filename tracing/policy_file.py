@@ -263,6 +263,13 @@ def load_policy(text: str, name: str = "policy.py", time_limit_s: float = LOAD_T
     except PolicyLoadError:
         raise
     except BaseException as exc:  # noqa: BLE001 - policy code may raise anything, timeouts included
+        if isinstance(exc, RuntimeError) and str(exc).startswith("Error calling __set_name__") and exc.__cause__:
+            line, source = failing_policy_line(exc)  # where the class is; the error is the bundle's own
+            cause = exc.__cause__
+            if isinstance(cause, PolicyCodeError):  # its own words, with the policy's name for its file's
+                raise PolicyLoadError(str(cause).replace(filename, name)) from None
+            raise PolicyLoadError(f"{name}:{line}: {type(cause).__name__}: {cause}" if line else
+                                  f"{name}: {type(cause).__name__}: {cause}") from None
         line, source = failing_policy_line(exc)
         where = f"{name}:{line}: " if line else f"{name}: "
         detail = f" (in `{source}`)" if source else ""
