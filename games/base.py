@@ -222,12 +222,13 @@ class Game:
         return len(self.actions)
 
     def check_one_life(self, one_life: bool | str) -> None:
-        """ValueError in one line when ``one_life`` (a :func:`one_life_setting`) asks this game for lives it does
-        not have: Pong's ``--one-life-continue`` played whole games past their step cap as "lives"."""
-        if one_life and not self.lives:
-            flag = "--one-life-continue" if one_life == ONE_LIFE_CONTINUE else "--one-life"
-            raise ValueError(f"{self.name} has no lives: {flag} (one_life) plays a game's lives as its episodes; "
-                             "leave it out for this game")
+        """ValueError in one line when ``one_life`` (a :func:`one_life_setting`) asks this game for the lives of
+        one game and it has none: Pong's ``--one-life-continue`` played whole games past their step cap as
+        "lives", with an interval over them. ``--one-life`` (the first life) is a whole game there, as without it
+        (a batch may set it for every game)."""
+        if one_life == ONE_LIFE_CONTINUE and not self.lives:
+            raise ValueError(f"{self.name} has no lives: --one-life-continue (one_life = 'continue') plays the lives "
+                             "of one game as its episodes; leave it out for this game")
 
 
 NUMBERED_KEYS_MADE = 64

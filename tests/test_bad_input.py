@@ -568,21 +568,22 @@ def test_new_given_a_folder_names_the_file_to_give(tmp_path, capsys):
 
 def test_lives_are_asked_only_of_games_that_have_them(tmp_path, capsys):
     """``--one-life-continue`` on Pong played whole games past their step cap as "lives", with an interval over
-    them, and no word. Every game without lives refuses both protocols, in eval, optimize and a batch file, before
-    anything is made; every game with lives takes them."""
+    them, and no word. Every game without lives refuses it, in eval, optimize and a batch file, before anything is
+    made (``--one-life``, a game's first life, is its whole game there: tests/test_curated_games.py); every game
+    with lives takes both."""
     from games import GAMES
 
     for game in GAMES.values():
-        for one_life in (True, "continue"):
-            if game.lives:
-                game.check_one_life(one_life)
-                continue
-            with pytest.raises(ValueError, match=f"{game.name} has no lives"):
-                game.check_one_life(one_life)
+        game.check_one_life(True)
+        if game.lives:
+            game.check_one_life("continue")
+            continue
+        with pytest.raises(ValueError, match=f"{game.name} has no lives"):
+            game.check_one_life("continue")
     store = tmp_path / "s.duckdb"
     batch = tmp_path / "b.toml"
     batch.write_text("[defaults]\none_life = 'continue'\n[matrix]\ngame = ['breakout', 'freeway']\n")
-    for argv in (["eval", STARTER, "--one-life"], ["eval", STARTER, "--one-life-continue"],
+    for argv in (["eval", STARTER, "--one-life-continue"],
                  ["optimize", "--game", "enduro", "--one-life-continue", "--iterations", "0"],
                  ["batch", batch, "--dry-run"]):
         code, _, err = _run(capsys, *argv, "--store", store)

@@ -235,6 +235,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
     from pipeline.llm.client import open_client
     from pipeline.optimizer.config import fit_to_model
     from pipeline.optimizer.loop import end_if_cut_short, optimize, start_run
+    from pipeline.stopping import uninterrupted
     from store.readers import get_run
     from store.writer import set_run_name
 
@@ -250,9 +251,10 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
             show(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
         rerun = rerun_target(args.rerun)
         resumed = run_id is not None
-        if run_id is None:  # made here, so that its id is printed before iteration 0 plays
-            run_id = created = start_run(config, store, client.label, start=start)
-        started["run_id"] = started["short"] = run_id
+        with uninterrupted():  # a press as the run is made is raised once its id is known (to end the run)
+            if run_id is None:  # made here, so that its id is printed before iteration 0 plays
+                run_id = created = start_run(config, store, client.label, start=start)
+            started["run_id"] = started["short"] = run_id
         if args.name is not None:
             warn_if_named(store, args.name, run_id)
             with store.write() as con:

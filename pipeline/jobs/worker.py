@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import sys
 
-from pipeline.stopping import stop_on_signals
+from pipeline.stopping import stop_on_signals, uninterrupted
 
 INTERRUPTED_EXIT = 130
 """Exit code of a batch run process stopped by a Ctrl-C (its run is interrupted, resumable)."""
@@ -80,8 +80,9 @@ def _optimize(spec: dict[str, Any], store: Store) -> OptimizeResult:
     fit_to_model(config, cap)
     created = None
     try:
-        run_id = spec.get("resume") or (created := start_run(config, store, client.label, extra={
-            "batch": spec["batch"], "batch_key": spec["batch_key"]}))
+        with uninterrupted():  # a press as the run is made is raised once its id is known (to end the run)
+            run_id = spec.get("resume") or (created := start_run(config, store, client.label, extra={
+                "batch": spec["batch"], "batch_key": spec["batch_key"]}))
         if spec.get("name"):  # the entry's label (pipeline/jobs/batch.py), given again when the run resumes
             with store.write() as con:
                 set_run_name(con, run_id, spec["name"])

@@ -398,11 +398,14 @@ def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: st
                                         "feedback need more)")
     if resume:
         return _continue(config, store, client, resume, log, on_iteration, progress, rerun, waiting, resumed=True)
-    run_id = start_run(config, store, client.label, extra=tags, start=start)
+    run_id = None
     try:
+        with uninterrupted():  # a press as the run is made is raised once its id is known (to end the run)
+            run_id = start_run(config, store, client.label, extra=tags, start=start)
         return _continue(config, store, client, run_id, log, on_iteration, progress, rerun, waiting)
     except BaseException as exc:
-        end_if_cut_short(store, run_id, exc, client)
+        if run_id is not None:
+            end_if_cut_short(store, run_id, exc, client)
         raise
 
 

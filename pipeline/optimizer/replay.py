@@ -25,6 +25,7 @@ from typing import Iterator
 from pipeline.llm.client import EnsembleClient, ReplayClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import end_if_cut_short, load_state, run_loop, start_run
+from pipeline.stopping import uninterrupted
 from pipeline.optimizer.strategies import make_strategy
 from store import Store
 from store.readers import (blob_text, first_call_errors, get_run, iteration_prompts, last_iteration, pool_bases,
@@ -116,14 +117,18 @@ def replay(store: Store, run_id: str, log=lambda s: None, on_iteration=None) -> 
     if config.models:  # an ensemble: each call is answered as the model the rule chooses again
         client = EnsembleClient([ReplayClient(replies, model=e["model"], errors=errors) for e in config.models])
         client.label = run["model"]  # its first model counts the prompts' tokens, as in the original
-    new_run = start_run(config, store, client.label, kind="replay", extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
+    new_run = None
     try:
+        with uninterrupted():  # a press as the run is made is raised once its id is known (to end the run)
+            new_run = start_run(config, store, client.label, kind="replay",
+                                extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
         state = load_state(store, new_run)
         state.pool_bases = bases  # the proposal pool starts each candidate from the iterations its original saw
         state.config.audit_episodes = 0  # a replay checks that the loop reproduces; its audit is `codearcade audit`
         result = run_loop(store, state, client, log, on_iteration)
     except BaseException as exc:
-        end_if_cut_short(store, new_run, exc, client)
+        if new_run is not None:
+            end_if_cut_short(store, new_run, exc, client)
         raise
 
     with store.read() as con:

@@ -203,3 +203,55 @@ def test_a_press_python_swallows_in_a_fork_still_ends_a_wait_for_ever():
     assert done.returncode == 130, done.stdout + done.stderr
     assert "went on past the press" in done.stdout and "Exception ignored" in done.stderr
     assert float(done.stdout.split("stopped after ")[1].split()[0]) < 2
+
+
+@pytest.mark.parametrize("sent", [signal.SIGINT, signal.SIGTERM], ids=["a Ctrl-C", "a SIGTERM"])
+@pytest.mark.parametrize("way", ["the command line", "a batch's run", "the Python API", "a replay"])
+def test_a_stop_that_lands_as_the_run_is_made_ends_it(way, sent, tmp_path, scripted, monkeypatch):
+    """A SIGTERM to `optimize`'s group landed just after the run's row was committed, before its id reached the
+    code that ends a run cut short: "interrupted before the run was made; nothing was stored", and the store held
+    the run 'running' (CI). The making of the run now holds a stop until its id is known."""
+    from pipeline.jobs.worker import _optimize
+    from pipeline.llm.client import open_client
+    from pipeline.optimizer import loop
+    from pipeline.optimizer.config import OptimizeConfig
+    from pipeline.optimizer.replay import replay
+    from pipeline.stopping import stop_once
+
+    model = scripted([COMPETENT_REPLY])
+    store = Store(tmp_path / "s.duckdb")
+    config = OptimizeConfig(game="pong", model=model.model, api_base=model.api_base, iterations=1,
+                            eval_max_steps=100, rollout_steps=20, audit_episodes=0)
+    original = loop.start_run(config, store, model.model) if way == "a replay" else None
+    made = loop.start_run
+
+    def made_then_stopped(*args, **kwargs):
+        run_id = made(*args, **kwargs)
+        os.kill(os.getpid(), sent)  # its handler runs at the next line of Python: before the id is returned
+        return run_id
+
+    module = {"a batch's run": "pipeline.jobs.worker", "a replay": "pipeline.optimizer.replay"}.get(
+        way, "pipeline.optimizer.loop")
+    monkeypatch.setattr(f"{module}.start_run", made_then_stopped)
+    before = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        if way == "the command line":
+            assert main(["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+                         "--iterations", "1", "--eval-max-steps", "100", "--rollout-steps", "20", "--audit-episodes",
+                         "0", "--store", str(store.path)]) == 130
+        else:
+            for signum in before:  # as the command line and a batch's run process install it
+                signal.signal(signum, stop_once)
+            with pytest.raises(KeyboardInterrupt):
+                if way == "a batch's run":
+                    _optimize({"config": asdict(config), "batch": "b", "batch_key": "k"}, store)
+                elif way == "the Python API":
+                    optimize_client, _, _ = open_client(model.model, model.api_base, 0.0, 256, None)
+                    loop.optimize(config, store, optimize_client)
+                else:
+                    replay(store, original)
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+    rows = _rows(store)[1:] if way == "a replay" else _rows(store)
+    _check(rows, "replay" if way == "a replay" else "optimize", "interrupted")
