@@ -234,7 +234,7 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
     before the model started (``pipeline.optimizer.task.resolve_start``)."""
     from pipeline.llm.client import open_client
     from pipeline.optimizer.config import fit_to_model
-    from pipeline.optimizer.loop import end_if_cut_short, optimize, start_run
+    from pipeline.optimizer.loop import new_run, optimize
     from pipeline.stopping import uninterrupted
     from store.readers import get_run
     from store.writer import set_run_name
@@ -244,34 +244,31 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
     offline = config.model is None
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
                                       config.seed, stream=args.stream, models=config.models)
-    recordings, created = None, None
+    recordings = None
     try:
-        fit_to_model(config, cap)
-        for name in getattr(client, "dropped", ()):
-            show(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
-        rerun = rerun_target(args.rerun)
-        resumed = run_id is not None
-        with uninterrupted():  # a press as the run is made is raised once its id is known (to end the run)
-            if run_id is None:  # made here, so that its id is printed before iteration 0 plays
-                run_id = created = start_run(config, store, client.label, start=start)
-            started["run_id"] = started["short"] = run_id
-        if args.name is not None:
-            warn_if_named(store, args.name, run_id)
-            with store.write() as con:
-                set_run_name(con, run_id, args.name)
-        started["short"] = short = short_id(store, run_id)
-        with store.read() as con:
-            game = get_run(con, run_id)["game"]
-        label = f" '{args.name}'" if args.name else ""
-        say(f"run {short}{label} {'resumed' if resumed else 'started'}: optimize {game}, model {client.label}"
-            f"{' (offline default)' if offline else ''}; {store.location.describe()}")
-        on_iteration, recordings = _run_recordings(store, rerun, None if args.json else _print_iteration)
-        result = optimize(config, store, client, resume=run_id, on_iteration=on_iteration,
-                          log=lambda line: show(line, file=sys.stderr), rerun=rerun, waiting=_llm_waiting())
-    except BaseException as exc:
-        if created is not None:  # stopped before the loop took the new run over: ended as the loop ends it
-            end_if_cut_short(store, created, exc, client)
-        raise
+        with new_run(store, client) as made:  # stopped before the loop takes it over: ended as the loop would
+            fit_to_model(config, cap)
+            for name in getattr(client, "dropped", ()):
+                show(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
+            rerun = rerun_target(args.rerun)
+            resumed = run_id is not None
+            with uninterrupted():  # a press as the run is made lands once its id is here, to be printed
+                if run_id is None:  # made here, so that its id is printed before iteration 0 plays
+                    run_id = made.start(config, client.label, start=start)
+                started["run_id"] = started["short"] = run_id
+            if args.name is not None:
+                warn_if_named(store, args.name, run_id)
+                with store.write() as con:
+                    set_run_name(con, run_id, args.name)
+            started["short"] = short = short_id(store, run_id)
+            with store.read() as con:
+                game = get_run(con, run_id)["game"]
+            label = f" '{args.name}'" if args.name else ""
+            say(f"run {short}{label} {'resumed' if resumed else 'started'}: optimize {game}, model {client.label}"
+                f"{' (offline default)' if offline else ''}; {store.location.describe()}")
+            on_iteration, recordings = _run_recordings(store, rerun, None if args.json else _print_iteration)
+            result = optimize(config, store, client, resume=run_id, on_iteration=on_iteration,
+                              log=lambda line: show(line, file=sys.stderr), rerun=rerun, waiting=_llm_waiting())
     finally:
         if server is not None:
             server.stop()

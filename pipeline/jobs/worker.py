@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import sys
 
-from pipeline.stopping import stop_on_signals, uninterrupted
+from pipeline.stopping import stop_on_signals
 
 INTERRUPTED_EXIT = 130
 """Exit code of a batch run process stopped by a Ctrl-C (its run is interrupted, resumable)."""
@@ -41,7 +41,7 @@ try:  # a Ctrl-C to the batch's process group reaches its runs too, also while t
     from pipeline.boundary.zygotes import keep_hosts
     from pipeline.llm.client import open_client
     from pipeline.optimizer.config import OptimizeConfig, fit_to_model
-    from pipeline.optimizer.loop import OptimizeResult, end_if_cut_short, optimize, start_run
+    from pipeline.optimizer.loop import OptimizeResult, new_run, optimize
     from store import Store
     from store.writer import set_run_name
     from viewers.safe_text import terminal_text
@@ -78,22 +78,17 @@ def _optimize(spec: dict[str, Any], store: Store) -> OptimizeResult:
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
                                       config.seed, models=config.models)
     fit_to_model(config, cap)
-    created = None
     try:
-        with uninterrupted():  # a press as the run is made is raised once its id is known (to end the run)
-            run_id = spec.get("resume") or (created := start_run(config, store, client.label, extra={
-                "batch": spec["batch"], "batch_key": spec["batch_key"]}))
-        if spec.get("name"):  # the entry's label (pipeline/jobs/batch.py), given again when the run resumes
-            with store.write() as con:
-                set_run_name(con, run_id, spec["name"])
-        return optimize(config, store, client, resume=run_id, waiting=_waiting,
-                        log=_say,
-                        on_iteration=lambda item: _say(f"iteration {item.iteration}: score {_shown(item.score)} "
-                                                       f"best {_shown(item.best_score)} {item.update_status}"))
-    except BaseException as exc:
-        if created is not None:  # stopped before the loop took the new run over: ended as the loop ends it
-            end_if_cut_short(store, created, exc, client)
-        raise
+        with new_run(store, client) as made:
+            run_id = spec.get("resume") or made.start(config, client.label, extra={
+                "batch": spec["batch"], "batch_key": spec["batch_key"]})
+            if spec.get("name"):  # the entry's label (pipeline/jobs/batch.py), given again when the run resumes
+                with store.write() as con:
+                    set_run_name(con, run_id, spec["name"])
+            return optimize(config, store, client, resume=run_id, waiting=_waiting, log=_say,
+                            on_iteration=lambda item: _say(f"iteration {item.iteration}: score "
+                                                           f"{_shown(item.score)} best {_shown(item.best_score)} "
+                                                           f"{item.update_status}"))
     finally:
         if server is not None:
             server.stop()

@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ContextManager
+from typing import Any, Callable, ContextManager, Iterator
 
 from games import get_game
 from pipeline.llm.client import LLMClient, LLMError
@@ -70,7 +71,7 @@ from store.writer import (
 )
 from tracing.policy_file import PolicyInfo
 
-__all__ = ["BudgetExhausted", "end_if_cut_short", "optimize", "plan_resume", "run_loop", "start_run", "load_state"]
+__all__ = ["BudgetExhausted", "NewRun", "new_run", "optimize", "plan_resume", "run_loop", "start_run", "load_state"]
 
 
 @dataclass
@@ -114,15 +115,10 @@ def start_run(config: OptimizeConfig, store: Store, model_name: str, kind: str =
     return run_id
 
 
-def end_if_cut_short(store: Store, run_id: str, exc: BaseException, client: LLMClient | None = None) -> None:
+def _end_if_cut_short(store: Store, run_id: str, exc: BaseException, client: LLMClient | None = None) -> None:
     """End the new run ``run_id`` that ``exc`` stopped before its loop took it over, as the loop would have: a
-    Ctrl-C or SIGTERM as interrupted (resumable), anything else as failed.
-
-    :func:`start_run` writes the run as 'running'; what a command does next (its start line, its name, its Rerun
-    recordings, loading the state, taking the run's lock) is outside the loop, and a stop there left the row
-    'running' for good (shown interrupted only while no process holds it). Call it from the ``except`` of the code
-    that started the run, and only for a run it started: a resumed one may be another live process's. A run the
-    loop ended is left as it is. Never raises: a store that cannot be written is ``exc``'s story to tell."""
+    Ctrl-C or SIGTERM as interrupted (resumable), anything else as failed. A run the loop ended is left as it is.
+    Never raises: a store that cannot be written is ``exc``'s story to tell."""
     if isinstance(exc, KeyboardInterrupt) or is_ctrl_c(exc):
         status, error = "interrupted", f"interrupted by the user; {_go_on(client)}"
     else:
@@ -132,6 +128,40 @@ def end_if_cut_short(store: Store, run_id: str, exc: BaseException, client: LLMC
             end_run_left_running(con, run_id, status, error)
     except Exception:  # noqa: BLE001 - the store's own failure; the caller re-raises exc, which says what happened
         pass
+
+
+class NewRun:
+    """The run a command makes inside :func:`new_run` (:meth:`start`); ``run_id`` is None until it is made."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        self.run_id: str | None = None
+
+    def start(self, config: OptimizeConfig, model_name: str, **kwargs: Any) -> str:
+        """:func:`start_run` (same arguments after the store): a press as the run is made is raised once its id
+        is known here, so that :func:`new_run` ends it."""
+        with uninterrupted():
+            self.run_id = start_run(config, self.store, model_name, **kwargs)
+        return self.run_id
+
+
+@contextmanager
+def new_run(store: Store, client: LLMClient | None = None) -> Iterator[NewRun]:
+    """Make a run with the yielded :meth:`NewRun.start` and hand it to the loop; if anything stops the block
+    before the loop has ended the run, end it as the loop would (:func:`_end_if_cut_short`).
+
+    :func:`start_run` writes a new run as 'running'; what a command does next (its start line, its name, its Rerun
+    recordings, loading the state, taking the run's lock) is outside the loop, and a stop there left the row
+    'running' for good (shown interrupted only while no process holds it). Only a run made in the block is ended:
+    a resumed one may be another live process's. The command line, a batch's run, :func:`optimize` and a replay
+    all make their runs this way."""
+    made = NewRun(store)
+    try:
+        yield made
+    except BaseException as exc:
+        if made.run_id is not None:
+            _end_if_cut_short(store, made.run_id, exc, client)
+        raise
 
 
 def _priced(models: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -398,15 +428,9 @@ def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: st
                                         "feedback need more)")
     if resume:
         return _continue(config, store, client, resume, log, on_iteration, progress, rerun, waiting, resumed=True)
-    run_id = None
-    try:
-        with uninterrupted():  # a press as the run is made is raised once its id is known (to end the run)
-            run_id = start_run(config, store, client.label, extra=tags, start=start)
+    with new_run(store, client) as made:
+        run_id = made.start(config, client.label, extra=tags, start=start)
         return _continue(config, store, client, run_id, log, on_iteration, progress, rerun, waiting)
-    except BaseException as exc:
-        if run_id is not None:
-            end_if_cut_short(store, run_id, exc, client)
-        raise
 
 
 def _continue(config, store, client, run_id, log, on_iteration, progress, rerun, waiting,

@@ -24,8 +24,7 @@ from typing import Iterator
 
 from pipeline.llm.client import EnsembleClient, ReplayClient
 from pipeline.optimizer.config import OptimizeConfig
-from pipeline.optimizer.loop import end_if_cut_short, load_state, run_loop, start_run
-from pipeline.stopping import uninterrupted
+from pipeline.optimizer.loop import load_state, new_run, run_loop
 from pipeline.optimizer.strategies import make_strategy
 from store import Store
 from store.readers import (blob_text, first_call_errors, get_run, iteration_prompts, last_iteration, pool_bases,
@@ -117,26 +116,20 @@ def replay(store: Store, run_id: str, log=lambda s: None, on_iteration=None) -> 
     if config.models:  # an ensemble: each call is answered as the model the rule chooses again
         client = EnsembleClient([ReplayClient(replies, model=e["model"], errors=errors) for e in config.models])
         client.label = run["model"]  # its first model counts the prompts' tokens, as in the original
-    new_run = None
-    try:
-        with uninterrupted():  # a press as the run is made is raised once its id is known (to end the run)
-            new_run = start_run(config, store, client.label, kind="replay",
-                                extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
-        state = load_state(store, new_run)
+    with new_run(store, client) as made:
+        replay_id = made.start(config, client.label, kind="replay",
+                               extra={"replay_of": run_id, "rng_key": recorded.get("rng_key")}, starter=starter)
+        state = load_state(store, replay_id)
         state.pool_bases = bases  # the proposal pool starts each candidate from the iterations its original saw
         state.config.audit_episodes = 0  # a replay checks that the loop reproduces; its audit is `codearcade audit`
         result = run_loop(store, state, client, log, on_iteration)
-    except BaseException as exc:
-        if new_run is not None:
-            end_if_cut_short(store, new_run, exc, client)
-        raise
 
     with store.read() as con:
-        original, again = iteration_prompts(con, run_id), iteration_prompts(con, new_run)
-        asked, missed = first_call_errors(con, run_id), first_call_errors(con, new_run)
+        original, again = iteration_prompts(con, run_id), iteration_prompts(con, replay_id)
+        asked, missed = first_call_errors(con, run_id), first_call_errors(con, replay_id)
         ended = last_iteration(con, run_id)
     last = ended["iteration"] if ended is not None else None
-    report = ReplayReport(run_id, new_run, result.status, last_iteration=last)
+    report = ReplayReport(run_id, replay_id, result.status, last_iteration=last)
     for it in sorted(set(original) | set(again)):
         o_hash, o_score = original.get(it, (None, None))
         r_hash, r_score = again.get(it, (None, None))
@@ -161,14 +154,14 @@ def replay(store: Store, run_id: str, log=lambda s: None, on_iteration=None) -> 
         if report.record_ends and report.diverged_at is None and misses and len(unasked) == len(misses):
             report.status = "incomplete"
             with store.write() as con:
-                finish_run(con, new_run, _status(run["status"]),
+                finish_run(con, replay_id, _status(run["status"]),
                            f"replayed as far as the original's record goes: {report.record_ends}")
         else:
             report.status = "diverged"
             if report.diverged_at is None:
                 report.diverged_at = min(it for it, _ in misses) if misses else None
             with store.write() as con:
-                finish_run(con, new_run, "diverged", result.error)
+                finish_run(con, replay_id, "diverged", result.error)
     return report
 
 

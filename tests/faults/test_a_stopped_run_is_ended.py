@@ -230,9 +230,7 @@ def test_a_stop_that_lands_as_the_run_is_made_ends_it(way, sent, tmp_path, scrip
         os.kill(os.getpid(), sent)  # its handler runs at the next line of Python: before the id is returned
         return run_id
 
-    module = {"a batch's run": "pipeline.jobs.worker", "a replay": "pipeline.optimizer.replay"}.get(
-        way, "pipeline.optimizer.loop")
-    monkeypatch.setattr(f"{module}.start_run", made_then_stopped)
+    monkeypatch.setattr("pipeline.optimizer.loop.start_run", made_then_stopped)  # every way makes its run there
     before = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
     try:
         if way == "the command line":
