@@ -135,9 +135,57 @@ def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
     assert code == 1 and "audits whose episodes are missing" in out
 
 
+def test_a_re_audit_stopped_part_way_leaves_the_earlier_audit_whole(store, scripted, monkeypatch):
+    """A re-audit wrote its games under the ids of the earlier audit's (one id per game index): stopped part way
+    (a Ctrl-C, an error), the earlier audit's rows named games the new audit had overwritten, with other seeds and
+    returns. Each audit's games now have ids of their own; a stopped one deletes those it wrote."""
+    import functools
+
+    import pipeline.optimizer.audit as audit_module
+
+    config = OptimizeConfig(game="pong", iterations=1, eval_max_steps=60, rollout_steps=20, workers=1,
+                            audit_episodes=2, rng_key="audit")
+    model = scripted([COMPETENT_REPLY])
+    result = optimize(config, store, LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05))
+    assert result.status == "finished" and result.audit.rows, result.error
+
+    def audited():
+        rows = store.query("SELECT role, protocol, seeds, episode_ids, score FROM audits ORDER BY ALL")
+        games = store.query('SELECT episode_id, seed, "return" FROM episodes WHERE kind = \'audit\' ORDER BY ALL')
+        return rows, games
+
+    before = audited()
+    listed = {episode: seed for _, _, seeds, ids, _ in before[0] for episode, seed in zip(ids, seeds)}
+    assert {episode: seed for episode, seed, _ in before[1]} == listed and len(listed) >= 4
+    monkeypatch.setattr(audit_module, "EpisodeWriter", functools.partial(audit_module.EpisodeWriter, every_s=0))
+    checked = audit_module.checked_outcome
+    for stop in (KeyboardInterrupt, RuntimeError):
+        for at in (1, len(listed) - 1):  # after the first game is written; at the last, before the rows are
+            played = []
+
+            def stopped(spec, outcome, at=at, stop=stop, played=played):
+                played.append(spec.episode_id)
+                if len(played) > at:
+                    raise stop("stopped by the test")
+                return checked(spec, outcome)
+
+            monkeypatch.setattr(audit_module, "checked_outcome", stopped)
+            with pytest.raises(stop):
+                audit_module.audit_run(store, result.run_id, episodes=2)
+            assert audited() == before, (stop, at)
+            assert not set(played) & set(listed), "the new audit's games have ids of their own"
+    monkeypatch.setattr(audit_module, "checked_outcome", checked)
+    again = audit_module.audit_run(store, result.run_id, seeds=before[0][0][2])  # the same games, replayed
+    rows, games = audited()
+    assert [(r[0], r[1], r[2], r[4]) for r in rows] == [(r[0], r[1], r[2], r[4]) for r in before[0]], again.rows
+    assert sorted(g[1:] for g in games) == sorted(g[1:] for g in before[1])
+    assert not {g[0] for g in games} & set(listed), "the earlier audit's games are gone with its rows"
+
+
 def _audit_returns(store) -> list[tuple]:
-    return store.query('SELECT episode_id, seed, "return", length FROM episodes WHERE kind = \'audit\' '
-                       "ORDER BY episode_id")
+    """Each audit game's id less its audit's token (``.{iteration}.audit-{protocol}.{index}``), seed and result."""
+    return store.query("SELECT regexp_replace(episode_id, '^[^.]*|[.][^.]*$', '', 'g') AS game, seed, \"return\", "
+                       "length FROM episodes WHERE kind = 'audit' ORDER BY game")
 
 
 def test_audit_seeds_given_by_hand_are_checked(store, capsys):

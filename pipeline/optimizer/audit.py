@@ -33,14 +33,15 @@ from games.base import (AUDIT_SEED_BASE, AUDIT_SEED_END, ONE_LIFE_CONTINUE, STAN
                         draw_audit_seeds)
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.play.episodes import run_episodes
-from pipeline.play.runinfo import episode_id
+from pipeline.play.runinfo import audit_episode_id, new_audit_token
 from pipeline.play.spec import EpisodeSpec
 from pipeline.play.verify import checked_outcome
 from store import Store
 from store.readers import audit_subjects, get_run
 from store.scores import Score, overfit, score_episodes
 from store.statistics import MEAN_METHOD, interval_text
-from store.writer import EpisodeWriter, replace_audits
+from pipeline.stopping import uninterrupted
+from store.writer import EpisodeWriter, delete_episodes, replace_audits
 
 PROTOCOLS = {"standard": (STANDARD_STICKY, STANDARD_NOOP_MAX), "run": (0.0, 0)}
 """The audit's protocols: (sticky action probability, most no-op starts). ``run``: the run's own evaluation."""
@@ -145,6 +146,7 @@ def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: i
         return AuditResult(run_id, [])
     if seeds is None:
         seeds = draw_audit_seeds(1 if one_game else n)
+    audit = new_audit_token()
     specs: list[EpisodeSpec] = []
     groups: dict[tuple[str, str], list[int]] = {}  # (version, protocol) -> indices of its specs
     for subject in {s["policy_version_id"]: s for s in subjects}.values():  # the best may be the starter
@@ -152,26 +154,44 @@ def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: i
             indices = groups.setdefault((subject["policy_version_id"], protocol), [])
             for i in range(n):
                 indices.append(len(specs))
-                kind = f"audit-{protocol}"
                 specs.append(EpisodeSpec(
-                    episode_id=episode_id(run_id, subject["iteration"], kind, i), run_id=run_id,
+                    episode_id=audit_episode_id(run_id, subject["iteration"], protocol, i, audit), run_id=run_id,
                     game=run["game"], policy_text=subject["policy_text"],
                     policy_version_id=subject["policy_version_id"], iteration=subject["iteration"], kind="audit",
                     index=i, seed=seeds[0] if one_game else seeds[i], max_steps=recorded["eval_max_steps"],
                     sticky=sticky, noop_max=noop_max, one_life=config.one_life, observation=config.observation,
-                    continues=episode_id(run_id, subject["iteration"], kind, i - 1) if one_game and i else None,
+                    continues=audit_episode_id(run_id, subject["iteration"], protocol, i - 1, audit)
+                    if one_game and i else None,
                     call_time_limit_s=config.call_time_limit_s, episode_time_limit_s=config.episode_time_limit_s,
                     rng_key=recorded.get("rng_key")))
-    outcomes: list[dict[str, Any] | None] = [None] * len(specs)
-    if on_play is not None:
-        on_play(len(specs))
-    with EpisodeWriter(store, replace=True) as writer:
-        for i, outcome in run_episodes(specs, workers=max(1, workers or config.workers), progress=progress):
-            outcome = checked_outcome(specs[i], outcome)
-            writer.add(outcome.episode, outcome.steps, outcome.nodes)
-            outcomes[i] = outcome.episode
-            if on_episode is not None:
-                on_episode(i, outcome.episode["length"])
+    audited = False
+    try:
+        outcomes: list[dict[str, Any] | None] = [None] * len(specs)
+        if on_play is not None:
+            on_play(len(specs))
+        with EpisodeWriter(store, replace=True) as writer:
+            for i, outcome in run_episodes(specs, workers=max(1, workers or config.workers), progress=progress):
+                outcome = checked_outcome(specs[i], outcome)
+                writer.add(outcome.episode, outcome.steps, outcome.nodes)
+                outcomes[i] = outcome.episode
+                if on_episode is not None:
+                    on_episode(i, outcome.episode["length"])
+        result = AuditResult(run_id, _audit_rows(subjects, specs, groups, outcomes))
+        with uninterrupted():  # a press in the write that replaces the earlier audit lands after it
+            with store.write() as con:
+                replace_audits(con, run_id, result.rows)
+            audited = True
+    except BaseException:
+        if not audited:  # the earlier audit stands, with its games; this one's, played or not, go
+            _forget_games(store, [spec.episode_id for spec in specs])
+        raise
+    return result
+
+
+def _audit_rows(subjects: list[dict[str, Any]], specs: list[EpisodeSpec], groups: dict[tuple[str, str], list[int]],
+                outcomes: list[dict[str, Any] | None]) -> list[dict[str, Any]]:
+    """The ``audits`` rows of the games played: one per subject (best, starter) and protocol, with the best's
+    ``overfit`` against the starter."""
     scores: dict[tuple[str, str], Score] = {key: score_episodes(outcomes[i] for i in indices)
                                             for key, indices in groups.items()}
     rows = []
@@ -185,10 +205,19 @@ def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: i
                              score_low=score.low if score.ranked is not None else None,
                              score_high=score.high if score.ranked is not None else None, forfeit=score.forfeit,
                              tuning_score=subject["tuning_score"], overfit=None))
-    result = AuditResult(run_id, rows)
-    best, starter = result.row("best", "standard"), result.row("starter", "standard")
+    best, starter = (next((r for r in rows if r["role"] == role and r["protocol"] == "standard"), None)
+                     for role in ("best", "starter"))
     if best is not None and starter is not None:
         best["overfit"] = overfit(best["tuning_score"], starter["tuning_score"], best["score"], starter["score"])
-    with store.write() as con:
-        replace_audits(con, run_id, rows)
-    return result
+    return rows
+
+
+def _forget_games(store: Store, episode_ids: list[str]) -> None:
+    """Delete the games of an audit that did not replace the run's earlier one (stopped, or failed): ``kind =
+    'audit'`` keeps only the games the ``audits`` rows list. Never raises: the caller re-raises what stopped it (a
+    killed process leaves them, and the next audit deletes them)."""
+    try:
+        with uninterrupted(), store.write() as con:
+            delete_episodes(con, episode_ids)
+    except Exception:  # noqa: BLE001 - the store's own failure; what stopped the audit says what happened
+        pass

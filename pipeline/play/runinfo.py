@@ -30,6 +30,18 @@ def episode_id(run_id: str, iteration: int, kind: str, index: int, candidate: in
     return f"{run_id}.{iteration}.{kind}.{index}"
 
 
+def audit_episode_id(run_id: str, iteration: int, protocol: str, index: int, audit: str) -> str:
+    """An audit's episode: ``{run_id}.{iteration}.audit-{protocol}.{index}.{audit}``, ``audit`` the token of the
+    audit that plays it (:func:`new_audit_token`). Each audit's games have ids of their own, so a re-audit stopped
+    part way never overwrites a game the earlier audit's rows still name."""
+    return f"{episode_id(run_id, iteration, f'audit-{protocol}', index)}.{audit}"
+
+
+def new_audit_token() -> str:
+    """A token for an audit's episode ids: the time part of a ULID (milliseconds), ordered as the audits were."""
+    return new_run_id()[:10]
+
+
 def policy_rng_seed(key: str, game_seed: int) -> int:
     """The seed of a policy process's ``random`` and NumPy generators for the game of ``game_seed``, in the run
     whose random stream is ``key`` (its ``rng_key``: the run's id, or the replayed run's).
