@@ -155,18 +155,26 @@ def check_settings(config: Any) -> None:
             raise ValueError(f"{label} must be a finite number, got {value:g}")
         if declared.choices is not None and value not in declared.choices:
             raise ValueError(f"{label} must be one of {', '.join(map(str, declared.choices))}, not {value!r}")
-        low, high = declared.minimum, declared.maximum
-        if low is not None and high is not None and not low <= value <= high:
-            raise ValueError(f"{label} must be within [{_shown(low)}, {_shown(high)}], got {_shown(value)}")
-        if low is not None and value < low:
-            least = "0 or more" if low == 0 else f"at least {_shown(low)}"
-            raise ValueError(f"{label} must be {least}, got {_shown(value)}")
-        if high is not None and value > high:
-            raise ValueError(f"{label} must be at most {_shown(high)}, got {_shown(value)}")
-        if declared.above is not None and value <= declared.above:
-            raise ValueError(f"{label} must be above {_shown(declared.above)}, got {_shown(value)}")
+        problem = range_problem(declared, value)
+        if problem is not None:
+            raise ValueError(f"{label} {problem}")
         if declared.check is not None:
             declared.check(value)
+
+
+def range_problem(declared: Setting, value: float) -> str | None:
+    """What is wrong with ``value`` against ``declared``'s bounds (``must be within [0, 2], got 3``), or None: the
+    one wording of a setting out of its range, as a batch key and as a flag (``pipeline/cli/common.py`` types)."""
+    low, high = declared.minimum, declared.maximum
+    if low is not None and high is not None and not low <= value <= high:
+        return f"must be within [{_shown(low)}, {_shown(high)}], got {_shown(value)}"
+    if low is not None and value < low:
+        return f"must be {'0 or more' if low == 0 else f'at least {_shown(low)}'}, got {_shown(value)}"
+    if high is not None and value > high:
+        return f"must be at most {_shown(high)}, got {_shown(value)}"
+    if declared.above is not None and value <= declared.above:
+        return f"must be above {_shown(declared.above)}, got {_shown(value)}"
+    return None
 
 
 def _shown(number: float) -> str:

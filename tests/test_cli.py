@@ -365,6 +365,9 @@ def test_eval_names_the_store_once(tmp_path):
     (["optimize", "--strategy", "beem"], "codearcade optimize: argument --strategy: invalid choice 'beem'; did you "
                                          "mean beam? (choose from greedy, best-of-n, beam, map-elites)"),
     (["runs", "--zzz"], "codearcade runs: unknown flag --zzz; `codearcade runs --help` lists the flags"),
+    # the dashes every long flag has are not a likeness: these named --store and --json
+    (["report", "--lsat"], "codearcade report: unknown flag --lsat; `codearcade report --help` lists the flags"),
+    (["games", "--store", "x"], "codearcade games: unknown flag --store; `codearcade games --help` lists the flags"),
 ])
 def test_a_mistyped_flag_or_verb_gets_the_nearest_in_one_line(capsys, argv, said):
     code, out, err = _in_process(capsys, *argv)

@@ -10,6 +10,7 @@ import argparse
 import difflib
 import errno
 import json
+import math
 import os
 import re
 import sys
@@ -184,10 +185,13 @@ class CodearcadeParser(argparse.ArgumentParser):
         return self._flag_message(flags[0])
 
     def _flag_message(self, flag: str) -> str:
-        close = difflib.get_close_matches(flag, self._long_flags() if flag.startswith("--")
-                                          else list(self._option_string_actions), n=1, cutoff=0.6)
+        # the names are compared without their dashes: the two every long flag shares made `--lsat` look like
+        # `--store` and `games --store` like `--json`
+        known = {s.lstrip("-"): s for s in (self._long_flags() if flag.startswith("--")
+                                            else self._option_string_actions)}
+        close = difflib.get_close_matches(flag.lstrip("-"), list(known), n=1, cutoff=0.6)
         if close:
-            return f"unknown flag {flag}; did you mean {close[0]}?"
+            return f"unknown flag {flag}; did you mean {known[close[0]]}?"
         return f"unknown flag {flag}; `{self.prog} --help` lists the flags"
 
     def error(self, message: str):  # noqa: D102 (argparse's hook)
@@ -462,14 +466,37 @@ def json_default(value: Any) -> str:
 
 
 def _argument_type(kind, declared) -> Callable[[str], Any] | None:
-    """The argparse type of a setting: its value type, held to its range where one of these types says it."""
+    """The argparse type of a setting: its value type, held to its declared range (``settings.range_problem``), so
+    that a flag out of range is refused by the parser like any other bad value, in the same words as a batch key.
+    Its ``kind`` is the value's type; its name says the range as the project's own types do."""
+    from pipeline.settings import range_problem
+
+    if kind not in (int, float):
+        return None
+
+    def typed(text: str) -> Any:
+        if kind is int:
+            value = _whole_number(text)
+        else:
+            try:
+                value = float(text)
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"give a number, got {text!r}") from None
+            if not math.isfinite(value):  # nan passes every bound; neither goes in JSON
+                raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+        problem = range_problem(declared, value)
+        if problem is not None:
+            raise argparse.ArgumentTypeError(problem)
+        return value
+
     low = declared.minimum if declared.minimum is not None else (
         None if declared.above is None else declared.above + (1 if kind is int else 0))
     if kind is int:
-        return non_negative_int if low == 0 else positive_int if low is not None and low >= 1 else int
-    if kind is float:
-        return probability if (declared.minimum, declared.maximum) == (0, 1) else float
-    return None
+        typed.__name__ = "non_negative_int" if low == 0 else "positive_int" if low is not None and low >= 1 else "int"
+    else:
+        typed.__name__ = "probability" if (declared.minimum, declared.maximum) == (0, 1) else "float"
+    typed.kind = kind
+    return typed
 
 
 def add_settings(p: argparse.ArgumentParser, config: type, groups: dict[str, str] | None = None, *,
