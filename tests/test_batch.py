@@ -13,8 +13,11 @@ import time
 import pytest
 
 from pipeline.jobs.batch import ExperimentError, load_experiments
+
 from store.views import run_user_query
 from tests.conftest import COMPETENT_REPLY, ROOT
+
+POLICIES = __import__("pathlib").Path(__file__).parent / "policies"
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 
@@ -318,3 +321,37 @@ def test_a_finished_run_whose_label_changed_is_renamed_without_being_run_again(t
         assert log.count("renamed run") == len(changed), log
     assert store.query("SELECT count(*) FROM runs")[0][0] == 2, "nothing was started again"
     assert store.query("SELECT count(*) FROM episodes")[0][0] == episodes, "nothing was played again"
+
+
+def test_a_batch_folder_moved_whole_keeps_its_runs(tmp_path, store, scripted):
+    """A run's key hashed its policy file's absolute path: a batch folder moved (or its checkout cloned elsewhere)
+    started every policy-file run again. A policy file inside the batch's folder now counts by its path from
+    there; a run keyed the old way (by the absolute path) is still found where the folder has not moved."""
+    import shutil
+
+    from pipeline.jobs import batch as batch_module
+
+    model = scripted([COMPETENT_REPLY])
+    folder = tmp_path / "experiment"
+    (folder / "policies").mkdir(parents=True)
+    shutil.copy(POLICIES / "pong_competent.py", folder / "policies" / "pong.py")
+    path = folder / "moved.toml"
+    path.write_text(f"name = 'moved'\n[defaults]\niterations = 0\neval_max_steps = 60\naudit_episodes = 0\n"
+                    f"model = '{model.model}'\napi_base = '{model.api_base}'\n[[run]]\npolicy = 'policies/pong.py'\n"
+                    "[[run]]\ngame = 'breakout'\n")
+    assert _batch(path, store).returncode == 0
+    assert store.query("SELECT count(*), count(*) FILTER (WHERE status = 'finished') FROM runs") == [(2, 2)]
+    moved = shutil.move(folder, tmp_path / "elsewhere") / "moved.toml"
+    dry = _batch(moved, store, "--dry-run")
+    assert dry.returncode == 0 and [line.split()[0] for line in dry.stdout.splitlines() if "[moved:" in line] == \
+        ["skip", "skip"], dry.stdout
+    assert _batch(moved, store).returncode == 0
+    assert store.query("SELECT count(*) FROM runs")[0][0] == 2, "nothing was started again"
+    # a store whose run has the key of before: found by it, not started again
+    batch = batch_module.load_experiments(moved)
+    [policy_run] = [run for run in batch.runs if run.config.policy]
+    assert policy_run.legacy_key and policy_run.legacy_key != policy_run.key
+    with store.write() as con:
+        con.execute("UPDATE runs SET config = json_merge_patch(config, json_object('batch_key', ?)) "
+                    "WHERE config->>'batch_key' = ?", [policy_run.legacy_key, policy_run.key])
+    assert [p.action for p in batch_module.plan(batch, store)] == ["skip", "skip"]

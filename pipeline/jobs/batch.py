@@ -87,6 +87,9 @@ class BatchRun:
     config: OptimizeConfig
     name: str | None = None
     """Its label in the store (``runs.name``): the entry's ``name``, else ``{batch}:{entry}`` (module docstring)."""
+    legacy_key: str | None = None
+    """The key a run of a policy file in the batch's folder had before keys took its path from there (its
+    absolute path): such a run is found by it too, and keeps it."""
 
 
 @dataclass
@@ -143,10 +146,16 @@ def _plain_value(value: Any) -> bool:
     return isinstance(value, (str, int, float, bool))
 
 
-def _run_key(name: str, config: OptimizeConfig) -> str:
+def _run_key(name: str, config: OptimizeConfig, folder: Path | None = None) -> str:
+    """The run's key in the batch ``name``: a hash of its identifying settings. A policy file inside ``folder``
+    (the batch file's) counts by its path from there, so that a batch folder that is moved or copied whole keeps
+    its runs; ``folder`` None: by its absolute path, as keys were made before 2026-12-06 (:attr:`BatchRun.
+    legacy_key`)."""
     defaults = OptimizeConfig()
     identity = {k: v for k, v in asdict(config).items()
                 if k not in NOT_IN_KEY and not (k in KEYED_WHEN_SET and v == getattr(defaults, k))}
+    if folder is not None and identity.get("policy") and Path(identity["policy"]).is_relative_to(folder):
+        identity["policy"] = Path(identity["policy"]).relative_to(folder).as_posix()
     text = json.dumps({"batch": name, "config": identity}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -264,7 +273,8 @@ def load_experiments(path: str | os.PathLike) -> Batch:
             # the key is the entry's settings', before the model's defaults (a function of them): an experiment
             # file keeps its keys
             settings = split_model_flags(settings)  # an ensemble: models = [...] (pipeline/optimizer/ensemble.py)
-            key = _run_key(name, OptimizeConfig(**settings))
+            key = _run_key(name, OptimizeConfig(**settings), path.parent.resolve())
+            legacy_key = _run_key(name, OptimizeConfig(**settings))
             config = OptimizeConfig(**model_defaults(settings))
             validate_config(config)
         except ValueError as exc:
@@ -274,7 +284,8 @@ def load_experiments(path: str | os.PathLike) -> Batch:
                                   f"{f' ({given!r})' if given else ''} has the same settings as "
                                   f"{seen[key]}: give it a setting of its own, or leave it out")
         seen[key] = _label(settings, list(matrix)) + (f" ({given!r})" if given else "")
-        runs.append(BatchRun(key, _label(settings, list(matrix)), config))
+        runs.append(BatchRun(key, _label(settings, list(matrix)), config,
+                             legacy_key=legacy_key if legacy_key != key else None))
         kept.append((settings, given))
     labels = _run_names(name, kept, list(matrix))
     for given, label in zip((g for _, g in kept), labels):
@@ -309,10 +320,11 @@ def plan(batch: Batch, store: Store) -> list[PlannedRun]:
             found[key] = (run_id, status, name)  # the latest run of a key wins
     planned = []
     for run in batch.runs:
-        if run.key not in found:
+        key = run.key if run.key in found or run.legacy_key is None else run.legacy_key
+        if key not in found:
             planned.append(PlannedRun(run, "start"))
         else:
-            run_id, status, name = found[run.key]
+            run_id, status, name = found[key]
             planned.append(PlannedRun(run, "skip" if status == "finished" else "resume", run_id, status, name))
     return planned
 
@@ -370,8 +382,9 @@ def _refresh(store: Store, progress: list[Progress], batch: Batch) -> None:
         return
     by_key = {key: (run_id, it, best) for key, run_id, it, best in rows}
     for p, run in zip(progress, batch.runs):
-        if run.key in by_key:
-            p.run_id, p.iteration, p.best = by_key[run.key]
+        key = run.key if run.key in by_key or run.legacy_key is None else run.legacy_key
+        if key in by_key:
+            p.run_id, p.iteration, p.best = by_key[key]
 
 
 def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: int, log: Callable[[str], None],
