@@ -326,3 +326,42 @@ def test_inputs_of_the_usual_call_are_the_json_of_their_dict():
     with_keyword = to_json({"obs": OBS_REF, "y": 7, "flag": False})
     assert recorder._encode_inputs(method, args[:2], {"flag": False}) == with_keyword
     assert recorder._encode_inputs(method, (float("nan"),), {}) == to_json({"obs": "NaN"})
+
+
+UNPRINTABLE = pong_policy("""
+class Unprintable(Exception):
+    def __str__(self):
+        raise RuntimeError("no text for you")
+raise Unprintable()
+""")
+LONG_MESSAGE = pong_policy("""
+raise ValueError("x" * 100_000)
+""")
+
+
+@pytest.mark.parametrize("workers", ["1", "0"], ids=["policy process", "in process"])
+@pytest.mark.parametrize("text, raising, message", [
+    (UNPRINTABLE, "raise Unprintable()", "<message not shown: its __str__ raised RuntimeError>"),
+    (LONG_MESSAGE, 'raise ValueError("x" * 100_000)', "x" * 960 + "… [cut 99,040 characters]"),
+], ids=["__str__ raises", "100,000-character message"])
+def test_a_policy_exception_is_named_at_its_own_line_whatever_its_message(text, raising, message, workers, store,
+                                                                          tmp_path, capsys):
+    """An exception whose ``__str__`` raised lost its node row, and the episode's error named the ``__str__``'s
+    RuntimeError at its line; a 100,000-character message pushed ``at line N`` past the error's cap. The node row
+    is kept, and the error names the policy's exception, its message bounded (or a placeholder), then its line."""
+    from pipeline.cli import main
+
+    path = tmp_path / "policy.py"
+    path.write_text(text)
+    line = text.splitlines().index(" " * 8 + raising) + 1
+    name = raising.split()[1].split("(")[0]
+    main(["eval", str(path), "--trace", "--episodes", "1", "--max-steps", "3", "--workers", workers,
+          "--store", str(store.path)])
+    error = f"{name}: {message} at line {line}: `{raising}`"
+    assert store.query("SELECT end_reason, error FROM episodes") == [("policy_error", error)]
+    assert f"ended with policy_error: {error}" in capsys.readouterr().err
+    node = store.query("SELECT exc_type, exc_line, exc_source, exc_message FROM nodes WHERE exc_type IS NOT NULL "
+                       "AND function = 'select_action'")
+    assert [row[:3] for row in node] == [(name, line, raising)]
+    kept = node[0][3]
+    assert kept == (message if name == "Unprintable" else "x" * 1_960 + "… [cut 98,040 characters]")

@@ -11,6 +11,10 @@ through), the most recent one is the direct producer and is the one named. For v
 With ``lines=True`` each call also records ``lines_run``: the lines of the method's source (1-based, the
 ``def`` line being 1) that ran during the call, sorted (``tracing/lines.py``); NULL when lines are not recorded.
 
+An exception is recorded by its type's name, its message and the failing policy line, each bounded
+(:func:`exception_name`, :func:`exception_message`, :func:`failing_policy_line`), and whatever the exception's own
+``__str__`` does (it is policy code: one that raises gives a placeholder message, the node row is kept).
+
 Inputs that are the step's observation dict itself are stored as ``{"$ref": "obs"}``: the observation is
 already in the ``steps`` table, and repeating it per call would triple the store. Values are stored as JSON
 text: numpy values as numbers/lists, non-finite floats as the strings ``"NaN"``/``"Infinity"``, anything
@@ -36,6 +40,7 @@ import pyarrow as pa
 
 from tracing.bounded import MAX_CHARS, MAX_DEPTH, TOO_DEEP, deeper_than, truncated
 from tracing.lines import LineCall
+from tracing.sandbox import PolicyTimeout
 
 ACTIVE: "NodeRecorder | None" = None
 """The recorder bundled methods report to; None when capture is off."""
@@ -72,8 +77,51 @@ def is_policy_filename(filename: str) -> bool:
     return filename.startswith("<policy")
 
 
+MAX_MESSAGE_CHARS = 2_000
+"""Characters of an exception's message a node keeps (:func:`exception_message`)."""
+MAX_NAME_CHARS = 48
+"""Characters of an exception type's name a node keeps: ``nodes.py`` allows ``exc_type`` 200 UTF-8 bytes, and a
+character of a name is at most 4 of them (the cut mark 3 more)."""
+MAX_SOURCE_CHARS = 500
+"""Characters of the failing line's text kept (``exc_source``, and an episode's error): a policy line can be
+100,000 characters long."""
+
+
+_CUT_MARK_CHARS = 40
+"""Room for the mark of a cut (``… [cut 99,000 characters]``) within its limit."""
+
+
+def _cut(text: str, limit: int) -> str:
+    """``text``, or its first characters and the mark of the cut: ``limit`` characters at most in all, so that a
+    later cap of the same size (the store's, ``untrusted.MESSAGE_LIMIT``) does not cut it again."""
+    if len(text) <= limit:
+        return text
+    keep = limit - _CUT_MARK_CHARS
+    return f"{text[:keep]}… [cut {len(text) - keep:,} characters]"
+
+
+def exception_name(exc: BaseException) -> str:
+    """The name of ``exc``'s type, at most :data:`MAX_NAME_CHARS` characters (cut ending in ``…``)."""
+    name = type(exc).__name__
+    return name if len(name) <= MAX_NAME_CHARS else name[:MAX_NAME_CHARS] + "…"
+
+
+def exception_message(exc: BaseException, limit: int = MAX_MESSAGE_CHARS) -> str:
+    """``str(exc)`` as plain text, at most ``limit`` characters (a cut marked); a placeholder when the exception's
+    ``__str__`` (policy code) raises or returns no text. Raised inside the recorder's handler, that exception lost the
+    node row, and the episode's error named it and its line in ``__str__`` instead of the policy's own exception."""
+    try:
+        said = str(exc)
+    except (KeyboardInterrupt, PolicyTimeout):
+        raise  # the call's time limit (or a stop) while __str__ ran: the episode's end, not a message
+    except BaseException as failed:  # noqa: BLE001 - untrusted code: anything, SystemExit too
+        return f"<message not shown: its __str__ raised {exception_name(failed)}>"
+    return _cut(str.__str__(said), limit)  # a str subclass's own methods are policy code too
+
+
 def failing_policy_line(exc: BaseException) -> tuple[int | None, str | None]:
-    """The innermost line of policy code in ``exc``'s traceback: (line number, stripped text)."""
+    """The innermost line of policy code in ``exc``'s traceback: (line number, stripped text, at most
+    :data:`MAX_SOURCE_CHARS` characters)."""
     line_no, text = None, None
     tb = exc.__traceback__
     while tb is not None:
@@ -82,7 +130,7 @@ def failing_policy_line(exc: BaseException) -> tuple[int | None, str | None]:
             line_no = tb.tb_lineno
             text = linecache.getline(code.co_filename, tb.tb_lineno).strip() or None
         tb = tb.tb_next
-    return line_no, text
+    return line_no, None if text is None else _cut(text, MAX_SOURCE_CHARS)
 
 
 def _jsonable(value: Any, depth: int = 0) -> Any:
@@ -289,8 +337,8 @@ class NodeRecorder:
         except BaseException as exc:
             duration = (time.perf_counter_ns() - start) // 1000
             line, text = failing_policy_line(exc)
-            self._rows.append((self.step, index, parameter.name, parameter.trainable, inputs, None, type(exc).__name__,
-                               str(exc)[:2000], line, text, duration, parents, run.lines() if self.lines else None))
+            self._rows.append((self.step, index, parameter.name, parameter.trainable, inputs, None, exception_name(exc),
+                               exception_message(exc), line, text, duration, parents, run.lines() if self.lines else None))
             raise
         duration = (time.perf_counter_ns() - start) // 1000
         self._rows.append((self.step, index, parameter.name, parameter.trainable, inputs, to_json(output), None, None,

@@ -51,7 +51,7 @@ import numpy as np
 import numpy.random  # noqa: F401  (numpy loads it on first use: imported here, the zygote holds it for every worker)
 
 from pipeline.boundary.wire import json_frame
-from tracing.capture import NodeRecorder, failing_policy_line
+from tracing.capture import NodeRecorder, exception_message, exception_name, failing_policy_line
 from tracing.policy_file import PolicyLoadError, load_policy
 from tracing.sandbox import EpisodeTimer, PolicyTimeout
 
@@ -152,12 +152,21 @@ def coerce_action(action: Any, n_actions: int) -> int:
     return index
 
 
+MAX_ERROR_MESSAGE_CHARS = 1_000
+"""Characters of the exception's message in :func:`describe_exception`'s line: with the name and the line's text
+(``capture.MAX_NAME_CHARS``, ``capture.MAX_SOURCE_CHARS``) within :data:`MAX_ERROR_CHARS`, so the location is
+never what a cap cuts off."""
+
+
 def describe_exception(exc: BaseException) -> str:
-    """One line: the exception, and the innermost line of policy code it came from."""
+    """One line: the exception's name, its message and the innermost line of policy code it came from (``Name:
+    message at line N: `text```, ``Name at line N`` where it says nothing), each part bounded: a 100,000-character
+    message hid the location past the cap of the error; an exception whose ``__str__`` raises is still named, at
+    its own line (``capture.exception_message``)."""
     line, text = failing_policy_line(exc)
     where = f" at line {line}: `{text}`" if line and text else (f" at line {line}" if line else "")
-    said = str(exc)
-    return f"{type(exc).__name__}: {said}{where}" if said else f"{type(exc).__name__}{where}"  # MemoryError() says ""
+    name, said = exception_name(exc), exception_message(exc, MAX_ERROR_MESSAGE_CHARS)
+    return f"{name}: {said}{where}" if said else f"{name}{where}"  # MemoryError() says ""
 
 
 class Channel:
