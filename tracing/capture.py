@@ -9,7 +9,9 @@ through), the most recent one is the direct producer and is the one named. For v
 (``None``, ``True``, small ints) this can name a call that merely returned an equal value.
 
 With ``lines=True`` each call also records ``lines_run``: the lines of the method's source (1-based, the
-``def`` line being 1) that ran during the call, sorted (``tracing/lines.py``); NULL when lines are not recorded.
+``def`` line being 1) that ran during the call, sorted (``tracing/lines.py``); NULL when lines are not recorded, and
+for a method longer than :data:`MAX_LINES_RUN` lines (its line numbers would not fit the ``int16`` of the wire and
+of the store's ``SMALLINT``: the node table failed to encode and the episode lost its whole trace).
 
 An exception is recorded by its type's name, its message and the failing policy line, each bounded
 (:func:`exception_name`, :func:`exception_message`, :func:`failing_policy_line`), and whatever the exception's own
@@ -77,6 +79,9 @@ def is_policy_filename(filename: str) -> bool:
     return filename.startswith("<policy")
 
 
+MAX_LINES_RUN = 2**15 - 1
+"""The last line number ``lines_run`` holds (``int16`` on the wire, ``SMALLINT[]`` in the store): a method longer
+than this records no lines (NULL, as when lines are not recorded)."""
 MAX_MESSAGE_CHARS = 2_000
 """Characters of an exception's message a node keeps (:func:`exception_message`)."""
 MAX_NAME_CHARS = 48
@@ -330,7 +335,9 @@ class NodeRecorder:
         fn = parameter.fn
         parents = self._parents(args, kwargs)
         inputs = self._encode_inputs(fn, args, kwargs)
-        run = LineCall(fn, parameter.first_line, self._line_count(parameter)) if self.lines else fn
+        count = self._line_count(parameter) if self.lines else 0
+        lines = self.lines and count <= MAX_LINES_RUN
+        run = LineCall(fn, parameter.first_line, count) if lines else fn
         start = time.perf_counter_ns()
         try:
             output = run(instance, *args, **kwargs)
@@ -338,11 +345,11 @@ class NodeRecorder:
             duration = (time.perf_counter_ns() - start) // 1000
             line, text = failing_policy_line(exc)
             self._rows.append((self.step, index, parameter.name, parameter.trainable, inputs, None, exception_name(exc),
-                               exception_message(exc), line, text, duration, parents, run.lines() if self.lines else None))
+                               exception_message(exc), line, text, duration, parents, run.lines() if lines else None))
             raise
         duration = (time.perf_counter_ns() - start) // 1000
         self._rows.append((self.step, index, parameter.name, parameter.trainable, inputs, to_json(output), None, None,
-                           None, None, duration, parents, run.lines() if self.lines else None))
+                           None, None, duration, parents, run.lines() if lines else None))
         self._outputs.append((output, index))
         return output
 

@@ -15,11 +15,14 @@ then on (:class:`Channel`):
     host -> policy   O <marshal of the observation dict>          (once per step)
     policy -> host   a <8-byte action>  |  J {"kind": "failed", "end_reason": "policy_error"|"timeout", "error"}
     host -> policy   J {"op": "end", "more": bool}
-    policy -> host   J {"kind": "done", "nodes": bool[, "printed", "printed_dropped"]}  [A <Arrow stream of the node rows>]
+    policy -> host   J {"kind": "done", "nodes": bool[, "no_nodes", "printed", "printed_dropped"]}
+                     [A <Arrow stream of the node rows>]
 
 With ``"more": true`` (the next episode of a continued game follows: ``one_life="continue"``) the policy stays
 loaded, its state and RNGs as they are, and the exchange goes on from ``go`` for the next episode, its node rows
-recorded afresh (steps numbered from 0).
+recorded afresh (steps numbered from 0). A traced episode whose node rows could not be made says why in ``no_nodes``
+(``"nodes": false``): the host records that as the episode's error, as it does a process that ends before its rows
+arrive (``pipeline/play/channels.py``): a traced episode never passes for one whose calls made no rows.
 
 With ``keep_printed`` the policy's ``sys.stdout`` keeps what it prints (:class:`PrintedText`: the first
 :data:`MAX_PRINTED_BYTES` bytes of each episode, and a count of the characters past them), sent with ``done``;
@@ -75,6 +78,9 @@ MAX_PRINTED_BYTES = 4_096
 """UTF-8 bytes of what a policy prints that an episode keeps (``keep_printed``). Sent in the ``done`` frame, which
 the host reads within :data:`MAX_ANSWER`: a byte is at most 6 bytes as JSON (a control character as ``\\u00XX``),
 so 4 KiB of the worst text is 24 KiB."""
+MAX_NO_NODES_CHARS = 300
+"""Characters of ``no_nodes``, why a traced episode's node rows could not be made: 3.6 KB at most as JSON, beside
+:data:`MAX_PRINTED_BYTES` in the ``done`` frame."""
 
 
 class PrintedText(io.TextIOBase):
@@ -450,17 +456,27 @@ class PolicySide:
             channel.send_json({"kind": "ready"})
             more = self._play()
         while True:
-            nodes = self.recorder.table() if self.recorder is not None else None
-            channel.send_json({"kind": "done", "nodes": nodes is not None,
+            nodes, why = self._node_frame()
+            channel.send_json({"kind": "done", "nodes": nodes is not None, **({"no_nodes": why} if why else {}),
                                **(self.printed.take() if self.printed is not None else {})})
             if nodes is not None:
-                from pipeline.boundary.wire import arrow_frame
-
-                channel.write_all(arrow_frame(nodes))
+                channel.write_all(nodes)
             if not more:
                 return
             self.recorder = NodeRecorder(lines=self.lines) if self.trace else None
             more = self._play()
+
+    def _node_frame(self) -> tuple[bytes | None, str | None]:
+        """The episode's node rows as a frame, or None and why they could not be made (a traced episode's host
+        records that as the episode's error; this process dying here, the table unsent, gave it none at all)."""
+        if self.recorder is None:
+            return None, None
+        from pipeline.boundary.wire import arrow_frame  # looked up at each end, as a policy may swap it (tests/faults)
+
+        try:
+            return arrow_frame(self.recorder.table()), None
+        except Exception as exc:  # noqa: BLE001 - a value out of its column's range, memory: the episode says so
+            return None, f"{exception_name(exc)}: {exception_message(exc, MAX_NO_NODES_CHARS)}"
 
     def _play(self) -> bool:
         """One episode's exchange; whether the host asked for more (the next episode of the same game)."""

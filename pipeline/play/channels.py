@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.boundary.nodes import MAX_NODE_FRAME, node_budget
-from pipeline.boundary.policy import (ACTION, MAX_ANSWER, Channel, capped_error, coerce_action,
+from pipeline.boundary.policy import (ACTION, MAX_ANSWER, MAX_NO_NODES_CHARS, Channel, capped_error, coerce_action,
                                      describe_exception, printed_text)
 from pipeline.play.spec import EpisodeSpec
 from tracing.capture import NodeRecorder
@@ -118,12 +118,20 @@ class LocalPolicy(PolicyChannel):
             self.timer.__exit__(None, None, None)
             if self.recorder is not None:
                 self.recorder.__exit__(None, None, None)
-        nodes = self.recorder.table() if self.recorder is not None else None
+        nodes, failed = None, None
+        if self.recorder is not None:
+            try:
+                nodes = self.recorder.table()
+            except Exception as exc:  # noqa: BLE001 - as a policy process's rows that could not be made
+                failed = no_trace("policy_error", f"its node rows could not be made ({type(exc).__name__}: "
+                                                  f"{str(exc)[:MAX_NO_NODES_CHARS]})")
         if more and self.policy is not None:  # the next episode: a new node log, the same policy object
             self.timer.__enter__()
             if self.recorder is not None:
                 self.recorder = NodeRecorder(lines=self.spec.trace_lines).__enter__()
             self.step = -1
+        if failed is not None:
+            raise failed
         return nodes
 
 
@@ -232,12 +240,16 @@ class RemotePolicy(PolicyChannel):
         """The node rows as the policy process sent them (an Arrow stream of at most the episode's byte budget,
         :func:`~pipeline.boundary.nodes.node_budget` of ``steps``, read and checked by the parent), or None.
         :class:`PolicyFailed` (``policy_error``, a malformed trace) for node rows the episode did not ask for
-        (refused unread) or a node frame over the limit (refused at its header). None at once when the stream is
-        :attr:`broken` (the host timed the process out: waiting for its node rows would only let it hold the
-        host longer)."""
+        (refused unread) or a node frame over the limit (refused at its header), and (:func:`no_trace`) for a traced
+        episode's rows that do not arrive: the process ended, hung or broke the protocol at the end, or said its rows
+        could not be made (such an episode was stored traced, with no node rows and no error). An untraced
+        episode's steps are the host's: it is an episode whatever the process does at its end. None at once when
+        the stream is :attr:`broken` (the host timed the process out: waiting for its node rows would only let it
+        hold the host longer; the episode already ended by that)."""
         self.printed = None
         if self.broken:
             return None
+        traced = self.spec.trace
         until = min(time.perf_counter() + FINISH_TIMEOUT_S, self.deadline + ANSWER_GRACE_S)
 
         def left() -> float:
@@ -245,15 +257,29 @@ class RemotePolicy(PolicyChannel):
 
         try:
             self.channel.send_json({"op": "end", "more": more}, within=left())
-            kind, payload = self._receive(left(), "at the end")
+            kind, payload = self._receive(left(), "at the episode's end")
             message = json.loads(payload) if kind == b"J" else None
-            if self.spec.keep_printed and isinstance(message, dict) and message.get("kind") == "done":
-                self.printed = printed_text(message)
-            if not isinstance(message, dict) or message.get("kind") != "done" or message.get("nodes") is not True:
-                return None
-        except (PolicyFailed, OSError, ValueError, RecursionError):
-            return None  # the steps are the host's: an episode without its node rows is still an episode
-        if not self.spec.trace:
+        except PolicyFailed as exc:
+            if traced:
+                raise no_trace(exc.end_reason, f"{exc.error}, before sending its node rows") from None
+            return None
+        except (OSError, ValueError, RecursionError):
+            if traced:
+                raise no_trace("crashed", "the policy process broke the protocol at the end") from None
+            return None
+        if not isinstance(message, dict) or message.get("kind") != "done":
+            if traced:
+                raise no_trace("crashed", "the policy process sent another message where its node rows were due")
+            return None
+        if self.spec.keep_printed:
+            self.printed = printed_text(message)
+        if message.get("nodes") is not True:
+            why = message.get("no_nodes")
+            if traced:
+                raise no_trace("policy_error", "the policy process sent no node rows" + (
+                    f" ({capped_error(why[:MAX_NO_NODES_CHARS])})" if isinstance(why, str) and why else ""))
+            return None
+        if not traced:
             raise PolicyFailed("policy_error", "malformed trace: node rows for an episode that is not traced")
         try:
             budget = MAX_NODE_FRAME if steps is None else node_budget(steps)
@@ -261,6 +287,17 @@ class RemotePolicy(PolicyChannel):
         except ValueError as exc:  # over the episode's byte budget, refused at the header
             raise PolicyFailed("policy_error", f"malformed trace: a node frame over the episode's budget ({exc})") \
                 from None
+        except TimeoutError:
+            raise no_trace("timeout", "the policy process did not send its node rows in time") from None
         except (OSError, EOFError):
-            return None
-        return payload if kind == b"A" else None
+            raise no_trace("crashed", "the policy process ended while sending its node rows") from None
+        if kind != b"A":
+            raise no_trace("crashed", "the policy process sent another frame where its node rows were due")
+        return payload
+
+
+def no_trace(end_reason: str, why: str) -> PolicyFailed:
+    """The failure of a traced episode whose node rows did not arrive (``trace missing: ...``): the episode's error
+    says why it has no trace, and (as a malformed trace, ``pipeline/play/episodes.py`` ``trace_refused``) the
+    episode is the policy's forfeit when it had played out; an earlier failure stays its error (it came first)."""
+    return PolicyFailed(end_reason, f"trace missing: {why}")

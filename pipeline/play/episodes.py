@@ -11,7 +11,9 @@ made, which the host relays unread) against what the parent asked for and the Ar
 produces, raising :class:`~pipeline.boundary.wire.BadMessage` otherwise (the episode is then recorded as
 ``crashed`` with that reason). Node rows are the policy process's: read within bounds and checked field by field
 (``pipeline/boundary/nodes.py``); rows that break a rule make the episode a ``policy_error`` ("malformed trace at
-step N: ..."), its steps kept and its nodes dropped. Fields the parent knows (ids, seed, settings) are taken from
+step N: ..."), its steps kept and its nodes dropped; a traced episode that arrives without node rows says why
+(``trace missing: ...``, the host's reason: ``pipeline/play/channels.py``), never passes for traced with none.
+Fields the parent knows (ids, seed, settings) are taken from
 the :class:`EpisodeSpec`, never from the worker.
 """
 
@@ -192,6 +194,9 @@ def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
                      else check_nodes(nodes, spec, steps.num_rows, episode["duration_s"]) or nodes)
         except MalformedTrace as exc:
             return EpisodeOutcome(trace_refused(episode, str(exc)), steps, None, printed)
+    elif spec.trace:  # the host records why a traced episode's rows did not come (channels.no_trace): this is a host
+        # that did not, and the episode must not pass for traced with no rows and no error
+        trace_refused(episode, "trace missing: the game host sent no node rows for a traced episode")
     return EpisodeOutcome(episode, steps, nodes, printed)
 
 

@@ -166,3 +166,80 @@ def test_a_continued_game_goes_on_past_an_episode_whose_trace_is_refused():
 
 
 _BREAKOUT = (ROOT / "games" / "scaffolds" / "breakout.py").read_text()
+
+
+def _eval_traced(path, store, *extra):
+    from pipeline.cli import main
+
+    code = main(["eval", str(path), "--trace", "--episodes", "1", "--store", str(store.path), *map(str, extra)])
+    rows = store.query("SELECT traced, end_reason, error, length FROM episodes")
+    return code, rows, store.query("SELECT count(*) FROM nodes")[0][0]
+
+
+# The policy process ends (os._exit, no finally) as it makes its node frame, after the episode's last action.
+DIES_SENDING_NODES = pong_policy("""
+import typing
+mods = typing.sys.modules
+
+def die(table, os=mods['os']):
+    os._exit(3)
+
+mods['pipeline.boundary.wire'].arrow_frame = die
+return 0
+""")
+
+# 33,000 calls of a bundled method in one step: the call index overflows the node table's int16 as it is made.
+TOO_MANY_CALLS_TO_ENCODE = pong_policy("""
+for _ in range(33_000):
+    self.tick()
+return 0
+""") + """
+    @trace.bundle()
+    def tick(self):
+        return 0
+"""
+
+
+@pytest.mark.parametrize("policy, steps, end_reason, error", [
+    (DIES_SENDING_NODES, 2, "crashed",
+     "trace missing: the policy process ended at the episode's end, before sending its node rows"),
+    (TOO_MANY_CALLS_TO_ENCODE, 1, "policy_error",
+     "trace missing: the policy process sent no node rows (ArrowInvalid: "),
+], ids=["process dies sending its rows", "rows fail to encode"])
+def test_a_traced_episode_whose_node_rows_never_arrive_says_why(policy, steps, end_reason, error, store, tmp_path,
+                                                                 capsys):
+    """Stored as a traced episode that played out, with no node rows and no error, it claimed a trace it did not
+    have (the optimizer took it for a policy that made no calls): it is the policy's forfeit, and its error says
+    why its trace is missing."""
+    path = tmp_path / "policy.py"
+    path.write_text(policy)
+    code, rows, nodes = _eval_traced(path, store, "--max-steps", steps, "--call-time-limit", 20)
+    assert nodes == 0 and len(rows) == 1
+    traced, ended, said, length = rows[0]
+    assert traced and ended == end_reason and said.startswith(error) and length == steps, said
+    assert error.split(" (")[0] in capsys.readouterr().err
+
+
+def test_a_method_longer_than_lines_run_holds_keeps_its_trace(store, tmp_path, capsys):
+    """A trainable method of 34,000 lines: its line numbers overflowed lines_run's int16 as the node table was made,
+    and the episode was stored traced with no node rows and no error. Its calls are recorded, their lines not
+    (NULL, as when lines are not recorded); a method that fits keeps its lines."""
+    path = tmp_path / "policy.py"
+    path.write_text(pong_policy("action = 0" + "\n" * 34_000 + "return action"))
+    code, rows, nodes = _eval_traced(path, store, "--max-steps", 3)
+    assert code == 0 and rows == [(True, "truncated", None, 3)] and nodes == 6
+    lines = dict(store.query("SELECT function, count(lines_run) FROM nodes GROUP BY ALL"))
+    assert lines == {"select_action": 0, "predict_ball_trajectory": 3}
+
+
+def test_the_parent_never_stores_a_traced_episode_without_rows_as_traced_and_fine(honest):
+    """A host that sends a traced episode that played out without its node rows (the host says why, channels.py):
+    the parent records the trace missing as the policy's error, not a traced episode with no calls."""
+    spec, outcome = honest
+    checked = episodes.episode_from_worker(spec, episodes.episode_to_json(outcome.episode), outcome.steps, None)
+    assert checked.end_reason == "policy_error" and checked.nodes is None
+    assert checked.episode["error"] == "trace missing: the game host sent no node rows for a traced episode"
+    untraced = EpisodeSpec("run.0.eval.2", "run", "pong", NESTED, "v", max_steps=8)
+    plain = run_episode(untraced)
+    kept = episodes.episode_from_worker(untraced, episodes.episode_to_json(plain.episode), plain.steps, None)
+    assert kept.end_reason == "truncated" and kept.episode["error"] is None
