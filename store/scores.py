@@ -342,11 +342,17 @@ def overfit(tuning_best: float | None, tuning_starter: float | None, audit_best:
     return audit_best - reference < gain / 2
 
 
-_ERROR_NAME = re.compile(r"\s*([A-Za-z_][A-Za-z0-9_.]*(?:Error|Exception|Exit|Interrupt|Timeout|Warning))\b")
+_ERROR_NAME = re.compile(r"\s*([^\W\d]\w*…?)(?=: | at line [0-9]|$)")
+"""The name at the start of an error that ``pipeline/boundary/policy.py``'s ``describe_exception`` wrote: ``Name:
+message at line N: `text```, ``Name at line N`` or ``Name`` (a message-less exception), the name an identifier
+(cut to ``capture.MAX_NAME_CHARS`` with ``…``). Read by that structure, not by how the name ends: ``class
+Boom(Exception)`` is ``Boom`` (a suffix list named it ``policy_error``); the host's own errors (``malformed trace
+at step 3: ...``, ``the policy process ended ...``, ``policy.py:3: ...``) begin with no such name."""
 
 
 def _error_name(error: str | None) -> str | None:
-    """The exception's name at the start of a policy error (``RuntimeError: boom at line 3`` -> RuntimeError)."""
+    """The exception's name at the start of a policy error (``RuntimeError: boom at line 3`` -> RuntimeError,
+    ``Boom at line 3`` -> Boom)."""
     if not error:
         return None
     match = _ERROR_NAME.match(error)

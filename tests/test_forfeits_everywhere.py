@@ -64,6 +64,29 @@ def test_a_set_with_a_forfeit_has_no_score_and_says_why():
     assert mixed.no_score == "no score: 2 of 3 episodes forfeited (timeout at step 40, RuntimeError at step 300)"
 
 
+NAMED = [
+    ("Boom: kaboom at line 18: `raise Boom('kaboom')`", "Boom"),
+    ("Quit at line 3: `raise Quit`", "Quit"),
+    ("Halt", "Halt"),
+    ("Ошибка: нет", "Ошибка"),
+    ("RuntimeError: not ahead at step 300: quitting", "RuntimeError"),
+    ("ValueError: illegal action 7: legal actions are 0..5", "ValueError"),
+    ("malformed trace at step 3: a node's output is not JSON", None),
+    ("trace missing: the policy process sent no node rows", None),
+    ("policy.py:12: NameError: name 'x' is not defined", None),
+    ("the policy process ended at this step (killed by signal 9)", None),
+]
+
+
+@pytest.mark.parametrize("error, name", NAMED, ids=[e[:24] for e, _ in NAMED])
+def test_a_forfeit_is_named_by_the_policys_exception_whatever_its_name_ends_with(error, name):
+    """The name is read by the structure the policy's errors are written in (``Name: message at line N``, ``Name at
+    line N``, ``Name``: ``describe_exception``), not by a suffix: ``class Boom(Exception)`` was ``policy_error``.
+    The host's own errors name no exception: the end reason stands for them."""
+    score = score_episodes([{"return": 0.0, "end_reason": "policy_error", "length": 2, "error": error}])
+    assert score.forfeits[0].describe() == f"{name or 'policy_error'} at step 2"
+
+
 def test_compare_never_calls_a_side_that_forfeited_better():
     quitter = score_episodes(_episodes([2, 1], forfeits=2))
     twin = score_episodes(_episodes([0, -2, -2, 0], forfeits=0))
@@ -238,6 +261,15 @@ def test_eval_runs_report_and_export_give_the_quitter_no_score(tmp_path, capsys)
 
 
 @pytest.mark.slow
+def test_eval_names_a_forfeit_by_the_policys_own_exception_class(tmp_path, capsys):
+    path = tmp_path / "boom.py"
+    path.write_text((POLICIES / "pong_competent.py").read_text().replace(
+        "        predicted_ball_y = self.predict_ball_trajectory(obs)\n",
+        "        class Boom(Exception):\n            pass\n        raise Boom('kaboom')\n", 1))
+    code, out, err = _cli(capsys, "eval", path, "--max-steps", "5", "--store", tmp_path / "s.duckdb")
+    assert "no score: 1 of 1 episode forfeited (Boom at step 0)" in out + err
+
+
 def test_compare_does_not_call_the_quitter_better_and_says_why(tmp_path, capsys, pinned_audit_seeds):
     from games.base import AUDIT_SEED_BASE
 
