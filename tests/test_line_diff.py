@@ -79,3 +79,45 @@ def test_long_hostile_texts_are_matched_at_a_bounded_cost(shape, monkeypatch):
     parent, child = _hostile(3200, shape, rng)
     blamed = blame_function("\n".join(child), [(line, "parent") for line in parent], "child")
     assert len(blamed) == 3200 and {line.origin for line in blamed} <= {"parent", "child"}
+
+
+def test_the_prompt_s_memory_diffs_are_difflib_s_at_a_bounded_cost(monkeypatch):
+    """The optimizer's prompt diffs each memory entry's methods against the current version's (both from replies):
+    it used difflib's own matcher, and two methods built for it (lines cycling through 50 names just under its
+    popularity filter, against the same names each followed by `()`) took 2.7 s a prompt, 20 s within a 32k budget,
+    with the store held. Oracles: people-size methods get difflib's text to the character (a replay's prompts
+    stay the same); the hostile pair is matched with a bounded area of line pairs searched."""
+    import string
+
+    from pipeline.optimizer import prompt
+
+    def difflib_diff(old: dict[str, str], new: dict[str, str]) -> str:  # the prompt's diff as it was
+        lines: list[str] = []
+        for name in sorted(set(old) | set(new)):
+            a, b = old.get(name, "").splitlines(), new.get(name, "").splitlines()
+            if a != b:
+                lines.extend(difflib.unified_diff(a, b, f"iteration version: {name}", f"current version: {name}",
+                                                  n=1, lineterm=""))
+        return "\n".join(lines)
+
+    rng = random.Random(7)
+    for _ in range(300):
+        pool = [f"    x = {k}" for k in range(rng.randint(1, 12))]
+        methods = [{name: "\n".join(rng.choice(pool) for _ in range(rng.randint(0, 150)))
+                    for name in rng.sample(["act", "aim", "plan"], rng.randint(1, 3))} for _ in range(2)]
+        assert prompt._diff(*methods) == difflib_diff(*methods)
+    searched = []
+    real_search = difflib.SequenceMatcher.find_longest_match
+
+    def counted(self, alo=0, ahi=None, blo=0, bhi=None):
+        ahi, bhi = len(self.a) if ahi is None else ahi, len(self.b) if bhi is None else bhi
+        searched.append((ahi - alo) * (bhi - blo))
+        return real_search(self, alo, ahi, blo, bhi)
+
+    monkeypatch.setattr(difflib.SequenceMatcher, "find_longest_match", counted)
+    names = [a + b for a in string.ascii_lowercase for b in string.ascii_lowercase][:50]
+    old = "def act(self, obs):\n    return 0\n" + "".join(f"    {names[k % 50]}\n" for k in range(2100))
+    new = "def act(self, obs):\n    return 0\n" + "".join(f"    {names[k % 50]}\n    ()\n" for k in range(1250))
+    diff = prompt._diff({"act": old}, {"act": new})
+    assert diff.startswith("--- iteration version: act\n+++ current version: act\n@@ ") and "+    ()" in diff
+    assert sum(searched) <= line_diff.EXACT_GAP_PAIRS * (len(new.splitlines()) // 100 + 1), sum(searched)
