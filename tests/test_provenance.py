@@ -254,6 +254,20 @@ def test_blame_function_carries_matched_lines():
         (1, "c", False), (2, "c", False), (3, "c", False), (4, "c", True)]
 
 
+def test_blaming_a_method_prints_nothing_of_python_s_own_on_stderr():
+    """Blame compiles each method (a reply's) in this process: `return x is 1` printed Python's SyntaxWarning,
+    with the method's line, on the user's terminal."""
+    import subprocess
+    import sys
+
+    program = ("from tracing.blame import blame_function\n"
+               "lines = blame_function('def f(self, x):\\n    return x is 1\\n', None, 'a')\n"
+               "print([line.executable for line in lines])")
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60,
+                          cwd=str(__import__("pathlib").Path(__file__).parents[1]))
+    assert done.returncode == 0 and done.stdout == "[False, True]\n" and done.stderr == "", done
+
+
 @pytest.mark.slow
 def test_rerun_recording_shows_the_lines_that_ran_at_every_step(tmp_path, capsys):
     """The live recording of a traced episode holds, per method, its source with ▶ on the lines that ran; at every

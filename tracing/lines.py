@@ -19,13 +19,16 @@ from __future__ import annotations
 
 import sys
 import types
+import warnings
 from typing import Any, Callable
 
 
 def executable_lines(source: str) -> list[int]:
     """Lines (1-based, within ``source``) of a method's ``def`` block that hold code; [] if it does not compile."""
     try:
-        module = compile(source, "<lines>", "exec", dont_inherit=True)
+        with warnings.catch_warnings():  # a policy's `x is 1` printed Python's SyntaxWarning on the user's stderr
+            warnings.simplefilter("ignore")
+            module = compile(source, "<lines>", "exec", dont_inherit=True)
     except (SyntaxError, ValueError, RecursionError, MemoryError):
         return []
     lines: set[int] = set()
