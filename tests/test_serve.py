@@ -1018,3 +1018,45 @@ def test_over_mcp_stdio_a_message_past_its_limit_is_dropped_as_it_arrives(tmp_pa
     finally:
         serve.stdin.close()
         serve.wait(timeout=60)
+
+
+def _stdio_serve(store: Path) -> subprocess.Popen:
+    """``codearcade serve --mcp`` over stdio, initialized (the handshake's answer read)."""
+    serve = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--mcp", "--game", "pong", "--budget",
+                              "2", "--store", str(store)], cwd=ROOT, env=ENV, stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    serve.stdin.write(json.dumps({"jsonrpc": "2.0", "id": 0, "method": "initialize", "params": {
+        "protocolVersion": "2025-06-18", "capabilities": {}, "clientInfo": {"name": "test", "version": "1"}}}).encode()
+        + b'\n{"jsonrpc": "2.0", "method": "notifications/initialized"}\n')
+    serve.stdin.flush()
+    assert json.loads(serve.stdout.readline())["id"] == 0
+    return serve
+
+
+def _tool_call(number: int | str, name: str, arguments: dict) -> bytes:
+    return json.dumps({"jsonrpc": "2.0", "id": number, "method": "tools/call",
+                       "params": {"name": name, "arguments": arguments}}).encode() + b"\n"
+
+
+def test_over_mcp_stdio_a_request_the_sdk_cannot_read_is_answered_and_the_server_reads_on(tmp_path):
+    """A lone surrogate (the JSON escape "\\ud800", which Python's JSON reads and the MCP SDK's does not) in a
+    tool call's argument got no answer over stdio: the SDK dropped the message, and the agent waited for good. It
+    is now answered with an error for its id, and so is a request that is JSON but not JSON-RPC; a notification
+    so written is set aside as before (nothing waits for it), and the next call is answered."""
+    serve = _stdio_serve(tmp_path / "m.duckdb")
+    try:
+        serve.stdin.write(_tool_call(1, "sql", {"query": "SELECT '\ud800'"})  # json.dumps writes it "\\ud800"
+                          + b'{"jsonrpc": "2.0", "method": "notifications/cancelled", "params": {"x": "\\udfff"}}\n'
+                          + b'{"jsonrpc": "2.0", "id": "two", "method": "tools/call", "params": [1]}\n'
+                          + _tool_call(3, "budget", {}))
+        serve.stdin.flush()
+        answers = [json.loads(serve.stdout.readline())]
+        while answers[-1]["id"] != 3:  # the last one is answered last: read no further (before, 1 was never)
+            answers.append(json.loads(serve.stdout.readline()))
+        assert [a["id"] for a in answers] == [1, "two", 3], answers
+        assert answers[0]["error"]["code"] == -32700 and "lone surrogate" in answers[0]["error"]["message"], answers
+        assert answers[1]["error"]["code"] == -32600 and "params" in answers[1]["error"]["message"], answers
+        assert answers[2]["result"]["structuredContent"]["remaining"] == 2, answers
+    finally:
+        serve.stdin.close()
+        serve.wait(timeout=60)

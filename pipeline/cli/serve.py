@@ -156,7 +156,7 @@ def _serve(served, args: argparse.Namespace) -> None:
         _say(f"HTTP+JSON on http://127.0.0.1:{server.server_address[1]}/ (POST /task, /submit, /feedback, /budget, "
              "/sql, /finalize); Ctrl-C stops it")
     if args.mcp or args.mcp_port is not None:
-        from pipeline.serve.tools import bound_stdin_lines, build_server, serve_streamable_http
+        from pipeline.serve.tools import bound_stdin_lines, build_server, serve_stdio, serve_streamable_http
 
         mcp = build_server(served)
         if args.mcp_port is not None:
@@ -164,7 +164,7 @@ def _serve(served, args: argparse.Namespace) -> None:
                                   lambda port: _say(f"MCP (streamable HTTP) on http://127.0.0.1:{port}/mcp"))
         else:
             bound_stdin_lines()  # the SDK reads a message whole, however long
-            mcp.run("stdio")  # returns when the agent closes stdin
+            serve_stdio(mcp)  # returns when the agent closes stdin
         return
     wait_for_stop()  # until Ctrl-C or SIGTERM (also one that landed where Python swallows it)
 

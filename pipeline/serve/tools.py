@@ -4,7 +4,9 @@ The tools are the HTTP operations (``http.py``) under the same names and argumen
 ``feedback``, ``budget``, ``sql``, ``finalize``. Each returns the operation's JSON object as structured content;
 a refused request (it costs nothing) is a tool error whose text says why. Operations run in a worker thread, so
 a submission that plays for a while does not stall the transport. Transports: stdio (what Claude Code and Codex
-CLI start: ``codearcade serve --mcp``) and streamable HTTP on 127.0.0.1 (``--mcp-port``).
+CLI start: ``codearcade serve --mcp``) and streamable HTTP on 127.0.0.1 (``--mcp-port``). Over stdio, what the agent
+writes is bounded before the SDK reads it (:func:`bound_stdin_lines`), and a request the SDK cannot read is answered
+(:func:`serve_stdio`).
 """
 
 from __future__ import annotations
@@ -124,6 +126,76 @@ def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> threading.Thread:
     thread.start()
     return thread
 
+
+def serve_stdio(server: MCPServer) -> None:
+    """Serve ``server`` over stdin and stdout until the agent closes stdin, as the SDK's ``run("stdio")`` does (its
+    transport, ``mcp.server.stdio``, and its server), with a stage between the two: a request the transport could
+    not read as JSON-RPC is answered with an error for its id (:func:`unreadable_answer`). The SDK dropped it with
+    no answer, and the agent waited for good: a lone surrogate (``"\\ud800"``, which Python's JSON reads and the
+    SDK's does not) in any argument was enough."""
+    anyio.run(_serve_stdio, server)
+
+
+async def _serve_stdio(server: MCPServer) -> None:
+    from mcp.server.stdio import stdio_server
+    from mcp.shared.message import SessionMessage
+
+    async with stdio_server() as (wire_in, wire_out):
+        to_server, server_in = anyio.create_memory_object_stream[SessionMessage | Exception](0)
+
+        async def inbound() -> None:
+            async with to_server:
+                async for item in wire_in:
+                    if isinstance(item, Exception) and (answer := unreadable_answer(item)) is not None:
+                        await wire_out.send(SessionMessage(answer))
+                    else:  # what it cannot answer goes on as it came: the SDK sets it aside
+                        await to_server.send(item)
+
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(inbound)
+            lowlevel = server._lowlevel_server  # what run("stdio") serves (mcp==2.3.0 has no public name for it)
+            await lowlevel.run(server_in, wire_out, lowlevel.create_initialization_options())
+
+
+def unreadable_answer(error: Exception) -> Any:
+    """The JSON-RPC error answering a line the SDK's transport could not read as a message (``error``: its
+    ``ValidationError``), for the request id the line names; None when it names none (a notification, a response,
+    a line that is not JSON at all): the JSON-RPC rule, nothing to answer."""
+    import json
+
+    from mcp_types import INVALID_REQUEST, PARSE_ERROR, ErrorData, JSONRPCError
+    from pydantic import ValidationError
+
+    if not isinstance(error, ValidationError):
+        return None
+    problems = error.errors(include_url=False)
+    message: Any = None
+    if problems and problems[0]["type"] == "json_invalid" and isinstance(problems[0]["input"], str):
+        try:  # Python's JSON reads what the SDK's refuses (a lone surrogate): enough to find the id
+            message = json.loads(problems[0]["input"])
+        except ValueError:
+            return None
+        code, why = PARSE_ERROR, f"the message is not JSON the server reads ({problems[0]['msg'][:200]})"
+        try:
+            json.dumps(message, ensure_ascii=False).encode("utf-8")
+        except UnicodeEncodeError:
+            why = "the message is not valid Unicode: a string in it holds a lone surrogate (such as \\ud800)"
+    else:  # JSON, not a JSON-RPC message: a field missing at the top names the whole message as its input
+        message = next((p["input"] for p in problems if p["type"] == "missing" and len(p["loc"]) == 2), None)
+        shown = [f"{'.'.join(map(str, p['loc'][1:]))}: {p['msg']}" for p in problems if p["loc"][:1] == (
+            "JSONRPCRequest",)]
+        code, why = INVALID_REQUEST, f"the message is not a JSON-RPC request ({'; '.join(shown)[:300]})"
+    if not isinstance(message, dict) or "method" not in message:  # a response or no message: nothing is waiting
+        return None
+    request_id = message.get("id")
+    if isinstance(request_id, bool) or not isinstance(request_id, int | str):
+        return None
+    if isinstance(request_id, str):
+        try:
+            request_id.encode("utf-8")
+        except UnicodeEncodeError:  # its id itself holds a lone surrogate: no answer can name it
+            return None
+    return JSONRPCError(jsonrpc="2.0", id=request_id, error=ErrorData(code=code, message=f"{why}; nothing was done"))
 
 
 MAX_SESSIONS = 16
