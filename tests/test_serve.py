@@ -1060,3 +1060,48 @@ def test_over_mcp_stdio_a_request_the_sdk_cannot_read_is_answered_and_the_server
     finally:
         serve.stdin.close()
         serve.wait(timeout=60)
+
+
+def test_over_mcp_stdio_pipelined_requests_wait_in_the_agents_pipe_not_in_the_server(tmp_path):
+    """Over stdio the MCP SDK read on and started every request as it came: 2,000 refused submissions of 190 KB
+    written at once, their answers unread, grew the server's peak by 317 MB. It now reads no more of stdin while
+    MAX_PENDING_REQUESTS are unanswered, so the agent's writes wait in the pipe: the peak grows by ~15 MB, every
+    request is answered once the agent reads, and the next call too."""
+    serve = _stdio_serve(tmp_path / "m.duckdb")
+    policy = "# " + "x" * 190_000 + "\n"
+    calls, written = 2000, 0
+
+    def write() -> None:
+        nonlocal written
+        for number in range(1, calls + 1):  # refused before its text is parsed: instance 99 is none
+            serve.stdin.write(_tool_call(number, "submit", {"policy": policy, "instances": [99]}))
+            written = number
+        serve.stdin.flush()
+
+    writer = threading.Thread(target=write, daemon=True)
+    try:
+        before = _peak_rss_mb(serve.pid)
+        writer.start()
+        seen, moved = 0, time.monotonic()
+        while writer.is_alive() and time.monotonic() - moved < 1:  # until all is written, or it waits on the pipe
+            time.sleep(0.1)
+            if written != seen:
+                seen, moved = written, time.monotonic()
+        answers = [json.loads(serve.stdout.readline()) for _ in range(calls)]
+        writer.join(timeout=60)
+        grown = _peak_rss_mb(serve.pid) - before
+        assert sorted(a["id"] for a in answers) == list(range(1, calls + 1))
+        assert all(a["result"]["isError"] and "99 is not an instance" in a["result"]["content"][0]["text"]
+                   for a in answers), answers[0]
+        assert grown < 64, f"the server's peak grew by {grown:.0f} MB for {calls:,} pipelined submissions"
+        serve.stdin.write(_tool_call(calls + 1, "budget", {}))
+        serve.stdin.flush()
+        assert json.loads(serve.stdout.readline())["result"]["structuredContent"]["remaining"] == 2
+    finally:
+        if writer.is_alive():  # a failure above: the writer may wait on the pipe for good
+            serve.kill()
+        try:
+            serve.stdin.close()
+        except BrokenPipeError:
+            pass
+        serve.wait(timeout=60)

@@ -5,8 +5,8 @@ The tools are the HTTP operations (``http.py``) under the same names and argumen
 a refused request (it costs nothing) is a tool error whose text says why. Operations run in a worker thread, so
 a submission that plays for a while does not stall the transport. Transports: stdio (what Claude Code and Codex
 CLI start: ``codearcade serve --mcp``) and streamable HTTP on 127.0.0.1 (``--mcp-port``). Over stdio, what the agent
-writes is bounded before the SDK reads it (:func:`bound_stdin_lines`), and a request the SDK cannot read is answered
-(:func:`serve_stdio`).
+writes is bounded before the SDK reads it (:func:`bound_stdin_lines`), so are the requests it holds unanswered
+(:data:`MAX_PENDING_REQUESTS`), and a request the SDK cannot read is answered (:func:`serve_stdio`).
 """
 
 from __future__ import annotations
@@ -127,34 +127,78 @@ def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> threading.Thread:
     return thread
 
 
-def serve_stdio(server: MCPServer) -> None:
+MAX_PENDING_REQUESTS = 16
+"""Requests read from the agent over stdio and not answered yet: with that many, the server reads no more of stdin
+until one is answered (or settles unanswered: cancelled), so the pipe fills and the agent's writes wait. Each holds
+its message (at most :data:`MAX_MESSAGE_BYTES`) while it waits for its turn. The SDK read on and started every
+request as it came: 2,000 refused submissions of 190 KB written at once, their answers unread, grew the server's
+peak by 317 MB (now ~15 MB). An agent runs a few calls at once; more wait their turn in the pipe."""
+
+
+def serve_stdio(server: MCPServer, limit: int = MAX_PENDING_REQUESTS) -> None:
     """Serve ``server`` over stdin and stdout until the agent closes stdin, as the SDK's ``run("stdio")`` does (its
-    transport, ``mcp.server.stdio``, and its server), with a stage between the two: a request the transport could
-    not read as JSON-RPC is answered with an error for its id (:func:`unreadable_answer`). The SDK dropped it with
-    no answer, and the agent waited for good: a lone surrogate (``"\\ud800"``, which Python's JSON reads and the
-    SDK's does not) in any argument was enough."""
-    anyio.run(_serve_stdio, server)
+    transport, ``mcp.server.stdio``, and its server), with a stage between the two: at most ``limit`` requests are
+    held unanswered (:data:`MAX_PENDING_REQUESTS`), and a request the transport could not read as JSON-RPC is
+    answered with an error for its id (:func:`unreadable_answer`). The SDK dropped it with no answer, and the
+    agent waited for good: a lone surrogate (``"\\ud800"``, which Python's JSON reads and the SDK's does not) in
+    any argument was enough."""
+    anyio.run(_serve_stdio, server, limit)
 
 
-async def _serve_stdio(server: MCPServer) -> None:
+async def _serve_stdio(server: MCPServer, limit: int) -> None:
+    from functools import partial
+
     from mcp.server.stdio import stdio_server
-    from mcp.shared.message import SessionMessage
+    from mcp.shared.message import ServerMessageMetadata, SessionMessage
+    from mcp_types import JSONRPCError, JSONRPCRequest, JSONRPCResponse
+
+    slots = anyio.Semaphore(limit)
+    unanswered: dict[int | str, int] = {}  # the id of each request read and not answered: how many (ids may repeat)
+
+    async def settled(request_id: int | str) -> None:
+        if unanswered.get(request_id, 0) > 0:
+            unanswered[request_id] -= 1
+            if not unanswered[request_id]:
+                del unanswered[request_id]
+            slots.release()
 
     async with stdio_server() as (wire_in, wire_out):
         to_server, server_in = anyio.create_memory_object_stream[SessionMessage | Exception](0)
+        server_out, from_server = anyio.create_memory_object_stream[SessionMessage](0)
 
         async def inbound() -> None:
             async with to_server:
-                async for item in wire_in:
+                while True:
+                    await slots.acquire()  # before the next line is read: past the limit, stdin waits, not memory
+                    try:
+                        item = await wire_in.receive()
+                    except (anyio.EndOfStream, anyio.ClosedResourceError):
+                        return
+                    if isinstance(item, SessionMessage) and isinstance(item.message, JSONRPCRequest):
+                        request_id = item.message.id
+                        unanswered[request_id] = unanswered.get(request_id, 0) + 1
+                        # a request the agent cancels settles with no answer: the SDK says so through this hook
+                        await to_server.send(SessionMessage(item.message, metadata=ServerMessageMetadata(
+                            on_request_unanswered=partial(settled, request_id))))
+                        continue
+                    slots.release()  # a notification, a response, a line the SDK could not read: passed on now
                     if isinstance(item, Exception) and (answer := unreadable_answer(item)) is not None:
                         await wire_out.send(SessionMessage(answer))
                     else:  # what it cannot answer goes on as it came: the SDK sets it aside
                         await to_server.send(item)
 
+        async def outbound() -> None:
+            async with wire_out:
+                async for item in from_server:
+                    await wire_out.send(item)
+                    if isinstance(item.message, JSONRPCResponse | JSONRPCError) and item.message.id is not None:
+                        await settled(item.message.id)  # handed to the writer: the request holds nothing more
+
         async with anyio.create_task_group() as tg:
             tg.start_soon(inbound)
+            tg.start_soon(outbound)
             lowlevel = server._lowlevel_server  # what run("stdio") serves (mcp==2.3.0 has no public name for it)
-            await lowlevel.run(server_in, wire_out, lowlevel.create_initialization_options())
+            await lowlevel.run(server_in, server_out, lowlevel.create_initialization_options())
 
 
 def unreadable_answer(error: Exception) -> Any:
