@@ -7,7 +7,7 @@ open. Step slices come back with the observation dict rebuilt exactly as the pol
 from __future__ import annotations
 
 import statistics
-from typing import Any, Callable, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import duckdb
 
@@ -447,10 +447,13 @@ def episode_summaries(con: duckdb.DuckDBPyConnection, episode_ids: list[str]) ->
                              "error": None} for e in episode_ids]
 
 
-def reusable_assessment(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) -> dict[str, Any] | None:
+def reusable_assessment(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str,
+                        pending: Sequence[dict[str, Any]] = ()) -> dict[str, Any] | None:
     """The first assessment of ``version_id`` in this run whose episodes can stand for a new one (the
     evaluation cache): played, not caught tampering, every episode stored, verified and ended by the game or
-    the step cap, never by a time limit (which depends on the machine's load, not on the code).
+    the step cap, never by a time limit (which depends on the machine's load, not on the code). ``pending``:
+    assessments of it not committed yet (the proposal pool's, whose episodes are stored already), in the shape of
+    a ``candidates`` row, looked at after the committed ones.
 
     Two plain queries and a loop here: one query joining the episodes to each assessment took ~4 times as long,
     and the optimizer asks this for every candidate."""
@@ -460,7 +463,7 @@ def reusable_assessment(con: duckdb.DuckDBPyConnection, run_id: str, version_id:
            FROM candidates
            WHERE run_id = ? AND policy_version_id = ? AND evaluation = 'played'
              AND NOT (decision = 'rejected' AND policy_version_id IS NOT DISTINCT FROM proposed_version_id)
-           ORDER BY iteration, candidate""", [run_id, version_id]))
+           ORDER BY iteration, candidate""", [run_id, version_id])) + list(pending)
     if not assessments:
         return None
     usable = dict(con.execute(

@@ -351,3 +351,24 @@ def test_games_still_playing_when_the_time_budget_runs_out_are_stopped(store, sc
     assert result.status == "budget" and "games played" in result.error, (result.status, result.error)
     assert store.query("SELECT max(iteration) FROM iterations WHERE run_id = ?", [first.run_id]) == [(0,)]
     assert took < limit_s - wall + 60, (took, limit_s, wall)  # the episode's own limit is 900 s
+
+
+def test_a_version_assessed_in_an_iteration_not_committed_yet_is_not_played_again(store, scripted):
+    """The evaluation cache read only committed candidates: in the pool, a version a candidate of an iteration not
+    committed yet had played (here every reply is the same code; often a rejected or unchanged candidate falling
+    back to a parent still pending) was played again, its train rollout and evaluation games. Now each version's
+    games are played once in the run, whichever candidates stand on them."""
+    from tests.conftest import COMPETENT_REPLY
+
+    slow = {"sleep": 3, "content": COMPETENT_REPLY}  # the first reply's games are played before the others arrive
+    model = scripted([COMPETENT_REPLY, slow, slow, slow, COMPETENT_REPLY])
+    result = optimize(_config(iterations=2, eval_max_steps=200, rollout_steps=30), store, _client(model))
+    assert result.status == "finished", result.error
+    rows = store.query("SELECT policy_version_id, list(DISTINCT train_episode_id), count(*), "
+                       "list(DISTINCT evaluation) FROM candidates WHERE run_id = ? AND iteration > 0 GROUP BY 1",
+                       [result.run_id])
+    assert len(rows) == 1 and rows[0][2] == 8, rows  # one version: the reply's code, proposed or fallen back to
+    version, trains, _, evaluations = rows[0]
+    assert len(trains) == 1 and "cached" in evaluations, rows
+    assert store.query("SELECT count(*) FROM episodes WHERE run_id = ? AND policy_version_id = ? AND kind = 'train'",
+                       [result.run_id, version]) == [(1,)], "its training rollout was played once"

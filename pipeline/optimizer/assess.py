@@ -22,7 +22,8 @@ caps, protocol; fixed for a run), so a version already assessed in this run reus
 episodes instead of playing them again — a rejected or unchanged proposal, which falls back to its parent's
 code, costs no environment step. Only assessments whose every episode was verified and ended by the game or
 the step cap are reused (a time limit depends on the machine's load, not on the code). A version appearing
-twice in one iteration is played once.
+twice in one iteration is played once, and in the proposal pool one assessed in an iteration not committed yet is
+not played again (``pending``).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import statistics
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Sequence
 
 from games.base import ONE_LIFE_CONTINUE, STANDARD_NOOP_MAX, STANDARD_STICKY
 from pipeline.boundary.workers import DeadlinePassed
@@ -112,13 +113,16 @@ def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, 
            progress: Callable[[int, int], None] | None = None,
            texts: dict[str, str] | None = None,
            before_play: Callable[[], None] = lambda: None,
-           after_play: Callable[[], None] = lambda: None) -> tuple[dict[int, Assessment], AssessTimes]:
+           after_play: Callable[[], None] = lambda: None,
+           pending: Sequence[Assessment] = ()) -> tuple[dict[int, Assessment], AssessTimes]:
     """Assess ``versions`` (candidate → version id) of iteration ``iteration``: an :class:`Assessment` per
     candidate, and how long the playing took. ``texts``: the policy files of versions not stored yet (this
     iteration's new ones); the others are read from the store. ``before_play`` is called before any episode
     is played (the optimizer lets go of its hold on the store: playing takes a while), ``after_play`` once the
     last has ended, before the last of them are written (the optimizer takes its hold again: that write shares
-    its attachment, and the file is checkpointed once, when the hold is let go, not twice)."""
+    its attachment, and the file is checkpointed once, when the hold is let go, not twice). ``pending``: the
+    proposal pool's assessments whose iterations are not committed yet (their episodes are stored), which the
+    evaluation cache may reuse too: a rejected candidate falls back to its parent's code, often a pending one."""
     owner: dict[str, int] = {}  # version -> the candidate whose episodes stand for it in this iteration
     for candidate, version in sorted(versions.items()):
         owner.setdefault(version, candidate)
@@ -126,7 +130,7 @@ def assess(store: Store, state: "RunState", iteration: int, versions: dict[int, 
     if state.config.eval_cache:
         with store.read() as con:
             for version in owner:
-                row = reusable_assessment(con, state.run_id, version)
+                row = reusable_assessment(con, state.run_id, version, pending_rows(pending, version))
                 if row is not None:
                     found[version] = _cached(version, row)
     to_play = [(candidate, version) for version, candidate in owner.items() if version not in found]
@@ -158,7 +162,7 @@ class Screen:
 
 def screen(store: Store, state: "RunState", iteration: int, history, proposals: list,
            progress: Callable[[int, int], None] | None = None,
-           before_play: Callable[[], None] = lambda: None) -> dict[int, Screen]:
+           before_play: Callable[[], None] = lambda: None, pending: Sequence[Assessment] = ()) -> dict[int, Screen]:
     """(``proposals``: this iteration's accepted ones, each with the ``text`` of its new version.)"""
     """Play the screening game of each new version in ``proposals``, all at once; a :class:`Screen` per
     candidate screened. With the evaluation cache, a version already assessed needs no screen, and one already
@@ -168,7 +172,8 @@ def screen(store: Store, state: "RunState", iteration: int, history, proposals: 
     found: dict[int, Screen] = {}
     with store.read() as con:
         for p in proposals:
-            if c.eval_cache and reusable_assessment(con, state.run_id, p.version_id) is not None:
+            if c.eval_cache and reusable_assessment(con, state.run_id, p.version_id,
+                                                    pending_rows(pending, p.version_id)) is not None:
                 continue
             parent = history.candidate(p.parent)
             bar = score_at_step(con, parent["eval_episode_ids"][0], c.screen_steps - 1) - c.screen_margin
@@ -213,6 +218,16 @@ def _within_the_time_budget(state: "RunState", iteration: int) -> Iterator[None]
         raise BudgetExhausted(f"time budget: --max-wall {state.config.max_wall_minutes:g} min ran out while "
                               f"iteration {iteration}'s games played (stopped there: none of them counts)",
                               "max_wall_minutes") from None
+
+
+def pending_rows(pending: Sequence[Assessment], version: str) -> list[dict]:
+    """The assessments of ``version`` among ``pending`` that the evaluation cache may reuse (played, not caught
+    tampering: the rest is checked on their stored episodes), in the shape of the ``candidates`` rows it reads."""
+    return [dict(train_episode_id=a.train_episode_id, eval_episode_ids=a.eval_episode_ids,
+                 robust_episode_ids=a.robust_episode_ids, train_return=a.train_return, score=a.score,
+                 deterministic_score=a.deterministic_score, standard_score=a.standard_score,
+                 score_low=a.score_low, score_high=a.score_high)
+            for a in pending if a.version_id == version and a.evaluation == "played" and a.tampered is None]
 
 
 def _cached(version: str, row: dict) -> Assessment:

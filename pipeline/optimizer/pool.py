@@ -15,7 +15,8 @@ all, then commits: the cores idle while the model thinks, and every call waits f
 - **Propose.** In its slot's thread the prompt is built from the basis, the model asked, the reply read and
   validated, with repair turns (``propose.py``), exactly as in the barrier loop.
 - **Play.** One player thread plays whatever candidates are ready, together (cascade screens first), while the
-  calls go on; each candidate is played as soon as the player is free after its reply is in.
+  calls go on; each candidate is played as soon as the player is free after its reply is in. The evaluation cache
+  reuses the assessments of iterations not committed yet too: a version is played once in the run.
 - **Commit.** Iterations are committed in order, each once all its candidates are assessed: the strategy decides
   on them against the iterations before (``conclude.py``), exactly as in the barrier loop.
 
@@ -146,7 +147,9 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
         finally:
             pass_budget_turn(state, ticket)
 
-    def play(batch: list[_Candidate], known: History) -> None:
+    def play(batch: list[_Candidate], known: History, pending: list[Assessment]) -> None:
+        """Play ``batch`` (its iterations in order); ``pending``: the assessments of the iterations not committed
+        yet, which the evaluation cache reuses as it does committed ones (and this batch's own, as they come)."""
         try:
             by_iteration: dict[int, list[_Candidate]] = defaultdict(list)
             for item in batch:
@@ -156,13 +159,15 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
                 screens = {}
                 if c.screen_steps:
                     screens = screen(store, state, iteration, known,
-                                     [p for p in proposals if p.status == "accepted"], progress)
+                                     [p for p in proposals if p.status == "accepted"], progress, pending=pending)
                     screen_out(proposals, screens)
                 found, times = assess(store, state, iteration, {p.candidate: p.version_id for p in proposals},
-                                      progress, texts={p.version_id: p.text for p in proposals if p.text is not None})
+                                      progress, texts={p.version_id: p.text for p in proposals if p.text is not None},
+                                      pending=pending)
                 for item in items:
                     item.assessment, item.screen = found[item.candidate], screens.get(item.candidate)
                     item.train_s, item.eval_s = times.train_s, times.eval_s
+                pending = pending + [item.assessment for item in items]
             events.put(("played", batch, None))
         except BaseException as exc:  # noqa: BLE001
             events.put(("played", batch, exc))
@@ -287,7 +292,9 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
                 playing[:], ready[:] = ready, []
                 known = History(state.history.iterations,  # the parents to screen against, pending ones too
                                 state.history.candidates + [rows[ref] for ref in sorted(rows)])
-                threading.Thread(target=play, args=(list(playing), known), name="play", daemon=True).start()
+                pending = [item.assessment for done in assessed.values() for item in done.values()]
+                threading.Thread(target=play, args=(list(playing), known, pending), name="play",
+                                 daemon=True).start()
             if not calling and not playing and not ready and (next_up is None or stop is not None):
                 break
             handle(*events.get())
