@@ -135,7 +135,7 @@ def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
     assert code == 1 and "audits whose episodes are missing" in out
 
 
-def test_a_re_audit_stopped_part_way_leaves_the_earlier_audit_whole(store, scripted, monkeypatch):
+def test_a_re_audit_stopped_part_way_leaves_the_earlier_audit_whole(store, scripted, monkeypatch, capsys):
     """A re-audit wrote its games under the ids of the earlier audit's (one id per game index): stopped part way
     (a Ctrl-C, an error), the earlier audit's rows named games the new audit had overwritten, with other seeds and
     returns. Each audit's games now have ids of their own; a stopped one deletes those it wrote."""
@@ -174,6 +174,11 @@ def test_a_re_audit_stopped_part_way_leaves_the_earlier_audit_whole(store, scrip
                 audit_module.audit_run(store, result.run_id, episodes=2)
             assert audited() == before, (stop, at)
             assert not set(played) & set(listed), "the new audit's games have ids of their own"
+    # the command line says what is kept
+    monkeypatch.setattr(audit_module, "checked_outcome", lambda spec, outcome: (_ for _ in ()).throw(KeyboardInterrupt))
+    capsys.readouterr()
+    assert main(["audit", result.run_id, "--store", str(store.path)]) == 130
+    assert "keeps the audit it had" in capsys.readouterr().err and audited() == before
     monkeypatch.setattr(audit_module, "checked_outcome", checked)
     again = audit_module.audit_run(store, result.run_id, seeds=before[0][0][2])  # the same games, replayed
     rows, games = audited()

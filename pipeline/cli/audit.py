@@ -72,13 +72,18 @@ def run(args: argparse.Namespace) -> int:
         progress.append(EpisodeProgress(total, f"audit of {short_id(store, run_id)}"))
 
     try:
-        result = audit_run(store, run_id, episodes=args.episodes, workers=args.workers, on_demand=True,
-                           seeds=args.seeds, on_play=playing,
-                           progress=lambda i, played: progress and progress[0].update(i, played),
-                           on_episode=lambda i, length: progress and progress[0].finished(i, length))
-    finally:
-        for bar in progress:
-            bar.close()
+        try:
+            result = audit_run(store, run_id, episodes=args.episodes, workers=args.workers, on_demand=True,
+                               seeds=args.seeds, on_play=playing,
+                               progress=lambda i, played: progress and progress[0].update(i, played),
+                               on_episode=lambda i, length: progress and progress[0].finished(i, length))
+        finally:
+            for bar in progress:
+                bar.close()
+    except KeyboardInterrupt:
+        show(f"codearcade audit: stopped before its end: run {short_id(store, run_id)} keeps the audit it had "
+             "(this one's games are not kept); run the command again to audit it", file=sys.stderr)
+        raise
     if not result.rows:
         raise CliError(f"run {short_id(store, run_id)} has no iteration to audit: it stopped before its starting "
                        "policy was assessed")
