@@ -334,3 +334,54 @@ def _listening_process(port: int) -> int | None:
         except OSError:
             continue
     return None
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A 1 MB file system with 24 KB left (a tmpfs: root only, else the test skips)."""
+    import os
+
+    where = tmp_path / "small"
+    where.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)], capture_output=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here: {mounted.stderr.decode(errors='replace').strip()}")
+    try:
+        (where / "filler").write_bytes(b"\0" * (1000 * 1024))
+        (where / "rr").mkdir()
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], capture_output=True)
+        assert not os.path.ismount(where)
+
+
+@pytest.mark.slow
+def test_a_recording_on_a_disk_that_fills_costs_neither_the_episode_nor_the_command(full_disk, tmp_path):
+    """Once the disk under a recording filled, Rerun's file-writer thread died and closing the recording waited on
+    it for good, inside Rust: `eval --rerun DIR` held the episode's host until its time limit and stored a
+    time-out, the policy's forfeit (1 in 3 tries of two episodes); `view --save` hung past Ctrl-C and SIGTERM, or
+    printed a traceback, and left a truncated file. Each wait on Rerun's sink is now bounded: the episodes are
+    played and scored, and `view` says in one line which file it could not write, leaving none; so does `report`."""
+    store = tmp_path / "s.duckdb"
+    for attempt in range(3):  # the stuck sink came one time in three
+        for old in (full_disk / "rr").iterdir():
+            old.unlink()
+        done = subprocess.run([sys.executable, "-m", "pipeline.cli", "eval",
+                               str(ROOT / "tests/policies/pong_competent.py"), "--episodes", "2",
+                               "--max-steps", "300", "--rerun", str(full_disk / "rr"),
+                               "--store", str(store), "--json"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, (attempt, done.stdout[-2000:], done.stderr[-2000:])
+        episodes = json.loads(done.stdout)["episodes"]
+        assert [(e["end_reason"], e["length"]) for e in episodes] == [("truncated", 300)] * 2, (attempt, episodes)
+    target = full_disk / "x.rrd"
+    viewed = subprocess.run([sys.executable, "-m", "pipeline.cli", "view", "last", "--store", str(store), "--save",
+                             str(target)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    said = [line for line in viewed.stderr.splitlines() if line.startswith("codearcade")]
+    assert viewed.returncode == 2 and len(said) == 1 and str(target) in said[0], viewed.stderr[-2000:]
+    assert "Traceback" not in viewed.stderr
+    assert sorted(p.name for p in full_disk.iterdir()) == ["filler", "rr"], "no file cut short is left"
+    # a report's figures: PIL's OSError named no file, and the command showed a traceback
+    reported = subprocess.run([sys.executable, "-m", "pipeline.cli", "report", "last", "--store", str(store), "--out",
+                               str(full_disk / "report")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert reported.returncode == 2 and "Traceback" not in reported.stderr, reported.stderr[-2000:]
+    assert f"{full_disk / 'report'}/" in reported.stderr.splitlines()[-1], reported.stderr[-2000:]

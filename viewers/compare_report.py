@@ -15,7 +15,7 @@ from typing import Any
 from store.runs import shortest_prefixes
 from store.scores import PLAYED_OUT, score_text
 from store.statistics import MEAN_METHOD, interval_text
-from viewers.report import _md_table
+from viewers.report import _md_table, writing
 from viewers.safe_text import markdown_code, markdown_code_block, markdown_text, plot_text, terminal_text
 from viewers.tables import format_table
 
@@ -243,7 +243,8 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     md: list[str] = []
     if data["mode"] == "runs":
-        curves_figure(data).savefig(out / "curves.png")
+        with writing(out / "curves.png"):
+            curves_figure(data).savefig(out / "curves.png")
         runs = data["runs"]
         md += [f"# {markdown_text(data['game'])}: run {markdown_code(runs[0]['run_id'])} (A) vs run "
                f"{markdown_code(runs[1]['run_id'])} (B)", "",
@@ -274,5 +275,6 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
             md += [f"- {markdown_text(line.strip())}" for line in scores[1:]]
         md += ["", "## Diff", "", markdown_code_block(data["diff"] or "(the same code)", "diff"), ""]
     readme = out / "README.md"
-    readme.write_text("\n".join(md))
+    with writing(readme):
+        readme.write_text("\n".join(md))
     return readme

@@ -15,9 +15,10 @@ still writing; the plots are ``viewers/report_figures.py``'s, drawn with matplot
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 from store import Store
 from store.readers import get_run, model_choice_rows
@@ -291,9 +292,23 @@ def write_report(store: Store, run: str, out_dir: str | Path | None = None, *,
         say(f"drawing {name}")
         fig = figure(data)
         if fig is not None:
-            fig.savefig(out / name)
+            with writing(out / name):
+                fig.savefig(out / name)
             images[name] = caption
     readme = out / "README.md"
     say("writing README.md")
-    readme.write_text(render_markdown(data, images, reproduce, price))
+    with writing(readme):
+        readme.write_text(render_markdown(data, images, reproduce, price))
     return readme
+
+
+@contextmanager
+def writing(path: Path) -> Iterator[None]:
+    """Write ``path`` in the block: an ``OSError`` that names no file (PIL's, and a write's, on a full disk) is
+    raised naming it, so that the command says in one line which file it could not write (it showed a traceback)."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None

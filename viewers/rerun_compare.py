@@ -28,7 +28,7 @@ import rerun.blueprint as rrb
 
 from store import Store
 from viewers.rerun_layout import game_view
-from viewers.rerun_recording import new_recording, save_to
+from viewers.rerun_recording import close, new_recording, save_whole
 from viewers.rerun_steps import STEP_SERIES
 from viewers.rerun_replay import log_stored_episode, read_episode
 from viewers.rerun_sinks import is_grpc_url
@@ -95,10 +95,11 @@ def write(store: Store, episodes: dict[str, str], to: str, divergent_step: int |
     rec = new_recording(f"compare.{episodes['A']}.{episodes['B']}", name=f"compare {episodes['A']} vs {episodes['B']}")
     names = {side: f"{data[side].episode['policy_version_id']} (seed {data[side].episode['seed']})" for side in SIDES}
     blueprint = compare_blueprint(names)
+    partial = None
     if is_grpc_url(to):
         rec.connect_grpc(to, default_blueprint=blueprint)
     else:
-        save_to(rec, to, default_blueprint=blueprint)
+        partial = save_whole(rec, to, default_blueprint=blueprint)
     notes = []
     try:
         for side in SIDES:
@@ -117,9 +118,10 @@ def write(store: Store, episodes: dict[str, str], to: str, divergent_step: int |
                 level=rr.TextLogLevel.WARN))
             rec.reset_time()
         rec.send_blueprint(blueprint)
-        rec.flush(timeout_sec=30.0)
-    finally:
-        rec.disconnect()
+    except BaseException:
+        close(rec, partial, to, whole=False)
+        raise
+    close(rec, partial, None if partial is None else to)
     return notes
 
 

@@ -31,13 +31,16 @@ from tracing.steps import StepLog  # noqa: E402
 from viewers.frames import FrameEncoder  # noqa: E402
 from viewers.rerun_episode import EpisodeLogger  # noqa: E402
 from viewers.rerun_layout import episode_blueprint  # noqa: E402
-from viewers.rerun_recording import new_recording, save_to  # noqa: E402
+from viewers.rerun_recording import new_recording, save_to, within  # noqa: E402
 from viewers.rerun_steps import StepColumns  # noqa: E402
 
 FLUSH_EVERY = 250
 """Steps between two sends of the buffered step columns (a viewer sees the episode advance in these chunks)."""
 FLUSH_TIMEOUT_S = 10.0
 """How long the end of an episode may wait for a viewer to take the data."""
+SINK_TIMEOUT_S = 5.0
+"""How long opening or closing an episode's recording may take (:func:`~viewers.rerun_recording.within`): past it
+the recording is given up (the episode goes on), and the host plays no more episodes after this one."""
 
 last_stats: dict[str, float] = {}
 """Timings of the last finished recorder in this process (for bench/rerun_logging.py)."""
@@ -75,10 +78,13 @@ class LiveEpisodeRecorder:
         self.rec = new_recording(spec.episode_id)
         blueprint = episode_blueprint(traced=spec.trace)
         target = spec.rerun
+        self.path: str | None = None
         if is_url(target):
             self.rec.connect_grpc(target, default_blueprint=blueprint)
         else:
-            save_to(self.rec, os.path.join(target, f"{spec.episode_id}.rrd"), default_blueprint=blueprint)
+            self.path = path = os.path.join(target, f"{spec.episode_id}.rrd")
+            within("open its file", lambda: save_to(self.rec, path, default_blueprint=blueprint), path,
+                   SINK_TIMEOUT_S)
         self.logger = EpisodeLogger(self.rec, traced=spec.trace,
                                     frames_every=self.frames_every if self.encoder is not None else 0)
         self.logger.code(spec.policy_text)
@@ -117,9 +123,11 @@ class LiveEpisodeRecorder:
                 self.logger.nodes(nodes)
             self.logger.properties(episode, self.frames_every if self.encoder is not None else 0)
             self.logger.send_blueprint()
-            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+            within("flush the recording", lambda: self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S), self.path,
+                   FLUSH_TIMEOUT_S + SINK_TIMEOUT_S)
         finally:
-            self.rec.disconnect()  # writes the .rrd footer; without it the file is incomplete
+            # writes the .rrd footer (without it the file is incomplete); a sink that died waited here for good
+            within("close the recording", self.rec.disconnect, self.path, SINK_TIMEOUT_S)
             self.cost_s += time.perf_counter() - t0
             last_stats.clear()
             last_stats.update(import_s=IMPORT_S, setup_s=self.setup_s, log_s=self.cost_s,

@@ -13,6 +13,8 @@ from __future__ import annotations
 import errno
 import os
 import re
+import threading
+from typing import Any, Callable
 
 import rerun as rr
 
@@ -51,6 +53,98 @@ def save_to(recording: rr.RecordingStream, path: str | os.PathLike, **options) -
         number = int(code.group(1))
         raise OSError(number, os.strerror(number) if number in errno.errorcode else str(exc), os.fspath(path)) \
             from None
+
+
+SINK_TIMEOUT_S = 30.0
+"""How long a recording's sink may take to open, flush or close its file (:func:`within`) before it is given up."""
+
+wedged = False
+"""A sink in this process did not answer within its time (:func:`within`): its Rust thread is stuck for good, and a
+process that records again (a game host's next episode) should be a fresh one."""
+
+
+def within(what: str, action: Callable[[], Any], path: str | os.PathLike | None = None,
+           timeout_s: float = SINK_TIMEOUT_S) -> Any:
+    """``action()`` (a Rerun call that waits on a recording's sink: ``save``, ``flush``, ``disconnect``) in a thread
+    of its own, waited for at most ``timeout_s``: past it an ``OSError`` (ETIMEDOUT) naming ``path`` says that Rerun
+    did not ``what``. Once the disk under a recording filled, Rerun's file-writer thread died and ``disconnect``
+    waited on it for good, inside Rust, where no signal reaches Python: an episode recorded with ``--rerun DIR``
+    held its host until its time limit and was stored as the policy's time-out; ``view --save`` hung past Ctrl-C
+    and SIGTERM. Rerun's own failure to write (its ``RuntimeError``) is raised as an ``OSError`` naming ``path``."""
+    global wedged
+    done: list[Any] = []
+    failed: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            done.append(action())
+        except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread below
+            failed.append(exc)
+
+    thread = threading.Thread(target=run, name=f"rerun sink: {what}", daemon=True)
+    thread.start()
+    thread.join(timeout_s)
+    where = os.fspath(path) if path is not None else None
+    if thread.is_alive() or failed:
+        # Rerun's own exit hook flushes every recording, this one too: a sink that failed or hangs hung the
+        # process at its exit (`view --save` on a full disk), past Ctrl-C
+        rr.unregister_shutdown()
+    if thread.is_alive():
+        wedged = True
+        raise OSError(errno.ETIMEDOUT, f"Rerun did not {what} within {timeout_s:g} s (a full disk?)", where)
+    if failed:
+        exc = failed[0]
+        if isinstance(exc, RuntimeError) and where is not None:
+            raise OSError(errno.EIO, f"Rerun could not {what} ({str(exc)[:200]}; a full disk?)", where) from None
+        raise exc
+    return done[0] if done else None
+
+
+def save_whole(recording: rr.RecordingStream, path: str | os.PathLike, **options) -> str | None:
+    """Start saving ``recording`` for ``path`` (:func:`save_to`), into ``path.partial`` until :func:`close` renames
+    it: a file cut short (a full disk, an error while logging) is never left under the name asked for. Returns the
+    partial file's path; None where ``path`` is something other than a plain file (a device such as /dev/full, a
+    pipe, a link), which is written as it is: a rename would replace it."""
+    target = os.fspath(path)
+    if os.path.lexists(target) and (os.path.islink(target) or not os.path.isfile(target)):
+        within("open the file", lambda: save_to(recording, target, **options), target)
+        return None
+    partial = f"{target}.partial"
+    try:
+        within("open the file", lambda: save_to(recording, partial, **options), path)
+    except OSError as exc:
+        _remove(partial)  # made, and not written to
+        raise OSError(exc.errno, exc.strerror, os.fspath(path)) from None
+    return partial
+
+
+def close(recording: rr.RecordingStream, partial: str | None = None, path: str | os.PathLike | None = None,
+          whole: bool = True) -> None:
+    """Flush and close ``recording``, each within :data:`SINK_TIMEOUT_S` (:func:`within`); a file started by
+    :func:`save_whole` (``partial``) is renamed to ``path`` once closed whole, and removed otherwise (``whole``
+    False: the caller failed while logging; the error is the caller's, the file goes)."""
+    try:
+        if whole:
+            within("flush the recording", lambda: recording.flush(timeout_sec=SINK_TIMEOUT_S), path)
+        within("close the recording", recording.disconnect, path)
+    except BaseException:
+        if partial is not None:
+            _remove(partial)
+        if whole:
+            raise
+        return
+    if partial is not None:
+        if whole:
+            os.replace(partial, os.fspath(path))
+        else:
+            _remove(partial)
+
+
+def _remove(path: str) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
 
 
 def entity(*parts: str) -> str:

@@ -93,10 +93,10 @@ def view(store: Store, run_id: str, iteration: int | None = None, episode: str |
     if frames_every < 0:
         raise ViewError("--frames-every must be 0 (no frames) or more")
     selection = select(store, run_id, iteration, episode)
-    from viewers.rerun_recording import new_recording, save_to  # imports Rerun: only here, never in a process that forks
+    from viewers.rerun_recording import close, new_recording, save_whole  # imports Rerun: never in a process that forks
 
     rec = new_recording(selection.recording_id)
-    viewer = None
+    viewer = partial = None
     if serve_web:
         viewer = start_web_viewer()
         rec.connect_grpc(viewer.grpc_url)
@@ -106,7 +106,7 @@ def view(store: Store, run_id: str, iteration: int | None = None, episode: str |
         rec.connect_grpc(connect)
     else:
         save = save or f"{selection.recording_id}.rrd"
-        save_to(rec, save)
+        partial = save_whole(rec, save)
     try:
         if selection.episode_id is None:
             from viewers.rerun_run import log_run, read_run
@@ -126,9 +126,10 @@ def view(store: Store, run_id: str, iteration: int | None = None, episode: str |
                 f"{check.describe()}")
             if not check.faithful:
                 warn(f"codearcade: warning: episode {selection.episode_id}: {check.describe()}")
-        rec.flush(timeout_sec=30.0)
-    finally:
-        rec.disconnect()
+    except BaseException:
+        close(rec, partial, save, whole=False)
+        raise
+    close(rec, partial, save)
     if save:
         out(f"saved {Path(save).resolve()} (recording {selection.recording_id})")
     elif viewer is not None:

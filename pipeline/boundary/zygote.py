@@ -98,8 +98,9 @@ ROLES: dict[str, Role] = {
 
 
 def _task(role: Role, name: str, item: dict[str, Any], fd: int,
-          extra_fd: int | None) -> Callable[[int | None], None]:
-    """What runs task ``name`` on ``item`` and writes its answer on ``fd`` (prepared already, if it prepares)."""
+          extra_fd: int | None) -> Callable[[int | None], bool | None]:
+    """What runs task ``name`` on ``item`` and writes its answer on ``fd`` (prepared already, if it prepares); it
+    may return False: its process is not to serve another task (``Role.serves_many``)."""
     path, prepares = role.tasks[name]
     module, _, attr = path.partition(":")
     function = getattr(importlib.import_module(module), attr)  # preloaded: no file is read here
@@ -171,8 +172,8 @@ def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: 
                     os.sched_setaffinity(0, {cpu})  # the host and its policy process share one core (NOTES.md)
                 except OSError:
                     pass
-            run(cpu)
-            if not role.serves_many:
+            again = run(cpu)
+            if not role.serves_many or again is False:  # a task may say its process should not serve another
                 return
             try:
                 os.sched_setaffinity(0, anywhere)  # the next task prepares while another pair holds that core

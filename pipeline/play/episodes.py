@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 import signal
 import socket
+import sys
 from dataclasses import asdict, fields
 from datetime import datetime
 from typing import Any, Callable, Iterable, Iterator
@@ -47,7 +48,7 @@ kept; ``tampered`` belongs to the replay check of old runs)."""
 # ---------------------------------------------------------------------------------------------- the host
 
 
-def host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | None], None]:
+def host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | None], bool]:
     """In a game host (the game zygote's ``host`` task): prepare the episode ``item`` (an :class:`EpisodeSpec` as
     JSON) with its policy process on ``policy_fd`` (environment reset, policy loaded: a staged host does this
     before its go-ahead, while the previous episode plays), and return what plays it on a CPU and writes its
@@ -56,7 +57,7 @@ def host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | 
     policy = RemotePolicy(socket.socket(fileno=policy_fd), spec, get_game(spec.game).n_actions)
     prepared = prepare_episode(spec, policy)
 
-    def play(cpu: int | None) -> None:
+    def play(cpu: int | None) -> bool:
         try:
             outcome = play_episode(prepared, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress",
                                                                                           "n": n})), cpu=cpu)
@@ -68,11 +69,20 @@ def host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | 
         if nodes is not None:
             frames.append(wire.raw_arrow_frame(nodes) if isinstance(nodes, bytes) else wire.arrow_frame(nodes))
         wire.write_all(fd, b"".join(frames))
+        return _can_play_again()
 
     return play
 
 
-def game_host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | None], None]:
+def _can_play_again() -> bool:
+    """Whether this host may play another episode: not once a Rerun recording's sink is stuck in it (a disk that
+    filled under ``--rerun DIR``: ``viewers.rerun_recording.within``), which would hold up every recording after it.
+    The zygote then lets it go and the next episode gets a fresh host."""
+    recording = sys.modules.get("viewers.rerun_recording")  # loaded only where an episode was recorded
+    return not (recording is not None and recording.wedged)
+
+
+def game_host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | None], bool]:
     """In a game host (the game zygote's ``game`` task): the episodes of one continued game (``item["episodes"]``,
     :class:`EpisodeSpec` s as JSON, in order), played one after the other with one environment and one policy
     process that keeps its state (``pipeline/play/rollout.py`` :func:`play_game`). Prepared as :func:`host_task`
@@ -82,7 +92,7 @@ def game_host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[i
     policy = RemotePolicy(socket.socket(fileno=policy_fd), specs[0], get_game(specs[0].game).n_actions)
     first = prepare_episode(specs[0], policy)
 
-    def play(cpu: int | None) -> None:
+    def play(cpu: int | None) -> bool:
         try:
             outcomes = play_game(specs, first, lambda n: wire.write_all(fd, wire.json_frame({"kind": "progress",
                                                                                             "n": n})), cpu=cpu)
@@ -97,6 +107,7 @@ def game_host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[i
             if nodes is not None:
                 frames.append(wire.raw_arrow_frame(nodes) if isinstance(nodes, bytes) else wire.arrow_frame(nodes))
         wire.write_all(fd, b"".join(frames))
+        return _can_play_again()
 
     return play
 
