@@ -41,8 +41,12 @@ class StoreDamaged(StoreError):
     """A store whose file is damaged (:func:`store_damage`, or cut too short for DuckDB to open it); ``problems``
     lists what was found, one short sentence each: the doctor reports them as findings."""
 
-    def __init__(self, path: str | os.PathLike, problems: list[str]) -> None:
-        super().__init__(f"{path} is damaged: {'; '.join(problems)}; nothing was written to it "
+    def __init__(self, path: str | os.PathLike, problems: list[str], in_wal: bool = False) -> None:
+        """``in_wal``: found by the checkpoint after a write (DuckDB reads a block only when it must): the write
+        is committed to the WAL beside the file, which the file cannot take in."""
+        kept = (f"this command's write stays in {os.path.basename(path)}.wal beside it, not in the file" if in_wal
+                else "nothing was written to it")
+        super().__init__(f"{path} is damaged: {'; '.join(problems)}; {kept} "
                          f"(`codearcade doctor --store {path}` reports what is left)")
         self.problems = problems
 
@@ -179,6 +183,11 @@ def is_corrupt_block(exc: BaseException) -> bool:
     """Whether DuckDB raised ``exc`` for a block of the file whose checksum does not match (a plain ``duckdb.Error``,
     on opening or in any query that reads the block): the store's damage, never the query's fault."""
     return isinstance(exc, duckdb.Error) and "Corrupt database file" in str(exc)
+
+
+def _corrupt_block(exc: BaseException) -> str:
+    """The problem :func:`is_corrupt_block` names, with DuckDB's own words on the block (its last error)."""
+    return f"a block is corrupt ({str(exc).split('Error: ', 1)[-1].split('Original error: ')[-1][:300]})"
 
 
 def _lock_holder(text: str) -> str:
@@ -334,11 +343,17 @@ class Store:
                 cut = _cut_short(self.path, text)
                 if cut is not None:
                     raise StoreDamaged(self.path, [cut]) from None
+                if "replaying WAL" in text:  # a WAL beside a file it was not written against: a backup put back
+                    # beside a newer WAL, or a WAL copied in from another state of the store
+                    raise StoreDamaged(self.path, [
+                        f"its WAL ({self.path.name}.wal) does not belong to the file's state "
+                        f"({text.split('Error: ', 1)[-1][:200]}): if the file is a backup put back, the WAL holds "
+                        "writes made after it; move the WAL away only once you know you do not need them"]) \
+                        from None
                 raise StoreError(f"cannot open {self.path}: {text}") from None
             except duckdb.Error as exc:
                 if is_corrupt_block(exc):
-                    raise StoreDamaged(self.path, [f"a block is corrupt ({str(exc).split('Error: ', 1)[-1]})"]) \
-                        from None
+                    raise StoreDamaged(self.path, [_corrupt_block(exc)]) from None
                 if "version" in str(exc).lower() and "storage" in str(exc).lower():
                     raise StoreError(f"{self.path} was written by an incompatible DuckDB: {exc}") from None
                 raise
@@ -466,6 +481,8 @@ class Store:
             try:
                 HUB.release(self.path, con)  # detaching checkpoints the WAL into the file: a full disk fails here too
             except duckdb.Error as exc:
+                if is_corrupt_block(exc):  # a block no query had read: the checkpoint rewrote it and met the damage
+                    raise StoreDamaged(self.path, [_corrupt_block(exc)], in_wal=True) from None
                 if not _is_disk_full(exc):
                     raise
 

@@ -28,11 +28,29 @@ def lock_path(store_path: str | os.PathLike, run_id: str) -> Path:
     return store_path.with_name(store_path.name + ".locks") / f"{run_id}.lock"
 
 
+def lock_folder(store_path: str | os.PathLike) -> Path:
+    """The folder of the store's run locks, made if it is not there; :class:`~store.db.StoreError` in one line
+    when it cannot be (a file of that name, a folder that is not writable). Called before a run is made, so that
+    a run is never made that could not be locked (it was, then failed)."""
+    from store.db import StoreError
+
+    folder = lock_path(store_path, "-").parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise StoreError(f"{folder} is a file: codearcade keeps the store's run locks in a folder of that name "
+                         "beside the store; move the file away") from None
+    except OSError as exc:
+        raise StoreError(f"cannot make {folder}, where codearcade keeps the store's run locks: "
+                         f"{exc.strerror or exc}") from None
+    return folder
+
+
 @contextmanager
 def run_lock(store_path: str | os.PathLike, run_id: str) -> Iterator[None]:
     """Hold the run's lock for the block; :class:`RunBusyError` at once if another process holds it."""
     path = lock_path(store_path, run_id)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    lock_folder(store_path)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         try:

@@ -75,8 +75,13 @@ def test_an_output_path_that_cannot_be_written_is_one_line_and_leaves_nothing(pl
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full (a device whose every write fails: disk full)")
 def test_a_recording_on_a_full_disk_is_one_line_naming_the_file(played, capsys):
     """Rerun's own RuntimeError ('Failed to write: No space left on device (os error 28)') was the traceback."""
+    import stat
+
     line = _one_line_error(*_run(capsys, "view", "last", "--save", "/dev/full", "--store", played)[::2])
     assert "/dev/full: No space left on device; give another path" in line, line
+    # a recording is written whole under a partial name, then renamed: never over what is not a plain file (as
+    # root, /dev/full.partial was made and renamed over the device)
+    assert stat.S_ISCHR(os.stat("/dev/full").st_mode) and not os.path.lexists("/dev/full.partial")
 
 
 @pytest.mark.parametrize("flag, value", [("--seed", -1), ("--seed", 10**23), ("--max-steps", 10**23),
@@ -158,6 +163,11 @@ def test_a_store_with_a_corrupt_block_is_one_line_everywhere_and_a_finding_for_t
         line = _one_line_error(code, err)
         assert "damaged" in line and "codearcade doctor" in line, line
         damaged += 1
+    if where == "steps":  # a write that appends to the damaged table: the damage is met by its checkpoint, which
+        # ended eval with DuckDB's "Detached database ..., but CHECKPOINT during DETACH failed" and no score
+        code, out, err = _run(capsys, "eval", STARTER, "--episodes", "1", "--max-steps", "20", "--store", path)
+        line = _one_line_error(code, err)
+        assert "damaged: a block is corrupt" in line and "s.duckdb.wal" in line and "codearcade doctor" in line, line
     code, out, err = _run(capsys, "doctor", "--store", path)
     assert code == 1 and "Traceback" not in out + err and "corrupt" in (out + err).lower(), out + err
     assert damaged, "every case breaks a block that some command reads"
@@ -613,3 +623,46 @@ def test_a_value_its_type_refuses_is_said_one_way_whatever_the_flag_s_type(capsy
                 (verb, action.option_strings, said)
             checked += 1
     assert checked >= 5
+
+
+def test_a_locks_folder_that_is_a_file_is_said_before_a_run_is_made(tmp_path, capsys, scripted):
+    """`<store>.locks` (where the run locks are kept) existing as a file: optimize made its run, then failed it
+    with "File exists; give another path". It is said in one line before any run is made; eval, whose lock only
+    shows a run live, plays on."""
+    from tests.conftest import COMPETENT_REPLY
+
+    model = scripted([COMPETENT_REPLY])
+    path = tmp_path / "s.duckdb"
+    (tmp_path / "s.duckdb.locks").write_text("a file, not the folder\n")
+    line = _one_line_error(*_run(capsys, "optimize", "--game", "pong", "--model", model.model, "--api-base",
+                                 model.api_base, "--iterations", "1", "--store", path)[::2])
+    assert "s.duckdb.locks is a file" in line and "move the file away" in line, line
+    assert not path.exists() or Store(path).query("SELECT count(*) FROM runs") == [(0,)]
+    code, _, err = _run(capsys, "eval", STARTER, "--episodes", "1", "--max-steps", "20", "--store", path)
+    assert code == 0, err
+
+
+def test_a_wal_that_does_not_belong_to_its_file_is_damage_said_in_one_line(played, tmp_path, capsys):
+    """A backup of the store put back beside the WAL of a later state: every command, the doctor too, ended with
+    DuckDB's "Failure while replaying WAL file ..." (exit 2). It is the store's damage, said as such, and the
+    doctor's finding (exit 1), with what the WAL may hold."""
+    import shutil
+
+    import duckdb
+
+    path = tmp_path / "s.duckdb"
+    path.write_bytes(played.read_bytes())
+    backup = tmp_path / "backup.duckdb"
+    shutil.copy(path, backup)
+    con = duckdb.connect(str(path))
+    con.execute("PRAGMA disable_checkpoint_on_shutdown")
+    con.execute("CREATE TABLE later (x INTEGER)")
+    con.execute("CHECKPOINT")
+    con.execute("INSERT INTO later VALUES (1)")  # in the WAL, written against the checkpoint above
+    con.close()
+    shutil.copy(backup, path)
+    line = _one_line_error(*_run(capsys, "runs", "--store", path)[::2])
+    assert "is damaged: its WAL (s.duckdb.wal) does not belong" in line and "codearcade doctor" in line, line
+    code, out, err = _run(capsys, "doctor", "--store", path)
+    assert code == 1 and "Traceback" not in out + err and "WAL" in out + err, out + err
+    assert (tmp_path / "s.duckdb.wal").exists(), "the WAL is left as it was"

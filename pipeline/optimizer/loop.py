@@ -50,7 +50,7 @@ from pipeline.play.runinfo import new_run_id, package_versions
 from pipeline.play.versions import policy_version_row
 from store import Store
 from store.db import Hold, is_ctrl_c, utcnow
-from store.locks import run_lock
+from store.locks import lock_folder, run_lock
 from store.readers import (
     candidates,
     get_run,
@@ -140,6 +140,7 @@ class NewRun:
     def start(self, config: OptimizeConfig, model_name: str, **kwargs: Any) -> str:
         """:func:`start_run` (same arguments after the store): a press as the run is made is raised once its id
         is known here, so that :func:`new_run` ends it."""
+        lock_folder(self.store.path)  # a run that could not be locked is not made (it was, then failed)
         with uninterrupted():
             self.run_id = start_run(config, self.store, model_name, **kwargs)
         return self.run_id

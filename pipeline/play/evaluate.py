@@ -28,7 +28,7 @@ from pipeline.play.config import EvalConfig  # noqa: F401  (its home; callers im
 from pipeline.settings import check_settings
 from pipeline.stopping import uninterrupted
 from store import Store
-from store.db import is_ctrl_c
+from store.db import StoreError, is_ctrl_c
 from store.locks import run_lock
 from store.scores import Score, score_episodes, score_json
 from store.writer import EpisodeWriter, finish_run, insert_policy_version, insert_run
@@ -131,8 +131,8 @@ def evaluate(
     with ExitStack() as held:
         try:  # held while the run is "running", so `runs` and `doctor` tell a live eval from a killed one
             held.enter_context(run_lock(store.path, run_id))
-        except OSError:  # a read-only or full directory: the store's own one-line error says so below
-            pass
+        except (OSError, StoreError):  # a read-only or full directory (the store's own one-line error says so
+            pass  # below), or its locks folder a file: an evaluation is one process's, the lock only shows it live
         writer = EpisodeWriter(store)
         try:
             for i, outcome in run_episodes(specs, workers=config.workers, progress=progress, started=create_run):
