@@ -30,13 +30,16 @@ def lock_path(store_path: str | os.PathLike, run_id: str) -> Path:
 
 def lock_folder(store_path: str | os.PathLike) -> Path:
     """The folder of the store's run locks, made if it is not there; :class:`~store.db.StoreError` in one line
-    when it cannot be (a file of that name, a folder that is not writable). Called before a run is made, so that
-    a run is never made that could not be locked (it was, then failed)."""
+    when it cannot be (a file of that name, a folder that is not writable); left to the store where the store's
+    own folder is not there yet. Called before a run is made, so that a run is never made that could not be locked
+    (it was, then failed)."""
     from store.db import StoreError
 
     folder = lock_path(store_path, "-").parent
+    if not folder.parent.is_dir():  # the store's own folder: the store makes it (the per-user one), or says why not
+        return folder
     try:
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(exist_ok=True)
     except FileExistsError:
         raise StoreError(f"{folder} is a file: codearcade keeps the store's run locks in a folder of that name "
                          "beside the store; move the file away") from None

@@ -666,3 +666,15 @@ def test_a_wal_that_does_not_belong_to_its_file_is_damage_said_in_one_line(playe
     code, out, err = _run(capsys, "doctor", "--store", path)
     assert code == 1 and "Traceback" not in out + err and "WAL" in out + err, out + err
     assert (tmp_path / "s.duckdb.wal").exists(), "the WAL is left as it was"
+
+
+def test_optimize_into_a_folder_that_does_not_exist_makes_none(tmp_path, capsys, scripted):
+    """The run locks' folder is checked before a run is made: that check must not make the store's own folder (a
+    mistyped --store would have made the folders and a store in them)."""
+    from tests.conftest import COMPETENT_REPLY
+
+    model = scripted([COMPETENT_REPLY])
+    path = tmp_path / "typo" / "s.duckdb"
+    line = _one_line_error(*_run(capsys, "optimize", "--game", "pong", "--model", model.model, "--api-base",
+                                 model.api_base, "--iterations", "1", "--store", path)[::2])
+    assert "does not exist" in line and not (tmp_path / "typo").exists(), line
