@@ -121,7 +121,7 @@ def write(store: Store, episodes: dict[str, str], to: str, divergent_step: int |
     except BaseException:
         close(rec, partial, to, whole=False)
         raise
-    close(rec, partial, None if partial is None else to)
+    close(rec, partial, None if is_grpc_url(to) else to)  # a file's path names it in an error
     return notes
 
 

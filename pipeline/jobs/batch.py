@@ -47,7 +47,7 @@ import time
 import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from games import get_game
 from games.base import one_life_setting
@@ -90,6 +90,11 @@ class BatchRun:
     legacy_key: str | None = None
     """The key a run of a policy file in the batch's folder had before keys took its path from there (its
     absolute path): such a run is found by it too, and keeps it."""
+
+    def found_as(self, stored: Mapping[str, Any]) -> str:
+        """The key this run has among ``stored`` (keyed by batch key): its key, else its legacy key if that is
+        there."""
+        return self.key if self.key in stored or self.legacy_key is None else self.legacy_key
 
 
 @dataclass
@@ -320,7 +325,7 @@ def plan(batch: Batch, store: Store) -> list[PlannedRun]:
             found[key] = (run_id, status, name)  # the latest run of a key wins
     planned = []
     for run in batch.runs:
-        key = run.key if run.key in found or run.legacy_key is None else run.legacy_key
+        key = run.found_as(found)
         if key not in found:
             planned.append(PlannedRun(run, "start"))
         else:
@@ -382,7 +387,7 @@ def _refresh(store: Store, progress: list[Progress], batch: Batch) -> None:
         return
     by_key = {key: (run_id, it, best) for key, run_id, it, best in rows}
     for p, run in zip(progress, batch.runs):
-        key = run.key if run.key in by_key or run.legacy_key is None else run.legacy_key
+        key = run.found_as(by_key)
         if key in by_key:
             p.run_id, p.iteration, p.best = by_key[key]
 

@@ -177,6 +177,9 @@ def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: i
                 if on_episode is not None:
                     on_episode(i, outcome.episode["length"])
         result = AuditResult(run_id, _audit_rows(subjects, specs, groups, outcomes))
+        best, starter = result.row("best", "standard"), result.row("starter", "standard")
+        if best is not None and starter is not None:
+            best["overfit"] = overfit(best["tuning_score"], starter["tuning_score"], best["score"], starter["score"])
         with uninterrupted():  # a press in the write that replaces the earlier audit lands after it
             with store.write() as con:
                 replace_audits(con, run_id, result.rows)
@@ -190,8 +193,8 @@ def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: i
 
 def _audit_rows(subjects: list[dict[str, Any]], specs: list[EpisodeSpec], groups: dict[tuple[str, str], list[int]],
                 outcomes: list[dict[str, Any] | None]) -> list[dict[str, Any]]:
-    """The ``audits`` rows of the games played: one per subject (best, starter) and protocol, with the best's
-    ``overfit`` against the starter."""
+    """The ``audits`` rows of the games played: one per subject (best, starter) and protocol (``overfit`` None:
+    the caller sets the best's against the starter)."""
     scores: dict[tuple[str, str], Score] = {key: score_episodes(outcomes[i] for i in indices)
                                             for key, indices in groups.items()}
     rows = []
@@ -205,10 +208,6 @@ def _audit_rows(subjects: list[dict[str, Any]], specs: list[EpisodeSpec], groups
                              score_low=score.low if score.ranked is not None else None,
                              score_high=score.high if score.ranked is not None else None, forfeit=score.forfeit,
                              tuning_score=subject["tuning_score"], overfit=None))
-    best, starter = (next((r for r in rows if r["role"] == role and r["protocol"] == "standard"), None)
-                     for role in ("best", "starter"))
-    if best is not None and starter is not None:
-        best["overfit"] = overfit(best["tuning_score"], starter["tuning_score"], best["score"], starter["score"])
     return rows
 
 
