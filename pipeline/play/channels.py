@@ -26,7 +26,7 @@ from pipeline.boundary.nodes import MAX_NODE_FRAME, node_budget
 from pipeline.boundary.policy import (ACTION, MAX_ANSWER, MAX_NO_NODES_CHARS, Channel, capped_error, coerce_action,
                                      describe_exception, printed_text)
 from pipeline.play.spec import EpisodeSpec
-from tracing.capture import NodeRecorder
+from tracing.capture import NodeRecorder, exception_message, exception_name
 from tracing.policy_file import PolicyLoadError, load_policy
 from tracing.sandbox import CallTimer, PolicyTimeout
 
@@ -123,8 +123,8 @@ class LocalPolicy(PolicyChannel):
             try:
                 nodes = self.recorder.table()
             except Exception as exc:  # noqa: BLE001 - as a policy process's rows that could not be made
-                failed = no_trace("policy_error", f"its node rows could not be made ({type(exc).__name__}: "
-                                                  f"{str(exc)[:MAX_NO_NODES_CHARS]})")
+                failed = no_trace("policy_error", f"its node rows could not be made ({exception_name(exc)}: "
+                                                  f"{exception_message(exc, MAX_NO_NODES_CHARS)})")
         if more and self.policy is not None:  # the next episode: a new node log, the same policy object
             self.timer.__enter__()
             if self.recorder is not None:
