@@ -361,7 +361,9 @@ def test_a_recording_on_a_disk_that_fills_costs_neither_the_episode_nor_the_comm
     it for good, inside Rust: `eval --rerun DIR` held the episode's host until its time limit and stored a
     time-out, the policy's forfeit (1 in 3 tries of two episodes); `view --save` hung past Ctrl-C and SIGTERM, or
     printed a traceback, and left a truncated file. Each wait on Rerun's sink is now bounded: the episodes are
-    played and scored, and `view` says in one line which file it could not write, leaving none; so does `report`."""
+    played and scored, and `view` says in one line which file it could not write, leaving none; so does `report`.
+    `eval` says which episodes' recordings were lost (their hosts' stderr goes nowhere) and leaves no file cut
+    short."""
     store = tmp_path / "s.duckdb"
     for attempt in range(3):  # the stuck sink came one time in three
         for old in (full_disk / "rr").iterdir():
@@ -373,6 +375,14 @@ def test_a_recording_on_a_disk_that_fills_costs_neither_the_episode_nor_the_comm
         assert done.returncode == 0, (attempt, done.stdout[-2000:], done.stderr[-2000:])
         episodes = json.loads(done.stdout)["episodes"]
         assert [(e["end_reason"], e["length"]) for e in episodes] == [("truncated", 300)] * 2, (attempt, episodes)
+        # each recording lost is said, with how to make it again (the host's own stderr went nowhere: nothing was
+        # said), and no file cut short is left under an episode's name (one was, 40-130 KB of a whole one)
+        for e in episodes:
+            said = [line for line in done.stderr.splitlines()
+                    if line.startswith(f"codearcade: the Rerun recording of episode {e['episode_id']} was not made")]
+            assert len(said) == 1 and str(full_disk / "rr") in said[0], (attempt, done.stderr[-3000:])
+            assert f"--episode {e['episode_id']} --save" in said[0], said
+        assert list((full_disk / "rr").iterdir()) == [], attempt
     target = full_disk / "x.rrd"
     viewed = subprocess.run([sys.executable, "-m", "pipeline.cli", "view", "last", "--store", str(store), "--save",
                              str(target)], cwd=ROOT, capture_output=True, text=True, timeout=300)

@@ -15,7 +15,6 @@ every :data:`FLUSH_EVERY` steps and sent as columns. Node outputs go out at the 
 from __future__ import annotations
 
 import os
-import sys
 import time
 from typing import Any, Mapping
 
@@ -31,7 +30,7 @@ from tracing.steps import StepLog  # noqa: E402
 from viewers.frames import FrameEncoder  # noqa: E402
 from viewers.rerun_episode import EpisodeLogger  # noqa: E402
 from viewers.rerun_layout import episode_blueprint  # noqa: E402
-from viewers.rerun_recording import new_recording, save_to, within  # noqa: E402
+from viewers.rerun_recording import close, new_recording, save_whole, within  # noqa: E402
 from viewers.rerun_steps import StepColumns  # noqa: E402
 
 FLUSH_EVERY = 250
@@ -79,12 +78,12 @@ class LiveEpisodeRecorder:
         blueprint = episode_blueprint(traced=spec.trace)
         target = spec.rerun
         self.path: str | None = None
+        self.partial: str | None = None  # written there, renamed to self.path once whole (save_whole)
         if is_url(target):
             self.rec.connect_grpc(target, default_blueprint=blueprint)
         else:
-            self.path = path = os.path.join(target, f"{spec.episode_id}.rrd")
-            within("open its file", lambda: save_to(self.rec, path, default_blueprint=blueprint), path,
-                   SINK_TIMEOUT_S)
+            self.path = os.path.join(target, f"{spec.episode_id}.rrd")
+            self.partial = save_whole(self.rec, self.path, SINK_TIMEOUT_S, default_blueprint=blueprint)
         self.logger = EpisodeLogger(self.rec, traced=spec.trace,
                                     frames_every=self.frames_every if self.encoder is not None else 0)
         self.logger.code(spec.policy_text)
@@ -115,8 +114,11 @@ class LiveEpisodeRecorder:
             self._frame_steps, self._pngs = [], []
 
     def finish(self, episode: Mapping[str, Any], nodes: pa.Table | None) -> None:
-        """Send the rest (remaining steps, node outputs, the episode's properties) and close the sink."""
+        """Send the rest (remaining steps, node outputs, the episode's properties) and close the sink: a file is
+        renamed from its ``.partial`` name once whole, and removed if it is not (a disk that filled under it left
+        a recording cut short under the episode's name)."""
         t0 = time.perf_counter()
+        whole = False
         try:
             self._flush(len(self.steps))
             if nodes is not None:
@@ -125,29 +127,37 @@ class LiveEpisodeRecorder:
             self.logger.send_blueprint()
             within("flush the recording", lambda: self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S), self.path,
                    FLUSH_TIMEOUT_S + SINK_TIMEOUT_S)
+            whole = True
         finally:
             # writes the .rrd footer (without it the file is incomplete); a sink that died waited here for good
-            within("close the recording", self.rec.disconnect, self.path, SINK_TIMEOUT_S)
+            close(self.rec, self.partial, self.path, whole=whole, timeout_s=SINK_TIMEOUT_S)
             self.cost_s += time.perf_counter() - t0
             last_stats.clear()
             last_stats.update(import_s=IMPORT_S, setup_s=self.setup_s, log_s=self.cost_s,
                               steps=float(len(self.steps)), frames=float(self._frames))
 
 
-def open_recorder(spec: Any, env: Any, steps: StepLog) -> LiveEpisodeRecorder | None:
-    """A recorder for ``spec``, or None (with a warning on stderr) when Rerun cannot record: the episode
-    is played and stored either way."""
+def open_recorder(spec: Any, env: Any, steps: StepLog) -> tuple[LiveEpisodeRecorder | None, str | None]:
+    """A recorder for ``spec``, or None and why Rerun cannot record (one line, for the command to say: a game
+    host's own stderr goes nowhere): the episode is played and stored either way."""
     try:
-        return LiveEpisodeRecorder(spec, getattr(env.unwrapped, "ale", None), steps)
+        return LiveEpisodeRecorder(spec, getattr(env.unwrapped, "ale", None), steps), None
     except Exception as exc:  # noqa: BLE001 - a viewer problem must never cost the episode
-        print(f"codearcade: no Rerun recording for episode {spec.episode_id}: {type(exc).__name__}: {exc}",
-              file=sys.stderr)
-        return None
+        return None, problem(exc)
 
 
-def finish_recorder(recorder: LiveEpisodeRecorder, episode: Mapping[str, Any], nodes: pa.Table | None) -> None:
+def finish_recorder(recorder: LiveEpisodeRecorder, episode: Mapping[str, Any], nodes: pa.Table | None) -> str | None:
+    """Finish the recording; None, or why it is not whole (its file is then removed)."""
     try:
         recorder.finish(episode, nodes)
-    except Exception as exc:  # noqa: BLE001
-        print(f"codearcade: Rerun recording of episode {episode.get('episode_id')} is incomplete: "
-              f"{type(exc).__name__}: {exc}", file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001 - a viewer problem must never cost the episode
+        return problem(exc)
+    return None
+
+
+def problem(exc: BaseException) -> str:
+    """One line that says why a recording failed: an ``OSError`` from :func:`~viewers.rerun_recording.within`
+    names its file; anything else its class."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{exc.strerror}: {exc.filename}" if exc.filename else exc.strerror
+    return f"{type(exc).__name__}: {exc}"

@@ -100,18 +100,19 @@ def within(what: str, action: Callable[[], Any], path: str | os.PathLike | None 
     return done[0] if done else None
 
 
-def save_whole(recording: rr.RecordingStream, path: str | os.PathLike, **options) -> str | None:
+def save_whole(recording: rr.RecordingStream, path: str | os.PathLike, timeout_s: float = SINK_TIMEOUT_S,
+               **options) -> str | None:
     """Start saving ``recording`` for ``path`` (:func:`save_to`), into ``path.partial`` until :func:`close` renames
     it: a file cut short (a full disk, an error while logging) is never left under the name asked for. Returns the
     partial file's path; None where ``path`` is something other than a plain file (a device such as /dev/full, a
     pipe, a link), which is written as it is: a rename would replace it."""
     target = os.fspath(path)
     if os.path.lexists(target) and (os.path.islink(target) or not os.path.isfile(target)):
-        within("open the file", lambda: save_to(recording, target, **options), target)
+        within("open the file", lambda: save_to(recording, target, **options), target, timeout_s)
         return None
     partial = f"{target}.partial"
     try:
-        within("open the file", lambda: save_to(recording, partial, **options), path)
+        within("open the file", lambda: save_to(recording, partial, **options), path, timeout_s)
     except OSError as exc:
         _remove(partial)  # made, and not written to
         raise OSError(exc.errno, exc.strerror, os.fspath(path)) from None
@@ -119,14 +120,14 @@ def save_whole(recording: rr.RecordingStream, path: str | os.PathLike, **options
 
 
 def close(recording: rr.RecordingStream, partial: str | None = None, path: str | os.PathLike | None = None,
-          whole: bool = True) -> None:
-    """Flush and close ``recording``, each within :data:`SINK_TIMEOUT_S` (:func:`within`); a file started by
+          whole: bool = True, timeout_s: float = SINK_TIMEOUT_S) -> None:
+    """Flush and close ``recording``, each within ``timeout_s`` (:func:`within`); a file started by
     :func:`save_whole` (``partial``) is renamed to ``path`` once closed whole, and removed otherwise (``whole``
     False: the caller failed while logging; the error is the caller's, the file goes)."""
     try:
         if whole:
-            within("flush the recording", lambda: recording.flush(timeout_sec=SINK_TIMEOUT_S), path)
-        within("close the recording", recording.disconnect, path)
+            within("flush the recording", lambda: recording.flush(timeout_sec=timeout_s), path, timeout_s)
+        within("close the recording", recording.disconnect, path, timeout_s)
     except BaseException:
         if partial is not None:
             _remove(partial)

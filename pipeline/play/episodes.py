@@ -23,6 +23,7 @@ import math
 import signal
 import socket
 import sys
+from contextlib import closing
 from dataclasses import asdict, fields
 from datetime import datetime
 from typing import Any, Callable, Iterable, Iterator
@@ -39,6 +40,10 @@ from pipeline.play.channels import RemotePolicy
 from pipeline.play.rollout import (GAME_END_REASONS, EpisodeOutcome, _episode_row, crashed_outcome, play_episode,
                                    play_game, prepare_episode, run_episode, run_game)
 from pipeline.play.spec import EpisodeSpec
+from viewers.safe_text import terminal_text
+
+RECORDING_TEXT_BYTES = 1_000
+"""At most this much of why an episode's live recording failed is said (a path and Rerun's reason)."""
 
 WORKER_END_REASONS = frozenset({"terminated", "truncated", "policy_error", "timeout", "crashed"})
 """End reasons a host may report (``crashed``: its policy process died or broke the protocol, the steps before
@@ -64,7 +69,8 @@ def host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[int | 
         finally:
             policy.close()  # the host may play the next episode, with a new policy process
         nodes = outcome.nodes
-        frames = [wire.json_frame({"kind": "result", "episode": episode_to_json(outcome.episode, outcome.printed),
+        frames = [wire.json_frame({"kind": "result", "episode": episode_to_json(outcome.episode, outcome.printed,
+                                                                                outcome.recording),
                                    "nodes": nodes is not None}), wire.arrow_frame(outcome.steps)]
         if nodes is not None:
             frames.append(wire.raw_arrow_frame(nodes) if isinstance(nodes, bytes) else wire.arrow_frame(nodes))
@@ -98,7 +104,7 @@ def game_host_task(item: dict[str, Any], fd: int, policy_fd: int) -> Callable[[i
                                                                                             "n": n})), cpu=cpu)
         finally:
             policy.close()
-        frames = [wire.json_frame({"kind": "result", "episodes": [episode_to_json(o.episode, o.printed)
+        frames = [wire.json_frame({"kind": "result", "episodes": [episode_to_json(o.episode, o.printed, o.recording)
                                                                   for o in outcomes],
                                    "nodes": [o.nodes is not None for o in outcomes]})]
         for outcome in outcomes:
@@ -132,11 +138,15 @@ MEASURED = ("game", "started_at", "duration_s", "env_s", "policy_s", "length", "
             "return")
 
 
-def episode_to_json(episode: dict[str, Any], printed: str | None = None) -> dict[str, Any]:
-    """The episode row as the host sends it, with what the policy printed (``EpisodeSpec.keep_printed``)."""
+def episode_to_json(episode: dict[str, Any], printed: str | None = None,
+                    recording: str | None = None) -> dict[str, Any]:
+    """The episode row as the host sends it, with what the policy printed (``EpisodeSpec.keep_printed``) and why
+    its live recording is not whole (``EpisodeOutcome.recording``)."""
     row = {k: episode[k] for k in MEASURED + ("episode_id",)}
     if printed is not None:
         row["printed"] = printed
+    if recording is not None:
+        row["recording"] = recording[:RECORDING_TEXT_BYTES]
     if isinstance(row["started_at"], datetime):
         row["started_at"] = row["started_at"].isoformat()
     if isinstance(row["error"], str):
@@ -180,6 +190,11 @@ def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
     printed = row.get("printed") if spec.keep_printed else None
     if printed is not None and not isinstance(printed, str):
         raise BadMessage("what the policy printed is not text")
+    recording = row.get("recording") if spec.rerun else None
+    if recording is not None and not isinstance(recording, str):
+        raise BadMessage("why the recording failed is not text")
+    if recording is not None:
+        recording = utf8_prefix(recording, RECORDING_TEXT_BYTES)
     try:
         started_at = datetime.fromisoformat(row["started_at"]) if row.get("started_at") is not None else None
     except (TypeError, ValueError):
@@ -204,11 +219,11 @@ def episode_from_worker(spec: Any, row: Any, steps: Any, nodes: Any) -> Any:
             nodes = (read_nodes(nodes, spec, steps.num_rows, episode["duration_s"]) if isinstance(nodes, bytes)
                      else check_nodes(nodes, spec, steps.num_rows, episode["duration_s"]) or nodes)
         except MalformedTrace as exc:
-            return EpisodeOutcome(trace_refused(episode, str(exc)), steps, None, printed)
+            return EpisodeOutcome(trace_refused(episode, str(exc)), steps, None, printed, recording)
     elif spec.trace:  # the host records why a traced episode's rows did not come (channels.no_trace): this is a host
         # that did not, and the episode must not pass for traced with no rows and no error
         trace_refused(episode, "trace missing: the game host sent no node rows for a traced episode")
-    return EpisodeOutcome(episode, steps, nodes, printed)
+    return EpisodeOutcome(episode, steps, nodes, printed, recording)
 
 
 def trace_refused(episode: dict[str, Any], error: str) -> dict[str, Any]:
@@ -352,9 +367,28 @@ def run_episodes(
             pass  # the zygote died: every episode is recorded as crashed
 
     if all(spec.continues is None for spec in specs):
-        return run_tasks(EPISODE, specs, workers, _episode_failed, time_limit_s=lambda spec: spec.episode_time_limit_s,
-                         progress=progress, started=started, prepare=prepare, hosts_key=envs, deadline=deadline)
-    return _run_games(specs, workers, progress, started, prepare, envs, deadline)
+        played = run_tasks(EPISODE, specs, workers, _episode_failed,
+                           time_limit_s=lambda spec: spec.episode_time_limit_s, progress=progress, started=started,
+                           prepare=prepare, hosts_key=envs, deadline=deadline)
+    else:
+        played = _run_games(specs, workers, progress, started, prepare, envs, deadline)
+    return _saying_recordings(played) if any(spec.rerun for spec in specs) else played
+
+
+def _saying_recordings(played: Iterator[tuple[int, EpisodeOutcome]]) -> Iterator[tuple[int, EpisodeOutcome]]:
+    """``played``, saying on stderr which episode's live Rerun recording is not whole and why (a full disk under
+    ``--rerun DIR``): the host that recorded it writes its stderr nowhere, and the recording was lost unsaid. Its
+    file is removed, never left cut short under the episode's name; the store has the episode, which ``view`` can
+    record again."""
+    with closing(played):  # a caller that stops early (a Ctrl-C, a deadline) ends the episodes playing
+        for i, outcome in played:
+            if outcome.recording:
+                episode_id, run_id = outcome.episode["episode_id"], outcome.episode["run_id"]
+                print(terminal_text(f"codearcade: the Rerun recording of episode {episode_id} was not made: "
+                                    f"{outcome.recording}; the episode is stored (`codearcade view {run_id} "
+                                    f"--episode {episode_id} --save FILE.rrd` records it again)"),
+                      file=sys.stderr, flush=True)
+            yield i, outcome
 
 
 def _run_games(specs: list[EpisodeSpec], workers: int, progress: ProgressCallback | None,

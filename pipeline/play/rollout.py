@@ -23,7 +23,6 @@ NULL: its observation is what the policy failed on, and its nodes show where.
 from __future__ import annotations
 
 import random
-import sys
 import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -51,6 +50,10 @@ class EpisodeOutcome:
     nodes: pa.Table | None = None
     printed: str | None = None
     """What the policy printed, when the spec asked (``EpisodeSpec.keep_printed``) and its process said."""
+    recording: str | None = None
+    """Why the episode's live Rerun recording (``EpisodeSpec.rerun``) was not made whole, in one line; None when
+    it was, or none was asked for. The episode is stored either way; the command says this (a game host's own
+    stderr goes nowhere)."""
 
     @property
     def end_reason(self) -> str:
@@ -146,13 +149,14 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
     score, lives_lost, length = 0.0, 0, 0
     reported = 0
     live = None  # live Rerun recorder (spec.rerun)
+    recording = None  # why it could not start
     env_s = policy_s = 0.0
 
     if prepared.end_reason is None:
         env, obs, info = prepared.env, prepared.obs, prepared.info
         try:
             if spec.rerun:
-                live = _live_recorder(spec, env, steps)
+                live, recording = _live_recorder(spec, env, steps)
             deadline = t0 + spec.episode_time_limit_s
             policy.go(cpu, deadline)
             lives = info.get("lives", 0)
@@ -220,11 +224,11 @@ def play_episode(prepared: PreparedEpisode, progress: Callable[[int], None] | No
         spec, game=game.name, started_at=_utc(started_at), duration_s=duration_s, env_s=env_s,
         policy_s=policy_s, length=length, lives_lost=lives_lost, end_reason=end_reason, error=error, score=score,
     )
-    outcome = EpisodeOutcome(episode, step_table, nodes, policy.printed)
+    outcome = EpisodeOutcome(episode, step_table, nodes, policy.printed, recording)
     if live is not None:
         from viewers.rerun_live import finish_recorder
 
-        finish_recorder(live, episode, live_nodes if isinstance(live_nodes, pa.Table) else None)
+        outcome.recording = finish_recorder(live, episode, live_nodes if isinstance(live_nodes, pa.Table) else None)
     return outcome
 
 
@@ -272,8 +276,8 @@ def not_played(spec: EpisodeSpec, failed: EpisodeSpec, end_reason: str, start_st
     return EpisodeOutcome(episode, StepLog().table(), None)
 
 
-def _live_recorder(spec: EpisodeSpec, env: Any, steps: StepLog) -> Any:
-    """The live Rerun recorder of ``spec.rerun`` (``viewers/rerun_live.py``), or None if it cannot start.
+def _live_recorder(spec: EpisodeSpec, env: Any, steps: StepLog) -> tuple[Any, str | None]:
+    """The live Rerun recorder of ``spec.rerun`` (``viewers/rerun_live.py``), or None and why it cannot start.
 
     Rerun is imported here, in the process that plays the episode. The policy's RNG state is kept as it
     was, so an episode plays the same with and without a recording.
@@ -283,9 +287,8 @@ def _live_recorder(spec: EpisodeSpec, env: Any, steps: StepLog) -> Any:
         from viewers.rerun_live import open_recorder
 
         return open_recorder(spec, env, steps)
-    except Exception as exc:  # noqa: BLE001 - a viewer problem must never cost the episode
-        print(f"codearcade: no Rerun recording for {spec.episode_id}: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return None
+    except Exception as exc:  # noqa: BLE001 - a viewer problem must never cost the episode (Rerun not importable)
+        return None, f"{type(exc).__name__}: {exc}"
     finally:
         random.setstate(state)
         np.random.set_state(np_state)

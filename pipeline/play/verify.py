@@ -263,8 +263,10 @@ def checked_outcome(spec: EpisodeSpec, outcome: EpisodeOutcome, hosted: bool = T
         return EpisodeOutcome(row, StepLog().table(), None)
     row.update(verified=True if hosted else None)
     printed = getattr(outcome, "printed", None)
+    recording = getattr(outcome, "recording", None)
     return EpisodeOutcome(row, steps, nodes,
-                          clean_untrusted_text(printed, PRINTED_TEXT_BYTES) if isinstance(printed, str) else None)
+                          clean_untrusted_text(printed, PRINTED_TEXT_BYTES) if isinstance(printed, str) else None,
+                          recording if isinstance(recording, str) else None)
 
 
 def replay_outcome(spec: EpisodeSpec, row: dict[str, Any], steps: pa.Table) -> str | None:
