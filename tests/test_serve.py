@@ -1105,3 +1105,45 @@ def test_over_mcp_stdio_pipelined_requests_wait_in_the_agents_pipe_not_in_the_se
         except BrokenPipeError:
             pass
         serve.wait(timeout=60)
+
+
+@pytest.mark.parametrize("held_out, flagged", [
+    ({"best": [-5.0, -5.0], "starter": [-5.0, -5.0]}, True),  # its training gain is gone on the held-out games
+    ({"best": [-5.0, "forfeit"], "starter": [-5.0, -5.0]}, True),  # it forfeited a held-out game
+    ({"best": [0.0, 0.0], "starter": [-5.0, -5.0]}, False),  # its gain holds up
+])  # returns relative to the best's training score
+def test_finalize_flags_a_best_whose_training_gain_does_not_hold_up(tmp_path, monkeypatch, held_out, flagged):
+    """A served run's starter never plays the training instances, so its training score is None, and the overfit
+    rule (``store.scores.overfit``) was handed that None as the starter's tuning score: it claims no gain then, so
+    finalize never flagged a run, not even a best that forfeited its held-out games. The starter's held-out score,
+    under the same standard protocol as every training instance, is the reference now. The games are scripted
+    here (``_play_scored``), relative to the submission's training score (what it played over 60 steps)."""
+    from pipeline.serve import protocol
+    from pipeline.serve.config import ServeConfig
+    from store.scores import score_episodes
+
+    store = Store(tmp_path / "s.duckdb")
+    run_id = protocol.create_run(store, ServeConfig(game="pong", budget=1, max_steps=60, validation_episodes=2,
+                                                    heldout_episodes=2))
+    served = protocol.ServeRun(store, run_id)
+    answer = served.submit(instances=[0], policy=pong_policy("return 0"))
+    tuning = answer["score"]
+    assert tuning is not None, answer
+    with store.read() as con:
+        starter = protocol.get_run(con, run_id)["starter_version_id"]
+
+    def scripted(store, specs, progress=None, stopping=None):
+        out = {}
+        for spec in specs:
+            role = "starter" if spec.policy_version_id == starter else "best"
+            returns = held_out[role] if spec.kind == "audit" else [0.0, 0.0]  # validation: as in training
+            value = returns[spec.index]
+            episode = {"return": tuning if value == "forfeit" else tuning + value, "length": 10,
+                       "end_reason": "policy_error" if value == "forfeit" else "terminated"}
+            out.setdefault(spec.policy_version_id, []).append((episode, spec.episode_id))
+        return {v: (score_episodes(e for e, _ in eps), [i for _, i in eps]) for v, eps in out.items()}
+
+    monkeypatch.setattr(protocol, "_play_scored", scripted)
+    rows = protocol.finalize_run(store, run_id, served.record)
+    best = next(r for r in rows if r["role"] == "best")
+    assert best["tuning_score"] == tuning and best["overfit"] is flagged, rows

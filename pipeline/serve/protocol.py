@@ -35,7 +35,8 @@ would be one.
 episodes as the evaluation episodes, its score their score) and a ``feedback`` row; iteration 0 is the starter,
 unplayed. Finalize writes ``audits`` rows: ``role = 'submission N', protocol = 'validation'`` per accepted
 submission, and ``best`` / ``starter`` with protocol ``standard`` for the held-out pool, so ``runs`` and
-``report`` show the held-out score where they show an audit's.
+``report`` show the held-out score where they show an audit's. The best's row carries ``overfit`` by the audit's
+rule, its training gain measured against the starter's held-out score (the starter plays no training instance).
 
 **The budget** is counted in memory under a lock (a submission reserves its episodes before it plays, and gives
 them back only if the server fails to play them), and read back from the store when a run is opened again: a
@@ -552,8 +553,11 @@ def finalize_run(store: Store, run_id: str, record: dict[str, Any],
             score, ids = held_scores[v]
             rows.append(_audit_row(role, "standard", v, it, heldout, ids, score, tuning))
         best_row, starter_row = rows[-2], rows[-1]
-        best_row["overfit"] = overfit(best_row["tuning_score"], starter_row["tuning_score"], best_row["score"],
-                                      starter_row["score"])
+        # the starter never plays the training instances (its tuning score is None, which the rule reads as no
+        # gain claimed: nothing was ever flagged); every game here is the standard protocol, so its held-out
+        # score stands in for what it would have scored there. The starter itself as best claims no gain.
+        best_row["overfit"] = best != starter_id and overfit(best_row["tuning_score"], starter_row["score"],
+                                                             best_row["score"], starter_row["score"])
     with store.write() as con:
         replace_audits(con, run_id, rows)
         finish_run(con, run_id, "finished")
