@@ -345,3 +345,44 @@ def test_one_life_optimization_ends_every_episode_at_the_first_lost_life(store, 
     assert any(e[1] == 1 for e in audit), audit
     assert store.query("SELECT json_extract(config, '$.one_life') FROM runs WHERE run_id = ?",
                        [result.run_id])[0][0] == "true"
+
+
+def _row(iteration: int, candidate: int, version: str, score: float | None, forfeit: str | None = None,
+         complexity: int = 2, length: int = 4000, decision: str = "kept") -> dict:
+    return dict(iteration=iteration, candidate=candidate, decision=decision, policy_version_id=version,
+                proposed_version_id=version, score=score, forfeit=forfeit, complexity=complexity,
+                eval_length=length, parent_iteration=None if iteration == 0 else 0,
+                parent_candidate=None if iteration == 0 else 0)
+
+
+def test_a_version_that_forfeited_is_never_a_parent_of_beam_or_map_elites_while_one_played_out():
+    """A forfeit is never ranked (``store/scores.py``), and map-elites' ``decide`` keeps none in its archive; yet
+    its plan drew parents from every assessed version, forfeits included, each the elite of a cell of its own (a
+    game it ended early is a short game): two crashing versions beside the starter and a better one took 51% of
+    800 parent draws, the best honest version 24%. The beam likewise filled a slot with a forfeit. Now both plan
+    from the versions that played their games out, and from forfeits only when none did (a starter that
+    forfeits is all there is to improve)."""
+    from collections import Counter
+
+    from pipeline.optimizer.strategies import Beam, History, MapElites
+
+    rows = [_row(0, 0, "starter", -20.0, decision="best"),
+            _row(1, 0, "crash", None, "KeyError at step 1 (policy_error)", complexity=3, length=1,
+                 decision="discarded"),
+            _row(1, 1, "good", -10.0, complexity=9, decision="best"),
+            _row(1, 2, "slow", None, "timeout at step 900 (timeout)", complexity=14, length=900,
+                 decision="discarded")]
+    history = History([dict(iteration=0, candidate=0, best_iteration=0, best_score=-20.0),
+                       dict(iteration=1, candidate=1, best_iteration=1, best_score=-10.0)], rows)
+    parents = Counter()
+    for seed in range(5):
+        strategy = MapElites(candidates=4, seed=seed, eval_max_steps=4000)
+        for iteration in range(2, 42):
+            parents.update(history.candidate(r.parent)["policy_version_id"] for r in strategy.plan(history, iteration))
+    assert set(parents) == {"starter", "good"}, parents
+    assert [history.candidate(r)["policy_version_id"] for r in Beam(width=3).beam(history)] == ["good", "starter"]
+    # nothing played out: the forfeits are what there is to improve
+    only = History([dict(iteration=0, candidate=0, best_iteration=0, best_score=None)],
+                   [_row(0, 0, "starter", None, "KeyError at step 3 (policy_error)", decision="best")])
+    assert [r.parent for r in MapElites(candidates=2).plan(only, 1)] == [only.chosen(0)] * 2
+    assert Beam(width=3).beam(only) == [only.chosen(0)]

@@ -168,6 +168,13 @@ class History:
             first[c["policy_version_id"]] = (c["score"], Ref(c["iteration"], c["candidate"]))
         return sorted(first.values(), key=lambda item: (_descending(item[0]), item[1]))
 
+    def played_out_versions(self) -> list[tuple[float | None, Ref]]:
+        """:meth:`assessed_versions` that a strategy may improve: those that played their games out (a forfeit is
+        never ranked, so never a beam's member or an archive's elite); the forfeits only when no version played
+        out (a starter that forfeits is all there is to improve)."""
+        versions = self.assessed_versions()
+        return [(score, ref) for score, ref in versions if score is not None] or versions
+
     def beaten_by(self, score: float | None) -> bool:
         """Whether a version that scored ``score`` takes the run's best (``store.scores.beats``)."""
         return beats(score, self.best_score, self.best is not None)
@@ -325,7 +332,7 @@ class Beam:
         return self.width * self.candidates
 
     def beam(self, history: History) -> list[Ref]:
-        return [ref for _, ref in history.assessed_versions()[:self.width]]
+        return [ref for _, ref in history.played_out_versions()[:self.width]]
 
     def plan(self, history: History, iteration: int) -> list[ProposalRequest]:
         requests = []
@@ -373,9 +380,10 @@ class MapElites:
         return (int(complexity) // self.COMPLEXITY_BIN, min(3, int(4 * length / max(1, self.eval_max_steps))))
 
     def archive(self, history: History) -> dict[tuple[int, int], Ref]:
-        """Cell -> its elite (the first candidate reaching the cell's best score)."""
+        """Cell -> its elite (the first candidate reaching the cell's best score; never a forfeit while a version
+        played out: a game it ended early made a cell of its own, and the forfeit drew parents as any elite)."""
         elites: dict[tuple[int, int], tuple[float, Ref]] = {}
-        for score, ref in history.assessed_versions():  # best first: a cell's first is its elite
+        for score, ref in history.played_out_versions():  # best first: a cell's first is its elite
             cell = self.cell(history.candidate(ref))
             if cell not in elites:
                 elites[cell] = (score, ref)
