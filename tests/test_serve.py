@@ -1147,3 +1147,25 @@ def test_finalize_flags_a_best_whose_training_gain_does_not_hold_up(tmp_path, mo
     rows = protocol.finalize_run(store, run_id, served.record)
     best = next(r for r in rows if r["role"] == "best")
     assert best["tuning_score"] == tuning and best["overfit"] is flagged, rows
+
+
+def test_a_submission_s_interval_names_its_level_method_and_n_or_why_there_is_none(tmp_path):
+    """Every interval is printed with its level, method and n, and without one, why (``store.statistics``); the
+    agent's answers gave a bare ``[low, high]``, and ``null`` with no reason for one game or all-equal returns."""
+    from pipeline.serve import protocol
+    from pipeline.serve.config import ServeConfig
+
+    store = Store(tmp_path / "s.duckdb")
+    run_id = protocol.create_run(store, ServeConfig(game="pong", budget=6, max_steps=400))
+    served = protocol.ServeRun(store, run_id)
+    policy = pong_policy("return random.choice([0, 2, 3])", prelude="import random\n")  # returns that vary
+    one = served.submit(instances=[0], policy=policy)
+    assert one["interval"].endswith("(n=1: too few for an interval)"), one
+    many = served.submit(instances=[1, 2, 3, 4, 5], policy=policy)
+    returns = [e["return"] for e in many["episodes"]]
+    if min(returns) == max(returns):
+        assert many["interval"].endswith("(n=5: all equal, no interval)"), many
+    else:
+        assert many["interval"].endswith("95% t, n=5") and many["low"] < many["score"] < many["high"], many
+    again = served.feedback(2)
+    assert again["interval"] == many["interval"], again

@@ -75,7 +75,7 @@ from pipeline.serve.config import ServeConfig
 from store import Store
 from store.db import utcnow
 from store.readers import episode_steps, get_run, policy_text, step_nodes
-from store.scores import overfit, score_episodes
+from store.scores import overfit, score_data, score_episodes
 from store.serve import (is_finalized, served_submissions, submission_episodes, submission_feedback,
                          submission_version, visible_query)
 from store.views import QueryError
@@ -492,9 +492,13 @@ def submission_view(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def _summary(sub: dict[str, Any], episodes: list[dict[str, Any]]) -> dict[str, Any]:
-    return {"submission": sub["iteration"], "score": sub["score"],
-            "interval": None if sub["score_low"] is None else [round(sub["score_low"], 3), round(sub["score_high"], 3)],
-            "forfeit": sub["forfeit"], "episodes": submission_view(episodes)}
+    """A submission as the agent reads it: its score, the score's interval as every interval is shown (``interval``:
+    ``-20.7 [-21.0, -20.3] 95% t, n=3``, or the value and why there is none, ``store.scores.score_data``; None
+    with a forfeit) with its bounds, the forfeit and its episodes."""
+    scored = score_data(score_episodes(episodes))
+    return {"submission": sub["iteration"], "score": sub["score"], "interval": scored["interval"],
+            "low": scored["low"], "high": scored["high"], "forfeit": sub["forfeit"],
+            "episodes": submission_view(episodes)}
 
 
 def finalize_run(store: Store, run_id: str, record: dict[str, Any],
