@@ -15,7 +15,10 @@ version, 3–5 seeds a game. Simulated on returns shaped like Atari's (discrete,
 tests/test_calibration.py, bench/calibration.py, figures in docs/benchmarks.md), the percentile bootstrap
 codearcade used before covered the true mean 70–80% of the time at 3 episodes and 78–85% at 5, and called identical
 policies different 15–21% of the time at 3 a side; the t-interval covers 93.6–99.7% at 3–10 episodes and Welch's
-test errs 2.5–4.8% at 3–6 a side. The IQM's stratified bootstrap covers 83% with 3 values a stratum, 91% with 5,
+test errs 2.5–4.8% at 3–6 a side. Beyond those shapes the t-interval's promise ends (docs/benchmarks.md):
+strongly skewed returns, as a Breakout policy's lives (``--one-life``), are covered 88–90% at 3–10, and a policy
+that collapses in one game of twenty 28% at 5 (no interval from the sample alone can see a rare collapse).
+The IQM's stratified bootstrap covers 83% with 3 values a stratum, 91% with 5,
 92% with 10 and 92–95% with 20 (BCa and basic do no better): it keeps 93% from 30, so below
 :data:`IQM_MIN_PER_STRATUM` the IQM is given alone, with why.
 
