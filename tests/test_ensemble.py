@@ -156,6 +156,30 @@ def test_improvements_are_counted_against_the_parent_by_the_score_rule():
     assert got == [Pull("a", math.inf), Pull("b", 3.0), Pull("a", 0.0), Pull("b", 0.0)]
 
 
+def test_a_copy_of_a_version_the_run_already_had_is_no_improvement():
+    """Map-elites shows other elites as inspirations (#Memory: their scores and their code as diffs), beams show
+    a member's better ancestors: a model that copies the best of them onto a weaker parent makes no new version,
+    its score is the cached one, yet it was counted as the improvement from that parent to the copied version's
+    score, 13 points here, as much as the model that wrote the version (15), call after call."""
+    def row(iteration, candidate, parent, call, version, score):
+        return dict(iteration=iteration, candidate=candidate, parent_iteration=parent[0], parent_candidate=parent[1],
+                    llm_call_id=call, update_status="accepted" if call else "initial", policy_version_id=version,
+                    score=score)
+
+    rows = [row(0, 0, (None, None), None, "starter", -10.0),
+            row(1, 0, (0, 0), "c1", "found", 5.0),  # the dear model writes it: +15
+            row(1, 1, (0, 0), "c2", "weaker", -8.0),  # the cheap one: +2
+            row(2, 0, (1, 1), "c3", "found", 5.0),  # the cheap one copies "found" onto "weaker" (cached)
+            row(2, 1, (1, 1), "c4", "found", 5.0),  # and again
+            row(3, 0, (1, 1), "c5", "starter", -10.0)]  # the starter's own text: never better
+    models = {"c1": "dear", "c2": "cheap", "c3": "cheap", "c4": "cheap", "c5": "cheap"}
+    assert pulls(rows, models) == [Pull("dear", 15.0), Pull("cheap", 2.0), Pull("cheap", 0.0), Pull("cheap", 0.0),
+                                   Pull("cheap", 0.0)]
+    (choice,) = decide("ucb", [{"model": "dear"}, {"model": "cheap"}], pulls(rows, models), [0], "k", 4)
+    means = {m["model"]: m["mean_improvement"] for m in choice.record()["models"]}
+    assert means == {"dear": 15.0, "cheap": 0.5}, means
+
+
 # ------------------------------------------------------------------------------- the budgeted bandit, simulated
 # The rule on simulated histories: the same functions member_picks calls (budget_costs, decide), fed the pulls and the
 # calls' usage a run would have stored. gpt-4o-mini costs 1/16.7 of gpt-4o at litellm's prices (recorded, as a run

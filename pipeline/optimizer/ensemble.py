@@ -17,7 +17,8 @@ and the candidate). A resumed iteration therefore chooses again exactly what the
 ``codearcade replay`` (which plays the same history and uses the original's ``rng_key``) chooses the same.
 
 - A pull's **improvement** is how much its candidate's score beats its parent's (``store.scores.beats``): 0 when
-  not better, when it was rejected, unchanged, failed or forfeited; a played-out candidate of a forfeited parent
+  not better, when it was rejected, unchanged, failed or forfeited, or a version the run already had (a copy of
+  an elite or an ancestor its prompt showed: nothing new); a played-out candidate of a forfeited parent
   counts as the largest improvement seen. Its **reward** is the improvement divided by the largest improvement
   any candidate of the run has brought so far (so rewards lie in [0, 1]; all 0 until something improves).
 - ``fixed``: each call goes to the model furthest below its share of the calls so far (``weight / sum of
@@ -192,13 +193,20 @@ def pulls(history_candidates: Sequence[Mapping[str, Any]], call_models: Mapping[
     with the improvement over its parent's score (module docstring)."""
     scores = {(c["iteration"], c["candidate"]): c["score"] for c in history_candidates}
     out = []
+    seen: set[str] = set()  # the versions of the candidates before this one
     for c in history_candidates:
+        version = c.get("policy_version_id")
+        copied = version is not None and version in seen
+        if version is not None:
+            seen.add(version)
         model = call_models.get(c.get("llm_call_id") or "")
         if model is None or c.get("parent_iteration") is None:
             continue
         parent = scores.get((c["parent_iteration"], c["parent_candidate"] or 0))
         improvement = 0.0
-        if c["update_status"] == "accepted" and beats(c["score"], parent):
+        # a version the run already had (an elite or ancestor copied from the prompt's memory) is nothing new:
+        # its score is the cached one, and counting it credited the copier with another model's gain
+        if c["update_status"] == "accepted" and not copied and beats(c["score"], parent):
             improvement = math.inf if parent is None else float(c["score"] - parent)
         out.append(Pull(model, improvement))
     return out
