@@ -1201,6 +1201,55 @@ MIGRATIONS.append(
     )
 )
 
+# A candidate whose version an earlier candidate of the run already had (an elite or ancestor copied from the
+# prompt's memory, scored from the evaluation cache) is no improvement: pipeline/optimizer/ensemble.py's bandit
+# gives it none, and model_stats counted it in improvements, gain and cost_per_improvement.
+MIGRATIONS.append(
+    (
+        23,
+        "model_stats: a copy of a version the run already had is not an improvement",
+        r"""
+        CREATE OR REPLACE VIEW model_stats AS
+        WITH calls AS (
+            SELECT run_id, request_model AS model, count(*)::INTEGER AS calls,
+                   count(error_type)::INTEGER AS errors,
+                   coalesce(sum(input_tokens), 0)::BIGINT AS input_tokens,
+                   coalesce(sum(output_tokens), 0)::BIGINT AS output_tokens,
+                   sum(cost_usd) AS cost_usd,
+                   coalesce(sum(latency_s), 0) AS latency_s,
+                   avg(latency_s) AS mean_latency_s
+            FROM llm_calls GROUP BY run_id, request_model
+        ), fresh AS (  -- each candidate, and whether its version is new to the run
+            SELECT c.*, NOT EXISTS (SELECT 1 FROM candidates e WHERE e.run_id = c.run_id
+                                      AND e.policy_version_id = c.policy_version_id
+                                      AND (e.iteration, e.candidate) < (c.iteration, c.candidate)) AS new_version
+            FROM candidates c
+        ), cand AS (
+            SELECT c.run_id, l.request_model AS model, count(*)::INTEGER AS candidates,
+                   (count(*) FILTER (WHERE c.update_status = 'accepted'))::INTEGER AS accepted,
+                   (count(*) FILTER (WHERE c.update_status = 'accepted' AND c.new_version AND c.score IS NOT NULL
+                                     AND (p.score IS NULL OR c.score > p.score)))::INTEGER AS improvements,
+                   coalesce(sum(c.score - p.score) FILTER (WHERE c.update_status = 'accepted' AND c.new_version
+                                                          AND c.score > p.score), 0) AS gain
+            FROM fresh c
+            JOIN llm_calls l ON l.call_id = c.llm_call_id
+            LEFT JOIN candidates p ON p.run_id = c.run_id AND p.iteration = c.parent_iteration
+                                  AND p.candidate = coalesce(c.parent_candidate, 0)
+            GROUP BY c.run_id, l.request_model
+        )
+        SELECT calls.run_id, calls.model, calls.calls,
+               calls.calls / sum(calls.calls) OVER (PARTITION BY calls.run_id) AS share,
+               calls.errors, coalesce(cand.candidates, 0) AS candidates, coalesce(cand.accepted, 0) AS accepted,
+               coalesce(cand.improvements, 0) AS improvements, coalesce(cand.gain, 0) AS gain,
+               calls.input_tokens, calls.output_tokens, calls.cost_usd,
+               calls.cost_usd / nullif(cand.improvements, 0) AS cost_per_improvement,
+               calls.latency_s, calls.mean_latency_s
+        FROM calls LEFT JOIN cand ON cand.run_id = calls.run_id AND cand.model = calls.model;
+        COMMENT ON VIEW model_stats IS 'one row per run and model it called (an ensemble has several): calls, share, accepted candidates, improvements over the parent (never a copy of a version the run had), cost, latency';
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]
 
 SCHEMA_MIGRATIONS_TABLE = ("CREATE TABLE IF NOT EXISTS schema_migrations "

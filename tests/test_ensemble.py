@@ -24,6 +24,7 @@ import numpy as np
 from pipeline.optimizer.bandit import FLOOR, CallUsage, binding_budget, costs_per_pull
 from pipeline.optimizer.ensemble import Pull, budget_costs, choose, decide, model_entries, parse_model_entry, pulls, \
     relative_costs, split_model_flags
+from store import Store
 from tests.conftest import ROOT, json_reply, random_policy
 from viewers.tables import money
 
@@ -156,7 +157,7 @@ def test_improvements_are_counted_against_the_parent_by_the_score_rule():
     assert got == [Pull("a", math.inf), Pull("b", 3.0), Pull("a", 0.0), Pull("b", 0.0)]
 
 
-def test_a_copy_of_a_version_the_run_already_had_is_no_improvement():
+def test_a_copy_of_a_version_the_run_already_had_is_no_improvement(tmp_path):
     """Map-elites shows other elites as inspirations (#Memory: their scores and their code as diffs), beams show
     a member's better ancestors: a model that copies the best of them onto a weaker parent makes no new version,
     its score is the cached one, yet it was counted as the improvement from that parent to the copied version's
@@ -178,6 +179,25 @@ def test_a_copy_of_a_version_the_run_already_had_is_no_improvement():
     (choice,) = decide("ucb", [{"model": "dear"}, {"model": "cheap"}], pulls(rows, models), [0], "k", 4)
     means = {m["model"]: m["mean_improvement"] for m in choice.record()["models"]}
     assert means == {"dear": 15.0, "cheap": 0.5}, means
+    # the same in SQL: model_stats counts what the bandit counts
+    store = Store(tmp_path / "s.duckdb")
+    store.make_ready()
+    with store.write() as con:
+        con.execute("INSERT INTO runs (run_id, created_at, kind, game, config, status) "
+                    "VALUES ('r', now(), 'optimize', 'pong', '{}', 'finished')")
+        for r in rows:
+            con.execute("INSERT INTO candidates (run_id, iteration, candidate, strategy, policy_version_id, "
+                        "update_status, evaluation, decision, created_at, parent_iteration, parent_candidate, score, "
+                        "llm_call_id) VALUES ('r', ?, ?, 'map-elites', ?, ?, 'played', 'kept', now(), ?, ?, ?, ?)",
+                        [r["iteration"], r["candidate"], r["policy_version_id"], r["update_status"],
+                         r["parent_iteration"], r["parent_candidate"], r["score"], r["llm_call_id"]])
+            if r["llm_call_id"]:
+                con.execute("INSERT INTO llm_calls (call_id, run_id, iteration, candidate, purpose, created_at, "
+                            "operation_name, request_model, prompt_hash, attempts, replayed, cost_usd) VALUES "
+                            "(?, 'r', ?, ?, 'update', now(), 'chat', ?, 'h', 1, false, 0.01)",
+                            [r["llm_call_id"], r["iteration"], r["candidate"], models[r["llm_call_id"]]])
+    stats = {m: (n, gain) for m, n, gain in store.query("SELECT model, improvements, gain FROM model_stats")}
+    assert stats == {"dear": (1, 15.0), "cheap": (1, 2.0)}, stats
 
 
 # ------------------------------------------------------------------------------- the budgeted bandit, simulated
