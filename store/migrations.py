@@ -1245,7 +1245,7 @@ MIGRATIONS.append(
                calls.cost_usd / nullif(cand.improvements, 0) AS cost_per_improvement,
                calls.latency_s, calls.mean_latency_s
         FROM calls LEFT JOIN cand ON cand.run_id = calls.run_id AND cand.model = calls.model;
-        COMMENT ON VIEW model_stats IS 'one row per run and model it called (an ensemble has several): calls, share, accepted candidates, improvements over the parent (never a copy of a version the run had), cost, latency';
+        COMMENT ON VIEW model_stats IS 'one row per run and model it called: calls, share, accepted, improvements over the parent (a copy of a known version is none), cost, latency';
         """,
     )
 )
