@@ -243,8 +243,8 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     md: list[str] = []
     if data["mode"] == "runs":
-        with writing(out / "curves.png"):
-            curves_figure(data).savefig(out / "curves.png")
+        with writing(out / "curves.png") as partial:
+            curves_figure(data).savefig(partial, format="png")
         runs = data["runs"]
         md += [f"# {markdown_text(data['game'])}: run {markdown_code(runs[0]['run_id'])} (A) vs run "
                f"{markdown_code(runs[1]['run_id'])} (B)", "",
@@ -275,6 +275,6 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
             md += [f"- {markdown_text(line.strip())}" for line in scores[1:]]
         md += ["", "## Diff", "", markdown_code_block(data["diff"] or "(the same code)", "diff"), ""]
     readme = out / "README.md"
-    with writing(readme):
-        readme.write_text("\n".join(md))
+    with writing(readme) as partial:
+        partial.write_text("\n".join(md))
     return readme

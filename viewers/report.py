@@ -15,6 +15,7 @@ still writing; the plots are ``viewers/report_figures.py``'s, drawn with matplot
 from __future__ import annotations
 
 import json
+import os
 from contextlib import contextmanager
 from datetime import datetime
 from pathlib import Path
@@ -292,23 +293,39 @@ def write_report(store: Store, run: str, out_dir: str | Path | None = None, *,
         say(f"drawing {name}")
         fig = figure(data)
         if fig is not None:
-            with writing(out / name):
-                fig.savefig(out / name)
+            with writing(out / name) as partial:
+                fig.savefig(partial, format="png")
             images[name] = caption
     readme = out / "README.md"
     say("writing README.md")
-    with writing(readme):
-        readme.write_text(render_markdown(data, images, reproduce, price))
+    with writing(readme) as partial:
+        partial.write_text(render_markdown(data, images, reproduce, price))
     return readme
 
 
 @contextmanager
-def writing(path: Path) -> Iterator[None]:
-    """Write ``path`` in the block: an ``OSError`` that names no file (PIL's, and a write's, on a full disk) is
-    raised naming it, so that the command says in one line which file it could not write (it showed a traceback)."""
+def writing(path: Path) -> Iterator[Path]:
+    """Write ``path`` in the block, into the path it yields: ``path.partial``, renamed to ``path`` once the block
+    ended whole, and removed otherwise (an error, Ctrl-C, SIGTERM). A full disk left a PNG cut short (its last
+    block: 36,864 of 36,906 bytes) or an empty README.md under the name asked for, beside the plots of a report that
+    failed; a kill while a file was written, the same. A ``path`` that exists and is not a plain file (a link, a
+    device such as /dev/full, a pipe) is written as it is, since a rename would replace it. An ``OSError`` that names
+    no file (PIL's, and a write's, on a full disk) is raised naming ``path``, so that the command says in one line
+    which file it could not write (it showed a traceback)."""
+    if os.path.lexists(path) and (os.path.islink(path) or not os.path.isfile(path)):
+        partial = path
+    else:
+        partial = path.with_name(path.name + ".partial")
     try:
-        yield
-    except OSError as exc:
-        if exc.filename is not None:
+        yield partial
+        if partial != path:
+            os.replace(partial, path)
+    except BaseException as exc:
+        if partial != path:
+            try:
+                os.unlink(partial)
+            except OSError:
+                pass  # never made, or already gone: nothing cut short is left either way
+        if not isinstance(exc, OSError) or exc.filename is not None and exc.filename != os.fspath(partial):
             raise
         raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None

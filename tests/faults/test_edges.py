@@ -129,3 +129,41 @@ def test_a_store_made_on_a_full_disk_is_made_whole_or_not_at_all(tmpfs, capsys, 
 
     assert [v for (v,) in Store(path).query("SELECT version FROM schema_migrations ORDER BY version")] == \
         [m[0] for m in MIGRATIONS]
+
+
+def test_a_report_cut_short_by_a_full_disk_leaves_no_file_that_looks_whole(tmpfs, tmp_path, capsys):
+    """`report` wrote its plots and README.md under their own names: a disk that filled as a file was written left
+    it cut short there (a PNG's last block missing, an empty README.md), beside a one-line error. Each file is now
+    written as FILE.partial and renamed once whole: whatever the free space, every file the failed report leaves
+    is byte for byte the one a report with room writes, and no partial file is left."""
+    store = tmp_path / "s.duckdb"
+    assert main(["eval", str(EXAMPLES / "pong.py"), "--episodes", "2", "--max-steps", "40", "--store", str(store)]) == 0
+    whole = tmp_path / "whole"
+    assert main(["report", "last", "--store", str(store), "--out", str(whole)]) == 0
+    capsys.readouterr()
+    expected = {p.name: p.read_bytes() for p in whole.iterdir()}
+    assert sorted(expected) == ["README.md", "score.png"]
+    directory = tmpfs("1m")
+    sizes = sum(len(b) for b in expected.values())
+    # free space from none to a little less than both files: each file in turn is cut, at its start or further on
+    for free in sorted({0, 4096, len(expected["score.png"]) // 2, len(expected["score.png"]) - 1,
+                        len(expected["score.png"]) + 1, sizes - 1}):
+        filler = directory / "filler"
+        with open(filler, "wb") as f:
+            try:
+                f.write(b"\0" * (2**20 - free))
+            except OSError:
+                pass
+        out = directory / f"report{free}"
+        code = main(["report", "last", "--store", str(store), "--out", str(out)])
+        _, err = capsys.readouterr()
+        if code == 0:  # a tmpfs counts in pages: what is left can hold more than `free`
+            assert {p.name: p.read_bytes() for p in out.iterdir()} == expected
+        else:
+            line = err.strip().splitlines()[-1]  # after the stages it went through
+            assert code == 2 and "Traceback" not in err and "No space left on device" in line, err
+            assert line.split(": ")[2].endswith(("score.png", "README.md")), line  # the name asked for
+            left = {p.name: p.read_bytes() for p in out.iterdir()} if out.exists() else {}
+            assert all(expected.get(name) == data for name, data in left.items()), (free, sorted(left))
+        filler.unlink()
+        subprocess.run(["rm", "-rf", str(out)], check=True)
