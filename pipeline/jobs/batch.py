@@ -445,6 +445,55 @@ def _wait_for_workers(running: dict, limit_s: float) -> None:
             out.close()
 
 
+class RunLog:
+    """A run process's output (stdout and stderr, one pipe), copied line by line into its log file by a thread, its
+    last lines kept here too. The process wrote into the file itself, and the batch read the file's last line for
+    why a run failed: on a full disk the file stayed empty or stopped mid-traceback, and the batch said
+    ``failed pong seed=1: exit code 1`` (or a line of ``^^^^``) where the run had said which file it could not
+    write. Now the line is the run's own whatever reached the disk, and the note says when the log lost lines."""
+
+    KEPT_LINES = 20
+
+    def __init__(self, proc: subprocess.Popen, path: Path):
+        import collections
+        import threading
+
+        self.path = path
+        self.file = open(path, "ab")
+        self.tail: collections.deque[bytes] = collections.deque(maxlen=self.KEPT_LINES)
+        self.lost: OSError | None = None
+        self.thread = threading.Thread(target=self._copy, args=(proc.stdout,), name=f"run log {path.name}",
+                                       daemon=True)
+        self.thread.start()
+
+    def _copy(self, pipe) -> None:
+        for line in pipe:
+            if line.strip():
+                self.tail.append(line)
+            try:
+                self.file.write(line)
+                self.file.flush()
+            except OSError as exc:  # a full disk: the line is kept here, and the note says the log lost it
+                self.lost = self.lost or exc
+        pipe.close()
+
+    def close(self, wait_s: float = 5.0) -> None:
+        """Once the process ended: the rest of its output (a process it started and left may hold the pipe: not
+        waited for past ``wait_s``), then the file."""
+        self.thread.join(wait_s)
+        try:
+            self.file.close()
+        except OSError as exc:  # its last buffered bytes could not be written
+            self.lost = self.lost or exc
+
+    def why(self, code: int) -> str:
+        """The note of a run that ended with exit code ``code``: its last line, and whether its log is short."""
+        last = self.tail[-1].decode(errors="replace").strip()[:200] if self.tail else f"exit code {code}"
+        if self.lost is not None:
+            last += f" (its log {self.path} lost lines: {self.lost.strerror or self.lost})"
+        return last
+
+
 def _run_queue(queue, running, planned, progress, store, batch, workers, episode_workers, log, display, log_dir,
                poll_s, die_with_parent) -> None:
     """Start the queued runs as worker slots free up, until every run has ended (``run_local``'s loop)."""
@@ -453,11 +502,10 @@ def _run_queue(queue, running, planned, progress, store, batch, workers, episode
         while queue and len(running) < workers:
             i = queue.pop(0)
             item = planned[i]
-            out = open(log_dir / f"{item.run.key}.log", "a")
-            proc = subprocess.Popen(worker_command(store, item, batch, episode_workers), stdout=out,
+            proc = subprocess.Popen(worker_command(store, item, batch, episode_workers), stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT,
                                     preexec_fn=functools.partial(die_with_parent, os.getpid()))
-            running[i] = (proc, out)
+            running[i] = (proc, RunLog(proc, log_dir / f"{item.run.key}.log"))
             progress[i].state = "running"
             log(f"{item.action} {item.run.label}" + (f" (run {item.run_id})" if item.run_id else "")
                 + f" [pid {proc.pid}]")
@@ -470,8 +518,7 @@ def _run_queue(queue, running, planned, progress, store, batch, workers, episode
             progress[i].state = {0: "finished", BUDGET_EXIT: "budget", INTERRUPTED_EXIT: "interrupted"}.get(code,
                                                                                                        "failed")
             if code != 0:
-                tail = (log_dir / f"{planned[i].run.key}.log").read_text(errors="replace").strip().splitlines()
-                progress[i].note = tail[-1][:200] if tail else f"exit code {code}"
+                progress[i].note = out.why(code)
             log(f"{progress[i].state} {planned[i].run.label}" + (f": {progress[i].note}" if progress[i].note else ""))
         now = time.monotonic()
         if now - last_refresh >= poll_s:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -167,3 +168,35 @@ def test_a_report_cut_short_by_a_full_disk_leaves_no_file_that_looks_whole(tmpfs
             assert all(expected.get(name) == data for name, data in left.items()), (free, sorted(left))
         filler.unlink()
         subprocess.run(["rm", "-rf", str(out)], check=True)
+
+
+def test_a_batch_run_that_failed_on_a_full_disk_is_said_with_its_own_line(tmpfs, tmp_path, monkeypatch):
+    """A batch's run process wrote its output into its log file, and the batch read the file's last line for why
+    the run failed: with the store and the logs on a full disk, the file stayed empty (or stopped mid-traceback),
+    and the batch said `failed pong seed=1: exit code 1` (or a line of `^^^^`) where the run had said which file
+    it could not write. The batch now reads the run's output itself: its line is said whatever reached the disk,
+    with the log that lost it."""
+    from pipeline.jobs import batch as batches
+
+    experiments = tmp_path / "full.toml"
+    experiments.write_text('name = "full"\n[matrix]\ngame = ["pong"]\nseed = [0, 1]\n')
+    loaded = batches.load_experiments(experiments)
+    directory = tmpfs("1m")
+    logs = directory / "runs"
+    logs.mkdir()
+    with open(directory / "filler", "wb") as f:
+        try:
+            f.write(b"\0" * 2**20)
+        except OSError:
+            pass
+    said = "store.db.StoreError: cannot write /x/s.duckdb: the disk is full (No space left on device)"
+    # each run process: the lines of a run that failed on the full disk, a traceback's last line last
+    monkeypatch.setattr(batches, "worker_command", lambda *a: [sys.executable, "-c", (
+        f"import sys; print('iteration 0: score -5 best -5 initial' * 200, flush=True); print({said!r}); "
+        "sys.exit(1)")])
+    store = Store(tmp_path / "s.duckdb")
+    result = batches.run_local(loaded, store, batches.plan(loaded, store), 1, lambda line: None,
+                               lambda progress: None, logs, poll_s=0.1)
+    assert [p.state for p in result.progress] == ["failed", "failed"]
+    for p in result.progress:
+        assert p.note.startswith(said) and "lost lines: No space left on device" in p.note, p.note
