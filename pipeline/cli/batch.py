@@ -161,6 +161,15 @@ def _only_runner(store, name: str) -> Iterator[None]:
         yield
 
 
+def _close_quietly(file) -> None:
+    """Close ``file``: a flush that fails (the bytes a full disk refused, written again at close) loses nothing more
+    than the log lines already said on the terminal, and the file is closed all the same."""
+    try:
+        file.close()
+    except OSError:
+        pass
+
+
 def _run(args: argparse.Namespace, batch, store, planned) -> int:
     """The batch run for real (``run``, once it holds the batch's lock)."""
     from datetime import datetime
@@ -177,12 +186,23 @@ def _run(args: argparse.Namespace, batch, store, planned) -> int:
     display, stop = _batch_display(store)
     quiet = sys.stdout.isatty()
 
+    lost: list[OSError] = []
+
     def log(line: str) -> None:
         # the log file is read with cat and tail: it gets the terminal-safe line too (a failure's note quotes
         # the last line a run printed)
         stamped = terminal_text(f"{datetime.now().isoformat(timespec='seconds')} {line}")
-        log_file.write(stamped + "\n")
-        log_file.flush()
+        if not lost:
+            try:
+                log_file.write(stamped + "\n")
+                log_file.flush()
+            except OSError as exc:
+                # a full disk: the batch died with a traceback at this line, and its runs with it (they die with
+                # the batch), each cut off in its iteration; the log is not the work, so the batch goes on
+                lost.append(exc)
+                _close_quietly(log_file)
+                show(f"codearcade: warning: cannot write the batch's log {log_path}: {exc.strerror or exc}; the "
+                     "batch goes on without it", file=sys.stderr, flush=True)
         if not quiet:
             show(stamped, flush=True)
 
@@ -209,7 +229,7 @@ def _run(args: argparse.Namespace, batch, store, planned) -> int:
     log(f"batch {batch.name} done: {sum(p.state == 'finished' for p in result.progress)} finished, "
         + (f"{budget} stopped by a budget (rerun with a larger one to resume), " if budget else "")
         + f"{sum(p.state == 'skipped' for p in result.progress)} skipped, {len(failed)} failed")
-    log_file.close()
+    _close_quietly(log_file)
     for p in failed:
         show(f"codearcade: {p.label} failed: {p.note}; rerun the same command to resume it", file=sys.stderr)
     return EXIT_EPISODE_FAILED if failed else EXIT_OK

@@ -43,6 +43,17 @@ def tmpfs(tmp_path):
     subprocess.run(["umount", str(mountpoint)], capture_output=True)
 
 
+def _fill(path: Path) -> None:
+    """Fill the disk of ``path`` to its last byte (unbuffered: a buffer's close would raise what it could not
+    write)."""
+    with open(path, "wb", buffering=0) as f:
+        try:
+            while True:
+                f.write(b"\0" * 4096)
+        except OSError:
+            pass
+
+
 def test_store_that_is_not_duckdb(tmp_path, capsys):
     path = tmp_path / "notes.duckdb"
     path.write_bytes(b"\x89PNG not a database" * 100)
@@ -184,11 +195,7 @@ def test_a_batch_run_that_failed_on_a_full_disk_is_said_with_its_own_line(tmpfs,
     directory = tmpfs("1m")
     logs = directory / "runs"
     logs.mkdir()
-    with open(directory / "filler", "wb") as f:
-        try:
-            f.write(b"\0" * 2**20)
-        except OSError:
-            pass
+    _fill(directory / "filler")
     said = "store.db.StoreError: cannot write /x/s.duckdb: the disk is full (No space left on device)"
     # each run process: the lines of a run that failed on the full disk, a traceback's last line last
     monkeypatch.setattr(batches, "worker_command", lambda *a: [sys.executable, "-c", (
@@ -200,3 +207,27 @@ def test_a_batch_run_that_failed_on_a_full_disk_is_said_with_its_own_line(tmpfs,
     assert [p.state for p in result.progress] == ["failed", "failed"]
     for p in result.progress:
         assert p.note.startswith(said) and "lost lines: No space left on device" in p.note, p.note
+
+
+def test_a_batch_whose_log_fills_the_disk_goes_on_and_says_so(tmpfs, tmp_path, monkeypatch, scripted, capsys):
+    """The batch's own log on a full disk: the batch died at its first line with a traceback (an OSError of the
+    log's flush), and, at a later line, with its runs (they die with the batch), each cut off in its iteration.
+    The log is not the work: the batch says once that it cannot write it, and runs its runs to their end."""
+    from pipeline.jobs import batch as batches
+
+    model = scripted(["{}"])
+    experiments = tmp_path / "full.toml"
+    experiments.write_text(f'name = "full"\n[defaults]\nmodel = "{model.model}"\napi_base = "{model.api_base}"\n'
+                           '[matrix]\ngame = ["pong"]\nseed = [0, 1]\n')
+    directory = tmpfs("1m")
+    log = directory / "batch.log"
+    log.write_text("x" * 4096)  # a whole page: the next line needs another, and the disk has none
+    _fill(directory / "filler")
+    # each run process: one that finishes (what the batch does with the log is the test, not the runs)
+    monkeypatch.setattr(batches, "worker_command", lambda *a: [sys.executable, "-c", "print('finished')"])
+    code = main(["batch", str(experiments), "--store", str(tmp_path / "s.duckdb"), "--log", str(log), "--workers",
+                 "1"])
+    out, err = capsys.readouterr()
+    assert code == 0 and "Traceback" not in err, err
+    assert f"cannot write the batch's log {log}: No space left on device" in err, err
+    assert "batch full done: 2 finished" in out, out
