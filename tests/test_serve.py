@@ -32,7 +32,7 @@ from pipeline.boundary.policy import (MAX_ANSWER, MAX_PRINTED_BYTES, PRINTED_TEX
                                      printed_text)
 from pipeline.cli import main
 from store import Store
-from tests.conftest import ROOT, pong_policy
+from tests.conftest import POLICIES, ROOT, pong_policy
 from tests.faults.test_boundary import ESCAPE, SPAWN
 
 pytestmark = pytest.mark.slow
@@ -1020,17 +1020,48 @@ def test_over_mcp_stdio_a_message_past_its_limit_is_dropped_as_it_arrives(tmp_pa
         serve.wait(timeout=60)
 
 
-def _stdio_serve(store: Path) -> subprocess.Popen:
+def _stdio_serve(store: Path, stderr=subprocess.DEVNULL) -> subprocess.Popen:
     """``codearcade serve --mcp`` over stdio, initialized (the handshake's answer read)."""
     serve = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--mcp", "--game", "pong", "--budget",
                               "2", "--store", str(store)], cwd=ROOT, env=ENV, stdin=subprocess.PIPE,
-                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+                             stdout=subprocess.PIPE, stderr=stderr)
     serve.stdin.write(json.dumps({"jsonrpc": "2.0", "id": 0, "method": "initialize", "params": {
         "protocolVersion": "2025-06-18", "capabilities": {}, "clientInfo": {"name": "test", "version": "1"}}}).encode()
         + b'\n{"jsonrpc": "2.0", "method": "notifications/initialized"}\n')
     serve.stdin.flush()
     assert json.loads(serve.stdout.readline())["id"] == 0
     return serve
+
+
+@pytest.mark.parametrize("playing", [False, True], ids=["idle", "a submission playing"])
+@pytest.mark.parametrize("sent", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_over_mcp_stdio_a_server_stopped_while_its_agent_holds_stdin_exits(tmp_path, sent, playing):
+    """An agent stops the server it started with SIGTERM (or a person presses Ctrl-C) while it still holds the
+    server's stdin: the server marked its run stopped and said so, then never exited (the MCP SDK's reader thread
+    waited on stdin for good, and the interpreter's exit on it; 120 s measured, a second Ctrl-C did not end it).
+    And the signal, raised in the main thread where the SDK's event loop ran, could land in its tasks: asyncio
+    printed a traceback of 300 lines (1 press in 8), or the SDK a warning that it could not answer. Now it exits as
+    it said: 0, its two lines (served, stopped) and nothing else, the run interrupted."""
+    store = tmp_path / "m.duckdb"
+    said = tmp_path / "stderr"
+    with open(said, "w") as err:
+        serve = _stdio_serve(store, stderr=err)
+    try:
+        if playing:  # a game of ~4,000 steps: whether it ends before the signal or not, the server must exit
+            serve.stdin.write(_tool_call(1, "submit", {"policy": (POLICIES / "pong_competent.py").read_text(),
+                                                       "instances": [0]}))
+            serve.stdin.flush()
+            time.sleep(1.0)
+        serve.send_signal(sent)
+        assert serve.wait(timeout=60) == 0  # before: still running, stdin open, its run marked interrupted
+    finally:
+        serve.stdin.close()
+        if serve.poll() is None:
+            serve.kill()
+            serve.wait()
+    assert Store(store).query("SELECT status FROM runs") == [("interrupted",)]
+    lines = said.read_text().splitlines()
+    assert len(lines) == 2 and lines[0].startswith("run ") and lines[1].startswith("run "), said.read_text()
 
 
 def _tool_call(number: int | str, name: str, arguments: dict) -> bytes:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from typing import Callable
 
 from pipeline.cli.common import (EXIT_OK, CliError, add_name, add_rerun, add_settings, add_store, command_text,
                                  open_store, rerun_target, resolve_run, short_id, show, show_json, warn_if_named)
@@ -163,10 +164,37 @@ def _serve(served, args: argparse.Namespace) -> None:
             serve_streamable_http(mcp, args.mcp_port,
                                   lambda port: _say(f"MCP (streamable HTTP) on http://127.0.0.1:{port}/mcp"))
         else:
-            bound_stdin_lines()  # the SDK reads a message whole, however long
-            serve_stdio(mcp)  # returns when the agent closes stdin
+            stop_reading = bound_stdin_lines()  # the SDK reads a message whole, however long
+            try:
+                _in_a_thread(lambda: serve_stdio(mcp))  # returns when the agent closes stdin
+            finally:  # stopped by Ctrl-C or SIGTERM: the SDK's reader thread sees stdin end, so the process can exit
+                stop_reading()
         return
     wait_for_stop()  # until Ctrl-C or SIGTERM (also one that landed where Python swallows it)
+
+
+def _in_a_thread(serve: Callable[[], None]) -> None:
+    """``serve()`` (the MCP SDK's event loop over stdio) in a thread of its own, while this, the main thread, waits
+    for it or for Ctrl-C and SIGTERM: raised in the main thread (the only one Python raises them in), they landed in
+    the event loop's tasks, and asyncio printed a traceback of 300 lines ("unhandled exception during asyncio.run()
+    shutdown", 1 in 8 presses) on the person's terminal. What ``serve`` raises is raised here."""
+    import threading
+
+    from pipeline.stopping import wait_for_stop
+
+    failed: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            serve()
+        except BaseException as exc:  # noqa: BLE001 - raised in the main thread below
+            failed.append(exc)
+
+    thread = threading.Thread(target=run, name="codearcade-mcp-stdio", daemon=True)
+    thread.start()
+    wait_for_stop(lambda timeout: (thread.join(timeout), not thread.is_alive())[1])
+    if failed:
+        raise failed[0]
 
 
 def _finalize(store, run_id: str, args: argparse.Namespace) -> int:

@@ -12,6 +12,7 @@ writes is bounded before the SDK reads it (:func:`bound_stdin_lines`), so are th
 from __future__ import annotations
 
 import os
+import select
 import threading
 from typing import Any, Callable
 
@@ -91,19 +92,28 @@ each escaped as JSON may (``\\uXXXX``), and the rest of its request. The MCP SDK
 600 MB without a newline took ``serve`` to 2.5 GB."""
 
 
-def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> threading.Thread:
+def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> Callable[[], None]:
     """Put a pipe in place of fd 0, fed by a thread that copies the agent's lines to it, each at most ``limit``
     bytes: a longer one is dropped as it arrives (never held) and replaced by a line that is not JSON-RPC, which
-    the SDK sets aside. The SDK then reads fd 0 as ever; at the agent's EOF, the pipe ends too."""
+    the SDK sets aside. The SDK then reads fd 0 as ever; at the agent's EOF, the pipe ends too.
+
+    Returns ``stop``: the pipe ends now, as at the agent's EOF. A server stopped by Ctrl-C or SIGTERM while the
+    agent kept stdin open (an agent stops its server with SIGTERM, or a person presses Ctrl-C) marked its run
+    stopped and never exited: the SDK's reader thread (not a daemon) waited on this pipe for good, and the
+    interpreter's exit waited on it; a second Ctrl-C did not end it either."""
     source = os.dup(0)
     read_end, write_end = os.pipe()
     os.dup2(read_end, 0)
     os.close(read_end)
+    stop_read, stop_write = os.pipe()
 
     def relay() -> None:
         line, dropping = bytearray(), False
+        waiting = select.poll()
+        waiting.register(source, select.POLLIN)
+        waiting.register(stop_read, select.POLLIN)
         try:
-            while chunk := os.read(source, 65536):
+            while stop_read not in {fd for fd, _ in waiting.poll()} and (chunk := os.read(source, 65536)):
                 while chunk:
                     end = chunk.find(b"\n")
                     piece, chunk = (chunk, b"") if end < 0 else (chunk[:end + 1], chunk[end + 1:])
@@ -121,10 +131,17 @@ def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> threading.Thread:
         finally:
             os.close(write_end)
             os.close(source)
+            os.close(stop_read)
+
+    def stop() -> None:
+        try:
+            os.write(stop_write, b"x")
+        except OSError:  # the relay ended already (the agent's EOF): the pipe has ended
+            pass
 
     thread = threading.Thread(target=relay, name="codearcade-mcp-stdin", daemon=True)
     thread.start()
-    return thread
+    return stop
 
 
 MAX_PENDING_REQUESTS = 16
