@@ -454,17 +454,23 @@ class RunLog:
 
     KEPT_LINES = 20
 
-    def __init__(self, proc: subprocess.Popen, path: Path):
+    def __init__(self, path: Path):
         import collections
-        import threading
 
         self.path = path
-        self.file = open(path, "ab")
+        self.file = open(path, "ab")  # before the process starts: a log that cannot be opened starts none
         self.tail: collections.deque[bytes] = collections.deque(maxlen=self.KEPT_LINES)
         self.lost: OSError | None = None
-        self.thread = threading.Thread(target=self._copy, args=(proc.stdout,), name=f"run log {path.name}",
+        self.thread = None
+
+    def follow(self, proc: subprocess.Popen) -> "RunLog":
+        """Copy ``proc``'s output (its stdout, a pipe) from now on."""
+        import threading
+
+        self.thread = threading.Thread(target=self._copy, args=(proc.stdout,), name=f"run log {self.path.name}",
                                        daemon=True)
         self.thread.start()
+        return self
 
     def _copy(self, pipe) -> None:
         for line in pipe:
@@ -480,7 +486,8 @@ class RunLog:
     def close(self, wait_s: float = 5.0) -> None:
         """Once the process ended: the rest of its output (a process it started and left may hold the pipe: not
         waited for past ``wait_s``), then the file."""
-        self.thread.join(wait_s)
+        if self.thread is not None:
+            self.thread.join(wait_s)
         try:
             self.file.close()
         except OSError as exc:  # its last buffered bytes could not be written
@@ -502,10 +509,11 @@ def _run_queue(queue, running, planned, progress, store, batch, workers, episode
         while queue and len(running) < workers:
             i = queue.pop(0)
             item = planned[i]
+            out = RunLog(log_dir / f"{item.run.key}.log")
             proc = subprocess.Popen(worker_command(store, item, batch, episode_workers), stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT,
                                     preexec_fn=functools.partial(die_with_parent, os.getpid()))
-            running[i] = (proc, RunLog(proc, log_dir / f"{item.run.key}.log"))
+            running[i] = (proc, out.follow(proc))
             progress[i].state = "running"
             log(f"{item.action} {item.run.label}" + (f" (run {item.run_id})" if item.run_id else "")
                 + f" [pid {proc.pid}]")
