@@ -1200,3 +1200,41 @@ def test_a_submission_s_interval_names_its_level_method_and_n_or_why_there_is_no
         assert many["interval"].endswith("95% t, n=5") and many["low"] < many["score"] < many["high"], many
     again = served.feedback(2)
     assert again["interval"] == many["interval"], again
+
+
+def test_a_request_whose_results_the_store_cannot_take_is_one_line_for_the_person_and_a_reason_for_the_agent(
+        tmp_path, monkeypatch, capfd):
+    """A submission played on a store whose disk had filled: the server printed a traceback of 20 lines on the
+    person's terminal for the store's StoreError (which says the file and what to do in one line, as every command
+    says it), and the agent read "the server failed on this request (StoreError)". Now the person reads the line,
+    and the agent that nothing was kept because the server's store could not take it (not where the store is)."""
+    from pipeline.serve import http
+    from pipeline.serve.config import ServeConfig
+    from pipeline.serve.protocol import ServeRun, create_run
+    from store import StoreError
+
+    store = Store(tmp_path / "s.duckdb")
+    run = ServeRun(store, create_run(store, ServeConfig(game="pong", budget=2)))
+    full = f"cannot write {tmp_path}/s.duckdb: the disk is full (No space left on device); free space and run the " \
+           "command again: what was stored before is intact"
+
+    def submit(**arguments):
+        raise StoreError(full)
+
+    monkeypatch.setattr(run, "submit", submit)
+    server, thread = http.start_http(run)
+    capfd.readouterr()
+    try:
+        request = urllib.request.Request(f"http://127.0.0.1:{server.server_address[1]}/submit", method="POST",
+                                         data=b'{"instances": [0], "policy": "x"}',
+                                         headers={"Content-Type": "application/json"})
+        with pytest.raises(urllib.error.HTTPError) as failed:
+            urllib.request.urlopen(request, timeout=30)
+        answer = json.loads(failed.value.read())
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert failed.value.code == 500 and "could not store" in answer["error"], answer
+    assert str(tmp_path) not in answer["error"], "the agent is not told where the store is"
+    said = capfd.readouterr().err
+    assert said.splitlines() == [f"codearcade serve: error: {full}"], said

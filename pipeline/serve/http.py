@@ -30,7 +30,7 @@ import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
-from pipeline.serve.protocol import RequestError, ServeRun
+from pipeline.serve.protocol import RequestError, ServeRun, failed_request
 from viewers.safe_text import print_failure
 
 MAX_BODY = 1_000_000
@@ -177,9 +177,7 @@ class _Handler(BaseHTTPRequestHandler):
             if self.server.run.stopping.is_set():  # what the server's own stop broke under a request: no fault
                 self._send(503, {"error": "the server is stopping"})
                 return
-            print_failure()  # the server's own log (stderr): the person sees what went wrong
-            self._send(500, {"error": f"the server failed on this request ({type(exc).__name__}); `budget` says "
-                                      "what is spent"})
+            self._send(500, {"error": failed_request(exc)})
 
     def _send(self, status: int, payload: dict[str, Any], close: bool = False) -> None:
         data = json.dumps(payload, default=str).encode()

@@ -48,6 +48,7 @@ from __future__ import annotations
 import json
 import os
 import secrets
+import sys
 import threading
 import time
 from dataclasses import asdict
@@ -72,7 +73,7 @@ from pipeline.play.validate import checked_inspect
 from pipeline.play.verify import checked_outcome
 from pipeline.play.versions import policy_version_row
 from pipeline.serve.config import ServeConfig
-from store import Store
+from store import Store, StoreError
 from store.db import utcnow
 from store.readers import episode_steps, get_run, policy_text, step_nodes
 from store.scores import overfit, score_data, score_episodes
@@ -82,7 +83,7 @@ from store.views import QueryError
 from store.writer import (EpisodeWriter, delete_episodes, finish_run, insert_candidate, insert_feedback,
                           insert_iteration, insert_policy_version, replace_audits)
 from tracing.policy_file import MAX_POLICY_CHARS, PolicyLoadError, python_newlines, read_policy_file
-from viewers.safe_text import print_failure
+from viewers.safe_text import print_failure, terminal_text
 
 KIND = "serve"
 TRAIN_SEED_LOW = 100_000
@@ -104,6 +105,21 @@ PRODUCED_BY = "agent"
 
 class RequestError(ValueError):
     """A request refused before anything plays: it costs nothing, and the message says why."""
+
+
+def failed_request(exc: Exception) -> str:
+    """Say on the server's stderr why a request failed (``exc``, raised by the server, not refused), and return
+    what its agent is told. A store that could not be written (its disk full, a lock, damage: ``StoreError``, whose
+    message says what to do) is one line naming the store, as every command says it: it printed a traceback of 20
+    lines on the person's terminal, and the agent read only "failed (StoreError)". The agent is not told the store's
+    path (it may not read the store); anything else is the server's fault, printed with its traceback."""
+    if isinstance(exc, StoreError):
+        sys.stderr.write(terminal_text(f"codearcade serve: error: {exc}") + "\n")
+        sys.stderr.flush()
+        return ("the server could not store this request's results (its store: a full disk, a lock or damage; the "
+                "person who runs the server has been told): nothing of it was kept; `budget` says what is spent")
+    print_failure()  # the server's own log (stderr): the person sees what went wrong
+    return f"the server failed on this request ({type(exc).__name__}); `budget` says what is spent"
 
 
 class Stopped(Exception):
@@ -350,8 +366,8 @@ class ServeRun:
                 self.finalize()
             except RequestError:  # another request finalized it meanwhile
                 pass
-            except Exception:  # noqa: BLE001 - the submission stands; `codearcade serve --finalize` ends the run
-                print_failure()
+            except Exception as exc:  # noqa: BLE001 - the submission stands; `codearcade serve --finalize` ends the run
+                failed_request(exc)
         return {**result, "budget": self.budget()}
 
     def _workspace_file(self, path: Any) -> str:

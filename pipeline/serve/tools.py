@@ -20,8 +20,7 @@ import anyio
 from mcp.server.mcpserver import MCPServer
 from mcp.server.mcpserver.exceptions import ToolError
 
-from pipeline.serve.protocol import RequestError, ServeRun
-from viewers.safe_text import print_failure
+from pipeline.serve.protocol import RequestError, ServeRun, failed_request
 
 INSTRUCTIONS = """A rollout server for one codearcade run. Call `task` first: it gives the game, the starting policy \
 (a Python class whose trainable methods you improve), the budget and the rules. `submit` a whole policy file (its \
@@ -44,10 +43,8 @@ def build_server(run: ServeRun) -> MCPServer:
         except Exception as exc:  # noqa: BLE001 - the server goes on; the agent learns the request failed
             if run.stopping.is_set():  # what the server's own stop broke under the request: no fault
                 raise ToolError("the server is stopping: nothing of this request was kept") from None
-            # printed here, made safe for the terminal (the SDK's own traceback printed an agent's escape bytes raw)
-            print_failure()
-            raise ToolError(f"the server failed on this request ({type(exc).__name__}); `budget` says what is "
-                            "spent") from None
+            # said here, made safe for the terminal (the SDK's own traceback printed an agent's escape bytes raw)
+            raise ToolError(failed_request(exc)) from None
 
     @server.tool()
     async def task() -> dict[str, Any]:
