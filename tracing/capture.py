@@ -82,6 +82,14 @@ def is_policy_filename(filename: str) -> bool:
 MAX_LINES_RUN = 2**15 - 1
 """The last line number ``lines_run`` holds (``int16`` on the wire, ``SMALLINT[]`` in the store): a method longer
 than this records no lines (NULL, as when lines are not recorded)."""
+MAX_CALLS_PER_STEP = 2**15
+"""Calls of bundled methods one traced step records at most: ``call_index`` is ``int16`` on the wire and in the
+store (0 to 32,767). A step past it is recorded no further, and the episode's node table is refused with
+:data:`TOO_MANY_CALLS` (:meth:`NodeRecorder.table`): the index overflowed as the table was made, and the episode
+said only ``trace missing: ... (ArrowInvalid: Value 32768 too large to fit in C integer type)``."""
+TOO_MANY_CALLS = "call a helper that is not bundled in a loop, and bundle the method that runs the loop"
+"""What to do about more calls of bundled methods a step than a trace records (a policy that calls a bundled
+method per grid cell plays untraced, and forfeits its traced games)."""
 MAX_MESSAGE_CHARS = 2_000
 """Characters of an exception's message a node keeps (:func:`exception_message`)."""
 MAX_NAME_CHARS = 48
@@ -258,6 +266,8 @@ class NodeRecorder:
         self.obs: Any = None
         self._outputs: list[tuple[Any, int]] = []
         self._next_index = 0
+        self._over: tuple[int, int] | None = None
+        """The first step that called bundled methods more than :data:`MAX_CALLS_PER_STEP` times, and how often."""
 
     def __enter__(self) -> "NodeRecorder":
         global ACTIVE
@@ -273,6 +283,7 @@ class NodeRecorder:
         return len(self._rows)
 
     def begin_step(self, step: int, obs: Any) -> None:
+        self._count_over()
         self.step = step
         self.obs = obs
         self._outputs.clear()
@@ -332,6 +343,8 @@ class NodeRecorder:
         """Run one bundled call and record it (exceptions are recorded, then re-raised)."""
         index = self._next_index
         self._next_index = index + 1
+        if index >= MAX_CALLS_PER_STEP:  # past what a trace holds: played, not recorded (the table says so)
+            return parameter.fn(instance, *args, **kwargs)
         fn = parameter.fn
         parents = self._parents(args, kwargs)
         inputs = self._encode_inputs(fn, args, kwargs)
@@ -360,7 +373,17 @@ class NodeRecorder:
             count = self._line_counts[source] = source.count("\n")
         return count
 
+    def _count_over(self) -> None:
+        if self._over is None and self._next_index > MAX_CALLS_PER_STEP:
+            self._over = self.step, self._next_index
+
     def table(self) -> pa.Table:
+        """The episode's node rows; ``ValueError`` naming the step when one made more calls than a trace holds."""
+        self._count_over()
+        if self._over is not None:
+            step, calls = self._over
+            raise ValueError(f"step {step} made {calls:,} calls of bundled methods; a traced step records at most "
+                             f"{MAX_CALLS_PER_STEP:,}: {TOO_MANY_CALLS}")
         columns = zip(*self._rows) if self._rows else [()] * len(NODE_SCHEMA)
         return pa.Table.from_arrays([pa.array(column, type=field.type) for column, field in zip(columns, NODE_SCHEMA)],
                                     schema=NODE_SCHEMA)

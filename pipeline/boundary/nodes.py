@@ -36,6 +36,7 @@ import pyarrow.compute as pc
 
 from pipeline.boundary.wire import BadMessage, parse_arrow
 from tracing.bounded import MAX_CHARS, MAX_DEPTH, deeper_than
+from tracing.capture import MAX_CALLS_PER_STEP, TOO_MANY_CALLS
 
 MAX_NODE_FRAME = 64 * 2**20
 """Bytes of one episode's node frame. An honest 4,000-step traced episode sends a few MB (a node's values are
@@ -49,7 +50,8 @@ NODE_BYTES_PER_STEP = 32 * 1024
 CALLS_PER_METHOD = 64
 """Calls of each bundled method one step may make (helpers called once per object of a frame stay under it)."""
 MIN_CALLS_PER_STEP = 256
-"""A step's node rows may be :data:`CALLS_PER_METHOD` x the policy's bundled methods, and never fewer than this."""
+"""A step's node rows may be :data:`CALLS_PER_METHOD` x the policy's bundled methods, and never fewer than this
+(nor more than ``call_index`` holds: ``tracing.capture.MAX_CALLS_PER_STEP``, reached at 512 methods)."""
 MAX_NODE_ROWS = 2_000_000
 """Node rows of one episode, whatever its length."""
 MAX_VALUE_BYTES = MAX_CHARS + 1024
@@ -99,14 +101,9 @@ def node_budget(steps: int) -> int:
     return min(MAX_NODE_FRAME, NODE_BYTES_BASE + NODE_BYTES_PER_STEP * max(0, steps))
 
 
-TOO_MANY_CALLS = "call a helper that is not bundled in a loop, and bundle the method that runs the loop"
-"""What to do about more calls of bundled methods a step than a trace records (a policy that calls a bundled
-method per grid cell plays untraced, and forfeits its traced games)."""
-
-
 def row_limits(methods: int, steps: int) -> tuple[int, int]:
     """(rows per step, rows per episode) allowed to a policy of ``methods`` bundled methods asked ``steps`` times."""
-    per_step = max(MIN_CALLS_PER_STEP, CALLS_PER_METHOD * methods)
+    per_step = min(MAX_CALLS_PER_STEP, max(MIN_CALLS_PER_STEP, CALLS_PER_METHOD * methods))
     return per_step, min(MAX_NODE_ROWS, per_step * steps)
 
 

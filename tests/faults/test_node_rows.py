@@ -6,6 +6,7 @@ can forge it is refused as ``malformed trace at step N: ...``, which the parent 
 
 from __future__ import annotations
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pytest
@@ -188,7 +189,8 @@ mods['pipeline.boundary.wire'].arrow_frame = die
 return 0
 """)
 
-# 33,000 calls of a bundled method in one step: the call index overflows the node table's int16 as it is made.
+# 33,000 calls of a bundled method in one step: the call index overflowed the node table's int16 as it was made
+# ("ArrowInvalid: Value 32768 too large to fit in C integer type"); past 32,768 calls a step is recorded no further.
 TOO_MANY_CALLS_TO_ENCODE = pong_policy("""
 for _ in range(33_000):
     self.tick()
@@ -204,7 +206,8 @@ return 0
     (DIES_SENDING_NODES, 2, "crashed",
      "trace missing: the policy process ended at the episode's end, before sending its node rows"),
     (TOO_MANY_CALLS_TO_ENCODE, 1, "policy_error",
-     "trace missing: the policy process sent no node rows (ArrowInvalid: "),
+     "trace missing: the policy process sent no node rows (ValueError: step 0 made 33,002 calls of bundled methods; "
+     "a traced step records at most 32,768: call a helper that is not bundled in a loop"),
 ], ids=["process dies sending its rows", "rows fail to encode"])
 def test_a_traced_episode_whose_node_rows_never_arrive_says_why(policy, steps, end_reason, error, store, tmp_path,
                                                                  capsys):
@@ -218,6 +221,19 @@ def test_a_traced_episode_whose_node_rows_never_arrive_says_why(policy, steps, e
     traced, ended, said, length = rows[0]
     assert traced and ended == end_reason and said.startswith(error) and length == steps, said
     assert error.split(" (")[0] in capsys.readouterr().err
+
+
+def test_the_calls_a_step_may_make_fit_the_call_index():
+    """A policy of more than 511 bundled methods was allowed 64 calls of each a step, past the 32,768 indexes that
+    call_index (int16) holds: its steps overflowed the table as it was made. The parent allows no more than the
+    policy process records."""
+    from pipeline.boundary.nodes import row_limits
+    from tracing.capture import MAX_CALLS_PER_STEP
+
+    assert MAX_CALLS_PER_STEP - 1 == np.iinfo(np.int16).max
+    assert row_limits(512, 10) == (MAX_CALLS_PER_STEP, 10 * MAX_CALLS_PER_STEP)
+    assert row_limits(600, 10)[0] == row_limits(5_000, 10)[0] == MAX_CALLS_PER_STEP
+    assert row_limits(4, 10)[0] == 256
 
 
 def test_a_method_longer_than_lines_run_holds_keeps_its_trace(store, tmp_path, capsys):
