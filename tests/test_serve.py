@@ -1011,6 +1011,8 @@ def test_over_mcp_stdio_a_message_past_its_limit_is_dropped_as_it_arrives(tmp_pa
             serve.stdin.write(chunk)
         serve.stdin.write(b'"}}\n')
         serve.stdin.flush()
+        dropped, = _answers(serve, 1)  # its id is gone with it: answered with JSON-RPC's null
+        assert dropped["id"] is None and "longer than the server reads" in dropped["error"]["message"], dropped
         assert ask(3)["id"] == 3, "the server reads on"
         assert 256 * 2**20 > MAX_MESSAGE_BYTES
         peak = _peak_rss_mb(serve.pid)
@@ -1091,6 +1093,192 @@ def test_over_mcp_stdio_a_request_the_sdk_cannot_read_is_answered_and_the_server
     finally:
         serve.stdin.close()
         serve.wait(timeout=60)
+
+
+def _answers(serve: subprocess.Popen, count: int, wait_s: float = 60.0) -> list[dict]:
+    """The server's next ``count`` answers, each waited for at most ``wait_s`` (a request left unanswered fails the
+    test rather than hanging it)."""
+    import select
+
+    answers: list[dict] = []
+    while len(answers) < count:
+        ready, _, _ = select.select([serve.stdout], [], [], wait_s)
+        line = serve.stdout.readline() if ready else b""
+        assert line, f"no answer after {answers}"
+        answers.append(json.loads(line))
+    return answers
+
+
+def test_over_mcp_stdio_a_request_whatever_its_id_is_answered_and_a_deep_one_leaves_the_server_serving(tmp_path):
+    """A request whose id is 5.5, null, true or a list was taken by the SDK for a notification, one whose id held a
+    lone surrogate could not be named: none got an answer, and the agent waited for good. A line nested 50,000 deep
+    (100 KB) raised RecursionError where the server looked for its id, and the server died. Each is now answered
+    with an error for JSON-RPC's null id (the id the request had cannot be named), and the server reads on."""
+    serve = _stdio_serve(tmp_path / "m.duckdb")
+    budget = '"method": "tools/call", "params": {"name": "budget", "arguments": {}}'
+    try:
+        for n, odd in enumerate(['"\\ud800"', "5.5", "null", "true", "[1]", '{"a": 1}']):
+            serve.stdin.write(f'{{"jsonrpc": "2.0", "id": {odd}, {budget}}}\n'.encode() + _tool_call(n, "budget", {}))
+        serve.stdin.write(b'{"jsonrpc": "2.0", "id": 6, "method": "ping", "params": {"x": ' + b"[" * 5_000
+                          + b"]" * 5_000 + b"}}\n" + _tool_call(7, "budget", {}))
+        serve.stdin.write(b'{"jsonrpc": "2.0", "id": 8, "method": "ping", "params": {"x": ' + b"[" * 50_000
+                          + b"]" * 50_000 + b"}}\n" + _tool_call(9, "budget", {}))
+        serve.stdin.flush()
+        answers = _answers(serve, 16)
+        assert sorted(a["id"] for a in answers if a["id"] is not None) == [0, 1, 2, 3, 4, 5, 7, 9], answers
+        refused = [a["error"] for a in answers if a["id"] is None]  # in the order they came: answered as read
+        assert len(refused) == 8, answers
+        assert "lone surrogate" in refused[0]["message"] and refused[0]["code"] == -32700
+        assert all(e["code"] == -32600 and "a string or an integer" in e["message"] for e in refused[1:6]), refused
+        assert refused[6]["code"] == -32700 and "more values" in refused[7]["message"], refused
+        assert all(a["result"]["structuredContent"]["remaining"] == 2 for a in answers if a["id"] is not None)
+    finally:
+        serve.stdin.close()
+        serve.wait(timeout=60)
+
+
+def test_over_mcp_stdio_a_message_of_more_values_than_the_server_parses_is_refused_unparsed(tmp_path):
+    """The SDK parses a line whole into Python objects: 3.5 MB of [{},{},...] (within the 4 MiB a line may hold)
+    in a tool call's arguments grew the server's peak by 175 MB, in a notification's params by 281 MB, 3.5 MB of
+    small ints by ~85 MB. A message of more than MAX_MESSAGE_VALUES values is now refused before it is parsed,
+    with an error (for JSON-RPC's null id: its own is not read), and the peak grows by a few MB."""
+    from pipeline.serve.messages import MAX_MESSAGE_VALUES
+
+    serve = _stdio_serve(tmp_path / "m.duckdb")
+    dicts = b"[" + b",".join([b"{}"] * 1_150_000) + b"]"
+    try:
+        before = _peak_rss_mb(serve.pid)
+        serve.stdin.write(b'{"jsonrpc": "2.0", "id": 1, "method": "tools/call", "params": {"name": "budget", '
+                          b'"arguments": {"pad": ' + dicts + b"}}}\n")
+        serve.stdin.write(b'{"jsonrpc": "2.0", "method": "notifications/cancelled", "params": {"requestId": 9, '
+                          b'"pad": ' + dicts + b"}}\n")
+        serve.stdin.write(_tool_call(2, "submit", {"policy": "x", "instances": [1] * 1_150_000})
+                          + _tool_call(3, "submit", {"policy": "x", "instances": [99] * 10}))
+        serve.stdin.flush()
+        answers = sorted(_answers(serve, 4), key=lambda a: a["id"] is not None)
+        grown = _peak_rss_mb(serve.pid) - before
+        assert [a["id"] for a in answers] == [None, None, None, 3], answers
+        assert all(f"{MAX_MESSAGE_VALUES:,} values" in a["error"]["message"] for a in answers[:3]), answers
+        assert "each instance once" in answers[3]["result"]["content"][0]["text"], answers[3]
+        assert grown < 32, f"the server's peak grew by {grown:.0f} MB for three messages of 3.5 MB"
+    finally:
+        serve.stdin.close()
+        serve.wait(timeout=60)
+
+
+def test_over_mcp_streamable_http_a_body_of_more_values_than_the_server_parses_is_refused_unparsed(tmp_path):
+    """Over --mcp-port the SDK parsed each body whole too, and kept an ``initialize`` request's session: 16 sessions
+    opened with 3.5 MB of [{},{},...] in their params held the server at 1.57 GB (from 214 MB) for their idle
+    timeout. Such a body is refused (400, a JSON-RPC error) before it is parsed, one past 4 MiB 413, and the
+    server's peak grows by a few MB; a client is served as ever."""
+    import asyncio
+
+    from mcp import Client
+
+    serve, url = _mcp_over_http(tmp_path)
+    dicts = b"[" + b",".join([b"{}"] * 1_150_000) + b"]"
+
+    def post(body: bytes) -> tuple[int, dict]:
+        request = urllib.request.Request(url, data=body, method="POST", headers={
+            "Content-Type": "application/json", "Accept": "application/json, text/event-stream"})
+        try:
+            with urllib.request.urlopen(request, timeout=60) as answer:
+                return answer.status, {}
+        except urllib.error.HTTPError as refused:
+            return refused.code, json.loads(refused.read())
+
+    try:
+        before = _peak_rss_mb(serve.pid)
+        initialize = (b'{"jsonrpc": "2.0", "id": 1, "method": "initialize", "params": {"protocolVersion": '
+                      b'"2025-06-18", "capabilities": {}, "clientInfo": {"name": "t", "version": "1"}, "pad": ')
+        answers = [post(initialize + dicts + b"}}") for _ in range(4)]
+        assert [status for status, _ in answers] == [400] * 4, answers
+        assert all("more values than the server parses" in a["error"]["message"] for _, a in answers), answers
+        assert post(initialize + b'"' + b"x" * (4 * 2**20) + b'"}}')[0] == 413
+        grown = _peak_rss_mb(serve.pid) - before
+        assert grown < 32, f"the server's peak grew by {grown:.0f} MB for four bodies of 3.5 MB"
+
+        async def session() -> dict:
+            async with Client(url, read_timeout_seconds=120) as client:
+                return (await client.call_tool("budget", {})).structured_content
+
+        assert asyncio.run(session())["remaining"] == 2
+    finally:
+        serve.send_signal(signal.SIGINT)
+        serve.wait(timeout=120)
+
+
+def test_over_http_a_body_of_more_values_than_the_server_parses_is_refused_unparsed(tmp_path, servers):
+    """The plain HTTP transport parsed each body whole (at most 1 MB): 32 concurrent bodies of [{},{},...] grew the
+    server's peak by 437 MB. Such a body is now refused (400) before it is parsed: the peak grows by the bodies'
+    bytes, and an honest request is answered as ever."""
+    import socket
+
+    from pipeline.serve.messages import MAX_MESSAGE_VALUES
+
+    server = Server(tmp_path / "s.duckdb", "--game", "pong", "--budget", "2")
+    servers.append(server)
+    body = b'{"policy": "x", "instances": [' + b",".join([b"{}"] * 330_000) + b"]}"
+    port = int(server.url.rsplit(":", 1)[1])
+    request = f"POST /submit HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Length: {len(body)}\r\n\r\n".encode() + body
+    before = _peak_rss_mb(server.proc.pid)
+    held = [socket.create_connection(("127.0.0.1", port), timeout=60) for _ in range(32)]
+    try:
+        for connection in held:  # all but the last byte: the 32 bodies then arrive whole at once
+            connection.sendall(request[:-1])
+        time.sleep(1)
+        for connection in held:
+            connection.sendall(request[-1:])
+        answers = []
+        for connection in held:
+            got = b""
+            while b"\r\n\r\n" not in got or len(got.partition(b"\r\n\r\n")[2]) < int(
+                    re.search(rb"Content-Length: (\d+)", got).group(1)):
+                got += connection.recv(65536) or b"?" * 1000  # closed: what it sent is all there is
+            answers.append(got.partition(b"\r\n\r\n"))
+    finally:
+        for connection in held:
+            connection.close()
+    grown = _peak_rss_mb(server.proc.pid) - before
+    assert grown < 100, f"the server's peak grew by {grown:.0f} MB for 32 bodies of 1 MB"
+    assert all(head.startswith(b"HTTP/1.1 400") and f"more than {MAX_MESSAGE_VALUES:,} values".encode() in rest
+               for head, _, rest in answers), answers[0]
+    assert server.post("budget")[1]["remaining"] == 2
+
+
+def test_a_messages_values_are_counted_outside_its_strings_in_one_pass():
+    """What the transports count before the SDK parses a message: its strings (each one value, however long or
+    full of escapes) and the structure outside them. The count stops past its limit, so its work is at most a match
+    a string up to the limit, whatever the message holds."""
+    from pipeline.serve import messages
+    from pipeline.serve.messages import MAX_MESSAGE_VALUES, json_values
+
+    honest = _tool_call(1, "submit", {"policy": (ROOT / "games" / "scaffolds" / "pong.py").read_text() * 20,
+                                      "instances": list(range(16))})
+    assert json_values(honest) < 50
+    assert json_values(b'{"a": "x,{[\\"],[{", "b": [1, 2, {}]}') == 9  # "a", "x,{[\\"],[{", "b"; outside: { , [ , , {
+    shapes = {"dicts": b"[" + b"{}," * 1_000_000 + b"{}]", "strings": b"[" + b'"",' * 1_000_000 + b'""]',
+              "quotes": b'"' * 3_000_000, "unterminated": b'"\\' * 1_500_000, "escapes": b'"' + b'\\"' * 1_500_000}
+    matched = []
+
+    original = messages._STRING_REST
+
+    class Counting:
+        def match(self, data, at):
+            matched.append(at)
+            return original.match(data, at)
+
+    counted = {}
+    for name, data in shapes.items():
+        matched.clear()
+        messages._STRING_REST = Counting()
+        try:
+            counted[name] = json_values(data)
+        finally:
+            messages._STRING_REST = original
+        assert len(matched) <= MAX_MESSAGE_VALUES + 2, (name, len(matched))
+    assert counted["dicts"] > MAX_MESSAGE_VALUES and counted["strings"] > MAX_MESSAGE_VALUES
+    assert counted["quotes"] > MAX_MESSAGE_VALUES and counted["unterminated"] == counted["escapes"] == 0
 
 
 def test_over_mcp_stdio_pipelined_requests_wait_in_the_agents_pipe_not_in_the_server(tmp_path):

@@ -164,9 +164,10 @@ def _serve(served, args: argparse.Namespace) -> None:
             serve_streamable_http(mcp, args.mcp_port,
                                   lambda port: _say(f"MCP (streamable HTTP) on http://127.0.0.1:{port}/mcp"))
         else:
-            stop_reading = bound_stdin_lines()  # the SDK reads a message whole, however long
+            # the SDK reads a message whole, however long: it reads the agent's lines through a bounded relay
+            lines, stop_reading = bound_stdin_lines()
             try:
-                _in_a_thread(lambda: serve_stdio(mcp))  # returns when the agent closes stdin
+                _in_a_thread(lambda: serve_stdio(mcp, lines))  # returns when the agent closes stdin
             finally:  # stopped by Ctrl-C or SIGTERM: the SDK's reader thread sees stdin end, so the process can exit
                 stop_reading()
         return

@@ -87,21 +87,31 @@ MAX_MESSAGE_BYTES = 4 * 2**20
 """The longest line (one JSON-RPC message) read from the agent over stdio: a policy file's 200,000 characters,
 each escaped as JSON may (``\\uXXXX``), and the rest of its request. The MCP SDK reads a line whole, however long:
 600 MB without a newline took ``serve`` to 2.5 GB."""
+TOO_LONG = '"a message longer than the server reads"'
+"""The line that stands for one past :data:`MAX_MESSAGE_BYTES` (dropped as it arrived)."""
+TOO_MANY_VALUES = '"a message of more values than the server parses"'
+"""The line that stands for one of more values than ``messages.MAX_MESSAGE_VALUES``."""
 
 
-def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> Callable[[], None]:
-    """Put a pipe in place of fd 0, fed by a thread that copies the agent's lines to it, each at most ``limit``
-    bytes: a longer one is dropped as it arrives (never held) and replaced by a line that is not JSON-RPC, which
-    the SDK sets aside. The SDK then reads fd 0 as ever; at the agent's EOF, the pipe ends too.
+def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> tuple[int, Callable[[], None]]:
+    """A pipe fed by a thread that copies the agent's lines to it, each at most ``limit`` bytes and
+    ``messages.MAX_MESSAGE_VALUES`` values: a longer one is dropped as it arrives (never held), one of more values
+    once it has arrived, each replaced by a line that says so (:data:`TOO_LONG`, :data:`TOO_MANY_VALUES`), which
+    the server answers (:func:`unreadable_answer`). Returns the pipe's end to read (:func:`serve_stdio`) and
+    ``stop``; fd 0 is the null device from now on, so that nothing else reads the agent's messages. At the agent's
+    EOF, the pipe ends too.
 
-    Returns ``stop``: the pipe ends now, as at the agent's EOF. A server stopped by Ctrl-C or SIGTERM while the
-    agent kept stdin open (an agent stops its server with SIGTERM, or a person presses Ctrl-C) marked its run
-    stopped and never exited: the SDK's reader thread (not a daemon) waited on this pipe for good, and the
-    interpreter's exit waited on it; a second Ctrl-C did not end it either."""
+    ``stop``: the pipe ends now, as at the agent's EOF. A server stopped by Ctrl-C or SIGTERM while the agent kept
+    stdin open (an agent stops its server with SIGTERM, or a person presses Ctrl-C) marked its run stopped and never
+    exited: the SDK's reader thread (not a daemon) waited on this pipe for good, and the interpreter's exit waited
+    on it; a second Ctrl-C did not end it either."""
+    from pipeline.serve.messages import MAX_MESSAGE_VALUES, json_values
+
     source = os.dup(0)
     read_end, write_end = os.pipe()
-    os.dup2(read_end, 0)
-    os.close(read_end)
+    null = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(null, 0)
+    os.close(null)
     stop_read, stop_write = os.pipe()
 
     def relay() -> None:
@@ -120,7 +130,12 @@ def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> Callable[[], None]:
                             line.clear()
                             dropping = True
                     if end >= 0:
-                        os.write(write_end, b'"a message longer than the server reads"\n' if dropping else line)
+                        if dropping:
+                            os.write(write_end, TOO_LONG.encode() + b"\n")
+                        elif json_values(line) > MAX_MESSAGE_VALUES:  # counted in place: bytes(line) would copy it
+                            os.write(write_end, TOO_MANY_VALUES.encode() + b"\n")
+                        else:
+                            os.write(write_end, line)
                         line.clear()
                         dropping = False
         except OSError:  # the SDK's end was closed: it is done reading
@@ -138,7 +153,7 @@ def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> Callable[[], None]:
 
     thread = threading.Thread(target=relay, name="codearcade-mcp-stdin", daemon=True)
     thread.start()
-    return stop
+    return read_end, stop
 
 
 MAX_PENDING_REQUESTS = 16
@@ -149,22 +164,46 @@ request as it came: 2,000 refused submissions of 190 KB written at once, their a
 peak by 317 MB (now ~15 MB). An agent runs a few calls at once; more wait their turn in the pipe."""
 
 
-def serve_stdio(server: MCPServer, limit: int = MAX_PENDING_REQUESTS) -> None:
-    """Serve ``server`` over stdin and stdout until the agent closes stdin, as the SDK's ``run("stdio")`` does (its
-    transport, ``mcp.server.stdio``, and its server), with a stage between the two: at most ``limit`` requests are
-    held unanswered (:data:`MAX_PENDING_REQUESTS`), and a request the transport could not read as JSON-RPC is
-    answered with an error for its id (:func:`unreadable_answer`). The SDK dropped it with no answer, and the
-    agent waited for good: a lone surrogate (``"\\ud800"``, which Python's JSON reads and the SDK's does not) in
-    any argument was enough."""
-    anyio.run(_serve_stdio, server, limit)
+def serve_stdio(server: MCPServer, lines: int, limit: int = MAX_PENDING_REQUESTS) -> None:
+    """Serve ``server`` over the agent's lines (``lines``: the pipe :func:`bound_stdin_lines` feeds) and stdout until
+    the agent closes stdin, as the SDK's ``run("stdio")`` does (its transport, ``mcp.server.stdio``, and its server),
+    with a stage between the two: at most ``limit`` requests are held unanswered (:data:`MAX_PENDING_REQUESTS`),
+    and every request the transport could not take as one is answered (:func:`unreadable_answer`). The SDK
+    dropped such a request with no answer, and the agent waited for good: a lone surrogate (``"\\ud800"``, which
+    Python's JSON reads and the SDK's does not) in any argument or in the id, an id that is neither a string nor an
+    integer (``5.5``, ``null``: the SDK took the request for a notification), a line nested too deep to parse."""
+    anyio.run(_serve_stdio, server, lines, limit)
 
 
-async def _serve_stdio(server: MCPServer, limit: int) -> None:
+class _Lines:
+    """The agent's lines as the SDK's transport reads them (``async for``), each also kept in :attr:`read` until the
+    stage takes it: the transport makes exactly one item of each line, in order, and the stage needs the line
+    itself where the item lost what it said (a request's id that the SDK's models drop)."""
+
+    def __init__(self, fd: int) -> None:
+        import collections
+        import io
+
+        self.file = anyio.wrap_file(io.TextIOWrapper(os.fdopen(fd, "rb"), encoding="utf-8", errors="replace"))
+        self.read: collections.deque[str] = collections.deque()
+
+    def __aiter__(self) -> "_Lines":
+        return self
+
+    async def __anext__(self) -> str:
+        line = await self.file.readline()
+        if not line:
+            raise StopAsyncIteration
+        self.read.append(line)
+        return line
+
+
+async def _serve_stdio(server: MCPServer, fd: int, limit: int) -> None:
     from functools import partial
 
     from mcp.server.stdio import stdio_server
     from mcp.shared.message import ServerMessageMetadata, SessionMessage
-    from mcp_types import JSONRPCError, JSONRPCRequest, JSONRPCResponse
+    from mcp_types import JSONRPCError, JSONRPCNotification, JSONRPCRequest, JSONRPCResponse
 
     slots = anyio.Semaphore(limit)
     unanswered: dict[int | str, int] = {}  # the id of each request read and not answered: how many (ids may repeat)
@@ -176,7 +215,8 @@ async def _serve_stdio(server: MCPServer, limit: int) -> None:
                 del unanswered[request_id]
             slots.release()
 
-    async with stdio_server() as (wire_in, wire_out):
+    lines = _Lines(fd)
+    async with stdio_server(stdin=lines) as (wire_in, wire_out):  # type: ignore[arg-type] - it iterates its lines
         to_server, server_in = anyio.create_memory_object_stream[SessionMessage | Exception](0)
         server_out, from_server = anyio.create_memory_object_stream[SessionMessage](0)
 
@@ -188,6 +228,7 @@ async def _serve_stdio(server: MCPServer, limit: int) -> None:
                         item = await wire_in.receive()
                     except (anyio.EndOfStream, anyio.ClosedResourceError):
                         return
+                    line = lines.read.popleft() if lines.read else ""
                     if isinstance(item, SessionMessage) and isinstance(item.message, JSONRPCRequest):
                         request_id = item.message.id
                         unanswered[request_id] = unanswered.get(request_id, 0) + 1
@@ -196,9 +237,11 @@ async def _serve_stdio(server: MCPServer, limit: int) -> None:
                             on_request_unanswered=partial(settled, request_id))))
                         continue
                     slots.release()  # a notification, a response, a line the SDK could not read: passed on now
-                    if isinstance(item, Exception) and (answer := unreadable_answer(item)) is not None:
+                    if isinstance(item, SessionMessage) and not isinstance(item.message, JSONRPCNotification):
+                        await to_server.send(item)  # a response to the server's own request
+                    elif (answer := unreadable_answer(getattr(item, "message", item), line)) is not None:
                         await wire_out.send(SessionMessage(answer))
-                    else:  # what it cannot answer goes on as it came: the SDK sets it aside
+                    else:  # a notification, or what names nothing to answer: the SDK sets it aside
                         await to_server.send(item)
 
         async def outbound() -> None:
@@ -215,45 +258,59 @@ async def _serve_stdio(server: MCPServer, limit: int) -> None:
             await lowlevel.run(server_in, server_out, lowlevel.create_initialization_options())
 
 
-def unreadable_answer(error: Exception) -> Any:
-    """The JSON-RPC error answering a line the SDK's transport could not read as a message (``error``: its
-    ``ValidationError``), for the request id the line names; None when it names none (a notification, a response,
-    a line that is not JSON at all): the JSON-RPC rule, nothing to answer."""
+def unreadable_answer(item: Any, line: str) -> Any:
+    """The JSON-RPC error answering ``line``, a request the SDK's transport could not take as one (``item``: the
+    ``ValidationError`` it raised, or the notification it took the request for), or None where nothing waits for an
+    answer (a notification, a response, a blank line). Its id is the request's where the request has one the
+    answer can name (an integer or a string of valid Unicode); else JSON-RPC's ``null``, as JSON-RPC answers a
+    request whose id cannot be read (a line that is not JSON, one the server would not parse, an id of ``5.5``,
+    ``null``, ``true`` or with a lone surrogate)."""
     import json
 
-    from mcp_types import INVALID_REQUEST, PARSE_ERROR, ErrorData, JSONRPCError
+    from mcp_types import INVALID_REQUEST, PARSE_ERROR, ErrorData, JSONRPCError, JSONRPCNotification
     from pydantic import ValidationError
 
-    if not isinstance(error, ValidationError):
+    def answer(request_id: int | str | None, code: int, why: str) -> JSONRPCError:
+        return JSONRPCError(jsonrpc="2.0", id=request_id, error=ErrorData(code=code,
+                                                                           message=f"{why}; nothing was done"))
+
+    if line.strip() in (TOO_LONG, TOO_MANY_VALUES):  # what bound_stdin_lines made of a message it let go
+        from pipeline.serve.messages import MAX_MESSAGE_VALUES
+
+        return answer(None, INVALID_REQUEST, f"{json.loads(line)} (at most {MAX_MESSAGE_BYTES:,} bytes and "
+                                             f"{MAX_MESSAGE_VALUES:,} values a message)")
+    if not line.strip():
         return None
-    problems = error.errors(include_url=False)
-    message: Any = None
-    if problems and problems[0]["type"] == "json_invalid" and isinstance(problems[0]["input"], str):
-        try:  # Python's JSON reads what the SDK's refuses (a lone surrogate): enough to find the id
-            message = json.loads(problems[0]["input"])
-        except ValueError:
-            return None
+    try:  # Python's JSON reads what the SDK's refuses (a lone surrogate): enough to find the id
+        message = json.loads(line)
+    except (ValueError, RecursionError):  # not JSON, or nested deeper than Python's parser goes
+        return answer(None, PARSE_ERROR, "the message is not JSON the server reads")
+    if not isinstance(message, dict) or "method" not in message or "id" not in message:
+        return None  # a response, a notification, or no message: nothing waits for an answer
+    problems = item.errors(include_url=False) if isinstance(item, ValidationError) else []
+    if problems and problems[0]["type"] == "json_invalid":
         code, why = PARSE_ERROR, f"the message is not JSON the server reads ({problems[0]['msg'][:200]})"
         try:
             json.dumps(message, ensure_ascii=False).encode("utf-8")
         except UnicodeEncodeError:
             why = "the message is not valid Unicode: a string in it holds a lone surrogate (such as \\ud800)"
-    else:  # JSON, not a JSON-RPC message: a field missing at the top names the whole message as its input
-        message = next((p["input"] for p in problems if p["type"] == "missing" and len(p["loc"]) == 2), None)
+    elif isinstance(item, ValidationError):  # JSON, not a JSON-RPC request
         shown = [f"{'.'.join(map(str, p['loc'][1:]))}: {p['msg']}" for p in problems if p["loc"][:1] == (
             "JSONRPCRequest",)]
         code, why = INVALID_REQUEST, f"the message is not a JSON-RPC request ({'; '.join(shown)[:300]})"
-    if not isinstance(message, dict) or "method" not in message:  # a response or no message: nothing is waiting
+    elif isinstance(item, JSONRPCNotification):  # a request whose id the SDK's models dropped
+        code, why = INVALID_REQUEST, "a request's id is a string or an integer (never null)"
+    else:
         return None
-    request_id = message.get("id")
+    request_id = message["id"]
     if isinstance(request_id, bool) or not isinstance(request_id, int | str):
-        return None
-    if isinstance(request_id, str):
+        request_id = None
+    elif isinstance(request_id, str):
         try:
             request_id.encode("utf-8")
         except UnicodeEncodeError:  # its id itself holds a lone surrogate: no answer can name it
-            return None
-    return JSONRPCError(jsonrpc="2.0", id=request_id, error=ErrorData(code=code, message=f"{why}; nothing was done"))
+            request_id, why = None, "the message is not valid Unicode: its id holds a lone surrogate"
+    return answer(request_id, code, why)
 
 
 MAX_SESSIONS = 16
@@ -277,11 +334,63 @@ def serve_streamable_http(server: MCPServer, port: int, listening: Callable[[int
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind(("127.0.0.1", port))
     sock.listen(128)  # connections made once the URL is said wait in the backlog, not refused, until uvicorn runs
-    app = server.streamable_http_app(host="127.0.0.1", max_sessions=MAX_SESSIONS,
-                                     session_idle_timeout=SESSION_IDLE_TIMEOUT_S)
+    app = _values_bound(server.streamable_http_app(host="127.0.0.1", max_sessions=MAX_SESSIONS,
+                                                   session_idle_timeout=SESSION_IDLE_TIMEOUT_S))
     listening(sock.getsockname()[1])
     uvicorn.Server(uvicorn.Config(app, http=_bounded_h11(), log_level=server.settings.log_level.lower(),
                                   timeout_keep_alive=5)).run(sockets=[sock])
+
+
+def _values_bound(app: Any) -> Any:
+    """``app`` (the SDK's ASGI app) with each request's body read first, at most :data:`MAX_MESSAGE_BYTES` (413
+    past it, as the SDK's own limit answers) and ``messages.MAX_MESSAGE_VALUES`` values (400 with a JSON-RPC
+    error past them), then handed on whole. The SDK parses a body into Python objects whatever it holds, and keeps
+    an ``initialize`` request's params with its session: 16 sessions opened with 3.5 MB of ``[{},{},...]`` in
+    their params held the server at 1.57 GB (from 214 MB) for their idle timeout."""
+    import json
+
+    from pipeline.serve.messages import MAX_MESSAGE_VALUES, json_values
+
+    async def refuse(send: Any, status: int, why: str) -> None:
+        body = json.dumps({"jsonrpc": "2.0", "id": None, "error": {"code": -32600, "message": why}}).encode()
+        await send({"type": "http.response.start", "status": status, "headers": [
+            (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+            (b"connection", b"close")]})
+        await send({"type": "http.response.body", "body": body})
+
+    async def bounded(scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http" or scope.get("method") != "POST":
+            await app(scope, receive, send)
+            return
+        parts, size, more = [], 0, True
+        while more:
+            message = await receive()
+            if message["type"] != "http.request":  # the client went away: nothing to answer
+                return
+            parts.append(message.get("body", b""))
+            size += len(parts[-1])
+            more = message.get("more_body", False)
+            if size > MAX_MESSAGE_BYTES:
+                await refuse(send, 413, f"a message of more than {MAX_MESSAGE_BYTES:,} bytes; nothing was done")
+                return
+        body = b"".join(parts)
+        del parts
+        if json_values(body) > MAX_MESSAGE_VALUES:
+            await refuse(send, 400, f"a message of more values than the server parses (at most "
+                                    f"{MAX_MESSAGE_VALUES:,}); nothing was done")
+            return
+        handed = False
+
+        async def replay() -> Any:
+            nonlocal handed, body
+            if handed:  # after the body, what the app waits for is the client's going away
+                return await receive()
+            handed, whole, body = True, body, b""
+            return {"type": "http.request", "body": whole, "more_body": False}
+
+        await app(scope, replay, send)
+
+    return bounded
 
 
 def _bounded_h11() -> type:
