@@ -1169,8 +1169,8 @@ def test_over_mcp_stdio_a_message_of_more_values_than_the_server_parses_is_refus
 def test_over_mcp_streamable_http_a_body_of_more_values_than_the_server_parses_is_refused_unparsed(tmp_path):
     """Over --mcp-port the SDK parsed each body whole too, and kept an ``initialize`` request's session: 16 sessions
     opened with 3.5 MB of [{},{},...] in their params held the server at 1.57 GB (from 214 MB) for their idle
-    timeout. Such a body is refused (400, a JSON-RPC error) before it is parsed, one past 4 MiB 413, and the
-    server's peak grows by a few MB; a client is served as ever."""
+    timeout. Such a body is refused (400, a JSON-RPC error) before it is parsed, one that opens a session past
+    64 KiB or any past 4 MiB 413, and the server's peak grows by a few MB; a client is served as ever."""
     import asyncio
 
     from mcp import Client
@@ -1178,12 +1178,13 @@ def test_over_mcp_streamable_http_a_body_of_more_values_than_the_server_parses_i
     serve, url = _mcp_over_http(tmp_path)
     dicts = b"[" + b",".join([b"{}"] * 1_150_000) + b"]"
 
-    def post(body: bytes) -> tuple[int, dict]:
+    def post(body: bytes, session: str | None = None) -> tuple[int, dict]:
         request = urllib.request.Request(url, data=body, method="POST", headers={
-            "Content-Type": "application/json", "Accept": "application/json, text/event-stream"})
+            "Content-Type": "application/json", "Accept": "application/json, text/event-stream",
+            **({"Mcp-Session-Id": session, "Mcp-Protocol-Version": "2025-06-18"} if session else {})})
         try:
             with urllib.request.urlopen(request, timeout=60) as answer:
-                return answer.status, {}
+                return answer.status, {"session": answer.headers.get("mcp-session-id")}
         except urllib.error.HTTPError as refused:
             return refused.code, json.loads(refused.read())
 
@@ -1191,12 +1192,21 @@ def test_over_mcp_streamable_http_a_body_of_more_values_than_the_server_parses_i
         before = _peak_rss_mb(serve.pid)
         initialize = (b'{"jsonrpc": "2.0", "id": 1, "method": "initialize", "params": {"protocolVersion": '
                       b'"2025-06-18", "capabilities": {}, "clientInfo": {"name": "t", "version": "1"}, "pad": ')
-        answers = [post(initialize + dicts + b"}}") for _ in range(4)]
+        # one that opens a session: at most 64 KiB (a session kept ~2 x its opening body: 16 sessions opened with
+        # 4 MB of a string in their params held +128 MB)
+        opened = [post(initialize + dicts + b"}}") for _ in range(2)] + [post(initialize + b'"' + b"x" * 2**20
+                                                                              + b'"}}') for _ in range(2)]
+        assert all(status == 413 and "before a session is open" in a["error"]["message"] for status, a in opened)
+        status, answer = post(initialize + b"0}}")
+        assert status == 200 and answer["session"], answer
+        call = (b'{"jsonrpc": "2.0", "id": 2, "method": "tools/call", "params": {"name": "budget", "arguments": '
+                b'{"pad": ')
+        answers = [post(call + dicts + b"}}}", answer["session"]) for _ in range(4)]
         assert [status for status, _ in answers] == [400] * 4, answers
         assert all("more values than the server parses" in a["error"]["message"] for _, a in answers), answers
-        assert post(initialize + b'"' + b"x" * (4 * 2**20) + b'"}}')[0] == 413
+        assert post(call + b'"' + b"x" * (4 * 2**20) + b'"}}}', answer["session"])[0] == 413
         grown = _peak_rss_mb(serve.pid) - before
-        assert grown < 32, f"the server's peak grew by {grown:.0f} MB for four bodies of 3.5 MB"
+        assert grown < 32, f"the server's peak grew by {grown:.0f} MB for eight bodies of 1-3.5 MB"
 
         async def session() -> dict:
             async with Client(url, read_timeout_seconds=120) as client:

@@ -341,9 +341,16 @@ def serve_streamable_http(server: MCPServer, port: int, listening: Callable[[int
                                   timeout_keep_alive=5)).run(sockets=[sock])
 
 
+MAX_OPENING_BYTES = 64 * 1024
+"""The longest body of a request over ``--mcp-port`` that names no session (an ``initialize``, ~300 bytes: the
+SDK refuses any other without a session): each session kept ~2 x its opening body, so 16 sessions opened with 4 MB
+of a string in their params held the server at +128 MB for their idle timeout."""
+
+
 def _values_bound(app: Any) -> Any:
-    """``app`` (the SDK's ASGI app) with each request's body read first, at most :data:`MAX_MESSAGE_BYTES` (413
-    past it, as the SDK's own limit answers) and ``messages.MAX_MESSAGE_VALUES`` values (400 with a JSON-RPC
+    """``app`` (the SDK's ASGI app) with each request's body read first, at most :data:`MAX_MESSAGE_BYTES`
+    (:data:`MAX_OPENING_BYTES` for one that opens a session; 413 past it, as the SDK's own limit answers) and
+    ``messages.MAX_MESSAGE_VALUES`` values (400 with a JSON-RPC
     error past them), then handed on whole. The SDK parses a body into Python objects whatever it holds, and keeps
     an ``initialize`` request's params with its session: 16 sessions opened with 3.5 MB of ``[{},{},...]`` in
     their params held the server at 1.57 GB (from 214 MB) for their idle timeout."""
@@ -362,17 +369,23 @@ def _values_bound(app: Any) -> Any:
         if scope["type"] != "http" or scope.get("method") != "POST":
             await app(scope, receive, send)
             return
+        opening = not any(name == b"mcp-session-id" for name, _ in scope.get("headers", ()))
+        limit = MAX_OPENING_BYTES if opening else MAX_MESSAGE_BYTES
         parts, size, more = [], 0, True
         while more:
             message = await receive()
             if message["type"] != "http.request":  # the client went away: nothing to answer
                 return
-            parts.append(message.get("body", b""))
-            size += len(parts[-1])
+            size += len(message.get("body", b""))
             more = message.get("more_body", False)
-            if size > MAX_MESSAGE_BYTES:
-                await refuse(send, 413, f"a message of more than {MAX_MESSAGE_BYTES:,} bytes; nothing was done")
+            if size <= limit:
+                parts.append(message.get("body", b""))
+            elif not more or size > MAX_MESSAGE_BYTES:  # read to its end (or the SDK's limit), none of it kept,
+                await refuse(send, 413, f"a message of more than {limit:,} bytes"  # so the client reads the answer
+                                        f"{' before a session is open' if opening else ''}; nothing was done")
                 return
+            else:
+                parts.clear()
         body = b"".join(parts)
         del parts
         if json_values(body) > MAX_MESSAGE_VALUES:
