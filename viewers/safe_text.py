@@ -25,6 +25,8 @@ candidate's reason, a label, a stored cell, a line of a policy) may hold anythin
 - :func:`plot_text` for untrusted text in a plot's title or legend: terminal-safe (a font has no glyph for a
   control character, and matplotlib's warning about it would print the character raw on stderr) and with ``$``
   escaped (no mathtext: ``$\\foo$`` would stop the drawing with an error).
+- :class:`TerminalSafeRecords` for what a library logs (:func:`make_logs_terminal_safe`): litellm's log quotes a
+  reply's fields; every record its handlers write is made safe and cut short first.
 - :class:`Markdown`: text a viewer composed itself as Markdown (``**bold**``, a code span it built), passed
   through :func:`markdown_cell` (a table's cell) unescaped.
 
@@ -36,6 +38,7 @@ separators, lone surrogates) as ``\\u`` escapes too: the same JSON value, with n
 from __future__ import annotations
 
 import html
+import logging
 import re
 import sys
 
@@ -72,6 +75,41 @@ def terminal_text(text: object, multiline: bool = False) -> str:
     text = _ESCAPE_SEQUENCE.sub("", text)
     text = text.replace("\r\n", "\n").replace("\u2028", "\n").replace("\u2029", "\n").translate(_DROPPED)
     return text if multiline else text.replace("\n", "\\n")
+
+
+LOG_MESSAGE_CHARS = 2_000
+"""Characters of a library's log message shown (:class:`TerminalSafeRecords`): litellm's quotes a reply's field
+whole, however long."""
+
+
+class TerminalSafeRecords(logging.Filter):
+    """Makes each log record a handler writes safe for the terminal first: its message formatted, made safe
+    (:func:`terminal_text`) and cut to :data:`LOG_MESSAGE_CHARS`, its traceback and stack made safe. A library's own
+    log quotes what a server sent it: litellm's "Unmapped finish_reason '...', defaulting to 'stop'" put a reply's
+    escape sequences (a window title, a cleared screen) raw on the terminal of every verb that calls a model."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if len(message) > LOG_MESSAGE_CHARS:
+            message = f"{message[:LOG_MESSAGE_CHARS]}... ({len(message):,} characters)"
+        record.msg, record.args = terminal_text(message), None
+        if record.exc_info and not record.exc_text:
+            import traceback
+
+            record.exc_text = terminal_text("".join(traceback.format_exception(*record.exc_info)).rstrip("\n"),
+                                            multiline=True)
+        if record.stack_info:
+            record.stack_info = terminal_text(record.stack_info, multiline=True)
+        return True
+
+
+def make_logs_terminal_safe(*loggers: str) -> None:
+    """Add :class:`TerminalSafeRecords` to every handler of the named loggers, and to the handler Python writes a
+    record with when no logger has one (``logging.lastResort``); once each."""
+    handlers = [h for name in loggers for h in logging.getLogger(name).handlers] + [logging.lastResort]
+    for handler in handlers:
+        if handler is not None and not any(isinstance(f, TerminalSafeRecords) for f in handler.filters):
+            handler.addFilter(TerminalSafeRecords())
 
 
 def print_failure(heading: str = "") -> None:

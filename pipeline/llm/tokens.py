@@ -45,6 +45,10 @@ def import_litellm():
     if not getattr(litellm, "_codearcade_ready", False):
         litellm.suppress_debug_info = True
         litellm.telemetry = False
+        from viewers.safe_text import make_logs_terminal_safe
+
+        # its log quotes a reply's fields (an unknown finish_reason), escape sequences and all
+        make_logs_terminal_safe("LiteLLM", "LiteLLM Router", "LiteLLM Proxy")
         atexit.register(_close_leftover_event_loop)  # runs before litellm's own exit hooks (registered earlier)
         litellm._codearcade_ready = True
     return litellm

@@ -280,3 +280,28 @@ def test_a_reproduce_command_names_the_same_file_and_shows_nothing_raw():
     done = subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert [json.loads(line) for line in done.stdout.splitlines()] == cases
+
+
+def test_a_library_s_log_of_a_reply_s_field_reaches_the_terminal_made_safe(store, scripted):
+    """litellm logs an unknown ``finish_reason`` ("Unmapped finish_reason '...', defaulting to 'stop'") through its
+    own handler, quoting the reply's field whole: a model's escape sequences set the window title and cleared the
+    screen of `optimize` (stream or not, OpenAI's route or Anthropic's), and 100 KB of it filled the terminal. Its
+    handlers now make each record safe and cut it short first (viewers/safe_text.TerminalSafeRecords)."""
+    from tests.conftest import COMPETENT_REPLY
+
+    def body(finish_reason: str) -> dict:
+        return {"raw": json.dumps({
+            "id": "chatcmpl-1", "object": "chat.completion", "created": 0, "model": "scripted",
+            "choices": [{"index": 0, "message": {"role": "assistant", "content": COMPETENT_REPLY},
+                         "finish_reason": finish_reason}],
+            "usage": {"prompt_tokens": 10, "completion_tokens": 10, "total_tokens": 20}})}
+
+    model = scripted([body("evil" + ESCAPES), body("long " + "words, " * 15_000)])
+    shown = _cli("optimize", str(ROOT / "games/scaffolds/pong.py"), "--model", model.model, "--api-base",
+                 model.api_base, "--iterations", "2", "--eval-episodes", "1", "--eval-max-steps", "30",
+                 "--rollout-steps", "20", "--workers", "1", "--repairs", "0", "--audit-episodes", "0",
+                 "--store", str(store.path))  # _cli: no byte a terminal acts on in stdout or stderr
+    logged = [line for line in shown.splitlines() if "Unmapped finish_reason" in line]
+    assert len(logged) == 2 and "evilclick here" in logged[0] and "verified OK" in logged[0], shown[-3000:]
+    assert "long words, words" in logged[1] and len(logged[1]) < 2_300, len(logged[1])  # cut short
+    assert "characters)" in logged[1], logged[1][-200:]  # and says how long it was
