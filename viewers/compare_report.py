@@ -15,9 +15,10 @@ from typing import Any
 from store.runs import shortest_prefixes
 from store.scores import PLAYED_OUT, score_text
 from store.statistics import MEAN_METHOD, interval_text
-from viewers.report import _md_table, writing
+from viewers.report import _md_table
 from viewers.safe_text import markdown_code, markdown_code_block, markdown_text, plot_text, terminal_text
 from viewers.tables import format_table
+from viewers.whole_files import writing
 
 COLOURS = {"A": "#1f77b4", "B": "#d62728"}
 LINES = {  # where the two curves coincide, A's wide solid line shows on both sides of B's narrow dashed one

@@ -15,11 +15,9 @@ still writing; the plots are ``viewers/report_figures.py``'s, drawn with matplot
 from __future__ import annotations
 
 import json
-import os
-from contextlib import contextmanager
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Sequence
 
 from store import Store
 from store.readers import get_run, model_choice_rows
@@ -31,6 +29,7 @@ from viewers.model_choices import choice_section
 from viewers.report_figures import calls_figure, code_figure, lineage_figure, scores_figure, tokens_figure
 from viewers.safe_text import (markdown_cell, markdown_code, markdown_code_block, markdown_text, terminal_text)
 from viewers.tables import money
+from viewers.whole_files import writing
 
 def collect(store: Store, run: str) -> dict[str, Any]:
     """Everything a report shows, read in one open of the store."""
@@ -301,31 +300,3 @@ def write_report(store: Store, run: str, out_dir: str | Path | None = None, *,
     with writing(readme) as partial:
         partial.write_text(render_markdown(data, images, reproduce, price))
     return readme
-
-
-@contextmanager
-def writing(path: Path) -> Iterator[Path]:
-    """Write ``path`` in the block, into the path it yields: ``path.partial``, renamed to ``path`` once the block
-    ended whole, and removed otherwise (an error, Ctrl-C, SIGTERM). A full disk left a PNG cut short (its last
-    block: 36,864 of 36,906 bytes) or an empty README.md under the name asked for, beside the plots of a report that
-    failed; a kill while a file was written, the same. A ``path`` that exists and is not a plain file (a link, a
-    device such as /dev/full, a pipe) is written as it is, since a rename would replace it. An ``OSError`` that names
-    no file (PIL's, and a write's, on a full disk) is raised naming ``path``, so that the command says in one line
-    which file it could not write (it showed a traceback)."""
-    if os.path.lexists(path) and (os.path.islink(path) or not os.path.isfile(path)):
-        partial = path
-    else:
-        partial = path.with_name(path.name + ".partial")
-    try:
-        yield partial
-        if partial != path:
-            os.replace(partial, path)
-    except BaseException as exc:
-        if partial != path:
-            try:
-                os.unlink(partial)
-            except OSError:
-                pass  # never made, or already gone: nothing cut short is left either way
-        if not isinstance(exc, OSError) or exc.filename is not None and exc.filename != os.fspath(partial):
-            raise
-        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None

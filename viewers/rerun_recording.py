@@ -18,6 +18,8 @@ from typing import Any, Callable
 
 import rerun as rr
 
+from viewers.whole_files import discard, finish, partial_path
+
 APPLICATION_ID = "codearcade"
 
 
@@ -103,18 +105,14 @@ def within(what: str, action: Callable[[], Any], path: str | os.PathLike | None 
 def save_whole(recording: rr.RecordingStream, path: str | os.PathLike, timeout_s: float = SINK_TIMEOUT_S,
                **options) -> str | None:
     """Start saving ``recording`` for ``path`` (:func:`save_to`), into ``path.partial`` until :func:`close` renames
-    it: a file cut short (a full disk, an error while logging) is never left under the name asked for. Returns the
-    partial file's path; None where ``path`` is something other than a plain file (a device such as /dev/full, a
-    pipe, a link), which is written as it is: a rename would replace it."""
-    target = os.fspath(path)
-    if os.path.lexists(target) and (os.path.islink(target) or not os.path.isfile(target)):
-        within("open the file", lambda: save_to(recording, target, **options), target, timeout_s)
-        return None
-    partial = f"{target}.partial"
+    it: a file cut short (a full disk, an error while logging) is never left under the name asked for
+    (``viewers/whole_files.py``). Returns the partial file's path; None where ``path`` is something other than a
+    plain file (a device such as /dev/full, a pipe, a link), which is written as it is: a rename would replace it."""
+    partial = partial_path(path)
     try:
-        within("open the file", lambda: save_to(recording, partial, **options), path, timeout_s)
+        within("open the file", lambda: save_to(recording, partial or os.fspath(path), **options), path, timeout_s)
     except OSError as exc:
-        _remove(partial)  # made, and not written to
+        discard(partial)  # made, and not written to
         raise OSError(exc.errno, exc.strerror, os.fspath(path)) from None
     return partial
 
@@ -129,23 +127,14 @@ def close(recording: rr.RecordingStream, partial: str | None = None, path: str |
             within("flush the recording", lambda: recording.flush(timeout_sec=timeout_s), path, timeout_s)
         within("close the recording", recording.disconnect, path, timeout_s)
     except BaseException:
-        if partial is not None:
-            _remove(partial)
+        discard(partial)
         if whole:
             raise
         return
-    if partial is not None:
-        if whole:
-            os.replace(partial, os.fspath(path))
-        else:
-            _remove(partial)
-
-
-def _remove(path: str) -> None:
-    try:
-        os.unlink(path)
-    except OSError:
-        pass
+    if whole:
+        finish(partial, path)
+    else:
+        discard(partial)
 
 
 def entity(*parts: str) -> str:
