@@ -63,7 +63,10 @@ def run_lock(store_path: str | os.PathLike, run_id: str) -> Iterator[None]:
             raise RunBusyError(f"run {run_id} is being worked on by process {holder}; wait for it to finish "
                                "(or stop it) first", holder) from None
         os.ftruncate(fd, 0)
-        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        try:
+            os.pwrite(fd, str(os.getpid()).encode(), 0)
+        except OSError:  # a full disk: the pid only names the holder in another's error; the lock is the flock
+            pass  # (`batch` and `optimize` died here with a traceback before saying the store's disk was full)
         yield
     finally:
         os.close(fd)  # closing drops the lock
