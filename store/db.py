@@ -37,6 +37,11 @@ class StoreError(Exception):
     """A store that cannot be used; the message says why and what to do."""
 
 
+class StoreFull(StoreError):
+    """A store whose disk is full: its write was rolled back whole, and every process writing there fails alike
+    until space is freed (a batch stops starting runs: ``pipeline/jobs/batch.py``)."""
+
+
 class StoreDamaged(StoreError):
     """A store whose file is damaged (:func:`store_damage`, or cut too short for DuckDB to open it); ``problems``
     lists what was found, one short sentence each: the doctor reports them as findings."""
@@ -470,7 +475,7 @@ class Store:
                 raise
         except duckdb.Error as exc:
             if _is_disk_full(exc):
-                raise StoreError(f"cannot write {self.path}: the disk is full ({_first_line(exc)}); free space "
+                raise StoreFull(f"cannot write {self.path}: the disk is full ({_first_line(exc)}); free space "
                                  "and run the command again: what was stored before is intact") from None
             if "Permission denied" in str(exc):  # the commit makes the WAL beside the file: its folder's rights
                 raise StoreError(f"cannot write {self.path}: DuckDB writes {self.path.name}.wal beside it, and "

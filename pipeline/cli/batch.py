@@ -66,7 +66,7 @@ def _batch_display(store):
             table.add_row(*(Text(terminal_text(cell)) for cell in (p.label, p.state, it, best,
                                                                     short.get(p.run_id, p.run_id) or "")))
         counts = {s: sum(1 for p in progress if p.state == s)
-                  for s in ("finished", "budget", "running", "failed", "skipped")}
+                  for s in ("finished", "budget", "running", "failed", "skipped", "not started")}
         table.caption = "  ".join(f"{k} {v}" for k, v in counts.items())
         live.update(table)
 
@@ -175,7 +175,7 @@ def _run(args: argparse.Namespace, batch, store, planned) -> int:
     from datetime import datetime
     from pathlib import Path
 
-    from pipeline.jobs.batch import rename_finished, run_local, run_ray
+    from pipeline.jobs.batch import NOT_STARTED, rename_finished, run_local, run_ray
     from viewers.safe_text import terminal_text
 
     log_path = Path(args.log) if args.log else store.path.with_name(f"{store.path.name}.{batch.name}.log")
@@ -226,10 +226,12 @@ def _run(args: argparse.Namespace, batch, store, planned) -> int:
         stop()
     failed = result.failed
     budget = sum(p.state == "budget" for p in result.progress)
+    not_started = sum(p.state == NOT_STARTED for p in result.progress)
     log(f"batch {batch.name} done: {sum(p.state == 'finished' for p in result.progress)} finished, "
         + (f"{budget} stopped by a budget (rerun with a larger one to resume), " if budget else "")
-        + f"{sum(p.state == 'skipped' for p in result.progress)} skipped, {len(failed)} failed")
+        + f"{sum(p.state == 'skipped' for p in result.progress)} skipped, {len(failed)} failed"
+        + (f", {not_started} not started (the store's disk is full)" if not_started else ""))
     _close_quietly(log_file)
     for p in failed:
         show(f"codearcade: {p.label} failed: {p.note}; rerun the same command to resume it", file=sys.stderr)
-    return EXIT_EPISODE_FAILED if failed else EXIT_OK
+    return EXIT_EPISODE_FAILED if failed or not_started else EXIT_OK

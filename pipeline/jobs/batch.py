@@ -51,7 +51,7 @@ from typing import Any, Callable, Mapping
 
 from games import get_game
 from games.base import one_life_setting
-from pipeline.jobs.worker import BUDGET_EXIT, INTERRUPTED_EXIT, run_remote
+from pipeline.jobs.worker import BUDGET_EXIT, INTERRUPTED_EXIT, STORE_FULL_EXIT, run_remote
 from pipeline.optimizer.config import OptimizeConfig, model_defaults, validate_config
 from pipeline.optimizer.ensemble import split_model_flags
 from pipeline.settings import declarations
@@ -361,7 +361,7 @@ class Progress:
     """What the display shows, per run."""
 
     label: str
-    state: str = "pending"  # pending | skipped | running | finished | budget | failed
+    state: str = "pending"  # pending | skipped | running | finished | budget | failed | not started
     run_id: str | None = None
     iteration: int | None = None
     iterations: int = 0
@@ -528,12 +528,29 @@ def _run_queue(queue, running, planned, progress, store, batch, workers, episode
             if code != 0:
                 progress[i].note = out.why(code)
             log(f"{progress[i].state} {planned[i].run.label}" + (f": {progress[i].note}" if progress[i].note else ""))
+            if code == STORE_FULL_EXIT and queue:
+                _stop_starting(queue, progress, planned[i].run.label, log)
         now = time.monotonic()
         if now - last_refresh >= poll_s:
             _refresh(store, progress, batch)
             display(progress)
             last_refresh = now
         time.sleep(0.2)
+
+
+NOT_STARTED = "not started"
+"""The state of a run a batch did not start: the store's disk was full (:data:`STORE_FULL_EXIT`)."""
+
+
+def _stop_starting(queue: list[int], progress: list[Progress], label: str, log: Callable[[str], None]) -> None:
+    """A run found the store's disk full: every queued run would start, fail at its first write and leave a line
+    the same (each a process and its zygotes for nothing); they are not started, said once. The runs still going
+    go on: one may end before it writes again."""
+    for i in queue:
+        progress[i].state, progress[i].note = NOT_STARTED, "the store's disk was full"
+    log(f"not starting the {len(queue)} runs left: {label} found the store's disk full; free space and run the "
+        "same command again (finished runs are skipped, the others resume or start)")
+    queue.clear()
 
 
 # --------------------------------------------------------------------------------------------- ray executor

@@ -43,6 +43,7 @@ try:  # a Ctrl-C to the batch's process group reaches its runs too, also while t
     from pipeline.optimizer.config import OptimizeConfig, fit_to_model
     from pipeline.optimizer.loop import OptimizeResult, new_run, optimize
     from store import Store
+    from store.db import StoreError, StoreFull
     from store.writer import set_run_name
     from viewers.safe_text import terminal_text
 except KeyboardInterrupt:
@@ -53,6 +54,9 @@ except KeyboardInterrupt:
 
 BUDGET_EXIT = 3
 """Exit code of a batch run process whose run stopped at its budget (not a failure)."""
+STORE_FULL_EXIT = 4
+"""Exit code of a batch run process that found the store's disk full: the batch starts no more runs, which would
+each fail alike."""
 
 
 def _say(line: str) -> None:
@@ -126,6 +130,9 @@ if __name__ == "__main__":
     except KeyboardInterrupt:  # the run is marked interrupted already (the loop did); a line, not a traceback
         _say("interrupted")
         sys.exit(INTERRUPTED_EXIT)
+    except StoreError as exc:  # the store says what happened and what to do: its line, not a traceback
+        _say(f"error: {exc}")
+        sys.exit(STORE_FULL_EXIT if isinstance(exc, StoreFull) else 1)
     except Exception as exc:
         from store.db import is_ctrl_c
 

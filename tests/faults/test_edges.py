@@ -233,3 +233,30 @@ def test_a_batch_whose_log_fills_the_disk_goes_on_and_says_so(tmpfs, tmp_path, m
     assert code == 0 and "Traceback" not in err, err
     assert f"cannot write the batch's log {log}: No space left on device" in err, err
     assert "batch full done: 2 finished" in out, out
+
+
+def test_a_batch_stops_starting_runs_once_one_finds_the_store_disk_full(tmpfs, tmp_path, scripted, capsys):
+    """A batch whose store's disk filled went on starting its remaining runs, each a process (and its zygotes)
+    that failed at its first write with the same line. The run process that finds the disk full says the store's
+    line (not a traceback) and exits with its own code; the batch starts no more runs, says so once, and exits
+    non-zero. Checked by the processes that ran: one run log, not three."""
+    from store import Store
+
+    model = scripted(["{}"])
+    experiments = tmp_path / "full.toml"
+    experiments.write_text(f'name = "full"\n[defaults]\nmodel = "{model.model}"\napi_base = "{model.api_base}"\n'
+                           '[matrix]\ngame = ["pong"]\nseed = [0, 1, 2]\n')
+    directory = tmpfs("4m")
+    store = Store(directory / "s.duckdb")
+    with store.write():  # made, with its tables, while there was room
+        pass
+    _fill(directory / "filler")
+    log = tmp_path / "batch.log"
+    code = main(["batch", str(experiments), "--store", str(store.path), "--log", str(log), "--workers", "1"])
+    out, err = capsys.readouterr()
+    started = sorted((tmp_path / "batch.log.runs").glob("*.log"))
+    assert len(started) == 1, (started, out)
+    said = started[0].read_text()
+    assert "the disk is full" in said and "Traceback" not in said, said
+    assert code != 0 and "not starting the 2 runs left" in out, out
+    assert "1 failed, 2 not started (the store's disk is full)" in out, out
