@@ -99,3 +99,21 @@ def best_evaluation(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, An
         [ids]))}
     best["episodes"] = [by_id[i] for i in ids if i in by_id]
     return best
+
+
+def held_out_evaluation(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any] | None:
+    """The held-out audit of a run's best (``codearcade audit``, ``pipeline/optimizer/audit.py``): its ``audits``
+    row of role ``best`` under the standard protocol (``policy_version_id``, ``iteration``, ``seeds``) with its
+    ``episodes`` (seed, return, length, end reason, error, in the row's order); None when the run was never
+    audited. The caller checks that it played the run's best of now: a run that went on after its audit has a
+    newer one."""
+    rows = _rows(con.execute(
+        """SELECT policy_version_id, iteration, seeds, episode_ids FROM audits
+           WHERE run_id = ? AND role = 'best' AND protocol = 'standard'""", [run_id]))
+    if not rows:
+        return None
+    found = rows[0]
+    ids = found.pop("episode_ids") or []
+    by_id = episode_rows(con, ids)
+    found["episodes"] = [by_id[i] for i in ids if i in by_id]
+    return found

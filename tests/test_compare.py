@@ -154,29 +154,41 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted
     assert report["runs"][0]["best_iteration"] == 1 and report["runs"][1]["best_iteration"] == 0
     assert re.search(r"^-.*offset = \(y - 30\) % 320", report["diff"], re.M), "A's best has the competent code"
     # each best with its interval (store/scores.py's, of the episodes that scored it: the candidate's own), and
-    # whether the bests differ beyond the noise: the difference of the returns of those episodes
+    # whether the bests differ beyond the noise: on their held-out audit games (each run was audited as it
+    # finished), the tuning figures beside (each best was picked on those episodes: tests/test_compare_selection.py)
     from store.statistics import difference
     from viewers.safe_text import markdown_text
 
-    returns = []
+    episodes = dict(store.query("SELECT episode_id, return FROM episodes"))
+    returns, held = [], []
     for run in report["runs"]:
         (low, high, ids_), = store.query(
             "SELECT score_low, score_high, eval_episode_ids FROM candidates WHERE run_id = ? AND iteration = ? AND "
             "policy_version_id = ?", [run["run_id"], run["best_iteration"], run["best_version_id"]])
         assert (run["best_low"], run["best_high"], run["best_episodes"]) == (low, high, len(ids_))
-        returns.append([dict(store.query("SELECT episode_id, return FROM episodes"))[i] for i in ids_])
-    assert report["difference"]["verdict"] == difference(*returns).verdict()
-    verdict = f"best versions, over their evaluation episodes (1 and 1): {difference(*returns).verdict()}"
+        returns.append([episodes[i] for i in ids_])
+        (audited,), = store.query("SELECT episode_ids FROM audits WHERE run_id = ? AND role = 'best' AND "
+                                  "protocol = 'standard' AND policy_version_id = ?",
+                                  [run["run_id"], run["best_version_id"]])
+        held.append([episodes[i] for i in audited])
+    assert report["difference"]["basis"] == "held_out"
+    assert report["difference"]["verdict"] == difference(*held).verdict()
+    assert report["difference"]["tuning"]["delta"] == difference(*returns).delta
+    verdict = (f"best versions, held out (the standard protocol on their sealed audit games, 3 and 3): "
+               f"{difference(*held).verdict()}")
     readme = (tmp_path / "cmp" / "README.md").read_text()
     assert markdown_text(verdict) in readme
-    # each best was picked on the episodes that scored it, and under the paper's protocol they replay one game:
-    # the verdict says both, as compare of two versions does (a reviewer read "beyond the noise" there as a result)
+    assert markdown_text("on the tuning episodes that picked them (1 and 1): A - B = ") in readme
+    # without the audits the tuning difference is not tested, and under the paper's protocol its episodes replay
+    # one game: the verdict says both, as compare of two versions does (a reviewer read "beyond the noise" as a
+    # result)
     from viewers.compare_report import _best_difference
 
-    assert markdown_text("picked on the episodes that scored it") in readme
-    assert markdown_text("compare A:best B:best --audit") in readme
-    standard = {**report, "runs": [{**r, "best_protocol": "standard"} for r in report["runs"]]}
-    assert "picked on" in _best_difference(standard) and "replays the same game" not in _best_difference(standard)
+    unaudited = {**report, "difference": {**report["difference"], "basis": "tuning",
+                                          "verdict": "A - B = +1.0: not tested: each best was picked"}}
+    assert "compare A:best B:best --audit" in _best_difference(unaudited)
+    standard = {**unaudited, "runs": [{**r, "best_protocol": "standard"} for r in report["runs"]]}
+    assert "picked" in _best_difference(standard) and "replays the same game" not in _best_difference(standard)
     png = (tmp_path / "cmp" / "curves.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 20_000
     assert "![learning curves" in (tmp_path / "cmp" / "README.md").read_text()

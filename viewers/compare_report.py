@@ -79,20 +79,40 @@ def _best(run: dict[str, Any]) -> str:
                          MEAN_METHOD)
 
 
+def _held_out(run: dict[str, Any]) -> str:
+    """A run's best on its held-out audit games (``codearcade audit``): its score with its interval, ``no score
+    (forfeited)``, or ``-`` when it has none (never audited, or its audit played an earlier best)."""
+    held = run.get("held_out")
+    if held is None:
+        return "-"
+    if held["score"] is None:
+        return "no score (forfeited)"
+    return interval_text(held["mean"], held["low"], held["high"], held["played"], MEAN_METHOD, reason=held["reason"])
+
+
 def _best_difference(data: dict[str, Any]) -> str:
-    """Whether the two runs' bests differ beyond the noise, in words (or why they cannot be compared: a best that
-    forfeited a game has no score), with the sensitivity line when there is one."""
-    counts = " and ".join(f"{r['best_episodes']}" for r in data["runs"])
+    """Whether the two runs' bests differ beyond the noise, in words: on their held-out audit games when both have
+    them, with the tuning figures beside; else the tuning figures, not tested, and the audits that would test them
+    (or why they cannot be compared: a best that forfeited a game has no score), with the sensitivity line."""
     found = data["difference"]
     sensitivity = (found.get("sensitivity") or {}).get("text")
-    notes = [BEST_NOTE] + ([RUNS_PAPER_NOTE] if any(r.get("best_protocol") == "deterministic" for r in data["runs"])
-                           else [])
-    return (f"best versions, over their evaluation episodes ({counts}): {found['verdict']}"
-            + (f"; {sensitivity}" if sensitivity else "") + "".join(f" ({note})" for note in notes))
+    tail = f"; {sensitivity}" if sensitivity else ""
+    if found.get("basis") == "held_out":
+        games = " and ".join(str(len(r["held_out"]["seeds"])) for r in data["runs"])
+        counts = " and ".join(f"{r['best_episodes']}" for r in data["runs"])
+        tuning = found["tuning"]
+        beside = (f"; on the tuning episodes that picked them ({counts}): A - B = {tuning['interval']}, "
+                  f"{tuning['note']}" if tuning.get("interval") else "")
+        return (f"best versions, held out (the standard protocol on their sealed audit games, {games}): "
+                f"{found['verdict']}{tail}{beside}")
+    counts = " and ".join(f"{r['best_episodes']}" for r in data["runs"])
+    commands = found.get("audit_commands") or []
+    notes = ([f"to test it: {', '.join(f'`{c}`' for c in commands)}"] if commands else []) \
+        + ([RUNS_PAPER_NOTE] if any(r.get("best_protocol") == "deterministic" for r in data["runs"]) else [])
+    return (f"best versions, over their evaluation episodes ({counts}): {found['verdict']}{tail}"
+            + "".join(f" ({note})" for note in notes))
 
 
-BEST_NOTE = ("each best is its run's highest score, picked on the episodes that scored it, which flatters it, the "
-             "more so the more versions a run tried; `codearcade audit RUN` plays each best on sealed held-out games")
 RUNS_PAPER_NOTE = ("under the paper's protocol each episode replays the same game, so the interval measures only the "
                    "policies' own random draws; `codearcade compare A:best B:best --audit` plays both on sealed audit "
                    "seeds under the standard protocol")
@@ -214,11 +234,12 @@ def text_lines(data: dict[str, Any]) -> list[str]:
     the tables and the diff, which span lines."""
     if data["mode"] == "runs":
         runs = data["runs"]
-        lines = [format_table(("", "run", "model", "status", "iterations", "best", "at iteration", "LLM calls",
-                               "tokens", "seconds"),
+        lines = [format_table(("", "run", "model", "status", "iterations", "best", "held out", "at iteration",
+                               "LLM calls", "tokens", "seconds"),
                               [(r["label"], r["run_id"], r["model"], r["status"], r["iterations"], _best(r),
-                                r["best_iteration"], r["llm_calls"], r["total_tokens"], round(r["elapsed_s"], 1))
-                               for r in runs], max_width=32, null="-", whole=("best",)),
+                                _held_out(r), r["best_iteration"], r["llm_calls"], r["total_tokens"],
+                                round(r["elapsed_s"], 1))
+                               for r in runs], max_width=32, null="-", whole=("best", "held out")),
                  terminal_text(_best_difference(data)),
                  "", "best score reached within the same budget:",
                  format_table(("budget in", "up to", "A best", "B best"), _budget_rows(data), max_width=40, null="-"),
@@ -250,10 +271,11 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
         md += [f"# {markdown_text(data['game'])}: run {markdown_code(runs[0]['run_id'])} (A) vs run "
                f"{markdown_code(runs[1]['run_id'])} (B)", "",
                "![learning curves against LLM calls, tokens and wall seconds](curves.png)", "",
-               _md_table(("", "run", "model", "status", "iterations", "best", "at iteration", "LLM calls", "tokens",
-                          "seconds"),
+               _md_table(("", "run", "model", "status", "iterations", "best", "held out", "at iteration",
+                          "LLM calls", "tokens", "seconds"),
                          [(r["label"], markdown_code(r["run_id"]), r["model"], r["status"], r["iterations"], _best(r),
-                           r["best_iteration"], r["llm_calls"], r["total_tokens"], r["elapsed_s"]) for r in runs]),
+                           _held_out(r), r["best_iteration"], r["llm_calls"], r["total_tokens"], r["elapsed_s"])
+                          for r in runs]),
                "", markdown_text(_best_difference(data)) + " (`store/scores.py`)",
                *(f"\n**Caution:** {markdown_text(c)}." for c in data.get("cautions", ())),
                "", "## Best score within the same budget", "",

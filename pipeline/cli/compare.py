@@ -10,7 +10,7 @@ import sys
 from typing import Any, Callable
 
 from pipeline.cli.common import (EXIT_OK, CliError, EpisodeProgress, add_settings, add_store, check_output,
-                                 open_store, resolve_run, short_ids, shorten_run_ids, show, show_json)
+                                 command_text, open_store, resolve_run, short_ids, shorten_run_ids, show, show_json)
 from pipeline.play.config import CompareConfig
 from pipeline.settings import declarations
 
@@ -29,7 +29,9 @@ def add_parser(verbs) -> None:
         "and node outputs around it. Both also say whether the scores differ beyond the noise (95% intervals: "
         "the paired t of the per-seed differences where both played the same seeds with the same draws, Welch's "
         "t otherwise; store/statistics.py); --audit plays each version on its own audit seeds under "
-        "the standard protocol, which is what that needs.",
+        "the standard protocol, which is what that needs. Two runs' bests are compared on their held-out games "
+        "(`codearcade audit RUN`): each was picked on its tuning episodes, so without both audits their "
+        "difference there is shown, not tested.",
         epilog="examples: codearcade compare last~1 last --out cmp/   |   codearcade compare pong_a.py pong_b.py "
         "--max-steps 600 --rerun side_by_side.rrd   |   codearcade compare pong_a.py pong_b.py --audit --episodes 6 "
         "--max-steps 1000   |   codearcade compare last~1:best last:best",
@@ -73,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
     result = compare(store, args.a, args.b, config, progress=lambda line: show(line, file=sys.stderr, flush=True),
                      episodes_progress=EpisodeProgress)
     data = result.as_dict()
+    if data["mode"] == "runs":  # the audits that would give the bests' difference a verdict, as a shell takes them
+        _audit_commands(store, data)
     for caution in data.get("cautions", ()):  # said first, and on stderr: --json's reader sees it in the data
         show(f"codearcade: warning: {caution}", file=sys.stderr)
     if args.rerun:
@@ -107,9 +111,19 @@ def _with_short_ids(store, data: dict) -> dict:
         shown["diff"] = "\n".join([shorten_run_ids(line, short) for line in head] + body)
     if "runs" in data:
         shown["runs"] = [{**r, "run_id": short.get(r["run_id"], r["run_id"])} for r in data["runs"]]
+        _audit_commands(store, shown)  # by their short ids
     if "versions" in data:
         shown["versions"] = [{**v, "eval_run": short.get(v["eval_run"], v["eval_run"])} for v in data["versions"]]
     return shown
+
+
+def _audit_commands(store, data: dict) -> None:
+    """Put in ``data``'s difference the ``codearcade audit RUN`` of each run whose best has no held-out score
+    (``difference.to_audit``), each run named by the id ``data`` gives it."""
+    runs = {r["label"]: r["run_id"] for r in data["runs"]}
+    found = data["difference"]
+    data["difference"] = {**found, "audit_commands": [command_text(store, "audit", runs[label])
+                                                      for label in found.get("to_audit", ())]}
 
 
 def is_version_ref(text: str, store=None) -> bool:

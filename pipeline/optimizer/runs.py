@@ -3,9 +3,16 @@
 only budgets both runs spent are matched, so neither is credited with spending it never made), the unified
 diff of their best versions, each best score with its 95% interval (``store.scores.score_episodes`` of the
 episodes that scored it, computed now: a store made before issue 37 holds percentile-bootstrap intervals), and
-whether the two bests differ beyond the noise: ``store.scores.compare_scores`` (Welch's t) of those episodes, by
-the one rule: a best whose assessment forfeited a game (a run whose starter forfeited and nothing beat it) has no
-score, and then there is no verdict, only why, and the sensitivity line.
+whether the two bests differ beyond the noise (:func:`best_difference`).
+
+That verdict rests on held-out games only. Each best is its run's highest-scoring version, picked on the very
+episodes that scored it, so a test on those episodes is biased: identical policies, the best of 20 against a
+starter, were called different 10-19% of the time at 3-10 episodes by a 5% test (tests/test_compare_selection.py).
+So when both bests have a held-out audit (``codearcade audit RUN``: sealed seeds, the standard protocol), the
+verdict is ``store.scores.compare_scores`` (Welch's t) of those games, with the tuning figures beside; when either
+has none, the tuning difference and its interval are shown but no verdict is given, only which audit would give
+one. By the one rule, a best whose games include a forfeit has no score, and then there is no verdict, only why,
+and the sensitivity line.
 
 Everything is read back from the store (``store/comparisons.py``) and returned as plain data
 (``viewers/compare_report.py`` renders it). It lives beside the optimizer because what it weighs is the
@@ -16,14 +23,15 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Sequence
 
 from pipeline.play.versus import LABELS, difference_data, unified_diff
 from store import Store
-from store.comparisons import best_evaluation, best_version, learning_curve
+from store.comparisons import best_evaluation, best_version, held_out_evaluation, learning_curve
 from store.readers import get_run, policy_text
 from store.runs import kind_phrase, shown_status
-from store.scores import score_episodes
+from store.scores import Score, score_data, score_episodes
+from store.statistics import interval_text
 from store.views import resolve_run_id
 
 
@@ -35,8 +43,9 @@ class RunComparison:
     budgets: list[dict[str, Any]]
     diff: str
     difference: dict[str, Any]
-    """A's best minus B's best (mean returns of the episodes that scored them) with its 95% interval, whether that
-    leaves out 0, and the verdict in words."""
+    """A's best minus B's best with its 95% interval, whether that leaves out 0, and the verdict in words, on the
+    bests' held-out games when both have them, else on the tuning episodes without a verdict
+    (:func:`best_difference`)."""
     cautions: list[str]
     """The settings that change what a score is (:data:`SCORE_SETTINGS`) where the two runs differ, in words."""
 
@@ -61,7 +70,7 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
     """Learning curves, budget-matched table and best-version diff of two optimization runs."""
     with store.read() as con:
         ids = [resolve_run_id(con, x, store) for x in (a, b)]
-        runs, curves, texts, scores, configs = [], {}, [], [], []
+        runs, curves, texts, scores, configs, held_out = [], {}, [], [], [], []
         for label, run_id in zip(LABELS, ids):
             run = get_run(con, run_id)
             curve = learning_curve(con, run_id)
@@ -74,6 +83,10 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
             assessed = best_evaluation(con, run_id) or {"episodes": []}
             scored = score_episodes(assessed["episodes"])
             scores.append(scored)
+            audit = held_out_evaluation(con, run_id)
+            audited = audit is not None and audit["policy_version_id"] == best["policy_version_id"]
+            held = score_episodes(audit["episodes"]) if audited else None
+            held_out.append(held)
             curves[label] = [_curve_point(row) for row in _cumulative_calls(curve)]
             last = curves[label][-1]
             runs.append({"label": label, "run_id": run_id, "kind": run["kind"], "game": run["game"],
@@ -88,7 +101,13 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
                          # the protocol of those episodes: the paper's replays one game (optimize_protocol)
                          "best_protocol": configs[-1].get("optimize_protocol") or "deterministic",
                          "best_iteration": best["iteration"],
-                         "best_version_id": best["policy_version_id"]})
+                         "best_version_id": best["policy_version_id"],
+                         "held_out": None if held is None else {
+                             **score_data(held), "score": held.ranked, "no_score": held.no_score,
+                             "seeds": [e["seed"] for e in audit["episodes"]], "summary": held.summary()},
+                         "held_out_missing": None if audited else (
+                             "never audited" if audit is None else
+                             f"its audit played an earlier best (iteration {audit['iteration']})")})
     games = {r["game"] for r in runs}
     if len(games) > 1:
         raise ValueError(f"runs {ids[0]} ({runs[0]['game']}) and {ids[1]} ({runs[1]['game']}) play different games; "
@@ -97,7 +116,39 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
              + (f"score {r['best_score']:g})" if r["best_score"] is not None else "no score)") for r in runs]
     game = games.pop()
     return RunComparison(game, runs, curves, budget_table(curves), unified_diff(texts[0], texts[1], *names),
-                         difference_data(game, *scores), _cautions(configs))
+                         best_difference(game, scores, held_out), _cautions(configs))
+
+
+NOT_TESTED = ("not tested: each best was picked on the episodes that scored it, which flatters it (the more so the "
+              "more versions its run tried); `codearcade audit` of {which} scores {them} on sealed held-out games")
+"""The verdict when a best has no held-out score: the tuning difference is shown, never called a finding."""
+TUNING_NOTE = "not a test: each best was picked on these episodes"
+
+
+def best_difference(game: str, tuning: Sequence[Score], held_out: Sequence[Score | None]) -> dict[str, Any]:
+    """Whether two runs' bests differ beyond the noise, as plain data (``store.scores.Comparison.data``'s fields).
+    ``tuning``: each best's episodes that scored it (and picked it); ``held_out``: each best's held-out audit games
+    (None: it has none). With both held out, the verdict is theirs (``basis`` ``held_out``); else the figures are
+    the tuning episodes' with ``significant`` None and a verdict that says it is not tested and which runs' audit
+    would test it (``basis`` ``tuning``; a forfeit's refusal stays as it is).
+    ``tuning`` holds the tuning figures either way, beside the verdict, and ``to_audit`` the labels of the runs
+    whose best has no held-out score. A pure function of the numbers, so a simulation can weigh it."""
+    found = difference_data(game, *tuning)
+    figures = {key: found[key] for key in ("delta", "low", "high", "level", "method", "n", "reason", "forfeited")}
+    figures["interval"] = None if found["delta"] is None else interval_text(
+        found["delta"], found["low"], found["high"], tuple(found["n"]), found["method"], found["level"],
+        found["reason"], signed=True)
+    figures["note"] = TUNING_NOTE
+    missing = [label for label, score in zip(LABELS, held_out) if score is None]
+    if not missing:
+        return {**difference_data(game, *held_out), "basis": "held_out", "tuning": figures,
+                "to_audit": []}
+    if found["delta"] is not None:  # a forfeit's refusal says more than "not tested" and stays
+        which = " and ".join(f"run {label}" for label in missing)
+        found["verdict"] = (f"{LABELS[0]} - {LABELS[1]} = {figures['interval']}: "
+                            + NOT_TESTED.format(which=which, them="its best" if len(missing) == 1 else "their bests"))
+    return {**found, "significant": None, "basis": "tuning", "tuning": figures,
+            "to_audit": missing}
 
 
 def _cumulative_calls(curve: list[dict[str, Any]]) -> list[dict[str, Any]]:
