@@ -327,19 +327,27 @@ def compare_scores(a: Score, b: Score, worst: float | None = None, worst_source:
 
 
 def overfit(tuning_best: float | None, tuning_starter: float | None, audit_best: float | None,
-            audit_starter: float | None) -> bool:
+            audit_starter: float | None) -> bool | None:
     """Whether a run's held-out audit says its best version was fitted to the tuning games: the best forfeited
     an audit game, or less than half of the gain it showed over the starting policy on the tuning seeds is left
     on the audit seeds (both measured against the starter on the same games, so a harder protocol alone, where
     every policy scores less, is not taken for overfitting). A run whose best did not beat its starter claims no
-    gain and is never flagged."""
+    gain and is never flagged. **None: no reference**, when the starter forfeited its audit games (no score, by
+    the rule) and the best played its out: the only other starter score is its tuning one, on other games under
+    the run's own protocol, and the best's held-out score against it would read a harder protocol as lost gain
+    (or an easier one as gain kept), the very comparison across protocols this rule is built to avoid."""
     if tuning_best is None or tuning_starter is None or tuning_best <= tuning_starter:
         return False
     if audit_best is None:
         return True
-    gain = tuning_best - tuning_starter
-    reference = audit_starter if audit_starter is not None else tuning_starter
-    return audit_best - reference < gain / 2
+    if audit_starter is None:
+        return None
+    return audit_best - audit_starter < (tuning_best - tuning_starter) / 2
+
+
+NO_REFERENCE = ("no reference: the starting policy forfeited its held-out games, so the best's gain over it cannot "
+                "be measured there (its tuning score is other games, under another protocol)")
+"""What is said of a run whose overfit check has no reference (:func:`overfit` None)."""
 
 
 _ERROR_NAME = re.compile(r"\s*([^\W\d]\w*…?)(?=: | at line [0-9]|$)")

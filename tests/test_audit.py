@@ -299,3 +299,38 @@ def test_a_memorised_public_audit_is_caught_by_the_sealed_one(store, scripted, t
     assert public["seeds"] == PUBLIC
     assert public["score"] == pytest.approx(sum(public_returns) / 3), "memorised: the competent policy's returns"
     assert public["overfit"] is False and public["score"] > sealed["score"] + 3, (public, sealed)
+
+
+def test_a_starter_that_forfeited_its_audit_leaves_the_overfit_check_without_a_reference():
+    """The check compares the best's gain over the starter on the tuning games with what is left on the held-out
+    games, each against the starter on the same games. A starter that forfeited its audit games has no score
+    there, and the check fell back on its tuning score: the best's held-out score (the standard protocol) against
+    the starter's paper-protocol one, where the harder protocol alone reads as lost gain. A best at +5 on tuning
+    against a starter's -5, which plays -1 on the held-out games (every policy loses points to sticky actions),
+    was flagged OVERFIT; one at +9 was cleared. Neither is known: no reference, said so."""
+    from pipeline.cli.runs import _audit
+    from pipeline.optimizer.audit import AuditResult
+    from store.scores import overfit
+
+    assert overfit(5.0, -5.0, -1.0, None) is None, "was True: the held-out best against the tuning starter"
+    assert overfit(5.0, -5.0, 9.0, None) is None, "was False"
+    assert overfit(5.0, -5.0, None, None) is True, "a best that forfeits its audit is flagged whatever the starter"
+    assert overfit(-6.0, -5.0, 0.0, None) is False, "no gain claimed, none to lose"
+    assert overfit(5.0, -5.0, -1.0, -8.0) is False and overfit(5.0, -5.0, -1.0, 0.0) is True, "with a reference"
+    from store.scores import NO_REFERENCE
+
+    def row(role, iteration, score, forfeit=None, flag=None):
+        return {"role": role, "protocol": "standard", "policy_version_id": f"v{iteration}", "iteration": iteration,
+                "seeds": [AUDIT_SEED_BASE + i for i in range(3)], "score": score, "score_low": None,
+                "score_high": None, "forfeit": forfeit, "tuning_score": 5.0 if iteration else -5.0, "overfit": flag}
+
+    rows = [row("best", 2, -1.0, flag=overfit(5.0, -5.0, -1.0, None)),
+            row("starter", 0, None, forfeit="RuntimeError at step 300")]
+    result = AuditResult("run", rows)
+    lines = result.lines()
+    assert result.overfit is None and not any("OVERFIT" in line for line in lines), lines
+    assert lines[-1] == f"audit  overfit: {NO_REFERENCE}", lines
+    assert _audit({"audit_score": -1.0, "overfit": None}) == "-1 no reference"
+    assert _audit({"audit_score": -1.0, "overfit": True}) == "-1 OVERFIT"
+    assert _audit({"audit_score": -1.0, "overfit": False}) == "-1"
+    assert _audit({"audit_score": None, "overfit": None}) is None, "not audited"

@@ -21,7 +21,7 @@ from typing import Any, Callable, Sequence
 
 from store import Store
 from store.readers import get_run, model_choice_rows
-from store.scores import score_episodes
+from store.scores import NO_REFERENCE, score_episodes
 from store.statistics import MEAN_METHOD, interval_text
 from store.showing import report_rows
 from store.runs import resolve_run_id, shown_status
@@ -136,7 +136,8 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
             best, starter = (_audit_text(audited.get(role)) for role in ("best", "starter"))
             facts.append(f"held-out audit **{best}** (standard protocol; starter {starter})"
                          + (" · **OVERFIT**: less than half of the gain over the starter holds up"
-                            if summary["overfit"] else ""))
+                            if summary["overfit"] else f" · overfit: {NO_REFERENCE}" if summary["overfit"] is None
+                            else ""))
         facts.append(f"{summary['total_tokens']:,} LLM tokens")
         if summary.get("repair_calls"):
             saved = summary.get("saved_by_repair") or 0
@@ -193,7 +194,9 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                                "tuning", "overfit"),
                               [(a["role"], a["iteration"], a["protocol"], len(a["seeds"]),
                                 _score_text(a) if a["score"] is not None
-                                else f"forfeit: {terminal_text(a['forfeit'])}", a["tuning_score"], a["overfit"])
+                                else f"forfeit: {terminal_text(a['forfeit'])}", a["tuning_score"],
+                                "no reference" if a["overfit"] is None and (a["role"], a["protocol"]) == (
+                                    "best", "standard") else a["overfit"])
                                for a in data["audits"]]), ""]
         if data["rejected"]:
             out += ["## Rejected candidates", "", _md_table(

@@ -54,11 +54,12 @@ def _best(row: dict) -> float | str | None:
 
 
 def _audit(row: dict) -> str | None:
-    """The best version's held-out score (standard protocol), beside the tuning score: ``11.5 OVERFIT``."""
+    """The best version's held-out score (standard protocol), beside the tuning score: ``11.5 OVERFIT``; ``11.5 no
+    reference`` when the starter forfeited its audit games (``store.scores.overfit`` None)."""
     if row.get("audit_score") is None and row.get("overfit") is None:
         return None
     score = "forfeit" if row["audit_score"] is None else score_text(row["audit_score"])
-    return score + (" OVERFIT" if row.get("overfit") else "")
+    return score + (" OVERFIT" if row.get("overfit") else " no reference" if row.get("overfit") is None else "")
 
 
 def _repairs(row: dict) -> str | None:

@@ -17,7 +17,8 @@ row that lists them), so ``codearcade audit RUN --seeds ...`` can play the same 
 
 Each set is scored by the one rule (``store/scores.py``: forfeits, an interval) and stored as an ``audits`` row
 beside the version's tuning score; the episodes are stored too (kind ``audit``). The best's standard row carries
-``overfit`` (:func:`store.scores.overfit`: less than half of its gain over the starter holds up). The audit never
+``overfit`` (:func:`store.scores.overfit`: less than half of its gain over the starter holds up; NULL, no reference,
+when the starter forfeited its audit games). The audit never
 changes what the loop chose, and no prompt reads an audit episode (prompts are built from the candidates' own
 episodes). It runs when a run finishes (``OptimizeConfig.audit_episodes``, default 3) and on demand for any
 stored run (``codearcade audit RUN``), replacing the run's earlier audit.
@@ -38,7 +39,7 @@ from pipeline.play.spec import EpisodeSpec
 from pipeline.play.verify import checked_outcome
 from store import Store
 from store.readers import audit_subjects, get_run
-from store.scores import Score, overfit, score_episodes
+from store.scores import NO_REFERENCE, Score, overfit, score_episodes
 from store.statistics import MEAN_METHOD, interval_text
 from pipeline.stopping import uninterrupted
 from store.writer import EpisodeWriter, delete_episodes, replace_audits
@@ -57,9 +58,10 @@ class AuditResult:
         return next((r for r in self.rows if r["role"] == role and r["protocol"] == protocol), None)
 
     @property
-    def overfit(self) -> bool:
+    def overfit(self) -> bool | None:
+        """The best's flag (:func:`store.scores.overfit`); None when there is no reference to tell by."""
         best = self.row("best", "standard")
-        return bool(best and best["overfit"])
+        return False if best is None else best["overfit"]
 
     def lines(self) -> list[str]:
         """What a person reads: a line per audited version (the best, the starter; one when they are the same
@@ -80,6 +82,8 @@ class AuditResult:
         if self.overfit:
             out.append("audit  OVERFIT: less than half of the best version's gain over the starting policy holds up "
                        "on the held-out games (standard protocol)")
+        elif best is not None and self.overfit is None:
+            out.append(f"audit  overfit: {NO_REFERENCE}")
         return out
 
 
