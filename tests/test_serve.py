@@ -1340,14 +1340,16 @@ def test_over_mcp_stdio_pipelined_requests_wait_in_the_agents_pipe_not_in_the_se
     ({"best": [-5.0, -5.0], "starter": [-5.0, -5.0]}, True),  # its training gain is gone on the held-out games
     ({"best": [-5.0, "forfeit"], "starter": [-5.0, -5.0]}, True),  # it forfeited a held-out game
     ({"best": [0.0, 0.0], "starter": [-5.0, -5.0]}, False),  # its gain holds up
+    ({"best": [0.0, 0.0], "starter": [-5.0, "forfeit"]}, None),  # no reference: the starter forfeited held out
 ])  # returns relative to the best's training score
 def test_finalize_flags_a_best_whose_training_gain_does_not_hold_up(tmp_path, monkeypatch, held_out, flagged):
     """A served run's starter never plays the training instances, so its training score is None, and the overfit
     rule (``store.scores.overfit``) was handed that None as the starter's tuning score: it claims no gain then, so
     finalize never flagged a run, not even a best that forfeited its held-out games. The starter's held-out score,
     under the same standard protocol as every training instance, is the reference now. The games are scripted
-    here (``_play_scored``), relative to the submission's training score (what it played over 60 steps)."""
-    from pipeline.serve import protocol
+    here (``_play_scored``), relative to the submission's training score (what it played over 60 steps). A starter
+    that forfeited its held-out games leaves no reference: None, as the audit says it (it was False, quietly)."""
+    from pipeline.serve import finalize, protocol
     from pipeline.serve.config import ServeConfig
     from store.scores import score_episodes
 
@@ -1372,8 +1374,8 @@ def test_finalize_flags_a_best_whose_training_gain_does_not_hold_up(tmp_path, mo
             out.setdefault(spec.policy_version_id, []).append((episode, spec.episode_id))
         return {v: (score_episodes(e for e, _ in eps), [i for _, i in eps]) for v, eps in out.items()}
 
-    monkeypatch.setattr(protocol, "_play_scored", scripted)
-    rows = protocol.finalize_run(store, run_id, served.record)
+    monkeypatch.setattr(finalize, "_play_scored", scripted)
+    rows = finalize.finalize_run(store, run_id, served.record)
     best = next(r for r in rows if r["role"] == "best")
     assert best["tuning_score"] == tuning and best["overfit"] is flagged, rows
 
