@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Iterable, Mapping, Sequence
 
 from store.statistics import (ALL_EQUAL, CONFIDENCE, DIFFERENCE_METHOD, MEAN_METHOD, TOO_FEW, Difference, Interval,
@@ -235,7 +236,7 @@ class Comparison:
     def forfeited(self) -> bool:
         return bool(self.a.forfeits or self.b.forfeits)
 
-    @property
+    @cached_property  # a t-test: data() and verdict() each read it (a frozen dataclass keeps its __dict__)
     def difference(self) -> Difference | None:
         """:func:`difference` of the two sets' returns; None when either forfeited (no score to compare)."""
         if self.forfeited:
@@ -244,7 +245,7 @@ class Comparison:
             return paired_difference(self.a.returns, self.b.returns)
         return difference(self.a.returns, self.b.returns)
 
-    @property
+    @cached_property
     def sensitivity(self) -> Difference | None:
         """With a forfeit and a worst return: the difference with each forfeit counted at ``worst`` (the played-out
         returns as they are); None otherwise."""
