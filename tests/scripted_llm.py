@@ -26,7 +26,8 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
 - ``"repeat": n`` beside ``content``: the content n times over (a huge reply from a small script); ``"gzip": true``:
   the body gzip-compressed (``Content-Encoding: gzip``) whatever the request accepts; ``"extra_dicts": n``: a field
-  of n empty objects beside the reply; ``"empty_events": n``: n events of ``{}`` after a stream's first;
+  of n empty objects beside the reply (in a stream, beside its first event's fields); ``"empty_events": n``: n
+  events of ``{}`` after a stream's first;
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
 - ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
   candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call);
@@ -378,7 +379,11 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             if entry.get("extra_dicts"):  # a field no reply needs, costly to parse: [{}, {}, ...]
                 body["x"] = [{}] * entry["extra_dicts"]
             if request.get("stream"):
+                extra = body.pop("x", None)
                 events = _sse_events(protocol, body, request)
+                if extra is not None:  # beside the first event's fields: one event of n objects
+                    name, data = events[0]
+                    events[0] = (name, data[:-1] + ', "x": ' + json.dumps(extra, separators=(",", ":")) + "}")
                 self._stream(events[:1] + [(None, "{}")] * entry.get("empty_events", 0) + events[1:])
                 return
             self._send(200, json.dumps(body).encode(), gzipped=entry.get("gzip", False))

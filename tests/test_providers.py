@@ -460,13 +460,15 @@ def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events
     """Bytes alone do not bound a parse: 16 KB of gzip inflating to 5.5 million `{}` (16 MB, inside the byte
     limit) held ~1 GB a call, and 300,000 empty stream events (6 KB of gzip) took 115 s and 830 MB. A JSON answer
     holds at most MAX_ANSWER_ELEMENTS elements and a stream at most max_events() events (litellm reads past empty
-    ones without a chunk: they are counted as they arrive): past them the call fails
-    saying why, its child's peak near a small answer's; an honest stream still reads."""
+    ones without a chunk: they are counted as they arrive), and EVENT_ELEMENTS elements more an event (one event
+    of 4 million `{}`, 12 MB, was read whole, and held 700 MB: litellm keeps an event's fields): past them the call
+    fails saying why, its child's peak near a small answer's; an honest stream still reads."""
     from pipeline.llm.capped import MAX_ANSWER_ELEMENTS
 
     model = scripted([{"content": "a small reply"}, {"content": "a small reply"},
                       {"content": "a small reply", "extra_dicts": 2 * MAX_ANSWER_ELEMENTS, "gzip": True},
-                      {"content": "a small reply", "empty_events": 80_000}])
+                      {"content": "a small reply", "empty_events": 80_000},
+                      {"content": "a small reply", "extra_dicts": 4_000_000}])
     name, base = model.route(provider)
 
     def ask(*stream: str) -> dict:
@@ -485,6 +487,9 @@ def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events
     assert events.get("error_type") == "AnswerTooLarge" and "stream passed 20,000 events" in events["message"], \
         events
     assert events["peak_mb"] < streamed["peak_mb"] + 150, (events, streamed)
+    wide = ask("stream")
+    assert wide.get("error_type") == "AnswerTooLarge" and "stream holds more than" in wide["message"], wide
+    assert wide["peak_mb"] < streamed["peak_mb"] + 150, (wide, streamed)
 
 
 def test_the_capped_decoder_inflates_as_zlib_does_in_any_split_and_stops_at_each_limit():
@@ -520,6 +525,12 @@ def test_the_capped_decoder_inflates_as_zlib_does_in_any_split_and_stops_at_each
         assert list(decoder.chunks(event * 3))
         with pytest.raises(AnswerTooLarge, match="stream passed 3 events"):
             list(decoder.chunks(event))
+        # a stream's elements: `elements`, and `event_elements` more for each event it has sent
+        decoder = CappedDecoder([], 10**9, 10, 100, mark, event_elements=2)
+        bare = {b"data:": b"data: 1\n\n", b"\n": b"1\n"}[mark]  # an event of no elements
+        list(decoder.chunks(bare * 11 + b"[" * 32))  # 11 events: 10 + 2 * 11 elements
+        with pytest.raises(AnswerTooLarge, match="more than 32 JSON elements"):
+            list(decoder.chunks(b"["))
     with pytest.raises(AnswerTooLarge, match="passed 1,000 bytes"):
         list(CappedDecoder(["gzip"], 1000).chunks(gzip.compress(b" " * 10**6)))
     with pytest.raises(AnswerTooLarge, match="content encoding 'br'"):

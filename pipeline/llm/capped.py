@@ -9,8 +9,10 @@ decoded by :class:`CappedDecoder`: identity, gzip or deflate, inflated a slice a
 refused: a provider asked by httpx for gzip or deflate sends one of those), or a JSON answer holds more elements
 than a reply could (:data:`MAX_ANSWER_ELEMENTS`: what its parse holds depends on those, not on bytes), or an
 event stream more events than its reply could take (each costs litellm ~0.4 ms and a few KB, an empty one too:
-300,000 of ``{}``, 6 KB of gzip, took 115 s and 830 MB). Outside :func:`capped` the libraries decode as they
-always do.
+300,000 of ``{}``, 6 KB of gzip, took 115 s and 830 MB) or more elements than those events could
+(:data:`EVENT_ELEMENTS` each beyond :data:`MAX_ANSWER_ELEMENTS`: litellm keeps every event's fields, so one event
+of 5 million ``{}`` held 780 MB, and 19,000 events of 250 each 400 MB). Outside :func:`capped` the libraries
+decode as they always do.
 
 The hook is the response's ``_get_content_decoder``, the one place both libraries choose how to decode a body;
 ``tests/test_providers.py`` checks it against real servers speaking the OpenAI and Anthropic protocols.
@@ -28,10 +30,16 @@ MAX_ANSWER_BYTES = 16 * 2**20
 """The most an LLM endpoint's answer may hold, inflated: a reply of ``MAX_REPLY_CHARS`` (1,000,000 characters) in
 JSON with every character escaped, or a stream of ~100,000 tokens, each its own event."""
 MAX_ANSWER_ELEMENTS = 250_000
-"""The most ``{``, ``[`` and ``,`` a JSON answer (not an event stream: each of its events is parsed on its own,
-and ``LiteLLMClient`` counts them) may hold. A reply's own text is one JSON string, whose code has a few per cent
-of them; ``[{},{},…]`` in 16 KB of gzip (16 MB inflated) was 5.5 million dicts, ~1 GB a call, the SDK's models
-built from it included. At this count the parse holds ~100 MB at most."""
+"""The most ``{``, ``[`` and ``,`` a JSON answer may hold (an event stream: these and :data:`EVENT_ELEMENTS` an
+event). A reply's own text is one JSON string, whose code has a few per cent of them; ``[{},{},…]`` in 16 KB of
+gzip (16 MB inflated) was 5.5 million dicts, ~1 GB a call, the SDK's models built from it included. At this count
+the parse holds ~100 MB at most."""
+EVENT_ELEMENTS = 32
+"""The ``{``, ``[`` and ``,`` an event stream may hold for each event it has sent, beyond :data:`MAX_ANSWER_ELEMENTS`:
+an honest event (OpenAI's chunk, Anthropic's delta, Ollama's line) has 5 to 15. Without it a stream's elements went
+uncounted: litellm parses each event on its own but keeps its fields, so one event of 5 million ``{}`` (15 MB, or
+16 KB of gzip) held 780 MB in ``optimize``'s process; at this count a stream of 20,000 events holds ~75 MB of
+them."""
 
 _LIMIT: contextvars.ContextVar[tuple[int, int] | None] = contextvars.ContextVar("codearcade_answer_limit",
                                                                                  default=None)
@@ -46,14 +54,16 @@ class CappedDecoder:
     """Decodes one response body (identity, gzip or deflate) and counts what it has read and made."""
 
     def __init__(self, encodings: list[str], limit: int, elements: int | None = MAX_ANSWER_ELEMENTS,
-                 events: int | None = None, event_mark: bytes = b"data:") -> None:
+                 events: int | None = None, event_mark: bytes = b"data:", event_elements: int = 0) -> None:
         encodings = [e.strip().lower() for e in encodings if e.strip().lower() not in ("", "identity")]
         if len(encodings) > 1 or (encodings and encodings[0] not in ("gzip", "x-gzip", "deflate")):
             raise AnswerTooLarge(f"the endpoint answered with content encoding {', '.join(encodings)!r}, which "
                                  "codearcade does not read")
         self.limit = limit
         self.elements = elements
-        """How many ``{``, ``[`` and ``,`` the answer may hold (None: an event stream, counted by events)."""
+        """How many ``{``, ``[`` and ``,`` the answer may hold (None: not counted), and ``event_elements`` more for
+        each event of a stream it has sent."""
+        self.event_elements = event_elements
         self.events = events
         """How many events (``data:`` lines) an event stream may hold (litellm reads past empty ones unseen)."""
         self.event_mark = event_mark
@@ -68,16 +78,20 @@ class CappedDecoder:
             raise AnswerTooLarge(f"the endpoint's answer passed {self.limit:,} bytes"
                                  + (f" (from {self.raw:,} compressed)" if self.inflater is not None else "")
                                  + ": no reply is that long; is --api-base an LLM endpoint?")
-        if self.elements is not None:
-            self.seen_elements += out.count(b"{") + out.count(b"[") + out.count(b",")
-            if self.seen_elements > self.elements:
-                raise AnswerTooLarge(f"the endpoint's answer holds more than {self.elements:,} JSON elements: no "
-                                     "reply has that many; is --api-base an LLM endpoint?")
-        if self.events is not None:
+        if self.events is not None:  # first: an event's own elements come with it
             self.seen_events += out.count(self.event_mark)  # a mark split across two reads is not counted: one
             if self.seen_events > self.events:
                 raise AnswerTooLarge(f"the endpoint's stream passed {self.events:,} events: no reply of the "
                                      "tokens asked for takes that many; is --api-base an LLM endpoint?")
+        if self.elements is not None:
+            self.seen_elements += out.count(b"{") + out.count(b"[") + out.count(b",")
+            allowed = self.elements + self.event_elements * self.seen_events
+            if self.seen_elements > allowed:
+                per_event = (f" ({self.elements:,} and {self.event_elements} for each of its {self.seen_events:,} "
+                             "events)" if self.event_elements else "")
+                raise AnswerTooLarge(f"the endpoint's {'stream' if self.events is not None else 'answer'} holds "
+                                     f"more than {allowed:,} JSON elements{per_event}: no reply has that many; is "
+                                     "--api-base an LLM endpoint?")
 
     def chunks(self, data: bytes) -> Iterator[bytes]:
         self.raw += len(data)
@@ -147,8 +161,8 @@ def _install(module_name: str, adapter: type) -> None:
             kind = self.headers.get("content-type", "").lower()
             mark = b"data:" if "event-stream" in kind else b"\n" if "ndjson" in kind or "jsonl" in kind else None
             self._decoder = adapter(CappedDecoder(self.headers.get_list("content-encoding", split_commas=True),
-                                                  limit, None if mark else MAX_ANSWER_ELEMENTS,
-                                                  events if mark else None, mark or b"data:"))
+                                                  limit, MAX_ANSWER_ELEMENTS, events if mark else None,
+                                                  mark or b"data:", EVENT_ELEMENTS if mark else 0))
         return self._decoder
 
     decoder._codearcade_capped = True
