@@ -27,7 +27,7 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``"repeat": n`` beside ``content``: the content n times over (a huge reply from a small script); ``"gzip": true``:
   the body gzip-compressed (``Content-Encoding: gzip``) whatever the request accepts; ``"extra_dicts": n``: a field
   of n empty objects beside the reply (in a stream, beside its first event's fields); ``"empty_events": n``: n
-  events of ``{}`` after a stream's first;
+  events of ``{}`` after a stream's first; ``"choices": n``: each OpenAI stream event with its choice n times;
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
 - ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
   candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call);
@@ -259,7 +259,7 @@ def _pieces(text: str) -> list[str]:
     return re.findall(r"\S+\s*|\s+", text) or [""]
 
 
-def _sse_events(protocol: str, body: dict, request: dict) -> list[tuple[str | None, str]]:
+def _sse_events(protocol: str, body: dict, request: dict, copies: int = 1) -> list[tuple[str | None, str]]:
     """A finished reply as the server-sent events of a streamed one (OpenAI chat chunks or Anthropic events)."""
     if protocol == "anthropic":
         block = body["content"][0]
@@ -283,8 +283,8 @@ def _sse_events(protocol: str, body: dict, request: dict) -> list[tuple[str | No
         raise ValueError(f"the scripted server streams only OpenAI and Anthropic replies, not {protocol}")
     text = body["choices"][0]["message"]["content"]
     head = {k: body[k] for k in ("id", "created", "model")} | {"object": "chat.completion.chunk"}
-    chunks = [{**head, "choices": [{"index": 0, "delta": {"role": "assistant", "content": p}, "finish_reason": None}]}
-              for p in _pieces(text)]
+    chunks = [{**head, "choices": [{"index": 0, "delta": {"role": "assistant", "content": p}, "finish_reason": None}]
+               * copies} for p in _pieces(text)]  # copies: a hostile endpoint's, the same choice n times
     chunks.append({**head, "choices": [{"index": 0, "delta": {}, "finish_reason": "stop"}]})
     if (request.get("stream_options") or {}).get("include_usage"):
         chunks.append({**head, "choices": [], "usage": body["usage"]})
@@ -380,7 +380,7 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
                 body["x"] = [{}] * entry["extra_dicts"]
             if request.get("stream"):
                 extra = body.pop("x", None)
-                events = _sse_events(protocol, body, request)
+                events = _sse_events(protocol, body, request, entry.get("choices", 1))
                 if extra is not None:  # beside the first event's fields: one event of n objects
                     name, data = events[0]
                     events[0] = (name, data[:-1] + ', "x": ' + json.dumps(extra, separators=(",", ":")) + "}")

@@ -492,6 +492,28 @@ def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events
     assert wide["peak_mb"] < streamed["peak_mb"] + 150, (wide, streamed)
 
 
+@pytest.mark.slow
+def test_a_stream_event_of_more_than_one_choice_ends_the_call(scripted):
+    """One choice is asked for, but litellm built an object for each choice an event carried and kept every event
+    for the reply: 19,900 events of seven choices each (6.7 MB) held 330 MB more and took 65 s. An event with more
+    than one choice now ends the call, saying so, the child's peak near an honest stream's."""
+    model = scripted([{"content": "a small reply"}, {"content": "a " * 12_000, "choices": 7}])
+    name, base = model.route("openai")
+
+    def ask() -> dict:
+        done = subprocess.run([sys.executable, "-c", _ASK_ONCE, name, base, str(ROOT), "stream"], capture_output=True,
+                              text=True, timeout=300, env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    streamed = ask()
+    assert streamed.get("text") == "a small reply", streamed
+    hostile = ask()
+    assert hostile.get("error_type") == "AnswerTooLarge", hostile
+    assert "7 choices in one event" in hostile["message"] and "asked at" in hostile["message"], hostile
+    assert hostile["peak_mb"] < streamed["peak_mb"] + 60, (hostile, streamed)
+
+
 def test_the_capped_decoder_inflates_as_zlib_does_in_any_split_and_stops_at_each_limit():
     """pipeline.llm.capped's decoder, without a server: gzip, deflate (zlib) and identity bodies split at random
     points decode to exactly the body; each limit (bytes raw or inflated, JSON elements, server-sent events or

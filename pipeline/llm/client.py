@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Protocol
 
 from pipeline.boundary.untrusted import REDACTED, scrub_secrets
-from pipeline.llm.capped import capped, too_large
+from pipeline.llm.capped import AnswerTooLarge, capped, too_large
 from pipeline.llm.providers import LOCAL_SERVER_PROVIDERS, OFFLINE_CHARS_PER_TOKEN, OFFLINE_REASONING_CHARS, \
     ReplyLimits, reply_format, reply_schema, with_cache_breakpoint
 from pipeline.llm.providers import request_params as provider_request_params
@@ -362,13 +362,18 @@ class LiteLLMClient:
                  began: float) -> Any:
         """A streamed reply, read to its end (pieces of text to ``on_text``) and built into one response, no longer
         than the call's time limit in all (httpx's is per read: an endpoint that sent an event just inside it would
-        never be let go; how many events it may send, :func:`capped` counts)."""
+        never be let go; how many events it may send, :func:`capped` counts), each event with one choice at most
+        (seven in each of 19,900 events, 6.7 MB, held 330 MB: litellm builds an object a choice, and every event is
+        kept for the reply)."""
         received = []
         for chunk in chunks:
             if time.monotonic() - began > self.timeout_s:
                 raise self.litellm.Timeout(f"the stream went on past the call's time limit of {self.timeout_s:g} s",
                                            self.model, self.provider)
             choices = getattr(chunk, "choices", None) or []
+            if len(choices) > 1:  # one is asked for (no `n`); each costs litellm ~1.8 KB, and every event is kept
+                raise AnswerTooLarge(f"the endpoint's stream sent {len(choices):,} choices in one event, where one "
+                                     "was asked for: is --api-base an LLM endpoint?")
             if choices or getattr(chunk, "usage", None) is not None:  # an empty event adds nothing to the reply
                 received.append(chunk)
             for choice in choices:
