@@ -27,7 +27,8 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``"repeat": n`` beside ``content``: the content n times over (a huge reply from a small script); ``"gzip": true``:
   the body gzip-compressed (``Content-Encoding: gzip``) whatever the request accepts; ``"extra_dicts": n``: a field
   of n empty objects beside the reply (in a stream, beside its first event's fields); ``"empty_events": n``: n
-  events of ``{}`` after a stream's first; ``"choices": n``: each OpenAI stream event with its choice n times;
+  events of ``{}`` after a stream's first; ``"choices": n``: each OpenAI stream event with its choice n times
+  (``"tool_calls": n``: its text as n tool calls);
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
 - ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
   candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call);
@@ -259,8 +260,10 @@ def _pieces(text: str) -> list[str]:
     return re.findall(r"\S+\s*|\s+", text) or [""]
 
 
-def _sse_events(protocol: str, body: dict, request: dict, copies: int = 1) -> list[tuple[str | None, str]]:
-    """A finished reply as the server-sent events of a streamed one (OpenAI chat chunks or Anthropic events)."""
+def _sse_events(protocol: str, body: dict, request: dict, copies: int = 1,
+                tool_calls: int = 0) -> list[tuple[str | None, str]]:
+    """A finished reply as the server-sent events of a streamed one (OpenAI chat chunks or Anthropic events); a
+    hostile endpoint's: each OpenAI chunk with its choice ``copies`` times, or its text as ``tool_calls`` calls."""
     if protocol == "anthropic":
         block = body["content"][0]
         start = {**body, "content": [], "stop_reason": None,
@@ -283,8 +286,11 @@ def _sse_events(protocol: str, body: dict, request: dict, copies: int = 1) -> li
         raise ValueError(f"the scripted server streams only OpenAI and Anthropic replies, not {protocol}")
     text = body["choices"][0]["message"]["content"]
     head = {k: body[k] for k in ("id", "created", "model")} | {"object": "chat.completion.chunk"}
-    chunks = [{**head, "choices": [{"index": 0, "delta": {"role": "assistant", "content": p}, "finish_reason": None}]
-               * copies} for p in _pieces(text)]  # copies: a hostile endpoint's, the same choice n times
+    deltas = [{"role": "assistant", "content": p} if not tool_calls else
+              {"role": "assistant", "tool_calls": [{"index": i, "function": {"arguments": p}}
+                                                   for i in range(tool_calls)]}
+              for p in _pieces(text)]
+    chunks = [{**head, "choices": [{"index": 0, "delta": d, "finish_reason": None}] * copies} for d in deltas]
     chunks.append({**head, "choices": [{"index": 0, "delta": {}, "finish_reason": "stop"}]})
     if (request.get("stream_options") or {}).get("include_usage"):
         chunks.append({**head, "choices": [], "usage": body["usage"]})
@@ -380,7 +386,8 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
                 body["x"] = [{}] * entry["extra_dicts"]
             if request.get("stream"):
                 extra = body.pop("x", None)
-                events = _sse_events(protocol, body, request, entry.get("choices", 1))
+                events = _sse_events(protocol, body, request, entry.get("choices", 1),
+                                     entry.get("tool_calls", 0))
                 if extra is not None:  # beside the first event's fields: one event of n objects
                     name, data = events[0]
                     events[0] = (name, data[:-1] + ', "x": ' + json.dumps(extra, separators=(",", ":")) + "}")

@@ -493,11 +493,13 @@ def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events
 
 
 @pytest.mark.slow
-def test_a_stream_event_of_more_than_one_choice_ends_the_call(scripted):
-    """One choice is asked for, but litellm built an object for each choice an event carried and kept every event
-    for the reply: 19,900 events of seven choices each (6.7 MB) held 330 MB more and took 65 s. An event with more
-    than one choice now ends the call, saying so, the child's peak near an honest stream's."""
-    model = scripted([{"content": "a small reply"}, {"content": "a " * 12_000, "choices": 7}])
+@pytest.mark.parametrize("part", ["choices", "tool_calls"])
+def test_a_stream_event_of_more_than_one_choice_or_tool_call_ends_the_call(scripted, part):
+    """One choice is asked for, but litellm built an object for each choice (and tool call) an event carried and kept
+    every event for the reply: 19,900 events of seven choices each (6.7 MB) held 330 MB more and took 65 s, of seven
+    tool calls 250 MB. An event with more than one now ends the call, saying so, the child's peak near an honest
+    stream's."""
+    model = scripted([{"content": "a small reply"}, {"content": "a " * 12_000, part: 7}])
     name, base = model.route("openai")
 
     def ask() -> dict:
@@ -510,7 +512,8 @@ def test_a_stream_event_of_more_than_one_choice_ends_the_call(scripted):
     assert streamed.get("text") == "a small reply", streamed
     hostile = ask()
     assert hostile.get("error_type") == "AnswerTooLarge", hostile
-    assert "7 choices in one event" in hostile["message"] and "asked at" in hostile["message"], hostile
+    assert f"7 {part.replace('_', ' ')} in one event" in hostile["message"] and "asked at" in hostile["message"], \
+        hostile
     assert hostile["peak_mb"] < streamed["peak_mb"] + 60, (hostile, streamed)
 
 

@@ -362,18 +362,21 @@ class LiteLLMClient:
                  began: float) -> Any:
         """A streamed reply, read to its end (pieces of text to ``on_text``) and built into one response, no longer
         than the call's time limit in all (httpx's is per read: an endpoint that sent an event just inside it would
-        never be let go; how many events it may send, :func:`capped` counts), each event with one choice at most
-        (seven in each of 19,900 events, 6.7 MB, held 330 MB: litellm builds an object a choice, and every event is
-        kept for the reply)."""
+        never be let go; how many events it may send, :func:`capped` counts), each event with one choice and one
+        tool call at most (seven choices in each of 19,900 events, 6.7 MB, held 330 MB, seven tool calls 250 MB:
+        litellm builds an object for each, and every event is kept for the reply)."""
         received = []
         for chunk in chunks:
             if time.monotonic() - began > self.timeout_s:
                 raise self.litellm.Timeout(f"the stream went on past the call's time limit of {self.timeout_s:g} s",
                                            self.model, self.provider)
             choices = getattr(chunk, "choices", None) or []
-            if len(choices) > 1:  # one is asked for (no `n`); each costs litellm ~1.8 KB, and every event is kept
-                raise AnswerTooLarge(f"the endpoint's stream sent {len(choices):,} choices in one event, where one "
-                                     "was asked for: is --api-base an LLM endpoint?")
+            calls = max((len(getattr(getattr(c, "delta", None), "tool_calls", None) or []) for c in choices),
+                        default=0)
+            if len(choices) > 1 or calls > 1:  # one is asked for: each costs litellm ~1.8 KB, and every event is kept
+                many = f"{len(choices):,} choices" if len(choices) > 1 else f"{calls:,} tool calls"
+                raise AnswerTooLarge(f"the endpoint's stream sent {many} in one event, where one was asked for: is "
+                                     "--api-base an LLM endpoint?")
             if choices or getattr(chunk, "usage", None) is not None:  # an empty event adds nothing to the reply
                 received.append(chunk)
             for choice in choices:
