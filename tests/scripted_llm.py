@@ -27,8 +27,8 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``"repeat": n`` beside ``content``: the content n times over (a huge reply from a small script); ``"gzip": true``:
   the body gzip-compressed (``Content-Encoding: gzip``) whatever the request accepts; ``"extra_dicts": n``: a field
   of n empty objects beside the reply (in a stream, beside its first event's fields); ``"empty_events": n``: n
-  events of ``{}`` after a stream's first; ``"choices": n``: each OpenAI stream event with its choice n times
-  (``"tool_calls": n``: its text as n tool calls);
+  events of ``{}`` after a stream's first; ``"choices": n``: an OpenAI answer (each event of a stream) with its
+  choice n times (``"tool_calls": n``: each event's text as n tool calls);
 - ``{"echo_prompt": true}``: reply with a JSON suggestion-free text containing the prompt hash;
 - ``{"pool": [...], "seed": s}``: reply with a seeded random choice from the pool (by request number), e.g.
   candidate policies of mixed quality (with ``"sleep"``: a model that takes that long per call);
@@ -384,6 +384,8 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             body = _reply_body(protocol, request, content, count, input_tokens, output_tokens, cache)
             if entry.get("extra_dicts"):  # a field no reply needs, costly to parse: [{}, {}, ...]
                 body["x"] = [{}] * entry["extra_dicts"]
+            if entry.get("choices") and not request.get("stream") and protocol == "openai":
+                body["choices"] = body["choices"] * entry["choices"]  # the same choice n times, as one answer
             if request.get("stream"):
                 extra = body.pop("x", None)
                 events = _sse_events(protocol, body, request, entry.get("choices", 1),

@@ -517,26 +517,73 @@ def test_a_stream_event_of_more_than_one_choice_or_tool_call_ends_the_call(scrip
     assert hostile["peak_mb"] < streamed["peak_mb"] + 60, (hostile, streamed)
 
 
+@pytest.mark.slow
+def test_an_answer_s_elements_are_counted_outside_its_strings(scripted):
+    """A reply's text is one JSON string, whose commas were counted as elements: the limit had to let 250,000 by,
+    and an answer of 40,000 choices (2.7 MB, 20 KB of gzip) within it held 146 MB more and took 8 s (litellm builds
+    ~3.6 KB of objects a choice). Counted outside strings, an honest answer's structure is a few dozen elements, and
+    MAX_ANSWER_ELEMENTS is 10,000: that answer now fails saying why, its child's peak near a small answer's, while a
+    reply of 100,000 commas still reads."""
+    from pipeline.llm.capped import MAX_ANSWER_ELEMENTS
+
+    model = scripted([{"content": "a small reply"}, {"content": "a small reply", "choices": 40_000, "gzip": True},
+                      {"content": "f(a, b)" * 100_000}])
+    name, base = model.route("openai")
+
+    def ask() -> dict:
+        done = subprocess.run([sys.executable, "-c", _ASK_ONCE, name, base, str(ROOT)], capture_output=True,
+                              text=True, timeout=300, env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    small = ask()
+    assert small.get("text") == "a small reply", small
+    choices = ask()
+    assert choices.get("error_type") == "AnswerTooLarge", choices
+    assert f"more than {MAX_ANSWER_ELEMENTS:,} JSON elements" in choices["message"], choices
+    assert choices["peak_mb"] < small["peak_mb"] + 60, (choices, small)
+    assert ask().get("text") == ("f(a, b)" * 100_000)[:100]
+
+
 def test_the_capped_decoder_inflates_as_zlib_does_in_any_split_and_stops_at_each_limit():
     """pipeline.llm.capped's decoder, without a server: gzip, deflate (zlib) and identity bodies split at random
-    points decode to exactly the body; each limit (bytes raw or inflated, JSON elements, server-sent events or
-    JSON lines) stops it once passed, never before; an encoding it does not inflate is refused."""
+    points decode to exactly the body; each limit (bytes raw or inflated, JSON elements outside strings, server-sent
+    events or JSON lines) stops it once passed, never before; an encoding it does not inflate is refused."""
     import gzip
     import random
     import zlib
 
     from pipeline.llm.capped import AnswerTooLarge, CappedDecoder
 
+    def structure(body: bytes) -> tuple[int, bool]:
+        """The `{`, `[` and `,` of `body` outside JSON strings, one character at a time, and whether a string was
+        cut by a line end (no JSON: a parse stops there, and the decoder may count more after it, never fewer)."""
+        count, in_string, cut, i = 0, False, False, 0
+        while i < len(body):
+            char, after = body[i:i + 1], body[i + 1:i + 2]
+            if in_string and char == b"\\" and after not in (b"", b"\n"):
+                i += 2
+                continue
+            if in_string and char in b'"\n':
+                in_string, cut = False, cut or char == b"\n"
+            elif not in_string and char == b'"':
+                in_string = True
+            elif not in_string and char in b"{[,":
+                count += 1
+            i += 1
+        return count, cut
+
     rng = random.Random(11)
-    for _ in range(200):
-        body = bytes(rng.choice(b'{}[],"ab \n') for _ in range(rng.randint(0, 5000)))
+    for n in range(300):
+        alphabet = b'{}[],"ab \\' + (b"\n" if n % 2 else b"")
+        body = bytes(rng.choice(alphabet) for _ in range(rng.randint(0, 5000)))
         encoding, packed = rng.choice([("gzip", gzip.compress(body)), ("deflate", zlib.compress(body)),
                                        ("identity", body)])
-        cuts = sorted(rng.sample(range(len(packed) + 1), min(4, len(packed) + 1)))
+        cuts = sorted(rng.sample(range(len(packed) + 1), min(rng.choice([4, 40]), len(packed) + 1)))
         pieces = [packed[a:b] for a, b in zip([0] + cuts, cuts + [len(packed)])]
         decoder = CappedDecoder([encoding], 10**9, None)
         assert b"".join(b"".join(decoder.chunks(p)) for p in pieces) + decoder.rest() == body
-        elements = body.count(b"{") + body.count(b"[") + body.count(b",")
+        elements, cut = structure(body)
         for limit in (elements, elements - 1):
             decoder = CappedDecoder([encoding], 10**9, limit)
             try:
@@ -544,7 +591,7 @@ def test_the_capped_decoder_inflates_as_zlib_does_in_any_split_and_stops_at_each
                 passed = False
             except AnswerTooLarge:
                 passed = True
-            assert passed == (elements > limit >= 0), (elements, limit)
+            assert passed == (elements > limit >= 0) or (cut and limit == elements), (elements, limit, cut)
     for mark, event in ((b"data:", b"data: {}\n\n"), (b"\n", b'{"done": false}\n')):
         decoder = CappedDecoder([], 10**9, None, 3, mark)
         assert list(decoder.chunks(event * 3))

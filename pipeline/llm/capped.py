@@ -7,7 +7,8 @@ through ``httpx`` (litellm's own handler: Anthropic, Ollama, Gemini, ...) or ``h
 decoded by :class:`CappedDecoder`: identity, gzip or deflate, inflated a slice at a time, and
 :class:`AnswerTooLarge` raised as soon as the answer passes the limit, raw or inflated (any other encoding is
 refused: a provider asked by httpx for gzip or deflate sends one of those), or a JSON answer holds more elements
-than a reply could (:data:`MAX_ANSWER_ELEMENTS`: what its parse holds depends on those, not on bytes), or an
+outside its strings than a reply could (:data:`MAX_ANSWER_ELEMENTS`: what its parse holds depends on those, not on
+bytes), or an
 event stream more events than its reply could take (each costs litellm ~0.4 ms and a few KB, an empty one too:
 300,000 of ``{}``, 6 KB of gzip, took 115 s and 830 MB) or more elements than those events could
 (:data:`EVENT_ELEMENTS` each beyond :data:`MAX_ANSWER_ELEMENTS`: litellm keeps every event's fields, so one event
@@ -23,23 +24,32 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import importlib
+import re
 import zlib
 from typing import Iterator
 
 MAX_ANSWER_BYTES = 16 * 2**20
 """The most an LLM endpoint's answer may hold, inflated: a reply of ``MAX_REPLY_CHARS`` (1,000,000 characters) in
 JSON with every character escaped, or a stream of ~100,000 tokens, each its own event."""
-MAX_ANSWER_ELEMENTS = 250_000
-"""The most ``{``, ``[`` and ``,`` a JSON answer may hold (an event stream: these and :data:`EVENT_ELEMENTS` an
-event). A reply's own text is one JSON string, whose code has a few per cent of them; ``[{},{},…]`` in 16 KB of
-gzip (16 MB inflated) was 5.5 million dicts, ~1 GB a call, the SDK's models built from it included. At this count
-the parse holds ~100 MB at most."""
+MAX_ANSWER_ELEMENTS = 10_000
+"""The most ``{``, ``[`` and ``,`` a JSON answer may hold outside its strings (an event stream: these and
+:data:`EVENT_ELEMENTS` an event). A reply's own text is one JSON string, and an honest answer's structure around it
+has a few dozen; ``[{},{},…]`` in 16 KB of gzip (16 MB inflated) was 5.5 million dicts, ~1 GB a call, the SDK's
+models built from it included, and 40,000 choices (2.7 MB, within the 250,000 elements counted before strings were
+told apart) held 146 MB and took 8 s: litellm builds objects of ~3.6 KB for each. At this count the parse holds
+~40 MB at most."""
 EVENT_ELEMENTS = 32
 """The ``{``, ``[`` and ``,`` an event stream may hold for each event it has sent, beyond :data:`MAX_ANSWER_ELEMENTS`:
 an honest event (OpenAI's chunk, Anthropic's delta, Ollama's line) has 5 to 15. Without it a stream's elements went
 uncounted: litellm parses each event on its own but keeps its fields, so one event of 5 million ``{}`` (15 MB, or
 16 KB of gzip) held 780 MB in ``optimize``'s process; at this count a stream of 20,000 events holds ~75 MB of
 them."""
+
+_STRING_REST = re.compile(rb'(?:[^"\\\n]++|\\.)*+')
+"""The rest of a JSON string's body: to its closing quote, a line end (strict JSON, which litellm and the SDKs
+parse, holds none in a string: a stream's events and lines start afresh) or a backslash read last."""
+_STRING = re.compile(rb'"(?:[^"\\\n]++|\\.)*+"')
+"""A whole JSON string on one line."""
 
 _LIMIT: contextvars.ContextVar[tuple[int, int] | None] = contextvars.ContextVar("codearcade_answer_limit",
                                                                                  default=None)
@@ -69,6 +79,8 @@ class CappedDecoder:
         self.event_mark = event_mark
         """What each event holds once: ``data:`` (server-sent events), a line end (Ollama's JSON lines)."""
         self.raw = self.made = self.seen_elements = self.seen_events = 0
+        self.in_string = self.escaped = False
+        """Whether what was read ends inside a JSON string, and right after a backslash in it."""
         # 47: a gzip or zlib header, whichever the body has (servers send both for "deflate")
         self.inflater = zlib.decompressobj(47) if encodings else None
 
@@ -84,7 +96,8 @@ class CappedDecoder:
                 raise AnswerTooLarge(f"the endpoint's stream passed {self.events:,} events: no reply of the "
                                      "tokens asked for takes that many; is --api-base an LLM endpoint?")
         if self.elements is not None:
-            self.seen_elements += out.count(b"{") + out.count(b"[") + out.count(b",")
+            structure = self._outside_strings(out)
+            self.seen_elements += structure.count(b"{") + structure.count(b"[") + structure.count(b",")
             allowed = self.elements + self.event_elements * self.seen_events
             if self.seen_elements > allowed:
                 per_event = (f" ({self.elements:,} and {self.event_elements} for each of its {self.seen_events:,} "
@@ -92,6 +105,33 @@ class CappedDecoder:
                 raise AnswerTooLarge(f"the endpoint's {'stream' if self.events is not None else 'answer'} holds "
                                      f"more than {allowed:,} JSON elements{per_event}: no reply has that many; is "
                                      "--api-base an LLM endpoint?")
+
+    def _outside_strings(self, data: bytes) -> bytes:
+        """``data`` (the next bytes of the answer) without what lies inside JSON strings: a reply's text, however
+        many commas its code has, is one element, and its elements are counted by what a parse builds."""
+        pos = 0
+        if self.in_string and data:
+            if self.escaped and data[:1] != b"\n":
+                pos = 1  # the character the backslash read last escapes
+            self.escaped = False
+            pos = _STRING_REST.match(data, pos).end()
+            if pos == len(data):
+                return b""
+            if data[pos] == 0x5C:  # a backslash
+                if pos + 1 == len(data):
+                    self.escaped = True
+                    return b""
+                pos += 1  # before a line end: the string ends there (it is no JSON)
+            self.in_string = False
+            if data[pos] == 0x22:  # its closing quote
+                pos += 1
+        rest = _STRING.sub(b"", data[pos:])
+        opened = rest.find(b'"', rest.rfind(b"\n") + 1)  # a string still open at the end of what was read
+        if opened < 0:
+            return rest
+        body = rest[opened + 1:]
+        self.in_string, self.escaped = True, (len(body) - len(body.rstrip(b"\\"))) % 2 == 1
+        return rest[:opened]
 
     def chunks(self, data: bytes) -> Iterator[bytes]:
         self.raw += len(data)
