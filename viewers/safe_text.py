@@ -27,6 +27,8 @@ candidate's reason, a label, a stored cell, a line of a policy) may hold anythin
   escaped (no mathtext: ``$\\foo$`` would stop the drawing with an error).
 - :class:`TerminalSafeRecords` for what a library logs (:func:`make_logs_terminal_safe`): litellm's log quotes a
   reply's fields; every record its handlers write is made safe and cut short first.
+- :func:`make_python_reports_terminal_safe` for what Python prints by itself: an uncaught exception's traceback, an
+  ignored one's, a warning; made safe and cut short.
 - :class:`Markdown`: text a viewer composed itself as Markdown (``**bold**``, a code span it built), passed
   through :func:`markdown_cell` (a table's cell) unescaped.
 
@@ -110,6 +112,85 @@ def make_logs_terminal_safe(*loggers: str) -> None:
     for handler in handlers:
         if handler is not None and not any(isinstance(f, TerminalSafeRecords) for f in handler.filters):
             handler.addFilter(TerminalSafeRecords())
+
+
+PYTHON_REPORT_CHARS = 20_000
+"""Characters of a traceback or warning Python prints itself (:func:`make_python_reports_terminal_safe`) kept: the
+first and last halves, each line cut to :data:`LOG_MESSAGE_CHARS`."""
+
+
+def _cut_report(text: str) -> str:
+    """``text`` (a traceback, a warning) with each line cut to :data:`LOG_MESSAGE_CHARS` and the whole to about
+    :data:`PYTHON_REPORT_CHARS`, keeping its start and its end (a traceback's last line names the error)."""
+    lines = [line if len(line) <= LOG_MESSAGE_CHARS else f"{line[:LOG_MESSAGE_CHARS]}... ({len(line):,} characters)"
+             for line in text.split("\n")]
+    text = "\n".join(lines)
+    if len(text) > PYTHON_REPORT_CHARS:
+        half = PYTHON_REPORT_CHARS // 2
+        text = f"{text[:half]}\n... ({len(text) - 2 * half:,} characters left out) ...\n{text[-half:]}"
+    return text
+
+
+def _write_report(text: str, file: object = None) -> None:
+    """``text`` (what Python would have printed) cut short and made safe, on ``file`` or stderr; a stream that is
+    gone or closed takes nothing, as with Python's own hooks."""
+    stream = file if file is not None else sys.stderr
+    if stream is None:  # pythonw, a daemon: Python's hooks print nothing either
+        return
+    try:
+        stream.write(terminal_text(_cut_report(text.rstrip("\n")), multiline=True) + "\n")
+        stream.flush()
+    except (OSError, ValueError):  # a closed or full stream: nothing more can be said
+        pass
+
+
+def _format_exception(exc_type: type[BaseException], exc: BaseException | None, tb: object) -> str:
+    import traceback
+
+    return "".join(traceback.format_exception(exc_type, exc, tb))
+
+
+def _excepthook(exc_type: type[BaseException], exc: BaseException, tb: object) -> None:
+    _write_report(_format_exception(exc_type, exc, tb))
+
+
+def _thread_excepthook(args: object) -> None:
+    if args.exc_type is SystemExit:  # as Python's own: a thread that exits says nothing
+        return
+    name = args.thread.name if args.thread is not None else "(unknown)"
+    _write_report(f"Exception in thread {name}:\n" + _format_exception(args.exc_type, args.exc_value,
+                                                                         args.exc_traceback))
+
+
+def _unraisablehook(unraisable: object) -> None:
+    try:
+        where = f"{unraisable.err_msg or 'Exception ignored in'}: {unraisable.object!r}"
+    except Exception:  # noqa: BLE001 - an object whose repr fails: Python's hook says as little
+        where = f"{unraisable.err_msg or 'Exception ignored in'}: <object repr() failed>"
+    _write_report(f"{where}\n" + _format_exception(unraisable.exc_type, unraisable.exc_value,
+                                                     unraisable.exc_traceback))
+
+
+def _showwarning(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: object = None,
+                 line: str | None = None) -> None:
+    import warnings
+
+    _write_report(warnings.formatwarning(message, category, filename, lineno, line), file)
+
+
+def make_python_reports_terminal_safe() -> None:
+    """What Python prints by itself made safe for the terminal and cut short (:data:`PYTHON_REPORT_CHARS`): the
+    traceback of an exception nothing caught (``sys.excepthook``, and ``threading.excepthook`` for a thread's),
+    of one it had to ignore (``sys.unraisablehook``: a failing ``__del__``) and a warning (``warnings.showwarning``,
+    whose line is read back from the file, a policy's included). Their messages may quote anything: a stored text,
+    a policy's source line or file name, what a server sent; Python's hooks printed them raw, escapes and all."""
+    import threading
+    import warnings
+
+    sys.excepthook = _excepthook
+    threading.excepthook = _thread_excepthook
+    sys.unraisablehook = _unraisablehook
+    warnings.showwarning = _showwarning
 
 
 def print_failure(heading: str = "") -> None:

@@ -11,7 +11,8 @@ line with the nearest one. Run ids in error messages are printed by their shorte
 Exit codes: 0 success; 1 the job ran but an episode ended in a policy error, time-out, crash or score tampering;
 2 bad input (unknown game, missing or broken policy file, unusable or damaged store), with a one-line message on
 stderr; 130 interrupted. Everything a verb prints goes through ``common.show``, which makes text from policy code,
-an LLM's reply or the store safe for a terminal (``viewers/safe_text.py``).
+an LLM's reply or the store safe for a terminal (``viewers/safe_text.py``); so does what Python prints by itself
+in the command's process (an uncaught exception's traceback, a warning).
 """
 
 from __future__ import annotations
@@ -132,6 +133,10 @@ def _interrupted() -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     PRESSED.clear()  # this command's presses only (tests run many commands in one process)
+    if argv is None:  # the command line's own process: a traceback or warning Python prints may quote anyone's text
+        from viewers.safe_text import make_python_reports_terminal_safe
+
+        make_python_reports_terminal_safe()
     given = list(sys.argv[1:] if argv is None else argv)
     if given[:1] == ["help"] and len(given) <= 2:  # `codearcade help [VERB]`, as git and pip take it
         given = [*given[1:], "--help"]

@@ -16,12 +16,16 @@ INTERRUPTED_EXIT = 130
 """Exit code of a batch run process stopped by a Ctrl-C (its run is interrupted, resumable)."""
 
 
+_report_unraisable = sys.__unraisablehook__
+"""How an ignored error is reported: Python's own hook until the imports are done, then the terminal-safe one."""
+
+
 def _quiet_after_ctrl_c(unraisable) -> None:
     """A press that lands in an exit handler or a finalizer, as the run ends, is the press it answers with its line
     ``interrupted`` (or one that came as it finished): nothing more to say, where Python printed "Exception
     ignored" and a traceback into the run's log."""
     if not isinstance(unraisable.exc_value, KeyboardInterrupt):
-        sys.__unraisablehook__(unraisable)
+        _report_unraisable(unraisable)
 
 
 if __name__ == "__main__":
@@ -45,7 +49,12 @@ try:  # a Ctrl-C to the batch's process group reaches its runs too, also while t
     from store import Store
     from store.db import StoreError, StoreFull
     from store.writer import set_run_name
-    from viewers.safe_text import terminal_text
+    from viewers.safe_text import make_python_reports_terminal_safe, terminal_text
+
+    if __name__ == "__main__":  # the run's log is read with cat and tail: a traceback or warning Python prints
+        # there itself may quote a reply or a stored text, so it is made safe and cut short too
+        make_python_reports_terminal_safe()
+        _report_unraisable, sys.unraisablehook = sys.unraisablehook, _quiet_after_ctrl_c
 except KeyboardInterrupt:
     if __name__ != "__main__":
         raise

@@ -305,3 +305,84 @@ def test_a_library_s_log_of_a_reply_s_field_reaches_the_terminal_made_safe(store
     assert len(logged) == 2 and "evilclick here" in logged[0] and "verified OK" in logged[0], shown[-3000:]
     assert "long words, words" in logged[1] and len(logged[1]) < 2_300, len(logged[1])  # cut short
     assert "characters)" in logged[1], logged[1][-200:]  # and says how long it was
+
+
+def test_a_traceback_reaches_the_terminal_made_safe_and_cut(store, scripted):
+    """An error nothing catches was printed by Python's own hook, its message raw: a store handed over whose run's
+    recorded feedback bands hold an unknown key ended ``optimize --resume`` with ``TypeError: ... unexpected keyword
+    argument '...'``, the key's escapes (window title, cleared screen, 8-bit CSI, bell) and all, and a megabyte of
+    key filled the terminal. The command's process now prints tracebacks (and warnings) made safe and cut short
+    (``viewers/safe_text.make_python_reports_terminal_safe``)."""
+    from tests.conftest import COMPETENT_REPLY
+
+    model = scripted([COMPETENT_REPLY])
+    _cli("optimize", str(ROOT / "games/scaffolds/pong.py"), "--model", model.model, "--api-base", model.api_base,
+         "--iterations", "1", "--eval-episodes", "1", "--eval-max-steps", "30", "--rollout-steps", "20",
+         "--workers", "1", "--audit-episodes", "0", "--store", str(store.path))
+    (run_id, config), = store.query("SELECT run_id, config FROM runs")
+    config = json.loads(config)
+    config["feedback_bands"]["odd" + ESCAPES + "y" * 1_000_000] = 1  # what the resumed run is built from
+    with store.write() as con:
+        con.execute("UPDATE runs SET config = ? WHERE run_id = ?", [json.dumps(config), run_id])
+    shown = _cli("optimize", "--resume", run_id, "--iterations", "2", "--store", str(store.path), expect=(1,))
+    assert "unexpected keyword argument 'oddclick here" in shown, shown[-3000:]  # the words, not the codes
+    assert len(shown) < 30_000 and "characters)" in shown, len(shown)  # the megabyte cut short, and said so
+
+
+def test_what_python_prints_itself_is_made_safe_in_the_command_s_process():
+    """Python's own printers, each given a message with every escape and a megabyte of text, in the command line's
+    process (``codearcade games`` with its handler made to warn, fail in a thread, fail in a finalizer and then
+    raise): a warning (``warnings.showwarning``), a thread's uncaught error, an ignored one (``__del__``) and the
+    command's own uncaught error reach stderr made safe and cut short; Python printed each raw."""
+    script = textwrap.dedent('''\
+        import json, sys, threading, warnings
+        import pipeline.cli
+        from pipeline.cli import games
+
+        TEXT = json.loads(sys.argv[1]) + "y" * 1_000_000
+
+        class Finalized:
+            def __del__(self):
+                raise RuntimeError("in a finalizer " + TEXT)
+
+        def fail(text):
+            raise ValueError(text)
+
+        def handler(args):
+            warnings.warn("a warning " + TEXT, UserWarning)
+            thread = threading.Thread(target=fail, args=("in a thread " + TEXT,))
+            thread.start()
+            thread.join()
+            Finalized()
+            raise RuntimeError("uncaught " + TEXT)
+
+        games.run = handler
+        sys.argv = ["codearcade", "games"]
+        sys.exit(pipeline.cli.main())
+        ''')
+    done = subprocess.run([sys.executable, "-c", script, json.dumps(ESCAPES)], cwd=ROOT, capture_output=True,
+                          timeout=300, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 1
+    err = done.stderr.decode("utf-8")  # strict: a raw C1 byte is not UTF-8
+    found = UNSAFE.search(err)
+    assert found is None, f"{found.group()!r} reached stderr at {err[max(found.start() - 60, 0):found.end() + 20]!r}"
+    for said in ("UserWarning: a warning click here", "Exception in thread", "in a thread click here",
+                 "Exception ignored in", "in a finalizer click here", "RuntimeError: uncaught click here"):
+        assert said in err, (said, err[-3000:])
+    assert len(err) < 4 * 25_000 and err.count("characters)") >= 4, len(err)  # each megabyte cut, and said so
+
+
+def test_a_batch_run_s_log_gets_python_s_own_reports_made_safe(tmp_path):
+    """A batch run's process (``pipeline.jobs.worker``) writes its run's log, read with cat and tail: an error nothing
+    caught there was written by Python's hook, its message raw (here a spec whose setting's name holds every escape).
+    It is made safe and cut short as in the command line's process."""
+    name = "odd" + ESCAPES + "y" * 100_000  # (an argument of a command: under 128 KiB)
+    spec = {"store": str(tmp_path / "s.duckdb"), "config": {name: 1}}
+    done = subprocess.run([sys.executable, "-m", "pipeline.jobs.worker", json.dumps(spec)], cwd=ROOT,
+                          capture_output=True, timeout=300, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    err = done.stderr.decode("utf-8")  # strict: a raw C1 byte is not UTF-8
+    assert done.returncode == 1, err[-3000:]
+    found = UNSAFE.search(err)
+    assert found is None, f"{found.group()!r} reached stderr at {err[max(found.start() - 60, 0):found.end() + 20]!r}"
+    assert "unexpected keyword argument 'oddclick here" in err, err[-3000:]
+    assert len(err) < 30_000 and "characters)" in err, len(err)
