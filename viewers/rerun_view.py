@@ -18,7 +18,7 @@ from typing import Callable
 from store import Store
 from store.readers import get_run
 from store.showing import episode_list
-from viewers.rerun_sinks import spawn_viewer, start_web_viewer
+from viewers.rerun_sinks import ViewerError, spawn_viewer, start_web_viewer
 
 
 class ViewError(ValueError):
@@ -129,7 +129,13 @@ def view(store: Store, run_id: str, iteration: int | None = None, episode: str |
     except BaseException:
         close(rec, partial, save, whole=False)
         raise
-    close(rec, partial, save)
+    try:
+        close(rec, partial, save)
+    except RuntimeError as exc:  # Rerun's flush gives up on a URL nothing answers at (after 6 s): not a traceback
+        if connect and "unable to connect" in str(exc):
+            raise ViewerError(f"no Rerun viewer answered at {connect}: start one (`rerun`), or give --spawn, "
+                              "--serve-web or --save instead") from None
+        raise
     if save:
         out(f"saved {Path(save).resolve()} (recording {selection.recording_id})")
     elif viewer is not None:

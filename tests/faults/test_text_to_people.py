@@ -386,3 +386,25 @@ def test_a_batch_run_s_log_gets_python_s_own_reports_made_safe(tmp_path):
     assert found is None, f"{found.group()!r} reached stderr at {err[max(found.start() - 60, 0):found.end() + 20]!r}"
     assert "unexpected keyword argument 'oddclick here" in err, err[-3000:]
     assert len(err) < 30_000 and "characters)" in err, len(err)
+
+
+def test_rerun_s_own_log_stays_off_the_terminal(store, tmp_path):
+    """Rerun's Rust logger writes to stderr itself, in colour even on a pipe: ``view --connect`` to a URL where no
+    viewer listens put its WARN and ERROR lines (``\\x1b[31mERROR\\x1b[0m ... unable to connect``) on stderr, then
+    Python's traceback of the same failure. Its log is off unless RUST_LOG asks for it (``viewers/__init__.py``),
+    and the failure is one line saying what to do."""
+    import socket
+
+    policy = ROOT / "games/scaffolds/pong.py"
+    _cli("eval", str(policy), "--max-steps", "10", "--rerun", "off", "--store", str(store.path))
+    with socket.socket() as held:  # a port that is ours and where nothing listens: refused at once
+        held.bind(("127.0.0.1", 0))
+        url = f"rerun+http://127.0.0.1:{held.getsockname()[1]}/proxy"
+        env = {k: v for k, v in os.environ.items() if k != "RUST_LOG"}
+        done = subprocess.run([EXE, "view", "last", "--connect", url, "--store", str(store.path)], cwd=ROOT,
+                              capture_output=True, timeout=300, env=env)
+    err = done.stderr.decode("utf-8")
+    assert "\x1b" not in err, err[-3000:]
+    assert done.returncode == 2 and err.strip().splitlines() == [
+        f"codearcade: error: no Rerun viewer answered at {url}: start one (`rerun`), or give --spawn, --serve-web or "
+        "--save instead"], err[-3000:]
