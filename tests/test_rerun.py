@@ -395,3 +395,35 @@ def test_a_recording_on_a_disk_that_fills_costs_neither_the_episode_nor_the_comm
                                str(full_disk / "report")], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert reported.returncode == 2 and "Traceback" not in reported.stderr, reported.stderr[-2000:]
     assert f"{full_disk / 'report'}/" in reported.stderr.splitlines()[-1], reported.stderr[-2000:]
+
+
+@pytest.mark.slow
+def test_view_save_ends_when_its_sink_is_stuck(tmp_path, capsys):
+    """A recording's sink that does not answer within its time (30 s) is given up (``viewers.rerun_recording.within``),
+    but its Rust thread stays stuck in a write, and the interpreter's exit waited on it: `view --save` onto a full
+    disk (4 runs in 8) or onto a pipe nobody reads said "Rerun did not flush the recording within 30 s" and never
+    exited, past SIGTERM. Here the pipe is held open by a reader that never reads (its buffer one page): the
+    command says its one line and ends (~35 s), no process left."""
+    import fcntl
+    import os
+
+    store = tmp_path / "s.duckdb"
+    assert main(["eval", str(EXAMPLES / "pong.py"), "--episodes", "1", "--max-steps", "200", "--store",
+                 str(store)]) == 0
+    capsys.readouterr()
+    pipe = tmp_path / "x.rrd"
+    os.mkfifo(pipe)
+    reader = os.open(pipe, os.O_RDONLY | os.O_NONBLOCK)  # there, never reading
+    fcntl.fcntl(reader, 1031, 4096)  # F_SETPIPE_SZ: a page fills at once
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "view", "last", "--store", str(store), "--save",
+                             str(pipe)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = proc.communicate(timeout=300)  # before, it waited for good
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        pytest.fail(f"view --save did not end once its sink was given up: {err[-2000:]}")
+    finally:
+        os.close(reader)
+    said = [line for line in err.splitlines() if line.startswith("codearcade")]
+    assert proc.returncode == 2 and len(said) == 1 and "did not" in said[0] and str(pipe) in said[0], err[-2000:]

@@ -132,6 +132,29 @@ def _interrupted() -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    code = _main(argv)
+    if argv is None:  # the command line's own process
+        _end_now_past_a_stuck_sink(code)
+    return code
+
+
+def _end_now_past_a_stuck_sink(code: int) -> None:
+    """End the process at once, its own streams flushed, when a Rerun sink in it did not answer within its time
+    (``viewers.rerun_recording.wedged``): its Rust thread is stuck in a write for good, and the interpreter's exit
+    waited on it (the recording flushed as it was dropped), so `view --save` onto a full disk or a pipe nobody
+    read said its one line and never exited, past SIGTERM. Nothing is left to do: the command has ended."""
+    recording = sys.modules.get("viewers.rerun_recording")  # only a command that recorded has it
+    if recording is None or not getattr(recording, "wedged", False):
+        return
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     PRESSED.clear()  # this command's presses only (tests run many commands in one process)
     if argv is None:  # the command line's own process: a traceback or warning Python prints may quote anyone's text
         from viewers.safe_text import make_python_reports_terminal_safe
