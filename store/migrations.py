@@ -1250,6 +1250,97 @@ MIGRATIONS.append(
     )
 )
 
+# A run resumed after its audit (`optimize --resume RUN --iterations N` whose new iterations found a new best, with no
+# audit at its end or one that failed) kept the audit of its earlier best, and run_summary gave that version's
+# held-out score and overfit flag as the audit of the run's best: `runs` printed "best 0 ... audit -15" for an audit
+# of iteration 0 beside the best of iteration 1, and `report` the same. compare of runs already refused to pair them
+# (pipeline/optimizer/runs.py). The audit columns now hold the audit only when it played the run's best of now (a
+# served run's audit is of its best by validation, another version by design: docs/serve.md); audit_stale says when
+# it played an earlier best, and audit_iteration which.
+MIGRATIONS.append(
+    (
+        24,
+        "run_summary: the audit columns only when the audit played the run's best of now; audit_stale, "
+        "audit_iteration",
+        r"""
+        CREATE OR REPLACE VIEW run_summary AS
+        WITH it AS (
+            SELECT run_id, (count(*) FILTER (WHERE iteration >= 1))::INTEGER AS iterations_done,
+                   max(best_score) AS best_score, arg_max(best_iteration, iteration) AS best_iteration,
+                   arg_max_null(score, iteration) AS last_score,
+                   arg_max(best_version_id, iteration) AS best_version_id
+            FROM iterations GROUP BY run_id
+        ), ep AS (
+            SELECT run_id, count(*)::INTEGER AS episodes, sum(length)::BIGINT AS steps,
+                   avg("return") FILTER (WHERE kind = 'eval' AND end_reason IN ('terminated', 'truncated'))
+                       AS mean_eval_return,
+                   (count(*) FILTER (WHERE kind = 'eval' AND end_reason NOT IN ('terminated', 'truncated')))::INTEGER
+                       AS eval_forfeits
+            FROM episodes GROUP BY run_id
+        ), cand AS (
+            SELECT run_id, (count(*) FILTER (WHERE forfeit IS NOT NULL))::INTEGER AS forfeits,
+                   (count(*) FILTER (WHERE repairs > 0 AND update_status = 'accepted'))::INTEGER AS saved_by_repair
+            FROM candidates GROUP BY run_id
+        ), calls AS (
+            SELECT run_id, count(*)::INTEGER AS llm_calls,
+                   (count(*) FILTER (WHERE purpose = 'repair'))::INTEGER AS repair_calls,
+                   coalesce(sum(input_tokens), 0)::BIGINT AS input_tokens,
+                   coalesce(sum(output_tokens), 0)::BIGINT AS output_tokens,
+                   sum(cost_usd) AS cost_usd
+            FROM llm_calls GROUP BY run_id
+        ), audits_of AS (  -- whether the best's audit played the run's best of now (a served run's: by validation)
+            SELECT a.run_id, r.kind = 'serve' OR a.policy_version_id = it.best_version_id AS current,
+                   a.iteration AS audit_iteration
+            FROM audits a JOIN runs r ON r.run_id = a.run_id LEFT JOIN it ON it.run_id = a.run_id
+            WHERE a.role = 'best' AND a.protocol = 'standard'
+        ), audit AS (
+            SELECT run_id,
+                   any_value(score) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_score,
+                   any_value(score_low) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_low,
+                   any_value(score_high) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_high,
+                   any_value(score) FILTER (WHERE role = 'best' AND protocol = 'run') AS audit_run_score,
+                   any_value(score) FILTER (WHERE role = 'starter' AND protocol = 'standard') AS starter_audit_score,
+                   any_value(overfit) FILTER (WHERE role = 'best' AND protocol = 'standard') AS overfit
+            FROM audits WHERE run_id IN (SELECT run_id FROM audits_of WHERE current) GROUP BY run_id
+        )
+        SELECT r.run_id, r.name, r.created_at, r.finished_at, r.kind, r.game, r.model, r.seed, r.status,
+               json_extract_string(r.config, '$.policy') AS policy,
+               CASE WHEN r.kind <> 'eval' THEN coalesce(json_extract_string(r.config, '$.strategy'), 'greedy')
+               END AS strategy,
+               CASE WHEN r.kind <> 'eval' THEN json_extract_string(r.config, '$.feedback') END AS feedback,
+               json_extract_string(r.config, '$.batch') AS batch,
+               r.made_by,
+               coalesce(it.iterations_done, 0) AS iterations_done,
+               TRY_CAST(json_extract(r.config, '$.iterations') AS INTEGER) AS iterations_planned,
+               CASE WHEN r.kind <> 'eval' THEN it.best_score
+                    WHEN coalesce(ep.eval_forfeits, 0) = 0 THEN ep.mean_eval_return END AS best_score,
+               it.best_iteration, it.last_score,
+               coalesce(ep.episodes, 0) AS episodes, coalesce(ep.steps, 0) AS steps,
+               coalesce(calls.llm_calls, 0) AS llm_calls,
+               coalesce(calls.input_tokens, 0) AS input_tokens,
+               coalesce(calls.output_tokens, 0) AS output_tokens,
+               (coalesce(calls.input_tokens, 0) + coalesce(calls.output_tokens, 0))::BIGINT AS total_tokens,
+               calls.cost_usd,
+               epoch(r.finished_at - r.created_at) AS duration_s,
+               r.error,
+               CASE WHEN r.kind = 'eval' THEN coalesce(ep.eval_forfeits, 0) ELSE coalesce(cand.forfeits, 0)
+               END AS forfeits,
+               audit.audit_score, audit.audit_low, audit.audit_high, audit.audit_run_score,
+               audit.starter_audit_score, audit.overfit,
+               coalesce(calls.repair_calls, 0) AS repair_calls, coalesce(cand.saved_by_repair, 0) AS saved_by_repair,
+               NOT audits_of.current AS audit_stale, audits_of.audit_iteration
+        FROM runs r
+        LEFT JOIN it ON it.run_id = r.run_id
+        LEFT JOIN ep ON ep.run_id = r.run_id
+        LEFT JOIN cand ON cand.run_id = r.run_id
+        LEFT JOIN calls ON calls.run_id = r.run_id
+        LEFT JOIN audit ON audit.run_id = r.run_id
+        LEFT JOIN audits_of ON audits_of.run_id = r.run_id;
+        COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: label, settings, status, best score (NULL: forfeited), forfeits, audit of the best of now (audit_stale: of an earlier best), episodes, tokens, repairs';
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]
 
 SCHEMA_MIGRATIONS_TABLE = ("CREATE TABLE IF NOT EXISTS schema_migrations "

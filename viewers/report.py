@@ -68,6 +68,12 @@ def _score_text(row: dict[str, Any]) -> str:
                          MEAN_METHOD)
 
 
+def _stale_audit(summary: dict[str, Any], run: dict[str, Any]) -> str:
+    """Why the audit below is not the best's (``run_summary.audit_stale``): the run went on after it."""
+    return (f"not of the run's best: it played the best of iteration {summary['audit_iteration']}, and the run went "
+            f"on to a new one ({markdown_code('codearcade audit ' + run['run_id'])} audits it)")
+
+
 def _audit_text(row: dict[str, Any] | None) -> str:
     """A side of the held-out audit in the headline: its score with its interval, or why it has none."""
     if row is None:
@@ -132,7 +138,9 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
             facts.append(f"{forfeits} candidate(s) forfeited a game"
                          + (" (never the best)" if summary["best_score"] is not None else ""))
         audited = {a["role"]: a for a in data.get("audits") or () if a["protocol"] == "standard"}
-        if "best" in audited:  # each side's score, or "forfeit": a starter that forfeited its audit showed as "–"
+        if summary.get("audit_stale"):  # it went on after its audit: that score is an earlier best's, not this one's
+            facts.append(f"held-out audit: {_stale_audit(summary, run)}")
+        elif "best" in audited:  # each side's score, or "forfeit": a starter that forfeited its audit showed as "–"
             best, starter = (_audit_text(audited.get(role)) for role in ("best", "starter"))
             facts.append(f"held-out audit **{best}** (standard protocol; starter {starter})"
                          + (" · **OVERFIT**: less than half of the gain over the starter holds up"
@@ -189,6 +197,8 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                     "under the standard protocol (sticky actions 0.25, up to 30 no-op starts) and the run's own; "
                     "tuning: its score on the seeds the loop selected on. Overfit: less than half of the best's "
                     "gain over the starter holds up (`codearcade audit` plays it again).", ""]
+            if summary.get("audit_stale"):
+                out += [f"**{_stale_audit(summary, run)}**.", ""]
             out += [
                     _md_table(("version", "iteration", "protocol", "games", "score (95% interval, method, n)",
                                "tuning", "overfit"),

@@ -55,7 +55,10 @@ def _best(row: dict) -> float | str | None:
 
 def _audit(row: dict) -> str | None:
     """The best version's held-out score (standard protocol), beside the tuning score: ``11.5 OVERFIT``; ``11.5 no
-    reference`` when the starter forfeited its audit games (``store.scores.overfit`` None)."""
+    reference`` when the starter forfeited its audit games (``store.scores.overfit`` None); ``stale (iteration 3)``
+    when the audit played an earlier best than the run's of now (it went on after it: run_summary.audit_stale)."""
+    if row.get("audit_stale"):
+        return f"stale (iteration {row['audit_iteration']})"
     if row.get("audit_score") is None and row.get("overfit") is None:
         return None
     score = "forfeit" if row["audit_score"] is None else score_text(row["audit_score"])
