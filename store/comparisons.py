@@ -34,9 +34,16 @@ def best_version(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any] 
 
 def resolve_version(con: duckdb.DuckDBPyConnection, run_id: str, text: str) -> str:
     """The policy version of ``run_id`` whose id is ``text`` or starts with it; ``best`` is the run's best
-    version (eval runs: the version they played). ValueError with what exists if none or several match."""
+    version (eval runs: the version they played; a finalized served run: its best by validation, the one its
+    finalize played on the held-out pool, ``pipeline/serve/finalize.py``). ValueError with what exists if none or
+    several match."""
     wanted = text.strip()
     if wanted == "best":
+        served = con.execute(  # a served run's best by training score is not the one it picked: validation did
+            "SELECT a.policy_version_id FROM audits a JOIN runs r USING (run_id) WHERE a.run_id = ? AND r.kind = "
+            "'serve' AND a.role = 'best' AND a.protocol = 'standard'", [run_id]).fetchall()
+        if served:
+            return served[0][0]
         best = best_version(con, run_id)
         if best is not None:
             return best["policy_version_id"]

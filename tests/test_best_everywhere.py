@@ -19,10 +19,11 @@ import pytest
 
 from pipeline.cli import main
 from store import Store
+from store.comparisons import resolve_version
 from store.writer import replace_audits
 
 FIXTURE = Path(__file__).parent / "fixtures" / "greedy_run.duckdb.gz"
-STARTER, BEST = "0688b04958724e0e", "596254575f4ccf7d"
+STARTER, BEST, WORSE = "0688b04958724e0e", "596254575f4ccf7d", "ec8ecf68611bac85"
 
 
 @pytest.fixture
@@ -81,3 +82,28 @@ def test_an_audit_of_an_earlier_best_is_never_shown_as_the_best_s(greedy, tmp_pa
     code, out = _cli(capsys, "runs", "--store", store.path)
     assert "-3 OVERFIT" in out and "stale" not in out, out
 
+
+def test_a_served_runs_best_is_its_best_by_validation_in_blame_and_run_best(greedy, capsys):
+    """A served run's finalize picked iteration 2's version by validation (its training score, -19, is not the
+    best's): blame's default named it without calling it the best, and RUN:best (compare) resolved to another."""
+    store, run = greedy
+    with store.write() as con:
+        con.execute("UPDATE runs SET kind = 'serve' WHERE run_id = ?", [run])
+        replace_audits(con, run, [_audit("submission 1", "validation", BEST, 1, -5.0, 0.0),
+                                  _audit("submission 2", "validation", WORSE, 2, 3.0, -19.0),
+                                  _audit("best", "standard", WORSE, 2, 2.0, -19.0, False),
+                                  _audit("starter", "standard", STARTER, 0, -10.0, None)])
+    code, out = _cli(capsys, "blame", run, "--store", store.path)
+    assert code == 0 and out.splitlines()[0].endswith(f"policy version {WORSE} (iteration 2, the best)"), out
+    with store.read() as con:
+        assert resolve_version(con, run, "best") == WORSE, "RUN:best: the version the run picked"
+    code, out = _cli(capsys, "blame", run, "--iteration", 1, "--store", store.path)
+    assert "the best" not in out.splitlines()[0]
+    assert store.query("SELECT audit_score, audit_stale FROM run_summary") == [(2.0, False)], \
+        "a served run's audit is of its best by validation, never stale"
+
+    # not finalized yet: the best by training score, as before
+    with store.write() as con:
+        replace_audits(con, run, [])
+    with store.read() as con:
+        assert resolve_version(con, run, "best") == BEST

@@ -32,21 +32,11 @@ def run(args: argparse.Namespace) -> int:
 
     store = open_store(args)
     run_id = resolve_run(store, args.run_id)
-    version = args.version if args.version is not None or args.iteration is not None else _served_best(store, run_id)
-    report = blame(store, run_id, version, args.iteration)
+    # neither given: the run's best, a served run's by validation (store.comparisons.resolve_version)
+    report = blame(store, run_id, args.version, args.iteration)
     if args.json:
         show_json(report, default=str)
     else:  # each line of it terminal-safe already (a policy's own lines)
         show(format_blame({**report, "run_id": short_id(store, report["run_id"])}), multiline=True)
     return EXIT_OK
 
-
-def _served_best(store, run_id: str) -> str | None:
-    """A served run's best is the best by validation (its finalize, ``pipeline/serve/protocol.py``), not by training
-    score; None for any other run, or a served run not finalized yet (then the best by training score)."""
-    from store.readers import audits, get_run
-
-    with store.read() as con:
-        if get_run(con, run_id)["kind"] != "serve":
-            return None
-        return next((a["policy_version_id"] for a in audits(con, run_id) if a["role"] == "best"), None)
