@@ -40,7 +40,9 @@ def run_trace_rows(con: duckdb.DuckDBPyConnection, run_id: str, reply_chars: int
                       AS candidates,
                   (SELECT any_value(c.evaluation) FROM candidates c WHERE c.run_id = i.run_id
                    AND c.iteration = i.iteration AND c.candidate = coalesce(i.candidate, 0)) AS evaluation,
-                  (SELECT e.iteration FROM episodes e WHERE e.episode_id = i.train_episode_id) AS episodes_iteration
+                  (SELECT e.iteration FROM episodes e WHERE e.episode_id = i.train_episode_id) AS episodes_iteration,
+                  (SELECT any_value(c.forfeit) FROM candidates c WHERE c.run_id = i.run_id
+                   AND c.iteration = i.iteration AND c.candidate = coalesce(i.candidate, 0)) AS forfeit
            FROM iterations i WHERE i.run_id = ? ORDER BY i.iteration""", [run_id]))
     llm_calls = _rows(con.execute(
         """SELECT c.call_id, c.iteration, c.purpose, c.created_at, c.latency_s, c.operation_name, c.provider_name,

@@ -200,6 +200,10 @@ def score_text(value: float) -> str:
 
 
 
+NO_BEST = "no score: every version it assessed forfeited a game"
+"""Why a run has no best score: a played-out score beats any forfeit, so none was played out."""
+
+
 def rank_key(score: float | None) -> tuple[bool, float]:
     """Sort key, best last, for a stored ``score`` (NULL for a forfeited assessment): any score above none."""
     return (score is not None, score if score is not None else -math.inf)

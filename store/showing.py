@@ -111,7 +111,7 @@ def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
                v.loc, v.complexity, v.max_if_depth, code.text AS code,
                c.input_tokens, c.output_tokens, c.prompt_tokens_counted, c.cost_usd, c.latency_s, c.error_type,
                c.error_message, c.parse_error, p.text AS prompt, c.reply_hash, left(f.text, $2) AS feedback,
-               length(f.text) AS feedback_length
+               length(f.text) AS feedback_length, k.forfeit
         FROM iterations i
         LEFT JOIN (SELECT DISTINCT ON (policy_version_id) policy_version_id, loc, complexity, max_if_depth,
                           source_hash FROM policy_versions WHERE run_id = $1) v
@@ -120,6 +120,8 @@ def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
         LEFT JOIN llm_calls c ON c.call_id = i.llm_call_id
         LEFT JOIN blobs p ON p.hash = c.prompt_hash
         LEFT JOIN feedback f ON f.run_id = i.run_id AND f.iteration = i.iteration
+        LEFT JOIN candidates k ON k.run_id = i.run_id AND k.iteration = i.iteration  -- the chosen candidate
+             AND k.candidate = coalesce(i.candidate, 0)
         WHERE i.run_id = $1 ORDER BY i.iteration""", [run_id, RECORDED_TEXT_CHARS])
     replies = blob_starts(con, (it["reply_hash"] for it in iterations), RECORDED_TEXT_CHARS)
     for it in iterations:

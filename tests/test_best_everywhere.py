@@ -107,3 +107,60 @@ def test_a_served_runs_best_is_its_best_by_validation_in_blame_and_run_best(gree
         replace_audits(con, run, [])
     with store.read() as con:
         assert resolve_version(con, run, "best") == BEST
+
+
+def _forfeit(store: Store, iterations: tuple[int, ...]) -> None:
+    """Make these iterations' versions forfeit their evaluation game as the loop stores one: a policy error at
+    step 300 after scoring 50 (above every score of the run), the candidate's score NULL, its partial return kept
+    as forfeit_score; with the starter among them, no best until a version plays its games out."""
+    with store.write() as con:
+        for i in iterations:
+            con.execute("UPDATE episodes SET end_reason = 'policy_error', return = 50, length = 300, "
+                        "error = 'RuntimeError: quit' WHERE episode_id LIKE ? AND kind = 'eval'", [f"%.{i}.eval.0"])
+            con.execute("UPDATE candidates SET score = NULL, deterministic_score = NULL, forfeit_score = 50, "
+                        "forfeit = '1 of 1 episode forfeited: RuntimeError at step 300 (policy_error)' "
+                        "WHERE iteration = ?", [i])
+            con.execute("UPDATE iterations SET score = NULL WHERE iteration = ?", [i])
+        if 0 in iterations:
+            con.execute("UPDATE iterations SET best_score = NULL")
+
+
+def test_the_otlp_export_and_the_run_recording_name_a_forfeit_never_score_it(greedy, tmp_path):
+    """Iteration 2's version forfeits its game after scoring 50: its span and its line in the run recording had no
+    score and nothing saying why (the recording printed 'score -'); a run all of whose versions forfeited had no
+    best score on its root span and nothing saying why."""
+    import subprocess
+    import sys
+
+    from store.run_trace import run_trace_rows
+    from viewers.otlp_export import build_spans
+
+    store, run = greedy
+    _forfeit(store, (2,))
+    with store.read() as con:
+        spans = build_spans(run_trace_rows(con, run))
+    two = next(s for s in spans if s.name == "iteration 2")
+    assert two.attributes["codearcade.forfeit"] == ("1 of 1 episode forfeited: RuntimeError at step 300 "
+                                                    "(policy_error)")
+    assert "codearcade.score" not in two.attributes and 50 not in two.attributes.values()
+    assert all("codearcade.forfeit" not in s.attributes for s in spans if s.name == "iteration 1")
+    root = next(s for s in spans if s.parent is None)
+    assert root.attributes["codearcade.best_score"] == 0.0 and "codearcade.run.no_score" not in root.attributes
+
+    root_dir = Path(__file__).resolve().parents[1]
+    saved = tmp_path / "run.rrd"
+    viewed = subprocess.run([sys.executable, "-m", "pipeline.cli", "view", run, "--save", str(saved), "--store",
+                             str(store.path)], capture_output=True, text=True, timeout=300, cwd=root_dir)
+    assert viewed.returncode == 0, viewed.stderr
+    dumped = subprocess.run([sys.executable, str(root_dir / "tests" / "rrd_dump.py"), str(saved)],
+                            capture_output=True, text=True, timeout=120, cwd=root_dir)
+    assert dumped.returncode == 0, dumped.stderr
+    lines = json.loads(dumped.stdout)[str(saved)]["timelines"]["iteration"]["/log:TextLog:text"]
+    assert lines["2"] == ["iteration 2: update accepted, score none (1 of 1 episode forfeited: RuntimeError at step "
+                          "300 (policy_error)), best 0 (iteration 1), version ec8ecf68611bac85, rolled back"]
+
+    _forfeit(store, (0, 1, 2, 3, 4, 5))
+    with store.read() as con:
+        root = next(s for s in build_spans(run_trace_rows(con, run)) if s.parent is None)
+    assert "codearcade.best_score" not in root.attributes and root.attributes["codearcade.run.forfeits"] == 6
+    assert root.attributes["codearcade.run.no_score"] == "no score: every version it assessed forfeited a game"

@@ -6,7 +6,8 @@ beside a team's other LLM traces. The span tree::
 
     optimize pong                         the run (root): game, kind, model, seed, status, error, best score (an
                                           eval run: its score, none with a forfeit, and its forfeits)
-    ├── iteration 0                       score, best score, update status, policy version, rolled back
+    ├── iteration 0                       score (none with a forfeit, which it names), best score, update status,
+    │                                     policy version, rolled back
     │   ├── train rollout                 return, length, lives lost, end reason (the traced rollout)
     │   └── eval episode 0                the same, per evaluation episode
     ├── iteration 1
@@ -60,7 +61,7 @@ from opentelemetry.sdk.trace.id_generator import IdGenerator
 from opentelemetry.sdk.trace.sampling import ALWAYS_ON
 from opentelemetry.trace import SpanKind, Status, StatusCode
 
-from store.scores import score_episodes
+from store.scores import NO_BEST, score_episodes
 
 PROTOCOLS = ("http/protobuf", "grpc")
 """OTLP transports (the names of ``OTEL_EXPORTER_OTLP_PROTOCOL``)."""
@@ -323,6 +324,8 @@ def _iteration_span(iteration: int, row: dict[str, Any] | None) -> _Planned:
         codearcade__iteration=iteration,
         codearcade__iteration__complete=True,
         codearcade__score=row["score"],
+        # a forfeit has no score (store/scores.py): say why the score is missing, never its partial return
+        codearcade__forfeit=row.get("forfeit"),
         codearcade__best_score=row["best_score"],
         codearcade__best_iteration=row["best_iteration"],
         codearcade__best_version_id=row["best_version_id"],
@@ -365,9 +368,13 @@ def plan_spans(rows: dict[str, Any], text_limit: int = DEFAULT_TEXT_LIMIT) -> _P
     )
     if rows["iterations"]:  # the run's outcome, as run_summary gives it
         last = rows["iterations"][-1]
+        forfeits = sum(1 for it in rows["iterations"] if it.get("forfeit"))
         root.attributes.update(_attrs(codearcade__best_score=last["best_score"],
                                       codearcade__best_iteration=last["best_iteration"],
-                                      codearcade__best_version_id=last["best_version_id"]))
+                                      codearcade__best_version_id=last["best_version_id"],
+                                      codearcade__run__forfeits=forfeits or None,
+                                      codearcade__run__no_score=NO_BEST if last["best_score"] is None and forfeits
+                                      else None))
     elif rows["episodes"]:  # an eval run's score, by the one rule (store/scores.py): none with a forfeit
         score = score_episodes(e for e in rows["episodes"] if e["kind"] == "eval" and e["return"] is not None)
         root.attributes.update(_attrs(codearcade__run__mean_return=score.ranked, codearcade__run__score=score.ranked,

@@ -103,6 +103,8 @@ def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -
             rec.log("/feedback", rr.TextDocument(
                 plain_text(_whole_or_cut(it["feedback"], it["feedback_length"], "feedback")), media_type="text/plain"))
         score = "-" if it["score"] is None else score_text(it["score"])
+        if it["score"] is None and it.get("forfeit"):  # a forfeit is never scored: say so, and why
+            score = f"none ({it['forfeit']})"
         best = "-" if it["best_score"] is None else score_text(it["best_score"])
         line = (f"iteration {it['iteration']}: update {it['update_status']}, score {score}, best {best} "
                 f"(iteration {it['best_iteration']}), version {it['policy_version_id']}"
