@@ -1336,7 +1336,7 @@ MIGRATIONS.append(
         LEFT JOIN calls ON calls.run_id = r.run_id
         LEFT JOIN audit ON audit.run_id = r.run_id
         LEFT JOIN audits_of ON audits_of.run_id = r.run_id;
-        COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: label, settings, status, best score (NULL: forfeited), forfeits, audit of the best of now (audit_stale: of an earlier best), episodes, tokens, repairs';
+        COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: settings, status, best score (NULL: forfeited), forfeits, audit of the best (audit_stale), tokens';
         """,
     )
 )
