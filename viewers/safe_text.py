@@ -194,13 +194,13 @@ def make_python_reports_terminal_safe() -> None:
 
 
 def print_failure(heading: str = "") -> None:
-    """The exception being handled, with its traceback, on stderr, made safe for the terminal first: a server's
-    failure may quote what an untrusted client sent. ``heading``: a line before it."""
+    """The exception being handled, with its traceback, on stderr, made safe for the terminal and cut short first
+    (as Python's own reports are: :func:`_write_report`): a server's failure may quote what an untrusted client
+    sent, a megabyte of it too. ``heading``: a line before it."""
     import traceback  # only where something failed
 
     text = traceback.format_exc()
-    sys.stderr.write(terminal_text(f"{heading}\n{text}" if heading else text, multiline=True) + "\n")
-    sys.stderr.flush()
+    _write_report(f"{heading}\n{text}" if heading else text)
 
 
 def plain_text(text: object) -> str:

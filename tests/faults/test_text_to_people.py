@@ -408,3 +408,19 @@ def test_rerun_s_own_log_stays_off_the_terminal(store, tmp_path):
     assert done.returncode == 2 and err.strip().splitlines() == [
         f"codearcade: error: no Rerun viewer answered at {url}: start one (`rerun`), or give --spawn, --serve-web or "
         "--save instead"], err[-3000:]
+
+
+def test_a_server_s_failure_is_printed_made_safe_and_cut(capsys):
+    """`serve` prints a request's failure with its traceback (``print_failure``): made safe, but whole, so a
+    failure quoting a megabyte an agent sent put the megabyte on the person's terminal. It is cut as Python's own
+    reports are now (the start and the end, where the error is named)."""
+    from viewers.safe_text import print_failure
+
+    try:
+        raise ValueError("\x1b]0;owned\x07" + "x" * 1_000_000 + " the end")
+    except ValueError:
+        print_failure("codearcade serve: a request failed")
+    err = capsys.readouterr().err
+    assert "\x1b" not in err and "\x07" not in err, err[:200]
+    assert len(err) < 30_000 and err.startswith("codearcade serve: a request failed"), len(err)
+    assert "ValueError" in err, err[-500:]
