@@ -355,3 +355,14 @@ def test_a_batch_folder_moved_whole_keeps_its_runs(tmp_path, store, scripted):
         con.execute("UPDATE runs SET config = json_merge_patch(config, json_object('batch_key', ?)) "
                     "WHERE config->>'batch_key' = ?", [policy_run.legacy_key, policy_run.key])
     assert [p.action for p in batch_module.plan(batch, store)] == ["skip", "skip"]
+
+
+def test_the_live_table_says_no_score_once_every_assessed_version_forfeited():
+    """The live table showed `-` for a run whose every assessed version forfeited (its best NULL by the rule), as
+    for one that had played nothing yet."""
+    from pipeline.cli.batch import best_cell
+    from pipeline.jobs.batch import Progress
+
+    assert best_cell(Progress("a")) == "-"  # nothing assessed yet
+    assert best_cell(Progress("a", iteration=0)) == "no score"  # the starter forfeited
+    assert best_cell(Progress("a", iteration=3, best=-4.5)) == "-4.5"

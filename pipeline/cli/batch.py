@@ -62,7 +62,7 @@ def _batch_display(store):
             table.add_column(column)
         for p in progress:
             it = "-" if p.iteration is None else f"{p.iteration}/{p.iterations}"
-            best = "-" if p.best is None else score_text(p.best)
+            best = best_cell(p)
             table.add_row(*(Text(terminal_text(cell)) for cell in (p.label, p.state, it, best,
                                                                     short.get(p.run_id, p.run_id) or "")))
         counts = {s: sum(1 for p in progress if p.state == s)
@@ -71,6 +71,15 @@ def _batch_display(store):
         live.update(table)
 
     return show, live.stop
+
+
+def best_cell(progress) -> str:
+    """A run's best score in the live table: ``-`` before it assessed anything, ``no score`` once every version it
+    assessed forfeited a game (its starter's iteration 0 included: a forfeit is never scored, ``store/scores.py``),
+    where it showed ``-`` as if nothing had been played."""
+    if progress.best is not None:
+        return score_text(progress.best)
+    return "-" if progress.iteration is None else "no score"
 
 
 def _endpoint_problems(planned) -> list[str]:
