@@ -422,6 +422,15 @@ print(json.dumps(answer))
 """
 
 
+def _ask_once(name: str, base: str, *stream: str) -> dict:
+    """One call of :data:`_ASK_ONCE` in a child process (``stream``: ``"stream"`` to stream): its answer or error
+    and its peak RSS."""
+    done = subprocess.run([sys.executable, "-c", _ASK_ONCE, name, base, str(ROOT), *stream], capture_output=True,
+                          text=True, timeout=300, env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("provider", ["openai", "anthropic", "ollama_chat", "gemini"])
 def test_an_endpoint_s_answer_is_read_within_its_byte_limit_compressed_or_not(scripted, provider):
@@ -440,10 +449,7 @@ def test_an_endpoint_s_answer_is_read_within_its_byte_limit_compressed_or_not(sc
     name, base = model.route(provider)
 
     def ask() -> dict:
-        done = subprocess.run([sys.executable, "-c", _ASK_ONCE, name, base, str(ROOT)], capture_output=True,
-                              text=True, timeout=300, env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
-        assert done.returncode == 0, done.stderr[-2000:]
-        return json.loads(done.stdout.strip().splitlines()[-1])
+        return _ask_once(name, base)
 
     small = ask()
     assert small.get("text") == "small and compressed", small
@@ -472,10 +478,7 @@ def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events
     name, base = model.route(provider)
 
     def ask(*stream: str) -> dict:
-        done = subprocess.run([sys.executable, "-c", _ASK_ONCE, name, base, str(ROOT), *stream], capture_output=True,
-                              text=True, timeout=300, env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
-        assert done.returncode == 0, done.stderr[-2000:]
-        return json.loads(done.stdout.strip().splitlines()[-1])
+        return _ask_once(name, base, *stream)
 
     small, streamed = ask(), ask("stream")
     assert small.get("text") == streamed.get("text") == "a small reply", (small, streamed)
@@ -503,10 +506,7 @@ def test_a_stream_event_of_more_than_one_choice_or_tool_call_ends_the_call(scrip
     name, base = model.route("openai")
 
     def ask() -> dict:
-        done = subprocess.run([sys.executable, "-c", _ASK_ONCE, name, base, str(ROOT), "stream"], capture_output=True,
-                              text=True, timeout=300, env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
-        assert done.returncode == 0, done.stderr[-2000:]
-        return json.loads(done.stdout.strip().splitlines()[-1])
+        return _ask_once(name, base, "stream")
 
     streamed = ask()
     assert streamed.get("text") == "a small reply", streamed
@@ -531,10 +531,7 @@ def test_an_answer_s_elements_are_counted_outside_its_strings(scripted):
     name, base = model.route("openai")
 
     def ask() -> dict:
-        done = subprocess.run([sys.executable, "-c", _ASK_ONCE, name, base, str(ROOT)], capture_output=True,
-                              text=True, timeout=300, env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
-        assert done.returncode == 0, done.stderr[-2000:]
-        return json.loads(done.stdout.strip().splitlines()[-1])
+        return _ask_once(name, base)
 
     small = ask()
     assert small.get("text") == "a small reply", small
