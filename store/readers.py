@@ -11,6 +11,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import duckdb
 
+from store.db import StoreError
 from store.held_values import bounded_value, held_bytes
 from tracing.bounded import MAX_CHARS, PREVIEW_CHARS, load_json
 from tracing.steps import objects_to_obs
@@ -165,13 +166,25 @@ def blob_starts(con: duckdb.DuckDBPyConnection, digests: Iterable[str | None], c
     return starts
 
 
+class MissingVersionError(StoreError, KeyError):
+    """A policy version a run's rows name that the run does not have, or whose source is gone: a store changed by
+    hand or damaged (a store is anyone's file). A KeyError to the readers that look for one that may be missing;
+    to the command line, a user error (StoreError) of one line."""
+
+    def __init__(self, run_id: str, version_id: str):
+        super().__init__(f"run {run_id} has no policy version {version_id} (the store was changed by hand or is "
+                         "damaged: `codearcade doctor` reports what is left)")
+
+    __str__ = Exception.__str__  # the message itself, not KeyError's quoted repr of it
+
+
 def policy_text(con: duckdb.DuckDBPyConnection, run_id: str, version_id: str) -> str:
     """The whole policy file of a version used or considered in a run."""
     row = con.execute(
         "SELECT b.text FROM policy_versions v JOIN blobs b ON b.hash = v.source_hash "
         "WHERE v.run_id = ? AND v.policy_version_id = ? LIMIT 1", [run_id, version_id]).fetchone()
     if row is None:
-        raise KeyError(f"run {run_id} has no policy version {version_id}")
+        raise MissingVersionError(run_id, version_id)
     return row[0]
 
 
@@ -183,7 +196,7 @@ def policy_texts(con: duckdb.DuckDBPyConnection, run_id: str, version_ids: list[
         [run_id, sorted(set(version_ids))]).fetchall())
     for version_id in version_ids:
         if version_id not in found:
-            raise KeyError(f"run {run_id} has no policy version {version_id}")
+            raise MissingVersionError(run_id, version_id)
     return found
 
 
