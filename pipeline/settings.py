@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import reprlib
 import types
 import typing
 from dataclasses import dataclass
@@ -143,23 +144,58 @@ def check_settings(config: Any) -> None:
     """ValueError, one line naming the flag, for the first declared setting of ``config`` whose value is of the
     wrong type, out of its range or not one of its choices, or that its own check refuses."""
     for name, (f, declared) in declarations(config).items():
-        value = getattr(config, name)
-        if value is None and f.default is None:
+        _check_one(config, name, getattr(config, name), f, declared, declared.label(name))
+
+
+def check_value(config: Any, name: str, value: Any, label: str | None = None) -> None:
+    """ValueError, one line naming the setting (its flag, or ``label``), if ``value`` is not what the setting
+    ``name`` of the config class (or instance) ``config`` takes: its type, a finite number, in its range, one of its
+    choices, passing its own check (:func:`check_settings`, one setting)."""
+    f, declared = declarations(config)[name]
+    _check_one(config, name, value, f, declared, label or declared.label(name))
+
+
+def _check_one(config: Any, name: str, value: Any, f: dataclasses.Field, declared: Setting, label: str) -> None:
+    if value is None and f.default is None:
+        return
+    _check_type(label, value, value_type(config, name))
+    if isinstance(value, str) and not value.strip() and value != f.default:  # `--model "$UNSET"`: it is not
+        # the setting left out (the offline model ran)
+        raise ValueError(f"{label} is empty: give a value, or leave {label} out for its default")
+    if isinstance(value, float) and not math.isfinite(value):  # nan passes every bound; neither goes in JSON
+        raise ValueError(f"{label} must be a finite number, got {value:g}")
+    if declared.choices is not None and value not in declared.choices:
+        raise ValueError(f"{label} must be one of {', '.join(map(str, declared.choices))}, not {reprlib.repr(value)}")
+    problem = range_problem(declared, value)
+    if problem is not None:
+        raise ValueError(f"{label} {problem}")
+    if declared.check is not None:
+        declared.check(value)
+
+
+def recorded_problem(cls: type, recorded: Any) -> str | None:
+    """What makes ``recorded`` (a run's settings as its store holds them: anyone's file) not settings of the config
+    class ``cls``: not a JSON object, or a setting of it that :func:`check_value` refuses (named by its key); None
+    when they read. Keys that are no setting of ``cls`` are left to their readers."""
+    if not isinstance(recorded, dict):
+        return f"they are {type(recorded).__name__}, not a JSON object"
+    for name in declarations(cls):
+        if name not in recorded:
             continue
-        label = declared.label(name)
-        _check_type(label, value, value_type(config, name))
-        if isinstance(value, str) and not value.strip() and value != f.default:  # `--model "$UNSET"`: it is not
-            # the setting left out (the offline model ran)
-            raise ValueError(f"{label} is empty: give a value, or leave {label} out for its default")
-        if isinstance(value, float) and not math.isfinite(value):  # nan passes every bound; neither goes in JSON
-            raise ValueError(f"{label} must be a finite number, got {value:g}")
-        if declared.choices is not None and value not in declared.choices:
-            raise ValueError(f"{label} must be one of {', '.join(map(str, declared.choices))}, not {value!r}")
-        problem = range_problem(declared, value)
-        if problem is not None:
-            raise ValueError(f"{label} {problem}")
-        if declared.check is not None:
-            declared.check(value)
+        value = recorded[name]
+        if isinstance(value, list) and value_type(cls, name) is tuple:  # JSON has no tuples: each item checked
+            items = [typing.get_args(a) for a in typing.get_args(_hints(cls)[name]) if typing.get_origin(a) is tuple]
+            kind = items[0][0] if items and items[0] else object
+            wrong = [item for item in value if not isinstance(item, kind) or isinstance(item, bool)]
+            if wrong:
+                names = {int: "whole numbers", float: "numbers", str: "texts"}.get(kind, str(kind))
+                return f"{name} must list {names}, not {reprlib.repr(wrong[0])}"
+            value = tuple(value)
+        try:
+            check_value(cls, name, value, label=name)
+        except ValueError as exc:
+            return str(exc)
+    return None
 
 
 def range_problem(declared: Setting, value: float) -> str | None:
@@ -191,7 +227,7 @@ def _check_type(label: str, value: Any, kind: type | tuple[type, ...]) -> None:
     if not ok:
         names = " or ".join({int: "a whole number", float: "a number", str: "a text", bool: "true or false"}
                             .get(k, k.__name__) for k in kinds)
-        raise ValueError(f"{label} must be {names}, not {value!r}")
+        raise ValueError(f"{label} must be {names}, not {reprlib.repr(value)}")  # a stored value may be any size
 
 
 def resumable(cls: type) -> tuple[str, ...]:

@@ -40,8 +40,12 @@ def collect(store: Store, run: str) -> dict[str, Any]:
 
         data.update(report_rows(con, run_id))
         data["choices"] = model_choice_rows(con, run_id)  # an ensemble's reasons (viewers/model_choices.py)
-    data["config"] = json.loads(data["run"]["config"]) if data["run"]["config"] else {}
-    data["packages"] = json.loads(data["run"]["package_versions"] or "{}")
+    # a store is anyone's file: settings or package versions that are no JSON object are shown as none, and the
+    # command that reproduces the run gets the settings as stored, to say they cannot be read
+    data["recorded"] = json.loads(data["run"]["config"]) if data["run"]["config"] else {}
+    data["config"] = data["recorded"] if isinstance(data["recorded"], dict) else {}
+    packages = json.loads(data["run"]["package_versions"] or "{}")
+    data["packages"] = packages if isinstance(packages, dict) else {}
     return data
 
 
@@ -255,7 +259,8 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
             else "with a deterministic policy and model it plays the same episodes")
     out += ["## Reproduce", "", f"The command that made this run (a new run with the same settings; {same}), and "
             "the queries behind this report:", "",
-            markdown_code_block("\n".join([*([reproduce(run, data["config"])] if reproduce is not None else []),
+            markdown_code_block("\n".join([*([reproduce(run, data.get("recorded", data["config"]))]
+                                              if reproduce is not None else []),
                                             f"codearcade report {run['run_id']}", f'codearcade sql "{query}"']),
                                 "bash"), ""]
     return "\n".join(out)

@@ -26,25 +26,38 @@ def add_parser(verbs) -> None:
     p.set_defaults(handler=run)
 
 
-def reproduce_command(run: dict[str, Any], config: dict[str, Any]) -> str:
+def reproduce_command(run: dict[str, Any], config: Any) -> str:
     """The ``codearcade`` command line that starts a run with ``run``'s settings (defaults left out): each
-    setting's flag as its declaration names it (``pipeline/settings.py``)."""
+    setting's flag as its declaration names it (``pipeline/settings.py``). Settings the store holds that are not
+    what their setting takes (a store is anyone's file) make no command: a comment saying which one instead."""
+    from pipeline.settings import recorded_problem
 
     if run["kind"] == "eval":
         from pipeline.play.config import EvalConfig
 
-        parts = ["codearcade", "eval", config.get("policy") or "POLICY.py", "--game", run["game"]]
-        return _shell_line(parts + _flags(EvalConfig, config))
-    if run["kind"] == "serve":  # a served run: its own settings, recorded under "serve"
+        kind: type = EvalConfig
+    elif run["kind"] == "serve":
         from pipeline.serve.config import ServeConfig
 
-        served = config.get("serve") or {}
-        parts = ["codearcade", "serve"] + ([served["policy"]] if served.get("policy") else [])
-        return _shell_line(parts + ["--game", run["game"]] + _flags(ServeConfig, served))
-    from pipeline.optimizer.config import OptimizeConfig
+        kind = ServeConfig
+    else:
+        from pipeline.optimizer.config import OptimizeConfig
 
+        kind = OptimizeConfig
+    served = config.get("serve") or {} if isinstance(config, dict) and run["kind"] == "serve" else config
+    problem = recorded_problem(kind, served)
+    if problem is None and not isinstance(run["game"], str):
+        problem = "the run names no game"
+    if problem is not None:
+        return f"# no command reproduces this run: its recorded settings cannot be read ({problem})"
+    if run["kind"] == "eval":
+        parts = ["codearcade", "eval", config.get("policy") or "POLICY.py", "--game", run["game"]]
+        return _shell_line(parts + _flags(kind, config))
+    if run["kind"] == "serve":  # a served run: its own settings, recorded under "serve"
+        parts = ["codearcade", "serve"] + ([served["policy"]] if served.get("policy") else [])
+        return _shell_line(parts + ["--game", run["game"]] + _flags(kind, served))
     parts = ["codearcade", "optimize"] + ([config["policy"]] if config.get("policy") else [])
-    return _shell_line(parts + ["--game", run["game"]] + _flags(OptimizeConfig, config))
+    return _shell_line(parts + ["--game", run["game"]] + _flags(kind, config))
 
 
 def _shell_line(words: list[str]) -> str:
@@ -73,9 +86,10 @@ def _flags(config_class: type, config: dict[str, Any]) -> list[str]:
     for name, (f, s) in declarations(config_class).items():
         value = config.get(name)
         if name in ("model", "api_base") and config.get("models"):  # an ensemble: --model per entry
-            from pipeline.optimizer.ensemble import entry_flag
+            from pipeline.optimizer.ensemble import entry_flag, parse_model_entry
 
-            parts += [w for e in config["models"] for w in ("--model", entry_flag(e))] if name == "model" else []
+            parts += [w for e in config["models"] for w in ("--model", entry_flag(parse_model_entry(e)))] \
+                if name == "model" else []
             continue
         if not s.flags(name) or name == "game" or not s.reproduce or value is None or value == f.default:
             continue
