@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, CliError, add_run, add_store, open_store, resolve_run,
@@ -27,6 +26,7 @@ def add_parser(verbs) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pipeline.optimizer.config import read_recorded
     from pipeline.optimizer.replay import replay
     from store.locks import run_is_live
     from store.readers import get_run
@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"run {short_ids(store).get(run_id, run_id)} is still running: replay it once it has "
                        "finished or stopped")
     with store.read() as con:
-        iterations = json.loads(get_run(con, run_id)["config"]).get("iterations")
+        iterations = read_recorded(get_run(con, run_id)["config"], run_id).get("iterations")
 
     def replayed(item) -> None:  # progress: a long run replays for minutes (its episodes are played again)
         score = "forfeit" if item.score is None else score_text(item.score)

@@ -26,13 +26,12 @@ stored run (``codearcade audit RUN``), replacing the run's earlier audit.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 from games.base import (AUDIT_SEED_BASE, AUDIT_SEED_END, ONE_LIFE_CONTINUE, STANDARD_NOOP_MAX, STANDARD_STICKY,
                         draw_audit_seeds)
-from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.config import OptimizeConfig, read_recorded
 from pipeline.play.episodes import run_episodes
 from pipeline.play.runinfo import audit_episode_id, new_audit_token
 from pipeline.play.spec import EpisodeSpec
@@ -137,8 +136,8 @@ def audit_run(store: Store, run_id: str, episodes: int | None = None, workers: i
         subjects = audit_subjects(con, run_id)
     if run["kind"] == "eval":
         raise ValueError(f"run {run_id} is an eval run: only optimization runs have a best version to audit")
-    recorded = json.loads(run["config"])
-    config = OptimizeConfig.from_record(recorded)
+    recorded = read_recorded(run["config"], run_id)
+    config = OptimizeConfig.from_record(recorded, run_id)
     one_game = config.one_life == ONE_LIFE_CONTINUE  # the run's episodes are the lives of one game: so the audit's
     if seeds is not None:
         seeds = check_audit_seeds(seeds, one_game)

@@ -9,11 +9,13 @@ capped at 2,000 characters and scrubbed of secrets (``pipeline/boundary/untruste
 
 from __future__ import annotations
 
+import math
+import reprlib
 from dataclasses import dataclass
 from typing import Any
 
 from pipeline.boundary.untrusted import clean_untrusted_text, single_line
-from pipeline.optimizer.config import FEEDBACK_MODES  # the choices of the ``feedback`` setting, declared there
+from pipeline.optimizer.config import FEEDBACK_MODES, unreadable_settings  # ``feedback``'s choices, declared there
 
 
 @dataclass(frozen=True)
@@ -37,6 +39,41 @@ class FeedbackBands:
         stage = self.stage(score)
         template = self.messages.get(stage) or "Score {score:g} ({gap:g} from the target {target:g})."
         return stage, template.format(score=score, target=self.target, gap=abs(self.target - score))
+
+    @classmethod
+    def from_record(cls, value: Any, run_id: str) -> "FeedbackBands":
+        """The bands run ``run_id`` recorded (``runs.config``'s ``feedback_bands``, as the loop writes them: exactly
+        these fields); a :func:`unreadable_settings` error naming what is wrong (a key too many had ended
+        ``--resume`` in a TypeError): a store is anyone's file, and a template the loop cannot fill would end
+        the iteration that first writes that band's feedback."""
+        def unreadable(problem: str) -> ValueError:
+            return unreadable_settings(run_id, f"feedback_bands {problem}")
+
+        if not isinstance(value, dict):
+            raise unreadable(f"are {type(value).__name__}, not a JSON object")
+        fields = {"high", "low", "target", "messages"}
+        if set(value) != fields:
+            wrong = sorted(set(value) ^ fields)
+            shown = ", ".join(map(reprlib.repr, wrong[:3]))
+            raise unreadable(f"must have exactly {', '.join(sorted(fields))}; {shown} "
+                             f"{'is' if len(wrong) == 1 else 'are'} not so")  # a key may be any text: cut
+        numbers = {}
+        for key in ("high", "low", "target"):
+            number = value[key]
+            if isinstance(number, bool) or not isinstance(number, (int, float)) or not math.isfinite(number):
+                raise unreadable(f"{key} must be a finite number, not {reprlib.repr(number)}")
+            numbers[key] = float(number)
+        messages = value["messages"]
+        if not isinstance(messages, dict) or not all(isinstance(t, str) for t in messages.values()):
+            raise unreadable(f"messages must map each band to a text, not {reprlib.repr(messages)}")
+        bands = cls(numbers["high"], numbers["low"], numbers["target"], dict(messages))
+        for stage, template in messages.items():
+            try:
+                template.format(score=bands.low, target=bands.target, gap=abs(bands.target - bands.low))
+            except (KeyError, IndexError, ValueError, AttributeError, TypeError) as exc:
+                raise unreadable(f"message {stage!r} is not a template of score, target and gap "
+                                 f"({type(exc).__name__}: {reprlib.repr(str(exc))})") from None
+        return bands
 
     @classmethod
     def from_constant(cls, value: Any, source: str) -> "FeedbackBands":

@@ -24,7 +24,7 @@ candidate. ``codearcade replay RUN`` re-runs a run with the stored replies inste
 
 from __future__ import annotations
 
-import json
+import reprlib
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
@@ -37,7 +37,8 @@ from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.assess import assess, screen
 from pipeline.optimizer.conclude import IterationResult, conclude, screen_out
 from pipeline.optimizer.pool import run_pool
-from pipeline.optimizer.config import RESUME_OVERRIDES, OptimizeConfig, validate_config
+from pipeline.optimizer.config import (RESUME_OVERRIDES, OptimizeConfig, read_recorded, unreadable_settings,
+                                       validate_config)
 from pipeline.settings import flag_of
 from pipeline.stopping import uninterrupted
 from pipeline.optimizer.feedback import FeedbackBands
@@ -179,10 +180,15 @@ def load_state(store: Store, run_id: str) -> RunState:
         if run is None:
             raise ValueError(f"no run {run_id} in {store.path}; `codearcade runs` lists the runs")
         last = last_iteration(con, run_id)
-    recorded = json.loads(run["config"])
-    config = OptimizeConfig.from_record(recorded)
-    settings = {k: recorded[k] for k in ("rollout_steps", "eval_max_steps", "instruction", "feedback_bands")}
-    settings["bands"] = FeedbackBands(**recorded["feedback_bands"])
+    recorded = read_recorded(run["config"], run_id)
+    config = OptimizeConfig.from_record(recorded, run_id)
+    for key, kind in (("instruction", str), ("rollout_steps", int), ("eval_max_steps", int)):  # the task's, as
+        # the run started with them (from_record checked the numbers' ranges)
+        if not isinstance(recorded.get(key), kind) or isinstance(recorded[key], bool):
+            raise unreadable_settings(run_id, f"{key} must be {'a text' if kind is str else 'a whole number'}, "
+                                              f"not {reprlib.repr(recorded.get(key))}")
+    settings = {k: recorded.get(k) for k in ("rollout_steps", "eval_max_steps", "instruction", "feedback_bands")}
+    settings["bands"] = FeedbackBands.from_record(recorded.get("feedback_bands"), run_id)
     state = RunState(run_id, run["game"], config, settings, rng_key=recorded.get("rng_key"))
     if last is not None:
         state.next_iteration = last["iteration"] + 1
@@ -363,8 +369,7 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
     if row["kind"] != "optimize":
         raise ValueError(f"run {run_id} is {kind_phrase(row['kind'])}: only optimization runs can be resumed "
                          f"({'evaluate the policy again with codearcade eval' if row['kind'] == 'eval' else 'replay the original run again'})")
-    recorded = json.loads(row["config"])
-    config = OptimizeConfig.from_record(recorded)
+    config = OptimizeConfig.from_record(read_recorded(row["config"], run_id), run_id)
 
     def same(key: str) -> bool:  # the run's own value, given again (its command line repeated with --resume)
         mine, theirs = getattr(config, key, None), given[key]

@@ -17,13 +17,12 @@ the iterations it had started: then the replay goes on past the record, and says
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Iterator
 
 from pipeline.llm.client import EnsembleClient, ReplayClient
-from pipeline.optimizer.config import OptimizeConfig
+from pipeline.optimizer.config import OptimizeConfig, read_recorded
 from pipeline.optimizer.loop import load_state, new_run, run_loop
 from pipeline.optimizer.strategies import make_strategy
 from store import Store
@@ -110,8 +109,8 @@ def replay(store: Store, run_id: str, log=lambda s: None, on_iteration=None) -> 
         starter = inspect_policy(blob_text(con, run["starter_policy_hash"]), "policy.py")
         replies, errors = StoredReplies(store, replay_replies(con, run_id)), replay_errors(con, run_id)
         bases = pool_bases(con, run_id)
-    recorded = json.loads(run["config"])
-    config = OptimizeConfig.from_record(recorded)
+    recorded = read_recorded(run["config"], run_id)
+    config = OptimizeConfig.from_record(recorded, run_id)
     client = ReplayClient(replies, model=run["model"] or "replay", errors=errors)
     if config.models:  # an ensemble: each call is answered as the model the rule chooses again
         client = EnsembleClient([ReplayClient(replies, model=e["model"], errors=errors) for e in config.models])

@@ -172,6 +172,8 @@ class ServeRun:
         self.store, self.run_id = store, run_id
         self.record = json.loads(run["config"])
         self.serve = self.record["serve"]
+        # read once, before a submission plays: a store is anyone's file, and bands it cannot read are one line
+        self.bands = FeedbackBands.from_record(self.record.get("feedback_bands"), run_id)
         self.game = get_game(run["game"])
         self.budget_total = int(self.serve["budget"])
         self.on_episode = on_episode
@@ -421,7 +423,7 @@ class ServeRun:
         best_score, best_iteration = (self._best[0], -self._best[1]) if self._best else (None, 0)
         train = episodes[0]
         stage, _, feedback = compose_feedback(
-            "staged", FeedbackBands(**self.record["feedback_bands"]), ranked, train["return"], train["length"], [],
+            "staged", self.bands, ranked, train["return"], train["length"], [],
             score.forfeit, score.partial if score.forfeit else None)
         feedback += printed_section(list(zip(instances, printed)))
         ids = [e["episode_id"] for e in episodes]
