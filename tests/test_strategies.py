@@ -175,11 +175,13 @@ def test_kill_during_a_concurrent_iteration_then_resume(store, scripted):
     model = scripted([{"pool": POOL, "seed": 5}])
     process = subprocess.Popen(
         [exe, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--strategy",
-         "best-of-n", "--candidates", "3", "--iterations", "2", "--eval-max-steps", "3000", "--rollout-steps", "40",
-         "--workers", "1", "--repairs", "0", "--store", str(store.path)],
+         "best-of-n", "--candidates", "3", "--iterations", "2", "--eval-max-steps", "3000", "--eval-episodes", "3",
+         "--rollout-steps", "40", "--workers", "1", "--repairs", "0", "--store", str(store.path)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 180
-    while time.monotonic() < deadline:  # iteration 1's three replies are stored; its candidates are being played
+    # iteration 1's three replies are stored; its candidates are being played: three games each (the seeded pool
+    # gives it one policy thrice, played once), so that a loaded machine's poll still lands inside the iteration
+    while time.monotonic() < deadline:
         try:
             if store.query("SELECT count(*) FROM llm_calls WHERE iteration = 1")[0][0] == 3:
                 break

@@ -143,9 +143,12 @@ if __name__ == "__main__":
         _say(f"error: {exc}")
         sys.exit(STORE_FULL_EXIT if isinstance(exc, StoreFull) else 1)
     except Exception as exc:
+        from pipeline.stopping import stop_pending
         from store.db import is_ctrl_c
 
-        if not is_ctrl_c(exc):  # DuckDB's word for a press that reached it outside the store's conversion
+        # DuckDB's word for a press that reached it outside the store's conversion; or the error of something the
+        # press itself broke while it was held (a zygote it killed as the run started: "did not start")
+        if not (is_ctrl_c(exc) or stop_pending()):
             raise
         _say("interrupted")
         sys.exit(INTERRUPTED_EXIT)
