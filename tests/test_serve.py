@@ -1096,16 +1096,22 @@ def test_over_mcp_stdio_a_request_the_sdk_cannot_read_is_answered_and_the_server
 
 
 def _answers(serve: subprocess.Popen, count: int, wait_s: float = 60.0) -> list[dict]:
-    """The server's next ``count`` answers, each waited for at most ``wait_s`` (a request left unanswered fails the
-    test rather than hanging it)."""
+    """The server's next ``count`` answers, each byte waited for at most ``wait_s`` (a request left unanswered fails
+    the test rather than hanging it). Read from the pipe a byte at a time: ``serve.stdout.readline()`` takes the
+    answers behind its line into its buffer, where ``select`` cannot see them (CI waited 60 s for four answers that
+    had come)."""
     import select
 
     answers: list[dict] = []
+    line = bytearray()
     while len(answers) < count:
-        ready, _, _ = select.select([serve.stdout], [], [], wait_s)
-        line = serve.stdout.readline() if ready else b""
-        assert line, f"no answer after {answers}"
-        answers.append(json.loads(line))
+        ready, _, _ = select.select([serve.stdout.fileno()], [], [], wait_s)
+        byte = os.read(serve.stdout.fileno(), 1) if ready else b""
+        assert byte, f"no answer after {answers}"
+        line += byte
+        if byte == b"\n":
+            answers.append(json.loads(line))
+            line.clear()
     return answers
 
 
