@@ -24,29 +24,31 @@ def learning_curve(con: duckdb.DuckDBPyConnection, run_id: str) -> list[dict[str
 
 
 def best_version(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any] | None:
-    """The run's best version so far: ``policy_version_id``, ``iteration`` (where it first scored its best) and
-    ``score``; None for a run without iterations (an eval run)."""
+    """The run's best version (view ``run_best``, its one home): ``policy_version_id``, ``iteration`` (where it first
+    scored its best), ``score`` and ``best_by``, what picked it and what ``score`` is: ``validation`` for a finalized
+    served run (its best by validation, the one its finalize played on the held-out pool,
+    ``pipeline/serve/finalize.py``; ``policy_version_id`` None when every submission forfeited a validation game),
+    ``training`` for a served run not finalized yet, ``tuning`` for an optimization run. None for a run without
+    iterations (an eval run)."""
     rows = _rows(con.execute(
-        """SELECT best_version_id AS policy_version_id, best_iteration AS iteration, best_score AS score
-           FROM iterations WHERE run_id = ? ORDER BY iteration DESC LIMIT 1""", [run_id]))
+        """SELECT best_version_id AS policy_version_id, best_iteration AS iteration, best_score AS score, best_by,
+                  best_training_score AS training_score
+           FROM run_best WHERE run_id = ?""", [run_id]))
     return rows[0] if rows else None
 
 
 def resolve_version(con: duckdb.DuckDBPyConnection, run_id: str, text: str) -> str:
     """The policy version of ``run_id`` whose id is ``text`` or starts with it; ``best`` is the run's best
-    version (eval runs: the version they played; a finalized served run: its best by validation, the one its
-    finalize played on the held-out pool, ``pipeline/serve/finalize.py``). ValueError with what exists if none or
+    version (:func:`best_version`; eval runs: the version they played). ValueError with what exists if none or
     several match."""
     wanted = text.strip()
     if wanted == "best":
-        served = con.execute(  # a served run's best by training score is not the one it picked: validation did
-            "SELECT a.policy_version_id FROM audits a JOIN runs r USING (run_id) WHERE a.run_id = ? AND r.kind = "
-            "'serve' AND a.role = 'best' AND a.protocol = 'standard'", [run_id]).fetchall()
-        if served:
-            return served[0][0]
         best = best_version(con, run_id)
-        if best is not None:
+        if best is not None and best["policy_version_id"] is not None:
             return best["policy_version_id"]
+        if best is not None:
+            raise ValueError(f"run {run_id} has no best version: every submission forfeited a validation game; give "
+                             "a version id")
         rows = con.execute("SELECT DISTINCT policy_version_id FROM episodes WHERE run_id = ?", [run_id]).fetchall()
         if len(rows) == 1:
             return rows[0][0]
@@ -86,26 +88,36 @@ def episode_rows(con: duckdb.DuckDBPyConnection, episode_ids: list[str]) -> dict
 
 
 def best_evaluation(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any] | None:
-    """The assessment that made the run's best: its ``score`` with ``score_low`` and ``score_high`` (the 95%
-    interval, ``candidates``) and its ``episodes`` (return, length, end reason, error, in order): the evaluation
-    episodes, or the robust ones for a run that optimizes the standard protocol's score. None without iterations."""
-    rows = _rows(con.execute(
-        """SELECT c.score, c.score_low, c.score_high,
-                  CASE WHEN json_extract_string(r.config, '$.optimize_protocol') = 'standard'
-                       THEN c.robust_episode_ids ELSE c.eval_episode_ids END AS episode_ids
-           FROM iterations i JOIN candidates c ON c.run_id = i.run_id AND c.iteration = i.best_iteration
-                AND c.policy_version_id = i.best_version_id
-           JOIN runs r ON r.run_id = i.run_id
-           WHERE i.run_id = ? ORDER BY i.iteration DESC, c.score DESC NULLS LAST, c.candidate LIMIT 1""", [run_id]))
+    """The assessment that picked the run's best (:func:`best_version`): its ``score`` with ``score_low`` and
+    ``score_high`` (the 95% interval) and its ``episodes`` (return, length, end reason, error, in order): the
+    evaluation episodes (``candidates``), or the robust ones for a run that optimizes the standard protocol's score,
+    or a finalized served run's validation games (``audits``). None without iterations or a best."""
+    best = best_version(con, run_id)
+    if best is None or best["policy_version_id"] is None:
+        return None
+    if best["best_by"] == "validation":  # validation picked it: its validation games, not its training ones
+        rows = _rows(con.execute(
+            """SELECT score, score_low, score_high, episode_ids FROM audits
+               WHERE run_id = ? AND protocol = 'validation' AND policy_version_id = ?""",
+            [run_id, best["policy_version_id"]]))
+    else:
+        rows = _rows(con.execute(
+            """SELECT c.score, c.score_low, c.score_high,
+                      CASE WHEN json_extract_string(r.config, '$.optimize_protocol') = 'standard'
+                           THEN c.robust_episode_ids ELSE c.eval_episode_ids END AS episode_ids
+               FROM candidates c JOIN runs r ON r.run_id = c.run_id
+               WHERE c.run_id = ? AND c.iteration = ? AND c.policy_version_id = ?
+               ORDER BY c.score DESC NULLS LAST, c.candidate LIMIT 1""",
+            [run_id, best["iteration"], best["policy_version_id"]]))
     if not rows:
         return None
-    best = rows[0]
-    ids = best.pop("episode_ids") or []
+    found = rows[0]
+    ids = found.pop("episode_ids") or []
     by_id = {e["episode_id"]: e for e in _rows(con.execute(
         """SELECT episode_id, return, length, end_reason, error FROM episodes WHERE list_contains(?, episode_id)""",
         [ids]))}
-    best["episodes"] = [by_id[i] for i in ids if i in by_id]
-    return best
+    found["episodes"] = [by_id[i] for i in ids if i in by_id]
+    return found
 
 
 def held_out_evaluation(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any] | None:

@@ -1341,6 +1341,120 @@ MIGRATIONS.append(
     )
 )
 
+# A served run is finalized by its best by validation (pipeline/serve/finalize.py), which blame RUN:best named, but
+# run_summary's best_* came from the iterations table, the best by training score: `runs` printed "best 0" of
+# iteration 1 beside the audit of iteration 2, report named and showed the methods of iteration 1's version, compare
+# diffed and scored it, and the OTLP export's root span named it. run_best is now the one home of a run's best (the
+# validation pick of a finalized served run, with its validation score and best_by saying so; the training best of
+# one not finalized; the loop's best of an optimization), and run_summary, compare, blame and the exports read it.
+MIGRATIONS.append(
+    (
+        25,
+        "run_best: a run's best version and the score it was picked by (a finalized served run's: by validation); "
+        "run_summary reads it: best_version_id, best_by, best_training_score",
+        r"""
+        CREATE OR REPLACE VIEW run_best AS
+        WITH trained AS (  -- the best by the scores its iterations were chosen on (the loop's; a served run's training)
+            SELECT run_id, max(best_score) AS best_score, arg_max(best_iteration, iteration) AS best_iteration,
+                   arg_max(best_version_id, iteration) AS best_version_id
+            FROM iterations GROUP BY run_id
+        ), finalized AS (  -- a served run's finalize picked its best by validation (none: each forfeited a game)
+            SELECT a.run_id,
+                   any_value(a.policy_version_id) FILTER (WHERE a.role = 'best' AND a.protocol = 'standard') AS version,
+                   any_value(a.iteration) FILTER (WHERE a.role = 'best' AND a.protocol = 'standard') AS iteration,
+                   any_value(a.tuning_score) FILTER (WHERE a.role = 'best' AND a.protocol = 'standard') AS training
+            FROM audits a JOIN runs r ON r.run_id = a.run_id WHERE r.kind = 'serve' GROUP BY a.run_id
+        )
+        SELECT t.run_id,
+               CASE WHEN f.run_id IS NULL THEN t.best_version_id ELSE f.version END AS best_version_id,
+               CASE WHEN f.run_id IS NULL THEN t.best_iteration ELSE f.iteration END AS best_iteration,
+               CASE WHEN f.run_id IS NULL THEN t.best_score ELSE v.score END AS best_score,
+               CASE WHEN f.run_id IS NOT NULL THEN 'validation' WHEN r.kind = 'serve' THEN 'training' ELSE 'tuning'
+               END AS best_by,
+               CASE WHEN f.run_id IS NULL THEN t.best_score ELSE f.training END AS best_training_score
+        FROM trained t JOIN runs r ON r.run_id = t.run_id
+        LEFT JOIN finalized f ON f.run_id = t.run_id
+        LEFT JOIN audits v ON v.run_id = f.run_id AND v.protocol = 'validation' AND v.policy_version_id = f.version;
+        COMMENT ON VIEW run_best IS 'one row per run with iterations: its best version and the score that picked it (best_by: validation, training, tuning)';
+        CREATE OR REPLACE VIEW run_summary AS
+        WITH it AS (
+            SELECT i.run_id, (count(*) FILTER (WHERE i.iteration >= 1))::INTEGER AS iterations_done,
+                   arg_max_null(i.score, i.iteration) AS last_score, any_value(b.best_score) AS best_score,
+                   any_value(b.best_iteration) AS best_iteration, any_value(b.best_version_id) AS best_version_id,
+                   any_value(b.best_by) AS best_by, any_value(b.best_training_score) AS best_training_score
+            FROM iterations i LEFT JOIN run_best b ON b.run_id = i.run_id GROUP BY i.run_id
+        ), ep AS (
+            SELECT run_id, count(*)::INTEGER AS episodes, sum(length)::BIGINT AS steps,
+                   avg("return") FILTER (WHERE kind = 'eval' AND end_reason IN ('terminated', 'truncated'))
+                       AS mean_eval_return,
+                   (count(*) FILTER (WHERE kind = 'eval' AND end_reason NOT IN ('terminated', 'truncated')))::INTEGER
+                       AS eval_forfeits
+            FROM episodes GROUP BY run_id
+        ), cand AS (
+            SELECT run_id, (count(*) FILTER (WHERE forfeit IS NOT NULL))::INTEGER AS forfeits,
+                   (count(*) FILTER (WHERE repairs > 0 AND update_status = 'accepted'))::INTEGER AS saved_by_repair
+            FROM candidates GROUP BY run_id
+        ), calls AS (
+            SELECT run_id, count(*)::INTEGER AS llm_calls,
+                   (count(*) FILTER (WHERE purpose = 'repair'))::INTEGER AS repair_calls,
+                   coalesce(sum(input_tokens), 0)::BIGINT AS input_tokens,
+                   coalesce(sum(output_tokens), 0)::BIGINT AS output_tokens,
+                   sum(cost_usd) AS cost_usd
+            FROM llm_calls GROUP BY run_id
+        ), audits_of AS (  -- whether the best's audit played the run's best of now (a served run's: by validation)
+            SELECT a.run_id, a.policy_version_id = it.best_version_id AS current,
+                   a.iteration AS audit_iteration
+            FROM audits a LEFT JOIN it ON it.run_id = a.run_id
+            WHERE a.role = 'best' AND a.protocol = 'standard'
+        ), audit AS (
+            SELECT run_id,
+                   any_value(score) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_score,
+                   any_value(score_low) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_low,
+                   any_value(score_high) FILTER (WHERE role = 'best' AND protocol = 'standard') AS audit_high,
+                   any_value(score) FILTER (WHERE role = 'best' AND protocol = 'run') AS audit_run_score,
+                   any_value(score) FILTER (WHERE role = 'starter' AND protocol = 'standard') AS starter_audit_score,
+                   any_value(overfit) FILTER (WHERE role = 'best' AND protocol = 'standard') AS overfit
+            FROM audits WHERE run_id IN (SELECT run_id FROM audits_of WHERE current) GROUP BY run_id
+        )
+        SELECT r.run_id, r.name, r.created_at, r.finished_at, r.kind, r.game, r.model, r.seed, r.status,
+               json_extract_string(r.config, '$.policy') AS policy,
+               CASE WHEN r.kind <> 'eval' THEN coalesce(json_extract_string(r.config, '$.strategy'), 'greedy')
+               END AS strategy,
+               CASE WHEN r.kind <> 'eval' THEN json_extract_string(r.config, '$.feedback') END AS feedback,
+               json_extract_string(r.config, '$.batch') AS batch,
+               r.made_by,
+               coalesce(it.iterations_done, 0) AS iterations_done,
+               TRY_CAST(json_extract(r.config, '$.iterations') AS INTEGER) AS iterations_planned,
+               CASE WHEN r.kind <> 'eval' THEN it.best_score
+                    WHEN coalesce(ep.eval_forfeits, 0) = 0 THEN ep.mean_eval_return END AS best_score,
+               it.best_iteration, it.last_score,
+               coalesce(ep.episodes, 0) AS episodes, coalesce(ep.steps, 0) AS steps,
+               coalesce(calls.llm_calls, 0) AS llm_calls,
+               coalesce(calls.input_tokens, 0) AS input_tokens,
+               coalesce(calls.output_tokens, 0) AS output_tokens,
+               (coalesce(calls.input_tokens, 0) + coalesce(calls.output_tokens, 0))::BIGINT AS total_tokens,
+               calls.cost_usd,
+               epoch(r.finished_at - r.created_at) AS duration_s,
+               r.error,
+               CASE WHEN r.kind = 'eval' THEN coalesce(ep.eval_forfeits, 0) ELSE coalesce(cand.forfeits, 0)
+               END AS forfeits,
+               audit.audit_score, audit.audit_low, audit.audit_high, audit.audit_run_score,
+               audit.starter_audit_score, audit.overfit,
+               coalesce(calls.repair_calls, 0) AS repair_calls, coalesce(cand.saved_by_repair, 0) AS saved_by_repair,
+               NOT audits_of.current AS audit_stale, audits_of.audit_iteration,
+               it.best_version_id, it.best_by, it.best_training_score
+        FROM runs r
+        LEFT JOIN it ON it.run_id = r.run_id
+        LEFT JOIN ep ON ep.run_id = r.run_id
+        LEFT JOIN cand ON cand.run_id = r.run_id
+        LEFT JOIN calls ON calls.run_id = r.run_id
+        LEFT JOIN audit ON audit.run_id = r.run_id
+        LEFT JOIN audits_of ON audits_of.run_id = r.run_id;
+        COMMENT ON VIEW run_summary IS 'one row per run, what codearcade runs prints: settings, status, best (run_best), forfeits, audit of the best (audit_stale), tokens';
+        """,
+    )
+)
+
 LATEST = MIGRATIONS[-1][0]
 
 SCHEMA_MIGRATIONS_TABLE = ("CREATE TABLE IF NOT EXISTS schema_migrations "

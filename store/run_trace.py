@@ -11,11 +11,13 @@ from typing import Any
 
 import duckdb
 
+from store.comparisons import best_version
 from store.readers import _rows, blob_starts
 
 
 def run_trace_rows(con: duckdb.DuckDBPyConnection, run_id: str, reply_chars: int = 2**31 - 1) -> dict[str, Any]:
-    """``run`` (the runs row), ``iterations``, ``llm_calls``, ``episodes`` and ``feedback`` of ``run_id``.
+    """``run`` (the runs row), ``iterations``, ``llm_calls``, ``episodes`` and ``feedback`` of ``run_id``, and its
+    ``best`` (``store.comparisons.best_version``: a finalized served run's by validation; None for an eval run).
 
     KeyError if the run does not exist. ``llm_calls`` rows carry ``prompt_text`` (the stored JSON of the
     messages), ``reply_text`` (NULL when the call failed), its first ``reply_chars`` characters, and
@@ -64,4 +66,4 @@ def run_trace_rows(con: duckdb.DuckDBPyConnection, run_id: str, reply_chars: int
     feedback = _rows(con.execute(
         "SELECT iteration, mode, stage, score, text FROM feedback WHERE run_id = ? ORDER BY iteration", [run_id]))
     return {"run": runs[0], "iterations": iterations, "llm_calls": llm_calls, "episodes": episodes,
-            "feedback": feedback}
+            "feedback": feedback, "best": best_version(con, run_id)}

@@ -11,6 +11,7 @@ from typing import Any
 import duckdb
 import pyarrow as pa
 
+from store.comparisons import best_version
 from store.readers import _rows, blob_starts, cut_value_sql
 from store.scores import score_episodes
 from tracing.bounded import PREVIEW_CHARS
@@ -100,7 +101,7 @@ million-character one held `view` at 1.9 GB when each was read and shown whole."
 def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
     """A run recording's data: the run row, its iterations (joined with the evaluated version and its code, the
     LLM call with its prompt and the first :data:`RECORDED_TEXT_CHARS` of its reply, the feedback) and its
-    lineage."""
+    lineage, and its ``best`` (``store.comparisons.best_version``: a finalized served run's by validation)."""
     runs = _query(con, "SELECT run_id, kind, game, model, seed, status, config, created_at, error FROM runs "
                       "WHERE run_id = ?", [run_id])
     if not runs:
@@ -128,7 +129,7 @@ def run_timeline(con: duckdb.DuckDBPyConnection, run_id: str) -> dict[str, Any]:
         it["reply"], it["reply_length"] = replies.get(it.pop("reply_hash"), (None, None))
     lineage = _query(con, "SELECT iteration, candidate, parent_iteration, parent_candidate, score, decision, "
                          "update_status FROM lineage WHERE run_id = ? ORDER BY iteration, candidate", [run_id])
-    return {"run": runs[0], "iterations": iterations, "lineage": lineage}
+    return {"run": runs[0], "iterations": iterations, "lineage": lineage, "best": best_version(con, run_id)}
 
 
 def episode_list(con: duckdb.DuckDBPyConnection, run_id: str) -> list[tuple[str, int, str, int]]:

@@ -33,8 +33,8 @@ TABLES = ("runs", "blobs", "policy_versions", "episodes", "steps", "nodes", "pol
           "feedback", "llm_calls", "audits", "published_scores", "schema_migrations")
 """The tables, in the order docs/schema.md documents them."""
 
-VIEWS = ("learning_curve", "code_metrics", "llm_usage", "rejected_candidates", "run_summary", "lineage", "frontier",
-         "line_blame", "node_lines", "line_coverage", "unrun_lines", "model_stats", "model_choices")
+VIEWS = ("learning_curve", "code_metrics", "llm_usage", "rejected_candidates", "run_summary", "run_best", "lineage",
+         "frontier", "line_blame", "node_lines", "line_coverage", "unrun_lines", "model_stats", "model_choices")
 """The views over the store, in the order docs/schema.md documents them."""
 
 

@@ -109,6 +109,119 @@ def test_a_served_runs_best_is_its_best_by_validation_in_blame_and_run_best(gree
         assert resolve_version(con, run, "best") == BEST
 
 
+def _finalized(store: Store, run: str, *validation: float | None) -> None:
+    """The fixture's run as a served run finalized as ``pipeline/serve/finalize.py`` writes it: submissions 1 (the
+    training best, ``BEST``, training score 0) and 2 (``WORSE``, -19) on the validation pool with these scores, and
+    the best by validation with the starter on the held-out pool (none when every submission forfeited)."""
+    versions = ((1, BEST, 0.0), (2, WORSE, -19.0))
+    rows = [_audit(f"submission {i}", "validation", v, i, score, tuning)
+            for (i, v, tuning), score in zip(versions, validation)]
+    ranked = [(score, -i, v, tuning) for (i, v, tuning), score in zip(versions, validation) if score is not None]
+    if ranked:
+        _, neg, version, tuning = max(ranked)
+        rows += [_audit("best", "standard", version, -neg, 2.0, tuning, False),
+                 _audit("starter", "standard", STARTER, 0, -10.0, None)]
+    with store.write() as con:
+        con.execute("UPDATE runs SET kind = 'serve' WHERE run_id = ?", [run])
+        replace_audits(con, run, rows)
+
+
+def test_a_finalized_served_run_names_its_best_by_validation_in_every_verb(greedy, tmp_path, capsys):
+    """A served run finalized with submission 2 as its best by validation (score 3; its training score, -19, is not
+    the training best's 0, submission 1's). blame and RUN:best named submission 2, but run_summary's best columns
+    were the best by training score: `runs` printed "best 0" beside the audit of submission 2, `report` said "best
+    score 0 (iteration 1)" and showed submission 1's methods, `compare` diffed and scored submission 1 (its held-out
+    audit 'of an earlier best', so no verdict), and the OTLP export's root span named submission 1. Now every verb
+    names submission 2, with its validation score said as such (view run_best, the one home of a run's best)."""
+    store, run = greedy
+    _finalized(store, run, -5.0, 3.0)
+    picked = (WORSE, 2, 3.0, "validation", -19.0)
+    code, out = _cli(capsys, "runs", "--store", store.path)
+    assert code == 0 and "3 validation" in out.splitlines()[2], out
+    code, out = _cli(capsys, "runs", "--json", "--store", store.path)
+    (listed,) = json.loads(out)
+    assert (listed["best_iteration"], listed["best_score"], listed.get("best_version_id"), listed.get("best_by")) \
+        == (2, 3.0, WORSE, "validation") and listed["audit_iteration"] == 2, listed
+    for view in ("run_summary", "run_best"):
+        assert store.query("SELECT best_version_id, best_iteration, best_score, best_by, best_training_score "
+                           f"FROM {view}") == [picked], view
+
+    code, _ = _cli(capsys, "report", run, "--out", tmp_path / "report", "--store", store.path)
+    readme = (tmp_path / "report" / "README.md").read_text()
+    assert code == 0 and "best by validation **3** (iteration 2; training -19)" in readme.splitlines()[2], readme
+    assert f"## Methods of the best version (`{WORSE}`)" in readme, readme
+
+    code, out = _cli(capsys, "blame", run, "--store", store.path)
+    assert code == 0 and out.splitlines()[0].endswith(f"policy version {WORSE} (iteration 2, the best)"), out
+    with store.read() as con:
+        assert resolve_version(con, run, "best") == WORSE
+
+    code, out = _cli(capsys, "compare", run, run, "--json", "--out", tmp_path / "compare", "--store", store.path)
+    compared = json.loads(out)
+    assert code == 0 and [(r["best_version_id"], r["best_iteration"], r["best_score"], r["best_by"])
+                          for r in compared["runs"]] == [picked[:4]] * 2, compared["runs"]
+    assert all(r["held_out_missing"] is None for r in compared["runs"]) and \
+        compared["difference"]["basis"] == "held_out", "the audit is of the best compared: a verdict on it"
+    code, out = _cli(capsys, "compare", run, run, "--out", tmp_path / "compare", "--store", store.path)
+    assert code == 0 and all("3.0 (n=0: too few for an interval) by validation" in line
+                             for line in out.splitlines()[2:4]), out
+
+    from store.run_trace import run_trace_rows
+    from viewers.otlp_export import build_spans
+
+    with store.read() as con:
+        root = next(s for s in build_spans(run_trace_rows(con, run)) if s.parent is None)
+    assert (root.attributes["codearcade.best_version_id"], root.attributes["codearcade.best_iteration"],
+            root.attributes["codearcade.best_score"], root.attributes["codearcade.best_by"]) == picked[:4]
+
+    saved = tmp_path / "run.rrd"
+    assert _cli(capsys, "view", run, "--save", saved, "--store", store.path)[0] == 0
+    lines = _rrd_log_lines(saved)
+    assert lines[-1] == f"finalized: best by validation 3 (iteration 2), version {WORSE}", lines
+    assert lines[2].startswith("iteration 2: update accepted, score -19, best training score 0 (iteration 1)"), lines
+
+
+def test_a_served_run_not_finalized_names_its_training_best_as_such_and_one_without_a_pick_none(greedy, tmp_path,
+                                                                                               capsys):
+    """Before its finalize a served run's best is its best by training score, and says so; a finalize whose every
+    submission forfeited a validation game picked none: no verb names the training best then."""
+    store, run = greedy
+    _finalized(store, run, -5.0, 3.0)
+    with store.write() as con:
+        replace_audits(con, run, [])
+    code, out = _cli(capsys, "runs", "--store", store.path)
+    assert code == 0 and "0 training" in out.splitlines()[2], out
+    assert store.query("SELECT best_version_id, best_iteration, best_score, best_by FROM run_summary") == \
+        [(BEST, 1, 0.0, "training")]
+    _cli(capsys, "report", run, "--out", tmp_path / "report", "--store", store.path)
+    headline = (tmp_path / "report" / "README.md").read_text().splitlines()[2]
+    assert "best score by training score (not finalized) **0** (iteration 1)" in headline, headline
+
+    _finalized(store, run, None, None)
+    code, out = _cli(capsys, "runs", "--store", store.path)
+    assert "no score validation" in out.splitlines()[2], out
+    assert store.query("SELECT best_version_id, best_score, best_by FROM run_summary") == [(None, None, "validation")]
+    with store.read() as con, pytest.raises(ValueError, match="every submission forfeited a validation game"):
+        resolve_version(con, run, "best")
+    _cli(capsys, "report", run, "--out", tmp_path / "again", "--store", store.path)
+    readme = (tmp_path / "again" / "README.md").read_text()
+    assert "**no best**: every submission forfeited a validation game" in readme and "Methods of the best" not in \
+        readme, readme
+
+
+def _rrd_log_lines(saved: Path) -> list[str]:
+    """The run recording's log lines, in order (read by tests/rrd_dump.py in a process of its own)."""
+    import subprocess
+    import sys
+
+    root_dir = Path(__file__).resolve().parents[1]
+    dumped = subprocess.run([sys.executable, str(root_dir / "tests" / "rrd_dump.py"), str(saved)],
+                            capture_output=True, text=True, timeout=120, cwd=root_dir)
+    assert dumped.returncode == 0, dumped.stderr
+    by_iteration = json.loads(dumped.stdout)[str(saved)]["timelines"]["iteration"]["/log:TextLog:text"]
+    return [line for _, lines in sorted(by_iteration.items(), key=lambda kv: int(kv[0])) for line in lines]
+
+
 def _forfeit(store: Store, iterations: tuple[int, ...]) -> None:
     """Make these iterations' versions forfeit their evaluation game as the loop stores one: a policy error at
     step 300 after scoring 50 (above every score of the run), the candidate's score NULL, its partial return kept

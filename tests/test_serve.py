@@ -1444,3 +1444,51 @@ def test_a_request_whose_results_the_store_cannot_take_is_one_line_for_the_perso
     assert str(tmp_path) not in answer["error"], "the agent is not told where the store is"
     said = capfd.readouterr().err
     assert said.splitlines() == [f"codearcade serve: error: {full}"], said
+
+
+def test_a_finalized_run_s_best_is_its_best_by_validation_in_the_store_s_summary(tmp_path, monkeypatch, capsys):
+    """Two submissions, the validation pool scripted (``_play_scored``) to prefer the one that is not the best by
+    training score. The finalize played that one on the held-out pool and ``blame`` named it, but ``run_summary``
+    (``runs``, ``report``, ``compare``) kept the best by training score: another version, with the audit of this one
+    beside it. Now the run's summary names the version its finalize picked, with its validation score."""
+    from pipeline.serve import finalize, protocol
+    from pipeline.serve.config import ServeConfig
+    from store.comparisons import resolve_version
+    from store.scores import score_episodes
+
+    store = Store(tmp_path / "s.duckdb")
+    run_id = protocol.create_run(store, ServeConfig(game="pong", budget=2, max_steps=60, validation_episodes=2,
+                                                    heldout_episodes=2))
+    served = protocol.ServeRun(store, run_id)
+    training = {}
+    for action in (0, 1):
+        answer = served.submit(instances=[0], policy=pong_policy(f"return {action}"))
+        assert answer["score"] is not None, answer
+        training[answer["submission"]] = answer["score"]
+    (trained,) = store.query("SELECT best_version_id FROM iterations WHERE run_id = ? ORDER BY iteration DESC "
+                             "LIMIT 1", [run_id])[0]  # the best by training score
+    versions = dict(store.query("SELECT policy_version_id, iteration FROM candidates WHERE run_id = ? "
+                                "AND iteration >= 1", [run_id]))
+    (picked,) = [v for v in versions if v != trained]  # validation prefers the other one
+
+    def scripted(store, specs, progress=None, stopping=None):
+        out = {}
+        for spec in specs:
+            value = 5.0 if spec.policy_version_id == picked else -5.0
+            out.setdefault(spec.policy_version_id, []).append(
+                ({"return": value, "length": 10, "end_reason": "terminated"}, spec.episode_id))
+        return {v: (score_episodes(e for e, _ in eps), [i for _, i in eps]) for v, eps in out.items()}
+
+    monkeypatch.setattr(finalize, "_play_scored", scripted)
+    rows = finalize.finalize_run(store, run_id, served.record)
+    best = next(r for r in rows if r["role"] == "best")
+    assert best["policy_version_id"] == picked
+    with store.read() as con:
+        assert resolve_version(con, run_id, "best") == picked
+    assert main(["runs", "--json", "--store", str(store.path)]) == 0
+    (listed,) = json.loads(capsys.readouterr().out)
+    assert (listed["best_iteration"], listed["best_score"], listed["audit_iteration"]) == \
+        (versions[picked], 5.0, versions[picked]), listed
+    assert store.query("SELECT best_version_id, best_iteration, best_score, best_by, best_training_score "
+                       "FROM run_summary WHERE run_id = ?", [run_id]) == \
+        [(picked, versions[picked], 5.0, "validation", training[versions[picked]])]

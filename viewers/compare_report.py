@@ -76,7 +76,7 @@ def _best(run: dict[str, Any]) -> str:
     if run["best_score"] is None:  # no score: the best (the starter, when every candidate forfeited) forfeited
         return "no score (forfeited)" if run.get("best_forfeited") else _score(run["best_score"])
     return interval_text(run["best_score"], run.get("best_low"), run.get("best_high"), run["best_episodes"],
-                         MEAN_METHOD)
+                         MEAN_METHOD) + (" by validation" if run.get("best_by") == "validation" else "")
 
 
 def _held_out(run: dict[str, Any]) -> str:

@@ -366,14 +366,16 @@ def plan_spans(rows: dict[str, Any], text_limit: int = DEFAULT_TEXT_LIMIT) -> _P
         error=(f"{run['status']}: {run['error'] or ''}".strip()[:2000]
                if run["status"] in FAILED_RUN_STATUSES else None),
     )
-    if rows["iterations"]:  # the run's outcome, as run_summary gives it
-        last = rows["iterations"][-1]
+    if rows["iterations"] and rows["best"] is not None:  # the run's outcome, as run_summary gives it (view
+        # run_best: validation picks a finalized served run's best; the iterations' best_* are the training best)
+        best = rows["best"]
         forfeits = sum(1 for it in rows["iterations"] if it.get("forfeit"))
-        root.attributes.update(_attrs(codearcade__best_score=last["best_score"],
-                                      codearcade__best_iteration=last["best_iteration"],
-                                      codearcade__best_version_id=last["best_version_id"],
+        root.attributes.update(_attrs(codearcade__best_score=best["score"],
+                                      codearcade__best_iteration=best["iteration"],
+                                      codearcade__best_version_id=best["policy_version_id"],
+                                      codearcade__best_by=best["best_by"],
                                       codearcade__run__forfeits=forfeits or None,
-                                      codearcade__run__no_score=NO_BEST if last["best_score"] is None and forfeits
+                                      codearcade__run__no_score=NO_BEST if best["score"] is None and forfeits
                                       else None))
     elif rows["episodes"]:  # an eval run's score, by the one rule (store/scores.py): none with a forfeit
         score = score_episodes(e for e in rows["episodes"] if e["kind"] == "eval" and e["return"] is not None)

@@ -134,10 +134,16 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
     else:
         facts.append(f"{summary['iterations_done']} submissions" if run["kind"] == "serve"  # by a coding agent
                      else f"{summary['iterations_done']} of {_md(summary['iterations_planned'])} iterations")
-        if summary["best_score"] is None and forfeits:  # a played-out score beats a forfeit: none played out
+        if summary.get("best_by") == "validation":  # a finalized served run: its best is the validation pick
+            facts.append("**no best**: every submission forfeited a validation game" if summary["best_version_id"]
+                         is None else f"best by validation **{_md(summary['best_score'])}** (iteration "
+                         f"{_md(summary['best_iteration'])}; training {_md(summary['best_training_score'])})")
+        elif summary["best_score"] is None and forfeits:  # a played-out score beats a forfeit: none played out
             facts.append("**no score**: every version it assessed forfeited a game")
         else:
-            facts.append(f"best score **{_md(summary['best_score'])}** (iteration {_md(summary['best_iteration'])})")
+            training = " by training score (not finalized)" if summary.get("best_by") == "training" else ""
+            facts.append(f"best score{training} **{_md(summary['best_score'])}** (iteration "
+                         f"{_md(summary['best_iteration'])})")
         if forfeits:
             facts.append(f"{forfeits} candidate(s) forfeited a game"
                          + (" (never the best)" if summary["best_score"] is not None else ""))
@@ -234,9 +240,7 @@ def render_markdown(data: dict[str, Any], images: dict[str, str], reproduce: Cal
                   m["gain"], money(m["cost_usd"]), money(m["cost_per_improvement"]), m["mean_latency_s"])
                  for m in data["models"]]), ""]
             out += choice_section(data.get("choices") or [])
-    best_id = None
-    if run["kind"] != "eval" and data["curve"]:
-        best_id = data["curve"][-1]["best_version_id"]
+    best_id = summary.get("best_version_id") if run["kind"] != "eval" else None  # view run_best's
     version = next((v for v in data["versions"] if v["policy_version_id"] == (best_id or run["starter_version_id"])
                     and v["validation"] != "rejected"), None)
     if version is not None:

@@ -84,8 +84,9 @@ def scores_figure(data: dict[str, Any]):
                         label=f"{CONFIDENCE * 100:g}% {MEAN_METHOD} interval, n={counts} episodes")
     ax.plot(xs, [_nan(r["score"]) for r in curve], "-", color="#1f77b4", linewidth=1.8, zorder=3,
             label=f"score (mean return of {n_eval} evaluation episode{'s' * (n_eval != 1)})")
+    served = data["run"]["kind"] == "serve"  # its curve is the training scores; validation picks its best
     ax.step(xs, [_nan(r["best_score"]) for r in curve], where="post", color="#ff7f0e", linestyle="--",
-            linewidth=1.6, label="best so far", zorder=3)
+            linewidth=1.6, label="best training score so far" if served else "best so far", zorder=3)
     forfeits = [r["iteration"] for r in curve if r.get("forfeit")]
     if forfeits:  # a forfeit has no score (store/scores.py): a marker on the axes' floor, at no return
         _forfeit_marks(ax, forfeits, "forfeited a game: no score")
@@ -107,7 +108,15 @@ def scores_figure(data: dict[str, Any]):
     ax.set_xlabel("iteration (0 = starting policy; k = after the k-th LLM update)")
     ax.set_ylabel("evaluation return")
     scored = [r for r in curve if r["best_score"] is not None]
-    if scored:
+    summary = data.get("summary") or {}
+    if summary.get("best_by") == "validation":  # the run's best (view run_best), at its training score
+        picked = next((r for r in curve if r["iteration"] == summary["best_iteration"] and r["score"] is not None),
+                      None)
+        if picked is not None:
+            ax.annotate(f"best by validation {score_text(summary['best_score'])}\n(iteration {picked['iteration']})",
+                        (picked["iteration"], picked["score"]), textcoords="offset points", xytext=(0, 10),
+                        ha="center", va="bottom", fontsize=8, color="#ff7f0e")
+    elif scored:
         best = max(scored, key=lambda r: (r["best_score"], -r["iteration"]))
         ax.annotate(f"best {score_text(best['best_score'])}\n(iteration {best['best_iteration']})",
                     (best["best_iteration"], best["best_score"]), textcoords="offset points", xytext=(0, 10),

@@ -68,6 +68,10 @@ def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -
     props = {k: run[k] for k in ("run_id", "kind", "game", "model", "seed", "status", "error") if run[k] is not None}
     props["created_at"] = str(run["created_at"])
     props["iterations"] = len(iterations)
+    picked = data.get("best") or {}
+    if picked.get("policy_version_id") is not None:  # the run's best, as every verb names it (view run_best)
+        props.update(best_version_id=picked["policy_version_id"], best_iteration=picked["iteration"],
+                     best_by=picked["best_by"])
     rec.send_property("run", rr.AnyValues(**props))
     for name in ("score", "train_return"):
         rec.log(f"/score/{name}", rr.SeriesLines(names=name), static=True)
@@ -106,12 +110,19 @@ def log_run(data: dict[str, Any], recording: rr.RecordingStream | None = None) -
         if it["score"] is None and it.get("forfeit"):  # a forfeit is never scored: say so, and why
             score = f"none ({it['forfeit']})"
         best = "-" if it["best_score"] is None else score_text(it["best_score"])
-        line = (f"iteration {it['iteration']}: update {it['update_status']}, score {score}, best {best} "
+        # a served run's best so far is by training score: its finalize picks the run's best by validation
+        best = f"best training score {best}" if run["kind"] == "serve" else f"best {best}"
+        line = (f"iteration {it['iteration']}: update {it['update_status']}, score {score}, {best} "
                 f"(iteration {it['best_iteration']}), version {it['policy_version_id']}"
                 + (", rolled back" if it["rolled_back"] else ""))
         level = rr.TextLogLevel.WARN if it["update_status"] in ("rejected", "llm_error") else rr.TextLogLevel.INFO
         rec.log("/log", rr.TextLog(line, level=level))
         _log_lineage(rec, data.get("lineage") or [], int(it["iteration"]))
+    if picked.get("best_by") == "validation":  # the run's best (view run_best), after its last submission
+        chosen = ("no best: every submission forfeited a validation game" if picked["policy_version_id"] is None
+                  else f"best by validation {score_text(picked['score'])} (iteration {picked['iteration']}), version "
+                  f"{picked['policy_version_id']}")
+        rec.log("/log", rr.TextLog(f"finalized: {chosen}", level=rr.TextLogLevel.INFO))
     rec.reset_time()
     rec.send_blueprint(run_blueprint())
 

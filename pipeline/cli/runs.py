@@ -47,10 +47,12 @@ def _policy(row: dict) -> str | None:
 def _best(row: dict) -> float | str | None:
     """The run's best score (an eval run's: its score), or ``no score`` where it has none because of a forfeit (an
     eval run that forfeited an episode; an optimization whose starter forfeited and nothing played out beat it):
-    the one rule of store/scores.py, read from run_summary, where such a score is NULL."""
+    the one rule of store/scores.py, read from run_summary, where such a score is NULL. A served run's says what
+    picked it (run_summary.best_by): ``8.5 validation`` once finalized, ``12 training`` before."""
+    served = f" {row['best_by']}" if row.get("best_by") in ("validation", "training") else ""
     if row["best_score"] is not None:
-        return round(row["best_score"], 2)
-    return "no score" if row.get("forfeits") else None
+        return f"{score_text(row['best_score'])}{served}" if served else round(row["best_score"], 2)
+    return f"no score{served}" if row.get("forfeits") or served == " validation" else None
 
 
 def _audit(row: dict) -> str | None:

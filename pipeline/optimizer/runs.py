@@ -78,6 +78,8 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
             if not curve or best is None:
                 raise ValueError(f"run {run_id} is {kind_phrase(run['kind'])} without iterations: compare optimization "
                                  f"runs, or play its policy against another version with {run_id}:best")
+            if best["policy_version_id"] is None:  # a finalized served run whose validation picked none
+                raise ValueError(f"run {run_id} has no best: every submission forfeited a validation game")
             texts.append(policy_text(con, run_id, best["policy_version_id"]))
             configs.append(json.loads(run["config"]))
             assessed = best_evaluation(con, run_id) or {"episodes": []}
@@ -98,8 +100,12 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
                          "best_low": scored.low if scored.ranked is not None else None,
                          "best_high": scored.high if scored.ranked is not None else None,
                          "best_episodes": len(assessed["episodes"]),
-                         # the protocol of those episodes: the paper's replays one game (optimize_protocol)
-                         "best_protocol": configs[-1].get("optimize_protocol") or "deterministic",
+                         # the protocol of those episodes: the paper's replays one game (optimize_protocol); a
+                         # served run plays every game under the standard one
+                         "best_protocol": "standard" if run["kind"] == "serve"
+                         else configs[-1].get("optimize_protocol") or "deterministic",
+                         # what picked the best and scored it: validation for a finalized served run
+                         "best_by": best["best_by"],
                          "best_iteration": best["iteration"],
                          "best_version_id": best["policy_version_id"],
                          "held_out": None if held is None else {
@@ -112,7 +118,8 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
     if len(games) > 1:
         raise ValueError(f"runs {ids[0]} ({runs[0]['game']}) and {ids[1]} ({runs[1]['game']}) play different games; "
                          "scores of different games do not compare")
-    names = [f"{r['run_id']}:{r['best_version_id']} (best, iteration {r['best_iteration']}, "
+    names = [f"{r['run_id']}:{r['best_version_id']} (best{' by validation' * (r['best_by'] == 'validation')}, "
+             f"iteration {r['best_iteration']}, "
              + (f"score {r['best_score']:g})" if r["best_score"] is not None else "no score)") for r in runs]
     game = games.pop()
     return RunComparison(game, runs, curves, budget_table(curves), unified_diff(texts[0], texts[1], *names),
