@@ -4,10 +4,13 @@ One trace per run, read from the store (``store/run_trace.py``) and sent with th
 and OTLP exporters, so the run opens in Arize Phoenix, Langfuse, Jaeger, Grafana Tempo or any OTLP receiver
 beside a team's other LLM traces. The span tree::
 
-    optimize pong                         the run (root): game, kind, model, seed, status, error, best score (an
-                                          eval run: its score, none with a forfeit, and its forfeits)
-    ├── iteration 0                       score (none with a forfeit, which it names), best score, update status,
-    │                                     policy version, rolled back
+    optimize pong                         the run (root): game, kind, model, seed, status, error, the best
+                                          (view run_best: version, iteration, score, best_by, a finalized served
+                                          run's by validation; an eval run: its score, none with a forfeit, and
+                                          its forfeits)
+    ├── iteration 0                       score (none with a forfeit, which it names), best score so far (a
+    │                                     served run's by training score), update status, policy version,
+    │                                     rolled back
     │   ├── train rollout                 return, length, lives lost, end reason (the traced rollout)
     │   └── eval episode 0                the same, per evaluation episode
     ├── iteration 1
