@@ -277,3 +277,19 @@ def test_the_otlp_export_and_the_run_recording_name_a_forfeit_never_score_it(gre
         root = next(s for s in build_spans(run_trace_rows(con, run)) if s.parent is None)
     assert "codearcade.best_score" not in root.attributes and root.attributes["codearcade.run.forfeits"] == 6
     assert root.attributes["codearcade.run.no_score"] == "no score: every version it assessed forfeited a game"
+
+
+@pytest.mark.parametrize("picked_by, said", [
+    (("tuning", "tuning"), "on the tuning episodes that picked them (3 and 5)"),
+    (("validation", "validation"), "on the validation games that picked them (3 and 5)"),
+    (("validation", "tuning"), "on the tuning episodes and validation games that picked them (3 and 5)"),
+])
+def test_compare_names_the_games_that_picked_each_best(picked_by, said):
+    """compare's held-out verdict gives the figures on the games that picked each best beside it: a finalized served
+    run's best was picked on its validation games, not on tuning episodes (the line said so of every run)."""
+    from viewers.compare_report import _best_difference
+
+    data = {"difference": {"basis": "held_out", "verdict": "within the noise", "tuning": {
+        "interval": "+1 [-2, +4]", "note": "not a test: each best was picked on them"}},
+        "runs": [{"best_by": by, "best_episodes": n, "held_out": {"seeds": [1, 2]}} for by, n in zip(picked_by, (3, 5))]}
+    assert said in _best_difference(data)

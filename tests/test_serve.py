@@ -432,8 +432,9 @@ def test_the_scripted_agent_improves_the_pong_starter_over_mcp(tmp_path, capsys)
     runs = json.loads(capsys.readouterr().out)
     assert runs[0]["kind"] == "serve" and runs[0]["audit_score"] == audits["best"]
     assert main(["runs", "--store", str(store)]) == 0
-    table = capsys.readouterr().out.splitlines()  # the loop's feedback and seed settings are not the served run's
+    table = capsys.readouterr().out.splitlines()  # the loop's strategy, feedback, seed are not the served run's
     assert "feedback" not in table[0] and " seed " not in table[0] and "staged" not in table[-1], table
+    assert "strategy" not in table[0] and "greedy" not in table[-1], table
     assert main(["audit", "last", "--store", str(store)]) == 0
     said = capsys.readouterr().out
     assert "<- best by validation" in said and "held-out    best (submission" in said

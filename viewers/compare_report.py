@@ -101,7 +101,11 @@ def _best_difference(data: dict[str, Any]) -> str:
         games = " and ".join(str(len(r["held_out"]["seeds"])) for r in data["runs"])
         counts = " and ".join(f"{r['best_episodes']}" for r in data["runs"])
         tuning = found["tuning"]
-        beside = (f"; on the tuning episodes that picked them ({counts}): A - B = {tuning['interval']}, "
+        # a finalized served run's best was picked on its validation games, an optimization's on its tuning episodes
+        picked_on = {"validation games" if r.get("best_by") == "validation" else "tuning episodes"
+                     for r in data["runs"]}
+        beside = (f"; on the {' and '.join(sorted(picked_on))} that picked them ({counts}): "
+                  f"A - B = {tuning['interval']}, "
                   f"{tuning['note']}" if tuning.get("interval") else "")
         return (f"best versions, held out (the standard protocol on their sealed audit games, {games}): "
                 f"{found['verdict']}{tail}{beside}")

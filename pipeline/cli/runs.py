@@ -81,9 +81,9 @@ COLUMNS = (  # (heading, value of a run_summary row); a column no listed run has
     ("kind", lambda r: r["kind"] + (" (compare)" if r["made_by"] == "compare" else "")),
     ("game", lambda r: r["game"]),
     ("policy", _policy),
-    ("strategy", lambda r: r["strategy"]),
-    # a served run's agent reads what it asks for, on instances drawn in secret: the loop's feedback and seed
-    # settings, stored with its config, are not what it ran with
+    # a served run's agent searches as it likes and reads what it asks for, on instances drawn in secret: the loop's
+    # strategy, feedback and seed settings, stored with its config, are not what it ran with
+    ("strategy", lambda r: None if r["kind"] == "serve" else r["strategy"]),
     ("feedback", lambda r: None if r["kind"] == "serve" else r["feedback"]),
     ("seed", lambda r: None if r["kind"] == "serve" else r["seed"]),
     ("batch", lambda r: r["batch"]),
