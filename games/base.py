@@ -9,6 +9,7 @@ nothing heavier than the standard library, so the registry loads in milliseconds
 from __future__ import annotations
 
 import importlib
+import reprlib
 import secrets
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -68,8 +69,14 @@ UNRECORDED_OBSERVATION = 1
 
 
 def recorded_observation(config: Mapping[str, Any]) -> int:
-    """The observation version a stored run's config (``runs.config``) says it played."""
-    return int(config.get("observation", UNRECORDED_OBSERVATION))
+    """The observation version a stored run's config (``runs.config``) says it played; ValueError in one line when
+    it is no whole number (a store is anyone's file: ``int()`` of a list raised TypeError, of infinity
+    OverflowError)."""
+    version = config.get("observation", UNRECORDED_OBSERVATION)
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise ValueError(f"observation must be a whole number (the version of the observation conventions the run "
+                         f"played), not {reprlib.repr(version)}")
+    return version
 
 
 SCAFFOLDS = Path(__file__).resolve().parent / "scaffolds"

@@ -175,10 +175,15 @@ def _check_one(config: Any, name: str, value: Any, f: dataclasses.Field, declare
 
 def recorded_problem(cls: type, recorded: Any) -> str | None:
     """What makes ``recorded`` (a run's settings as its store holds them: anyone's file) not settings of the config
-    class ``cls``: not a JSON object, or a setting of it that :func:`check_value` refuses (named by its key); None
-    when they read. Keys that are no setting of ``cls`` are left to their readers."""
-    if not isinstance(recorded, dict):
-        return f"they are {type(recorded).__name__}, not a JSON object"
+    class ``cls``: no settings at all (``store.recorded.shape_problem``: not a JSON object, nested deeper than
+    settings are), or a setting of it that :func:`check_value` refuses (named by its key); None when they read. Keys
+    that are no setting of ``cls`` are left to their readers."""
+    from store.recorded import shape_problem  # here: the game host and the policy process import this module,
+    # and the store's package imports DuckDB
+
+    problem = shape_problem(recorded)
+    if problem is not None:
+        return problem
     for name in declarations(cls):
         if name not in recorded:
             continue
@@ -196,6 +201,20 @@ def recorded_problem(cls: type, recorded: Any) -> str | None:
         except ValueError as exc:
             return str(exc)
     return None
+
+
+def recorded_settings(cls: type, text: str | None, run_id: str, names: tuple[str, ...]) -> dict[str, Any]:
+    """Run ``run_id``'s recorded settings (``store.recorded.read_recorded``) with those of ``names`` (settings of
+    the config class ``cls``) checked as :func:`recorded_problem` checks them: what a reader that uses only these
+    needs, the others left to their own readers (``doctor --replay`` reads the one-life setting, ``compare`` the
+    settings that change what a score is)."""
+    from store.recorded import read_recorded, unreadable_settings  # here: see recorded_problem
+
+    recorded = read_recorded(text, run_id)
+    problem = recorded_problem(cls, {name: recorded[name] for name in names if name in recorded})
+    if problem is not None:
+        raise unreadable_settings(run_id, problem)
+    return recorded
 
 
 def range_problem(declared: Setting, value: float) -> str | None:

@@ -15,6 +15,11 @@ about two minutes: it is marked slow. A value the schema refuses (NOT NULL) is i
 Before 2026-12-06 ``optimize --resume`` on a run whose ``feedback_bands`` had an unknown key, or whose
 ``iterations`` was a string, ended in a TypeError's traceback (``pipeline/optimizer/loop.py``); now a recorded
 setting that cannot be read is one line naming the run and the setting (``OptimizeConfig.from_record``).
+
+A second test reaches the readers of recorded settings this one does not: a served run's (``serve --resume`` and
+``--finalize``; ``pipeline.serve.config.served_settings``), ``doctor --replay``'s one-life setting, ``compare``'s
+scored settings, ``view`` of an episode (its observation version) and an ensemble's recorded prices, with a config
+nested 10,000 deep among the values (``store.recorded.read_recorded``). About 45 s, marked slow too.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from __future__ import annotations
 import gzip
 import json
 import random
+import re
 import shutil
 import socket
 from pathlib import Path
@@ -172,4 +178,134 @@ def test_every_verb_that_reads_a_run_answers_a_hostile_cell_in_a_few_lines(prist
             if code not in allowed or "Traceback" in err or len(err.splitlines()) > 12 or len(errors) > 1 \
                     or sum(map(len, errors)) > 400 or (code == 2 and not errors):
                 failures.append(f"{argv[0]} on {shown}: exit {code}, {err[-300:]!r}")
+    assert not failures, f"{len(failures)} failures:\n" + "\n".join(failures)
+
+
+# ------------------------------------------------------------------ the readers of a served run's settings and more
+
+DEEP = "[" * 10_000 + "]" * 10_000
+"""A JSON value nested deeper than Python's decoder follows: it raised RecursionError in every reader of the run."""
+ESCAPES = "\x1b]52;c;aGk=\x07"
+"""A terminal's clipboard-writing escape: a message that quotes it must not hand it to the terminal."""
+
+SERVED = ["budget", "instances", "per_submission", "validation_episodes", "heldout_episodes", "max_steps", "workers",
+          "call_time_limit_s", "episode_time_limit_s", "train_seeds", "sticky", "noop_max"]
+"""What a served run records under ``serve`` (``pipeline/serve/protocol.py: create_run``) and reads back when it is
+served again or finalized."""
+SERVED_VALUES = ["5", None, [], {}, -1, 2**70, float("nan"), float("inf"), "missing", DEEP, ESCAPES]
+SERVED_CASES = 20
+"""Cases of one ``serve`` key drawn (besides the known ones): each runs ``serve --finalize`` and ``--resume``."""
+
+
+def _recorded_text(config: dict, path: tuple[str, ...], value: object) -> str:
+    """``config`` as JSON with the key at ``path`` set to ``value`` (``"missing"``: taken out; :data:`DEEP`: the
+    text itself, which no Python value can be written as)."""
+    config = json.loads(json.dumps(config))
+    *parents, key = path
+    target = config
+    for parent in parents:
+        target = target[parent]
+    if value == "missing":
+        target.pop(key, None)
+    else:
+        target[key] = "@@DEEP@@" if value == DEEP else value
+    return json.dumps(config).replace('"@@DEEP@@"', DEEP)
+
+
+def _shown(value: object) -> str:
+    return "a list nested 10,000 deep" if value == DEEP else repr(value)[:40]
+
+
+def _settings_cases(served_run: str, served_config: dict, run: str,
+                    config: dict) -> list[tuple[str, str, str, list]]:
+    """(what, run, the runs.config text, the verbs) of each case: a served run's settings for ``serve --resume``
+    and ``--finalize``; an optimization's one-life and scored settings for ``doctor --replay`` and ``compare``; an
+    ensemble's recorded prices for ``optimize --resume`` (its models at a port nobody listens on: a price that
+    reads goes as far as the check that they answer, one that does not is refused before it)."""
+    served = [["serve", "--finalize", served_run], ["serve", "--resume", served_run, "--port", "0"]]
+    report = [["report", served_run, "--out", "OUT/report"]]
+    known = [(("serve",), "5"), (("serve",), None), (("serve",), []), (("serve",), "missing"), (("serve",), DEEP),
+             (("serve", "budget"), None), (("serve", "budget"), "missing"), (("serve", "instances"), ESCAPES),
+             (("serve", "train_seeds"), [1]), (("serve", "noop_max"), 2**70), (("observation",), DEEP)]
+    rng = random.Random(SEED)
+    drawn = rng.sample([(("serve", key), value) for key in SERVED for value in SERVED_VALUES
+                        if (("serve", key), value) not in known], SERVED_CASES)
+    cases = [(f"{'.'.join(p)} = {_shown(v)}", served_run, _recorded_text(served_config, p, v),
+              served + (report if p == ("serve",) and v == DEEP else [])) for p, v in known + drawn]
+    cases.append(("the whole config nested 10,000 deep", served_run, DEEP, served + report))
+    replayed = [["doctor", "--replay", run], ["compare", run, run]]  # the run beside itself: its settings read twice
+    view = [["view", run, "--iteration", "0", "--save", "OUT/run.rrd"]]  # an episode: its observation version
+    for path, value, verbs in [(("one_life",), {"a": 1}, replayed), (("one_life",), ESCAPES, replayed),
+                               (("eval_episodes",), DEEP, replayed), (("optimize_protocol",), [], replayed),
+                               (("observation",), [], view), (("observation",), float("inf"), view)]:
+        cases.append((f"{'.'.join(path)} = {_shown(value)}", run, _recorded_text(config, path, value), verbs))
+    cases += [(f"the whole config {text[:10]!r}", run, text, replayed + view) for text in ("[]", DEEP)]
+    base = f"http://127.0.0.1:{_closed_port()}/v1"
+    entries = [{"model": name, "weight": 1.0, "api_base": base, "price": [1e-6, 2e-6]}
+               for name in ("openai/one", "openai/two")]
+    ensemble = {**config, "model": "openai/one", "models": entries}
+    resume = [["optimize", "--resume", run, "--iterations", "6"]]
+    cases += [(f"an ensemble's price {price!r}", run, _recorded_text(ensemble, ("models", 1, "price"), price), resume)
+              for price in ([1], ["x", "y"])]  # before: taken as prices (with a model that answered, [1] raised an
+    # IndexError that marked the run failed)
+    return cases
+
+
+@pytest.mark.slow
+def test_every_reader_of_recorded_settings_refuses_a_hostile_one_in_one_line(pristine, tmp_path, capsys,
+                                                                              monkeypatch):
+    """``serve --resume`` and ``--finalize`` (a served run's settings), ``doctor --replay``, ``compare``, ``view``
+    of an episode and ``optimize --resume`` of an ensemble read settings of a run the fuzzer above does not reach:
+    each answers a hostile one in one line, exit 0 or 2, with no escape of the store's on the terminal; a refusal
+    names the run and leaves the store as it was (before 2026-12-06 ``serve --resume`` marked the run running, then
+    raised KeyError or TypeError; a config nested 10,000 deep raised RecursionError in every one of them; an
+    ensemble's price that was no number was taken). About 45 s."""
+    import pipeline.cli.serve as serve_cli
+    from pipeline.serve.config import ServeConfig
+    from pipeline.serve.protocol import create_run
+
+    monkeypatch.setattr(serve_cli, "_serve", lambda served, args: served.task())  # what an agent reads first
+    source, run = pristine
+    both = tmp_path / "both.duckdb"
+    shutil.copyfile(source, both)
+    store = Store(both)
+    served_run = create_run(store, ServeConfig(game="pong", budget=2, instances=2, validation_episodes=1,
+                                               heldout_episodes=1, max_steps=50))
+    config_of = {r: json.loads(t) for r, t in store.query("SELECT run_id, config FROM runs")}
+    failures = []
+    for i, (shown, target, text, verbs) in enumerate(_settings_cases(served_run, config_of[served_run], run,
+                                                                    config_of[run])):
+        changed = tmp_path / f"{i}.duckdb"
+        shutil.copyfile(both, changed)
+        with Store(changed).write() as con:
+            con.execute("UPDATE runs SET config = ? WHERE run_id = ?", [text, target])
+            before = con.execute("SELECT run_id, status, config FROM runs ORDER BY run_id").fetchall()
+        for argv in verbs:
+            work = tmp_path / f"{i}-{argv[0]}-{argv[1]}"
+            work.mkdir()
+            path = work / "s.duckdb"
+            shutil.copyfile(changed, path)
+            argv = [a.replace("OUT", str(work)) if a.startswith("OUT/") else a for a in argv]
+            try:
+                code = main([*argv, "--store", str(path)])
+            except SystemExit as exc:
+                code = exc.code
+            except BaseException as exc:  # noqa: BLE001 - what the person would have seen as a traceback
+                capsys.readouterr()
+                failures.append(f"{' '.join(argv[:2])} on {shown}: raised {type(exc).__name__}: {exc!s:.150}")
+                continue
+            out, err = capsys.readouterr()
+            errors = [line for line in err.splitlines() if line.startswith("codearcade: error")]
+            allowed = (0, 1, 2) if argv[0] == "doctor" else (0, 2)  # doctor's 1: an episode did not replay
+            if code not in allowed or "Traceback" in err or len(errors) > 1 or (code == 2 and not errors) \
+                    or any(c in out + err for c in "\x1b\x07"):
+                failures.append(f"{' '.join(argv[:2])} on {shown}: exit {code}, {err[-300:]!r}")
+            elif argv[0] == "optimize" and not (code == 2 and "recorded settings cannot be read" in err):
+                failures.append(f"optimize --resume on {shown}: exit {code}, not refused: {err[-300:]!r}")
+            elif code == 2 and "recorded settings cannot be read" in err:
+                named = re.search(r"run ([0-9A-Z]+)'s recorded settings cannot be read", err)
+                if named is None or not target.startswith(named[1]):
+                    failures.append(f"{' '.join(argv[:2])} on {shown}: refused without naming run {target}")
+                if Store(path).query("SELECT run_id, status, config FROM runs ORDER BY run_id") != before:
+                    failures.append(f"{' '.join(argv[:2])} on {shown}: refused, but the store was changed")
     assert not failures, f"{len(failures)} failures:\n" + "\n".join(failures)

@@ -42,7 +42,10 @@ def collect(store: Store, run: str) -> dict[str, Any]:
         data["choices"] = model_choice_rows(con, run_id)  # an ensemble's reasons (viewers/model_choices.py)
     # a store is anyone's file: settings or package versions that are no JSON object are shown as none, and the
     # command that reproduces the run gets the settings as stored, to say they cannot be read
-    data["recorded"] = json.loads(data["run"]["config"]) if data["run"]["config"] else {}
+    try:
+        data["recorded"] = json.loads(data["run"]["config"]) if data["run"]["config"] else {}
+    except RecursionError:  # nested deeper than the decoder follows (a list 10,000 deep): no settings either
+        data["recorded"] = data["run"]["config"]
     data["config"] = data["recorded"] if isinstance(data["recorded"], dict) else {}
     packages = json.loads(data["run"]["package_versions"] or "{}")
     data["packages"] = packages if isinstance(packages, dict) else {}

@@ -11,7 +11,6 @@ faithful). Frames are optional (``frames_every=0``: no replay at all) and taken 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,6 +24,7 @@ from games.envs import make_env
 from games.wrappers import may_predate_serve_again
 from store import Store
 from store.readers import get_run, policy_text
+from store.recorded import read_recorded, unreadable_settings
 from store.showing import episode_tables, lead_in_actions
 from tracing.steps import objects_to_obs
 from viewers.frames import FrameEncoder
@@ -78,7 +78,12 @@ def read_episode(con: duckdb.DuckDBPyConnection, episode_id: str) -> StoredEpiso
     except KeyError:
         text = None
     run = get_run(con, episode["run_id"])
-    observation = recorded_observation(json.loads(run["config"]) if run and run["config"] else {})
+    # a store is anyone's file: settings that do not read are one line naming the run
+    config = read_recorded(run["config"], run["run_id"]) if run else {}
+    try:
+        observation = recorded_observation(config)
+    except ValueError as exc:
+        raise unreadable_settings(run["run_id"], str(exc)) from None
     return StoredEpisode(episode, steps, nodes, text, observation, lead_in_actions(con, episode_id))
 
 

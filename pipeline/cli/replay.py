@@ -26,7 +26,7 @@ def add_parser(verbs) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.optimizer.config import read_recorded
+    from store.recorded import read_recorded
     from pipeline.optimizer.replay import replay
     from store.locks import run_is_live
     from store.readers import get_run

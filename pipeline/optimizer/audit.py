@@ -31,13 +31,14 @@ from typing import Any, Callable, Sequence
 
 from games.base import (AUDIT_SEED_BASE, AUDIT_SEED_END, ONE_LIFE_CONTINUE, STANDARD_NOOP_MAX, STANDARD_STICKY,
                         draw_audit_seeds)
-from pipeline.optimizer.config import OptimizeConfig, read_recorded
+from pipeline.optimizer.config import OptimizeConfig
 from pipeline.play.episodes import run_episodes
 from pipeline.play.runinfo import audit_episode_id, new_audit_token
 from pipeline.play.spec import EpisodeSpec
 from pipeline.play.verify import checked_outcome
 from store import Store
 from store.readers import audit_subjects, get_run
+from store.recorded import read_recorded
 from store.scores import NO_REFERENCE, Score, overfit, score_episodes
 from store.statistics import MEAN_METHOD, interval_text
 from pipeline.stopping import uninterrupted

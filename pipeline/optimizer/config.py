@@ -247,12 +247,15 @@ class OptimizeConfig:
 
     @classmethod
     def from_record(cls, recorded: dict[str, Any], run_id: str) -> "OptimizeConfig":
-        """The config run ``run_id`` recorded (``runs.config``, as :func:`read_recorded` reads it). A setting added
-        after the run was made takes the value that reproduces what the run did (:data:`BEFORE_RECORDED`), not
-        today's default. A store is anyone's file: each recorded setting is checked as its flag is (a string where a
-        number goes, NaN, a huge number had ended ``--resume`` in a TypeError), and one that is not what the setting
-        takes is a :func:`unreadable_settings` error naming it; keys that are no setting (the task's, a replay's)
-        are left to their readers."""
+        """The config run ``run_id`` recorded (``runs.config``, as ``store.recorded.read_recorded`` reads it). A
+        setting added after the run was made takes the value that reproduces what the run did
+        (:data:`BEFORE_RECORDED`), not today's default. A store is anyone's file: each recorded setting is checked
+        as its flag is (a string where a number goes, NaN, a huge number had ended ``--resume`` in a TypeError; an
+        ensemble's price that is no number, ``models``), and one that is not what the setting takes is an
+        ``unreadable_settings`` error naming it; keys that are no setting (the task's, a replay's) are left to
+        their readers."""
+        from store.recorded import unreadable_settings  # here: the command line's flags need no store
+
         problem = recorded_problem(cls, recorded)
         if problem is not None:
             raise unreadable_settings(run_id, problem)
@@ -260,26 +263,6 @@ class OptimizeConfig:
         if config.models is not None:  # each entry as the loop reads it (a dict), whichever form passed the check
             config.models = model_entries(config.models)
         return config
-
-
-def read_recorded(text: str | None, run_id: str) -> dict[str, Any]:
-    """Run ``run_id``'s recorded settings (``runs.config``: its config, its task's settings, what a replay or a
-    batch added) as a dict; a :func:`unreadable_settings` error when they are not a JSON object."""
-    import json
-
-    try:
-        recorded = json.loads(text) if text is not None else None
-    except ValueError:
-        recorded = text
-    if not isinstance(recorded, dict):
-        raise unreadable_settings(run_id, recorded_problem(OptimizeConfig, recorded))
-    return recorded
-
-
-def unreadable_settings(run_id: str, problem: str) -> ValueError:
-    """The one error of a run whose recorded settings (``runs.config``) cannot be read: ``problem`` says which."""
-    return ValueError(f"run {run_id}'s recorded settings cannot be read: {problem} (the store was changed by hand "
-                      "or is damaged)")
 
 
 BEFORE_RECORDED: dict[str, Any] = before_recorded(OptimizeConfig)

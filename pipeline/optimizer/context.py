@@ -9,7 +9,6 @@ renders a context under the token budget.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any
@@ -18,8 +17,9 @@ import duckdb
 
 from games import get_game, list_widths
 from games.base import recorded_observation
+from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.strategies import Greedy, History, Ref
-from pipeline.settings import EpisodeLimits
+from pipeline.settings import EpisodeLimits, recorded_settings
 from store.held_values import held_bytes
 from store.readers import candidates, episode_steps, episode_summaries, get_run, iterations, policy_texts, step_nodes
 from tracing.policy_file import PolicyInfo, inspect_policy
@@ -89,7 +89,7 @@ def context_for(
     traced training rollout, its evaluation and feedback (after ``note``), and the candidates in ``memory``."""
     base = history.candidate(parent)
     run = get_run(con, run_id)
-    config = json.loads(run["config"])
+    config = recorded_settings(OptimizeConfig, run["config"], run_id, ("observation",))  # anyone's file: checked
     game = get_game(run["game"]).observing(recorded_observation(config))  # read back as the run played it
     rows = [history.candidate(ref) for ref in memory]
     texts = policy_texts(con, run_id, [base["policy_version_id"]] + [row["policy_version_id"] for row in rows])

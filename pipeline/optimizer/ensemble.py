@@ -39,6 +39,7 @@ Nothing here speaks SQL or calls a model: ``store/readers.py`` has the readers.
 from __future__ import annotations
 
 import math
+import reprlib
 from dataclasses import dataclass, replace
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -50,6 +51,9 @@ MODEL_CHOICES = ("fixed", "ucb", "thompson")
 """How each call's model is chosen in an ensemble (module docstring)."""
 
 ENTRY_OPTIONS = ("weight", "api_base")
+
+MAX_PRICE = 1.0
+"""The most a recorded price may be, in USD per token (the dearest models ask ~1e-4): more is a damaged store."""
 
 
 def parse_model_entry(value: Any) -> dict[str, Any]:
@@ -91,8 +95,15 @@ def parse_model_entry(value: Any) -> dict[str, Any]:
     if api_base is not None and not isinstance(api_base, str):
         raise ValueError(f"--model {model}: api_base must be a URL, not {api_base!r}")
     out = {"model": model.strip(), "weight": weight, "api_base": api_base}
-    if "price" in entry:
-        out["price"] = entry["price"]
+    if "price" in entry:  # recorded by a run (``priced``): a store is anyone's file; a one-number price raised an
+        # IndexError that marked a resumed run failed, texts were taken as rates (multiplied into strings by the
+        # token budget), and NaN or 1e308 (infinite per call) broke the ties prices break
+        rates = entry["price"]
+        if rates is not None and (not isinstance(rates, list) or len(rates) != 2 or any(
+                not isinstance(r, (int, float)) or isinstance(r, bool) or not 0 <= r <= MAX_PRICE for r in rates)):
+            raise ValueError(f"models: {model}'s price must be null or [USD per input token, per output token], two "
+                             f"numbers from 0 to {MAX_PRICE:g}, not {reprlib.repr(rates)}")
+        out["price"] = rates
     return out
 
 

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from pipeline.boundary.untrusted import clean_untrusted_text, single_line
-from pipeline.optimizer.config import FEEDBACK_MODES, unreadable_settings  # ``feedback``'s choices, declared there
+from pipeline.optimizer.config import FEEDBACK_MODES  # ``feedback``'s choices, declared there
+from store.recorded import unreadable_settings
 
 
 @dataclass(frozen=True)

@@ -37,8 +37,7 @@ from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.assess import assess, screen
 from pipeline.optimizer.conclude import IterationResult, conclude, screen_out
 from pipeline.optimizer.pool import run_pool
-from pipeline.optimizer.config import (RESUME_OVERRIDES, OptimizeConfig, read_recorded, unreadable_settings,
-                                       validate_config)
+from pipeline.optimizer.config import RESUME_OVERRIDES, OptimizeConfig, validate_config
 from pipeline.settings import flag_of
 from pipeline.stopping import uninterrupted
 from pipeline.optimizer.feedback import FeedbackBands
@@ -61,6 +60,7 @@ from store.readers import (
     starter_version_id,
     update_failures,
 )
+from store.recorded import read_recorded, unreadable_settings
 from store.runs import kind_phrase
 from store.writer import (
     end_run_left_running,

@@ -22,12 +22,13 @@ from dataclasses import dataclass, field
 from typing import Iterator
 
 from pipeline.llm.client import EnsembleClient, ReplayClient
-from pipeline.optimizer.config import OptimizeConfig, read_recorded
+from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import load_state, new_run, run_loop
 from pipeline.optimizer.strategies import make_strategy
 from store import Store
 from store.readers import (blob_text, first_call_errors, get_run, iteration_prompts, last_iteration, pool_bases,
                            replay_errors, replay_replies)
+from store.recorded import read_recorded
 from store.runs import kind_phrase
 from store.writer import finish_run
 from tracing.policy_file import inspect_policy

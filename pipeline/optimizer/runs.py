@@ -21,11 +21,12 @@ optimizer's spending; two policy versions are played against each other by ``pip
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from typing import Any, Sequence
 
+from pipeline.optimizer.config import OptimizeConfig
 from pipeline.play.versus import LABELS, difference_data, unified_diff
+from pipeline.settings import recorded_settings
 from store import Store
 from store.comparisons import best_evaluation, best_version, held_out_evaluation, learning_curve
 from store.readers import get_run, policy_text
@@ -81,7 +82,8 @@ def compare_runs(store: Store, a: str, b: str) -> RunComparison:
             if best["policy_version_id"] is None:  # a finalized served run whose validation picked none
                 raise ValueError(f"run {run_id} has no best: every submission forfeited a validation game")
             texts.append(policy_text(con, run_id, best["policy_version_id"]))
-            configs.append(json.loads(run["config"]))
+            # a store is anyone's file: settings that do not read are one line naming the run and the setting
+            configs.append(recorded_settings(OptimizeConfig, run["config"], run_id, tuple(SCORE_SETTINGS)))
             assessed = best_evaluation(con, run_id) or {"episodes": []}
             scored = score_episodes(assessed["episodes"])
             scores.append(scored)

@@ -31,7 +31,6 @@ game host (when the policy process held the emulator and every episode was repla
 
 from __future__ import annotations
 
-import json
 import math
 from datetime import datetime
 from typing import Any
@@ -43,8 +42,10 @@ from games import get_game
 from games.base import ONE_LIFE_CONTINUE, one_life_setting
 from pipeline.boundary.policy import PRINTED_TEXT_BYTES
 from pipeline.boundary.untrusted import MESSAGE_LIMIT, clean_nodes, clean_step_objects, clean_untrusted_text
+from pipeline.play.config import EvalConfig
 from pipeline.play.rollout import EpisodeOutcome
 from pipeline.play.spec import EpisodeSpec
+from pipeline.settings import recorded_settings
 from tracing.capture import NODE_SCHEMA
 from tracing.steps import STEP_SCHEMA, StepLog
 
@@ -331,8 +332,8 @@ def replay_run(store: Any, run_id: str) -> list[tuple[str, str | None]]:
     with store.read() as con:
         run = get_run(con, run_id)
         material = replay_material(con, run_id)
-    config = run.get("config") if run else None
-    config = json.loads(config) if isinstance(config, str) else (config or {})
+    # a store is anyone's file: settings that do not read are one line naming the run and the setting
+    config = recorded_settings(EvalConfig, run["config"], run_id, ("one_life",)) if run else {}
     one_life = one_life_setting(config.get("one_life") or False)
     found = []
     continued = {row.get("continues") for row, _ in material} - {None}

@@ -44,7 +44,6 @@ killed server's run resumes with what its committed submissions spent.
 
 from __future__ import annotations
 
-import json
 import os
 import secrets
 import sys
@@ -71,10 +70,11 @@ from pipeline.play.spec import EpisodeSpec
 from pipeline.play.validate import checked_inspect
 from pipeline.play.verify import checked_outcome
 from pipeline.play.versions import policy_version_row
-from pipeline.serve.config import ServeConfig
+from pipeline.serve.config import ServeConfig, served_settings
 from pipeline.serve.finalize import finalize_run
 from store import Store, StoreError
 from store.db import utcnow
+from store.recorded import read_recorded
 from store.readers import episode_steps, get_run, policy_text, step_nodes
 from store.scores import score_data, score_episodes
 from store.serve import (is_finalized, served_submissions, submission_episodes, submission_feedback,
@@ -170,12 +170,14 @@ class ServeRun:
             subs = served_submissions(con, run_id)
             finalized = is_finalized(con, run_id, run["status"])
         self.store, self.run_id = store, run_id
-        self.record = json.loads(run["config"])
-        self.serve = self.record["serve"]
-        # read once, before a submission plays: a store is anyone's file, and bands it cannot read are one line
-        self.bands = FeedbackBands.from_record(self.record.get("feedback_bands"), run_id)
+        # read once, before the run is marked or a submission plays: a store is anyone's file, and settings or
+        # bands it cannot read are one line naming the run and the setting
+        record = read_recorded(run["config"], run_id)
+        self.serve = served_settings(record, run_id)
+        self.bands = FeedbackBands.from_record(record.get("feedback_bands"), run_id)
         self.game = get_game(run["game"])
-        self.budget_total = int(self.serve["budget"])
+        self.record = {**record, "serve": self.serve, "game": self.game.name}  # as checked: what finalize reads
+        self.budget_total = self.serve["budget"]
         self.on_episode = on_episode
         self.workspace = Path(workspace).resolve() if workspace is not None else None
         self.finalize_when_spent = finalize_when_spent
