@@ -276,3 +276,17 @@ def test_the_reply_length_default_is_written_once():
     declared = declarations(OptimizeConfig)
     assert f"{offline['max_tokens']} with the offline model" in declared["max_tokens"][1].help
     assert f"{offline['token_budget']} with the offline model" in declared["token_budget"][1].help
+
+
+@pytest.mark.parametrize("argv", [
+    ["eval", "p.py", "--episodes"], ["eval", "p.py", "--noop-max"], ["compare", "a.py", "b.py", "--episodes"],
+    ["optimize", "p.py", "--eval-episodes"], ["optimize", "p.py", "--robust-episodes"],
+    ["optimize", "p.py", "--audit-episodes"], ["serve", "--budget"], ["serve", "--per-submission"],
+    ["serve", "--validation-episodes"], ["serve", "--heldout-episodes"]])
+def test_a_count_of_games_or_no_ops_past_its_maximum_is_refused_before_anything_plays(argv, capsys):
+    """Every setting that counts games or no-ops has a maximum, checked as a flag, a batch key and a stored run's
+    recorded setting are (one declaration): ``eval --noop-max 4611686018427387904`` was taken and its episode never
+    ended; a served run recorded with 10**9 validation games had its finalize draw 10**9 seeds."""
+    with pytest.raises(SystemExit) as exited:
+        build_parser().parse_args(argv + [str(2**62)])
+    assert exited.value.code == 2 and "must be within [" in capsys.readouterr().err

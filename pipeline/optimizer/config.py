@@ -20,6 +20,7 @@ from games.generic import GENERIC_EVAL_MAX_STEPS
 from pipeline.llm.client import MAX_TOKENS, OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BUDGET
 from pipeline.optimizer.ensemble import MODEL_CHOICES, check_choice, check_models, model_entries
 from pipeline.optimizer.strategies import STRATEGIES, make_strategy
+from pipeline.play.config import MAX_EPISODES
 from pipeline.settings import (Switch, before_recorded, budgets, check_settings, limit, recorded_problem,
                                resumable, setting)
 
@@ -93,7 +94,8 @@ class OptimizeConfig:
         minimum=500, resumable=True, run_key="always")
     """Hard limit on the prompt's tokens; the trace slice is chosen to fit."""
     eval_episodes: int = setting(
-        1, "evaluation episodes per iteration, in parallel (default: 1)", minimum=1, run_key="always")
+        1, "evaluation episodes per iteration, in parallel (default: 1)", minimum=1, maximum=MAX_EPISODES,
+        run_key="always")
     """Evaluation episodes per iteration, played in parallel; the score is their mean return."""
     feedback: str = setting(
         "staged", "staged: from the evaluation score (paper, default); rollout: rollout reward only (ablation)",
@@ -176,7 +178,7 @@ class OptimizeConfig:
     robust_episodes: int = setting(
         0, "also evaluate every version in N games under the standard protocol (sticky actions 0.25, up to 30 "
         "no-op starts; seeded), beside the paper's deterministic one (default: 0)", metavar="N", minimum=0,
-        group="search")
+        maximum=MAX_EPISODES, group="search")
     """Evaluation episodes under the standard protocol (sticky actions 0.25, up to 30 no-op starts; seeded, so
     reproducible) added to every assessment, beside the ``eval_episodes`` under the paper's; 0: none."""
     optimize_protocol: str = setting(
@@ -219,7 +221,8 @@ class OptimizeConfig:
     audit_episodes: int = setting(
         3, "when the run finishes, play the best version and the starting policy in N held-out games each (sealed "
         "seeds drawn then from the OS's entropy, never played by the loop nor shown to the model), under the "
-        "standard protocol and the run's own; 0: no audit (default: 3)", metavar="N", minimum=0, group="search",
+        "standard protocol and the run's own; 0: no audit (default: 3)", metavar="N", minimum=0,
+        maximum=MAX_EPISODES, group="search",
         resumable=True, run_key="never")
     """The held-out audit (``pipeline/optimizer/audit.py``): games per version and protocol on sealed audit seeds
     (drawn above ``games.base.AUDIT_SEED_BASE``), played when the run finishes; it never changes what the loop

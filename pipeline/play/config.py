@@ -16,6 +16,9 @@ from pipeline.settings import Switch, limit, same_as, setting
 MAX_EPISODES = 100_000
 """The most episodes one command plays (eval, compare): each is planned before the first plays, so a typo of
 99,999,999,999 held gigabytes before anything started (100,000 short Pong games are about a day on two cores)."""
+MAX_NOOPS = 10_000
+"""The most random no-ops after a reset (the standard protocol's 30; 10,000 steps are 11 minutes of game time, a
+few seconds to emulate): ``eval --noop-max 4611686018427387904`` was taken, and its episode never ended."""
 
 
 @dataclass
@@ -48,7 +51,8 @@ class EvalConfig:
     sticky: float = setting(0.0, "sticky-action probability (default: 0.0, the paper's; 0.25 with --noop-max 30 is "
                             "the standard stochastic protocol)", minimum=0.0, maximum=1.0)
     """Sticky-action probability (paper: 0.0; standard Atari protocol: 0.25)."""
-    noop_max: int = setting(0, "up to this many random NOOPs after reset (default: %(default)s)", minimum=0)
+    noop_max: int = setting(0, "up to this many random NOOPs after reset (default: %(default)s)", minimum=0,
+                            maximum=MAX_NOOPS)
     """Up to this many random NOOPs after reset (paper: 0; standard protocol: 30)."""
     one_life: bool | str = setting(False, "end each episode at a lost life", check=one_life_setting, switches=(
         Switch("--one-life", True, "end each episode at the first lost life of its own seeded game (default: whole "

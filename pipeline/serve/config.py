@@ -10,6 +10,7 @@ from typing import Any
 
 from games import GAMES
 from games.base import AUDIT_SEED_BASE, STANDARD_NOOP_MAX, STANDARD_STICKY
+from pipeline.play.config import MAX_EPISODES
 from pipeline.settings import limit, recorded_problem, setting
 from store.recorded import unreadable_settings
 
@@ -23,18 +24,21 @@ class ServeConfig:
     game: str | None = setting(None, f"game to play: {', '.join(GAMES)}, or any game OCAtari reads (default: the "
                                "file's GAME)")
     budget: int = setting(64, "training episodes the agent may play in the whole run, failures included (default: "
-                          "%(default)s)", minimum=1)
+                          "%(default)s)", minimum=1, maximum=MAX_EPISODES)
     """The run's episode budget: every episode a submission asks for costs one, whatever ends it; a request
     refused before anything plays (malformed, a policy that does not parse) costs nothing."""
     instances: int = setting(16, "visible training instances, ids 0..N-1 (default: %(default)s)", minimum=1,
                              maximum=4096)
     """Training instances the agent names by id; each is a game seed drawn from the OS's entropy when the run is
     made, below the audit's range, recorded only in the run's config and its episodes, never in a response."""
-    per_submission: int = setting(8, "most episodes one submission may ask for (default: %(default)s)", minimum=1)
+    per_submission: int = setting(8, "most episodes one submission may ask for (default: %(default)s)", minimum=1,
+                                 maximum=MAX_EPISODES)
     validation_episodes: int = setting(5, "games of the sealed validation pool each accepted submission plays at "
-                                       "the end (default: %(default)s)", minimum=1)
+                                       "the end (default: %(default)s)", minimum=1,
+                                       maximum=MAX_EPISODES)
     heldout_episodes: int = setting(5, "games of the sealed held-out pool the best by validation (and the starter) "
-                                    "play at the end (default: %(default)s)", minimum=1)
+                                    "play at the end (default: %(default)s)", minimum=1,
+                                    maximum=MAX_EPISODES)
     max_steps: int = limit("max_steps", help="step cap of every episode (default: %(default)s)")
     workers: int = setting(1, "episodes played at once (default: %(default)s)", minimum=1)
     call_time_limit_s: float = limit("call_time_limit_s")
