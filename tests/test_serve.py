@@ -1144,6 +1144,45 @@ def test_over_mcp_stdio_a_request_whatever_its_id_is_answered_and_a_deep_one_lea
         serve.wait(timeout=60)
 
 
+def test_over_mcp_stdio_requests_of_4_mib_written_without_reading_the_answers_hold_a_bounded_peak(tmp_path):
+    """Over stdio the server holds at most MAX_PENDING_REQUESTS requests unanswered, each a line of at most 4 MiB.
+    Measured: 16 or 50 requests of 4 MiB (to a slow tool, a policy of \\uXXXX escapes, a 4 MiB string in an unknown
+    argument or in the id) written without reading an answer grew the server's peak by at most ~130 MB. The costliest
+    cheap shape: a 4 MiB id, which each answer echoes, so that the answers fill the pipe and the requests stay
+    held. 50 of them grow the peak by under 200 MB (with the bound lifted: 262 MB), and all are answered."""
+    import select
+
+    serve = _stdio_serve(tmp_path / "m.duckdb")
+    try:
+        before = _peak_rss_mb(serve.pid)
+        budget = {"method": "tools/call", "params": {"name": "budget", "arguments": {}}}
+
+        def write() -> None:
+            for n in range(50):
+                serve.stdin.write(json.dumps({"jsonrpc": "2.0", "id": f"{n:02d}" + "x" * (4 * 2**20 - 200),
+                                              **budget}).encode() + b"\n")
+            serve.stdin.write(json.dumps({"jsonrpc": "2.0", "id": "last", **budget}).encode() + b"\n")
+            serve.stdin.flush()
+
+        writer = threading.Thread(target=write, daemon=True)
+        writer.start()
+        writer.join(timeout=5)  # it waits on the full pipe: the server reads no more until it is answered
+        lines, last = 0, b""
+        while lines < 51:  # the answers, 4 MiB each, read in large pieces (a byte at a time would take minutes)
+            ready, _, _ = select.select([serve.stdout.fileno()], [], [], 60)
+            chunk = os.read(serve.stdout.fileno(), 2**20) if ready else b""
+            assert chunk, f"{lines} answers, then none"
+            lines += chunk.count(b"\n")
+            last = (last + chunk)[-1000:]
+        grown = _peak_rss_mb(serve.pid) - before
+        answer = json.loads(last.rstrip(b"\n").rsplit(b"\n", 1)[-1])
+        assert answer["id"] == "last" and answer["result"]["structuredContent"]["remaining"] == 2, answer
+        assert grown < 200, f"the server's peak grew by {grown:.0f} MB for 50 requests of 4 MiB"
+    finally:
+        serve.stdin.close()
+        serve.wait(timeout=60)
+
+
 def test_over_mcp_stdio_a_message_of_more_values_than_the_server_parses_is_refused_unparsed(tmp_path):
     """The SDK parses a line whole into Python objects: 3.5 MB of [{},{},...] (within the 4 MiB a line may hold)
     in a tool call's arguments grew the server's peak by 175 MB, in a notification's params by 281 MB, 3.5 MB of
@@ -1220,6 +1259,65 @@ def test_over_mcp_streamable_http_a_body_of_more_values_than_the_server_parses_i
                 return (await client.call_tool("budget", {})).structured_content
 
         assert asyncio.run(session())["remaining"] == 2
+    finally:
+        serve.send_signal(signal.SIGINT)
+        serve.wait(timeout=120)
+
+
+def test_over_mcp_streamable_http_the_bodies_held_at_once_are_bounded_in_bytes_clients_gone_or_not(tmp_path):
+    """Over --mcp-port each request held its body, parsed (~2-4 x its bytes), for as long as its tool ran, and a
+    client that hung up once its request was taken let go of its connection (the bound of 32) but not of the
+    request, which the SDK ran on: 80 requests of 4 MiB to a slow tool (SQL waiting its turn, up to 40 s), each
+    client gone as its answer began, grew the server's peak by 630 MB, linearly; 32 at once held by their clients,
+    by 558 MB. The bodies held at once are now at most MAX_HELD_BYTES, each until its request is answered, its
+    client there or not; one past it is answered 503 at once: the peak grows by under ~150 MB, and the server
+    answers on."""
+    import asyncio
+    import socket
+
+    from mcp import Client
+
+    from pipeline.serve.tools import MAX_HELD_BYTES, MAX_MESSAGE_BYTES
+
+    serve, url = _mcp_over_http(tmp_path)
+    port = int(url.rsplit(":", 1)[1].split("/")[0])
+    try:
+        request = urllib.request.Request(url, method="POST", headers={
+            "Content-Type": "application/json", "Accept": "application/json, text/event-stream"}, data=json.dumps({
+                "jsonrpc": "2.0", "id": 1, "method": "initialize", "params": {"protocolVersion": "2025-06-18",
+                                                                              "capabilities": {}, "clientInfo": {
+                                                                                  "name": "t", "version": "1"}}})
+            .encode())
+        with urllib.request.urlopen(request, timeout=60) as answer:
+            session = answer.headers["mcp-session-id"]
+        slow = "SELECT count(*) FROM range(3000000000) AS t(n) WHERE n % 7 = 3"  # past its 10 s: 2 run at once
+        call = json.dumps({"jsonrpc": "2.0", "id": 2, "method": "tools/call", "params": {
+            "name": "sql", "arguments": {"query": slow, "pad": ""}}}).encode()
+        body = call.replace(b'"pad": ""', b'"pad": "' + b"x" * (MAX_MESSAGE_BYTES - 4096 - len(call)) + b'"')
+        head = (f"POST /mcp HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+                f"Accept: application/json, text/event-stream\r\nMcp-Session-Id: {session}\r\n"
+                f"Mcp-Protocol-Version: 2025-06-18\r\nContent-Length: {len(body)}\r\n\r\n").encode()
+        before = _peak_rss_mb(serve.pid)
+        statuses = []
+        for _ in range(50):  # each client hangs up once its answer has begun: its request taken, or refused
+            with socket.create_connection(("127.0.0.1", port), timeout=60) as connection:
+                connection.sendall(head + body)
+                got = b""
+                while b"\r\n\r\n" not in got:
+                    chunk = connection.recv(4096)
+                    assert chunk, got
+                    got += chunk
+                statuses.append(int(got.split(b" ", 2)[1]))
+        grown = _peak_rss_mb(serve.pid) - before
+        assert grown < 250, f"the server's peak grew by {grown:.0f} MB for 50 requests of 4 MiB"  # before: +400
+        assert set(statuses) == {200, 503}, statuses  # before: all 50 taken
+        assert statuses.count(200) < 50 // 2 and MAX_HELD_BYTES < 50 * len(body)
+
+        async def budget() -> dict:
+            async with Client(url, read_timeout_seconds=120) as client:
+                return (await client.call_tool("budget", {})).structured_content
+
+        assert asyncio.run(budget())["remaining"] == 2
     finally:
         serve.send_signal(signal.SIGINT)
         serve.wait(timeout=120)

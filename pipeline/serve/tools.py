@@ -6,7 +6,8 @@ a refused request (it costs nothing) is a tool error whose text says why. Operat
 a submission that plays for a while does not stall the transport. Transports: stdio (what Claude Code and Codex
 CLI start: ``codearcade serve --mcp``) and streamable HTTP on 127.0.0.1 (``--mcp-port``). Over stdio, what the agent
 writes is bounded before the SDK reads it (:func:`bound_stdin_lines`), so are the requests it holds unanswered
-(:data:`MAX_PENDING_REQUESTS`), and a request the SDK cannot read is answered (:func:`serve_stdio`).
+(:data:`MAX_PENDING_REQUESTS`), and a request the SDK cannot read is answered (:func:`serve_stdio`). Over
+``--mcp-port``, so are the bodies held at once, in bytes, until each request is answered (:data:`MAX_HELD_BYTES`).
 """
 
 from __future__ import annotations
@@ -345,6 +346,14 @@ MAX_OPENING_BYTES = 64 * 1024
 """The longest body of a request over ``--mcp-port`` that names no session (an ``initialize``, ~300 bytes: the
 SDK refuses any other without a session): each session kept ~2 x its opening body, so 16 sessions opened with 4 MB
 of a string in their params held the server at +128 MB for their idle timeout."""
+MAX_HELD_BYTES = 32 * 2**20
+"""Bytes of request bodies over ``--mcp-port`` held at once: each request holds its body's length (its
+``Content-Length``; one sent without, the most it may be) from before its body is read until its answer is sent,
+even where its client went away meanwhile (the SDK runs a request on without its client, holding its message). One
+that would pass it is answered 503 at once, nothing of its body kept. A body the SDK holds costs ~2-4 x its bytes:
+32 connections each sending 4 MiB to a slow tool grew the server by 558 MB, and 80 such requests whose clients hung
+up as they were sent by 630 MB (linear: the connection bound let them go); now under ~150 MB. An honest request is
+at most a policy's ~2.4 MB of JSON, and an agent runs a few at once."""
 
 
 def _values_bound(app: Any) -> Any:
@@ -353,24 +362,32 @@ def _values_bound(app: Any) -> Any:
     ``messages.MAX_MESSAGE_VALUES`` values (400 with a JSON-RPC
     error past them), then handed on whole. The SDK parses a body into Python objects whatever it holds, and keeps
     an ``initialize`` request's params with its session: 16 sessions opened with 3.5 MB of ``[{},{},...]`` in
-    their params held the server at 1.57 GB (from 214 MB) for their idle timeout."""
+    their params held the server at 1.57 GB (from 214 MB) for their idle timeout. The bodies held at once are at
+    most :data:`MAX_HELD_BYTES` (503 past it), each held until its request is answered, its client there or not."""
     import json
 
     from pipeline.serve.messages import MAX_MESSAGE_VALUES, json_values
 
-    async def refuse(send: Any, status: int, why: str) -> None:
+    held = 0  # bytes of the bodies of the requests read or being read and not answered yet (one event loop)
+
+    async def refuse(receive: Any, send: Any, status: int, why: str, more: bool) -> None:
+        read = 0
+        while more and read <= MAX_MESSAGE_BYTES:  # read on (to its end, or the SDK's limit), none of it kept,
+            message = await receive()  # so that the client reads the answer
+            if message["type"] != "http.request":  # the client went away: nothing to answer
+                return
+            read += len(message.get("body", b""))
+            more = message.get("more_body", False)
         body = json.dumps({"jsonrpc": "2.0", "id": None, "error": {"code": -32600, "message": why}}).encode()
         await send({"type": "http.response.start", "status": status, "headers": [
             (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
             (b"connection", b"close")]})
         await send({"type": "http.response.body", "body": body})
 
-    async def bounded(scope: Any, receive: Any, send: Any) -> None:
-        if scope["type"] != "http" or scope.get("method") != "POST":
-            await app(scope, receive, send)
-            return
-        opening = not any(name == b"mcp-session-id" for name, _ in scope.get("headers", ()))
-        limit = MAX_OPENING_BYTES if opening else MAX_MESSAGE_BYTES
+    async def handed_on(scope: Any, receive: Any, send: Any, limit: int, too_long: str) -> None:
+        # its body read whole, then handed to the app, which returns once the request is answered: a client
+        # that goes away is not told to it (the SDK's answer stopped waiting while the request ran on, holding
+        # its message, no longer counted), and the answer is sent to nobody
         parts, size, more = [], 0, True
         while more:
             message = await receive()
@@ -378,30 +395,57 @@ def _values_bound(app: Any) -> Any:
                 return
             size += len(message.get("body", b""))
             more = message.get("more_body", False)
-            if size <= limit:
-                parts.append(message.get("body", b""))
-            elif not more or size > MAX_MESSAGE_BYTES:  # read to its end (or the SDK's limit), none of it kept,
-                await refuse(send, 413, f"a message of more than {limit:,} bytes"  # so the client reads the answer
-                                        f"{' before a session is open' if opening else ''}; nothing was done")
-                return
-            else:
+            if size > limit:  # sent without a length, and longer than it may be: none of it kept
                 parts.clear()
+                await refuse(receive, send, 413, too_long, more)
+                return
+            parts.append(message.get("body", b""))
         body = b"".join(parts)
         del parts
         if json_values(body) > MAX_MESSAGE_VALUES:
-            await refuse(send, 400, f"a message of more values than the server parses (at most "
-                                    f"{MAX_MESSAGE_VALUES:,}); nothing was done")
+            await refuse(receive, send, 400, f"a message of more values than the server parses (at most "
+                                             f"{MAX_MESSAGE_VALUES:,}); nothing was done", False)
             return
         handed = False
 
         async def replay() -> Any:
             nonlocal handed, body
-            if handed:  # after the body, what the app waits for is the client's going away
-                return await receive()
-            handed, whole, body = True, body, b""
-            return {"type": "http.request", "body": whole, "more_body": False}
+            if not handed:
+                handed, whole, body = True, body, b""
+                return {"type": "http.request", "body": whole, "more_body": False}
+            message = await receive()  # after the body, what the app waits for is the client's going away
+            if message["type"] == "http.disconnect":
+                await anyio.sleep_forever()  # ended by the app once the request is answered (into the void)
+            return message
 
         await app(scope, replay, send)
+
+    async def bounded(scope: Any, receive: Any, send: Any) -> None:
+        nonlocal held
+        if scope["type"] != "http" or scope.get("method") != "POST":
+            await app(scope, receive, send)
+            return
+        headers = dict(scope.get("headers", ()))
+        opening = b"mcp-session-id" not in headers
+        limit = MAX_OPENING_BYTES if opening else MAX_MESSAGE_BYTES
+        declared = headers.get(b"content-length", b"").strip()
+        size = int(declared) if declared.isdigit() else None  # h11 refused a malformed one before the app
+        too_long = (f"a message of more than {limit:,} bytes{' before a session is open' if opening else ''}; "
+                    f"nothing was done")
+        if size is not None and size > limit:
+            await refuse(receive, send, 413, too_long, True)
+            return
+        taken = limit if size is None else size  # what this request may hold, taken before a byte of it is read
+        if held + taken > MAX_HELD_BYTES:
+            await refuse(receive, send, 503, f"the server holds {held:,} bytes of requests not answered yet (at "
+                                             f"most {MAX_HELD_BYTES:,}): ask again when one is answered; nothing "
+                                             f"was done", True)
+            return
+        held += taken
+        try:
+            await handed_on(scope, receive, send, limit, too_long)
+        finally:
+            held -= taken
 
     return bounded
 
