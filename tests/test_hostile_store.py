@@ -309,3 +309,23 @@ def test_every_reader_of_recorded_settings_refuses_a_hostile_one_in_one_line(pri
                 if Store(path).query("SELECT run_id, status, config FROM runs ORDER BY run_id") != before:
                     failures.append(f"{' '.join(argv[:2])} on {shown}: refused, but the store was changed")
     assert not failures, f"{len(failures)} failures:\n" + "\n".join(failures)
+
+
+@pytest.mark.parametrize("instruction", [{"a": 1}, ["\x1b]52;c;aGk=\x07"], 5, None])
+def test_a_served_run_whose_recorded_instruction_is_no_text_is_refused_before_an_agent_reads_it(tmp_path,
+                                                                                                 instruction):
+    """A served run's instruction goes to its agent as it is (``task``): an object or a list in a handed-over store
+    went out as one. Now the run is refused in one line naming it and the setting, before the run is marked."""
+    from pipeline.serve.config import ServeConfig
+    from pipeline.serve.protocol import ServeRun, create_run
+
+    store = Store(tmp_path / "s.duckdb")
+    run = create_run(store, ServeConfig(game="pong", budget=2, instances=2, max_steps=50))
+    with store.write() as con:
+        con.execute("UPDATE runs SET config = json_merge_patch(config, ?) WHERE run_id = ?",
+                    [json.dumps({"instruction": instruction}) if instruction is not None else '{"instruction": null}',
+                     run])
+        before = con.execute("SELECT status, config FROM runs").fetchall()
+    with pytest.raises(ValueError, match=rf"run {run}'s recorded settings cannot be read: instruction must be a text"):
+        ServeRun(store, run)
+    assert store.query("SELECT status, config FROM runs") == before

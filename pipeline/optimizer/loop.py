@@ -24,7 +24,6 @@ candidate. ``codearcade replay RUN`` re-runs a run with the stored replies inste
 
 from __future__ import annotations
 
-import reprlib
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
@@ -45,7 +44,7 @@ from pipeline.optimizer.propose import BudgetExhausted, Proposal, check_wall, pr
 from pipeline.optimizer.prompt import PromptBudgetError, smallest_prompt_tokens
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History
-from pipeline.optimizer.task import resolve_start, task_settings
+from pipeline.optimizer.task import recorded_task_problem, resolve_start, task_settings
 from pipeline.play.runinfo import new_run_id, package_versions
 from pipeline.play.versions import policy_version_row
 from store import Store
@@ -182,11 +181,9 @@ def load_state(store: Store, run_id: str) -> RunState:
         last = last_iteration(con, run_id)
     recorded = read_recorded(run["config"], run_id)
     config = OptimizeConfig.from_record(recorded, run_id)
-    for key, kind in (("instruction", str), ("rollout_steps", int), ("eval_max_steps", int)):  # the task's, as
-        # the run started with them (from_record checked the numbers' ranges)
-        if not isinstance(recorded.get(key), kind) or isinstance(recorded[key], bool):
-            raise unreadable_settings(run_id, f"{key} must be {'a text' if kind is str else 'a whole number'}, "
-                                              f"not {reprlib.repr(recorded.get(key))}")
+    problem = recorded_task_problem(recorded)  # the task's, as the run started with them
+    if problem is not None:
+        raise unreadable_settings(run_id, problem)
     settings = {k: recorded.get(k) for k in ("rollout_steps", "eval_max_steps", "instruction", "feedback_bands")}
     settings["bands"] = FeedbackBands.from_record(recorded.get("feedback_bands"), run_id)
     state = RunState(run_id, run["game"], config, settings, rng_key=recorded.get("rng_key"))

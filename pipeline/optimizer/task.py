@@ -7,6 +7,7 @@ staged bands); a policy file may override any of them with an upper-case literal
 
 from __future__ import annotations
 
+import reprlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -51,6 +52,21 @@ def task_settings(info: PolicyInfo, game: str) -> TaskSettings:
         feedback=FeedbackBands.from_constant(merged["FEEDBACK"], info.name),
         instruction=str(merged["INSTRUCTION"]),
     )
+
+
+RECORDED_TASK = {"instruction": str, "rollout_steps": int, "eval_max_steps": int}
+"""The task settings a run records beside its config (``runs.config``), each of the type its readers take."""
+
+
+def recorded_task_problem(recorded: dict, keys: tuple[str, ...] = tuple(RECORDED_TASK)) -> str | None:
+    """What makes the task settings ``keys`` of a stored run's ``recorded`` settings not what a run records (a
+    store is anyone's file: an instruction that is an object went to the agent and the prompt as it was), or None.
+    The numbers' ranges are checked with the config's (``OptimizeConfig.from_record``)."""
+    for key in keys:
+        kind, value = RECORDED_TASK[key], recorded.get(key)
+        if not isinstance(value, kind) or isinstance(value, bool):
+            return f"{key} must be {'a text' if kind is str else 'a whole number'}, not {reprlib.repr(value)}"
+    return None
 
 
 def resolve_start(config: OptimizeConfig) -> tuple[PolicyInfo, str]:

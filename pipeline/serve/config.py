@@ -59,6 +59,7 @@ def served_settings(record: dict[str, Any], run_id: str) -> dict[str, Any]:
     ``--finalize`` in a traceback (some after the run was marked running). The other recorded settings a served
     run plays with (``observation``, ``rng_key``) are checked as an optimization's are."""
     from pipeline.optimizer.config import OptimizeConfig
+    from pipeline.optimizer.task import recorded_task_problem
 
     served = record.get("serve")
     if not isinstance(served, dict):
@@ -80,7 +81,8 @@ def served_settings(record: dict[str, Any], run_id: str) -> dict[str, Any]:
         if served[key] != standard or isinstance(served[key], bool):
             raise unreadable_settings(run_id, f"serve.{key} must be {standard}, the standard protocol's, not "
                                               f"{reprlib.repr(served[key])}")
-    problem = recorded_problem(OptimizeConfig, {k: record[k] for k in ("observation", "rng_key") if k in record})
+    problem = recorded_problem(OptimizeConfig, {k: record[k] for k in ("observation", "rng_key") if k in record}) \
+        or recorded_task_problem(record, ("instruction",))  # the instruction goes to the agent as it is
     if problem is not None:
         raise unreadable_settings(run_id, problem)
     return {**served, **asdict(config)}
