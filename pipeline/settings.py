@@ -266,22 +266,41 @@ def before_recorded(cls: type) -> dict[str, Any]:
 # ------------------------------------------------------------------------------------------------ episode limits
 
 
+MAX_STEPS = 2**31 - 1
+"""The most steps any episode may be capped at (``--max-steps``, ``--rollout-steps``, ``--eval-max-steps``,
+``--screen-steps``): the store's episode length is an INTEGER. ``optimize --rollout-steps 4611686018427387904`` was
+taken, played its whole game and ended in a DuckDB conversion error (a traceback) when the episode was stored."""
+
+MAX_TIME_LIMIT_S = 7 * 86_400
+"""The longest time limit of a policy call or an episode (a week; the paper's episode limit is 900 s): the policy
+channel waits with ``poll()``, which takes milliseconds as a C int (~24.8 days at most). ``--call-time-limit`` or
+``--episode-time-limit`` of 4611686018427387904, 1e308 or 30 days was taken and crashed every episode at step 0
+(``OverflowError``), a forfeit each; 2,147,000 s ran."""
+
+MAX_MEMORY_MB = 2**30
+"""The most address space a worker may be given beyond its start, in MB (a PiB: no machine has it; ``RLIMIT_AS``
+takes less than 2**63 bytes: a larger cap raises ``OverflowError``, measured)."""
+
+
 @dataclass(frozen=True)
 class EpisodeLimits:
     """The limits an episode is played under; their defaults are written here and nowhere else."""
 
     max_steps: int = setting(4000, "cut an episode off after this many steps, reported as truncated (default: "
                              "%(default)s, the paper's)", minimum=1,
-                             maximum=2**31 - 1)  # the store's episode length is an INTEGER
+                             maximum=MAX_STEPS)
     """Steps after which an episode is cut off (reported as ``truncated``); the paper's cap is 4000."""
     call_time_limit_s: float = setting(1.0, "time limit of one policy call, 0 for none (default: %(default)s)",
-                                       flag="--call-time-limit", metavar="SECONDS", minimum=0)
+                                       flag="--call-time-limit", metavar="SECONDS", minimum=0,
+                                       maximum=MAX_TIME_LIMIT_S)
     """Limit for one policy call, ``policy(obs)``, including every bundled method it calls (0: none)."""
     episode_time_limit_s: float = setting(900.0, "wall-clock limit of one episode (default: %(default)s)",
-                                          flag="--episode-time-limit", metavar="SECONDS", above=0)
+                                          flag="--episode-time-limit", metavar="SECONDS", above=0,
+                                          maximum=MAX_TIME_LIMIT_S)
     """Wall-clock limit of one whole episode."""
     memory_limit_mb: int | None = setting(4096, "address space a worker may take beyond what it had at start, in "
-                                          "MB (default: %(default)s)", cli=False)
+                                          "MB (default: %(default)s)", cli=False,
+                                          maximum=MAX_MEMORY_MB)
     """Extra address space a worker process may take beyond what it had at start (None: unlimited)."""
 
     @classmethod

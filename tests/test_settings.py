@@ -290,3 +290,141 @@ def test_a_count_of_games_or_no_ops_past_its_maximum_is_refused_before_anything_
     with pytest.raises(SystemExit) as exited:
         build_parser().parse_args(argv + [str(2**62)])
     assert exited.value.code == 2 and "must be within [" in capsys.readouterr().err
+
+
+CONFIG_MODULES = ("pipeline.settings", "pipeline.optimizer.config", "pipeline.play.config", "pipeline.serve.config")
+"""Where the config classes are declared (a class of these modules with declared settings is walked)."""
+
+BUDGETS_NO_LIMIT = "a budget: a huge one is no limit, and works (--max-total-tokens 10**20, --max-wall 1.8e308 ran)"
+
+TAKES_ANY_VALUE = {
+    ("OptimizeConfig", "memory"): "only the run's own earlier iterations can be shown (2**62 ran as 5 does)",
+    ("OptimizeConfig", "token_budget"): "the prompt is built to fit it, held to the model's context by fit_to_model "
+                                        "(2**62 ran)",
+    ("OptimizeConfig", "workers"): "no more workers start than there are episodes to play (2**62 ran)",
+    ("OptimizeConfig", "beam_width"): "only the versions the run has are kept (2**62 ran)",
+    ("OptimizeConfig", "max_concurrent_calls"): "no more calls are in flight than an iteration's proposals, each "
+                                                "bounded (2**62 ran)",
+    ("OptimizeConfig", "screen_margin"): "only compared with scores (1.8e308 ran)",
+    ("OptimizeConfig", "seed"): "validate_config holds the tuning seeds below the audit seeds",
+    ("OptimizeConfig", "max_cost_usd"): BUDGETS_NO_LIMIT,
+    ("OptimizeConfig", "max_total_tokens"): BUDGETS_NO_LIMIT,
+    ("OptimizeConfig", "max_llm_calls"): BUDGETS_NO_LIMIT,
+    ("OptimizeConfig", "max_wall_minutes"): BUDGETS_NO_LIMIT,
+    ("OptimizeConfig", "observation"): "games.base Game.observing refuses a version this codearcade does not build, "
+                                       "saying to upgrade",
+    ("EvalConfig", "observation"): "games.base Game.observing refuses a version this codearcade does not build",
+    ("EvalConfig", "workers"): "no more workers start than there are episodes to play (2**62 ran)",
+    ("CompareConfig", "workers"): "no more workers start than there are episodes to play (2**62 ran)",
+    ("ServeConfig", "workers"): "a submission's games start at most as many workers as it has games "
+                                "(pipeline/serve/protocol.py)",
+    ("CompareConfig", "seed"): "each side plays it as eval does, in EvalConfig's range (compare --seed -1 and 2**64 "
+                               "were refused, 2**62 ran)",
+    ("CompareConfig", "context"): "the steps shown are those the episodes have (pipeline/play/versus.py)",
+}
+"""The numeric settings without a maximum, each proven to take any value, with why."""
+
+
+def _config_classes() -> list[type]:
+    import importlib
+    from dataclasses import is_dataclass
+
+    found = []
+    for module in map(importlib.import_module, CONFIG_MODULES):
+        found += [c for c in vars(module).values() if isinstance(c, type) and is_dataclass(c)
+                  and c.__module__ == module.__name__ and declarations(c)]
+    return found
+
+
+def test_every_numeric_setting_has_a_maximum_or_is_proven_to_take_any_value():
+    """A setting of a count, a size or a time without a maximum was taken at any size (2**62, 1.8e308) and hung,
+    filled the memory, or ended in a traceback when it reached a timer or the store (``--max-tokens``,
+    ``--rollout-steps``, ``--eval-max-steps``, ``--screen-steps``, ``--candidates``, ``--call-time-limit``,
+    ``--episode-time-limit``, ``compare --context``): a new numeric setting needs a maximum in its declaration, or
+    a line in TAKES_ANY_VALUE that says why it takes any value."""
+    from pipeline.settings import value_type
+
+    classes = _config_classes()
+    assert {c.__name__ for c in classes} >= {"OptimizeConfig", "EvalConfig", "CompareConfig", "ServeConfig",
+                                             "EpisodeLimits"}
+    walked, missing = set(), []
+    for config in classes:
+        for name, (_, declared) in declarations(config).items():
+            kind = value_type(config, name)
+            if kind not in (int, float):
+                continue
+            walked.add((config.__name__, name))
+            if declared.maximum is None and (config.__name__, name) not in TAKES_ANY_VALUE:
+                missing.append(f"{config.__name__}.{name}")
+    assert not missing, f"numeric settings without a maximum, not proven to take any value: {missing}"
+    assert set(TAKES_ANY_VALUE) <= walked, "TAKES_ANY_VALUE names no setting"
+    assert not [key for key in TAKES_ANY_VALUE if declarations(next(c for c in classes if c.__name__ == key[0]))
+                [key[1]][1].maximum is not None], "a setting with a maximum is listed as taking any value"
+
+
+HUGE, LARGEST_FLOAT = str(2**62), "1.7976931348623157e308"
+
+
+@pytest.mark.parametrize("argv", [
+    ["optimize", "p.py", "--max-tokens", HUGE], ["optimize", "p.py", "--rollout-steps", HUGE],
+    ["optimize", "p.py", "--eval-max-steps", HUGE], ["optimize", "p.py", "--screen-steps", HUGE],
+    ["optimize", "p.py", "--candidates", HUGE], ["optimize", "p.py", "--call-time-limit", HUGE],
+    ["optimize", "p.py", "--call-time-limit", LARGEST_FLOAT], ["eval", "p.py", "--call-time-limit", "1e308"],
+    ["eval", "p.py", "--episode-time-limit", HUGE], ["eval", "p.py", "--episode-time-limit", LARGEST_FLOAT],
+    ["serve", "--call-time-limit", HUGE]])
+def test_a_huge_size_or_time_is_refused_before_anything_plays(argv, capsys):
+    """Each of these was taken at 2**62: ``--max-tokens`` ended the run in a DuckDB conversion error when its first
+    call was stored; the step caps played a whole game and ended in one when the episode was stored; best-of-n's
+    ``--candidates`` planned proposals without end; a time limit crashed every episode at step 0
+    (``OverflowError``), a forfeit each, at 2**62, 1e308 and the largest float alike."""
+    with pytest.raises(SystemExit) as exited:
+        build_parser().parse_args(argv)
+    err = capsys.readouterr().err
+    assert exited.value.code == 2 and ("must be within [" in err or "must be at most" in err), err
+
+
+def test_a_huge_size_is_refused_as_a_batch_key_and_as_a_recorded_setting(tmp_path):
+    """The same declaration checks a batch file's keys and a stored run's recorded settings."""
+    from pipeline.jobs.batch import ExperimentError, load_experiments
+    from pipeline.settings import flag_of
+    path = tmp_path / "huge.toml"
+    for key in ("max_tokens", "rollout_steps", "eval_max_steps", "screen_steps", "candidates", "call_time_limit_s",
+                "episode_time_limit_s"):
+        path.write_text(f"[defaults]\ngame = 'pong'\nstrategy = 'best-of-n'\n{key} = {2**62}\n[[run]]\nseed = 1\n")
+        with pytest.raises(ExperimentError, match=f"{flag_of(OptimizeConfig, key)} must be (within|at most)"):
+            load_experiments(path)
+        with pytest.raises(ValueError, match=f"cannot be read: {key} must be (within|at most)"):
+            OptimizeConfig.from_record({key: 2**62}, "01RUN")
+
+
+def test_a_compare_context_past_the_episodes_shows_their_steps(monkeypatch):
+    """``compare A B --context 4611686018427387904`` was taken, and the steps listed around the first divergent
+    step grew without end (8.3 GB at 60 s): the steps shown are those the episodes have."""
+    from pipeline.play import versus
+
+    rows = {"a": {"episode_id": "a", "seed": 0, "return": 0.0, "length": 10, "end_reason": "truncated"},
+            "b": {"episode_id": "b", "seed": 0, "return": 0.0, "length": 12, "end_reason": "truncated"}}
+    monkeypatch.setattr(versus, "episode_rows", lambda con, ids: rows)
+    monkeypatch.setattr(versus, "first_divergent_step", lambda con, a, b: 4)
+    monkeypatch.setattr(versus, "episode_steps", lambda con, episode_id, start, stop, *rest: [
+        {"step": s, "action": 0, "reward": 0.0, "score": 0.0, "obs": {}}
+        for s in range(start, min(stop, rows[episode_id]["length"]))])
+    monkeypatch.setattr(versus, "step_outputs", lambda con, episode_id, start, stop: [])
+    found = versus._divergence(None, "pong", rows["a"], rows["b"], 10**6)
+    assert [e["step"] for e in found["around"]][:1] == [0] and len(found["around"]) <= 13
+    assert found["around"][11]["A"] is None and found["around"][11]["B"]["action"] == 0
+    assert versus._divergence(None, "pong", rows["a"], rows["b"], 1)["around"][0]["step"] == 3
+
+
+def test_an_episode_plays_at_the_longest_time_limits(tmp_path, capsys):
+    """The maxima of the time limits are limits the episodes play under: 30 days had crashed every episode at step
+    0 (``OverflowError: timeout is too large``: the policy channel's ``poll()`` takes milliseconds as a C int)."""
+    from pipeline.cli import main
+    from pipeline.settings import MAX_TIME_LIMIT_S
+
+    code = main(["eval", str(ROOT / "games" / "scaffolds" / "pong.py"), "--max-steps", "20", "--json",
+                 "--call-time-limit", str(MAX_TIME_LIMIT_S), "--episode-time-limit", str(MAX_TIME_LIMIT_S),
+                 "--store", str(tmp_path / "s.duckdb")])
+    out = capsys.readouterr().out
+    played = json.loads(out[out.index("{"):])
+    assert code == 0 and not played["forfeits"] and played["episodes"][0]["length"] == 20, out

@@ -21,8 +21,8 @@ from pipeline.llm.client import MAX_TOKENS, OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BU
 from pipeline.optimizer.ensemble import MODEL_CHOICES, check_choice, check_models, model_entries
 from pipeline.optimizer.strategies import STRATEGIES, make_strategy
 from pipeline.play.config import MAX_EPISODES
-from pipeline.settings import (Switch, before_recorded, budgets, check_settings, limit, recorded_problem,
-                               resumable, setting)
+from pipeline.settings import (MAX_STEPS, Switch, before_recorded, budgets, check_settings, limit,
+                               recorded_problem, resumable, setting)
 
 FEEDBACK_MODES = ("staged", "rollout")
 """What the feedback of an iteration is made from (``pipeline/optimizer/feedback.py``): the evaluation score (the
@@ -48,6 +48,16 @@ FLAG_GROUPS = {
 
 MAX_ITERATIONS = 100_000
 """The most iterations a run may plan (the views read the planned count as an INTEGER; no run comes near)."""
+
+MAX_REPLY_TOKENS = 1_000_000
+"""The longest reply a run may ask for (``--max-tokens``; models write at most a few hundred thousand): the store's
+``llm_calls.request_max_tokens`` is an INTEGER, and ``--max-tokens 4611686018427387904`` was taken and ended the
+run in a DuckDB conversion error (a traceback) when its first call was stored."""
+
+MAX_CANDIDATES = 1_000
+"""The most proposals per parent and iteration (``--candidates``): each is an LLM call of the iteration, planned
+before the first is sent; ``--strategy best-of-n --candidates 4611686018427387904`` was taken and its first
+iteration planned proposals without end (killed after 60 s, no call sent)."""
 
 @dataclass
 class OptimizeConfig:
@@ -122,13 +132,14 @@ class OptimizeConfig:
     """Sampling temperature of the LLM."""
     max_tokens: int = setting(
         MAX_TOKENS, f"longest reply (default: {MAX_TOKENS}; {OFFLINE_MAX_TOKENS} with the offline model)", minimum=1,
-        resumable=True, run_key="always")
+        maximum=MAX_REPLY_TOKENS, resumable=True, run_key="always")
     """Longest reply asked for (the offline model's: :func:`model_defaults`)."""
     rollout_steps: int | None = setting(
-        None, "training rollout horizon (default: the task's)", minimum=1, run_key="always")
+        None, "training rollout horizon (default: the task's)", minimum=1, maximum=MAX_STEPS, run_key="always")
     """Training rollout horizon; None: the task's (400 Pong, 300 Breakout, 15 Space Invaders)."""
     eval_max_steps: int | None = setting(
-        None, f"evaluation cap (default: the game's, {_TASK_EVAL_CAPS})", minimum=1, run_key="always")
+        None, f"evaluation cap (default: the game's, {_TASK_EVAL_CAPS})", minimum=1, maximum=MAX_STEPS,
+        run_key="always")
     """Evaluation cap; None: the task's (``games/<game>.py``)."""
     workers: int = setting(
         2, "episode worker processes (default: cores)", minimum=1, resumable=True, run_key="never", reproduce=False)
@@ -164,7 +175,7 @@ class OptimizeConfig:
     ``map-elites``."""
     candidates: int | None = setting(
         None, "proposals per iteration (best-of-n, map-elites: default 4) or per beam member (beam: default 1)",
-        metavar="N", minimum=1, group="search")
+        metavar="N", minimum=1, maximum=MAX_CANDIDATES, group="search")
     """Proposals per parent and iteration: best-of-n's N (default 4), beam's proposals per beam member (default
     1); greedy makes one."""
     beam_width: int = setting(
@@ -188,7 +199,8 @@ class OptimizeConfig:
     ``robust_episodes``): policies good under sticky actions, not only on one replayed trajectory."""
     screen_steps: int | None = setting(
         None, "cascade evaluation: a new version first plays N steps of the first evaluation game, and is assessed "
-        "fully only if it keeps up with its parent there (default: off)", metavar="N", minimum=1, group="search")
+        "fully only if it keeps up with its parent there (default: off)", metavar="N", minimum=1, maximum=MAX_STEPS,
+        group="search")
     """Cascade evaluation: before its full assessment, a new version plays the first evaluation game for this many
     steps; if it then trails its parent's score at the same step by more than ``screen_margin``, it is screened
     out (rejected, with both scores in its feedback) and never fully played. None: off."""

@@ -212,7 +212,9 @@ def _divergence(con, game: str, ep_a: dict[str, Any], ep_b: dict[str, Any], cont
     if step is None:
         return out
     played = get_game(game)
-    start, stop = max(0, step - context), step + context + 1
+    # the steps the episodes have, whatever the context: `--context 4611686018427387904` was taken, and the list of
+    # steps around the divergence grew without end (8.3 GB at 60 s, killed)
+    start, stop = max(0, step - context), min(step + context, max(step, *(rows[i]["length"] or 0 for i in ids))) + 1
     sides = {}
     for label, episode_id in zip(LABELS, ids):
         steps = {r["step"]: r for r in episode_steps(con, episode_id, start, stop, list_widths(game),
