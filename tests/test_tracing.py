@@ -365,3 +365,15 @@ def test_a_policy_exception_is_named_at_its_own_line_whatever_its_message(text, 
     assert [row[:3] for row in node] == [(name, line, raising)]
     kept = node[0][3]
     assert kept == (message if name == "Unprintable" else "x" * 1_960 + "… [cut 98,040 characters]")
+
+
+def test_a_policy_file_s_step_caps_are_held_to_their_flags_ranges():
+    """A file's ``ROLLOUT_STEPS = 4611686018427387904`` was taken: the run played its whole training game and ended in
+    a DuckDB conversion error (a traceback) when the episode was stored; it is held to ``--rollout-steps``' range."""
+    from pipeline.optimizer.task import task_settings
+
+    scaffold = (EXAMPLES / "breakout.py").read_text()
+    for constant in ("ROLLOUT_STEPS", "EVAL_MAX_STEPS"):
+        own = inspect_policy(scaffold.replace('GAME = "breakout"', f'GAME = "breakout"\n{constant} = {2**62}'), "b.py")
+        with pytest.raises(ValueError, match=f"^b.py: {constant} must be within \\[1, 2147483647\\]"):
+            task_settings(own, "breakout")

@@ -2,7 +2,7 @@
 
 The game's module holds them (``games/<game>.py``: the paper's 400/300/15 steps, 4000-step evaluations,
 staged bands); a policy file may override any of them with an upper-case literal (``ROLLOUT_STEPS``,
-``EVAL_MAX_STEPS``, ``FEEDBACK``, ``INSTRUCTION``).
+``EVAL_MAX_STEPS``, ``FEEDBACK``, ``INSTRUCTION``), the step caps within the ranges of their flags.
 """
 
 from __future__ import annotations
@@ -10,15 +10,13 @@ from __future__ import annotations
 import reprlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from games import get_game
 from games.base import one_life_setting
+from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.feedback import FeedbackBands
+from pipeline.settings import check_value
 from tracing.policy_file import PolicyInfo, read_policy_file
-
-if TYPE_CHECKING:
-    from pipeline.optimizer.config import OptimizeConfig
 
 
 def example_path(game: str) -> Path:
@@ -40,15 +38,22 @@ class TaskSettings:
 
 
 def task_settings(info: PolicyInfo, game: str) -> TaskSettings:
-    """The settings for optimizing ``info`` on ``game``: the file's constants over the game's task."""
+    """The settings for optimizing ``info`` on ``game``: the file's constants over the game's task, the step caps
+    held to the ranges of ``--rollout-steps`` and ``--eval-max-steps`` (ValueError in one line naming the file)."""
     spec = get_game(game)
     task = spec.task
     merged = {"ROLLOUT_STEPS": task.rollout_steps, "EVAL_MAX_STEPS": task.eval_max_steps,
               "FEEDBACK": dict(task.feedback), "INSTRUCTION": task.instruction, **info.constants}
+    steps = {}
+    for name, constant in (("rollout_steps", "ROLLOUT_STEPS"), ("eval_max_steps", "EVAL_MAX_STEPS")):
+        # a file's ROLLOUT_STEPS = 4611686018427387904 played its whole game and ended in a DuckDB conversion error
+        # (a traceback) when the episode was stored, as the flag had
+        steps[name] = int(merged[constant])
+        check_value(OptimizeConfig, name, steps[name], label=f"{info.name}: {constant}")
     return TaskSettings(
         game=spec.name,
-        rollout_steps=int(merged["ROLLOUT_STEPS"]),
-        eval_max_steps=int(merged["EVAL_MAX_STEPS"]),
+        rollout_steps=steps["rollout_steps"],
+        eval_max_steps=steps["eval_max_steps"],
         feedback=FeedbackBands.from_constant(merged["FEEDBACK"], info.name),
         instruction=str(merged["INSTRUCTION"]),
     )
