@@ -316,13 +316,14 @@ TAKES_ANY_VALUE = {
     ("EvalConfig", "observation"): "games.base Game.observing refuses a version this codearcade does not build",
     ("EvalConfig", "workers"): "no more workers start than there are episodes to play (2**62 ran)",
     ("CompareConfig", "workers"): "no more workers start than there are episodes to play (2**62 ran)",
-    ("ServeConfig", "workers"): "a submission's games start at most as many workers as it has games "
-                                "(pipeline/serve/protocol.py)",
+    ("ServeConfig", "workers"): "a submission's games start at most as many workers as it has games (2**62 ran a "
+                                "submission and the finalize)",
     ("CompareConfig", "seed"): "each side plays it as eval does, in EvalConfig's range (compare --seed -1 and 2**64 "
                                "were refused, 2**62 ran)",
     ("CompareConfig", "context"): "the steps shown are those the episodes have (pipeline/play/versus.py)",
 }
-"""The numeric settings without a maximum, each proven to take any value, with why."""
+"""The numeric settings without a maximum, each proven to take any value, with why: each ran at 2**62 (floats at
+1.8e308) as a flag, and the optimize settings all at once as a batch file's keys, resumed with its recorded settings."""
 
 
 def _config_classes() -> list[type]:
