@@ -1396,6 +1396,61 @@ def test_a_messages_values_are_counted_outside_its_strings_in_one_pass():
     assert counted["quotes"] > MAX_MESSAGE_VALUES and counted["unterminated"] == counted["escapes"] == 0
 
 
+def _cpu_s(pid: int) -> float:
+    """The process's CPU time so far (user and system, all its threads), in seconds."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def test_over_mcp_stdio_blank_lines_cost_the_server_nothing_and_the_call_after_them_is_answered(tmp_path):
+    """Over stdio the SDK read the agent's lines one at a time (a worker thread's round trip each) and took each
+    blank line for a message: ~300 us of server CPU a line of one byte, so 256 KiB of newlines took 82 s of CPU
+    and 1 MiB 293 s, the call written after them answered only then. Blank lines (and the whitespace before a
+    message) are now skipped as they arrive, in one match: 1 MiB of them takes ~0.01 s."""
+    import select
+
+    serve = _stdio_serve(tmp_path / "m.duckdb")
+    try:
+        before = _cpu_s(serve.pid)
+        written = b"\n" * 2**20 + b" \r\n\t" * 2**14 + b"  " + _tool_call("after", "budget", {})
+        threading.Thread(target=lambda: (serve.stdin.write(written), serve.stdin.flush()), daemon=True).start()
+        ready, _, _ = select.select([serve.stdout.fileno()], [], [], 120)  # before: answered after ~6 min
+        assert ready, "no answer after 120 s"
+        answer = json.loads(serve.stdout.readline())
+        spent = _cpu_s(serve.pid) - before
+        assert answer["id"] == "after" and answer["result"]["structuredContent"]["remaining"] == 2, answer
+        assert spent < 30, f"the server spent {spent:.1f} s of CPU on 1 MiB of blank lines"
+    finally:
+        serve.kill()
+        serve.wait(timeout=60)
+
+
+def test_over_mcp_stdio_the_agents_lines_are_read_as_the_sdks_text_stream_reads_them(tmp_path):
+    """The lines are read in blocks (a line at a time, each line cost a worker thread's round trip): what each line
+    says is what the SDK's own text stream made of it, universal newlines and UTF-8 (replaced where it is not)
+    included, across the blocks' edges."""
+    import io
+
+    import anyio
+
+    from pipeline.serve import tools
+
+    data = "a\r\nb\rc\n\u00e9\u4e2d\U0001f600 \xff\r".encode("utf-8", "surrogateescape") + b"\xc3\n\r\rlast"
+    data = data.replace(b"\xc3\xbf", b"\xff")  # a byte that is not UTF-8
+    expected = io.TextIOWrapper(io.BytesIO(data), encoding="utf-8", errors="replace").readlines()
+
+    async def lines(block: int) -> list[str]:
+        read_end, write_end = os.pipe()
+        os.write(write_end, data)
+        os.close(write_end)
+        reader = tools._Lines(read_end)
+        reader.BLOCK = block
+        return [line async for line in reader]
+
+    for block in (1, 2, 3, 7, 65536):
+        assert anyio.run(lines, block) == expected, block
+
+
 def test_over_mcp_stdio_pipelined_requests_wait_in_the_agents_pipe_not_in_the_server(tmp_path):
     """Over stdio the MCP SDK read on and started every request as it came: 2,000 refused submissions of 190 KB
     written at once, their answers unread, grew the server's peak by 317 MB. It now reads no more of stdin while
