@@ -1413,7 +1413,15 @@ def test_over_mcp_stdio_blank_lines_cost_the_server_nothing_and_the_call_after_t
     try:
         before = _cpu_s(serve.pid)
         written = b"\n" * 2**20 + b" \r\n\t" * 2**14 + b"  " + _tool_call("after", "budget", {})
-        threading.Thread(target=lambda: (serve.stdin.write(written), serve.stdin.flush()), daemon=True).start()
+
+        def write() -> None:
+            try:
+                serve.stdin.write(written)
+                serve.stdin.flush()
+            except BrokenPipeError:  # the server was killed first (it had not answered)
+                pass
+
+        threading.Thread(target=write, daemon=True).start()
         ready, _, _ = select.select([serve.stdout.fileno()], [], [], 120)  # before: answered after ~6 min
         assert ready, "no answer after 120 s"
         answer = json.loads(serve.stdout.readline())
@@ -1449,6 +1457,69 @@ def test_over_mcp_stdio_the_agents_lines_are_read_as_the_sdks_text_stream_reads_
 
     for block in (1, 2, 3, 7, 65536):
         assert anyio.run(lines, block) == expected, block
+
+
+def test_a_messages_long_numbers_are_found_outside_its_strings():
+    """What the transports look for besides the values: a number (outside strings) longer than an honest message's
+    ids and counts. Digits in a string are text; a float, an int, an exponent or a negative zero past
+    MAX_NUMBER_CHARS characters is found, in one pass however the message is made."""
+    from pipeline.serve.messages import MAX_NUMBER_CHARS, json_long_number
+
+    honest = _tool_call(2**63, "feedback", {"submission": 12, "steps": 40, "x": -1.7976931348623157e+308})
+    assert not json_long_number(honest)
+    assert not json_long_number(b'{"query": "SELECT ' + b"7" * 4_000_000 + b'"}')
+    assert not json_long_number(b"[" + b"7" * MAX_NUMBER_CHARS + b"]")
+    for number in (b"0." + b"7" * 4_000_000, b"7" * 4_000_000, b"1e" + b"9" * MAX_NUMBER_CHARS,
+                   b"-0." + b"0" * MAX_NUMBER_CHARS, b"7" * (MAX_NUMBER_CHARS + 1)):
+        assert json_long_number(b'{"a": "x", "b": [1, ' + number + b"]}"), number[:20]
+
+
+def test_over_every_transport_a_message_with_a_number_longer_than_an_honest_one_is_refused_unparsed(tmp_path,
+                                                                                                    servers):
+    """A 4 MiB number (a float of 4 million digits) was parsed by the SDK (over stdio and --mcp-port) or Python's
+    JSON (plain HTTP) like any other value: fast for a float (~10 ms), but an int's parse grows faster than its
+    digits (up to Python's 4,300: a 4 MiB message of them ~0.1 s). An honest message's numbers are ids and counts,
+    so a message with a number past MAX_NUMBER_CHARS is refused before it is parsed, saying why, and the server
+    answers the next request."""
+    from pipeline.serve.http import MAX_BODY
+    from pipeline.serve.messages import MAX_NUMBER_CHARS
+
+    number = b"0." + b"7" * (4 * 2**20 - 200)
+    serve = _stdio_serve(tmp_path / "m.duckdb")
+    try:
+        serve.stdin.write(b'{"jsonrpc": "2.0", "id": 1, "method": "tools/call", "params": {"name": "budget", '
+                          b'"arguments": {"x": ' + number + b"}}}\n" + _tool_call(2, "budget", {}))
+        serve.stdin.flush()
+        refused, answered = _answers(serve, 2)
+        assert refused["id"] is None and f"numbers of {MAX_NUMBER_CHARS} characters" in refused["error"]["message"]
+        assert answered["id"] == 2 and answered["result"]["structuredContent"]["remaining"] == 2, answered
+    finally:
+        serve.stdin.close()
+        serve.wait(timeout=60)
+
+    (tmp_path / "p").mkdir()
+    serve, url = _mcp_over_http(tmp_path / "p")
+    try:
+        headers = {"Content-Type": "application/json", "Accept": "application/json, text/event-stream"}
+        opened = urllib.request.urlopen(urllib.request.Request(url, method="POST", headers=headers, data=json.dumps({
+            "jsonrpc": "2.0", "id": 1, "method": "initialize", "params": {"protocolVersion": "2025-06-18",
+            "capabilities": {}, "clientInfo": {"name": "t", "version": "1"}}}).encode()), timeout=60)
+        session = {**headers, "Mcp-Session-Id": opened.headers["mcp-session-id"], "Mcp-Protocol-Version": "2025-06-18"}
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(urllib.request.Request(url, method="POST", headers=session, data=(
+                b'{"jsonrpc": "2.0", "id": 2, "method": "tools/call", "params": {"name": "budget", "arguments": '
+                b'{"x": ' + number + b"}}}")), timeout=60)
+        assert refused.value.code == 400
+        assert "number longer than the server parses" in json.loads(refused.value.read())["error"]["message"]
+    finally:
+        serve.send_signal(signal.SIGINT)
+        serve.wait(timeout=120)
+
+    server = Server(tmp_path / "s.duckdb", "--game", "pong", "--budget", "2")
+    servers.append(server)
+    status, answer = server.post("budget", b'{"x": ' + number[:MAX_BODY - 10] + b"}")
+    assert status == 400 and f"a number of more than {MAX_NUMBER_CHARS} characters" in answer["error"], answer
+    assert server.post("budget")[1]["remaining"] == 2
 
 
 def test_over_mcp_stdio_pipelined_requests_wait_in_the_agents_pipe_not_in_the_server(tmp_path):

@@ -15,7 +15,8 @@ finalized the run. At most :data:`MAX_CONNECTIONS` connections are served at onc
 request must arrive whole within :data:`REQUEST_TIMEOUT_S` (a byte every 10 s held one for 70 s); whatever a
 failed request prints on the server's terminal is made safe for it first (an agent's text in a traceback set the
 window title and cleared the screen). A body's values are counted before it is parsed
-(``messages.MAX_MESSAGE_VALUES``): 32 concurrent bodies of 1 MB of ``[{},{},...]`` grew the server by 437 MB.
+(``messages.MAX_MESSAGE_VALUES``): 32 concurrent bodies of 1 MB of ``[{},{},...]`` grew the server by 437 MB; so is
+its longest number (``messages.MAX_NUMBER_CHARS``).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
-from pipeline.serve.messages import MAX_MESSAGE_VALUES, json_values
+from pipeline.serve.messages import MAX_MESSAGE_VALUES, MAX_NUMBER_CHARS, json_long_number, json_values
 from pipeline.serve.protocol import RequestError, ServeRun, failed_request
 from viewers.safe_text import print_failure
 
@@ -160,6 +161,10 @@ class _Handler(BaseHTTPRequestHandler):
         body = self.rfile.read(length) if length else b"{}"
         if json_values(body) > MAX_MESSAGE_VALUES:  # a Python object a value: counted before they are made
             self._send(400, {"error": f"the body holds more than {MAX_MESSAGE_VALUES:,} values; nothing was done"})
+            return
+        if json_long_number(body):  # its parse would cost more than its bytes (an int's digits)
+            self._send(400, {"error": f"the body holds a number of more than {MAX_NUMBER_CHARS} characters; nothing "
+                                      f"was done"})
             return
         try:
             arguments = json.loads(body or b"{}")

@@ -93,6 +93,8 @@ TOO_LONG = '"a message longer than the server reads"'
 """The line that stands for one past :data:`MAX_MESSAGE_BYTES` (dropped as it arrived)."""
 TOO_MANY_VALUES = '"a message of more values than the server parses"'
 """The line that stands for one of more values than ``messages.MAX_MESSAGE_VALUES``."""
+TOO_LONG_A_NUMBER = '"a message with a number longer than the server parses"'
+"""The line that stands for one with a number of more characters than ``messages.MAX_NUMBER_CHARS``."""
 _BLANK = re.compile(rb"[ \t\r\n]*")
 """What may come before a message on its line, blank lines included: JSON's whitespace."""
 
@@ -100,7 +102,8 @@ _BLANK = re.compile(rb"[ \t\r\n]*")
 def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> tuple[int, Callable[[], None]]:
     """A pipe fed by a thread that copies the agent's lines to it, each at most ``limit`` bytes and
     ``messages.MAX_MESSAGE_VALUES`` values: a longer one is dropped as it arrives (never held), one of more values
-    once it has arrived, each replaced by a line that says so (:data:`TOO_LONG`, :data:`TOO_MANY_VALUES`), which
+    (or with a number longer than ``messages.MAX_NUMBER_CHARS``) once it has arrived, each replaced by a line that
+    says so (:data:`TOO_LONG`, :data:`TOO_MANY_VALUES`, :data:`TOO_LONG_A_NUMBER`), which
     the server answers (:func:`unreadable_answer`). Blank lines, and the whitespace before a message, are skipped
     as they arrive (one match however many): the SDK took each blank line for a message, ~300 us of server CPU a
     byte (1 MiB of newlines: 293 s). Each chunk read is split in place and its lines written on at once (a chunk of
@@ -112,7 +115,7 @@ def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> tuple[int, Callable[[],
     stdin open (an agent stops its server with SIGTERM, or a person presses Ctrl-C) marked its run stopped and never
     exited: the SDK's reader thread (not a daemon) waited on this pipe for good, and the interpreter's exit waited
     on it; a second Ctrl-C did not end it either."""
-    from pipeline.serve.messages import MAX_MESSAGE_VALUES, json_values
+    from pipeline.serve.messages import MAX_MESSAGE_VALUES, json_long_number, json_values
 
     source = os.dup(0)
     read_end, write_end = os.pipe()
@@ -146,6 +149,8 @@ def bound_stdin_lines(limit: int = MAX_MESSAGE_BYTES) -> tuple[int, Callable[[],
                             passed += TOO_LONG.encode() + b"\n"
                         elif json_values(line) > MAX_MESSAGE_VALUES:  # counted in place: bytes(line) would copy it
                             passed += TOO_MANY_VALUES.encode() + b"\n"
+                        elif json_long_number(line):  # its parse would cost more than its bytes (an int's digits)
+                            passed += TOO_LONG_A_NUMBER.encode() + b"\n"
                         else:
                             passed += line
                         line.clear()
@@ -321,11 +326,12 @@ def unreadable_answer(item: Any, line: str) -> Any:
         return JSONRPCError(jsonrpc="2.0", id=request_id, error=ErrorData(code=code,
                                                                            message=f"{why}; nothing was done"))
 
-    if line.strip() in (TOO_LONG, TOO_MANY_VALUES):  # what bound_stdin_lines made of a message it let go
-        from pipeline.serve.messages import MAX_MESSAGE_VALUES
+    if line.strip() in (TOO_LONG, TOO_MANY_VALUES, TOO_LONG_A_NUMBER):  # what bound_stdin_lines made of a message
+        from pipeline.serve.messages import MAX_MESSAGE_VALUES, MAX_NUMBER_CHARS  # it let go
 
-        return answer(None, INVALID_REQUEST, f"{json.loads(line)} (at most {MAX_MESSAGE_BYTES:,} bytes and "
-                                             f"{MAX_MESSAGE_VALUES:,} values a message)")
+        return answer(None, INVALID_REQUEST, f"{json.loads(line)} (at most {MAX_MESSAGE_BYTES:,} bytes, "
+                                             f"{MAX_MESSAGE_VALUES:,} values and numbers of {MAX_NUMBER_CHARS} "
+                                             f"characters a message)")
     if not line.strip():
         return None
     try:  # Python's JSON reads what the SDK's refuses (a lone surrogate): enough to find the id
@@ -405,14 +411,15 @@ at most a policy's ~2.4 MB of JSON, and an agent runs a few at once."""
 def _values_bound(app: Any) -> Any:
     """``app`` (the SDK's ASGI app) with each request's body read first, at most :data:`MAX_MESSAGE_BYTES`
     (:data:`MAX_OPENING_BYTES` for one that opens a session; 413 past it, as the SDK's own limit answers) and
-    ``messages.MAX_MESSAGE_VALUES`` values (400 with a JSON-RPC
-    error past them), then handed on whole. The SDK parses a body into Python objects whatever it holds, and keeps
-    an ``initialize`` request's params with its session: 16 sessions opened with 3.5 MB of ``[{},{},...]`` in
-    their params held the server at 1.57 GB (from 214 MB) for their idle timeout. The bodies held at once are at
-    most :data:`MAX_HELD_BYTES` (503 past it), each held until its request is answered, its client there or not."""
+    ``messages.MAX_MESSAGE_VALUES`` values and numbers of ``messages.MAX_NUMBER_CHARS`` characters (400 with a
+    JSON-RPC error past them), then handed on whole. The SDK parses a body into Python objects whatever it holds,
+    and keeps an ``initialize`` request's params with its session: 16 sessions opened with 3.5 MB of
+    ``[{},{},...]`` in their params held the server at 1.57 GB (from 214 MB) for their idle timeout. The bodies
+    held at once are at most :data:`MAX_HELD_BYTES` (503 past it), each held until its request is answered, its
+    client there or not."""
     import json
 
-    from pipeline.serve.messages import MAX_MESSAGE_VALUES, json_values
+    from pipeline.serve.messages import MAX_MESSAGE_VALUES, MAX_NUMBER_CHARS, json_long_number, json_values
 
     held = 0  # bytes of the bodies of the requests read or being read and not answered yet (one event loop)
 
@@ -451,6 +458,10 @@ def _values_bound(app: Any) -> Any:
         if json_values(body) > MAX_MESSAGE_VALUES:
             await refuse(receive, send, 400, f"a message of more values than the server parses (at most "
                                              f"{MAX_MESSAGE_VALUES:,}); nothing was done", False)
+            return
+        if json_long_number(body):
+            await refuse(receive, send, 400, f"a message with a number longer than the server parses (at most "
+                                             f"{MAX_NUMBER_CHARS} characters); nothing was done", False)
             return
         handed = False
 
