@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from pipeline.jobs.batch import ExperimentError, load_experiments
+from pipeline.jobs.experiments import ExperimentError, load_experiments
 
 from store.views import run_user_query
 from tests.conftest import COMPETENT_REPLY, ROOT
@@ -330,6 +330,7 @@ def test_a_batch_folder_moved_whole_keeps_its_runs(tmp_path, store, scripted):
     import shutil
 
     from pipeline.jobs import batch as batch_module
+    from pipeline.jobs.experiments import load_experiments
 
     model = scripted([COMPETENT_REPLY])
     folder = tmp_path / "experiment"
@@ -348,7 +349,7 @@ def test_a_batch_folder_moved_whole_keeps_its_runs(tmp_path, store, scripted):
     assert _batch(moved, store).returncode == 0
     assert store.query("SELECT count(*) FROM runs")[0][0] == 2, "nothing was started again"
     # a store whose run has the key of before: found by it, not started again
-    batch = batch_module.load_experiments(moved)
+    batch = load_experiments(moved)
     [policy_run] = [run for run in batch.runs if run.config.policy]
     assert policy_run.legacy_key and policy_run.legacy_key != policy_run.key
     with store.write() as con:

@@ -543,7 +543,7 @@ def test_batch_dry_run_shows_labels_and_warns_of_an_unset_key(tmp_path):
 
 
 def test_batch_labels_follow_the_entries(tmp_path):
-    from pipeline.jobs.batch import ExperimentError, load_experiments
+    from pipeline.jobs.experiments import ExperimentError, load_experiments
 
     path = tmp_path / "x.toml"
     path.write_text('name = "x"\n[[run]]\ngame = "pong"\n[[run]]\ngame = "pong"\nseed = 1\n'

@@ -220,7 +220,7 @@ def test_rerun_recordings_live_and_rebuilt_hold_a_seaquest_episode(store, tmp_pa
 
 def test_benchmark_experiment_runs_every_curated_game_with_the_authors_settings():
     from games import GAMES
-    from pipeline.jobs.batch import load_experiments
+    from pipeline.jobs.experiments import load_experiments
     from tests.conftest import ROOT
 
     runs = {r.config.game: r.config for r in load_experiments(ROOT / "examples" / "benchmarks.toml").runs}

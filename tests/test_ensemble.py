@@ -479,7 +479,7 @@ def test_the_dry_run_prices_the_mix(tmp_path):
 
 
 def test_a_batch_entry_lists_its_models(tmp_path):
-    from pipeline.jobs.batch import ExperimentError, load_experiments
+    from pipeline.jobs.experiments import ExperimentError, load_experiments
 
     path = tmp_path / "ens.toml"
     path.write_text('[defaults]\ngame = "pong"\niterations = 2\n'

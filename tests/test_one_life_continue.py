@@ -316,7 +316,7 @@ def test_the_optimizer_evaluates_the_lives_of_one_game(store, scripted):
 
 def test_experiment_files_take_the_protocol_and_the_benchmarks_use_it_where_the_authors_did(tmp_path):
     from games import GAMES
-    from pipeline.jobs.batch import ExperimentError, load_experiments
+    from pipeline.jobs.experiments import ExperimentError, load_experiments
     from tests.conftest import ROOT
 
     runs = {r.config.game: r.config for r in load_experiments(ROOT / "examples" / "benchmarks.toml").runs}

@@ -107,7 +107,7 @@ def test_the_flags_are_todays(verb):
 def test_what_the_declarations_derive_is_todays():
     """--resume's rules, budgets, the values that replay old runs, batch keys and run-key rules, defaults."""
     from pipeline.cli.optimize import OPTIMIZE_OPTIONS
-    from pipeline.jobs.batch import KEYED_WHEN_SET, NOT_IN_KEY, RUN_KEYS
+    from pipeline.jobs.experiments import KEYED_WHEN_SET, NOT_IN_KEY, RUN_KEYS
 
     before = BEFORE["optimize"]
 
@@ -220,7 +220,7 @@ def test_a_new_optimize_option_is_written_in_one_place(tmp_path):
         from pipeline.cli import build_parser
         from pipeline.cli.optimize import OPTIMIZE_OPTIONS
         from pipeline.cli.report import reproduce_command
-        from pipeline.jobs.batch import ExperimentError, RUN_KEYS, load_experiments
+        from pipeline.jobs.experiments import ExperimentError, RUN_KEYS, load_experiments
         from pipeline.optimizer.config import RESUME_OVERRIDES, OptimizeConfig, validate_config
 
         out = {{}}
@@ -378,7 +378,7 @@ def test_a_huge_size_count_or_time_is_refused_before_anything_plays(argv, capsys
 
 def test_a_huge_size_is_refused_as_a_batch_key_and_as_a_recorded_setting(tmp_path):
     """The same declaration checks a batch file's keys and a stored run's recorded settings."""
-    from pipeline.jobs.batch import ExperimentError, load_experiments
+    from pipeline.jobs.experiments import ExperimentError, load_experiments
     from pipeline.settings import flag_of
     path = tmp_path / "huge.toml"
     for key in ("max_tokens", "rollout_steps", "eval_max_steps", "screen_steps", "candidates", "call_time_limit_s",

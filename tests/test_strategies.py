@@ -219,7 +219,7 @@ def test_strategy_options_are_checked():
 def test_strategies_example_and_its_sql(tmp_path, store, scripted):
     """examples/strategies.toml, shortened to a budget of 4 calls with the scripted model standing in; then
     examples/strategies.sql tabulates the strategies at that equal budget."""
-    from pipeline.jobs.batch import load_experiments
+    from pipeline.jobs.experiments import load_experiments
 
     assert len(load_experiments(ROOT / "examples" / "strategies.toml").runs) == 10
     model = scripted([{"pool": POOL, "seed": 2}])

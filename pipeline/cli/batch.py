@@ -1,5 +1,5 @@
 """``codearcade batch EXPERIMENTS.toml``: a matrix of optimizations, headless and resumable (the file format:
-``pipeline/jobs/batch.py``).
+``pipeline/jobs/experiments.py``).
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ def add_parser(verbs) -> None:
         "batch",
         help="run a matrix of optimizations headless (resumable)",
         description="Run every optimization an experiment file declares, in parallel, into one store. Running "
-        "the same command again skips finished runs and resumes interrupted ones. See pipeline/jobs/batch.py and "
-        "examples/ablation.toml for the file format.",
+        "the same command again skips finished runs and resumes interrupted ones. See pipeline/jobs/experiments.py "
+        "and examples/ablation.toml for the file format.",
     )
     p.add_argument("experiments", metavar="EXPERIMENTS.toml")
     p.add_argument("--workers", type=positive_int, default=None, help="runs at once (default: cores)")
@@ -116,7 +116,8 @@ def _endpoint_problems(planned) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from pipeline.jobs.batch import load_experiments, plan
+    from pipeline.jobs.batch import plan
+    from pipeline.jobs.experiments import load_experiments
     from store import Store, StoreLocation, locate_store
 
     if args.address is not None and args.executor != "ray":  # it ran locally, the address left unused

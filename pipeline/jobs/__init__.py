@@ -1,3 +1,3 @@
-"""Many optimization runs at once: ``batch`` reads an experiment file and runs it in local processes or on Ray;
-``worker`` is one run of a batch (its own process, or a Ray task).
+"""Many optimization runs at once: ``experiments`` reads an experiment file into a batch of runs; ``batch`` runs
+them in local processes or on Ray; ``worker`` is one run of a batch (its own process, or a Ray task).
 """

@@ -95,7 +95,7 @@ def _optimize(spec: dict[str, Any], store: Store) -> OptimizeResult:
         with new_run(store, client) as made:
             run_id = spec.get("resume") or made.start(config, client.label, extra={
                 "batch": spec["batch"], "batch_key": spec["batch_key"]})
-            if spec.get("name"):  # the entry's label (pipeline/jobs/batch.py), given again when the run resumes
+            if spec.get("name"):  # the entry's label (pipeline/jobs/experiments.py), given again as the run resumes
                 with store.write() as con:
                     set_run_name(con, run_id, spec["name"])
             return optimize(config, store, client, resume=run_id, waiting=_waiting, log=_say,

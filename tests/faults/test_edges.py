@@ -190,10 +190,11 @@ def test_a_batch_run_that_failed_on_a_full_disk_is_said_with_its_own_line(tmpfs,
     it could not write. The batch now reads the run's output itself: its line is said whatever reached the disk,
     with the log that lost it."""
     from pipeline.jobs import batch as batches
+    from pipeline.jobs.experiments import load_experiments
 
     experiments = tmp_path / "full.toml"
     experiments.write_text('name = "full"\n[matrix]\ngame = ["pong"]\nseed = [0, 1]\n')
-    loaded = batches.load_experiments(experiments)
+    loaded = load_experiments(experiments)
     directory = tmpfs("1m")
     logs = directory / "runs"
     logs.mkdir()
