@@ -12,8 +12,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import subprocess
-import sys
 
 import pytest
 
@@ -21,6 +19,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from pipeline.cli import main
 from pipeline.optimizer.bandit import FLOOR, CallUsage, binding_budget, costs_per_pull
 from pipeline.optimizer.ensemble import Pull, budget_costs, choose, decide, model_entries, parse_model_entry, pulls, \
     relative_costs, split_model_flags
@@ -28,7 +27,6 @@ from store import Store
 from tests.conftest import ROOT, json_reply, random_policy
 from viewers.tables import money
 
-EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 GOOD, BAD = "openai/gpt-4o", "openai/gpt-4o-2024-08-06"  # the same price at litellm: only improvements differ
 FAST = ("--game", "freeway", "--eval-max-steps", "500", "--rollout-steps", "40", "--workers", "2", "--rng-key", "ens",
         "--audit-episodes", "0", "--token-budget", "4000", "--max-tokens", "1000")
@@ -45,14 +43,28 @@ USAGE = {"input": 3000, "output": 500}
 """Every reply's usage: at gpt-4o's $2.5/$10 per M tokens, $0.0125 a call."""
 
 
-def _env():
-    env = {k: v for k, v in os.environ.items() if not k.endswith("_API_KEY")}
-    env.update(CODEARCADE_LLM_BACKOFF_S="0.05", LITELLM_LOCAL_MODEL_COST_MAP="True", OMP_WAIT_POLICY="PASSIVE")
-    return env
+@pytest.fixture
+def cli(capsys, monkeypatch):
+    """``codearcade ARGV...`` run by its ``main`` in this process (the same parser and handlers as the command
+    line; a command process of its own spent ~5 s of CPU importing litellm, which this process has imported once),
+    with no API key in the environment; returns its exit status and what it wrote to stdout and stderr."""
+    for key in [k for k in os.environ if k.endswith("_API_KEY")]:
+        monkeypatch.delenv(key)
+    for key, value in dict(CODEARCADE_LLM_BACKOFF_S="0.05", LITELLM_LOCAL_MODEL_COST_MAP="True",
+                           OMP_WAIT_POLICY="PASSIVE").items():
+        monkeypatch.setenv(key, value)
+    monkeypatch.chdir(ROOT)
 
+    def run(*argv: str) -> SimpleNamespace:
+        capsys.readouterr()
+        try:
+            code = main(list(argv))
+        except SystemExit as exc:  # argparse's refusals
+            code = exc.code
+        said = capsys.readouterr()
+        return SimpleNamespace(returncode=code, stdout=said.out, stderr=said.err)
 
-def _cli(*argv):
-    return subprocess.run([EXE, *argv], cwd=ROOT, capture_output=True, text=True, timeout=900, env=_env())
+    return run
 
 
 def _models(scripted, bad=BAD):
@@ -102,23 +114,23 @@ def test_a_call_s_cost_is_shown_to_the_part_of_a_cent():
 
 
 @pytest.mark.slow
-def test_the_command_line_refuses_what_it_cannot_use(tmp_path):
+def test_the_command_line_refuses_what_it_cannot_use(tmp_path, cli):
     store = str(tmp_path / "s.duckdb")
-    done = _cli("optimize", "--game", "pong", "--model", "openai/a,weight=-1", "--model", "openai/b",
-                "--store", store, "--dry-run")
+    done = cli("optimize", "--game", "pong", "--model", "openai/a,weight=-1", "--model", "openai/b",
+               "--store", store, "--dry-run")
     assert done.returncode == 2 and "weight must be a number above 0" in done.stderr, done.stderr
-    done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model", "openai/b", "--model-choice", "ubc",
-                "--store", store, "--dry-run")
+    done = cli("optimize", "--game", "pong", "--model", "openai/a", "--model", "openai/b", "--model-choice", "ubc",
+               "--store", store, "--dry-run")
     assert done.returncode == 2 and "did you mean ucb?" in done.stderr, done.stderr
-    done = _cli("optimize", "--game", "pong", "--model", "openai/a,weight=2", "--model", "openai/b",
-                "--model-choice", "thompson", "--store", store, "--dry-run")
+    done = cli("optimize", "--game", "pong", "--model", "openai/a,weight=2", "--model", "openai/b",
+               "--model-choice", "thompson", "--store", store, "--dry-run")
     assert done.returncode == 2 and "weights are the shares of --model-choice fixed" in done.stderr, done.stderr
-    done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model-choice", "ucb", "--store", store,
-                "--dry-run")
+    done = cli("optimize", "--game", "pong", "--model", "openai/a", "--model-choice", "ucb", "--store", store,
+               "--dry-run")
     assert done.returncode == 2 and "give --model more than once" in done.stderr, done.stderr
     # a cost cap cannot be kept by a model without a price: said before anything is played, not as a budget stop
-    done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model", "openai/gpt-4o-mini", "--max-cost",
-                "1", "--store", store, "--dry-run")
+    done = cli("optimize", "--game", "pong", "--model", "openai/a", "--model", "openai/gpt-4o-mini", "--max-cost",
+               "1", "--store", store, "--dry-run")
     assert done.returncode == 2 and "it has none for openai/a (a local" in done.stderr, done.stderr
     assert "--max-total-tokens" in done.stderr and not os.path.exists(store)
 
@@ -359,12 +371,12 @@ def test_a_choice_records_the_estimates_it_compared():
 
 
 @pytest.mark.slow
-def test_the_bandit_gives_the_improving_model_most_calls_and_replay_chooses_alike(store, scripted, write_policy):
+def test_the_bandit_gives_the_improving_model_most_calls_and_replay_chooses_alike(store, scripted, write_policy, cli):
     # issue 39's pair: the model that never improves is gpt-4o-mini, 16.7x cheaper; under a call budget its price
     # buys nothing, and it gets no more than its first call (the old rule, UCB1 per dollar, gave gpt-4o 1 of 24)
     policy = write_policy(STARTER)
-    done = _cli("optimize", str(policy), *_models(scripted, bad=MINI["model"]), "--model-choice", "ucb",
-                "--iterations", "8", "--max-llm-calls", "8", *FAST, "--store", str(store.path))
+    done = cli("optimize", str(policy), *_models(scripted, bad=MINI["model"]), "--model-choice", "ucb",
+               "--iterations", "8", "--max-llm-calls", "8", *FAST, "--store", str(store.path))
     assert done.returncode == 0, done.stderr
     assert "models " in done.stdout and "$0.0" in done.stdout, "the progress line shows each model's share and spend"
     bad = MINI["model"]
@@ -387,20 +399,20 @@ def test_the_bandit_gives_the_improving_model_most_calls_and_replay_chooses_alik
     third = {m["model"]: m for m in json.loads(reasons[2][3])}
     assert third[GOOD]["cost"] == third[bad]["cost"] == 1 and third[GOOD]["index"] > third[bad]["index"]
     assert third[GOOD]["mean_improvement"] == 1 and third[bad]["pulls"] == 1, third
-    listed = json.loads(_cli("runs", "--json", "--store", str(store.path)).stdout)
+    listed = json.loads(cli("runs", "--json", "--store", str(store.path)).stdout)
     assert {m["model"]: m["calls"] for m in listed[0]["models"]} == {bad: choices.count(bad), GOOD: choices.count(GOOD)}
     assert listed[0]["last_choice"]["budget"] == "calls" and listed[0]["last_choice"]["model"] == choices[-1]
-    table = _cli("runs", "--store", str(store.path)).stdout
+    table = cli("runs", "--store", str(store.path)).stdout
     assert "choice" in table and "ucb per call: gpt-4o" in table, table
     report = store.path.parent / "report"
-    assert _cli("report", run_id, "--store", str(store.path), "--out", str(report)).returncode == 0
+    assert cli("report", run_id, "--store", str(store.path), "--out", str(report)).returncode == 0
     readme = (report / "README.md").read_text()
     (row,) = [line for line in readme.splitlines() if line.startswith(f"| {GOOD} |")]
     spent = choices.count(GOOD) * 0.0125  # a few cents, each cent's part shown (not rounded to 0.06)
     assert f"| {money(spent)} | {money(spent / 4)} |" in row and money(spent) == f"{spent:.3g}", row
     assert "## Model choices" in readme and "| 3 | 0 | ucb | calls | gpt-4o | largest index |" in readme, readme
 
-    again = _cli("replay", run_id, "--store", str(store.path))
+    again = cli("replay", run_id, "--store", str(store.path))
     assert again.returncode == 0, again.stderr + again.stdout
     progress = [line for line in again.stderr.splitlines() if line.startswith("replayed iteration")]
     total = 8  # the run's --iterations
@@ -414,28 +426,28 @@ def test_the_bandit_gives_the_improving_model_most_calls_and_replay_chooses_alik
 
 
 @pytest.mark.slow
-def test_a_resumed_run_chooses_what_an_uninterrupted_one_does(store, scripted, write_policy):
+def test_a_resumed_run_chooses_what_an_uninterrupted_one_does(store, scripted, write_policy, cli):
     policy = write_policy(STARTER)
     args = ("--model-choice", "thompson", *FAST, "--store", str(store.path))
-    whole = _cli("optimize", str(policy), *_models(scripted), "--iterations", "5", *args)
+    whole = cli("optimize", str(policy), *_models(scripted), "--iterations", "5", *args)
     assert whole.returncode == 0, whole.stderr
-    first = _cli("optimize", str(policy), *_models(scripted), "--iterations", "2", *args)
+    first = cli("optimize", str(policy), *_models(scripted), "--iterations", "2", *args)
     assert first.returncode == 0, first.stderr
     whole_id, resumed_id = _run_ids(store)
-    more = _cli("optimize", "--resume", resumed_id, "--iterations", "5", "--store", str(store.path))
+    more = cli("optimize", "--resume", resumed_id, "--iterations", "5", "--store", str(store.path))
     assert more.returncode == 0, more.stderr
     assert len(_choices(store, resumed_id)) == 5 and set(_choices(store, whole_id)) == {BAD, GOOD}
     assert _choices(store, resumed_id) == _choices(store, whole_id)
 
 
 @pytest.mark.slow
-def test_the_cost_cap_holds_across_both_models(store, scripted, write_policy):
+def test_the_cost_cap_holds_across_both_models(store, scripted, write_policy, cli):
     # every call costs $0.0125 (3000 + 500 tokens at $2.5/$10 per M, both models); before a call its worst case
     # (the prompt as counted plus a 1000-token reply) is at most $0.02. With $0.05: calls 1 (0 + 0.02), 2
     # (0.0125 + 0.02) and 3 (0.025 + 0.02) fit, call 4 (0.0375 + > 0.0125) does not.
     policy = write_policy(STARTER)
-    done = _cli("optimize", str(policy), *_models(scripted), "--model-choice", "ucb", "--iterations", "6", *FAST,
-                "--max-cost", "0.05", "--store", str(store.path))
+    done = cli("optimize", str(policy), *_models(scripted), "--model-choice", "ucb", "--iterations", "6", *FAST,
+               "--max-cost", "0.05", "--store", str(store.path))
     assert done.returncode == 0, done.stderr
     (run_id,) = _run_ids(store)
     status, error = store.query("SELECT status, error FROM runs")[0]
@@ -449,7 +461,7 @@ def test_the_cost_cap_holds_across_both_models(store, scripted, write_policy):
                           [run_id])
     assert [r[0] for r in reasons] == ["dollars"] * 3 and reasons[2][1] == "index", reasons
     assert all(m["cost"] > 0.01 for m in json.loads(reasons[2][2])), "a pull's dollars: $0.0125 a call, $0.02 before"
-    _cli("replay", run_id, "--store", str(store.path))
+    cli("replay", run_id, "--store", str(store.path))
     (replayed,) = [r for r in _run_ids(store) if r != run_id]
     assert _choices(store, replayed)[:3] == choices
     assert store.query("SELECT budget, why, models FROM model_choices WHERE run_id = ? ORDER BY iteration LIMIT 3",
@@ -457,10 +469,10 @@ def test_the_cost_cap_holds_across_both_models(store, scripted, write_policy):
 
 
 @pytest.mark.slow
-def test_the_dry_run_prices_the_mix(tmp_path):
-    done = _cli("optimize", "--game", "pong", "--model", "openai/gpt-4o,weight=3", "--model", "openai/gpt-4o-mini",
-                "--iterations", "4", "--eval-max-steps", "100", "--rollout-steps", "40", "--dry-run", "--json",
-                "--store", str(tmp_path / "s.duckdb"))
+def test_the_dry_run_prices_the_mix(tmp_path, cli):
+    done = cli("optimize", "--game", "pong", "--model", "openai/gpt-4o,weight=3", "--model", "openai/gpt-4o-mini",
+               "--iterations", "4", "--eval-max-steps", "100", "--rollout-steps", "40", "--dry-run", "--json",
+               "--store", str(tmp_path / "s.duckdb"))
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout)
     shares = {m["model"]: m["share"] for m in report["models"]}
@@ -469,9 +481,9 @@ def test_the_dry_run_prices_the_mix(tmp_path):
     blend = report["update_cost_usd"]["typical"]
     assert blend == pytest.approx(0.75 * costs["openai/gpt-4o"] + 0.25 * costs["openai/gpt-4o-mini"])
     assert report["update_cost_usd"]["at_most"] > blend
-    done = _cli("optimize", "--game", "pong", "--model", "openai/a", "--model", "openai/gpt-4o-mini",
-                "--iterations", "4", "--eval-max-steps", "100", "--rollout-steps", "40", "--dry-run",
-                "--store", str(tmp_path / "s.duckdb"))
+    done = cli("optimize", "--game", "pong", "--model", "openai/a", "--model", "openai/gpt-4o-mini",
+               "--iterations", "4", "--eval-max-steps", "100", "--rollout-steps", "40", "--dry-run",
+               "--store", str(tmp_path / "s.duckdb"))
     assert done.returncode == 0, done.stderr
     (cost,) = [line for line in done.stdout.splitlines() if line.startswith("cost:")]
     assert cost.startswith("cost: litellm has no price for openai/a (a local or unknown model);"), cost
