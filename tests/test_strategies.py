@@ -93,7 +93,8 @@ def test_evaluation_cache_saves_steps_not_scores(store, scripted):
     replies = ["not code", json_reply({}), COMPETENT_REPLY, ALWAYS_UP, "still not code"]
     config = dict(game="pong", iterations=5, eval_max_steps=900, rollout_steps=50, workers=2, token_budget=6000,
                   rng_key="cache",  # both runs' random starter draws the same numbers
-                  repairs=0)  # one scripted reply per update (repairs: tests/test_repairs.py)
+                  repairs=0,  # one scripted reply per update (repairs: tests/test_repairs.py)
+                  audit_episodes=0)  # the loop's steps are compared; a held-out audit is tests/test_audit.py's
     cached = optimize(OptimizeConfig(**config), store, _client(scripted(replies)))
     played = optimize(OptimizeConfig(**config, eval_cache=False), store, _client(scripted(replies)))
     assert [i.score for i in cached.iterations] == [i.score for i in played.iterations]
@@ -117,7 +118,7 @@ def test_best_of_n_asks_for_its_proposals_at_once_and_keeps_the_best(store, scri
     delay = 2.0
     model = scripted([{"pool": POOL, "seed": 3, "sleep": delay}])
     config = OptimizeConfig(game="pong", strategy="best-of-n", candidates=4, iterations=2, eval_max_steps=900,
-                            rollout_steps=50, workers=2, token_budget=6000, temperature=1.0,
+                            rollout_steps=50, workers=2, token_budget=6000, temperature=1.0, audit_episodes=0,
                             repairs=0)  # one scripted reply per update (repairs: tests/test_repairs.py)
     result = optimize(config, store, _client(model))
     assert result.status == "finished", result.error
@@ -150,7 +151,7 @@ def test_best_of_n_asks_for_its_proposals_at_once_and_keeps_the_best(store, scri
 def test_beam_expands_its_best_versions(store, scripted):
     model = scripted([{"pool": POOL, "seed": 11}])
     config = OptimizeConfig(game="pong", strategy="beam", beam_width=2, candidates=2, iterations=3,
-                            eval_max_steps=700, rollout_steps=40, workers=2, token_budget=6000)
+                            eval_max_steps=700, rollout_steps=40, workers=2, token_budget=6000, audit_episodes=0)
     result = optimize(config, store, _client(model))
     assert result.status == "finished", result.error
     frontier = store.query("SELECT policy_version_id, score FROM frontier WHERE run_id = ? ORDER BY rank, "
@@ -170,13 +171,16 @@ def test_beam_expands_its_best_versions(store, scripted):
 
 
 @pytest.mark.slow
-def test_kill_during_a_concurrent_iteration_then_resume(store, scripted):
+def test_kill_during_a_concurrent_iteration_then_resume(store, scripted, capsys):
+    from pipeline.cli import main
+
     exe = os.path.join(os.path.dirname(os.sys.executable), "codearcade")
     model = scripted([{"pool": POOL, "seed": 5}])
     process = subprocess.Popen(
         [exe, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--strategy",
          "best-of-n", "--candidates", "3", "--iterations", "2", "--eval-max-steps", "3000", "--eval-episodes", "3",
-         "--rollout-steps", "40", "--workers", "1", "--repairs", "0", "--store", str(store.path)],
+         "--rollout-steps", "40", "--workers", "1", "--repairs", "0", "--audit-episodes", "0", "--store",
+         str(store.path)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 180
     # iteration 1's three replies are stored; its candidates are being played: three games each (the seeded pool
@@ -195,10 +199,9 @@ def test_kill_during_a_concurrent_iteration_then_resume(store, scripted):
     assert store.query("SELECT count(*) FROM iterations WHERE iteration = 1")[0][0] == 0
     calls_before = len(model.requests())
     run_id = store.query("SELECT run_id FROM runs")[0][0]
-    done = subprocess.run([exe, "optimize", "--resume", run_id, "--store", str(store.path), "--json"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr
-    assert json.loads(done.stdout)["status"] == "finished"
+    capsys.readouterr()  # resumed in this process, as the command line runs it (it had imported litellm once)
+    assert main(["optimize", "--resume", run_id, "--store", str(store.path), "--json"]) == 0, capsys.readouterr().err
+    assert json.loads(capsys.readouterr().out)["status"] == "finished"
     assert len(model.requests()) == calls_before + 3, "iteration 1's replies came from the store"
     per_iteration = store.query("SELECT iteration, count(*), count(DISTINCT candidate) FROM candidates "
                                 "GROUP BY iteration ORDER BY iteration")
@@ -224,7 +227,8 @@ def test_strategies_example_and_its_sql(tmp_path, store, scripted):
     assert len(load_experiments(ROOT / "examples" / "strategies.toml").runs) == 10
     model = scripted([{"pool": POOL, "seed": 2}])
     source = (ROOT / "examples" / "strategies.toml").read_text()
-    short = (source.replace("max_llm_calls = 20", "max_llm_calls = 4\neval_max_steps = 300\nrollout_steps = 40")
+    short = (source.replace("max_llm_calls = 20", "max_llm_calls = 4\neval_max_steps = 300\nrollout_steps = 40\n"
+                            "audit_episodes = 0")  # the SQL reads the loop's candidates, not a held-out audit
              .replace('model = "anthropic/claude-sonnet-4-5"', f'model = "{model.model}"\napi_base = "{model.api_base}"')
              .replace("seed = [0, 1, 2]", "seed = [0]"))
     path = tmp_path / "strategies.toml"
@@ -257,7 +261,7 @@ def test_strategies_example_and_its_sql(tmp_path, store, scripted):
 def test_both_protocols_are_scored_and_the_chosen_one_is_optimized(store, scripted):
     model = scripted([COMPETENT_REPLY])
     config = OptimizeConfig(game="pong", iterations=1, eval_max_steps=800, rollout_steps=40, workers=2,
-                            token_budget=6000, robust_episodes=2, optimize_protocol="standard")
+                            token_budget=6000, robust_episodes=2, optimize_protocol="standard", audit_episodes=0)
     result = optimize(config, store, _client(model))
     assert result.status == "finished", result.error
     rows = store.query("SELECT iteration, score, deterministic_score, standard_score, eval_episode_ids, "
@@ -280,7 +284,7 @@ def test_both_protocols_are_scored_and_the_chosen_one_is_optimized(store, script
 def test_map_elites_draws_parents_from_its_archive_and_replays(store, scripted):
     model = scripted([{"pool": POOL, "seed": 17}])
     config = OptimizeConfig(game="pong", strategy="map-elites", candidates=3, iterations=3, eval_max_steps=600,
-                            rollout_steps=40, workers=2, token_budget=6000, temperature=1.0)
+                            rollout_steps=40, workers=2, token_budget=6000, temperature=1.0, audit_episodes=0)
     result = optimize(config, store, _client(model))
     assert result.status == "finished", result.error
     rows = store.query("SELECT iteration, candidate, parent_iteration, parent_candidate, decision FROM candidates "
@@ -304,7 +308,8 @@ def test_cascade_and_cache_cut_the_steps_not_the_best_scores(store, scripted):
     its full assessment; with the evaluation cache this plays far fewer steps for the same best-so-far curve."""
     replies = [COMPETENT_REPLY, ALWAYS_UP, "no code", COMPETENT_REPLY, ALWAYS_UP]
     config = dict(game="pong", iterations=5, eval_max_steps=1500, rollout_steps=60, workers=2, token_budget=6000,
-                  rng_key="cascade")  # both runs' random starter draws the same numbers
+                  rng_key="cascade",  # both runs' random starter draws the same numbers
+                  audit_episodes=0)  # the loop's steps are compared (_steps leaves an audit out)
     plain = optimize(OptimizeConfig(**config, eval_cache=False), store, _client(scripted(replies)))
     cheap = optimize(OptimizeConfig(**config, screen_steps=300), store, _client(scripted(replies)))
     assert [i.best_score for i in cheap.iterations] == [i.best_score for i in plain.iterations]
