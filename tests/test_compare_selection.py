@@ -72,6 +72,7 @@ def simulate(shape: str, n: int, shift: float = 0.0, seed: int = 0, runs: int = 
             "one_audited": counts["one_audited"] / min(runs, UNAUDITED)}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape,n", [("pong", 3), ("bimodal", 5), ("ties", 10)])
 def test_identical_policies_are_called_different_at_most_five_percent_of_the_time(shape, n):
     rates = simulate(shape, n)

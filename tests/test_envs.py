@@ -162,6 +162,7 @@ def _longest_without_ball(env, seeds, steps: int, lives_of_one_game: bool = Fals
     return longest, serves, ended
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("one_life", [False, "continue"])
 def test_breakout_serves_again_when_sticky_actions_swallow_the_fire(one_life):
     """Under sticky actions ALE can repeat the previous action on all four frames of the FIRE step; the game then

@@ -270,6 +270,7 @@ def test_eval_names_a_forfeit_by_the_policys_own_exception_class(tmp_path, capsy
     assert "no score: 1 of 1 episode forfeited (Boom at step 0)" in out + err
 
 
+@pytest.mark.slow
 def test_compare_does_not_call_the_quitter_better_and_says_why(tmp_path, capsys, pinned_audit_seeds):
     from games.base import AUDIT_SEED_BASE
 

@@ -371,6 +371,7 @@ def test_output_piped_into_head_ends_quietly(tmp_path):
     assert done.stdout == "range\n" and done.stderr == "" and done.returncode == 0, done.stderr[-500:]
 
 
+@pytest.mark.slow
 def test_a_reader_of_stderr_that_goes_away_ends_nothing(tmp_path):
     """`codearcade eval ... 2>&1 >/dev/null | head -1`: the progress lines' reader leaves after the first. The next
     progress line's BrokenPipeError ended the good run as failed (raised in the episodes' message loop, it was taken

@@ -5,6 +5,7 @@ a test starts have Ctrl-C live however the suite was started."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -17,9 +18,19 @@ from tests.conftest import ROOT
 SUITE = textwrap.dedent("""
     import time
 
+    import pytest
+
     def test_quick():
         pass
 
+    def test_quick_that_grew():
+        time.sleep(0.5)
+
+    @pytest.mark.slow
+    def test_slow_within():
+        time.sleep(0.5)
+
+    @pytest.mark.slow
     def test_slow_one(soak):
         time.sleep(1.5)
         print("soak" if soak else "short")
@@ -27,9 +38,11 @@ SUITE = textwrap.dedent("""
 
 
 def _run(tmp_path, *args: str) -> subprocess.CompletedProcess:
-    """pytest over a two-test suite that takes the project's rules from tests/conftest.py, with a ceiling of 1 s."""
+    """pytest over a four-test suite that takes the project's rules from tests/conftest.py, with a ceiling of 1 s
+    (0.1 s for a test not marked slow)."""
     (tmp_path / "conftest.py").write_text("from tests.conftest import pytest_addoption, pytest_configure, "
                                           "pytest_runtest_makereport, soak  # noqa: F401\n")
+    (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers =\n    slow: end to end\n")
     (tmp_path / "test_timed.py").write_text(SUITE)
     env = {**os.environ, "CODEARCADE_TEST_CEILING_S": "1", "PYTHONPATH": str(ROOT)}
     return subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-s", "-q", *args],
@@ -38,29 +51,48 @@ def _run(tmp_path, *args: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.slow
 def test_a_test_past_the_ceiling_fails_with_its_time(tmp_path):
+    """A slow test past the ceiling fails with its time, and a quick one past its share of it (the quick lane's
+    rule); a slow test within the ceiling but past the quick share passes."""
     done = _run(tmp_path)
     assert done.returncode == 1, done.stdout
-    assert "1 failed, 1 passed" in done.stdout, done.stdout
-    assert "test_timed.py::test_slow_one passed, but took 2 s, over the ceiling of 1 s" in done.stdout, done.stdout
+    assert "2 failed, 2 passed" in done.stdout, done.stdout
+    assert "test_timed.py::test_slow_one passed, but took 2 s, over the ceiling of 1 s a test" in done.stdout, \
+        done.stdout
+    assert re.search(r"test_timed.py::test_quick_that_grew passed, but took \d+ s, over the ceiling of 0.1 s a "
+                     "quick test", done.stdout) and "a test that starts commands or games is marked slow" in \
+        done.stdout, done.stdout
+    assert "test_slow_within" not in done.stdout.split("short test summary")[-1], done.stdout
     assert "short" in done.stdout
 
 
 @pytest.mark.slow
 def test_soak_lifts_the_ceiling_and_runs_the_loops_in_full(tmp_path):
     done = _run(tmp_path, "--soak")
-    assert done.returncode == 0 and "2 passed" in done.stdout, done.stdout
+    assert done.returncode == 0 and "4 passed" in done.stdout, done.stdout
     assert "soak" in done.stdout.replace("--soak", "")
 
 
 def test_the_quick_lane_is_a_marker_of_this_suite():
-    """``pytest -m 'not slow'`` (docs/install.md) leaves out the end-to-end tests and keeps the rest."""
-    done = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-n", "0", "--collect-only",
-                           "-q", "-m", "not slow"], cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stdout + done.stderr
-    quick = [line for line in done.stdout.splitlines() if "::" in line]
+    """``pytest -m 'not slow'`` (docs/install.md) leaves out the end-to-end tests and keeps the rest: a test marked
+    slow itself, or by its module (``pytestmark``), is left out; the others of the same files are in. (Collected
+    from a few files: the whole suite takes ~10 s to collect.)"""
+    files = ["tests/test_suite_rules.py", "tests/faults/test_kill_loop.py", "tests/test_readme_tour.py",
+             "tests/faults/test_run_readers.py"]
+    collected = {}
+    for lane in (["-m", "not slow"], []):
+        done = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-n", "0", "--collect-only",
+                               "-q", *lane, *files], cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stdout + done.stderr
+        collected[bool(lane)] = [line for line in done.stdout.splitlines() if "::" in line]
+    quick, every = collected[True], collected[False]
     assert "tests/test_suite_rules.py::test_the_quick_lane_is_a_marker_of_this_suite" in quick
-    assert not any("test_kill_loop" in line or "test_readme_tour.py::test_the_readme_tour" in line for line in quick)
-    assert len(quick) > 500
+    left_out = set(every) - set(quick)
+    assert "tests/test_suite_rules.py::test_commands_a_test_starts_stop_on_ctrl_c_even_when_the_suite_ignores_it" \
+        in left_out  # marked itself
+    assert not any("test_kill_loop" in line or "test_readme_tour.py::test_the_readme_tour" in line or
+                   "test_run_readers.py" in line for line in quick)  # by its module's pytestmark
+    assert left_out and set(quick) <= set(every)
+    assert len([line for line in quick if line.startswith("tests/test_suite_rules.py")]) >= 2
 
 
 def test_the_default_ceiling_stretches_with_the_load_per_core_and_an_explicit_one_does_not(monkeypatch):
@@ -74,6 +106,7 @@ def test_the_default_ceiling_stretches_with_the_load_per_core_and_an_explicit_on
     for load, stretch in ((0.3, 1.0), (2.0, 1.0), (3.0, 1.5), (7.0, 3.5)):
         monkeypatch.setattr(conftest.os, "getloadavg", lambda load=load: (0.0, load, 0.0))
         assert conftest.ceiling_s() == conftest.CEILING_S * stretch
+        assert conftest.ceiling_s(slow=False) == conftest.CEILING_S * conftest.QUICK_SHARE * stretch
     monkeypatch.setattr(conftest, "CEILING_SCALES_WITH_LOAD", False)
     assert conftest.ceiling_s() == conftest.CEILING_S
 

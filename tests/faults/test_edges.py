@@ -236,6 +236,7 @@ def test_a_batch_whose_log_fills_the_disk_goes_on_and_says_so(tmpfs, tmp_path, m
     assert "batch full done: 2 finished" in out, out
 
 
+@pytest.mark.slow
 def test_a_batch_stops_starting_runs_once_one_finds_the_store_disk_full(tmpfs, tmp_path, scripted, capsys):
     """A batch whose store's disk filled went on starting its remaining runs, each a process (and its zygotes)
     that failed at its first write with the same line. The run process that finds the disk full says the store's

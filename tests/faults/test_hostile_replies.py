@@ -236,9 +236,11 @@ def test_a_key_an_endpoint_quotes_back_is_stored_and_said_nowhere(store, scripte
 
     key = "sk-codearcade-canary-7f3a9c2e5b1d"
     monkeypatch.setenv("OPENAI_API_KEY", key)
+    monkeypatch.setenv("CODEARCADE_LLM_BACKOFF_S", "0.05")  # a 500 is retried: no need to wait as for a real one
     model = scripted([{"status": status, "message": f"Incorrect API key provided: {key}. Check it.", "times": 99}])
     code = main(["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--iterations",
-                 "1", "--eval-max-steps", "60", "--rollout-steps", "30", "--store", str(store.path)])
+                 "1", "--eval-max-steps", "60", "--rollout-steps", "30", "--audit-episodes", "0",
+                 "--store", str(store.path)])
     said = capsys.readouterr()
     assert code != 0 or status == 500
     assert "Incorrect API key provided" in said.out + said.err, said  # the endpoint's text is shown ...

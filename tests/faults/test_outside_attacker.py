@@ -535,6 +535,7 @@ raise ValueError('QUEUED %d MiB, refused %s' % (queued >> 20, sorted(set(refused
     assert "'F_SETPIPE_SZ'" in errors[0] and "'socketpair'" in errors[0], errors[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("trace", [False, True], ids=["untraced", "traced"])
 def test_a_policy_that_holds_back_its_end_holds_its_host_no_longer_than_its_episode(tmp_path, trace):
     """The end of an episode (the policy process's `done`, and its node rows) was waited for 30 s whatever the

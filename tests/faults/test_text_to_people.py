@@ -258,7 +258,7 @@ def test_csv_on_a_terminal_is_made_safe_and_into_a_file_is_the_data():
     assert list(csv.reader(io.StringIO(piped.getvalue(), newline="")))[1][0] == ESCAPES + MARKUP
 
 
-def test_a_reproduce_command_names_the_same_file_and_shows_nothing_raw():
+def test_a_reproduce_command_names_the_same_file_and_shows_nothing_raw(tmp_path):
     """A report's "Reproduce" command was printed in a code block that drops controls, so for a policy file whose
     name held an escape or a bidi override it named another file. Each word is now quoted for bash, a word with a
     character that is not printable as ANSI-C $'...' escapes: bash reads back the very words (random words of every
@@ -274,14 +274,15 @@ def test_a_reproduce_command_names_the_same_file_and_shows_nothing_raw():
     cases = [["codearcade", "eval", "".join(rng.choice(alphabet) for _ in range(rng.randint(1, 12))), "--game", "pong"]
              for _ in range(60)]
     cases.append(["codearcade", "eval", "plain.py"])
-    script = "\n".join("python3 -c 'import sys, json; print(json.dumps(sys.argv[1:]))' " + _shell_line(words)
-                       for words in cases)
+    # bash's own printf writes the words it read, each ended by a NUL (no word holds one), a file per line
+    script = "\n".join(f"printf '%s\\0' {_shell_line(words)} > {i}" for i, words in enumerate(cases))
     assert all(UNSAFE.search(_shell_line(words)) is None for words in cases)
-    done = subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=120)
+    done = subprocess.run(["bash", "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert [json.loads(line) for line in done.stdout.splitlines()] == cases
+    assert [(tmp_path / str(i)).read_bytes().decode().split("\0")[:-1] for i in range(len(cases))] == cases
 
 
+@pytest.mark.slow
 def test_a_library_s_log_of_a_reply_s_field_reaches_the_terminal_made_safe(store, scripted):
     """litellm logs an unknown ``finish_reason`` ("Unmapped finish_reason '...', defaulting to 'stop'") through its
     own handler, quoting the reply's field whole: a model's escape sequences set the window title and cleared the
@@ -307,6 +308,7 @@ def test_a_library_s_log_of_a_reply_s_field_reaches_the_terminal_made_safe(store
     assert "characters)" in logged[1], logged[1][-200:]  # and says how long it was
 
 
+@pytest.mark.slow
 def test_a_hostile_recorded_setting_reaches_the_terminal_made_safe_and_cut(store, scripted):
     """A store handed over whose run's recorded feedback bands hold an unknown key ended ``optimize --resume`` with
     ``TypeError: ... unexpected keyword argument '...'``, the key's escapes (window title, cleared screen, 8-bit
@@ -389,6 +391,7 @@ def test_a_batch_run_s_log_gets_python_s_own_reports_made_safe(tmp_path):
     assert len(err) < 30_000 and "characters)" in err, len(err)
 
 
+@pytest.mark.slow
 def test_rerun_s_own_log_stays_off_the_terminal(store, tmp_path):
     """Rerun's Rust logger writes to stderr itself, in colour even on a pipe: ``view --connect`` to a URL where no
     viewer listens put its WARN and ERROR lines (``\\x1b[31mERROR\\x1b[0m ... unable to connect``) on stderr, then
