@@ -263,7 +263,7 @@ def optimize_with_forged_candidate(forge, store, scripted, tmp_path):
     return run_measured(
         ["optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base, "--iterations", "1",
          "--rollout-steps", "5", "--eval-max-steps", "5", "--workers", "1", "--store", str(store.path), "--json",
-         "--rerun", str(tmp_path / "rrd")], cwd=tmp_path,
+         "--rerun", str(tmp_path / "rrd"), "--audit-episodes", "0"], cwd=tmp_path,  # the audit plays no candidate
         env={"LITELLM_LOCAL_MODEL_COST_MAP": "True", "OPENAI_API_KEY": "sk-test"})
 
 
