@@ -14,7 +14,7 @@ import pytest
 from tests.conftest import ROOT
 
 SMALLEST = {
-    "throughput.py": (["--games", "pong", "--episodes", "1", "--repeats", "1"],
+    "throughput.py": (["--games", "pong", "--episodes", "1", "--repeats", "1", "--max-steps", "400"],
                       ["eval/stepping", "trace/stepping", "eval/bare", "pong", "targets:", "round trip", "obs bytes",
                        "4 whole games", "ends: "]),
     "step_profile.py": (["--games", "pong", "--repeats", "1", "--max-steps", "200"],
