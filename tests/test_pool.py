@@ -301,6 +301,7 @@ def test_an_ensemble_in_the_pool_shares_its_calls_by_weight_and_replays_alike(st
     assert store.query(query, [report.replay_run_id]) == chosen, "the replay chose the same model for every call"
 
 
+@pytest.mark.slow  # a whole run against a wall-clock budget
 @pytest.mark.parametrize("turn", ["first call", "repair turn"])
 @pytest.mark.parametrize("pool", [False, True])
 def test_a_call_in_flight_when_the_time_budget_runs_out_is_given_up_on(store, scripted, pool, turn):
@@ -343,6 +344,7 @@ HANGS_AT_STEP_400 = json.dumps({"reasoning": "scripted", "suggestion": {"select_
 """A candidate that passes its checks (a few hundred recorded observations) and then hangs in its game."""
 
 
+@pytest.mark.slow  # a whole run against a wall-clock budget
 @pytest.mark.parametrize("pool", [False, True])
 def test_games_still_playing_when_the_time_budget_runs_out_are_stopped(store, scripted, pool):
     """With no call limit (``--call-time-limit 0``), a candidate that hangs in a game held the run until the
