@@ -22,16 +22,18 @@ POLICIES = __import__("pathlib").Path(__file__).parent / "policies"
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 
 
-def _experiments(tmp_path, model, name="smoke", iterations=1, seeds=(0, 1), audit_episodes=3):
+def _experiments(tmp_path, model, name="smoke", iterations=1, seeds=(0, 1), audit_episodes=3, eval_max_steps=300,
+                 rollout_steps=100):
     """A batch of Pong and Breakout runs, one per seed and game (what these tests check of a batch does not need
-    each run's held-out audit: ``audit_episodes=0`` leaves it out; tests/test_audit.py tests it)."""
+    each run's held-out audit: ``audit_episodes=0`` leaves it out; tests/test_audit.py tests it; nor long games:
+    ``eval_max_steps=60`` plays a fifth of the steps)."""
     path = tmp_path / f"{name}.toml"
     path.write_text(textwrap.dedent(f"""
         name = "{name}"
         [defaults]
         iterations = {iterations}
-        eval_max_steps = 300
-        rollout_steps = 100
+        eval_max_steps = {eval_max_steps}
+        rollout_steps = {rollout_steps}
         rng_key = "smoke"
         audit_episodes = {audit_episodes}
         model = "{model.model}"
@@ -107,7 +109,7 @@ def test_matrix_expands_with_stable_keys(tmp_path, scripted):
 @pytest.mark.slow
 def test_local_batch_then_kill_and_rerun(tmp_path, store, scripted):
     model = scripted([COMPETENT_REPLY])
-    path = _experiments(tmp_path, model, iterations=2, audit_episodes=0)
+    path = _experiments(tmp_path, model, iterations=2, audit_episodes=0, eval_max_steps=60, rollout_steps=30)
     process = subprocess.Popen([EXE, "batch", str(path), "--store", str(store.path), "--workers", "2"], cwd=ROOT,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     _wait_for_iterations(store, process, 2)
@@ -142,7 +144,7 @@ def test_local_batch_then_kill_and_rerun(tmp_path, store, scripted):
 def test_a_batch_stopped_by_ctrl_c_says_how_to_resume_and_leaves_no_process(tmp_path, store, scripted):
     """It said only 'codearcade: interrupted'."""
     model = scripted([COMPETENT_REPLY])
-    path = _experiments(tmp_path, model, iterations=2, audit_episodes=0)
+    path = _experiments(tmp_path, model, iterations=2, audit_episodes=0, eval_max_steps=60, rollout_steps=30)
     process = subprocess.Popen([EXE, "batch", str(path), "--store", str(store.path), "--workers", "2"], cwd=ROOT,
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     _wait_for_iterations(store, process, 1)
@@ -161,7 +163,8 @@ def test_ray_executor_produces_the_same_rows(tmp_path, scripted):
     from store import Store
 
     model = scripted([COMPETENT_REPLY])
-    path = _experiments(tmp_path, model, seeds=(0,), audit_episodes=0)  # a run of each game
+    path = _experiments(tmp_path, model, seeds=(0,), audit_episodes=0, eval_max_steps=60,
+                        rollout_steps=30)  # a run of each game
     local, remote = Store(tmp_path / "local.duckdb"), Store(tmp_path / "ray.duckdb")
     done = _batch(path, local, "--workers", "2")
     assert done.returncode == 0, done.stderr + done.stdout
@@ -182,8 +185,11 @@ def test_ablation_example_and_its_sql(tmp_path, store, scripted):
     data = tomllib.loads(source)
     assert data["matrix"] == {"feedback": ["rollout", "staged"], "seed": [0, 1, 2]}
     assert len(load_experiments(ROOT / "examples" / "ablation.toml").runs) == 6
-    short = source.replace("iterations = 20", "iterations = 1\neval_max_steps = 200\nrollout_steps = 60") \
-        .replace('model = "anthropic/claude-sonnet-4-5"  # the paper used Claude 3.5 Sonnet (Oct 2024), since retired', f'model = "{model.model}"\napi_base = "{model.api_base}"')
+    # each run's audit in one held-out game per version and protocol (4 games, not the default's 12)
+    short = source.replace("iterations = 20", "iterations = 1\neval_max_steps = 200\nrollout_steps = 60\n"
+                           "audit_episodes = 1") \
+        .replace('model = "anthropic/claude-sonnet-4-5"  # the paper used Claude 3.5 Sonnet (Oct 2024), since retired',
+                 f'model = "{model.model}"\napi_base = "{model.api_base}"')
     path = tmp_path / "ablation.toml"
     path.write_text(short)
     done = _batch(path, store, "--workers", "2")
@@ -224,8 +230,9 @@ def test_anthropic_batch_with_a_token_budget_stops_then_resumes_with_a_larger_on
             [defaults]
             game = "pong"
             iterations = 3
-            eval_max_steps = 200
+            eval_max_steps = 60
             rollout_steps = 50
+            audit_episodes = 0
             token_budget = 2500
             max_tokens = 200
             max_total_tokens = {budget}
@@ -259,9 +266,12 @@ def test_anthropic_batch_with_a_token_budget_stops_then_resumes_with_a_larger_on
 def test_one_batch_is_run_by_one_command_at_a_time(tmp_path, store, scripted):
     """The same batch started twice at once on one store: each command planned the runs and started them all, two
     runs per entry under the same key and label (which `examples/ablation.sql` then counted twice). The second
-    command now says who runs the batch and starts nothing; the first's runs are the batch's only ones."""
-    model = scripted([{"sleep": 2, "content": COMPETENT_REPLY}])
-    path = _experiments(tmp_path, model, iterations=1, seeds=(0,), audit_episodes=0)
+    command now says who runs the batch and starts nothing; the first's runs are the batch's only ones. Its runs
+    play iteration 0 alone, one at a time: the second is still to start, or starting, when the first's iteration is
+    stored."""
+    model = scripted([COMPETENT_REPLY])
+    path = _experiments(tmp_path, model, iterations=0, seeds=(0,), audit_episodes=0, eval_max_steps=60,
+                        rollout_steps=30)
     first = subprocess.Popen([EXE, "batch", str(path), "--store", str(store.path), "--workers", "1"], cwd=ROOT,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
