@@ -67,7 +67,8 @@ def _in_process(capsys, *argv) -> tuple[int, str, str]:
 @pytest.fixture(scope="module")
 def day(tmp_path_factory):
     """A project whose store was made once with --store, then used from a subdirectory without ids: a traced eval,
-    then two short optimizations (the first labelled, its iteration 2 reusing iteration 1's episodes)."""
+    then two short optimizations (the first labelled, its iteration 2 reusing iteration 1's episodes, its held-out
+    audit one game per version and protocol; the second's audit, which no test reads, left out)."""
     root = tmp_path_factory.mktemp("project")
     sub = root / "notes" / "today"
     sub.mkdir(parents=True)
@@ -77,9 +78,10 @@ def day(tmp_path_factory):
         made = _ok(_cli("eval", COMPETENT, "--trace", "--max-steps", "200", "--store", "codearcade.duckdb",
                         cwd=root, env=env))
         first = _ok(_cli("optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
-                         "--iterations", "2", "--name", "morning", *FAST, cwd=sub, env=env))
+                         "--iterations", "2", "--name", "morning", "--audit-episodes", "1", *FAST, cwd=sub, env=env))
         second = _ok(_cli("optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
-                          "--iterations", "2", "--feedback", "rollout", *FAST, cwd=sub, env=env))
+                          "--iterations", "2", "--feedback", "rollout", "--audit-episodes", "0", *FAST, cwd=sub,
+                          env=env))
     finally:
         model.stop()
     store = Store(root / "codearcade.duckdb")
@@ -219,7 +221,8 @@ def test_ctrl_c_prints_the_resume_command_and_it_continues_the_run(tmp_path):
     store = Store(tmp_path / "s.duckdb")
     with ScriptedModel([{"sleep": 120, "content": COMPETENT_REPLY}, COMPETENT_REPLY], tmp_path / "model") as model:
         proc = subprocess.Popen([EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base",
-                                 model.api_base, "--iterations", "1", *FAST, "--store", str(store.path)],
+                                 model.api_base, "--iterations", "1", "--audit-episodes", "0", *FAST, "--store",
+                                 str(store.path)],
                                 cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         lines = []
         for line in proc.stdout:
@@ -569,6 +572,7 @@ def test_a_batch_stores_its_labels_and_they_name_the_runs(tmp_path, scripted, ca
         iterations = 0
         eval_max_steps = 100
         rollout_steps = 50
+        audit_episodes = 0
         model = "{model.model}"
         api_base = "{model.api_base}"
         [matrix]
