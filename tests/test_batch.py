@@ -263,6 +263,7 @@ def test_anthropic_batch_with_a_token_budget_stops_then_resumes_with_a_larger_on
     assert rows == [] and store.query("SELECT count(*) FROM iterations")[0][0] == 8
 
 
+@pytest.mark.slow  # batch run processes: ~10 s of CPU each before they play
 def test_one_batch_is_run_by_one_command_at_a_time(tmp_path, store, scripted):
     """The same batch started twice at once on one store: each command planned the runs and started them all, two
     runs per entry under the same key and label (which `examples/ablation.sql` then counted twice). The second
@@ -333,6 +334,7 @@ def test_a_finished_run_whose_label_changed_is_renamed_without_being_run_again(t
     assert store.query("SELECT count(*) FROM episodes")[0][0] == episodes, "nothing was played again"
 
 
+@pytest.mark.slow  # batch run processes: ~10 s of CPU each before they play
 def test_a_batch_folder_moved_whole_keeps_its_runs(tmp_path, store, scripted):
     """A run's key hashed its policy file's absolute path: a batch folder moved (or its checkout cloned elsewhere)
     started every policy-file run again. A policy file inside the batch's folder now counts by its path from
