@@ -135,6 +135,7 @@ def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
     assert code == 1 and "audits whose episodes are missing" in out
 
 
+@pytest.mark.slow
 def test_a_re_audit_stopped_part_way_leaves_the_earlier_audit_whole(store, scripted, monkeypatch, capsys):
     """A re-audit wrote its games under the ids of the earlier audit's (one id per game index): stopped part way
     (a Ctrl-C, an error), the earlier audit's rows named games the new audit had overwritten, with other seeds and

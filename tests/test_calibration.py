@@ -183,6 +183,7 @@ def test_the_paired_difference_rarely_calls_identical_policies_different(name, n
     assert paired_power > welch_power, (paired_power, welch_power)
 
 
+@pytest.mark.slow
 def test_the_iqm_has_no_interval_below_its_minimum_and_covers_at_it():
     minimum = statistics.IQM_MIN_PER_STRATUM
     eight = games()

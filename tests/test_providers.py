@@ -606,6 +606,7 @@ def test_the_capped_decoder_inflates_as_zlib_does_in_any_split_and_stops_at_each
         CappedDecoder(["br"], 1000)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stream", [False, True])
 def test_an_endpoint_that_trickles_its_answer_is_given_up_on_at_the_call_s_time_limit(stream):
     """httpx's time limit is per read: an endpoint that sends its answer a byte at a time, each just inside it,

@@ -66,6 +66,7 @@ def test_objects_equal_ocataris_on_random_rams(game):
     assert calls_that_differ(rams, name, reader) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("game", sorted(READERS))
 def test_observations_equal_ocataris_through_the_environment(game):
     spec = get_game(game)

@@ -143,6 +143,7 @@ def test_seaquest_objects_equal_ocataris_on_random_rams():
 
 
 
+@pytest.mark.slow
 def test_seaquest_observations_equal_ocataris_through_the_environment():
     """The environment with the reader against the same environment with OCAtari's, the competent policy playing,
     two games each played to its end or 1,500 steps (each reset's first observation gives every slot a previous
