@@ -19,7 +19,9 @@ from tests.conftest import COMPETENT_REPLY, ROOT, pong_policy
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 KEYS = {"ANTHROPIC_API_KEY": "sk-ant-scripted", "GEMINI_API_KEY": "gm-scripted", "MISTRAL_API_KEY": "ms-scripted"}
-FAST = ("--rollout-steps", "60", "--workers", "2")
+# no held-out audit: it plays 12 whole games at a run's end (~9 s, most of a 1-iteration run), which no test
+# here looks at (tests/test_audit.py does)
+FAST = ("--rollout-steps", "60", "--workers", "2", "--audit-episodes", "0")
 
 
 def _env(**extra):
@@ -406,29 +408,55 @@ def test_waiting_line_shows_time_and_streamed_tokens():
     assert shown.endswith("\r\033[K"), "the line is cleared when the reply is in"
 
 
-_ASK_ONCE = """
-import json, sys
+_ASK = """
+import json, os, sys
 sys.path.insert(0, sys.argv[3])
 from pipeline.llm.client import LiteLLMClient, LLMError
-client = LiteLLMClient(sys.argv[1], api_base=sys.argv[2], api_key="sk-test", retries=0, backoff_s=0.01,
-                       structured=False, stream=len(sys.argv) > 4)
-try:
-    answer = {"text": client.complete([{"role": "user", "content": "hi"}]).text[:100]}
-except LLMError as exc:
-    answer = {"error_type": exc.error_type, "message": exc.message}
-with open("/proc/self/status") as f:
-    answer["peak_mb"] = next(int(l.split()[1]) for l in f if l.startswith("VmHWM:")) / 1024
-print(json.dumps(answer))
+from pipeline.llm.tokens import import_litellm
+
+import_litellm()  # once (~5 s of CPU): each call is made in a child forked from here, on its own
+answers = []
+for stream in json.loads(sys.argv[4]):
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            os.close(read)  # VmHWM below: this child's own peak RSS, from the pages it shares with its parent
+            client = LiteLLMClient(sys.argv[1], api_base=sys.argv[2], api_key="sk-test", retries=0, backoff_s=0.01,
+                                   structured=False, stream=stream)
+            try:
+                answer = {"text": client.complete([{"role": "user", "content": "hi"}]).text[:100]}
+            except LLMError as exc:
+                answer = {"error_type": exc.error_type, "message": exc.message}
+            with open("/proc/self/status") as f:
+                answer["peak_mb"] = next(int(l.split()[1]) for l in f if l.startswith("VmHWM:")) / 1024
+            with os.fdopen(write, "w") as out:
+                out.write(json.dumps(answer))
+            code = 0
+        finally:
+            os._exit(code)
+    os.close(write)
+    with os.fdopen(read) as got:
+        said = got.read()
+    _, status = os.waitpid(pid, 0)
+    assert status == 0 and said, f"the child of call {len(answers) + 1} ended with status {status}"
+    answers.append(json.loads(said))
+print(json.dumps(answers))
 """
 
 
-def _ask_once(name: str, base: str, *stream: str) -> dict:
-    """One call of :data:`_ASK_ONCE` in a child process (``stream``: ``"stream"`` to stream): its answer or error
-    and its peak RSS."""
-    done = subprocess.run([sys.executable, "-c", _ASK_ONCE, name, base, str(ROOT), *stream], capture_output=True,
-                          text=True, timeout=300, env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
+def _ask(name: str, base: str, *streams: bool) -> list[dict]:
+    """One call of the model for each of ``streams`` (whether to stream it), in turn, through :data:`_ASK`: each
+    call's answer or error and the peak RSS of the process it was made in (a child of its own, forked from one
+    that imported litellm: the import is paid once, not once a call)."""
+    done = subprocess.run([sys.executable, "-c", _ASK, name, base, str(ROOT), json.dumps(streams)],
+                          capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
     assert done.returncode == 0, done.stderr[-2000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    answers = json.loads(done.stdout.strip().splitlines()[-1])
+    assert len(answers) == len(streams), answers
+    return answers
 
 
 @pytest.mark.slow
@@ -446,15 +474,9 @@ def test_an_endpoint_s_answer_is_read_within_its_byte_limit_compressed_or_not(sc
     model = scripted([{"content": "small and compressed", "gzip": True},
                       {"content": filler, "repeat": repeat, "gzip": True},
                       {"content": filler, "repeat": repeat}])
-    name, base = model.route(provider)
-
-    def ask() -> dict:
-        return _ask_once(name, base)
-
-    small = ask()
+    small, *hostile = _ask(*model.route(provider), False, False, False)
     assert small.get("text") == "small and compressed", small
-    for how in ("gzip", "plain"):
-        answer = ask()
+    for how, answer in zip(("gzip", "plain"), hostile):
         assert answer.get("error_type") == "AnswerTooLarge", (how, answer)
         assert f"passed {MAX_ANSWER_BYTES:,} bytes" in answer["message"] and "asked at" in answer["message"], answer
         assert answer["peak_mb"] < small["peak_mb"] + 4 * MAX_ANSWER_BYTES / 2**20, (how, answer, small)
@@ -475,22 +497,14 @@ def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events
                       {"content": "a small reply", "extra_dicts": 2 * MAX_ANSWER_ELEMENTS, "gzip": True},
                       {"content": "a small reply", "empty_events": 80_000},
                       {"content": "a small reply", "extra_dicts": 4_000_000}])
-    name, base = model.route(provider)
-
-    def ask(*stream: str) -> dict:
-        return _ask_once(name, base, *stream)
-
-    small, streamed = ask(), ask("stream")
+    small, streamed, elements, events, wide = _ask(*model.route(provider), False, True, False, True, True)
     assert small.get("text") == streamed.get("text") == "a small reply", (small, streamed)
-    elements = ask()
     assert elements.get("error_type") == "AnswerTooLarge", elements
     assert f"more than {MAX_ANSWER_ELEMENTS:,} JSON elements" in elements["message"], elements
     assert elements["peak_mb"] < small["peak_mb"] + 150, (elements, small)
-    events = ask("stream")
     assert events.get("error_type") == "AnswerTooLarge" and "stream passed 20,000 events" in events["message"], \
         events
     assert events["peak_mb"] < streamed["peak_mb"] + 150, (events, streamed)
-    wide = ask("stream")
     assert wide.get("error_type") == "AnswerTooLarge" and "stream holds more than" in wide["message"], wide
     assert wide["peak_mb"] < streamed["peak_mb"] + 150, (wide, streamed)
 
@@ -503,14 +517,8 @@ def test_a_stream_event_of_more_than_one_choice_or_tool_call_ends_the_call(scrip
     tool calls 250 MB. An event with more than one now ends the call, saying so, the child's peak near an honest
     stream's."""
     model = scripted([{"content": "a small reply"}, {"content": "a " * 12_000, part: 7}])
-    name, base = model.route("openai")
-
-    def ask() -> dict:
-        return _ask_once(name, base, "stream")
-
-    streamed = ask()
+    streamed, hostile = _ask(*model.route("openai"), True, True)
     assert streamed.get("text") == "a small reply", streamed
-    hostile = ask()
     assert hostile.get("error_type") == "AnswerTooLarge", hostile
     assert f"7 {part.replace('_', ' ')} in one event" in hostile["message"] and "asked at" in hostile["message"], \
         hostile
@@ -528,18 +536,12 @@ def test_an_answer_s_elements_are_counted_outside_its_strings(scripted):
 
     model = scripted([{"content": "a small reply"}, {"content": "a small reply", "choices": 40_000, "gzip": True},
                       {"content": "f(a, b)" * 100_000}])
-    name, base = model.route("openai")
-
-    def ask() -> dict:
-        return _ask_once(name, base)
-
-    small = ask()
+    small, choices, commas = _ask(*model.route("openai"), False, False, False)
     assert small.get("text") == "a small reply", small
-    choices = ask()
     assert choices.get("error_type") == "AnswerTooLarge", choices
     assert f"more than {MAX_ANSWER_ELEMENTS:,} JSON elements" in choices["message"], choices
     assert choices["peak_mb"] < small["peak_mb"] + 60, (choices, small)
-    assert ask().get("text") == ("f(a, b)" * 100_000)[:100]
+    assert commas.get("text") == ("f(a, b)" * 100_000)[:100], commas
 
 
 def test_the_capped_decoder_inflates_as_zlib_does_in_any_split_and_stops_at_each_limit():
