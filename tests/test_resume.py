@@ -19,9 +19,11 @@ from tests.conftest import COMPETENT_REPLY, ROOT
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
 
 
-def _optimize(model, store, *extra):
+def _optimize(model, store, *extra, audit=1):
+    # the held-out audit at the run's end: one game a version and protocol (its default, 3, played 12 games: a third
+    # of a run), which _assert_complete checks the resumed run played once; none where no test looks at it
     return [EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
-            "--iterations", "3", "--eval-max-steps", "1200", "--store", str(store.path),
+            "--iterations", "3", "--eval-max-steps", "1200", "--store", str(store.path), "--audit-episodes", str(audit),
             "--rng-key", "resume", *extra]  # every run's random starter draws the same: runs can be compared
 
 
@@ -160,7 +162,8 @@ def test_random_kills_end_like_an_uninterrupted_run(store, scripted, tmp_path):
 
     model = scripted([COMPETENT_REPLY])
     reference = Store(tmp_path / "reference.duckdb")
-    done = subprocess.run(_optimize(model, reference), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    done = subprocess.run(_optimize(model, reference, audit=0), cwd=ROOT, capture_output=True, text=True,
+                          timeout=600)
     assert done.returncode == 0, done.stderr
     expected = reference.query("SELECT iteration, policy_version_id, score FROM iterations ORDER BY iteration")
 
@@ -186,7 +189,7 @@ def test_random_kills_end_like_an_uninterrupted_run(store, scripted, tmp_path):
 @pytest.mark.slow
 def test_replay_matches_then_reports_divergence(store, scripted, monkeypatch):
     model = scripted([COMPETENT_REPLY, "no code here", COMPETENT_REPLY])
-    done = subprocess.run(_optimize(model, store), cwd=ROOT, capture_output=True, text=True, timeout=600)
+    done = subprocess.run(_optimize(model, store, audit=0), cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     run_id = _run_id(store)
     calls_before = len(model.requests())
