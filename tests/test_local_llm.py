@@ -187,6 +187,9 @@ def test_offline_run_killed_in_iteration_1_resumes_with_the_server_started_again
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "LITELLM_LOCAL_MODEL_COST_MAP": "True"}
     proc = subprocess.Popen([exe, "optimize", "--game", "pong", "--iterations", "1", "--rollout-steps", "20",
                              "--eval-max-steps", "100", "--token-budget", "2500", "--max-tokens", "48",
+                             # one call in iteration 1, no repair turn after it, and no audit at the run's end:
+                             # none is looked at
+                             "--repairs", "0", "--audit-episodes", "0",
                              "--store", str(path)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=env, start_new_session=True)
     try:
