@@ -1167,15 +1167,22 @@ def test_over_mcp_stdio_requests_of_4_mib_written_without_reading_the_answers_ho
         writer = threading.Thread(target=write, daemon=True)
         writer.start()
         writer.join(timeout=5)  # it waits on the full pipe: the server reads no more until it is answered
-        lines, last = 0, b""
-        while lines < 51:  # the answers, 4 MiB each, read in large pieces (a byte at a time would take minutes)
+        # the answers, 4 MiB each but the last request's, read in large pieces (a byte at a time would take
+        # minutes), in the order the server ends them (not always the requests'): the short lines are kept
+        lines, start, short = 0, b"", []  # start: the first 1,000 bytes of the line being read
+        while lines < 51:
             ready, _, _ = select.select([serve.stdout.fileno()], [], [], 60)
             chunk = os.read(serve.stdout.fileno(), 2**20) if ready else b""
             assert chunk, f"{lines} answers, then none"
-            lines += chunk.count(b"\n")
-            last = (last + chunk)[-1000:]
+            *ended, rest = chunk.split(b"\n")
+            for piece in ended:
+                if len(start + piece) < 1000:
+                    short.append(start + piece)
+                start = b""
+            start = (start + rest)[:1000]
+            lines += len(ended)
         grown = _peak_rss_mb(serve.pid) - before
-        answer = json.loads(last.rstrip(b"\n").rsplit(b"\n", 1)[-1])
+        (answer,) = [json.loads(line) for line in short]
         assert answer["id"] == "last" and answer["result"]["structuredContent"]["remaining"] == 2, answer
         assert grown < 200, f"the server's peak grew by {grown:.0f} MB for 50 requests of 4 MiB"
     finally:
