@@ -78,12 +78,12 @@ def pytest_runtest_makereport(item, call):
     slow = item.get_closest_marker("slow") is not None
     ceiling = ceiling_s(slow)
     if call.duration > ceiling:
+        kind, rule, advice = ("test", "CEILING_S", "") if slow else \
+            ("quick test", "CEILING_S x QUICK_SHARE", "; a test that starts commands or games is marked slow")
         report.outcome = "failed"
-        report.longrepr = (f"{item.nodeid} passed, but took {call.duration:.0f} s, over the ceiling of "
-                           f"{ceiling:g} s a {'' if slow else 'quick '}test (tests/conftest.py: CEILING_S"
-                           f"{'' if slow else ' x QUICK_SHARE'}, load {os.getloadavg()[1]:.1f} on {os.cpu_count()} "
-                           "cores): play fewer steps, share what it builds, or split it"
-                           + ("" if slow else "; a test that starts commands or games is marked slow"))
+        report.longrepr = (f"{item.nodeid} passed, but took {call.duration:.0f} s, over the ceiling of {ceiling:g} s a "
+                           f"{kind} (tests/conftest.py: {rule}, load {os.getloadavg()[1]:.1f} on {os.cpu_count()} "
+                           f"cores): play fewer steps, share what it builds, or split it{advice}")
 
 
 @pytest.fixture(autouse=True)
