@@ -7,11 +7,14 @@ How to run the suite, its quick lane and the full soak: docs/install.md, "Runnin
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import re
 import signal
 import textwrap
 from pathlib import Path
+from typing import NamedTuple
 
 import pytest
 
@@ -164,6 +167,32 @@ def pong_policy(select_action_body: str, prelude: str = "") -> str:
         + body
         + "\n"
     )
+
+
+class CommandResult(NamedTuple):
+    """What a command run by :func:`run_main` ended with (the names of ``subprocess.CompletedProcess``)."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run_main(*argv) -> CommandResult:
+    """``codearcade ARGV...`` run by its ``main`` in this process: the command line's parser and handlers, without a
+    process of its own (one spends ~5 s of CPU importing litellm, which the test's process imports once). Each
+    argument is passed as ``str``; the exit status is ``main``'s, or argparse's ``SystemExit`` code for a refused
+    argument or ``--help``; ``stdout`` and ``stderr`` are what the command wrote to ``sys.stdout`` and
+    ``sys.stderr`` (its child processes' own writes are not among them). A test about the process itself (a
+    signal, an exit code the interpreter sets, start-up) starts one instead."""
+    from pipeline.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main([str(arg) for arg in argv])
+        except SystemExit as exc:  # argparse's refusals and --help
+            code = exc.code
+    return CommandResult(code, out.getvalue(), err.getvalue())
 
 
 PROGRESS_LINE = re.compile(r"\S.*: (\d+ episodes? to play|\d+ of \d+ episodes played, [\d,]+ steps)")

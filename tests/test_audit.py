@@ -7,8 +7,6 @@ played under the standard protocol, where the replay falls apart: its run is fla
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import textwrap
 
@@ -19,17 +17,10 @@ from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig, validate_config
 from pipeline.optimizer.loop import optimize
-from tests.conftest import COMPETENT_REPLY, json_reply
+from tests.conftest import COMPETENT_REPLY, json_reply, run_main
 
 STEPS = 1000
 POLICIES = __import__("pathlib").Path(__file__).parent / "policies"
-
-
-def _cli(*argv: str) -> tuple[int, str]:
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        code = main(list(argv))
-    return code, out.getvalue()
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +29,7 @@ def competent_moves(tmp_path_factory) -> tuple[list[int], float]:
     from store import Store
 
     store = Store(tmp_path_factory.mktemp("moves") / "moves.duckdb")
-    code, _ = _cli("eval", str(POLICIES / "pong_competent.py"), "--max-steps", str(STEPS), "--store", str(store.path))
+    code, _, _ = run_main("eval", POLICIES / "pong_competent.py", "--max-steps", STEPS, "--store", store.path)
     assert code == 0
     actions = [a for (a,) in store.query("SELECT action FROM steps ORDER BY step")]
     [(score,)] = store.query("SELECT return FROM episodes")
@@ -61,7 +52,7 @@ def _run(store, model, token_budget: int = 8000) -> tuple[object, dict]:
                             token_budget=token_budget, audit_episodes=3, rng_key="audit")
     result = optimize(config, store, LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05))
     assert result.status == "finished", result.error
-    code, out = _cli("runs", "--json", "--store", str(store.path))
+    code, out, _ = run_main("runs", "--json", "--store", str(store.path))
     [summary] = json.loads(out)
     return result, summary
 
@@ -90,7 +81,7 @@ def test_a_replayed_game_matches_the_policy_it_copies_and_fails_the_audit(store,
     prompts = store.query("SELECT b.text FROM llm_calls c JOIN blobs b ON b.hash = c.prompt_hash")
     assert prompts and not any("audit" in text or any(str(seed) in text for seed in best["seeds"])
                                for (text,) in prompts), "no prompt shows the audit or its games"
-    code, out = _cli("runs", "--store", str(store.path))
+    code, out, _ = run_main("runs", "--store", str(store.path))
     assert code == 0 and "OVERFIT" in out
 
 
@@ -102,14 +93,14 @@ def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
     assert not result.audit.overfit and summary["overfit"] is False
     # on demand, again, with more games: the run's audit is replaced, not added to
     first = {row["seeds"][0] for row in result.audit.rows}
-    code, out = _cli("audit", "last", "--episodes", "4", "--json", "--store", str(store.path))
+    code, out, _ = run_main("audit", "last", "--episodes", "4", "--json", "--store", str(store.path))
     assert code == 0 and len(json.loads(out)["audits"][0]["seeds"]) == 4
     assert store.query("SELECT count(*) FROM audits") == [(4,)]
     seeds = json.loads(out)["audits"][0]["seeds"]
     assert not first & set(seeds), "each audit draws its games afresh"
     returns = _audit_returns(store)
     # reproduced from its seeds: the same games, the same returns, episode for episode
-    code, out = _cli("audit", "last", "--seeds", ",".join(map(str, seeds)), "--json", "--store", str(store.path))
+    code, out, _ = run_main("audit", "last", "--seeds", ",".join(map(str, seeds)), "--json", "--store", str(store.path))
     assert code == 0 and json.loads(out)["audits"][0]["seeds"] == seeds
     assert _audit_returns(store) == returns and len(returns) == 16  # 2 versions x 2 protocols x 4 games
     # one seed once a game: a seed twice (the form of a --one-life-continue run's audit) is refused for this run
@@ -117,7 +108,7 @@ def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
     assert code == 2 and _audit_returns(store) == returns
     # an audit of fewer games replaces the earlier one's games too: what kind 'audit' holds is what audits lists
     for games in (2, 1, 3):
-        code, out = _cli("audit", "last", "--episodes", str(games), "--json", "--store", str(store.path))
+        code, out, _ = run_main("audit", "last", "--episodes", str(games), "--json", "--store", str(store.path))
         assert code == 0, out
         listed = store.query("SELECT list_sort(flatten(list(episode_ids))) FROM audits")[0][0]
         kept = [episode for (episode,) in store.query("SELECT episode_id FROM episodes WHERE kind = 'audit' "
@@ -125,13 +116,13 @@ def test_a_policy_that_plays_keeps_its_gain_on_the_audit(store, scripted):
         assert kept == listed and len(kept) == 4 * games, (games, kept)
         assert store.query("SELECT count(*) FROM steps WHERE episode_id NOT IN (SELECT episode_id FROM episodes)"
                            ) == [(0,)], "no steps of a game gone"
-        [summary] = json.loads(_cli("runs", "--json", "--store", str(store.path))[1])
+        [summary] = json.loads(run_main("runs", "--json", "--store", str(store.path)).stdout)
         assert summary["episodes"] == store.query("SELECT count(*) FROM episodes")[0][0], summary
-    assert _cli("doctor", "--store", str(store.path))[0] == 0
+    assert run_main("doctor", "--store", str(store.path)).returncode == 0
     with store.write() as con:  # an audit whose games are gone is damage the doctor names
         con.execute("DELETE FROM steps WHERE episode_id IN (SELECT unnest(episode_ids) FROM audits LIMIT 1)")
         con.execute("DELETE FROM episodes WHERE episode_id IN (SELECT unnest(episode_ids) FROM audits LIMIT 1)")
-    code, out = _cli("doctor", "--store", str(store.path))
+    code, out, _ = run_main("doctor", "--store", str(store.path))
     assert code == 1 and "audits whose episodes are missing" in out
 
 
@@ -245,9 +236,9 @@ def recorded_games(tmp_path_factory) -> tuple[list[tuple[list, list[int]]], list
 
     store = Store(tmp_path_factory.mktemp("memorised") / "m.duckdb")
     competent = str(POLICIES / "pong_competent.py")
-    assert _cli("eval", competent, "--max-steps", str(STEPS), "--store", str(store.path))[0] == 0
-    assert _cli("eval", competent, "--seed", str(PUBLIC[0]), "--episodes", "3", "--sticky", "0.25", "--noop-max",
-                "30", "--max-steps", str(STEPS), "--workers", "2", "--store", str(store.path))[0] == 0
+    assert run_main("eval", competent, "--max-steps", str(STEPS), "--store", str(store.path)).returncode == 0
+    assert run_main("eval", competent, "--seed", str(PUBLIC[0]), "--episodes", "3", "--sticky", "0.25", "--noop-max",
+                    "30", "--max-steps", str(STEPS), "--workers", "2", "--store", str(store.path)).returncode == 0
     namespace: dict = {}
     exec(SIGNATURE, namespace)
     games, public_returns = [], []
@@ -294,7 +285,7 @@ def test_a_memorised_public_audit_is_caught_by_the_sealed_one(store, scripted, t
     assert result.audit.overfit and summary["overfit"] is True, result.audit.rows
     # the public seeds, replayed on purpose (`audit --seeds`): there it plays the competent policy's games move for
     # move, and passes: an audit whose games can be known in advance would have been memorised
-    code, out = _cli("audit", "last", "--seeds", ",".join(map(str, PUBLIC)), "--json", "--store", str(store.path))
+    code, out, _ = run_main("audit", "last", "--seeds", ",".join(map(str, PUBLIC)), "--json", "--store", store.path)
     assert code == 0
     [public] = [row for row in json.loads(out)["audits"] if (row["role"], row["protocol"]) == ("best", "standard")]
     assert public["seeds"] == PUBLIC

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import main
 from store import Store
 from store.comparisons import resolve_version
 from store.writer import replace_audits
+from tests.conftest import run_main
 
 FIXTURE = Path(__file__).parent / "fixtures" / "greedy_run.duckdb.gz"
 STARTER, BEST, WORSE = "0688b04958724e0e", "596254575f4ccf7d", "ec8ecf68611bac85"
@@ -43,29 +43,23 @@ def _audit(role: str, protocol: str, version: str, iteration: int, score: float 
                 tuning_score=tuning, overfit=overfit)
 
 
-def _cli(capsys, *argv) -> tuple[int, str]:
-    code = main([str(a) for a in argv])
-    out, _ = capsys.readouterr()
-    return code, out
-
-
-def test_an_audit_of_an_earlier_best_is_never_shown_as_the_best_s(greedy, tmp_path, capsys):
+def test_an_audit_of_an_earlier_best_is_never_shown_as_the_best_s(greedy, tmp_path):
     """A run audited when its best was the starter, then resumed to a new best (iteration 1) with no audit at its
     end: the audit's -15 was the starter's, and runs and report printed it as the held-out score of the best."""
     store, run = greedy
     with store.write() as con:
         replace_audits(con, run, [_audit("best", "standard", STARTER, 0, -15.0, -10.0, False),
                                   _audit("starter", "standard", STARTER, 0, -15.0, None)])
-    code, out = _cli(capsys, "runs", "--store", store.path)
+    code, out, _ = run_main("runs", "--store", store.path)
     assert code == 0 and "stale (iteration 0)" in out and "-15" not in out, out
     (row,) = store.query("SELECT best_score, best_iteration, audit_score, audit_low, audit_run_score, overfit, "
                          "starter_audit_score, audit_stale, audit_iteration FROM run_summary")
     assert row == (0.0, 1, None, None, None, None, None, True, 0), row
-    code, out = _cli(capsys, "runs", "--json", "--store", store.path)
+    code, out, _ = run_main("runs", "--json", "--store", store.path)
     (listed,) = json.loads(out)
     assert listed["audit_score"] is None and listed["audit_stale"] is True and listed["overfit"] is None
 
-    code, _ = _cli(capsys, "report", run, "--out", tmp_path / "report", "--store", store.path)
+    code, _, _ = run_main("report", run, "--out", tmp_path / "report", "--store", store.path)
     readme = (tmp_path / "report" / "README.md").read_text()
     headline = readme.splitlines()[2]
     assert code == 0 and "best score **0** (iteration 1)" in headline, headline
@@ -79,11 +73,11 @@ def test_an_audit_of_an_earlier_best_is_never_shown_as_the_best_s(greedy, tmp_pa
                                   _audit("starter", "standard", STARTER, 0, -15.0, None)])
     assert store.query("SELECT audit_score, overfit, starter_audit_score, audit_stale, audit_iteration "
                        "FROM run_summary") == [(-3.0, True, -15.0, False, 1)]
-    code, out = _cli(capsys, "runs", "--store", store.path)
+    code, out, _ = run_main("runs", "--store", store.path)
     assert "-3 OVERFIT" in out and "stale" not in out, out
 
 
-def test_a_served_runs_best_is_its_best_by_validation_in_blame_and_run_best(greedy, capsys):
+def test_a_served_runs_best_is_its_best_by_validation_in_blame_and_run_best(greedy):
     """A served run's finalize picked iteration 2's version by validation (its training score, -19, is not the
     best's): blame's default named it without calling it the best, and RUN:best (compare) resolved to another."""
     store, run = greedy
@@ -93,11 +87,11 @@ def test_a_served_runs_best_is_its_best_by_validation_in_blame_and_run_best(gree
                                   _audit("submission 2", "validation", WORSE, 2, 3.0, -19.0),
                                   _audit("best", "standard", WORSE, 2, 2.0, -19.0, False),
                                   _audit("starter", "standard", STARTER, 0, -10.0, None)])
-    code, out = _cli(capsys, "blame", run, "--store", store.path)
+    code, out, _ = run_main("blame", run, "--store", store.path)
     assert code == 0 and out.splitlines()[0].endswith(f"policy version {WORSE} (iteration 2, the best)"), out
     with store.read() as con:
         assert resolve_version(con, run, "best") == WORSE, "RUN:best: the version the run picked"
-    code, out = _cli(capsys, "blame", run, "--iteration", 1, "--store", store.path)
+    code, out, _ = run_main("blame", run, "--iteration", 1, "--store", store.path)
     assert "the best" not in out.splitlines()[0]
     assert store.query("SELECT audit_score, audit_stale FROM run_summary") == [(2.0, False)], \
         "a served run's audit is of its best by validation, never stale"
@@ -126,7 +120,7 @@ def _finalized(store: Store, run: str, *validation: float | None) -> None:
         replace_audits(con, run, rows)
 
 
-def test_a_finalized_served_run_names_its_best_by_validation_in_every_verb(greedy, tmp_path, capsys):
+def test_a_finalized_served_run_names_its_best_by_validation_in_every_verb(greedy, tmp_path):
     """A served run finalized with submission 2 as its best by validation (score 3; its training score, -19, is not
     the training best's 0, submission 1's). blame and RUN:best named submission 2, but run_summary's best columns
     were the best by training score: `runs` printed "best 0" beside the audit of submission 2, `report` said "best
@@ -136,9 +130,9 @@ def test_a_finalized_served_run_names_its_best_by_validation_in_every_verb(greed
     store, run = greedy
     _finalized(store, run, -5.0, 3.0)
     picked = (WORSE, 2, 3.0, "validation", -19.0)
-    code, out = _cli(capsys, "runs", "--store", store.path)
+    code, out, _ = run_main("runs", "--store", store.path)
     assert code == 0 and "3 validation" in out.splitlines()[2], out
-    code, out = _cli(capsys, "runs", "--json", "--store", store.path)
+    code, out, _ = run_main("runs", "--json", "--store", store.path)
     (listed,) = json.loads(out)
     assert (listed["best_iteration"], listed["best_score"], listed.get("best_version_id"), listed.get("best_by")) \
         == (2, 3.0, WORSE, "validation") and listed["audit_iteration"] == 2, listed
@@ -146,23 +140,23 @@ def test_a_finalized_served_run_names_its_best_by_validation_in_every_verb(greed
         assert store.query("SELECT best_version_id, best_iteration, best_score, best_by, best_training_score "
                            f"FROM {view}") == [picked], view
 
-    code, _ = _cli(capsys, "report", run, "--out", tmp_path / "report", "--store", store.path)
+    code, _, _ = run_main("report", run, "--out", tmp_path / "report", "--store", store.path)
     readme = (tmp_path / "report" / "README.md").read_text()
     assert code == 0 and "best by validation **3** (iteration 2; training -19)" in readme.splitlines()[2], readme
     assert f"## Methods of the best version (`{WORSE}`)" in readme, readme
 
-    code, out = _cli(capsys, "blame", run, "--store", store.path)
+    code, out, _ = run_main("blame", run, "--store", store.path)
     assert code == 0 and out.splitlines()[0].endswith(f"policy version {WORSE} (iteration 2, the best)"), out
     with store.read() as con:
         assert resolve_version(con, run, "best") == WORSE
 
-    code, out = _cli(capsys, "compare", run, run, "--json", "--out", tmp_path / "compare", "--store", store.path)
+    code, out, _ = run_main("compare", run, run, "--json", "--out", tmp_path / "compare", "--store", store.path)
     compared = json.loads(out)
     assert code == 0 and [(r["best_version_id"], r["best_iteration"], r["best_score"], r["best_by"])
                           for r in compared["runs"]] == [picked[:4]] * 2, compared["runs"]
     assert all(r["held_out_missing"] is None for r in compared["runs"]) and \
         compared["difference"]["basis"] == "held_out", "the audit is of the best compared: a verdict on it"
-    code, out = _cli(capsys, "compare", run, run, "--out", tmp_path / "compare", "--store", store.path)
+    code, out, _ = run_main("compare", run, run, "--out", tmp_path / "compare", "--store", store.path)
     assert code == 0 and all("3.0 (n=0: too few for an interval) by validation" in line
                              for line in out.splitlines()[2:4]), out
 
@@ -175,35 +169,34 @@ def test_a_finalized_served_run_names_its_best_by_validation_in_every_verb(greed
             root.attributes["codearcade.best_score"], root.attributes["codearcade.best_by"]) == picked[:4]
 
     saved = tmp_path / "run.rrd"
-    assert _cli(capsys, "view", run, "--save", saved, "--store", store.path)[0] == 0
+    assert run_main("view", run, "--save", saved, "--store", store.path).returncode == 0
     lines = _rrd_log_lines(saved)
     assert lines[-1] == f"finalized: best by validation 3 (iteration 2), version {WORSE}", lines
     assert lines[2].startswith("iteration 2: update accepted, score -19, best training score 0 (iteration 1)"), lines
 
 
-def test_a_served_run_not_finalized_names_its_training_best_as_such_and_one_without_a_pick_none(greedy, tmp_path,
-                                                                                               capsys):
+def test_a_served_run_not_finalized_names_its_training_best_as_such_and_one_without_a_pick_none(greedy, tmp_path):
     """Before its finalize a served run's best is its best by training score, and says so; a finalize whose every
     submission forfeited a validation game picked none: no verb names the training best then."""
     store, run = greedy
     _finalized(store, run, -5.0, 3.0)
     with store.write() as con:
         replace_audits(con, run, [])
-    code, out = _cli(capsys, "runs", "--store", store.path)
+    code, out, _ = run_main("runs", "--store", store.path)
     assert code == 0 and "0 training" in out.splitlines()[2], out
     assert store.query("SELECT best_version_id, best_iteration, best_score, best_by FROM run_summary") == \
         [(BEST, 1, 0.0, "training")]
-    _cli(capsys, "report", run, "--out", tmp_path / "report", "--store", store.path)
+    run_main("report", run, "--out", tmp_path / "report", "--store", store.path)
     headline = (tmp_path / "report" / "README.md").read_text().splitlines()[2]
     assert "best score by training score (not finalized) **0** (iteration 1)" in headline, headline
 
     _finalized(store, run, None, None)
-    code, out = _cli(capsys, "runs", "--store", store.path)
+    code, out, _ = run_main("runs", "--store", store.path)
     assert "no score validation" in out.splitlines()[2], out
     assert store.query("SELECT best_version_id, best_score, best_by FROM run_summary") == [(None, None, "validation")]
     with store.read() as con, pytest.raises(ValueError, match="every submission forfeited a validation game"):
         resolve_version(con, run, "best")
-    _cli(capsys, "report", run, "--out", tmp_path / "again", "--store", store.path)
+    run_main("report", run, "--out", tmp_path / "again", "--store", store.path)
     readme = (tmp_path / "again" / "README.md").read_text()
     assert "**no best**: every submission forfeited a validation game" in readme and "Methods of the best" not in \
         readme, readme

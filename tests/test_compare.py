@@ -12,18 +12,11 @@ import re
 
 import pytest
 
-from pipeline.cli import main
-from tests.conftest import COMPETENT_REPLY, EXAMPLES, POLICIES, ROOT
+from tests.conftest import COMPETENT_REPLY, EXAMPLES, POLICIES, ROOT, run_main
 from tests.test_rerun import column, dump
 
 COMPETENT = POLICIES / "pong_competent.py"
 STEPS = 300
-
-
-def run_cli(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.fixture
@@ -43,10 +36,10 @@ def stored_actions(store, run_id: str) -> list:
 
 
 @pytest.mark.slow
-def test_two_versions_report_the_first_divergent_step(store, tmp_path, capsys, wider_dead_zone):
+def test_two_versions_report_the_first_divergent_step(store, tmp_path, wider_dead_zone):
     rrd = tmp_path / "side_by_side.rrd"
-    code, out, err = run_cli(capsys, "compare", COMPETENT, wider_dead_zone, "--max-steps", STEPS, "--rerun", rrd,
-                             "--store", store.path, "--json")
+    code, out, err = run_main("compare", COMPETENT, wider_dead_zone, "--max-steps", STEPS, "--rerun", rrd,
+                              "--store", store.path, "--json")
     assert code == 0, err
     report = json.loads(out)
     assert report["mode"] == "versions" and report["game"] == "pong"
@@ -86,16 +79,16 @@ def test_two_versions_report_the_first_divergent_step(store, tmp_path, capsys, w
 
     # the same versions, read back from the store as RUN:VERSION (a prefix, and 'best'), part at the same step
     version_b = report["versions"][1]["policy_version_id"]
-    code, out, err = run_cli(capsys, "compare", f"{runs[0][:20]}:best", f"{runs[1]}:{version_b[:6]}", "--max-steps",
-                             STEPS, "--store", store.path, "--out", tmp_path / "report")
+    code, out, err = run_main("compare", f"{runs[0][:20]}:best", f"{runs[1]}:{version_b[:6]}", "--max-steps",
+                              STEPS, "--store", store.path, "--out", tmp_path / "report")
     assert code == 0, err
     assert f"first divergent step: {expected} " in out
     readme = (tmp_path / "report" / "README.md").read_text()
     assert f"first divergent step: {expected} " in readme and "+DEAD_ZONE = 4" in readme
 
 
-def test_identical_versions_never_diverge(store, capsys):
-    code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--max-steps", 50, "--store", store.path)
+def test_identical_versions_never_diverge(store):
+    code, out, err = run_main("compare", COMPETENT, COMPETENT, "--max-steps", 50, "--store", store.path)
     assert code == 0, err
     # off a terminal, each side's episodes say when they start and end (stderr), never a silent wait
     for side in "AB":
@@ -103,27 +96,27 @@ def test_identical_versions_never_diverge(store, capsys):
     assert "the two versions chose the same action at every step" in out and "(the same code)" in out
     # its two eval runs are compare's own: marked so, left out of `runs` and of last
     assert store.query("SELECT kind, made_by FROM runs") == [("eval", "compare")] * 2
-    code, out, err = run_cli(capsys, "runs", "--store", store.path)
+    code, out, err = run_main("runs", "--store", store.path)
     assert code == 0 and out.startswith("no runs in")
-    code, out, err = run_cli(capsys, "runs", "--all", "--json", "--store", store.path)
+    code, out, err = run_main("runs", "--all", "--json", "--store", store.path)
     assert [r["made_by"] for r in json.loads(out)] == ["compare", "compare"]
-    code, out, err = run_cli(capsys, "report", "last", "--store", store.path)
+    code, out, err = run_main("report", "last", "--store", store.path)
     assert code == 2 and "there are no runs yet" in err
 
 
 @pytest.mark.slow
-def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted):
+def test_two_runs_curves_budget_table_and_diff(store, tmp_path, scripted):
     ids = []
     for replies in ([COMPETENT_REPLY, "Sorry, I cannot help with that."], ["Sorry.", "Still no."]):
         model = scripted(replies)
-        code, out, err = run_cli(capsys, "optimize", "--game", "pong", "--model", model.model, "--api-base",
-                                 model.api_base, "--iterations", 2, "--eval-max-steps", 800, "--rollout-steps", 40,
-                                 "--workers", 2, "--repairs", 0, "--rng-key", "cmp", "--store", store.path,
-                                 "--json")
+        code, out, err = run_main("optimize", "--game", "pong", "--model", model.model, "--api-base",
+                                  model.api_base, "--iterations", 2, "--eval-max-steps", 800, "--rollout-steps", 40,
+                                  "--workers", 2, "--repairs", 0, "--rng-key", "cmp", "--store", store.path,
+                                  "--json")
         assert code == 0, err
         ids.append(json.loads(out)["run_id"])
-    code, out, err = run_cli(capsys, "compare", ids[0][:22], ids[1], "--out", tmp_path / "cmp", "--store",
-                             store.path, "--json")
+    code, out, err = run_main("compare", ids[0][:22], ids[1], "--out", tmp_path / "cmp", "--store",
+                              store.path, "--json")
     assert code == 0, err
     report = json.loads(out)
     assert [r["run_id"] for r in report["runs"]] == ids
@@ -197,8 +190,8 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted
     with store.write() as con:
         con.execute("UPDATE runs SET config = json_merge_patch(config, '{\"eval_max_steps\": 50}') WHERE run_id = ?",
                     [ids[1]])
-    code, out, err = run_cli(capsys, "compare", ids[0], ids[1], "--out", tmp_path / "cmp2", "--store", store.path,
-                             "--json")
+    code, out, err = run_main("compare", ids[0], ids[1], "--out", tmp_path / "cmp2", "--store", store.path,
+                              "--json")
     assert code == 0 and json.loads(out)["cautions"] == [
         "the runs differ in the evaluation's step cap (eval_max_steps: A 800, B 50): their scores measure different "
         "things"]
@@ -206,16 +199,16 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, capsys, scripted
     assert "**Caution:** the runs differ in the evaluation" in (tmp_path / "cmp2" / "README.md").read_text()
     # `last` and `last~1` count the runs with iterations, as every other verb counts its kind: a newer eval run
     # is passed over, and said (it was taken for `last`: "an eval run without iterations")
-    assert run_cli(capsys, "eval", EXAMPLES / "pong.py", "--episodes", 1, "--max-steps", 30, "--store",
-                   store.path)[0] == 0
-    code, out, err = run_cli(capsys, "compare", "last~1", "last", "--out", tmp_path / "cmp3", "--store", store.path,
-                             "--json")
+    assert run_main("eval", EXAMPLES / "pong.py", "--episodes", 1, "--max-steps", 30, "--store",
+                    store.path)[0] == 0
+    code, out, err = run_main("compare", "last~1", "last", "--out", tmp_path / "cmp3", "--store", store.path,
+                              "--json")
     assert code == 0, err
     assert [r["run_id"] for r in json.loads(out)["runs"]] == ids
     assert "compare: last is optimize or replay or serve run" in err and "passing over the newer eval run" in err
 
 
-def test_versions_on_the_same_seeds_are_compared_pair_by_pair(store, capsys, tmp_path):
+def test_versions_on_the_same_seeds_are_compared_pair_by_pair(store, tmp_path):
     """Under the paper's protocol both sides play the same seeds with one random stream, yet their difference was
     Welch's, as if the games were independent: a copy of the random scaffold against itself, 0 on every seed,
     read +0.0 [-13.7, +13.7]. It is now the paired t of the per-seed differences: no interval for the copy (the
@@ -231,8 +224,8 @@ def test_versions_on_the_same_seeds_are_compared_pair_by_pair(store, capsys, tmp
     for name, other in (("copy", copy), ("competent", COMPETENT)):
         # one random stream named (a new one each time would leave the scaffold's returns to chance: all equal on
         # the three seeds in a CI run, and then there is no noise for any interval)
-        code, out, err = run_cli(capsys, "compare", scaffold, other, "--episodes", 3, "--max-steps", 400,
-                                 "--rng-key", "paired-by-seed", "--store", store.path, "--json")
+        code, out, err = run_main("compare", scaffold, other, "--episodes", 3, "--max-steps", 400,
+                                  "--rng-key", "paired-by-seed", "--store", store.path, "--json")
         assert code == 0, err
         found[name] = json.loads(out)
     copy_difference = found["copy"]["difference"]
@@ -251,8 +244,8 @@ def test_versions_on_the_same_seeds_are_compared_pair_by_pair(store, capsys, tmp
     assert (paired["low"], paired["high"]) == pytest.approx((expected.low, expected.high))
 
 
-def test_what_cannot_be_compared_is_said_in_one_line(store, capsys, tmp_path):
-    code, out, err = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 5, "--store", store.path, "--json")
+def test_what_cannot_be_compared_is_said_in_one_line(store, tmp_path):
+    code, out, err = run_main("eval", EXAMPLES / "pong.py", "--max-steps", 5, "--store", store.path, "--json")
     run_id = json.loads(out)["run_id"]
     cases = [
         (("compare", run_id, COMPETENT), "is a policy version but"),
@@ -264,7 +257,7 @@ def test_what_cannot_be_compared_is_said_in_one_line(store, capsys, tmp_path):
         (("compare", COMPETENT, COMPETENT, "--rerun", "side.mp4"), "give a FILE.rrd"),
     ]
     for argv, message in cases:
-        code, out, err = run_cli(capsys, *argv, "--store", store.path)
+        code, out, err = run_main(*argv, "--store", store.path)
         assert code == 2 and message in err, (argv, err)
         assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
 
@@ -286,9 +279,9 @@ def audit_seeds_from_base(pinned_audit_seeds):
     pinned_audit_seeds(AUDIT_SEED_BASE)
 
 
-def audit_compare(capsys, store, a, b, episodes: int) -> dict:
-    code, out, err = run_cli(capsys, "compare", a, b, "--audit", "--episodes", episodes, "--max-steps", AUDIT_STEPS,
-                             "--workers", 2, "--rng-key", "audit-compare", "--store", store.path, "--json")
+def audit_compare(store, a, b, episodes: int) -> dict:
+    code, out, err = run_main("compare", a, b, "--audit", "--episodes", episodes, "--max-steps", AUDIT_STEPS,
+                              "--workers", 2, "--rng-key", "audit-compare", "--store", store.path, "--json")
     assert code == 0, err
     return json.loads(out)
 
@@ -305,7 +298,7 @@ def test_a_policy_against_itself_on_other_audit_seeds_differs_by_no_more_than_th
     from store.scores import score_episodes
     from store.statistics import difference
 
-    report = audit_compare(capsys, store, COMPETENT, COMPETENT, 12)
+    report = audit_compare(store, COMPETENT, COMPETENT, 12)
     assert report["protocol"] == "audit" and report["episodes"] == [], "different games: no divergent step"
     runs = [v["eval_run"] for v in report["versions"]]
     # each side on its own audit seeds, under the standard protocol, as the store recorded them
@@ -332,7 +325,7 @@ def test_the_starter_against_the_competent_policy_differs_beyond_the_noise(store
                                                                             audit_seeds_from_base):
     from pipeline.cli import main as cli
 
-    report = audit_compare(capsys, store, EXAMPLES / "pong.py", COMPETENT, 6)
+    report = audit_compare(store, EXAMPLES / "pong.py", COMPETENT, 6)
     difference = report["difference"]
     assert difference["significant"] is True and difference["high"] < 0, difference
     assert report["scores"]["A"]["high"] < report["scores"]["B"]["low"], "the intervals do not even overlap"
@@ -350,15 +343,15 @@ def test_the_starter_against_the_competent_policy_differs_beyond_the_noise(store
 
 
 @pytest.mark.slow
-def test_compare_audit_draws_sealed_seeds_afresh_for_each_side_and_each_comparison(store, capsys):
+def test_compare_audit_draws_sealed_seeds_afresh_for_each_side_and_each_comparison(store):
     """No policy can know --audit's games in advance: each comparison draws both sides' seeds afresh over the audit's
     whole range (not the public AUDIT_SEED_BASE + i), the two sides' disjoint, and the text names the seeds played."""
     from games.base import AUDIT_SEED_BASE, AUDIT_SEED_END
 
     played = []
     for _ in range(2):
-        code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--audit", "--episodes", 2, "--max-steps", 20,
-                                 "--workers", 2, "--rng-key", "sealed", "--store", store.path, "--json")
+        code, out, err = run_main("compare", COMPETENT, COMPETENT, "--audit", "--episodes", 2, "--max-steps", 20,
+                                  "--workers", 2, "--rng-key", "sealed", "--store", store.path, "--json")
         assert code == 0, err
         report = json.loads(out)
         sides = [report["scores"][label]["seeds"] for label in "AB"]
@@ -376,15 +369,15 @@ def test_compare_audit_draws_sealed_seeds_afresh_for_each_side_and_each_comparis
     assert not set(played[0]) & set(played[1]), "each comparison draws its own games"
 
 
-def test_same_seed_comparison_says_the_paper_protocol_measures_no_noise(store, capsys):
-    code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--episodes", 2, "--max-steps", 50,
-                             "--store", store.path)
+def test_same_seed_comparison_says_the_paper_protocol_measures_no_noise(store):
+    code, out, err = run_main("compare", COMPETENT, COMPETENT, "--episodes", 2, "--max-steps", 50,
+                              "--store", store.path)
     assert code == 0, err
     # one game twice on each side: every return the same, so no interval (not [+0, +0]) and no call either way
     assert "A - B = +0.0 (n=2 and 2: all equal, no interval): cannot tell" in out
     assert "under the paper's protocol every seed is the same game" in out
-    code, out, err = run_cli(capsys, "compare", COMPETENT, COMPETENT, "--audit", "--rerun", "x.rrd",
-                             "--store", store.path)
+    code, out, err = run_main("compare", COMPETENT, COMPETENT, "--audit", "--rerun", "x.rrd",
+                              "--store", store.path)
     assert code == 2 and "with --audit each side plays its own seeds" in err
 
 

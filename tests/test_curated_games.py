@@ -15,9 +15,8 @@ import pytest
 
 from games import get_game
 from games.envs import make_env
-from pipeline.cli import main
 from store.readers import episode_steps
-from tests.conftest import EXAMPLES, POLICIES
+from tests.conftest import EXAMPLES, POLICIES, run_main
 
 CAP = 1000
 CAPS = {"breakout": 1500}
@@ -32,17 +31,11 @@ NEW_GAMES = ["asterix", "enduro", "freeway", "qbert", "seaquest"]
 RECORDING_STEPS = 60
 
 
-def run_cli(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def traced_eval(capsys, store, policy, *extra, cap: int = CAP) -> dict:
+def traced_eval(store, policy, *extra, cap: int = CAP) -> dict:
     # the starters play from the policy's random stream: one key, so that the margins below are one measurement,
     # not a draw that changes with each run's id
-    code, out, err = run_cli(capsys, "eval", policy, "--trace", "--max-steps", cap, "--store", store.path, "--json",
-                             "--rng-key", "curated", *extra)
+    code, out, err = run_main("eval", policy, "--trace", "--max-steps", cap, "--store", store.path, "--json",
+                              "--rng-key", "curated", *extra)
     assert code == 0, err
     episode = json.loads(out)["episodes"][0]
     episode_id = episode["episode_id"]
@@ -71,8 +64,8 @@ def replay(game: str, seed: int, actions: list[int]) -> list[dict]:
 @pytest.mark.parametrize("game", CURATED)
 def test_starter_and_competent_play_traced_and_read_back_as_seen(game, store, capsys):
     cap = CAPS.get(game, CAP)
-    starter = traced_eval(capsys, store, EXAMPLES / f"{game}.py", cap=cap)
-    competent = traced_eval(capsys, store, POLICIES / f"{game}_competent.py", cap=cap)
+    starter = traced_eval(store, EXAMPLES / f"{game}.py", cap=cap)
+    competent = traced_eval(store, POLICIES / f"{game}_competent.py", cap=cap)
     assert competent["return"] >= starter["return"] + MARGIN[game], (starter["return"], competent["return"])
     assert store.query("SELECT DISTINCT game FROM runs") == [(game,)]
 
@@ -95,12 +88,12 @@ def test_the_authors_end_an_episode_at_a_lost_life_in_four_games():
 
 
 @pytest.mark.parametrize("game", ONE_LIFE_GAMES)
-def test_one_life_episode_ends_at_the_first_lost_life_with_the_return_so_far(game, store, capsys):
+def test_one_life_episode_ends_at_the_first_lost_life_with_the_return_so_far(game, store):
     """``eval --one-life`` (the authors' evaluation): the episode ends, terminated, on the step whose lives
     fell, and its return is the whole game's score at that step (the same actions, step for step)."""
     def play(*extra):
-        code, out, err = run_cli(capsys, "eval", EXAMPLES / f"{game}.py", "--max-steps", CAP, "--store", store.path,
-                                 "--json", "--rng-key", "one-life", *extra)  # the random starters draw alike
+        code, out, err = run_main("eval", EXAMPLES / f"{game}.py", "--max-steps", CAP, "--store", store.path,
+                                  "--json", "--rng-key", "one-life", *extra)  # the random starters draw alike
         assert code == 0, err
         episode_id = json.loads(out)["episodes"][0]["episode_id"]
         steps = store.query("SELECT action, reward, score, terminated, lives FROM steps WHERE episode_id = ? "
@@ -120,11 +113,11 @@ def test_one_life_episode_ends_at_the_first_lost_life_with_the_return_so_far(gam
     assert all(s[4] == life[0][4] for s in life) and lives_after == life[0][4] - 1, "ends on the losing step"
 
 
-def test_one_life_changes_nothing_in_a_game_without_lives(store, capsys):
+def test_one_life_changes_nothing_in_a_game_without_lives(store):
     returns = []
     for extra in ((), ("--one-life",)):
-        code, out, err = run_cli(capsys, "eval", POLICIES / "pong_competent.py", "--max-steps", 300,
-                                 "--store", store.path, "--json", *extra)
+        code, out, err = run_main("eval", POLICIES / "pong_competent.py", "--max-steps", 300,
+                                  "--store", store.path, "--json", *extra)
         assert code == 0, err
         episode = json.loads(out)["episodes"][0]
         returns.append((episode["return"], episode["length"], episode["end_reason"]))
@@ -179,13 +172,13 @@ def test_observations_in_the_authors_conventions():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("game", CURATED)
-def test_an_episode_recording_of_each_game_has_frames_and_boxes(game, store, tmp_path, capsys):
+def test_an_episode_recording_of_each_game_has_frames_and_boxes(game, store, tmp_path):
     """``eval --rerun DIR`` of a short episode: the .rrd holds every step's action, reward and score, a frame
     every 4 steps and the boxes of every stored object category (``assert_holds_episode``)."""
     from tests.test_rerun import assert_holds_episode, column, dump
 
-    code, out, err = run_cli(capsys, "eval", POLICIES / f"{game}_competent.py", "--max-steps", RECORDING_STEPS,
-                             "--rerun", tmp_path, "--store", store.path, "--json")
+    code, out, err = run_main("eval", POLICIES / f"{game}_competent.py", "--max-steps", RECORDING_STEPS,
+                              "--rerun", tmp_path, "--store", store.path, "--json")
     assert code == 0, err
     episode_id = json.loads(out)["episodes"][0]["episode_id"]
     recording = tmp_path / f"{episode_id}.rrd"
@@ -195,14 +188,14 @@ def test_an_episode_recording_of_each_game_has_frames_and_boxes(game, store, tmp
 
 
 @pytest.mark.slow
-def test_rerun_recordings_live_and_rebuilt_hold_a_seaquest_episode(store, tmp_path, capsys):
+def test_rerun_recordings_live_and_rebuilt_hold_a_seaquest_episode(store, tmp_path):
     """Live from the worker and rebuilt from the store (``view``: its replay of the actions matches the stored
     objects only when the replayed observation is compared with the stored objects plus ``derive``)."""
     from tests.test_rerun import assert_holds_episode, dump, run_view, stored_boxes
 
     live = tmp_path / "live"
-    code, out, err = run_cli(capsys, "eval", POLICIES / "seaquest_competent.py", "--trace", "--max-steps", 200,
-                             "--rerun", live, "--store", store.path, "--json")
+    code, out, err = run_main("eval", POLICIES / "seaquest_competent.py", "--trace", "--max-steps", 200,
+                              "--rerun", live, "--store", store.path, "--json")
     assert code == 0, err
     summary = json.loads(out)
     episode_id = summary["episodes"][0]["episode_id"]

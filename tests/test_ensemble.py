@@ -19,12 +19,11 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from pipeline.cli import main
 from pipeline.optimizer.bandit import FLOOR, CallUsage, binding_budget, costs_per_pull
 from pipeline.optimizer.ensemble import Pull, budget_costs, choose, decide, model_entries, parse_model_entry, pulls, \
     relative_costs, split_model_flags
 from store import Store
-from tests.conftest import ROOT, json_reply, random_policy
+from tests.conftest import ROOT, json_reply, random_policy, run_main
 from viewers.tables import money
 
 GOOD, BAD = "openai/gpt-4o", "openai/gpt-4o-2024-08-06"  # the same price at litellm: only improvements differ
@@ -44,27 +43,15 @@ USAGE = {"input": 3000, "output": 500}
 
 
 @pytest.fixture
-def cli(capsys, monkeypatch):
-    """``codearcade ARGV...`` run by its ``main`` in this process (the same parser and handlers as the command
-    line; a command process of its own spent ~5 s of CPU importing litellm, which this process has imported once),
-    with no API key in the environment; returns its exit status and what it wrote to stdout and stderr."""
+def cli(monkeypatch):
+    """:func:`tests.conftest.run_main` with no API key in the environment, run from the project's root."""
     for key in [k for k in os.environ if k.endswith("_API_KEY")]:
         monkeypatch.delenv(key)
     for key, value in dict(CODEARCADE_LLM_BACKOFF_S="0.05", LITELLM_LOCAL_MODEL_COST_MAP="True",
                            OMP_WAIT_POLICY="PASSIVE").items():
         monkeypatch.setenv(key, value)
     monkeypatch.chdir(ROOT)
-
-    def run(*argv: str) -> SimpleNamespace:
-        capsys.readouterr()
-        try:
-            code = main(list(argv))
-        except SystemExit as exc:  # argparse's refusals
-            code = exc.code
-        said = capsys.readouterr()
-        return SimpleNamespace(returncode=code, stdout=said.out, stderr=said.err)
-
-    return run
+    return run_main
 
 
 def _models(scripted, bad=BAD):

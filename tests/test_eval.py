@@ -15,21 +15,15 @@ from games import GAMES, get_game
 from pipeline.cli import main
 from pipeline.play.episodes import run_episodes
 from pipeline.play.spec import EpisodeSpec
-from tests.conftest import EXAMPLES, POLICIES, ROOT, pong_policy, random_policy, said
+from tests.conftest import EXAMPLES, POLICIES, ROOT, pong_policy, random_policy, run_main, said
 
 BUNDLED_CALLS_PER_STEP = {"pong": 2, "breakout": 3, "space_invaders": 3}
 
 
-def run_cli(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
 @pytest.mark.parametrize("game", ["pong", "breakout", "space_invaders"])
-def test_examples_evaluate_end_to_end_with_trace(game, store, capsys):
-    code, out, err = run_cli(capsys, "eval", EXAMPLES / f"{game}.py", "--trace", "--max-steps", 600,
-                             "--store", store.path, "--json")
+def test_examples_evaluate_end_to_end_with_trace(game, store):
+    code, out, err = run_main("eval", EXAMPLES / f"{game}.py", "--trace", "--max-steps", 600,
+                              "--store", store.path, "--json")
     assert code == 0, err
     summary = json.loads(out)
     episode = summary["episodes"][0]
@@ -60,18 +54,18 @@ def test_competent_pong_policy_wins_a_full_game(store):
     assert episode["return"] >= 19, episode
 
 
-def test_summary_table_and_truncation(store, capsys):
-    code, out, err = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--episodes", 2, "--max-steps", 50,
-                             "--store", store.path)
+def test_summary_table_and_truncation(store):
+    code, out, err = run_main("eval", EXAMPLES / "pong.py", "--episodes", 2, "--max-steps", 50,
+                              "--store", store.path)
     assert code == 0, err
     assert "truncated" in out and "mean return" in out
     rows = store.query("SELECT episode_index, seed, length, end_reason FROM episodes ORDER BY episode_index")
     assert rows == [(0, 0, 50, "truncated"), (1, 1, 50, "truncated")]
 
 
-def test_standard_protocol_flags_are_recorded(store, capsys):
-    code, out, _ = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 30, "--sticky", 0.25,
-                           "--noop-max", 30, "--store", store.path, "--json")
+def test_standard_protocol_flags_are_recorded(store):
+    code, out, _ = run_main("eval", EXAMPLES / "pong.py", "--max-steps", 30, "--sticky", 0.25,
+                            "--noop-max", 30, "--store", store.path, "--json")
     assert code == 0
     assert store.query("SELECT sticky, noop_max FROM episodes") == [(0.25, 30)]
 
@@ -88,17 +82,17 @@ def test_standard_protocol_flags_are_recorded(store, capsys):
         (["--game", "breakout"], pong_policy("return 0"), "declares GAME = 'pong' but --game is 'breakout'"),
     ],
 )
-def test_bad_input_is_one_line_and_stores_nothing(argv_tail, text, fragment, store, write_policy, capsys):
+def test_bad_input_is_one_line_and_stores_nothing(argv_tail, text, fragment, store, write_policy):
     path = write_policy(text) if text is not None else EXAMPLES / "pong.py"
-    code, out, err = run_cli(capsys, "eval", path, *argv_tail, "--store", store.path)
+    code, out, err = run_main("eval", path, *argv_tail, "--store", store.path)
     assert code == 2
     lines = err.strip().splitlines()
     assert len(lines) == 1 and fragment in lines[0], err
     assert not store.exists() or store.query("SELECT count(*) FROM runs")[0][0] == 0
 
 
-def test_missing_policy_file(store, capsys):
-    code, _, err = run_cli(capsys, "eval", "no/such/policy.py", "--store", store.path)
+def test_missing_policy_file(store):
+    code, _, err = run_main("eval", "no/such/policy.py", "--store", store.path)
     assert code == 2 and "does not exist" in err
 
 
@@ -116,12 +110,12 @@ def test_missing_policy_file(store, capsys):
         ("return self.select_action(predicted_ball_y, obs)", "policy_error", "RecursionError"),
     ],
 )
-def test_misbehaving_policy_ends_its_episode_with_a_reason(body, end_reason, fragment, store, write_policy, capsys):
+def test_misbehaving_policy_ends_its_episode_with_a_reason(body, end_reason, fragment, store, write_policy):
     # an earlier, healthy run in the same store must survive untouched
-    assert run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 40, "--store", store.path)[0] == 0
+    assert run_main("eval", EXAMPLES / "pong.py", "--max-steps", 40, "--store", store.path)[0] == 0
     before = store.query("SELECT count(*) FROM steps")[0][0]
     path = write_policy(pong_policy(body))
-    code, out, err = run_cli(capsys, "eval", path, "--call-time-limit", 0.3, "--store", store.path, "--json")
+    code, out, err = run_main("eval", path, "--call-time-limit", 0.3, "--store", store.path, "--json")
     assert code == 1
     episode = json.loads(out)["episodes"][0]
     assert episode["end_reason"] == end_reason and fragment in episode["error"], episode
@@ -362,9 +356,9 @@ def test_a_worker_whose_parent_died_before_it_asked_for_the_death_signal_ends_at
     assert not marker.exists(), "an orphan would have played on"
 
 
-def test_parallel_workers_keep_every_episode(store, capsys):
-    code, out, _ = run_cli(capsys, "eval", EXAMPLES / "space_invaders.py", "--episodes", 3, "--workers", 2,
-                           "--max-steps", 80, "--store", store.path, "--json")
+def test_parallel_workers_keep_every_episode(store):
+    code, out, _ = run_main("eval", EXAMPLES / "space_invaders.py", "--episodes", 3, "--workers", 2,
+                            "--max-steps", 80, "--store", store.path, "--json")
     assert code == 0
     episodes = json.loads(out)["episodes"]
     assert [e["length"] for e in episodes] == [80, 80, 80]

@@ -18,21 +18,14 @@ import math
 
 import pytest
 
-from pipeline.cli import main
 from store import Store
 from store.scores import compare_scores, score_data, score_episodes, score_json, worst_return
 from store.statistics import difference
-from tests.conftest import POLICIES, old_store
+from tests.conftest import POLICIES, old_store, run_main
 
 QUITTER = POLICIES / "pong_quitter.py"
 TWIN = POLICIES / "pong_competent.py"
 STANDARD = ("--sticky", "0.25", "--noop-max", "30", "--max-steps", "600", "--rng-key", "forfeits")
-
-
-def _cli(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def _episodes(returns: list[float], forfeits: int, step: int = 300) -> list[dict]:
@@ -200,19 +193,19 @@ def test_runs_prints_no_score_where_a_forfeit_leaves_none():
 # ------------------------------------------------------------------------------------------------ end to end
 
 @pytest.mark.slow
-def test_eval_runs_report_and_export_give_the_quitter_no_score(tmp_path, capsys):
+def test_eval_runs_report_and_export_give_the_quitter_no_score(tmp_path):
     store = Store(tmp_path / "s.duckdb", lock_timeout_s=20)
-    code, out, _ = _cli(capsys, "eval", QUITTER, "--episodes", 8, "--seed", 16, *STANDARD, "--store", store.path)
+    code, out, _ = run_main("eval", QUITTER, "--episodes", 8, "--seed", 16, *STANDARD, "--store", store.path)
     assert code == 1, "forfeited episodes fail the command"
     assert ("no score: 5 of 8 episodes forfeited (RuntimeError at step 300 in all 5); the 3 played out averaged 1, "
             "not a score; ") in out, out
     assert "mean return" not in out
-    code, out, _ = _cli(capsys, "eval", TWIN, "--episodes", 8, "--seed", 16, *STANDARD, "--store", store.path,
-                        "--json")
+    code, out, _ = run_main("eval", TWIN, "--episodes", 8, "--seed", 16, *STANDARD, "--store", store.path,
+                            "--json")
     twin = json.loads(out)
     assert code == 0 and twin["score"]["mean"] == 0.5 and twin["forfeits"] == [], twin["score"]
-    code, out, _ = _cli(capsys, "eval", QUITTER, "--episodes", 4, "--seed", 16, *STANDARD, "--store", store.path,
-                        "--json")
+    code, out, _ = run_main("eval", QUITTER, "--episodes", 4, "--seed", 16, *STANDARD, "--store", store.path,
+                            "--json")
     quitter = json.loads(out)
     assert quitter["score"] is None and quitter["no_score"] == (
         "no score: 2 of 4 episodes forfeited (RuntimeError at step 300 in both)")
@@ -221,11 +214,11 @@ def test_eval_runs_report_and_export_give_the_quitter_no_score(tmp_path, capsys)
         "its survivors average more than its twin: a reader that averaged them would rank it first"
 
     # runs: no score where the quitter's best would be, and nothing ranks it above its twin
-    code, out, _ = _cli(capsys, "runs", "--json", "--store", store.path)
+    code, out, _ = run_main("runs", "--json", "--store", store.path)
     rows = {r["policy"].rsplit("/", 1)[-1] + str(r["episodes"]): r for r in json.loads(out)}
     assert rows["pong_quitter.py8"]["best_score"] is None and rows["pong_quitter.py8"]["forfeits"] == 5
     assert rows["pong_quitter.py4"]["best_score"] is None and rows["pong_competent.py8"]["best_score"] == 0.5
-    code, out, _ = _cli(capsys, "runs", "--store", store.path)
+    code, out, _ = run_main("runs", "--store", store.path)
     lines = [line.split() for line in out.splitlines()[2:]]
     best = {(cells[5], cells[-1]): " ".join(cells[8:-2]) for cells in lines}
     assert best == {("pong_quitter.py", "4"): "no score", ("pong_competent.py", "8"): "0.5",
@@ -236,7 +229,7 @@ def test_eval_runs_report_and_export_give_the_quitter_no_score(tmp_path, capsys)
 
     # the report: no score in words, no mean in the figure, the forfeits as marks
     quitter_run = store.query("SELECT run_id FROM run_summary WHERE forfeits = 5")[0][0]
-    code, _, _ = _cli(capsys, "report", quitter_run, "--out", tmp_path / "report", "--store", store.path)
+    code, _, _ = run_main("report", quitter_run, "--out", tmp_path / "report", "--store", store.path)
     readme = (tmp_path / "report" / "README.md").read_text()
     assert code == 0 and "no score: 5 of 8 episodes forfeited" in readme and "not a score" in readme
     assert "mean return" not in readme.split("## Episodes")[0]
@@ -261,23 +254,23 @@ def test_eval_runs_report_and_export_give_the_quitter_no_score(tmp_path, capsys)
 
 
 @pytest.mark.slow
-def test_eval_names_a_forfeit_by_the_policys_own_exception_class(tmp_path, capsys):
+def test_eval_names_a_forfeit_by_the_policys_own_exception_class(tmp_path):
     path = tmp_path / "boom.py"
     path.write_text((POLICIES / "pong_competent.py").read_text().replace(
         "        predicted_ball_y = self.predict_ball_trajectory(obs)\n",
         "        class Boom(Exception):\n            pass\n        raise Boom('kaboom')\n", 1))
-    code, out, err = _cli(capsys, "eval", path, "--max-steps", "5", "--store", tmp_path / "s.duckdb")
+    code, out, err = run_main("eval", path, "--max-steps", "5", "--store", tmp_path / "s.duckdb")
     assert "no score: 1 of 1 episode forfeited (Boom at step 0)" in out + err
 
 
 @pytest.mark.slow
-def test_compare_does_not_call_the_quitter_better_and_says_why(tmp_path, capsys, pinned_audit_seeds):
+def test_compare_does_not_call_the_quitter_better_and_says_why(tmp_path, pinned_audit_seeds):
     from games.base import AUDIT_SEED_BASE
 
     pinned_audit_seeds(AUDIT_SEED_BASE + 8)  # games where the quitter forfeits 2 of 4 (docs/compare.md's figures)
     store = Store(tmp_path / "s.duckdb", lock_timeout_s=20)
-    code, out, _ = _cli(capsys, "compare", QUITTER, TWIN, "--audit", "--episodes", 4, "--max-steps", 600,
-                        "--rng-key", "forfeits", "--out", tmp_path / "cmp", "--json", "--store", store.path)
+    code, out, _ = run_main("compare", QUITTER, TWIN, "--audit", "--episodes", 4, "--max-steps", 600,
+                            "--rng-key", "forfeits", "--out", tmp_path / "cmp", "--json", "--store", store.path)
     data = json.loads(out)
     sides, found = data["scores"], data["difference"]
     assert code == 0 and sides["A"]["score"] is None and sides["B"]["score"] == -1.0, sides

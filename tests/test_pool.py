@@ -11,16 +11,14 @@ import sys
 import threading
 import time
 from datetime import timedelta
-from types import SimpleNamespace
 
 import pytest
 
-from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig, validate_config
 from pipeline.optimizer.loop import optimize
 from pipeline.optimizer.replay import replay
-from tests.conftest import ROOT
+from tests.conftest import ROOT, run_main
 from tests.test_strategies import POOL
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -37,15 +35,6 @@ def _config(**kwargs):
 
 def _client(model):
     return LiteLLMClient(model.model, api_base=model.api_base, backoff_s=0.05)
-
-
-def _cli(capsys, *argv: str) -> SimpleNamespace:
-    """``codearcade ARGV...`` run by its ``main`` in this process (its parser and handlers; a command process of its
-    own spent ~5 s of CPU importing litellm, which this process has imported once): its exit status and output."""
-    capsys.readouterr()
-    code = main(list(argv))
-    said = capsys.readouterr()
-    return SimpleNamespace(returncode=code, stdout=said.out, stderr=said.err)
 
 
 def _calls(store, run_id):
@@ -215,8 +204,7 @@ and 3 commit within a tenth of a second — a window that a store poll misses.""
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kill_at", sorted(KILL_POINTS))
-def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_scores(store, scripted, kill_at,
-                                                                                      capsys):
+def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_scores(store, scripted, kill_at):
     model = scripted(SCRIPT)
     command = [EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
                "--strategy", "best-of-n", "--candidates", "4", "--iterations", "4", "--pool", "--eval-max-steps",
@@ -243,7 +231,7 @@ def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_
     # replayed as it was left: the iterations it committed replay alike (their candidates' calls are all
     # recorded), and the replay says where the record ends, which is no divergence (exit 0); the replay and the
     # resume run in this process, as the command line runs them (the killed run was a process of its own)
-    early = _cli(capsys, "replay", run_id, "--store", str(store.path), "--json")
+    early = run_main("replay", run_id, "--store", str(store.path), "--json")
     assert early.returncode == 0, early.stdout + early.stderr
     early = json.loads(early.stdout)
     rows = {row["iteration"]: row for row in early["iterations"]}
@@ -258,7 +246,7 @@ def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_
                                     "recorded"), early
     assert store.query("SELECT status FROM runs WHERE run_id = ?", [early["replay_run_id"]]) == [
         ("interrupted" if unrecorded else "finished",)]
-    done = _cli(capsys, "optimize", "--resume", run_id, "--store", str(store.path), "--json")
+    done = run_main("optimize", "--resume", run_id, "--store", str(store.path), "--json")
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["status"] == "finished"
     counts = store.query("SELECT iteration, count(*) FROM candidates WHERE run_id = ? GROUP BY 1 ORDER BY 1", [run_id])
@@ -277,14 +265,14 @@ def test_a_pool_run_killed_mid_way_resumes_and_replays_to_the_same_versions_and_
 
 
 @pytest.mark.slow
-def test_an_ensemble_in_the_pool_shares_its_calls_by_weight_and_replays_alike(store, scripted, capsys, monkeypatch):
+def test_an_ensemble_in_the_pool_shares_its_calls_by_weight_and_replays_alike(store, scripted, monkeypatch):
     """Models are chosen as the pool starts candidates, in order, the calls in flight counting as chosen: 1:1
     weights give each model half the calls although most start before the iterations they follow are committed."""
     first, second = scripted(SCRIPT), scripted(SCRIPT)
     monkeypatch.setenv("OPENAI_API_KEY", "none")
     monkeypatch.setenv("LITELLM_LOCAL_MODEL_COST_MAP", "True")
-    done = _cli(  # in this process, as the command line runs it
-        capsys, "optimize", "--game", "pong", "--strategy", "best-of-n", "--candidates", "4", "--iterations", "3",
+    done = run_main(  # in this process, as the command line runs it
+        "optimize", "--game", "pong", "--strategy", "best-of-n", "--candidates", "4", "--iterations", "3",
         "--pool", "--model", f"openai/gpt-4o,api_base={first.api_base}",
         "--model", f"openai/gpt-4o-mini,api_base={second.api_base}", "--model-choice", "fixed",
         "--eval-max-steps", "600", "--rollout-steps", "50", "--temperature", "1", "--audit-episodes", "0",

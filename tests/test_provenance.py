@@ -21,7 +21,7 @@ from pipeline.boundary.nodes import MalformedTrace, check_nodes
 from pipeline.play.rollout import run_episode
 from pipeline.play.spec import EpisodeSpec
 from store import Store
-from tests.conftest import json_reply, pong_policy
+from tests.conftest import json_reply, pong_policy, run_main
 from tracing.blame import blame_function
 from tracing.lines import executable_lines
 from tracing.policy_file import inspect_policy
@@ -62,13 +62,9 @@ RETURNS = {4: 0, 6: 1, 8: 3, 9: 2}  # V0: the line of each `return` -> the actio
 
 
 def _cli_json(*argv: str) -> object:
-    import contextlib
-    import io
-
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        assert main(list(argv)) == 0
-    return json.loads(out.getvalue())
+    result = run_main(*argv)
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout)
 
 
 @pytest.fixture(scope="module")

@@ -17,15 +17,9 @@ import numpy as np
 import pytest
 
 from pipeline.cli import main
-from tests.conftest import COMPETENT_REPLY, EXAMPLES, ROOT
+from tests.conftest import COMPETENT_REPLY, EXAMPLES, ROOT, run_main
 
 STEPS = 120
-
-
-def run_cli(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def run_view(*argv):
@@ -87,10 +81,10 @@ def assert_holds_episode(content: dict, store, episode_id: str, frames_every: in
 
 
 @pytest.mark.slow
-def test_live_and_rebuilt_recordings_hold_the_stored_episode(store, tmp_path, capsys):
+def test_live_and_rebuilt_recordings_hold_the_stored_episode(store, tmp_path):
     live = tmp_path / "live"
-    code, out, err = run_cli(capsys, "eval", EXAMPLES / "breakout.py", "--trace", "--episodes", 2, "--max-steps", STEPS,
-                             "--rerun", live, "--store", store.path, "--json")
+    code, out, err = run_main("eval", EXAMPLES / "breakout.py", "--trace", "--episodes", 2, "--max-steps", STEPS,
+                              "--rerun", live, "--store", store.path, "--json")
     assert code == 0, err
     summary = json.loads(out)
     ids = [e["episode_id"] for e in summary["episodes"]]
@@ -120,11 +114,11 @@ def test_live_and_rebuilt_recordings_hold_the_stored_episode(store, tmp_path, ca
 
 
 @pytest.mark.slow
-def test_replay_that_diverges_from_the_store_is_reported(store, tmp_path, capsys):
+def test_replay_that_diverges_from_the_store_is_reported(store, tmp_path):
     # one random stream (the starter moves at random): with another, the paddle may stand at a wall at step 10,
     # where the swapped move changes nothing
-    code, out, err = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 80, "--rng-key", "rerun",
-                             "--store", store.path, "--json")
+    code, out, err = run_main("eval", EXAMPLES / "pong.py", "--max-steps", 80, "--rng-key", "rerun",
+                              "--store", store.path, "--json")
     assert code == 0, err
     episode_id = json.loads(out)["episodes"][0]["episode_id"]
     run_id = episode_id.split(".")[0]
@@ -136,15 +130,15 @@ def test_replay_that_diverges_from_the_store_is_reported(store, tmp_path, capsys
     assert "differ from the stored ones" in err and "first at step" in err
 
 
-def test_view_rejects_what_is_not_there(store, capsys):
-    code, out, err = run_cli(capsys, "eval", EXAMPLES / "pong.py", "--max-steps", 5, "--store", store.path, "--json")
+def test_view_rejects_what_is_not_there(store):
+    code, out, err = run_main("eval", EXAMPLES / "pong.py", "--max-steps", 5, "--store", store.path, "--json")
     run_id = json.loads(out)["run_id"]
     # selection errors come before Rerun is loaded, so these run in this process
-    code, out, err = run_cli(capsys, "view", "01NOSUCHRUN", "--store", store.path)
+    code, out, err = run_main("view", "01NOSUCHRUN", "--store", store.path)
     assert code == 2 and "no run 01NOSUCHRUN" in err
-    code, out, err = run_cli(capsys, "view", run_id, "--iteration", 3, "--store", store.path)
+    code, out, err = run_main("view", run_id, "--iteration", 3, "--store", store.path)
     assert code == 2 and "no episodes in iteration 3" in err
-    code, out, err = run_cli(capsys, "view", run_id, "--episode", 7, "--store", store.path)
+    code, out, err = run_main("view", run_id, "--episode", 7, "--store", store.path)
     assert code == 2 and "no episode 7" in err
     # in a process of its own: another test module may have loaded the SDK into this one
     check = ("import contextlib, io, sys\nfrom pipeline.cli import main\n"
@@ -156,12 +150,12 @@ def test_view_rejects_what_is_not_there(store, capsys):
 
 
 @pytest.mark.slow
-def test_run_recording_has_one_score_per_iteration(store, tmp_path, scripted, capsys):
+def test_run_recording_has_one_score_per_iteration(store, tmp_path, scripted):
     model = scripted([COMPETENT_REPLY, "Sorry, I cannot help with that."])
     live = tmp_path / "live"
-    code, out, err = run_cli(capsys, "optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
-                             "--iterations", 2, "--eval-max-steps", 60, "--rollout-steps", 40, "--workers", 2,
-                             "--rerun", live, "--store", store.path, "--json")
+    code, out, err = run_main("optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+                              "--iterations", 2, "--eval-max-steps", 60, "--rollout-steps", 40, "--workers", 2,
+                              "--rerun", live, "--store", store.path, "--json")
     assert code == 0, err
     result = json.loads(out)
     run_id = result["run_id"]

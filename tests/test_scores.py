@@ -8,19 +8,16 @@ made a crash the run's best.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 
 import pytest
 
-from pipeline.cli import main
 from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
 from store.scores import score_episodes
 from store.statistics import ALL_EQUAL, IQM_MIN_PER_STRATUM, difference, interval_text, iqm, iqm_interval, mean_interval
-from tests.conftest import COMPETENT_PREDICT, COMPETENT_SELECT, json_reply
+from tests.conftest import COMPETENT_PREDICT, COMPETENT_SELECT, json_reply, run_main
 
 FAIL_AT_301 = {
     "raise": "raise RuntimeError('boom at call 301')",
@@ -38,13 +35,6 @@ def failing_reply(how: str) -> str:
         "    if self.calls > 300:\n"
         f"        if True:\n            {FAIL_AT_301[how]}\n")
     return json_reply({"predict_ball_trajectory": COMPETENT_PREDICT, "select_action": select})
-
-
-def _cli(*argv: str) -> tuple[int, str]:
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        code = main(list(argv))
-    return code, out.getvalue()
 
 
 def _optimize(store, model, **settings):
@@ -141,12 +131,12 @@ def test_a_candidate_that_raises_at_step_300_is_never_the_best(store, scripted, 
     ranks = dict(store.query("SELECT policy_version_id, rank FROM frontier"))
     assert ranks[starter] == 1 and len(ranks) == 2, "the version that played its game out ranks first"
     # every reader names the starter, which played its games out
-    code, out = _cli("runs", "--json", "--store", str(store.path))
+    code, out, _ = run_main("runs", "--json", "--store", str(store.path))
     [row] = json.loads(out)
     assert code == 0 and row["best_score"] == it0.score and row["best_iteration"] == 0 and row["forfeits"] == 1
-    code, out = _cli("blame", "last", "--json", "--store", str(store.path))
+    code, out, _ = run_main("blame", "last", "--json", "--store", str(store.path))
     assert code == 0 and json.loads(out)["policy_version_id"] == starter
-    code, out = _cli("report", "last", "--out", str(tmp_path / "report"), "--store", str(store.path))
+    code, out, _ = run_main("report", "last", "--out", str(tmp_path / "report"), "--store", str(store.path))
     readme = (tmp_path / "report" / "README.md").read_text()
     assert code == 0 and f"{it0.score:g}" in readme and "forfeit" in readme.lower()
 
@@ -199,8 +189,8 @@ def test_a_policy_cannot_read_the_game_seed_from_its_own_generators(store, write
     policy = write_policy(PEEK_POLICY)
 
     def draws(seed: int) -> dict[int, list]:
-        code, _ = _cli("eval", str(policy), "--episodes", "2", "--seed", str(seed), "--max-steps", "3", "--trace",
-                       "--store", str(store.path))
+        code, _, _ = run_main("eval", policy, "--episodes", "2", "--seed", seed, "--max-steps", "3", "--trace",
+                              "--store", store.path)
         assert code == 0
         rows = store.query("SELECT e.seed, n.output FROM nodes n JOIN episodes e USING (episode_id) "
                            "WHERE e.run_id = (SELECT run_id FROM runs ORDER BY created_at DESC LIMIT 1) "

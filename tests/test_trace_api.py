@@ -17,8 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import main
-from tests.conftest import POLICIES, json_reply
+from tests.conftest import POLICIES, json_reply, run_main
 from tests.test_sandbox import REFUSED
 from tracing.capture import NodeRecorder
 from tracing.policy_file import PolicyLoadError, inspect_policy, load_policy, policy_from_script, replace_methods
@@ -31,12 +30,6 @@ STEPS = 600
 TRACE_HEADER = "import opto.trace as trace\nfrom opto.trace import bundle, node, Module, model, GRAPH\n"
 BALL_OBS = {"Player": {"x": 140, "y": 100, "w": 4, "h": 15, "dx": 0, "dy": 0},
             "Ball": {"x": 100, "y": 50, "w": 2, "h": 4, "dx": 2, "dy": 1}}
-
-
-def run_cli(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def trace_policy(body: str, header: str = TRACE_HEADER) -> str:
@@ -242,15 +235,15 @@ def test_the_twins_trainable_methods_are_the_same_text():
     assert TRACE_TWIN.read_text().startswith('"""') and "import tracing" not in TRACE_TWIN.read_text()
 
 
-def _eval(capsys, store, path) -> dict:
-    code, out, err = run_cli(capsys, "eval", path, "--trace", "--max-steps", STEPS, "--store", store.path, "--json")
+def _eval(store, path) -> dict:
+    code, out, err = run_main("eval", path, "--trace", "--max-steps", STEPS, "--store", store.path, "--json")
     assert code == 0, err
     (episode,) = json.loads(out)["episodes"]
     return episode
 
 
 def test_a_trace_api_policy_plays_the_same_as_its_tracing_twin(store, capsys):
-    a, b = _eval(capsys, store, TRACE_TWIN), _eval(capsys, store, TRACING_TWIN)
+    a, b = _eval(store, TRACE_TWIN), _eval(store, TRACING_TWIN)
     assert a["length"] == b["length"] == STEPS and a["return"] == b["return"] and a["end_reason"] == "truncated"
 
     def steps(episode_id):
@@ -270,16 +263,16 @@ def test_a_trace_api_policy_plays_the_same_as_its_tracing_twin(store, capsys):
 # --- optimize, blame, compare: the file goes through unedited ---------------------------------------------------
 
 @pytest.mark.slow
-def test_a_trace_api_file_is_optimized_blamed_and_compared_without_edits(store, capsys, scripted):
+def test_a_trace_api_file_is_optimized_blamed_and_compared_without_edits(store, scripted):
     start = TRACE_TWIN.read_text()
     select = next(m.source for m in inspect_policy(start).methods if m.name == "select_action")
     changed_line = "    if paddle < target - DEAD_ZONE - 1:"
     new_select = select.replace("    if paddle < target - DEAD_ZONE:", changed_line)
     assert new_select != select
     model = scripted([json_reply({"select_action": new_select})])
-    code, out, err = run_cli(capsys, "optimize", TRACE_TWIN, "--model", model.model, "--api-base", model.api_base,
-                             "--iterations", 1, "--eval-max-steps", 300, "--rollout-steps", 40, "--workers", 1,
-                             "--store", store.path, "--json")
+    code, out, err = run_main("optimize", TRACE_TWIN, "--model", model.model, "--api-base", model.api_base,
+                              "--iterations", 1, "--eval-max-steps", 300, "--rollout-steps", 40, "--workers", 1,
+                              "--store", store.path, "--json")
     assert code == 0, err
     run_id = json.loads(out)["run_id"]
     rows = store.query("SELECT v.iteration, v.produced_by, v.validation, b.text FROM policy_versions v JOIN blobs b "
@@ -291,7 +284,7 @@ def test_a_trace_api_file_is_optimized_blamed_and_compared_without_edits(store, 
     assert rows[1][3].startswith(start.split("GAME =")[0]) and rows[1][3].count("    @bundle(trainable=True)\n") == 2
     assert "    def init(self):\n        pass\n" in rows[1][3]
 
-    code, out, err = run_cli(capsys, "blame", run_id, "--iteration", 1, "--json", "--store", store.path)
+    code, out, err = run_main("blame", run_id, "--iteration", 1, "--json", "--store", store.path)
     assert code == 0, err
     blamed = json.loads(out)
     lines = {f["name"]: f["lines"] for f in blamed["functions"]}
@@ -299,8 +292,8 @@ def test_a_trace_api_file_is_optimized_blamed_and_compared_without_edits(store, 
     assert [line["text"] for line in lines["select_action"] if line["origin_iteration"] == 1] == [changed_line]
     assert {line["origin_iteration"] for line in lines["predict_ball_trajectory"]} == {0}
 
-    code, out, err = run_cli(capsys, "compare", TRACE_TWIN, f"{run_id}:{blamed['policy_version_id']}",
-                             "--max-steps", 300, "--store", store.path, "--json")
+    code, out, err = run_main("compare", TRACE_TWIN, f"{run_id}:{blamed['policy_version_id']}",
+                              "--max-steps", 300, "--store", store.path, "--json")
     assert code == 0, err
     report = json.loads(out)
     assert report["mode"] == "versions" and report["game"] == "pong"
@@ -337,11 +330,11 @@ def test_new_from_a_training_script_keeps_the_policy_and_what_it_uses(store, cap
     script.write_text(TRAINING_LOOP.split("\nenv =")[0] + "\n" + header.split('"""', 2)[2] + "GAME = " + rest
                       + "\n\nenv =" + TRAINING_LOOP.split("\nenv =")[1])
     assert "OptoPrime" in script.read_text() and "class Policy" in script.read_text()
-    code, out, err = run_cli(capsys, "eval", script, "--store", store.path)
+    code, out, err = run_main("eval", script, "--store", store.path)
     assert code == 2 and "os" in err, "the script itself is no policy file"
 
     written = tmp_path / "pong.py"
-    code, out, err = run_cli(capsys, "new", written, "--from", script)
+    code, out, err = run_main("new", written, "--from", script)
     assert code == 0, err
     assert "PADDLE_X" in out and "select_action" in out and "left out 4 import(s)" in out
     text = written.read_text()
@@ -351,10 +344,10 @@ def test_new_from_a_training_script_keeps_the_policy_and_what_it_uses(store, cap
         return [(m.name, m.source, m.trainable) for m in inspect_policy(policy_text).methods]
 
     assert methods(text) == methods(twin)
-    assert _eval(capsys, store, written)["return"] == _eval(capsys, store, TRACE_TWIN)["return"]
+    assert _eval(store, written)["return"] == _eval(store, TRACE_TWIN)["return"]
 
 
-def test_new_from_keeps_every_binding_of_a_name_and_each_import_it_may_make(store, capsys, tmp_path):
+def test_new_from_keeps_every_binding_of_a_name_and_each_import_it_may_make(store, tmp_path):
     """The last binding of a name alone was kept (``SPEED = SPEED * 2``: a NameError at load; ``THRESH += 10``
     dropped, the policy ran on 5), and an import statement with one name policy code may not import was dropped
     whole (``import opto.trace as trace, os.path``: no ``trace``). Written, the policy plays as the script's."""
@@ -380,29 +373,29 @@ def test_new_from_keeps_every_binding_of_a_name_and_each_import_it_may_make(stor
                 return 0
         """))
     written = tmp_path / "policy.py"
-    code, out, err = run_cli(capsys, "new", written, "--from", script, "--game", "pong")
+    code, out, err = run_main("new", written, "--from", script, "--game", "pong")
     assert code == 0 and "left out 1 import(s)" in out, out + err
     text = written.read_text()
     assert "import opto.trace as trace\nfrom math import floor, sqrt\n" in text and "os.path" not in text, text
     assert "SPEED = SPEED * 2" in text and "THRESH += 10" in text and "UNUSED" not in text
-    code, out, err = run_cli(capsys, "eval", written, "--max-steps", "3", "--store", store.path)
+    code, out, err = run_main("eval", written, "--max-steps", "3", "--store", store.path)
     assert code == 0, err
     assert store.query("SELECT end_reason FROM episodes") == [("truncated",)]
 
 
-def test_new_from_refuses_what_it_cannot_take_and_writes_nothing(capsys, tmp_path):
+def test_new_from_refuses_what_it_cannot_take_and_writes_nothing(tmp_path):
     script = tmp_path / "script.py"
     script.write_text("import os\n\ndef act(obs):\n    return 0\n")
-    code, _, err = run_cli(capsys, "new", tmp_path / "p.py", "--from", script, "--game", "pong")
+    code, _, err = run_main("new", tmp_path / "p.py", "--from", script, "--game", "pong")
     assert code == 2 and "no class named 'Policy'" in err
-    code, _, err = run_cli(capsys, "new", tmp_path / "p.py", "--from", TRACE_TWIN, "--game", "breakout")
+    code, _, err = run_main("new", tmp_path / "p.py", "--from", TRACE_TWIN, "--game", "breakout")
     assert code == 2 and "declares GAME = 'pong'" in err
     no_game = tmp_path / "nogame.py"
     no_game.write_text(TRACE_TWIN.read_text().replace('GAME = "pong"\n', ""))
-    code, _, err = run_cli(capsys, "new", tmp_path / "p.py", "--from", no_game)
+    code, _, err = run_main("new", tmp_path / "p.py", "--from", no_game)
     assert code == 2 and "--game" in err
     assert not (tmp_path / "p.py").exists()
-    code, out, err = run_cli(capsys, "new", tmp_path / "p.py", "--from", no_game, "--game", "pong")
+    code, out, err = run_main("new", tmp_path / "p.py", "--from", no_game, "--game", "pong")
     assert code == 0, err
     assert inspect_policy((tmp_path / "p.py").read_text()).game == "pong"
 
