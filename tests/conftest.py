@@ -40,13 +40,21 @@ its cores) it stretches by the load per core, so that no test fails because the 
 ``CODEARCADE_TEST_CEILING_S`` is taken as it is."""
 
 
+def load_now() -> float:
+    """The machine's load for the ceiling: the larger of its 1- and 5-minute averages. The 5-minute one lags a load
+    that has just risen by minutes (a quick test of 8 s failed at 15 s so, two other jobs having just started); the
+    1-minute one forgets within a minute a load that the test has just run under."""
+    one, five, _ = os.getloadavg()
+    return max(one, five)
+
+
 def ceiling_s(slow: bool = True) -> float:
     """The ceiling of a test that ends now (:data:`CEILING_S`, or its :data:`QUICK_SHARE` for a test not marked
     ``slow``; stretched by the load per core when it may)."""
     ceiling = CEILING_S if slow else CEILING_S * QUICK_SHARE
     if not CEILING_SCALES_WITH_LOAD:
         return ceiling
-    return ceiling * max(1.0, os.getloadavg()[1] / (os.cpu_count() or 1))
+    return ceiling * max(1.0, load_now() / (os.cpu_count() or 1))
 
 
 def pytest_configure(config):
@@ -85,7 +93,7 @@ def pytest_runtest_makereport(item, call):
             ("quick test", "CEILING_S x QUICK_SHARE", "; a test that starts commands or games is marked slow")
         report.outcome = "failed"
         report.longrepr = (f"{item.nodeid} passed, but took {call.duration:.0f} s, over the ceiling of {ceiling:g} s a "
-                           f"{kind} (tests/conftest.py: {rule}, load {os.getloadavg()[1]:.1f} on {os.cpu_count()} "
+                           f"{kind} (tests/conftest.py: {rule}, load {load_now():.1f} on {os.cpu_count()} "
                            f"cores): play fewer steps, share what it builds, or split it{advice}")
 
 

@@ -97,16 +97,18 @@ def test_the_quick_lane_is_a_marker_of_this_suite():
 
 def test_the_default_ceiling_stretches_with_the_load_per_core_and_an_explicit_one_does_not(monkeypatch):
     """On a machine busy with other work the default ceiling grows by the load per core (no test fails because the
-    machine is slow); on one at or below a load of one per core it is the ceiling; a ceiling set in the
-    environment is kept as set."""
+    machine is slow), by the 1-minute average as soon as a load has risen and by the 5-minute one while a load that
+    the test ran under is falling; on one at or below a load of one per core it is the ceiling; a ceiling set in
+    the environment is kept as set."""
     from tests import conftest
 
     monkeypatch.setattr(conftest, "CEILING_SCALES_WITH_LOAD", True)
     monkeypatch.setattr(conftest.os, "cpu_count", lambda: 2)
     for load, stretch in ((0.3, 1.0), (2.0, 1.0), (3.0, 1.5), (7.0, 3.5)):
-        monkeypatch.setattr(conftest.os, "getloadavg", lambda load=load: (0.0, load, 0.0))
-        assert conftest.ceiling_s() == conftest.CEILING_S * stretch
-        assert conftest.ceiling_s(slow=False) == conftest.CEILING_S * conftest.QUICK_SHARE * stretch
+        for averages in ((load, 0.1, 0.0), (0.1, load, 0.0), (load, load, 9.0)):  # the 15-minute one never counts
+            monkeypatch.setattr(conftest.os, "getloadavg", lambda averages=averages: averages)
+            assert conftest.ceiling_s() == conftest.CEILING_S * stretch, averages
+            assert conftest.ceiling_s(slow=False) == conftest.CEILING_S * conftest.QUICK_SHARE * stretch, averages
     monkeypatch.setattr(conftest, "CEILING_SCALES_WITH_LOAD", False)
     assert conftest.ceiling_s() == conftest.CEILING_S
 
