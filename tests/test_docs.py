@@ -166,3 +166,53 @@ def test_the_cli_page_shows_every_flag_of_every_verb():
                and not set(action.option_strings) & shown.get(verb, set())]
     assert not missing, f"docs/cli.md's table does not show: {', '.join(missing)}"
     assert set(verbs) <= set(shown), set(verbs) - set(shown)
+
+
+def _files_written_on(page: Path) -> dict[str, tuple[int, str | None]]:
+    """The policy files a page's shell blocks write before a later command plays them: `codearcade new F` (its
+    --game, when given) and a shell redirection `> F.py`: {file: (line, game or None)}."""
+    written: dict[str, tuple[int, str | None]] = {}
+    text = page.read_text()
+    for block in FENCE.finditer(text):
+        if block.group(1) not in ("bash", "sh"):
+            continue
+        first_line = text.count("\n", 0, block.start(2)) + 1
+        for k, line in enumerate(block.group(2).splitlines()):
+            for name in re.findall(r">\s*([\w./-]+\.py)\b", line):
+                written.setdefault(name, (first_line + k, None))
+            if line.startswith("codearcade new "):
+                words = shlex.split(line, comments=True)
+                game = words[words.index("--game") + 1] if "--game" in words else None
+                written.setdefault(words[2], (first_line + k, game))
+    return written
+
+
+def _declared_game(path: Path) -> str | None:
+    found = re.search(r"^GAME = [\"'](\w+)[\"']", path.read_text(), re.M)
+    return found.group(1) if found else None
+
+
+def test_every_policy_file_a_command_plays_is_there_and_of_its_game():
+    """A reader copies the commands in order: a policy file that eval, optimize, compare or serve plays is in the
+    repository or written by an earlier command of the same page, and a `--game` beside it is the game the file is
+    for (a file that declares another game is refused: `my_policy.py declares GAME = 'riverraid' but --game is
+    'pong'`). Files named inside a comment or prose are not commands and are not checked."""
+    written = {page: _files_written_on(ROOT / page) for page in {p for p, _, _ in _shown_commands()}}
+    wrong = []
+    for page, line, command in _shown_commands():
+        words = shlex.split(command, comments=True)
+        if words[1] not in ("eval", "optimize", "compare", "serve"):
+            continue
+        game = words[words.index("--game") + 1] if "--game" in words else None
+        files = [w for k, w in enumerate(words[2:], 2) if w.endswith(".py") and not words[k - 1].startswith("-")]
+        for name in files:
+            if (ROOT / name).is_file():
+                declared = _declared_game(ROOT / name)
+            elif name in written[page] and written[page][name][0] < line:
+                declared = written[page][name][1]
+            else:
+                wrong.append(f"{page}:{line}: {name} is neither in the repository nor written before on the page")
+                continue
+            if game and declared and game != declared:
+                wrong.append(f"{page}:{line}: {name} is a {declared} policy, played with --game {game}")
+    assert not wrong, "\n".join(wrong)
