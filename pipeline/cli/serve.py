@@ -206,7 +206,8 @@ def _finalize(store, run_id: str, args: argparse.Namespace) -> int:
     with run_lock(store.path, run_id):
         served = ServeRun(store, run_id)
         if not served.finalized:
-            _say(f"run {short_id(store, run_id)}: playing the validation and held-out pools")
+            if served.submissions:  # with none, finalize refuses in one line and nothing is played
+                _say(f"run {short_id(store, run_id)}: playing the validation and held-out pools")
             served.finalize()
     with store.read() as con:
         rows = audits(con, run_id)

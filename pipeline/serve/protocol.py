@@ -457,6 +457,12 @@ class ServeRun:
 
     # ------------------------------------------------------------------------------------------- finalize
 
+    @property
+    def submissions(self) -> int:
+        """How many submissions the run has committed (the starting policy, iteration 0, is none)."""
+        with self._lock:
+            return len(self._committed) - 1
+
     def finalize(self, progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
         """Play every accepted submission on the validation pool and the best by validation (with the starter)
         on the held-out pool, store both (``audits``) and finish the run. What it returns names no seed and
