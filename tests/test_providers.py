@@ -201,6 +201,26 @@ def test_no_key_fails_at_once_naming_the_variable(tmp_path):
     assert not {"litellm", "xllamacpp", "gymnasium", "ale_py"} & imported, "nothing slow is loaded first"
 
 
+
+def test_an_ensemble_without_its_keys_names_every_missing_key_at_once(tmp_path, monkeypatch, capsys):
+    """The README's ensemble (Anthropic and OpenAI) with neither key: one line naming both keys, not ANTHROPIC_API_KEY
+    alone and then, once it is set, OPENAI_API_KEY; a model on its own server needs none and is not named."""
+    from pipeline.cli import main
+
+    for name in ("ANTHROPIC_API_KEY", "OPENAI_API_KEY"):
+        monkeypatch.delenv(name, raising=False)
+    store = tmp_path / "s.duckdb"
+    argv = ["optimize", "--game", "pong", "--model", "anthropic/claude-sonnet-4-5", "--model", "openai/gpt-4o-mini",
+            "--model", "ollama_chat/qwen2.5-coder,api_base=http://gpu:11434", "--store", str(store)]
+    assert main(argv) == 2
+    said = capsys.readouterr().err.strip()
+    assert "ANTHROPIC_API_KEY" in said and "OPENAI_API_KEY" in said and "ollama" not in said, said
+    assert len(said.splitlines()) == 1 and not store.exists()
+    monkeypatch.setenv("ANTHROPIC_API_KEY", "x")
+    assert main(argv) == 2
+    said = capsys.readouterr().err.strip()
+    assert said.startswith("codearcade: error: openai/gpt-4o-mini needs an API key: set OPENAI_API_KEY"), said
+
 @pytest.mark.slow
 def test_fatal_error_mid_run_fails_then_resume_finishes_each_iteration_once(store, scripted):
     model = scripted([COMPETENT_REPLY, {"status": 401}, "No change."])

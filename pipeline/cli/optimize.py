@@ -141,10 +141,10 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if given.get("model") and not args.dry_run:
-        from pipeline.llm.providers import check_credentials  # no litellm import: a missing key is reported at once
+        from pipeline.llm.providers import check_ensemble_credentials  # no litellm import: said at once
 
-        for entry in given.get("models") or [{"model": given["model"], "api_base": given.get("api_base")}]:
-            check_credentials(entry["model"], entry["api_base"])
+        models = given.get("models") or [{"model": given["model"], "api_base": given.get("api_base")}]
+        check_ensemble_credentials(models)
     if args.show_prompt and not args.dry_run:
         raise CliError("--show-prompt goes with --dry-run")
     from pipeline.optimizer.config import model_defaults
@@ -176,10 +176,9 @@ def run(args: argparse.Namespace) -> int:
             return EXIT_OK
         config, run_id = plan.config, plan.run_id
         if config.model and "model" not in given:
-            from pipeline.llm.providers import check_credentials
+            from pipeline.llm.providers import check_ensemble_credentials
 
-            for entry in config.models or [{"model": config.model, "api_base": config.api_base}]:
-                check_credentials(entry["model"], entry["api_base"])
+            check_ensemble_credentials(config.models or [{"model": config.model, "api_base": config.api_base}])
     else:
         given.setdefault("workers", os.cpu_count() or 1)
         config, run_id = OptimizeConfig(**model_defaults(given)), None

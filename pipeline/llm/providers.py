@@ -77,10 +77,9 @@ FIX_IN_BATCH_FILE = ("set api_base to your own server in the batch file",
 server (not offered when one is given already), or the offline model."""
 
 
-def check_credentials(model: str, api_base: str | None = None, environ: dict[str, str] | None = None,
-                      other_fixes: tuple[str, str] = FIX_ON_COMMAND_LINE) -> None:
-    """Raise :class:`MissingCredentialsError` naming the variable when ``model``'s key is not set (``other_fixes``:
-    what else would do, said where the model was given).
+def missing_keys(model: str, api_base: str | None = None, environ: dict[str, str] | None = None) -> list[str]:
+    """The environment variables of which one must be set for ``model``, none of which is; [] when it needs none or
+    has one.
 
     Answers from :data:`PROVIDER_KEYS` without importing litellm for the providers it lists (so a missing
     key is reported within a second); asks ``litellm.validate_environment`` for any other provider.
@@ -88,25 +87,45 @@ def check_credentials(model: str, api_base: str | None = None, environ: dict[str
     environ = os.environ if environ is None else environ
     provider = provider_of(model)
     if provider in NO_KEY_PROVIDERS or (api_base and provider in LOCAL_SERVER_PROVIDERS):
-        return
+        return []
     if provider in PROVIDER_KEYS:
         names = PROVIDER_KEYS[provider]
-        if any(environ.get(name) for name in names):
-            return
-        missing = list(names)
-    else:
-        from pipeline.llm.tokens import import_litellm
+        return [] if any(environ.get(name) for name in names) else list(names)
+    from pipeline.llm.tokens import import_litellm
 
-        if api_base:  # a proxy or self-hosted endpoint of an unlisted provider: let the server decide
-            return
-        result = import_litellm().validate_environment(model)
-        if result.get("keys_in_environment", True):
-            return
-        missing = list(result.get("missing_keys") or [])
-    either = " or ".join(missing)
-    raise MissingCredentialsError(
-        f"{model} needs an API key: set {either} in the environment (e.g. `export {missing[0]}=...`), or "
-        + ", or ".join(other_fixes[1:] if api_base else other_fixes))
+    if api_base:  # a proxy or self-hosted endpoint of an unlisted provider: let the server decide
+        return []
+    result = import_litellm().validate_environment(model)
+    if result.get("keys_in_environment", True):
+        return []
+    return list(result.get("missing_keys") or [])
+
+
+def check_credentials(model: str, api_base: str | None = None, environ: dict[str, str] | None = None,
+                      other_fixes: tuple[str, str] = FIX_ON_COMMAND_LINE) -> None:
+    """Raise :class:`MissingCredentialsError` naming the variable when ``model``'s key is not set (``other_fixes``:
+    what else would do, said where the model was given)."""
+    missing = missing_keys(model, api_base, environ)
+    if missing:
+        either = " or ".join(missing)
+        raise MissingCredentialsError(
+            f"{model} needs an API key: set {either} in the environment (e.g. `export {missing[0]}=...`), or "
+            + ", or ".join(other_fixes[1:] if api_base else other_fixes))
+
+
+def check_ensemble_credentials(entries: list[dict], environ: dict[str, str] | None = None) -> None:
+    """:func:`check_credentials` for every model of a run (``entries``: ``{"model", "api_base"}``), said at once:
+    an ensemble of two hosted models without either key names both keys, not one key per attempt."""
+    lacking = [(e["model"], e.get("api_base"), missing) for e in entries
+               if (missing := missing_keys(e["model"], e.get("api_base"), environ))]
+    if len(lacking) == 1:
+        check_credentials(*lacking[0][:2], environ=environ)
+    elif lacking:
+        each = ", ".join(f"{model} ({' or '.join(missing)})" for model, _, missing in lacking)
+        fixes = FIX_ON_COMMAND_LINE[1:] if all(api_base for _, api_base, _ in lacking) else FIX_ON_COMMAND_LINE
+        raise MissingCredentialsError(
+            f"{len(lacking)} models need an API key: {each}; set them in the environment (e.g. `export "
+            f"{lacking[0][2][0]}=...`), or " + ", or ".join(fixes))
 
 
 class UnreachableEndpointError(ValueError):
