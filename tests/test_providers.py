@@ -201,7 +201,6 @@ def test_no_key_fails_at_once_naming_the_variable(tmp_path):
     assert not {"litellm", "xllamacpp", "gymnasium", "ale_py"} & imported, "nothing slow is loaded first"
 
 
-
 def test_an_ensemble_without_its_keys_names_every_missing_key_at_once(tmp_path, monkeypatch, capsys):
     """The README's ensemble (Anthropic and OpenAI) with neither key: one line naming both keys, not ANTHROPIC_API_KEY
     alone and then, once it is set, OPENAI_API_KEY; a model on its own server needs none and is not named."""
@@ -220,6 +219,7 @@ def test_an_ensemble_without_its_keys_names_every_missing_key_at_once(tmp_path, 
     assert main(argv) == 2
     said = capsys.readouterr().err.strip()
     assert said.startswith("codearcade: error: openai/gpt-4o-mini needs an API key: set OPENAI_API_KEY"), said
+
 
 @pytest.mark.slow
 def test_fatal_error_mid_run_fails_then_resume_finishes_each_iteration_once(store, scripted):
