@@ -7,9 +7,11 @@ one grammar resolved in one place (:data:`RUN_MATCHES_SQL`), tried in this order
 2. ``last`` (the newest run), ``last~N`` (the N-th before it: ``last~1`` is the one before ``last``; ``last~``
    alone is ``last~1``) or ``-N`` (the N-th newest: ``-1`` is ``last``, ``-2`` is ``last~1``), by ``created_at``,
    among the runs a person started: runs a command made for its own use (``runs.made_by``: the evaluations
-   ``codearcade compare`` plays of two versions) are not counted, and a verb that acts only on some kinds of run
-   (``audit``, ``replay``, ``optimize --resume``: optimizations) counts only those, and says so when it passed a
-   newer run of another kind;
+   ``codearcade compare`` plays of two versions) are not counted, nor is a served run that holds no submission
+   (a ``serve`` tried and stopped before the agent submitted: it has nothing to report, blame, view or audit;
+   ``serve --resume`` and ``serve --finalize`` count it, and its id names it everywhere), and a verb that acts only
+   on some kinds of run (``audit``, ``replay``, ``optimize --resume``: optimizations) counts only those; a verb says
+   so when it passed over a newer run;
 3. a run's label (``runs.name``, given with ``--name`` or by a batch entry), when one run has it;
 4. the start of a run id, in either case, when one run id starts so.
 
@@ -44,6 +46,11 @@ NAME_MAX = 64
 RECENT_FORM = re.compile(r"last(~[0-9]*)?|-[0-9]+")
 """The references by recency: ``last``, ``last~N``, ``-N``."""
 
+UNSUBMITTED_SQL = ("kind = 'serve' AND NOT EXISTS (SELECT 1 FROM candidates c WHERE c.run_id = runs.run_id "
+                   "AND c.iteration >= 1)")
+"""A condition on a ``runs`` row: a served run that holds no submission (its iteration 0 is the starter, which no
+agent submitted; ``store/serve.py``). By recency, such a run is passed over unless a verb asks for it."""
+
 _BODY = r"""
     WITH ref AS (SELECT trim(CAST({ref} AS VARCHAR)) AS text),
     back AS (  -- last / last~N / -N: how many runs back from the newest
@@ -54,7 +61,7 @@ _BODY = r"""
                END AS n FROM ref),
     recent AS (
         SELECT run_id, row_number() OVER (ORDER BY created_at DESC, run_id DESC) - 1 AS n
-        FROM runs WHERE made_by IS NULL AND {kinds}),
+        FROM runs WHERE made_by IS NULL AND {kinds} AND ({unsubmitted} OR NOT ({UNSUBMITTED}))),
     matches AS (
         SELECT r.run_id, 1 AS level, 'id' AS matched FROM runs r, ref WHERE r.run_id = ref.text
         UNION ALL
@@ -65,11 +72,13 @@ _BODY = r"""
         SELECT r.run_id, 4, 'prefix' FROM runs r, ref
         WHERE ref.text <> '' AND starts_with(upper(r.run_id), upper(ref.text)))
     SELECT run_id, matched FROM matches WHERE level = (SELECT min(level) FROM matches)
-"""
-RUN_MATCHES_SQL = _BODY.format(ref="$ref", kinds="($kinds IS NULL OR list_contains($kinds, kind))")
+""".replace("{UNSUBMITTED}", UNSUBMITTED_SQL)
+RUN_MATCHES_SQL = _BODY.format(
+    ref="$ref", kinds="($kinds IS NULL OR list_contains($kinds, kind))", unsubmitted="$unsubmitted")
 """The runs a reference (parameter ``$ref``) names, at the first level of the grammar that names any: columns
-``run_id`` and ``matched`` (``id``, ``recency``, ``name`` or ``prefix``). The one home of the grammar: the
-Python resolver runs it, and the SQL macros are made from it."""
+``run_id`` and ``matched`` (``id``, ``recency``, ``name`` or ``prefix``). By recency, only runs of the kinds
+``$kinds`` (NULL: any) count, and served runs without a submission only when ``$unsubmitted``. The one home of the
+grammar: the Python resolver runs it, and the SQL macros are made from it."""
 
 SQL_MACROS: dict[str, tuple[str, str, str]] = {
     "run": (
@@ -87,7 +96,8 @@ SQL_MACROS: dict[str, tuple[str, str, str]] = {
         "run_matches(ref)",
         "table macro: every run a reference names, with how (id, recency, name, prefix): "
         "FROM run_matches('01JD')",
-        "CREATE TEMP MACRO run_matches(ref) AS TABLE " + _BODY.format(ref="ref", kinds="TRUE"),
+        "CREATE TEMP MACRO run_matches(ref) AS TABLE "
+        + _BODY.format(ref="ref", kinds="TRUE", unsubmitted="FALSE"),
     ),
 }
 """The macros a person's SQL can use: name -> (signature, one line of help, the statement that makes it). The
@@ -145,13 +155,16 @@ def _candidate(row: tuple, short: dict[str, str]) -> str:
 
 
 def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None,
-                   kinds: tuple[str, ...] | None = None) -> str:
+                   kinds: tuple[str, ...] | None = None, unsubmitted: bool = False) -> str:
     """The run ``text`` names (the grammar in the module docstring); ValueError, one line, saying what there is
-    when it names none or several. ``kinds``: by recency (``last``, ...), only runs of these kinds count."""
+    when it names none or several. ``kinds``: by recency (``last``, ...), only runs of these kinds count;
+    ``unsubmitted``: so do served runs without a submission (:data:`UNSUBMITTED_SQL`), which are passed over
+    otherwise."""
     ref = text.strip()
+    counted = {"kinds": list(kinds) if kinds else None, "unsubmitted": unsubmitted}
     rows = con.execute(f"SELECT m.run_id, m.matched, r.kind, r.game, r.created_at, r.name FROM ({RUN_MATCHES_SQL}) m "
                        "JOIN runs r USING (run_id) ORDER BY r.created_at DESC, m.run_id DESC",
-                       {"ref": ref, "kinds": list(kinds) if kinds else None}).fetchall()
+                       {"ref": ref, **counted}).fetchall()
     where = _where(store)
     if len(rows) == 1:
         return rows[0][0]
@@ -161,12 +174,19 @@ def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None,
             raise ValueError(f"no run {ref or repr(text)}{where}: there are no runs yet; `codearcade eval` or "
                              "`codearcade optimize` makes one")
         if RECENT_FORM.fullmatch(ref):
-            if kinds:
-                (total,) = con.execute("SELECT count(*) FROM runs WHERE made_by IS NULL AND list_contains(?, kind)",
-                                       [list(kinds)]).fetchone()
+            total, empty = con.execute(
+                f"SELECT count(*) FILTER ($unsubmitted OR NOT ({UNSUBMITTED_SQL})), "
+                f"list(run_id ORDER BY created_at DESC, run_id DESC) FILTER (NOT $unsubmitted AND {UNSUBMITTED_SQL}) "
+                "FROM runs WHERE made_by IS NULL AND ($kinds IS NULL OR list_contains($kinds, kind))",
+                counted).fetchone()
             kind = f" {' or '.join(kinds)}" if kinds else ""
             held = (f"{total}{kind} runs, last to last~{total - 1} (-1 to -{total})" if total > 1
                     else f"one{kind} run, last (-1)" if total else f"no{kind} run")
+            if empty:  # said, or the store seems to have lost the run the person just served
+                short = short_run_ids(con)
+                held += (f", and {len(empty)} served run{'s' if len(empty) > 1 else ''} without a submission, which "
+                         f"{ref} passes over ({', '.join(short.get(r, r) for r in empty[:3])}"
+                         f"{' ...' if len(empty) > 3 else ''}: give its id)")
             raise ValueError(f"no{kind} run {ref}{where}: it holds {held}; `codearcade runs` lists them")
         names = [r[0] for r in con.execute("SELECT DISTINCT name FROM runs WHERE name IS NOT NULL").fetchall()]
         near = difflib.get_close_matches(ref, ["last", *names], n=1, cutoff=0.6) if ref else []
@@ -178,6 +198,20 @@ def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None,
     if rows[0][1] == "name":
         raise ValueError(f"{len(rows)} runs are named {ref!r}{where}: {listed}; give one by its id")
     raise ValueError(f"run {ref} is ambiguous{where}: {listed}; give more of the id")
+
+
+def passed_over(con: duckdb.DuckDBPyConnection, run_id: str, kinds: tuple[str, ...] | None = None,
+                unsubmitted: bool = False) -> list[tuple[str, str, bool]]:
+    """The runs newer than ``run_id`` that a reference by recency, counting as :func:`resolve_run_id` does with
+    ``kinds`` and ``unsubmitted``, passed over to name it: (run id, kind, whether it is a served run without a
+    submission), newest first. Runs a command made for its own use (``made_by``) are never named: no one started
+    them."""
+    return [(r, k, bool(e)) for r, k, e in con.execute(
+        f"SELECT run_id, kind, {UNSUBMITTED_SQL} AS empty FROM runs WHERE made_by IS NULL AND created_at > "
+        "(SELECT created_at FROM runs WHERE run_id = $run) "
+        f"AND NOT (($kinds IS NULL OR list_contains($kinds, kind)) AND ($unsubmitted OR NOT ({UNSUBMITTED_SQL}))) "
+        "ORDER BY created_at DESC, run_id DESC",
+        {"run": run_id, "kinds": list(kinds) if kinds else None, "unsubmitted": unsubmitted}).fetchall()]
 
 
 MIN_HINTED_PREFIX = 4
@@ -196,7 +230,8 @@ def references_by_value(con: duckdb.DuckDBPyConnection, texts: Iterable[str]) ->
         ref = text.strip()
         if not ref or re.fullmatch(r"-[0-9]+", ref):
             continue
-        rows = con.execute(RUN_MATCHES_SQL + " ORDER BY run_id", {"ref": ref, "kinds": None}).fetchall()
+        rows = con.execute(RUN_MATCHES_SQL + " ORDER BY run_id", {"ref": ref, "kinds": None,
+                                                                   "unsubmitted": False}).fetchall()
         if not rows or rows[0][1] == "id" or (rows[0][1] == "prefix" and len(ref) < MIN_HINTED_PREFIX):
             continue
         found.append((text, rows[0][1], [r[0] for r in rows]))

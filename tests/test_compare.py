@@ -205,7 +205,7 @@ def test_two_runs_curves_budget_table_and_diff(store, tmp_path, scripted):
                               "--json")
     assert code == 0, err
     assert [r["run_id"] for r in json.loads(out)["runs"]] == ids
-    assert "compare: last is optimize or replay or serve run" in err and "passing over the newer eval run" in err
+    assert "compare: last is optimize run" in err and "passing over the newer eval run" in err
 
 
 def test_versions_on_the_same_seeds_are_compared_pair_by_pair(store, tmp_path):

@@ -17,7 +17,8 @@ import pytest
 from store import Store, StoreLocation, locate_store
 from store.locks import run_lock
 from store.migrations import LATEST
-from store.runs import MIN_PREFIX, check_run_name, list_runs, resolve_run_id, short_run_ids, shortest_prefixes
+from store.runs import (MIN_PREFIX, check_run_name, create_sql_macros, list_runs, resolve_run_id, short_run_ids,
+                        shortest_prefixes)
 from store.views import TABLES, VIEWS, QueryError, bind_params, run_user_query, schema_listing
 from store.writer import finish_run, insert_run, set_run_name
 from tests.conftest import old_store
@@ -91,6 +92,61 @@ def test_a_verb_that_passes_over_a_newer_run_says_which_it_took(four, capsys):
     assert resolve_run(four, "baseline", kinds=("optimize",), verb="audit") == RUNS[0][0]
     assert capsys.readouterr().err == "", "a run named, not counted back: nothing passed over"
     assert resolve_run(four, "last") == RUNS[2][0] and capsys.readouterr().err == ""
+
+
+SERVED = "01JDX3M0SB00000000000000E5"  # a served run with a submission, after the four
+UNSUBMITTED = "01JDX3M5UN00000000000000F6"  # a `serve` stopped before any submission, the newest run
+
+
+def _served(store: Store, submitted: bool = True) -> Store:
+    from store.writer import insert_candidate
+
+    _add(store, SERVED, 20, "serve", "pong")
+    with store.write() as con:
+        insert_candidate(con, dict(run_id=SERVED, iteration=1, candidate=0, strategy="serve",
+                                   policy_version_id="v" * 16, update_status="accepted", evaluation="played",
+                                   decision="best"))
+    _add(store, UNSUBMITTED, 25, "serve", "pong", status="interrupted")
+    return store
+
+
+def test_last_passes_over_a_served_run_without_a_submission_and_says_so(four, capsys):
+    # `codearcade serve --mcp` tried and stopped before the agent submitted left an empty run that became `last`
+    # for report, blame, view and audit (`audit last` played nothing and exited 0)
+    from pipeline.cli.common import resolve_run
+
+    _served(four)
+    assert _resolve(four, "last") == SERVED and _resolve(four, "last~1") == RUNS[2][0]
+    assert resolve_run(four, "last", verb="report") == SERVED
+    assert re.fullmatch(r"codearcade report: last is serve run 01JDX3M0\S*, passing over the newer serve run "
+                        r"01JDX3M5\S* \(no submission\)\n", capsys.readouterr().err)
+    assert resolve_run(four, "last", kinds=("optimize",), verb="audit") == RUNS[1][0]
+    err = capsys.readouterr().err
+    assert "serve run 01JDX3M5" in err and "(no submission)" in err and "eval run 01JDX3K9" in err, err
+    # serve's own verbs count it: `serve --resume last` opens the run just stopped
+    assert resolve_run(four, "last", kinds=("serve",), verb="serve --resume", unsubmitted=True) == UNSUBMITTED
+    assert capsys.readouterr().err == ""
+    assert _resolve(four, UNSUBMITTED[:10]) == UNSUBMITTED  # by its id it is named as any run
+    with four.read() as con:  # and `last` in SQL is the same run
+        create_sql_macros(con)
+        assert con.execute("SELECT run('last'), run('-2')").fetchone() == (SERVED, RUNS[2][0])
+
+
+def test_a_store_whose_only_served_run_holds_no_submission_says_where_it_is(store):
+    _add(store, UNSUBMITTED, 25, "serve", "pong", status="interrupted")
+    with pytest.raises(ValueError) as refused:
+        _resolve(store, "last")
+    assert "1 served run without a submission, which last passes over (01JDX3M5" in str(refused.value)
+
+
+def test_audit_of_a_served_run_without_a_submission_says_so_and_fails(four):
+    from tests.conftest import run_main
+
+    _served(four)
+    result = run_main("audit", UNSUBMITTED, "--store", four.path)
+    assert result.returncode == 2, result
+    assert "holds no submission: there is nothing to audit" in result.stderr
+    assert "serve --resume 01JDX3M5" in result.stderr
 
 
 @pytest.mark.parametrize("game, code, said", [

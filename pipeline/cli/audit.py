@@ -108,9 +108,15 @@ def _served_audit(store, run_id: str, args: argparse.Namespace) -> int:
     from pipeline.cli.serve import served_lines
     from pipeline.optimizer.audit import AuditResult
     from store.readers import audits
+    from store.serve import served_submissions
 
     with store.read() as con:
         rows = audits(con, run_id)
+        submitted = bool(rows) or bool(served_submissions(con, run_id))
+    if not submitted:  # nothing played, nothing to play: not a success (finalize refuses such a run too)
+        short = short_id(store, run_id)
+        raise CliError(f"run {short} is served and holds no submission: there is nothing to audit; "
+                       f"`{command_text(store, 'serve', '--resume', short)}` serves it again")
     if args.json:
         show_json({"run_id": run_id, "overfit": AuditResult(run_id, rows).overfit, "audits": rows}, default=str)
     elif not rows:

@@ -31,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     from viewers.blame import blame, format_blame
 
     store = open_store(args)
-    run_id = resolve_run(store, args.run_id)
+    run_id = resolve_run(store, args.run_id, verb="blame")
     # neither given: the run's best, a served run's by validation (store.comparisons.resolve_version)
     report = blame(store, run_id, args.version, args.iteration)
     if args.json:

@@ -317,25 +317,29 @@ def add_run(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_id", metavar="RUN", help=RUN_HELP)
 
 
-def resolve_run(store, text: str, kinds: tuple[str, ...] | None = None, verb: str | None = None) -> str:
+def resolve_run(store, text: str, kinds: tuple[str, ...] | None = None, verb: str | None = None,
+                unsubmitted: bool = False) -> str:
     """The run ``text`` names (``store/runs.py``: a whole id, ``last``, ``last~N``, ``-N``, a label or a unique
     prefix), the same in every verb. ``kinds``: the verb acts only on these kinds of run, so ``last`` and its kin
-    count only those; when that passes over a newer run of another kind, one line on stderr says which it took."""
-    from store.runs import RECENT_FORM, resolve_run_id
+    count only those; ``unsubmitted``: they count served runs that hold no submission too (``serve --resume``),
+    which they pass over otherwise (nothing to report, blame, view or audit). When that passes over a newer run,
+    one line on stderr says which it took and what it passed over."""
+    from store.readers import get_run
+    from store.runs import RECENT_FORM, passed_over, resolve_run_id
 
     passed = None
     with store.read() as con:
-        run_id = resolve_run_id(con, text, store, kinds)
-        if kinds and RECENT_FORM.fullmatch(text.strip()):
-            passed = con.execute("SELECT run_id, kind FROM runs WHERE made_by IS NULL AND created_at > (SELECT "
-                                 "created_at FROM runs WHERE run_id = ?) AND NOT list_contains(?, kind) "
-                                 "ORDER BY created_at DESC, run_id DESC", [run_id, list(kinds)]).fetchall()
+        run_id = resolve_run_id(con, text, store, kinds, unsubmitted)
+        if RECENT_FORM.fullmatch(text.strip()):
+            passed = passed_over(con, run_id, kinds, unsubmitted)
+            kind = get_run(con, run_id)["kind"]
     if passed:
         short = short_ids(store)
-        others = ", ".join(f"{kind} run {short.get(other, other)}" for other, kind in passed[:3])
+        others = ", ".join(f"{kind} run {short.get(other, other)}{' (no submission)' if empty else ''}"
+                           for other, kind, empty in passed[:3])
         more = f" and {len(passed) - 3} more" if len(passed) > 3 else ""
-        show(f"codearcade{' ' + verb if verb else ''}: {text.strip()} is {' or '.join(kinds)} run "
-             f"{short.get(run_id, run_id)}, passing over the newer {others}{more}", file=sys.stderr)
+        show(f"codearcade{' ' + verb if verb else ''}: {text.strip()} is {kind} run {short.get(run_id, run_id)}, "
+             f"passing over the newer {others}{more}", file=sys.stderr)
     return run_id
 
 

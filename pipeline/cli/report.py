@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         check_output(args.out, directory=True)
     store = open_store(args)
-    run_id = resolve_run(store, args.run_id)
+    run_id = resolve_run(store, args.run_id, verb="report")
     path = write_report(store, run_id, args.out, reproduce=reproduce_command, price=price,
                         progress=lambda stage: show(f"codearcade report: {stage}", file=sys.stderr, flush=True))
     show(path)

@@ -103,9 +103,10 @@ def run(args: argparse.Namespace) -> int:
         rerun = rerun_target(args.rerun)
     store = open_store(args)
     if args.finalize is not None:
-        return _finalize(store, resolve_run(store, args.finalize, kinds=(KIND,), verb="serve --finalize"), args)
+        return _finalize(store, resolve_run(store, args.finalize, kinds=(KIND,), verb="serve --finalize",
+                                         unsubmitted=True), args)
     if args.resume is not None:
-        run_id = resolve_run(store, args.resume, kinds=(KIND,), verb="serve --resume")
+        run_id = resolve_run(store, args.resume, kinds=(KIND,), verb="serve --resume", unsubmitted=True)
     else:
         config = ServeConfig(**{name: getattr(args, name) for name in ServeConfig.__dataclass_fields__
                                 if hasattr(args, name)})  # a setting without a flag keeps its default

@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
     if args.save:  # the recording comes after the replay: a path it cannot be written to is said first
         check_output(args.save)
     store = open_store(args)
-    run_id = resolve_run(store, args.run_id)
+    run_id = resolve_run(store, args.run_id, verb="view")
 
     def out(line: str) -> None:
         if not args.quiet:
