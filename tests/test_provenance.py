@@ -124,6 +124,18 @@ def test_blame_text_and_errors(run, capsys):
     assert err.startswith("codearcade: error: run ") and "no policy version 'ffff'" in err and "Traceback" not in err
     assert main(["blame", run_id, "--iteration", "9", "--store", str(store.path)]) == 2
     assert "no iteration 9 (iterations 0..3)" in capsys.readouterr().err, "the range is the run's, rejects too"
+    # iteration 2's candidate was rejected: --iteration 2 shows iteration 1's version, and says so (it said nothing
+    # of it: the header named iteration 1 and left the person to guess why)
+    rejected = store.query("SELECT proposed_version_id FROM candidates WHERE run_id = ? AND iteration = 2",
+                           [run_id])[0][0]
+    assert main(["blame", run_id, "--iteration", "2", "--store", str(store.path)]) == 0
+    header, note = capsys.readouterr().out.splitlines()[:2]
+    assert header.endswith("(iteration 1)"), header
+    assert note == ("iteration 2 wrote no version of its own (its update was rejected): shown is the version it "
+                    f"evaluated, iteration 1's; its candidate {rejected[:8]}: --version {rejected[:8]}")
+    report = _cli_json("blame", run_id, "--iteration", "2", "--json", "--store", str(store.path))
+    assert (report["iteration"], report["asked_iteration"], report["note"]) == (1, 2, note)
+    assert _cli_json("blame", run_id, "--iteration", "1", "--json", "--store", str(store.path))["note"] is None
 
 
 def test_blame_is_computed_for_a_store_written_before_migration_7(run, tmp_path):
