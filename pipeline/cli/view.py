@@ -29,7 +29,8 @@ def add_parser(verbs) -> None:
     sink = p.add_mutually_exclusive_group()
     sink.add_argument("--save", metavar="FILE.rrd", help="write the recording to this file")
     sink.add_argument("--serve-web", action="store_true",
-                      help="serve the web viewer on 127.0.0.1 and print its URL; Ctrl-C stops it")
+                      help="serve the web viewer on 127.0.0.1 and print its URL (ports 9090 and 9876 when free, "
+                      "else ones the OS picks); Ctrl-C stops it")
     sink.add_argument("--spawn", action="store_true", help="send it to a native Rerun viewer (started if none runs)")
     sink.add_argument("--connect", metavar="URL", help="send it to a viewer or server at rerun+http://HOST:PORT/proxy")
     p.add_argument("--frames-every", type=non_negative_int, default=4, metavar="K",
