@@ -16,6 +16,7 @@ from store.runs import shortest_prefixes
 from store.scores import PLAYED_OUT, score_text
 from store.statistics import MEAN_METHOD, interval_text
 from viewers.report import _md_table
+from viewers.report_figures import save_png
 from viewers.safe_text import markdown_code, markdown_code_block, markdown_text, plot_text, terminal_text
 from viewers.tables import format_table
 from viewers.whole_files import writing
@@ -270,7 +271,7 @@ def write_report(data: dict[str, Any], out: Path) -> Path:
     md: list[str] = []
     if data["mode"] == "runs":
         with writing(out / "curves.png") as partial:
-            curves_figure(data).savefig(partial, format="png")
+            save_png(curves_figure(data), partial)
         runs = data["runs"]
         md += [f"# {markdown_text(data['game'])}: run {markdown_code(runs[0]['run_id'])} (A) vs run "
                f"{markdown_code(runs[1]['run_id'])} (B)", "",

@@ -26,7 +26,8 @@ from store.statistics import MEAN_METHOD, interval_text
 from store.showing import report_rows
 from store.runs import resolve_run_id, shown_status
 from viewers.model_choices import choice_section
-from viewers.report_figures import calls_figure, code_figure, lineage_figure, scores_figure, tokens_figure
+from viewers.report_figures import (calls_figure, code_figure, lineage_figure, save_png, scores_figure,
+                                    tokens_figure)
 from viewers.safe_text import (markdown_cell, markdown_code, markdown_code_block, markdown_text, terminal_text)
 from viewers.tables import money
 from viewers.whole_files import writing
@@ -318,7 +319,7 @@ def write_report(store: Store, run: str, out_dir: str | Path | None = None, *,
         fig = figure(data)
         if fig is not None:
             with writing(out / name) as partial:
-                fig.savefig(partial, format="png")
+                save_png(fig, partial)
             images[name] = caption
     readme = out / "README.md"
     say("writing README.md")
