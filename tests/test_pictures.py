@@ -1,8 +1,14 @@
 """What the report's and compare's pictures draw, checked on the figures' plotted data (and pixels for overlap):
-a candidate never played is not drawn at its parent's score, legends sit beside the bars, and where two runs'
-curves coincide both stay visible."""
+a candidate never played is not drawn at its parent's score, legends sit beside the bars, where two runs'
+curves coincide both stay visible, no title, label or legend runs past the image's edge however long the names
+in it, and ``save_png`` (one layout, one draw) writes the pixels a draw through the figure's layout makes."""
 
 from __future__ import annotations
+
+import copy
+import gzip
+import io
+import shutil
 
 import numpy as np
 import pytest
@@ -12,10 +18,11 @@ from pipeline.llm.client import LiteLLMClient
 from pipeline.optimizer.config import OptimizeConfig
 from pipeline.optimizer.loop import optimize
 from store import Store
-from tests.conftest import COMPETENT_REPLY, EXAMPLES, json_reply
+from tests.conftest import COMPETENT_REPLY, EXAMPLES, ROOT, json_reply
 from viewers import compare_report
 from viewers.report import collect
 from viewers.report_figures import episode_returns_figure, lineage_figure, tokens_figure, unplayed_reason
+from viewers import report_figures
 
 KEY_ERROR = json_reply({"select_action": "def select_action(self, predicted_ball_y, obs):\n    return obs['Nope']\n"})
 # iteration 1 competent (played), 2 an unusable reply, 3 code that raises on recorded observations: 2 and 3 are
@@ -131,3 +138,51 @@ def test_compare_curves_that_coincide_both_show(tmp_path):
     assert b_same > 0.4 * b_apart, f"B's curve is hidden where it meets A's ({b_same} of {b_apart} pixels show)"
     compare_report.curves_figure(_curves_data()).savefig(tmp_path / "curves.png")
     assert (tmp_path / "curves.png").stat().st_size > 20_000
+
+
+LONG_MODEL = "openrouter/meta-llama/llama-3.1-405b-instruct-turbo"
+REPORT_FIGURES = ("scores_figure", "code_figure", "tokens_figure", "lineage_figure", "calls_figure")
+
+
+@pytest.fixture(scope="module")
+def greedy(tmp_path_factory) -> dict:
+    """The report's data of tests/fixtures/greedy_run.duckdb.gz (five iterations of Pong, every figure drawn)."""
+    path = tmp_path_factory.mktemp("greedy") / "greedy.duckdb"
+    with gzip.open(ROOT / "tests" / "fixtures" / "greedy_run.duckdb.gz") as packed, open(path, "wb") as out:
+        shutil.copyfileobj(packed, out)
+    store = Store(path)
+    return collect(store, store.query("SELECT run_id FROM runs")[0][0])
+
+
+def _long_named(data: dict) -> dict:
+    """``data`` with a long run name, a long model name, and its calls spread over three long model names."""
+    data = copy.deepcopy(data)
+    data["run"].update(name="a run whose name says at length what it tried " * 2, model=LONG_MODEL)
+    for i, call in enumerate(data["calls"]):
+        call["request_model"] = f"{LONG_MODEL}-with-a-suffix-{i % 3}"
+    return data
+
+
+@pytest.mark.parametrize("which", REPORT_FIGURES + ("compare",))
+def test_no_title_label_or_legend_runs_past_the_image(greedy, which):
+    if which == "compare":
+        data = _curves_data()
+        data["runs"] = [{**run, "model": f"{LONG_MODEL}-{run['label']}"} for run in data["runs"]]
+        fig = compare_report.curves_figure(data)
+    else:
+        fig = getattr(report_figures, which)(_long_named(greedy))
+    inside = fig.bbox_inches
+    drawn = fig.get_tightbbox(_drawn(fig).get_renderer())  # every artist drawn, in inches
+    assert drawn.x0 >= inside.x0 and drawn.y0 >= inside.y0 and drawn.x1 <= inside.x1 and drawn.y1 <= inside.y1, \
+        f"{which}: drawn over {drawn.bounds}, the image is {inside.bounds} (inches)"
+
+
+def test_save_png_writes_what_a_draw_through_the_layout_makes(greedy):
+    from PIL import Image
+
+    for which in ("scores_figure", "calls_figure"):  # a legend beside the axes; one below two axes
+        drawn = np.asarray(_drawn(getattr(report_figures, which)(greedy)).buffer_rgba())
+        saved = io.BytesIO()
+        report_figures.save_png(getattr(report_figures, which)(greedy), saved)
+        written = np.asarray(Image.open(io.BytesIO(saved.getvalue())).convert("RGBA"))
+        assert written.shape == drawn.shape and np.array_equal(written, drawn), f"{which} saved differs"

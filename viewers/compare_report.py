@@ -63,7 +63,7 @@ def curves_figure(data: dict[str, Any]):
     axes[-1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     runs = data["runs"]
     fig.suptitle(plot_text(f"{data['game']}: A {runs[0]['run_id']} ({runs[0]['model']}) vs B {runs[1]['run_id']} "
-                           f"({runs[1]['model']})"), fontsize=10)
+                           f"({runs[1]['model']})"), fontsize=10, wrap=True)  # at its spaces, inside the figure
     return fig
 
 

@@ -2,7 +2,9 @@
 :func:`viewers.report.collect` reads: the scores per iteration (``score.png``), the lineage of candidates
 (``lineage.png``), an eval run's episode returns, the code's size and complexity (``code.png``), the tokens
 (``tokens.png``) and the LLM calls over time. Forfeits are drawn as marks, never at a partial return
-(``store/scores.py``); every text from the store passes ``viewers.safe_text.plot_text``. Agg canvas: no display.
+(``store/scores.py``); every text from the store passes ``viewers.safe_text.plot_text``, and titles and legends
+are fitted to the image however long the names in them. Agg canvas: no display; :func:`save_png` writes a figure
+(compare's too) with its layout solved once and one draw.
 """
 
 from __future__ import annotations
@@ -50,13 +52,27 @@ def save_png(fig, path) -> None:
 
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    FigureCanvasAgg(fig)
+    if not isinstance(fig.canvas, FigureCanvasAgg):
+        FigureCanvasAgg(fig)
     engine = fig.get_layout_engine()
     if engine is not None:
         with suppress(ValueError):  # as Figure.draw does: a layout that cannot be solved leaves the axes as they are
             engine.execute(fig)
         fig.set_layout_engine(None)
     fig.savefig(path, format="png", pil_kwargs={"compress_level": 3})
+
+
+def _legend_below(fig, handles) -> None:
+    """The figure's legend below its axes, in as many columns as fit in its width (three at most): in three, the
+    long model names of an ensemble made a legend wider than the image, cut at both sides."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(fig).get_renderer()  # the canvas save_png draws with
+    for ncol in (3, 2, 1):
+        legend = fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=ncol, frameon=False)
+        if ncol == 1 or legend.get_window_extent(renderer).width <= fig.bbox.width:
+            return
+        legend.remove()
 
 
 def _nan(value: float | None) -> float:
@@ -75,10 +91,17 @@ def _integer_x(ax, xs: Sequence[int]) -> None:
 def _title(data: dict[str, Any], what: str) -> str:
     run = data["run"]
     model = f", {run['model']}" if run["model"] else ""
-    # wrapped, so a long model name never runs past the image's edge
+    # wrapped at 90 characters, so that no word of it is wider than the image (a longer one is broken)
     named = f" '{run['name']}'" if run.get("name") else ""
     return "\n".join(textwrap.wrap(plot_text(f"{run['game']} · {what}"), 90) +
                      textwrap.wrap(plot_text(f"run {run['run_id']}{named} ({run['kind']}{model})"), 90))
+
+
+def _set_title(ax, data: dict[str, Any], what: str) -> None:
+    """The axes' title: :func:`_title`, wrapped at its spaces by matplotlib (``wrap=True``) to stay inside the
+    figure. Centred over axes that a legend beside them pushes to the left, a title wider than the axes ran off
+    the image's left edge: constrained layout leaves a title's width out of the margins it makes."""
+    ax.set_title(_title(data, what), fontsize=11, wrap=True)
 
 
 def scores_figure(data: dict[str, Any]):
@@ -144,7 +167,7 @@ def scores_figure(data: dict[str, Any]):
                     (best["best_iteration"], best["best_score"]), textcoords="offset points", xytext=(0, 10),
                     ha="center", va="bottom", fontsize=8, color="#ff7f0e")
     ax.margins(y=0.15)
-    ax.set_title(_title(data, "score per iteration"), fontsize=11)
+    _set_title(ax, data, "score per iteration")
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     return fig
 
@@ -254,8 +277,8 @@ def lineage_figure(data: dict[str, Any]):
         ax.set_yticks([t for t in ax.get_yticks() if (low + lane) / 2 <= t <= top])
         ax.set_ylim(bottom, top)
     unplayed = len(nodes) - len(played) - forfeited
-    ax.set_title(_title(data, f"lineage ({strategy}: {len(nodes)} candidates, {unplayed} not played"
-                              + (f", {forfeited} forfeited" if forfeited else "") + ")"), fontsize=11)
+    _set_title(ax, data, f"lineage ({strategy}: {len(nodes)} candidates, {unplayed} not played"
+               + (f", {forfeited} forfeited" if forfeited else "") + ")")
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     return fig
 
@@ -306,7 +329,7 @@ def episode_returns_figure(data: dict[str, Any]):
     ax.set_xlabel("evaluation episode" + (f" (cut off after {caps[0]:,} steps)" if len(caps) == 1 else ""))
     ax.set_ylabel("return (sum of rewards)")
     no_score = f" · no score: {len(forfeits)} of {len(episodes)} forfeited" if score.forfeits else ""
-    ax.set_title(_title(data, "return per episode" + no_score), fontsize=11)
+    _set_title(ax, data, "return per episode" + no_score)
     return fig
 
 
@@ -321,7 +344,7 @@ def code_figure(data: dict[str, Any]):
                               ("trainable_sloc", "source lines, trainable methods", "^-")):
         top.plot(xs, [r[key] for r in code], style, markersize=4, linewidth=1.5, label=label)
     top.set_ylabel("lines of code")
-    top.set_title(_title(data, "code size and complexity of the evaluated version"), fontsize=11)
+    _set_title(top, data, "code size and complexity of the evaluated version")
     for key, label, style in (("complexity", "cyclomatic complexity, Policy class", "o-"),
                               ("trainable_complexity", "cyclomatic complexity, trainable methods", "^-"),
                               ("max_if_depth", "max nested-if depth", "s--")):
@@ -357,8 +380,8 @@ def tokens_figure(data: dict[str, Any]):
     right.spines[["top"]].set_visible(False)
     handles = ax.get_legend_handles_labels()[0] + right.get_legend_handles_labels()[0]
     # below the axes, never over a bar (the right axis's labels take the space beside them)
-    fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=3, frameon=False)
-    ax.set_title(_title(data, "LLM tokens per iteration"), fontsize=11)
+    _legend_below(fig, handles)
+    _set_title(ax, data, "LLM tokens per iteration")
     return fig
 
 
@@ -413,12 +436,12 @@ def calls_figure(data: dict[str, Any]):
     flight.set_xlabel("seconds since the run's first call")
     flight.set_ylim(0, max(in_flight, default=1) + 0.5)
     flight.yaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))  # a count of calls: no 1.5
-    handles = [Patch(facecolor=colour[m], label=plot_text(m)) for m in models]
+    handles = [Patch(facecolor=colour[m], label=textwrap.fill(plot_text(m), 60)) for m in models]
     used = dict.fromkeys(c["outcome"] for c in calls)
     handles += [Patch(facecolor="white", edgecolor=CALL_OUTCOME_STYLE[o][0], linestyle=CALL_OUTCOME_STYLE[o][1],
                       linewidth=1.8, label=CALL_OUTCOME_STYLE[o][2]) for o in used if o in CALL_OUTCOME_STYLE]
-    fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=3, frameon=False)
-    ax.set_title(_title(data, "LLM calls over time (label: iteration.candidate, r = repair turn)"), fontsize=11)
+    _legend_below(fig, handles)
+    _set_title(ax, data, "LLM calls over time (label: iteration.candidate, r = repair turn)")
     return fig
 
 
