@@ -186,3 +186,17 @@ def test_save_png_writes_what_a_draw_through_the_layout_makes(greedy):
         report_figures.save_png(getattr(report_figures, which)(greedy), saved)
         written = np.asarray(Image.open(io.BytesIO(saved.getvalue())).convert("RGBA"))
         assert written.shape == drawn.shape and np.array_equal(written, drawn), f"{which} saved differs"
+
+
+def test_the_lineage_shows_the_best_above_a_candidate_of_its_score(greedy):
+    """Best-of-n: iteration 1's best and a discarded candidate of the same iteration both scored 0; the best's star
+    was drawn under the discarded grey dot (seen in a best-of-n run of 8 iterations of 4 candidates)."""
+    data = copy.deepcopy(greedy)
+    best = next(n for n in data["lineage"] if n["iteration"] == 1 and n["decision"] == "best")
+    data["lineage"].append({**best, "candidate": 1, "decision": "discarded"})
+    fig = lineage_figure(data)
+    canvas = _drawn(fig)
+    x, y = fig.axes[0].transData.transform((best["iteration"], best["score"]))
+    image = np.asarray(canvas.buffer_rgba())
+    centre = image[int(round(image.shape[0] - y)), int(round(x)), :3].astype(int)
+    assert np.abs(centre - (0xFF, 0x7F, 0x0E)).max() < 40, f"the best's point is drawn {centre}, not the star's orange"

@@ -249,9 +249,9 @@ def lineage_figure(data: dict[str, Any]):
                     ":" if _lane(n) else "-", color="#bbbbbb", linewidth=0.9, zorder=1)
     for decision, (marker, colour, label) in DECISION_STYLE.items():
         pts = [(n["iteration"], n["score"]) for n in played if n["decision"] == decision]
-        if pts:
+        if pts:  # the best above the rest: a candidate of its iteration with the same score hid it
             ax.scatter(*zip(*pts), marker=marker, s=70 if marker == "*" else 36, color=colour, label=label,
-                       zorder=3, edgecolors="white", linewidths=0.5)
+                       zorder=4 if decision == "best" else 3, edgecolors="white", linewidths=0.5)
     for reason, (marker, colour, label) in {**UNPLAYED_STYLE, "forfeited": FORFEIT_STYLE}.items():
         pts = [(n["iteration"], lane) for n in nodes if _lane(n) == reason]
         if pts:
