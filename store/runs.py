@@ -51,6 +51,22 @@ UNSUBMITTED_SQL = ("kind = 'serve' AND NOT EXISTS (SELECT 1 FROM candidates c WH
 """A condition on a ``runs`` row: a served run that holds no submission (its iteration 0 is the starter, which no
 agent submitted; ``store/serve.py``). By recency, such a run is passed over unless a verb asks for it."""
 
+_COUNTED = "made_by IS NULL AND {kinds} AND ({unsubmitted} OR NOT (" + UNSUBMITTED_SQL + "))"
+"""Whether a ``runs`` row counts by recency (``last``, ``last~N``, ``-N``): started by a person, of the kinds a
+verb acts on, and not a served run without a submission unless the verb asks for those; ``kinds`` and
+``unsubmitted`` are SQL filled in by the query or macro that uses it."""
+_OF_KINDS = "($kinds IS NULL OR list_contains($kinds, kind))"
+COUNTED_SQL = _COUNTED.format(kinds=_OF_KINDS, unsubmitted="$unsubmitted")
+""":data:`_COUNTED` with parameters: ``$kinds`` (a list, NULL: any kind) and ``$unsubmitted`` (a boolean), which
+:func:`_counting` makes."""
+
+
+def _counting(kinds: tuple[str, ...] | None = None, unsubmitted: bool = False) -> dict[str, Any]:
+    """The parameters of :data:`COUNTED_SQL` (and :data:`RUN_MATCHES_SQL`): only runs of ``kinds`` (None: any)
+    count by recency, and served runs without a submission only if ``unsubmitted``."""
+    return {"kinds": list(kinds) if kinds else None, "unsubmitted": unsubmitted}
+
+
 _BODY = r"""
     WITH ref AS (SELECT trim(CAST({ref} AS VARCHAR)) AS text),
     back AS (  -- last / last~N / -N: how many runs back from the newest
@@ -61,7 +77,7 @@ _BODY = r"""
                END AS n FROM ref),
     recent AS (
         SELECT run_id, row_number() OVER (ORDER BY created_at DESC, run_id DESC) - 1 AS n
-        FROM runs WHERE made_by IS NULL AND {kinds} AND ({unsubmitted} OR NOT ({UNSUBMITTED}))),
+        FROM runs WHERE {counted}),
     matches AS (
         SELECT r.run_id, 1 AS level, 'id' AS matched FROM runs r, ref WHERE r.run_id = ref.text
         UNION ALL
@@ -72,13 +88,12 @@ _BODY = r"""
         SELECT r.run_id, 4, 'prefix' FROM runs r, ref
         WHERE ref.text <> '' AND starts_with(upper(r.run_id), upper(ref.text)))
     SELECT run_id, matched FROM matches WHERE level = (SELECT min(level) FROM matches)
-""".replace("{UNSUBMITTED}", UNSUBMITTED_SQL)
-RUN_MATCHES_SQL = _BODY.format(
-    ref="$ref", kinds="($kinds IS NULL OR list_contains($kinds, kind))", unsubmitted="$unsubmitted")
+"""
+RUN_MATCHES_SQL = _BODY.format(ref="$ref", counted=COUNTED_SQL)
 """The runs a reference (parameter ``$ref``) names, at the first level of the grammar that names any: columns
-``run_id`` and ``matched`` (``id``, ``recency``, ``name`` or ``prefix``). By recency, only runs of the kinds
-``$kinds`` (NULL: any) count, and served runs without a submission only when ``$unsubmitted``. The one home of the
-grammar: the Python resolver runs it, and the SQL macros are made from it."""
+``run_id`` and ``matched`` (``id``, ``recency``, ``name`` or ``prefix``). By recency, only the runs
+:data:`COUNTED_SQL` counts (parameters: :func:`_counting`). The one home of the grammar: the Python resolver runs
+it, and the SQL macros are made from it."""
 
 SQL_MACROS: dict[str, tuple[str, str, str]] = {
     "run": (
@@ -97,7 +112,7 @@ SQL_MACROS: dict[str, tuple[str, str, str]] = {
         "table macro: every run a reference names, with how (id, recency, name, prefix): "
         "FROM run_matches('01JD')",
         "CREATE TEMP MACRO run_matches(ref) AS TABLE "
-        + _BODY.format(ref="ref", kinds="TRUE", unsubmitted="FALSE"),
+        + _BODY.format(ref="ref", counted=_COUNTED.format(kinds="TRUE", unsubmitted="FALSE")),
     ),
 }
 """The macros a person's SQL can use: name -> (signature, one line of help, the statement that makes it). The
@@ -161,7 +176,7 @@ def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None,
     ``unsubmitted``: so do served runs without a submission (:data:`UNSUBMITTED_SQL`), which are passed over
     otherwise."""
     ref = text.strip()
-    counted = {"kinds": list(kinds) if kinds else None, "unsubmitted": unsubmitted}
+    counted = _counting(kinds, unsubmitted)
     rows = con.execute(f"SELECT m.run_id, m.matched, r.kind, r.game, r.created_at, r.name FROM ({RUN_MATCHES_SQL}) m "
                        "JOIN runs r USING (run_id) ORDER BY r.created_at DESC, m.run_id DESC",
                        {"ref": ref, **counted}).fetchall()
@@ -174,11 +189,9 @@ def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None,
             raise ValueError(f"no run {ref or repr(text)}{where}: there are no runs yet; `codearcade eval` or "
                              "`codearcade optimize` makes one")
         if RECENT_FORM.fullmatch(ref):
-            total, empty = con.execute(
-                f"SELECT count(*) FILTER ($unsubmitted OR NOT ({UNSUBMITTED_SQL})), "
-                f"list(run_id ORDER BY created_at DESC, run_id DESC) FILTER (NOT $unsubmitted AND {UNSUBMITTED_SQL}) "
-                "FROM runs WHERE made_by IS NULL AND ($kinds IS NULL OR list_contains($kinds, kind))",
-                counted).fetchone()
+            total, empty = con.execute(  # empty: the served runs without a submission it does not count
+                f"SELECT count(*) FILTER ({COUNTED_SQL}), list(run_id ORDER BY created_at DESC, run_id DESC) "
+                f"FILTER (NOT ({COUNTED_SQL})) FROM runs WHERE made_by IS NULL AND {_OF_KINDS}", counted).fetchone()
             kind = f" {' or '.join(kinds)}" if kinds else ""
             held = (f"{total}{kind} runs, last to last~{total - 1} (-1 to -{total})" if total > 1
                     else f"one{kind} run, last (-1)" if total else f"no{kind} run")
@@ -208,10 +221,8 @@ def passed_over(con: duckdb.DuckDBPyConnection, run_id: str, kinds: tuple[str, .
     them."""
     return [(r, k, bool(e)) for r, k, e in con.execute(
         f"SELECT run_id, kind, {UNSUBMITTED_SQL} AS empty FROM runs WHERE made_by IS NULL AND created_at > "
-        "(SELECT created_at FROM runs WHERE run_id = $run) "
-        f"AND NOT (($kinds IS NULL OR list_contains($kinds, kind)) AND ($unsubmitted OR NOT ({UNSUBMITTED_SQL}))) "
-        "ORDER BY created_at DESC, run_id DESC",
-        {"run": run_id, "kinds": list(kinds) if kinds else None, "unsubmitted": unsubmitted}).fetchall()]
+        f"(SELECT created_at FROM runs WHERE run_id = $run) AND NOT ({COUNTED_SQL}) "
+        "ORDER BY created_at DESC, run_id DESC", {"run": run_id, **_counting(kinds, unsubmitted)}).fetchall()]
 
 
 MIN_HINTED_PREFIX = 4
@@ -230,8 +241,7 @@ def references_by_value(con: duckdb.DuckDBPyConnection, texts: Iterable[str]) ->
         ref = text.strip()
         if not ref or re.fullmatch(r"-[0-9]+", ref):
             continue
-        rows = con.execute(RUN_MATCHES_SQL + " ORDER BY run_id", {"ref": ref, "kinds": None,
-                                                                   "unsubmitted": False}).fetchall()
+        rows = con.execute(RUN_MATCHES_SQL + " ORDER BY run_id", {"ref": ref, **_counting()}).fetchall()
         if not rows or rows[0][1] == "id" or (rows[0][1] == "prefix" and len(ref) < MIN_HINTED_PREFIX):
             continue
         found.append((text, rows[0][1], [r[0] for r in rows]))
