@@ -107,10 +107,16 @@ def check_credentials(model: str, api_base: str | None = None, environ: dict[str
     what else would do, said where the model was given)."""
     missing = missing_keys(model, api_base, environ)
     if missing:
-        either = " or ".join(missing)
-        raise MissingCredentialsError(
-            f"{model} needs an API key: set {either} in the environment (e.g. `export {missing[0]}=...`), or "
-            + ", or ".join(other_fixes[1:] if api_base else other_fixes))
+        raise _needs_a_key(model, api_base, missing, other_fixes)
+
+
+def _needs_a_key(model: str, api_base: str | None, missing: list[str],
+                 other_fixes: tuple[str, str] = FIX_ON_COMMAND_LINE) -> MissingCredentialsError:
+    """The error for ``model`` lacking all of ``missing`` (its :func:`missing_keys`)."""
+    either = " or ".join(missing)
+    return MissingCredentialsError(
+        f"{model} needs an API key: set {either} in the environment (e.g. `export {missing[0]}=...`), or "
+        + ", or ".join(other_fixes[1:] if api_base else other_fixes))
 
 
 def check_ensemble_credentials(entries: list[dict], environ: dict[str, str] | None = None) -> None:
@@ -119,8 +125,8 @@ def check_ensemble_credentials(entries: list[dict], environ: dict[str, str] | No
     lacking = [(e["model"], e.get("api_base"), missing) for e in entries
                if (missing := missing_keys(e["model"], e.get("api_base"), environ))]
     if len(lacking) == 1:
-        check_credentials(*lacking[0][:2], environ=environ)
-    elif lacking:
+        raise _needs_a_key(*lacking[0])
+    if lacking:
         each = ", ".join(f"{model} ({' or '.join(missing)})" for model, _, missing in lacking)
         fixes = FIX_ON_COMMAND_LINE[1:] if all(api_base for _, api_base, _ in lacking) else FIX_ON_COMMAND_LINE
         raise MissingCredentialsError(
