@@ -381,6 +381,16 @@ def iteration_count(con: duckdb.DuckDBPyConnection, run_id: str) -> int:
     return con.execute("SELECT count(*) FROM iterations WHERE run_id = ?", [run_id]).fetchone()[0]
 
 
+def iteration_update(con: duckdb.DuckDBPyConnection, run_id: str, iteration: int) -> tuple[str | None, list[str]]:
+    """What one iteration did with its update: its ``update_status`` (None: no such iteration) and the versions its
+    candidates proposed, in candidate order (those whose reply held no usable code left out)."""
+    row = con.execute("SELECT update_status FROM iterations WHERE run_id = ? AND iteration = ?",
+                      [run_id, iteration]).fetchone()
+    proposed = con.execute("SELECT proposed_version_id FROM candidates WHERE run_id = ? AND iteration = ? AND "
+                           "proposed_version_id IS NOT NULL ORDER BY candidate", [run_id, iteration]).fetchall()
+    return (row[0] if row else None), [version for (version,) in proposed]
+
+
 HISTORY_ITERATION_COLUMNS = ("iteration", "candidate", "policy_version_id", "update_status", "score", "rolled_back",
                              "best_score", "best_iteration", "best_version_id")
 """The fields of an ``iterations`` row in a run's history (:func:`iterations`)."""

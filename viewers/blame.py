@@ -16,7 +16,7 @@ from typing import Any
 from store import Store
 from store.comparisons import resolve_version
 from store.lines import backfill_lines, has_lines, version_blame
-from store.readers import candidates, first_iteration_of, get_run, iterations, version_of_iteration
+from store.readers import first_iteration_of, get_run, iteration_update, version_of_iteration
 from store.runs import resolve_run_id
 from viewers.safe_text import terminal_text
 
@@ -56,10 +56,9 @@ def blame(store: Store, run: str, version: str | None = None, iteration: int | N
         run_id = resolve_run_id(con, run, store)
         version_id, first = _resolve_version(con, run_id, version, iteration)
         if iteration is not None and first != iteration:
-            status = next((r["update_status"] for r in iterations(con, run_id) if r["iteration"] == iteration), None)
-            proposed = [c["proposed_version_id"] for c in candidates(con, run_id, iteration + 1)
-                        if c["iteration"] == iteration and c["proposed_version_id"] not in (None, version_id)]
-            note = _not_its_own(iteration, first, status, list(dict.fromkeys(proposed)))
+            status, proposed = iteration_update(con, run_id, iteration)
+            refused = [v for v in dict.fromkeys(proposed) if v != version_id]
+            note = _not_its_own(iteration, first, status, refused)
         missing = not has_lines(con, run_id, version_id)
     if missing:  # a run stored before migration 7: compute its versions' lines once
         with store.write() as con:
