@@ -163,18 +163,85 @@ def _long_named(data: dict) -> dict:
     return data
 
 
-@pytest.mark.parametrize("which", REPORT_FIGURES + ("compare",))
-def test_no_title_label_or_legend_runs_past_the_image(greedy, which):
+def _as_eval_run(data: dict) -> dict:
+    """``data`` as an eval run's (episode_returns_figure): its evaluation episodes, ended every way one ends."""
+    data = copy.deepcopy(data)
+    data["run"]["kind"] = "eval"
+    data["episodes"] = [e for e in data["episodes"] if e["kind"] == "eval"]
+    reasons = ("terminated", "truncated", "policy_error", "timeout", "crashed", "tampered")
+    for i, episode in enumerate(data["episodes"]):
+        episode.update(episode_index=i, end_reason=reasons[i % len(reasons)])
+    return data
+
+
+def _figure_of(which: str, data: dict, model: str):
+    """Figure ``which`` (a report figure, ``episode_returns_figure``, or ``compare``: two runs of ``model``)."""
     if which == "compare":
-        data = _curves_data()
-        data["runs"] = [{**run, "model": f"{LONG_MODEL}-{run['label']}"} for run in data["runs"]]
-        fig = compare_report.curves_figure(data)
-    else:
-        fig = getattr(report_figures, which)(_long_named(greedy))
+        curves = _curves_data()
+        curves["runs"] = [{**run, "model": f"{model}-{run['label']}"} for run in curves["runs"]]
+        return compare_report.curves_figure(curves)
+    if which == "episode_returns_figure":
+        return report_figures.episode_returns_figure(_as_eval_run(data))
+    return getattr(report_figures, which)(data)
+
+
+def _assert_inside(fig, which: str) -> None:
     inside = fig.bbox_inches
     drawn = fig.get_tightbbox(_drawn(fig).get_renderer())  # every artist drawn, in inches
     assert drawn.x0 >= inside.x0 and drawn.y0 >= inside.y0 and drawn.x1 <= inside.x1 and drawn.y1 <= inside.y1, \
         f"{which}: drawn over {drawn.bounds}, the image is {inside.bounds} (inches)"
+
+
+ALL_FIGURES = REPORT_FIGURES + ("episode_returns_figure", "compare")
+
+
+@pytest.mark.parametrize("which", ALL_FIGURES)
+def test_no_title_label_or_legend_runs_past_the_image(greedy, which):
+    _assert_inside(_figure_of(which, _long_named(greedy), LONG_MODEL), which)
+
+
+HOSTILE_NAMES = {  # legal names (a run's name, a model id) that matplotlib's wrap, at spaces only, cannot fit
+    "no space": ("abcdefghijklmnopqrstuvwxyz0123456789-_" * 8)[:300],
+    "wide letters": "W" * 300,
+    "CJK": "强化学习策略优化实验" * 12,
+    "newlines and tabs": "first line\nsecond\tline\r\n" * 6 + "x" * 120,
+}
+
+
+def _hostile_named(data: dict, name: str) -> dict:
+    """``data`` whose run and model are named ``name``, its calls spread over eight long model ids ending so."""
+    data = copy.deepcopy(data)
+    data["run"].update(name=name, model=name)
+    calls = data["calls"]
+    calls += [copy.deepcopy(calls[i % len(calls)]) for i in range(8 - len(calls))]
+    for i, call in enumerate(calls):
+        call["request_model"] = f"{LONG_MODEL}-{name}-{i}"
+    return data
+
+
+@pytest.mark.parametrize("which", ALL_FIGURES)
+@pytest.mark.parametrize("name", list(HOSTILE_NAMES))
+def test_no_text_runs_past_the_image_whatever_the_names(greedy, which, name):
+    """A name of 300 characters without a space ran about an inch past the image's edge (matplotlib wraps at
+    spaces only), one of wide letters or CJK characters several inches; its title, cut to five lines, and the
+    legend's eight models, cut in the middle, leave the axes their height."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the fonts here have no CJK glyph: drawn as boxes, of a glyph's width
+        _assert_inside(_figure_of(which, _hostile_named(greedy, HOSTILE_NAMES[name]), HOSTILE_NAMES[name]), which)
+
+
+def test_a_hostile_name_is_broken_between_its_characters_and_an_ordinary_title_left_as_it_was(greedy):
+    fig = report_figures.scores_figure(_hostile_named(greedy, HOSTILE_NAMES["no space"]))
+    _drawn(fig)
+    lines = fig.axes[0].title.get_text().split("\n")
+    assert lines[-1].endswith("…") and len(lines) == report_figures.TITLE_LINES, lines
+    assert any(line.startswith("'abcdefghij") for line in lines), "the name starts a line of its own"
+    ordinary = report_figures.scores_figure(_long_named(greedy))
+    written = ordinary.axes[0].title.get_text()
+    _drawn(ordinary)
+    assert ordinary.axes[0].title.get_text() == written, "an ordinary title is left to matplotlib's wrap"
 
 
 def test_save_png_writes_what_a_draw_through_the_layout_makes(greedy):

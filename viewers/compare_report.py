@@ -16,7 +16,7 @@ from store.runs import shortest_prefixes
 from store.scores import PLAYED_OUT, score_text
 from store.statistics import MEAN_METHOD, interval_text
 from viewers.report import _md_table
-from viewers.report_figures import save_png
+from viewers.report_figures import fitted_layout, save_png
 from viewers.safe_text import markdown_code, markdown_code_block, markdown_text, plot_text, terminal_text
 from viewers.tables import format_table
 from viewers.whole_files import writing
@@ -38,7 +38,7 @@ def curves_figure(data: dict[str, Any]):
     tokens and per wall second."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(13, 4.2), dpi=110, layout="constrained")
+    fig = Figure(figsize=(13, 4.2), dpi=110, layout=fitted_layout())
     axes = fig.subplots(1, len(PANELS), sharey=True)
     short = shortest_prefixes(run["run_id"] for run in data["runs"])
     for ax, (key, xlabel, scale) in zip(axes, PANELS):
@@ -62,8 +62,9 @@ def curves_figure(data: dict[str, Any]):
     axes[0].set_ylabel("evaluation score")
     axes[-1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     runs = data["runs"]
-    fig.suptitle(plot_text(f"{data['game']}: A {runs[0]['run_id']} ({runs[0]['model']}) vs B {runs[1]['run_id']} "
-                           f"({runs[1]['model']})"), fontsize=10, wrap=True)  # at its spaces, inside the figure
+    title = fig.suptitle(plot_text(f"{data['game']}: A {runs[0]['run_id']} ({runs[0]['model']}) vs B "
+                                   f"{runs[1]['run_id']} ({runs[1]['model']})"), fontsize=10, wrap=True)
+    fig.get_layout_engine().fit(title)  # inside the figure: at its spaces, a long name between its characters
     return fig
 
 

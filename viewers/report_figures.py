@@ -3,14 +3,18 @@
 (``lineage.png``), an eval run's episode returns, the code's size and complexity (``code.png``), the tokens
 (``tokens.png``) and the LLM calls over time. Forfeits are drawn as marks, never at a partial return
 (``store/scores.py``); every text from the store passes ``viewers.safe_text.plot_text``, and titles and legends
-are fitted to the image however long the names in them. Agg canvas: no display; :func:`save_png` writes a figure
-(compare's too) with its layout solved once and one draw.
+are fitted to the image however long the names in them: :func:`fitted_layout` (compare's figure uses it too) breaks
+a title at its spaces, a name without one between its characters (:func:`fit_text`), and cuts it after
+:data:`TITLE_LINES` lines; the calls legend cuts a long model name in its middle. Agg canvas: no display;
+:func:`save_png` writes a figure with its layout solved once and one draw.
 """
 
 from __future__ import annotations
 
+import functools
+import re
 import textwrap
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from store.scores import is_forfeit, score_episodes, score_text
 from store.statistics import CONFIDENCE, MEAN_METHOD
@@ -28,10 +32,136 @@ END_COLOURS = {"terminated": "#1f77b4", "truncated": "#7f7f7f", "policy_error": 
                "crashed": "#d62728"}
 
 
+def fit_text(text: str, width: float, measure: Callable[[str], float], *, at_spaces: bool = True) -> str:
+    """``text`` broken into lines that ``measure`` (a line's drawn width) finds no wider than ``width``: each line
+    too wide at its spaces (``at_spaces``; else where matplotlib's ``wrap=True`` breaks it anyway), and a run of
+    characters without a space that alone is too wide between its characters, never inside an escape (``\\$``:
+    the two halves would be mathtext). matplotlib breaks lines at spaces only: a long name without one ran past
+    the image's edge."""
+    def pieces(word: str) -> list[str]:
+        if measure(word) <= width:
+            return [word]
+        units, out = re.findall(r"\\.|.", word, flags=re.S), []
+        while units:
+            fits = 1  # the most units from the start that fit (at least one: a glyph wider than the line is kept)
+            low, high = 2, len(units)
+            while low <= high:
+                mid = (low + high) // 2
+                if measure("".join(units[:mid])) <= width:
+                    fits, low = mid, mid + 1
+                else:
+                    high = mid - 1
+            out.append("".join(units[:fits]))
+            units = units[fits:]
+        return out
+
+    lines = []
+    for line in text.split("\n"):
+        if measure(line) <= width:
+            lines.append(line)
+            continue
+        if not at_spaces:
+            lines.append(" ".join("\n".join(pieces(word)) for word in line.split(" ")))
+            continue
+        current = ""
+        for word in line.split(" "):
+            if current and measure(f"{current} {word}") <= width:
+                current = f"{current} {word}"
+                continue
+            if current:
+                lines.append(current)
+            *done, current = pieces(word)
+            lines += done
+        lines.append(current)
+    return "\n".join(lines)
+
+
+TITLE_LINES = 5
+"""The most lines a title is drawn in: the rest of a longer one (a name of hundreds of characters) is cut, so that the
+axes keep their height (constrained layout gives up on axes a title leaves no room for, and draws past the image)."""
+
+
+def _cut(line: str, width: float, measure: Callable[[str], float]) -> str:
+    """``line`` ended by an ellipsis where the rest was cut, no wider than ``width``."""
+    while line and measure(line + "…") > width:
+        line = line[:-1]
+    if (len(line) - len(line.rstrip("\\"))) % 2:  # no half of an escape (``\\$``) left at the cut
+        line = line[:-1]
+    return line.rstrip() + "…"
+
+
+def _middle_cut(text: str, most: int) -> str:
+    """``text`` (a :func:`plot_text`) of at most ``most`` characters, the middle of a longer one cut to an ellipsis:
+    model names of an ensemble differ at their ends, and the legend of long ones left the axes no height. Never
+    inside an escape (``\\$``)."""
+    units = re.findall(r"\\.|.", text, flags=re.S)
+    if len(units) <= most:
+        return text
+    return "".join(units[:most // 2 - 1]) + "…" + "".join(units[-(most // 2):])
+
+
+def _measure(renderer, text) -> Callable[[str], float]:
+    """How wide ``text`` (an artist) would draw a line, in pixels of ``renderer``."""
+    prop = text.get_fontproperties()
+    return functools.cache(lambda line: renderer.get_text_width_height_descent(line, prop, ismath=False)[0])
+
+
+def fitted_layout():
+    """A figure's layout engine: constrained layout, then the titles given to its ``fit`` fitted to the image. A
+    title is centred over its axes (a suptitle over the figure), so its widest line is twice the distance from that
+    centre to the nearer edge. matplotlib's ``wrap=True`` breaks lines at spaces to that width; a run of characters
+    without a space wider than it (a long run name, model id) is broken here (:func:`fit_text`), once the layout has
+    placed the axes, and a title of more than :data:`TITLE_LINES` lines is cut. The layout is solved again only when
+    a title changed: an ordinary title, inside the image as drawn, is not measured again and draws as before."""
+    return _fitted_layout_class()()
+
+
+@functools.cache
+def _fitted_layout_class():
+    """:func:`fitted_layout`'s class, made on first use: importing this module imports no matplotlib."""
+    from matplotlib.layout_engine import ConstrainedLayoutEngine
+
+    class FittedLayout(ConstrainedLayoutEngine):
+        def __init__(self, **kwargs):
+            super().__init__(**kwargs)
+            self._titles: list[tuple[Any, str]] = []
+
+        def fit(self, text) -> None:
+            """Fit ``text`` (a centred title, ``wrap=True``) to the image whenever the layout is solved."""
+            self._titles.append((text, text.get_text()))
+
+        def execute(self, fig):
+            super().execute(fig)
+            get_renderer = getattr(fig.canvas, "get_renderer", None)  # the Agg canvas save_png and a draw use
+            if get_renderer is None or not self._titles:
+                return
+            renderer, changed = get_renderer(), False
+            for text, written in self._titles:
+                box = text.get_window_extent(renderer)  # as wrap=True draws it, of the lines the layout measured
+                line = text.get_fontsize() * fig.dpi / 72 * 1.2  # matplotlib's spacing of a text's lines
+                if (text.get_text() == written and fig.bbox.x0 <= box.x0 and box.x1 <= fig.bbox.x1
+                        and box.height < (TITLE_LINES - 0.5) * line):
+                    continue  # an ordinary title: inside, and measured no further (a measure costs 2 ms)
+                x = text.get_transform().transform(text.get_position())[0]
+                width = 2 * min(x - fig.bbox.x0, fig.bbox.x1 - x) - 2  # less a pixel each side for the rounding
+                measure = _measure(renderer, text)
+                fitted = fit_text(written, width, measure, at_spaces=False)
+                lines = fit_text(fitted, width, measure).split("\n")  # as wrap=True draws it: greedy at spaces
+                if len(lines) > TITLE_LINES:
+                    fitted = "\n".join(lines[:TITLE_LINES - 1] + [_cut(lines[TITLE_LINES - 1], width, measure)])
+                if fitted != text.get_text():
+                    text.set_text(fitted)
+                    changed = True
+            if changed:  # a title of more lines: the axes below it lower
+                super().execute(fig)
+
+    return FittedLayout
+
+
 def _figure(rows: int = 1, height: float = 4.4):
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(8.5, height), dpi=110, layout="constrained")
+    fig = Figure(figsize=(8.5, height), dpi=110, layout=fitted_layout())
     axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
     for ax in axes:
         ax.grid(True, alpha=0.3)
@@ -91,17 +221,20 @@ def _integer_x(ax, xs: Sequence[int]) -> None:
 def _title(data: dict[str, Any], what: str) -> str:
     run = data["run"]
     model = f", {run['model']}" if run["model"] else ""
-    # wrapped at 90 characters, so that no word of it is wider than the image (a longer one is broken)
+    # wrapped at 90 characters; a longer word is broken where it meets the image's edge (fitted_layout)
     named = f" '{run['name']}'" if run.get("name") else ""
-    return "\n".join(textwrap.wrap(plot_text(f"{run['game']} · {what}"), 90) +
-                     textwrap.wrap(plot_text(f"run {run['run_id']}{named} ({run['kind']}{model})"), 90))
+    return "\n".join(textwrap.wrap(plot_text(f"{run['game']} · {what}"), 90, break_long_words=False) +
+                     textwrap.wrap(plot_text(f"run {run['run_id']}{named} ({run['kind']}{model})"), 90,
+                                   break_long_words=False))
 
 
 def _set_title(ax, data: dict[str, Any], what: str) -> None:
     """The axes' title: :func:`_title`, wrapped at its spaces by matplotlib (``wrap=True``) to stay inside the
-    figure. Centred over axes that a legend beside them pushes to the left, a title wider than the axes ran off
-    the image's left edge: constrained layout leaves a title's width out of the margins it makes."""
+    figure, a name without a space broken between its characters (:func:`fitted_layout`). Centred over axes that
+    a legend beside them pushes to the left, a title wider than the axes ran off the image's left edge: constrained
+    layout leaves a title's width out of the margins it makes."""
     ax.set_title(_title(data, what), fontsize=11, wrap=True)
+    ax.figure.get_layout_engine().fit(ax.title)
 
 
 def scores_figure(data: dict[str, Any]):
@@ -436,7 +569,7 @@ def calls_figure(data: dict[str, Any]):
     flight.set_xlabel("seconds since the run's first call")
     flight.set_ylim(0, max(in_flight, default=1) + 0.5)
     flight.yaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))  # a count of calls: no 1.5
-    handles = [Patch(facecolor=colour[m], label=textwrap.fill(plot_text(m), 60)) for m in models]
+    handles = [Patch(facecolor=colour[m], label=textwrap.fill(_middle_cut(plot_text(m), 120), 60)) for m in models]
     used = dict.fromkeys(c["outcome"] for c in calls)
     handles += [Patch(facecolor="white", edgecolor=CALL_OUTCOME_STYLE[o][0], linestyle=CALL_OUTCOME_STYLE[o][1],
                       linewidth=1.8, label=CALL_OUTCOME_STYLE[o][2]) for o in used if o in CALL_OUTCOME_STYLE]
