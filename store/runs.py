@@ -213,6 +213,13 @@ def resolve_run_id(con: duckdb.DuckDBPyConnection, text: str, store: Any = None,
     raise ValueError(f"run {ref} is ambiguous{where}: {listed}; give more of the id")
 
 
+def unsubmitted(con: duckdb.DuckDBPyConnection, run_id: str) -> bool:
+    """Whether ``run_id`` is a served run that holds no submission (:data:`UNSUBMITTED_SQL`): nothing to audit or
+    finalize, and passed over by ``last`` and its kin."""
+    row = con.execute(f"SELECT {UNSUBMITTED_SQL} AS empty FROM runs WHERE run_id = $run", {"run": run_id}).fetchone()
+    return bool(row and row[0])
+
+
 def passed_over(con: duckdb.DuckDBPyConnection, run_id: str, kinds: tuple[str, ...] | None = None,
                 unsubmitted: bool = False) -> list[tuple[str, str, bool]]:
     """The runs newer than ``run_id`` that a reference by recency, counting as :func:`resolve_run_id` does with

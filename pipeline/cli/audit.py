@@ -2,7 +2,8 @@
 
 A run is audited when it finishes (``--audit-episodes``, default 3); this plays the audit of any stored
 optimization run on demand (a run made before audits existed, one that stopped early, or with more games) and
-replaces the run's earlier audit.
+replaces the run's earlier audit. A served run's audit is its finalize's (``codearcade serve --finalize``), shown as
+stored: nothing is played for it, and a served run without one is refused with the command that goes on.
 """
 
 from __future__ import annotations
@@ -104,25 +105,26 @@ def _served(store, run_id: str) -> bool:
 
 def _served_audit(store, run_id: str, args: argparse.Namespace) -> int:
     """A served run's audit is its finalize (``pipeline/serve/protocol.py``): its validation pool and the held-out
-    pool of the best by validation, shown as stored (``codearcade serve --finalize RUN`` plays them)."""
+    pool of the best by validation, shown as stored (``codearcade serve --finalize RUN`` plays them). A served run
+    without them is refused in one line with the command that makes them: this plays nothing for a served run."""
     from pipeline.cli.serve import served_lines
     from pipeline.optimizer.audit import AuditResult
     from store.readers import audits
-    from store.serve import served_submissions
+    from store.runs import unsubmitted
 
     with store.read() as con:
         rows = audits(con, run_id)
-        submitted = bool(rows) or bool(served_submissions(con, run_id))
-    if not submitted:  # nothing played, nothing to play: not a success (finalize refuses such a run too)
-        short = short_id(store, run_id)
+        empty = not rows and unsubmitted(con, run_id)
+    short = short_id(store, run_id)
+    if empty:  # nothing played, nothing to play: not a success (finalize refuses such a run too)
         raise CliError(f"run {short} is served and holds no submission: there is nothing to audit; "
                        f"`{command_text(store, 'serve', '--resume', short)}` serves it again")
+    if not rows:  # its pools are played by its finalize, which changes the run: the person asks for that by name
+        raise CliError(f"run {short} is served and not finalized yet: its validation and held-out pools are not "
+                       f"played; `{command_text(store, 'serve', '--finalize', short)}` plays them")
     if args.json:
         show_json({"run_id": run_id, "overfit": AuditResult(run_id, rows).overfit, "audits": rows}, default=str)
-    elif not rows:
-        show(f"run {short_id(store, run_id)} is served and not finalized yet: "
-             f"`{command_text(store, 'serve', '--finalize', short_id(store, run_id))}` plays its validation and "
-             "held-out pools", file=sys.stderr)
-    for line in [] if args.json else served_lines(rows):
-        show(line)
+    else:
+        for line in served_lines(rows):
+            show(line)
     return EXIT_OK

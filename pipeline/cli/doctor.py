@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.cli.common import EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store, resolve_run, show, show_json
+from pipeline.cli.common import (EXIT_EPISODE_FAILED, EXIT_OK, add_store, open_store, resolve_run, short_id, show,
+                                 show_json)
 
 
 def add_parser(verbs) -> None:
@@ -37,10 +38,12 @@ def run(args: argparse.Namespace) -> int:
         counts = dict.fromkeys(COUNTED_TABLES)
     errors = [f for f in findings if not f.warning]
     replayed: list[tuple[str, str | None]] = []
+    replay_id = None
     if args.replay and not errors:
         from pipeline.play.verify import replay_run
 
-        replayed = replay_run(store, resolve_run(store, args.replay))
+        replay_id = resolve_run(store, args.replay)
+        replayed = replay_run(store, replay_id)
     disagree = [(episode, why) for episode, why in replayed if why is not None]
     if args.json:
         show_json({"store": str(store.path), "ok": not errors and not disagree, "counts": counts,
@@ -56,6 +59,8 @@ def run(args: argparse.Namespace) -> int:
             show(f"PROBLEM: episode {episode} does not replay as stored: {why}")
         if args.replay and replayed:
             show(f"replayed {len(replayed)} episode(s): {len(replayed) - len(disagree)} as stored")
+        elif replay_id is not None:  # said, or the silence reads as a run whose episodes all replayed
+            show(f"replayed no episode: run {short_id(store, replay_id)} holds no finished episode")
         show("ok: no damage found" if not errors and not disagree else
              f"{len(errors) + bool(disagree)} kind(s) of damage found")
     return EXIT_OK if not errors and not disagree else EXIT_EPISODE_FAILED

@@ -137,10 +137,22 @@ def run(args: argparse.Namespace) -> int:
             if not served.finalized:
                 with store.write() as con:
                     finish_run(con, run_id, "interrupted")
-                short = short_id(store, run_id)
-                _say(f"run {short} stopped: `{command_text(store, 'serve', '--resume', short)}` serves it again, "
-                     f"`{command_text(store, 'serve', '--finalize', short)}` ends it")
+                _say(_stopped_line(store, run_id))
     return EXIT_OK
+
+
+def _stopped_line(store, run_id: str) -> str:
+    """What a stopped server says of its run: how to go on with it, and, without a submission, that ``last`` passes
+    over it (``store/runs.py``) and that there is nothing to finalize (``serve --finalize`` refuses such a run)."""
+    from store.runs import unsubmitted
+
+    short = short_id(store, run_id)
+    resume = f"`{command_text(store, 'serve', '--resume', short)}` serves it again"
+    with store.read() as con:
+        empty = unsubmitted(con, run_id)
+    if empty:
+        return f"run {short} stopped before any submission, so `last` passes over it; {resume}"
+    return f"run {short} stopped: {resume}, `{command_text(store, 'serve', '--finalize', short)}` ends it"
 
 
 def _episode_line(episode: dict) -> None:
@@ -207,8 +219,11 @@ def _finalize(store, run_id: str, args: argparse.Namespace) -> int:
     with run_lock(store.path, run_id):
         served = ServeRun(store, run_id)
         if not served.finalized:
-            if served.submissions:  # with none, finalize refuses in one line and nothing is played
-                _say(f"run {short_id(store, run_id)}: playing the validation and held-out pools")
+            short = short_id(store, run_id)
+            if not served.submissions:  # refused before anything plays, naming the run and how to go on with it
+                raise CliError(f"run {short} holds no submission: there is nothing to finalize; "
+                               f"`{command_text(store, 'serve', '--resume', short)}` serves it again")
+            _say(f"run {short}: playing the validation and held-out pools")
             served.finalize()
     with store.read() as con:
         rows = audits(con, run_id)
