@@ -21,7 +21,8 @@ forked along). The script is a JSON list consumed one entry per request (the las
   token counts, which are otherwise the words of the prompt and of the reply);
 - ``{"status": 503}``: an HTTP error in the protocol's own error shape (``"times": n`` repeats it n times
   before moving on; 401 is an authentication error, 400 a bad request, 429 a rate limit; ``"message"`` replaces
-  the error's text);
+  the error's text; ``"headers": {"retry-after": "2"}`` sends those response headers with it, a value
+  ``{"date_in_s": 3}`` as the HTTP date 3 s after the answer is sent);
 - ``{"sleep": seconds, "content": ...}``: reply late (to exercise time-outs);
 - ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
 - ``"repeat": n`` beside ``content``: the content n times over (a huge reply from a small script); ``"gzip": true``:
@@ -47,6 +48,7 @@ tests can read what the loop sent.
 
 from __future__ import annotations
 
+import email.utils
 import gzip
 import hashlib
 import json
@@ -369,7 +371,7 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
                 time.sleep(median * random.Random(seed * 7_919 + count).lognormvariate(0.0, sigma))
             if "status" in entry:
                 error = _error_body(protocol, entry["status"], entry.get("message"))
-                self._send(entry["status"], json.dumps(error).encode())
+                self._send(entry["status"], json.dumps(error).encode(), headers=entry.get("headers", {}))
                 return
             if "raw" in entry:
                 self._send(200, entry["raw"].encode("latin-1"))
@@ -407,9 +409,13 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
                 self.wfile.flush()
             self.close_connection = True
 
-        def _send(self, status: int, body: bytes, gzipped: bool = False):
+        def _send(self, status: int, body: bytes, gzipped: bool = False, headers: dict | None = None):
             self.send_response(status)
             self.send_header("Content-Type", "application/json")
+            for name, value in (headers or {}).items():
+                if isinstance(value, dict):  # an HTTP date relative to now, as Retry-After may be given
+                    value = email.utils.formatdate(time.time() + value["date_in_s"], usegmt=True)
+                self.send_header(name, value)
             if gzipped:  # whatever the request accepts, as a hostile endpoint would
                 body = gzip.compress(body, 9)
                 self.send_header("Content-Encoding", "gzip")

@@ -2,8 +2,9 @@
 
 :class:`LiteLLMClient` calls ``litellm.completion`` (``--model anthropic/...``, ``openai/...``, or any
 OpenAI-compatible server with ``--api-base``). Transient provider errors (rate limits, timeouts, connection
-errors, 5xx) are retried with exponential backoff; errors that retrying cannot fix (authentication, unknown
-model, a request the provider refuses) fail at once. Either way the caller gets an :class:`LLMError` it can
+errors, 5xx) are retried with exponential backoff, or after the wait the provider asks for (``Retry-After``);
+errors that retrying cannot fix (authentication, unknown model, a request the provider refuses, a wait asked for
+that is longer than :data:`MAX_ASKED_WAIT_S`) fail at once. Either way the caller gets an :class:`LLMError` it can
 record, never a traceback. :class:`ReplayClient` answers from the replies already stored for a run, matched by
 prompt hash: resuming and ``codearcade replay`` never pay for a call twice.
 """
@@ -11,6 +12,7 @@ prompt hash: resuming and ``codearcade replay`` never pay for a call twice.
 from __future__ import annotations
 
 import contextvars
+import email.utils
 import hashlib
 import json
 import math
@@ -39,6 +41,14 @@ An error of neither kind is retried (an unknown failure is more likely transient
 DEFAULT_BACKOFF_S = 2.0
 """First wait before retrying a transient error; it doubles each retry (``CODEARCADE_LLM_BACKOFF_S`` changes it,
 which the tests use to keep retries quick)."""
+
+MAX_ASKED_WAIT_S = 300.0
+"""The longest wait before a retry that a provider may ask for (``Retry-After``) and be waited out. A longer one
+(a quota for the day, a hostile ``--api-base``'s ``Retry-After: 1e308``) stops the run as an error that retrying
+cannot fix, saying how long it asked: ``--resume`` it once the provider allows, rather than sit silent for hours."""
+
+MAX_HEADER_CHARS = 64
+"""The longest ``Retry-After`` value read: seconds or an HTTP date are far shorter; a longer one is not parsed."""
 
 MAX_TOKENS = 4_096
 """The longest reply asked of a model unless told otherwise: ``--max-tokens``'s default (the offline model's is
@@ -137,6 +147,33 @@ def describe_error(exc: BaseException, limit: int = ERROR_MESSAGE_LIMIT) -> str:
     if match:
         text = match.group(1)
     return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def asked_wait_s(exc: BaseException) -> float | None:
+    """Seconds the provider asked to wait before the next request, from the response headers litellm keeps on its
+    exception for every provider (``litellm_response_headers``): OpenAI's ``retry-after-ms``, else ``retry-after``
+    as seconds or an HTTP date (one in the past: 0). None when it asked nothing readable (no header, a negative,
+    non-finite or over-long value), and the client's own backoff decides."""
+    headers = getattr(exc, "litellm_response_headers", None)
+    if not isinstance(headers, Mapping):
+        return None
+    named = {str(name).lower(): str(value).strip() for name, value in headers.items()}
+    for name, scale in (("retry-after-ms", 1e-3), ("retry-after", 1.0)):
+        value = named.get(name, "")
+        if not value or len(value) > MAX_HEADER_CHARS:
+            continue
+        try:
+            seconds = float(value) * scale
+        except ValueError:
+            if name == "retry-after-ms":
+                continue
+            try:  # an HTTP date: Retry-After: Wed, 21 Oct 2026 07:28:00 GMT
+                seconds = max(0.0, email.utils.parsedate_to_datetime(value).timestamp() - time.time())
+            except (TypeError, ValueError, OverflowError):
+                continue
+        if math.isfinite(seconds) and seconds >= 0:
+            return seconds
+    return None
 
 
 def _without_credentials(url: str) -> str:
@@ -300,14 +337,20 @@ class LiteLLMClient:
                     params = self.request_params()
                     continue
                 fatal = name in FATAL
-                if fatal or retried >= self.retries:
+                asked = None if fatal else asked_wait_s(exc)
+                too_long = asked is not None and asked > MAX_ASKED_WAIT_S
+                if fatal or too_long or retried >= self.retries:
                     # the endpoint's text may quote the key it was sent: it is stored, printed and prompted
                     message = self._without_key(describe_error(exc))
                     if self.api_base:  # "Connection error.", "Error code: 404": the provider's text has no URL
                         message += f" (asked at {_without_credentials(self.api_base)})"
-                    raise LLMError(name, message, attempt, fatal, time.monotonic() - start) from None
+                    if too_long:
+                        message += (f"; the provider asks to wait {asked:,.0f} s before the next request, longer "
+                                    f"than a call waits ({MAX_ASKED_WAIT_S:.0f} s): resume the run once it allows")
+                    raise LLMError(name, message, attempt, fatal or too_long, time.monotonic() - start) from None
                 retried += 1
-                pause = self.backoff_s * 2 ** (retried - 1)
+                # the provider knows when its limit resets: a backoff shorter than that is a call wasted
+                pause = asked if asked is not None else self.backoff_s * 2 ** (retried - 1)
                 time.sleep(pause if deadline is None else max(0.0, min(pause, deadline - time.monotonic())))
                 continue
             return self._reply(response, attempt, time.monotonic() - start)
