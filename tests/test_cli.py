@@ -260,6 +260,35 @@ def test_ctrl_c_prints_the_resume_command_and_it_continues_the_run(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("script", [[{"sleep": 120, "content": COMPETENT_REPLY}],
+                                    [{"status": 429, "headers": {"retry-after": "120"}, "times": 100}]],
+                         ids=["replies-in-flight", "retries-waiting"])
+def test_ctrl_c_stops_a_population_whose_calls_are_in_flight(tmp_path, script):
+    """best-of-n asks its candidates' replies at once, in threads: a Ctrl-C there waited for every call in
+    flight (a thread pool joins its threads on the way out: 121 s for a 120 s reply) and for its retries (a 429
+    asking for 120 s, twice over), where the same press during one call stops the command at once."""
+    env = _env(tmp_path)
+    store = Store(tmp_path / "s.duckdb")
+    with ScriptedModel(script, tmp_path / "model") as model:
+        proc = subprocess.Popen([EXE, "optimize", "--game", "pong", "--model", model.model, "--api-base",
+                                 model.api_base, "--iterations", "1", "--strategy", "best-of-n", "--candidates", "2",
+                                 "--audit-episodes", "0", *FAST, "--store", str(store.path)],
+                                cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 120
+        while len(model.raw_requests()) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.1)
+        assert len(model.raw_requests()) >= (2 if "sleep" in script[0] else 1), "iteration 1's calls are out"
+        proc.send_signal(signal.SIGINT)
+        try:
+            out, err = proc.communicate(timeout=60)  # before: a reply's 120 s (a retry's wait: 120 s, then another)
+        finally:
+            proc.kill()  # a command still waiting is not left behind the test
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("codearcade: interrupted: run "), err
+    assert store.query("SELECT status FROM runs") == [("interrupted",)]
+
+
+@pytest.mark.slow
 def test_an_unreachable_api_base_is_one_line_before_anything_plays(tmp_path):
     url = f"http://127.0.0.1:{_closed_port()}/v1"
     done = _cli("optimize", "--game", "pong", "--model", "openai/local", "--api-base", url, "--store", "s.duckdb",

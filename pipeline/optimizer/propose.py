@@ -31,7 +31,6 @@ from __future__ import annotations
 import json
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Callable
@@ -355,14 +354,39 @@ def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: l
             if len(items) == 1:  # in this thread: Ctrl-C stops it at once
                 complete(items[0], on_text)
                 return
-            with ThreadPoolExecutor(max_workers=max(1, min(len(items), state.config.max_concurrent_calls)),
-                                    thread_name_prefix="llm") as pool:
-                list(pool.map(lambda item: complete(item, None), items))
+            _in_daemon_threads(lambda item: complete(item, None), items, state.config.max_concurrent_calls)
     finally:
         if helper is not None:
             helper.join()
             if failed:
                 raise failed[0]
+
+
+def _in_daemon_threads(work: Callable[[_Pending], None], items: list[_Pending], at_once: int) -> None:
+    """``work(item)`` for every item, at most ``at_once`` at a time, each in a daemon thread this thread waits for
+    (the first error any raised is raised here). A Ctrl-C ends the wait at once and leaves the calls in flight to
+    end with the process: a thread pool's exit joins its threads, so a Ctrl-C during best-of-n's calls waited for
+    each call in flight and its retries (61.6 s for a 60 s reply) before the command could stop."""
+    slots = threading.Semaphore(max(1, at_once))
+    failed: list[BaseException] = []
+
+    def run(item: _Pending) -> None:
+        try:
+            work(item)
+        except BaseException as exc:  # noqa: BLE001 - raised in the waiting thread below
+            failed.append(exc)
+        finally:
+            slots.release()
+
+    threads = []
+    for item in items:
+        slots.acquire()  # a lock's wait: a Ctrl-C interrupts it
+        threads.append(threading.Thread(target=run, args=(item,), name="llm", daemon=True))
+        threads[-1].start()
+    for thread in threads:
+        thread.join()
+    if failed:
+        raise failed[0]
 
 
 def _validate_all(state: "RunState", iteration: int, items: list[_Pending], counter: TokenCounter) -> list[Proposal]:
