@@ -216,3 +216,19 @@ def test_every_policy_file_a_command_plays_is_there_and_of_its_game():
             if game and declared and game != declared:
                 wrong.append(f"{page}:{line}: {name} is a {declared} policy, played with --game {game}")
     assert not wrong, "\n".join(wrong)
+
+
+def test_the_ranges_docs_cli_states_are_the_declared_ones():
+    """docs/cli.md's paragraph on ranges quotes each maximum: each is read from the constant it is declared by, so
+    a maximum changed in code and not on the page (or the other way round) fails here."""
+    from pipeline.optimizer.config import MAX_CANDIDATES, MAX_ITERATIONS, MAX_REPLY_TOKENS
+    from pipeline.play.config import MAX_EPISODES, MAX_NOOPS
+    from pipeline.settings import MAX_STEPS, MAX_TIME_LIMIT_S
+
+    page = " ".join((ROOT / "docs" / "cli.md").read_text().split())
+    stated = {"games to play at most {:,}": MAX_EPISODES, "no-ops {:,}": MAX_NOOPS, "iterations {:,}": MAX_ITERATIONS,
+              "`--screen-steps`) {:,}": MAX_STEPS, "`--max-tokens` {:,}": MAX_REPLY_TOKENS,
+              "`--candidates` {:,}": MAX_CANDIDATES, "a week ({:,} s)": MAX_TIME_LIMIT_S}
+    for phrase, value in stated.items():
+        assert phrase.format(value) in page, f"docs/cli.md should say {phrase.format(value)!r}"
+    assert MAX_TIME_LIMIT_S == 7 * 86_400, "the page calls it a week"
