@@ -132,6 +132,18 @@ def test_last_passes_over_a_served_run_without_a_submission_and_says_so(four, ca
         assert con.execute("SELECT run('last'), run('-2')").fetchone() == (SERVED, RUNS[2][0])
 
 
+def test_compare_of_versions_by_recency_says_which_run_it_took(four):
+    """``compare last:best last:0`` names its runs as every verb does: past a newer served run without a
+    submission, one line says which run it took (it said nothing, unlike ``compare last X``)."""
+    from tests.conftest import run_main
+
+    _served(four)
+    done = run_main("compare", "last:best", "last:0", "--store", str(four.path))
+    said = [line for line in done.stderr.splitlines() if "passing over" in line]
+    assert said and all(re.fullmatch(r"codearcade compare: last is serve run 01JDX3M0\S*, passing over the newer "
+                                     r"serve run 01JDX3M5\S* \(no submission\)", line) for line in said), done.stderr
+
+
 def test_a_store_whose_only_served_run_holds_no_submission_says_where_it_is(store):
     _add(store, UNSUBMITTED, 25, "serve", "pong", status="interrupted")
     with pytest.raises(ValueError) as refused:

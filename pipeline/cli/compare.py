@@ -168,6 +168,9 @@ def compare(store, a: str, b: str, config=None, progress: Callable[[str], None] 
             raise PolicyLoadError(f"policy file '{ref}' does not exist")
     kinds = [is_version_ref(x, store) for x in (a, b)]
     if all(kinds):
+        for ref in (a, b):  # RUN:VERSION by recency: say which run it is where a newer one was passed over
+            if not Path(ref).is_file():
+                resolve_run(store, ref.rpartition(":")[0], verb="compare")
         return compare_versions(store, a, b, config, progress, episodes_progress)
     if not any(kinds):  # `last` and `last~1` count the runs that have iterations, as the other verbs count theirs
         return compare_runs(store, *(resolve_run(store, ref, kinds=COMPARED_KINDS, verb="compare") for ref in (a, b)))
