@@ -24,7 +24,17 @@ forked along). The script is a JSON list consumed one entry per request (the las
   the error's text; ``"headers": {"retry-after": "2"}`` sends those response headers with it, a value
   ``{"date_in_s": 3}`` as the HTTP date 3 s after the answer is sent);
 - ``{"sleep": seconds, "content": ...}``: reply late (to exercise time-outs);
-- ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies);
+- ``{"raw": "..."}``: a body sent as-is (latin-1 bytes; for broken replies); beside ``"status"``, that error's body
+  instead of the protocol's error shape, as ``text/html`` (a proxy's error page);
+- ``{"error_body": 529}``: HTTP 200 whose body is the protocol's error object for that status (a gateway that
+  answers every request with 200);
+- ``"finish": "length"`` beside ``content``: the reply stopped at the token limit, in the protocol's own words
+  (OpenAI ``finish_reason: "length"``, Anthropic ``stop_reason: "max_tokens"``, Ollama ``done_reason: "length"``,
+  Gemini ``finishReason: "MAX_TOKENS"``); any other value is sent as the stop reason as it is (Gemini's
+  ``"SAFETY"``, ``"RECITATION"``); a Gemini reply with empty content has no ``content`` at all, as a blocked one;
+- ``"stream_error": n`` beside ``content``: a stream that sends n pieces of text, then the protocol's error event
+  (Anthropic's ``event: error`` with ``overloaded_error``; OpenAI's ``data: {"error": ...}``) and ends;
+  ``"stream_cut": n``: a stream whose connection closes after n pieces of text (no stop reason, no ``[DONE]``);
 - ``"repeat": n`` beside ``content``: the content n times over (a huge reply from a small script); ``"gzip": true``:
   the body gzip-compressed (``Content-Encoding: gzip``) whatever the request accepts; ``"extra_dicts": n``: a field
   of n empty objects beside the reply (in a stream, beside its first event's fields); ``"empty_events": n``: n
@@ -221,9 +231,15 @@ def _tool_input(content: str) -> dict:
     return value if isinstance(value, dict) else {"reasoning": content, "suggestion": {}}
 
 
+TOKEN_LIMIT = {"openai": "length", "anthropic": "max_tokens", "ollama": "length", "gemini": "MAX_TOKENS"}
+"""Each protocol's stop reason for a reply cut off at the token limit (``"finish": "length"``)."""
+STOPPED = {"openai": "stop", "anthropic": "end_turn", "ollama": "stop", "gemini": "STOP"}
+
+
 def _reply_body(protocol: str, body: dict, content: str, count: int, input_tokens: int, output_tokens: int,
-                cache: dict) -> dict:
+                cache: dict, finish: str | None = None) -> dict:
     name = body.get("model", "scripted")
+    stop = TOKEN_LIMIT[protocol] if finish == "length" else finish
     if protocol == "anthropic":
         prefix = _cached_prefix(protocol, body)
         created = read = 0
@@ -238,21 +254,22 @@ def _reply_body(protocol: str, body: dict, content: str, count: int, input_token
         blocks = [{"type": "tool_use", "id": f"toolu_scripted_{count}", "name": tool, "input": _tool_input(content)}
                   if tool else {"type": "text", "text": content}]
         return {"id": f"msg_scripted_{count}", "type": "message", "role": "assistant", "model": name,
-                "content": blocks, "stop_reason": "tool_use" if tool else "end_turn", "stop_sequence": None,
+                "content": blocks, "stop_reason": stop or ("tool_use" if tool else "end_turn"), "stop_sequence": None,
                 "usage": {"input_tokens": input_tokens - created - read, "output_tokens": output_tokens,
                           "cache_creation_input_tokens": created, "cache_read_input_tokens": read}}
     if protocol == "ollama":
         return {"model": name, "created_at": "2026-12-01T00:00:00Z",
-                "message": {"role": "assistant", "content": content}, "done": True, "done_reason": "stop",
+                "message": {"role": "assistant", "content": content}, "done": True, "done_reason": stop or "stop",
                 "total_duration": 1000, "prompt_eval_count": input_tokens, "eval_count": output_tokens}
     if protocol == "gemini":
-        return {"candidates": [{"content": {"parts": [{"text": content}], "role": "model"},
-                                "finishReason": "STOP", "index": 0}],
+        parts = {"content": {"parts": [{"text": content}], "role": "model"}} if content else {}
+        return {"candidates": [{**parts, "finishReason": stop or "STOP", "index": 0}],
                 "usageMetadata": {"promptTokenCount": input_tokens, "candidatesTokenCount": output_tokens,
                                   "totalTokenCount": input_tokens + output_tokens},
                 "modelVersion": name}
     return {"id": f"chatcmpl-scripted-{count}", "object": "chat.completion", "created": 0, "model": name,
-            "choices": [{"index": 0, "message": {"role": "assistant", "content": content}, "finish_reason": "stop"}],
+            "choices": [{"index": 0, "message": {"role": "assistant", "content": content},
+                         "finish_reason": stop or "stop"}],
             "usage": {"prompt_tokens": input_tokens, "completion_tokens": output_tokens,
                       "total_tokens": input_tokens + output_tokens}}
 
@@ -293,10 +310,17 @@ def _sse_events(protocol: str, body: dict, request: dict, copies: int = 1,
                                                    for i in range(tool_calls)]}
               for p in _pieces(text)]
     chunks = [{**head, "choices": [{"index": 0, "delta": d, "finish_reason": None}] * copies} for d in deltas]
-    chunks.append({**head, "choices": [{"index": 0, "delta": {}, "finish_reason": "stop"}]})
+    stop = body["choices"][0]["finish_reason"]
+    chunks.append({**head, "choices": [{"index": 0, "delta": {}, "finish_reason": stop}]})
     if (request.get("stream_options") or {}).get("include_usage"):
         chunks.append({**head, "choices": [], "usage": body["usage"]})
     return [(None, json.dumps(c)) for c in chunks] + [(None, "[DONE]")]
+
+
+def _stream_error(protocol: str) -> tuple[str | None, str]:
+    """The event a provider sends when it fails in the middle of a stream (Anthropic: overloaded)."""
+    error = _error_body(protocol, 529, "overloaded in the middle of the stream")
+    return ("error" if protocol == "anthropic" else None), json.dumps(error)
 
 
 def _protocol(path: str) -> str:
@@ -369,9 +393,16 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             if "latency" in entry:
                 median, sigma, seed = entry["latency"]
                 time.sleep(median * random.Random(seed * 7_919 + count).lognormvariate(0.0, sigma))
+            if "status" in entry and "raw" in entry:  # a proxy's error page
+                self._send(entry["status"], entry["raw"].encode("latin-1"), headers=entry.get("headers", {}),
+                           content_type="text/html")
+                return
             if "status" in entry:
                 error = _error_body(protocol, entry["status"], entry.get("message"))
                 self._send(entry["status"], json.dumps(error).encode(), headers=entry.get("headers", {}))
+                return
+            if "error_body" in entry:
+                self._send(200, json.dumps(_error_body(protocol, entry["error_body"], entry.get("message"))).encode())
                 return
             if "raw" in entry:
                 self._send(200, entry["raw"].encode("latin-1"))
@@ -383,7 +414,8 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             usage = entry.get("usage", {})
             input_tokens = usage.get("input", sum(len(m["content"].split()) for m in messages))
             output_tokens = usage.get("output", len(content.split()))
-            body = _reply_body(protocol, request, content, count, input_tokens, output_tokens, cache)
+            body = _reply_body(protocol, request, content, count, input_tokens, output_tokens, cache,
+                               entry.get("finish"))
             if entry.get("extra_dicts"):  # a field no reply needs, costly to parse: [{}, {}, ...]
                 body["x"] = [{}] * entry["extra_dicts"]
             if entry.get("choices") and not request.get("stream") and protocol == "openai":
@@ -395,6 +427,11 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
                 if extra is not None:  # beside the first event's fields: one event of n objects
                     name, data = events[0]
                     events[0] = (name, data[:-1] + ', "x": ' + json.dumps(extra, separators=(",", ":")) + "}")
+                opened = 2 if protocol == "anthropic" else 0  # events before the first piece of text
+                if "stream_error" in entry:
+                    events = events[: opened + entry["stream_error"]] + [_stream_error(protocol)]
+                elif "stream_cut" in entry:
+                    events = events[: opened + entry["stream_cut"]]
                 self._stream(events[:1] + [(None, "{}")] * entry.get("empty_events", 0) + events[1:])
                 return
             self._send(200, json.dumps(body).encode(), gzipped=entry.get("gzip", False))
@@ -409,9 +446,10 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
                 self.wfile.flush()
             self.close_connection = True
 
-        def _send(self, status: int, body: bytes, gzipped: bool = False, headers: dict | None = None):
+        def _send(self, status: int, body: bytes, gzipped: bool = False, headers: dict | None = None,
+                  content_type: str = "application/json"):
             self.send_response(status)
-            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Type", content_type)
             for name, value in (headers or {}).items():
                 if isinstance(value, dict):  # an HTTP date relative to now, as Retry-After may be given
                     value = email.utils.formatdate(time.time() + value["date_in_s"], usegmt=True)
