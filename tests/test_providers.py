@@ -775,3 +775,137 @@ def test_a_wait_longer_than_a_call_waits_stops_at_once_and_junk_is_not_a_wait(tm
         finally:
             model.stop()
         assert reply.attempts == 2 and max(_gaps(model)) < MAX_ASKED_WAIT_S, junk
+
+
+ADAPTERS = [("openai", False), ("openai", True), ("anthropic", False), ("anthropic", True), ("ollama_chat", False),
+            ("gemini", False)]
+"""(provider, streamed): each adapter of the scripted server, streamed where it streams."""
+
+
+def _client(tmp_path, provider: str, stream: bool, script: list, retries: int = 2):
+    """A client of ``provider``'s scripted endpoint answering ``script``; quick retries."""
+    from pipeline.llm.client import LiteLLMClient
+    from tests.scripted_llm import ScriptedModel
+
+    model = ScriptedModel(script, tmp_path / f"model-{provider}-{len(list(tmp_path.iterdir()))}").start()
+    route, base = model.route(provider)
+    return model, LiteLLMClient(route, api_base=base, api_key="sk-scripted", retries=retries, backoff_s=0.01,
+                                timeout_s=30, structured=False, stream=stream)
+
+
+def _outcome(model, client):
+    """(reply or LLMError, requests the endpoint got) of one call; the server stopped."""
+    from pipeline.llm.client import LLMError
+
+    try:
+        return client.complete([{"role": "user", "content": "hello"}]), len(model.raw_requests())
+    except LLMError as exc:
+        return exc, len(model.raw_requests())
+    finally:
+        model.stop()
+
+
+@pytest.mark.parametrize("provider,stream", ADAPTERS, ids=[f"{p}-{'stream' if s else 'whole'}" for p, s in ADAPTERS])
+def test_an_answer_without_text_is_retried_and_never_a_reply(tmp_path, provider, stream):
+    """An answer with no text (empty, only whitespace; a 200 whose body is an error object, which litellm reads as
+    an empty stream) was a successful call with reply '' (then read as "the reply is empty"), or, for Gemini, whose
+    adapter calls an error body a bad request, a fatal error that stopped the run: each is retried, and one that
+    never brings text is a non-fatal ``EmptyReply``, after every attempt."""
+    from pipeline.llm.client import EMPTY_REPLY, LLMError
+
+    shapes = ["", "   \n  ", {"error_body": 529}]
+    for shape in shapes:
+        reply, asked = _outcome(*_client(tmp_path, provider, stream, [shape, "the reply"]))
+        assert not isinstance(reply, LLMError), (shape, reply)
+        assert reply.text.strip() == "the reply" and reply.attempts == 2 and asked == 2, (shape, reply)
+    for shape in shapes[:2]:
+        error, asked = _outcome(*_client(tmp_path, provider, stream, [shape]))
+        assert isinstance(error, LLMError) and error.error_type == EMPTY_REPLY, (shape, error)
+        assert not error.fatal and error.attempts == 3 and asked == 3, (shape, error)
+        assert "no text" in error.message
+        # billed all the same: its usage goes with the error, for llm_calls and the budgets
+        assert error.answer is not None and error.answer.finish_reasons == ["stop"] and error.answer.input_tokens
+
+
+@pytest.mark.parametrize("provider,stream", ADAPTERS, ids=[f"{p}-{'stream' if s else 'whole'}" for p, s in ADAPTERS])
+def test_an_answer_cut_off_or_withheld_before_any_text_fails_at_once(tmp_path, provider, stream):
+    """A reply that stopped at the token limit before any text (a reasoning model's budget spent on thinking;
+    Anthropic's ``max_tokens``, Ollama's ``done_reason: length``, Gemini's ``MAX_TOKENS``) was a successful call
+    with no text; it is an ``EmptyReply`` that says to raise --max-tokens, not retried (the same limit gets the
+    same). Gemini's ``SAFETY``/``RECITATION`` without text is ``ContentFiltered``, not retried either, and neither
+    stops the run. A reply cut off after some text stays a reply, recorded as ``length``."""
+    from pipeline.llm.client import CONTENT_FILTERED, EMPTY_REPLY, LLMError
+
+    error, asked = _outcome(*_client(tmp_path, provider, stream, [{"content": "", "finish": "length"}, "late"]))
+    assert isinstance(error, LLMError) and error.error_type == EMPTY_REPLY, error
+    assert not error.fatal and error.attempts == 1 and asked == 1 and "raise --max-tokens" in error.message
+    reply, _ = _outcome(*_client(tmp_path, provider, stream, [{"content": "def half(self):", "finish": "length"}]))
+    assert reply.text.strip() == "def half(self):" and reply.finish_reasons == ["length"] and reply.cut_off
+    if provider == "gemini":
+        for reason in ("SAFETY", "RECITATION"):
+            error, asked = _outcome(*_client(tmp_path, provider, stream, [{"content": "", "finish": reason}, "x"]))
+            assert isinstance(error, LLMError) and error.error_type == CONTENT_FILTERED, (reason, error)
+            assert not error.fatal and error.attempts == 1 and asked == 1, (reason, error)
+
+
+@pytest.mark.parametrize("provider", ["openai", "anthropic"])
+def test_a_stream_that_fails_midway_is_retried_and_its_part_never_kept(tmp_path, provider):
+    """A stream that breaks after some text (Anthropic's ``event: error`` with ``overloaded_error``, an OpenAI
+    error event, a connection closed before the stop reason or ``[DONE]``) is a transient error, retried from the
+    start: its part of the text is never the reply (litellm's adapters raise ServiceUnavailableError for each)."""
+    from pipeline.llm.client import LLMError
+
+    text = "one two three four five six"
+    for shape in ({"content": text, "stream_error": 3}, {"content": text, "stream_cut": 3}):
+        reply, asked = _outcome(*_client(tmp_path, provider, True, [shape, text]))
+        assert not isinstance(reply, LLMError), (shape, reply)
+        assert reply.text == text and reply.attempts == 2 and asked == 2, (shape, reply)
+        error, asked = _outcome(*_client(tmp_path, provider, True, [shape]))
+        assert isinstance(error, LLMError) and not error.fatal and error.attempts == 3 and asked == 3, (shape, error)
+
+
+@pytest.mark.parametrize("provider", ["ollama_chat", "gemini"])
+def test_an_error_object_in_a_200_is_retried_and_its_message_holds_no_traceback(tmp_path, provider):
+    """A 200 whose body is an error object, always: Ollama's adapter fails reading it and litellm put its own
+    traceback into the message (stored in ``llm_calls.error_message``, printed); Gemini's called it a fatal bad
+    request. Both are retried, non-fatal, with a one-line message."""
+    from pipeline.llm.client import LLMError
+
+    error, asked = _outcome(*_client(tmp_path, provider, False, [{"error_body": 529}]))
+    assert isinstance(error, LLMError) and not error.fatal and error.attempts == 3 and asked == 3, error
+    assert "Traceback" not in error.message and 'File "' not in error.message, error.message
+
+
+EMPTY_OR_UNREADABLE = [
+    # (provider, the script, extra flags, update status, the first call's error type)
+    ("openai", [""], ("--stream",), "llm_error", "EmptyReply"),
+    ("gemini", [{"content": "", "finish": "SAFETY"}], (), "llm_error", "ContentFiltered"),
+    ("gemini", [{"error_body": 529}, COMPETENT_REPLY], (), "accepted", None),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("provider,script,extra,status,error_type", EMPTY_OR_UNREADABLE,
+                         ids=["empty-stream", "gemini-safety", "gemini-error-body"])
+def test_optimize_records_an_answer_without_text_as_the_error_it_is(store, scripted, provider, script, extra,
+                                                                     status, error_type):
+    """`codearcade optimize`: an empty reply (or Gemini's SAFETY with no text) was stored as a successful call whose
+    reply '' was "unusable", and a repair turn sent that empty reply back as the assistant's turn (which Anthropic
+    refuses as a bad request); now it is an ``llm_calls`` error, with the answer's usage (billed) and finish
+    reasons, no reply text and no repair turn. Gemini's 200 with an error object stopped the run as a fatal
+    BadRequestError; it is retried, and the next answer is played."""
+    model = scripted(script)
+    name = {"openai": "gpt-4o", "gemini": "gemini-2.5-pro"}[provider]
+    done = _optimize(store, model, provider, name, "--iterations", "1", *extra, *FAST,
+                     env=_env(OPENAI_API_KEY="sk-scripted"))
+    assert "Traceback" not in done.stderr, done.stderr
+    assert store.query("SELECT update_status FROM iterations WHERE iteration = 1") == [(status,)], done.stderr
+    calls = store.query("SELECT error_type, attempts, finish_reasons, input_tokens > 1000, reply_hash IS NULL, "
+                        "repair_turn FROM llm_calls ORDER BY created_at")
+    if error_type is None:
+        assert done.returncode == 0 and calls == [(None, 2, ["stop"], True, False, 0)], (calls, done.stderr)
+    else:  # the run's only update failed: the run is failed, and says why
+        assert done.returncode == 1 and error_type in done.stderr, done.stderr
+        attempts = 4 if error_type == "EmptyReply" else 1  # retried 3 times; a withheld one is not
+        finish = ["stop"] if error_type == "EmptyReply" else ["content_filter"]
+        assert calls == [(error_type, attempts, finish, True, True, 0)], calls

@@ -4,7 +4,10 @@
 OpenAI-compatible server with ``--api-base``). Transient provider errors (rate limits, timeouts, connection
 errors, 5xx) are retried with exponential backoff, or after the wait the provider asks for (``Retry-After``);
 errors that retrying cannot fix (authentication, unknown model, a request the provider refuses, a wait asked for
-that is longer than :data:`MAX_ASKED_WAIT_S`) fail at once. Either way the caller gets an :class:`LLMError` it can
+that is longer than :data:`MAX_ASKED_WAIT_S`) fail at once. An answer without text is no reply: an error of type
+:data:`EMPTY_REPLY` (retried: providers send an empty one now and then; not retried when it stopped at the token
+limit), or :data:`CONTENT_FILTERED` (the provider withheld it: Gemini's ``SAFETY``, ``RECITATION``; not retried,
+the same prompt is withheld again). Either way the caller gets an :class:`LLMError` it can
 record, never a traceback. :class:`ReplayClient` answers from the replies already stored for a run, matched by
 prompt hash: resuming and ``codearcade replay`` never pay for a call twice.
 """
@@ -94,15 +97,19 @@ class LLMReply:
 
 
 class LLMError(Exception):
-    """A call that did not produce a reply; ``fatal`` when retrying later cannot help (a bad key, a bad model)."""
+    """A call that did not produce a reply; ``fatal`` when retrying later cannot help (a bad key, a bad model).
+    ``answer``: what the last attempt was answered, when it was an answer all the same (one without text: its
+    usage and finish reasons, which the provider bills and ``llm_calls`` records; its text is no reply)."""
 
-    def __init__(self, error_type: str, message: str, attempts: int, fatal: bool, latency_s: float = 0.0):
+    def __init__(self, error_type: str, message: str, attempts: int, fatal: bool, latency_s: float = 0.0,
+                 answer: LLMReply | None = None):
         super().__init__(f"{error_type}: {message}")
         self.error_type = error_type
         self.message = message
         self.attempts = attempts
         self.fatal = fatal
         self.latency_s = latency_s
+        self.answer = answer
 
 
 class _OutOfTime(Exception):
@@ -124,6 +131,10 @@ class LLMClient(Protocol):
 
 
 def _error_name(exc: BaseException) -> str:
+    if isinstance(exc, _NoText):
+        return exc.error_type
+    if UNREADABLE_ANSWER.search(str(exc)):
+        return "APIError"
     for klass in type(exc).__mro__:
         if klass.__name__ in RETRYABLE + FATAL:
             return klass.__name__
@@ -140,7 +151,10 @@ def describe_error(exc: BaseException, limit: int = ERROR_MESSAGE_LIMIT) -> str:
     """The useful part of a provider error, on one line: litellm's own prefixes (``litellm.AuthenticationError:
     AnthropicException - ``) and JSON wrapping are taken off, so what is kept (and cut at ``limit``) is what the
     provider said."""
-    text = " ".join(str(getattr(exc, "message", None) or exc).split())
+    text = str(getattr(exc, "message", None) or exc)
+    # litellm puts the traceback of its own failure to read an answer into the message (Ollama's 200 with an error
+    # object: "... not NoneType\nTraceback (most recent call last): File ..."): it was stored and shown
+    text = " ".join(text.split("Traceback (most recent call last)", 1)[0].split())
     text = re.sub(r"^((litellm\.)?\w+(Error|Exception): )+", "", text)  # "litellm.X: YException: ..."
     text = re.sub(r"^\w+Exception - ", "", text)
     match = re.search(r'"(?:message|error)"\s*:\s*"((?:[^"\\]|\\.)*)"', text)
@@ -197,6 +211,23 @@ def _usage_number(usage: Any, *path: str) -> int | None:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= _MAX_COUNT:
         return None  # NaN fails the range check too
     return int(value)
+
+
+EMPTY_REPLY = "EmptyReply"
+"""The error type of an answer with no text (nothing, or only whitespace): no reply to read, though it is billed."""
+CONTENT_FILTERED = "ContentFiltered"
+"""The error type of an answer the provider withheld (finish reason ``content_filter``) and sent no text for."""
+UNREADABLE_ANSWER = re.compile(r"Error converting to valid response block")
+"""litellm's words for an answer its adapter could not read (Gemini's: a 200 whose body is an error object), which
+it raises as a bad request (422): the endpoint's answer was at fault, not the request, and another may be read."""
+
+
+class _NoText(Exception):
+    """An answer without text (:meth:`LiteLLMClient._answer`): ``retry`` when another attempt may bring one."""
+
+    def __init__(self, error_type: str, message: str, retry: bool, response: Any = None):
+        super().__init__(message)
+        self.error_type, self.retry, self.response = error_type, retry, response
 
 
 OUT_OF_TIME = "OutOfTime"
@@ -328,6 +359,14 @@ class LiteLLMClient:
                     message = str(large) + (f" (asked at {_without_credentials(self.api_base)})" if self.api_base
                                             else "")
                     raise LLMError("AnswerTooLarge", message, attempt, False, time.monotonic() - start) from None
+                # an answer without text was billed all the same: its usage goes with the error
+                answer = self._reply(exc.response, attempt, time.monotonic() - start) if isinstance(exc, _NoText) \
+                    else None
+                if isinstance(exc, _NoText) and not exc.retry:  # the same prompt would get the same
+                    message = str(exc) + (f" (asked at {_without_credentials(self.api_base)})" if self.api_base
+                                          else "")
+                    raise LLMError(exc.error_type, message, attempt, False, time.monotonic() - start,
+                                   answer) from None
                 name = _error_name(exc)
                 if self.structured and _refuses_reply_format(name, exc):
                     # a server that does not take the reply schema: ask again without it (not a retry), and
@@ -347,7 +386,8 @@ class LiteLLMClient:
                     if too_long:
                         message += (f"; the provider asks to wait {asked:,.0f} s before the next request, longer "
                                     f"than a call waits ({MAX_ASKED_WAIT_S:.0f} s): resume the run once it allows")
-                    raise LLMError(name, message, attempt, fatal or too_long, time.monotonic() - start) from None
+                    raise LLMError(name, message, attempt, fatal or too_long, time.monotonic() - start,
+                                   answer) from None
                 retried += 1
                 # the provider knows when its limit resets: a backoff shorter than that is a call wasted
                 pause = asked if asked is not None else self.backoff_s * 2 ** (retried - 1)
@@ -363,6 +403,8 @@ class LiteLLMClient:
             response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
             if params.get("stream"):
                 response = self._collect(response, sent, on_text, time.monotonic())
+        if not _reply_text(response).strip():  # stored as a reply, it was read as one: "the reply is empty"
+            raise _no_text(response)
         return response
 
     def _within_time_limit(self, call: Callable[[], Any], deadline: float | None = None) -> Any:
@@ -437,13 +479,7 @@ class LiteLLMClient:
         return max(20_000, 4 * self.max_tokens)
 
     def _reply(self, response: Any, attempts: int, latency_s: float) -> LLMReply:
-        choice = response.choices[0] if response.choices else None
-        message = choice.message if choice is not None else None
-        text = (message.content if message is not None else None) or ""
-        if not text and message is not None and getattr(message, "tool_calls", None):
-            # litellm hands a forced tool's input back as the text; should an adapter leave it as a tool call,
-            # its arguments are the reply
-            text = getattr(message.tool_calls[0].function, "arguments", None) or ""
+        text = _reply_text(response)
         usage = getattr(response, "usage", None)
         inputs, outputs = _usage_number(usage, "prompt_tokens"), _usage_number(usage, "completion_tokens")
         # litellm fills a usage the endpoint left out with zeros; no prompt is 0 tokens, nor a reply with text
@@ -470,6 +506,35 @@ class LiteLLMClient:
             attempts=attempts,
             structured=self.structured,
         )
+
+
+def _reply_text(response: Any) -> str:
+    """The text of an answer's first choice (a forced tool's input, should an adapter leave it as a tool call)."""
+    choice = response.choices[0] if response.choices else None
+    message = choice.message if choice is not None else None
+    text = (message.content if message is not None else None) or ""
+    if not isinstance(text, str):
+        return ""
+    if not text and message is not None and getattr(message, "tool_calls", None):
+        # litellm hands a forced tool's input back as the text; should an adapter leave it as a tool call,
+        # its arguments are the reply
+        text = getattr(message.tool_calls[0].function, "arguments", None) or ""
+    return text if isinstance(text, str) else ""
+
+
+def _no_text(response: Any) -> _NoText:
+    """Why an answer has no text, as the error it is, by its finish reason (litellm's, the same for every
+    provider: Anthropic's ``max_tokens`` and Gemini's ``MAX_TOKENS`` are ``length``; Gemini's ``SAFETY`` and
+    ``RECITATION`` are ``content_filter``)."""
+    reasons = [_reported_text(getattr(c, "finish_reason", None)) for c in response.choices or []]
+    if "content_filter" in reasons:
+        return _NoText(CONTENT_FILTERED, "the provider withheld the reply (finish reason content_filter) and sent no "
+                       "text", False, response)
+    if "length" in reasons:
+        return _NoText(EMPTY_REPLY, "the reply stopped at the token limit before any text: raise --max-tokens",
+                       False, response)
+    return _NoText(EMPTY_REPLY, "the endpoint answered with no text" + (
+        f" (finish reason {', '.join(r for r in reasons if r)})" if any(reasons) else ""), True, response)
 
 
 class ReplayClient:

@@ -487,14 +487,16 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
             "attempts": reply.attempts if reply else (error.attempts if error else 1),
             "replayed": bool(reply.replayed) if reply else False,
         }
-        if reply is not None:
-            row.update(response_model=reply.response_model, response_id=reply.response_id,
-                       finish_reasons=reply.finish_reasons, input_tokens=reply.input_tokens,
-                       output_tokens=reply.output_tokens, cached_input_tokens=reply.cached_input_tokens,
-                       cache_creation_input_tokens=reply.cache_creation_input_tokens, cost_usd=reply.cost_usd,
-                       usage_estimated=None if reply.replayed else False)
-            if not reply.replayed and (reply.input_tokens is None or reply.output_tokens is None):
-                row.update(_worst_case_usage(model.model, reply, item.prompt.tokens, row["request_max_tokens"]))
+        # an error that was an answer all the same (one without text) was billed: its usage is counted
+        billed = reply if reply is not None else getattr(error, "answer", None)
+        if billed is not None:
+            row.update(response_model=billed.response_model, response_id=billed.response_id,
+                       finish_reasons=billed.finish_reasons, input_tokens=billed.input_tokens,
+                       output_tokens=billed.output_tokens, cached_input_tokens=billed.cached_input_tokens,
+                       cache_creation_input_tokens=billed.cache_creation_input_tokens, cost_usd=billed.cost_usd,
+                       usage_estimated=None if billed.replayed else False)
+            if not billed.replayed and (billed.input_tokens is None or billed.output_tokens is None):
+                row.update(_worst_case_usage(model.model, billed, item.prompt.tokens, row["request_max_tokens"]))
         if error is not None:
             row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
         if reply is not None:
