@@ -709,43 +709,52 @@ def test_a_call_is_given_up_on_at_its_deadline_and_no_retry_starts_after_it(tmp_
 RATE_LIMITED_PROVIDERS = ["anthropic", "openai", "ollama_chat", "hosted_vllm", "gemini"]
 
 
-def _asking(tmp_path, provider: str, headers: dict, then: list | None = None, retries: int = 3):
-    """A client of ``provider``'s scripted endpoint whose first answer is a 429 with ``headers``, then ``then``;
-    the client's own backoff is 0.01 s, so any longer gap between two requests is a wait the provider asked for."""
+def _asked(tmp_path, cases: list[tuple[str, dict, list]]):
+    """One scripted endpoint for every case (it answers each protocol at its own path), its script each case's
+    429 with the case's headers and then what the case is answered next, in order; and per case a client of the
+    case's provider. The clients' own backoff is 0.01 s, so any longer gap between two requests is a wait the
+    provider asked for."""
     from pipeline.llm.client import LiteLLMClient
     from tests.scripted_llm import ScriptedModel
 
-    model = ScriptedModel([{"status": 429, "headers": headers}] + (then or ["the reply"]),
-                          tmp_path / f"model-{provider}-{len(list(tmp_path.iterdir()))}").start()
-    route, base = model.route(provider)
-    return model, LiteLLMClient(route, api_base=base, api_key="sk-scripted", retries=retries, backoff_s=0.01,
-                                timeout_s=30, structured=False)
+    model = ScriptedModel([entry for _, headers, then in cases for entry in [{"status": 429, "headers": headers}]
+                           + then], tmp_path / "model").start()
+    clients = []
+    for provider, _, _ in cases:
+        route, base = model.route(provider)
+        clients.append(LiteLLMClient(route, api_base=base, api_key="sk-scripted", retries=3, backoff_s=0.01,
+                                     timeout_s=30, structured=False))
+    return model, clients
 
 
-def _gaps(model) -> list[float]:
-    times = [request["received_at"] for request in model.raw_requests()]
-    return [later - earlier for earlier, later in zip(times, times[1:])]
+def _gap(model) -> float:
+    """Seconds between the last two requests the endpoint received."""
+    earlier, later = [request["received_at"] for request in model.raw_requests()[-2:]]
+    return later - earlier
 
 
-@pytest.mark.parametrize("provider", RATE_LIMITED_PROVIDERS)
-def test_a_rate_limit_is_waited_out_as_long_as_the_provider_asks(tmp_path, provider):
+@pytest.mark.slow
+def test_a_rate_limit_is_waited_out_as_long_as_the_provider_asks(tmp_path):
     """A 429's ``Retry-After`` (seconds, OpenAI's ``retry-after-ms``, an HTTP date) is how long the next request
     waits, through each provider's adapter (litellm keeps the response's headers on its exception): with the
     client's own backoff (0.01 s here, 2 s by default) the retries came before the limit reset and a rate-limited
     update was lost after 14 s of retrying."""
     # the date: 3 s after the server answers, to the second (so 2-3 s after)
-    for headers, at_least in (({"retry-after": "1"}, 1.0), ({"retry-after-ms": "1500"}, 1.5),
-                              ({"Retry-After": {"date_in_s": 3}}, 1.5)):
-        model, client = _asking(tmp_path, provider, headers)
-        try:
+    # (the headers reach the client the same way whatever their name: retry-after-ms keeps the waits short)
+    cases = [("anthropic", {"retry-after": "1"}, 1.0), ("openai", {"retry-after-ms": "1500"}, 1.5)] + \
+        [(provider, {"retry-after-ms": "400"}, 0.4) for provider in RATE_LIMITED_PROVIDERS] + \
+        [("anthropic", {"Retry-After": {"date_in_s": 3}}, 1.5)]
+    model, clients = _asked(tmp_path, [(provider, headers, ["the reply"]) for provider, headers, _ in cases])
+    try:
+        for (provider, headers, at_least), client in zip(cases, clients):
             reply = client.complete([{"role": "user", "content": "hello"}])
-        finally:
-            model.stop()
-        assert reply.text.strip() == "the reply" and reply.attempts == 2, (headers, reply)
-        (gap,) = _gaps(model)
-        assert gap >= at_least, (provider, headers, gap)
+            assert reply.text.strip() == "the reply" and reply.attempts == 2, (provider, headers, reply)
+            assert _gap(model) >= at_least, (provider, headers, _gap(model))
+    finally:
+        model.stop()
 
 
+@pytest.mark.slow
 def test_a_wait_longer_than_a_call_waits_stops_at_once_and_junk_is_not_a_wait(tmp_path):
     """A provider that asks for longer than :data:`MAX_ASKED_WAIT_S` (a day's quota; a hostile endpoint's
     ``1e308``) is not waited out, silently, for hours: the call fails at once, as an error retrying cannot fix,
@@ -756,25 +765,28 @@ def test_a_wait_longer_than_a_call_waits_stops_at_once_and_junk_is_not_a_wait(tm
     from pipeline.llm.client import MAX_ASKED_WAIT_S, LLMError
 
     next_year = email.utils.formatdate(time.time() + 366 * 86_400, usegmt=True)
-    for headers, asked in (({"retry-after": "86400"}, "86,400 s"), ({"retry-after-ms": "1e308"}, "s before"),
-                           ({"retry-after": next_year}, "s before"),
-                           ({"retry-after": str(int(MAX_ASKED_WAIT_S) + 1)}, f"{int(MAX_ASKED_WAIT_S) + 1} s")):
-        model, client = _asking(tmp_path, "anthropic", headers, then=[{"status": 429, "headers": headers}])
-        try:
+    too_long = [({"retry-after": "86400"}, "86,400 s"), ({"retry-after-ms": "1e308"}, "s before"),
+                ({"retry-after": next_year}, "s before"),
+                ({"retry-after": str(int(MAX_ASKED_WAIT_S) + 1)}, f"{int(MAX_ASKED_WAIT_S) + 1} s")]
+    junk = ["-5", "nan", "inf", "soon", "1" * 100, "", "Thu, 99 Foo 2026 99:99:99 GMT"]
+    model, clients = _asked(tmp_path, [("anthropic", headers, []) for headers, _ in too_long]
+                            + [("openai", {"retry-after": value, "retry-after-ms": value}, ["the reply"])
+                               for value in junk])
+    try:
+        for (headers, asked), client in zip(too_long, clients):
+            before = len(model.raw_requests())
             with pytest.raises(LLMError) as raised:
                 client.complete([{"role": "user", "content": "hello"}])
-        finally:
-            model.stop()
-        assert raised.value.fatal and raised.value.attempts == 1 and len(model.raw_requests()) == 1, headers
-        assert "the provider asks to wait" in raised.value.message and asked in raised.value.message, raised.value
-        assert "resume the run" in raised.value.message
-    for junk in ("-5", "nan", "inf", "soon", "1" * 100, "", "Thu, 99 Foo 2026 99:99:99 GMT"):
-        model, client = _asking(tmp_path, "openai", {"retry-after": junk, "retry-after-ms": junk})
-        try:
+            assert raised.value.fatal and raised.value.attempts == 1, headers
+            assert len(model.raw_requests()) == before + 1, "no second request"
+            assert "the provider asks to wait" in raised.value.message and asked in raised.value.message, \
+                raised.value
+            assert "resume the run" in raised.value.message
+        for value, client in zip(junk, clients[len(too_long):]):
             reply = client.complete([{"role": "user", "content": "hello"}])
-        finally:
-            model.stop()
-        assert reply.attempts == 2 and max(_gaps(model)) < MAX_ASKED_WAIT_S, junk
+            assert reply.attempts == 2 and _gap(model) < MAX_ASKED_WAIT_S, value
+    finally:
+        model.stop()
 
 
 ADAPTERS = [("openai", False), ("openai", True), ("anthropic", False), ("anthropic", True), ("ollama_chat", False),
