@@ -88,6 +88,17 @@ def uninterrupted() -> Iterator[None]:
         _raise(signum)
 
 
+def end_without_collecting() -> None:
+    """For a process that a Ctrl-C or SIGTERM stopped, about to exit: the interpreter's last garbage collections
+    are skipped (every object is frozen out of the collector's reach). They went over what the stopped work left
+    (~490,000 objects of an optimize stopped in its episodes) for 2-3 s after the process had said `interrupted`,
+    and a batch waited as long for each run; the operating system frees the memory at once. Exit handlers still
+    run (the zygotes are stopped), and so do the finalizers of what is freed without the collector."""
+    import gc
+
+    gc.freeze()
+
+
 def stop_on_signals(handler: Callable[[int, object], None] = stop_once) -> list[int]:
     """Install ``handler`` (in the main thread only) for SIGINT where it raises KeyboardInterrupt now (a process
     started with it ignored, under ``nohup`` or CI, keeps ignoring it) and for SIGTERM where it has its default;

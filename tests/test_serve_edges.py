@@ -104,3 +104,24 @@ def test_whether_a_served_run_holds_a_submission_is_what_last_counts(tmp_path):
         assert [unsubmitted(con, r) for r in (empty_first, submitted, empty_last)] == [True, False, True]
         assert passed_over(con, submitted) == [(empty_last, "serve", True)]
         assert not unsubmitted(con, "no such run")
+
+
+def test_serve_finalize_stopped_by_ctrl_c_says_how_to_finalize_it(tmp_path, monkeypatch):
+    # a Ctrl-C while the validation and held-out pools played ended it with "codearcade: interrupted" alone (exit
+    # 130, 0.6 s after the press): the run not finalized, and nothing said how to go on, where audit and optimize
+    # each name the command that continues
+    from pipeline.serve.protocol import ServeRun
+
+    store = Store(tmp_path / "s.duckdb")
+    run_id = _served(store, submitted=True)
+
+    def pressed(self):  # the press, as it lands in the pools' games
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ServeRun, "finalize", pressed)
+    result = run_main("serve", "--finalize", "last", "--store", store.path)
+    assert result.returncode == 130, result
+    lines = result.stderr.strip().splitlines()
+    assert lines[-1] == "codearcade: interrupted", result
+    assert f"run {run_id[:8]} is not finalized" in lines[-2], lines
+    assert f"serve --finalize {run_id[:8]}" in lines[-2], lines

@@ -31,7 +31,7 @@ try:  # Ctrl-C while the command starts (its imports take a second or more on a 
     from pipeline.cli import eval as eval_  # the verb's module (the builtin is not used here)
     from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, CodearcadeParser,
                                      shorten_in_message, show)
-    from pipeline.stopping import stop_on_signals, stop_once
+    from pipeline.stopping import end_without_collecting, stop_on_signals, stop_once
 except KeyboardInterrupt:
     sys.stderr.write("codearcade: interrupted\n")
     raise SystemExit(130) from None
@@ -135,6 +135,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     code = _main(argv)
     if argv is None:  # the command line's own process
         _end_now_past_a_stuck_sink(code)
+        if code == EXIT_INTERRUPTED:  # stopped: end promptly (a caller in this process goes on as it was)
+            end_without_collecting()
     return code
 
 

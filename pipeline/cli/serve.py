@@ -224,7 +224,12 @@ def _finalize(store, run_id: str, args: argparse.Namespace) -> int:
                 raise CliError(f"run {short} holds no submission: there is nothing to finalize; "
                                f"`{command_text(store, 'serve', '--resume', short)}` serves it again")
             _say(f"run {short}: playing the validation and held-out pools")
-            served.finalize()
+            try:
+                served.finalize()
+            except KeyboardInterrupt:  # the command's handler says "interrupted"; this says how to go on
+                _say(f"run {short} is not finalized: `{command_text(store, 'serve', '--finalize', short)}` "
+                     "plays its pools again")
+                raise
     with store.read() as con:
         rows = audits(con, run_id)
     if args.json:

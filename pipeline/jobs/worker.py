@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import sys
 
-from pipeline.stopping import stop_on_signals
+from pipeline.stopping import end_without_collecting, stop_on_signals
 
 INTERRUPTED_EXIT = 130
 """Exit code of a batch run process stopped by a Ctrl-C (its run is interrupted, resumable)."""
@@ -138,6 +138,7 @@ if __name__ == "__main__":
         sys.exit(main())
     except KeyboardInterrupt:  # the run is marked interrupted already (the loop did); a line, not a traceback
         _say("interrupted")
+        end_without_collecting()  # the batch waits for this process's end
         sys.exit(INTERRUPTED_EXIT)
     except StoreError as exc:  # the store says what happened and what to do: its line, not a traceback
         _say(f"error: {exc}")
@@ -151,4 +152,5 @@ if __name__ == "__main__":
         if not (is_ctrl_c(exc) or stop_pending()):
             raise
         _say("interrupted")
+        end_without_collecting()
         sys.exit(INTERRUPTED_EXIT)
