@@ -52,12 +52,19 @@ def stop_pending() -> bool:
     return _stopped is not None
 
 
+def raise_if_stopped() -> None:
+    """Raise the interrupt of a Ctrl-C or SIGTERM that stopped the command, also one Python swallowed (see
+    :func:`stop_pending`): for a loop that waits a long time, to look at as it waits. In the main thread only, where
+    the signal itself is raised (a server's games in a thread of their own end as the server does)."""
+    if _stopped is not None and threading.current_thread() is threading.main_thread():
+        _raise(_stopped)
+
+
 def wait_for_stop(done: Callable[[float], bool] | None = None) -> None:
     """Wait until a Ctrl-C or SIGTERM stops the command (raised as :func:`stop_once` raises it, the one a swallowed
     handler raised too), or until ``done(timeout)``, a wait of at most ``timeout`` seconds, says it is over."""
     while True:
-        if _stopped is not None:
-            _raise(_stopped)
+        raise_if_stopped()
         if done is None:
             time.sleep(0.25)
         elif done(0.25):

@@ -32,6 +32,7 @@ from typing import Any, Callable, Hashable, Iterable, Iterator, TypeVar
 from pipeline.boundary import wire
 from pipeline.boundary.zygotes import KEPT, ZYGOTE_USE, Zygote, zygote
 from pipeline.settings import EpisodeLimits
+from pipeline.stopping import raise_if_stopped
 
 KILL_GRACE_S = 30.0
 """How long past its time limit a worker may run before the parent kills it."""
@@ -268,6 +269,8 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
             fill()
             finished: list[tuple[int, R]] = []
             ready, _, _ = select.select(list(busy) + [z.ctl.fileno() for z in controls], [], [], 0.5)
+            # a press Python swallowed (raised in a finalizer) played the games on to their end: stop as it would
+            raise_if_stopped()
             for z in controls:
                 if z.ctl.fileno() in ready:
                     z.pump()

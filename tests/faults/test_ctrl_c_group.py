@@ -478,3 +478,43 @@ def test_an_interrupted_process_ends_without_collecting_its_garbage(where):
     done = subprocess.run([sys.executable, "-c", program], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 130, done.stdout + done.stderr
     assert "interrupted" in done.stdout + done.stderr and "collected at exit" not in done.stderr, done.stderr
+
+
+@pytest.mark.slow
+def test_a_press_python_swallowed_still_stops_the_episodes(tmp_path):
+    """A press whose KeyboardInterrupt is raised inside a finalizer is swallowed by Python ("Exception ignored in
+    ..."), and the signals are ignored from then on: the episodes played on to their end. Seen as a batch of two
+    runs pressed in their episodes that took 34.7 s to exit: one run played its last iteration out and finished (a
+    run's log hides the ignored exception). The episodes' loop now looks for such a press each time it waits, and
+    the command ends as interrupted. Here the press lands in a finalizer as the 20th message of the games is read."""
+    store = tmp_path / "s.duckdb"
+    program = textwrap.dedent(f"""
+        import os, signal, sys
+        from pipeline import cli
+        from pipeline.boundary import wire
+
+        class Swallows:
+            def __del__(self):
+                os.kill(os.getpid(), signal.SIGINT)
+                for _ in range(100_000):  # the handler runs in here, and Python ignores what it raises
+                    pass
+
+        parse, read = wire.parse_message, [0]
+
+        def parse_message(payload):
+            read[0] += 1
+            if read[0] == 20:
+                Swallows()  # made and dropped: its finalizer runs now
+            return parse(payload)
+
+        wire.parse_message = parse_message
+        sys.argv = ["codearcade", "eval", {str(POLICIES / "pong_competent.py")!r}, "--episodes", "3", "--max-steps",
+                    "100000", "--store", {str(store)!r}]
+        sys.exit(cli.main())
+    """)
+    done = subprocess.run([sys.executable, "-c", program], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert "Exception ignored" in done.stderr, "the press was not swallowed: the test tests nothing"
+    assert done.returncode == 130, done.stderr[-3000:]
+    assert done.stderr.strip().splitlines()[-1].startswith("codearcade: interrupted"), done.stderr[-3000:]
+    assert Store(store).query("SELECT status FROM runs") == [("interrupted",)]
+    assert Store(store).query("SELECT count(*) FROM episodes")[0][0] < 3
