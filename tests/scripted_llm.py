@@ -54,6 +54,14 @@ when ``stream_options.include_usage`` asks for it; Anthropic's message events, a
 ``input_json_delta`` pieces). Every request is appended to a JSONL log (protocol, path, the auth headers, the
 body, the messages in one normalized form, and for Anthropic the kind of content block it is answered with), so
 tests can read what the loop sent.
+
+Each request also gets a line in a billing ledger (:meth:`ScriptedModel.billed`), what a provider would bill for
+it: ``{"request": n, "billed": bool, "input": tokens, "output": tokens, "reported": bool}``. Every answer the model
+produced is billed at the usage it has (the one an answer reports, whether or not it had text or stopped at the
+token limit); a stream that broke midway (``stream_error``, ``stream_cut``) is billed too, at the usage the whole
+answer would have reported, though the client never gets it (``reported``: false); an HTTP error and a 200 whose
+body is an error object are not billed (0 tokens). The ledger is the oracle a test checks ``llm_calls`` and the
+budgets against.
 """
 
 from __future__ import annotations
@@ -90,6 +98,7 @@ class ScriptedModel:
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.script_path = self.workdir / "script.json"
         self.log_path = self.workdir / "requests.jsonl"
+        self.ledger_path = self.workdir / "billed.jsonl"  # beside the log: the server derives it the same way
         self.script_path.write_text(json.dumps(script))
         self.process: subprocess.Popen | None = None
         self.port = 0
@@ -143,6 +152,12 @@ class ScriptedModel:
         if not self.log_path.exists():
             return []
         return [json.loads(line) for line in self.log_path.read_text().splitlines() if line.strip()]
+
+    def billed(self) -> list[dict]:
+        """The billing ledger: a line per request, in the order they were answered (see the module docstring)."""
+        if not self.ledger_path.exists():
+            return []
+        return [json.loads(line) for line in self.ledger_path.read_text().splitlines() if line.strip()]
 
     def requests(self) -> list[list[dict]]:
         """The messages of every request, normalized to ``[{"role", "content"}]`` with text content."""
@@ -339,6 +354,14 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
     state = {"index": 0, "repeats": 0, "count": 0}
     lock = threading.Lock()
     cache: dict = {}
+    ledger_path = Path(log_path).with_name("billed.jsonl")
+
+    def bill(count: int, input_tokens: int = 0, output_tokens: int = 0, reported: bool = True) -> None:
+        """The ledger's line for request ``count``: what it is billed (nothing, without tokens)."""
+        line = {"request": count, "billed": bool(input_tokens or output_tokens), "input": input_tokens,
+                "output": output_tokens, "reported": reported}
+        with lock, open(ledger_path, "a") as ledger:
+            ledger.write(json.dumps(line) + "\n")
 
     def next_entry():
         entry = script[min(state["index"], len(script) - 1)]
@@ -393,6 +416,8 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             if "latency" in entry:
                 median, sigma, seed = entry["latency"]
                 time.sleep(median * random.Random(seed * 7_919 + count).lognormvariate(0.0, sigma))
+            if "status" in entry or "error_body" in entry or "raw" in entry:
+                bill(count)  # an error, or a body that is no answer: nothing was generated
             if "status" in entry and "raw" in entry:  # a proxy's error page
                 self._send(entry["status"], entry["raw"].encode("latin-1"), headers=entry.get("headers", {}),
                            content_type="text/html")
@@ -416,6 +441,8 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             output_tokens = usage.get("output", len(content.split()))
             body = _reply_body(protocol, request, content, count, input_tokens, output_tokens, cache,
                                entry.get("finish"))
+            broken = bool(request.get("stream")) and ("stream_error" in entry or "stream_cut" in entry)
+            bill(count, input_tokens, output_tokens, reported=not broken)
             if entry.get("extra_dicts"):  # a field no reply needs, costly to parse: [{}, {}, ...]
                 body["x"] = [{}] * entry["extra_dicts"]
             if entry.get("choices") and not request.get("stream") and protocol == "openai":

@@ -8,13 +8,17 @@ that is longer than :data:`MAX_ASKED_WAIT_S`) fail at once. An answer without te
 :data:`EMPTY_REPLY` (retried: providers send an empty one now and then; not retried when it stopped at the token
 limit), or :data:`CONTENT_FILTERED` (the provider withheld it: Gemini's ``SAFETY``, ``RECITATION``; not retried,
 the same prompt is withheld again). Either way the caller gets an :class:`LLMError` it can
-record, never a traceback. :class:`ReplayClient` answers from the replies already stored for a run, matched by
-prompt hash: resuming and ``codearcade replay`` never pay for a call twice.
+record, never a traceback. The provider bills every attempt it answered (an empty answer, a stream that broke
+midway, each retried answer), so a call's reply or error carries the usage of all of them, and a retry of a billed
+attempt is made only when the caller's ``before_retry`` says it fits (its budgets). :class:`ReplayClient` answers
+from the replies already stored for a run, matched by prompt hash: resuming and ``codearcade replay`` never pay
+for a call twice.
 """
 
 from __future__ import annotations
 
 import contextvars
+import dataclasses
 import email.utils
 import hashlib
 import json
@@ -89,6 +93,11 @@ class LLMReply:
     replayed: bool = False
     structured: bool = False
     """The request held the provider to the reply schema (``response_format``)."""
+    billed: list["LLMReply"] = field(default_factory=list)
+    """Every answered attempt of the call, in order, with its own usage: the counts and cost above are their sum
+    (a count or cost is None when an attempt did not report it). An attempt whose usage never came (a stream that
+    broke midway: billed, by how much only the provider knows) is here with no counts at all. Empty: one attempt,
+    the one above (a replay's)."""
 
     @property
     def cut_off(self) -> bool:
@@ -98,8 +107,9 @@ class LLMReply:
 
 class LLMError(Exception):
     """A call that did not produce a reply; ``fatal`` when retrying later cannot help (a bad key, a bad model).
-    ``answer``: what the last attempt was answered, when it was an answer all the same (one without text: its
-    usage and finish reasons, which the provider bills and ``llm_calls`` records; its text is no reply)."""
+    ``answer``: what its attempts were answered, when any was an answer all the same (one without text, a stream
+    that broke midway): the usage of them all, summed (:attr:`LLMReply.billed`), and the last one's finish reasons,
+    which the provider bills and ``llm_calls`` records; no text of theirs is a reply."""
 
     def __init__(self, error_type: str, message: str, attempts: int, fatal: bool, latency_s: float = 0.0,
                  answer: LLMReply | None = None):
@@ -123,11 +133,19 @@ class LLMClient(Protocol):
     def request_params(self) -> dict[str, Any]: ...
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None) -> LLMReply:
+                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None,
+                 before_retry: "BeforeRetry | None" = None) -> LLMReply:
         """The reply to ``messages``; ``on_text`` gets streamed text; ``candidate`` and ``iteration``: which
         proposal this is (a replay answers with that proposal's stored reply: the proposal pool may ask the same
         prompt in two iterations); ``deadline``: a ``time.monotonic()`` past which no reply is waited for (an
-        :class:`LLMError` of type :data:`OUT_OF_TIME`)."""
+        :class:`LLMError` of type :data:`OUT_OF_TIME`); ``before_retry``: asked before an attempt that was
+        answered (billed) is retried (:data:`BeforeRetry`)."""
+
+
+BeforeRetry = Callable[["LLMReply"], "str | None"]
+"""Asked before an attempt that was answered, and so billed, is retried, with that attempt (its usage; no counts
+when none came): None lets the retry go, a reason ends the call as an :class:`LLMError` of type
+:data:`BUDGET_SPENT` (the optimizer's budgets: a call may be billed for every attempt, and each retry must fit)."""
 
 
 def _error_name(exc: BaseException) -> str:
@@ -229,6 +247,10 @@ class _NoText(Exception):
         super().__init__(message)
         self.error_type, self.retry, self.response = error_type, retry, response
 
+
+BUDGET_SPENT = "BudgetSpent"
+"""The error type of a call ended before a retry because the budget had no room for another billed attempt
+(:data:`BeforeRetry`). Never retried; the optimizer ends the run as a spent budget."""
 
 OUT_OF_TIME = "OutOfTime"
 """The error type of a call given up on at its ``deadline``: the run's time budget (``--max-wall``) ran out while it
@@ -332,41 +354,55 @@ class LiteLLMClient:
                 **self._params["response_format"]["json_schema"], "schema": reply_schema(self.reply_limits, methods)}}
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None) -> LLMReply:
+                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None,
+                 before_retry: BeforeRetry | None = None) -> LLMReply:
         """One reply, retried as the class docstring says; with streaming on, ``on_text`` gets each piece of
         text as it arrives (a retry starts the text again). Past ``deadline`` (``time.monotonic()``) the call is
-        given up on, and no retry starts: an :class:`LLMError` of type :data:`OUT_OF_TIME`."""
+        given up on, and no retry starts: an :class:`LLMError` of type :data:`OUT_OF_TIME`. Every attempt that
+        was answered is billed: the reply (or the error's ``answer``) carries the usage of them all, and before one
+        is retried ``before_retry`` is asked whether another fits (:data:`BeforeRetry`)."""
         params = self.request_params()
         extra = {"api_key": self.api_key} if self.api_key else ({"api_key": "none"} if self.api_base and
                                                                self.provider in LOCAL_SERVER_PROVIDERS else {})
         sent = with_cache_breakpoint(self.provider, messages)
         start = time.monotonic()
         attempt = retried = 0
+        billed: list[LLMReply] = []  # every attempt that was answered: the provider bills each, not only the last
+
+        def error(error_type: str, message: str, fatal: bool, attempts: int | None = None) -> LLMError:
+            return LLMError(error_type, message, attempt if attempts is None else attempts, fatal,
+                            time.monotonic() - start, _summed(billed))
+
         while True:
             attempt += 1
             if deadline is not None and time.monotonic() >= deadline:
-                raise LLMError(OUT_OF_TIME, "the run's time budget ran out before this call could be made"
-                               + (f" again (after {attempt - 1} attempts)" if attempt > 1 else ""),
-                               attempt - 1, True, time.monotonic() - start)
+                raise error(OUT_OF_TIME, "the run's time budget ran out before this call could be made"
+                            + (f" again (after {attempt - 1} attempts)" if attempt > 1 else ""), True, attempt - 1)
+            progress: dict[str, bool] = {}
             try:
-                response = self._within_time_limit(lambda: self._answer(sent, params, extra, on_text), deadline)
+                response = self._within_time_limit(lambda: self._answer(sent, params, extra, on_text, progress),
+                                                   deadline)
             except _OutOfTime:
-                raise LLMError(OUT_OF_TIME, f"the call was given up on after {time.monotonic() - start:.0f} s, at the "
-                               "run's deadline", attempt, True, time.monotonic() - start) from None
+                raise error(OUT_OF_TIME, f"the call was given up on after {time.monotonic() - start:.0f} s, at the "
+                            "run's deadline", True) from None
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
+                # an answer without text was billed all the same, and so was a stream that broke midway (its
+                # usage never came): each goes with the error, and with the reply of a later attempt
+                answered = isinstance(exc, _NoText) or progress.get("answered", False)
+                if answered:
+                    billed.append(self._reply(exc.response, attempt, time.monotonic() - start)
+                                  if isinstance(exc, _NoText) else
+                                  LLMReply("", latency_s=time.monotonic() - start, attempts=attempt,
+                                           structured=self.structured))
                 large = too_large(exc)
                 if large is not None:  # not retried: the same endpoint would send the same again
                     message = str(large) + (f" (asked at {_without_credentials(self.api_base)})" if self.api_base
                                             else "")
-                    raise LLMError("AnswerTooLarge", message, attempt, False, time.monotonic() - start) from None
-                # an answer without text was billed all the same: its usage goes with the error
-                answer = self._reply(exc.response, attempt, time.monotonic() - start) if isinstance(exc, _NoText) \
-                    else None
+                    raise error("AnswerTooLarge", message, False) from None
                 if isinstance(exc, _NoText) and not exc.retry:  # the same prompt would get the same
                     message = str(exc) + (f" (asked at {_without_credentials(self.api_base)})" if self.api_base
                                           else "")
-                    raise LLMError(exc.error_type, message, attempt, False, time.monotonic() - start,
-                                   answer) from None
+                    raise error(exc.error_type, message, False) from None
                 name = _error_name(exc)
                 if self.structured and _refuses_reply_format(name, exc):
                     # a server that does not take the reply schema: ask again without it (not a retry), and
@@ -386,22 +422,28 @@ class LiteLLMClient:
                     if too_long:
                         message += (f"; the provider asks to wait {asked:,.0f} s before the next request, longer "
                                     f"than a call waits ({MAX_ASKED_WAIT_S:.0f} s): resume the run once it allows")
-                    raise LLMError(name, message, attempt, fatal or too_long, time.monotonic() - start,
-                                   answer) from None
+                    raise error(name, message, fatal or too_long) from None
+                # a billed attempt spent part of what was set aside for the call: another may not fit the budget
+                why = before_retry(billed[-1]) if answered and before_retry is not None else None
+                if why is not None:
+                    raise error(BUDGET_SPENT, f"not retried after {_error_name(exc)}: {why}", False) from None
                 retried += 1
                 # the provider knows when its limit resets: a backoff shorter than that is a call wasted
                 pause = asked if asked is not None else self.backoff_s * 2 ** (retried - 1)
                 time.sleep(pause if deadline is None else max(0.0, min(pause, deadline - time.monotonic())))
                 continue
-            return self._reply(response, attempt, time.monotonic() - start)
+            billed.append(self._reply(response, attempt, time.monotonic() - start))
+            return _summed(billed)
 
     def _answer(self, sent: list[dict[str, Any]], params: dict[str, Any], extra: dict[str, Any],
-                on_text: Callable[[str], None] | None) -> Any:
+                on_text: Callable[[str], None] | None, progress: dict[str, bool]) -> Any:
         """One request and its whole answer (a stream read to its end), read and inflated within
-        ``MAX_ANSWER_BYTES``."""
+        ``MAX_ANSWER_BYTES``. ``progress["answered"]``: a stream began (litellm raises an HTTP error before it
+        hands one back), so the model was generating and the attempt is billed, whatever happens to it after."""
         with capped(events=self.max_events()):
             response = self.litellm.completion(messages=sent, num_retries=0, **params, **extra)
             if params.get("stream"):
+                progress["answered"] = True
                 response = self._collect(response, sent, on_text, time.monotonic())
         if not _reply_text(response).strip():  # stored as a reply, it was read as one: "the reply is empty"
             raise _no_text(response)
@@ -508,6 +550,25 @@ class LiteLLMClient:
         )
 
 
+def _summed(attempts: list[LLMReply]) -> LLMReply | None:
+    """The last of a call's answered ``attempts`` with the usage of them all (what the provider bills): each count
+    and the cost summed, None where an attempt did not report it (the optimizer charges that attempt its worst
+    case); the cache counts are the sum of those reported. None without any answered attempt."""
+    if not attempts:
+        return None
+
+    def total(name: str, known_only: bool = False) -> int | float | None:
+        values = [getattr(a, name) for a in attempts]
+        if known_only:
+            values = [v for v in values if v is not None] or [None]
+        return None if any(v is None for v in values) else sum(values)
+
+    return dataclasses.replace(attempts[-1], input_tokens=total("input_tokens"), output_tokens=total("output_tokens"),
+                               cost_usd=total("cost_usd"), cached_input_tokens=total("cached_input_tokens", True),
+                               cache_creation_input_tokens=total("cache_creation_input_tokens", True),
+                               billed=list(attempts))
+
+
 def _reply_text(response: Any) -> str:
     """The text of an answer's first choice (a forced tool's input, should an adapter leave it as a tool call)."""
     choice = response.choices[0] if response.choices else None
@@ -555,7 +616,8 @@ class ReplayClient:
         return {"model": self.model, "replay": True}
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None) -> LLMReply:
+                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None,
+                 before_retry: BeforeRetry | None = None) -> LLMReply:
         key = (iteration, prompt_hash(messages), candidate)  # a stored reply takes no time: no deadline to keep
         if key not in self.replies and key in self.errors:
             error_type, message, attempts = self.errors[key]
@@ -586,8 +648,10 @@ class EnsembleClient:
         return next(iter(self.members.values())).request_params()
 
     def complete(self, messages: list[dict[str, str]], on_text: Callable[[str], None] | None = None,
-                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None) -> LLMReply:
-        return next(iter(self.members.values())).complete(messages, on_text, candidate, iteration, deadline)
+                 candidate: int = 0, iteration: int | None = None, deadline: float | None = None,
+                 before_retry: BeforeRetry | None = None) -> LLMReply:
+        return next(iter(self.members.values())).complete(messages, on_text, candidate, iteration, deadline,
+                                                          before_retry)
 
 
 OFFLINE_MODEL_LABEL = "offline:smollm2-135m-instruct"

@@ -37,7 +37,7 @@ from typing import Callable
 
 from games import get_game
 from pipeline.boundary.untrusted import clean_untrusted_text
-from pipeline.llm.client import OUT_OF_TIME, LLMClient, LLMError, LLMReply, canonical_messages
+from pipeline.llm.client import OUT_OF_TIME, BeforeRetry, LLMClient, LLMError, LLMReply, canonical_messages
 from pipeline.llm.providers import price
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.context import context_for
@@ -136,6 +136,8 @@ class _Pending:
     """The model that answers it, when the run has several (``pipeline/optimizer/ensemble.py``); else the run's."""
     choice: dict | None = None
     """Why the ensemble chose that model (``llm_calls.model_choice``; a repair turn's is its first call's)."""
+    over_budget: BudgetExhausted | None = None
+    """Why its call was not retried after a billed attempt: another would not fit a budget (:func:`_retry_budget`)."""
 
     def parse(self) -> None:
         reply = self.reply
@@ -198,6 +200,9 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
             name_methods([method.name for method in to_call[0].info.trainable])
         _ask(store, state, iteration, client, to_call, reservation, hold)
         _out_of_time(state, to_call)
+        spent = next((p.over_budget for p in to_call if p.over_budget is not None), None)
+        if spent is not None:  # recorded, with what its attempts were billed: the run ends as its budget's end
+            raise spent
         failed = [p for p in to_call if p.error is not None]
         fatal = next((p.error for p in failed if p.error.fatal), None)
         if len(failed) == len(pending):
@@ -308,8 +313,11 @@ def _ask(store: Store, state: "RunState", iteration: int, client: LLMClient, ite
     the calls; the reservation is given back once they are recorded (or the asking failed). Other processes may
     read the store while the model thinks: ``hold`` is let go (checkpointing what this process wrote) once the
     requests are on their way, and taken again for the recording."""
+    retries = [0, 0, 0.0]  # what the retries of billed attempts reserved on top of ``reservation``
     try:
-        _complete_all(state, iteration, client, items, meanwhile=hold.release if hold is not None else None)
+        _complete_all(state, iteration, client, items, meanwhile=hold.release if hold is not None else None,
+                      before_retry=None if reservation is None else
+                      lambda item: _retry_budget(store, state, item, item.client or client, retries))
         for item in items:  # before the store is taken back: other processes may read it while a reply is read
             if item.reply is not None:
                 item.text = item.reply.text
@@ -319,6 +327,50 @@ def _ask(store: Store, state: "RunState", iteration: int, client: LLMClient, ite
         record_calls(store, state.run_id, iteration, client, items)
     finally:
         release_budget(state, reservation)
+        release_budget(state, tuple(retries))
+
+
+def _retry_budget(store: Store, state: "RunState", item: _Pending, model: LLMClient, retries: list) -> BeforeRetry:
+    """The client's question before it retries an attempt of ``item``'s call that was answered, and so billed
+    (``LiteLLMClient.complete``): the reservation of :func:`check_budgets` set aside one worst case for the call,
+    which that attempt has used part of, and the provider bills every attempt. The retry goes only if the budgets
+    still have room for what the attempt was charged (:func:`billed_usage`) on top of everything spent and
+    reserved; that much is then reserved too (in ``retries``, given back with the reservation), so the call's
+    attempts together never take the run past a budget. Otherwise the call ends there (``BudgetSpent``) and
+    ``item.over_budget`` says why; nothing waits for the calls in flight (two calls waiting on each other)."""
+    c = state.config
+
+    def before_retry(attempt: LLMReply) -> str | None:
+        charge = billed_usage(model.model, attempt, item.prompt.tokens, c.max_tokens)
+        tokens = (charge["input_tokens"] or 0) + (charge["output_tokens"] or 0)
+        rates = price(model.model) if c.max_cost_usd is not None else None
+        cost = charge["cost_usd"] if charge["cost_usd"] is not None else (
+            rates.cost(item.prompt.tokens, c.max_tokens) if rates is not None else 0.0)
+        worst = item.prompt.tokens + c.max_tokens
+        with state.budget_lock:
+            with store.read() as con:
+                spent = run_spending(con, state.run_id)
+            _, flying_tokens, flying_cost = state.in_flight
+            why = None
+            if c.max_total_tokens is not None and spent["tokens"] + flying_tokens + tokens > c.max_total_tokens:
+                why = BudgetExhausted(
+                    f"token budget: {spent['tokens']:,} tokens used, {flying_tokens:,} set aside for the calls in "
+                    f"flight, and an attempt of this call was billed {tokens:,}: a retry, which may use up to "
+                    f"{worst:,} more, would go over --max-total-tokens {c.max_total_tokens:,}", "max_total_tokens")
+            elif c.max_cost_usd is not None and spent["cost_usd"] + flying_cost + cost > c.max_cost_usd:
+                why = BudgetExhausted(
+                    f"cost budget: ${spent['cost_usd']:.4f} spent, ${flying_cost:.4f} set aside for the calls in "
+                    f"flight, and an attempt of this call was billed ${cost:.4f}: a retry would go over --max-cost "
+                    f"${c.max_cost_usd:g}", "max_cost_usd")
+            if why is not None:
+                item.over_budget = why
+                return str(why)
+            state.in_flight = [state.in_flight[0], flying_tokens + tokens, flying_cost + cost]
+            retries[1] += tokens
+            retries[2] += cost
+        return None
+
+    return before_retry
 
 
 def _replies(n: int) -> str:
@@ -326,15 +378,18 @@ def _replies(n: int) -> str:
 
 
 def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: list[_Pending],
-                  meanwhile: Callable[[], None] | None = None) -> None:
+                  meanwhile: Callable[[], None] | None = None,
+                  before_retry: Callable[[_Pending], BeforeRetry] | None = None) -> None:
     """Request every reply, at most ``max_concurrent_calls`` at a time; each item gets its reply or error.
-    ``meanwhile`` runs in a thread of its own while the model is asked (its error is raised after the replies)."""
+    ``meanwhile`` runs in a thread of its own while the model is asked (its error is raised after the replies);
+    ``before_retry(item)``: what its call asks before it retries a billed attempt (:func:`_retry_budget`)."""
 
     def complete(item: _Pending, on_text) -> None:
         try:
             item.reply = (item.client or client).complete(item.prompt.messages, on_text=on_text,
                                                           candidate=item.request.candidate, iteration=iteration,
-                                                          deadline=state.wall_deadline)
+                                                          deadline=state.wall_deadline,
+                                                          before_retry=before_retry(item) if before_retry else None)
         except LLMError as exc:
             item.error = exc
 
@@ -444,6 +499,24 @@ def _validate_all(state: "RunState", iteration: int, items: list[_Pending], coun
     return proposals
 
 
+def billed_usage(model: str, answer: LLMReply, prompt_tokens: int, max_tokens: int | None) -> dict:
+    """What a call's answered attempts are charged (``llm_calls``' usage columns): each attempt at the usage it
+    reported, one that reported none (a stream that broke midway) or only part at its worst case
+    (:func:`_worst_case_usage`, ``usage_estimated``), summed; the provider bills every attempt it answered, not
+    only the last. A cost is None when an attempt has none (a model without a price)."""
+    attempts = answer.billed or [answer]
+    if answer.replayed or all(a.input_tokens is not None and a.output_tokens is not None for a in attempts):
+        return {"input_tokens": answer.input_tokens, "output_tokens": answer.output_tokens,
+                "cost_usd": answer.cost_usd, "usage_estimated": None if answer.replayed else False}
+    each = [_worst_case_usage(model, a, prompt_tokens, max_tokens)
+            if a.input_tokens is None or a.output_tokens is None else
+            {"input_tokens": a.input_tokens, "output_tokens": a.output_tokens, "cost_usd": a.cost_usd}
+            for a in attempts]
+    total = {name: None if any(e[name] is None for e in each) else sum(e[name] for e in each)
+             for name in ("input_tokens", "output_tokens", "cost_usd")}
+    return {**total, "usage_estimated": True}
+
+
 def _worst_case_usage(model: str, reply: LLMReply, prompt_tokens: int, max_tokens: int | None) -> dict:
     """What a reply whose endpoint reported no usable token count is charged (``usage_estimated``): the budgets
     read the store, and such a call counted as nothing let a run pass ``--max-total-tokens`` and ``--max-cost``
@@ -487,16 +560,14 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
             "attempts": reply.attempts if reply else (error.attempts if error else 1),
             "replayed": bool(reply.replayed) if reply else False,
         }
-        # an error that was an answer all the same (one without text) was billed: its usage is counted
+        # every attempt that was answered was billed, an error's (one without text, a broken stream) too: the
+        # usage of them all is counted
         billed = reply if reply is not None else getattr(error, "answer", None)
         if billed is not None:
             row.update(response_model=billed.response_model, response_id=billed.response_id,
-                       finish_reasons=billed.finish_reasons, input_tokens=billed.input_tokens,
-                       output_tokens=billed.output_tokens, cached_input_tokens=billed.cached_input_tokens,
-                       cache_creation_input_tokens=billed.cache_creation_input_tokens, cost_usd=billed.cost_usd,
-                       usage_estimated=None if billed.replayed else False)
-            if not billed.replayed and (billed.input_tokens is None or billed.output_tokens is None):
-                row.update(_worst_case_usage(model.model, billed, item.prompt.tokens, row["request_max_tokens"]))
+                       finish_reasons=billed.finish_reasons, cached_input_tokens=billed.cached_input_tokens,
+                       cache_creation_input_tokens=billed.cache_creation_input_tokens,
+                       **billed_usage(model.model, billed, item.prompt.tokens, row["request_max_tokens"]))
         if error is not None:
             row.update(error_type=error.error_type, error_message=clean_untrusted_text(error.message))
         if reply is not None:
