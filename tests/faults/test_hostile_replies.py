@@ -22,7 +22,7 @@ from tests.conftest import COMPETENT_SELECT, json_reply
 
 HUGE = "x" * (10 * 2**20)
 HOSTILE_REPLIES = [
-    ("empty", "", "empty"),
+    ("empty", "", "no text"),  # an EmptyReply, an error of the call: never read as a reply
     ("huge", HUGE, "over the"),
     ("non-UTF-8 bytes", {"raw": json.dumps({"id": "x", "object": "chat.completion", "created": 0, "model": "s",
                                             "choices": [{"index": 0, "message": {"role": "assistant",
