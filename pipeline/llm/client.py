@@ -396,13 +396,9 @@ class LiteLLMClient:
                                            structured=self.structured))
                 large = too_large(exc)
                 if large is not None:  # not retried: the same endpoint would send the same again
-                    message = str(large) + (f" (asked at {_without_credentials(self.api_base)})" if self.api_base
-                                            else "")
-                    raise error("AnswerTooLarge", message, False) from None
+                    raise error("AnswerTooLarge", str(large) + self._asked_at(), False) from None
                 if isinstance(exc, _NoText) and not exc.retry:  # the same prompt would get the same
-                    message = str(exc) + (f" (asked at {_without_credentials(self.api_base)})" if self.api_base
-                                          else "")
-                    raise error(exc.error_type, message, False) from None
+                    raise error(exc.error_type, str(exc) + self._asked_at(), False) from None
                 name = _error_name(exc)
                 if self.structured and _refuses_reply_format(name, exc):
                     # a server that does not take the reply schema: ask again without it (not a retry), and
@@ -416,9 +412,7 @@ class LiteLLMClient:
                 too_long = asked is not None and asked > MAX_ASKED_WAIT_S
                 if fatal or too_long or retried >= self.retries:
                     # the endpoint's text may quote the key it was sent: it is stored, printed and prompted
-                    message = self._without_key(describe_error(exc))
-                    if self.api_base:  # "Connection error.", "Error code: 404": the provider's text has no URL
-                        message += f" (asked at {_without_credentials(self.api_base)})"
+                    message = self._without_key(describe_error(exc)) + self._asked_at()
                     if too_long:
                         message += (f"; the provider asks to wait {asked:,.0f} s before the next request, longer "
                                     f"than a call waits ({MAX_ASKED_WAIT_S:.0f} s): resume the run once it allows")
@@ -426,7 +420,7 @@ class LiteLLMClient:
                 # a billed attempt spent part of what was set aside for the call: another may not fit the budget
                 why = before_retry(billed[-1]) if answered and before_retry is not None else None
                 if why is not None:
-                    raise error(BUDGET_SPENT, f"not retried after {_error_name(exc)}: {why}", False) from None
+                    raise error(BUDGET_SPENT, f"not retried after {name}: {why}", False) from None
                 retried += 1
                 # the provider knows when its limit resets: a backoff shorter than that is a call wasted
                 pause = asked if asked is not None else self.backoff_s * 2 ** (retried - 1)
@@ -434,6 +428,11 @@ class LiteLLMClient:
                 continue
             billed.append(self._reply(response, attempt, time.monotonic() - start))
             return _summed(billed)
+
+    def _asked_at(self) -> str:
+        """`` (asked at URL)`` after an error's message when the endpoint is the user's ``--api-base`` (its
+        credentials left out): "Connection error.", "Error code: 404" and the provider's own texts have no URL."""
+        return f" (asked at {_without_credentials(self.api_base)})" if self.api_base else ""
 
     def _answer(self, sent: list[dict[str, Any]], params: dict[str, Any], extra: dict[str, Any],
                 on_text: Callable[[str], None] | None, progress: dict[str, bool]) -> Any:
