@@ -41,6 +41,7 @@ SMALLEST = {
     "calibration.py": (["--replicates", "200", "--iqm-replicates", "10"],
                        ["coverage of the true mean", "where t's promise ends", "identical policies called different",
                         "power of Welch's test", "coverage of the true IQM", "| pong | 3 |"]),
+    "stream_read.py": (["--pieces", "100", "--repeats", "1"], ["litellm default", "codearcade / litellm's default"]),
     "cascade_steps.py": (["--iterations", "3", "--eval-max-steps", "400", "--screen-steps", "100"],
                          ["steps cheap / baseline =", "same best-so-far curve"]),
 }
