@@ -35,6 +35,7 @@ forked along). The script is a JSON list consumed one entry per request (the las
 - ``"stream_error": n`` beside ``content``: a stream that sends n pieces of text, then the protocol's error event
   (Anthropic's ``event: error`` with ``overloaded_error``; OpenAI's ``data: {"error": ...}``) and ends;
   ``"stream_cut": n``: a stream whose connection closes after n pieces of text (no stop reason, no ``[DONE]``);
+  ``"stall": [n, s]``: a stream that waits s seconds after its first n events (a model generating slowly);
 - ``"repeat": n`` beside ``content``: the content n times over (a huge reply from a small script); ``"gzip": true``:
   the body gzip-compressed (``Content-Encoding: gzip``) whatever the request accepts; ``"extra_dicts": n``: a field
   of n empty objects beside the reply (in a stream, beside its first event's fields); ``"empty_events": n``: n
@@ -441,7 +442,8 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
             output_tokens = usage.get("output", len(content.split()))
             body = _reply_body(protocol, request, content, count, input_tokens, output_tokens, cache,
                                entry.get("finish"))
-            broken = bool(request.get("stream")) and ("stream_error" in entry or "stream_cut" in entry)
+            broken = bool(request.get("stream")) and ("stream_error" in entry or "stream_cut" in entry
+                                                      or "stall" in entry)
             bill(count, input_tokens, output_tokens, reported=not broken)
             if entry.get("extra_dicts"):  # a field no reply needs, costly to parse: [{}, {}, ...]
                 body["x"] = [{}] * entry["extra_dicts"]
@@ -459,16 +461,19 @@ def _serve(script_path: str, log_path: str, port: int) -> None:
                     events = events[: opened + entry["stream_error"]] + [_stream_error(protocol)]
                 elif "stream_cut" in entry:
                     events = events[: opened + entry["stream_cut"]]
-                self._stream(events[:1] + [(None, "{}")] * entry.get("empty_events", 0) + events[1:])
+                self._stream(events[:1] + [(None, "{}")] * entry.get("empty_events", 0) + events[1:],
+                             entry.get("stall"))
                 return
             self._send(200, json.dumps(body).encode(), gzipped=entry.get("gzip", False))
 
-        def _stream(self, events: list[tuple[str | None, str]]):
+        def _stream(self, events: list[tuple[str | None, str]], stall: list | None = None):
             self.send_response(200)
             self.send_header("Content-Type", "text/event-stream")
             self.send_header("Connection", "close")
             self.end_headers()
-            for event, data in events:
+            for sent, (event, data) in enumerate(events):
+                if stall is not None and sent == stall[0]:
+                    time.sleep(stall[1])
                 self.wfile.write(((f"event: {event}\n" if event else "") + f"data: {data}\n\n").encode())
                 self.wfile.flush()
             self.close_connection = True

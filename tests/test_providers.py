@@ -748,6 +748,28 @@ def test_a_call_is_given_up_on_at_its_deadline_and_no_retry_starts_after_it(tmp_
             assert 2 <= asked <= 4, asked
 
 
+@pytest.mark.slow
+def test_a_stream_given_up_on_at_the_deadline_is_billed(tmp_path):
+    """A stream that began was being generated, and is billed, when the run's deadline ends it: the call's error
+    carries that attempt (its usage unknown: the optimizer charges it its worst case, as a stream that broke), so
+    the run's budgets count it. It was dropped, and a run that resumed had spent less than it was billed."""
+    from pipeline.llm.client import OUT_OF_TIME, LiteLLMClient, LLMError
+    from tests.scripted_llm import ScriptedModel
+
+    script = [{"content": "def a(): pass\n"}, {"content": "def a(): pass\n" * 20, "stall": [3, 120]}]
+    with ScriptedModel(script, tmp_path / "model") as model:
+        client = LiteLLMClient(model.model, api_base=model.api_base, retries=3, backoff_s=0.01, timeout_s=300,
+                               structured=False, stream=True)
+        client.complete([{"role": "user", "content": "hello"}])  # litellm's first call imports its adapter
+        with pytest.raises(LLMError) as raised:
+            client.complete([{"role": "user", "content": "hello"}], deadline=time.monotonic() + 8.0)
+        assert len(model.raw_requests()) == 2, "the stalled stream was asked for once"
+    assert raised.value.error_type == OUT_OF_TIME, raised.value
+    billed = raised.value.answer
+    assert billed is not None and billed.attempts == 1, billed
+    assert billed.input_tokens is None and billed.output_tokens is None and billed.cost_usd is None, billed
+
+
 RATE_LIMITED_PROVIDERS = ["anthropic", "openai", "ollama_chat", "hosted_vllm", "gemini"]
 
 

@@ -383,6 +383,9 @@ class LiteLLMClient:
                 response = self._within_time_limit(lambda: self._answer(sent, params, extra, on_text, progress),
                                                    deadline)
             except _OutOfTime:
+                if progress.get("answered", False):  # a stream had begun: the model was generating, and bills it
+                    billed.append(LLMReply("", latency_s=time.monotonic() - start, attempts=attempt,
+                                           structured=self.structured))
                 raise error(OUT_OF_TIME, f"the call was given up on after {time.monotonic() - start:.0f} s, at the "
                             "run's deadline", True) from None
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
