@@ -82,6 +82,22 @@ def test_serve_finalize_of_a_run_without_a_submission_names_it_and_how_to_go_on(
     assert _counts(store, run_id) == (0, 0)
 
 
+@pytest.mark.parametrize("as_json", [False, True])
+def test_serve_finalize_of_a_finalized_run_says_so_and_plays_nothing(tmp_path, as_json):
+    # it reprinted the result as if it had just finalized the run, without a word that it had been before
+    store = Store(tmp_path / "s.duckdb")
+    run_id = _served(store, submitted=True)
+    with store.write() as con:
+        finish_run(con, run_id, "finished")
+    result = run_main("serve", "--finalize", run_id[:8], "--store", store.path, *(["--json"] if as_json else []))
+    assert result.returncode == 0, result
+    (line,) = result.stderr.strip().splitlines()
+    assert line == f"run {run_id[:8]} was finalized before: its result as recorded", line
+    assert _counts(store, run_id) == (0, 0), "nothing was played again"
+    if as_json:
+        assert '"run_id"' in result.stdout, result.stdout
+
+
 def test_doctor_replay_of_a_run_without_episodes_says_it_replayed_none(tmp_path):
     # it printed the store's counts and "ok" and no word of the replay asked for, as if every episode replayed
     store = Store(tmp_path / "s.duckdb")

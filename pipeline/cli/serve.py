@@ -218,8 +218,10 @@ def _finalize(store, run_id: str, args: argparse.Namespace) -> int:
 
     with run_lock(store.path, run_id):
         served = ServeRun(store, run_id)
-        if not served.finalized:
-            short = short_id(store, run_id)
+        short = short_id(store, run_id)
+        if served.finalized:  # nothing is played again: what it printed is the result its finalize recorded
+            _say(f"run {short} was finalized before: its result as recorded")
+        else:
             if not served.submissions:  # refused before anything plays, naming the run and how to go on with it
                 raise CliError(f"run {short} holds no submission: there is nothing to finalize; "
                                f"`{command_text(store, 'serve', '--resume', short)}` serves it again")
