@@ -472,58 +472,98 @@ def test_waiting_line_shows_time_and_streamed_tokens():
 
 _ASK = """
 import json, os, sys
-sys.path.insert(0, sys.argv[3])
+sys.path.insert(0, sys.argv[1])
 from pipeline.llm.client import LiteLLMClient, LLMError
 from pipeline.llm.tokens import import_litellm
 
-import_litellm()  # once (~5 s of CPU): each call is made in a child forked from here, on its own
-answers = []
-for stream in json.loads(sys.argv[4]):
-    read, write = os.pipe()
-    pid = os.fork()
-    if pid == 0:
-        code = 1
-        try:
-            os.close(read)  # VmHWM below: this child's own peak RSS, from the pages it shares with its parent
-            client = LiteLLMClient(sys.argv[1], api_base=sys.argv[2], api_key="sk-test", retries=0, backoff_s=0.01,
-                                   structured=False, stream=stream)
+import_litellm()  # once (~5 s of CPU) for a module's tests: each call is made in a child forked from here, on its own
+for line in sys.stdin:
+    name, base, streams = json.loads(line)
+    answers = []
+    for stream in streams:
+        read, write = os.pipe()
+        pid = os.fork()
+        if pid == 0:
+            code = 1
             try:
-                answer = {"text": client.complete([{"role": "user", "content": "hi"}]).text[:100]}
-            except LLMError as exc:
-                answer = {"error_type": exc.error_type, "message": exc.message}
-            with open("/proc/self/status") as f:
-                answer["peak_mb"] = next(int(l.split()[1]) for l in f if l.startswith("VmHWM:")) / 1024
-            with os.fdopen(write, "w") as out:
-                out.write(json.dumps(answer))
-            code = 0
-        finally:
-            os._exit(code)
-    os.close(write)
-    with os.fdopen(read) as got:
-        said = got.read()
-    _, status = os.waitpid(pid, 0)
-    assert status == 0 and said, f"the child of call {len(answers) + 1} ended with status {status}"
-    answers.append(json.loads(said))
-print(json.dumps(answers))
+                os.close(read)  # VmHWM below: this child's own peak RSS, from the pages it shares with its parent
+                client = LiteLLMClient(name, api_base=base, api_key="sk-test", retries=0, backoff_s=0.01,
+                                       structured=False, stream=stream)
+                try:
+                    answer = {"text": client.complete([{"role": "user", "content": "hi"}]).text[:100]}
+                except LLMError as exc:
+                    answer = {"error_type": exc.error_type, "message": exc.message}
+                with open("/proc/self/status") as f:
+                    answer["peak_mb"] = next(int(l.split()[1]) for l in f if l.startswith("VmHWM:")) / 1024
+                with os.fdopen(write, "w") as out:
+                    out.write(json.dumps(answer))
+                code = 0
+            finally:
+                os._exit(code)
+        os.close(write)
+        with os.fdopen(read) as got:
+            said = got.read()
+        _, status = os.waitpid(pid, 0)
+        if status != 0 or not said:
+            answers.append({"child_failed": f"the child of call {len(answers) + 1} ended with status {status}"})
+            break
+        answers.append(json.loads(said))
+    print("ANSWERS " + json.dumps(answers), flush=True)
 """
 
 
-def _ask(name: str, base: str, *streams: bool) -> list[dict]:
-    """One call of the model for each of ``streams`` (whether to stream it), in turn, through :data:`_ASK`: each
-    call's answer or error and the peak RSS of the process it was made in (a child of its own, forked from one
-    that imported litellm: the import is paid once, not once a call)."""
-    done = subprocess.run([sys.executable, "-c", _ASK, name, base, str(ROOT), json.dumps(streams)],
-                          capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
-    assert done.returncode == 0, done.stderr[-2000:]
-    answers = json.loads(done.stdout.strip().splitlines()[-1])
-    assert len(answers) == len(streams), answers
-    return answers
+class _Asker:
+    """``asker(name, base, *streams)``: one call of the model for each of ``streams`` (whether to stream it), in
+    turn, through :data:`_ASK`: each call's answer or error and the peak RSS of the process it was made in (a child
+    of its own, forked from one process that imported litellm: the import is paid once a module, not once a test or
+    a call)."""
+
+    def __init__(self, log_path):
+        self.log = open(log_path, "w+")
+        self.process = subprocess.Popen([sys.executable, "-c", _ASK, str(ROOT)], stdin=subprocess.PIPE,
+                                        stdout=subprocess.PIPE, stderr=self.log, text=True,
+                                        env={**os.environ, "LITELLM_LOCAL_MODEL_COST_MAP": "True"})
+
+    def __call__(self, name: str, base: str, *streams: bool) -> list[dict]:
+        import threading
+
+        self.process.stdin.write(json.dumps([name, base, list(streams)]) + "\n")
+        self.process.stdin.flush()
+        stuck = threading.Timer(300, self.process.kill)  # a hung call ends the asker, and the test, not the suite
+        stuck.start()
+        try:
+            line = ""
+            while not line.startswith("ANSWERS "):
+                line = self.process.stdout.readline()
+                if not line:
+                    self.log.seek(0)
+                    raise AssertionError(f"the asker ended ({self.process.poll()}): {self.log.read()[-2000:]}")
+        finally:
+            stuck.cancel()
+        answers = json.loads(line[len("ANSWERS "):])
+        assert len(answers) == len(streams) and "child_failed" not in answers[-1], answers
+        return answers
+
+    def close(self) -> None:
+        self.process.stdin.close()
+        try:
+            self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        self.log.close()
+
+
+@pytest.fixture(scope="module")
+def ask(tmp_path_factory):
+    asker = _Asker(tmp_path_factory.mktemp("asker") / "stderr.log")
+    yield asker
+    asker.close()
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("provider", ["openai", "anthropic", "ollama_chat", "gemini"])
-def test_an_endpoint_s_answer_is_read_within_its_byte_limit_compressed_or_not(scripted, provider):
+def test_an_endpoint_s_answer_is_read_within_its_byte_limit_compressed_or_not(scripted, ask, provider):
     """litellm reads a whole HTTP answer, and inflates a gzip one, before codearcade sees a reply: 416 KB of gzip
     that inflates to 200 MB held ~1.9 GB in optimize's process. Through each provider's real adapter (the OpenAI
     SDK's httpx2, litellm's own httpx handler), against a server that compresses whatever it is asked: a small
@@ -536,7 +576,7 @@ def test_an_endpoint_s_answer_is_read_within_its_byte_limit_compressed_or_not(sc
     model = scripted([{"content": "small and compressed", "gzip": True},
                       {"content": filler, "repeat": repeat, "gzip": True},
                       {"content": filler, "repeat": repeat}])
-    small, *hostile = _ask(*model.route(provider), False, False, False)
+    small, *hostile = ask(*model.route(provider), False, False, False)
     assert small.get("text") == "small and compressed", small
     for how, answer in zip(("gzip", "plain"), hostile):
         assert answer.get("error_type") == "AnswerTooLarge", (how, answer)
@@ -546,7 +586,7 @@ def test_an_endpoint_s_answer_is_read_within_its_byte_limit_compressed_or_not(sc
 
 @pytest.mark.slow
 @pytest.mark.parametrize("provider", ["openai", "anthropic"])
-def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events(scripted, provider):
+def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events(scripted, ask, provider):
     """Bytes alone do not bound a parse: 16 KB of gzip inflating to 5.5 million `{}` (16 MB, inside the byte
     limit) held ~1 GB a call, and 300,000 empty stream events (6 KB of gzip) took 115 s and 830 MB. A JSON answer
     holds at most MAX_ANSWER_ELEMENTS elements and a stream at most max_events() events (litellm reads past empty
@@ -559,7 +599,7 @@ def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events
                       {"content": "a small reply", "extra_dicts": 2 * MAX_ANSWER_ELEMENTS, "gzip": True},
                       {"content": "a small reply", "empty_events": 80_000},
                       {"content": "a small reply", "extra_dicts": 4_000_000}])
-    small, streamed, elements, events, wide = _ask(*model.route(provider), False, True, False, True, True)
+    small, streamed, elements, events, wide = ask(*model.route(provider), False, True, False, True, True)
     assert small.get("text") == streamed.get("text") == "a small reply", (small, streamed)
     assert elements.get("error_type") == "AnswerTooLarge", elements
     assert f"more than {MAX_ANSWER_ELEMENTS:,} JSON elements" in elements["message"], elements
@@ -573,13 +613,13 @@ def test_an_answer_s_parse_is_bounded_by_its_elements_and_a_stream_by_its_events
 
 @pytest.mark.slow
 @pytest.mark.parametrize("part", ["choices", "tool_calls"])
-def test_a_stream_event_of_more_than_one_choice_or_tool_call_ends_the_call(scripted, part):
+def test_a_stream_event_of_more_than_one_choice_or_tool_call_ends_the_call(scripted, ask, part):
     """One choice is asked for, but litellm built an object for each choice (and tool call) an event carried and kept
     every event for the reply: 19,900 events of seven choices each (6.7 MB) held 330 MB more and took 65 s, of seven
     tool calls 250 MB. An event with more than one now ends the call, saying so, the child's peak near an honest
     stream's."""
     model = scripted([{"content": "a small reply"}, {"content": "a " * 12_000, part: 7}])
-    streamed, hostile = _ask(*model.route("openai"), True, True)
+    streamed, hostile = ask(*model.route("openai"), True, True)
     assert streamed.get("text") == "a small reply", streamed
     assert hostile.get("error_type") == "AnswerTooLarge", hostile
     assert f"7 {part.replace('_', ' ')} in one event" in hostile["message"] and "asked at" in hostile["message"], \
@@ -588,7 +628,7 @@ def test_a_stream_event_of_more_than_one_choice_or_tool_call_ends_the_call(scrip
 
 
 @pytest.mark.slow
-def test_an_answer_s_elements_are_counted_outside_its_strings(scripted):
+def test_an_answer_s_elements_are_counted_outside_its_strings(scripted, ask):
     """A reply's text is one JSON string, whose commas were counted as elements: the limit had to let 250,000 by,
     and an answer of 40,000 choices (2.7 MB, 20 KB of gzip) within it held 146 MB more and took 8 s (litellm builds
     ~3.6 KB of objects a choice). Counted outside strings, an honest answer's structure is a few dozen elements, and
@@ -598,7 +638,7 @@ def test_an_answer_s_elements_are_counted_outside_its_strings(scripted):
 
     model = scripted([{"content": "a small reply"}, {"content": "a small reply", "choices": 40_000, "gzip": True},
                       {"content": "f(a, b)" * 100_000}])
-    small, choices, commas = _ask(*model.route("openai"), False, False, False)
+    small, choices, commas = ask(*model.route("openai"), False, False, False)
     assert small.get("text") == "a small reply", small
     assert choices.get("error_type") == "AnswerTooLarge", choices
     assert f"more than {MAX_ANSWER_ELEMENTS:,} JSON elements" in choices["message"], choices
