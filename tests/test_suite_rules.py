@@ -102,15 +102,37 @@ def test_the_default_ceiling_stretches_with_the_load_per_core_and_an_explicit_on
     the environment is kept as set."""
     from tests import conftest
 
-    monkeypatch.setattr(conftest, "CEILING_SCALES_WITH_LOAD", True)
+    monkeypatch.setattr(conftest, "CEILING_STRETCHES", True)
+    monkeypatch.setattr(conftest, "machine_slowness", lambda: 1.0)
     monkeypatch.setattr(conftest.os, "cpu_count", lambda: 2)
     for load, stretch in ((0.3, 1.0), (2.0, 1.0), (3.0, 1.5), (7.0, 3.5)):
         for averages in ((load, 0.1, 0.0), (0.1, load, 0.0), (load, load, 9.0)):  # the 15-minute one never counts
             monkeypatch.setattr(conftest.os, "getloadavg", lambda averages=averages: averages)
             assert conftest.ceiling_s() == conftest.CEILING_S * stretch, averages
             assert conftest.ceiling_s(slow=False) == conftest.CEILING_S * conftest.QUICK_SHARE * stretch, averages
-    monkeypatch.setattr(conftest, "CEILING_SCALES_WITH_LOAD", False)
+    monkeypatch.setattr(conftest, "CEILING_STRETCHES", False)
     assert conftest.ceiling_s() == conftest.CEILING_S
+
+
+def test_the_default_ceiling_stretches_on_a_slower_machine_and_never_shrinks(monkeypatch):
+    """A VM whose host is busy runs the suite slower with no load average to show it (a test of 158 s against the
+    150 s ceiling one evening): the ceiling stretches by how much slower than the reference machine this one runs
+    a fixed loop (its best of several runs), with the load's stretch on top; a faster machine keeps the ceiling."""
+    from tests import conftest
+
+    loop = conftest.plain_python_loop
+    monkeypatch.setattr(conftest, "CEILING_STRETCHES", True)
+    monkeypatch.setattr(conftest.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(conftest.os, "getloadavg", lambda: (4.0, 1.0, 0.0))
+    for times, slowness in (([0.5, 0.9], 1.0), ([1.0, 3.0], 1.0), ([2.5, 2.0, 4.0], 2.0), ([3.0], 3.0)):
+        runs = iter([conftest.REFERENCE_LOOP_S * t for t in times] * 9)
+        monkeypatch.setattr(conftest, "plain_python_loop", lambda: next(runs))
+        conftest.machine_slowness.cache_clear()
+        assert conftest.machine_slowness() == pytest.approx(slowness), times
+        assert conftest.ceiling_s() == pytest.approx(conftest.CEILING_S * 2.0 * slowness), times
+    monkeypatch.setattr(conftest, "plain_python_loop", loop)
+    conftest.machine_slowness.cache_clear()
+    assert conftest.machine_slowness() >= 1.0 and loop() > 0
 
 
 CHILD_SIGINT = textwrap.dedent("""
