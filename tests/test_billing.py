@@ -13,11 +13,13 @@ all of these drive ``LiteLLMClient`` and ``codearcade optimize``, and the oracle
 
 from __future__ import annotations
 
+import os
 import random
 
 import pytest
 
-from tests.test_providers import KEYS, _env, _optimize, _runs
+from tests.conftest import ROOT, run_main
+from tests.test_providers import KEYS, _runs
 
 MAX_TOKENS = 300
 """The reply length asked for in these tests: a reply cut at the token limit is billed this many tokens."""
@@ -131,7 +133,7 @@ BUDGETS = [("--max-total-tokens", 9_000), ("--max-cost", 0.02), ("--max-total-to
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", range(6))
-def test_optimize_records_and_budgets_every_billed_attempt(store, scripted, seed):
+def test_optimize_records_and_budgets_every_billed_attempt(store, scripted, seed, monkeypatch, capfd):
     """Oracles 1 and 2 for ``codearcade optimize`` under a budget, over seeded mixes: ``llm_calls`` recorded each
     call's last attempt only (an empty answer retried three times was a quarter of its bill), and the budget
     reserved one worst case per call while a call could be billed four: the ledger passed ``--max-total-tokens``
@@ -143,11 +145,22 @@ def test_optimize_records_and_budgets_every_billed_attempt(store, scripted, seed
     flag, limit = BUDGETS[seed % len(BUDGETS)]
     script = [_entry(rng, True, COMPETENT_REPLY if rng.random() < 0.2 else "No change.") for _ in range(80)]
     model = scripted(script)
-    done = _optimize(store, model, "openai", "gpt-4o", "--iterations", "8", "--stream", "--eval-max-steps", "200",
-                     "--rollout-steps", "60", "--workers", "2", "--audit-episodes", "0", "--token-budget", "3000",
-                     "--max-tokens", str(MAX_TOKENS), flag, str(limit), env=_env(OPENAI_API_KEY=KEYS[
-                         "ANTHROPIC_API_KEY"]))
-    assert "Traceback" not in done.stderr, done.stderr
+    route, base = model.route("openai", "gpt-4o")
+    # run by the command line's main in this process (tests/conftest.py's run_main): a process of its own spent
+    # ~7 s of CPU importing litellm, which this process has imported for the tests above
+    for key in [k for k in os.environ if k.endswith("_API_KEY")]:
+        monkeypatch.delenv(key)
+    for key, value in {**KEYS, "OPENAI_API_KEY": KEYS["ANTHROPIC_API_KEY"], "CODEARCADE_LLM_BACKOFF_S": "0.05",
+                       "LITELLM_LOCAL_MODEL_COST_MAP": "True"}.items():
+        monkeypatch.setenv(key, value)
+    monkeypatch.chdir(ROOT)
+    capfd.readouterr()
+    done = run_main("optimize", "--game", "pong", "--model", route, "--api-base", base, "--store", str(store.path),
+                    "--iterations", "8", "--stream", "--eval-max-steps", "200", "--rollout-steps", "60", "--workers",
+                    "2", "--audit-episodes", "0", "--token-budget", "3000", "--max-tokens", str(MAX_TOKENS), flag,
+                    str(limit))
+    children = capfd.readouterr().err  # what its game processes wrote to stderr
+    assert "Traceback" not in done.stderr + children, done.stderr + children
     ledger = sorted(model.billed(), key=lambda line: line["request"])
     rows = store.query("SELECT attempts, input_tokens, output_tokens, cost_usd, usage_estimated FROM llm_calls "
                        "ORDER BY created_at")
