@@ -815,7 +815,7 @@ def test_a_workspace_file_is_read_as_every_policy_file_is(tmp_path):
 
 
 @pytest.mark.parametrize("after_s", [0.5, 2.0, 4.0])
-def test_ctrl_c_while_a_submission_plays_gives_it_back(tmp_path, after_s):
+def test_ctrl_c_while_a_submission_plays_gives_it_back(tmp_path, capsys, after_s):
     """Ctrl-C at a terminal reaches the server and its workers (the whole process group) while a submission plays:
     the handler's thread went on under the stopping server, printed tracebacks (a closed zygote socket, a dict
     changed during iteration at exit), and the submission was stored as forfeited games, charged to the budget.
@@ -848,9 +848,10 @@ def test_ctrl_c_while_a_submission_plays_gives_it_back(tmp_path, after_s):
     assert status in (200, 400, 503, None), answer
     run_id = _run_id(store)
     assert ServeRun(Store(store), run_id).budget()["spent"] == (4 if status == 200 else 0), (answer, said)
-    doctor = subprocess.run([sys.executable, "-m", "pipeline.cli", "doctor", "--store", str(store), "--json"],
-                            cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
-    assert json.loads(doctor.stdout)["ok"], doctor.stdout
+    capsys.readouterr()
+    code = main(["doctor", "--store", str(store), "--json"])  # in this process: a `codearcade doctor` cost ~2 s CPU
+    doctor = capsys.readouterr().out
+    assert code == 0 and json.loads(doctor)["ok"], doctor
 
 
 @pytest.mark.slow
