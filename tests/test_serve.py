@@ -190,7 +190,9 @@ outside the scratch (the policy's end: a PermissionError)."""
 def test_an_attacking_submission_is_contained_and_the_server_goes_on(tmp_path, servers, capsys, monkeypatch):
     store = tmp_path / "s.duckdb"
     sentinels = [tmp_path / f"escaped-{i}" for i in range(4)]
-    server = Server(store, "--game", "pong", "--budget", "5", "--max-steps", "60", "--call-time-limit", "2")
+    # pools of 2 games, not the default 5: the looping submission burns its 2 s time limit in each of its games
+    server = Server(store, "--game", "pong", "--budget", "5", "--max-steps", "60", "--call-time-limit", "2",
+                    "--validation-episodes", "2", "--heldout-episodes", "2")
     servers.append(server)
     attack = pong_policy(ATTACK.format(system=sentinels[0], spawn=sentinels[1], fork=sentinels[2],
                                        write=sentinels[3]))
