@@ -866,7 +866,8 @@ def test_a_wait_longer_than_a_call_waits_stops_at_once_and_junk_is_not_a_wait(tm
     long) leaves the client's own backoff in charge."""
     import email.utils
 
-    from pipeline.llm.client import MAX_ASKED_WAIT_S, LLMError
+    from pipeline.llm.client import LLMError
+    from pipeline.llm.errors import MAX_ASKED_WAIT_S
 
     next_year = email.utils.formatdate(time.time() + 366 * 86_400, usegmt=True)
     too_long = [({"retry-after": "86400"}, "86,400 s"), ({"retry-after-ms": "1e308"}, "s before"),
@@ -927,7 +928,8 @@ def test_an_answer_without_text_is_retried_and_never_a_reply(tmp_path, provider,
     an empty stream) was a successful call with reply '' (then read as "the reply is empty"), or, for Gemini, whose
     adapter calls an error body a bad request, a fatal error that stopped the run: each is retried, and one that
     never brings text is a non-fatal ``EmptyReply``, after every attempt."""
-    from pipeline.llm.client import EMPTY_REPLY, LLMError
+    from pipeline.llm.answers import EMPTY_REPLY
+    from pipeline.llm.client import LLMError
 
     shapes = ["", "   \n  ", {"error_body": 529}]
     for shape in shapes:
@@ -950,7 +952,8 @@ def test_an_answer_cut_off_or_withheld_before_any_text_fails_at_once(tmp_path, p
     with no text; it is an ``EmptyReply`` that says to raise --max-tokens, not retried (the same limit gets the
     same). Gemini's ``SAFETY``/``RECITATION`` without text is ``ContentFiltered``, not retried either, and neither
     stops the run. A reply cut off after some text stays a reply, recorded as ``length``."""
-    from pipeline.llm.client import CONTENT_FILTERED, EMPTY_REPLY, LLMError
+    from pipeline.llm.answers import CONTENT_FILTERED, EMPTY_REPLY
+    from pipeline.llm.client import LLMError
 
     error, asked = _outcome(*_client(tmp_path, provider, stream, [{"content": "", "finish": "length"}, "late"]))
     assert isinstance(error, LLMError) and error.error_type == EMPTY_REPLY, error

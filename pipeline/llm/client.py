@@ -4,65 +4,45 @@
 OpenAI-compatible server with ``--api-base``). Transient provider errors (rate limits, timeouts, connection
 errors, 5xx) are retried with exponential backoff, or after the wait the provider asks for (``Retry-After``);
 errors that retrying cannot fix (authentication, unknown model, a request the provider refuses, a wait asked for
-that is longer than :data:`MAX_ASKED_WAIT_S`) fail at once. An answer without text is no reply: an error of type
-:data:`EMPTY_REPLY` (retried: providers send an empty one now and then; not retried when it stopped at the token
-limit), or :data:`CONTENT_FILTERED` (the provider withheld it: Gemini's ``SAFETY``, ``RECITATION``; not retried,
-the same prompt is withheld again). Either way the caller gets an :class:`LLMError` it can
-record, never a traceback. The provider bills every attempt it answered (an empty answer, a stream that broke
-midway, each retried answer), so a call's reply or error carries the usage of all of them, and a retry of a billed
-attempt is made only when the caller's ``before_retry`` says it fits (its budgets). :class:`ReplayClient` answers
-from the replies already stored for a run, matched by prompt hash: resuming and ``codearcade replay`` never pay
-for a call twice.
+that is longer than :data:`~pipeline.llm.errors.MAX_ASKED_WAIT_S`) fail at once: what an error says is read in
+``pipeline/llm/errors.py``. An answer without text is no reply (``pipeline/llm/answers.py`` reads an answer): an
+error of type :data:`~pipeline.llm.answers.EMPTY_REPLY` (retried: providers send an empty one now and then; not
+retried when it stopped at the token limit), or :data:`~pipeline.llm.answers.CONTENT_FILTERED` (the provider
+withheld it: Gemini's ``SAFETY``, ``RECITATION``; not retried, the same prompt is withheld again). Either way the
+caller gets an :class:`LLMError` it can record, never a traceback. The provider bills every attempt it answered
+(an empty answer, a stream that broke midway, each retried answer), so a call's reply or error carries the usage of
+all of them, and a retry of a billed attempt is made only when the caller's ``before_retry`` says it fits (its
+budgets). :class:`ReplayClient` answers from the replies already stored for a run, matched by prompt hash:
+resuming and ``codearcade replay`` never pay for a call twice.
 """
 
 from __future__ import annotations
 
 import contextvars
-import dataclasses
-import email.utils
 import hashlib
 import json
-import math
 import os
-import re
 import threading
 import time
-from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Protocol
 
 from pipeline.boundary.untrusted import REDACTED, scrub_secrets
+from pipeline.llm.answers import LLMReply, NoText, billed_reply, no_text, read_answer, reply_text
 from pipeline.llm.capped import AnswerTooLarge, capped, too_large
+from pipeline.llm.errors import FATAL, MAX_ASKED_WAIT_S, asked_wait_s, describe_error, error_name, \
+    refuses_reply_format, without_credentials
 from pipeline.llm.providers import LOCAL_SERVER_PROVIDERS, OFFLINE_CHARS_PER_TOKEN, OFFLINE_REASONING_CHARS, \
     ReplyLimits, reply_format, reply_schema, with_cache_breakpoint
 from pipeline.llm.providers import request_params as provider_request_params
 from pipeline.llm.tokens import import_litellm
 
-RETRYABLE = ("RateLimitError", "Timeout", "APIConnectionError", "ServiceUnavailableError", "InternalServerError",
-             "BadGatewayError", "APIError")
-FATAL = ("AuthenticationError", "PermissionDeniedError", "NotFoundError", "BadRequestError",
-         "ContextWindowExceededError", "ContentPolicyViolationError", "UnsupportedParamsError",
-         "PaymentRequiredError", "BudgetExceededError")
-"""litellm's exception classes by what retrying can do: the first list is retried, the second is fatal.
-An error of neither kind is retried (an unknown failure is more likely transient than a bad key)."""
-
 DEFAULT_BACKOFF_S = 2.0
 """First wait before retrying a transient error; it doubles each retry (``CODEARCADE_LLM_BACKOFF_S`` changes it,
 which the tests use to keep retries quick)."""
 
-MAX_ASKED_WAIT_S = 300.0
-"""The longest wait before a retry that a provider may ask for (``Retry-After``) and be waited out. A longer one
-(a quota for the day, a hostile ``--api-base``'s ``Retry-After: 1e308``) stops the run as an error that retrying
-cannot fix, saying how long it asked: ``--resume`` it once the provider allows, rather than sit silent for hours."""
-
-MAX_HEADER_CHARS = 64
-"""The longest ``Retry-After`` value read: seconds or an HTTP date are far shorter; a longer one is not parsed."""
-
 MAX_TOKENS = 4_096
 """The longest reply asked of a model unless told otherwise: ``--max-tokens``'s default (the offline model's is
 :data:`OFFLINE_MAX_TOKENS`) and the client's."""
-
-ERROR_MESSAGE_LIMIT = 1_000
-"""Characters of a provider's error message kept in ``llm_calls.error_message`` and shown to the user."""
 
 
 def prompt_hash(messages: list[dict[str, str]]) -> str:
@@ -73,36 +53,6 @@ def prompt_hash(messages: list[dict[str, str]]) -> str:
 def canonical_messages(messages: list[dict[str, str]]) -> str:
     """The messages as canonical JSON: what a prompt hash is the hash of, and what is stored."""
     return json.dumps(messages, sort_keys=True, ensure_ascii=False, separators=(",", ":"))
-
-
-@dataclass
-class LLMReply:
-    text: str
-    response_model: str | None = None
-    response_id: str | None = None
-    finish_reasons: list[str] = field(default_factory=list)
-    input_tokens: int | None = None
-    output_tokens: int | None = None
-    cached_input_tokens: int | None = None
-    """Input tokens read from the provider's prompt cache (billed at the cache price)."""
-    cache_creation_input_tokens: int | None = None
-    """Input tokens written to the provider's prompt cache (Anthropic)."""
-    cost_usd: float | None = None
-    latency_s: float = 0.0
-    attempts: int = 1
-    replayed: bool = False
-    structured: bool = False
-    """The request held the provider to the reply schema (``response_format``)."""
-    billed: list["LLMReply"] = field(default_factory=list)
-    """Every answered attempt of the call, in order, with its own usage: the counts and cost above are their sum
-    (a count or cost is None when an attempt did not report it). An attempt whose usage never came (a stream that
-    broke midway: billed, by how much only the provider knows) is here with no counts at all. Empty: one attempt,
-    the one above (a replay's)."""
-
-    @property
-    def cut_off(self) -> bool:
-        """The reply stopped at the token limit."""
-        return "length" in self.finish_reasons
 
 
 class LLMError(Exception):
@@ -148,106 +98,6 @@ when none came): None lets the retry go, a reason ends the call as an :class:`LL
 :data:`BUDGET_SPENT` (the optimizer's budgets: a call may be billed for every attempt, and each retry must fit)."""
 
 
-def _error_name(exc: BaseException) -> str:
-    if isinstance(exc, _NoText):
-        return exc.error_type
-    if UNREADABLE_ANSWER.search(str(exc)):
-        return "APIError"
-    for klass in type(exc).__mro__:
-        if klass.__name__ in RETRYABLE + FATAL:
-            return klass.__name__
-    return type(exc).__name__
-
-
-def _refuses_reply_format(name: str, exc: BaseException) -> bool:
-    """Whether a provider error refuses the reply schema (a bad request that names it)."""
-    return name in ("BadRequestError", "UnsupportedParamsError") and bool(
-        re.search(r"response_format|json_schema|response_schema|structured output", str(exc), re.IGNORECASE))
-
-
-def describe_error(exc: BaseException, limit: int = ERROR_MESSAGE_LIMIT) -> str:
-    """The useful part of a provider error, on one line: litellm's own prefixes (``litellm.AuthenticationError:
-    AnthropicException - ``) and JSON wrapping are taken off, so what is kept (and cut at ``limit``) is what the
-    provider said."""
-    text = str(getattr(exc, "message", None) or exc)
-    # litellm puts the traceback of its own failure to read an answer into the message (Ollama's 200 with an error
-    # object: "... not NoneType\nTraceback (most recent call last): File ..."): it was stored and shown
-    text = " ".join(text.split("Traceback (most recent call last)", 1)[0].split())
-    text = re.sub(r"^((litellm\.)?\w+(Error|Exception): )+", "", text)  # "litellm.X: YException: ..."
-    text = re.sub(r"^\w+Exception - ", "", text)
-    match = re.search(r'"(?:message|error)"\s*:\s*"((?:[^"\\]|\\.)*)"', text)
-    if match:
-        text = match.group(1)
-    return text if len(text) <= limit else text[: limit - 1] + "…"
-
-
-def asked_wait_s(exc: BaseException) -> float | None:
-    """Seconds the provider asked to wait before the next request, from the response headers litellm keeps on its
-    exception for every provider (``litellm_response_headers``): OpenAI's ``retry-after-ms``, else ``retry-after``
-    as seconds or an HTTP date (one in the past: 0). None when it asked nothing readable (no header, a negative,
-    non-finite or over-long value), and the client's own backoff decides."""
-    headers = getattr(exc, "litellm_response_headers", None)
-    if not isinstance(headers, Mapping):
-        return None
-    named = {str(name).lower(): str(value).strip() for name, value in headers.items()}
-    for name, scale in (("retry-after-ms", 1e-3), ("retry-after", 1.0)):
-        value = named.get(name, "")
-        if not value or len(value) > MAX_HEADER_CHARS:
-            continue
-        try:
-            seconds = float(value) * scale
-        except ValueError:
-            if name == "retry-after-ms":
-                continue
-            try:  # an HTTP date: Retry-After: Wed, 21 Oct 2026 07:28:00 GMT
-                seconds = max(0.0, email.utils.parsedate_to_datetime(value).timestamp() - time.time())
-            except (TypeError, ValueError, OverflowError):
-                continue
-        if math.isfinite(seconds) and seconds >= 0:
-            return seconds
-    return None
-
-
-def _without_credentials(url: str) -> str:
-    """``url`` without a ``user:password@`` part and a query (where a key given in the URL would be): shown and
-    stored without them."""
-    import urllib.parse
-
-    parts = urllib.parse.urlsplit(url)
-    return urllib.parse.urlunsplit(parts._replace(netloc=parts.netloc.rsplit("@", 1)[-1], query="", fragment=""))
-
-
-def _usage_number(usage: Any, *path: str) -> int | None:
-    """A token count the endpoint reported, as the store's INTEGER column holds it; None for anything else (a
-    count of 2^31 or 10^20, a negative or non-finite one, a string): the endpoint's word is not trusted, and a
-    count it got wrong is unknown, not the end of the run (the insert failed, with a traceback)."""
-    value = usage
-    for name in path:
-        value = value.get(name) if isinstance(value, dict) else getattr(value, name, None)
-        if value is None:
-            return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= _MAX_COUNT:
-        return None  # NaN fails the range check too
-    return int(value)
-
-
-EMPTY_REPLY = "EmptyReply"
-"""The error type of an answer with no text (nothing, or only whitespace): no reply to read, though it is billed."""
-CONTENT_FILTERED = "ContentFiltered"
-"""The error type of an answer the provider withheld (finish reason ``content_filter``) and sent no text for."""
-UNREADABLE_ANSWER = re.compile(r"Error converting to valid response block")
-"""litellm's words for an answer its adapter could not read (Gemini's: a 200 whose body is an error object), which
-it raises as a bad request (422): the endpoint's answer was at fault, not the request, and another may be read."""
-
-
-class _NoText(Exception):
-    """An answer without text (:meth:`LiteLLMClient._answer`): ``retry`` when another attempt may bring one."""
-
-    def __init__(self, error_type: str, message: str, retry: bool, response: Any = None):
-        super().__init__(message)
-        self.error_type, self.retry, self.response = error_type, retry, response
-
-
 BUDGET_SPENT = "BudgetSpent"
 """The error type of a call ended before a retry because the budget had no room for another billed attempt
 (:data:`BeforeRetry`). Never retried; the optimizer ends the run as a spent budget."""
@@ -256,26 +106,9 @@ OUT_OF_TIME = "OutOfTime"
 """The error type of a call given up on at its ``deadline``: the run's time budget (``--max-wall``) ran out while it
 was in flight, or before a retry. Never retried; the optimizer ends the run as a spent budget."""
 
-def _is_cost(value: Any) -> bool:
-    """Whether litellm's price of a reply is one: a positive, finite number (0 is what it says of no usage)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < math.inf
-
-
 CALL_TIME_GRACE_S = 5.0
 """Past a call's time limit, how long its answer is still waited for before it is given up on: httpx's own error
 for an endpoint that sent nothing in that time comes first, and says so in its words."""
-_MAX_COUNT = 2 ** 31 - 1
-REPORTED_TEXT_LIMIT = 200
-"""The characters kept of a name or id an endpoint reports (its model, the response's id, a finish reason)."""
-
-
-def _reported_text(value: Any) -> str | None:
-    """A name or id the endpoint reported, as the store can hold it: a string, lone surrogates and NULs replaced
-    (a JSON ``\\ud800`` in a response's id failed the insert, ending the run with a traceback), at most
-    :data:`REPORTED_TEXT_LIMIT` characters; anything else None."""
-    if not isinstance(value, str):
-        return None
-    return value.encode("utf-8", "replace").decode("utf-8").replace("\x00", "\ufffd")[:REPORTED_TEXT_LIMIT]
 
 
 class LiteLLMClient:
@@ -371,7 +204,7 @@ class LiteLLMClient:
 
         def error(error_type: str, message: str, fatal: bool, attempts: int | None = None) -> LLMError:
             return LLMError(error_type, message, attempt if attempts is None else attempts, fatal,
-                            time.monotonic() - start, _summed(billed))
+                            time.monotonic() - start, billed_reply(billed))
 
         while True:
             attempt += 1
@@ -391,19 +224,19 @@ class LiteLLMClient:
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
                 # an answer without text was billed all the same, and so was a stream that broke midway (its
                 # usage never came): each goes with the error, and with the reply of a later attempt
-                answered = isinstance(exc, _NoText) or progress.get("answered", False)
+                answered = isinstance(exc, NoText) or progress.get("answered", False)
                 if answered:
                     billed.append(self._reply(exc.response, attempt, time.monotonic() - start)
-                                  if isinstance(exc, _NoText) else
+                                  if isinstance(exc, NoText) else
                                   LLMReply("", latency_s=time.monotonic() - start, attempts=attempt,
                                            structured=self.structured))
                 large = too_large(exc)
                 if large is not None:  # not retried: the same endpoint would send the same again
                     raise error("AnswerTooLarge", str(large) + self._asked_at(), False) from None
-                if isinstance(exc, _NoText) and not exc.retry:  # the same prompt would get the same
+                if isinstance(exc, NoText) and not exc.retry:  # the same prompt would get the same
                     raise error(exc.error_type, str(exc) + self._asked_at(), False) from None
-                name = _error_name(exc)
-                if self.structured and _refuses_reply_format(name, exc):
+                name = error_name(exc)
+                if self.structured and refuses_reply_format(name, exc):
                     # a server that does not take the reply schema: ask again without it (not a retry), and
                     # from now on
                     self.structured, self.dropped = False, self.dropped + ("response_format",)
@@ -430,12 +263,12 @@ class LiteLLMClient:
                 time.sleep(pause if deadline is None else max(0.0, min(pause, deadline - time.monotonic())))
                 continue
             billed.append(self._reply(response, attempt, time.monotonic() - start))
-            return _summed(billed)
+            return billed_reply(billed)
 
     def _asked_at(self) -> str:
         """`` (asked at URL)`` after an error's message when the endpoint is the user's ``--api-base`` (its
         credentials left out): "Connection error.", "Error code: 404" and the provider's own texts have no URL."""
-        return f" (asked at {_without_credentials(self.api_base)})" if self.api_base else ""
+        return f" (asked at {without_credentials(self.api_base)})" if self.api_base else ""
 
     def _answer(self, sent: list[dict[str, Any]], params: dict[str, Any], extra: dict[str, Any],
                 on_text: Callable[[str], None] | None, progress: dict[str, bool]) -> Any:
@@ -447,8 +280,8 @@ class LiteLLMClient:
             if params.get("stream"):
                 progress["answered"] = True
                 response = self._collect(response, sent, on_text, time.monotonic())
-        if not _reply_text(response).strip():  # stored as a reply, it was read as one: "the reply is empty"
-            raise _no_text(response)
+        if not reply_text(response).strip():  # stored as a reply, it was read as one: "the reply is empty"
+            raise no_text(response)
         return response
 
     def _within_time_limit(self, call: Callable[[], Any], deadline: float | None = None) -> Any:
@@ -523,81 +356,7 @@ class LiteLLMClient:
         return max(20_000, 4 * self.max_tokens)
 
     def _reply(self, response: Any, attempts: int, latency_s: float) -> LLMReply:
-        text = _reply_text(response)
-        usage = getattr(response, "usage", None)
-        inputs, outputs = _usage_number(usage, "prompt_tokens"), _usage_number(usage, "completion_tokens")
-        # litellm fills a usage the endpoint left out with zeros; no prompt is 0 tokens, nor a reply with text
-        inputs = None if inputs == 0 else inputs
-        outputs = None if outputs == 0 and text else outputs
-        try:
-            cost = self.litellm.completion_cost(completion_response=response)
-        except Exception:  # unknown models have no price
-            cost = None
-        return LLMReply(
-            text=text,
-            response_model=_reported_text(getattr(response, "model", None)),
-            response_id=_reported_text(getattr(response, "id", None)),
-            finish_reasons=[reason for reason in (_reported_text(getattr(c, "finish_reason", None))
-                                                  for c in response.choices) if reason],
-            input_tokens=inputs,
-            output_tokens=outputs,
-            cached_input_tokens=_usage_number(usage, "prompt_tokens_details", "cached_tokens"),
-            cache_creation_input_tokens=_usage_number(usage, "cache_creation_input_tokens"),
-            # litellm prices the usage as reported: of counts not trusted (a negative one made a negative cost,
-            # which gave the budget room) there is no cost; the optimizer charges such a call its worst case
-            cost_usd=cost if inputs is not None and outputs is not None and _is_cost(cost) else None,
-            latency_s=latency_s,
-            attempts=attempts,
-            structured=self.structured,
-        )
-
-
-def _summed(attempts: list[LLMReply]) -> LLMReply | None:
-    """The last of a call's answered ``attempts`` with the usage of them all (what the provider bills): each count
-    and the cost summed, None where an attempt did not report it (the optimizer charges that attempt its worst
-    case); the cache counts are the sum of those reported. None without any answered attempt."""
-    if not attempts:
-        return None
-
-    def total(name: str, known_only: bool = False) -> int | float | None:
-        values = [getattr(a, name) for a in attempts]
-        if known_only:
-            values = [v for v in values if v is not None] or [None]
-        return None if any(v is None for v in values) else sum(values)
-
-    return dataclasses.replace(attempts[-1], input_tokens=total("input_tokens"), output_tokens=total("output_tokens"),
-                               cost_usd=total("cost_usd"), cached_input_tokens=total("cached_input_tokens", True),
-                               cache_creation_input_tokens=total("cache_creation_input_tokens", True),
-                               billed=list(attempts))
-
-
-def _reply_text(response: Any) -> str:
-    """The text of an answer's first choice (a forced tool's input, should an adapter leave it as a tool call)."""
-    choice = response.choices[0] if response.choices else None
-    message = choice.message if choice is not None else None
-    text = (message.content if message is not None else None) or ""
-    if not isinstance(text, str):
-        return ""
-    if not text and message is not None and getattr(message, "tool_calls", None):
-        # litellm hands a forced tool's input back as the text; should an adapter leave it as a tool call,
-        # its arguments are the reply
-        text = getattr(message.tool_calls[0].function, "arguments", None) or ""
-    return text if isinstance(text, str) else ""
-
-
-def _no_text(response: Any) -> _NoText:
-    """Why an answer has no text, as the error it is, by its finish reason (litellm's, the same for every
-    provider: Anthropic's ``max_tokens`` and Gemini's ``MAX_TOKENS`` are ``length``; Gemini's ``SAFETY`` and
-    ``RECITATION`` are ``content_filter``)."""
-    reasons = [_reported_text(getattr(c, "finish_reason", None)) for c in response.choices or []]
-    if "content_filter" in reasons:
-        return _NoText(CONTENT_FILTERED, "the provider withheld the reply (finish reason content_filter) and sent no "
-                       "text", False, response)
-    if "length" in reasons:
-        return _NoText(EMPTY_REPLY, "the reply stopped at the token limit before any text: raise --max-tokens",
-                       False, response)
-    return _NoText(EMPTY_REPLY, "the endpoint answered with no text" + (
-        f" (finish reason {', '.join(r for r in reasons if r)})" if any(reasons) else ""), True, response)
+        return read_answer(response, attempts, latency_s, self.structured, self.litellm.completion_cost)
 
 
 class ReplayClient:

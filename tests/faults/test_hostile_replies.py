@@ -142,7 +142,7 @@ def test_an_endpoint_s_word_about_its_reply_is_not_trusted(store, scripted):
     a traceback, the reply unrecorded, so --resume asked again and failed again. Each hostile count is now charged
     at the call's worst case (``usage_estimated``), each text made storable (cut at REPORTED_TEXT_LIMIT), and each
     reply is used."""
-    from pipeline.llm.client import REPORTED_TEXT_LIMIT
+    from pipeline.llm.answers import REPORTED_TEXT_LIMIT
 
     model = scripted([{"raw": json.dumps(_completion_body(**fields))} for fields in HOSTILE_METADATA])
     client = LiteLLMClient(model.model, api_base=model.api_base, retries=0)
