@@ -36,7 +36,7 @@ from typing import Callable, Iterator, Sequence
 
 from games.base import ONE_LIFE_CONTINUE, STANDARD_NOOP_MAX, STANDARD_STICKY
 from pipeline.boundary.workers import DeadlinePassed
-from pipeline.optimizer.propose import BudgetExhausted
+from pipeline.optimizer.budgets import BudgetExhausted
 from pipeline.optimizer.state import RunState
 from pipeline.play.episodes import run_episodes
 from pipeline.play.rollout import EpisodeOutcome

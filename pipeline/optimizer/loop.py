@@ -12,7 +12,8 @@ The loop is three parts with one job each, driven from here:
   reuse their episodes (the evaluation cache).
 
 The run's settings are an :class:`~pipeline.optimizer.config.OptimizeConfig` (``config.py``); what the loop
-carries from one iteration to the next is a :class:`~pipeline.optimizer.state.RunState` (``state.py``).
+carries from one iteration to the next is a :class:`~pipeline.optimizer.state.RunState` (``state.py``); its
+budgets of calls, tokens, cost and time are held in ``budgets.py``.
 
 Iteration 0 assesses the starting policy. Each iteration then writes its candidates (parents, LLM call, score,
 decision, feedback), the feedback of the chosen one and the ``iterations`` row in one transaction. An iteration
@@ -40,7 +41,8 @@ from pipeline.optimizer.config import RESUME_OVERRIDES, OptimizeConfig, validate
 from pipeline.settings import flag_of
 from pipeline.stopping import uninterrupted
 from pipeline.optimizer.feedback import FeedbackBands
-from pipeline.optimizer.propose import BudgetExhausted, Proposal, check_wall, propose
+from pipeline.optimizer.budgets import BudgetExhausted, check_wall
+from pipeline.optimizer.propose import Proposal, propose
 from pipeline.optimizer.prompt import PromptBudgetError, smallest_prompt_tokens
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History

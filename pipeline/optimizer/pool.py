@@ -49,9 +49,10 @@ from typing import Callable
 from pipeline.llm.client import LLMClient
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.assess import Assessment, Screen, assess, screen
+from pipeline.optimizer.budgets import BudgetExhausted, check_wall, pass_budget_turn
 from pipeline.optimizer.conclude import IterationResult, assessed_of, conclude, pending_row, provisional, screen_out
 from pipeline.optimizer.ensemble import member_picks
-from pipeline.optimizer.propose import BudgetExhausted, Proposal, check_wall, pass_budget_turn, propose
+from pipeline.optimizer.propose import Proposal, propose
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History, Ref
 from store import Store
@@ -129,7 +130,7 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
     last_commit = time.monotonic()
     # calls overlap: no "waiting for the model" line per call (each iteration's line says what is in flight)
     waiting, state.waiting = state.waiting, lambda iteration, model: nullcontext()
-    with state.budget_lock:  # the candidates' tickets, in start order (propose.check_budgets)
+    with state.budget_lock:  # the candidates' tickets, in start order (budgets.check_budgets)
         state.budget_turn, state.budget_turns_passed = 0, set()
     tickets = 0
 

@@ -5,7 +5,7 @@ For each :class:`~pipeline.optimizer.strategies.ProposalRequest` of an iteration
 1. the prompt is built from the store (``pipeline/optimizer/prompt.py``) for the parent candidate, under the token budget;
 2. a reply already stored for this prompt, iteration and candidate is reused (a resumed run); the others are
    requested from the model **concurrently** (at most ``max_concurrent_calls`` at a time), after checking that
-   all of them together stay within the run's cost and token budgets;
+   all of them together stay within the run's cost and token budgets (``pipeline/optimizer/budgets.py``);
 3. each reply is parsed (``pipeline/optimizer/reply.py``) and the calls are written to ``llm_calls`` with what their
    replies parsed into (one transaction, in candidate order, so the store does not depend on which reply came
    first); then each suggestion is validated (``pipeline/play/validate.py``): an
@@ -37,9 +37,10 @@ from typing import Callable
 
 from games import get_game
 from pipeline.boundary.untrusted import clean_untrusted_text
-from pipeline.llm.client import OUT_OF_TIME, BeforeRetry, LLMClient, LLMError, LLMReply, canonical_messages
-from pipeline.llm.providers import price
+from pipeline.llm.answers import LLMReply
+from pipeline.llm.client import OUT_OF_TIME, BeforeRetry, LLMClient, LLMError, canonical_messages
 from pipeline.llm.tokens import TokenCounter
+from pipeline.optimizer.budgets import BudgetExhausted, billed_usage, check_budgets, release_budget, retry_budget
 from pipeline.optimizer.context import context_for
 from pipeline.optimizer.ensemble import choose_members
 from pipeline.optimizer.prompt import Prompt, PromptBudgetError, build_prompt
@@ -51,7 +52,7 @@ from pipeline.play.validate import CandidateRejected, RuntimeCheck, check_fits, 
 from pipeline.play.versions import policy_version_row
 from store import Store
 from store.db import Hold
-from store.readers import run_spending, stored_replies
+from store.readers import stored_replies
 from store.writer import insert_llm_calls
 
 MAX_CONSECUTIVE_LLM_FAILURES = 3
@@ -66,16 +67,6 @@ def repair_limit(config) -> int:
     """The most tokens a repair conversation may have: the prompt's budget, a reply of ``max_tokens`` and the error.
     A reply longer than ``max_tokens`` allows (a server that ignored the limit) is never sent back."""
     return config.token_budget + config.max_tokens + REPAIR_NOTE_TOKENS
-
-
-class BudgetExhausted(Exception):
-    """The next step would exceed one of the run's budgets; the run stops with status ``budget``. ``setting``: the
-    budget's (``max_llm_calls``, ...), for the command that goes on with a larger one; None where a larger one
-    would not help."""
-
-    def __init__(self, message: str, setting: str | None = None) -> None:
-        super().__init__(message)
-        self.setting = setting
 
 
 @dataclass
@@ -137,7 +128,8 @@ class _Pending:
     choice: dict | None = None
     """Why the ensemble chose that model (``llm_calls.model_choice``; a repair turn's is its first call's)."""
     over_budget: BudgetExhausted | None = None
-    """Why its call was not retried after a billed attempt: another would not fit a budget (:func:`_retry_budget`)."""
+    """Why its call was not retried after a billed attempt: another would not fit a budget
+    (``budgets.retry_budget``)."""
 
     def parse(self) -> None:
         reply = self.reply
@@ -158,7 +150,7 @@ def propose(store: Store, state: "RunState", history: History, iteration: int, r
     caller's hold on the store) is let go while the model is asked and taken again once it has answered (what
     follows is short: store the calls, validate, and the caller's commit). ``budget_ticket``: the proposal pool's
     start order of this candidate, in which the first calls are checked against the budgets
-    (:func:`check_budgets`; the caller passes the ticket with :func:`pass_budget_turn` however this ends)."""
+    (``budgets.check_budgets``; the caller passes the ticket with ``budgets.pass_budget_turn`` however this ends)."""
     c = state.config
     pending = []
     built: dict[tuple, tuple] = {}  # best-of-n asks N times with the same context: build its prompt once
@@ -309,15 +301,19 @@ def _repair_turn(store: Store, state: "RunState", iteration: int, turn: int, pen
 
 def _ask(store: Store, state: "RunState", iteration: int, client: LLMClient, items: list[_Pending],
          reservation: tuple[int, int, float] | None, hold: Hold | None) -> None:
-    """Ask for the replies of ``items`` (their worst case reserved by :func:`check_budgets`), read them and record
+    """Ask for the replies of ``items`` (their worst case reserved by ``budgets.check_budgets``), read them and record
     the calls; the reservation is given back once they are recorded (or the asking failed). Other processes may
     read the store while the model thinks: ``hold`` is let go (checkpointing what this process wrote) once the
     requests are on their way, and taken again for the recording."""
     retries = [0, 0, 0.0]  # what the retries of billed attempts reserved on top of ``reservation``
+
+    def before_retry(item: _Pending) -> BeforeRetry:
+        return retry_budget(store, state, item.client or client, item.prompt.tokens, retries,
+                            refused=lambda why: setattr(item, "over_budget", why))
+
     try:
         _complete_all(state, iteration, client, items, meanwhile=hold.release if hold is not None else None,
-                      before_retry=None if reservation is None else
-                      lambda item: _retry_budget(store, state, item, item.client or client, retries))
+                      before_retry=None if reservation is None else before_retry)
         for item in items:  # before the store is taken back: other processes may read it while a reply is read
             if item.reply is not None:
                 item.text = item.reply.text
@@ -330,49 +326,6 @@ def _ask(store: Store, state: "RunState", iteration: int, client: LLMClient, ite
         release_budget(state, tuple(retries))
 
 
-def _retry_budget(store: Store, state: "RunState", item: _Pending, model: LLMClient, retries: list) -> BeforeRetry:
-    """The client's question before it retries an attempt of ``item``'s call that was answered, and so billed
-    (``LiteLLMClient.complete``): the reservation of :func:`check_budgets` set aside one worst case for the call,
-    which that attempt has used part of, and the provider bills every attempt. The retry goes only if the budgets
-    still have room for what the attempt was charged (:func:`billed_usage`) on top of everything spent and
-    reserved; that much is then reserved too (in ``retries``, given back with the reservation), so the call's
-    attempts together never take the run past a budget. Otherwise the call ends there (``BudgetSpent``) and
-    ``item.over_budget`` says why; nothing waits for the calls in flight (two calls waiting on each other)."""
-    c = state.config
-
-    def before_retry(attempt: LLMReply) -> str | None:
-        charge = billed_usage(model.model, attempt, item.prompt.tokens, c.max_tokens)
-        tokens = (charge["input_tokens"] or 0) + (charge["output_tokens"] or 0)
-        rates = price(model.model) if c.max_cost_usd is not None else None
-        cost = charge["cost_usd"] if charge["cost_usd"] is not None else (
-            rates.cost(item.prompt.tokens, c.max_tokens) if rates is not None else 0.0)
-        worst = item.prompt.tokens + c.max_tokens
-        with state.budget_lock:
-            with store.read() as con:
-                spent = run_spending(con, state.run_id)
-            _, flying_tokens, flying_cost = state.in_flight
-            why = None
-            if c.max_total_tokens is not None and spent["tokens"] + flying_tokens + tokens > c.max_total_tokens:
-                why = BudgetExhausted(
-                    f"token budget: {spent['tokens']:,} tokens used, {flying_tokens:,} set aside for the calls in "
-                    f"flight, and an attempt of this call was billed {tokens:,}: a retry, which may use up to "
-                    f"{worst:,} more, would go over --max-total-tokens {c.max_total_tokens:,}", "max_total_tokens")
-            elif c.max_cost_usd is not None and spent["cost_usd"] + flying_cost + cost > c.max_cost_usd:
-                why = BudgetExhausted(
-                    f"cost budget: ${spent['cost_usd']:.4f} spent, ${flying_cost:.4f} set aside for the calls in "
-                    f"flight, and an attempt of this call was billed ${cost:.4f}: a retry would go over --max-cost "
-                    f"${c.max_cost_usd:g}", "max_cost_usd")
-            if why is not None:
-                item.over_budget = why
-                return str(why)
-            state.in_flight = [state.in_flight[0], flying_tokens + tokens, flying_cost + cost]
-            retries[1] += tokens
-            retries[2] += cost
-        return None
-
-    return before_retry
-
-
 def _replies(n: int) -> str:
     return "the reply" if n == 1 else f"{n} replies"
 
@@ -382,7 +335,7 @@ def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: l
                   before_retry: Callable[[_Pending], BeforeRetry] | None = None) -> None:
     """Request every reply, at most ``max_concurrent_calls`` at a time; each item gets its reply or error.
     ``meanwhile`` runs in a thread of its own while the model is asked (its error is raised after the replies);
-    ``before_retry(item)``: what its call asks before it retries a billed attempt (:func:`_retry_budget`)."""
+    ``before_retry(item)``: what its call asks before it retries a billed attempt (``budgets.retry_budget``)."""
 
     def complete(item: _Pending, on_text) -> None:
         try:
@@ -499,37 +452,6 @@ def _validate_all(state: "RunState", iteration: int, items: list[_Pending], coun
     return proposals
 
 
-def billed_usage(model: str, answer: LLMReply, prompt_tokens: int, max_tokens: int | None) -> dict:
-    """What a call's answered attempts are charged (``llm_calls``' usage columns): each attempt at the usage it
-    reported, one that reported none (a stream that broke midway) or only part at its worst case
-    (:func:`_worst_case_usage`, ``usage_estimated``), summed; the provider bills every attempt it answered, not
-    only the last. A cost is None when an attempt has none (a model without a price)."""
-    attempts = answer.billed or [answer]
-    if answer.replayed or all(a.input_tokens is not None and a.output_tokens is not None for a in attempts):
-        return {"input_tokens": answer.input_tokens, "output_tokens": answer.output_tokens,
-                "cost_usd": answer.cost_usd, "usage_estimated": None if answer.replayed else False}
-    each = [_worst_case_usage(model, a, prompt_tokens, max_tokens)
-            if a.input_tokens is None or a.output_tokens is None else
-            {"input_tokens": a.input_tokens, "output_tokens": a.output_tokens, "cost_usd": a.cost_usd}
-            for a in attempts]
-    total = {name: None if any(e[name] is None for e in each) else sum(e[name] for e in each)
-             for name in ("input_tokens", "output_tokens", "cost_usd")}
-    return {**total, "usage_estimated": True}
-
-
-def _worst_case_usage(model: str, reply: LLMReply, prompt_tokens: int, max_tokens: int | None) -> dict:
-    """What a reply whose endpoint reported no usable token count is charged (``usage_estimated``): the budgets
-    read the store, and such a call counted as nothing let a run pass ``--max-total-tokens`` and ``--max-cost``
-    call after call. The worst case, as the budgets reserve it before a call: our own count of the prompt, a reply
-    of the request's ``max_tokens`` (hidden reasoning included), at litellm's price (none without one); a count the
-    endpoint did report stays as it is."""
-    inputs = reply.input_tokens if reply.input_tokens is not None else prompt_tokens
-    outputs = reply.output_tokens if reply.output_tokens is not None else max_tokens
-    rates = price(model) if outputs is not None else None
-    return {"input_tokens": inputs, "output_tokens": outputs, "usage_estimated": True,
-            "cost_usd": rates.cost(inputs, outputs) if rates is not None else None}
-
-
 def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, items: list[_Pending]) -> None:
     """Write the ``llm_calls`` rows of an iteration's calls (failed ones too) with what each reply parsed into,
     in one transaction and in candidate order (the store does not depend on which reply came first); each item
@@ -578,114 +500,3 @@ def record_calls(store: Store, run_id: str, iteration: int, client: LLMClient, i
                       json.dumps(item.suggestion, sort_keys=True) if item.suggestion is not None else None))
     with store.write() as con:
         insert_llm_calls(con, calls)
-
-
-def check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: list[Prompt],
-                  models: list[LLMClient] | None = None, ticket: int | None = None) -> tuple[int, int, float] | None:
-    """Raise :class:`BudgetExhausted` if the calls about to be made could take the run past a budget: their
-    number, and each counted at its prompt plus a reply of the longest length asked for, priced at litellm's
-    rates for the model that makes it (``models``, one per prompt; default: ``client`` for all). The run's
-    spending so far is every call's, whichever model made it, and the worst case of the calls other threads have
-    in flight (the proposal pool); these calls' worst case is reserved until :func:`release_budget` (after their
-    rows are recorded): the reservation, or None without budgets. When only the reservations of calls in flight
-    stand in the way, it waits for them to be recorded (they seldom use their worst case) and looks again.
-    ``ticket`` (the proposal pool): it first waits for the candidates started before it to have checked theirs,
-    so the budget's last calls go to the earliest candidates, whose iterations are committed first."""
-    try:
-        if ticket is not None:
-            with state.budget_lock:
-                state.budget_lock.wait_for(lambda: state.budget_turn >= ticket)
-        return _check_budgets(store, state, client, prompts, models)
-    finally:
-        if ticket is not None:
-            pass_budget_turn(state, ticket)
-
-
-def pass_budget_turn(state: "RunState", ticket: int) -> None:
-    """The pool's candidate ``ticket`` has checked the budgets, or will make no first call (a stored reply, an
-    error before asking): the candidates after it may check theirs. Passing a ticket twice is harmless."""
-    with state.budget_lock:
-        state.budget_turns_passed.add(ticket)
-        while state.budget_turn in state.budget_turns_passed:
-            state.budget_turns_passed.discard(state.budget_turn)
-            state.budget_turn += 1
-        state.budget_lock.notify_all()
-
-
-def _check_budgets(store: Store, state: "RunState", client: LLMClient, prompts: list[Prompt],
-                   models: list[LLMClient] | None) -> tuple[int, int, float] | None:
-    c = state.config
-    if c.max_cost_usd is None and c.max_total_tokens is None and c.max_llm_calls is None:
-        return None
-    prompt_tokens = sum(p.tokens for p in prompts)
-    worst_tokens = prompt_tokens + c.max_tokens * len(prompts)
-    worst = 0.0
-    if c.max_cost_usd is not None:
-        for p, model in zip(prompts, models or [client] * len(prompts)):
-            rates = price(model.model)
-            if rates is None:
-                raise BudgetExhausted(f"--max-cost needs a price for {model.label}, and litellm has none: use "
-                                      "--max-total-tokens instead")
-            worst += rates.cost(p.tokens, c.max_tokens)
-    calls = "the next call" if len(prompts) == 1 else f"the next {len(prompts)} calls"
-
-    def refusal(spent: dict, flying_calls: int, flying_tokens: int, flying_cost: float) -> BudgetExhausted | None:
-        flying = f" ({flying_calls} more call{'s' * (flying_calls != 1)} in flight)" if flying_calls else ""
-        if c.max_llm_calls is not None and spent["calls"] + flying_calls + len(prompts) > c.max_llm_calls:
-            return BudgetExhausted(f"call budget: {spent['calls']} LLM calls made{flying}, {calls} would go over "
-                                   f"--max-llm-calls {c.max_llm_calls}", "max_llm_calls")
-        if c.max_total_tokens is not None and spent["tokens"] + flying_tokens + worst_tokens > c.max_total_tokens:
-            return BudgetExhausted(f"token budget: {spent['tokens']:,} tokens used{flying}, {calls} may use up to "
-                                   f"{worst_tokens:,} (prompt {prompt_tokens:,} + reply up to "
-                                   f"{c.max_tokens * len(prompts):,}), over --max-total-tokens "
-                                   f"{c.max_total_tokens:,}", "max_total_tokens")
-        if c.max_cost_usd is not None and spent["cost_usd"] + flying_cost + worst > c.max_cost_usd:
-            return BudgetExhausted(f"cost budget: ${spent['cost_usd']:.4f} spent{flying}, {calls} may cost up to "
-                                   f"${worst:.4f}, over --max-cost ${c.max_cost_usd:g}", "max_cost_usd")
-        return None
-
-    with state.budget_lock:
-        while True:
-            with store.read() as con:
-                spent = run_spending(con, state.run_id)
-            why = refusal(spent, *state.in_flight)
-            if why is None:
-                break
-            if state.in_flight[0] and refusal(spent, 0, 0, 0.0) is None:
-                # only the worst cases of the calls in flight are in the way, and they mostly use far less: wait
-                # for one to be recorded and look again
-                state.budget_lock.wait()
-                continue
-            raise why
-        reservation = (len(prompts), worst_tokens, worst)
-        state.in_flight = [a + b for a, b in zip(state.in_flight, reservation)]
-        return reservation
-
-
-def release_budget(state: "RunState", reservation: tuple[int, int, float] | None) -> None:
-    """Give back what :func:`check_budgets` reserved (the calls are recorded, or were never made)."""
-    if reservation is not None:
-        with state.budget_lock:
-            state.in_flight = [a - b for a, b in zip(state.in_flight, reservation)]
-            state.budget_lock.notify_all()
-
-
-def check_wall(store: Store, state: "RunState", *, ahead: bool = False, uncommitted_s: float = 0.0) -> None:
-    """Raise :class:`BudgetExhausted` if the run's time has passed ``max_wall_minutes`` — or, ``ahead``, if one
-    more iteration as long as the last would pass it (the barrier loop, whose iterations come one after another).
-    The run's time is the sum of its committed iterations' (time between a kill and its resume does not count) and
-    ``uncommitted_s``, the time since the last commit (the proposal pool, whose calls run ahead of its commits)."""
-    limit = state.config.max_wall_minutes
-    if limit is None:
-        return
-    with store.read() as con:
-        spent = run_spending(con, state.run_id)
-    taken = spent["wall_s"] + uncommitted_s
-    state.wall_deadline = time.monotonic() + limit * 60 - taken  # a call in flight then is given up on
-    if ahead and taken + spent["last_wall_s"] > limit * 60:
-        raise BudgetExhausted(
-            f"time budget: the run has taken {taken / 60:.1f} min and its last iteration "
-            f"{spent['last_wall_s'] / 60:.1f} min, over --max-wall {limit:g} min", "max_wall_minutes")
-    if taken > limit * 60:
-        raise BudgetExhausted(f"time budget: the run has taken {taken / 60:.1f} min, over --max-wall {limit:g} min",
-                              "max_wall_minutes")

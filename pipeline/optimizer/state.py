@@ -27,7 +27,7 @@ class RunState:
     llm_failures: int = 0
     wall_deadline: float | None = None
     """When the run's time budget (``--max-wall``) runs out, on ``time.monotonic()``'s clock, as last worked out by
-    ``propose.check_wall``: an LLM call still in flight then is given up on. None without a time budget."""
+    ``budgets.check_wall``: an LLM call still in flight then is given up on. None without a time budget."""
     rng_key: str | None = None
     """The key of the run's random stream for policies (``EpisodeSpec.rng_key``; None: a run recorded before it)."""
     history: History | None = None
@@ -51,7 +51,7 @@ class RunState:
     budget_lock: threading.Condition = field(default_factory=threading.Condition, repr=False, compare=False)
     in_flight: list[float] = field(default_factory=lambda: [0, 0, 0.0], repr=False, compare=False)
     """The worst case of the calls checked against the budgets and not yet recorded: calls, tokens, USD (the
-    proposal pool's threads check theirs while others are in flight: ``propose.check_budgets``)."""
+    proposal pool's threads check theirs while others are in flight: ``budgets.check_budgets``)."""
     budget_turn: int = field(default=0, repr=False, compare=False)
     """The proposal pool's candidates check the budgets in the order they started (their *ticket*): the next
     ticket whose check may go. Without the order a candidate started later, whose thread built its prompt faster,
