@@ -43,7 +43,9 @@ other work (a load average above its cores) it stretches by the load per core, a
 ``CODEARCADE_TEST_CEILING_S`` is taken as it is."""
 
 REFERENCE_LOOP_S = 0.016
-"""The best time of :func:`plain_python_loop` on the 2-core machine :data:`CEILING_S` was set on, quiet."""
+"""The best time of :func:`plain_python_loop` on the 2-core machine :data:`CEILING_S` was set on, a little under the
+18-19 ms it took there on a quiet night (2026-12-07), so that a machine as slow as that one stretches no ceiling
+by much."""
 
 
 def plain_python_loop() -> float:
@@ -60,7 +62,7 @@ def machine_slowness() -> float:
     """How many times slower than the machine the ceiling was set on this one runs plain Python, at least 1 (a faster
     one keeps the ceiling): the best of nine runs of :func:`plain_python_loop` against :data:`REFERENCE_LOOP_S`,
     measured once a process. A VM whose host is busy runs everything slower without a load average that shows it:
-    the same tests ran 1.5 times as long one evening here, and the loop took 1.9 times as long one night."""
+    the same tests ran 1.5 times as long one evening here as that afternoon."""
     return max(1.0, min(plain_python_loop() for _ in range(9)) / REFERENCE_LOOP_S)
 
 
