@@ -28,7 +28,9 @@ MAX_TOKENS = 300
 def _entry(rng: random.Random, stream: bool, text: str = "No change.") -> dict:
     """One random answer of the mix: billed ones with their usage (a reply, an empty answer, a reply cut at the
     token limit, a stream that broke midway) and unbilled errors (429, 503)."""
-    usage = {"input": rng.randint(100, 900), "output": rng.randint(5, MAX_TOKENS)}
+    usage = {"output": rng.randint(5, MAX_TOKENS - 1)}  # MAX_TOKENS: a reply cut at the limit (the oracle's rule)
+    if rng.random() < 0.5:  # else the prompt's words, as a provider bills the prompt it was sent (in optimize about
+        usage["input"] = rng.randint(100, 900)  # what a call's worst case reserves for it: where retries press)
     kinds = ["reply", "empty", "empty", "length", "429", "503"] + (["cut", "broken"] if stream else [])
     kind = rng.choice(kinds)
     if kind == "reply":
@@ -131,6 +133,44 @@ BUDGETS = [("--max-total-tokens", 9_000), ("--max-cost", 0.02), ("--max-total-to
 """Budgets of about three and eight calls' worst case (a prompt of up to 3,000 tokens, a reply of 300)."""
 
 
+def _optimize_here(store, model, monkeypatch, capfd, *args: str):
+    """``codearcade optimize`` of Pong against ``model`` (as gpt-4o, priced) with replies of :data:`MAX_TOKENS` and
+    prompts of 3,000 tokens, and ``args``, run by the command line's main in this process (tests/conftest.py's
+    run_main: a process of its own spent ~7 s of CPU importing litellm, which this process has imported for the
+    tests above); nothing it or its game processes wrote is a traceback."""
+    route, base = model.route("openai", "gpt-4o")
+    for key in [k for k in os.environ if k.endswith("_API_KEY")]:
+        monkeypatch.delenv(key)
+    for key, value in {**KEYS, "OPENAI_API_KEY": KEYS["ANTHROPIC_API_KEY"], "CODEARCADE_LLM_BACKOFF_S": "0.05",
+                       "LITELLM_LOCAL_MODEL_COST_MAP": "True"}.items():
+        monkeypatch.setenv(key, value)
+    monkeypatch.chdir(ROOT)
+    capfd.readouterr()
+    done = run_main("optimize", "--game", "pong", "--model", route, "--api-base", base, "--store", str(store.path),
+                    "--eval-max-steps", "200", "--rollout-steps", "60", "--workers", "2", "--audit-episodes", "0",
+                    "--token-budget", "3000", "--max-tokens", str(MAX_TOKENS), *args)
+    children = capfd.readouterr().err  # what its game processes wrote to stderr
+    assert "Traceback" not in done.stderr + children, done.stderr + children
+    return done
+
+
+@pytest.mark.slow
+def test_optimize_retries_a_billed_attempt_only_if_the_budget_still_has_room(store, scripted, monkeypatch, capfd):
+    """The optimizer's answer before a billed attempt is retried (``budgets.retry_budget``): an empty answer billed
+    8,300 tokens leaves no room under --max-total-tokens 9,000, beside the call's worst case reserved (its prompt
+    and a reply of 300), for a retry that may be billed as much; the call ends there, the run as ``budget``, and the
+    ledger stays within the budget (retried, it would be billed 16,600). The fuzzer below, its
+    bills then all smaller than a prompt, did not fail when this question went unasked."""
+    model = scripted([{"content": "", "usage": {"input": 8_000, "output": 300}},
+                      {"content": "No change.", "usage": {"input": 8_000, "output": 300}}])
+    done = _optimize_here(store, model, monkeypatch, capfd, "--iterations", "2", "--max-total-tokens", "9000")
+    ledger = model.billed()
+    assert sum(line["input"] + line["output"] for line in ledger if line["billed"]) == 8_300, (ledger, done.stderr)
+    assert _runs(store)[0][1] == "budget", done.stderr
+    assert store.query("SELECT error_type, input_tokens, output_tokens FROM llm_calls") == \
+        [("BudgetSpent", 8_000, 300)], done.stderr
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", range(6))
 def test_optimize_records_and_budgets_every_billed_attempt(store, scripted, seed, monkeypatch, capfd):
@@ -145,22 +185,7 @@ def test_optimize_records_and_budgets_every_billed_attempt(store, scripted, seed
     flag, limit = BUDGETS[seed % len(BUDGETS)]
     script = [_entry(rng, True, COMPETENT_REPLY if rng.random() < 0.2 else "No change.") for _ in range(80)]
     model = scripted(script)
-    route, base = model.route("openai", "gpt-4o")
-    # run by the command line's main in this process (tests/conftest.py's run_main): a process of its own spent
-    # ~7 s of CPU importing litellm, which this process has imported for the tests above
-    for key in [k for k in os.environ if k.endswith("_API_KEY")]:
-        monkeypatch.delenv(key)
-    for key, value in {**KEYS, "OPENAI_API_KEY": KEYS["ANTHROPIC_API_KEY"], "CODEARCADE_LLM_BACKOFF_S": "0.05",
-                       "LITELLM_LOCAL_MODEL_COST_MAP": "True"}.items():
-        monkeypatch.setenv(key, value)
-    monkeypatch.chdir(ROOT)
-    capfd.readouterr()
-    done = run_main("optimize", "--game", "pong", "--model", route, "--api-base", base, "--store", str(store.path),
-                    "--iterations", "8", "--stream", "--eval-max-steps", "200", "--rollout-steps", "60", "--workers",
-                    "2", "--audit-episodes", "0", "--token-budget", "3000", "--max-tokens", str(MAX_TOKENS), flag,
-                    str(limit))
-    children = capfd.readouterr().err  # what its game processes wrote to stderr
-    assert "Traceback" not in done.stderr + children, done.stderr + children
+    done = _optimize_here(store, model, monkeypatch, capfd, "--iterations", "8", "--stream", flag, str(limit))
     ledger = sorted(model.billed(), key=lambda line: line["request"])
     rows = store.query("SELECT attempts, input_tokens, output_tokens, cost_usd, usage_estimated FROM llm_calls "
                        "ORDER BY created_at")
