@@ -206,6 +206,10 @@ class LiteLLMClient:
             return LLMError(error_type, message, attempt if attempts is None else attempts, fatal,
                             time.monotonic() - start, billed_reply(billed))
 
+        def unreported() -> LLMReply:
+            """This attempt, billed with its usage never come (a stream broken or given up on midway)."""
+            return LLMReply("", latency_s=time.monotonic() - start, attempts=attempt, structured=self.structured)
+
         while True:
             attempt += 1
             if deadline is not None and time.monotonic() >= deadline:
@@ -217,8 +221,7 @@ class LiteLLMClient:
                                                    deadline)
             except _OutOfTime:
                 if progress.get("answered", False):  # a stream had begun: the model was generating, and bills it
-                    billed.append(LLMReply("", latency_s=time.monotonic() - start, attempts=attempt,
-                                           structured=self.structured))
+                    billed.append(unreported())
                 raise error(OUT_OF_TIME, f"the call was given up on after {time.monotonic() - start:.0f} s, at the "
                             "run's deadline", True) from None
             except Exception as exc:  # noqa: BLE001 - every provider error becomes an LLMError
@@ -227,9 +230,7 @@ class LiteLLMClient:
                 answered = isinstance(exc, NoText) or progress.get("answered", False)
                 if answered:
                     billed.append(self._reply(exc.response, attempt, time.monotonic() - start)
-                                  if isinstance(exc, NoText) else
-                                  LLMReply("", latency_s=time.monotonic() - start, attempts=attempt,
-                                           structured=self.structured))
+                                  if isinstance(exc, NoText) else unreported())
                 large = too_large(exc)
                 if large is not None:  # not retried: the same endpoint would send the same again
                     raise error("AnswerTooLarge", str(large) + self._asked_at(), False) from None
