@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from pipeline.llm.providers import PROVIDER_KEYS, REPLY_SCHEMA, MissingCredentialsError, check_credentials, \
+from pipeline.llm.providers import KNOWN_PROVIDERS, PROVIDER_KEYS, REPLY_SCHEMA, MissingCredentialsError, check_credentials, \
     with_cache_breakpoint
 from tests.conftest import COMPETENT_REPLY, ROOT, pong_policy
 
@@ -85,7 +85,12 @@ def test_each_provider_protocol_wins_pong_in_one_iteration(store, scripted, prov
         assert request["headers"]["x-api-key"] == KEYS["ANTHROPIC_API_KEY"]
         assert body["max_tokens"] == params["max_tokens"] == 4096
         assert body["system"][0]["cache_control"] == {"type": "ephemeral"}
-        assert "no 'seed' parameter" in done.stderr
+        # said once, on its own line before the call's wait is shown (litellm says it at the first call)
+        lines = done.stderr.splitlines()
+        notice = [i for i, line in enumerate(lines) if "no 'seed' parameter" in line]
+        assert len(notice) == 1 and lines[notice[0]] == \
+            f"codearcade: {provider}/{name} takes no 'seed' parameter; it is not sent", done.stderr
+        assert notice[0] < lines.index("iteration 1: waiting for anthropic/claude-sonnet-4-5"), done.stderr
         # a forced tool call whose input is the reply, answered by a tool_use block
         assert body["tool_choice"] == {"type": "tool", "name": body["tools"][0]["name"]}
         assert body["tools"][0]["input_schema"] == REPLY_SCHEMA and "response_format" not in body
@@ -183,6 +188,46 @@ def test_credential_table_agrees_with_litellm(monkeypatch):
         check_credentials(f"{provider}/some-model", environ={names[-1]: "x"})
     check_credentials("openai/local", api_base="http://127.0.0.1:1/v1", environ={})  # own server: no key
     check_credentials("ollama_chat/qwen", environ={})
+
+
+def test_known_providers_are_placed_by_litellm_as_their_prefix_says():
+    """A client for a model of these prefixes is made before litellm is imported (its provider is the prefix)."""
+    from pipeline.llm.tokens import import_litellm
+
+    litellm = import_litellm()
+    for provider in KNOWN_PROVIDERS:
+        for api_base in (None, "http://127.0.0.1:1/v1"):
+            assert litellm.get_llm_provider(f"{provider}/some-model", api_base=api_base)[1] == provider
+
+
+LITELLM_ON_FIRST_USE = """
+import sys
+sys.modules["litellm"] = None  # any import of litellm fails from here
+from pipeline.llm.client import LiteLLMClient, open_client
+from pipeline.llm.tokens import TokenCounter
+client, _, _ = open_client("anthropic/claude-sonnet-4-5", None, 0.0, 100, 0)
+ensemble, _, _ = open_client(None, None, 0.0, 100, 0, models=[{"model": "openai/a", "api_base": "http://h:1/v1"},
+                                                                 {"model": "gemini/b", "api_base": None}])
+counter = TokenCounter(client.model)
+print("made", client.label, ensemble.label)
+for use in (client.request_params, lambda: client.structured, lambda: ensemble.provider, lambda: counter("text")):
+    try:
+        use()
+    except ImportError:
+        print("needs litellm")
+try:
+    LiteLLMClient("gpt-4o")  # no prefix: only litellm can place it, so it is asked at once
+except ImportError:
+    print("asked at once")
+"""
+
+
+def test_a_client_asks_litellm_on_first_use_unless_only_litellm_can_place_its_model():
+    done = subprocess.run([sys.executable, "-c", LITELLM_ON_FIRST_USE], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300, env=_env())
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["made anthropic/claude-sonnet-4-5 openai/a + gemini/b", *["needs litellm"] * 4,
+                                        "asked at once"], done.stdout
 
 
 def test_no_key_fails_at_once_naming_the_variable(tmp_path):

@@ -242,13 +242,12 @@ def _optimize(args: argparse.Namespace, store, config, run_id: str | None, start
         (lambda line: show(line, flush=True))
     offline = config.model is None
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
-                                      config.seed, stream=args.stream, models=config.models)
+                                      config.seed, stream=args.stream, models=config.models,
+                                      notice=lambda line: show(f"codearcade: {line}", file=sys.stderr))
     recordings = None
     try:
         with new_run(store, client) as made:  # stopped before the loop takes it over: ended as the loop would
             fit_to_model(config, cap)
-            for name in getattr(client, "dropped", ()):
-                show(f"codearcade: {client.label} takes no '{name}' parameter; it is not sent", file=sys.stderr)
             rerun = rerun_target(args.rerun)
             resumed = run_id is not None
             with uninterrupted():  # a press as the run is made lands once its id is here, to be printed

@@ -89,7 +89,7 @@ def _optimize(spec: dict[str, Any], store: Store) -> OptimizeResult:
     config = OptimizeConfig(**spec["config"])
     config.workers = spec.get("episode_workers", config.workers)
     client, server, cap = open_client(config.model, config.api_base, config.temperature, config.max_tokens,
-                                      config.seed, models=config.models)
+                                      config.seed, models=config.models, notice=_say)
     fit_to_model(config, cap)
     try:
         with new_run(store, client) as made:

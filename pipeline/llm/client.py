@@ -31,10 +31,10 @@ from pipeline.llm.answers import LLMReply, NoText, billed_reply, no_text, read_a
 from pipeline.llm.capped import AnswerTooLarge, capped, too_large
 from pipeline.llm.errors import FATAL, MAX_ASKED_WAIT_S, asked_wait_s, describe_error, error_name, \
     refuses_reply_format, without_credentials
-from pipeline.llm.providers import LOCAL_SERVER_PROVIDERS, OFFLINE_CHARS_PER_TOKEN, OFFLINE_REASONING_CHARS, \
-    ReplyLimits, reply_format, reply_schema, with_cache_breakpoint
+from pipeline.llm.providers import KNOWN_PROVIDERS, LOCAL_SERVER_PROVIDERS, OFFLINE_CHARS_PER_TOKEN, \
+    OFFLINE_REASONING_CHARS, ReplyLimits, provider_of, reply_format, reply_schema, with_cache_breakpoint
 from pipeline.llm.providers import request_params as provider_request_params
-from pipeline.llm.tokens import import_litellm
+from pipeline.llm.tokens import import_litellm, import_litellm_soon
 
 DEFAULT_BACKOFF_S = 2.0
 """First wait before retrying a transient error; it doubles each retry (``CODEARCADE_LLM_BACKOFF_S`` changes it,
@@ -111,6 +111,10 @@ CALL_TIME_GRACE_S = 5.0
 for an endpoint that sent nothing in that time comes first, and says so in its words."""
 
 
+_PREPARED = frozenset({"litellm", "provider", "_params", "dropped", "structured"})
+"""The attributes of a :class:`LiteLLMClient` that litellm gives (:meth:`LiteLLMClient._prepare`)."""
+
+
 class LiteLLMClient:
     """A model reached through litellm. ``complete`` retries transient errors, then raises :class:`LLMError`.
 
@@ -124,6 +128,12 @@ class LiteLLMClient:
     client sends it no more (``dropped`` then names it).
     ``label`` is the model as the user asked for it (``offline:...`` for the built-in model), ``model`` the
     name litellm is given.
+
+    What litellm says of the model (its provider, the parameters it takes; ``notice`` hears what is dropped) is
+    asked on first use, not when the client is made, for a model whose provider litellm places by its prefix
+    (:data:`~pipeline.llm.providers.KNOWN_PROVIDERS`): litellm's import takes 2-5 s of CPU, which a run spends
+    while iteration 0 plays (:func:`~pipeline.llm.tokens.import_litellm_soon`), not before its first line. Any
+    other model is put to litellm as the client is made, so that one it does not know is an error then.
     """
 
     def __init__(
@@ -141,8 +151,8 @@ class LiteLLMClient:
         stream: bool = False,
         structured: bool = True,
         reply_limits: ReplyLimits | None = None,
+        notice: Callable[[str], None] = lambda line: None,
     ):
-        self.litellm = import_litellm()
         self.model = model
         self.label = label or model
         self.api_base = api_base
@@ -151,28 +161,55 @@ class LiteLLMClient:
         self.timeout_s = timeout_s
         self.retries = retries
         self.backoff_s = backoff_s
-        try:
-            self.provider = self.litellm.get_llm_provider(model, api_base=api_base)[1]
-        except Exception as exc:  # litellm raises BadRequestError for a model string it cannot place
-            raise ValueError(f"unknown model '{model}': give it as provider/model (for example "
-                             f"anthropic/claude-sonnet-4-5 or openai/gpt-4o), or use --api-base for an "
-                             f"OpenAI-compatible server ({describe_error(exc, 120)})") from None
-        params = provider_request_params(self.litellm, model, self.provider, temperature=temperature,
-                                         max_tokens=max_tokens, seed=seed, timeout_s=timeout_s)
-        self._params = params.sent
-        self.dropped = params.dropped
         self.reply_limits = reply_limits
-        wanted = reply_format(self.litellm, model, self.provider, params.supported, api_base,
-                              reply_schema(reply_limits)) if structured else None
-        if wanted is not None:
-            self._params["response_format"] = wanted
-        self.structured = wanted is not None
-        if api_base:
-            self._params["api_base"] = api_base
-        if stream:
-            self._params["stream"] = True
-            if "stream_options" in params.supported:  # else the provider sends usage in its stream by itself
-                self._params["stream_options"] = {"include_usage": True}
+        self.notice = notice
+        self._asked = dict(temperature=temperature, seed=seed, stream=stream, structured=structured)
+        self._preparing = threading.Lock()
+        if provider_of(model) in KNOWN_PROVIDERS:  # litellm places it: its import can wait for the first call
+            import_litellm_soon()
+        else:  # only litellm can say whether it knows this model: asked now, before anything runs
+            self._prepare()
+
+    def __getattr__(self, name: str):
+        """What litellm says of the model and provider, made on first use (:meth:`_prepare`)."""
+        if name not in _PREPARED:
+            raise AttributeError(name)
+        self._prepare()
+        return self.__dict__[name]
+
+    def _prepare(self) -> None:
+        """Import litellm and ask it what this model's provider is and which request parameters it takes; what it
+        does not take is said once through ``notice``. Once, whichever thread asks first (the proposal pool's
+        calls run on threads of their own)."""
+        with self._preparing:
+            if "structured" in self.__dict__:
+                return
+            model, api_base, asked = self.model, self.api_base, self._asked
+            litellm = import_litellm()
+            try:
+                provider = litellm.get_llm_provider(model, api_base=api_base)[1]
+            except Exception as exc:  # litellm raises BadRequestError for a model string it cannot place
+                raise ValueError(f"unknown model '{model}': give it as provider/model (for example "
+                                 f"anthropic/claude-sonnet-4-5 or openai/gpt-4o), or use --api-base for an "
+                                 f"OpenAI-compatible server ({describe_error(exc, 120)})") from None
+            params = provider_request_params(litellm, model, provider, temperature=asked["temperature"],
+                                             max_tokens=self.max_tokens, seed=asked["seed"],
+                                             timeout_s=self.timeout_s)
+            sent = params.sent
+            wanted = reply_format(litellm, model, provider, params.supported, api_base,
+                                  reply_schema(self.reply_limits)) if asked["structured"] else None
+            if wanted is not None:
+                sent["response_format"] = wanted
+            if api_base:
+                sent["api_base"] = api_base
+            if asked["stream"]:
+                sent["stream"] = True
+                if "stream_options" in params.supported:  # else the provider sends usage in its stream by itself
+                    sent["stream_options"] = {"include_usage": True}
+            self.litellm, self.provider, self._params, self.dropped = litellm, provider, sent, params.dropped
+            self.structured = wanted is not None  # last: what says the client is prepared
+        for name in params.dropped:
+            self.notice(f"{self.label} takes no '{name}' parameter; it is not sent")
 
     def request_params(self) -> dict[str, Any]:
         return dict(self._params)
@@ -398,10 +435,13 @@ class EnsembleClient:
 
     def __init__(self, members: list[Any]):
         self.members = {m.model: m for m in members}
-        first = members[0]
-        self.model, self.provider = first.model, first.provider
+        self.first = members[0]
+        self.model = self.first.model
         self.label = " + ".join(m.label for m in members)
-        self.dropped = tuple(dict.fromkeys(d for m in members for d in getattr(m, "dropped", ())))
+
+    @property
+    def provider(self) -> str:
+        return self.first.provider
 
     def member(self, model: str) -> Any:
         return self.members[model]
@@ -428,32 +468,34 @@ one function (``pipeline/optimizer/config.py: model_defaults``) for the command 
 
 
 def open_client(model: str | None, api_base: str | None, temperature: float, max_tokens: int, seed: int,
-                stream: bool = False, models: list[dict[str, Any]] | None = None):
+                stream: bool = False, models: list[dict[str, Any]] | None = None,
+                notice: Callable[[str], None] = lambda line: None):
     """(client, local server or None, prompt-token cap or None) for ``--model``, or the offline default; with
     ``models`` (an ensemble's entries), an :class:`EnsembleClient` of one client per entry, each with its own
-    endpoint.
+    endpoint. ``notice`` is told what a provider does not take (``--seed`` to Anthropic), once litellm has said so:
+    by the first call, not before the run's first line (:class:`LiteLLMClient`).
 
     With no model, SmolLM2 is started on 127.0.0.1 (``pipeline/llm/local.py``) and a one-time notice says it
     only exercises the pipeline; the caller stops the server when done. ``max_tokens`` is the run's own: the
     model's default reply length was applied to its settings before (``model_defaults``), not here.
     """
     backoff_s = float(os.environ.get("CODEARCADE_LLM_BACKOFF_S", DEFAULT_BACKOFF_S))
+    asked = dict(temperature=temperature, max_tokens=max_tokens, seed=seed, backoff_s=backoff_s, stream=stream,
+                 notice=notice)
     if models:
-        return EnsembleClient([LiteLLMClient(e["model"], api_base=e.get("api_base"), temperature=temperature,
-                                             max_tokens=max_tokens, seed=seed, backoff_s=backoff_s, stream=stream)
+        return EnsembleClient([LiteLLMClient(e["model"], api_base=e.get("api_base"), **asked)
                                for e in models]), None, None
     if model:
-        return LiteLLMClient(model, api_base=api_base, temperature=temperature, max_tokens=max_tokens,
-                             seed=seed, backoff_s=backoff_s, stream=stream), None, None
+        return LiteLLMClient(model, api_base=api_base, **asked), None, None
     from pipeline.llm.local import LocalModelServer, show_offline_model_notice
 
     show_offline_model_notice()
+    import_litellm_soon()  # while the server starts
     server = LocalModelServer().start()
     # llama.cpp compiles the schema into a grammar, so SmolLM2's reply is always this JSON; its strings are held
     # short enough that the JSON closes within max_tokens
     room = OFFLINE_CHARS_PER_TOKEN * max_tokens
     limits = ReplyLimits(min(OFFLINE_REASONING_CHARS, room // 4), room)
-    client = LiteLLMClient(server.model, api_base=server.api_base, temperature=temperature, max_tokens=max_tokens,
-                           seed=seed, label=OFFLINE_MODEL_LABEL, backoff_s=backoff_s, stream=stream,
-                           reply_limits=limits)
+    client = LiteLLMClient(server.model, api_base=server.api_base, label=OFFLINE_MODEL_LABEL, reply_limits=limits,
+                           **asked)
     return client, server, server.context_tokens - max_tokens

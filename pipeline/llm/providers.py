@@ -50,6 +50,10 @@ NO_KEY_PROVIDERS = frozenset({"ollama", "ollama_chat", "hosted_vllm", "lm_studio
 LOCAL_SERVER_PROVIDERS = frozenset({"openai", "hosted_vllm", "ollama", "ollama_chat", "lm_studio", "llamafile"})
 """Providers whose ``--api-base`` usually points at the user's own server: no key is required there."""
 
+KNOWN_PROVIDERS = frozenset(PROVIDER_KEYS) | NO_KEY_PROVIDERS | LOCAL_SERVER_PROVIDERS
+"""Provider prefixes of ``--model`` that litellm places (``tests/test_providers.py`` asks it): a client for one
+can be made before litellm is imported; any other model is put to litellm at once, which says if it knows it."""
+
 CACHE_CONTROL_PROVIDERS = frozenset({"anthropic"})
 """Providers that cache a prompt prefix only where the request marks it (Anthropic's ``cache_control``)."""
 

@@ -19,6 +19,8 @@ import atexit
 import math
 import os
 import re
+import sys
+import threading
 from functools import lru_cache
 from typing import Callable
 
@@ -36,26 +38,63 @@ def _lines(text: str) -> list[str]:
     return [part + "\n" for part in parts[:-1]] + [parts[-1]]
 
 
+_SETTING_UP = threading.Lock()
+"""Held while litellm's settings are made: the thread of :func:`import_litellm_soon` and the one that needs litellm
+may both finish importing it at once."""
+
+
 def import_litellm():
-    """litellm, imported once, quietly, without reaching for the network (its cost map is bundled)."""
+    """litellm, imported once, quietly, without reaching for the network (its cost map is bundled). If
+    :func:`import_litellm_soon` is importing it on its own thread, this waits for that import (Python's lock on the
+    module), and imports it again where that one failed, raising its error here."""
     os.environ.setdefault("LITELLM_LOCAL_MODEL_COST_MAP", "True")
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")  # we fork workers; HF tokenizers would warn
     import litellm
 
-    if not getattr(litellm, "_codearcade_ready", False):
-        litellm.suppress_debug_info = True
-        litellm.telemetry = False
-        # litellm hands each streamed event to its logging callbacks on a thread of its own, in an event loop made
-        # for it: ~2 ms of CPU an event here, more than reading it (a streamed reply of 1,600 pieces took 5.5 s of
-        # CPU, 2.3 without). codearcade registers no litellm callback (the store is its log; bench/stream_read.py)
-        litellm.disable_streaming_logging = True
-        from viewers.safe_text import make_logs_terminal_safe
-
-        # its log quotes a reply's fields (an unknown finish_reason), escape sequences and all
-        make_logs_terminal_safe("LiteLLM", "LiteLLM Router", "LiteLLM Proxy")
-        atexit.register(_close_leftover_event_loop)  # runs before litellm's own exit hooks (registered earlier)
-        litellm._codearcade_ready = True
+    with _SETTING_UP:
+        if not getattr(litellm, "_codearcade_ready", False):
+            _set_up(litellm)
     return litellm
+
+
+def import_litellm_soon() -> None:
+    """Start importing litellm on a thread of its own, unless it is imported or being imported. The import takes
+    2-5 s of CPU on these machines: a command that will call a model only after it has played iteration 0 spends
+    that time while its game hosts play, not before its first line. Whatever needs litellm then calls
+    :func:`import_litellm`, which waits for this import to end. A daemon thread: a command that ends before the
+    import does is not held back by it."""
+    global _importing
+    with _SETTING_UP:
+        if "litellm" in sys.modules or _importing is not None:
+            return
+        _importing = threading.Thread(target=_import_quietly, name="import litellm", daemon=True)
+    _importing.start()
+
+
+_importing: threading.Thread | None = None
+
+
+def _import_quietly() -> None:
+    try:
+        import_litellm()
+    except BaseException:  # noqa: BLE001 - said where litellm is needed: import_litellm imports it again there
+        pass
+
+
+def _set_up(litellm) -> None:
+    """codearcade's settings of litellm, made once, after its import."""
+    litellm.suppress_debug_info = True
+    litellm.telemetry = False
+    # litellm hands each streamed event to its logging callbacks on a thread of its own, in an event loop made
+    # for it: ~2 ms of CPU an event here, more than reading it (a streamed reply of 1,600 pieces took 5.5 s of
+    # CPU, 2.3 without). codearcade registers no litellm callback (the store is its log; bench/stream_read.py)
+    litellm.disable_streaming_logging = True
+    from viewers.safe_text import make_logs_terminal_safe
+
+    # its log quotes a reply's fields (an unknown finish_reason), escape sequences and all
+    make_logs_terminal_safe("LiteLLM", "LiteLLM Router", "LiteLLM Proxy")
+    atexit.register(_close_leftover_event_loop)  # runs before litellm's own exit hooks (registered earlier)
+    litellm._codearcade_ready = True
 
 
 def _close_leftover_event_loop() -> None:
@@ -85,10 +124,21 @@ def _cl100k():
 
 
 class TokenCounter:
-    """``counter(text)`` -> tokens of ``text`` for ``model`` (exact or a documented estimate)."""
+    """``counter(text)`` -> tokens of ``text`` for ``model`` (exact or a documented estimate). Made at once; litellm
+    is imported when the first text is counted (:func:`import_litellm_soon` starts it meanwhile)."""
 
     def __init__(self, model: str):
         self.model = model
+        import_litellm_soon()
+
+    def __getattr__(self, name: str):
+        if name not in ("exact", "method", "_count", "_cached"):
+            raise AttributeError(name)
+        self._choose_tokenizer()
+        return self.__dict__[name]
+
+    def _choose_tokenizer(self) -> None:
+        model = self.model
         litellm = import_litellm()
         from litellm.utils import huggingface_tokenizer_kind
 
