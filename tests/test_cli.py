@@ -737,3 +737,42 @@ def test_help_as_a_verb_shows_the_help(capsys):
             main(argv)
         out = capsys.readouterr().out
         assert ended.value.code == 0 and out.startswith(usage), out[:200]
+
+
+LOADED_AT_EXIT = """
+import atexit, runpy, sys
+atexit.register(lambda: print("loaded:", *[m for m in ("pandas", "litellm") if m in sys.modules], file=sys.__stderr__))
+sys.argv = ["codearcade", *sys.argv[1:]]
+runpy.run_module("pipeline.cli", run_name="__main__")
+"""
+"""The command line, run as its console script runs it, saying at its exit which of two heavy packages it loaded."""
+
+
+def test_a_command_that_writes_the_store_through_pyarrow_loads_no_pandas(tmp_path):
+    """pyarrow imports pandas (0.3-0.45 s, 25 MB) the first time it is handed a list, to ask whether it is a
+    DataFrame: the command line's process has it ask with pandas refused (``lists_are_not_dataframes``)."""
+    store = tmp_path / "s.duckdb"
+    done = subprocess.run([sys.executable, "-c", LOADED_AT_EXIT, "eval", "games/scaffolds/pong.py", "--episodes", "1",
+                           "--max-steps", "30", "--store", str(store)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300, env=_env(tmp_path))
+    assert done.returncode == 0, done.stderr
+    assert Store(store).query("SELECT count(*) FROM steps")[0][0] == 30  # written as Arrow tables
+    assert done.stderr.splitlines()[-1] == "loaded:", done.stderr[-2000:]
+
+
+ASKED_ONCE = """
+import sys
+import pyarrow as pa
+from pipeline.boundary.preload import lists_are_not_dataframes
+lists_are_not_dataframes()
+assert pa.table({"a": [1, 2]}).num_rows == 2 and pa.array(["x"]).to_pylist() == ["x"]
+print("pandas" in sys.modules)
+import pandas as pd
+print(pa.table(pd.DataFrame({"a": [3]})).column("a").to_pylist(), pa.table({"a": [4]}).to_pandas()["a"].tolist())
+"""
+
+
+def test_pyarrow_asked_about_pandas_once_still_converts_a_dataframe_when_asked_to():
+    done = subprocess.run([sys.executable, "-c", ASKED_ONCE], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["False", "[3] [4]"], done.stdout

@@ -159,9 +159,11 @@ def _end_now_past_a_stuck_sink(code: int) -> None:
 def _main(argv: Sequence[str] | None) -> int:
     PRESSED.clear()  # this command's presses only (tests run many commands in one process)
     if argv is None:  # the command line's own process: a traceback or warning Python prints may quote anyone's text
+        from pipeline.boundary.preload import lists_are_not_dataframes
         from viewers.safe_text import make_python_reports_terminal_safe
 
         make_python_reports_terminal_safe()
+        lists_are_not_dataframes()
     given = list(sys.argv[1:] if argv is None else argv)
     if given[:1] == ["help"] and len(given) <= 2:  # `codearcade help [VERB]`, as git and pip take it
         given = [*given[1:], "--help"]

@@ -42,6 +42,7 @@ try:  # a Ctrl-C to the batch's process group reaches its runs too, also while t
     from pathlib import Path
     from typing import Any
 
+    from pipeline.boundary.preload import lists_are_not_dataframes
     from pipeline.boundary.zygotes import keep_hosts
     from pipeline.llm.client import open_client
     from pipeline.optimizer.config import OptimizeConfig, fit_to_model
@@ -54,6 +55,7 @@ try:  # a Ctrl-C to the batch's process group reaches its runs too, also while t
     if __name__ == "__main__":  # the run's log is read with cat and tail: a traceback or warning Python prints
         # there itself may quote a reply or a stored text, so it is made safe and cut short too
         make_python_reports_terminal_safe()
+        lists_are_not_dataframes()
         _report_unraisable, sys.unraisablehook = sys.unraisablehook, _quiet_after_ctrl_c
 except KeyboardInterrupt:
     if __name__ != "__main__":
