@@ -165,10 +165,8 @@ class LiteLLMClient:
         self.notice = notice
         self._asked = dict(temperature=temperature, seed=seed, stream=stream, structured=structured)
         self._preparing = threading.Lock()
-        if provider_of(model) in KNOWN_PROVIDERS:  # litellm places it: its import can wait for the first call
-            import_litellm_soon()
-        else:  # only litellm can say whether it knows this model: asked now, before anything runs
-            self._prepare()
+        if provider_of(model) not in KNOWN_PROVIDERS:  # only litellm can say whether it knows this model: asked
+            self._prepare()  # now, before anything runs (else on first use; the loop's token counter starts the import)
 
     def __getattr__(self, name: str):
         """What litellm says of the model and provider, made on first use (:meth:`_prepare`)."""
