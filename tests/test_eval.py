@@ -247,6 +247,39 @@ def test_the_zygotes_start_no_numeric_thread_pool():
             zygote.close()
 
 
+CHECK_THEN_LEAVE = """
+import sys
+from pipeline.boundary import zygotes
+from pipeline.play.validate import PolicyLoadError, checked_inspect
+try:
+    checked_inspect(sys.argv[1], "pong.py")
+    print("checked")
+except PolicyLoadError as exc:
+    print("refused")
+game = zygotes._zygotes["game"]
+print(game.proc.pid, game.greeted, game.proc.poll())
+"""
+
+
+@pytest.mark.parametrize("policy", ["starter", "broken"])
+def test_a_checked_policy_s_game_zygote_starts_beside_its_check_and_ends_with_the_process(policy):
+    """Every caller of ``checked_inspect`` plays the policy next, so its game zygote starts beside the policy zygote
+    that checks it, not after. A process that ends before playing (a policy that fails its check) leaves no zygote
+    running: one still starting is killed, not waited for."""
+    text = (ROOT / "games" / "scaffolds" / "pong.py").read_text() if policy == "starter" else "def broken(:\n"
+    done = subprocess.run([sys.executable, "-c", CHECK_THEN_LEAVE, text], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    said, zygote = done.stdout.splitlines()
+    pid, greeted, exited = zygote.split()
+    assert said == ("checked" if policy == "starter" else "refused")
+    assert greeted == "False" and exited == "None", "started while the policy was checked, not waited for"
+    deadline = time.monotonic() + 30  # an orphan is reaped by init at once; a live zygote would stay
+    while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not Path(f"/proc/{pid}").exists(), f"the game zygote {pid} outlived its process"
+
+
 def test_kept_hosts_play_the_next_call_as_fresh_ones_and_exit_when_the_block_ends():
     """Inside ``keep_hosts`` the game hosts idle at the end of a call play the next call's episodes (no host is
     forked for it) exactly as fresh hosts do; a call on other environments gets fresh hosts (the kept ones go);

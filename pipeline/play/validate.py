@@ -28,6 +28,7 @@ from typing import Any, Callable
 from games import get_game
 from pipeline.boundary.untrusted import clean_untrusted_text
 from pipeline.boundary.workers import run_json_tasks
+from pipeline.boundary.zygotes import start_zygotes
 from pipeline.boundary.policy import coerce_action, describe_exception
 from pipeline.settings import EpisodeLimits
 from tracing.metrics import function_metrics, policy_metrics
@@ -189,8 +190,10 @@ def checked_inspect(text: str, name: str, workers: int = 1) -> PolicyInfo:
     """:func:`inspect_policy` of untrusted text (a policy file given to ``eval`` or ``optimize``), parsed and
     measured (:func:`measure`) in a confined worker first (``workers=0``: only here). Raises
     :class:`PolicyLoadError` with one line for text that cannot be checked: too large or too deeply nested
-    for a parser or radon (the worker's recursion limit is lower than this process's, its memory capped)."""
+    for a parser or radon (the worker's recursion limit is lower than this process's, its memory capped).
+    Every caller plays the policy next: its game zygote starts beside the policy zygote that checks it."""
     if workers > 0:
+        start_zygotes("policy", "game")
         reason, _ = _vet({"op": "inspect", "text": text, "name": name})
         if reason is not None:
             raise PolicyLoadError(reason if reason.startswith(name) else f"{name}: {reason}")
