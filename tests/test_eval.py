@@ -247,6 +247,29 @@ def test_the_zygotes_start_no_numeric_thread_pool():
             zygote.close()
 
 
+def test_the_game_zygote_loads_the_emulator_after_its_hello_before_any_request():
+    """The emulator stack (~0.7 s of imports) is every game task's: the game zygote imports it as soon as it has
+    said hello, while the command checks its policy, rather than inside the first request's "prepare". Seen in
+    its memory map, with no request sent."""
+    from pipeline.boundary.zygotes import Zygote
+
+    def tree(pid: int) -> list[int]:
+        children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+        return [pid] + [p for child in children for p in tree(int(child))]
+
+    zygote = Zygote("game")
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            if any("ale_py" in Path(f"/proc/{pid}/maps").read_text() for pid in tree(zygote.proc.pid)):
+                break
+            time.sleep(0.05)
+        else:
+            raise AssertionError("the game zygote never loaded ALE without being asked to prepare a game")
+    finally:
+        zygote.close()
+
+
 CHECK_THEN_LEAVE = """
 import sys
 from pipeline.boundary import zygotes

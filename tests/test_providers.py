@@ -13,8 +13,8 @@ import time
 
 import pytest
 
-from pipeline.llm.providers import KNOWN_PROVIDERS, PROVIDER_KEYS, REPLY_SCHEMA, MissingCredentialsError, check_credentials, \
-    with_cache_breakpoint
+from pipeline.llm.providers import KNOWN_PROVIDERS, PROVIDER_KEYS, REPLY_SCHEMA, MissingCredentialsError, \
+    check_credentials, with_cache_breakpoint
 from tests.conftest import COMPETENT_REPLY, ROOT, pong_policy
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")

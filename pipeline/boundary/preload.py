@@ -1,11 +1,11 @@
 """Warms a zygote (``pipeline/boundary/zygote.py``), the process that forks workers, so each worker starts warm.
 
 :func:`warm` imports the modules of the zygote's tasks once: the game zygote's host task brings the rollout code
-(the emulator stack, gymnasium, ALE and OCAtari's extractors, about 0.7 s, comes with the environments it prepares
-before any host forks: the parent, which imports the same rollout code, needs none of it); the policy zygote's
-tasks bring only the tracing layer, numpy and the validation code, and :func:`warm` then checks that nothing
-pulled in the emulator stack (:data:`~pipeline.boundary.view.EMULATOR_PACKAGES`: a policy process must have no
-emulator in memory, and cannot read one from disk either). It also makes pyarrow's first array and IPC stream
+(the emulator stack, gymnasium, ALE and OCAtari's extractors, about 0.7 s, the game zygote imports right after its
+hello, while the command checks its policy: the parent, which imports the same rollout code, needs none of it); the
+policy zygote's tasks bring only the tracing layer, numpy and the validation code, and :func:`warm` then checks
+that nothing pulled in the emulator stack (:data:`~pipeline.boundary.view.EMULATOR_PACKAGES`: a policy process
+must have no emulator in memory, and cannot read one from disk either). It also makes pyarrow's first array and IPC stream
 (about 0.25 s). Paying these once in the zygote instead of in every worker is what makes a fresh worker per
 episode cheap.
 

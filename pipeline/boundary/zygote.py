@@ -292,6 +292,10 @@ def main(argv: list[str]) -> int:
     except OSError:  # the parent went away while we started
         _remove_scratch(scratch_base)
         return 0
+    if not role.no_emulator:  # every task of the game zygote plays: the emulator stack (gymnasium, ALE, OCAtari's
+        # extractors, ~0.7 s) is imported between the hello and the parent's first request (the command checks its
+        # policy meanwhile), not inside that request's "prepare"
+        importlib.import_module("games.envs")
 
     wake_r, wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
     signal.set_wakeup_fd(wake_w)
