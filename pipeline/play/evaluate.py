@@ -116,15 +116,18 @@ def evaluate(
     ]
 
     def create_run() -> None:  # runs while the first episodes play
-        with store.write() as con:
-            insert_run(con, run_id, "eval", game, {**asdict(config), "game": game, "policy": str(policy_path),
-                                                   "rng_key": rng_key},
-                       text, info.version_id, package_versions(), seed=config.seed, name=run_name,
-                       made_by=made_by)
-            insert_policy_version(con, policy_version_row(info, run_id, 0, produced_by="file",
-                                                          validation="unvalidated"))
-        if on_start is not None:
-            on_start(run_id)
+        # a press as the run is made lands once it is whole (as optimize's does): the run's end below then marks it
+        # interrupted. Cut inside its transaction, a Ctrl-C to the process group left an eval's run 'running'
+        with uninterrupted():
+            with store.write() as con:
+                insert_run(con, run_id, "eval", game, {**asdict(config), "game": game, "policy": str(policy_path),
+                                                       "rng_key": rng_key},
+                           text, info.version_id, package_versions(), seed=config.seed, name=run_name,
+                           made_by=made_by)
+                insert_policy_version(con, policy_version_row(info, run_id, 0, produced_by="file",
+                                                              validation="unvalidated"))
+            if on_start is not None:
+                on_start(run_id)
 
     outcomes: list[EpisodeOutcome | None] = [None] * len(specs)
     status, error = "failed", None
