@@ -5,9 +5,9 @@
 hello, while the command checks its policy: the parent, which imports the same rollout code, needs none of it); the
 policy zygote's tasks bring only the tracing layer, numpy and the validation code, and :func:`warm` then checks
 that nothing pulled in the emulator stack (:data:`~pipeline.boundary.view.EMULATOR_PACKAGES`: a policy process
-must have no emulator in memory, and cannot read one from disk either). It also makes pyarrow's first array and IPC stream
-(about 0.25 s). Paying these once in the zygote instead of in every worker is what makes a fresh worker per
-episode cheap.
+must have no emulator in memory, and cannot read one from disk either). It also makes pyarrow's first array and
+IPC stream (about 0.25 s). Paying these once in the zygote instead of in every worker is what makes a fresh worker
+per episode cheap.
 
 What a zygote holds is copied at every fork (its page tables) and torn down at every worker's exit, so it
 holds no more than its tasks use: :func:`warm` refuses pandas (:class:`NoPandas`), which pyarrow would
