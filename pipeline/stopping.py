@@ -10,6 +10,7 @@ ignored (it would break the winding down off with a traceback); ``kill -9`` stil
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 import time
 from contextlib import contextmanager
@@ -48,16 +49,33 @@ def _raise(signum: int) -> None:
 def stop_pending() -> bool:
     """Whether a Ctrl-C or SIGTERM has stopped the command: its interrupt may have been swallowed where Python
     ignores exceptions (an at-fork hook, a finalizer: "Exception ignored in ..."), and the signals are ignored from
-    then on, so a wait for ever must look (``view --serve-web`` waited for good after a press landed in a fork)."""
-    return _stopped is not None
+    then on, so a wait for ever must look (``view --serve-web`` waited for good after a press landed in a fork).
+    Only while they are ignored: a caller in this process (a test, a script) that put its handlers back after a
+    stopped command is not stopped by that command's press."""
+    return _stopped is not None and signal.getsignal(_stopped) is signal.SIG_IGN
 
 
 def raise_if_stopped() -> None:
     """Raise the interrupt of a Ctrl-C or SIGTERM that stopped the command, also one Python swallowed (see
     :func:`stop_pending`): for a loop that waits a long time, to look at as it waits. In the main thread only, where
     the signal itself is raised (a server's games in a thread of their own end as the server does)."""
-    if _stopped is not None and threading.current_thread() is threading.main_thread():
+    if stop_pending() and threading.current_thread() is threading.main_thread():
         _raise(_stopped)
+
+
+def quiet_swallowed_interrupts() -> None:
+    """Say nothing of a Ctrl-C or SIGTERM that Python had to swallow: one that landed in an at-fork hook (logging's
+    lock, as ``subprocess`` starts a child with a ``preexec_fn``), a finalizer or an exit handler printed "Exception
+    ignored in ..." and a traceback. It is the press the command answers with its line ``interrupted``: the handler
+    noted it (:func:`stop_pending`), and the command's long waits raise it (:func:`raise_if_stopped`). Any other
+    ignored error is reported by the hook installed before this one."""
+    report = sys.unraisablehook
+
+    def _quiet(unraisable) -> None:
+        if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+            report(unraisable)
+
+    sys.unraisablehook = _quiet
 
 
 def wait_for_stop(done: Callable[[float], bool] | None = None) -> None:

@@ -31,7 +31,7 @@ try:  # Ctrl-C while the command starts (its imports take a second or more on a 
     from pipeline.cli import eval as eval_  # the verb's module (the builtin is not used here)
     from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, CodearcadeParser,
                                      shorten_in_message, show)
-    from pipeline.stopping import end_without_collecting, stop_on_signals, stop_once
+    from pipeline.stopping import end_without_collecting, quiet_swallowed_interrupts, stop_on_signals, stop_once
 except KeyboardInterrupt:
     sys.stderr.write("codearcade: interrupted\n")
     raise SystemExit(130) from None
@@ -163,6 +163,7 @@ def _main(argv: Sequence[str] | None) -> int:
         from viewers.safe_text import make_python_reports_terminal_safe
 
         make_python_reports_terminal_safe()
+        quiet_swallowed_interrupts()  # a press Python swallowed is said once, as `interrupted` (pipeline/stopping.py)
         lists_are_not_dataframes()
     given = list(sys.argv[1:] if argv is None else argv)
     if given[:1] == ["help"] and len(given) <= 2:  # `codearcade help [VERB]`, as git and pip take it

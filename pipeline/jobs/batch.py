@@ -23,7 +23,7 @@ from typing import Any, Callable
 
 from pipeline.jobs.experiments import Batch, BatchRun
 from pipeline.jobs.worker import BUDGET_EXIT, INTERRUPTED_EXIT, STORE_FULL_EXIT, run_remote
-from pipeline.stopping import Terminated
+from pipeline.stopping import Terminated, raise_if_stopped
 from store import Store
 from store.readers import batch_progress, batch_runs
 from store.writer import set_run_name
@@ -236,6 +236,9 @@ def _run_queue(queue, running, planned, progress, store, batch, workers, episode
     """Start the queued runs as worker slots free up, until every run has ended (``run_local``'s loop)."""
     last_refresh = 0.0
     while queue or running:
+        # a press Python swallowed (it landed in an at-fork hook as a run's process was started) stops the batch
+        # all the same: the signals are ignored from then on, and it would go on starting the queued runs
+        raise_if_stopped()
         while queue and len(running) < workers:
             i = queue.pop(0)
             item = planned[i]

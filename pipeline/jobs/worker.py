@@ -10,26 +10,16 @@ from __future__ import annotations
 
 import sys
 
-from pipeline.stopping import end_without_collecting, stop_on_signals
+from pipeline.stopping import end_without_collecting, quiet_swallowed_interrupts, stop_on_signals
 
 INTERRUPTED_EXIT = 130
 """Exit code of a batch run process stopped by a Ctrl-C (its run is interrupted, resumable)."""
 
 
-_report_unraisable = sys.__unraisablehook__
-"""How an ignored error is reported: Python's own hook until the imports are done, then the terminal-safe one."""
-
-
-def _quiet_after_ctrl_c(unraisable) -> None:
-    """A press that lands in an exit handler or a finalizer, as the run ends, is the press it answers with its line
-    ``interrupted`` (or one that came as it finished): nothing more to say, where Python printed "Exception
-    ignored" and a traceback into the run's log."""
-    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
-        _report_unraisable(unraisable)
-
-
 if __name__ == "__main__":
-    sys.unraisablehook = _quiet_after_ctrl_c
+    # a press that lands in an exit handler or a finalizer as the run ends is the one it answers with its line
+    # `interrupted`: no "Exception ignored" and traceback in the run's log
+    quiet_swallowed_interrupts()
     # a Ctrl-C, or SIGTERM (to the batch's process group, or from the batch itself when a SIGTERM stopped it
     # alone), once: the run is marked interrupted, and another while it winds down is ignored
     stop_on_signals()
@@ -56,7 +46,7 @@ try:  # a Ctrl-C to the batch's process group reaches its runs too, also while t
         # there itself may quote a reply or a stored text, so it is made safe and cut short too
         make_python_reports_terminal_safe()
         lists_are_not_dataframes()
-        _report_unraisable, sys.unraisablehook = sys.unraisablehook, _quiet_after_ctrl_c
+        quiet_swallowed_interrupts()  # again, over the terminal-safe reports
 except KeyboardInterrupt:
     if __name__ != "__main__":
         raise

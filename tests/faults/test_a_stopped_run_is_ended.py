@@ -163,6 +163,57 @@ def test_uninterrupted_holds_a_stop_to_the_end_of_the_outermost_block_and_no_fur
             signal.signal(signum, handler)
 
 
+def test_a_stopped_commands_press_does_not_stop_what_its_caller_runs_next():
+    """The press that stopped a command is looked at again by the long waits of what follows (a swallowed one:
+    :func:`pipeline.stopping.raise_if_stopped`), but only while the signals are still ignored: a caller in the same
+    process (a test, a script) that put its handlers back was stopped by it in its next batch or evaluation (a test
+    process of the suite ended "node down: keyboard-interrupt")."""
+    from pipeline.stopping import raise_if_stopped, stop_once, stop_pending
+
+    before = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        for signum in before:
+            signal.signal(signum, stop_once)
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            sum(range(1000))  # the handler runs here
+        assert stop_pending(), "while the command winds down, its press stands"
+        with pytest.raises(KeyboardInterrupt):
+            raise_if_stopped()
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+    assert not stop_pending()
+    raise_if_stopped()  # the caller goes on
+
+
+def test_only_a_swallowed_press_goes_unsaid():
+    """``quiet_swallowed_interrupts``: a KeyboardInterrupt Python had to ignore (a finalizer's) is not printed; any
+    other error it ignores still is, by the hook that was there before."""
+    import subprocess
+    import sys
+    import textwrap
+
+    program = textwrap.dedent("""
+        from pipeline.stopping import quiet_swallowed_interrupts
+
+        class Raises:
+            def __init__(self, error):
+                self.error = error
+
+            def __del__(self):
+                raise self.error
+
+        quiet_swallowed_interrupts()
+        Raises(KeyboardInterrupt())
+        Raises(ValueError("a finalizer's own error"))
+        print("went on")
+    """)
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and done.stdout == "went on\n", done.stderr
+    assert "a finalizer's own error" in done.stderr and "KeyboardInterrupt" not in done.stderr, done.stderr
+
+
 def test_a_press_python_swallows_in_a_fork_still_ends_a_wait_for_ever():
     """A Ctrl-C whose handler ran in an at-fork hook (``store.hub``'s, as ``view --serve-web`` started Rerun's
     server) raised its KeyboardInterrupt there, where Python prints "Exception ignored" and goes on; the signals
