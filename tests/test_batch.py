@@ -158,6 +158,29 @@ def test_a_batch_stopped_by_ctrl_c_says_how_to_resume_and_leaves_no_process(tmp_
 
 
 @pytest.mark.slow
+def test_a_sigint_to_the_batch_alone_stops_its_runs_at_once(tmp_path, store, scripted):
+    """``kill -INT`` of the batch's process alone (not its group, as a terminal's Ctrl-C is): the batch took it for
+    a Ctrl-C its runs had heard too and waited for them, while they went on waiting for the model, until its
+    wind-down limit (60 s) ran out. It passes the stop on now: every run is interrupted well before that limit."""
+    from pipeline.jobs.batch import WORKER_WIND_DOWN_S
+
+    model = scripted([{"sleep": 600, "content": COMPETENT_REPLY}] * 2)  # iteration 1's calls never come back in time
+    path = _experiments(tmp_path, model, iterations=1, seeds=(0,), audit_episodes=0, eval_max_steps=60,
+                        rollout_steps=30)
+    process = subprocess.Popen([EXE, "batch", str(path), "--store", str(store.path), "--workers", "2"], cwd=ROOT,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    _wait_for_iterations(store, process, 2)  # both runs' iteration 0: each now waits for its model call
+    assert process.poll() is None
+    pressed = time.monotonic()
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=3 * WORKER_WIND_DOWN_S)
+    took = time.monotonic() - pressed
+    assert process.returncode == 130 and "Traceback" not in err, err
+    assert took < WORKER_WIND_DOWN_S, f"the batch waited out its wind-down limit ({took:.0f} s)"
+    assert store.query("SELECT status, count(*) FROM runs GROUP BY ALL") == [("interrupted", 2)]
+
+
+@pytest.mark.slow
 def test_ray_executor_produces_the_same_rows(tmp_path, scripted):
     pytest.importorskip("ray")
     from store import Store

@@ -142,15 +142,17 @@ def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: in
         _run_queue(queue, running, planned, progress, store, batch, workers, episode_workers, log, display, log_dir,
                    poll_s, die_with_parent)
     except KeyboardInterrupt as stop:
-        # Ctrl-C reached the workers too (one process group): each marks its run interrupted and ends; wait for
-        # that, since a worker dies with this process (PDEATHSIG) and would leave its run half marked. A SIGTERM
-        # may have reached this process alone: the workers are told (one that heard it already ignores it)
-        if isinstance(stop, Terminated):
-            for proc, _ in running.values():
-                try:
-                    proc.send_signal(signal.SIGTERM)
-                except ProcessLookupError:
-                    pass
+        # each worker marks its run interrupted and ends; wait for that, since a worker dies with this process
+        # (PDEATHSIG) and would leave its run half marked. The stop is passed on to them: a terminal's Ctrl-C reached
+        # them too (one process group), and one that heard it ignores it again, but a SIGTERM or SIGINT sent to this
+        # process alone (`kill PID`, `kill -INT PID`) did not, and the batch waited out the wind-down's limit for
+        # runs that went on playing
+        sent = signal.SIGTERM if isinstance(stop, Terminated) else signal.SIGINT
+        for proc, _ in running.values():
+            try:
+                proc.send_signal(sent)
+            except ProcessLookupError:
+                pass
         _wait_for_workers(running, WORKER_WIND_DOWN_S)
         raise
     _refresh(store, progress, batch)
