@@ -98,6 +98,38 @@ def test_no_repairs_with_zero_and_none_past_the_call_budget(store, scripted):
     assert result.iterations[1].update_status == "accepted" and len(model.requests()) == 2
 
 
+@pytest.mark.slow
+def test_a_reply_cut_off_at_the_token_limit_is_told_to_fit_and_the_person_to_raise_the_limit(store, scripted):
+    """A reply that stopped at the token limit was sent back saying "raise --max-tokens": advice the model cannot
+    take. Its repair turn and the next prompt's feedback tell it the limit and to send less; the stored reason, which
+    a person reads, still says what they can do."""
+    cut = {"content": COMPETENT_REPLY[: len(COMPETENT_REPLY) // 2], "finish": "length"}
+    config = _config(max_tokens=1500)
+    model = scripted([cut, COMPETENT_REPLY])
+    result = optimize(config, store, _client(model))
+    assert result.iterations[1].update_status == "accepted" and result.iterations[1].repairs == 1
+    told = model.requests()[1][-1]["content"]
+    assert "at most 1,500 tokens" in told and "only the methods you change" in told, told
+    assert "--max-tokens" not in told, told
+    stored = store.query("SELECT parse_error FROM llm_calls WHERE run_id = ? AND purpose = 'update'",
+                         [result.run_id])[0][0]
+    assert "stopped at the token limit" in stored and "raise --max-tokens" in stored, stored
+    # without a repair turn, the next iteration's prompt says the same in its feedback
+    model = scripted([cut, COMPETENT_REPLY])
+    result = optimize(_config(max_tokens=1500, repairs=0, iterations=2), store, _client(model))
+    assert [i.update_status for i in result.iterations] == ["initial", "rejected", "accepted"]
+    prompt = "\n".join(message["content"] for message in model.requests()[1])
+    assert "at most 1,500 tokens" in prompt and "--max-tokens" not in prompt
+    # nor when the limit came before any text (a call that failed, its error stored as it was)
+    model = scripted([{"content": "", "finish": "length"}, COMPETENT_REPLY])
+    result = optimize(_config(max_tokens=1500, repairs=0, iterations=2), store, _client(model))
+    assert [i.update_status for i in result.iterations] == ["initial", "llm_error", "accepted"]
+    prompt = "\n".join(message["content"] for message in model.requests()[1])
+    assert "at most 1,500 tokens" in prompt and "--max-tokens" not in prompt, prompt[-2000:]
+    assert "raise --max-tokens" in store.query("SELECT error_message FROM llm_calls WHERE run_id = ? AND iteration = 1",
+                                               [result.run_id])[0][0]
+
+
 def test_a_failed_repair_call_leaves_the_rejection_and_the_run_goes_on(store, scripted):
     model = scripted([RAISES, {"status": 400, "message": "context too long"}, COMPETENT_REPLY])
     result = optimize(_config(iterations=2), store, _client(model))

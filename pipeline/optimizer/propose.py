@@ -37,7 +37,7 @@ from typing import Callable
 
 from games import get_game
 from pipeline.boundary.untrusted import clean_untrusted_text
-from pipeline.llm.answers import LLMReply
+from pipeline.llm.answers import EMPTY_REPLY, LLMReply
 from pipeline.llm.client import OUT_OF_TIME, BeforeRetry, LLMClient, LLMError, canonical_messages
 from pipeline.llm.tokens import TokenCounter
 from pipeline.optimizer.budgets import BudgetExhausted, billed_usage, check_budgets, release_budget, retry_budget
@@ -109,6 +109,9 @@ class _Pending:
     error: LLMError | None = None
     suggestion: dict[str, str] | None = None
     parse_error: str | None = None
+    """Why the reply is unusable, as stored and logged (with advice for the person who runs it)."""
+    unusable: ReplyParseError | None = None
+    """The same as an error, which :func:`unusable_reply_note` words for the model."""
     reading: str | None = None
     """How the reply was read: structured, parsed, repaired or unusable (``pipeline/optimizer/reply.py``)."""
     repairs: tuple[str, ...] = ()
@@ -138,6 +141,7 @@ class _Pending:
                               cut_off=reply is not None and reply.cut_off)
         except ReplyParseError as exc:
             self.suggestion, self.parse_error, self.reading, self.repairs = None, str(exc), "unusable", ()
+            self.unusable = exc
             return
         self.suggestion, self.parse_error, self.reading, self.repairs = read.suggestion, None, read.how, read.repairs
 
@@ -223,6 +227,15 @@ def _out_of_time(state: "RunState", asked: list[_Pending]) -> None:
     if cut is not None:
         raise BudgetExhausted(f"time budget: --max-wall {state.config.max_wall_minutes:g} min ran out while the "
                               f"model was asked ({cut.message})", "max_wall_minutes")
+
+
+def unusable_reply_note(exc: ReplyParseError, max_tokens: int) -> str:
+    """Why a reply is unusable, as the model is told it (in its repair turn and the next prompt's feedback): a
+    reply cut off at the token limit is not told to raise ``--max-tokens``, the person's remedy, but to fit."""
+    if not exc.cut_off:
+        return exc.reason
+    return (f"{exc.reason}. A reply may be at most {max_tokens:,} tokens long: send only the methods you change, "
+            "each complete, and keep the reasoning short")
 
 
 def repair_messages(item: _Pending, error: str) -> list[dict[str, str]]:
@@ -425,12 +438,20 @@ def _validate_all(state: "RunState", iteration: int, items: list[_Pending], coun
     proposals = []
     for item in items:
         if item.error is not None:
-            proposals.append(outcome(item, "llm_error", f"The LLM call failed ({item.error}); the code is unchanged."))
+            answer = item.error.answer
+            if item.error.error_type == EMPTY_REPLY and answer is not None and answer.cut_off:  # the model's to mend
+                note = (f"Your last reply stopped at the token limit before any text: a reply may be at most "
+                        f"{c.max_tokens:,} tokens long, so keep it short (only the methods you change); the code is "
+                        "unchanged.")
+            else:
+                note = f"The LLM call failed ({item.error}); the code is unchanged."
+            proposals.append(outcome(item, "llm_error", note))
             continue
         if item.parse_error is not None:
-            proposals.append(outcome(item, "rejected", f"Your last reply was not usable: {item.parse_error}. Reply "
-                                                       "with the JSON format asked for.",
-                                     fixable=f"Your reply was not usable: {item.parse_error}."))
+            why = unusable_reply_note(item.unusable, c.max_tokens) if item.unusable else item.parse_error
+            proposals.append(outcome(item, "rejected", f"Your last reply was not usable: {why}. Reply with the JSON "
+                                                       "format asked for.",
+                                     fixable=f"Your reply was not usable: {why}."))
             continue
         result = results[id(item)]
         if isinstance(result, CandidateRejected):  # nothing runnable to store: the reason is the record

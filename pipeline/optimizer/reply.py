@@ -62,14 +62,21 @@ _OBJECT_START = re.compile(r"\{\s*[\"']")
 _PYTHON_FENCES = ("python", "py", "python3", "")
 
 
-class ReplyParseError(ValueError):
-    """The reply holds no usable suggestion; the message says why (it becomes feedback), cleaned as untrusted
-    text (``pipeline/boundary/untrusted.py``): it may quote the reply."""
+CUT_OFF_ADVICE = "raise --max-tokens"
+"""What the person who runs it can do about a reply cut off at the token limit: said in the stored reason and the
+log, never to the model, which cannot raise it (``pipeline/optimizer/propose.py`` tells it to write less)."""
 
-    def __init__(self, reason: object):
+
+class ReplyParseError(ValueError):
+    """The reply holds no usable suggestion; the message says why (the stored reason), cleaned as untrusted
+    text (``pipeline/boundary/untrusted.py``): it may quote the reply. ``reason`` is the same without the advice
+    for a person that a reply cut off at the token limit (``cut_off``) adds: what the model is told."""
+
+    def __init__(self, reason: object, cut_off: bool = False):
         from pipeline.boundary.untrusted import clean_untrusted_text
 
-        super().__init__(clean_untrusted_text(reason))
+        self.reason, self.cut_off = clean_untrusted_text(reason), cut_off
+        super().__init__(f"{self.reason} ({CUT_OFF_ADVICE})" if cut_off else self.reason)
 
 
 @dataclass(frozen=True)
@@ -353,8 +360,7 @@ def read_reply(text: str, structured: bool = False, cut_off: bool = False) -> Re
     if not isinstance(text, str):
         raise ReplyParseError(f"the reply is not text but {type(text).__name__}")
     if not text.strip():
-        raise ReplyParseError("the reply is empty" + (" (it stopped at the token limit: raise --max-tokens)"
-                                                      if cut_off else ""))
+        raise ReplyParseError("the reply is empty" + (": it stopped at the token limit" if cut_off else ""), cut_off)
     if len(text) > MAX_REPLY_CHARS:
         raise ReplyParseError(f"the reply is {len(text):,} characters long, over the {MAX_REPLY_CHARS:,} limit")
     try:
@@ -372,13 +378,12 @@ def read_reply(text: str, structured: bool = False, cut_off: bool = False) -> Re
             return Reading(parsed, "repaired", ("code without a fence",))
     except ReplyParseError as exc:
         if cut_off:
-            raise ReplyParseError(f"{exc} (the reply stopped at the token limit: raise --max-tokens)") from None
+            raise ReplyParseError(f"{exc.reason}; the reply stopped at the token limit", cut_off=True) from None
         raise
     except (ValueError, TypeError, RecursionError, MemoryError) as exc:  # pathological input: still our error
         raise ReplyParseError(f"the reply could not be parsed ({type(exc).__name__})") from None
     if cut_off:
-        raise ReplyParseError("the reply stopped at the token limit before its answer was complete: raise "
-                              "--max-tokens")
+        raise ReplyParseError("the reply stopped at the token limit before its answer was complete", cut_off=True)
     if text.lstrip().startswith("{"):
         in_string, _ = _string_state_at_end(text)
         if in_string:
