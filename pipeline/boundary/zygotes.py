@@ -259,12 +259,20 @@ class Zygote:
         return None
 
     def close(self) -> None:
+        self.let_go()
+        self.wait_gone()
+
+    def let_go(self) -> None:
+        """Tell it to end (its workers end with it), without waiting: :meth:`wait_gone` does."""
         try:
             self.ctl.close()
         except OSError:
             pass
         if not self.greeted and self.proc.poll() is None:  # still starting: it has no workers, and it would read
             self.proc.kill()  # the closed socket only once its imports are done
+
+    def wait_gone(self) -> None:
+        """Wait for it to end (killed after 2 s), and remove its scratch directory."""
         if self.proc.poll() is None:
             try:
                 self.proc.wait(2)
@@ -331,8 +339,10 @@ def stop_zygote() -> None:
         with _lock:  # a thread still starting one (a server's request at exit) must not change the dict mid-loop
             closing = list(_zygotes.values()) if mine else []
             _zygotes.clear()
+        for zyg in closing:  # all told first, then waited for: they end side by side
+            zyg.let_go()
         for zyg in closing:
-            zyg.close()
+            zyg.wait_gone()
     except KeyboardInterrupt:
         for zyg in closing:
             try:

@@ -133,10 +133,9 @@ def _interrupted() -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     code = _main(argv)
-    if argv is None:  # the command line's own process
+    if argv is None:  # the command line's own process (a caller in this process goes on as it was)
         _end_now_past_a_stuck_sink(code)
-        if code == EXIT_INTERRUPTED:  # stopped: end promptly (a caller in this process goes on as it was)
-            end_without_collecting()
+        end_without_collecting()  # its work is done: the exit handlers run, the collector's last passes do not
     return code
 
 

@@ -127,7 +127,9 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     try:
-        sys.exit(main())
+        code = main()
+        end_without_collecting()  # the batch waits for this process's end
+        sys.exit(code)
     except KeyboardInterrupt:  # the run is marked interrupted already (the loop did); a line, not a traceback
         _say("interrupted")
         end_without_collecting()  # the batch waits for this process's end

@@ -440,13 +440,16 @@ def test_a_ctrl_c_while_the_zygotes_close_at_exit_kills_them_without_a_traceback
 
     killed = []
 
-    class Pressed:  # a zygote whose close is cut by a press
+    class Pressed:  # a zygote whose end is waited for, and the wait cut by a press
         class proc:
             @staticmethod
             def kill():
                 killed.append(True)
 
-        def close(self):
+        def let_go(self):
+            pass
+
+        def wait_gone(self):
             raise KeyboardInterrupt
 
     monkeypatch.setattr(zygotes, "_zygotes", {"policy": Pressed(), "game": Pressed()})
