@@ -20,11 +20,14 @@ import os
 import pkgutil
 from functools import lru_cache
 
+from games import lean_ocatari
 from games.base import Game, Task, normalize_name
+
+lean_ocatari.install()  # before anything imports OCAtari: its vision mode's plotting imports are not paid
 
 __all__ = ["Game", "Task", "GAMES", "UnknownGameError", "get_game", "curated_games", "list_widths", "normalize_name"]
 
-_NOT_GAMES = frozenset({"base", "envs", "generic", "readers", "scaffolding", "spaces", "wrappers"})
+_NOT_GAMES = frozenset({"base", "envs", "generic", "lean_ocatari", "readers", "scaffolding", "spaces", "wrappers"})
 """Modules of this package that are machinery, not games."""
 
 GAME_MODULES_VARIABLE = "CODEARCADE_GAME_MODULES"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -13,6 +15,7 @@ from games.breakout import ball_in_play
 from games.envs import make_env, written_globals
 from games.wrappers import AutoFire, ServeAgain
 from games.spaces import observation_space
+from tests.conftest import ROOT
 
 FIELDS = {"x", "y", "w", "h", "dx", "dy"}
 
@@ -356,3 +359,51 @@ def test_qbert_in_a_gymnasium_vector_env_sees_what_it_sees_alone():
         alone = _observations(gym.make("codearcade/Qbert-v0"), 0, plays[k])
         first = next((i for i, (a, b) in enumerate(zip(seen[k], alone)) if a != b), None)
         assert first is None, (k, first)
+
+
+LEAN_IMPORT = """
+import sys
+import numpy as np
+import games.envs
+games.envs.make_env("pong").close()
+print(sorted(m for m in ("matplotlib", "matplotlib.pyplot", "skimage", "skimage.morphology", "pygame")
+             if m in sys.modules))
+from ocatari.vision import enduro, utils  # OCAtari's vision code, as it bound the deferred names
+print(utils.disk(1).tolist(), utils.plt.cm.viridis.name, enduro.plt.pyplot.get_backend())
+import matplotlib.pyplot as plt
+import skimage.morphology
+print(type(plt).__name__, type(skimage.morphology).__name__, np.array_equal(utils.disk(3), skimage.morphology.disk(3)))
+"""
+
+
+def test_ocatari_comes_without_its_vision_modes_plotting_imports_which_still_work_when_used():
+    """OCAtari's package imports scikit-image's morphology and matplotlib for its vision mode and pygame for its window,
+    which codearcade never uses (~0.5-0.8 s of every game zygote's start: ``games/lean_ocatari.py``). An environment
+    is made without them; OCAtari's vision code still gets the real functions at their first use, and a later import
+    is the real module."""
+    done = subprocess.run([sys.executable, "-c", LEAN_IMPORT], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    absent, used, real = done.stdout.splitlines()[-3:]
+    assert absent == "[]", "none of them was imported to make an environment"
+    assert used == "[[0, 1, 0], [1, 1, 1], [0, 1, 0]] viridis agg", "the deferred names work as the real ones"
+    assert real == "module module True", "a later import gets the real modules"
+
+
+def test_a_game_zygote_holds_no_plotting_library():
+    """By its effect on the process that forks every game host: its memory maps hold none of the compiled
+    modules of matplotlib, scikit-image or pygame once it has played an episode (its emulator stack imported)."""
+    from pipeline.boundary import zygotes
+    from pipeline.play.episodes import run_episodes
+    from pipeline.play.spec import EpisodeSpec
+    from tests.conftest import pong_policy
+
+    [(_, outcome)] = list(run_episodes([EpisodeSpec("e0", "r", "pong", pong_policy("return 0"), "v", max_steps=5)]))
+    assert outcome.end_reason == "truncated", outcome.episode
+    pids, maps = [zygotes.zygote("game").proc.pid], ""
+    while pids:  # the zygote's process and those below it (the zygote proper, in namespaces of its own)
+        pid = pids.pop()
+        maps += Path(f"/proc/{pid}/maps").read_text()
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            pids += [int(child) for child in (task / "children").read_text().split()]
+    assert "ale_py" in maps, "the emulator is loaded there"
+    assert "matplotlib" not in maps and "skimage" not in maps and "pygame" not in maps
