@@ -83,6 +83,9 @@ class _Wrapped(importlib.abc.Loader):
     def create_module(self, spec: Any) -> Any:
         return self.loader.create_module(spec)
 
+    def __getattr__(self, name: str) -> Any:  # the rest of a loader's interface (its source, its resources)
+        return getattr(self.loader, name)
+
     def exec_module(self, module: types.ModuleType) -> None:
         global _importing
         placed = [name for name in DEFERRED if name not in sys.modules]
