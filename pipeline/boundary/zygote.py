@@ -414,9 +414,6 @@ if __name__ == "__main__":
     code = main(sys.argv[1:])
     # its workers are killed and its scratch is removed (main's finally); Python's own shutdown would then tear down
     # the modules of the emulator stack one by one (~0.1-0.2 s), and the command's exit waits for this process
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError, AttributeError):  # a closed pipe, a closed or absent stream
-            pass
-    os._exit(code)
+    from pipeline.stopping import exit_now
+
+    exit_now(code)

@@ -31,7 +31,8 @@ try:  # Ctrl-C while the command starts (its imports take a second or more on a 
     from pipeline.cli import eval as eval_  # the verb's module (the builtin is not used here)
     from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, CodearcadeParser,
                                      shorten_in_message, show)
-    from pipeline.stopping import end_without_collecting, quiet_swallowed_interrupts, stop_on_signals, stop_once
+    from pipeline.stopping import (end_without_collecting, exit_now, quiet_swallowed_interrupts, stop_on_signals,
+                                   stop_once)
 except KeyboardInterrupt:
     sys.stderr.write("codearcade: interrupted\n")
     raise SystemExit(130) from None
@@ -147,12 +148,7 @@ def _end_now_past_a_stuck_sink(code: int) -> None:
     recording = sys.modules.get("viewers.rerun_recording")  # only a command that recorded has it
     if recording is None or not getattr(recording, "wedged", False):
         return
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):
-            pass
-    os._exit(code)
+    exit_now(code)
 
 
 def _main(argv: Sequence[str] | None) -> int:
