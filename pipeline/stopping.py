@@ -14,7 +14,7 @@ import sys
 import threading
 import time
 from contextlib import contextmanager
-from typing import Callable, Iterator
+from typing import Callable, Iterator, NoReturn
 
 
 class Terminated(KeyboardInterrupt):
@@ -126,16 +126,29 @@ def exit_now(code: int) -> None:
     os._exit(code)
 
 
-def end_without_collecting() -> None:
-    """For a command's process about to exit: the interpreter's last garbage collections are skipped (every object
-    is frozen out of the collector's reach). They went over what a stopped command's work left (~490,000 objects
-    of an optimize stopped in its episodes) for 2-3 s after the process had said `interrupted`, and a batch waited
-    as long for each run; a finished `eval` spent ~0.15 s in them after its last line. The operating system frees
-    the memory at once. Exit handlers still run (the zygotes are stopped, recordings flushed), and so do the
-    finalizers of what is freed without the collector."""
+def end_process(code: int) -> NoReturn:
+    """End a command's process, its work done, with ``code``: what the interpreter's own exit does that matters,
+    then :func:`exit_now`. Its other threads are waited for as Python would (threads not marked daemon; a thread pool
+    told to stop) and the exit handlers run (the zygotes stopped, Rerun's recordings flushed, temporary folders
+    removed), while every thread still runs; then the process ends. Left out: the interpreter's teardown.
+
+    Why: Python's teardown runs after it has frozen the daemon threads where they stood, then clears the modules and
+    runs the finalizers of what that frees. A daemon thread stopped inside an import keeps Python's import lock for
+    good, and a finalizer that imports waits for it forever: litellm's HTTP handler imports as it is dropped, and a
+    batch run pressed while its model call was in flight said `interrupted` and never ended (1 press in 6 beside a
+    busy machine, until the batch's 60-s wind-down killed it). The teardown's garbage collections went, besides, over
+    what a stopped command's work left (~490,000 objects of an optimize stopped in its episodes: 2-3 s after its
+    last line); the operating system frees the memory at once."""
+    import atexit
     import gc
 
-    gc.freeze()
+    gc.freeze()  # an exit handler's allocations start no collection over the whole heap
+    try:
+        threading._shutdown()  # what Python's exit does first (no public name): threads and thread pools end
+    except KeyboardInterrupt:  # a press after the work was done: the exit handlers still run
+        pass
+    atexit._run_exitfuncs()  # each handler's error is reported as Python's exit reports it, and the next one runs
+    exit_now(code)
 
 
 def stop_on_signals(handler: Callable[[int, object], None] = stop_once) -> list[int]:

@@ -31,8 +31,7 @@ try:  # Ctrl-C while the command starts (its imports take a second or more on a 
     from pipeline.cli import eval as eval_  # the verb's module (the builtin is not used here)
     from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, CliError, CodearcadeParser,
                                      shorten_in_message, show)
-    from pipeline.stopping import (end_without_collecting, exit_now, quiet_swallowed_interrupts, stop_on_signals,
-                                   stop_once)
+    from pipeline.stopping import end_process, exit_now, quiet_swallowed_interrupts, stop_on_signals, stop_once
 except KeyboardInterrupt:
     sys.stderr.write("codearcade: interrupted\n")
     raise SystemExit(130) from None
@@ -133,10 +132,13 @@ def _interrupted() -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line: ``argv`` (``sys.argv[1:]`` when None); returns its exit code. With no ``argv`` this is the
+    command line's own process, which ends here once the command is done (:func:`pipeline.stopping.end_process`); a
+    caller in the same process gives ``argv`` and goes on as it was."""
     code = _main(argv)
-    if argv is None:  # the command line's own process (a caller in this process goes on as it was)
+    if argv is None:
         _end_now_past_a_stuck_sink(code)
-        end_without_collecting()  # its work is done: the exit handlers run, the collector's last passes do not
+        end_process(code)
     return code
 
 

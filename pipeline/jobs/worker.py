@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import sys
 
-from pipeline.stopping import end_without_collecting, quiet_swallowed_interrupts, stop_on_signals
+from pipeline.stopping import end_process, quiet_swallowed_interrupts, stop_on_signals
 
 INTERRUPTED_EXIT = 130
 """Exit code of a batch run process stopped by a Ctrl-C (its run is interrupted, resumable)."""
@@ -125,18 +125,16 @@ def main(argv: list[str] | None = None) -> int:
     return {"finished": 0, "budget": BUDGET_EXIT}.get(result.status, 1)
 
 
-if __name__ == "__main__":
+if __name__ == "__main__":  # each end is end_process's: the batch waits for this process's end
     try:
         code = main()
-        end_without_collecting()  # the batch waits for this process's end
-        sys.exit(code)
+        end_process(code)
     except KeyboardInterrupt:  # the run is marked interrupted already (the loop did); a line, not a traceback
         _say("interrupted")
-        end_without_collecting()  # the batch waits for this process's end
-        sys.exit(INTERRUPTED_EXIT)
+        end_process(INTERRUPTED_EXIT)
     except StoreError as exc:  # the store says what happened and what to do: its line, not a traceback
         _say(f"error: {exc}")
-        sys.exit(STORE_FULL_EXIT if isinstance(exc, StoreFull) else 1)
+        end_process(STORE_FULL_EXIT if isinstance(exc, StoreFull) else 1)
     except Exception as exc:
         from pipeline.stopping import stop_pending
         from store.db import is_ctrl_c
@@ -146,5 +144,4 @@ if __name__ == "__main__":
         if not (is_ctrl_c(exc) or stop_pending()):
             raise
         _say("interrupted")
-        end_without_collecting()
-        sys.exit(INTERRUPTED_EXIT)
+        end_process(INTERRUPTED_EXIT)

@@ -367,12 +367,12 @@ def _complete_all(state: "RunState", iteration: int, client: LLMClient, items: l
         except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread below
             failed.append(exc)
 
-    for model in {id(m): m for m in (item.client or client for item in items)}.values():
-        model.request_params()  # what the client asks litellm on first use (and says) is said before the wait's line
     helper = threading.Thread(target=run_meanwhile, name="meanwhile") if meanwhile is not None else None
-    if helper is not None:
+    if helper is not None:  # first: a client's first use below waits seconds for litellm's import
         helper.start()
     try:
+        for model in {id(m): m for m in (item.client or client for item in items)}.values():
+            model.request_params()  # what the client asks litellm on first use (and says) is said before the wait
         with state.waiting(iteration, client.label) as on_text:
             if len(items) == 1:  # in this thread: Ctrl-C stops it at once
                 complete(items[0], on_text)
