@@ -220,3 +220,45 @@ def test_a_run_stopped_by_a_budget_says_a_command_that_goes_on_with_a_larger_one
                "--max-wall": "max_wall_minutes"}[budget]
     assert store.query(f"SELECT status IN ('budget', 'finished'), config->>'$.{setting}' FROM runs") == [
         (True, doubled if "." not in given else str(float(doubled)))]
+
+
+_OPENS_THE_FILE = """
+import sys, time
+import duckdb
+end = time.monotonic() + float(sys.argv[2])
+while True:
+    try:
+        duckdb.connect(sys.argv[1], read_only=True).close()
+        print("opened")
+        break
+    except duckdb.Error:  # locked by the run's process
+        if time.monotonic() > end:
+            print("locked")
+            break
+        time.sleep(0.05)
+"""
+
+
+@pytest.mark.slow
+def test_other_processes_open_the_store_while_a_clients_first_use_waits(store, scripted, monkeypatch):
+    """A client's first use waits for litellm's import (2-5 s of CPU, on a thread of its own since the run began), and
+    the run held the store's file all that while: a batch's progress, `codearcade runs` and the batch's other runs
+    waited for it ("is locked by another process"). The run lets the file go before that wait, as it does for the
+    model's reply. Checked by its effect: while the first use waits, another process opens the file."""
+    import subprocess
+    import sys
+
+    seen = []
+    first_use = LiteLLMClient.request_params
+
+    def request_params(self):
+        if not seen:  # the client's first use, the moment the import is waited for
+            seen.append(subprocess.run([sys.executable, "-c", _OPENS_THE_FILE, str(store.path), "10"],
+                                       capture_output=True, text=True, timeout=60).stdout.strip())
+        return first_use(self)
+
+    monkeypatch.setattr(LiteLLMClient, "request_params", request_params)
+    model = scripted([COMPETENT_REPLY])
+    result = optimize(_config(iterations=1, eval_max_steps=60, rollout_steps=30), store, _client(model))
+    assert result.status == "finished", result.error
+    assert seen == ["opened"]
