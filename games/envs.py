@@ -52,7 +52,7 @@ from ocatari.ram import extract_ram_info
 from ocatari.ram import game_objects as ram_objects
 from ocatari.vision import game_objects as vision_objects
 
-from games import GAMES, Game, get_game
+from games import GAMES, Game, get_game, lean_ocatari
 from games.base import ONE_LIFE_CONTINUE, numbered_keys, one_life_setting
 from games.spaces import observation_space as game_observation_space
 from games.wrappers import AutoFire, EpisodicLife, NoopReset, OneLife, ServeAgain
@@ -105,6 +105,7 @@ class ObjectObservation(gym.Wrapper):
         self.game = game
         # generic games: their extractor imported on first use
         self._reader = importlib.import_module(f"ocatari.ram.{game.ocatari_name.lower()}")
+        lean_ocatari.ready(self._reader)  # what it calls of OCAtari's deferred imports, imported here, not per host
         self._reader_globals = written_globals(self._reader)
         self._reader_state: tuple | None = None
         """The reader's globals as this environment left them when another took them over."""

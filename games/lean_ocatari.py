@@ -1,18 +1,21 @@
 """OCAtari imported without the libraries of its vision mode and of its own window, which codearcade never uses.
 
 Importing ``ocatari`` (any of its modules) runs its package: ``ocatari.ram.utils`` takes ``match_objects`` from
-``ocatari.vision.utils``, whose top imports ``skimage.morphology`` and ``matplotlib.pyplot`` (three vision readers
-import ``matplotlib``, and ``ocatari.core`` pygame for a window of its own). None is used by OCAtari's RAM readers,
-the only part codearcade runs; together they were ~0.5-0.8 s of a game zygote's start, on the path of every command
-that plays (the zygote imports OCAtari before its first episode).
+``ocatari.vision.utils``, whose top imports ``skimage.morphology``, ``matplotlib.pyplot`` and ``scipy.optimize``
+(three vision readers import ``matplotlib``, and ``ocatari.core`` pygame for a window of its own). The RAM readers,
+the only part codearcade runs, use none of them but scipy's ``linear_sum_assignment``, and that only in the readers
+that match objects from step to step (Enduro's, of the eight games); together they were ~0.8-1.1 s of a game
+zygote's start, on the path of every command that plays (the zygote imports OCAtari before its first episode).
 
 :func:`install` (called by ``games/__init__.py``, before anything imports OCAtari) puts a finder first on
 ``sys.meta_path`` that wraps the first import of the ``ocatari`` package: while it runs, those modules, when not
 imported already, are :class:`Deferred` stand-ins, and afterwards they are taken out of ``sys.modules``, so that
-any later import gets the real ones. What OCAtari's vision code bound from them (``plt``, ``disk``, ``erosion``, ...)
-stays a stand-in that imports the real module at its first use and forwards to it: OCAtari behaves as before,
-the import is only paid by what uses it. Everything the RAM readers use at run time (scipy's
-``linear_sum_assignment``, OpenCV) is still imported in full, in the zygote, before any host forks.
+any later import gets the real ones. What OCAtari's vision code bound from them (``plt``, ``disk``,
+``linear_sum_assignment``, ...) stays a stand-in that imports the real module at its first use and forwards to it:
+OCAtari behaves as before, the import is only paid by what uses it. An environment whose reader matches objects
+calls :func:`ready` as it is built (``games.envs.ObjectObservation``): scipy's ``optimize`` is imported then, in
+the game zygote before any host forks, and OCAtari's modules get the real functions in place of the stand-ins.
+OpenCV, which the RAM readers use too, is imported in full.
 """
 
 from __future__ import annotations
@@ -24,10 +27,15 @@ import sys
 import types
 from typing import Any
 
-DEFERRED = ("matplotlib", "matplotlib.pyplot", "skimage.morphology", "pygame")
+DEFERRED = ("matplotlib", "matplotlib.pyplot", "skimage.morphology", "scipy.optimize", "pygame")
 """Modules OCAtari imports at its top for its vision readers (``ocatari.vision.utils``, ``.enduro``, ``.frostbite``,
 ``.pitfall``) and its own window (``ocatari.core``, ``ocatari.utils``: pygame, with setuptools' ``pkg_resources``),
-which its RAM readers never use."""
+which its RAM readers never use, but for :data:`USED_AT_RUN_TIME`."""
+
+USED_AT_RUN_TIME = {"match_objects": "scipy.optimize"}
+"""What a RAM reader may bind that reaches a deferred module when called: OCAtari's matching of objects from step
+to step (``ocatari.vision.utils.match_objects``, bound by the readers of Amidar, Asteroids, Berzerk, Chopper Command,
+Enduro, Frostbite, Krull and Road Runner) calls scipy's ``linear_sum_assignment``."""
 
 
 _importing = False
@@ -112,6 +120,29 @@ class _FirstImport(importlib.abc.MetaPathFinder):
         if spec is not None and spec.loader is not None:
             spec.loader = _Wrapped(spec.loader)
         return spec
+
+
+def ready(reader: types.ModuleType) -> None:
+    """Make ``reader`` (an ``ocatari.ram`` module) run as with OCAtari's own import: the deferred modules it reaches at
+    run time (:data:`USED_AT_RUN_TIME`) are imported now, and every stand-in bound in OCAtari's modules whose module
+    is now imported is replaced by the real object. Called as an environment is built: in the game zygote, so that no
+    host it forks pays the import (~0.3 s for scipy's ``optimize``) and a step calls the real function."""
+    needed = [module for name, module in USED_AT_RUN_TIME.items() if name in vars(reader)]
+    if not needed:
+        return
+    for module in needed:
+        importlib.import_module(module)
+    for module in [m for name, m in list(sys.modules.items()) if name.partition(".")[0] == "ocatari"]:
+        for name, bound in list(vars(module).items()):
+            if isinstance(bound, (Forward, Deferred)) and _imported(bound):
+                setattr(module, name, bound.resolve() if isinstance(bound, Forward) else sys.modules[bound.__name__])
+
+
+def _imported(stand_in: "Forward | Deferred") -> bool:
+    """Whether the real module of ``stand_in`` is imported (a :class:`Forward` resolves without an import)."""
+    name = stand_in._module if isinstance(stand_in, Forward) else stand_in.__name__
+    real = sys.modules.get(name)
+    return real is not None and not isinstance(real, Deferred)
 
 
 def install() -> None:

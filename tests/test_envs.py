@@ -366,8 +366,13 @@ import sys
 import numpy as np
 import games.envs
 games.envs.make_env("pong").close()
-print(sorted(m for m in ("matplotlib", "matplotlib.pyplot", "skimage", "skimage.morphology", "pygame")
-             if m in sys.modules))
+print(sorted(m for m in ("matplotlib", "matplotlib.pyplot", "skimage", "skimage.morphology", "scipy.optimize",
+                         "pygame") if m in sys.modules))
+from ocatari.vision import utils
+made = utils.linear_sum_assignment  # a stand-in until a reader that matches objects is made ready
+games.envs.make_env("enduro").close()
+from scipy.optimize import linear_sum_assignment
+print(type(made).__name__, utils.linear_sum_assignment is linear_sum_assignment, made([[1, 0], [0, 1]])[1].tolist())
 from ocatari.vision import enduro, utils  # OCAtari's vision code, as it bound the deferred names
 print(utils.disk(1).tolist(), utils.plt.cm.viridis.name, enduro.plt.pyplot.get_backend())
 import matplotlib.pyplot as plt
@@ -377,30 +382,37 @@ print(type(plt).__name__, type(skimage.morphology).__name__, np.array_equal(util
 
 
 def test_ocatari_comes_without_its_vision_modes_plotting_imports_which_still_work_when_used():
-    """OCAtari's package imports scikit-image's morphology and matplotlib for its vision mode and pygame for its window,
-    which codearcade never uses (~0.5-0.8 s of every game zygote's start: ``games/lean_ocatari.py``). An environment
-    is made without them; OCAtari's vision code still gets the real functions at their first use, and a later import
-    is the real module."""
+    """OCAtari's package imports scikit-image's morphology, matplotlib and scipy's optimize for its vision mode and
+    pygame for its window, which codearcade never uses but for Enduro's matching (~0.8-1.1 s of every game zygote's
+    start: ``games/lean_ocatari.py``). An environment is made without them; Enduro's has scipy's function in place;
+    OCAtari's vision code still gets the real functions at their first use, and a later import is the real module."""
     done = subprocess.run([sys.executable, "-c", LEAN_IMPORT], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    absent, used, real = done.stdout.splitlines()[-3:]
+    absent, matching, used, real = done.stdout.splitlines()[-4:]
     assert absent == "[]", "none of them was imported to make an environment"
+    assert matching == "Forward True [1, 0]", "a reader that matches objects gets scipy's function once it is made"
     assert used == "[[0, 1, 0], [1, 1, 1], [0, 1, 0]] viridis agg", "the deferred names work as the real ones"
     assert real == "module module True", "a later import gets the real modules"
 
 
-def test_a_game_zygote_holds_no_plotting_library():
-    """By its effect on the process that forks every game host: its memory maps hold none of the compiled
-    modules of matplotlib, scikit-image or pygame once it has played an episode (its emulator stack imported)."""
+@pytest.mark.parametrize("game", ["pong", "enduro"])
+def test_a_game_zygote_holds_what_its_hosts_use_and_nothing_of_ocataris_vision_mode(game):
+    """By its effect on the process that forks every game host, once it has played an episode of ``game``: its
+    memory maps hold ``ale_py`` and none of the compiled modules of matplotlib, scikit-image or pygame. scipy's
+    ``optimize`` only for a game whose reader matches objects from step to step (Enduro's), and then in the zygote
+    itself, before any host forks: a host would pay its import (~0.3 s) at its first matching step."""
     from pipeline.boundary import zygotes
     from pipeline.play.episodes import run_episodes
     from pipeline.play.spec import EpisodeSpec
-    from tests.conftest import pong_policy
 
-    [(_, outcome)] = list(run_episodes([EpisodeSpec("e0", "r", "pong", pong_policy("return 0"), "v", max_steps=5)]))
+    zygotes.stop_zygote()  # a fresh one: an earlier test of this process may have played Enduro with it
+    policy = (ROOT / "games" / "scaffolds" / f"{game}.py").read_text()
+    [(_, outcome)] = list(run_episodes([EpisodeSpec("e0", "r", game, policy, "v", max_steps=5)]))
     assert outcome.end_reason == "truncated", outcome.episode
-    pids, maps = [zygotes.zygote("game").proc.pid], ""
-    while pids:  # the zygote's process and those below it (the zygote proper, in namespaces of its own)
+    outer = zygotes.zygote("game").proc.pid  # it starts the zygote proper, in namespaces of its own
+    [proper] = [int(pid) for task in Path(f"/proc/{outer}/task").iterdir() for pid in (task / "children").read_text().split()]
+    pids, maps = [outer], ""
+    while pids:  # the zygote's processes and those below them
         pid = pids.pop()
         try:
             maps += Path(f"/proc/{pid}/maps").read_text()
@@ -410,3 +422,5 @@ def test_a_game_zygote_holds_no_plotting_library():
             continue
     assert "ale_py" in maps, "the emulator is loaded there"
     assert "matplotlib" not in maps and "skimage" not in maps and "pygame" not in maps
+    matching = "scipy/optimize/_lsap" in Path(f"/proc/{proper}/maps").read_text()
+    assert matching == (game == "enduro") and ("scipy/optimize" in maps) == matching
