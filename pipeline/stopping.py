@@ -138,10 +138,13 @@ def end_process(code: int) -> NoReturn:
     batch run pressed while its model call was in flight said `interrupted` and never ended (1 press in 6 beside a
     busy machine, until the batch's 60-s wind-down killed it). The teardown's garbage collections went, besides, over
     what a stopped command's work left (~490,000 objects of an optimize stopped in its episodes: 2-3 s after its
-    last line); the operating system frees the memory at once."""
+    last line); the operating system frees the memory at once. Under a profiler or a debugger (``python -m cProfile``,
+    ``pdb``, coverage) the process exits as Python does, so that they report as it ends."""
     import atexit
     import gc
 
+    if sys.getprofile() is not None or sys.gettrace() is not None:
+        raise SystemExit(code)
     gc.freeze()  # an exit handler's allocations start no collection over the whole heap
     try:
         threading._shutdown()  # what Python's exit does first (no public name): threads and thread pools end

@@ -776,3 +776,19 @@ def test_pyarrow_asked_about_pandas_once_still_converts_a_dataframe_when_asked_t
     done = subprocess.run([sys.executable, "-c", ASKED_ONCE], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert done.stdout.splitlines() == ["False", "[3] [4]"], done.stdout
+
+
+def test_a_command_run_under_a_profiler_ends_as_python_does_so_the_profiler_reports(tmp_path):
+    """A command's process ends once its exit handlers have run, past the interpreter's teardown
+    (``pipeline.stopping.end_process``), and with it went what a profiler does as the interpreter exits: `python -m
+    cProfile -o FILE -m pipeline.cli ...` wrote no FILE. Under a profiler or a debugger the command exits as Python
+    does. Checked by its effect: the profile is written and holds the verb's handler."""
+    import pstats
+
+    profile = tmp_path / "games.prof"
+    done = subprocess.run([sys.executable, "-m", "cProfile", "-o", str(profile), "-m", "pipeline.cli", "games"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert profile.exists(), "the profiler wrote nothing"
+    ran = {(Path(file).name, name) for file, _, name in pstats.Stats(str(profile)).stats}
+    assert ("games.py", "run") in ran
