@@ -9,6 +9,8 @@ ignored (it would break the winding down off with a traceback); ``kill -9`` stil
 
 from __future__ import annotations
 
+import atexit
+import gc
 import signal
 import sys
 import threading
@@ -135,14 +137,11 @@ def end_process(code: int) -> NoReturn:
     Why: Python's teardown runs after it has frozen the daemon threads where they stood, then clears the modules and
     runs the finalizers of what that frees. A daemon thread stopped inside an import keeps Python's import lock for
     good, and a finalizer that imports waits for it forever: litellm's HTTP handler imports as it is dropped, and a
-    batch run pressed while its model call was in flight said `interrupted` and never ended (1 press in 6 beside a
-    busy machine, until the batch's 60-s wind-down killed it). The teardown's garbage collections went, besides, over
+    batch run pressed while its model call was in flight said `interrupted` and never ended (2 presses of 13 beside
+    a busy machine, until the batch's 60-s wind-down killed it). The teardown's garbage collections went, besides, over
     what a stopped command's work left (~490,000 objects of an optimize stopped in its episodes: 2-3 s after its
     last line); the operating system frees the memory at once. Under a profiler or a debugger (``python -m cProfile``,
     ``pdb``, coverage) the process exits as Python does, so that they report as it ends."""
-    import atexit
-    import gc
-
     if sys.getprofile() is not None or sys.gettrace() is not None:
         raise SystemExit(code)
     gc.freeze()  # an exit handler's allocations start no collection over the whole heap
