@@ -124,25 +124,20 @@ class _FirstImport(importlib.abc.MetaPathFinder):
 
 def ready(reader: types.ModuleType) -> None:
     """Make ``reader`` (an ``ocatari.ram`` module) run as with OCAtari's own import: the deferred modules it reaches at
-    run time (:data:`USED_AT_RUN_TIME`) are imported now, and every stand-in bound in OCAtari's modules whose module
-    is now imported is replaced by the real object. Called as an environment is built: in the game zygote, so that no
-    host it forks pays the import (~0.3 s for scipy's ``optimize``) and a step calls the real function."""
-    needed = [module for name, module in USED_AT_RUN_TIME.items() if name in vars(reader)]
+    run time (:data:`USED_AT_RUN_TIME`) are imported now, and OCAtari's modules get their real objects in place of
+    the stand-ins bound from them. Called as an environment is built: in the game zygote, so that no host it forks
+    pays the import (~0.3 s for scipy's ``optimize``) and a step calls the real function."""
+    needed = {module for name, module in USED_AT_RUN_TIME.items() if name in vars(reader)}
     if not needed:
         return
     for module in needed:
         importlib.import_module(module)
     for module in [m for name, m in list(sys.modules.items()) if name.partition(".")[0] == "ocatari"]:
         for name, bound in list(vars(module).items()):
-            if isinstance(bound, (Forward, Deferred)) and _imported(bound):
-                setattr(module, name, bound.resolve() if isinstance(bound, Forward) else sys.modules[bound.__name__])
-
-
-def _imported(stand_in: "Forward | Deferred") -> bool:
-    """Whether the real module of ``stand_in`` is imported (a :class:`Forward` resolves without an import)."""
-    name = stand_in._module if isinstance(stand_in, Forward) else stand_in.__name__
-    real = sys.modules.get(name)
-    return real is not None and not isinstance(real, Deferred)
+            if isinstance(bound, Forward) and bound._module in needed:
+                setattr(module, name, bound.resolve())
+            elif isinstance(bound, Deferred) and bound.__name__ in needed:
+                setattr(module, name, sys.modules[bound.__name__])
 
 
 def install() -> None:
