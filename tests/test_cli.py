@@ -792,3 +792,14 @@ def test_a_command_run_under_a_profiler_ends_as_python_does_so_the_profiler_repo
     assert profile.exists(), "the profiler wrote nothing"
     ran = {(Path(file).name, name) for file, _, name in pstats.Stats(str(profile)).stats}
     assert ("games.py", "run") in ran
+
+
+def test_the_help_imports_no_database():
+    """`codearcade --help` builds every verb's parser from the verbs' modules, and two of them import ``store.scores``:
+    the ``store`` package took its ``Store`` from ``store.db`` as it was imported, and the help waited for DuckDB
+    (0.30 s, 0.22 s without it). A module of the store that needs no database now imports none."""
+    program = ("import sys\nfrom pipeline.cli import build_parser\nbuild_parser()\n"
+               "print(sorted(m for m in ('duckdb', 'store.db') if m in sys.modules))\n")
+    done = subprocess.run([sys.executable, "-c", program], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"

@@ -30,11 +30,12 @@ import json
 import os
 import re
 from functools import lru_cache
-
-import pyarrow as pa
-import pyarrow.compute as pc
+from typing import TYPE_CHECKING
 
 from tracing.bounded import MAX_DEPTH, bound_json_text
+
+if TYPE_CHECKING:  # pyarrow is imported where Arrow tables are cleaned: the LLM client imports this module for
+    import pyarrow as pa  # its scrubbing of secrets, and `codearcade --help` reached pyarrow through it (~0.07 s)
 
 MESSAGE_LIMIT = 2_000
 """Characters kept of one message (an error, an exception message, a validation reason, a feedback note)."""
@@ -192,6 +193,9 @@ def clean_nodes(nodes: pa.Table | None) -> pa.Table | None:
 def clean_step_objects(steps: pa.Table) -> pa.Table:
     """A step table (``tracing.steps.STEP_SCHEMA``) from a worker with the strings inside its ``objects``
     (``key``, ``category``: a handful of distinct names) cleaned; unchanged when they are clean (the usual case)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
     if steps.num_rows == 0:
         return steps
     objects = steps.column("objects").combine_chunks()
@@ -222,6 +226,8 @@ def _suspects(column: pa.ChunkedArray, limit: int, nested: bool = False) -> list
     ``nested``, also a JSON text with more opening brackets than the nesting allowed (only such a one can be
     nested too deep). Found with Arrow's vectorised kernels, so the common case (a traced episode's thousands of
     short, clean values) costs a few milliseconds instead of a Python call per value."""
+    import pyarrow.compute as pc
+
     mask = pc.greater(pc.binary_length(column), limit)  # UTF-8 bytes: a cap in characters let astral text be 4 x
     if nested:
         openers = pc.add(pc.count_substring(column, "["), pc.count_substring(column, "{"))
@@ -236,6 +242,8 @@ def _suspects(column: pa.ChunkedArray, limit: int, nested: bool = False) -> list
 
 
 def _clean_column(table: pa.Table, name: str, clean, limit: int, nested: bool = False) -> pa.Table:
+    import pyarrow as pa
+
     rows = _suspects(table.column(name), limit, nested)
     if not rows:
         return table
