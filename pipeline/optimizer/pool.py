@@ -59,6 +59,7 @@ from store import Store
 from store.db import utcnow
 from store.readers import candidates, first_call_models, iterations, pool_bases, version_complexity
 from store.writer import insert_policy_version
+from tracing.ast_threads import serialize_ast_parse
 
 LOOKAHEAD = 4
 """How many iterations past the last committed one may have candidates started: enough that one slow call (a long
@@ -103,6 +104,7 @@ def run_pool(store: Store, state: RunState, client: LLMClient, counter: TokenCou
     ``on_iteration`` once committed; iteration 0 must be committed. Raises what stopped it
     (:class:`BudgetExhausted`, an ``LLMError``, ...) once the calls and games in flight are done and the iterations
     they completed are committed."""
+    serialize_ast_parse()  # its threads parse candidates at once (tracing/ast_threads.py)
     c = state.config
     per_iteration = state.strategy.max_proposals
     episodes_each = 1 + c.eval_episodes + c.robust_episodes  # a training rollout and the evaluation games
