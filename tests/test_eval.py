@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
 import sys
 import time
+from datetime import timezone
 from pathlib import Path
 
 import pytest
@@ -208,6 +210,45 @@ def test_a_host_that_failed_is_not_handed_the_next_episode():
     results = dict(run_episodes([bad, *good], workers=1))
     assert results[0].end_reason == "crashed" and "unknown game" in results[0].episode["error"]
     assert [results[i].end_reason for i in (1, 2, 3)] == ["truncated"] * 3, [results[i].episode for i in (1, 2, 3)]
+
+
+@pytest.mark.parametrize("check", ["passes", "refuses"])
+def test_the_next_episode_plays_while_the_parent_checks_the_last_ones_answer(check, monkeypatch):
+    """One pair at a time: the staged pair has its go-ahead once the episode before has sent its whole answer,
+    not once the parent has checked it (a traced episode's node rows take milliseconds to check, between every two
+    episodes). Here the first episode's check takes 3 s: the second episode has played to its end before that
+    check is over. A check that then refuses the answer ends that episode alone, and its host plays no other."""
+    from pipeline.boundary import zygotes
+    from pipeline.boundary.wire import BadMessage
+    from pipeline.play import episodes
+
+    real = episodes.EPISODE.decode
+    checked_until: dict[int, float] = {}
+
+    def slow_check(spec, msg, tables):
+        outcome = real(spec, msg, tables)
+        if spec.index == 0:
+            time.sleep(3)
+            checked_until[0] = time.time()
+            if check == "refuses":
+                raise BadMessage("refused by the test")
+        return outcome
+
+    monkeypatch.setattr(episodes, "EPISODE", dataclasses.replace(episodes.EPISODE, decode=slow_check))
+    specs = [EpisodeSpec(f"e{i}", "r", "pong", pong_policy("return 0"), "v", index=i, seed=i, max_steps=40)
+             for i in range(3)]
+    forks_before = zygotes.zygote("game").next_id
+    results = dict(run_episodes(specs, workers=1))
+    second = results[1].episode
+    second_ended = second["started_at"].replace(tzinfo=timezone.utc).timestamp() + second["duration_s"]
+    assert second_ended < checked_until[0], "the second episode waited for the first one's check"
+    assert [results[i].end_reason for i in (1, 2)] == ["truncated"] * 2, [results[i].episode for i in (1, 2)]
+    if check == "refuses":
+        assert results[0].end_reason == "crashed" and "refused by the test" in results[0].episode["error"]
+        assert zygotes.zygote("game").next_id - forks_before == 3, "the refused answer's host played no other"
+    else:
+        assert results[0].end_reason == "truncated"
+        assert zygotes.zygote("game").next_id - forks_before == 2, "the first host played the third episode"
 
 
 def test_a_call_returns_without_waiting_for_its_workers_which_exit_cleanly():

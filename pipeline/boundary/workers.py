@@ -8,7 +8,8 @@ An episode is a *paired* task: a host and a policy process joined by a socket of
 step, pinned to one CPU (a round trip across cores costs tens of microseconds here, on one a few: NOTES.md).
 The next episode's pair is forked and prepared while the current one plays (``staged``): the host resets its
 environment (a few ms without sticky actions; with them ALE reloads the ROM, ~0.15 s) and its policy process
-loads the policy, so neither the forks nor the reset sit between episodes.
+loads the policy, so neither the forks nor the reset sit between episodes; it has its go-ahead as soon as the
+answer of the episode before has come whole, and that answer is checked here while it plays.
 
 Only plain data crosses: the task goes out as one JSON frame, the answer comes back as JSON frames and Arrow
 IPC streams (``pipeline/boundary/wire.py``), every value checked here; nothing is unpickled. Whatever a worker does,
@@ -68,6 +69,10 @@ class Task:
 
 class DeadlinePassed(Exception):
     """The caller's deadline passed while tasks ran (:func:`run_tasks`): those running were ended, none yielded."""
+
+
+_WHOLE = object()
+"""A worker's answer has come whole (:func:`run_tasks`): what it says is checked next."""
 
 
 class _CallerFailed(Exception):
@@ -180,10 +185,14 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
         held = {run.cpu for run in busy.values()}
         return next((cpu for cpu in cpus if cpu not in held), None)
 
-    def fill() -> None:
+    def fill(stage: bool = True) -> None:
+        """Start what the free places allow (the staged worker first: it only needs its go-ahead), then, with
+        ``stage``, stage the next."""
         while (staged or pending) and len(busy) < workers:
             if staged:
                 run, waiting = staged.popleft(), True
+            elif not stage:
+                break
             else:
                 run, waiting = start(False), policies is not None  # a host always waits for its go-ahead
             run.cpu = free_cpu()
@@ -191,11 +200,11 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
                 zyg.go(run.conn, run.cpu)
             run.begun = time.monotonic()
             busy[run.conn.fileno()] = run
-        if pending and not staged:
+        if stage and pending and not staged:
             staged.append(start(True))
 
     def end(run: _Running, kill: bool = False) -> None:
-        del busy[run.conn.fileno()]
+        busy.pop(run.conn.fileno(), None)  # gone already when the staged pair took its place (below)
         run.conn.close()
         if kill:
             zyg.kill(run.task_id)
@@ -215,7 +224,7 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
             end(run)
             settle(run)
             return
-        del busy[run.conn.fileno()]
+        busy.pop(run.conn.fileno(), None)
         idle.append((run.task_id, run.conn))
         if run.policy_id is not None:
             policies.kill(run.policy_id)
@@ -229,7 +238,9 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
         how = "unknown exit status" if code is None else (f"signal {-code}" if code < 0 else f"exit code {code}")
         return failed(run.item, f"worker process died ({how}) before reporting", False)
 
-    def handle(run: _Running, frames: list[tuple[bytes, bytes]]) -> R | None:
+    def handle(run: _Running, frames: list[tuple[bytes, bytes]]) -> Any:
+        """Take in what ``run``'s worker sent: None while its answer is not whole, :data:`_WHOLE` once it is (then
+        :func:`decoded`), or the result of a worker that reported its failure."""
         for kind, payload in frames:
             if run.result is not None:
                 if kind != b"A":
@@ -254,12 +265,18 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
                 if len(run.tables) > wanted:
                     raise wire.BadMessage("more Arrow tables than announced")
                 if len(run.tables) == wanted:
-                    result = task.decode(run.item, run.result, run.tables)
-                    if policies is not None and task.after_pair is not None:
-                        result = task.after_pair(result, lambda: policies.exit_code(run.policy_id, wait_s=1.0))
-                    return result
+                    return _WHOLE
         return None
 
+    def decoded(run: _Running) -> R:
+        """The result of ``run``'s whole answer, every value checked (wire.BadMessage otherwise)."""
+        result = task.decode(run.item, run.result, run.tables)
+        if policies is not None and task.after_pair is not None:
+            result = task.after_pair(result, lambda: policies.exit_code(run.policy_id, wait_s=1.0))
+        return result
+
+    checking: list[_Running] = []
+    """A paired task whose answer is being checked, its place already given to the next (at most one)."""
     controls = [zyg] + ([policies] if policies is not None else [])
     try:
         fill()
@@ -290,11 +307,19 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
                     continue
                 try:
                     result = handle(run, run.reader.feed(data))
+                    if result is _WHOLE:
+                        if policies is not None:  # the pair has played: the staged pair plays on its CPU while
+                            # the answer is checked here (a traced episode's node rows take milliseconds)
+                            checking.append(busy.pop(fd))
+                            fill(stage=False)
+                        result = decoded(run)
+                        checking.clear()
                 except _CallerFailed as exc:  # not the worker's doing: the caller hears its own error
                     raise exc.__cause__ from None
                 except Exception as exc:  # noqa: BLE001 - whatever a worker sends, this process goes on
                     if not isinstance(exc, wire.BadMessage):
                         exc = f"{type(exc).__name__}: {str(exc)[:300]}"
+                    checking.clear()  # ended here
                     end(run, kill=True)
                     settle(run)
                     finished.append((run.index, failed(run.item, f"the worker sent a malformed message: {exc}",
@@ -321,7 +346,7 @@ def _run_tasks(task: Task, items: list, workers: int, failed, time_limit_s, prog
             fill()  # before handing results out, so that workers play while the caller writes them
             yield from finished
     finally:
-        for run in list(busy.values()):
+        for run in list(busy.values()) + checking:
             end(run, kill=True)
             settle(run)
         for run in staged:
