@@ -35,14 +35,16 @@ import math
 import re
 import sys
 import time
-from typing import Any
-
-import numpy as np
-import pyarrow as pa
+from functools import lru_cache
+from typing import TYPE_CHECKING, Any
 
 from tracing.bounded import MAX_CHARS, MAX_DEPTH, TOO_DEEP, deeper_than, truncated
 from tracing.lines import LineCall
 from tracing.sandbox import PolicyTimeout
+
+if TYPE_CHECKING:  # pyarrow is imported where a table is made, numpy not at all (below): importing the `tracing`
+    # package imports this module, and every command's parser reaches the package (its bounds, its policy files)
+    import pyarrow as pa
 
 ACTIVE: "NodeRecorder | None" = None
 """The recorder bundled methods report to; None when capture is off."""
@@ -54,24 +56,34 @@ OBS_REF_TEXT = '{"$ref":"obs"}'
 _USUAL_RECURSION_LIMIT = sys.getrecursionlimit()
 """The recursion limit before any policy code ran (policy code can raise its own; see :func:`to_json`)."""
 
-NODE_SCHEMA = pa.schema(
-    [
-        ("step", pa.int32()),
-        ("call_index", pa.int16()),
-        ("function", pa.string()),
-        ("trainable", pa.bool_()),
-        ("inputs", pa.string()),
-        ("output", pa.string()),
-        ("exc_type", pa.string()),
-        ("exc_message", pa.string()),
-        ("exc_line", pa.int32()),
-        ("exc_source", pa.string()),
-        ("duration_us", pa.int64()),
-        ("parents", pa.list_(pa.int16())),
-        ("lines_run", pa.list_(pa.int16())),
-    ]
-)
-"""Columns a recorder produces; the store adds ``episode_id`` and ``policy_version_id``."""
+@lru_cache(maxsize=1)
+def node_schema() -> "pa.Schema":
+    """``NODE_SCHEMA``: the columns a recorder produces; the store adds ``episode_id`` and ``policy_version_id``."""
+    import pyarrow as pa
+
+    return pa.schema(
+        [
+            ("step", pa.int32()),
+            ("call_index", pa.int16()),
+            ("function", pa.string()),
+            ("trainable", pa.bool_()),
+            ("inputs", pa.string()),
+            ("output", pa.string()),
+            ("exc_type", pa.string()),
+            ("exc_message", pa.string()),
+            ("exc_line", pa.int32()),
+            ("exc_source", pa.string()),
+            ("duration_us", pa.int64()),
+            ("parents", pa.list_(pa.int16())),
+            ("lines_run", pa.list_(pa.int16())),
+        ]
+    )
+
+
+def __getattr__(name: str) -> Any:
+    if name == "NODE_SCHEMA":  # made when first asked for (its pyarrow with it): :func:`node_schema`
+        return node_schema()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def is_policy_filename(filename: str) -> bool:
@@ -153,7 +165,8 @@ def _jsonable(value: Any, depth: int = 0) -> Any:
         if math.isfinite(value):
             return value
         return "NaN" if math.isnan(value) else ("Infinity" if value > 0 else "-Infinity")
-    if isinstance(value, np.generic):
+    numpy = sys.modules.get("numpy")  # no value is numpy's where numpy was never imported
+    if numpy is not None and isinstance(value, numpy.generic):
         return _jsonable(value.item(), depth)
     if depth >= MAX_DEPTH:  # a list or object below the allowed nesting (scalars were answered above)
         return TOO_DEEP
@@ -163,7 +176,7 @@ def _jsonable(value: Any, depth: int = 0) -> Any:
         return [_jsonable(v, depth + 1) for v in value]
     if isinstance(value, (set, frozenset)):
         return sorted((_jsonable(v, depth + 1) for v in value), key=repr)
-    if isinstance(value, np.ndarray):
+    if numpy is not None and isinstance(value, numpy.ndarray):
         return _jsonable(value.tolist(), depth + 1) if value.size <= 1000 else f"<ndarray shape={value.shape}>"
     return _ADDRESS.sub("", repr(value))[:200]
 
@@ -377,13 +390,16 @@ class NodeRecorder:
         if self._over is None and self._next_index > MAX_CALLS_PER_STEP:
             self._over = self.step, self._next_index
 
-    def table(self) -> pa.Table:
+    def table(self) -> "pa.Table":
         """The episode's node rows; ``ValueError`` naming the step when one made more calls than a trace holds."""
         self._count_over()
         if self._over is not None:
             step, calls = self._over
             raise ValueError(f"step {step} made {calls:,} calls of bundled methods; a traced step records at most "
                              f"{MAX_CALLS_PER_STEP:,}: {TOO_MANY_CALLS}")
-        columns = zip(*self._rows) if self._rows else [()] * len(NODE_SCHEMA)
-        return pa.Table.from_arrays([pa.array(column, type=field.type) for column, field in zip(columns, NODE_SCHEMA)],
-                                    schema=NODE_SCHEMA)
+        import pyarrow as pa
+
+        schema = node_schema()
+        columns = zip(*self._rows) if self._rows else [()] * len(schema)
+        return pa.Table.from_arrays([pa.array(column, type=field.type) for column, field in zip(columns, schema)],
+                                    schema=schema)

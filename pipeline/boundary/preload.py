@@ -12,19 +12,15 @@ per episode cheap.
 What a zygote holds is copied at every fork (its page tables) and torn down at every worker's exit, so it
 holds no more than its tasks use: :func:`warm` refuses pandas (:class:`NoPandas`), which pyarrow would
 otherwise import only to ask whether a value is a DataFrame. The trusted processes that are codearcade's own do
-not load it for that question either (:func:`lists_are_not_dataframes`).
+not load it for that question either (:func:`lists_are_not_dataframes`), and do not import pyarrow for it: a
+command that never touches an Arrow table (``runs``, ``sql``, ``--help``) imports neither pyarrow nor numpy.
 """
 
 import importlib
 import importlib.abc
+import importlib.machinery
 import sys
-from typing import Iterable
-
-import pyarrow as pa
-
-from pipeline.boundary.view import EMULATOR_PACKAGES
-from pipeline.boundary.wire import arrow_frame
-from tracing.capture import NodeRecorder
+from typing import Any, Iterable
 
 
 class NoPandas(importlib.abc.MetaPathFinder):
@@ -44,7 +40,17 @@ def lists_are_not_dataframes() -> None:
     on takes a Python list for a list without loading pandas (0.3-0.45 s of a command's start here, 25 MB). For
     codearcade's own trusted processes (the command line's, a batch's runs), which hand pyarrow lists, never a
     pandas object; an explicit conversion (``Table.to_pandas``) still imports pandas, and a process that has
-    pandas already is left as it is. The zygotes refuse pandas for good (:func:`warm`)."""
+    pandas already is left as it is. The zygotes refuse pandas for good (:func:`warm`).
+
+    Asked now if pyarrow is imported, else as soon as it is (:class:`_AskWhenImported`): importing pyarrow here
+    cost every command ~0.07 s, numpy's import with it, whether it used an Arrow table or not."""
+    if "pyarrow" in sys.modules:
+        _ask_with_pandas_refused(sys.modules["pyarrow"])
+    elif not any(isinstance(finder, _AskWhenImported) for finder in sys.meta_path):
+        sys.meta_path.insert(0, _AskWhenImported())
+
+
+def _ask_with_pandas_refused(pa: Any) -> None:
     if "pandas" in sys.modules:
         return
     refusal = NoPandas()
@@ -55,10 +61,39 @@ def lists_are_not_dataframes() -> None:
         sys.meta_path.remove(refusal)
 
 
+class _AskWhenImported(importlib.abc.MetaPathFinder):
+    """Finds pyarrow as Python would (on ``sys.path``) and, once its package has run, has it ask its DataFrame
+    question (:func:`_ask_with_pandas_refused`), before anything of this process hands it a list. It then leaves
+    ``sys.meta_path``."""
+
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> Any:
+        if name != "pyarrow":
+            return None
+        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return None
+        run = spec.loader.exec_module  # the loader is this spec's own: wrapping it changes no other import
+
+        def exec_module(module: Any) -> None:
+            run(module)
+            if self in sys.meta_path:
+                sys.meta_path.remove(self)
+            _ask_with_pandas_refused(module)
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
 def warm(modules: Iterable[str], no_emulator: bool = False) -> None:
     """Import ``modules`` (by name: they are the tasks', some above this package) and initialise pyarrow, pandas
     refused (:class:`NoPandas`); with ``no_emulator``, raise ImportError if that loaded any of
     :data:`EMULATOR_PACKAGES`."""
+    import pyarrow as pa
+
+    from pipeline.boundary.view import EMULATOR_PACKAGES
+    from pipeline.boundary.wire import arrow_frame
+    from tracing.capture import NodeRecorder
+
     if not any(isinstance(finder, NoPandas) for finder in sys.meta_path):
         sys.meta_path.insert(0, NoPandas())
     for name in modules:

@@ -37,9 +37,10 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
-import numpy as np
+if TYPE_CHECKING:  # numpy is imported where a choice is drawn: the CLI imports this module for every verb
+    import numpy as np
 
 BUDGETS = ("calls", "dollars", "tokens", "seconds")
 """The units a choice can be counted in, in the order that breaks a tie between budgets."""
@@ -122,6 +123,8 @@ def _round(value: float | None) -> float | None:
 def seeded(seed_key: str, iteration: int, candidate: int) -> np.random.Generator:
     """The generator of one choice: from the run's key, the iteration and the candidate (the same after a resume
     and in a replay)."""
+    import numpy as np
+
     digest = hashlib.sha256(f"{seed_key}:model:{iteration}:{candidate}".encode()).digest()
     return np.random.default_rng(int.from_bytes(digest[:8], "big"))
 
@@ -129,6 +132,8 @@ def seeded(seed_key: str, iteration: int, candidate: int) -> np.random.Generator
 def pick(rule: str, arms: Sequence[Arm], budget: str = "calls", rng: np.random.Generator | None = None,
          pulls_left: float | None = None) -> Choice:
     """The model of the next pull by ``ucb`` or ``thompson`` (module docstring); ``rng`` draws thompson's samples."""
+    import numpy as np
+
     k = len(arms)
     zeros = [0.0] * k
     untried = [i for i, a in enumerate(arms) if a.pulls <= 0]
