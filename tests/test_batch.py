@@ -180,6 +180,42 @@ def test_a_sigint_to_the_batch_alone_stops_its_runs_at_once(tmp_path, store, scr
     assert store.query("SELECT status, count(*) FROM runs GROUP BY ALL") == [("interrupted", 2)]
 
 
+STUCK_RUN = """
+import json, runpy, signal, sys, time
+
+def stuck_winding_down(text):  # the run's process as the batch starts it, stuck where it reads its spec
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # as a run that is winding down ignores another stop
+    print("ready", flush=True)
+    time.sleep(600)
+
+json.loads = stuck_winding_down
+sys.argv = ["worker", "{}"]
+runpy.run_module("pipeline.jobs.worker", run_name="__main__")
+"""
+
+
+def test_a_run_stuck_past_the_wind_down_writes_where_it_was_stuck_into_its_log(tmp_path):
+    """A stopped batch waits ``WORKER_WIND_DOWN_S`` for its runs to mark themselves interrupted. One still running
+    then was sent SIGTERM, which a run winding down ignores, and it died with the batch, its run 'running' and its
+    log silent (CI, once in 1,684 tests: 69.5 s, a run left 'running'). Now the batch sends it SIGABRT, on which a
+    run process writes every thread's stack into its log (``faulthandler``) and ends. By effect: a run process
+    stuck in a function of its own, its log after the wind-down."""
+    from pipeline.jobs.batch import RunLog, _wait_for_workers
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONFAULTHANDLER"}  # the run process enables it itself
+    proc = subprocess.Popen([sys.executable, "-c", STUCK_RUN], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT)
+    log = RunLog(tmp_path / "run.log").follow(proc)
+    deadline = time.monotonic() + 60
+    while b"ready" not in b"".join(log.tail) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, (tmp_path / "run.log").read_text()
+    _wait_for_workers({0: (proc, log)}, 0.5)
+    text = (tmp_path / "run.log").read_text()
+    assert proc.returncode == -signal.SIGABRT, (proc.returncode, text[-3000:])
+    assert "most recent call first" in text and "stuck_winding_down" in text, text[-3000:]
+
+
 @pytest.mark.slow
 def test_ray_executor_produces_the_same_rows(tmp_path, scripted):
     pytest.importorskip("ray")

@@ -162,15 +162,26 @@ def run_local(batch: Batch, store: Store, planned: list[PlannedRun], workers: in
 
 WORKER_WIND_DOWN_S = 60.0
 """How long a Ctrl-C'd batch waits for its workers to mark their runs interrupted before it ends (and they with it)."""
+ABORT_WAIT_S = 5.0
+"""How long a worker that outlived the wind-down has to write where it was stuck into its log (SIGABRT) before it
+is killed."""
 
 
 def _wait_for_workers(running: dict, limit_s: float) -> None:
+    """Wait for the stopped workers to end, up to ``limit_s`` in all. One still running then is stuck (its run
+    stays 'running'): it is sent SIGABRT, on which a run process writes every thread's stack into its log
+    (``faulthandler``, enabled in ``pipeline/jobs/worker.py``) and ends, so that its log says where it was stuck; it
+    had been sent SIGTERM, which a run that is winding down ignores, and nothing said why."""
     deadline = time.monotonic() + limit_s
     for proc, out in running.values():
         try:
             proc.wait(timeout=max(0.0, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
-            proc.terminate()
+            proc.send_signal(signal.SIGABRT)
+            try:
+                proc.wait(timeout=ABORT_WAIT_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
         except KeyboardInterrupt:  # a second press: stop waiting (the workers die with this process)
             return
         finally:

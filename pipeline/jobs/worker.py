@@ -17,6 +17,11 @@ INTERRUPTED_EXIT = 130
 
 
 if __name__ == "__main__":
+    import faulthandler
+
+    # a run that a stopped batch found stuck past its wind-down is sent SIGABRT: every thread's stack goes into
+    # the run's log (its stderr), which then says where it was stuck (pipeline/jobs/batch.py); a crash says so too
+    faulthandler.enable()
     # a press that lands in an exit handler or a finalizer as the run ends is the one it answers with its line
     # `interrupted`: no "Exception ignored" and traceback in the run's log
     quiet_swallowed_interrupts()

@@ -290,7 +290,15 @@ def test_sigterm_stops_a_command_as_ctrl_c_does(verb, alone, tmp_path, scripted,
         assert done.stderr.strip().splitlines()[-1].startswith("codearcade: interrupted"), said
     if store.exists():
         stored = _statuses(store)
-        assert stored <= {"finished", "interrupted"}, (stored, said)
+        # a message in text: pytest cuts a tuple's repr short (CI's failure said only the first 120 characters)
+        assert stored <= {"finished", "interrupted"}, f"{stored}\n{said}\n{_run_logs(tmp_path)}"
+
+
+def _run_logs(tmp_path) -> str:
+    """The ends of a batch's run logs under ``tmp_path``: where a run that outlived the wind-down was stuck (its
+    stacks, written on the batch's SIGABRT)."""
+    return "\n".join(f"--- {path.name}\n{path.read_text(errors='replace')[-4000:]}"
+                     for path in sorted(tmp_path.glob("*.log.runs/*.log")))
 
 
 @pytest.mark.slow
