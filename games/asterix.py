@@ -140,6 +140,7 @@ GAME = Game(
     ocatari_name="Asterix",
     actions=("NOOP", "UP", "RIGHT", "LEFT", "DOWN", "UPRIGHT", "UPLEFT", "DOWNRIGHT", "DOWNLEFT"),
     lives=3,
+    restorable_reset=True,
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               eval_episodes=EVAL_EPISODES,
               one_life_episodes=True,

@@ -197,6 +197,11 @@ class Game:
     """The lowest return a whole game can give (Pong: -21, every point lost; 0 where no reward is negative);
     None when unknown. ``compare``'s sensitivity line counts a forfeited game at it (``store.scores.worst_return``:
     without one, the lowest return played out in the comparison, said so)."""
+    restorable_reset: bool = False
+    """Whether ALE's reset of this game (~64 frames played, ~4 ms) may be replaced by restoring the state it leads
+    to (``games.envs.reload_from_snapshot``): only where the emulator keeps nothing outside ALE's saved state that a
+    later frame reads, which is tested step by step against a real reset for every curated game. Q*bert's is not:
+    after a restored reset its first steps run a frame apart (a counter in RAM byte 0). Off for generic games."""
     status: str = "curated"
     """``curated`` (a module with the authors' conventions and a scaffold) or ``generic`` (any OCAtari game)."""
     scaffold: Path | None = None

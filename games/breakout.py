@@ -124,6 +124,7 @@ GAME = Game(
     ocatari_name="Breakout",
     actions=("NOOP", "FIRE", "RIGHT", "LEFT"),
     lives=5,
+    restorable_reset=True,
     worst_return=0,  # no reward is negative
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               one_life_episodes=True,

@@ -311,7 +311,7 @@ def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: b
         disable_env_checker=True,
     )
     if sticky == 0.0:
-        reload_from_snapshot(env.unwrapped)
+        reload_from_snapshot(env.unwrapped, spec.restorable_reset)
     if noop_max:
         env = NoopReset(env, noop_max)
     if spec.ball_in_play is not None and serve_again:
@@ -326,7 +326,13 @@ def make_env(game: str | Game, sticky: float = 0.0, noop_max: int = 0, render: b
     return EpisodicLife(env, fire=spec.fire_on_life_loss) if episodic else env
 
 
-def reload_from_snapshot(atari_env: Any) -> None:
+RESET_WITHOUT_SCREEN = {"screen": False}
+"""Reset options for a caller that reads no screen before the first step (a game host whose episode records no
+frames): a seeded reset without sticky actions may then restore the state ALE's reset leads to instead of playing
+it (:func:`reload_from_snapshot`), and the screen shows the last frame drawn until the first step draws its own."""
+
+
+def reload_from_snapshot(atari_env: Any, restorable_reset: bool = False) -> None:
     """Make ``atari_env``'s seeded resets restore the state its construction loaded instead of loading the ROM
     again: ALE's ``loadROM`` takes 0.12-0.2 s here, as long as 150-200 steps, in every episode's reset.
 
@@ -335,14 +341,38 @@ def reload_from_snapshot(atari_env: Any) -> None:
     game's state does not depend on the seed (tested: obs, rewards, flags, lives, screen and RAM of all eight
     games are the same byte for byte either way). With sticky actions the seed must reseed ALE's generator,
     which only ``loadROM`` does. The environment's own generator (no-op starts) is still seeded by ``reset``.
+
+    With ``restorable_reset`` (the game's :attr:`Game.restorable_reset`), a seeded reset with
+    :data:`RESET_WITHOUT_SCREEN` skips ALE's ``reset_game`` as well: it plays ~64 frames (60 no-ops, the console's
+    reset, the game's starting actions), ~4 ms, the same from the same loaded state every time, so the state it
+    leads to is taken once here and restored. The state holds the emulator's RAM, CPU, chips, the game's score and
+    lives and the frame counters, but not the screen, which therefore still shows the frame drawn last until the
+    first step (tested against a real ``loadROM``, step by step), nor whatever else a game's frames may read
+    that the console's reset would have cleared (Q*bert's: the reason the game says whether this holds).
     """
     ale = atari_env.ale
     loaded = ale.cloneState()  # the constructor has just loaded the ROM and set the game's mode
 
     def load_game() -> None:
-        ale.restoreState(loaded)
+        atari_env.ale.restoreState(loaded)
 
     atari_env.load_game = load_game
+    if not restorable_reset:
+        return
+    ale.reset_game()
+    started = ale.cloneState()
+    ale.restoreState(loaded)
+    ale_reset = type(atari_env).reset
+
+    def reset(*, seed: int | None = None, options: dict[str, Any] | None = None):
+        if seed is None or not options or options.get("screen", True):
+            return ale_reset(atari_env, seed=seed, options=options)
+        gym.Env.reset(atari_env, seed=seed, options=options)  # what ALE's reset does before it seeds its own
+        seeded_with = atari_env.seed_game(seed)
+        atari_env.ale.restoreState(started)
+        return atari_env._get_obs(), {**atari_env._get_info(), "seeds": seeded_with}
+
+    atari_env.reset = reset
 
 
 _shared: dict[tuple[str, int, float, int, bool | str], gym.Env] = {}

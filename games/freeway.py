@@ -160,6 +160,7 @@ GAME = Game(
     ocatari_name="Freeway",
     actions=("NOOP", "UP", "DOWN"),
     lives=0,
+    restorable_reset=True,
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               eval_episodes=EVAL_EPISODES,
               published=PUBLISHED),

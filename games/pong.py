@@ -46,6 +46,7 @@ GAME = Game(
     actions=("NOOP", "FIRE", "RIGHT", "LEFT", "RIGHTFIRE", "LEFTFIRE"),
     action_moves={2: "up", 3: "down", 4: "up", 5: "down"},  # the paddle moves vertically: ALE names it sideways
     lives=0,
+    restorable_reset=True,
     worst_return=-21,  # every point lost
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               published=PUBLISHED),

@@ -43,6 +43,7 @@ GAME = Game(
     ocatari_name="SpaceInvaders",
     actions=("NOOP", "FIRE", "RIGHT", "LEFT", "RIGHTFIRE", "LEFTFIRE"),
     lives=3,
+    restorable_reset=True,
     worst_return=0,  # no reward is negative
     task=Task(instruction=INSTRUCTION, rollout_steps=ROLLOUT_STEPS, eval_max_steps=EVAL_MAX_STEPS, feedback=FEEDBACK,
               published=PUBLISHED),

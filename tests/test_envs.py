@@ -252,18 +252,32 @@ def test_bad_protocol_values():
         make_env("pong", noop_max=-1)
 
 
-def _trajectory(env, seed: int, actions: list[int]) -> list:
-    """Everything an episode shows: observations, rewards, flags, lives, and the emulator's screen and RAM."""
+def _trajectory(env, seed: int, actions: list[int], options: dict | None = None) -> list:
+    """Everything an episode shows: observations, rewards, flags, info, and the emulator's screen and RAM."""
     ale = env.unwrapped.ale
-    obs, info = env.reset(seed=seed)
-    seen = [(obs, info.get("lives"), ale.getScreenRGB().tobytes(), ale.getRAM().tobytes())]
+    obs, info = env.reset(seed=seed, options=options)
+    seen = [(obs, info, ale.getScreenRGB().tobytes(), ale.getRAM().tobytes())]
     for action in actions:
         obs, reward, terminated, truncated, info = env.step(action)
-        seen.append((obs, reward, terminated, truncated, info.get("lives"), ale.getScreenRGB().tobytes(),
-                     ale.getRAM().tobytes()))
+        seen.append((obs, reward, terminated, truncated, info, ale.getScreenRGB().tobytes(), ale.getRAM().tobytes()))
         if terminated or truncated:
             break
     return seen
+
+
+class _CountingALE:
+    """An ALE that counts the resets it plays (``reset_game``) and passes everything else through."""
+
+    def __init__(self, ale) -> None:
+        self._ale = ale
+        self.resets_played = 0
+
+    def reset_game(self) -> None:
+        self.resets_played += 1
+        self._ale.reset_game()
+
+    def __getattr__(self, name: str):
+        return getattr(self._ale, name)
 
 
 @pytest.mark.slow
@@ -271,22 +285,81 @@ def _trajectory(env, seed: int, actions: list[int]) -> list:
 def test_a_reset_from_the_loaded_snapshot_is_a_rom_load_byte_for_byte(game):
     """Without sticky actions a seeded reset restores the state the environment was built with instead of loading
     the ROM again (games.envs.reload_from_snapshot): after another episode, at other seeds, every step is the
-    same as after a real ``loadROM``."""
+    same as after a real ``loadROM``. A reset that reads no screen (``RESET_WITHOUT_SCREEN``, a game host's
+    episode that logs no frames) of a game whose reset is restorable (``Game.restorable_reset``) restores the
+    state ALE's reset leads to and plays no reset: the same steps again, only the screen before the first step
+    is the one drawn last. A game that says its reset is not restorable plays it, and must: restored, it would
+    play otherwise."""
     import numpy as np
 
+    from games import get_game
+    from games.envs import RESET_WITHOUT_SCREEN, reload_from_snapshot
+
+    restorable = get_game(game).restorable_reset
     snapshot = make_env(game)
     rom = make_env(game)
     ale_env = rom.unwrapped
     ale_env.load_game = type(ale_env).load_game.__get__(ale_env)  # the class's own: loadROM
+    without_screen = make_env(game)
+    if not restorable:  # what the game says must not be done: done here, to show that it plays otherwise
+        forced = make_env(game)
+        reload_from_snapshot(forced.unwrapped, restorable_reset=True)
+    counting = without_screen.unwrapped.ale = _CountingALE(without_screen.unwrapped.ale)
     rng = np.random.default_rng(7)
     n = snapshot.action_space.n
-    _trajectory(snapshot, 99, [int(a) for a in rng.integers(0, n, 120)])  # leave the emulator mid-game
-    for seed in (3, 11):
+    mid_game = [int(a) for a in rng.integers(0, n, 120)]
+    _trajectory(snapshot, 99, mid_game)  # leave the emulator mid-game
+    _trajectory(without_screen, 99, mid_game, RESET_WITHOUT_SCREEN)
+    if not restorable:
+        _trajectory(forced, 99, mid_game, RESET_WITHOUT_SCREEN)
+    for seed in (3, 11, 2**31 - 1):
         actions = [int(a) for a in rng.integers(0, n, 400)]
-        assert _trajectory(snapshot, seed, actions) == _trajectory(rom, seed, actions), f"{game} seed {seed}"
+        real = _trajectory(rom, seed, actions)
+        assert _trajectory(snapshot, seed, actions) == real, f"{game} seed {seed}"
+        played = _trajectory(without_screen, seed, actions, RESET_WITHOUT_SCREEN)
+        if restorable:
+            (obs, info, _screen, ram), *steps = played
+            assert (obs, info, ram) == (real[0][0], real[0][1], real[0][3]), f"{game} seed {seed}: at the reset"
+            assert steps == real[1:] and len(steps) > 1, f"{game} seed {seed}"
+        else:
+            assert played == real, f"{game} seed {seed}"
+            assert _trajectory(forced, seed, actions, RESET_WITHOUT_SCREEN)[1:] != real[1:], \
+                f"{game} says its reset is not restorable, but a restored one plays the same: Game.restorable_reset"
+    assert counting.resets_played == (0 if restorable else 4), "a reset that reads no screen plays none"
+    _trajectory(without_screen, 5, [])
+    assert counting.resets_played == (1 if restorable else 5), "a reset that may read the screen plays it"
     sticky = make_env(game, sticky=0.25)
     assert sticky.unwrapped.load_game.__func__ is type(sticky.unwrapped).load_game, \
         "with sticky actions the seed must reseed ALE's generator: a real loadROM"
+
+
+def test_an_episode_that_logs_frames_starts_from_a_played_reset_and_one_that_does_not_from_its_state(tmp_path):
+    """A game host's episode restores the state ALE's reset leads to (``RESET_WITHOUT_SCREEN``) only when it logs no
+    screens: its first screen would otherwise be the last episode's, in the recording."""
+    from games.envs import shared_env
+    from pipeline.play.rollout import prepare_episode, run_episode
+    from pipeline.play.spec import EpisodeSpec
+
+    text = (Path(__file__).resolve().parents[1] / "games" / "scaffolds" / "pong.py").read_text()
+    screen = shared_env("pong").unwrapped.ale.getScreenRGB
+    fresh = make_env("pong")
+    fresh.reset(seed=4)
+    reset_screen = fresh.unwrapped.ale.getScreenRGB().tobytes()
+
+    def screen_after_reset(**logging) -> tuple[bytes, bytes]:
+        run_episode(EpisodeSpec("before", "r", "pong", text, "v", seed=3, max_steps=150))  # ends mid-game
+        before = screen().tobytes()
+        prepared = prepare_episode(EpisodeSpec("e", "r", "pong", text, "v", seed=4, max_steps=10, **logging))
+        prepared.policy.finish()  # its timer and tracer end
+        return before, screen().tobytes()
+
+    before, after = screen_after_reset()
+    assert after == before != reset_screen, "no frames logged: the reset was restored, not played"
+    for logging in (dict(rerun=str(tmp_path)), dict(rerun=str(tmp_path), rerun_frames_every=1)):
+        before, after = screen_after_reset(**logging)
+        assert after == reset_screen != before, f"{logging}: the first frame logged is the reset's own"
+    _, after = screen_after_reset(rerun=str(tmp_path), rerun_frames_every=0)
+    assert after != reset_screen, "a recording without frames reads no screen"
 
 
 @pytest.mark.parametrize("protocol", [dict(), dict(sticky=0.25, noop_max=30)])

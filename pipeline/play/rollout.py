@@ -92,15 +92,15 @@ def prepare_episode(spec: EpisodeSpec, policy: PolicyChannel | None = None) -> P
     # imported here, not with this module: the parent of an eval imports it and needs no emulator (gymnasium, ALE and
     # OCAtari are ~0.6 s of imports); the game zygote imports them when it prepares the environments, before any
     # host forks
-    from games.envs import discard_env, shared_env
+    from games.envs import RESET_WITHOUT_SCREEN, discard_env, shared_env
 
     game = get_game(spec.game).observing(spec.observation)
     t0 = time.perf_counter()
     policy = policy if policy is not None else LocalPolicy(spec, game.n_actions)
     env = shared_env(game, sticky=spec.sticky, noop_max=spec.noop_max, one_life=spec.one_life)
     policy.begin_loading()  # a policy process loads it while the environment resets here
-    try:
-        obs, info = env.reset(seed=spec.seed)
+    try:  # an episode that logs no frames reads no screen: its reset may restore the state ALE's reset leads to
+        obs, info = env.reset(seed=spec.seed, options=None if spec.logs_frames else RESET_WITHOUT_SCREEN)
     except BaseException:
         discard_env(env)  # a failed reset leaves the environment in an unknown state
         raise

@@ -65,3 +65,8 @@ class EpisodeSpec:
     def policy_seed(self) -> int:
         """The seed of the policy's ``random`` and NumPy generators in this episode."""
         return policy_rng_seed(self.rng_key, self.seed) if self.rng_key else self.seed
+
+    @property
+    def logs_frames(self) -> bool:
+        """Whether the episode's live Rerun recording logs screens (the first one right after the reset)."""
+        return bool(self.rerun) and self.rerun_frames_every > 0
