@@ -3,15 +3,17 @@
 One job: take a freshly forked worker (``pipeline/boundary/zygote.py``), after its environment is built and before any
 policy code is loaded, and make the operating system the boundary (:func:`confine`), layer after layer:
 
-- rlimits: address space (a cap above what the worker had), no core files, a file-size cap, few open files,
-  and CPU seconds as a backstop for a worker that ignores its timers;
+- rlimits: address space (a cap above what the worker had), no core files, a file-size cap, few open files
+  (set after Landlock), and CPU seconds as a backstop for a worker that ignores its timers;
 - every capability dropped (bounding, ambient, effective, permitted, inheritable): a worker running as root
   cannot raise its rlimits back, set the clock, or use any other privilege of root;
 - ``PR_SET_NO_NEW_PRIVS``: nothing it executes could gain privileges (and it may not execute anything);
 - Landlock (``pipeline/boundary/landlock.py``): reads only what a policy process imports from
   (``pipeline/boundary/view.py``: the standard library, the allowed packages, what its zygote loaded, never the
   emulator, the project's tests, examples or stores); writes only in the episode's scratch directory (and a
-  requested Rerun recording directory); no TCP, no signals out, no abstract Unix sockets where the ABI has them;
+  requested Rerun recording directory); no TCP, no signals out, no abstract Unix sockets where the ABI has them.
+  The view's paths are opened once by the policy zygote (:func:`prepare_workers`); a worker makes its rules from
+  the descriptors it inherited and closes them, whatever happens, before the open-files limit and the policy;
 - a seccomp filter (``pipeline/boundary/seccomp.py``): no exec, no processes or threads, no sockets, nothing that
   acts on another process, no host IPC.
 
@@ -86,7 +88,6 @@ def confine(limits: Limits, strict: bool = True) -> list[str]:
         resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
         size = limits.file_size_mb * 2**20
         resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))
-        resource.setrlimit(resource.RLIMIT_NOFILE, (limits.open_files, limits.open_files))
         if limits.cpu_s:
             used = int(sum(os.times()[:2]))
             resource.setrlimit(resource.RLIMIT_CPU, (used + limits.cpu_s, used + limits.cpu_s + 5))
@@ -121,17 +122,73 @@ def confine(limits: Limits, strict: bool = True) -> list[str]:
         abi = landlock.landlock_abi()
         if abi < 1:
             raise OSError("Landlock is not enabled in this kernel (needs Linux >= 5.13 with lsm=landlock)")
-        read, list_only = read_paths()
-        landlock.restrict(list(read), list(limits.write_paths), list(list_only), abi)
+        opened = [] if _view_rules else _open_view_rules(abi)  # not forked from a zygote that opened them
+        opened += landlock.open_rules(limits.write_paths, landlock.WRITE, abi)
+        try:
+            landlock.restrict(_view_rules + opened, abi)
+        finally:
+            _close_rules(opened)
+
+    def open_files() -> None:  # after the Landlock rules: their ~220 descriptors are closed by then
+        resource.setrlimit(resource.RLIMIT_NOFILE, (limits.open_files, limits.open_files))
 
     def seccomp_filter() -> None:
         if platform.machine() != "x86_64":
             raise OSError(f"the seccomp filter is written for x86_64, not {platform.machine()}")
         seccomp.install(seccomp.seccomp_program(os.getpid()))
 
-    step("rlimits", rlimits)
-    step("capabilities", capabilities)
-    step("no_new_privs", no_new_privs)
-    step("landlock", landlock_rules)
+    try:
+        step("rlimits", rlimits)
+        step("capabilities", capabilities)
+        step("no_new_privs", no_new_privs)
+        step("landlock", landlock_rules)
+    finally:  # whatever happened, the view's descriptors are not the policy's
+        forget_view_rules()
+    step("open files", open_files)
     step("seccomp", seccomp_filter)
     return missing
+
+
+_view_rules: list[landlock.Rule] = []
+"""The Landlock rules of the file view, opened by the policy zygote (:func:`prepare_workers`) and inherited by every
+worker it forks, which closes them once confined (:func:`forget_view_rules`)."""
+
+
+def _open_view_rules(abi: int) -> list[landlock.Rule]:
+    read, list_only = read_paths()
+    return landlock.open_rules(list_only, landlock.FS_READ_DIR, abi) + landlock.open_rules(read, landlock.READ, abi)
+
+
+def _close_rules(rules: list[landlock.Rule]) -> None:
+    for _path, fd, _allowed in rules:
+        os.close(fd)
+
+
+def prepare_workers() -> list[int]:
+    """What every worker's confinement needs and no worker changes, done once by the policy zygote (once its
+    filesystem view is in place) for the workers it forks to inherit: the file view's Landlock rules opened, the
+    seccomp filter assembled. Returns the rules' descriptors, which a worker keeps open until it is confined.
+
+    A worker then adds ~220 rules from descriptors it inherited instead of opening, checking and closing each path
+    again, and writes its pid into the filter instead of assembling it: its confinement took 3.5 ms, now 2.5 (on
+    the first episode's critical path: the host waits for its policy process)."""
+    global _view_rules
+    abi = landlock.landlock_abi()
+    if abi >= 1 and not _view_rules:
+        _view_rules = _open_view_rules(abi)
+    if platform.machine() == "x86_64":
+        seccomp.seccomp_program(0)  # assembles the template the workers inherit
+    return view_rule_descriptors()
+
+
+def view_rule_descriptors() -> list[int]:
+    """The descriptors of the view's rules this process holds (:func:`prepare_workers`), which a worker keeps open
+    until it is confined."""
+    return [fd for _path, fd, _allowed in _view_rules]
+
+
+def forget_view_rules() -> None:
+    """Close this process's descriptors of the view's rules (a worker, once confined or failing to be)."""
+    global _view_rules
+    rules, _view_rules = _view_rules, []
+    _close_rules(rules)

@@ -1,16 +1,17 @@
 """Landlock rules of a policy process: what it may read, write and reach, enforced by the kernel.
 
 One job: probe the kernel's Landlock ABI (:func:`landlock_abi`, ``landlock_create_ruleset(NULL, 0, VERSION)``) and
-restrict this process for good to a ruleset (:func:`restrict`): reads only below the paths of its file view
-(``pipeline/boundary/view.py``), writes only below its scratch directory (and a requested Rerun recording
-directory); from ABI 4 no TCP bind or connect, from ABI 6 no signals to processes outside it and no abstract Unix
-sockets. ``pipeline/boundary/confine.py`` applies it with the other layers.
+restrict this process for good to a ruleset (:func:`restrict`, of the paths :func:`open_rules` opened): reads only
+below the paths of its file view (``pipeline/boundary/view.py``), writes only below its scratch directory (and a
+requested Rerun recording directory); from ABI 4 no TCP bind or connect, from ABI 6 no signals to processes
+outside it and no abstract Unix sockets. ``pipeline/boundary/confine.py`` applies it with the other layers.
 """
 
 from __future__ import annotations
 
 import ctypes
 import os
+import stat
 import struct
 
 from pipeline.boundary.libc import libc
@@ -48,10 +49,33 @@ def _handled_fs(abi: int) -> int:
     return rights
 
 
-def restrict(read: list[str], write: list[str], list_only: list[str], abi: int) -> None:
-    """Restrict this process to ``read`` (read and execute), ``write`` (create, write, remove below) and
-    ``list_only`` (list the directory, nothing below), under Landlock ``abi``; a path not on this machine is
-    skipped. Raises OSError naming the call that failed."""
+Rule = tuple[str, int, int]
+"""A Landlock path rule as :func:`restrict` takes it: the path, an ``O_PATH`` descriptor of it, the rights allowed
+below it."""
+
+
+def open_rules(paths: list[str] | tuple[str, ...], rights: int, abi: int) -> list[Rule]:
+    """The rules allowing ``rights`` below each of ``paths`` under Landlock ``abi`` (a file gets only the rights
+    that apply to files), each path opened (``O_PATH``); a path not on this machine is skipped. The caller closes
+    the descriptors."""
+    handled = _handled_fs(abi)
+    rules: list[Rule] = []
+    for path in paths:
+        try:
+            fd = os.open(path, os.O_PATH | os.O_CLOEXEC)
+        except OSError:
+            continue  # not on this machine: nothing to allow
+        allowed = rights & handled
+        if not stat.S_ISDIR(os.fstat(fd).st_mode):
+            allowed &= _FILE_RIGHTS
+        rules.append((path, fd, allowed))
+    return rules
+
+
+def restrict(rules: list[Rule], abi: int) -> None:
+    """Restrict this process for good to ``rules`` (:func:`open_rules`: what it may read, write or list), no TCP,
+    no signals out and no abstract Unix sockets where ``abi`` has them. Raises OSError naming the call that
+    failed; the rules' descriptors are left to the caller."""
     handled = _handled_fs(abi)
     attr = struct.pack("=QQQ", handled, NET_BIND_TCP | NET_CONNECT_TCP if abi >= 4 else 0,
                        SCOPE_ABSTRACT_UNIX_SOCKET | SCOPE_SIGNAL if abi >= 6 else 0)
@@ -62,23 +86,13 @@ def restrict(read: list[str], write: list[str], list_only: list[str], abi: int) 
     if ruleset < 0:
         raise OSError(ctypes.get_errno(), f"landlock_create_ruleset: {os.strerror(ctypes.get_errno())}")
     try:
-        for paths, rights in ((list_only, FS_READ_DIR), (read, READ), (write, WRITE)):
-            for path in paths:
-                try:
-                    fd = os.open(path, os.O_PATH | os.O_CLOEXEC)
-                except OSError:
-                    continue  # not on this machine: nothing to allow
-                try:
-                    allowed = rights & handled
-                    if not os.path.isdir(path):
-                        allowed &= _FILE_RIGHTS
-                    rule = ctypes.create_string_buffer(struct.pack("=Qi", allowed, fd), 12)
-                    if libc.syscall(ctypes.c_long(SYS_LANDLOCK_ADD_RULE), ctypes.c_int(ruleset),
-                                    ctypes.c_int(LANDLOCK_RULE_PATH_BENEATH), rule, ctypes.c_uint32(0)) < 0:
-                        err = ctypes.get_errno()
-                        raise OSError(err, f"landlock_add_rule({path}): {os.strerror(err)}")
-                finally:
-                    os.close(fd)
+        add_rule, beneath, no_flags = libc.syscall, ctypes.c_int(LANDLOCK_RULE_PATH_BENEATH), ctypes.c_uint32(0)
+        number, into = ctypes.c_long(SYS_LANDLOCK_ADD_RULE), ctypes.c_int(ruleset)
+        for path, fd, allowed in rules:
+            rule = ctypes.create_string_buffer(struct.pack("=Qi", allowed, fd), 12)
+            if add_rule(number, into, beneath, rule, no_flags) < 0:
+                err = ctypes.get_errno()
+                raise OSError(err, f"landlock_add_rule({path}): {os.strerror(err)}")
         if libc.syscall(ctypes.c_long(SYS_LANDLOCK_RESTRICT_SELF), ctypes.c_int(ruleset), ctypes.c_uint32(0)) < 0:
             err = ctypes.get_errno()
             raise OSError(err, f"landlock_restrict_self: {os.strerror(err)}")

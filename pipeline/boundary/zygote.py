@@ -134,7 +134,7 @@ def _worker(fds: list[int], msg: dict[str, Any], zygote_pid: int, scratch_base: 
         if not role.confined:  # a host outlives its policy process's socket: a write there is an error, not death
             signal.signal(signal.SIGPIPE, signal.SIG_IGN)
         namespaces.die_with_parent(zygote_pid)
-        keep = sorted(fds)
+        keep = sorted(fds + (confine.view_rule_descriptors() if role.confined else []))  # those closed once confined
         low = 3
         for kept in keep:
             os.closerange(low, kept)
@@ -284,6 +284,7 @@ def main(argv: list[str]) -> int:
             except OSError as exc:
                 missing.append(f"minimal filesystem view ({exc})")
             os.chdir(scratch_base)
+        confine.prepare_workers()  # in the view just made: every worker (and the probe) inherits what it did
         missing += _probe(scratch_base, own_scratch)
         own_scratch = own_scratch and not any(m.startswith("a worker's scratch tmpfs") for m in missing)
     strict = not missing

@@ -172,3 +172,25 @@ def test_the_view_holds_the_project_s_runtime_packages_only():
 
     assert str(Path(numpy.__file__).resolve().parent) in read
     assert not any(Path(p).name in ("site-packages", "dist-packages") for p in read + list_only)
+
+
+def test_a_policy_process_holds_no_descriptor_of_its_file_view(tmp_path):
+    """The policy zygote opens the file view's paths once for their Landlock rules (``confine.prepare_workers``),
+    and every worker inherits those ~220 descriptors; a worker makes its rules from them and closes them before
+    the policy is read. The policy looks at every descriptor it could hold and reports those that name a file or
+    a folder (its socket, a pipe or /dev/null are neither)."""
+    body = """
+stat = import_module('stat')
+held = []
+for fd in range(4096):
+    try:
+        mode = os.fstat(fd).st_mode
+    except OSError:
+        continue
+    if stat.S_ISDIR(mode) or stat.S_ISREG(mode):
+        held.append(fd)
+raise ValueError('held: ' + repr(held) + ' of ' + repr(len(os.listdir('.'))))
+"""
+    code, summary, printed, store = _eval(tmp_path, body, steps=5)
+    errors = [e for (e,) in store.query("SELECT error FROM episodes")]
+    assert errors and all("held: [] of " in (e or "") for e in errors), errors

@@ -152,6 +152,46 @@ return 0
     assert ends and "crashed" not in ends, ends
 
 
+def test_the_filter_a_worker_fills_its_pid_into_is_the_one_assembled_for_that_pid():
+    """The policy zygote assembles the seccomp filter once and each worker writes its own pid into it
+    (``seccomp.seccomp_program``): byte for byte the program assembled for that pid, over a sweep of pids."""
+    import random
+
+    from pipeline.boundary import seccomp
+
+    rng = random.Random(5)
+    pids = [0, 1, 2, 255, 256, 65535, 65536, 2**22, 2**31 - 1] + [rng.randrange(1, 2**22) for _ in range(60)]
+    for pid in pids:
+        assert seccomp.seccomp_program(pid) == seccomp._filter(pid).assemble(), pid
+    assert seccomp.seccomp_program(7) != seccomp.seccomp_program(8)
+
+
+def test_a_policy_process_may_name_itself_by_its_pid_and_no_other(tmp_path):
+    """By effect, in a real policy process: the calls that name a process pass for its own pid, as the filter
+    it filled in says, and are refused for its zygote's (pid 1 of its namespace)."""
+    body = """
+resource = import_module('resource')
+me = os.getpid()
+seen = []
+for pid in (me, 0, 1):
+    for name, call in (('affinity', lambda p: os.sched_getaffinity(p)),
+                       ('priority', lambda p: os.getpriority(os.PRIO_PROCESS, p)),
+                       ('prlimit', lambda p: resource.prlimit(p, resource.RLIMIT_CPU))):
+        try:
+            call(pid)
+            seen.append(name + (' self' if pid == me else ' ' + str(pid)) + ' passed')
+        except OSError as exc:
+            seen.append(name + (' self' if pid == me else ' ' + str(pid)) + ' errno ' + str(exc.errno))
+raise ValueError('named: ' + ', '.join(seen))
+"""
+    code, summary, printed, store = _eval(tmp_path, body, steps=5)
+    errors = [e for (e,) in store.query("SELECT error FROM episodes")]
+    expected = ", ".join([f"{name} self passed" for name in ("affinity", "priority", "prlimit")]
+                         + [f"{name} 0 passed" for name in ("affinity", "priority", "prlimit")]
+                         + [f"{name} 1 errno 1" for name in ("affinity", "priority", "prlimit")])
+    assert errors and all(f"named: {expected}" in (e or "") for e in errors), errors
+
+
 def _shm(key: int, data: bytes | None = None, create: bool = True) -> int:
     """A System V segment of this process (ctypes), filled with ``data``."""
     libc = ctypes.CDLL(None, use_errno=True)
