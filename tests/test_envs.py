@@ -281,8 +281,9 @@ class _CountingALE:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("protocol", [{}, {"noop_max": 30, "one_life": True}], ids=["paper", "no-ops, one life"])
 @pytest.mark.parametrize("game", sorted(GAMES))
-def test_a_reset_from_the_loaded_snapshot_is_a_rom_load_byte_for_byte(game):
+def test_a_reset_from_the_loaded_snapshot_is_a_rom_load_byte_for_byte(game, protocol):
     """Without sticky actions a seeded reset restores the state the environment was built with instead of loading
     the ROM again (games.envs.reload_from_snapshot): after another episode, at other seeds, every step is the
     same as after a real ``loadROM``. A reset that reads no screen (``RESET_WITHOUT_SCREEN``, a game host's
@@ -296,13 +297,13 @@ def test_a_reset_from_the_loaded_snapshot_is_a_rom_load_byte_for_byte(game):
     from games.envs import RESET_WITHOUT_SCREEN, reload_from_snapshot
 
     restorable = get_game(game).restorable_reset
-    snapshot = make_env(game)
-    rom = make_env(game)
+    snapshot = make_env(game, **protocol)
+    rom = make_env(game, **protocol)
     ale_env = rom.unwrapped
     ale_env.load_game = type(ale_env).load_game.__get__(ale_env)  # the class's own: loadROM
-    without_screen = make_env(game)
+    without_screen = make_env(game, **protocol)
     if not restorable:  # what the game says must not be done: done here, to show that it plays otherwise
-        forced = make_env(game)
+        forced = make_env(game, **protocol)
         reload_from_snapshot(forced.unwrapped, restorable_reset=True)
     counting = without_screen.unwrapped.ale = _CountingALE(without_screen.unwrapped.ale)
     rng = np.random.default_rng(7)
