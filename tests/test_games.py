@@ -65,6 +65,45 @@ def test_any_spelling_and_generic_games():
                             r"for it) [^']+", str(refused.value)), str(refused.value)
 
 
+def test_a_generic_game_is_made_from_the_bundled_facts_and_from_its_rom_under_another_ale_py(monkeypatch):
+    """A generic game's actions and lives come from ``games/_generic_facts.py`` (``codearcade games`` read ~50 ROMs
+    for them, 5 s), and from its ROM when the installed ale-py is not the one they were written with."""
+    import games._generic_facts as bundled
+    from games import generic
+
+    def no_rom(rom):
+        raise AssertionError(f"{rom}'s ROM was loaded")
+
+    monkeypatch.setattr(generic, "read_ale_facts", no_rom)
+    generic.generic_game.cache_clear()
+    try:
+        riverraid = generic.generic_game("riverraid")
+        assert (riverraid.actions, riverraid.lives) == bundled.FACTS["riverraid"]
+        generic.generic_game.cache_clear()
+        monkeypatch.setattr(bundled, "ALE_PY", "0.0.0")
+        with pytest.raises(AssertionError, match="riverraid's ROM was loaded"):
+            generic.generic_game("riverraid")
+    finally:
+        generic.generic_game.cache_clear()
+
+
+@pytest.mark.slow
+def test_the_bundled_facts_of_the_generic_games_are_what_their_roms_say(tmp_path):
+    """Every entry of ``games/_generic_facts.py`` is what the ROM of the installed ale-py says (the file is what
+    ``write_facts`` writes now, every ROM read again)."""
+    import ale_py
+
+    from games._generic_facts import ALE_PY
+    from games.generic import write_facts
+
+    fix = "run .venv/bin/python -c 'from games.generic import write_facts; write_facts()'"
+    assert ALE_PY == ale_py.__version__, f"ale-py {ale_py.__version__} is installed, the facts are of {ALE_PY}: {fix}"
+    written = tmp_path / "facts.py"
+    write_facts(written)
+    bundled = ROOT / "games" / "_generic_facts.py"
+    assert written.read_text() == bundled.read_text(), f"a ROM says otherwise: {fix}"
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("game", ["riverraid", "ms_pacman", "boxing", "tennis"])
 def test_generic_game_scaffold_from_new_evaluates_and_stores_steps(tmp_path, game):
