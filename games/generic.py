@@ -120,8 +120,7 @@ def _ale_facts(rom: str) -> tuple[tuple[str, ...], int]:
     from games._generic_facts import ALE_PY, FACTS
 
     if ale_py.__version__ == ALE_PY and rom in FACTS:
-        actions, lives = FACTS[rom]
-        return tuple(actions), lives
+        return FACTS[rom]
     return read_ale_facts(rom)
 
 
@@ -138,9 +137,9 @@ def read_ale_facts(rom: str) -> tuple[tuple[str, ...], int]:
 
 def write_facts(path: Path = Path(__file__).with_name("_generic_facts.py")) -> None:
     """Write ``games/_generic_facts.py`` from the ROMs of the installed ale-py (after upgrading it)."""
-    import ale_py
-
     import pprint
+
+    import ale_py
 
     facts = pprint.pformat({rom: read_ale_facts(rom) for rom in generic_names()}, width=110, compact=True)
     path.write_text(f"{FACTS_HEADER}ALE_PY = {ale_py.__version__!r}\nFACTS = {facts}\n")
