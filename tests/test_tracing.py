@@ -262,6 +262,7 @@ def test_traced_node_rows_are_stored_as_before(workers, store):
     None, True, False, 0, -7, 2**70, 1.5, -0.0, 1e300, 5e-324, float("nan"), float("inf"), "", "plain",
     "bällé ✓ \"q\" \\ \n\t\x00 \ud800", "[" * 80, "x" * 25_000, (1, "a"), [1, [2, [3]]], {"k": {"j": None}},
     {3: "int key", "s": {1, 2}}, [float("nan")], {"deep": [[[[]]]] * 3},
+    pytest.param(10**5000, id="an int of 5,001 digits"), pytest.param([1, {"n": -10**4400}], id="one inside"),
 ])
 def test_to_json_writes_what_json_dumps_writes(value):
     """The fast paths of ``to_json`` (scalars, a reused C encoder) give json.dumps's own text for every value it
@@ -377,3 +378,103 @@ def test_a_policy_file_s_step_caps_are_held_to_their_flags_ranges():
         own = inspect_policy(scaffold.replace('GAME = "breakout"', f'GAME = "breakout"\n{constant} = {2**62}'), "b.py")
         with pytest.raises(ValueError, match=f"^b.py: {constant} must be within \\[1, 2147483647\\]"):
             task_settings(own, "breakout")
+
+
+ECHO_POLICY = pong_policy("return 0") + """
+    @trace.bundle()
+    def echo(self, value, other=None):
+        return value
+"""
+
+
+def _hostile_values(rng) -> object:
+    """A value drawn from what a policy can return or pass that runs its own code when written: a ``__repr__``
+    that raises, exits or returns no text, a key whose ``__str__`` raises, a ``__class__`` property that raises,
+    a dict subclass whose ``items`` raises, list and tuple subclasses whose ``__iter__`` or ``__len__`` raise, ints
+    longer than Python writes; nested among plain values, as values and as keys."""
+
+    class ReprRaises:
+        def __repr__(self):
+            raise RuntimeError("no repr")
+
+    class ReprExits:
+        def __repr__(self):
+            raise SystemExit(3)
+
+    class ReprNotText:
+        def __repr__(self):
+            return 5
+
+    class KeyStrRaises:
+        def __str__(self):
+            raise ValueError("no str")
+
+        def __repr__(self):
+            raise ValueError("no repr")
+
+    class ClassRaises:
+        @property
+        def __class__(self):
+            raise RuntimeError("no class")
+
+    class ItemsRaise(dict):
+        def items(self):
+            raise KeyError("no items")
+
+    class IterRaises(list):
+        def __iter__(self):
+            raise RuntimeError("no iter")
+
+    class LenRaises(tuple):
+        def __len__(self):
+            raise OverflowError("no len")
+
+    leaves = [lambda: ReprRaises(), lambda: ReprExits(), lambda: ReprNotText(), lambda: ClassRaises(),
+              lambda: ItemsRaise(a=1), lambda: IterRaises([1, 2]), lambda: LenRaises((1, 2)), lambda: 10**5000,
+              lambda: -10**4400, lambda: 7, lambda: "text", lambda: 2.5, lambda: None]
+    keys = [lambda: KeyStrRaises(), lambda: 10**5000, lambda: (1, 2), lambda: 3, lambda: "k"]
+
+    def draw(depth: int):
+        kind = rng.randrange(3 if depth < 3 else 1)
+        if kind == 0:
+            return rng.choice(leaves)()
+        if kind == 1:
+            return [draw(depth + 1) for _ in range(rng.randrange(3))]
+        return {rng.choice(keys)(): draw(depth + 1) for _ in range(rng.randrange(3))}
+
+    return draw(0)
+
+
+def test_recording_a_call_never_ends_what_the_same_policy_plays_untraced():
+    """Writing a node's values can run the policy's own code (its classes' ``__repr__``, ``__str__``, ``__class__``,
+    ``items``, ``__iter__``, ``__len__``), and Python refuses to write an int of more than 4,300 digits. Each of these
+    ended a traced call, and so its episode, where the untraced call returned. Over 400 drawn values, each passed
+    to a bundled method and returned by it twice (the second call looks inside the first one's output for its
+    parents), recording returns what the untraced call returns, records every call, and every recorded value is
+    JSON the parent accepts (``nodes._not_json``); only the call's time limit still ends it."""
+    import random
+
+    from pipeline.boundary.nodes import _not_json
+    from tracing.sandbox import PolicyTimeout
+
+    policy = load_policy(ECHO_POLICY, "echo.py").policy
+    rng, recorder = random.Random(20261208), NodeRecorder(lines=True)
+    for step in range(400):
+        value = _hostile_values(rng)
+        assert policy.echo(value) is value  # untraced: no recorder is active
+        with recorder:
+            recorder.begin_step(step, BALL_OBS)
+            assert policy.echo(policy.echo(value), other=value) is value
+    rows = recorder.table()
+    assert rows.num_rows == 800
+    texts = rows.column("inputs").to_pylist() + rows.column("output").to_pylist()
+    assert [t for t in texts if _not_json(t) is not None] == []
+    assert any("not shown: writing it raised" in t for t in texts) and any("<int of 16,610 bits>" in t for t in texts)
+
+    class OutOfTime:
+        def __repr__(self):
+            raise PolicyTimeout("the call's limit")
+
+    with NodeRecorder() as recorder, pytest.raises(PolicyTimeout):
+        recorder.begin_step(0, BALL_OBS)
+        policy.echo(OutOfTime())

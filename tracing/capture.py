@@ -19,8 +19,12 @@ An exception is recorded by its type's name, its message and the failing policy 
 
 Inputs that are the step's observation dict itself are stored as ``{"$ref": "obs"}``: the observation is
 already in the ``steps`` table, and repeating it per call would triple the store. Values are stored as JSON
-text: numpy values as numbers/lists, non-finite floats as the strings ``"NaN"``/``"Infinity"``, anything
-else as its ``repr`` with memory addresses removed (prompts built from nodes must be deterministic). Each is
+text: numpy values as numbers/lists, non-finite floats as the strings ``"NaN"``/``"Infinity"``, an int longer
+than Python writes (4,300 digits) as ``"<int of n bits>"``, anything else as its ``repr`` with memory addresses
+removed (prompts built from nodes must be deterministic). Writing a value can run the policy's own code (a
+``__repr__``, a key's ``__str__``, a dict subclass's ``items``, a ``__class__`` property); where that raises, the
+value is stored as a placeholder saying so and the call is recorded as it went: recording never ends an episode
+that the same policy plays untraced (only its time limit, :class:`PolicyTimeout`, goes through). Each is
 held to the bounds of ``tracing/bounded.py``: lists and objects nested deeper than 64 levels are cut (even where
 the policy raised its recursion limit, which would let ``json.dumps`` go on until the process's stack overflows),
 and a text over 20,000 characters becomes ``{"$truncated": n, "preview": ...}``.
@@ -159,8 +163,10 @@ def failing_policy_line(exc: BaseException) -> tuple[int | None, str | None]:
 
 
 def _jsonable(value: Any, depth: int = 0) -> Any:
-    if value is None or isinstance(value, (bool, int, str)):
+    if value is None or isinstance(value, (bool, str)):
         return value
+    if isinstance(value, int):
+        return value if _writable_int(value) else _int_mark(value)
     if isinstance(value, float):
         if math.isfinite(value):
             return value
@@ -171,7 +177,8 @@ def _jsonable(value: Any, depth: int = 0) -> Any:
     if depth >= MAX_DEPTH:  # a list or object below the allowed nesting (scalars were answered above)
         return TOO_DEEP
     if isinstance(value, dict):
-        return {str(k): _jsonable(v, depth + 1) for k, v in value.items()}
+        return {str(k) if not isinstance(k, int) or _writable_int(k) else _int_mark(k): _jsonable(v, depth + 1)
+                for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_jsonable(v, depth + 1) for v in value]
     if isinstance(value, (set, frozenset)):
@@ -179,6 +186,22 @@ def _jsonable(value: Any, depth: int = 0) -> Any:
     if numpy is not None and isinstance(value, numpy.ndarray):
         return _jsonable(value.tolist(), depth + 1) if value.size <= 1000 else f"<ndarray shape={value.shape}>"
     return _ADDRESS.sub("", repr(value))[:200]
+
+
+def _writable_int(value: int) -> bool:
+    """Whether ``value``'s decimal digits can be written: Python refuses an int of more than its limit of digits
+    (``sys.get_int_max_str_digits``, 4,300), and a traced method that returned ``10**5000`` ended its episode in
+    that ValueError, where the same policy untraced played on."""
+    try:
+        int.__repr__(value)
+    except ValueError:
+        return False
+    return True
+
+
+def _int_mark(value: int) -> str:
+    """What stands for an int :func:`_writable_int` refuses."""
+    return f"<int of {value.bit_length():,} bits>"
 
 
 def _refuse(value: Any) -> Any:
@@ -243,6 +266,16 @@ def to_json(value: Any) -> str:
     text = _scalar_text(value)
     if text is not None:
         return text if len(text) <= MAX_CHARS else json.dumps(truncated(text))
+    try:
+        return _written(value)
+    except (KeyboardInterrupt, PolicyTimeout):
+        raise  # the call's time limit (or a stop) while the policy's code ran: the episode's end, not a value
+    except BaseException as failed:  # noqa: BLE001 - untrusted code ran inside the value: anything, SystemExit too
+        return json.dumps(f"<not shown: writing it raised {exception_name(failed)}>")
+
+
+def _written(value: Any) -> str:
+    """:func:`to_json` of a value that is not one of :data:`_SCALAR_TEXT`'s types."""
     nested = isinstance(value, (dict, list, tuple))
     if nested and sys.getrecursionlimit() > _USUAL_RECURSION_LIMIT and deeper_than(value, MAX_DEPTH):
         # the policy raised its recursion limit: json.dumps would follow a deep value until the stack overflows
@@ -340,9 +373,14 @@ class NodeRecorder:
         values = list(args)
         if kwargs:
             values.extend(kwargs.values())
-        for value in list(values):
-            if isinstance(value, (tuple, list)) and len(value) <= 16:
-                values.extend(value)
+        try:
+            for value in list(values):
+                if isinstance(value, (tuple, list)) and len(value) <= 16:
+                    values.extend(value)
+        except (KeyboardInterrupt, PolicyTimeout):
+            raise
+        except BaseException:  # noqa: BLE001 - a subclass's own __len__ or __iter__ (policy code) raised: the
+            pass  # elements found so far are searched; the call itself goes on as it would untraced
         parents = set()
         for value in values:
             # the most recent call that returned this very object is its direct producer

@@ -63,7 +63,10 @@ MAX_TEXT_BYTES = 16 * 1024
 DURATION_SLACK_US = 1_000_000
 """A node may last the episode's wall time and this much more (the two processes' clocks start apart)."""
 
-_NUMBER = r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][+-]?[0-9]+)?"
+_NUMBER = r"-?(?:0|[1-9][0-9]{0,99})(?:\.[0-9]+)?(?:[eE][+-]?[0-9]+)?"
+"""A JSON number of at most 100 digits before its point: Python reads an integer only up to its limit of digits
+(4,300), so a longer one is parsed like any other text (this shape once let a 5,000-digit integer through, a value
+the store held and Python's ``json.loads`` refused)."""
 _STRING = r'"(?:[^"\\\x00-\x1f]|\\["\\/bfnrt]|\\u(?:[0-9a-ce-fA-CE-F][0-9a-fA-F]{3}|[dD][0-7][0-9a-fA-F]{2}))*"'
 _SCALAR = f"(?:{_NUMBER}|true|false|null|{_STRING})"
 _FLAT = rf'(?:{_SCALAR}|\{{"\$ref":"obs"\}}|\[(?:{_SCALAR}(?:,{_SCALAR})*)?\])'

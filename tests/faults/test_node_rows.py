@@ -82,6 +82,7 @@ FORGERIES = [
     ("parents", [0, 0], "at step 0: a parent that is not an earlier call of the same step"),
     ("output", "{not json", "at step 0: a node's output is not JSON"),
     ("output", "NaN", "at step 0: a node's output is not JSON"),
+    ("output", "1" + "0" * 5000, "at step 0: a node's output is not JSON"),  # Python reads 4,300 digits at most
     ("output", '"\\ud800"', "at step 0: a node's output is not JSON (a lone surrogate)"),
     ("output", "[" * 65 + "]" * 65, "at step 0: a node's output is nested deeper than 64 levels"),
     ("output", '"' + "y" * 90_000 + '"', "at step 0: a node's output of more than 21,024 bytes"),
@@ -104,6 +105,93 @@ def test_honest_json_the_fast_path_leaves_out_is_parsed_and_accepted(honest):
     spec, outcome = honest
     for text in ('{"a": [1, {"b": [true, null]}], "c": "\\u00e9\\ud83d\\ude00"}', '"caf\u00e9"', "[[[]]]", "-0.5e-3"):
         assert _read(spec, outcome, _set(outcome.nodes, "output", 0, text)).num_rows == outcome.nodes.num_rows
+
+
+_JSON_PIECES = ["NaN", "Infinity", "-Infinity", "\\ud800", "\\udc00", "\\ud83d\\ude00", "\\u00e9", "\\u12",
+                "\\x", "\\/", "\ufeff", ",", ":", "[", "]", "{", "}", '"', "\\", "\n", " ", "\t", "\x00", "\x1f", "1",
+                "0", "01", "-", "+", ".", "e", "E", "true", "tru", "null", "nul", "false", '{"$ref":"obs"}', "0" * 5000,
+                "[" * 65 + "]" * 65]
+"""Tokens a forger (or a cut) puts in a node value: JSON's own, and what it forbids."""
+
+
+def _json_text(rng) -> str:
+    """A text near JSON: an honest node value (nested, spaced, escaped), a token soup, or one with a cut, a token
+    spliced in or a repeat."""
+    import json
+    import string
+
+    def value(depth: int):
+        kind = rng.randrange(9 if depth < 3 else 5)
+        if kind == 0:
+            return rng.choice([None, True, False])
+        if kind == 1:
+            return rng.choice([0, -1, 7, 10**12, rng.randint(-10**6, 10**6)])
+        if kind == 2:
+            return rng.choice([0.5, -0.0, 1e300, 2.5e-8, rng.uniform(-1e3, 1e3)])
+        if kind in (3, 4):
+            return "".join(rng.choice(string.printable + "\u00e9\u2028\U0001f600") for _ in range(rng.randrange(8)))
+        if kind in (5, 6):
+            return [value(depth + 1) for _ in range(rng.randrange(4))]
+        return {rng.choice(["x", "y", "nearest_item", "", "\u00e9"]): value(depth + 1) for _ in range(rng.randrange(4))}
+
+    if rng.random() < 0.3:
+        return "".join(rng.choice(_JSON_PIECES[:-2]) for _ in range(rng.randrange(1, 10)))
+    text = json.dumps(value(rng.randrange(3)), ensure_ascii=rng.random() < 0.5,
+                      separators=rng.choice([(",", ":"), (",", ":"), (", ", ": ")]), indent=rng.choice([None, None, 1]))
+    for _ in range(rng.choice([0, 0, 0, 0, 0, 1, 2])):
+        at, how = rng.randrange(len(text) + 1), rng.randrange(3)
+        text = text[:at] if how == 0 else text[:at] + rng.choice(_JSON_PIECES) + text[at:] if how == 1 else text + text
+    return text
+
+
+def test_a_node_value_is_judged_by_the_fast_path_as_json_loads_and_the_store_judge_it_alone():
+    """``nodes._invalid_json`` lets a value of :data:`SIMPLE_JSON`'s shape through on a regular expression, and parses
+    the others once per distinct text. Over 1,500 drawn columns of texts near JSON (honest values, nested, spaced,
+    escaped, cut, spliced; token soups of numbers, escapes, surrogates, NaN, control characters), it names the
+    same first row, for the same reason, as ``_not_json`` of each text alone; and every text it accepts, by the
+    expression or parsed, is JSON that ``json.loads`` and the store's JSON type both accept. (The expression let
+    an integer of 5,000 digits through, which the store held and Python refuses to read: such a number is parsed
+    now, and refused.)"""
+    import random
+
+    import duckdb
+
+    from pipeline.boundary.nodes import SIMPLE_JSON, _invalid_json, _not_json
+
+    rng, passed, accepted, verdicts = random.Random(20261208), [], [], {True: 0, False: 0}
+    for _ in range(1500):
+        texts = [_json_text(rng) for _ in range(rng.randrange(1, 5))]
+        column = pa.chunked_array([pa.array(texts, pa.string())])
+        alone = next(((i, why) for i, text in enumerate(texts) if (why := _not_json(text)) is not None), None)
+        assert _invalid_json(column) == alone, texts
+        verdicts[alone is None] += 1
+        simple = pc.match_substring_regex(column, SIMPLE_JSON).to_pylist()
+        passed += [text for text, fast in zip(texts, simple) if fast]
+        accepted += [text for text in texts if _not_json(text) is None]
+    assert min(verdicts.values()) > 300, f"the draws hold both accepted and refused columns: {verdicts}"
+    assert len(passed) > 1000 and [t for t in passed if _not_json(t) is not None] == []
+    refused = duckdb.connect().execute("SELECT list(t) FROM (SELECT unnest(?) AS t) WHERE try_cast(t AS JSON) IS NULL",
+                                       [accepted]).fetchone()[0]
+    assert not refused, f"the store refuses texts the check accepts: {refused[:5]}"
+
+
+def test_a_method_that_returns_an_int_python_will_not_write_plays_traced_as_untraced():
+    """Python writes an int of at most 4,300 digits (``sys.get_int_max_str_digits``): a traced method that returned
+    ``10**5000`` ended its episode in that ValueError (``policy_error``), where the same policy untraced played on.
+    Now its node holds a marker, and the traced episode is the untraced one."""
+    policy = pong_policy("self.huge(3)\nreturn 0") + """
+    @trace.bundle()
+    def huge(self, n):
+        return 10 ** 5000 + n
+"""
+    played = {trace: run_episode(EpisodeSpec(f"run.0.eval.{trace:d}", "run", "pong", policy, "v", max_steps=30,
+                                             trace=trace)) for trace in (False, True)}
+    assert [(o.end_reason, o.episode["return"], o.episode["length"]) for o in played.values()] == \
+        [(played[False].end_reason, played[False].episode["return"], 30)] * 2
+    assert played[False].end_reason != "policy_error"
+    outputs = {o for f, o in zip(played[True].nodes.column("function").to_pylist(),
+                                 played[True].nodes.column("output").to_pylist()) if f == "huge"}
+    assert outputs == {'"<int of 16,610 bits>"'}
 
 
 def test_too_many_rows_are_refused_before_they_are_read(honest):
