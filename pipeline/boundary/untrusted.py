@@ -152,8 +152,8 @@ def utf8_prefix(text: str, limit: int) -> str:
 
 def clean_json_text(text: str | None, limit: int = JSON_LIMIT) -> str | None:
     """A JSON text from a worker, scrubbed, capped at ``limit`` UTF-8 bytes and bounded in nesting, and still valid
-    JSON (a cut value becomes a JSON string of its first ``limit`` bytes; a value nested too deep, its marker:
-    ``tracing/bounded.py``)."""
+    JSON (a cut value becomes a JSON string of as much of its text as fits, marked; a value nested too deep, its
+    marker: ``tracing/bounded.py``)."""
     if text is None:
         return None
     if not isinstance(text, str):
@@ -165,11 +165,45 @@ def clean_json_text(text: str | None, limit: int = JSON_LIMIT) -> str | None:
             return bound_json_text(text, limit, MAX_DEPTH)
         try:
             json.loads(cleaned)
-            return bound_json_text(cleaned, limit, MAX_DEPTH)
         except (ValueError, RecursionError):
             pass
-    cut = f"… [cut {len(text) - len(head):,} characters]" if len(head) < len(text) else ""
-    return json.dumps(f"{clean_untrusted_text(head, limit)}{cut}", ensure_ascii=False)
+        else:
+            if len(cleaned.encode("utf-8")) <= limit:  # a secret of 8 characters is 10 as "[redacted]"
+                return bound_json_text(cleaned, limit, MAX_DEPTH)
+    return _as_json_string(clean_untrusted_text(head, limit), len(text) - len(head), limit)
+
+
+def _as_json_string(shown: str, dropped: int, limit: int) -> str:
+    """``shown`` (the cleaned start of a text, ``dropped`` of its characters left out) as a JSON string of at most
+    ``limit`` UTF-8 bytes, as much of it as fits, its cut marked. Written as JSON, a quote, a backslash or a line
+    break takes two bytes: the first 16,000 bytes of ``[\\n\\n\\n...]`` were stored as 32,000, twice what the store
+    was said to hold. The longest start that fits is searched where the bytes would put it were they spread evenly
+    over the characters (two or three encodings of a usual text), every other try halving the range (at most ~28
+    for a text made to mislead that guess)."""
+    def written(kept: int) -> tuple[str, int]:
+        left_out = dropped + len(shown) - kept
+        cut = f"… [cut {left_out:,} characters]" if left_out else ""
+        text = json.dumps(f"{shown[:kept]}{cut}", ensure_ascii=False)
+        return text, len(text.encode("utf-8"))
+
+    best, size = written(len(shown))
+    if size <= limit:
+        return best
+    best, fits_size = written(0)  # the marker alone, written even where it does not fit (a tiny limit)
+    fits, too_long, long_size, halve = 0, len(shown), size, False
+    while too_long - fits > 1:
+        if halve:
+            middle = (fits + too_long) // 2
+        else:
+            share = (limit - fits_size) / max(1, long_size - fits_size)
+            middle = min(max(fits + int((too_long - fits) * share), fits + 1), too_long - 1)
+        halve = not halve
+        text, size = written(middle)
+        if size <= limit:
+            best, fits, fits_size = text, middle, size
+        else:
+            too_long, long_size = middle, size
+    return best
 
 
 _NODE_TEXT = {"function": 200, "exc_type": 200, "exc_message": MESSAGE_LIMIT, "exc_source": MESSAGE_LIMIT}

@@ -95,7 +95,56 @@ def test_secret_values_and_key_shapes_are_redacted(monkeypatch):
     long = clean_untrusted_text("x" * 8_000_000)
     assert len(long) < 2100 and long.endswith("[cut 7,998,000 characters]")
     assert json.loads(clean_json_text('{"k": "hunter2-long-enough"}')) == {"k": "[redacted]"}
-    assert json.loads(clean_json_text(json.dumps("y" * 100_000))).endswith("[cut 84,002 characters]")
+    shown = json.loads(clean_json_text(json.dumps("y" * 100_000)))  # 100,002 characters of JSON, 16,000 bytes kept
+    assert shown.startswith('"yyy') and shown.endswith(f"[cut {100_002 - len(shown.split('…')[0]):,} characters]")
+
+
+def test_a_cleaned_node_value_is_json_of_at_most_its_bytes_whatever_it_holds(monkeypatch):
+    """``clean_json_text`` is what the store holds of a node value: at most ``JSON_LIMIT`` (16,000) UTF-8 bytes, JSON
+    that ``json.loads`` and the store's JSON type accept. A cut value is a JSON string of the value's first bytes,
+    and written as JSON a quote, a backslash or a line break takes two: ``[`` and 16,000 line breaks were stored as
+    32,000 bytes. Over 1,500 drawn values within what the parent accepts (21,024 bytes of JSON: strings of escapes,
+    quotes, line breaks, astral and accented characters, whitespace between items, secrets and key shapes that
+    become ``[redacted]``, lists nested 64 levels), the bound and the JSON hold, and a cut one shows the start of
+    the value, its cut counted."""
+    import random
+
+    import duckdb
+
+    from pipeline.boundary.nodes import MAX_VALUE_BYTES, _not_json
+    from pipeline.boundary.untrusted import JSON_LIMIT, scrub_secrets, utf8_prefix
+
+    monkeypatch.setenv("SOME_SERVICE_PASSWORD", "hunter2-8")  # 9 characters, 10 as "[redacted]": a longer value
+    pieces = ['"', "\\", "\n", "\t", "\u0001", "é", "😀", "x", " ", "hunter2-8", "sk-" + "a" * 20, "AKIA" + "B" * 16]
+    rng, stored, cut = random.Random(20261208), [], 0
+    for _ in range(1500):
+        size, kind = rng.choice([20, 2_000, 12_000, 16_000, 17_000, 21_000]), rng.randrange(4)
+        if kind == 0:
+            value = json.dumps("".join(rng.choice(pieces) for _ in range(size // 6)), ensure_ascii=rng.random() < 0.5)
+        elif kind == 1:
+            value = json.dumps(["".join(rng.choice(pieces) for _ in range(rng.randrange(1, 12)))
+                                for _ in range(size // 40)], ensure_ascii=rng.random() < 0.5)
+        elif kind == 2:
+            value = "[" + "".join(rng.choice(["\n", " ", "\t", "\r"]) * rng.randrange(1, 60) + "1,"
+                                  for _ in range(size // 32)) + "1]"
+        else:
+            value = "[" * 63 + json.dumps(["hunter2-8"] * (size // 14)) + "]" * 63
+        if len(value.encode()) > MAX_VALUE_BYTES:  # more than the parent lets through
+            continue
+        assert _not_json(value) is None
+        kept = clean_json_text(value)
+        assert len(kept.encode()) <= JSON_LIMIT and _not_json(kept) is None, (len(kept.encode()), value[:80])
+        stored.append(kept)
+        if len(value.encode()) > JSON_LIMIT:
+            start, _, count = json.loads(kept).rpartition("… [cut ")
+            assert scrub_secrets(value).startswith(start[:200]) and len(start) > 2_000
+            past_the_bytes = len(value) - len(utf8_prefix(value, JSON_LIMIT))
+            assert int(count.removesuffix(" characters]").replace(",", "")) >= past_the_bytes
+            cut += 1
+    assert cut > 300, "the draws cut values"
+    refused = duckdb.connect().execute("SELECT count(*) FROM (SELECT unnest(?) AS t) WHERE try_cast(t AS JSON) IS NULL",
+                                       [stored]).fetchone()[0]
+    assert refused == 0
 
 
 def test_object_names_in_step_rows_are_cleaned_and_clean_ones_kept(monkeypatch):
