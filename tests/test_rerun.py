@@ -421,3 +421,30 @@ def test_view_save_ends_when_its_sink_is_stuck(tmp_path, capsys):
         os.close(reader)
     said = [line for line in err.splitlines() if line.startswith("codearcade")]
     assert proc.returncode == 2 and len(said) == 1 and "did not" in said[0] and str(pipe) in said[0], err[-2000:]
+
+
+@pytest.mark.slow
+def test_a_method_that_returns_an_int_past_a_float_is_recorded_live_and_rebuilt(store, tmp_path):
+    """A bundled method may return ``10**400``: Python writes it (401 digits) and the store holds it, but a float
+    cannot hold it. The live recording was not made (``OverflowError``, said on stderr) and ``view`` of the stored
+    episode ended in that traceback. Now both are made, the method's outputs logged as text, the numbers whole."""
+    from tests.conftest import pong_policy
+
+    policy = tmp_path / "huge.py"
+    policy.write_text(pong_policy("self.huge(3)\nreturn 0") + """
+    @trace.bundle()
+    def huge(self, n):
+        return 10 ** 400 + n
+""")
+    live = tmp_path / "live"
+    code, out, err = run_main("eval", policy, "--trace", "--max-steps", 6, "--rerun", live, "--store", store.path,
+                              "--json")
+    assert code == 0 and "was not made" not in err, err
+    episode_id = json.loads(out)["episodes"][0]["episode_id"]
+    rebuilt = tmp_path / "rebuilt.rrd"
+    code, out, err = run_view(episode_id.split(".")[0], "--episode", 0, "--save", rebuilt, "--store", store.path)
+    assert code == 0 and "Traceback" not in err, err
+    contents = dump(live / f"{episode_id}.rrd", rebuilt)
+    for content in contents.values():
+        logged = column(content, "/policy/huge:TextLog:text")
+        assert [json.loads(v[0]) for _, v in sorted(logged.items())] == [10**400 + 3] * 6

@@ -28,11 +28,16 @@ from viewers.safe_text import markdown_code_block, markdown_text
 
 
 def _numeric(value: Any) -> float | None:
-    """A node output as a number, or None when it is not one (bools are 0/1; JSON's non-finite strings too)."""
+    """A node output as a number, or None when it is not one (bools are 0/1; JSON's non-finite strings too); an int
+    past a float's range (``10**400``, which a method may return: float() raised OverflowError, the live recording
+    was not made and ``view`` of the episode ended in a traceback) is not one: its function is shown as text."""
     if isinstance(value, bool):
         return float(value)
     if isinstance(value, (int, float)):
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:
+            return None
     if value in ("NaN", "Infinity", "-Infinity"):
         return float(value.replace("Infinity", "inf"))
     return None
