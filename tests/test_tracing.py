@@ -380,6 +380,50 @@ def test_a_policy_file_s_step_caps_are_held_to_their_flags_ranges():
             task_settings(own, "breakout")
 
 
+HOSTILE_BAND_VALUES = ["5", None, True, [], {}, -1, 0, 2.5, 10**400, -(10**400), 1e999, -1e999, "{score}"]
+"""What a policy file's FEEDBACK may hold for a number or a message (a literal ``1e999`` is infinity)."""
+HOSTILE_TEMPLATES = ["{score:g} of {target}", "{nope}", "{score", "{0}", "{score.real}", "{gap:d}", "{target[0]}",
+                     "plain", "{{score}}", "}"]
+
+
+def test_a_policy_file_s_feedback_bands_are_refused_in_a_line_or_read_back_as_recorded():
+    """A file's ``FEEDBACK`` with a number past a float (an int of 401 digits) ended ``optimize`` in an
+    OverflowError's traceback; one with a message that is no template (``{nope}``) started the run, which then
+    refused its own record as a store "changed by hand or damaged". Over 600 drawn FEEDBACK constants (numbers,
+    texts, infinities, huge ints, templates good and bad, keys missing), each is refused in one line naming the file,
+    or taken; and what is taken, recorded as the loop records it, reads back as the same bands
+    (``FeedbackBands.from_record``)."""
+    import random
+    from dataclasses import asdict
+
+    from pipeline.optimizer.feedback import FeedbackBands
+    from pipeline.optimizer.task import task_settings
+
+    scaffold = (EXAMPLES / "pong.py").read_text()
+    rng, taken, refused = random.Random(20261208), 0, 0
+    for _ in range(600):
+        band: dict = {}
+        for key in ("high", "low", "target"):
+            if rng.random() < 0.8:
+                band[key] = rng.choice(HOSTILE_BAND_VALUES) if rng.random() < 0.25 else rng.choice([21, -21, 0.5])
+        if rng.random() < 0.7:
+            band["messages"] = {stage: rng.choice(HOSTILE_TEMPLATES + [5, None]) if rng.random() < 0.3 else "{gap:g}"
+                                for stage in rng.sample(["high", "medium", "low", 3], rng.randrange(4))}
+        feedback = rng.choice([band, band, band, [band], "bands"])
+        written = repr(feedback).replace("inf", "1e999")  # a literal Python reads as infinity
+        info = inspect_policy(scaffold.replace('GAME = "pong"', f'GAME = "pong"\nFEEDBACK = {written}'), "f.py")
+        assert info.constants["FEEDBACK"] == feedback
+        try:
+            bands = task_settings(info, "pong").feedback
+        except ValueError as exc:
+            assert str(exc).startswith("f.py: FEEDBACK ") and "\n" not in str(exc), str(exc)
+            refused += 1
+            continue
+        assert FeedbackBands.from_record(json.loads(json.dumps(asdict(bands))), "run") == bands
+        taken += 1
+    assert taken > 50 and refused > 300, (taken, refused)
+
+
 ECHO_POLICY = pong_policy("return 0") + """
     @trace.bundle()
     def echo(self, value, other=None):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import reprlib
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 from pipeline.boundary.untrusted import clean_untrusted_text, single_line
 from pipeline.optimizer.config import FEEDBACK_MODES  # ``feedback``'s choices, declared there
@@ -58,32 +58,53 @@ class FeedbackBands:
             shown = ", ".join(map(reprlib.repr, wrong[:3]))
             raise unreadable(f"must have exactly {', '.join(sorted(fields))}; {shown} "
                              f"{'is' if len(wrong) == 1 else 'are'} not so")  # a key may be any text: cut
+        return cls._checked(value, unreadable)
+
+    @classmethod
+    def from_constant(cls, value: Any, source: str) -> "FeedbackBands":
+        """The bands a policy file's ``FEEDBACK`` (or a game's task) declares: ``high`` and ``low``, optionally
+        ``target`` (``high`` when left out) and ``messages``; checked as a recorded one is (:meth:`from_record`), so
+        that what cannot be a band stops the command before anything starts, naming the file. A number past a
+        float (an int of 401 digits) ended ``optimize`` in an OverflowError's traceback, and a message that is no
+        template started the run and then refused it as a store "changed by hand or damaged"."""
+        def wrong(problem: str) -> ValueError:
+            return ValueError(f"{source}: FEEDBACK {problem}")
+
+        if not isinstance(value, dict) or "high" not in value or "low" not in value:
+            raise wrong("must be a dict with numeric 'high' and 'low' (and optional 'target', 'messages')")
+        messages = value.get("messages", {})
+        if not isinstance(messages, dict):
+            raise wrong(f"messages must map each band to a text, not {reprlib.repr(messages)}")
+        return cls._checked({"high": value["high"], "low": value["low"], "target": value.get("target", value["high"]),
+                             "messages": {str(k): v for k, v in messages.items()}}, wrong)
+
+    @classmethod
+    def _checked(cls, value: dict, wrong: Callable[[str], Exception]) -> "FeedbackBands":
+        """The bands of ``value`` (``high``, ``low``, ``target``, ``messages``), each checked; ``wrong(problem)``
+        is raised for the first that cannot be: a number that is not a finite float, a message that is not text
+        or not a template of ``score``, ``target`` and ``gap``."""
         numbers = {}
         for key in ("high", "low", "target"):
             number = value[key]
-            if isinstance(number, bool) or not isinstance(number, (int, float)) or not math.isfinite(number):
-                raise unreadable(f"{key} must be a finite number, not {reprlib.repr(number)}")
-            numbers[key] = float(number)
+            if isinstance(number, bool) or not isinstance(number, (int, float)):
+                raise wrong(f"{key} must be a finite number, not {reprlib.repr(number)}")
+            try:
+                numbers[key] = float(number)
+            except OverflowError:  # an int past a float's range
+                numbers[key] = math.inf
+            if not math.isfinite(numbers[key]):
+                raise wrong(f"{key} must be a finite number, not {reprlib.repr(number)}")
         messages = value["messages"]
         if not isinstance(messages, dict) or not all(isinstance(t, str) for t in messages.values()):
-            raise unreadable(f"messages must map each band to a text, not {reprlib.repr(messages)}")
+            raise wrong(f"messages must map each band to a text, not {reprlib.repr(messages)}")
         bands = cls(numbers["high"], numbers["low"], numbers["target"], dict(messages))
         for stage, template in messages.items():
             try:
                 template.format(score=bands.low, target=bands.target, gap=abs(bands.target - bands.low))
             except (KeyError, IndexError, ValueError, AttributeError, TypeError) as exc:
-                raise unreadable(f"message {stage!r} is not a template of score, target and gap "
-                                 f"({type(exc).__name__}: {reprlib.repr(str(exc))})") from None
+                raise wrong(f"message {stage!r} is not a template of score, target and gap "
+                            f"({type(exc).__name__}: {reprlib.repr(str(exc))})") from None
         return bands
-
-    @classmethod
-    def from_constant(cls, value: Any, source: str) -> "FeedbackBands":
-        try:
-            return cls(float(value["high"]), float(value["low"]), float(value.get("target", value["high"])),
-                       {str(k): str(v) for k, v in dict(value.get("messages", {})).items()})
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{source}: FEEDBACK must be a dict with numeric 'high' and 'low' "
-                             f"(and optional 'target', 'messages'): {exc}") from None
 
 
 def compose_feedback(
