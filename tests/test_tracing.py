@@ -424,6 +424,34 @@ def test_a_policy_file_s_feedback_bands_are_refused_in_a_line_or_read_back_as_re
     assert taken > 50 and refused > 300, (taken, refused)
 
 
+
+@pytest.mark.parametrize("constant", ["ROLLOUT_STEPS", "EVAL_MAX_STEPS", "INSTRUCTION"])
+def test_a_policy_file_s_task_constants_of_another_type_are_refused_in_a_line(constant):
+    """``ROLLOUT_STEPS = 1e999`` ended ``optimize`` in an OverflowError's traceback, ``= None`` or ``= []`` in a
+    TypeError's, ``= 3.7`` and ``= True`` were taken as 3 and 1, ``INSTRUCTION = None`` was sent to the model as the
+    text "None": each value of another type is one line naming the file and the constant; a right one is taken."""
+    from games import get_game
+    from pipeline.optimizer.task import task_settings
+
+    scaffold = (EXAMPLES / "pong.py").read_text()
+    right = '"Play well."' if constant == "INSTRUCTION" else "120"
+    refused = 0
+    for written in HOSTILE_BAND_VALUES_WRITTEN + [right]:
+        info = inspect_policy(scaffold.replace('GAME = "pong"', f'GAME = "pong"\n{constant} = {written}'), "f.py")
+        value = info.constants.get(constant, getattr(get_game("pong").task, constant.lower()))  # no literal: the game's
+        if isinstance(value, str) if constant == "INSTRUCTION" else type(value) is int and 1 <= value < 2**31:
+            assert getattr(task_settings(info, "pong"), constant.lower()) == value
+            continue
+        with pytest.raises(ValueError, match=f"^f.py: {constant} must be "):
+            task_settings(info, "pong")
+        refused += 1
+    assert refused >= 9
+
+
+HOSTILE_BAND_VALUES_WRITTEN = ['"5"', "None", "True", "[]", "{}", "2.5", "10 ** 400", str(10**400), "1e999", "-1e999",
+                               "(1, 2)"]
+"""The same values as policy-file text (``10 ** 400`` is no literal: its constant is not read, the game's is)."""
+
 ECHO_POLICY = pong_policy("return 0") + """
     @trace.bundle()
     def echo(self, value, other=None):

@@ -47,15 +47,22 @@ def task_settings(info: PolicyInfo, game: str) -> TaskSettings:
     steps = {}
     for name, constant in (("rollout_steps", "ROLLOUT_STEPS"), ("eval_max_steps", "EVAL_MAX_STEPS")):
         # a file's ROLLOUT_STEPS = 4611686018427387904 played its whole game and ended in a DuckDB conversion error
-        # (a traceback) when the episode was stored, as the flag had
-        steps[name] = int(merged[constant])
-        check_value(OptimizeConfig, name, steps[name], label=f"{info.name}: {constant}")
+        # (a traceback) when the episode was stored, as the flag had; = 1e999 ended in an OverflowError's, = None
+        # in a TypeError's, and = 3.7 was taken as 3: the flag's type and range, in one line naming the file
+        label = f"{info.name}: {constant}"
+        if merged[constant] is None:  # the flag's own None is "the game's", which a file's None is not
+            raise ValueError(f"{label} must be a whole number, not None")
+        check_value(OptimizeConfig, name, merged[constant], label=label)
+        steps[name] = merged[constant]
+    instruction = merged["INSTRUCTION"]
+    if not isinstance(instruction, str):  # INSTRUCTION = None was sent to the model as the text "None"
+        raise ValueError(f"{info.name}: INSTRUCTION must be a text, not {reprlib.repr(instruction)}")
     return TaskSettings(
         game=spec.name,
         rollout_steps=steps["rollout_steps"],
         eval_max_steps=steps["eval_max_steps"],
         feedback=FeedbackBands.from_constant(merged["FEEDBACK"], info.name),
-        instruction=str(merged["INSTRUCTION"]),
+        instruction=instruction,
     )
 
 
