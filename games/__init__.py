@@ -18,6 +18,7 @@ import difflib
 import importlib
 import os
 import pkgutil
+import reprlib
 from functools import lru_cache
 
 from games import lean_ocatari
@@ -91,8 +92,9 @@ def get_game(name: str | Game) -> Game:
     candidates = list(GAMES) + generic_names()
     close = difflib.get_close_matches(name.strip().lower(), candidates, n=1)
     hint = f" Did you mean '{close[0]}'?" if close else ""
-    raise UnknownGameError(f"unknown game '{name}'; curated games: {', '.join(GAMES)}; any other game OCAtari "
-                           f"reads is played generically (`codearcade games` lists them all).{hint}")
+    # the name as Python writes it (cut): a terminal-safe copy of "pong\x1b[2J" said "unknown game 'pong'"
+    raise UnknownGameError(f"unknown game {reprlib.repr(name)}; curated games: {', '.join(GAMES)}; any other game "
+                           f"OCAtari reads is played generically (`codearcade games` lists them all).{hint}")
 
 
 def list_widths(game: str | Game) -> dict[str, int]:

@@ -310,6 +310,7 @@ def test_an_unreachable_api_base_is_one_line_before_anything_plays(tmp_path):
 
 @pytest.mark.parametrize("argv, said", [
     (["--game", "pongg"], "unknown game 'pongg'"),
+    (["--game", "pong\x1b[2J"], "unknown game 'pong\\x1b[2J'"),  # shown as written, not as 'pong'
     (["missing.py"], "policy file 'missing.py' does not exist"),
     (["broken.py"], "broken.py:1: syntax error"),
     (["notrain.py"], "no trainable methods"),
