@@ -94,6 +94,33 @@ def test_server_reports_alias_and_full_context(server):
     assert model["meta"]["n_ctx"] == local_llm.CONTEXT_TOKENS
 
 
+def test_the_offline_prompt_cap_holds_in_the_model_s_own_tokens(server):
+    """The prompt's budget counts tokens by an estimate (cl100k_base), and SmolLM2's tokenizer makes more of some
+    text: ``--token-budget 20000`` was held to its context less the reply, 7,680 counted tokens, and the call of
+    9,007 real ones exceeded the 8,192 context. Over the kinds of text a prompt is made of (the eight scaffolds and
+    instructions, JSON rows of a trace, runs of numbers, where SmolLM2 reads each digit as a token), llama.cpp's own
+    count is at most ``OFFLINE_TOKENS_PER_COUNTED`` times the budget's, so a prompt within the cap fits the context."""
+    from games import curated_games
+    from pipeline.llm.client import OFFLINE_TOKENS_PER_COUNTED
+    from pipeline.llm.tokens import TokenCounter
+
+    counter = TokenCounter("openai/smollm2")
+    texts = [g.scaffold.read_text() for g in curated_games().values()]
+    texts += [g.task.instruction for g in curated_games().values()]
+    texts.append("\n".join(json.dumps({"step": i, "obs": {"Ball": {"x": i, "y": 2 * i, "dx": 1, "dy": -1}},
+                                       "out": [i * 7919 % 10007, None, 0.5]}) for i in range(300)))
+    texts.append(" ".join(str(i * 7919 % 100_003) for i in range(2000)))
+    ratios = []
+    for text in texts:
+        asked = urllib.request.Request(server.api_base.removesuffix("/v1") + "/tokenize",
+                                       data=json.dumps({"content": text}).encode(),
+                                       headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(asked, timeout=30) as reply:
+            ratios.append(len(json.load(reply)["tokens"]) / counter(text))
+    assert max(ratios) <= OFFLINE_TOKENS_PER_COUNTED, ratios
+    assert max(ratios) > 1.5, "the numbers are read a digit a token: the margin is needed"
+
+
 def test_server_listens_on_loopback_only(server):
     if not os.path.exists("/proc/net/tcp"):
         pytest.skip("needs Linux /proc/net/tcp")

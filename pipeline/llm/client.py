@@ -460,6 +460,12 @@ OFFLINE_MODEL_LABEL = "offline:smollm2-135m-instruct"
 
 OFFLINE_TOKEN_BUDGET = 3_000
 OFFLINE_MAX_TOKENS = 512
+OFFLINE_TOKENS_PER_COUNTED = 1.8
+"""SmolLM2's tokens per token the prompt's budget counts (``pipeline/llm/tokens.py``: an estimate from cl100k_base
+for a model without a tokenizer of its own in litellm). The offline model's prompt cap is its context less the reply,
+divided by this: measured on llama.cpp's own tokenizer, code and prose are 0.96-1.03 of the count, a Pong prompt of
+7,657 counted tokens 9,007 (1.18: ``--token-budget 20000`` was held to 7,680 counted, and the call exceeded the 8,192
+context), a run of numbers 1.77 (SmolLM2 reads each digit as a token)."""
 """The offline model reads ~100-200 prompt tokens/s on two cores: small prompts keep an iteration near a minute.
 These are the offline model's defaults of ``--token-budget`` and ``--max-tokens``, applied to a run's settings by
 one function (``pipeline/optimizer/config.py: model_defaults``) for the command line and batches alike."""
@@ -496,4 +502,4 @@ def open_client(model: str | None, api_base: str | None, temperature: float, max
     limits = ReplyLimits(min(OFFLINE_REASONING_CHARS, room // 4), room)
     client = LiteLLMClient(server.model, api_base=server.api_base, label=OFFLINE_MODEL_LABEL, reply_limits=limits,
                            **asked)
-    return client, server, server.context_tokens - max_tokens
+    return client, server, int((server.context_tokens - max_tokens) / OFFLINE_TOKENS_PER_COUNTED)
