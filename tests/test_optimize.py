@@ -187,6 +187,38 @@ def test_a_budget_no_prompt_fits_is_refused_before_anything_plays(store, scripte
     assert f"need {need} tokens" in str(refused.value)
 
 
+@pytest.mark.parametrize("command", ["optimize", "batch"])
+def test_a_budget_no_prompt_fits_is_refused_before_anything_plays_whichever_command_makes_the_run(
+        tmp_path, scripted, command):
+    """The command line and a batch make their runs themselves, and the check above ran only in ``optimize()``:
+    ``codearcade optimize --token-budget 600`` made its run, played iteration 0 (minutes at the authors' caps) and
+    failed at iteration 1's prompt; a batch's run the same. Now each is refused before its run is made, with the
+    tokens the prompt needs, and nothing is asked of the model."""
+    from tests.conftest import run_main
+
+    model = scripted([COMPETENT_REPLY])
+    store = tmp_path / "s.duckdb"
+    if command == "optimize":
+        code, out, err = run_main("optimize", "--game", "pong", "--model", model.model, "--api-base", model.api_base,
+                                  "--token-budget", 600, "--iterations", 1, "--store", store)
+        assert code == 2 and "alone need" in err and "more than the budget of 600" in err, err
+    else:
+        (tmp_path / "e.toml").write_text(f'[defaults]\nmodel = "{model.model}"\napi_base = "{model.api_base}"\n'
+                                         'token_budget = 600\niterations = 1\n[matrix]\ngame = ["pong"]\n')
+        code, out, err = run_main("batch", tmp_path / "e.toml", "--store", store)
+        assert code != 0 and "alone need" in err, err
+    played = duckdb_count(store, "SELECT count(*) FROM episodes") if store.exists() else 0
+    assert played == 0 and model.requests() == [], "no episode played, no call made"
+    if command == "optimize":
+        assert not store.exists() or duckdb_count(store, "SELECT count(*) FROM runs") == 0, "no run was made"
+
+
+def duckdb_count(path, sql: str) -> int:
+    from store import Store
+
+    return Store(path).query(sql)[0][0]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("budget, given", [("--max-llm-calls", "1"), ("--max-total-tokens", "9000"),
                                            ("--max-wall", "0.0001")])

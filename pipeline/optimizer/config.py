@@ -21,7 +21,7 @@ from pipeline.llm.client import MAX_TOKENS, OFFLINE_MAX_TOKENS, OFFLINE_TOKEN_BU
 from pipeline.optimizer.ensemble import MODEL_CHOICES, check_choice, check_models, model_entries
 from pipeline.optimizer.strategies import STRATEGIES, make_strategy
 from pipeline.play.config import MAX_EPISODES
-from pipeline.settings import (MAX_STEPS, Switch, before_recorded, budgets, check_settings, limit,
+from pipeline.settings import (MAX_STEPS, Switch, before_recorded, budgets, check_settings, declarations, limit,
                                recorded_problem, resumable, setting)
 
 FEEDBACK_MODES = ("staged", "rollout")
@@ -336,6 +336,14 @@ def model_defaults(settings: dict[str, Any]) -> dict[str, Any]:
 
 def fit_to_model(config: OptimizeConfig, prompt_cap: int | None) -> None:
     """Hold the prompt's token budget to what the model's context leaves beside the reply (``prompt_cap``, from
-    ``open_client``; None: no cap), for the command line and batch workers alike."""
-    if prompt_cap is not None and config.token_budget > prompt_cap:
-        config.token_budget = prompt_cap
+    ``open_client``; None: no cap), for the command line and batch workers alike. ValueError when that is less than
+    the least budget: ``--max-tokens 9000`` with the offline model said "--token-budget must be at least 500, got
+    -448", a setting the user had not given."""
+    if prompt_cap is None or config.token_budget <= prompt_cap:
+        return
+    least = declarations(OptimizeConfig)["token_budget"][1].minimum
+    if prompt_cap < least:
+        raise ValueError(f"--max-tokens {config.max_tokens} leaves the model's context room for a prompt of "
+                         f"{max(prompt_cap, 0):,} tokens, less than the least --token-budget ({least:,}): give a "
+                         "smaller --max-tokens")
+    config.token_budget = prompt_cap

@@ -135,13 +135,17 @@ def _end_if_cut_short(store: Store, run_id: str, exc: BaseException, client: LLM
 class NewRun:
     """The run a command makes inside :func:`new_run` (:meth:`start`); ``run_id`` is None until it is made."""
 
-    def __init__(self, store: Store) -> None:
-        self.store = store
+    def __init__(self, store: Store, client: LLMClient | None = None) -> None:
+        self.store, self.client = store, client
         self.run_id: str | None = None
 
     def start(self, config: OptimizeConfig, model_name: str, **kwargs: Any) -> str:
         """:func:`start_run` (same arguments after the store): a press as the run is made is raised once its id
-        is known here, so that :func:`new_run` ends it."""
+        is known here, so that :func:`new_run` ends it. A budget no prompt fits is refused first
+        (:func:`check_prompt_fits`), whichever command makes the run."""
+        if self.client is not None and config.iterations and kwargs.get("starter") is None:
+            kwargs["start"] = kwargs.get("start") or resolve_start(config)
+            check_prompt_fits(config, self.client, *kwargs["start"])
         lock_folder(self.store.path)  # a run that could not be locked is not made (it was, then failed)
         with uninterrupted():
             self.run_id = start_run(config, self.store, model_name, **kwargs)
@@ -158,7 +162,7 @@ def new_run(store: Store, client: LLMClient | None = None) -> Iterator[NewRun]:
     'running' for good (shown interrupted only while no process holds it). Only a run made in the block is ended:
     a resumed one may be another live process's. The command line, a batch's run, :func:`optimize` and a replay
     all make their runs this way."""
-    made = NewRun(store)
+    made = NewRun(store, client)
     try:
         yield made
     except BaseException as exc:
@@ -406,6 +410,19 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
     return ResumePlan(run_id, config, row["status"])
 
 
+def check_prompt_fits(config: OptimizeConfig, client: LLMClient, info: PolicyInfo, game: str) -> None:
+    """:class:`PromptBudgetError` when the policy code and instructions alone need more tokens than the run's budget:
+    said before the run is made. The command line and a batch make their runs themselves, and this was checked
+    only in :func:`optimize`: ``optimize --token-budget 600`` made its run, played iteration 0 and failed at
+    iteration 1's prompt."""
+    need = smallest_prompt_tokens(game, task_settings(info, game).instruction, info, TokenCounter(client.model),
+                                  config.call_time_limit_s)
+    if need > config.token_budget:
+        raise PromptBudgetError(f"the policy code and instructions alone need {need} tokens, more than the budget of "
+                                f"{config.token_budget}; raise --token-budget (a rollout and feedback need more), or "
+                                "lower --max-tokens where the model's context holds the budget")
+
+
 def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: str | None = None,
              log: Callable[[str], None] = lambda s: None,
              on_iteration: Callable[[IterationResult], None] | None = None,
@@ -423,14 +440,6 @@ def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: st
     start = None
     if not resume:
         start = resolve_start(config)
-        if client is not None and config.iterations:  # a budget no prompt fits: said before iteration 0 plays
-            info, game = start
-            need = smallest_prompt_tokens(game, task_settings(info, game).instruction, info,
-                                          TokenCounter(client.model), config.call_time_limit_s)
-            if need > config.token_budget:
-                raise PromptBudgetError(f"the policy code and instructions alone need {need} tokens, more than the "
-                                        f"budget of {config.token_budget}; raise --token-budget (a rollout and "
-                                        "feedback need more)")
     if resume:
         return _continue(config, store, client, resume, log, on_iteration, progress, rerun, waiting, resumed=True)
     with new_run(store, client) as made:
