@@ -294,3 +294,21 @@ def test_other_processes_open_the_store_while_a_clients_first_use_waits(store, s
     result = optimize(_config(iterations=1, eval_max_steps=60, rollout_steps=30), store, _client(model))
     assert result.status == "finished", result.error
     assert seen == ["opened"]
+
+
+@pytest.mark.parametrize("cap, budget", [(-448, None), (0, None), (384, None), (499, None), (500, 500), (4266, 4266),
+                                         (20_000, 16_000)])
+def test_a_model_s_context_holds_the_budget_or_says_which_setting_leaves_no_room(cap, budget):
+    """``--max-tokens 9000`` with the offline model (8,192 tokens of context) said "--token-budget must be at least
+    500, got -448", a setting the user had not given; now the reply's room is named. A cap the least budget fits
+    holds the budget to it; a larger one leaves it."""
+    from pipeline.optimizer.config import fit_to_model
+
+    config = OptimizeConfig(game="pong", max_tokens=9000)
+    if budget is None:
+        with pytest.raises(ValueError, match=f"^--max-tokens 9000 leaves the model's context room for a prompt of "
+                                             f"{max(cap, 0):,} tokens, less than the least --token-budget"):
+            fit_to_model(config, cap)
+    else:
+        fit_to_model(config, cap)
+        assert config.token_budget == budget
