@@ -6,6 +6,7 @@ speed. Real DuckDB files, the real console script in subprocesses, a scripted mo
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import re
@@ -24,7 +25,7 @@ from pipeline.cli import main
 from pipeline.cli.eval import PAPER_PROTOCOL_NOTE
 from store import Store
 from store.locate import user_store_path
-from tests.conftest import COMPETENT_REPLY, ROOT, json_reply, said
+from tests.conftest import COMPETENT_REPLY, ROOT, json_reply, run_main, said
 from tests.scripted_llm import ScriptedModel
 
 EXE = os.path.join(os.path.dirname(sys.executable), "codearcade")
@@ -825,3 +826,27 @@ def test_the_help_imports_no_database():
     done = subprocess.run([sys.executable, "-c", program], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
+
+
+def test_every_count_a_verb_takes_is_refused_past_what_it_can_hold_in_one_line():
+    """A verb's own counts (``runs -n``, ``sql --max-rows``, ``audit --episodes``, ``view --iteration``, ...) took any
+    whole number: ``runs -n 99999999999999999999`` reached DuckDB and ended in a ConversionException's traceback,
+    ``audit --episodes`` of as many said "Sample larger than population". Every flag of every verb whose type is
+    a whole-number range refuses a number past it in the parser's one line, exit 2, before anything runs."""
+    from pipeline.cli import build_parser
+
+    parser = build_parser()
+    verbs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    tried = []
+    for verb, sub in verbs.items():
+        for action in sub._actions:
+            verb_own = getattr(action.type, "__name__", "") in ("positive_int", "non_negative_int") and \
+                not hasattr(action.type, "kind")  # a declared setting's type holds it to its declared range
+            if verb_own and action.option_strings:
+                flag = action.option_strings[-1]
+                code, out, err = run_main(verb, flag, "99999999999999999999")
+                assert code == 2 and "Traceback" not in err, (verb, flag, err)
+                (line,) = err.strip().splitlines()
+                assert "must be within [" in line and "got 99999999999999999999" in line, (verb, flag, line)
+                tried.append(f"{verb} {flag}")
+    assert {"runs --limit", "audit --episodes", "sql --max-rows", "view --iteration"} <= set(tried), tried

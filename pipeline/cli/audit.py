@@ -12,7 +12,8 @@ import argparse
 import sys
 
 from pipeline.cli.common import (EXIT_BAD_INPUT, EXIT_OK, CliError, EpisodeProgress, add_run, add_store, command_text,
-                                 open_store, positive_int, resolve_run, short_id, show, show_json)
+                                 open_store, positive_int, resolve_run, short_id, show, show_json, whole_number_within)
+from pipeline.play.config import MAX_EPISODES
 
 
 def add_parser(verbs) -> None:
@@ -30,7 +31,8 @@ def add_parser(verbs) -> None:
                "codearcade audit my-run --seeds 1234567,7654321 (an earlier audit's games again)",
     )
     add_run(p)
-    p.add_argument("--episodes", type=positive_int, metavar="N",
+    # at most an evaluation's episodes: --episodes 99999999999999999999 said "Sample larger than population"
+    p.add_argument("--episodes", type=whole_number_within(1, MAX_EPISODES), metavar="N",
                    help="games per version and protocol (default: the run's --audit-episodes, or 3)")
     p.add_argument("--seeds", type=_seeds, metavar="S,S,...",
                    help="play these audit seeds instead of drawing new ones (an earlier audit's, from its audits row "

@@ -423,18 +423,25 @@ def _whole_number(text: str) -> int:
         raise argparse.ArgumentTypeError(f"give a whole number, got {text!r}") from None
 
 
-def positive_int(text: str) -> int:
-    value = _whole_number(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
+MAX_COUNT = 2**31 - 1
+"""The largest count a verb's own flag takes (``runs -n``, ``sql --max-rows``, ``--iteration``): what a store's
+``INTEGER`` holds. ``runs -n 99999999999999999999`` reached DuckDB, which refused it with a traceback."""
 
 
-def non_negative_int(text: str) -> int:
-    value = _whole_number(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
-    return value
+def whole_number_within(low: int, high: int = MAX_COUNT) -> Callable[[str], int]:
+    """The argparse type of a whole number from ``low`` to ``high``, refused in the words of a setting's range."""
+    def typed(text: str) -> int:
+        value = _whole_number(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be within [{low}, {high}], got {value}")
+        return value
+
+    typed.__name__ = "positive_int" if low >= 1 else "non_negative_int"
+    return typed
+
+
+positive_int = whole_number_within(1)
+non_negative_int = whole_number_within(0)
 
 
 def positive_seconds(text: str) -> float:
