@@ -300,10 +300,13 @@ def test_an_emptied_migration_table_is_damage_for_every_command_and_the_doctor(p
     assert code == 0 and "ok: no damage found" in out, out + err
 
 
-@pytest.mark.parametrize("value", ["-1", "0", "nan", "inf"])
+@pytest.mark.parametrize("value", ["-1", "0", "nan", "inf", "1e308", "86401", "abc"])
 def test_export_names_its_timeout_flag_when_the_value_is_no_time(played, capsys, value):
+    """``--timeout 1e308`` reached the OTLP exporter, which failed with "timestamp out of range for platform
+    time_t"; ``abc`` was argparse's own "invalid positive_seconds value"."""
     code, _, err = _run(capsys, "export", "last", "--timeout", value, "--store", played)
-    assert code == 2 and "--timeout: must be a number of seconds above 0" in err, err
+    assert code == 2 and ("--timeout: must be a number of seconds above 0 and at most 86400" in err or
+                          "--timeout: give a number of seconds, got 'abc'" in err), err
 
 
 @pytest.mark.parametrize("statement, named", [("INSTALL httpfs", "INSTALL"), ("load httpfs", "LOAD"),

@@ -444,10 +444,18 @@ positive_int = whole_number_within(1)
 non_negative_int = whole_number_within(0)
 
 
+MAX_SECONDS = 86_400.0
+"""The longest wait a verb's own flag takes (``export --timeout``): ``--timeout 1e308`` reached the OTLP exporter,
+which failed with "timestamp out of range for platform time_t"."""
+
+
 def positive_seconds(text: str) -> float:
-    value = float(text)
-    if not value > 0 or value == float("inf"):  # NaN too
-        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0, got {text}")
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"give a number of seconds, got {text!r}") from None
+    if not 0 < value <= MAX_SECONDS:  # NaN too
+        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0 and at most {MAX_SECONDS:g}, got {text}")
     return value
 
 
