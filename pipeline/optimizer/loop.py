@@ -43,7 +43,7 @@ from pipeline.stopping import uninterrupted
 from pipeline.optimizer.feedback import FeedbackBands
 from pipeline.optimizer.budgets import BudgetExhausted, check_wall
 from pipeline.optimizer.propose import Proposal, propose
-from pipeline.optimizer.prompt import PromptBudgetError, smallest_prompt_tokens
+from pipeline.optimizer.prompt import check_prompt_fits
 from pipeline.optimizer.state import RunState
 from pipeline.optimizer.strategies import History
 from pipeline.optimizer.task import recorded_task_problem, resolve_start, task_settings
@@ -142,10 +142,13 @@ class NewRun:
     def start(self, config: OptimizeConfig, model_name: str, **kwargs: Any) -> str:
         """:func:`start_run` (same arguments after the store): a press as the run is made is raised once its id
         is known here, so that :func:`new_run` ends it. A budget no prompt fits is refused first
-        (:func:`check_prompt_fits`), whichever command makes the run."""
+        (``prompt.check_prompt_fits``), whichever command makes the run."""
         if self.client is not None and config.iterations and kwargs.get("starter") is None:
-            kwargs["start"] = kwargs.get("start") or resolve_start(config)
-            check_prompt_fits(config, self.client, *kwargs["start"])
+            # the check ran only in optimize(): `codearcade optimize --token-budget 600` (and a batch's run) made
+            # its run, played iteration 0 and failed at iteration 1's prompt
+            info, game = kwargs["start"] = kwargs.get("start") or resolve_start(config)
+            check_prompt_fits(config.token_budget, game, task_settings(info, game).instruction, info,
+                              self.client.model, config.call_time_limit_s)
         lock_folder(self.store.path)  # a run that could not be locked is not made (it was, then failed)
         with uninterrupted():
             self.run_id = start_run(config, self.store, model_name, **kwargs)
@@ -408,19 +411,6 @@ def plan_resume(store: Store, run: str, given: dict[str, Any]) -> ResumePlan:
                          f"{': ' + row['error'] if row['error'] else ''}; give --iterations N (more than "
                          f"{config.iterations}) to play more")
     return ResumePlan(run_id, config, row["status"])
-
-
-def check_prompt_fits(config: OptimizeConfig, client: LLMClient, info: PolicyInfo, game: str) -> None:
-    """:class:`PromptBudgetError` when the policy code and instructions alone need more tokens than the run's budget:
-    said before the run is made. The command line and a batch make their runs themselves, and this was checked
-    only in :func:`optimize`: ``optimize --token-budget 600`` made its run, played iteration 0 and failed at
-    iteration 1's prompt."""
-    need = smallest_prompt_tokens(game, task_settings(info, game).instruction, info, TokenCounter(client.model),
-                                  config.call_time_limit_s)
-    if need > config.token_budget:
-        raise PromptBudgetError(f"the policy code and instructions alone need {need} tokens, more than the budget of "
-                                f"{config.token_budget}; raise --token-budget (a rollout and feedback need more), or "
-                                "lower --max-tokens where the model's context holds the budget")
 
 
 def optimize(config: OptimizeConfig, store: Store, client: LLMClient, resume: str | None = None,

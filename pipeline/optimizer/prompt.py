@@ -317,6 +317,17 @@ def smallest_prompt_tokens(game: str, instruction: str, info: PolicyInfo, counte
     return build_prompt(empty, 2**31, counter).tokens
 
 
+def check_prompt_fits(budget: int, game: str, instruction: str, info: PolicyInfo, model: str,
+                      call_time_limit_s: float) -> None:
+    """:class:`PromptBudgetError` when the policy code and instructions alone (:func:`smallest_prompt_tokens`,
+    counted for ``model``) need more tokens than ``budget``: said before a run is made."""
+    need = smallest_prompt_tokens(game, instruction, info, TokenCounter(model), call_time_limit_s)
+    if need > budget:
+        raise PromptBudgetError(f"the policy code and instructions alone need {need} tokens, more than the budget of "
+                                f"{budget}; raise --token-budget (a rollout and feedback need more), or lower "
+                                "--max-tokens where the model's context holds the budget")
+
+
 def build_prompt(ctx: PromptContext, budget: int, counter: TokenCounter) -> Prompt:
     """Assemble the prompt for ``ctx`` within ``budget`` tokens (see the module docstring)."""
     game = get_game(ctx.game)
