@@ -97,7 +97,12 @@ def test_kill_during_llm_call_then_resume(store, scripted):
 
 KILL_WINDOWS = {
     # where the run is killed: (the script, the extra flags, when to kill, what the replay says)
-    "during iteration 0": ([COMPETENT_REPLY], ("--workers", "1", "--eval-max-steps", "4000"),
+    # a starter whose evaluation games last (4,000 steps each, two of them): the window from its training rollout's
+    # write to iteration 0's commit is seconds long. The scaffold loses in ~800 steps; once litellm was imported
+    # before the run was made (the prompt's budget checked first), that window was ~0.3 s, and the store's polls,
+    # waiting on the run's writes, missed it every time
+    "during iteration 0": ([COMPETENT_REPLY], (str(ROOT / "tests" / "policies" / "pong_competent.py"), "--workers",
+                                               "1", "--eval-max-steps", "4000", "--eval-episodes", "2"),
                            lambda store, model: _count(store, "SELECT count(*) FROM episodes") >= 1
                            and _count(store, "SELECT count(*) FROM iterations") == 0,
                            "the run stopped during iteration 0 (interrupted); 1 call was never recorded"),
